@@ -1,0 +1,61 @@
+"""The ``vastray`` command line: one sub-command per area, each with a runnable example.
+
+Configuration lives here only; library modules log through ``logging.getLogger(__name__)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from vastray.scene.errors import InputError
+
+DESCRIPTION = """\
+vastray renders triangle data too large for one machine's memory, split into spatial domains,
+with ambient occlusion or path tracing, out-of-core on one node or across a cluster.
+
+typical use:
+  vastray render -o default.exr --png default.png          # built-in scene, one command
+  vastray partition bunny.ply -o bunny.store --grid 2x2x2  # mesh -> domains on disk
+  vastray generate rm -o rm.store --resolution 256 --grid 4x4x4
+  vastray info bunny.store
+  vastray render bunny.store -o bunny.exr --integrator pt --spp 16
+  vastray compare bunny.exr reference.exr
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from vastray import commands_render, commands_scene
+
+    parser = argparse.ArgumentParser(
+        prog="vastray", description=DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    commands_scene.register(sub)
+    commands_render.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except InputError as exc:
+        print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"vastray {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
