@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from vastray.scene.errors import InputError
 
 FORMAT = "vastray-store"
@@ -249,7 +248,7 @@ class StoreWriter:
         self._has = {"objects": False, "scalars": False, "colors": False}
         self.extra: dict = {}
 
-    def __enter__(self) -> "StoreWriter":
+    def __enter__(self) -> StoreWriter:
         if self.path.exists() and not self.overwrite:
             raise InputError(self.path, "already exists (pass --force to replace it)")
         self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,121 @@
+"""The single-process reference renderer: batches of paths through the domain tracer to a film."""
+
+from __future__ import annotations
+
+import logging
+import resource
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+from vastray.render.camera import Camera
+from vastray.render.film import Film
+from vastray.render.integrators import RenderSettings, Shading, render_ao, render_pt
+from vastray.render.scene_config import SceneConfig
+from vastray.render.tracer import DomainTracer
+from vastray.scene.cache import DomainCache
+from vastray.scene.store import Store
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RenderResult:
+    """A finished render: the film and what it cost."""
+
+    film: Film
+    camera: Camera
+    seconds: dict = field(default_factory=dict)
+    counters: dict = field(default_factory=dict)
+
+
+def shading_inputs(store: Store, config: SceneConfig, integrator: str):
+    """What shading needs from the store: leaves out attributes the scene does not use.
+
+    Returns
+    -------
+    shading : Shading
+    keep : attributes each loaded domain must keep
+    color_source : "colors", "scalars" or None
+    """
+    color_source = "colors" if store.has_colors else "scalars" if store.has_scalars else None
+    lights = [] if integrator == "ao" else config.resolve_lights()
+    materials = config.material_table(store.objects)
+    keep = set()
+    if color_source:
+        keep.add(color_source)
+    if integrator == "pt" and len(materials) > 1:
+        keep.add("objects")
+    return Shading(lights, materials, color_source is not None), frozenset(keep), color_source
+
+
+def default_ao_distance(store: Store) -> float:
+    """A tenth of the scene's diagonal."""
+    return 0.1 * float(np.linalg.norm(store.bounds[1] - store.bounds[0])) or 1.0
+
+
+def render(store: Store, config: SceneConfig, settings: RenderSettings,
+           cache_capacity: int | None = None, threads: int | None = None,
+           progress: bool = True, drop_page_cache: bool = False) -> RenderResult:
+    """Render a store with one process and an LRU domain cache.
+
+    Parameters
+    ----------
+    store : the domains.
+    config : camera, lights and materials.
+    settings : image size, integrator and sampling.
+    cache_capacity : most domains resident (default: all).
+    threads : Embree query threads (default: all cores).
+    progress : show a progress bar on stderr for renders longer than two seconds.
+    drop_page_cache : make every domain load a real disk read.
+    """
+    if settings.integrator not in ("ao", "pt"):
+        raise ValueError(f"unknown integrator {settings.integrator!r}")
+    start = time.perf_counter()
+    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    capacity = cache_capacity or max(len(store.domains), 1)
+    cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
+    tracer = DomainTracer(store, cache, color_source, threads)
+    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
+                                   settings.height)
+    ao_distance = settings.ao_distance or default_ao_distance(store)
+    film = Film(settings.width, settings.height)
+    total = settings.width * settings.height * settings.spp
+    batch = max(1, settings.batch_size)
+    try:
+        with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
+                  desc="render", leave=False) as bar:
+            for first in range(0, total, batch):
+                ids = np.arange(first, min(first + batch, total), dtype=np.uint64)
+                pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
+                sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
+                if settings.integrator == "ao":
+                    paths = render_ao(tracer, camera, shading, settings, pixel, sample,
+                                      ao_distance)
+                else:
+                    paths = render_pt(tracer, camera, shading, settings, pixel, sample)
+                film.add(paths.pixel.astype(np.int64), paths.radiance)
+                zero = paths.sample == 0
+                film.depth[paths.pixel[zero]] = paths.first_t[zero]
+                film.normal[paths.pixel[zero]] = paths.first_normal[zero]
+                bar.update(len(ids))
+    finally:
+        tracer.close()
+    wall = time.perf_counter() - start
+    stats = cache.stats
+    counters = {
+        "domains": len(store.domains),
+        "domains_entered": len(tracer.stats.domains_entered),
+        "rays": dict(tracer.stats.rays, total=sum(tracer.stats.rays.values())),
+        "ray_domain_tests": tracer.stats.ray_domain_tests,
+        "cache_capacity": capacity,
+        **stats.as_dict(),
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    }
+    seconds = {
+        "total": round(wall, 4),
+        "load": round(stats.load_seconds, 4),
+        "trace_and_shade": round(wall - stats.load_seconds, 4),
+    }
+    return RenderResult(film, camera, seconds, counters)

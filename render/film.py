@@ -1,0 +1,67 @@
+"""The film: per-pixel sums in float64, so accumulation order never shows in the image."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class Film:
+    """Accumulates path radiance per pixel.
+
+    Parameters
+    ----------
+    width, height : image size; pixel index = ``row * width + column``, row 0 at the top.
+    """
+
+    def __init__(self, width: int, height: int):
+        self.width, self.height = width, height
+        n = width * height
+        self.sum = np.zeros((n, 3))  # (P, 3) float64, sum of sample radiance
+        self.sum_sq = np.zeros((n, 3))  # (P, 3) float64, sum of squared sample radiance
+        self.count = np.zeros(n, dtype=np.int64)  # (P,) samples added
+        self.depth = np.full(n, np.inf, dtype=np.float32)  # (P,) first-hit distance, sample 0
+        self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
+
+    def add(self, pixel: np.ndarray, radiance: np.ndarray) -> None:
+        """Add one sample per row.
+
+        Parameters
+        ----------
+        pixel : (n,) pixel index of each sample.
+        radiance : (n, 3) float64 radiance of each sample's whole path.
+        """
+        n = len(self.count)
+        for c in range(3):
+            self.sum[:, c] += np.bincount(pixel, weights=radiance[:, c], minlength=n)
+            self.sum_sq[:, c] += np.bincount(pixel, weights=radiance[:, c] ** 2, minlength=n)
+        self.count += np.bincount(pixel, minlength=n)
+
+    def merge(self, other: Film) -> None:
+        """Add another film's sums (e.g. from another node or tile)."""
+        self.sum += other.sum
+        self.sum_sq += other.sum_sq
+        self.count += other.count
+        seen = np.isfinite(other.depth)
+        self.depth[seen] = other.depth[seen]
+        self.normal[seen] = other.normal[seen]
+
+    def _grid(self, a: np.ndarray) -> np.ndarray:
+        return a.reshape(self.height, self.width, *a.shape[1:])
+
+    def image(self) -> np.ndarray:
+        """(H, W, 3) float32 mean radiance."""
+        mean = self.sum / np.maximum(self.count, 1)[:, None]
+        return self._grid(mean).astype(np.float32)
+
+    def variance_of_mean(self) -> np.ndarray:
+        """(H, W, 3) float64 estimated variance of each pixel's mean (sample variance / n)."""
+        n = np.maximum(self.count, 2)[:, None].astype(np.float64)
+        mean = self.sum / n
+        var = np.maximum(self.sum_sq / n - mean ** 2, 0.0) * n / (n - 1)
+        return self._grid(var / n)
+
+    def depth_image(self) -> np.ndarray:
+        return self._grid(self.depth)
+
+    def normal_image(self) -> np.ndarray:
+        return self._grid(self.normal)

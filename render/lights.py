@@ -1,0 +1,130 @@
+"""Lights and their sampling for next-event estimation.
+
+Each light answers ``sample(points, normals, keys, j)``: a direction toward the light, the
+distance a shadow ray must stay clear, and the incident radiance divided by the sampling pdf.
+Lights with one fixed direction (point, directional) need one shadow ray; area and environment
+lights need ``--shadow-samples`` of them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from vastray.render.rng import Purpose, uniform2
+from vastray.render.sampling import cosine_hemisphere
+
+
+@dataclass(frozen=True)
+class SampleKeys:
+    """Random-number keys of a set of path vertices: (n,) pixel and sample, bounce, seed."""
+
+    seed: int
+    pixel: np.ndarray
+    sample: np.ndarray
+    bounce: int
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """Isotropic point light; ``intensity`` (3,) in W/sr."""
+
+    position: np.ndarray
+    intensity: np.ndarray
+    stochastic = False
+
+    def sample(self, p, n, keys, light_index, j):
+        to_light = self.position[None, :] - p
+        dist = np.linalg.norm(to_light, axis=1)
+        wi = to_light / np.maximum(dist, 1e-300)[:, None]
+        return wi, dist, self.intensity[None, :] / np.maximum(dist * dist, 1e-300)[:, None]
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """Light from infinitely far away travelling along ``direction``; ``irradiance`` (3,)."""
+
+    direction: np.ndarray
+    irradiance: np.ndarray
+    stochastic = False
+
+    def sample(self, p, n, keys, light_index, j):
+        wi = np.broadcast_to(-self.direction / np.linalg.norm(self.direction), p.shape)
+        return wi, np.full(len(p), np.inf), np.broadcast_to(self.irradiance, p.shape)
+
+
+@dataclass(frozen=True)
+class QuadLight:
+    """One-sided parallelogram area light ``corner + s*edge1 + t*edge2`` (s, t in [0, 1]).
+
+    Emits ``radiance`` (3,) on the side of ``cross(edge1, edge2)``; sampled by area for
+    next-event estimation, seen by camera rays, and it casts no shadow itself.
+    """
+
+    corner: np.ndarray
+    edge1: np.ndarray
+    edge2: np.ndarray
+    radiance: np.ndarray
+    stochastic = True
+
+    @property
+    def area_normal(self) -> np.ndarray:
+        return np.cross(self.edge1, self.edge2)
+
+    def sample(self, p, n, keys, light_index, j):
+        s, t = uniform2(keys.seed, keys.pixel, keys.sample, keys.bounce,
+                        Purpose.LIGHT_SAMPLE + 16 * light_index, j)
+        q = self.corner + s[:, None] * self.edge1 + t[:, None] * self.edge2
+        to_light = q - p
+        dist2 = np.einsum("ij,ij->i", to_light, to_light)
+        dist = np.sqrt(dist2)
+        wi = to_light / np.maximum(dist, 1e-300)[:, None]
+        area_normal = self.area_normal
+        area = np.linalg.norm(area_normal)
+        cos_light = np.maximum(0.0, -(wi @ area_normal) / area)
+        weight = self.radiance[None, :] * (cos_light * area / np.maximum(dist2, 1e-300))[:, None]
+        return wi, dist, weight
+
+    def intersect(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Distance along each ray to the emitting side of the quad, ``inf`` where missed.
+
+        Parameters
+        ----------
+        origins, directions : (n, 3)
+
+        Returns
+        -------
+        (n,) float64
+        """
+        nrm = self.area_normal
+        denom = directions @ nrm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((self.corner - origins) @ nrm) / denom
+            hit = origins + t[:, None] * directions - self.corner
+            # Solve hit = s*e1 + t*e2 in the plane via the dual basis.
+            e11, e12, e22 = self.edge1 @ self.edge1, self.edge1 @ self.edge2, self.edge2 @ self.edge2
+            det = e11 * e22 - e12 * e12
+            h1, h2 = hit @ self.edge1, hit @ self.edge2
+            s = (e22 * h1 - e12 * h2) / det
+            u = (e11 * h2 - e12 * h1) / det
+        ok = (denom < 0) & (t > 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1)
+        return np.where(ok, t, np.inf)
+
+
+@dataclass(frozen=True)
+class AmbientLight:
+    """Uniform environment radiance ``radiance`` (3,) from every direction (with occlusion)."""
+
+    radiance: np.ndarray
+    stochastic = True
+
+    def sample(self, p, n, keys, light_index, j):
+        u, v = uniform2(keys.seed, keys.pixel, keys.sample, keys.bounce,
+                        Purpose.LIGHT_SAMPLE + 16 * light_index, j)
+        wi = cosine_hemisphere(n, u, v)
+        cos = np.maximum(np.einsum("ij,ij->i", wi, n), 1e-12)
+        # radiance / pdf with pdf = cos / pi; the integrator multiplies by cos again.
+        return wi, np.full(len(p), np.inf), self.radiance[None, :] * (np.pi / cos)[:, None]
+
+
+Light = PointLight | DirectionalLight | QuadLight | AmbientLight

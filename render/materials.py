@@ -1,0 +1,90 @@
+"""Blinn-Phong materials (diffuse bounces) and the colour map for scalar fields."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Material:
+    """Diffuse albedo (3,), Blinn-Phong specular colour (3,) and exponent."""
+
+    diffuse: np.ndarray
+    specular: np.ndarray
+    shininess: float
+
+    @staticmethod
+    def default() -> Material:
+        return Material(np.full(3, 0.7), np.zeros(3), 32.0)
+
+
+class MaterialTable:
+    """Materials as arrays indexed per hit, so shading never loops over rays.
+
+    Parameters
+    ----------
+    materials : one per object (material slot) of the store, in store order.
+    """
+
+    def __init__(self, materials: list[Material]):
+        self.diffuse = np.stack([m.diffuse for m in materials]).astype(np.float64)  # (M, 3)
+        self.specular = np.stack([m.specular for m in materials]).astype(np.float64)  # (M, 3)
+        self.shininess = np.array([m.shininess for m in materials], dtype=np.float64)  # (M,)
+        self.has_specular = bool(np.any(self.specular > 0))
+
+    def __len__(self) -> int:
+        return len(self.diffuse)
+
+
+# Viridis sampled at 9 points (matplotlib's table), linearly interpolated.
+_VIRIDIS = np.array([
+    [0.267, 0.005, 0.329], [0.283, 0.141, 0.458], [0.254, 0.265, 0.530],
+    [0.207, 0.372, 0.553], [0.164, 0.471, 0.558], [0.128, 0.567, 0.551],
+    [0.135, 0.659, 0.518], [0.267, 0.749, 0.441], [0.993, 0.906, 0.144],
+])
+
+
+def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Map scalars to colours with viridis.
+
+    Parameters
+    ----------
+    values : (n,) scalars; lo, hi : the range mapped to the ends of the map.
+
+    Returns
+    -------
+    (n, 3) float64 linear-ish RGB in [0, 1]
+    """
+    span = hi - lo if hi > lo else 1.0
+    x = np.clip((np.asarray(values, np.float64) - lo) / span, 0.0, 1.0) * (len(_VIRIDIS) - 1)
+    i = np.minimum(x.astype(np.int64), len(_VIRIDIS) - 2)
+    f = (x - i)[:, None]
+    return _VIRIDIS[i] * (1.0 - f) + _VIRIDIS[i + 1] * f
+
+
+def brdf_times_cos(albedo: np.ndarray, specular: np.ndarray, shininess: np.ndarray,
+                   n: np.ndarray, wo: np.ndarray, wi: np.ndarray, cos_i: np.ndarray,
+                   with_specular: bool) -> np.ndarray:
+    """Blinn-Phong BRDF times cos(theta_i), energy-normalised.
+
+    Parameters
+    ----------
+    albedo, specular : (k, 3); shininess : (k,)
+    n, wo, wi : (k, 3) unit facing normal, direction to the viewer, direction to the light.
+    cos_i : (k,) ``dot(n, wi)``, already clamped to >= 0.
+    with_specular : skip the specular lobe entirely when no material has one.
+
+    Returns
+    -------
+    (k, 3)
+    """
+    f = albedo / np.pi
+    if with_specular:
+        h = wo + wi
+        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+        cos_h = np.maximum(0.0, np.einsum("ij,ij->i", n, h))
+        lobe = (shininess + 2.0) / (2.0 * np.pi) * cos_h ** shininess
+        f = f + specular * lobe[:, None]
+    return f * cos_i[:, None]

@@ -1,0 +1,51 @@
+"""Direction sampling and orthonormal frames, vectorised over rays."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit tangents completing each unit normal to a frame (Duff et al. 2017).
+
+    Parameters
+    ----------
+    n : (k, 3) unit vectors.
+
+    Returns
+    -------
+    t, b : (k, 3) each, with ``t, b, n`` orthonormal.
+    """
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0).astype(n.dtype)
+    a = -1.0 / (sign + n[:, 2])
+    b_ = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b_, -sign * n[:, 0]], axis=1)
+    b = np.stack([b_, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return t, b
+
+
+def cosine_hemisphere(n: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Cosine-weighted directions about each normal (pdf = cos(theta) / pi).
+
+    Parameters
+    ----------
+    n : (k, 3) unit normals.
+    u, v : (k,) uniforms in [0, 1).
+
+    Returns
+    -------
+    (k, 3) unit directions with ``dot(d, n) >= 0``.
+    """
+    r = np.sqrt(u)
+    phi = 2.0 * np.pi * v
+    x, y = r * np.cos(phi), r * np.sin(phi)
+    z = np.sqrt(np.maximum(0.0, 1.0 - u))
+    t, b = orthonormal_basis(n)
+    d = t * x[:, None] + b * y[:, None] + n * z[:, None]
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    """Unit vectors of the rows of ``v`` ((k, 3)); zero rows stay zero."""
+    length = np.linalg.norm(v, axis=1, keepdims=True)
+    return v / np.where(length > 0, length, 1.0)

@@ -1,0 +1,103 @@
+"""The domain cache: at most ``capacity`` domains resident, least recently used evicted."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+from vastray.scene.bvh import DomainBVH
+from vastray.scene.store import Store
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CacheStats:
+    """Counters of a domain cache, for the report."""
+
+    loads: int = 0
+    hits: int = 0
+    evictions: int = 0
+    load_seconds: float = 0.0
+    read_seconds: float = 0.0
+    build_seconds: float = 0.0
+    loaded_domains: set = field(default_factory=set)
+    peak_resident_bytes: int = 0
+
+    def as_dict(self) -> dict:
+        return {
+            "loads": self.loads,
+            "cache_hits": self.hits,
+            "evictions": self.evictions,
+            "distinct_domains_loaded": len(self.loaded_domains),
+            "load_s": round(self.load_seconds, 4),
+            "read_s": round(self.read_seconds, 4),
+            "bvh_build_s": round(self.build_seconds, 4),
+            "peak_resident_bytes": self.peak_resident_bytes,
+        }
+
+
+class DomainCache:
+    """LRU cache of built domains.
+
+    Parameters
+    ----------
+    store : the store to load from.
+    capacity : most domains resident at once (>= 1).
+    keep : attributes each loaded domain keeps for shading (see ``DomainBVH``).
+    drop_page_cache : read domain files fully and advise the kernel to drop their pages, so a
+        reload after eviction is a real disk read (out-of-core benchmarks).
+    """
+
+    def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
+                 drop_page_cache: bool = False):
+        if capacity < 1:
+            raise ValueError("cache capacity must be at least 1 domain")
+        self.store = store
+        self.capacity = capacity
+        self.keep = keep
+        self.drop_page_cache = drop_page_cache
+        self.stats = CacheStats()
+        self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
+
+    def __contains__(self, domain_id: int) -> bool:
+        return domain_id in self._resident
+
+    def resident(self) -> list[int]:
+        """Ids of the resident domains, least recently used first."""
+        return list(self._resident)
+
+    def get(self, domain_id: int) -> DomainBVH:
+        """The built domain, loading it (and evicting the LRU one) if needed."""
+        if domain_id in self._resident:
+            self._resident.move_to_end(domain_id)
+            self.stats.hits += 1
+            return self._resident[domain_id]
+        while len(self._resident) >= self.capacity:
+            evicted, _ = self._resident.popitem(last=False)
+            self.stats.evictions += 1
+            log.debug("evicted domain %d", evicted)
+        bvh = self.load(domain_id)
+        self._resident[domain_id] = bvh
+        resident_bytes = sum(b.nbytes() for b in self._resident.values())
+        self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes, resident_bytes)
+        return bvh
+
+    def load(self, domain_id: int) -> DomainBVH:
+        """Read and build one domain without caching it (counted as a load)."""
+        start = time.perf_counter()
+        arrays = self.store.load_domain(domain_id, mmap=not self.drop_page_cache,
+                                        drop_cache=self.drop_page_cache)
+        read_done = time.perf_counter()
+        bvh = DomainBVH(domain_id, arrays, self.keep)
+        done = time.perf_counter()
+        self.stats.loads += 1
+        self.stats.loaded_domains.add(domain_id)
+        self.stats.read_seconds += read_done - start
+        self.stats.build_seconds += done - read_done
+        self.stats.load_seconds += done - start
+        log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,
+                  done - start)
+        return bvh
