@@ -1,0 +1,59 @@
+"""Small scenes built in code for the render tests: meshes -> partitioned stores on disk."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.partition import partition_grid, partition_kd
+from vastray.scene.store import DomainArrays, Store, StoreWriter
+
+
+def mesh_arrays(mesh: trimesh.Trimesh, flip: bool = False) -> DomainArrays:
+    """A trimesh as store arrays; ``flip`` reverses the winding (normals point inward)."""
+    faces = mesh.faces[:, ::-1] if flip else mesh.faces
+    return DomainArrays(np.asarray(mesh.vertices, np.float32), np.asarray(faces, np.uint32))
+
+
+def write_store(path: Path, mesh: DomainArrays, grid=None, kd: int | None = None) -> Store:
+    """Write ``mesh`` as one domain, a uniform ``grid`` of domains, or ``kd`` balanced domains."""
+    if grid is not None:
+        domains = partition_grid(mesh, grid).domains
+    elif kd is not None:
+        domains = partition_kd(mesh, kd).domains
+    else:
+        domains = [mesh]
+    with StoreWriter(path) as writer:
+        for dom in domains:
+            writer.add_domain(dom)
+    return Store(path)
+
+
+def bumpy_scene(seed: int = 3) -> DomainArrays:
+    """A displaced sphere resting on a ground plane: self-shadowing, several depths."""
+    rng = np.random.default_rng(seed)
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    bump = 1.0 + 0.15 * np.sin(4 * sphere.vertices[:, 0]) * np.cos(5 * sphere.vertices[:, 1])
+    sphere.vertices *= bump[:, None]
+    boxes = [trimesh.creation.box(extents=rng.uniform(0.2, 0.6, 3)) for _ in range(6)]
+    for box in boxes:
+        box.apply_translation([rng.uniform(-2, 2), -1.0, rng.uniform(-2, 2)])
+    ground = trimesh.creation.box(extents=[6.0, 0.1, 6.0])
+    ground.apply_translation([0, -1.3, 0])
+    return mesh_arrays(trimesh.util.concatenate([sphere, ground, *boxes]))
+
+
+def camera_config(position, look_at, fov=40.0, up=(0.0, 1.0, 0.0), **kw) -> SceneConfig:
+    return SceneConfig(camera={"position": np.asarray(position, float),
+                               "look_at": np.asarray(look_at, float),
+                               "up": np.asarray(up, float), "fov": fov}, **kw)
+
+
+def settings(**kw) -> RenderSettings:
+    base = dict(width=48, height=36, spp=2, bounces=2, shadow_samples=4, seed=7)
+    base.update(kw)
+    return RenderSettings(**base)
