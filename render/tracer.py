@@ -50,29 +50,40 @@ class TraceStats:
     domains_entered: set = field(default_factory=set)
 
 
-def box_intervals(origins: np.ndarray, inv_dir: np.ndarray, zero_dir: np.ndarray,
-                  lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Slab test of rays against one box; exact for direction components equal to zero.
+class RaySlabs:
+    """Per-axis ray data for slab tests, computed once per query.
+
+    Direction components that are exactly zero are replaced by a tiny signed value for the box
+    test only: the slab then spans (-huge, +huge) when the origin lies inside it and is missed
+    otherwise, which is the exact answer, without NaNs from ``0 * inf``.
 
     Parameters
     ----------
-    origins : (n, 3); inv_dir : (n, 3) ``1 / direction`` (``inf`` where zero);
-    zero_dir : (n, 3) bool, direction component is zero; lo, hi : (3,) the box.
-
-    Returns
-    -------
-    t_enter, t_exit : (n,) each; the ray overlaps the box where ``t_enter <= t_exit``.
+    origins, directions : (n, 3)
     """
-    with np.errstate(invalid="ignore"):
-        t0 = (lo - origins) * inv_dir
-        t1 = (hi - origins) * inv_dir
-    near = np.minimum(t0, t1)
-    far = np.maximum(t0, t1)
-    if zero_dir.any():
-        inside = (origins >= lo) & (origins <= hi)
-        near = np.where(zero_dir, np.where(inside, -np.inf, np.inf), near)
-        far = np.where(zero_dir, np.where(inside, np.inf, -np.inf), far)
-    return near.max(axis=1), far.min(axis=1)
+
+    def __init__(self, origins: np.ndarray, directions: np.ndarray):
+        d = directions.astype(np.float64)
+        d[d == 0] = 1e-300
+        self.origin = [np.ascontiguousarray(origins[:, k], dtype=np.float64) for k in range(3)]
+        self.inv = [1.0 / d[:, k] for k in range(3)]
+
+    def intervals(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Entry and exit distances of every ray through the box ``[lo, hi]`` ((3,) each).
+
+        Returns
+        -------
+        t_enter, t_exit : (n,) float64; the ray overlaps the box where ``t_enter <= t_exit``.
+        """
+        near = far = None
+        with np.errstate(over="ignore", invalid="ignore"):
+            for k in range(3):
+                t0 = (lo[k] - self.origin[k]) * self.inv[k]
+                t1 = (hi[k] - self.origin[k]) * self.inv[k]
+                lo_k, hi_k = np.minimum(t0, t1), np.maximum(t0, t1)
+                near = lo_k if near is None else np.maximum(near, lo_k, out=near)
+                far = hi_k if far is None else np.minimum(far, hi_k, out=far)
+        return near, far
 
 
 class DomainTracer:
@@ -107,23 +118,21 @@ class DomainTracer:
         if self.pool is not None:
             self.pool.shutdown()
 
-    def _visit_order(self, waiting: np.ndarray) -> list[int]:
-        """Domains with waiting rays: resident ones first, then by ray count (descending)."""
+    def _visit_order(self, slabs: RaySlabs, t_limit: np.ndarray) -> list[int]:
+        """Domains to visit: all of them in id order when they all fit in the cache; else the
+        resident ones first, then by waiting rays (descending), skipping those no ray enters."""
+        ids = np.nonzero(self.nonempty)[0]
+        if self.cache.capacity >= len(ids):
+            return ids.tolist()
+        waiting = {d: np.count_nonzero(self._entering(slabs, d, t_limit)) for d in ids}
         resident = set(self.cache.resident())
-        ids = np.nonzero(waiting)[0]
-        return sorted(ids.tolist(), key=lambda d: (d not in resident, -int(waiting[d]), d))
+        return sorted((d for d in ids if waiting[d]),
+                      key=lambda d: (d not in resident, -waiting[d], d))
 
-    def _prepare(self, origins, directions):
-        with np.errstate(divide="ignore"):
-            inv = 1.0 / directions
-        return inv, directions == 0
-
-    def _waiting_counts(self, origins, inv, zero, t_limit, active) -> np.ndarray:
-        counts = np.zeros(len(self.lo), dtype=np.int64)
-        for d in np.nonzero(self.nonempty)[0]:
-            t0, t1 = box_intervals(origins, inv, zero, self.lo[d], self.hi[d])
-            counts[d] = np.count_nonzero(active & (t0 <= t1) & (t1 >= 0) & (t0 < t_limit))
-        return counts
+    def _entering(self, slabs: RaySlabs, d: int, t_limit: np.ndarray) -> np.ndarray:
+        """(n,) bool: the ray enters domain ``d``'s box before ``t_limit``, ahead of its origin."""
+        t0, t1 = slabs.intervals(self.lo[d], self.hi[d])
+        return (t0 <= t1) & (t1 >= 0) & (t0 < t_limit)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, kind: str = "bounce"
                   ) -> Hits:
@@ -140,11 +149,9 @@ class DomainTracer:
         normal = np.zeros((n, 3), dtype=np.float32)
         material = np.zeros(n, dtype=np.int64)
         color = np.zeros((n, 3)) if self.color_source else None
-        inv, zero = self._prepare(origins, directions)
-        everyone = np.ones(n, dtype=bool)
-        for d in self._visit_order(self._waiting_counts(origins, inv, zero, best, everyone)):
-            t0, t1 = box_intervals(origins, inv, zero, self.lo[d], self.hi[d])
-            idx = np.nonzero((t0 <= t1) & (t1 >= 0) & (t0 < best))[0]
+        slabs = RaySlabs(origins, directions)
+        for d in self._visit_order(slabs, best):
+            idx = np.nonzero(self._entering(slabs, d, best))[0]
             if len(idx) == 0:
                 continue
             self.stats.domains_entered.add(d)
@@ -192,11 +199,9 @@ class DomainTracer:
         n = len(origins)
         self.stats.rays["shadow"] += n
         blocked = np.zeros(n, dtype=bool)
-        inv, zero = self._prepare(origins, directions)
-        counts = self._waiting_counts(origins, inv, zero, t_max, ~blocked)
-        for d in self._visit_order(counts):
-            t0, t1 = box_intervals(origins, inv, zero, self.lo[d], self.hi[d])
-            idx = np.nonzero(~blocked & (t0 <= t1) & (t1 >= 0) & (t0 < t_max))[0]
+        slabs = RaySlabs(origins, directions)
+        for d in self._visit_order(slabs, t_max):
+            idx = np.nonzero(~blocked & self._entering(slabs, d, t_max))[0]
             if len(idx) == 0:
                 continue
             self.stats.domains_entered.add(d)
