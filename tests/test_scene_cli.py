@@ -1,0 +1,147 @@
+"""``vastray partition | generate | info`` through ``vastray.cli.main``."""
+
+from __future__ import annotations
+
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+import trimesh
+from vastray.scene.store import Store
+
+
+@pytest.fixture
+def main(monkeypatch):
+    """``vastray.cli.main``; works even before the render commands exist."""
+    try:
+        import vastray.commands_render  # noqa: F401
+    except ImportError:
+        stub = types.ModuleType("vastray.commands_render")
+        stub.register = lambda sub: None
+        monkeypatch.setitem(sys.modules, "vastray.commands_render", stub)
+    from vastray.cli import main as cli_main
+
+    return cli_main
+
+
+@pytest.fixture
+def meshes(tmp_path):
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    sphere.export(tmp_path / "ball.ply")
+    box = trimesh.creation.box(extents=[1, 2, 3])
+    box.apply_translation([3, 0, 0])
+    box.export(tmp_path / "brick.obj")
+    return tmp_path / "ball.ply", tmp_path / "brick.obj", len(sphere.faces), len(box.faces)
+
+
+def no_store_left(tmp_path, name):
+    return not any(p.name == name or p.name.startswith(f".{name}.") for p in tmp_path.iterdir())
+
+
+def test_partition_two_inputs_into_objects(main, meshes, tmp_path, capsys):
+    ball, brick, n_ball, n_brick = meshes
+    out = tmp_path / "two.store"
+    assert main(["partition", str(ball), str(brick), "-o", str(out), "--grid", "3x1x1"]) == 0
+    store = Store(out)
+    assert store.objects == [{"name": "ball.ply", "source": str(ball.resolve())},
+                             {"name": "brick.obj", "source": str(brick.resolve())}]
+    assert store.n_triangles == n_ball + n_brick
+    objects = np.concatenate([store.load_domain(i).objects for i in range(len(store.domains))])
+    assert np.bincount(objects).tolist() == [n_ball, n_brick]
+    assert "2 input(s)" in capsys.readouterr().out
+
+
+def test_partition_single_input_kd(main, meshes, tmp_path):
+    ball, _, n_ball, _ = meshes
+    out = tmp_path / "kd.store"
+    assert main(["partition", str(ball), "-o", str(out), "--domains", "5", "--quiet"]) == 0
+    store = Store(out)
+    assert len(store.domains) == 5 and store.n_triangles == n_ball
+    assert "objects" not in store.domains[0].files
+    assert store.manifest["partition"]["method"] == "kd"
+    # default split is a 2x2x2 grid
+    assert main(["partition", str(ball), "-o", str(tmp_path / "g"), "--quiet"]) == 0
+    assert Store(tmp_path / "g").manifest["partition"]["grid"] == [2, 2, 2]
+
+
+def test_partition_volume_with_iso(main, tmp_path):
+    axes = np.linspace(-1, 1, 30, dtype=np.float32)
+    vol = np.sqrt(axes[:, None, None] ** 2 + axes[None, :, None] ** 2 + axes[None, None, :] ** 2)
+    np.save(tmp_path / "v.npy", vol)
+    out = tmp_path / "v.store"
+    assert main(["partition", str(tmp_path / "v.npy"), "-o", str(out), "--iso", "0.7",
+                 "--brick", "8", "--quiet"]) == 0
+    assert Store(out).n_triangles > 1000
+
+
+def test_generate_and_info(main, tmp_path, capsys):
+    out = tmp_path / "rm.store"
+    assert main(["generate", "rm", "-o", str(out), "--resolution", "24", "--grid", "2x1x2",
+                 "--seed", "3", "--quiet"]) == 0
+    store = Store(out)
+    assert store.manifest["generator"]["seed"] == 3
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"{store.n_triangles:,} triangles" in text
+    assert "scene bounds" in text and "partition: grid 2x1x2" in text
+
+
+def test_existing_store_needs_force(main, meshes, tmp_path, capsys):
+    ball = str(meshes[0])
+    out = tmp_path / "s.store"
+    assert main(["partition", ball, "-o", str(out), "--quiet"]) == 0
+    before = json.loads((out / "manifest.json").read_text())
+    assert main(["partition", ball, "-o", str(out), "--grid", "1x1x1", "--quiet"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert json.loads((out / "manifest.json").read_text()) == before
+    assert main(["partition", ball, "-o", str(out), "--grid", "1x1x1", "--force",
+                 "--quiet"]) == 0
+    assert len(Store(out).domains) == 1
+
+
+@pytest.mark.parametrize("case", ["missing", "unsupported", "no-iso", "nan", "degenerate",
+                                  "kd-without-domains"])
+def test_bad_input_fails_cleanly(main, tmp_path, capsys, meshes, case):
+    ball = str(meshes[0])
+    args = {
+        "missing": [str(tmp_path / "missing.ply")],
+        "unsupported": [str(tmp_path / "scene.blend")],
+        "no-iso": [str(tmp_path / "v.npy")],
+        "nan": [ball, str(tmp_path / "nan.obj")],
+        "degenerate": [str(tmp_path / "flat.obj")],
+        "kd-without-domains": [ball, "--split", "kd"],
+    }[case]
+    (tmp_path / "scene.blend").write_text("x")
+    np.save(tmp_path / "v.npy", np.zeros((3, 3, 3)))
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 nan 0\nf 1 2 3\n")
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    capsys.readouterr()
+    assert main(["partition", *args, "-o", str(tmp_path / "out.store"), "--quiet"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vastray partition: error: ") and "\n" not in err
+    if case not in ("kd-without-domains",):
+        assert args[-1].rsplit("/", 1)[-1] in err  # names the file
+    assert no_store_left(tmp_path, "out.store")
+
+
+def test_generate_bad_grid_fails_cleanly(main, tmp_path, capsys):
+    assert main(["generate", "cosmo", "-o", str(tmp_path / "c"), "--resolution", "3",
+                 "--grid", "4x1x1"]) == 2
+    assert "--grid" in capsys.readouterr().err
+    assert no_store_left(tmp_path, "c")
+
+
+def test_info_on_damaged_store(main, tmp_path, capsys):
+    assert main(["info", str(tmp_path / "nothing")]) == 2
+    assert "no such store" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["partition", "generate", "info"])
+def test_help_has_an_example(main, command, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert f"vastray {command} " in out and "example" in out
