@@ -1,0 +1,118 @@
+"""`vastray render` / `vastray compare` end to end: outputs, reports, bad input, leaving out."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import OpenEXR
+import pytest
+import trimesh
+from scenes import bumpy_scene, camera_config, mesh_arrays, settings, write_store
+
+from vastray.cli import main
+from vastray.render.driver import render
+from vastray.render.imageio import read_exr, write_exr
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return write_store(tmp_path_factory.mktemp("cli") / "s.store", bumpy_scene(), grid=(2, 2, 2))
+
+
+SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2", "--quiet"]
+
+
+def test_render_writes_exr_layers_png_and_report(store, tmp_path):
+    out, png, report = tmp_path / "a.exr", tmp_path / "a.png", tmp_path / "a.json"
+    assert main(["render", str(store.path), "-o", str(out), "--png", str(png),
+                 "--report", str(report), *SMALL]) == 0
+    with OpenEXR.File(str(out)) as f:
+        channels = f.channels()
+        assert {"RGB", "depth.Z", "normal.X", "normal.Y", "normal.Z"} <= set(channels)
+        assert channels["RGB"].pixels.shape == (24, 32, 3)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    doc = json.loads(report.read_text())
+    for key in ("total", "load", "trace_and_shade"):
+        assert doc["seconds"][key] >= 0
+    assert doc["counters"]["rays"]["camera"] == 32 * 24 * 2
+    assert doc["counters"]["loads"] >= 1
+    assert "error" not in doc
+
+
+def test_report_has_error_against_reference_beside_time(store, tmp_path, capsys):
+    ref = tmp_path / "ref.exr"
+    assert main(["render", str(store.path), "-o", str(ref), *SMALL, "--spp", "8"]) == 0
+    out, report = tmp_path / "b.exr", tmp_path / "b.json"
+    assert main(["render", str(store.path), "-o", str(out), "--report", str(report),
+                 "--reference", str(ref), *SMALL]) == 0
+    doc = json.loads(report.read_text())
+    assert doc["error"]["mse"] > 0 and np.isfinite(doc["error"]["psnr_db"])
+    assert doc["error_vs_time"][0]["seconds"] == doc["seconds"]["total"]
+    capsys.readouterr()
+    assert main(["compare", str(out), str(ref)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("mse=") and "psnr_db=" in printed
+    assert main(["compare", str(ref), str(ref)]) == 0
+    assert "mse=0 " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("case", ["missing_store", "bad_toml", "unknown_light", "bad_reference",
+                                  "reference_size", "truncated_domain"])
+def test_bad_input_fails_with_one_line_and_no_output(store, tmp_path, capsys, case):
+    out = tmp_path / "never.exr"
+    args = ["render", str(store.path), "-o", str(out), *SMALL]
+    if case == "missing_store":
+        args[1] = str(tmp_path / "nope.store")
+    elif case == "bad_toml":
+        (tmp_path / "s.toml").write_text("[camera\nfov = 3")
+        args += ["--scene", str(tmp_path / "s.toml")]
+    elif case == "unknown_light":
+        (tmp_path / "s.toml").write_text('[[light]]\ntype = "laser"\n')
+        args += ["--scene", str(tmp_path / "s.toml")]
+    elif case == "bad_reference":
+        (tmp_path / "r.exr").write_bytes(b"not an exr")
+        args += ["--reference", str(tmp_path / "r.exr")]
+    elif case == "reference_size":
+        write_exr(tmp_path / "r.exr", np.zeros((5, 5, 3), np.float32))
+        args += ["--reference", str(tmp_path / "r.exr")]
+    elif case == "truncated_domain":
+        broken = write_store(tmp_path / "broken.store", bumpy_scene(), grid=(2, 1, 1))
+        victim = broken.path / broken.domains[1].files["vertices"]
+        victim.write_bytes(victim.read_bytes()[:200])
+        args[1] = str(broken.path)
+    capsys.readouterr()
+    assert main(args) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vastray render: error:") and len(err.splitlines()) == 1, err
+    assert not out.exists()
+    assert not list(tmp_path.glob(".never*"))  # no temporary left behind
+
+
+def test_no_lights_means_no_shadow_rays(store):
+    cfg = camera_config([3.0, 2.2, 4.5], [0.0, -0.5, 0.0], lights=[])
+    result = render(store, cfg, settings(), progress=False)
+    assert result.counters["rays"]["shadow"] == 0
+    assert result.film.image().max() == 0.0
+
+
+def test_domains_no_ray_enters_are_never_loaded(tmp_path):
+    # Two spheres far apart in separate domains; the camera looks at one only.
+    a = trimesh.creation.icosphere(subdivisions=2)
+    b = trimesh.creation.icosphere(subdivisions=2)
+    b.apply_translation([100.0, 0.0, 0.0])
+    store = write_store(tmp_path / "two", mesh_arrays(trimesh.util.concatenate([a, b])),
+                        grid=(2, 1, 1))
+    cfg = camera_config([0.0, 0.0, 4.0], [0.0, 0.0, 0.0], fov=30)
+    for integrator in ("ao", "pt"):
+        result = render(store, cfg, settings(integrator=integrator, ao_distance=0.5),
+                        progress=False)
+        assert result.counters["domains"] == 2
+        assert result.counters["domains_entered"] == 1
+        assert result.counters["distinct_domains_loaded"] == 1
+
+
+def test_exr_round_trip(tmp_path):
+    rgb = np.random.default_rng(0).random((7, 9, 3)).astype(np.float32)
+    write_exr(tmp_path / "x.exr", rgb, np.ones((7, 9)), np.zeros((7, 9, 3)))
+    np.testing.assert_array_equal(read_exr(tmp_path / "x.exr"), rgb)
