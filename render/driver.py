@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+import os
 import resource
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,9 +58,25 @@ def default_ao_distance(store: Store) -> float:
     return 0.1 * float(np.linalg.norm(store.bounds[1] - store.bounds[0])) or 1.0
 
 
+def _bounded_map(fn, items, workers: int):
+    """``map(fn, items)`` on ``workers`` threads, in order, with at most 2 x workers in flight."""
+    if workers <= 1:
+        yield from map(fn, items)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        pending = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
-           progress: bool = True, drop_page_cache: bool = False) -> RenderResult:
+           progress: bool = True, drop_page_cache: bool = False,
+           record_rays: list | None = None) -> RenderResult:
     """Render a store with one process and an LRU domain cache.
 
     Parameters
@@ -69,6 +88,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     threads : Embree query threads (default: all cores).
     progress : show a progress bar on stderr for renders longer than two seconds.
     drop_page_cache : make every domain load a real disk read.
+    record_rays : if a list, every traced batch's (origins, directions) is appended to it.
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")
@@ -76,30 +96,38 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     shading, keep, color_source = shading_inputs(store, config, settings.integrator)
     capacity = cache_capacity or max(len(store.domains), 1)
     cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
-    tracer = DomainTracer(store, cache, color_source, threads)
+    threads = threads or os.cpu_count() or 1
+    # With every domain resident, whole batches run on parallel workers (numpy and Embree both
+    # release the GIL). A bounded cache is shared by one worker, which would otherwise thrash
+    # it; that worker splits its Embree queries over the threads instead.
+    all_fit = capacity >= len(store.domains)
+    workers = threads if all_fit else 1
+    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads)
+    tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
     ao_distance = settings.ao_distance or default_ao_distance(store)
     film = Film(settings.width, settings.height)
     total = settings.width * settings.height * settings.spp
     batch = max(1, settings.batch_size)
+
+    def trace_batch(first: int):
+        ids = np.arange(first, min(first + batch, total), dtype=np.uint64)
+        pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
+        sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
+        if settings.integrator == "ao":
+            return render_ao(tracer, camera, shading, settings, pixel, sample, ao_distance)
+        return render_pt(tracer, camera, shading, settings, pixel, sample)
+
     try:
         with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
                   desc="render", leave=False) as bar:
-            for first in range(0, total, batch):
-                ids = np.arange(first, min(first + batch, total), dtype=np.uint64)
-                pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
-                sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
-                if settings.integrator == "ao":
-                    paths = render_ao(tracer, camera, shading, settings, pixel, sample,
-                                      ao_distance)
-                else:
-                    paths = render_pt(tracer, camera, shading, settings, pixel, sample)
+            for paths in _bounded_map(trace_batch, range(0, total, batch), workers):
                 film.add(paths.pixel.astype(np.int64), paths.radiance)
                 zero = paths.sample == 0
                 film.depth[paths.pixel[zero]] = paths.first_t[zero]
                 film.normal[paths.pixel[zero]] = paths.first_normal[zero]
-                bar.update(len(ids))
+                bar.update(len(paths.pixel))
     finally:
         tracer.close()
     wall = time.perf_counter() - start

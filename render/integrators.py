@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from vastray.render.lights import AmbientLight, Light, QuadLight, SampleKeys
-from vastray.render.materials import MaterialTable, brdf_times_cos
+from vastray.render.materials import MaterialTable, blinn_phong_lobe
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer, Hits
@@ -199,36 +199,45 @@ def _next_event(tracer, shading, settings, radiance, path, keys, origin, nf, wo,
     albedo : (k, 3); material : (k,) slots; beta : (k, 3) path throughput.
     """
     mats = shading.materials
-    rows_all, o_all, d_all, t_all, c_all = [], [], [], [], []
+    throughput_diffuse = beta * albedo / np.pi  # (k, 3) throughput times the Lambertian BRDF
+    vertex_all, o_all, d_all, t_all, c_all = [], [], [], [], []
     for index, light in enumerate(shading.lights):
         m = settings.shadow_samples if light.stochastic else 1
         if m == 0:
             continue
-        rep = np.repeat(np.arange(len(path)), m)
-        j = np.tile(np.arange(m, dtype=np.uint64), len(path))
-        rep_keys = SampleKeys(keys.seed, keys.pixel[rep], keys.sample[rep], keys.bounce)
-        wi, dist, incident = light.sample(origin[rep], nf[rep], rep_keys, index, j)
-        cos_i = np.einsum("ij,ij->i", nf[rep], wi)
-        useful = (cos_i > 0) & np.any(incident > 0, axis=1)
-        if not useful.any():
+        # One row per (vertex, shadow sample j), vertex-major.
+        if m == 1:
+            o_rep, n_rep, rep_keys, j = origin, nf, keys, 0
+        else:
+            o_rep, n_rep = np.repeat(origin, m, axis=0), np.repeat(nf, m, axis=0)
+            rep_keys = SampleKeys(keys.seed, np.repeat(keys.pixel, m),
+                                  np.repeat(keys.sample, m), keys.bounce)
+            j = np.tile(np.arange(m, dtype=np.uint64), len(path))
+        wi, dist, incident = light.sample(o_rep, n_rep, rep_keys, index, j)
+        cos_i = np.einsum("ij,ij->i", n_rep, wi)
+        useful = np.nonzero((cos_i > 0) & (incident.sum(axis=1) > 0))[0]
+        if len(useful) == 0:
             continue
-        rep, wi, dist = rep[useful], wi[useful], dist[useful]
-        incident, cos_i = incident[useful], cos_i[useful]
-        f_cos = brdf_times_cos(albedo[rep], mats.specular[material[rep]],
-                               mats.shininess[material[rep]], nf[rep], wo[rep], wi, cos_i,
-                               mats.has_specular)
-        rows_all.append(rep)
-        o_all.append(origin[rep])
-        d_all.append(wi)
-        t_all.append(dist * (1.0 - SPAWN_EPSILON))
-        c_all.append(beta[rep] * f_cos * incident / m)
-    if not rows_all:
+        vertex = useful // m
+        weight = (cos_i[useful] / m)[:, None] * incident[useful]
+        contribution = throughput_diffuse[vertex] * weight
+        if mats.has_specular:
+            lobe = blinn_phong_lobe(mats.shininess[material[vertex]], nf[vertex], wo[vertex],
+                                    wi[useful])
+            contribution += beta[vertex] * mats.specular[material[vertex]] * lobe[:, None] * weight
+        vertex_all.append(vertex)
+        o_all.append(o_rep[useful])
+        d_all.append(wi[useful])
+        t_all.append(dist[useful] * (1.0 - SPAWN_EPSILON))
+        c_all.append(contribution)
+    if not vertex_all:
         return
-    rep = np.concatenate(rows_all)
+    vertex = np.concatenate(vertex_all)
     blocked = tracer.occluded(np.concatenate(o_all).astype(np.float32),
                               np.concatenate(d_all).astype(np.float32),
                               np.concatenate(t_all).astype(np.float32))
-    contribution = np.concatenate(c_all)[~blocked]
-    target = path[rep[~blocked]]
+    lit = ~blocked
+    contribution = np.concatenate(c_all)[lit]
+    target = path[vertex[lit]]
     for c in range(3):
         radiance[:, c] += np.bincount(target, weights=contribution[:, c], minlength=len(radiance))

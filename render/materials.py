@@ -64,27 +64,21 @@ def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return _VIRIDIS[i] * (1.0 - f) + _VIRIDIS[i + 1] * f
 
 
-def brdf_times_cos(albedo: np.ndarray, specular: np.ndarray, shininess: np.ndarray,
-                   n: np.ndarray, wo: np.ndarray, wi: np.ndarray, cos_i: np.ndarray,
-                   with_specular: bool) -> np.ndarray:
-    """Blinn-Phong BRDF times cos(theta_i), energy-normalised.
+def blinn_phong_lobe(shininess: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: np.ndarray
+                     ) -> np.ndarray:
+    """Energy-normalised Blinn-Phong lobe ``(s + 2) / (2 pi) * cos(theta_h)^s``.
+
+    The BRDF is ``diffuse / pi + specular * lobe``; bounces sample the diffuse part only.
 
     Parameters
     ----------
-    albedo, specular : (k, 3); shininess : (k,)
-    n, wo, wi : (k, 3) unit facing normal, direction to the viewer, direction to the light.
-    cos_i : (k,) ``dot(n, wi)``, already clamped to >= 0.
-    with_specular : skip the specular lobe entirely when no material has one.
+    shininess : (k,); n, wo, wi : (k, 3) unit facing normal, directions to viewer and light.
 
     Returns
     -------
-    (k, 3)
+    (k,)
     """
-    f = albedo / np.pi
-    if with_specular:
-        h = wo + wi
-        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
-        cos_h = np.maximum(0.0, np.einsum("ij,ij->i", n, h))
-        lobe = (shininess + 2.0) / (2.0 * np.pi) * cos_h ** shininess
-        f = f + specular * lobe[:, None]
-    return f * cos_i[:, None]
+    h = wo + wi
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
+    cos_h = np.maximum(0.0, np.einsum("ij,ij->i", n, h))
+    return (shininess + 2.0) / (2.0 * np.pi) * cos_h ** shininess

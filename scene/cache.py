@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -61,6 +62,7 @@ class DomainCache:
         self.drop_page_cache = drop_page_cache
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
+        self._lock = threading.Lock()  # render workers share one cache
 
     def __contains__(self, domain_id: int) -> bool:
         return domain_id in self._resident
@@ -71,6 +73,10 @@ class DomainCache:
 
     def get(self, domain_id: int) -> DomainBVH:
         """The built domain, loading it (and evicting the LRU one) if needed."""
+        with self._lock:
+            return self._get(domain_id)
+
+    def _get(self, domain_id: int) -> DomainBVH:
         if domain_id in self._resident:
             self._resident.move_to_end(domain_id)
             self.stats.hits += 1

@@ -1,0 +1,99 @@
+"""End-to-end path-tracing throughput against raw Embree on the same rays.
+
+Renders a >= 1 M-triangle generated scene with ``pt`` while recording every ray batch, then
+replays exactly those rays as closest-hit queries against one Embree scene of all triangles
+(same thread count). Prints rays/s of both and ``throughput_ratio=`` (end-to-end / raw), where
+end-to-end time is the render's wall time minus its one-off BVH builds (the raw side's build
+is not timed either). Floor: 0.5.
+
+    python bench/throughput.py [--resolution 384] [--width 320 --height 240 --spp 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from embreex import mesh_construction, rtcore_scene
+
+from vastray.render.driver import render
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.generate import generate
+from vastray.scene.store import Store
+
+CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
+
+
+def scene(resolution: int) -> Store:
+    path = CACHE / f"rm-{resolution}-2x2x2.store"
+    if not (path / "manifest.json").is_file():
+        generate("rm", path, resolution, grid=(2, 2, 2), seed=0, overwrite=True, progress=True)
+    return Store(path)
+
+
+def raw_embree(store: Store, batches: list, threads: int) -> tuple[int, float]:
+    """Closest-hit queries of the recorded rays on one Embree scene of all triangles."""
+    parts, offset = [], 0
+    vertices = []
+    for d in range(len(store.domains)):
+        dom = store.load_domain(d)
+        vertices.append(np.asarray(dom.vertices))
+        parts.append(np.asarray(dom.indices) + offset)
+        offset += len(dom.vertices)
+    embree = rtcore_scene.EmbreeScene()
+    mesh_construction.TriangleMesh(embree, np.concatenate(vertices), np.concatenate(parts))
+    embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="DISTANCE")
+    pool = ThreadPoolExecutor(threads)
+
+    def closest(args):
+        o, d = args
+        return embree.run(o, d, dists=np.full(len(o), np.inf, np.float32), output=1)
+
+    chunks = []
+    for o, d in batches:
+        bounds = np.linspace(0, len(o), threads + 1).astype(int)
+        chunks += [(o[a:b], d[a:b]) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    start = time.perf_counter()
+    list(pool.map(closest, chunks))
+    seconds = time.perf_counter() - start
+    pool.shutdown()
+    return sum(len(o) for o, _ in batches), seconds
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--resolution", type=int, default=384)
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--spp", type=int, default=2)
+    parser.add_argument("--shadow-samples", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    store = scene(args.resolution)
+    print(f"scene: rm {args.resolution}^3, {store.n_triangles:,} triangles in "
+          f"{len(store.domains)} domains")
+    settings = RenderSettings(width=args.width, height=args.height, spp=args.spp,
+                              integrator="pt", bounces=3, shadow_samples=args.shadow_samples)
+    batches: list = []
+    result = render(store, SceneConfig(), settings, threads=args.threads, progress=False,
+                    record_rays=batches)
+    rays = result.counters["rays"]["total"]
+    e2e_seconds = result.seconds["total"] - result.counters["bvh_build_s"]
+    raw_rays, raw_seconds = raw_embree(store, batches, args.threads)
+    assert raw_rays == rays
+    e2e_rate, raw_rate = rays / e2e_seconds, raw_rays / raw_seconds
+    print(f"rays traced: {rays:,} ({result.counters['rays']})")
+    print(f"end_to_end_rays_per_s={e2e_rate:,.0f}  ({e2e_seconds:.2f} s, BVH builds "
+          f"{result.counters['bvh_build_s']:.2f} s excluded)")
+    print(f"raw_embree_rays_per_s={raw_rate:,.0f}  ({raw_seconds:.2f} s, closest hit, "
+          f"{args.threads} threads)")
+    print(f"throughput_ratio={e2e_rate / raw_rate:.3f}")
+
+
+if __name__ == "__main__":
+    main()
