@@ -73,12 +73,14 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=2)
     parser.add_argument("--shadow-samples", type=int, default=4)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--batch-size", type=int, default=65536)
     args = parser.parse_args()
     store = scene(args.resolution)
     print(f"scene: rm {args.resolution}^3, {store.n_triangles:,} triangles in "
           f"{len(store.domains)} domains")
     settings = RenderSettings(width=args.width, height=args.height, spp=args.spp,
-                              integrator="pt", bounces=3, shadow_samples=args.shadow_samples)
+                              integrator="pt", bounces=3, shadow_samples=args.shadow_samples,
+                              batch_size=args.batch_size)
     batches: list = []
     result = render(store, SceneConfig(), settings, threads=args.threads, progress=False,
                     record_rays=batches)
