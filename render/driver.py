@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 from vastray.render.camera import Camera
 from vastray.render.film import Film
-from vastray.render.integrators import RenderSettings, Shading, render_ao, render_pt
+from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
@@ -51,6 +51,15 @@ def shading_inputs(store: Store, config: SceneConfig, integrator: str):
     if integrator == "pt" and len(materials) > 1:
         keep.add("objects")
     return Shading(lights, materials, color_source is not None), frozenset(keep), color_source
+
+
+def path_context(shading: Shading, settings: RenderSettings, first: int, stop: int,
+                 ao_distance: float) -> PathContext:
+    """The paths ``first <= i < stop`` of a render: pixel ``i // spp``, sample ``i % spp``."""
+    ids = np.arange(first, stop, dtype=np.uint64)
+    pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
+    sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
+    return PathContext(shading, settings, pixel, sample, ao_distance)
 
 
 def default_ao_distance(store: Store) -> float:
@@ -112,22 +121,15 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     batch = max(1, settings.batch_size)
 
     def trace_batch(first: int):
-        ids = np.arange(first, min(first + batch, total), dtype=np.uint64)
-        pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
-        sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
-        if settings.integrator == "ao":
-            return render_ao(tracer, camera, shading, settings, pixel, sample, ao_distance)
-        return render_pt(tracer, camera, shading, settings, pixel, sample)
+        ctx = path_context(shading, settings, first, min(first + batch, total), ao_distance)
+        return ctx, trace_paths(tracer, camera, ctx)
 
     try:
         with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
                   desc="render", leave=False) as bar:
-            for paths in _bounded_map(trace_batch, range(0, total, batch), workers):
-                film.add(paths.pixel.astype(np.int64), paths.radiance)
-                zero = paths.sample == 0
-                film.depth[paths.pixel[zero]] = paths.first_t[zero]
-                film.normal[paths.pixel[zero]] = paths.first_normal[zero]
-                bar.update(len(paths.pixel))
+            for ctx, paths in _bounded_map(trace_batch, range(0, total, batch), workers):
+                film.add_paths(ctx.pixel, ctx.sample, paths)
+                bar.update(len(ctx.pixel))
     finally:
         tracer.close()
     wall = time.perf_counter() - start

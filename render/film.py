@@ -36,6 +36,14 @@ class Film:
             self.sum_sq[:, c] += np.bincount(pixel, weights=radiance[:, c] ** 2, minlength=n)
         self.count += np.bincount(pixel, minlength=n)
 
+    def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths) -> None:
+        """Add a batch of finished paths (a ``PathResult``) with keys (n,) pixel and sample;
+        sample 0 of each pixel sets the depth and normal layers."""
+        self.add(pixel.astype(np.int64), paths.radiance)
+        zero = sample == 0
+        self.depth[pixel[zero]] = paths.first_t[zero]
+        self.normal[pixel[zero]] = paths.first_normal[zero]
+
     def merge(self, other: Film) -> None:
         """Add another film's sums (e.g. from another node or tile)."""
         self.sum += other.sum

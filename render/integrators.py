@@ -1,9 +1,12 @@
-"""Ambient occlusion and path tracing with next-event estimation, one batch of paths at a time.
+"""Ambient occlusion and path tracing with next-event estimation, as wavefront steps.
 
-Every path is a row of structure-of-arrays state; each step below shrinks the set of live rows
-with masks, never looping over rays in Python. All randomness comes from ``render.rng`` keyed by
-(seed, pixel, sample, bounce, purpose, index), so a path's radiance does not depend on which
-batch, domain order or process traced it.
+A render is a set of paths. Tracing is split into steps any scheduler can drive: radiance rays
+(``RadianceRays``) meet their closest hits, ``shade`` turns hits into shadow rays (with the
+contribution they carry if unoccluded) and continuation rays, and unoccluded shadow rays are
+summed per path. The reference renderer (``trace_paths``) runs the steps in order; the
+out-of-core and distributed schedulers run the very same steps in their own order, which is why
+their images are identical. All randomness comes from ``render.rng`` keyed by (seed, pixel,
+sample, bounce, purpose, index), never from processing order.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from vastray.render.lights import AmbientLight, Light, QuadLight, SampleKeys
 from vastray.render.materials import MaterialTable, blinn_phong_lobe
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
-from vastray.render.tracer import DomainTracer, Hits
+from vastray.render.tracer import DomainTracer, Hits, facing
 
 #: Spawned rays start this far (relative to the hit's coordinate magnitude plus the distance it
 #: was reached from) off the surface: about 64 float32 ulps, so they never re-hit it.
@@ -47,22 +50,84 @@ class Shading:
 
 
 @dataclass
-class PathBatch:
-    """Paths of one batch: the key of each and its accumulated radiance.
+class RadianceRays:
+    """Rays that look for a closest hit (camera rays and diffuse continuations).
 
     Attributes
     ----------
-    pixel, sample : (n,) uint32
-    radiance : (n, 3) float64
-    first_t : (n,) float32 camera-ray hit distance (inf for a miss)
-    first_normal : (n, 3) float32 facing normal at the camera hit
+    path : (n,) int64 index of the ray's path in its batch
+    depth : (n,) uint8 path vertex the ray will find (0 = camera ray)
+    origin, direction : (n, 3) float32
+    beta : (n, 3) float64 path throughput
     """
 
+    path: np.ndarray
+    depth: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+    beta: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.path)
+
+    def take(self, rows: np.ndarray) -> RadianceRays:
+        return RadianceRays(self.path[rows], self.depth[rows], self.origin[rows],
+                            self.direction[rows], self.beta[rows])
+
+    @staticmethod
+    def concat(parts: list[RadianceRays]) -> RadianceRays:
+        return RadianceRays(*(np.concatenate([getattr(p, f) for p in parts])
+                              for f in ("path", "depth", "origin", "direction", "beta")))
+
+
+@dataclass
+class ShadowRays:
+    """Rays that test visibility; ``contribution`` reaches their path if nothing blocks them.
+
+    Attributes
+    ----------
+    path : (n,) int64; depth : (n,) uint8 path vertex they leave from
+    origin, direction : (n, 3) float32; t_max : (n,) float32 (inf = to infinity)
+    contribution : (n, 3) float64
+    """
+
+    path: np.ndarray
+    depth: np.ndarray
+    origin: np.ndarray
+    direction: np.ndarray
+    t_max: np.ndarray
+    contribution: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.path)
+
+    def take(self, rows: np.ndarray) -> ShadowRays:
+        return ShadowRays(self.path[rows], self.depth[rows], self.origin[rows],
+                          self.direction[rows], self.t_max[rows], self.contribution[rows])
+
+    @staticmethod
+    def concat(parts: list[ShadowRays]) -> ShadowRays:
+        return ShadowRays(*(np.concatenate([getattr(p, f) for p in parts])
+                            for f in ("path", "depth", "origin", "direction", "t_max",
+                                      "contribution")))
+
+
+@dataclass(frozen=True)
+class PathContext:
+    """What shading needs to know about a batch of paths.
+
+    Attributes
+    ----------
+    shading, settings : scene lights/materials and render settings
+    pixel, sample : (P,) uint32 key of each path of the batch
+    ao_distance : AO ray length
+    """
+
+    shading: Shading
+    settings: RenderSettings
     pixel: np.ndarray
     sample: np.ndarray
-    radiance: np.ndarray
-    first_t: np.ndarray
-    first_normal: np.ndarray
+    ao_distance: float
 
 
 def spawn(points: np.ndarray, normals: np.ndarray, reach: np.ndarray) -> np.ndarray:
@@ -81,139 +146,126 @@ def spawn(points: np.ndarray, normals: np.ndarray, reach: np.ndarray) -> np.ndar
     return points + normals * (SPAWN_EPSILON * scale)[:, None]
 
 
-def _surface(origins: np.ndarray, directions: np.ndarray, hits: Hits):
-    """Hit points (float64) and normals facing the incoming ray for rows that hit."""
-    rows = np.nonzero(hits.hit)[0]
-    o = origins[rows].astype(np.float64)
-    d = directions[rows].astype(np.float64)
-    t = hits.t[rows]
-    p = o + d * t[:, None]
-    n = hits.normal[rows]
-    facing = np.where(np.einsum("ij,ij->i", n, d) > 0, -1.0, 1.0)
-    return rows, p, n * facing[:, None], d, t
+def camera_rays(camera, ctx: PathContext) -> RadianceRays:
+    """One camera ray per path of the batch."""
+    origin, direction = camera.generate(ctx.pixel, ctx.sample, ctx.settings.seed)
+    n = len(ctx.pixel)
+    return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8),
+                        origin.astype(np.float32), direction.astype(np.float32), np.ones((n, 3)))
 
 
-def render_ao(tracer: DomainTracer, camera, shading: Shading, settings: RenderSettings,
-              pixel: np.ndarray, sample: np.ndarray, ao_distance: float) -> PathBatch:
-    """Ambient occlusion: the unoccluded fraction of ``shadow_samples`` cosine-weighted rays
-    of length ``ao_distance`` from each camera hit, times the surface colour when there is one.
-    """
-    n = len(pixel)
-    radiance = np.zeros((n, 3))
-    o, d = camera.generate(pixel, sample, settings.seed)
-    o32, d32 = o.astype(np.float32), d.astype(np.float32)
-    hits = tracer.intersect(o32, d32, kind="camera")
-    rows, p, nf, _, t = _surface(o32, d32, hits)
-    first_normal = np.zeros((n, 3), np.float32)
-    first_normal[rows] = nf
-    m = settings.shadow_samples
-    if len(rows) and m:
-        # One row per (hit, shadow sample j).
-        rep = np.repeat(np.arange(len(rows)), m)
-        j = np.tile(np.arange(m, dtype=np.uint64), len(rows))
-        u, v = uniform2(settings.seed, pixel[rows][rep], sample[rows][rep], 1,
-                        Purpose.AO_DIRECTION, j)
-        wi = cosine_hemisphere(nf[rep], u, v)
-        origin = spawn(p, nf, t)[rep]
-        blocked = tracer.occluded(origin.astype(np.float32), wi.astype(np.float32),
-                                  np.full(len(rep), ao_distance, np.float32))
-        visible = np.bincount(rep, weights=~blocked, minlength=len(rows)) / m
-        color = hits.color[rows] if hits.color is not None else 1.0
-        radiance[rows] = visible[:, None] * color
-    return PathBatch(pixel, sample, radiance, hits.t.astype(np.float32), first_normal)
-
-
-def render_pt(tracer: DomainTracer, camera, shading: Shading, settings: RenderSettings,
-              pixel: np.ndarray, sample: np.ndarray) -> PathBatch:
-    """Path tracing: next-event estimation to every light at each of up to ``bounces + 1``
-    path vertices, one cosine-weighted diffuse continuation ray per vertex.
-
-    Emitters (quad lights, the ambient environment) are added where camera rays see them
-    directly; later vertices get light only through next-event estimation, so nothing is
-    counted twice.
-    """
-    n = len(pixel)
-    radiance = np.zeros((n, 3))
-    # Path state: live rows, their rays and throughput.
-    live = np.arange(n)
-    o, d = camera.generate(pixel, sample, settings.seed)
-    o32, d32 = o.astype(np.float32), d.astype(np.float32)
-    beta = np.ones((n, 3))
-    first_t = np.full(n, np.inf, np.float32)
-    first_normal = np.zeros((n, 3), np.float32)
-    for bounce in range(settings.bounces + 1):
-        hits = tracer.intersect(o32, d32, kind="camera" if bounce == 0 else "bounce")
-        if bounce == 0:
-            first_t[:] = hits.t
-            _add_visible_emitters(radiance, shading.lights, o32, d32, hits.t)
-        rows, p, nf, dirs, t = _surface(o32, d32, hits)
-        if bounce == 0:
-            first_normal[rows] = nf
-        if len(rows) == 0:
-            break
-        path = live[rows]
-        albedo = shading.materials.diffuse[hits.material[rows]]
-        if hits.color is not None:
-            albedo = albedo * hits.color[rows]
-        origin = spawn(p, nf, t)
-        # Direct light: next-event estimation toward every light.
-        keys = SampleKeys(settings.seed, pixel[path], sample[path], bounce)
-        _next_event(tracer, shading, settings, radiance, path, keys, origin, nf, -dirs,
-                    albedo, hits.material[rows], beta[rows])
-        if bounce == settings.bounces:
-            break
-        # Continue the path: one cosine-weighted diffuse bounce (weight = albedo).
-        u, v = uniform2(settings.seed, pixel[path], sample[path], bounce,
-                        Purpose.BOUNCE_DIRECTION)
-        new_dir = cosine_hemisphere(nf, u, v)
-        beta = beta[rows] * albedo
-        keep = np.any(beta > 0, axis=1)
-        live, beta = path[keep], beta[keep]
-        o32 = origin[keep].astype(np.float32)
-        d32 = new_dir[keep].astype(np.float32)
-        if len(live) == 0:
-            break
-    return PathBatch(pixel, sample, radiance, first_t, first_normal)
-
-
-def _add_visible_emitters(radiance, lights, o32, d32, t_hit) -> None:
-    """Camera rays see quad lights in front of the first surface, and the environment."""
-    o, d = o32.astype(np.float64), d32.astype(np.float64)
-    for light in lights:
-        if isinstance(light, QuadLight):
-            seen = light.intersect(o, d) < t_hit
-            radiance[seen] += light.radiance
-        elif isinstance(light, AmbientLight):
-            radiance[~np.isfinite(t_hit)] += light.radiance
-
-
-def _next_event(tracer, shading, settings, radiance, path, keys, origin, nf, wo, albedo,
-                material, beta) -> None:
-    """Shadow rays from ``k`` path vertices to every light; adds unoccluded light to paths.
+def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> np.ndarray:
+    """Radiance camera rays see directly: quad lights in front of the first surface, and the
+    environment where they escape (path tracing only).
 
     Parameters
     ----------
-    radiance : (n, 3) float64 per-path accumulator (modified).
-    path : (k,) rows of ``radiance`` the vertices belong to.
-    origin, nf, wo : (k, 3) spawned origin, facing normal, direction to the viewer.
-    albedo : (k, 3); material : (k,) slots; beta : (k, 3) path throughput.
+    rays : camera rays; t_hit : (n,) their final closest-hit distances (inf = miss).
+
+    Returns
+    -------
+    (n, 3) float64
     """
-    mats = shading.materials
-    throughput_diffuse = beta * albedo / np.pi  # (k, 3) throughput times the Lambertian BRDF
-    vertex_all, o_all, d_all, t_all, c_all = [], [], [], [], []
-    for index, light in enumerate(shading.lights):
+    out = np.zeros((len(rays), 3))
+    if ctx.settings.integrator != "pt":
+        return out
+    o, d = rays.origin.astype(np.float64), rays.direction.astype(np.float64)
+    for light in ctx.shading.lights:
+        if isinstance(light, QuadLight):
+            out[light.intersect(o, d) < t_hit] += light.radiance
+        elif isinstance(light, AmbientLight):
+            out[~np.isfinite(t_hit)] += light.radiance
+    return out
+
+
+def shade(ctx: PathContext, rays: RadianceRays, hits: Hits) -> tuple[ShadowRays, RadianceRays]:
+    """Turn final closest hits into shadow rays and continuation rays.
+
+    Parameters
+    ----------
+    rays : k radiance rays that hit; hits : their hits (all rows hit).
+
+    Returns
+    -------
+    shadow : AO rays (contribution = surface colour / samples) or next-event rays to every
+        light (contribution = throughput x BRDF x cos x incident radiance / samples)
+    continuation : cosine-weighted diffuse bounces (path tracing, below ``bounces``)
+    """
+    settings = ctx.settings
+    o = rays.origin.astype(np.float64)
+    d = rays.direction.astype(np.float64)
+    p = o + d * hits.t[:, None]
+    nf = facing(hits.normal, d)
+    origin = spawn(p, nf, hits.t)
+    if settings.integrator == "ao":
+        return _ambient_occlusion_rays(ctx, rays, hits, origin, nf), _no_rays()
+    albedo = ctx.shading.materials.diffuse[hits.material]
+    if hits.color is not None:
+        albedo = albedo * hits.color
+    shadow = _next_event_rays(ctx, rays, origin, nf, -d, albedo, hits.material)
+    more = rays.depth < settings.bounces
+    if not more.any():
+        return shadow, _no_rays()
+    # Continue the path: one cosine-weighted diffuse bounce (weight = albedo).
+    path, depth = rays.path[more], rays.depth[more]
+    u, v = uniform2(settings.seed, ctx.pixel[path], ctx.sample[path], depth,
+                    Purpose.BOUNCE_DIRECTION)
+    beta = rays.beta[more] * albedo[more]
+    keep = np.any(beta > 0, axis=1)
+    direction = cosine_hemisphere(nf[more], u, v)
+    continuation = RadianceRays(path[keep], depth[keep] + 1,
+                                origin[more][keep].astype(np.float32),
+                                direction[keep].astype(np.float32), beta[keep])
+    return shadow, continuation
+
+
+def _no_rays() -> RadianceRays:
+    return RadianceRays(np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros((0, 3), np.float32),
+                        np.zeros((0, 3), np.float32), np.zeros((0, 3)))
+
+
+def _ambient_occlusion_rays(ctx, rays, hits, origin, nf) -> ShadowRays:
+    """``shadow_samples`` cosine-weighted rays of length ``ao_distance`` per hit."""
+    m = ctx.settings.shadow_samples
+    k = len(rays)
+    j = np.tile(np.arange(m, dtype=np.uint64), k)
+    path = np.repeat(rays.path, m)
+    u, v = uniform2(ctx.settings.seed, ctx.pixel[path], ctx.sample[path], 1,
+                    Purpose.AO_DIRECTION, j)
+    direction = cosine_hemisphere(np.repeat(nf, m, axis=0), u, v)
+    color = hits.color if hits.color is not None else np.ones((k, 3))
+    return ShadowRays(path, np.zeros(k * m, np.uint8), np.repeat(origin, m, axis=0).astype(np.float32),
+                      direction.astype(np.float32), np.full(k * m, ctx.ao_distance, np.float32),
+                      np.repeat(color / max(m, 1), m, axis=0))
+
+
+def _next_event_rays(ctx, rays, origin, nf, wo, albedo, material) -> ShadowRays:
+    """Shadow rays from ``k`` path vertices to every light, with the light they would bring.
+
+    Parameters
+    ----------
+    rays : the k radiance rays whose hits these are (path, depth, beta).
+    origin, nf, wo : (k, 3) spawned origin, facing normal, direction to the viewer.
+    albedo : (k, 3); material : (k,) slots.
+    """
+    settings, mats = ctx.settings, ctx.shading.materials
+    throughput_diffuse = rays.beta * albedo / np.pi  # (k, 3) throughput times Lambertian BRDF
+    pixel, sample = ctx.pixel[rays.path], ctx.sample[rays.path]
+    parts = []
+    for index, light in enumerate(ctx.shading.lights):
         m = settings.shadow_samples if light.stochastic else 1
         if m == 0:
             continue
         # One row per (vertex, shadow sample j), vertex-major.
         if m == 1:
-            o_rep, n_rep, rep_keys, j = origin, nf, keys, 0
+            o_rep, n_rep, j = origin, nf, 0
+            keys = SampleKeys(settings.seed, pixel, sample, rays.depth)
         else:
             o_rep, n_rep = np.repeat(origin, m, axis=0), np.repeat(nf, m, axis=0)
-            rep_keys = SampleKeys(keys.seed, np.repeat(keys.pixel, m),
-                                  np.repeat(keys.sample, m), keys.bounce)
-            j = np.tile(np.arange(m, dtype=np.uint64), len(path))
-        wi, dist, incident = light.sample(o_rep, n_rep, rep_keys, index, j)
+            keys = SampleKeys(settings.seed, np.repeat(pixel, m), np.repeat(sample, m),
+                              np.repeat(rays.depth, m))
+            j = np.tile(np.arange(m, dtype=np.uint64), len(rays))
+        wi, dist, incident = light.sample(o_rep, n_rep, keys, index, j)
         cos_i = np.einsum("ij,ij->i", n_rep, wi)
         useful = np.nonzero((cos_i > 0) & (incident.sum(axis=1) > 0))[0]
         if len(useful) == 0:
@@ -224,20 +276,67 @@ def _next_event(tracer, shading, settings, radiance, path, keys, origin, nf, wo,
         if mats.has_specular:
             lobe = blinn_phong_lobe(mats.shininess[material[vertex]], nf[vertex], wo[vertex],
                                     wi[useful])
-            contribution += beta[vertex] * mats.specular[material[vertex]] * lobe[:, None] * weight
-        vertex_all.append(vertex)
-        o_all.append(o_rep[useful])
-        d_all.append(wi[useful])
-        t_all.append(dist[useful] * (1.0 - SPAWN_EPSILON))
-        c_all.append(contribution)
-    if not vertex_all:
-        return
-    vertex = np.concatenate(vertex_all)
-    blocked = tracer.occluded(np.concatenate(o_all).astype(np.float32),
-                              np.concatenate(d_all).astype(np.float32),
-                              np.concatenate(t_all).astype(np.float32))
-    lit = ~blocked
-    contribution = np.concatenate(c_all)[lit]
-    target = path[vertex[lit]]
+            contribution += (rays.beta[vertex] * mats.specular[material[vertex]]
+                             * lobe[:, None] * weight)
+        parts.append(ShadowRays(rays.path[vertex], rays.depth[vertex],
+                                o_rep[useful].astype(np.float32),
+                                wi[useful].astype(np.float32),
+                                (dist[useful] * (1.0 - SPAWN_EPSILON)).astype(np.float32),
+                                contribution))
+    if not parts:
+        return ShadowRays(np.zeros(0, np.int64), np.zeros(0, np.uint8),
+                          np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                          np.zeros(0, np.float32), np.zeros((0, 3)))
+    return ShadowRays.concat(parts)
+
+
+def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
+    """Add the contribution of the shadow rays ``lit`` (bool (n,)) to ``radiance`` (P, 3)."""
+    path = shadow.path[lit]
+    contribution = shadow.contribution[lit]
     for c in range(3):
-        radiance[:, c] += np.bincount(target, weights=contribution[:, c], minlength=len(radiance))
+        radiance[:, c] += np.bincount(path, weights=contribution[:, c], minlength=len(radiance))
+
+
+@dataclass
+class PathResult:
+    """Radiance of a batch of paths and what their camera rays saw first.
+
+    Attributes
+    ----------
+    radiance : (P, 3) float64
+    first_t : (P,) float32 camera-ray hit distance (inf for a miss)
+    first_normal : (P, 3) float32 facing normal at the camera hit
+    """
+
+    radiance: np.ndarray
+    first_t: np.ndarray
+    first_normal: np.ndarray
+
+    @staticmethod
+    def empty(n: int) -> PathResult:
+        return PathResult(np.zeros((n, 3)), np.full(n, np.inf, np.float32),
+                          np.zeros((n, 3), np.float32))
+
+    def record_camera_hits(self, ctx: PathContext, rays: RadianceRays, hits: Hits) -> None:
+        """Camera emission and the first-hit layers, once camera hits are final."""
+        self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
+        self.first_t[rays.path] = hits.t
+        self.first_normal[rays.path] = facing(hits.normal, rays.direction.astype(np.float64))
+
+
+def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:
+    """The reference order: every wavefront to its closest hits, shade, test shadows, repeat."""
+    result = PathResult.empty(len(ctx.pixel))
+    rays = camera_rays(camera, ctx)
+    while len(rays):
+        first = rays.depth[0] == 0
+        hits = tracer.intersect(rays.origin, rays.direction, kind="camera" if first else "bounce")
+        if first:
+            result.record_camera_hits(ctx, rays, hits)
+        hit = np.nonzero(hits.hit)[0]
+        shadow, rays = shade(ctx, rays.take(hit), hits.take(hit))
+        if len(shadow):
+            blocked = tracer.occluded(shadow.origin, shadow.direction, shadow.t_max)
+            add_unoccluded(result.radiance, shadow, ~blocked)
+    return result

@@ -17,12 +17,12 @@ from vastray.render.sampling import cosine_hemisphere
 
 @dataclass(frozen=True)
 class SampleKeys:
-    """Random-number keys of a set of path vertices: (n,) pixel and sample, bounce, seed."""
+    """Random-number keys of a set of path vertices: (n,) pixel, sample and bounce; seed."""
 
     seed: int
     pixel: np.ndarray
     sample: np.ndarray
-    bounce: int
+    bounce: np.ndarray
 
 
 @dataclass(frozen=True)

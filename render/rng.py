@@ -39,7 +39,7 @@ def _mix(h: np.ndarray) -> np.ndarray:
     return h
 
 
-def hash_keys(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int,
+def hash_keys(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int | np.ndarray,
               purpose: int, index: int | np.ndarray = 0) -> np.ndarray:
     """Hash the key tuple of each ray into 64 random bits.
 
@@ -47,7 +47,7 @@ def hash_keys(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int,
     ----------
     seed : render seed.
     pixel, sample : (n,) integer arrays.
-    bounce : path vertex index (0 = camera ray).
+    bounce : int or (n,) ints, the path vertex index (0 = camera ray).
     purpose : a ``Purpose`` value (plus a light offset where relevant).
     index : int or (n,) ints, the sample index within one purpose (e.g. shadow ray j).
 
@@ -61,11 +61,12 @@ def hash_keys(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int,
         for part in (pixel, sample):
             h ^= part.astype(np.uint64)
             h = _mix(h + _GOLDEN)
-        h ^= np.uint64(bounce) | (np.asarray(index, dtype=np.uint64) << np.uint64(8))
+        h ^= np.asarray(bounce, dtype=np.uint64) | (np.asarray(index, dtype=np.uint64) << np.uint64(8))
         return _mix(h + _GOLDEN)
 
 
-def uniform2(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int, purpose: int,
+def uniform2(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int | np.ndarray,
+             purpose: int,
              index: int | np.ndarray = 0) -> tuple[np.ndarray, np.ndarray]:
     """Two independent uniforms in [0, 1) per ray, from one hash.
 

@@ -42,6 +42,25 @@ class Hits:
     def hit(self) -> np.ndarray:
         return np.isfinite(self.t)
 
+    def take(self, rows: np.ndarray) -> Hits:
+        return Hits(self.t[rows], self.normal[rows], self.material[rows],
+                    None if self.color is None else self.color[rows])
+
+
+def facing(normal: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Normals flipped to face against the incoming ``direction`` (surfaces are two-sided).
+
+    Parameters
+    ----------
+    normal, direction : (k, 3)
+
+    Returns
+    -------
+    (k, 3)
+    """
+    side = np.where(np.einsum("ij,ij->i", normal, direction) > 0, -1.0, 1.0)
+    return normal * side[:, None]
+
 
 @dataclass
 class TraceStats:
