@@ -63,6 +63,84 @@ def facing(normal: np.ndarray, direction: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class ClosestHits:
+    """The closest hit found so far for each of n rays, as domains report theirs.
+
+    A hit replaces the current one when it is nearer, or equally near in a domain with a lower
+    id: ties never depend on the order in which domains were visited.
+
+    Attributes
+    ----------
+    t : (n,) float32 (inf = none yet); domain : (n,) int32 domain of the hit
+    ng : (n, 3) float32 unnormalised geometric normal; material : (n,) int64
+    color : (n, 3) float64 or None
+    """
+
+    t: np.ndarray
+    domain: np.ndarray
+    ng: np.ndarray
+    material: np.ndarray
+    color: np.ndarray | None
+
+    @staticmethod
+    def empty(n: int, with_color: bool) -> ClosestHits:
+        return ClosestHits(np.full(n, np.inf, np.float32), np.full(n, NO_DOMAIN, np.int32),
+                           np.zeros((n, 3), np.float32), np.zeros(n, np.int64),
+                           np.zeros((n, 3)) if with_color else None)
+
+    def offer(self, rows: np.ndarray, domain: int, bvh, r: dict, color_source: str | None,
+              scalar_range: tuple[float, float]) -> np.ndarray:
+        """Take the hits of ``domain`` (Embree output ``r`` for the rays ``rows``) that win.
+
+        Returns
+        -------
+        (k,) bool, which of ``rows`` improved.
+        """
+        t_old = self.t[rows]
+        got = (r["primID"] >= 0) & ((r["tfar"] < t_old)
+                                    | ((r["tfar"] == t_old) & (domain < self.domain[rows])))
+        if not got.any():
+            return got
+        won = rows[got]
+        prim = r["primID"][got]
+        self.t[won] = r["tfar"][got]
+        self.domain[won] = domain
+        self.ng[won] = r["Ng"][got]
+        if bvh.objects is not None:
+            self.material[won] = bvh.objects[prim]
+        if self.color is not None:
+            self.color[won] = vertex_color(bvh, prim, r["u"][got], r["v"][got], color_source,
+                                           scalar_range)
+        return got
+
+    def hits(self, rows: np.ndarray | slice = slice(None)) -> Hits:
+        """The hits of ``rows`` with float64 distances and unit normals."""
+        n64 = self.ng[rows].astype(np.float64)
+        length = np.linalg.norm(n64, axis=1, keepdims=True)
+        n64 /= np.where(length > 0, length, 1.0)
+        return Hits(self.t[rows].astype(np.float64), n64, self.material[rows],
+                    None if self.color is None else self.color[rows])
+
+
+NO_DOMAIN = np.iinfo(np.int32).max
+
+
+def vertex_color(bvh, prim, u, v, color_source: str, scalar_range) -> np.ndarray:
+    """Per-vertex colour, or the colour-mapped scalar, interpolated at barycentrics (u, v).
+
+    Returns
+    -------
+    (k, 3) float64
+    """
+    tri = bvh.indices[prim]
+    w = np.stack([1.0 - u - v, u, v], axis=1).astype(np.float64)
+    if color_source == "colors":
+        return np.einsum("kj,kjc->kc", w, bvh.colors[tri].astype(np.float64))
+    scalar = np.einsum("kj,kj->k", w, bvh.scalars[tri].astype(np.float64))
+    return colormap(scalar, *scalar_range)
+
+
+@dataclass
 class TraceStats:
     """Work counters of a tracer."""
 
@@ -220,43 +298,14 @@ class DomainTracer:
             self.stats.rays[kind] += n
         if self.record is not None:
             self.record.append((origins, directions))
-        best = np.full(n, np.inf, dtype=np.float32)
-        normal = np.zeros((n, 3), dtype=np.float32)
-        material = np.zeros(n, dtype=np.int64)
-        color = np.zeros((n, 3)) if self.color_source else None
-        self._intersect_part(origins, directions, best, normal, material, color)
-        t = best.astype(np.float64)
-        n64 = normal.astype(np.float64)
-        length = np.linalg.norm(n64, axis=1, keepdims=True)
-        n64 /= np.where(length > 0, length, 1.0)
-        return Hits(t=t, normal=n64, material=material, color=color)
-
-    def _intersect_part(self, origins, directions, best, normal, material, color) -> None:
-        """Closest hits of a chunk of rays, written into the given views."""
+        best = ClosestHits.empty(n, self.color_source is not None)
         slabs = RaySlabs(origins, directions, self.box_magnitude)
-        for d, idx in self._visits(slabs, best):
+        for d, idx in self._visits(slabs, best.t):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
-            r = bvh.intersect(origins[idx], directions[idx], best[idx], self.pool)
-            got = (r["primID"] >= 0) & (r["tfar"] < best[idx])
-            if not got.any():
-                continue
-            rows = idx[got]
-            prim = r["primID"][got]
-            best[rows] = r["tfar"][got]
-            normal[rows] = r["Ng"][got]
-            if bvh.objects is not None:
-                material[rows] = bvh.objects[prim]
-            if color is not None:
-                color[rows] = self._vertex_color(bvh, prim, r["u"][got], r["v"][got])
-
-    def _vertex_color(self, bvh, prim, u, v) -> np.ndarray:
-        tri = bvh.indices[prim]
-        w = np.stack([1.0 - u - v, u, v], axis=1).astype(np.float64)
-        if self.color_source == "colors":
-            return np.einsum("kj,kjc->kc", w, bvh.colors[tri].astype(np.float64))
-        scalar = np.einsum("kj,kj->k", w, bvh.scalars[tri].astype(np.float64))
-        return colormap(scalar, *self.scalar_range)
+            r = bvh.intersect(origins[idx], directions[idx], best.t[idx], self.pool)
+            best.offer(idx, d, bvh, r, self.color_source, self.scalar_range)
+        return best.hits()
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, t_max: np.ndarray
                  ) -> np.ndarray:
