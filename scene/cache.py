@@ -6,6 +6,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from vastray.scene.bvh import DomainBVH
@@ -26,6 +27,8 @@ class CacheStats:
     build_seconds: float = 0.0
     loaded_domains: set = field(default_factory=set)
     peak_resident_bytes: int = 0
+    preloads: int = 0
+    wait_seconds: float = 0.0
 
     def as_dict(self) -> dict:
         return {
@@ -33,7 +36,9 @@ class CacheStats:
             "cache_hits": self.hits,
             "evictions": self.evictions,
             "distinct_domains_loaded": len(self.loaded_domains),
+            "preloads": self.preloads,
             "load_s": round(self.load_seconds, 4),
+            "load_wait_s": round(self.wait_seconds, 4),
             "read_s": round(self.read_seconds, 4),
             "bvh_build_s": round(self.build_seconds, 4),
             "peak_resident_bytes": self.peak_resident_bytes,
@@ -62,7 +67,10 @@ class DomainCache:
         self.drop_page_cache = drop_page_cache
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
-        self._lock = threading.Lock()  # render workers share one cache
+        # Render workers and the preloader share the cache.
+        self._lock = threading.RLock()
+        self._pending: dict[int, Future] = {}
+        self._preloader: ThreadPoolExecutor | None = None
 
     def __contains__(self, domain_id: int) -> bool:
         return domain_id in self._resident
@@ -73,23 +81,65 @@ class DomainCache:
 
     def get(self, domain_id: int) -> DomainBVH:
         """The built domain, loading it (and evicting the LRU one) if needed."""
+        start = time.perf_counter()
+        pending = self._pending.get(domain_id)
+        if pending is not None:
+            pending.result()  # the preloader is building it: wait for that, not a second load
         with self._lock:
-            return self._get(domain_id)
+            bvh = self._get(domain_id)
+        self.stats.wait_seconds += time.perf_counter() - start
+        return bvh
 
     def _get(self, domain_id: int) -> DomainBVH:
         if domain_id in self._resident:
             self._resident.move_to_end(domain_id)
             self.stats.hits += 1
             return self._resident[domain_id]
-        while len(self._resident) >= self.capacity:
+        self._make_room(1)
+        bvh = self.load(domain_id)
+        self._insert(domain_id, bvh)
+        return bvh
+
+    def _make_room(self, slots: int) -> None:
+        """Evict least recently used domains until ``slots`` more fit (loads in flight count)."""
+        while self._resident and len(self._resident) + len(self._pending) + slots > self.capacity:
             evicted, _ = self._resident.popitem(last=False)
             self.stats.evictions += 1
             log.debug("evicted domain %d", evicted)
-        bvh = self.load(domain_id)
+
+    def _insert(self, domain_id: int, bvh: DomainBVH) -> None:
         self._resident[domain_id] = bvh
         resident_bytes = sum(b.nbytes() for b in self._resident.values())
         self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes, resident_bytes)
-        return bvh
+
+    def prefetch(self, domain_id: int | None) -> None:
+        """Start loading ``domain_id`` on the preloader thread, so its read and BVH build
+        overlap the caller's rendering. Needs room for two domains (the one in use stays)."""
+        if domain_id is None or self.capacity < 2:
+            return
+        with self._lock:
+            if domain_id in self._resident or domain_id in self._pending:
+                return
+            self._make_room(1)
+            if self._preloader is None:
+                self._preloader = ThreadPoolExecutor(1, thread_name_prefix="preloader")
+            self._pending[domain_id] = self._preloader.submit(self._preload, domain_id)
+
+    def _preload(self, domain_id: int) -> None:
+        try:
+            bvh = self.load(domain_id)
+            with self._lock:
+                self._insert(domain_id, bvh)
+                self.stats.preloads += 1
+        finally:
+            with self._lock:
+                self._pending.pop(domain_id, None)
+
+    def close(self) -> None:
+        """Stop the preloader (waits for a load in flight)."""
+        if self._preloader is not None:
+            self._preloader.shutdown(wait=True)
+            self._preloader = None
 
     def load(self, domain_id: int) -> DomainBVH:
         """Read and build one domain without caching it (counted as a load)."""
@@ -99,11 +149,12 @@ class DomainCache:
         read_done = time.perf_counter()
         bvh = DomainBVH(domain_id, arrays, self.keep)
         done = time.perf_counter()
-        self.stats.loads += 1
-        self.stats.loaded_domains.add(domain_id)
-        self.stats.read_seconds += read_done - start
-        self.stats.build_seconds += done - read_done
-        self.stats.load_seconds += done - start
+        with self._lock:
+            self.stats.loads += 1
+            self.stats.loaded_domains.add(domain_id)
+            self.stats.read_seconds += read_done - start
+            self.stats.build_seconds += done - read_done
+            self.stats.load_seconds += done - start
         log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,
                   done - start)
         return bvh

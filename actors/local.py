@@ -1,0 +1,113 @@
+"""The node-local runtime: drives a schedule policy over tiles of paths with a domain cache
+and a preloader thread. The asyncio actor runtime will drive the same policies per node."""
+
+from __future__ import annotations
+
+import logging
+import resource
+import time
+
+import numpy as np
+from tqdm import tqdm
+from vastray.render.driver import (
+    RenderResult,
+    default_ao_distance,
+    path_context,
+    shading_inputs,
+)
+from vastray.render.film import Film
+from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.cache import DomainCache
+from vastray.scene.store import Store
+from vastray.schedule.geometry import DomainGeometry
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.spec_ooc import SpeculativeSchedule
+
+log = logging.getLogger(__name__)
+
+SCHEDULERS = {"image": ImageSchedule, "spec-ooc": SpeculativeSchedule}
+
+
+def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
+                       scheduler: str = "image", cache_capacity: int | None = None,
+                       max_samples_in_flight: int | None = None,
+                       history_depth: int | None = None, preload: bool = True,
+                       drop_page_cache: bool = False, progress: bool = True) -> RenderResult:
+    """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
+
+    Parameters
+    ----------
+    scheduler : ``"image"`` (baseline) or ``"spec-ooc"`` (SpRay speculative).
+    cache_capacity : most domains in memory (default: all).
+    max_samples_in_flight : paths traced at once (tile size); bounds rays held in memory.
+    history_depth : spec-ooc's H, bounces speculated per window (default: all bounces).
+    preload : load the next domain on a background thread while rendering the current one.
+    drop_page_cache : make each domain load a real read from disk.
+    """
+    if scheduler not in SCHEDULERS:
+        raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
+    start = time.perf_counter()
+    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    capacity = cache_capacity or max(len(store.domains), 1)
+    cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
+    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
+                                   settings.height)
+    lo, hi = store.domain_boxes()
+    nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
+    geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()))
+    ao_distance = settings.ao_distance or default_ao_distance(store)
+    scalar_range = store.scalar_range or (0.0, 1.0)
+    film = Film(settings.width, settings.height)
+    total = settings.width * settings.height * settings.spp
+    tile = max(1, max_samples_in_flight or total)
+    counters: dict = {}
+    process_seconds = 0.0
+    try:
+        with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
+                  desc=f"render ({scheduler})", leave=False) as bar:
+            for first in range(0, total, tile):
+                ctx = path_context(shading, settings, first, min(first + tile, total),
+                                   ao_distance)
+                kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
+                policy = SCHEDULERS[scheduler](ctx, geometry, color_source, scalar_range,
+                                               **kwargs)
+                policy.start(camera_rays(camera, ctx))
+                while (domain := policy.next_domain()) is not None:
+                    bvh = cache.get(domain)
+                    if preload:
+                        cache.prefetch(policy.likely_next(domain))
+                    t0 = time.perf_counter()
+                    policy.process(domain, bvh)
+                    process_seconds += time.perf_counter() - t0
+                film.add_paths(ctx.pixel, ctx.sample, policy.result)
+                _merge(counters, policy.counters)
+                bar.update(len(ctx.pixel))
+    finally:
+        cache.close()
+    wall = time.perf_counter() - start
+    stats = cache.stats
+    counters.update({
+        "scheduler": scheduler,
+        "domains": len(store.domains),
+        "distinct_domains_loaded": len(stats.loaded_domains),
+        "cache_capacity": capacity,
+        "max_samples_in_flight": tile,
+        **stats.as_dict(),
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    })
+    seconds = {
+        "total": round(wall, 4),
+        "load": round(stats.load_seconds, 4),
+        "load_wait": round(stats.wait_seconds, 4),
+        "render": round(process_seconds, 4),
+    }
+    return RenderResult(film, camera, seconds, counters)
+
+
+def _merge(total: dict, part: dict) -> None:
+    for key, value in part.items():
+        if key.endswith("_peak"):
+            total[key] = max(total.get(key, 0), value)
+        else:
+            total[key] = total.get(key, 0) + value

@@ -1,0 +1,145 @@
+"""The baseline schedule (SpRay Listing 1, Navrátil's LoadAnyOnce): rays wait in the queue of
+the next domain on their path; the domain with the most waiting rays is processed next.
+
+A radiance ray moves front to back through the domains its path enters before its closest hit
+so far; the hit is final when no unvisited domain starts before it, and only then is it shaded.
+A shadow ray moves the same way until something blocks it or it has crossed every domain
+before its light, and then brings its light to its path. Nothing is speculative, so nothing is
+wasted, but each domain may be loaded many times as new rays keep arriving.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from vastray.render.integrators import (
+    PathContext,
+    PathResult,
+    RadianceRays,
+    ShadowRays,
+    add_unoccluded,
+    shade,
+)
+from vastray.schedule.geometry import DomainGeometry
+from vastray.schedule.paths import (
+    as_radiance,
+    as_shadow,
+    closest_hits,
+    radiance_soa,
+    shadow_soa,
+    start_cursor,
+)
+from vastray.schedule.soa import DomainQueues, SoA
+
+
+class ImageSchedule:
+    """Out-of-core baseline scheduling of one tile of paths.
+
+    Parameters
+    ----------
+    ctx : the tile's paths (keys, shading, settings).
+    geometry : domain boxes.
+    color_source, scalar_range : what hit records interpolate (see ``ClosestHits.offer``).
+    """
+
+    name = "image"
+
+    def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
+                 scalar_range: tuple[float, float]):
+        self.ctx = ctx
+        self.geometry = geometry
+        self.color_source = color_source
+        self.scalar_range = scalar_range
+        self.radiance = DomainQueues(geometry.n_domains)
+        self.shadow = DomainQueues(geometry.n_domains)
+        self.result = PathResult.empty(len(ctx.pixel))
+        self.counters = {"radiance_tests": 0, "shadow_tests": 0, "rays_in_flight_peak": 0}
+
+    # -- the driver's interface ---------------------------------------------------------------
+    def start(self, rays: RadianceRays) -> None:
+        """Queue the tile's camera rays."""
+        self._launch_radiance(rays)
+
+    def next_domain(self) -> int | None:
+        """The domain with the most waiting rays (lowest id on ties); None when done."""
+        waiting = self.radiance.counts() + self.shadow.counts()
+        self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"],
+                                                   int(waiting.sum()))
+        return int(np.argmax(waiting)) if waiting.any() else None
+
+    def likely_next(self, current: int) -> int | None:
+        """A guess at the domain after ``current``, for the preloader."""
+        waiting = self.radiance.counts() + self.shadow.counts()
+        waiting[current] = 0
+        return int(np.argmax(waiting)) if waiting.any() else None
+
+    def process(self, domain: int, bvh) -> None:
+        """Trace every ray waiting for ``domain`` against its loaded BVH."""
+        rays = self.radiance.pop(domain)
+        if rays is not None:
+            self._process_radiance(domain, bvh, rays)
+        rays = self.shadow.pop(domain)
+        if rays is not None:
+            self._process_shadow(domain, bvh, rays)
+
+    # -- radiance rays ------------------------------------------------------------------------
+    def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
+        self.counters["radiance_tests"] += len(rays)
+        r = bvh.intersect(rays["origin"], rays["direction"], rays["hit_t"])
+        closest_hits(rays).offer(np.arange(len(rays)), domain, bvh, r, self.color_source,
+                                 self.scalar_range)
+        self._advance_radiance(rays)
+
+    def _advance_radiance(self, rays: SoA) -> None:
+        """Queue rays into their next domain; shade the ones whose hit is final."""
+        nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
+                                               rays["at_d"], rays["hit_t"])
+        moving = nxt >= 0
+        if moving.any():
+            movers = rays.take(moving)
+            movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
+            self.radiance.push(nxt[moving], movers)
+        if not moving.all():
+            self._finalize(rays.take(~moving))
+
+    def _finalize(self, rays: SoA) -> None:
+        """Closest hits are final: record camera hits, shade, launch the rays they spawn."""
+        hits = closest_hits(rays).hits()
+        radiance = as_radiance(rays)
+        camera = radiance.depth == 0
+        if camera.any():
+            rows = np.nonzero(camera)[0]
+            self.result.record_camera_hits(self.ctx, radiance.take(rows), hits.take(rows))
+        hit = np.nonzero(hits.hit)[0]
+        if len(hit) == 0:
+            return
+        shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
+        self._launch_shadow(shadow)
+        self._launch_radiance(continuation)
+
+    def _launch_radiance(self, rays: RadianceRays) -> None:
+        if len(rays):
+            soa = radiance_soa(rays, self.color_source is not None, **start_cursor(len(rays)))
+            self._advance_radiance(soa)
+
+    # -- shadow rays --------------------------------------------------------------------------
+    def _launch_shadow(self, rays: ShadowRays) -> None:
+        if len(rays):
+            self._advance_shadow(shadow_soa(rays, **start_cursor(len(rays))))
+
+    def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
+        self.counters["shadow_tests"] += len(rays)
+        blocked = bvh.occluded(rays["origin"], rays["direction"], rays["t_max"])
+        if not blocked.all():
+            self._advance_shadow(rays.take(~blocked))
+
+    def _advance_shadow(self, rays: SoA) -> None:
+        """Queue unblocked shadow rays into their next domain; past the last, they bring light."""
+        nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
+                                               rays["at_d"], rays["t_max"])
+        moving = nxt >= 0
+        if moving.any():
+            movers = rays.take(moving)
+            movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
+            self.shadow.push(nxt[moving], movers)
+        if not moving.all():
+            add_unoccluded(self.result.radiance, as_shadow(rays), ~moving)

@@ -1,0 +1,328 @@
+"""SpRay's speculative out-of-core schedule (Park et al., Listings 2-4).
+
+Every ray is queued at once into *every* domain its path enters ("speculative queuing"), so a
+domain, once loaded, serves all the rays that may need it instead of waiting for them to arrive
+one domain at a time. A radiance ray that hits something in a domain is shaded right away, even
+though a closer hit may still turn up in another domain: its shadow and continuation rays are
+speculative. Correctness comes from the **history buffer**: for every path and depth it holds
+the closest (t, domain) found so far, and every speculative ray carries the (t, domain) of the
+hits it descends from. A ray whose history no longer matches the buffer was spawned from a hit
+that lost, and is dropped (wasted); a shadow ray brings its light only once every hit it
+descends from is final and still matches.
+
+Per round, domains are processed in order of the **front-to-back traversal score**
+``Score[i] = sum_j (M - j) * Counter[i][j]``, where ``Counter[i][j]`` counts queued rays for which
+domain i is the j-th box along the ray. Before a domain's rays are traced they are **filtered**:
+radiance rays whose closest hit so far is nearer than the domain, rays with a stale history and
+shadow rays already found occluded are dropped. Unoccluded shadow rays that have visited all
+their domains are **committed**; at the end of a round the **retire** queue (committed in the
+previous round) is resolved against the history buffer, and the queues swap (double buffering).
+
+The **history depth** H bounds speculation across bounces: a window holds H + 1 path vertices;
+continuation rays beyond it wait in the **spill queue** until the window is resolved.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from vastray.render.integrators import (
+    PathContext,
+    PathResult,
+    RadianceRays,
+    ShadowRays,
+    add_unoccluded,
+    shade,
+)
+from vastray.render.tracer import NO_DOMAIN, ClosestHits
+from vastray.schedule.geometry import DomainGeometry
+from vastray.schedule.paths import as_radiance, as_shadow, radiance_soa, shadow_soa
+from vastray.schedule.soa import DomainQueues, SoA
+
+
+class SpeculativeSchedule:
+    """Speculative out-of-core scheduling of one tile of paths.
+
+    Parameters
+    ----------
+    ctx : the tile's paths.
+    geometry : domain boxes.
+    color_source, scalar_range : what hit records interpolate.
+    history_depth : H, bounces speculated per window (default: every bounce of the path).
+    """
+
+    name = "spec-ooc"
+
+    def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
+                 scalar_range: tuple[float, float], history_depth: int | None = None):
+        self.ctx = ctx
+        self.geometry = geometry
+        self.color_source = color_source
+        self.scalar_range = scalar_range
+        bounces = ctx.settings.bounces if ctx.settings.integrator == "pt" else 0
+        self.window = 1 + max(0, min(bounces, bounces if history_depth is None else history_depth))
+        n_paths, n_domains = len(ctx.pixel), geometry.n_domains
+        self.result = PathResult.empty(n_paths)
+        # History buffer: closest (t, domain) per path and window depth, and how many queued
+        # radiance-ray visits could still change it.
+        self.hbuf_t = np.full((n_paths, self.window), np.inf, np.float32)
+        self.hbuf_d = np.full((n_paths, self.window), NO_DOMAIN, np.int32)
+        self.pending = np.zeros((n_paths, self.window), np.int32)
+        self.first_normal = np.zeros((n_paths, 3), np.float32)
+        self.window_start = 0
+        self.radiance = DomainQueues(n_domains)
+        self.shadow = DomainQueues(n_domains)
+        self.counter = np.zeros((n_domains, max(n_domains, 1)), np.int64)  # Counter[i][j]
+        self.spill: list[SoA] = []
+        self.commit: list[SoA] = []
+        self.retire: list[SoA] = []
+        # Per shadow ray (by id): domain visits outstanding, and whether it is blocked.
+        self.shadow_pending = np.zeros(0, np.int32)
+        self.shadow_blocked = np.zeros(0, bool)
+        self._schedule: list[int] = []
+        self._camera: RadianceRays | None = None
+        self.counters = {
+            "radiance_tests": 0, "shadow_tests": 0, "speculative_rays": 0,
+            "wasted_rays": 0, "filtered_rays": 0, "rounds": 0, "windows": 0,
+            "rays_in_flight_peak": 0,
+        }
+
+    # -- the driver's interface ---------------------------------------------------------------
+    def start(self, rays: RadianceRays) -> None:
+        """Queue the tile's camera rays into every domain they enter."""
+        self._camera = rays
+        self._queue_radiance(self._with_history(rays))
+
+    def next_domain(self) -> int | None:
+        """The next domain of the current round's schedule; between rounds, retire and
+        reschedule; between windows, resume spilled rays. None when the tile is done."""
+        while True:
+            while self._schedule:
+                domain = self._schedule.pop(0)
+                if self.radiance.counts()[domain] or self.shadow.counts()[domain]:
+                    return domain
+            if self.counters["rounds"] and not self._end_round():
+                if not self._end_window():
+                    return None
+            self._new_round()
+
+    def likely_next(self, current: int) -> int | None:
+        waiting = self.radiance.counts() + self.shadow.counts()
+        return next((d for d in self._schedule if waiting[d]), None)
+
+    def process(self, domain: int, bvh) -> None:
+        """Filter the domain's queues, then trace what is left (Listing 2, lines 15-22)."""
+        rays = self.radiance.pop(domain)
+        if rays is not None:
+            self._process_radiance(domain, bvh, rays)
+        rays = self.shadow.pop(domain)
+        if rays is not None:
+            self._process_shadow(domain, bvh, rays)
+        in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
+        self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
+
+    # -- rounds and windows -------------------------------------------------------------------
+    def _new_round(self) -> None:
+        """Schedule: every domain by descending traversal score (Listing 2, line 12)."""
+        m = self.counter.shape[1]
+        score = self.counter @ (m - np.arange(m))
+        self._schedule = sorted(range(len(score)), key=lambda d: (-score[d], d))
+        self.counters["rounds"] += 1
+
+    def _end_round(self) -> bool:
+        """Retire, swap commit and retire queues; True while the window has work left."""
+        self._retire()
+        self.retire, self.commit = self.commit, []
+        return bool(self.radiance.total() or self.shadow.total() or self.retire)
+
+    def _end_window(self) -> bool:
+        """The window's hits are final: record camera hits, resume spilled rays (Listing 2,
+        lines 6-10). True if a new window starts."""
+        if self.window_start == 0 and self._camera is not None:
+            hits = ClosestHits(self.hbuf_t[:, 0], self.hbuf_d[:, 0], self.first_normal,
+                               np.zeros(len(self.hbuf_t), np.int64), None).hits()
+            self.result.record_camera_hits(self.ctx, self._camera, hits)
+        self.counters["windows"] += 1
+        spilled = SoA.concat(self.spill) if self.spill else None
+        self.spill = []
+        if spilled is None or len(spilled) == 0:
+            return False
+        valid = self._history_matches(spilled, self.window)
+        self.counters["wasted_rays"] += int(np.count_nonzero(~valid))
+        self.window_start += self.window
+        self.hbuf_t[:] = np.inf
+        self.hbuf_d[:] = NO_DOMAIN
+        resumed = as_radiance(spilled.take(valid))
+        self._queue_radiance(self._with_history(resumed))
+        self._schedule = []
+        return True
+
+    # -- history ------------------------------------------------------------------------------
+    def _with_history(self, rays: RadianceRays) -> SoA:
+        n = len(rays)
+        return radiance_soa(rays, self.color_source is not None,
+                            hist_t=np.full((n, self.window), np.inf, np.float32),
+                            hist_d=np.full((n, self.window), NO_DOMAIN, np.int32))
+
+    def _history_matches(self, rays: SoA, upto: np.ndarray | int) -> np.ndarray:
+        """Whether each ray's ancestors at window depths ``< upto`` match the history buffer."""
+        path = rays["path"]
+        used = np.arange(self.window)[None, :] < np.asarray(upto).reshape(-1, 1)
+        same = (rays["hist_t"] == self.hbuf_t[path]) & (rays["hist_d"] == self.hbuf_d[path])
+        return np.all(same | ~used, axis=1)
+
+    def _final(self, path: np.ndarray, upto: np.ndarray) -> np.ndarray:
+        """Whether the buffer is final at window depths ``<= upto`` for each path."""
+        used = np.arange(self.window)[None, :] <= upto[:, None]
+        return np.all((self.pending[path] == 0) | ~used, axis=1)
+
+    # -- radiance rays ------------------------------------------------------------------------
+    def _queue_radiance(self, rays: SoA) -> None:
+        """Speculatively queue rays into all domains they enter (Listing 2, line 3)."""
+        if len(rays) == 0:
+            return
+        ray, domain, entry, rank = self.geometry.crossings(
+            rays["origin"], rays["direction"], np.full(len(rays), np.inf, np.float32))
+        copies = rays.take(ray)
+        copies["entry"] = entry
+        copies["rank"] = rank
+        level = copies["depth"].astype(np.int64) - self.window_start
+        np.add.at(self.pending, (copies["path"], level), 1)
+        np.add.at(self.counter, (domain, rank), 1)
+        self.radiance.push(domain, copies)
+
+    def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
+        level = rays["depth"].astype(np.int64) - self.window_start
+        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
+        np.subtract.at(self.pending, (rays["path"], level), 1)
+        # Shallow first: a new closest hit at one depth makes the same path's deeper rays in
+        # this batch stale, and the filter must see that. Within one depth a path has at most
+        # one live ray, so its path id names its parent.
+        for depth in np.unique(level):
+            self._process_level(domain, bvh, rays.take(np.nonzero(level == depth)[0]), depth)
+
+    def _process_level(self, domain: int, bvh, rays: SoA, level: int) -> None:
+        path = rays["path"]
+        # Filter (Listing 3): a live history, and no hit found yet before the domain starts.
+        live = self._history_matches(rays, level)
+        keep = live & (rays["entry"] < self.hbuf_t[path, level])
+        self.counters["wasted_rays"] += int(np.count_nonzero(~live))
+        self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        if not keep.any():
+            return
+        rays, path = rays.take(keep), path[keep]
+        self.counters["radiance_tests"] += len(rays)
+        r = bvh.intersect(rays["origin"], rays["direction"], self.hbuf_t[path, level])
+        hits = ClosestHits(self.hbuf_t[path, level], self.hbuf_d[path, level],
+                           rays["hit_ng"], rays["hit_material"], rays.fields.get("hit_color"))
+        won = hits.offer(np.arange(len(rays)), domain, bvh, r, self.color_source,
+                         self.scalar_range)
+        if not won.any():
+            return
+        # The closest hit so far: record it, and shade it speculatively (Listing 4).
+        rows = np.nonzero(won)[0]
+        path = path[rows]
+        self.hbuf_t[path, level] = hits.t[rows]
+        self.hbuf_d[path, level] = domain
+        # Deeper entries belonged to the hit that just lost; its descendants are stale now.
+        self.hbuf_t[path, level + 1:] = np.inf
+        self.hbuf_d[path, level + 1:] = NO_DOMAIN
+        if self.window_start == 0 and level == 0:
+            self.first_normal[path] = hits.ng[rows]
+        winners = rays.take(rows)
+        hist_t, hist_d = winners["hist_t"].copy(), winners["hist_d"].copy()
+        hist_t[:, level] = hits.t[rows]
+        hist_d[:, level] = domain
+        shadow, continuation = shade(self.ctx, as_radiance(winners), hits.hits(rows))
+        self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, path)
+        self._spawn_radiance(continuation, hist_t, hist_d, path)
+
+    def _spawn_radiance(self, rays: RadianceRays, hist_t, hist_d, parent_path) -> None:
+        if len(rays) == 0:
+            return
+        parent = _index_of(parent_path, rays.path)
+        soa = radiance_soa(rays, self.color_source is not None, hist_t=hist_t[parent],
+                           hist_d=hist_d[parent])
+        self.counters["speculative_rays"] += len(soa)
+        beyond = (rays.depth.astype(np.int64) - self.window_start) >= self.window
+        if beyond.any():
+            self.spill.append(soa.take(beyond))  # Listing 4: the spill queue
+        self._queue_radiance(soa.take(~beyond))
+
+    # -- shadow rays --------------------------------------------------------------------------
+    def _spawn_shadow(self, domain: int, bvh, rays: ShadowRays, hist_t, hist_d,
+                      parent_path) -> None:
+        """processSecondary: test the current domain now, queue into the others it crosses."""
+        if len(rays) == 0:
+            return
+        self.counters["speculative_rays"] += len(rays)
+        self.counters["shadow_tests"] += len(rays)
+        blocked = bvh.occluded(rays.origin, rays.direction, rays.t_max)
+        rows = np.nonzero(~blocked)[0]
+        self.counters["filtered_rays"] += len(rays) - len(rows)
+        if len(rows) == 0:
+            return
+        rays = rays.take(rows)
+        parent = _index_of(parent_path, rays.path)
+        sid = np.arange(len(self.shadow_pending), len(self.shadow_pending) + len(rays))
+        soa = shadow_soa(rays, hist_t=hist_t[parent], hist_d=hist_d[parent], sid=sid)
+        ray, dom, entry, rank = self.geometry.crossings(rays.origin, rays.direction, rays.t_max)
+        other = dom != domain
+        ray, dom, entry, rank = ray[other], dom[other], entry[other], rank[other]
+        visits = np.bincount(ray, minlength=len(rays)).astype(np.int32)
+        self.shadow_pending = np.concatenate([self.shadow_pending, visits])
+        self.shadow_blocked = np.concatenate([self.shadow_blocked, np.zeros(len(rays), bool)])
+        done = visits == 0
+        if done.any():
+            self.commit.append(soa.take(done))
+        if len(ray):
+            copies = soa.take(ray)
+            copies["entry"], copies["rank"] = entry, rank
+            np.add.at(self.counter, (dom, rank), 1)
+            self.shadow.push(dom, copies)
+
+    def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
+        sid = rays["sid"]
+        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
+        self.shadow_pending[sid] -= 1
+        level = rays["depth"].astype(np.int64) - self.window_start
+        live = self._history_matches(rays, level + 1)
+        keep = live & ~self.shadow_blocked[sid]
+        self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
+        self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        if keep.any():
+            tested = np.nonzero(keep)[0]
+            self.counters["shadow_tests"] += len(tested)
+            blocked = bvh.occluded(rays["origin"][tested], rays["direction"][tested],
+                                   rays["t_max"][tested])
+            self.shadow_blocked[sid[tested[blocked]]] = True
+        if not live.all():
+            self.shadow_blocked[sid[~live]] = True  # stale: never needs another visit
+        ready = (self.shadow_pending[sid] == 0) & ~self.shadow_blocked[sid]
+        if ready.any():
+            self.commit.append(rays.take(ready).without("entry", "rank"))
+
+    def _retire(self) -> None:
+        """Resolve the retire queue: final and matching histories bring their light."""
+        if not self.retire:
+            return
+        rays = SoA.concat(self.retire)
+        self.retire = []
+        level = rays["depth"].astype(np.int64) - self.window_start
+        final = self._final(rays["path"], level)
+        if not final.all():
+            if not (self.radiance.total() or self.shadow.total()):
+                # With nothing queued every hit is final; waiting would loop forever.
+                raise RuntimeError("spec-ooc: shadow rays wait on hits no queued ray can change")
+            self.commit.append(rays.take(~final))  # wait for another round
+        rays, level = rays.take(final), level[final]
+        if len(rays) == 0:
+            return
+        valid = self._history_matches(rays, level + 1)
+        self.counters["wasted_rays"] += int(np.count_nonzero(~valid))
+        add_unoccluded(self.result.radiance, as_shadow(rays), valid)
+
+
+def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Position of each of ``values`` in ``keys`` (unique keys, every value present)."""
+    order = np.argsort(keys, kind="stable")
+    return order[np.searchsorted(keys[order], values)]
