@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 from tqdm import tqdm
+
 from vastray.render.driver import (
     RenderResult,
     default_ao_distance,
@@ -60,7 +61,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     scalar_range = store.scalar_range or (0.0, 1.0)
     film = Film(settings.width, settings.height)
     total = settings.width * settings.height * settings.spp
-    tile = max(1, max_samples_in_flight or total)
+    tile = max(1, min(max_samples_in_flight or total, total))
     counters: dict = {}
     process_seconds = 0.0
     try:

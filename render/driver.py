@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm import tqdm
+
 from vastray.render.camera import Camera
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
@@ -115,6 +116,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
+    tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))
     ao_distance = settings.ao_distance or default_ao_distance(store)
     film = Film(settings.width, settings.height)
     total = settings.width * settings.height * settings.spp

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import OpenEXR
+
 from vastray.scene.errors import InputError
 
 

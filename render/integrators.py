@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from vastray.render.lights import AmbientLight, Light, QuadLight, SampleKeys
 from vastray.render.materials import MaterialTable, blinn_phong_lobe
 from vastray.render.rng import Purpose, uniform2

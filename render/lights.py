@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
 

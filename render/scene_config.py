@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from vastray.render.camera import Camera
 from vastray.render.lights import AmbientLight, DirectionalLight, Light, PointLight, QuadLight
 from vastray.render.materials import Material, MaterialTable

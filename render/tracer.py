@@ -16,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from vastray.render.materials import colormap
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
@@ -149,6 +150,13 @@ class TraceStats:
     domains_entered: set = field(default_factory=set)
 
 
+def box_pad(box_magnitude: float, origin_bound: float, origins: np.ndarray) -> float:
+    """Box growth for ``RaySlabs``: constant for rays whose origins stay within
+    ``origin_bound`` (the scene and the camera), larger only for rays that start farther out."""
+    bound = max(origin_bound, float(np.abs(origins).max(initial=0.0)))
+    return 2.0 ** -19 * (box_magnitude + bound)
+
+
 class RaySlabs:
     """Per-axis ray data for slab tests in float32, computed once per query.
 
@@ -159,22 +167,22 @@ class RaySlabs:
     Float32 rounding moves a computed slab distance by at most a few ulps of the largest
     coordinate involved, ``M = max|origin| + max|box|``; growing every box by ``2^-19 M`` (16
     times that bound) keeps the test conservative: a ray may visit a box it barely misses,
-    never skip one it enters.
+    never skip one it enters. ``pad`` is that growth; callers keep it the same for a whole
+    render (see ``box_pad``), so a ray's box distances never depend on its batch.
 
     Parameters
     ----------
     origins, directions : (n, 3) float32
-    box_magnitude : largest absolute box coordinate of the scene.
+    pad : how far to grow every box.
     """
 
-    def __init__(self, origins: np.ndarray, directions: np.ndarray, box_magnitude: float):
+    def __init__(self, origins: np.ndarray, directions: np.ndarray, pad: float):
         d = directions.T.astype(np.float32)  # (3, n)
         d[d == 0] = np.float32(1e-30)
         self.origin = origins.T.astype(np.float32)  # (3, n)
         with np.errstate(over="ignore"):
             self.inv = np.float32(1.0) / d  # (3, n)
-        origin_magnitude = float(np.abs(self.origin).max(initial=0.0))
-        self.pad = 2.0 ** -19 * (origin_magnitude + box_magnitude)
+        self.pad = pad
         n = origins.shape[0]
         self._a = np.empty(n, np.float32)
         self._b = np.empty(n, np.float32)
@@ -237,6 +245,8 @@ class DomainTracer:
         self.record: list | None = None
         self.lo, self.hi = store.domain_boxes()  # (D, 3) float64 each
         self.box_magnitude = float(max(np.abs(self.lo).max(initial=0), np.abs(self.hi).max(initial=0)))
+        #: Largest origin coordinate expected (the camera is set by the renderer).
+        self.origin_bound = 2.0 * self.box_magnitude
         self.nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         threads = threads or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
@@ -244,6 +254,10 @@ class DomainTracer:
     def close(self) -> None:
         if self.pool is not None:
             self.pool.shutdown()
+
+    def slabs(self, origins: np.ndarray, directions: np.ndarray) -> RaySlabs:
+        return RaySlabs(origins, directions,
+                        box_pad(self.box_magnitude, self.origin_bound, origins))
 
     def _count_visit(self, domain: int, n_rays: int) -> None:
         with self._stats_lock:
@@ -299,7 +313,7 @@ class DomainTracer:
         if self.record is not None:
             self.record.append((origins, directions))
         best = ClosestHits.empty(n, self.color_source is not None)
-        slabs = RaySlabs(origins, directions, self.box_magnitude)
+        slabs = self.slabs(origins, directions)
         for d, idx in self._visits(slabs, best.t):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
@@ -327,7 +341,7 @@ class DomainTracer:
             self.record.append((origins, directions))
         blocked = np.zeros(n, dtype=bool)
         live = np.ones(n, dtype=bool)
-        for d, idx in self._visits(RaySlabs(origins, directions, self.box_magnitude), t_max, live):
+        for d, idx in self._visits(self.slabs(origins, directions), t_max, live):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             blocked[idx] = bvh.occluded(origins[idx], directions[idx], t_max[idx], self.pool)

@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
+
 from vastray.scene.store import DomainArrays
 
 #: Below this many rays a query runs on the calling thread only.

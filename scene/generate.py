@@ -21,6 +21,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 
 import numpy as np
+
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
 from vastray.scene.fields import SCENES

@@ -7,6 +7,7 @@ Every function works on whole arrays (no Python loop per triangle or vertex) and
 from __future__ import annotations
 
 import numpy as np
+
 from vastray.scene.store import DomainArrays
 
 

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
 from vastray.scene import meshops
 from vastray.scene.store import DomainArrays
 

@@ -17,6 +17,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
 from vastray.scene.isosurface import DEFAULT_BRICK, iter_brick_triangles

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
 from vastray.scene.errors import InputError
 
 FORMAT = "vastray-store"

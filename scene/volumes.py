@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
 from vastray.scene.errors import InputError
 
 VOLUME_SUFFIXES = (".npy", ".raw", ".json", ".nii", ".nii.gz", ".vtk")

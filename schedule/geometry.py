@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from vastray.render.tracer import RaySlabs, box_pad
 
 

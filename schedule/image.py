@@ -11,6 +11,7 @@ wasted, but each domain may be loaded many times as new rays keep arriving.
 from __future__ import annotations
 
 import numpy as np
+
 from vastray.render.integrators import (
     PathContext,
     PathResult,

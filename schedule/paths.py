@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from vastray.render.integrators import RadianceRays, ShadowRays
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.soa import SoA

@@ -25,6 +25,7 @@ continuation rays beyond it wait in the **spill queue** until the window is reso
 from __future__ import annotations
 
 import numpy as np
+
 from vastray.render.integrators import (
     PathContext,
     PathResult,

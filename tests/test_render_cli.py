@@ -8,11 +8,12 @@ import numpy as np
 import OpenEXR
 import pytest
 import trimesh
-from scenes import bumpy_scene, camera_config, mesh_arrays, settings, write_store
 
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.imageio import read_exr, write_exr
+
+from scenes import bumpy_scene, camera_config, mesh_arrays, settings, write_store
 
 
 @pytest.fixture(scope="module")

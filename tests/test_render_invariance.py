@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scenes import bumpy_scene, camera_config, settings, write_store
 
 from vastray.render.driver import render
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
 from vastray.scene.partition import partition_grid
+
+from scenes import bumpy_scene, camera_config, settings, write_store
 
 CONFIG = dict(
     position=[3.0, 2.2, 4.5], look_at=[0.0, -0.5, 0.0], fov=45,

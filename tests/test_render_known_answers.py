@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from scenes import camera_config, mesh_arrays, settings, write_store
 
 from vastray.render.camera import Camera
 from vastray.render.driver import render
 from vastray.render.lights import PointLight
 from vastray.render.materials import Material
+
+from scenes import camera_config, mesh_arrays, settings, write_store
 
 
 @pytest.mark.parametrize("shadow_samples", [1, 4])

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from scenes import camera_config, mesh_arrays, settings, write_store
 
 from vastray.render.driver import render
 from vastray.render.integrators import spawn
 from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
+
+from scenes import camera_config, mesh_arrays, settings, write_store
 
 
 @pytest.mark.parametrize("scale", [1e-6, 1e-3, 1.0, 1e3, 1e6])

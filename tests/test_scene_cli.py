@@ -9,6 +9,7 @@ import types
 import numpy as np
 import pytest
 import trimesh
+
 from vastray.scene.store import Store
 
 

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pytest
 import trimesh
+
 from vastray.scene import fields, meshops
 from vastray.scene.errors import InputError
 from vastray.scene.generate import generate

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 from skimage.measure import marching_cubes
+
 from vastray.scene import meshops
 from vastray.scene.isosurface import (
     axis_bricks,

@@ -7,6 +7,7 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
 from vastray.scene import meshops
 from vastray.scene.partition import kd_cells_of, partition_grid, partition_kd
 from vastray.scene.store import DomainArrays

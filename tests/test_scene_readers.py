@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 from skimage.measure import marching_cubes
+
 from vastray.scene.errors import InputError
 from vastray.scene.isosurface import iter_brick_triangles
 from vastray.scene.readers import read_mesh

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from vastray.scene.errors import InputError
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from vastray.actors.local import render_out_of_core
 from vastray.render.driver import render
 from vastray.render.imageio import image_error, read_image, write_exr, write_png
 from vastray.render.integrators import RenderSettings
@@ -18,12 +20,15 @@ from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
 
+DEFAULT_SAMPLES_IN_FLIGHT = 262144
+
 RENDER_EPILOG = """\
 examples:
   vastray render -o default.exr --png default.png
       the built-in scene (a generated Richtmyer-Meshkov mixing layer, made on first use)
   vastray render bunny.store -o bunny.exr --integrator ao --spp 8 --ao-distance 0.02
   vastray render rm.store -o rm.exr --scene scene.toml --cache 4 --report rm.json
+  vastray render rm.store -o rm.exr --cache 25% --scheduler spec-ooc --history-depth 2
 
 The EXR holds RGB radiance plus depth.Z and normal.X/Y/Z layers; --png is a clamped sRGB
 preview. Path tracing (pt) takes --bounces diffuse bounces after the first hit and does
@@ -55,8 +60,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--width", type=_positive, default=320, help="image width (default: 320)")
     p.add_argument("--height", type=_positive, default=240, help="image height (default: 240)")
     p.add_argument("--seed", type=_non_negative, default=0, help="random seed (default: 0)")
-    p.add_argument("--cache", type=_positive,
-                   help="most domains in memory at once (default: all)")
+    p.add_argument("--cache", type=_cache_size, metavar="N|P%",
+                   help="most domains in memory at once, as a count or a percentage of the "
+                        "domains (default: all)")
+    p.add_argument("--scheduler", choices=["auto", "reference", "image", "spec-ooc"],
+                   default="auto",
+                   help="how rays meet domains: 'reference' traces each wavefront through all "
+                        "domains it enters; 'image' queues rays per domain and processes the "
+                        "fullest (SpRay's baseline); 'spec-ooc' is SpRay's speculative "
+                        "out-of-core schedule. All give the same image. 'auto' (default): "
+                        "reference when every domain fits in the cache, else spec-ooc")
+    p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
+                   help="image/spec-ooc: paths traced at once; bounds the rays held in memory "
+                        "(default: 262144)")
+    p.add_argument("--history-depth", type=_non_negative, metavar="H",
+                   help="spec-ooc: bounces speculated before hits are resolved "
+                        "(default: --bounces, the most aggressive)")
+    p.add_argument("--no-preload", action="store_true",
+                   help="image/spec-ooc: do not load the next domain in the background")
     p.add_argument("--batch-size", type=_positive, default=65536,
                    help="paths traced together (default: 65536)")
     p.add_argument("--threads", type=_positive, help="Embree threads (default: all cores)")
@@ -83,6 +104,23 @@ def _positive(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
     return value
+
+
+def _cache_size(text: str) -> int | str:
+    """``N`` domains or ``P%`` of the domains (resolved once the store is open)."""
+    if text.endswith("%"):
+        value = float(text[:-1])
+        if not 0 < value <= 100:
+            raise argparse.ArgumentTypeError(f"percentage must be in (0, 100], got {text}")
+        return text
+    return _positive(text)
+
+
+def resolve_cache(cache: int | str | None, n_domains: int) -> int | None:
+    """The cache size in domains: ``P%`` of ``n_domains`` rounded up (at least 1)."""
+    if isinstance(cache, str):
+        return max(1, math.ceil(float(cache[:-1]) / 100.0 * n_domains))
+    return cache
 
 
 def _non_negative(text: str) -> int:
@@ -117,8 +155,19 @@ def run_render(args: argparse.Namespace) -> int:
     if reference is not None and reference.shape != (args.height, args.width, 3):
         raise InputError(args.reference, f"reference is {reference.shape[1]}x{reference.shape[0]}"
                                          f", the render is {args.width}x{args.height}")
-    result = render(store, config, settings, cache_capacity=args.cache, threads=args.threads,
-                    progress=not args.quiet)
+    cache = resolve_cache(args.cache, len(store.domains))
+    scheduler = args.scheduler
+    if scheduler == "auto":
+        scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
+    if scheduler == "reference":
+        result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
+                        progress=not args.quiet)
+    else:
+        result = render_out_of_core(
+            store, config, settings, scheduler=scheduler, cache_capacity=cache,
+            max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT,
+            history_depth=args.history_depth, preload=not args.no_preload,
+            progress=not args.quiet)
     image = result.film.image()
     write_exr(args.output, image, result.film.depth_image(), result.film.normal_image())
     if args.png:
@@ -128,6 +177,7 @@ def run_render(args: argparse.Namespace) -> int:
         write_report(args.report, build_report(
             store=str(store_path), settings=asdict(settings), seconds=result.seconds,
             counters=result.counters, error=error, reference=args.reference,
+            scheduler=scheduler,
         ))
     if not args.quiet:
         rays = result.counters["rays"]["total"]
