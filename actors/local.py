@@ -74,7 +74,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                 policy = SCHEDULERS[scheduler](ctx, geometry, color_source, scalar_range,
                                                **kwargs)
                 policy.start(camera_rays(camera, ctx))
-                while (domain := policy.next_domain()) is not None:
+                while (domain := policy.next_domain(cache.resident_set())) is not None:
                     bvh = cache.get(domain)
                     if preload:
                         cache.prefetch(policy.likely_next(domain))

@@ -79,6 +79,11 @@ class DomainCache:
         """Ids of the resident domains, least recently used first."""
         return list(self._resident)
 
+    def resident_set(self) -> frozenset[int]:
+        """Domains resident or being preloaded."""
+        with self._lock:
+            return frozenset(self._resident) | frozenset(self._pending)
+
     def get(self, domain_id: int) -> DomainBVH:
         """The built domain, loading it (and evicting the LRU one) if needed."""
         start = time.perf_counter()

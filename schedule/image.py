@@ -60,8 +60,11 @@ class ImageSchedule:
         """Queue the tile's camera rays."""
         self._launch_radiance(rays)
 
-    def next_domain(self) -> int | None:
-        """The domain with the most waiting rays (lowest id on ties); None when done."""
+    def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
+        """The domain with the most waiting rays (lowest id on ties); None when done.
+
+        ``resident`` is ignored: the baseline knows nothing of the cache (SpRay Listing 1).
+        """
         waiting = self.radiance.counts() + self.shadow.counts()
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"],
                                                    int(waiting.sum()))

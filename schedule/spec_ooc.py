@@ -80,6 +80,7 @@ class SpeculativeSchedule:
         self.shadow_pending = np.zeros(0, np.int32)
         self.shadow_blocked = np.zeros(0, bool)
         self._schedule: list[int] = []
+        self._resident: frozenset[int] = frozenset()
         self._camera: RadianceRays | None = None
         self.counters = {
             "radiance_tests": 0, "shadow_tests": 0, "speculative_rays": 0,
@@ -93,10 +94,20 @@ class SpeculativeSchedule:
         self._camera = rays
         self._queue_radiance(self._with_history(rays))
 
-    def next_domain(self) -> int | None:
+    def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
         """The next domain of the current round's schedule; between rounds, retire and
-        reschedule; between windows, resume spilled rays. None when the tile is done."""
+        reschedule; between windows, resume spilled rays. None when the tile is done.
+
+        ``resident`` (domains in memory now) lets a new round start with them, and a resident
+        domain that has received rays since it was processed is served again before anything
+        new is loaded: its rays cost no load now, and might cost one next round.
+        """
+        self._resident = resident
         while True:
+            waiting = self.radiance.counts() + self.shadow.counts()
+            again = [d for d in resident if waiting[d] and d not in self._schedule]
+            if again and self.counters["rounds"]:
+                return max(again, key=lambda d: (waiting[d], -d))
             while self._schedule:
                 domain = self._schedule.pop(0)
                 if self.radiance.counts()[domain] or self.shadow.counts()[domain]:
@@ -123,10 +134,15 @@ class SpeculativeSchedule:
 
     # -- rounds and windows -------------------------------------------------------------------
     def _new_round(self) -> None:
-        """Schedule: every domain by descending traversal score (Listing 2, line 12)."""
+        """Schedule: domains by descending traversal score (Listing 2, line 12), except that
+        domains already in memory go first. A fixed cyclic order is the worst case for an LRU
+        cache smaller than the cycle (every access misses); starting each round with what the
+        last one left resident turns those misses into hits. Measured in bench/ooc.py."""
         m = self.counter.shape[1]
         score = self.counter @ (m - np.arange(m))
-        self._schedule = sorted(range(len(score)), key=lambda d: (-score[d], d))
+        resident = self._resident
+        self._schedule = sorted(range(len(score)),
+                                key=lambda d: (d not in resident, -score[d], d))
         self.counters["rounds"] += 1
 
     def _end_round(self) -> bool:
