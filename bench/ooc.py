@@ -4,7 +4,8 @@ Generates (or reuses, in .bench_cache/) a Richtmyer-Meshkov-like scene split int
 and a second one with fewer, larger domains, then renders AO and PT with domain caches of 25,
 50, 75 and 100 % of the domains, with both schedules, in one run. Every load is a real read
 (the kernel is told to drop a domain's pages after reading it) plus the BVH build, which the
-papers count in load time. Prints a table and, per cache size, ``loads_ratio=`` and
+papers count in load time. "load wait s" is the part of the load time the render thread
+actually waited: the rest was hidden by the preloader. Prints a table and, per cache size, ``loads_ratio=`` and
 ``time_ratio=`` (baseline / speculative); the first pair printed is the 25 % cache's. Then the
 history-depth sweep of Fig. 8 (H = 1..B for B = 3).
 
@@ -57,7 +58,7 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
-        "load_s": c["load_s"], "render_s": result.seconds["render"],
+        "load_s": c["load_s"], "wait_s": c["load_wait_s"], "render_s": result.seconds["render"],
         "total_s": time.perf_counter() - start, "wasted": c.get("wasted_rays", 0),
         "speculative": c.get("speculative_rays", 0),
     }
@@ -66,7 +67,7 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
 def row(integrator: str, r: dict, n_domains: int) -> str:
     pct = round(100 * r["cache"] / n_domains)
     return (f"| {integrator} | {r['scheduler']:8} | {r['cache']:3d} ({pct:3d}%) | {r['loads']:5d} "
-            f"| {r['load_s']:7.2f} | {r['render_s']:7.2f} | {r['total_s']:7.2f} "
+            f"| {r['load_s']:7.2f} | {r['wait_s']:7.2f} | {r['render_s']:7.2f} | {r['total_s']:7.2f} "
             f"| {r['wasted']:,} of {r['speculative']:,} |")
 
 
@@ -83,9 +84,9 @@ def main() -> None:
         print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains, "
               f"{width}x{height}, {plan['spp']} spp, {plan['shadow_samples']} shadow rays, "
               f"{plan['bounces']} bounces\n", flush=True)
-        print("| integrator | scheduler | cache | loads | load s | render s | total s "
-              "| wasted speculative rays |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+        print("| integrator | scheduler | cache | loads | load s | load wait s | render s "
+              "| total s | wasted speculative rays |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
         for integrator in ("ao", "pt"):
             settings = RenderSettings(width=width, height=height, spp=plan["spp"],
                                       integrator=integrator, bounces=plan["bounces"],

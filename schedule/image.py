@@ -71,10 +71,10 @@ class ImageSchedule:
         return int(np.argmax(waiting)) if waiting.any() else None
 
     def likely_next(self, current: int) -> int | None:
-        """A guess at the domain after ``current``, for the preloader."""
-        waiting = self.radiance.counts() + self.shadow.counts()
-        waiting[current] = 0
-        return int(np.argmax(waiting)) if waiting.any() else None
+        """None: the baseline picks its next domain only after processing this one (its
+        choice depends on the rays this one sends on), so there is nothing to preload. Guessing
+        was measured: wrong guesses cost BVH builds that compete for the cores."""
+        return None
 
     def process(self, domain: int, bvh) -> None:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""
