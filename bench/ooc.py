@@ -5,9 +5,9 @@ and a second one with fewer, larger domains, then renders AO and PT with domain 
 50, 75 and 100 % of the domains, with both schedules, in one run. Every load is a real read
 (the kernel is told to drop a domain's pages after reading it) plus the BVH build, which the
 papers count in load time. "load wait s" is the part of the load time the render thread
-actually waited: the rest was hidden by the preloader. Prints a table and, per cache size, ``loads_ratio=`` and
-``time_ratio=`` (baseline / speculative); the first pair printed is the 25 % cache's. Then the
-history-depth sweep of Fig. 8 (H = 1..B for B = 3).
+actually waited: the rest was hidden by the preloader. Prints a table and, per cache size,
+``loads_ratio=`` and ``time_ratio=`` (baseline / speculative); the first pair printed is the
+25 % cache's. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3).
 
     python bench/ooc.py            # full run (about 10 minutes on 2 cores)
     python bench/ooc.py --quick    # a 2-minute subset
