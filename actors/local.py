@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
+from collections.abc import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -34,7 +35,9 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        scheduler: str = "image", cache_capacity: int | None = None,
                        max_samples_in_flight: int | None = None,
                        history_depth: int | None = None, preload: bool = True,
-                       drop_page_cache: bool = False, progress: bool = True) -> RenderResult:
+                       drop_page_cache: bool = False, progress: bool = True,
+                       share: tuple[int, int] = (0, 1),
+                       on_tile: Callable[[int], None] | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
@@ -45,6 +48,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     history_depth : spec-ooc's H, bounces speculated per window (default: all bounces).
     preload : load the next domain on a background thread while rendering the current one.
     drop_page_cache : make each domain load a real read from disk.
+    share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
+    on_tile : called with the number of paths after each finished tile (progress reports).
     """
     if scheduler not in SCHEDULERS:
         raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
@@ -62,12 +67,13 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     film = Film(settings.width, settings.height)
     total = settings.width * settings.height * settings.spp
     tile = max(1, min(max_samples_in_flight or total, total))
+    firsts = list(range(0, total, tile))[share[0]::share[1]]
     counters: dict = {}
     process_seconds = 0.0
     try:
         with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
                   desc=f"render ({scheduler})", leave=False) as bar:
-            for first in range(0, total, tile):
+            for first in firsts:
                 ctx = path_context(shading, settings, first, min(first + tile, total),
                                    ao_distance)
                 kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
@@ -84,6 +90,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                 film.add_paths(ctx.pixel, ctx.sample, policy.result)
                 _merge(counters, policy.counters)
                 bar.update(len(ctx.pixel))
+                if on_tile is not None:
+                    on_tile(len(ctx.pixel))
     finally:
         cache.close()
     wall = time.perf_counter() - start

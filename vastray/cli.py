@@ -9,6 +9,7 @@ import argparse
 import logging
 import sys
 
+from vastray.actors.coordinator import NodeFailure
 from vastray.scene.errors import InputError
 
 DESCRIPTION = """\
@@ -37,10 +38,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     commands_scene.register(sub)
     commands_render.register(sub)
+    node = sub.add_parser("node", help="run one render node (started by a coordinator)",
+                          add_help=False)
+    node.set_defaults(func=None)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["node"]:
+        from vastray.actors.node import main as node_main
+
+        return node_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -52,6 +61,9 @@ def main(argv: list[str] | None = None) -> int:
     except InputError as exc:
         print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except NodeFailure as exc:
+        print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print(f"vastray {args.command}: interrupted", file=sys.stderr)
         return 130

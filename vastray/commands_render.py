@@ -9,6 +9,7 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.local import render_out_of_core
 from vastray.render.driver import render
 from vastray.render.imageio import image_error, read_image, write_exr, write_png
@@ -76,6 +77,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--history-depth", type=_non_negative, metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")
+    p.add_argument("--nodes", type=_positive, metavar="N",
+                   help="render with N node processes on this machine, talking ZeroMQ over "
+                        "loopback (schedulers image and spec-ooc: sort-first tiles)")
+    p.add_argument("--node-timeout", type=_positive_float, default=120.0, metavar="S",
+                   help="with --nodes: fail when a node is silent this long (default: 120)")
     p.add_argument("--no-preload", action="store_true",
                    help="image/spec-ooc: do not load the next domain in the background")
     p.add_argument("--batch-size", type=_positive, default=65536,
@@ -159,7 +165,14 @@ def run_render(args: argparse.Namespace) -> int:
     scheduler = args.scheduler
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
-    if scheduler == "reference":
+    if args.nodes:
+        scheduler = "image" if scheduler == "reference" else scheduler
+        result = render_distributed(
+            store_path, args.scene, settings, args.nodes, scheduler=scheduler,
+            cache_capacity=cache,
+            max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
+            history_depth=args.history_depth, timeout=args.node_timeout)
+    elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
     else:

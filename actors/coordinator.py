@@ -1,0 +1,166 @@
+"""The coordinator (rank 0's driver): starts node processes, hands out the job, watches that
+every node stays alive, receives the reduced film and the per-node reports.
+
+Every wait has a timeout; a node that exits early or stops answering fails the run with a
+message naming it, and the caller writes no output.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import zmq
+import zmq.asyncio
+
+from vastray.actors import protocol
+from vastray.actors.film_wire import film_from
+from vastray.render.driver import RenderResult
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import load_scene_config
+from vastray.scene.store import Store
+from vastray.transport.codec import decode, encode
+
+#: Distributed schedulers and the per-node schedule each runs over its sort-first tiles.
+NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc"}
+
+
+class NodeFailure(RuntimeError):
+    """A node died or went silent; the message names it."""
+
+
+def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
+                       settings: RenderSettings, nodes: int, scheduler: str = "image",
+                       cache_capacity: int | None = None, max_samples_in_flight: int = 65536,
+                       history_depth: int | None = None, timeout: float = 120.0
+                       ) -> RenderResult:
+    """Render with ``nodes`` local node processes talking ZeroMQ over loopback.
+
+    Parameters
+    ----------
+    scheduler : ``image`` (sort-first tiles, each node out of core with its own cache) or
+        ``spec-ooc`` (the same split, SpRay's speculative schedule on each node).
+    timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
+    """
+    if scheduler not in NODE_SCHEDULE:
+        raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
+                         f"got {scheduler!r}")
+    if nodes < 1:
+        raise ValueError("--nodes must be at least 1")
+    store = Store(store_path)
+    config = load_scene_config(scene_path)
+    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
+                                   settings.height)
+    job = {
+        "store": str(Path(store_path).resolve()),
+        "scene": None if scene_path is None else str(Path(scene_path).resolve()),
+        "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
+        "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
+    }
+    start = time.perf_counter()
+    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout))
+    wall = time.perf_counter() - start
+    counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
+                "loads": sum(r["counters"].get("loads", 0) for r in reports)}
+    seconds = {"total": round(wall, 4),
+               "busy_max": max(r["busy_s"] for r in reports),
+               "reduce_max": max(r["reduce_s"] for r in reports)}
+    return RenderResult(film, camera, seconds, counters)
+
+
+async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float):
+    ctx = zmq.asyncio.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
+    procs = []
+    try:
+        for rank in range(size):
+            log_file = open(Path(logs.name) / f"node{rank}.log", "wb")  # noqa: SIM115
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "vastray.actors.node", "--coordinator",
+                 f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--size", str(size),
+                 "--timeout", str(timeout)],
+                stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL))
+            log_file.close()
+        watch = _Watch(procs, logs.name, timeout)
+        identities, endpoints = {}, [None] * size
+        while len(identities) < size:
+            identity, message = await watch.receive(router)
+            if message.kind == protocol.HELLO:
+                rank = int(message.meta["rank"])
+                identities[rank] = identity
+                endpoints[rank] = message.meta["endpoint"]
+        for rank in range(size):
+            frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints))
+            await router.send_multipart([identities[rank], *frames])
+        film, reports = None, {}
+        while film is None or len(reports) < size:
+            identity, message = await watch.receive(router)
+            if message.kind == protocol.FILM:
+                film = film_from(message, settings.width, settings.height)
+            elif message.kind == protocol.DONE:
+                reports[int(message.meta["rank"])] = message.meta
+        for rank in range(size):
+            await router.send_multipart([identities[rank], *encode(protocol.STOP, {})])
+        await watch.wait_exit()
+        return film, [reports[r] for r in range(size)]
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        router.close(linger=0)
+        ctx.destroy(linger=0)
+        logs.cleanup()
+
+
+class _Watch:
+    """Receives from the coordinator socket while watching the node processes."""
+
+    def __init__(self, procs: list[subprocess.Popen], log_dir: str, timeout: float):
+        self.procs, self.log_dir, self.timeout = procs, log_dir, timeout
+        self.last_heard = [time.monotonic()] * len(procs)
+
+    def _failure(self, rank: int, why: str) -> NodeFailure:
+        text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
+        last = text.splitlines()[-1] if text else "no output"
+        return NodeFailure(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+
+    def check(self) -> None:
+        now = time.monotonic()
+        for rank, proc in enumerate(self.procs):
+            code = proc.poll()
+            if code is not None and code != 0:
+                raise self._failure(rank, f"exited with code {code}")
+            if now - self.last_heard[rank] > self.timeout:
+                raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")
+
+    async def receive(self, router):
+        while True:
+            self.check()
+            if await router.poll(500):
+                frames = await router.recv_multipart(copy=False)
+                message = decode(frames[1:])
+                rank = message.meta.get("rank")
+                if isinstance(rank, int) and 0 <= rank < len(self.procs):
+                    self.last_heard[rank] = time.monotonic()
+                return frames[0].bytes, message
+
+    async def wait_exit(self) -> None:
+        deadline = time.monotonic() + self.timeout
+        while any(p.poll() is None for p in self.procs):
+            if time.monotonic() > deadline:
+                raise NodeFailure("nodes did not shut down within the timeout")
+            await asyncio.sleep(0.05)
+        self.check()
+
+
+__all__ = ["render_distributed", "NodeFailure"]

@@ -1,0 +1,36 @@
+"""Films as wire messages, and how partial films from several nodes combine."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vastray.render.film import Film
+from vastray.transport.codec import Message, encode
+
+FILM_FIELDS = ("sum", "sum_sq", "count", "depth", "normal")
+
+
+def film_frames(film: Film, meta: dict | None = None) -> list:
+    return encode("film", {f: getattr(film, f) for f in FILM_FIELDS}, meta)
+
+
+def film_from(message: Message, width: int, height: int) -> Film:
+    """A writable Film from a decoded message (checks the pixel count)."""
+    film = Film(width, height)
+    for name in FILM_FIELDS:
+        array = message.arrays[name]
+        if array.shape != getattr(film, name).shape:
+            raise ValueError(f"film field {name} has shape {array.shape}, expected "
+                             f"{getattr(film, name).shape}")
+        setattr(film, name, np.array(array))
+    return film
+
+
+def combine_films(into: Film, other: Film) -> None:
+    """Sum the sample sums and counts; each pixel's depth/normal comes from the one node that
+    traced its sample 0 (others hold inf / zeros), so MIN and SUM merge them exactly."""
+    into.sum += other.sum
+    into.sum_sq += other.sum_sq
+    into.count += other.count
+    np.minimum(into.depth, other.depth, out=into.depth)
+    into.normal += other.normal

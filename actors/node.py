@@ -1,0 +1,183 @@
+"""One render node: an asyncio process with a management actor (the node's ZeroMQ endpoint),
+a render worker (Embree and numpy off the event loop) and a tree-reduce actor.
+
+Run by the coordinator (``vastray render --nodes N``), by ``vastray launch`` over SSH, or by
+hand: ``vastray node --coordinator tcp://HOST:PORT --rank R --size N``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import socket
+import sys
+import time
+
+import zmq
+import zmq.asyncio
+
+from vastray.actors import protocol
+from vastray.actors.film_wire import combine_films, film_frames, film_from
+from vastray.transport.codec import decode, encode
+from vastray.transport.tree import children, parent
+
+log = logging.getLogger(__name__)
+
+
+class ManagementActor:
+    """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, DEALERs to
+    peers on demand. Incoming messages go to bounded mailboxes by kind."""
+
+    def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
+                 timeout: float):
+        self.ctx = ctx
+        self.timeout = timeout
+        self.router = ctx.socket(zmq.ROUTER)
+        self.router.setsockopt(zmq.LINGER, 0)
+        self.router.setsockopt(zmq.RCVHWM, 64)
+        port = self.router.bind_to_random_port(f"tcp://{bind_host}")
+        self.endpoint = f"tcp://{bind_host}:{port}"
+        self.coordinator = self._dealer(coordinator)
+        self.peers: dict[str, zmq.asyncio.Socket] = {}
+        self.mailboxes: dict[str, asyncio.Queue] = {}
+        self._tasks = [asyncio.ensure_future(self._route(self.router, identity=True)),
+                       asyncio.ensure_future(self._route(self.coordinator, identity=False))]
+
+    def _dealer(self, endpoint: str) -> zmq.asyncio.Socket:
+        sock = self.ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 64)
+        sock.connect(endpoint)
+        return sock
+
+    def mailbox(self, kind: str) -> asyncio.Queue:
+        return self.mailboxes.setdefault(kind, asyncio.Queue(maxsize=64))
+
+    async def _route(self, sock: zmq.asyncio.Socket, identity: bool) -> None:
+        while True:
+            frames = await sock.recv_multipart(copy=False)
+            message = decode(frames[1:] if identity else frames)
+            await self.mailbox(message.kind).put(message)
+
+    async def receive(self, kind: str, what: str):
+        """The next message of ``kind``; fails after the node timeout."""
+        try:
+            return await asyncio.wait_for(self.mailbox(kind).get(), self.timeout)
+        except TimeoutError:
+            raise TimeoutError(f"no {what} within {self.timeout:.0f} s") from None
+
+    async def to_coordinator(self, frames: list) -> None:
+        await asyncio.wait_for(self.coordinator.send_multipart(frames, copy=False), self.timeout)
+
+    async def to_peer(self, endpoint: str, frames: list) -> None:
+        if endpoint not in self.peers:
+            self.peers[endpoint] = self._dealer(endpoint)
+        await asyncio.wait_for(self.peers[endpoint].send_multipart(frames, copy=False),
+                               self.timeout)
+
+    def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for sock in [self.router, self.coordinator, *self.peers.values()]:
+            sock.close(linger=0)
+
+
+class TreeReduceActor:
+    """Combines partial results up the binary tree of ranks (ceil(log2 P) steps)."""
+
+    def __init__(self, management: ManagementActor, rank: int, size: int, endpoints: list[str]):
+        self.management, self.rank, self.size, self.endpoints = management, rank, size, endpoints
+
+    async def reduce_film(self, film, width: int, height: int):
+        """Sum this subtree's films; the root returns the total, others send it up."""
+        for _ in children(self.rank, self.size):
+            message = await self.management.receive("film", "film from a child node")
+            combine_films(film, film_from(message, width, height))
+        up = parent(self.rank)
+        if up is not None:
+            await self.management.to_peer(self.endpoints[up], film_frames(film, {"rank": self.rank}))
+        return film
+
+
+async def run_node(coordinator: str, rank: int, size: int, timeout: float,
+                   bind_host: str = "127.0.0.1") -> None:
+    from vastray.actors.local import render_out_of_core
+    from vastray.render.integrators import RenderSettings
+    from vastray.render.scene_config import load_scene_config
+    from vastray.scene.store import Store
+
+    ctx = zmq.asyncio.Context()
+    management = ManagementActor(ctx, coordinator, bind_host, timeout)
+    try:
+        await management.to_coordinator(encode(protocol.HELLO, {}, {
+            "rank": rank, "endpoint": management.endpoint, "host": socket.gethostname(),
+            "pid": os.getpid()}))
+        job = (await management.receive(protocol.JOB, "job from the coordinator")).meta
+        settings = RenderSettings(**job["settings"])
+        store = Store(job["store"])
+        config = load_scene_config(job.get("scene"))
+        loop = asyncio.get_running_loop()
+        done = {"paths": 0}
+
+        def report(paths: int) -> None:
+            done["paths"] += paths
+            asyncio.run_coroutine_threadsafe(management.to_coordinator(encode(
+                protocol.PROGRESS, {}, {"rank": rank, "paths": done["paths"]})), loop)
+
+        async def heartbeat() -> None:
+            while True:
+                await asyncio.sleep(1.0)
+                await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
+
+        beating = asyncio.ensure_future(heartbeat())
+        start = time.perf_counter()
+        result = await asyncio.to_thread(
+            render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
+            cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
+            history_depth=job.get("history_depth"), progress=False, share=(rank, size),
+            on_tile=report)
+        busy = time.perf_counter() - start
+        reduce_start = time.perf_counter()
+        tree = TreeReduceActor(management, rank, size, job["endpoints"])
+        film = await tree.reduce_film(result.film, settings.width, settings.height)
+        stats = {"rank": rank, "busy_s": round(busy, 4),
+                 "reduce_s": round(time.perf_counter() - reduce_start, 4),
+                 "counters": {k: v for k, v in result.counters.items()
+                              if isinstance(v, (int, float, str))}}
+        if rank == 0:
+            await management.to_coordinator(film_frames(film, {"rank": rank}))
+        await management.to_coordinator(encode(protocol.DONE, {}, stats))
+        beating.cancel()
+        await management.receive(protocol.STOP, "stop from the coordinator")
+    finally:
+        management.close()
+        ctx.destroy(linger=0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="vastray node", description=__doc__)
+    parser.add_argument("--coordinator", required=True, help="tcp://HOST:PORT")
+    parser.add_argument("--rank", type=int, required=True)
+    parser.add_argument("--size", type=int, required=True)
+    parser.add_argument("--timeout", type=float, default=120.0,
+                        help="seconds any wait may last before the node gives up")
+    parser.add_argument("--bind", default="127.0.0.1", help="address to listen on")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format=f"node {args.rank}: %(message)s")
+    try:
+        import uvloop
+        uvloop.install()
+    except ImportError:
+        pass
+    try:
+        asyncio.run(run_node(args.coordinator, args.rank, args.size, args.timeout, args.bind))
+    except Exception as exc:  # report, then fail: the coordinator names this node
+        print(f"node {args.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

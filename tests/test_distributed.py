@@ -1,0 +1,122 @@
+"""Distributed runtime: real node processes over ZeroMQ give the reference image; a node
+killed mid-render fails the run naming the node, and leaves no output."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vastray.actors.coordinator import render_distributed
+from vastray.cli import main
+from vastray.render.driver import render
+from vastray.render.scene_config import load_scene_config
+from vastray.transport.tree import children, depth, parent, reduce_in_tree
+
+from scenes import bumpy_scene, settings, write_store
+
+SCENE_TOML = """
+[camera]
+position = [3.0, 2.2, 4.5]
+look_at = [0.0, -0.5, 0.0]
+[[light]]
+type = "point"
+position = [2.0, 3.0, 1.0]
+intensity = 12.0
+[[light]]
+type = "ambient"
+radiance = 0.2
+"""
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dist")
+    store = write_store(root / "kd12", bumpy_scene(), kd=12)
+    (root / "scene.toml").write_text(SCENE_TOML)
+    return store, root / "scene.toml"
+
+
+@pytest.mark.parametrize("size", range(1, 10))
+def test_tree_reduce_min_or_sum(size):
+    rng = np.random.default_rng(size)
+    ranks = range(size)
+    assert sorted(c for r in ranks for c in children(r, size)) == list(range(1, size))
+    assert all(parent(c) == r for r in ranks for c in children(r, size))
+    assert depth(size) <= int(np.ceil(np.log2(size))) if size > 1 else depth(size) == 0
+    t = [rng.random(50).astype(np.float32) for _ in ranks]
+    o = [rng.integers(0, 1 << 32, 50, dtype=np.uint64) for _ in ranks]
+    s = [rng.integers(0, 1000, 50) for _ in ranks]
+    np.testing.assert_array_equal(reduce_in_tree(t, "min")[0], np.minimum.reduce(t))
+    np.testing.assert_array_equal(reduce_in_tree(o, "or")[0], np.bitwise_or.reduce(o))
+    np.testing.assert_array_equal(reduce_in_tree(s, "sum")[0], np.sum(s, axis=0))
+
+
+@pytest.mark.parametrize("integrator", ["ao", "pt"])
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_nodes_give_the_reference_image(scene, integrator, scheduler):
+    store, toml = scene
+    st = settings(width=32, height=24, spp=2, integrator=integrator)
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    for nodes in (1, 2, 3, 4):
+        result = render_distributed(store.path, toml, st, nodes, scheduler=scheduler,
+                                    cache_capacity=4, max_samples_in_flight=300, timeout=60)
+        np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6,
+                                   atol=1e-6, err_msg=f"{scheduler} on {nodes} nodes")
+        np.testing.assert_array_equal(result.film.count, reference.count)
+        assert len(result.counters["per_node"]) == nodes
+
+
+def _node_pids(rank: int) -> list[int]:
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"vastray.actors.node" in cmd and b"--rank" in cmd and \
+                cmd[cmd.index(b"--rank") + 1] == str(rank).encode() and \
+                str(os.getpid()).encode() not in cmd:
+            pids.append(int(proc.name))
+    return pids
+
+
+def test_killed_node_fails_the_run_with_its_name_and_no_output(scene, tmp_path, capsys):
+    store, toml = scene
+    out = tmp_path / "never.exr"
+    killed = []
+
+    def killer():
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not killed:
+            for pid in _node_pids(1):
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+            time.sleep(0.2)
+
+    thread = threading.Thread(target=killer)
+    thread.start()
+    start = time.monotonic()
+    code = main(["render", str(store.path), "-o", str(out), "--scene", str(toml), "--nodes", "2",
+                 "--width", "64", "--height", "48", "--spp", "16", "--node-timeout", "30",
+                 "--max-samples-in-flight", "500", "--quiet"])
+    thread.join()
+    assert killed, "the test could not find node 1 to kill"
+    assert code != 0
+    assert time.monotonic() - start < 60
+    err = capsys.readouterr().err
+    assert "node 1" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_unknown_scheduler_for_nodes_is_refused(scene):
+    store, toml = scene
+    with pytest.raises(ValueError, match="supports schedulers"):
+        render_distributed(store.path, toml, settings(), 2, scheduler="dynamic")
