@@ -87,12 +87,12 @@ def main() -> None:
         print("| integrator | scheduler | cache | loads | load s | load wait s | render s "
               "| total s | wasted speculative rays |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
-        for integrator in ("ao", "pt"):
-            settings = RenderSettings(width=width, height=height, spp=plan["spp"],
-                                      integrator=integrator, bounces=plan["bounces"],
-                                      shadow_samples=plan["shadow_samples"])
-            for fraction in plan["caches"]:
-                cache = max(1, math.ceil(fraction * n))
+        for fraction in plan["caches"]:
+            cache = max(1, math.ceil(fraction * n))
+            for integrator in ("ao", "pt"):
+                settings = RenderSettings(width=width, height=height, spp=plan["spp"],
+                                          integrator=integrator, bounces=plan["bounces"],
+                                          shadow_samples=plan["shadow_samples"])
                 base = run(store, settings, "image", cache)
                 spec_run = run(store, settings, "spec-ooc", cache)
                 print(row(integrator, base, n))
