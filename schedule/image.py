@@ -93,17 +93,27 @@ class ImageSchedule:
                                  self.scalar_range)
         self._advance_radiance(rays)
 
-    def _advance_radiance(self, rays: SoA) -> None:
-        """Queue rays into their next domain; shade the ones whose hit is final."""
+    def _forward(self, rays: SoA, queues: DomainQueues, limit: np.ndarray) -> np.ndarray:
+        """Queue each ray into the next domain on its path that starts before ``limit``.
+
+        Returns
+        -------
+        (n,) bool, the rays with no such domain left.
+        """
         nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
-                                               rays["at_d"], rays["hit_t"])
+                                               rays["at_d"], limit)
         moving = nxt >= 0
         if moving.any():
             movers = rays.take(moving)
             movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
-            self.radiance.push(nxt[moving], movers)
-        if not moving.all():
-            self._finalize(rays.take(~moving))
+            queues.push(nxt[moving], movers)
+        return ~moving
+
+    def _advance_radiance(self, rays: SoA) -> None:
+        """Queue rays into their next domain; shade the ones whose hit is final."""
+        final = self._forward(rays, self.radiance, rays["hit_t"])
+        if final.any():
+            self._finalize(rays.take(final))
 
     def _finalize(self, rays: SoA) -> None:
         """Closest hits are final: record camera hits, shade, launch the rays they spawn."""
@@ -138,12 +148,6 @@ class ImageSchedule:
 
     def _advance_shadow(self, rays: SoA) -> None:
         """Queue unblocked shadow rays into their next domain; past the last, they bring light."""
-        nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
-                                               rays["at_d"], rays["t_max"])
-        moving = nxt >= 0
-        if moving.any():
-            movers = rays.take(moving)
-            movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
-            self.shadow.push(nxt[moving], movers)
-        if not moving.all():
-            add_unoccluded(self.result.radiance, as_shadow(rays), ~moving)
+        through = self._forward(rays, self.shadow, rays["t_max"])
+        if through.any():
+            add_unoccluded(self.result.radiance, as_shadow(rays), through)
