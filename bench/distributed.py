@@ -1,0 +1,113 @@
+"""Distributed rendering and transport throughput.
+
+1. Ray batches through the codec and ZeroMQ (msgpack header + raw frames, zero-copy) against
+   raw ZeroMQ multipart messages of the same bytes, over loopback TCP between two processes:
+   ``transport_ratio=`` (floor 0.5).
+2. N = 1, 2, 4 local node processes with each distributed scheduler implemented so far, on a
+   scene with more domains than a node's cache: time, loads, and each scheduler's time ratio
+   against ``image``.
+
+    python bench/distributed.py [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+from vastray.actors.coordinator import render_distributed
+from vastray.render.integrators import RenderSettings
+from vastray.scene.generate import generate
+from vastray.scene.store import Store
+from vastray.transport.codec import decode, encode
+
+CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
+
+
+def ray_batch(n: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    return {"origin": rng.random((n, 3), dtype=np.float32),
+            "direction": rng.random((n, 3), dtype=np.float32),
+            "t_max": rng.random(n, dtype=np.float32),
+            "beta": rng.random((n, 3), dtype=np.float32),
+            "pixel": rng.integers(0, 1 << 24, n).astype(np.uint32),
+            "sample": rng.integers(0, 64, n).astype(np.uint32),
+            "depth": rng.integers(0, 4, n).astype(np.uint8),
+            "kind": rng.integers(0, 2, n).astype(np.uint8)}
+
+
+def _receiver(endpoint: str, messages: int, codec: bool) -> None:
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.PULL)
+    sock.connect(endpoint)
+    for _ in range(messages):
+        frames = sock.recv_multipart(copy=False)
+        if codec:
+            decode(frames)
+    ctx.destroy(linger=0)
+
+
+def transport(n_rays: int, messages: int) -> tuple[float, float]:
+    """Rays per second through raw multipart frames and through the codec."""
+    batch = ray_batch(n_rays)
+    raw_frames = [np.ascontiguousarray(a).data for a in batch.values()]
+    rates = []
+    for codec in (False, True):
+        ctx = zmq.Context()
+        sock = ctx.socket(zmq.PUSH)
+        sock.setsockopt(zmq.SNDHWM, 16)
+        port = sock.bind_to_random_port("tcp://127.0.0.1")
+        proc = mp.get_context("spawn").Process(
+            target=_receiver, args=(f"tcp://127.0.0.1:{port}", messages, codec))
+        proc.start()
+        start = time.perf_counter()
+        for _ in range(messages):
+            frames = encode("rays", batch) if codec else raw_frames
+            sock.send_multipart(frames, copy=False)
+        proc.join()
+        rates.append(n_rays * messages / (time.perf_counter() - start))
+        ctx.destroy(linger=0)
+    return rates[0], rates[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    raw, codec = transport(65536, 100 if args.quick else 400)
+    print(f"raw_zmq_rays_per_s={raw:,.0f} codec_zmq_rays_per_s={codec:,.0f}")
+    print(f"transport_ratio={codec / raw:.3f}", flush=True)
+
+    resolution = 160 if args.quick else 320
+    path = CACHE / f"rm-{resolution}-4x4x2.store"
+    if not (path / "manifest.json").is_file():
+        generate("rm", path, resolution, grid=(4, 4, 2), seed=0, overwrite=True)
+    store = Store(path)
+    cache = max(1, len(store.domains) // 4)
+    settings = RenderSettings(width=48, height=36, spp=4 if args.quick else 8, integrator="pt",
+                              bounces=2, shadow_samples=4)
+    print(f"\nscene: {store.n_triangles:,} triangles in {len(store.domains)} domains, "
+          f"cache {cache} per node, pt {settings.width}x{settings.height} {settings.spp} spp\n")
+    print("| scheduler | nodes | total s | loads (all nodes) | busiest node s |")
+    print("| --- | --- | --- | --- | --- |")
+    times = {}
+    for nodes in (1, 2, 4):
+        for scheduler in ("image", "spec-ooc"):
+            result = render_distributed(path, None, settings, nodes, scheduler=scheduler,
+                                        cache_capacity=cache, max_samples_in_flight=4096)
+            times[scheduler, nodes] = result.seconds["total"]
+            print(f"| {scheduler} | {nodes} | {result.seconds['total']:.2f} "
+                  f"| {result.counters['loads']} | {result.seconds['busy_max']:.2f} |", flush=True)
+    for nodes in (1, 2, 4):
+        print(f"nodes={nodes} spec-ooc_vs_image_time_ratio="
+              f"{times['image', nodes] / times['spec-ooc', nodes]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
