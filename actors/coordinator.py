@@ -26,6 +26,12 @@ from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.store import Store
 from vastray.transport.codec import decode, encode
+from vastray.transport.security import (
+    ClusterKeys,
+    check_bind,
+    secure_server,
+    start_authenticator,
+)
 
 #: Distributed schedulers and the per-node schedule each runs over its sort-first tiles.
 NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc"}
@@ -38,15 +44,19 @@ class NodeFailure(RuntimeError):
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
                        settings: RenderSettings, nodes: int, scheduler: str = "image",
                        cache_capacity: int | None = None, max_samples_in_flight: int = 65536,
-                       history_depth: int | None = None, timeout: float = 120.0
+                       history_depth: int | None = None, timeout: float = 120.0,
+                       listen: str | None = None, keys: ClusterKeys | None = None
                        ) -> RenderResult:
-    """Render with ``nodes`` local node processes talking ZeroMQ over loopback.
+    """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
     ----------
     scheduler : ``image`` (sort-first tiles, each node out of core with its own cache) or
         ``spec-ooc`` (the same split, SpRay's speculative schedule on each node).
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
+    listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,
+        SSH); default: start them here as child processes, on loopback.
+    keys : cluster keys; required to listen beyond loopback.
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -64,7 +74,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
     }
     start = time.perf_counter()
-    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout))
+    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys))
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports)}
@@ -74,32 +84,44 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     return RenderResult(film, camera, seconds, counters)
 
 
-async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float):
+async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
+                      listen: str | None, keys: ClusterKeys | None):
+    host, _, port = (listen or "127.0.0.1:0").rpartition(":")
+    check_bind(host, keys)
     ctx = zmq.asyncio.Context()
+    auth = start_authenticator(ctx, keys)
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
-    port = router.bind_to_random_port("tcp://127.0.0.1")
+    secure_server(router, keys)
+    if int(port or 0):
+        router.bind(f"tcp://{host}:{port}")
+    else:
+        port = router.bind_to_random_port(f"tcp://{host}")
     logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
     try:
-        for rank in range(size):
-            log_file = open(Path(logs.name) / f"node{rank}.log", "wb")  # noqa: SIM115
-            procs.append(subprocess.Popen(
-                [sys.executable, "-m", "vastray.actors.node", "--coordinator",
-                 f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--size", str(size),
-                 "--timeout", str(timeout)],
-                stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL))
-            log_file.close()
-        watch = _Watch(procs, logs.name, timeout)
+        if listen is None:
+            for rank in range(size):
+                log_file = open(Path(logs.name) / f"node{rank}.log", "wb")  # noqa: SIM115
+                procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "vastray.actors.node", "--coordinator",
+                     f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout)],
+                    stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL))
+                log_file.close()
+        watch = _Watch(size, procs, logs.name, timeout)
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
             if message.kind == protocol.HELLO:
                 rank = int(message.meta["rank"])
+                if not 0 <= rank < size or rank in identities:  # let the coordinator choose
+                    rank = min(set(range(size)) - set(identities))
                 identities[rank] = identity
                 endpoints[rank] = message.meta["endpoint"]
+                watch.heard(rank)
         for rank in range(size):
-            frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints))
+            frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints, rank=rank,
+                                                   size=size))
             await router.send_multipart([identities[rank], *frames])
         film, reports = None, {}
         while film is None or len(reports) < size:
@@ -118,21 +140,29 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 proc.kill()
                 proc.wait()
         router.close(linger=0)
+        if auth is not None:
+            auth.stop()
         ctx.destroy(linger=0)
         logs.cleanup()
 
 
 class _Watch:
-    """Receives from the coordinator socket while watching the node processes."""
+    """Receives from the coordinator socket while watching the nodes: child processes that
+    exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
-    def __init__(self, procs: list[subprocess.Popen], log_dir: str, timeout: float):
-        self.procs, self.log_dir, self.timeout = procs, log_dir, timeout
-        self.last_heard = [time.monotonic()] * len(procs)
+    def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float):
+        self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
+        self.last_heard = [time.monotonic()] * size
+
+    def heard(self, rank: int) -> None:
+        self.last_heard[rank] = time.monotonic()
 
     def _failure(self, rank: int, why: str) -> NodeFailure:
-        text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
-        last = text.splitlines()[-1] if text else "no output"
-        return NodeFailure(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+        if rank < len(self.procs):
+            text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
+            last = text.splitlines()[-1] if text else "no output"
+            return NodeFailure(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+        return NodeFailure(f"node {rank} {why}")
 
     def check(self) -> None:
         now = time.monotonic()
@@ -140,6 +170,7 @@ class _Watch:
             code = proc.poll()
             if code is not None and code != 0:
                 raise self._failure(rank, f"exited with code {code}")
+        for rank in range(self.size):
             if now - self.last_heard[rank] > self.timeout:
                 raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")
 
@@ -150,8 +181,8 @@ class _Watch:
                 frames = await router.recv_multipart(copy=False)
                 message = decode(frames[1:])
                 rank = message.meta.get("rank")
-                if isinstance(rank, int) and 0 <= rank < len(self.procs):
-                    self.last_heard[rank] = time.monotonic()
+                if isinstance(rank, int) and 0 <= rank < self.size:
+                    self.heard(rank)
                 return frames[0].bytes, message
 
     async def wait_exit(self) -> None:

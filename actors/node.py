@@ -2,7 +2,7 @@
 a render worker (Embree and numpy off the event loop) and a tree-reduce actor.
 
 Run by the coordinator (``vastray render --nodes N``), by ``vastray launch`` over SSH, or by
-hand: ``vastray node --coordinator tcp://HOST:PORT --rank R --size N``.
+hand: ``vastray node --coordinator tcp://HOST:PORT`` (the coordinator assigns ranks).
 """
 
 from __future__ import annotations
@@ -21,6 +21,14 @@ import zmq.asyncio
 from vastray.actors import protocol
 from vastray.actors.film_wire import combine_films, film_frames, film_from
 from vastray.transport.codec import decode, encode
+from vastray.transport.security import (
+    ClusterKeys,
+    check_bind,
+    load_keys,
+    secure_client,
+    secure_server,
+    start_authenticator,
+)
 from vastray.transport.tree import children, parent
 
 log = logging.getLogger(__name__)
@@ -31,14 +39,16 @@ class ManagementActor:
     peers on demand. Incoming messages go to bounded mailboxes by kind."""
 
     def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
-                 timeout: float):
+                 advertise: str, timeout: float, keys: ClusterKeys | None):
         self.ctx = ctx
         self.timeout = timeout
+        self.keys = keys
         self.router = ctx.socket(zmq.ROUTER)
         self.router.setsockopt(zmq.LINGER, 0)
         self.router.setsockopt(zmq.RCVHWM, 64)
+        secure_server(self.router, keys)
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
-        self.endpoint = f"tcp://{bind_host}:{port}"
+        self.endpoint = f"tcp://{advertise}:{port}"
         self.coordinator = self._dealer(coordinator)
         self.peers: dict[str, zmq.asyncio.Socket] = {}
         self.mailboxes: dict[str, asyncio.Queue] = {}
@@ -49,6 +59,7 @@ class ManagementActor:
         sock = self.ctx.socket(zmq.DEALER)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.SNDHWM, 64)
+        secure_client(sock, self.keys)
         sock.connect(endpoint)
         return sock
 
@@ -101,20 +112,29 @@ class TreeReduceActor:
         return film
 
 
-async def run_node(coordinator: str, rank: int, size: int, timeout: float,
-                   bind_host: str = "127.0.0.1") -> None:
+async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str = "127.0.0.1",
+                   advertise: str | None = None, keys: ClusterKeys | None = None) -> None:
+    """Serve one render job: say hello, render this node's share, reduce films, stop.
+
+    ``rank`` -1 lets the coordinator assign one (nodes started by docker compose or SSH).
+    """
     from vastray.actors.local import render_out_of_core
     from vastray.render.integrators import RenderSettings
     from vastray.render.scene_config import load_scene_config
     from vastray.scene.store import Store
 
+    check_bind(bind_host, keys)
     ctx = zmq.asyncio.Context()
-    management = ManagementActor(ctx, coordinator, bind_host, timeout)
+    auth = start_authenticator(ctx, keys)
+    if advertise is None:
+        advertise = socket.gethostname() if bind_host in ("0.0.0.0", "*") else bind_host
+    management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys)
     try:
         await management.to_coordinator(encode(protocol.HELLO, {}, {
             "rank": rank, "endpoint": management.endpoint, "host": socket.gethostname(),
             "pid": os.getpid()}))
         job = (await management.receive(protocol.JOB, "job from the coordinator")).meta
+        rank, size = int(job["rank"]), int(job["size"])
         settings = RenderSettings(**job["settings"])
         store = Store(job["store"])
         config = load_scene_config(job.get("scene"))
@@ -153,17 +173,23 @@ async def run_node(coordinator: str, rank: int, size: int, timeout: float,
         await management.receive(protocol.STOP, "stop from the coordinator")
     finally:
         management.close()
+        if auth is not None:
+            auth.stop()
         ctx.destroy(linger=0)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="vastray node", description=__doc__)
     parser.add_argument("--coordinator", required=True, help="tcp://HOST:PORT")
-    parser.add_argument("--rank", type=int, required=True)
-    parser.add_argument("--size", type=int, required=True)
+    parser.add_argument("--rank", type=int, default=-1,
+                        help="this node's rank (default: assigned by the coordinator)")
     parser.add_argument("--timeout", type=float, default=120.0,
                         help="seconds any wait may last before the node gives up")
-    parser.add_argument("--bind", default="127.0.0.1", help="address to listen on")
+    parser.add_argument("--bind", default="127.0.0.1",
+                        help="address to listen on for peers (beyond loopback needs --keys)")
+    parser.add_argument("--advertise", help="address peers reach this node at "
+                                            "(default: --bind, or the host name for 0.0.0.0)")
+    parser.add_argument("--keys", help="cluster key folder from `vastray keys` (CURVE)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=f"node {args.rank}: %(message)s")
     try:
@@ -172,7 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         pass
     try:
-        asyncio.run(run_node(args.coordinator, args.rank, args.size, args.timeout, args.bind))
+        keys = load_keys(args.keys) if args.keys else None
+        asyncio.run(run_node(args.coordinator, args.rank, args.timeout, args.bind,
+                             args.advertise, keys))
     except Exception as exc:  # report, then fail: the coordinator names this node
         print(f"node {args.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

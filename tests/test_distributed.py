@@ -12,10 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vastray.actors.coordinator import render_distributed
+from vastray.actors.coordinator import NodeFailure, render_distributed
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
+from vastray.scene.errors import InputError
+from vastray.transport.security import load_keys
 from vastray.transport.tree import children, depth, parent, reduce_in_tree
 
 from scenes import bumpy_scene, settings, write_store
@@ -120,3 +122,66 @@ def test_unknown_scheduler_for_nodes_is_refused(scene):
     store, toml = scene
     with pytest.raises(ValueError, match="supports schedulers"):
         render_distributed(store.path, toml, settings(), 2, scheduler="dynamic")
+
+
+def _start_external_node(coordinator: str, keys: Path | None, log: Path):
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "vastray.cli", "node", "--coordinator", coordinator,
+           "--timeout", "30"]
+    if keys is not None:
+        cmd += ["--keys", str(keys)]
+    with open(log, "wb") as err:
+        return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_external_nodes_join_with_curve_keys(scene, tmp_path):
+    # The multi-host path (docker compose, SSH): nodes started separately find the
+    # coordinator, get ranks assigned, and all traffic is CURVE-encrypted and authenticated.
+    store, toml = scene
+    assert main(["keys", "-o", str(tmp_path / "keys")]) == 0
+    port = _free_port()
+    nodes = [_start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "keys",
+                                  tmp_path / f"n{i}.log") for i in range(3)]
+    try:
+        st = settings(width=24, height=18, spp=2, integrator="pt")
+        result = render_distributed(store.path, toml, st, 3, listen=f"127.0.0.1:{port}",
+                                    keys=load_keys(tmp_path / "keys"), timeout=30,
+                                    max_samples_in_flight=200)
+        reference = render(store, load_scene_config(toml), st, progress=False).film.image()
+        np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
+    finally:
+        for node in nodes:
+            node.wait(timeout=30)
+    assert all(node.returncode == 0 for node in nodes)
+
+
+def test_node_without_the_key_is_not_admitted(scene, tmp_path):
+    store, toml = scene
+    main(["keys", "-o", str(tmp_path / "keys")])
+    main(["keys", "-o", str(tmp_path / "other")])
+    port = _free_port()
+    intruder = _start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "other",
+                                    tmp_path / "intruder.log")
+    try:
+        with pytest.raises(NodeFailure, match="sent nothing"):
+            render_distributed(store.path, toml, settings(), 1, listen=f"127.0.0.1:{port}",
+                               keys=load_keys(tmp_path / "keys"), timeout=4)
+    finally:
+        intruder.kill()
+        intruder.wait()
+
+
+def test_listening_beyond_loopback_needs_keys(scene):
+    store, toml = scene
+    with pytest.raises(InputError, match="needs cluster keys"):
+        render_distributed(store.path, toml, settings(), 1, listen="0.0.0.0:0")

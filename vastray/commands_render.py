@@ -18,6 +18,7 @@ from vastray.render.scene_config import load_scene_config
 from vastray.report import build_report, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
+from vastray.transport.security import generate_keys, load_keys
 
 log = logging.getLogger(__name__)
 
@@ -82,6 +83,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "loopback (schedulers image and spec-ooc: sort-first tiles)")
     p.add_argument("--node-timeout", type=_positive_float, default=120.0, metavar="S",
                    help="with --nodes: fail when a node is silent this long (default: 120)")
+    p.add_argument("--listen", metavar="HOST:PORT",
+                   help="with --nodes N: wait for N nodes started elsewhere (`vastray node "
+                        "--coordinator tcp://HOST:PORT`, docker compose, SSH) instead of "
+                        "starting them here")
+    p.add_argument("--keys", metavar="DIR",
+                   help="cluster keys from `vastray keys` (ZeroMQ CURVE: encrypted, only key "
+                        "holders may join); needed to listen beyond loopback")
     p.add_argument("--no-preload", action="store_true",
                    help="image/spec-ooc: do not load the next domain in the background")
     p.add_argument("--batch-size", type=_positive, default=65536,
@@ -93,6 +101,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="PNG exposure multiplier (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_render)
+
+    k = sub.add_parser(
+        "keys", help="make a cluster key pair (ZeroMQ CURVE) for --keys",
+        description="Write a new cluster key pair into a folder; give the folder to the "
+                    "coordinator (--keys) and to every node (vastray node --keys).",
+        epilog="example:\n  vastray keys -o cluster-keys\n"
+               "  vastray render s.store -o o.exr --nodes 4 --listen 0.0.0.0:5555 "
+               "--keys cluster-keys",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
+    k.set_defaults(func=lambda args: print(generate_keys(args.output)) or 0)
 
     c = sub.add_parser(
         "compare", help="print MSE, PSNR and max difference of two images",
@@ -171,7 +191,8 @@ def run_render(args: argparse.Namespace) -> int:
             store_path, args.scene, settings, args.nodes, scheduler=scheduler,
             cache_capacity=cache,
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
-            history_depth=args.history_depth, timeout=args.node_timeout)
+            history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
+            keys=load_keys(args.keys) if args.keys else None)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
