@@ -127,7 +127,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     ctx = zmq.asyncio.Context()
     auth = start_authenticator(ctx, keys)
     if advertise is None:
-        advertise = socket.gethostname() if bind_host in ("0.0.0.0", "*") else bind_host
+        advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys)
     try:
         await management.to_coordinator(encode(protocol.HELLO, {}, {
@@ -178,7 +178,15 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         ctx.destroy(linger=0)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _outbound_address(coordinator: str) -> str:
+    """This host's address on the route to the coordinator (what peers can reach)."""
+    host, _, port = coordinator.removeprefix("tcp://").rpartition(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect((host, int(port)))  # UDP: picks a route, sends nothing
+        return probe.getsockname()[0]
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="vastray node", description=__doc__)
     parser.add_argument("--coordinator", required=True, help="tcp://HOST:PORT")
     parser.add_argument("--rank", type=int, default=-1,
@@ -187,10 +195,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="seconds any wait may last before the node gives up")
     parser.add_argument("--bind", default="127.0.0.1",
                         help="address to listen on for peers (beyond loopback needs --keys)")
-    parser.add_argument("--advertise", help="address peers reach this node at "
-                                            "(default: --bind, or the host name for 0.0.0.0)")
+    parser.add_argument("--advertise", help="address peers reach this node at (default: "
+                                            "--bind, or for 0.0.0.0 this host's address on "
+                                            "the route to the coordinator)")
     parser.add_argument("--keys", help="cluster key folder from `vastray keys` (CURVE)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format=f"node {args.rank}: %(message)s")
     try:
         import uvloop
