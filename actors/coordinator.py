@@ -45,7 +45,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        settings: RenderSettings, nodes: int, scheduler: str = "image",
                        cache_capacity: int | None = None, max_samples_in_flight: int = 65536,
                        history_depth: int | None = None, timeout: float = 120.0,
-                       listen: str | None = None, keys: ClusterKeys | None = None
+                       listen: str | None = None, keys: ClusterKeys | None = None,
+                       launched: dict[str, tuple[subprocess.Popen, Path]] | None = None
                        ) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
@@ -57,6 +58,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,
         SSH); default: start them here as child processes, on loopback.
     keys : cluster keys; required to listen beyond loopback.
+    launched : with ``listen``, processes started for the nodes elsewhere (name -> process,
+        log file), e.g. ssh sessions: one that exits early fails the run with its name.
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -74,7 +77,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
     }
     start = time.perf_counter()
-    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys))
+    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys,
+                                            launched or {}))
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports)}
@@ -85,7 +89,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
 
 
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
-                      listen: str | None, keys: ClusterKeys | None):
+                      listen: str | None, keys: ClusterKeys | None,
+                      launched: dict[str, tuple[subprocess.Popen, Path]]):
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -108,7 +113,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                      f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout)],
                     stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL))
                 log_file.close()
-        watch = _Watch(size, procs, logs.name, timeout)
+        watch = _Watch(size, procs, logs.name, timeout, launched)
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
@@ -150,8 +155,10 @@ class _Watch:
     """Receives from the coordinator socket while watching the nodes: child processes that
     exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
-    def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float):
+    def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
+                 launched: dict[str, tuple[subprocess.Popen, Path]]):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
+        self.launched = launched
         self.last_heard = [time.monotonic()] * size
 
     def heard(self, rank: int) -> None:
@@ -170,6 +177,12 @@ class _Watch:
             code = proc.poll()
             if code is not None and code != 0:
                 raise self._failure(rank, f"exited with code {code}")
+        for name, (proc, log) in self.launched.items():
+            code = proc.poll()
+            if code is not None and code != 0:
+                text = Path(log).read_text(errors="replace").strip() if Path(log).exists() else ""
+                last = text.splitlines()[-1] if text else "no output"
+                raise NodeFailure(f"node on {name} exited with code {code}: {last}")
         for rank in range(self.size):
             if now - self.last_heard[rank] > self.timeout:
                 raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")

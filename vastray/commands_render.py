@@ -45,6 +45,29 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Render a domain store with ambient occlusion or path tracing.",
         epilog=RENDER_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    add_render_arguments(p)
+    p.set_defaults(func=run_render)
+
+    launch = sub.add_parser(
+        "launch", help="render with nodes started on SSH hosts",
+        description=LAUNCH_DESCRIPTION, epilog=LAUNCH_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    launch.add_argument("--hosts", required=True, metavar="HOSTFILE",
+                        help="one node per line: HOST [python=PATH] [slots=N]")
+    launch.add_argument("--advertise", help="address the hosts reach this machine at "
+                                            "(default: its fully qualified host name)")
+    launch.add_argument("--port", type=_positive, help="coordinator port (default: a free one)")
+    launch.add_argument("--ssh", default="ssh -o BatchMode=yes -tt",
+                        help="command that runs a command on a host (default: %(default)s)")
+    launch.add_argument("--logs", default="vastray-logs", help="folder for node logs")
+    add_render_arguments(launch)
+    launch.set_defaults(func=run_launch)
+    _register_keys_and_compare(sub)
+
+
+def add_render_arguments(p: argparse.ArgumentParser) -> None:
+    """The options shared by ``render`` and ``launch``."""
     p.add_argument("store", nargs="?", help="STORE folder (default: the built-in scene)")
     p.add_argument("-o", "--output", required=True, help="output OpenEXR file")
     p.add_argument("--png", help="also write a tone-mapped PNG preview")
@@ -100,8 +123,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--exposure", type=_positive_float, default=1.0,
                    help="PNG exposure multiplier (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run_render)
 
+
+def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
     k = sub.add_parser(
         "keys", help="make a cluster key pair (ZeroMQ CURVE) for --keys",
         description="Write a new cluster key pair into a folder; give the folder to the "
@@ -163,7 +187,46 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def run_render(args: argparse.Namespace) -> int:
+LAUNCH_DESCRIPTION = """\
+Render on a cluster of SSH hosts: starts one `vastray node` per HOSTFILE entry with plain ssh,
+coordinates them from here, collects their logs, and closes every session when the render
+ends, fails or is interrupted. The STORE and the --keys folder must be at the same path on
+every host (a shared file system); traffic is CURVE-encrypted."""
+
+LAUNCH_EPILOG = """\
+example:
+  vastray keys -o /shared/keys
+  vastray launch --hosts hosts.txt /shared/rm.store -o rm.exr --keys /shared/keys \\
+      --scheduler spec-ooc --cache 25%
+"""
+
+
+def run_launch(args: argparse.Namespace) -> int:
+    from vastray.actors.launch import read_hostfile, start_nodes, stop_nodes, this_host
+
+    if not args.keys:
+        raise InputError(None, "launch needs --keys DIR (make them with `vastray keys -o DIR`)")
+    hosts = read_hostfile(args.hosts)
+    port = args.port or _free_port()
+    coordinator = f"tcp://{args.advertise or this_host()}:{port}"
+    started = start_nodes(hosts, coordinator, str(Path(args.keys).resolve()), Path(args.logs),
+                          ssh=args.ssh, timeout=args.node_timeout)
+    args.nodes, args.listen = len(hosts), f"0.0.0.0:{port}"
+    try:
+        return run_render(args, launched=started)
+    finally:
+        stop_nodes(started)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("", 0))
+        return probe.getsockname()[1]
+
+
+def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     if args.store is None:
         from vastray.default_scene import default_store
 
@@ -192,7 +255,7 @@ def run_render(args: argparse.Namespace) -> int:
             cache_capacity=cache,
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
-            keys=load_keys(args.keys) if args.keys else None)
+            keys=load_keys(args.keys) if args.keys else None, launched=launched)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)

@@ -1,0 +1,95 @@
+"""``vastray launch``: run a render on SSH hosts against a STORE path they all share.
+
+HOSTFILE, one node per line (``#`` starts a comment)::
+
+    gpu01                                   # uses `python3` on gpu01
+    gpu02 python=/opt/venvs/vastray/bin/python
+    gpu03 python=/usr/bin/python3.11 slots=2   # two nodes on gpu03
+
+Each node is started as ``ssh HOST PYTHON -m vastray.cli node --coordinator tcp://ME:PORT
+--bind 0.0.0.0 --keys KEYS``; its output is collected in ``--logs``. The key folder and the
+STORE must be at the same path on every host (a shared file system). When the render ends,
+fails or is interrupted (Ctrl-C), every ssh session is closed.
+"""
+
+from __future__ import annotations
+
+import shlex
+import socket
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+from vastray.scene.errors import InputError
+
+
+@dataclass(frozen=True)
+class Host:
+    name: str
+    python: str = "python3"
+    slots: int = 1
+
+
+def read_hostfile(path: str | Path) -> list[Host]:
+    """Hosts of a HOSTFILE, one entry per node slot."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "host file not found")
+    hosts = []
+    for number, raw in enumerate(path.read_text().splitlines(), start=1):
+        line = raw.split("#", 1)[0].split()
+        if not line:
+            continue
+        options = {}
+        for item in line[1:]:
+            key, sep, value = item.partition("=")
+            if not sep or key not in ("python", "slots"):
+                raise InputError(path, f"line {number}: unknown option {item!r} "
+                                       "(expected python=PATH or slots=N)")
+            options[key] = value
+        try:
+            slots = int(options.get("slots", 1))
+        except ValueError:
+            raise InputError(path, f"line {number}: slots must be a number") from None
+        if slots < 1:
+            raise InputError(path, f"line {number}: slots must be at least 1")
+        hosts += [Host(line[0], options.get("python", "python3"), slots)] * slots
+    if not hosts:
+        raise InputError(path, "no hosts listed")
+    return hosts
+
+
+def start_nodes(hosts: list[Host], coordinator: str, keys: str, logs: Path,
+                ssh: str = "ssh -o BatchMode=yes -tt", timeout: float = 120.0
+                ) -> dict[str, tuple[subprocess.Popen, Path]]:
+    """Start one node per host entry over ssh; returns name -> (process, log file)."""
+    logs.mkdir(parents=True, exist_ok=True)
+    started = {}
+    for i, host in enumerate(hosts):
+        remote = shlex.join([host.python, "-m", "vastray.cli", "node", "--coordinator",
+                             coordinator, "--bind", "0.0.0.0", "--keys", keys,
+                             "--timeout", str(timeout)])
+        log = logs / f"node{i}-{host.name}.log"
+        with open(log, "wb") as out:
+            proc = subprocess.Popen([*shlex.split(ssh), host.name, remote], stdout=out,
+                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        started[f"{host.name} (node {i})"] = (proc, log)
+    return started
+
+
+def stop_nodes(started: dict[str, tuple[subprocess.Popen, Path]]) -> None:
+    """Close every ssh session (the remote node gets a hang-up) and reap them."""
+    for proc, _ in started.values():
+        if proc.poll() is None:
+            proc.terminate()
+    for proc, _ in started.values():
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def this_host() -> str:
+    """An address the hosts can reach this coordinator at (best guess; see --advertise)."""
+    return socket.getfqdn()

@@ -1,0 +1,76 @@
+"""`vastray launch`: host files, node start-up through an ssh-like command, log collection,
+failure naming the host, and teardown. No SSH server runs here, so the remote shell is a local
+``sh`` standing in for ``ssh HOST``: everything after the hop is the real thing."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from vastray.actors.launch import Host, read_hostfile
+from vastray.cli import main
+from vastray.render.imageio import read_exr
+from vastray.scene.errors import InputError
+
+from scenes import bumpy_scene, write_store
+
+LOCAL_SHELL = "#!/bin/sh\n# stand-in for `ssh HOST CMD`: drop HOST, run CMD here\nshift\nexec sh -c \"$1\"\n"
+
+
+@pytest.fixture
+def local_ssh(tmp_path):
+    script = tmp_path / "local-ssh"
+    script.write_text(LOCAL_SHELL)
+    script.chmod(0o755)
+    return str(script)
+
+
+def test_hostfile_parsing(tmp_path):
+    path = tmp_path / "hosts"
+    path.write_text("# cluster\nn1\nn2 python=/opt/py slots=2  # two nodes\n\n")
+    assert read_hostfile(path) == [Host("n1"), Host("n2", "/opt/py", 2), Host("n2", "/opt/py", 2)]
+    path.write_text("n1 colour=blue\n")
+    with pytest.raises(InputError, match="unknown option"):
+        read_hostfile(path)
+    path.write_text("# nothing\n")
+    with pytest.raises(InputError, match="no hosts"):
+        read_hostfile(path)
+
+
+def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh):
+    store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
+    main(["keys", "-o", str(tmp_path / "keys")])
+    (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
+                                    f"beta python={sys.executable} slots=2\n")
+    out = tmp_path / "o.exr"
+    args = ["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
+            "--ssh", local_ssh, "--logs", str(tmp_path / "logs"), str(store.path), "-o",
+            str(out), "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
+            "--spp", "2", "--node-timeout", "30", "--quiet"]
+    assert main(args) == 0
+    assert read_exr(out).shape == (18, 24, 3) and np.isfinite(read_exr(out)).all()
+    logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
+    assert logs == ["node0-alpha.log", "node1-beta.log", "node2-beta.log"]
+
+
+def test_launch_failure_names_the_host_and_writes_nothing(tmp_path, local_ssh, capsys):
+    store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
+    main(["keys", "-o", str(tmp_path / "keys")])
+    (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
+                                    "broken python=/nonexistent/python\n")
+    out = tmp_path / "o.exr"
+    code = main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
+                 "--ssh", local_ssh, "--logs", str(tmp_path / "logs"), str(store.path), "-o",
+                 str(out), "--keys", str(tmp_path / "keys"), "--node-timeout", "20", "--quiet"])
+    assert code != 0
+    assert "broken" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_launch_needs_keys(tmp_path, capsys):
+    (tmp_path / "hosts").write_text("alpha\n")
+    assert main(["launch", "--hosts", str(tmp_path / "hosts"), "-o", str(tmp_path / "o.exr"),
+                 "x.store"]) != 0
+    assert "--keys" in capsys.readouterr().err
