@@ -33,8 +33,10 @@ from vastray.transport.security import (
     start_authenticator,
 )
 
-#: Distributed schedulers and the per-node schedule each runs over its sort-first tiles.
-NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc"}
+#: Distributed schedulers and what each node runs: a schedule over its sort-first tiles
+#: (image, spec-ooc), or its share of the domains (domain, async; see actors.decomposition).
+NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
+                 "async": "async"}
 
 
 class NodeFailure(RuntimeError):
@@ -129,12 +131,17 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                                                    size=size))
             await router.send_multipart([identities[rank], *frames])
         film, reports = None, {}
+        control = _Termination(size, router, identities)
         while film is None or len(reports) < size:
             identity, message = await watch.receive(router)
             if message.kind == protocol.FILM:
                 film = film_from(message, settings.width, settings.height)
             elif message.kind == protocol.DONE:
                 reports[int(message.meta["rank"])] = message.meta
+            elif message.kind == protocol.ROUND:
+                await control.round_done(message.meta)
+            elif message.kind == protocol.STATUS:
+                await control.status(message.meta)
         for rank in range(size):
             await router.send_multipart([identities[rank], *encode(protocol.STOP, {})])
         await watch.wait_exit()
@@ -149,6 +156,67 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             auth.stop()
         ctx.destroy(linger=0)
         logs.cleanup()
+
+
+class _Termination:
+    """Termination detection for domain decomposition, per tile.
+
+    ``domain``: a round ends when every node has reported; each node is told how many ray
+    batches were sent to it; a round in which no batch moved ends the tile.
+    ``async``: once every node is idle and batches sent equal batches received, a probe wave
+    asks every node again; if every answer is idle with the same counts, the tile is done.
+    """
+
+    def __init__(self, size: int, router, identities: dict[int, bytes]):
+        self.size, self.router, self.identities = size, router, identities
+        self.rounds: dict[int, dict] = {}
+        self.tile = 0
+        self.latest: dict[int, tuple[int, int]] = {}
+        self.wave = 0
+        self.snapshot: dict[int, tuple[int, int]] | None = None
+        self.replies: dict[int, tuple[int, int]] = {}
+
+    async def _send(self, rank: int, kind: str, meta: dict) -> None:
+        await self.router.send_multipart([self.identities[rank], *encode(kind, {}, meta)])
+
+    async def round_done(self, meta: dict) -> None:
+        reports = self.rounds.setdefault(meta["tile"], {})
+        reports[int(meta["rank"])] = meta["sent_to"]
+        if len(reports) < self.size:
+            return
+        expect = {r: sum(sent.get(str(r), 0) for sent in reports.values())
+                  for r in range(self.size)}
+        finished = sum(expect.values()) == 0
+        del self.rounds[meta["tile"]]
+        for rank in range(self.size):
+            await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
+
+    async def status(self, meta: dict) -> None:
+        if meta["tile"] != self.tile:
+            return
+        rank, counts = int(meta["rank"]), (int(meta["sent"]), int(meta["received"]))
+        self.latest[rank] = counts
+        if self.snapshot is not None and meta["probe"] == self.wave:
+            self.replies[rank] = counts
+            if len(self.replies) < self.size:
+                return
+            quiet = self.replies == self.snapshot and _balanced(self.replies)
+            self.snapshot, self.replies = None, {}
+            if quiet:
+                self.tile += 1
+                self.latest = {}
+                for r in range(self.size):
+                    await self._send(r, protocol.PROBE, {"finished": True, "probe": self.wave})
+                return
+        if self.snapshot is None and len(self.latest) == self.size and _balanced(self.latest):
+            self.wave += 1
+            self.snapshot = dict(self.latest)
+            for r in range(self.size):
+                await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
+
+
+def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
+    return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
 
 
 class _Watch:

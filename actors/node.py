@@ -19,6 +19,8 @@ import zmq
 import zmq.asyncio
 
 from vastray.actors import protocol
+from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
+from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import combine_films, film_frames, film_from
 from vastray.transport.codec import decode, encode
 from vastray.transport.security import (
@@ -51,6 +53,7 @@ class ManagementActor:
         self.endpoint = f"tcp://{advertise}:{port}"
         self.coordinator = self._dealer(coordinator)
         self.peers: dict[str, zmq.asyncio.Socket] = {}
+        self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
         self.mailboxes: dict[str, asyncio.Queue] = {}
         self._tasks = [asyncio.ensure_future(self._route(self.router, identity=True)),
                        asyncio.ensure_future(self._route(self.coordinator, identity=False))]
@@ -135,6 +138,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
             "pid": os.getpid()}))
         job = (await management.receive(protocol.JOB, "job from the coordinator")).meta
         rank, size = int(job["rank"]), int(job["size"])
+        management.endpoints = job["endpoints"]
         settings = RenderSettings(**job["settings"])
         store = Store(job["store"])
         config = load_scene_config(job.get("scene"))
@@ -153,18 +157,23 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
         beating = asyncio.ensure_future(heartbeat())
         start = time.perf_counter()
-        result = await asyncio.to_thread(
-            render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
-            cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
-            history_depth=job.get("history_depth"), progress=False, share=(rank, size),
-            on_tile=report)
+        if job["node_scheduler"] in DECOMPOSITION_MODES:
+            film, counters = await render_owned_domains(management, job, rank, size, store,
+                                                        config, settings)
+        else:
+            result = await asyncio.to_thread(
+                render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
+                cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
+                history_depth=job.get("history_depth"), progress=False, share=(rank, size),
+                on_tile=report)
+            film, counters = result.film, result.counters
         busy = time.perf_counter() - start
         reduce_start = time.perf_counter()
         tree = TreeReduceActor(management, rank, size, job["endpoints"])
-        film = await tree.reduce_film(result.film, settings.width, settings.height)
+        film = await tree.reduce_film(film, settings.width, settings.height)
         stats = {"rank": rank, "busy_s": round(busy, 4),
                  "reduce_s": round(time.perf_counter() - reduce_start, 4),
-                 "counters": {k: v for k, v in result.counters.items()
+                 "counters": {k: v for k, v in counters.items()
                               if isinstance(v, (int, float, str))}}
         if rank == 0:
             await management.to_coordinator(film_frames(film, {"rank": rank}))

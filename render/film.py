@@ -22,24 +22,28 @@ class Film:
         self.depth = np.full(n, np.inf, dtype=np.float32)  # (P,) first-hit distance, sample 0
         self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
 
-    def add(self, pixel: np.ndarray, radiance: np.ndarray) -> None:
+    def add(self, pixel: np.ndarray, radiance: np.ndarray,
+            counted: np.ndarray | None = None) -> None:
         """Add one sample per row.
 
         Parameters
         ----------
         pixel : (n,) pixel index of each sample.
         radiance : (n, 3) float64 radiance of each sample's whole path.
+        counted : (n,) bool, the rows that count as samples (default: all). Under domain
+            decomposition several nodes add parts of one path; exactly one counts it.
         """
         n = len(self.count)
         for c in range(3):
             self.sum[:, c] += np.bincount(pixel, weights=radiance[:, c], minlength=n)
             self.sum_sq[:, c] += np.bincount(pixel, weights=radiance[:, c] ** 2, minlength=n)
-        self.count += np.bincount(pixel, minlength=n)
+        self.count += np.bincount(pixel if counted is None else pixel[counted], minlength=n)
 
-    def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths) -> None:
+    def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths,
+                  counted: np.ndarray | None = None) -> None:
         """Add a batch of finished paths (a ``PathResult``) with keys (n,) pixel and sample;
         sample 0 of each pixel sets the depth and normal layers."""
-        self.add(pixel.astype(np.int64), paths.radiance)
+        self.add(pixel.astype(np.int64), paths.radiance, counted)
         zero = sample == 0
         self.depth[pixel[zero]] = paths.first_t[zero]
         self.normal[pixel[zero]] = paths.first_normal[zero]

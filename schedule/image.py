@@ -40,12 +40,20 @@ class ImageSchedule:
     ctx : the tile's paths (keys, shading, settings).
     geometry : domain boxes.
     color_source, scalar_range : what hit records interpolate (see ``ClosestHits.offer``).
+    owner, rank : for domain decomposition across nodes, the (D,) node owning each domain and
+        this node's rank: rays bound for another node's domain go to ``outbox`` instead of a
+        local queue. Default: this node owns every domain.
     """
 
     name = "image"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
-                 scalar_range: tuple[float, float]):
+                 scalar_range: tuple[float, float], owner: np.ndarray | None = None,
+                 rank: int = 0):
+        self.owner = np.zeros(geometry.n_domains, np.int64) if owner is None else owner
+        self.rank = rank
+        #: (queue name, destination node) -> [(domains (m,), rays SoA)] waiting to be sent.
+        self.outbox: dict[tuple[str, int], list[tuple[np.ndarray, SoA]]] = {}
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -106,8 +114,27 @@ class ImageSchedule:
         if moving.any():
             movers = rays.take(moving)
             movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
-            queues.push(nxt[moving], movers)
+            destination = self.owner[nxt[moving]]
+            local = destination == self.rank
+            if local.all():
+                queues.push(nxt[moving], movers)
+            else:
+                queues.push(nxt[moving][local], movers.take(local))
+                name = "radiance" if queues is self.radiance else "shadow"
+                for node in np.unique(destination[~local]):
+                    rows = np.nonzero(destination == node)[0]
+                    self.outbox.setdefault((name, int(node)), []).append(
+                        (nxt[moving][rows], movers.take(rows)))
         return ~moving
+
+    def receive(self, queue: str, domains: np.ndarray, rays: SoA) -> None:
+        """Queue rays another node sent for this node's ``domains`` ((m,) each)."""
+        (self.radiance if queue == "radiance" else self.shadow).push(domains, rays)
+
+    def take_outbox(self) -> dict[tuple[str, int], list[tuple[np.ndarray, SoA]]]:
+        """Rays to send, by (queue, destination node); the outbox is emptied."""
+        out, self.outbox = self.outbox, {}
+        return out
 
     def _advance_radiance(self, rays: SoA) -> None:
         """Queue rays into their next domain; shade the ones whose hit is final."""

@@ -60,7 +60,7 @@ def test_tree_reduce_min_or_sum(size):
 
 
 @pytest.mark.parametrize("integrator", ["ao", "pt"])
-@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async"])
 def test_nodes_give_the_reference_image(scene, integrator, scheduler):
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator=integrator)
@@ -71,7 +71,14 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
         np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6,
                                    atol=1e-6, err_msg=f"{scheduler} on {nodes} nodes")
         np.testing.assert_array_equal(result.film.count, reference.count)
-        assert len(result.counters["per_node"]) == nodes
+        np.testing.assert_array_equal(result.film.depth, reference.depth)
+        per_node = result.counters["per_node"]
+        assert len(per_node) == nodes
+        if scheduler in ("domain", "async"):
+            # Ray batches are conserved: every batch sent was received, none twice.
+            sent = sum(n["counters"]["batches_sent"] for n in per_node)
+            assert sent == sum(n["counters"]["batches_received"] for n in per_node)
+            assert (sent > 0) == (nodes > 1)
 
 
 def _node_pids(rank: int) -> list[int]:
@@ -121,7 +128,7 @@ def test_killed_node_fails_the_run_with_its_name_and_no_output(scene, tmp_path, 
 def test_unknown_scheduler_for_nodes_is_refused(scene):
     store, toml = scene
     with pytest.raises(ValueError, match="supports schedulers"):
-        render_distributed(store.path, toml, settings(), 2, scheduler="dynamic")
+        render_distributed(store.path, toml, settings(), 2, scheduler="spec-insitu")
 
 
 def _start_external_node(coordinator: str, keys: Path | None, log: Path):

@@ -1,0 +1,169 @@
+"""Domain decomposition across nodes: each node owns some domains and traces only the rays
+waiting for them; rays bound for another node's domain travel there as ray batches.
+
+Two schedulers share this runtime (Navrátil's static domain schedule and the Galaxy-style
+asynchronous baseline of the temporal-coherence paper):
+
+- ``domain``: bulk-synchronous rounds. Every node drains its queues, sends what it produced,
+  and tells the coordinator how many batches it sent to whom; the coordinator answers each
+  node with how many batches to expect before the next round; a round in which nobody sent
+  anything ends the tile.
+- ``async``: no global rounds. Nodes trace and send continuously; when idle they report
+  (batches sent, batches received). The coordinator declares the tile done only when every
+  node is idle, the sums match, and a second probe wave returns the very same counts
+  (Mattern's four-counter termination): nothing can still be in flight.
+
+Within a node the rays follow the ``image`` schedule (``schedule.image``), so every ray visits
+the same domains in the same order as on one node: the image is the reference image.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+
+from vastray.actors import protocol
+from vastray.render.driver import default_ao_distance, path_context, shading_inputs
+from vastray.render.film import Film
+from vastray.render.integrators import camera_rays
+from vastray.scene.cache import DomainCache
+from vastray.schedule.geometry import DomainGeometry
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.soa import SoA
+from vastray.transport.codec import encode
+
+MODES = ("domain", "async")
+
+
+def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
+    """(D,) owning rank of each domain: domain d goes to node d mod P."""
+    return np.arange(n_domains) % size
+
+
+async def render_owned_domains(management, job: dict, rank: int, size: int, store, config,
+                               settings) -> tuple[Film, dict]:
+    """Render this node's part of every tile under domain decomposition; returns the node's
+    partial film (to be summed over nodes) and its counters."""
+    mode = job["node_scheduler"]
+    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    owner = round_robin_owners(len(store.domains), size)
+    owned = int(np.count_nonzero(owner == rank))
+    cache = DomainCache(store, job.get("cache") or max(owned, 1), keep)
+    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
+                                   settings.height)
+    lo, hi = store.domain_boxes()
+    nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
+    geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()))
+    ao_distance = settings.ao_distance or default_ao_distance(store)
+    film = Film(settings.width, settings.height)
+    total = settings.width * settings.height * settings.spp
+    tile = max(1, min(job["tile"], total))
+    stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
+             "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
+    node = _Node(management, rank, stats)
+    try:
+        for index, first in enumerate(range(0, total, tile)):
+            ctx = path_context(shading, settings, first, min(first + tile, total), ao_distance)
+            policy = ImageSchedule(ctx, geometry, color_source, store.scalar_range or (0, 1),
+                                   owner=owner, rank=rank)
+            mine = np.arange(len(ctx.pixel)) % size == rank
+            policy.start(camera_rays(camera, ctx).take(np.nonzero(mine)[0]))
+            if mode == "domain":
+                await node.rounds(policy, cache, index)
+            else:
+                await node.asynchronous(policy, cache, index)
+            film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
+    finally:
+        cache.close()
+    stats.update({k: v for k, v in cache.stats.as_dict().items() if k in ("loads", "load_s")})
+    return film, stats
+
+
+class _Node:
+    """The node side of the decomposition: trace local work, ship outboxes, take deliveries."""
+
+    def __init__(self, management, rank: int, stats: dict):
+        self.management, self.rank, self.stats = management, rank, stats
+        self.sent_to: dict[int, int] = {}  # batches sent per destination since last asked
+
+    async def drain(self, policy, cache) -> None:
+        """Trace every local domain until no local ray waits; send what it produced."""
+        while (domain := policy.next_domain()) is not None:
+            start = time.perf_counter()
+            bvh = await asyncio.to_thread(cache.get, domain)
+            await asyncio.to_thread(policy.process, domain, bvh)
+            self.stats["trace_s"] += time.perf_counter() - start
+            await self.ship(policy)
+
+    async def ship(self, policy) -> None:
+        """Send the outbox as ray batches (counted per destination in ``sent_to``)."""
+        for (queue, node), parts in policy.take_outbox().items():
+            domains = np.concatenate([d for d, _ in parts])
+            rays = SoA.concat([r for _, r in parts])
+            frames = encode(protocol.RAYS, {"domain": domains, **rays.fields},
+                            {"queue": queue, "rank": self.rank})
+            await self.management.to_peer(self.management.endpoints[node], frames)
+            self.sent_to[node] = self.sent_to.get(node, 0) + 1
+            self.stats["batches_sent"] += 1
+            self.stats["rays_sent"] += len(domains)
+            self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+
+    def deliver(self, policy, message) -> None:
+        arrays = dict(message.arrays)
+        domains = np.array(arrays.pop("domain"))
+        rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
+        policy.receive(message.meta["queue"], domains, rays)
+        self.stats["batches_received"] += 1
+
+    async def rounds(self, policy, cache, tile: int) -> None:
+        """Bulk-synchronous rounds until a round moves no ray between nodes."""
+        while True:
+            self.stats["rounds"] += 1
+            await self.drain(policy, cache)
+            sent, self.sent_to = self.sent_to, {}
+            await self.management.to_coordinator(encode(protocol.ROUND, {}, {
+                "rank": self.rank, "tile": tile, "sent_to": {str(k): v for k, v in sent.items()}}))
+            start = time.perf_counter()
+            go = await self.management.receive(protocol.GO, "go-ahead for the next round")
+            if go.meta["finished"]:
+                return
+            for _ in range(go.meta["expect"]):
+                self.deliver(policy, await self.management.receive(protocol.RAYS, "ray batch"))
+            self.stats["wait_s"] += time.perf_counter() - start
+
+    async def asynchronous(self, policy, cache, tile: int) -> None:
+        """Trace whatever has arrived; report when idle; stop when the coordinator says so."""
+        inbox = self.management.mailbox(protocol.RAYS)
+        control = self.management.mailbox(protocol.PROBE)
+        while True:
+            while not inbox.empty():
+                self.deliver(policy, inbox.get_nowait())
+            if policy.next_domain() is not None:
+                await self.drain(policy, cache)
+                continue
+            await self._status(tile, probe=None)
+            start = time.perf_counter()
+            getters = {asyncio.ensure_future(inbox.get()): "rays",
+                       asyncio.ensure_future(control.get()): "control"}
+            done, pending = await asyncio.wait(getters, timeout=self.management.timeout,
+                                               return_when=asyncio.FIRST_COMPLETED)
+            for task in pending:
+                task.cancel()
+            self.stats["wait_s"] += time.perf_counter() - start
+            if not done:
+                raise TimeoutError("no ray batch or control message while idle")
+            for task in done:
+                message = task.result()
+                if getters[task] == "rays":
+                    self.deliver(policy, message)
+                elif message.meta.get("finished"):
+                    return
+                else:
+                    await self._status(tile, probe=message.meta["probe"])
+
+    async def _status(self, tile: int, probe: int | None) -> None:
+        await self.management.to_coordinator(encode(protocol.STATUS, {}, {
+            "rank": self.rank, "tile": tile, "probe": probe,
+            "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
