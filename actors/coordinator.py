@@ -36,7 +36,7 @@ from vastray.transport.security import (
 #: Distributed schedulers and what each node runs: a schedule over its sort-first tiles
 #: (image, spec-ooc), or its share of the domains (domain, async; see actors.decomposition).
 NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
-                 "async": "async"}
+                 "async": "async", "dynamic": "dynamic"}
 
 
 class NodeFailure(RuntimeError):
@@ -142,6 +142,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 await control.round_done(message.meta)
             elif message.kind == protocol.STATUS:
                 await control.status(message.meta)
+            elif message.kind == protocol.QUEUES:
+                await control.queues(message.meta)
         for rank in range(size):
             await router.send_multipart([identities[rank], *encode(protocol.STOP, {})])
         await watch.wait_exit()
@@ -191,6 +193,20 @@ class _Termination:
         for rank in range(self.size):
             await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
 
+    async def queues(self, meta: dict) -> None:
+        """dynamic: once every node has reported, send this round's schedule (Fig. 5)."""
+        reports = self.rounds.setdefault(meta["tile"], {})
+        reports[int(meta["rank"])] = meta
+        if len(reports) < self.size:
+            return
+        del self.rounds[meta["tile"]]
+        assign = schedule_next_round({r: m["queues"] for r, m in reports.items()},
+                                     {r: m["loaded"] for r, m in reports.items()})
+        for rank in range(self.size):
+            await self._send(rank, protocol.SCHEDULE, {
+                "assign": {str(d): p for d, p in assign.items()}, "size": self.size,
+                "finished": not any(m["queues"] for m in reports.values())})
+
     async def status(self, meta: dict) -> None:
         if meta["tile"] != self.tile:
             return
@@ -213,6 +229,29 @@ class _Termination:
             self.snapshot = dict(self.latest)
             for r in range(self.size):
                 await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
+
+
+def schedule_next_round(queues: dict[int, dict[str, int]], loaded: dict[int, int]
+                        ) -> dict[int, int]:
+    """Navrátil's ScheduleNextRound (Fig. 5): domain -> node for the next round.
+
+    Parameters
+    ----------
+    queues : node -> {domain: rays waiting}; loaded : node -> its loaded domain (-1: none).
+    """
+    wanted: dict[int, int] = {}
+    for per_node in queues.values():
+        for domain, count in per_node.items():
+            wanted[int(domain)] = wanted.get(int(domain), 0) + count
+    holder = {}
+    for node in sorted(loaded):
+        holder.setdefault(loaded[node], node)
+    schedule = {d: holder[d] for d in wanted if d in holder}
+    to_assign = sorted((d for d in wanted if d not in holder), key=lambda d: (-wanted[d], d))
+    to_evict = [n for n in sorted(loaded) if loaded[n] not in schedule or schedule[loaded[n]] != n]
+    for domain, node in zip(to_assign, to_evict, strict=False):
+        schedule[domain] = node
+    return schedule
 
 
 def _balanced(counts: dict[int, tuple[int, int]]) -> bool:

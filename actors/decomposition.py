@@ -13,6 +13,12 @@ asynchronous baseline of the temporal-coherence paper):
   node is idle, the sums match, and a second probe wave returns the very same counts
   (Mattern's four-counter termination): nothing can still be in flight.
 
+- ``dynamic``: Navrátil's ray-weighted rounds (Figs. 5-6). Each round every node reports which
+  domains it holds rays for and which domain it has loaded; the coordinator keeps loaded
+  domains where they are wanted and hands the most-wanted unloaded domains to nodes whose
+  domain is no longer needed; rays for a scheduled domain then move to its node, which traces
+  them. Rays start where their camera rays were made (an image-plane start).
+
 Within a node the rays follow the ``image`` schedule (``schedule.image``), so every ray visits
 the same domains in the same order as on one node: the image is the reference image.
 """
@@ -34,7 +40,7 @@ from vastray.schedule.image import ImageSchedule
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
-MODES = ("domain", "async")
+MODES = ("domain", "async", "dynamic")
 
 
 def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
@@ -69,9 +75,14 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             policy = ImageSchedule(ctx, geometry, color_source, store.scalar_range or (0, 1),
                                    owner=owner, rank=rank)
             mine = np.arange(len(ctx.pixel)) % size == rank
+            if mode == "dynamic":  # rays stay where they are made until a round moves them
+                policy.owner = np.full(len(store.domains), rank)
+            node.begin_tile(index, policy)
             policy.start(camera_rays(camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
                 await node.rounds(policy, cache, index)
+            elif mode == "dynamic":
+                await node.dynamic(policy, cache, index)
             else:
                 await node.asynchronous(policy, cache, index)
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
@@ -87,6 +98,29 @@ class _Node:
     def __init__(self, management, rank: int, stats: dict):
         self.management, self.rank, self.stats = management, rank, stats
         self.sent_to: dict[int, int] = {}  # batches sent per destination since last asked
+        self.tile = 0
+        # Batches of a later tile, from nodes that finished this one first: held back (and not
+        # counted) until this node starts that tile.
+        self.early: dict[int, list] = {}
+
+    def begin_tile(self, tile: int, policy) -> None:
+        self.tile = tile
+        for message in self.early.pop(tile, []):
+            self.deliver(policy, message)
+
+    def accept(self, policy, message) -> bool:
+        """Deliver a batch of the current tile (True); hold back one of a later tile."""
+        if message.meta.get("tile") == self.tile:
+            self.deliver(policy, message)
+            return True
+        self.early.setdefault(message.meta.get("tile"), []).append(message)
+        return False
+
+    async def receive_batch(self, policy) -> None:
+        """Wait for the next batch of the current tile and deliver it."""
+        while not self.accept(policy, await self.management.receive(protocol.RAYS,
+                                                                    "ray batch")):
+            pass
 
     async def drain(self, policy, cache) -> None:
         """Trace every local domain until no local ray waits; send what it produced."""
@@ -103,7 +137,7 @@ class _Node:
             domains = np.concatenate([d for d, _ in parts])
             rays = SoA.concat([r for _, r in parts])
             frames = encode(protocol.RAYS, {"domain": domains, **rays.fields},
-                            {"queue": queue, "rank": self.rank})
+                            {"queue": queue, "rank": self.rank, "tile": self.tile})
             await self.management.to_peer(self.management.endpoints[node], frames)
             self.sent_to[node] = self.sent_to.get(node, 0) + 1
             self.stats["batches_sent"] += 1
@@ -111,11 +145,13 @@ class _Node:
             self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
 
     def deliver(self, policy, message) -> None:
+        self.stats["batches_received"] += 1
+        if not message.arrays:
+            return
         arrays = dict(message.arrays)
         domains = np.array(arrays.pop("domain"))
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
         policy.receive(message.meta["queue"], domains, rays)
-        self.stats["batches_received"] += 1
 
     async def rounds(self, policy, cache, tile: int) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes."""
@@ -130,8 +166,54 @@ class _Node:
             if go.meta["finished"]:
                 return
             for _ in range(go.meta["expect"]):
-                self.deliver(policy, await self.management.receive(protocol.RAYS, "ray batch"))
+                await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
+
+    async def dynamic(self, policy, cache, tile: int) -> None:
+        """Ray-weighted rounds: report queues, get this round's domain, swap rays, trace."""
+        loaded = -1
+        while True:
+            waiting = policy.radiance.counts() + policy.shadow.counts()
+            await self.management.to_coordinator(encode(protocol.QUEUES, {}, {
+                "rank": self.rank, "tile": tile, "loaded": loaded,
+                "queues": {str(d): int(n) for d, n in enumerate(waiting) if n}}))
+            start = time.perf_counter()
+            plan = await self.management.receive(protocol.SCHEDULE, "this round's schedule")
+            if plan.meta["finished"]:
+                return
+            assign = {int(d): int(p) for d, p in plan.meta["assign"].items()}
+            # Every node sends every other node exactly one radiance and one shadow batch
+            # (possibly empty), so each knows what to wait for without another barrier.
+            for node in range(plan.meta["size"]):
+                if node == self.rank:
+                    continue
+                for name, queues in (("radiance", policy.radiance), ("shadow", policy.shadow)):
+                    parts = [(d, queues.pop(d)) for d, p in assign.items() if p == node]
+                    parts = [(np.full(len(r), d), r) for d, r in parts if r is not None]
+                    await self._send_batch(node, name, parts)
+            for _ in range(2 * (plan.meta["size"] - 1)):
+                await self.receive_batch(policy)
+            self.stats["wait_s"] += time.perf_counter() - start
+            self.stats["rounds"] += 1
+            for domain in (d for d, p in assign.items() if p == self.rank):
+                t0 = time.perf_counter()
+                bvh = await asyncio.to_thread(cache.get, domain)
+                await asyncio.to_thread(policy.process, domain, bvh)
+                self.stats["trace_s"] += time.perf_counter() - t0
+                loaded = domain
+
+    async def _send_batch(self, node: int, queue: str, parts: list) -> None:
+        if parts:
+            arrays = {"domain": np.concatenate([d for d, _ in parts]),
+                      **SoA.concat([r for _, r in parts]).fields}
+        else:
+            arrays = {}
+        frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank,
+                                                "tile": self.tile})
+        await self.management.to_peer(self.management.endpoints[node], frames)
+        self.stats["batches_sent"] += 1
+        self.stats["rays_sent"] += len(arrays.get("domain", ()))
+        self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
 
     async def asynchronous(self, policy, cache, tile: int) -> None:
         """Trace whatever has arrived; report when idle; stop when the coordinator says so."""
@@ -139,7 +221,7 @@ class _Node:
         control = self.management.mailbox(protocol.PROBE)
         while True:
             while not inbox.empty():
-                self.deliver(policy, inbox.get_nowait())
+                self.accept(policy, inbox.get_nowait())
             if policy.next_domain() is not None:
                 await self.drain(policy, cache)
                 continue
@@ -154,10 +236,12 @@ class _Node:
             self.stats["wait_s"] += time.perf_counter() - start
             if not done:
                 raise TimeoutError("no ray batch or control message while idle")
-            for task in done:
+            # Batches first: one that came with the final probe belongs to a later tile and
+            # must be held back, not dropped.
+            for task in sorted(done, key=lambda t: getters[t] != "rays"):
                 message = task.result()
                 if getters[task] == "rays":
-                    self.deliver(policy, message)
+                    self.accept(policy, message)
                 elif message.meta.get("finished"):
                     return
                 else:

@@ -12,3 +12,5 @@ ROUND = "round"          # node -> coordinator (domain): round done, batches sen
 GO = "go"                # coordinator -> node (domain): batches to expect, or finished
 STATUS = "status"        # node -> coordinator (async): idle, batches sent and received
 PROBE = "probe"          # coordinator -> node (async): confirm counts, or finished
+QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domain, loaded domain
+SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round

@@ -60,7 +60,7 @@ def test_tree_reduce_min_or_sum(size):
 
 
 @pytest.mark.parametrize("integrator", ["ao", "pt"])
-@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async"])
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async", "dynamic"])
 def test_nodes_give_the_reference_image(scene, integrator, scheduler):
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator=integrator)
@@ -74,11 +74,22 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
         np.testing.assert_array_equal(result.film.depth, reference.depth)
         per_node = result.counters["per_node"]
         assert len(per_node) == nodes
-        if scheduler in ("domain", "async"):
+        if scheduler in ("domain", "async", "dynamic"):
             # Ray batches are conserved: every batch sent was received, none twice.
             sent = sum(n["counters"]["batches_sent"] for n in per_node)
             assert sent == sum(n["counters"]["batches_received"] for n in per_node)
             assert (sent > 0) == (nodes > 1)
+
+
+def test_schedule_next_round_keeps_loaded_domains_and_assigns_the_most_wanted():
+    from vastray.actors.coordinator import schedule_next_round
+
+    queues = {0: {"3": 10, "5": 2}, 1: {"7": 30}, 2: {"5": 1}}
+    loaded = {0: 3, 1: 9, 2: -1}
+    # Domain 3 stays on node 0; 7 (30 rays) and then 5 (3 rays) go to the nodes whose
+    # loaded domain nobody needs, in node order.
+    assert schedule_next_round(queues, loaded) == {3: 0, 7: 1, 5: 2}
+    assert schedule_next_round({0: {}, 1: {}}, {0: 1, 1: 2}) == {}
 
 
 def _node_pids(rank: int) -> list[int]:

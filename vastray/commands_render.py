@@ -89,14 +89,16 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="most domains in memory at once, as a count or a percentage of the "
                         "domains (default: all)")
     p.add_argument("--scheduler",
-                   choices=["auto", "reference", "image", "spec-ooc", "domain", "async"],
+                   choices=["auto", "reference", "image", "spec-ooc", "domain", "async",
+                            "dynamic"],
                    default="auto",
                    help="how rays meet domains: 'reference' traces each wavefront through all "
                         "domains it enters; 'image' queues rays per domain and processes the "
                         "fullest (SpRay's baseline); 'spec-ooc' is SpRay's speculative "
                         "out-of-core schedule. With --nodes also 'domain' (static domain "
-                        "ownership, synchronous rounds) and 'async' (owned domains, rays move "
-                        "without global rounds). All give the same image. 'auto' (default): "
+                        "ownership, synchronous rounds), 'async' (owned domains, rays move "
+                        "without global rounds) and 'dynamic' (Navratil's ray-weighted rounds "
+                        "re-assigning domains). All give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
                    help="image/spec-ooc: paths traced at once; bounds the rays held in memory "
@@ -251,7 +253,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     scheduler = args.scheduler
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
-    if scheduler in ("domain", "async") and not args.nodes:
+    if scheduler in ("domain", "async", "dynamic") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
     if args.nodes:
