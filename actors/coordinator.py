@@ -36,7 +36,7 @@ from vastray.transport.security import (
 #: Distributed schedulers and what each node runs: a schedule over its sort-first tiles
 #: (image, spec-ooc), or its share of the domains (domain, async; see actors.decomposition).
 NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
-                 "async": "async", "dynamic": "dynamic"}
+                 "async": "async", "dynamic": "dynamic", "spec-insitu": "spec-insitu"}
 
 
 class NodeFailure(RuntimeError):

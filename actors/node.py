@@ -15,6 +15,7 @@ import socket
 import sys
 import time
 
+import numpy as np
 import zmq
 import zmq.asyncio
 
@@ -22,6 +23,7 @@ from vastray.actors import protocol
 from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import combine_films, film_frames, film_from
+from vastray.actors.insitu import render_spec_insitu
 from vastray.transport.codec import decode, encode
 from vastray.transport.security import (
     ClusterKeys,
@@ -31,7 +33,7 @@ from vastray.transport.security import (
     secure_server,
     start_authenticator,
 )
-from vastray.transport.tree import children, parent
+from vastray.transport.tree import COMBINE, children, parent
 
 log = logging.getLogger(__name__)
 
@@ -114,6 +116,26 @@ class TreeReduceActor:
             await self.management.to_peer(self.endpoints[up], film_frames(film, {"rank": self.rank}))
         return film
 
+    async def allreduce(self, arrays: dict[str, np.ndarray], ops: dict[str, str]
+                        ) -> dict[str, np.ndarray]:
+        """Combine ``arrays`` over all nodes (``ops``: name -> "min" | "or" | "sum") up the
+        tree, then broadcast the result down it; every node returns the same arrays."""
+        total = {k: np.array(v, copy=True) for k, v in arrays.items()}
+        for _ in children(self.rank, self.size):
+            message = await self.management.receive(protocol.REDUCE, "partial from a child node")
+            for name, op in ops.items():
+                total[name] = COMBINE[op](total[name], message.arrays[name])
+        up = parent(self.rank)
+        if up is not None:
+            await self.management.to_peer(self.endpoints[up],
+                                          encode(protocol.REDUCE, total, {"rank": self.rank}))
+            message = await self.management.receive(protocol.BROADCAST, "reduced result")
+            total = {k: np.array(v) for k, v in message.arrays.items()}
+        for child in children(self.rank, self.size):
+            await self.management.to_peer(self.endpoints[child],
+                                          encode(protocol.BROADCAST, total, {"rank": self.rank}))
+        return total
+
 
 async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str = "127.0.0.1",
                    advertise: str | None = None, keys: ClusterKeys | None = None) -> None:
@@ -157,7 +179,11 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
         beating = asyncio.ensure_future(heartbeat())
         start = time.perf_counter()
-        if job["node_scheduler"] in DECOMPOSITION_MODES:
+        tree = TreeReduceActor(management, rank, size, job["endpoints"])
+        if job["node_scheduler"] == "spec-insitu":
+            film, counters = await render_spec_insitu(management, tree, job, rank, size, store,
+                                                      config, settings)
+        elif job["node_scheduler"] in DECOMPOSITION_MODES:
             film, counters = await render_owned_domains(management, job, rank, size, store,
                                                         config, settings)
         else:
@@ -169,7 +195,6 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
             film, counters = result.film, result.counters
         busy = time.perf_counter() - start
         reduce_start = time.perf_counter()
-        tree = TreeReduceActor(management, rank, size, job["endpoints"])
         film = await tree.reduce_film(film, settings.width, settings.height)
         stats = {"rank": rank, "busy_s": round(busy, 4),
                  "reduce_s": round(time.perf_counter() - reduce_start, 4),

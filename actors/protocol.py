@@ -14,3 +14,5 @@ STATUS = "status"        # node -> coordinator (async): idle, batches sent and r
 PROBE = "probe"          # coordinator -> node (async): confirm counts, or finished
 QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domain, loaded domain
 SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round
+REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
+BROADCAST = "bcast"      # node -> child node: result of an all-reduce

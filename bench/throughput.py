@@ -71,7 +71,7 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--spp", type=int, default=2)
-    parser.add_argument("--shadow-samples", type=int, default=4)
+    parser.add_argument("--shadow-samples", type=int, default=16)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--batch-size", type=int, default=65536)
     args = parser.parse_args()

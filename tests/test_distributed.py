@@ -60,7 +60,8 @@ def test_tree_reduce_min_or_sum(size):
 
 
 @pytest.mark.parametrize("integrator", ["ao", "pt"])
-@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async", "dynamic"])
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async", "dynamic",
+                                       "spec-insitu"])
 def test_nodes_give_the_reference_image(scene, integrator, scheduler):
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator=integrator)
@@ -74,11 +75,22 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
         np.testing.assert_array_equal(result.film.depth, reference.depth)
         per_node = result.counters["per_node"]
         assert len(per_node) == nodes
-        if scheduler in ("domain", "async", "dynamic"):
+        if scheduler in ("domain", "async", "dynamic", "spec-insitu"):
             # Ray batches are conserved: every batch sent was received, none twice.
             sent = sum(n["counters"]["batches_sent"] for n in per_node)
             assert sent == sum(n["counters"]["batches_received"] for n in per_node)
             assert (sent > 0) == (nodes > 1)
+
+
+def test_zorder_ownership_is_balanced_and_compact():
+    from vastray.actors.insitu import zorder_owners
+
+    lo = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    owner = zorder_owners(lo, lo + 1, 8)
+    assert np.bincount(owner).tolist() == [8] * 8
+    for rank in range(8):  # each node's 8 domains form one 2x2x2 block along the curve
+        block = lo[owner == rank]
+        assert np.all(block.max(axis=0) - block.min(axis=0) == 1)
 
 
 def test_schedule_next_round_keeps_loaded_domains_and_assigns_the_most_wanted():
@@ -139,7 +151,7 @@ def test_killed_node_fails_the_run_with_its_name_and_no_output(scene, tmp_path, 
 def test_unknown_scheduler_for_nodes_is_refused(scene):
     store, toml = scene
     with pytest.raises(ValueError, match="supports schedulers"):
-        render_distributed(store.path, toml, settings(), 2, scheduler="spec-insitu")
+        render_distributed(store.path, toml, settings(), 2, scheduler="temporal")
 
 
 def _start_external_node(coordinator: str, keys: Path | None, log: Path):

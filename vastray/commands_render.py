@@ -90,15 +90,17 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "domains (default: all)")
     p.add_argument("--scheduler",
                    choices=["auto", "reference", "image", "spec-ooc", "domain", "async",
-                            "dynamic"],
+                            "dynamic", "spec-insitu"],
                    default="auto",
                    help="how rays meet domains: 'reference' traces each wavefront through all "
                         "domains it enters; 'image' queues rays per domain and processes the "
                         "fullest (SpRay's baseline); 'spec-ooc' is SpRay's speculative "
                         "out-of-core schedule. With --nodes also 'domain' (static domain "
                         "ownership, synchronous rounds), 'async' (owned domains, rays move "
-                        "without global rounds) and 'dynamic' (Navratil's ray-weighted rounds "
-                        "re-assigning domains). All give the same image. 'auto' (default): "
+                        "without global rounds), 'dynamic' (Navratil's ray-weighted rounds "
+                        "re-assigning domains) and 'spec-insitu' (SpRay in situ: z-order "
+                        "ownership, speculation, t-buffer MIN / o-buffer OR all-reduce). All "
+                        "give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
                    help="image/spec-ooc: paths traced at once; bounds the rays held in memory "
@@ -253,7 +255,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     scheduler = args.scheduler
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
-    if scheduler in ("domain", "async", "dynamic") and not args.nodes:
+    if scheduler in ("domain", "async", "dynamic", "spec-insitu") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
     if args.nodes:
