@@ -3,9 +3,9 @@
 1. Ray batches through the codec and ZeroMQ (msgpack header + raw frames, zero-copy) against
    raw ZeroMQ multipart messages of the same bytes, over loopback TCP between two processes:
    ``transport_ratio=`` (floor 0.5).
-2. N = 1, 2, 4 local node processes with each distributed scheduler implemented so far, on a
-   scene with more domains than a node's cache: time, loads, and each scheduler's time ratio
-   against ``image``.
+2. N = 1, 2, 4 local node processes with every distributed scheduler, on a scene with more
+   domains than a node's cache: time, rays and bytes sent, loads, and each scheduler's time
+   ratio against ``async`` (the Galaxy-style baseline of the temporal-coherence paper).
 
     python bench/distributed.py [--quick]
 """
@@ -94,19 +94,26 @@ def main() -> None:
                               bounces=2, shadow_samples=4)
     print(f"\nscene: {store.n_triangles:,} triangles in {len(store.domains)} domains, "
           f"cache {cache} per node, pt {settings.width}x{settings.height} {settings.spp} spp\n")
-    print("| scheduler | nodes | total s | loads (all nodes) | busiest node s |")
-    print("| --- | --- | --- | --- | --- |")
+    print("| scheduler | nodes | total s | rays sent | MB sent | loads (all nodes) "
+          "| busiest node s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    schedulers = ("async", "domain", "dynamic", "spec-insitu", "image", "spec-ooc")
     times = {}
     for nodes in (1, 2, 4):
-        for scheduler in ("image", "spec-ooc"):
+        for scheduler in schedulers:
             result = render_distributed(path, None, settings, nodes, scheduler=scheduler,
-                                        cache_capacity=cache, max_samples_in_flight=4096)
+                                        cache_capacity=cache, max_samples_in_flight=8192)
+            per_node = [n["counters"] for n in result.counters["per_node"]]
+            rays = sum(c.get("rays_sent", 0) for c in per_node)
+            megabytes = sum(c.get("bytes_sent", 0) for c in per_node) / 1e6
+            loads = sum(c.get("loads", 0) for c in per_node)
             times[scheduler, nodes] = result.seconds["total"]
-            print(f"| {scheduler} | {nodes} | {result.seconds['total']:.2f} "
-                  f"| {result.counters['loads']} | {result.seconds['busy_max']:.2f} |", flush=True)
+            print(f"| {scheduler} | {nodes} | {result.seconds['total']:.2f} | {rays:,} "
+                  f"| {megabytes:.1f} | {loads} | {result.seconds['busy_max']:.2f} |", flush=True)
     for nodes in (1, 2, 4):
-        print(f"nodes={nodes} spec-ooc_vs_image_time_ratio="
-              f"{times['image', nodes] / times['spec-ooc', nodes]:.2f}")
+        ratios = " ".join(f"{s}={times['async', nodes] / times[s, nodes]:.2f}"
+                          for s in schedulers if s != "async")
+        print(f"nodes={nodes} time ratio vs async (async s / scheduler s): {ratios}")
 
 
 if __name__ == "__main__":

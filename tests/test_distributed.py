@@ -3,6 +3,7 @@ killed mid-render fails the run naming the node, and leaves no output."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
 import threading
@@ -215,3 +216,37 @@ def test_listening_beyond_loopback_needs_keys(scene):
     store, toml = scene
     with pytest.raises(InputError, match="needs cluster keys"):
         render_distributed(store.path, toml, settings(), 1, listen="0.0.0.0:0")
+
+
+@pytest.mark.parametrize("size", range(1, 10))
+async def test_tree_allreduce_over_real_sockets(size):
+    """The tree-reduce actor of P nodes (real ZeroMQ sockets, one event loop): MIN, OR and
+    SUM reach every node in ceil(log2 P) levels."""
+    import zmq
+    import zmq.asyncio
+
+    from vastray.actors.node import ManagementActor, TreeReduceActor
+
+    ctx = zmq.asyncio.Context()
+    coordinator = ctx.socket(zmq.ROUTER)
+    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
+    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                             None) for _ in range(size)]
+    endpoints = [n.endpoint for n in nodes]
+    rng = np.random.default_rng(size)
+    values = [{"t": rng.integers(0, 1 << 60, 100, dtype=np.uint64),
+               "o": rng.integers(0, 256, 64).astype(np.uint8),
+               "n": rng.integers(0, 1000, 10)} for _ in range(size)]
+    try:
+        results = await asyncio.gather(*[
+            TreeReduceActor(nodes[r], r, size, endpoints).allreduce(
+                values[r], {"t": "min", "o": "or", "n": "sum"}) for r in range(size)])
+    finally:
+        for n in nodes:
+            n.close()
+        coordinator.close(linger=0)
+        ctx.destroy(linger=0)
+    for result in results:
+        np.testing.assert_array_equal(result["t"], np.minimum.reduce([v["t"] for v in values]))
+        np.testing.assert_array_equal(result["o"], np.bitwise_or.reduce([v["o"] for v in values]))
+        np.testing.assert_array_equal(result["n"], np.sum([v["n"] for v in values], axis=0))
