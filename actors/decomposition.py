@@ -31,11 +31,11 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.render.driver import default_ao_distance, path_context, shading_inputs
+from vastray.actors.local import RenderSetup
+from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.scene.cache import DomainCache
-from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
@@ -53,32 +53,27 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     """Render this node's part of every tile under domain decomposition; returns the node's
     partial film (to be summed over nodes) and its counters."""
     mode = job["node_scheduler"]
-    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
     owned = int(np.count_nonzero(owner == rank))
-    cache = DomainCache(store, job.get("cache") or max(owned, 1), keep)
-    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                   settings.height)
-    lo, hi = store.domain_boxes()
-    nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
-    geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()))
-    ao_distance = settings.ao_distance or default_ao_distance(store)
+    cache = DomainCache(store, job.get("cache") or max(owned, 1), setup.keep)
     film = Film(settings.width, settings.height)
-    total = settings.width * settings.height * settings.spp
+    total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
     node = _Node(management, rank, stats)
     try:
         for index, first in enumerate(range(0, total, tile)):
-            ctx = path_context(shading, settings, first, min(first + tile, total), ao_distance)
-            policy = ImageSchedule(ctx, geometry, color_source, store.scalar_range or (0, 1),
+            ctx = path_context(setup.shading, settings, first, min(first + tile, total),
+                               setup.ao_distance)
+            policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                    owner=owner, rank=rank)
             mine = np.arange(len(ctx.pixel)) % size == rank
             if mode == "dynamic":  # rays stay where they are made until a round moves them
                 policy.owner = np.full(len(store.domains), rank)
             node.begin_tile(index, policy)
-            policy.start(camera_rays(camera, ctx).take(np.nonzero(mine)[0]))
+            policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
                 await node.rounds(policy, cache, index)
             elif mode == "dynamic":

@@ -21,12 +21,12 @@ from __future__ import annotations
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.render.driver import default_ao_distance, path_context, shading_inputs
+from vastray.actors.local import RenderSetup
+from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.scene.cache import DomainCache
-from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
@@ -68,29 +68,25 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
 async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, store, config,
                              settings) -> tuple[Film, dict]:
     """This node's partial film of a spec-insitu render (summed over nodes afterwards)."""
-    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
-    nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
     owner = zorder_owners(lo, hi, size)
-    local = [int(d) for d in np.nonzero((owner == rank) & nonempty)[0]]
-    cache = DomainCache(store, max(len(local), 1), keep)
+    local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
+    cache = DomainCache(store, max(len(local), 1), setup.keep)
     bvhs = {d: cache.get(d) for d in local}  # in situ: the node's data stays loaded
-    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                   settings.height)
-    geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()))
-    ao_distance = settings.ao_distance or default_ao_distance(store)
     film = Film(settings.width, settings.height)
-    total = settings.width * settings.height * settings.spp
+    total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "speculative_rays": 0, "wasted_rays": 0, "iterations": 0,
              "loads": cache.stats.loads}
-    runner = _InSitu(management, tree, rank, size, owner, local, bvhs, geometry, color_source,
-                     store.scalar_range or (0.0, 1.0), stats)
+    runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
+                     setup.color_source, setup.scalar_range, stats)
     for index, first in enumerate(range(0, total, tile)):
-        ctx = path_context(shading, settings, first, min(first + tile, total), ao_distance)
+        ctx = path_context(setup.shading, settings, first, min(first + tile, total),
+                           setup.ao_distance)
         mine = np.arange(len(ctx.pixel)) % size == rank
-        result = await runner.tile(ctx, camera, mine, index)
+        result = await runner.tile(ctx, setup.camera, mine, index)
         film.add_paths(ctx.pixel, ctx.sample, result, counted=mine)
     cache.close()
     return film, stats

@@ -7,10 +7,12 @@ import logging
 import resource
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
 
+from vastray.render.camera import Camera
 from vastray.render.driver import (
     RenderResult,
     default_ao_distance,
@@ -18,7 +20,7 @@ from vastray.render.driver import (
     shading_inputs,
 )
 from vastray.render.film import Film
-from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.integrators import RenderSettings, Shading, camera_rays
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
@@ -29,6 +31,33 @@ from vastray.schedule.spec_ooc import SpeculativeSchedule
 log = logging.getLogger(__name__)
 
 SCHEDULERS = {"image": ImageSchedule, "spec-ooc": SpeculativeSchedule}
+
+
+@dataclass
+class RenderSetup:
+    """What every runtime derives from a store, scene and settings before tracing."""
+
+    shading: Shading
+    keep: frozenset[str]  # attributes loaded domains keep for shading
+    color_source: str | None
+    scalar_range: tuple[float, float]
+    camera: Camera
+    geometry: DomainGeometry
+    ao_distance: float
+    total_paths: int
+
+    @staticmethod
+    def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
+        shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+        camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
+                                       settings.height)
+        lo, hi = store.domain_boxes()
+        nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
+        return RenderSetup(
+            shading, keep, color_source, store.scalar_range or (0.0, 1.0), camera,
+            DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
+            settings.ao_distance or default_ao_distance(store),
+            settings.width * settings.height * settings.spp)
 
 
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
@@ -54,18 +83,11 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     if scheduler not in SCHEDULERS:
         raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
     start = time.perf_counter()
-    shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    setup = RenderSetup.of(store, config, settings)
     capacity = cache_capacity or max(len(store.domains), 1)
-    cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
-    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                   settings.height)
-    lo, hi = store.domain_boxes()
-    nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
-    geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()))
-    ao_distance = settings.ao_distance or default_ao_distance(store)
-    scalar_range = store.scalar_range or (0.0, 1.0)
+    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache)
     film = Film(settings.width, settings.height)
-    total = settings.width * settings.height * settings.spp
+    total = setup.total_paths
     tile = max(1, min(max_samples_in_flight or total, total))
     firsts = list(range(0, total, tile))[share[0]::share[1]]
     counters: dict = {}
@@ -74,12 +96,12 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
                   desc=f"render ({scheduler})", leave=False) as bar:
             for first in firsts:
-                ctx = path_context(shading, settings, first, min(first + tile, total),
-                                   ao_distance)
+                ctx = path_context(setup.shading, settings, first, min(first + tile, total),
+                                   setup.ao_distance)
                 kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
-                policy = SCHEDULERS[scheduler](ctx, geometry, color_source, scalar_range,
-                                               **kwargs)
-                policy.start(camera_rays(camera, ctx))
+                policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
+                                               setup.scalar_range, **kwargs)
+                policy.start(camera_rays(setup.camera, ctx))
                 while (domain := policy.next_domain(cache.resident_set())) is not None:
                     bvh = cache.get(domain)
                     if preload:
@@ -111,7 +133,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "load_wait": round(stats.wait_seconds, 4),
         "render": round(process_seconds, 4),
     }
-    return RenderResult(film, camera, seconds, counters)
+    return RenderResult(film, setup.camera, seconds, counters)
 
 
 def _merge(total: dict, part: dict) -> None:
