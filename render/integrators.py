@@ -268,7 +268,8 @@ def _next_event_rays(ctx, rays, origin, nf, wo, albedo, material) -> ShadowRays:
             j = np.tile(np.arange(m, dtype=np.uint64), len(rays))
         wi, dist, incident = light.sample(o_rep, n_rep, keys, index, j)
         cos_i = np.einsum("ij,ij->i", n_rep, wi)
-        useful = np.nonzero((cos_i > 0) & (incident.sum(axis=1) > 0))[0]
+        lit = incident[:, 0] + incident[:, 1] + incident[:, 2] > 0
+        useful = np.nonzero((cos_i > 0) & lit)[0]
         if len(useful) == 0:
             continue
         vertex = useful // m
