@@ -16,11 +16,18 @@ def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     -------
     t, b : (k, 3) each, with ``t, b, n`` orthonormal.
     """
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0).astype(n.dtype)
-    a = -1.0 / (sign + n[:, 2])
-    b_ = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b_, -sign * n[:, 0]], axis=1)
-    b = np.stack([b_, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+    sign = np.where(nz >= 0, 1.0, -1.0).astype(n.dtype)
+    a = -1.0 / (sign + nz)
+    b_ = nx * ny * a
+    t = np.empty_like(n)
+    b = np.empty_like(n)
+    t[:, 0] = 1.0 + sign * nx * nx * a
+    t[:, 1] = sign * b_
+    t[:, 2] = -sign * nx
+    b[:, 0] = b_
+    b[:, 1] = sign + ny * ny * a
+    b[:, 2] = -ny
     return t, b
 
 
@@ -41,8 +48,8 @@ def cosine_hemisphere(n: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray
     x, y = r * np.cos(phi), r * np.sin(phi)
     z = np.sqrt(np.maximum(0.0, 1.0 - u))
     t, b = orthonormal_basis(n)
-    d = t * x[:, None] + b * y[:, None] + n * z[:, None]
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    # Unit length already (x^2 + y^2 + z^2 = 1 in an orthonormal frame): no renormalising.
+    return t * x[:, None] + b * y[:, None] + n * z[:, None]
 
 
 def normalize(v: np.ndarray) -> np.ndarray:
