@@ -102,7 +102,7 @@ def main() -> None:
     for nodes in (1, 2, 4):
         for scheduler in schedulers:
             result = render_distributed(path, None, settings, nodes, scheduler=scheduler,
-                                        cache_capacity=cache, max_samples_in_flight=8192)
+                                        cache_capacity=cache, max_samples_in_flight=1024)
             per_node = [n["counters"] for n in result.counters["per_node"]]
             rays = sum(c.get("rays_sent", 0) for c in per_node)
             megabytes = sum(c.get("bytes_sent", 0) for c in per_node) / 1e6
