@@ -61,6 +61,7 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
+             "rays_received": 0, "send_s": 0.0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
     node = _Node(management, rank, stats)
     try:
@@ -133,7 +134,9 @@ class _Node:
             rays = SoA.concat([r for _, r in parts])
             frames = encode(protocol.RAYS, {"domain": domains, **rays.fields},
                             {"queue": queue, "rank": self.rank, "tile": self.tile})
+            start = time.perf_counter()
             await self.management.to_peer(self.management.endpoints[node], frames)
+            self.stats["send_s"] += time.perf_counter() - start
             self.sent_to[node] = self.sent_to.get(node, 0) + 1
             self.stats["batches_sent"] += 1
             self.stats["rays_sent"] += len(domains)
@@ -143,6 +146,7 @@ class _Node:
         self.stats["batches_received"] += 1
         if not message.arrays:
             return
+        self.stats["rays_received"] += len(message.arrays["domain"])
         arrays = dict(message.arrays)
         domains = np.array(arrays.pop("domain"))
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
@@ -205,7 +209,9 @@ class _Node:
             arrays = {}
         frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank,
                                                 "tile": self.tile})
+        start = time.perf_counter()
         await self.management.to_peer(self.management.endpoints[node], frames)
+        self.stats["send_s"] += time.perf_counter() - start
         self.stats["batches_sent"] += 1
         self.stats["rays_sent"] += len(arrays.get("domain", ()))
         self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)

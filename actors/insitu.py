@@ -18,6 +18,8 @@ In every iteration each node:
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from vastray.actors import protocol
@@ -78,6 +80,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
+             "rays_received": 0, "send_s": 0.0,
              "speculative_rays": 0, "wasted_rays": 0, "iterations": 0,
              "loads": cache.stats.loads}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
@@ -170,7 +173,9 @@ class _InSitu:
                           if rows.any() else {})
                 frames = encode(protocol.RAYS, arrays, {"queue": name, "rank": self.rank,
                                                         "tile": tile, "depth": depth})
+                start = time.perf_counter()
                 await self.management.to_peer(self.management.endpoints[node], frames)
+                self.stats["send_s"] += time.perf_counter() - start
                 self.stats["batches_sent"] += 1
                 self.stats["rays_sent"] += int(rows.sum())
                 self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
@@ -180,6 +185,7 @@ class _InSitu:
             if message.arrays:
                 arrays = {k: np.array(v) for k, v in message.arrays.items()}
                 dom = arrays.pop("domain")
+                self.stats["rays_received"] += len(dom)
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
         return _joined(incoming["radiance"]), _joined(incoming["shadow"])
 

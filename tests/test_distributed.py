@@ -80,6 +80,8 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
             # Ray batches are conserved: every batch sent was received, none twice.
             sent = sum(n["counters"]["batches_sent"] for n in per_node)
             assert sent == sum(n["counters"]["batches_received"] for n in per_node)
+            rays = sum(n["counters"]["rays_sent"] for n in per_node)
+            assert rays == sum(n["counters"]["rays_received"] for n in per_node)
             assert (sent > 0) == (nodes > 1)
 
 
