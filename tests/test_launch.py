@@ -5,6 +5,7 @@ failure naming the host, and teardown. No SSH server runs here, so the remote sh
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -74,3 +75,60 @@ def test_launch_needs_keys(tmp_path, capsys):
     assert main(["launch", "--hosts", str(tmp_path / "hosts"), "-o", str(tmp_path / "o.exr"),
                  "x.store"]) != 0
     assert "--keys" in capsys.readouterr().err
+
+
+@pytest.fixture
+def sshd(tmp_path):
+    """A real OpenSSH server on loopback, with a key made for this test only."""
+    import shutil
+    import socket
+    import subprocess
+    import time
+
+    sshd_bin = shutil.which("sshd") or "/usr/sbin/sshd"
+    if not Path(sshd_bin).exists() or shutil.which("ssh") is None:
+        pytest.skip("needs OpenSSH (sshd and ssh) installed")
+    import os
+
+    if os.geteuid() != 0:
+        pytest.skip("sshd needs root to run here")
+    keys = tmp_path / "ssh"
+    keys.mkdir()
+    for name in ("host", "user"):
+        subprocess.run(["ssh-keygen", "-q", "-t", "ed25519", "-N", "", "-f", str(keys / name)],
+                       check=True)
+    (keys / "authorized_keys").write_text((keys / "user.pub").read_text())
+    keys.chmod(0o700)
+    (keys / "authorized_keys").chmod(0o600)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    Path("/run/sshd").mkdir(exist_ok=True)
+    config = keys / "sshd_config"
+    config.write_text(f"Port {port}\nListenAddress 127.0.0.1\nHostKey {keys / 'host'}\n"
+                      f"AuthorizedKeysFile {keys / 'authorized_keys'}\nPasswordAuthentication no\n"
+                      "PermitRootLogin prohibit-password\nStrictModes no\nUsePAM no\n"
+                      f"PidFile {keys / 'sshd.pid'}\n")
+    server = subprocess.Popen([sshd_bin, "-D", "-e", "-f", str(config)],
+                              stderr=subprocess.DEVNULL)
+    for _ in range(50):
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", port)) == 0:
+                break
+        time.sleep(0.1)
+    yield (f"ssh -i {keys / 'user'} -p {port} -o BatchMode=yes -o StrictHostKeyChecking=no "
+           "-o UserKnownHostsFile=/dev/null -o LogLevel=ERROR -tt")
+    server.terminate()
+    server.wait()
+
+
+def test_launch_over_a_real_ssh_server(tmp_path, sshd):
+    store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
+    main(["keys", "-o", str(tmp_path / "keys")])
+    (tmp_path / "hosts").write_text(f"127.0.0.1 python={sys.executable} slots=2\n")
+    out = tmp_path / "o.exr"
+    assert main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
+                 "--ssh", sshd, "--logs", str(tmp_path / "logs"), str(store.path), "-o",
+                 str(out), "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
+                 "--spp", "2", "--node-timeout", "30", "--scheduler", "async", "--quiet"]) == 0
+    assert read_exr(out).shape == (18, 24, 3)
