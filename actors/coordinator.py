@@ -48,8 +48,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        cache_capacity: int | None = None, max_samples_in_flight: int = 65536,
                        history_depth: int | None = None, timeout: float = 120.0,
                        listen: str | None = None, keys: ClusterKeys | None = None,
-                       launched: dict[str, tuple[subprocess.Popen, Path]] | None = None
-                       ) -> RenderResult:
+                       launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
+                       max_batch_rays: int = 65536) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -62,6 +62,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     keys : cluster keys; required to listen beyond loopback.
     launched : with ``listen``, processes started for the nodes elsewhere (name -> process,
         log file), e.g. ssh sessions: one that exits early fails the run with its name.
+    max_batch_rays : most rays in one batch between two nodes (domain, async).
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -77,6 +78,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "scene": None if scene_path is None else str(Path(scene_path).resolve()),
         "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
+        "max_batch_rays": max_batch_rays,
     }
     start = time.perf_counter()
     film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys,

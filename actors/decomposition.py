@@ -41,6 +41,8 @@ from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
 MODES = ("domain", "async", "dynamic")
+#: Most rays in one batch between two nodes by default (about 6 MB of path-tracing rays).
+MAX_BATCH_RAYS = 65536
 
 
 def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
@@ -61,9 +63,9 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "send_s": 0.0,
+             "rays_received": 0, "bytes_received": 0, "send_s": 0.0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
-    node = _Node(management, rank, stats)
+    node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS))
     try:
         for index, first in enumerate(range(0, total, tile)):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
@@ -91,8 +93,9 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
 class _Node:
     """The node side of the decomposition: trace local work, ship outboxes, take deliveries."""
 
-    def __init__(self, management, rank: int, stats: dict):
+    def __init__(self, management, rank: int, stats: dict, max_batch: int = MAX_BATCH_RAYS):
         self.management, self.rank, self.stats = management, rank, stats
+        self.max_batch = max(1, int(max_batch))
         self.sent_to: dict[int, int] = {}  # batches sent per destination since last asked
         self.tile = 0
         # Batches of a later tile, from nodes that finished this one first: held back (and not
@@ -128,25 +131,33 @@ class _Node:
             await self.ship(policy)
 
     async def ship(self, policy) -> None:
-        """Send the outbox as ray batches (counted per destination in ``sent_to``)."""
+        """Send the outbox as ray batches (counted per destination in ``sent_to``).
+
+        Rays for one destination are coalesced into batches of at most ``max_batch`` rays;
+        the outbox is shipped after every domain traced, which bounds a ray's wait too.
+        """
         for (queue, node), parts in policy.take_outbox().items():
-            domains = np.concatenate([d for d, _ in parts])
-            rays = SoA.concat([r for _, r in parts])
-            frames = encode(protocol.RAYS, {"domain": domains, **rays.fields},
-                            {"queue": queue, "rank": self.rank, "tile": self.tile})
-            start = time.perf_counter()
-            await self.management.to_peer(self.management.endpoints[node], frames)
-            self.stats["send_s"] += time.perf_counter() - start
-            self.sent_to[node] = self.sent_to.get(node, 0) + 1
-            self.stats["batches_sent"] += 1
-            self.stats["rays_sent"] += len(domains)
-            self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+            all_domains = np.concatenate([d for d, _ in parts])
+            all_rays = SoA.concat([r for _, r in parts])
+            for first in range(0, len(all_domains), self.max_batch):
+                rows = np.arange(first, min(first + self.max_batch, len(all_domains)))
+                domains = all_domains[rows]
+                frames = encode(protocol.RAYS, {"domain": domains, **all_rays.take(rows).fields},
+                                {"queue": queue, "rank": self.rank, "tile": self.tile})
+                start = time.perf_counter()
+                await self.management.to_peer(self.management.endpoints[node], frames)
+                self.stats["send_s"] += time.perf_counter() - start
+                self.sent_to[node] = self.sent_to.get(node, 0) + 1
+                self.stats["batches_sent"] += 1
+                self.stats["rays_sent"] += len(domains)
+                self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
 
     def deliver(self, policy, message) -> None:
         self.stats["batches_received"] += 1
         if not message.arrays:
             return
         self.stats["rays_received"] += len(message.arrays["domain"])
+        self.stats["bytes_received"] += sum(a.nbytes for a in message.arrays.values())
         arrays = dict(message.arrays)
         domains = np.array(arrays.pop("domain"))
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})

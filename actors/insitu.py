@@ -80,7 +80,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "send_s": 0.0,
+             "rays_received": 0, "bytes_received": 0, "send_s": 0.0,
              "speculative_rays": 0, "wasted_rays": 0, "iterations": 0,
              "loads": cache.stats.loads}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
@@ -186,6 +186,7 @@ class _InSitu:
                 arrays = {k: np.array(v) for k, v in message.arrays.items()}
                 dom = arrays.pop("domain")
                 self.stats["rays_received"] += len(dom)
+                self.stats["bytes_received"] += sum(a.nbytes for a in message.arrays.values())
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
         return _joined(incoming["radiance"]), _joined(incoming["shadow"])
 

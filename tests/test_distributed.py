@@ -96,6 +96,20 @@ def test_zorder_ownership_is_balanced_and_compact():
         assert np.all(block.max(axis=0) - block.min(axis=0) == 1)
 
 
+def test_big_outboxes_travel_in_bounded_batches(scene):
+    # With a tiny batch bound, the same render needs many more batches and still matches.
+    store, toml = scene
+    st = settings(width=24, height=18, spp=2, integrator="ao")
+    reference = render(store, load_scene_config(toml), st, progress=False).film.image()
+    counts = []
+    for bound in (65536, 50):
+        result = render_distributed(store.path, toml, st, 2, scheduler="async", timeout=60,
+                                    max_batch_rays=bound)
+        np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
+        counts.append(sum(n["counters"]["batches_sent"] for n in result.counters["per_node"]))
+    assert counts[1] > counts[0]
+
+
 def test_schedule_next_round_keeps_loaded_domains_and_assigns_the_most_wanted():
     from vastray.actors.coordinator import schedule_next_round
 
