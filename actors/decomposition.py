@@ -63,7 +63,7 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "bytes_received": 0, "send_s": 0.0,
+             "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
     node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS))
     try:
@@ -84,6 +84,7 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             else:
                 await node.asynchronous(policy, cache, index)
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
+            stats["shade_s"] += policy.counters["shade_s"]
     finally:
         cache.close()
     stats.update({k: v for k, v in cache.stats.as_dict().items() if k in ("loads", "load_s")})

@@ -80,7 +80,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "bytes_received": 0, "send_s": 0.0,
+             "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "speculative_rays": 0, "wasted_rays": 0, "iterations": 0,
              "loads": cache.stats.loads}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
@@ -230,7 +230,9 @@ class _InSitu:
         if len(hit_paths) == 0:
             return None
         rays = _radiance_for(ray_of_path, hit_paths)
+        start = time.perf_counter()
         shadow, cont = shade(ctx, rays, best.hits(hit_paths))
+        self.stats["shade_s"] += time.perf_counter() - start
         self.stats["speculative_rays"] += len(shadow) + len(cont)
         # Intersection cache: children meet this node's domains now.
         blocked_here = self._occluded_locally(shadow)

@@ -10,6 +10,8 @@ wasted, but each domain may be loaded many times as new rays keep arriving.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from vastray.render.integrators import (
@@ -61,7 +63,8 @@ class ImageSchedule:
         self.radiance = DomainQueues(geometry.n_domains)
         self.shadow = DomainQueues(geometry.n_domains)
         self.result = PathResult.empty(len(ctx.pixel))
-        self.counters = {"radiance_tests": 0, "shadow_tests": 0, "rays_in_flight_peak": 0}
+        self.counters = {"radiance_tests": 0, "shadow_tests": 0, "rays_in_flight_peak": 0,
+                         "shade_s": 0.0}
 
     # -- the driver's interface ---------------------------------------------------------------
     def start(self, rays: RadianceRays) -> None:
@@ -153,7 +156,9 @@ class ImageSchedule:
         hit = np.nonzero(hits.hit)[0]
         if len(hit) == 0:
             return
+        start = time.perf_counter()
         shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
+        self.counters["shade_s"] += time.perf_counter() - start
         self._launch_shadow(shadow)
         self._launch_radiance(continuation)
 

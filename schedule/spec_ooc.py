@@ -24,6 +24,8 @@ continuation rays beyond it wait in the **spill queue** until the window is reso
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from vastray.render.integrators import (
@@ -85,7 +87,7 @@ class SpeculativeSchedule:
         self.counters = {
             "radiance_tests": 0, "shadow_tests": 0, "speculative_rays": 0,
             "wasted_rays": 0, "filtered_rays": 0, "rounds": 0, "windows": 0,
-            "rays_in_flight_peak": 0,
+            "rays_in_flight_peak": 0, "shade_s": 0.0,
         }
 
     # -- the driver's interface ---------------------------------------------------------------
@@ -249,7 +251,9 @@ class SpeculativeSchedule:
         hist_t, hist_d = winners["hist_t"].copy(), winners["hist_d"].copy()
         hist_t[:, level] = hits.t[rows]
         hist_d[:, level] = domain
+        start = time.perf_counter()
         shadow, continuation = shade(self.ctx, as_radiance(winners), hits.hits(rows))
+        self.counters["shade_s"] += time.perf_counter() - start
         self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, path)
         self._spawn_radiance(continuation, hist_t, hist_d, path)
 

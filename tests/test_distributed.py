@@ -76,6 +76,10 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
         np.testing.assert_array_equal(result.film.depth, reference.depth)
         per_node = result.counters["per_node"]
         assert len(per_node) == nodes
+        for report in per_node:  # the per-node timings the report promises
+            assert report["busy_s"] > 0 and report["reduce_s"] >= 0
+            assert report["counters"]["shade_s"] >= 0
+        assert sum(report["counters"]["shade_s"] for report in per_node) > 0
         if scheduler in ("domain", "async", "dynamic", "spec-insitu"):
             # Ray batches are conserved: every batch sent was received, none twice.
             sent = sum(n["counters"]["batches_sent"] for n in per_node)
