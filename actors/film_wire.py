@@ -1,4 +1,4 @@
-"""Films as wire messages, and how partial films from several nodes combine."""
+"""Films as wire messages (partial films combine with ``Film.merge``)."""
 
 from __future__ import annotations
 
@@ -24,13 +24,3 @@ def film_from(message: Message, width: int, height: int) -> Film:
                              f"{getattr(film, name).shape}")
         setattr(film, name, np.array(array))
     return film
-
-
-def combine_films(into: Film, other: Film) -> None:
-    """Sum the sample sums and counts; each pixel's depth/normal comes from the one node that
-    traced its sample 0 (others hold inf / zeros), so MIN and SUM merge them exactly."""
-    into.sum += other.sum
-    into.sum_sq += other.sum_sq
-    into.count += other.count
-    np.minimum(into.depth, other.depth, out=into.depth)
-    into.normal += other.normal

@@ -22,7 +22,7 @@ import zmq.asyncio
 from vastray.actors import protocol
 from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import render_owned_domains
-from vastray.actors.film_wire import combine_films, film_frames, film_from
+from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.transport.codec import decode, encode
 from vastray.transport.security import (
@@ -110,7 +110,7 @@ class TreeReduceActor:
         """Sum this subtree's films; the root returns the total, others send it up."""
         for _ in children(self.rank, self.size):
             message = await self.management.receive("film", "film from a child node")
-            combine_films(film, film_from(message, width, height))
+            film.merge(film_from(message, width, height))
         up = parent(self.rank)
         if up is not None:
             await self.management.to_peer(self.endpoints[up], film_frames(film, {"rank": self.rank}))

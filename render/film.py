@@ -49,13 +49,14 @@ class Film:
         self.normal[pixel[zero]] = paths.first_normal[zero]
 
     def merge(self, other: Film) -> None:
-        """Add another film's sums (e.g. from another node or tile)."""
+        """Add another node's partial film. Sums and counts add; each pixel's depth and normal
+        come from the one film that traced its sample 0 (the others hold inf and zeros), so
+        MIN and SUM merge them exactly."""
         self.sum += other.sum
         self.sum_sq += other.sum_sq
         self.count += other.count
-        seen = np.isfinite(other.depth)
-        self.depth[seen] = other.depth[seen]
-        self.normal[seen] = other.normal[seen]
+        np.minimum(self.depth, other.depth, out=self.depth)
+        self.normal += other.normal
 
     def _grid(self, a: np.ndarray) -> np.ndarray:
         return a.reshape(self.height, self.width, *a.shape[1:])
