@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from vastray.render.integrators import RadianceRays, ShadowRays
-from vastray.render.tracer import NO_DOMAIN, ClosestHits
+from vastray.render.tracer import ClosestHits
 from vastray.schedule.soa import SoA
 
 RADIANCE_FIELDS = ("path", "depth", "origin", "direction", "beta")
@@ -48,7 +48,3 @@ def as_shadow(rays: SoA) -> ShadowRays:
 def start_cursor(n: int) -> dict[str, np.ndarray]:
     """Cursor fields of rays that have visited no domain yet."""
     return {"at_t": np.full(n, -np.inf, np.float32), "at_d": np.full(n, -1, np.int32)}
-
-
-__all__ = ["NO_DOMAIN", "radiance_soa", "closest_hits", "as_radiance", "shadow_soa",
-           "as_shadow", "start_cursor"]
