@@ -11,7 +11,7 @@ sample, bounce, purpose, index), never from processing order.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -50,8 +50,22 @@ class Shading:
     has_color: bool
 
 
+class _RaySet:
+    """Take and concatenate a structure-of-arrays dataclass row-wise, field by field."""
+
+    def __len__(self) -> int:
+        return len(self.path)
+
+    def take(self, rows: np.ndarray):
+        return type(self)(*(getattr(self, f.name)[rows] for f in fields(self)))
+
+    @classmethod
+    def concat(cls, parts: list):
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
+
 @dataclass
-class RadianceRays:
+class RadianceRays(_RaySet):
     """Rays that look for a closest hit (camera rays and diffuse continuations).
 
     Attributes
@@ -68,21 +82,9 @@ class RadianceRays:
     direction: np.ndarray
     beta: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.path)
-
-    def take(self, rows: np.ndarray) -> RadianceRays:
-        return RadianceRays(self.path[rows], self.depth[rows], self.origin[rows],
-                            self.direction[rows], self.beta[rows])
-
-    @staticmethod
-    def concat(parts: list[RadianceRays]) -> RadianceRays:
-        return RadianceRays(*(np.concatenate([getattr(p, f) for p in parts])
-                              for f in ("path", "depth", "origin", "direction", "beta")))
-
 
 @dataclass
-class ShadowRays:
+class ShadowRays(_RaySet):
     """Rays that test visibility; ``contribution`` reaches their path if nothing blocks them.
 
     Attributes
@@ -98,19 +100,6 @@ class ShadowRays:
     direction: np.ndarray
     t_max: np.ndarray
     contribution: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.path)
-
-    def take(self, rows: np.ndarray) -> ShadowRays:
-        return ShadowRays(self.path[rows], self.depth[rows], self.origin[rows],
-                          self.direction[rows], self.t_max[rows], self.contribution[rows])
-
-    @staticmethod
-    def concat(parts: list[ShadowRays]) -> ShadowRays:
-        return ShadowRays(*(np.concatenate([getattr(p, f) for p in parts])
-                            for f in ("path", "depth", "origin", "direction", "t_max",
-                                      "contribution")))
 
 
 @dataclass(frozen=True)

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import fields
+
 import numpy as np
 
 from vastray.render.integrators import RadianceRays, ShadowRays
 from vastray.render.tracer import ClosestHits
 from vastray.schedule.soa import SoA
 
-RADIANCE_FIELDS = ("path", "depth", "origin", "direction", "beta")
-SHADOW_FIELDS = ("path", "depth", "origin", "direction", "t_max", "contribution")
+RADIANCE_FIELDS = tuple(f.name for f in fields(RadianceRays))
+SHADOW_FIELDS = tuple(f.name for f in fields(ShadowRays))
 
 
 def radiance_soa(rays: RadianceRays, with_color: bool, **extra: np.ndarray) -> SoA:
