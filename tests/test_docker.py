@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tomllib
 from pathlib import Path
 
 import yaml
@@ -43,6 +44,8 @@ def test_compose_commands_parse_with_the_real_cli():
 
 def test_dockerfile_installs_the_package_with_its_entry_point():
     text = (DOCKER / "Dockerfile").read_text()
-    for folder in ("vastray", "scene", "render", "schedule", "transport", "actors"):
+    package_dirs = tomllib.loads((DOCKER.parent / "pyproject.toml").read_text())[
+        "tool"]["setuptools"]["package-dir"]
+    for folder in {d.split("/")[0] for d in package_dirs.values()}:
         assert f"COPY {folder} ./{folder}" in text
     assert "pip install" in text and 'ENTRYPOINT ["vastray"]' in text
