@@ -18,12 +18,13 @@ from pathlib import Path
 
 import zmq
 import zmq.asyncio
+from tqdm import tqdm
 
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_from
 from vastray.render.driver import RenderResult
 from vastray.render.integrators import RenderSettings
-from vastray.render.scene_config import load_scene_config
+from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.store import Store
 from vastray.transport.codec import decode, encode
 from vastray.transport.security import (
@@ -49,7 +50,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        history_depth: int | None = None, timeout: float = 120.0,
                        listen: str | None = None, keys: ClusterKeys | None = None,
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
-                       max_batch_rays: int = 65536) -> RenderResult:
+                       max_batch_rays: int = 65536, progress: bool = False,
+                       config: SceneConfig | None = None) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -63,6 +65,10 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     launched : with ``listen``, processes started for the nodes elsewhere (name -> process,
         log file), e.g. ssh sessions: one that exits early fails the run with its name.
     max_batch_rays : most rays in one batch between two nodes (domain, async).
+    progress : a progress bar on stderr fed by the nodes' finished tiles; with ``listen``,
+        also a line for the wait and for every node that joins.
+    config : the scene configuration (default: read from ``scene_path``); nodes receive its
+        TOML text, so they need no copy of the file.
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -70,19 +76,22 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if nodes < 1:
         raise ValueError("--nodes must be at least 1")
     store = Store(store_path)
-    config = load_scene_config(scene_path)
+    config = config if config is not None else load_scene_config(scene_path)
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
     job = {
         "store": str(Path(store_path).resolve()),
-        "scene": None if scene_path is None else str(Path(scene_path).resolve()),
+        "scene_toml": config.text, "scene_source": config.source,
         "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
         "max_batch_rays": max_batch_rays,
     }
     start = time.perf_counter()
-    film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys,
-                                            launched or {}))
+    total = settings.width * settings.height * settings.spp
+    with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
+              desc=f"render ({scheduler}, {nodes} nodes)", leave=False) as bar:
+        film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys,
+                                                launched or {}, bar, progress))
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports)}
@@ -94,7 +103,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
 
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
                       listen: str | None, keys: ClusterKeys | None,
-                      launched: dict[str, tuple[subprocess.Popen, Path]]):
+                      launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
+                      verbose: bool):
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -108,6 +118,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         port = router.bind_to_random_port(f"tcp://{host}")
     logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
+    beating = None
     try:
         if listen is None:
             for rank in range(size):
@@ -115,9 +126,13 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 procs.append(subprocess.Popen(
                     [sys.executable, "-m", "vastray.actors.node", "--coordinator",
                      f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout)],
-                    stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL))
+                    stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL,
+                    env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid())})))
                 log_file.close()
-        watch = _Watch(size, procs, logs.name, timeout, launched)
+        elif verbose:
+            print(f"waiting for {size} node(s) on tcp://{host}:{port}", file=sys.stderr)
+        address = f"tcp://{host}:{port}"
+        watch = _Watch(size, procs, logs.name, timeout, launched, address)
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
@@ -127,16 +142,27 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                     rank = min(set(range(size)) - set(identities))
                 identities[rank] = identity
                 endpoints[rank] = message.meta["endpoint"]
-                watch.heard(rank)
+                watch.joined(rank)
+                if listen is not None and verbose:
+                    print(f"node {rank} joined from {message.meta.get('host', '?')} "
+                          f"(pid {message.meta.get('pid', '?')}), {len(identities)} of {size}",
+                          file=sys.stderr)
         for rank in range(size):
             frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints, rank=rank,
                                                    size=size))
             await router.send_multipart([identities[rank], *frames])
+        beating = asyncio.ensure_future(_heartbeat(router, identities))
         film, reports = None, {}
+        done_paths: dict[int, int] = {}
         control = _Termination(size, router, identities)
         while film is None or len(reports) < size:
             identity, message = await watch.receive(router)
-            if message.kind == protocol.FILM:
+            if message.kind == protocol.PROGRESS:
+                rank = int(message.meta["rank"])
+                paths = int(message.meta["paths"])
+                bar.update(paths - done_paths.get(rank, 0))
+                done_paths[rank] = paths
+            elif message.kind == protocol.FILM:
                 film = film_from(message, settings.width, settings.height)
             elif message.kind == protocol.DONE:
                 reports[int(message.meta["rank"])] = message.meta
@@ -151,6 +177,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         await watch.wait_exit()
         return film, [reports[r] for r in range(size)]
     finally:
+        if beating is not None:
+            beating.cancel()
         for proc in procs:
             if proc.poll() is None:
                 proc.kill()
@@ -160,6 +188,15 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             auth.stop()
         ctx.destroy(linger=0)
         logs.cleanup()
+
+
+async def _heartbeat(router, identities: dict[int, bytes]) -> None:
+    """Tell every node, twice a second, that the coordinator is alive."""
+    frames = encode(protocol.HEARTBEAT, {}, {})
+    while True:
+        for identity in identities.values():
+            await router.send_multipart([identity, *frames])
+        await asyncio.sleep(protocol.HEARTBEAT_S)
 
 
 class _Termination:
@@ -265,10 +302,16 @@ class _Watch:
     exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
     def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
-                 launched: dict[str, tuple[subprocess.Popen, Path]]):
+                 launched: dict[str, tuple[subprocess.Popen, Path]], address: str = ""):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
-        self.launched = launched
-        self.last_heard = [time.monotonic()] * size
+        self.launched, self.address = launched, address
+        self.started = time.monotonic()
+        self.last_heard = [self.started] * size
+        self.ranks_joined: set[int] = set()
+
+    def joined(self, rank: int) -> None:
+        self.ranks_joined.add(rank)
+        self.heard(rank)
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
@@ -292,7 +335,17 @@ class _Watch:
                 text = Path(log).read_text(errors="replace").strip() if Path(log).exists() else ""
                 last = text.splitlines()[-1] if text else "no output"
                 raise NodeFailure(f"node on {name} exited with code {code}: {last}")
-        for rank in range(self.size):
+        if len(self.ranks_joined) < self.size and now - self.started > self.timeout:
+            if self.procs:  # nodes started here: name the one that never said hello
+                rank = min(set(range(self.size)) - self.ranks_joined)
+                raise self._failure(rank, f"did not join within {self.timeout:.0f} s")
+            joined = len(self.ranks_joined)
+            raise NodeFailure(
+                f"{'no node' if joined == 0 else f'only {joined} of {self.size} nodes'} joined "
+                f"within {self.timeout:.0f} s on {self.address}; check that each node's "
+                "--coordinator names this address and that its --keys match this run's "
+                "(a node with other keys is refused and says 'authentication failed')")
+        for rank in self.ranks_joined:
             if now - self.last_heard[rank] > self.timeout:
                 raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")
 

@@ -51,9 +51,10 @@ def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
 
 
 async def render_owned_domains(management, job: dict, rank: int, size: int, store, config,
-                               settings) -> tuple[Film, dict]:
+                               settings, on_tile=None) -> tuple[Film, dict]:
     """Render this node's part of every tile under domain decomposition; returns the node's
-    partial film (to be summed over nodes) and its counters."""
+    partial film (to be summed over nodes) and its counters. ``on_tile(paths)`` hears of the
+    paths this node started, after each tile."""
     mode = job["node_scheduler"]
     setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
@@ -85,6 +86,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
                 await node.asynchronous(policy, cache, index)
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
             stats["shade_s"] += policy.counters["shade_s"]
+            if on_tile is not None:
+                on_tile(int(np.count_nonzero(mine)))
     finally:
         cache.close()
     stats.update({k: v for k, v in cache.stats.as_dict().items() if k in ("loads", "load_s")})

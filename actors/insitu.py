@@ -68,8 +68,9 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
 
 
 async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, store, config,
-                             settings) -> tuple[Film, dict]:
-    """This node's partial film of a spec-insitu render (summed over nodes afterwards)."""
+                             settings, on_tile=None) -> tuple[Film, dict]:
+    """This node's partial film of a spec-insitu render (summed over nodes afterwards);
+    ``on_tile(paths)`` hears of the paths this node started, after each tile."""
     setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
     owner = zorder_owners(lo, hi, size)
@@ -91,6 +92,8 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
         mine = np.arange(len(ctx.pixel)) % size == rank
         result = await runner.tile(ctx, setup.camera, mine, index)
         film.add_paths(ctx.pixel, ctx.sample, result, counted=mine)
+        if on_tile is not None:
+            on_tile(int(np.count_nonzero(mine)))
     cache.close()
     return film, stats
 

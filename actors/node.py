@@ -18,12 +18,14 @@ import time
 import numpy as np
 import zmq
 import zmq.asyncio
+from zmq.utils.monitor import parse_monitor_message
 
 from vastray.actors import protocol
 from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
+from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.transport.codec import decode, encode
 from vastray.transport.security import (
     ClusterKeys,
@@ -36,6 +38,10 @@ from vastray.transport.security import (
 from vastray.transport.tree import COMBINE, children, parent
 
 log = logging.getLogger(__name__)
+
+
+class AuthenticationFailed(RuntimeError):
+    """The coordinator refused this node's CURVE handshake."""
 
 
 class ManagementActor:
@@ -54,6 +60,7 @@ class ManagementActor:
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
         self.coordinator = self._dealer(coordinator)
+        self.coordinator_heard = time.monotonic()
         self.peers: dict[str, zmq.asyncio.Socket] = {}
         self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
         self.mailboxes: dict[str, asyncio.Queue] = {}
@@ -75,7 +82,42 @@ class ManagementActor:
         while True:
             frames = await sock.recv_multipart(copy=False)
             message = decode(frames[1:] if identity else frames)
+            if not identity:
+                self.coordinator_heard = time.monotonic()
+                if message.kind == protocol.HEARTBEAT:
+                    continue
             await self.mailbox(message.kind).put(message)
+
+    async def watch_coordinator(self, silence: float) -> None:
+        """Exit the process once the coordinator has been silent for ``silence`` seconds: it
+        died or was cut off, and a node must not render on for nobody. (The render worker
+        thread cannot be cancelled, so this ends the process rather than the task.)"""
+        while True:
+            await asyncio.sleep(0.25)
+            quiet = time.monotonic() - self.coordinator_heard
+            if quiet > silence:
+                log.error("lost the coordinator (silent for %.1f s); exiting", quiet)
+                logging.shutdown()
+                os._exit(4)
+
+    async def watch_handshake(self, endpoint: str) -> None:
+        """Raise ``AuthenticationFailed`` if the coordinator refuses this node's CURVE
+        handshake (other keys); returns never otherwise."""
+        monitor = self.coordinator.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+        try:
+            while True:
+                event = parse_monitor_message(await monitor.recv_multipart())
+                if event["event"] & (zmq.EVENT_HANDSHAKE_FAILED_AUTH
+                                     | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+                                     | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL):
+                    raise AuthenticationFailed(
+                        f"authentication with the coordinator at {endpoint} failed: its cluster "
+                        "keys differ from this node's --keys (or one side has none)")
+        finally:
+            self.coordinator.disable_monitor()
+            monitor.close(linger=0)
 
     async def receive(self, kind: str, what: str):
         """The next message of ``kind``; fails after the node timeout."""
@@ -145,7 +187,6 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     """
     from vastray.actors.local import render_out_of_core
     from vastray.render.integrators import RenderSettings
-    from vastray.render.scene_config import load_scene_config
     from vastray.scene.store import Store
 
     check_bind(bind_host, keys)
@@ -154,23 +195,39 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys)
+    watchers = []
     try:
+        handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
+        watchers.append(handshake)
         await management.to_coordinator(encode(protocol.HELLO, {}, {
             "rank": rank, "endpoint": management.endpoint, "host": socket.gethostname(),
             "pid": os.getpid()}))
-        job = (await management.receive(protocol.JOB, "job from the coordinator")).meta
+        waiting = asyncio.ensure_future(management.receive(protocol.JOB,
+                                                           "job from the coordinator"))
+        await asyncio.wait([waiting, handshake], return_when=asyncio.FIRST_COMPLETED)
+        if not waiting.done():
+            waiting.cancel()
+            handshake.result()  # raises AuthenticationFailed
+        job = waiting.result().meta
         rank, size = int(job["rank"]), int(job["size"])
+        log.info("joined %s as node %d of %d", coordinator, rank, size)
+        management.coordinator_heard = time.monotonic()
+        watchers.append(asyncio.ensure_future(
+            management.watch_coordinator(protocol.COORDINATOR_SILENCE_S)))
         management.endpoints = job["endpoints"]
         settings = RenderSettings(**job["settings"])
         store = Store(job["store"])
-        config = load_scene_config(job.get("scene"))
+        config = (SceneConfig() if job.get("scene_toml") is None
+                  else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
         loop = asyncio.get_running_loop()
         done = {"paths": 0}
 
         def report(paths: int) -> None:
+            """Tell the coordinator this node finished ``paths`` more paths (any thread)."""
             done["paths"] += paths
-            asyncio.run_coroutine_threadsafe(management.to_coordinator(encode(
-                protocol.PROGRESS, {}, {"rank": rank, "paths": done["paths"]})), loop)
+            message = encode(protocol.PROGRESS, {}, {"rank": rank, "paths": done["paths"]})
+            loop.call_soon_threadsafe(
+                lambda: asyncio.ensure_future(management.to_coordinator(message)))
 
         async def heartbeat() -> None:
             while True:
@@ -182,10 +239,10 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         tree = TreeReduceActor(management, rank, size, job["endpoints"])
         if job["node_scheduler"] == "spec-insitu":
             film, counters = await render_spec_insitu(management, tree, job, rank, size, store,
-                                                      config, settings)
+                                                      config, settings, on_tile=report)
         elif job["node_scheduler"] in DECOMPOSITION_MODES:
             film, counters = await render_owned_domains(management, job, rank, size, store,
-                                                        config, settings)
+                                                        config, settings, on_tile=report)
         else:
             result = await asyncio.to_thread(
                 render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
@@ -205,7 +262,11 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
         beating.cancel()
         await management.receive(protocol.STOP, "stop from the coordinator")
+        log.info("finished: busy %.2f s, %d domain loads", busy,
+                    int(counters.get("loads", 0)))
     finally:
+        for task in watchers:
+            task.cancel()
         management.close()
         if auth is not None:
             auth.stop()
@@ -236,9 +297,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def die_with_parent() -> None:
+    """For a node started by a coordinator on this machine: have the kernel kill this process
+    the moment the coordinator exits, whatever kills it (Linux; elsewhere the heartbeat
+    watch ends the node a few seconds later)."""
+    parent = os.environ.get(protocol.PARENT_PID_ENV)
+    if parent is None or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    import signal
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != int(parent):  # the coordinator died before the request took effect
+        os._exit(4)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.WARNING, format=f"node {args.rank}: %(message)s")
+    die_with_parent()
+    logging.basicConfig(level=logging.INFO, format=f"node {args.rank}: %(message)s")
     try:
         import uvloop
         uvloop.install()

@@ -16,3 +16,12 @@ QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domai
 SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
+
+#: Seconds between the coordinator's heartbeats to its nodes; a node that hears nothing from
+#: the coordinator for ``COORDINATOR_SILENCE_S`` exits (the coordinator died or was cut off).
+HEARTBEAT_S = 0.5
+COORDINATOR_SILENCE_S = 5.0
+
+#: Environment variable naming the coordinator's pid to the nodes it starts on its own machine:
+#: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).
+PARENT_PID_ENV = "VASTRAY_PARENT_PID"

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Bytes of film state per pixel: sum and sum_sq (3 float64 each), count, depth, normal.
+FILM_BYTES_PER_PIXEL = 24 + 24 + 8 + 4 + 12
+
 
 class Film:
     """Accumulates path radiance per pixel.
@@ -33,11 +36,18 @@ class Film:
         counted : (n,) bool, the rows that count as samples (default: all). Under domain
             decomposition several nodes add parts of one path; exactly one counts it.
         """
-        n = len(self.count)
+        if len(pixel) == 0:
+            return
+        # Bins over the batch's pixel range only (a batch covers a run of pixels): the cost
+        # follows the batch, not the film. Adding the zeros of other pixels changed nothing.
+        lo, hi = int(pixel.min()), int(pixel.max()) + 1
+        local = pixel - lo
         for c in range(3):
-            self.sum[:, c] += np.bincount(pixel, weights=radiance[:, c], minlength=n)
-            self.sum_sq[:, c] += np.bincount(pixel, weights=radiance[:, c] ** 2, minlength=n)
-        self.count += np.bincount(pixel if counted is None else pixel[counted], minlength=n)
+            self.sum[lo:hi, c] += np.bincount(local, weights=radiance[:, c], minlength=hi - lo)
+            self.sum_sq[lo:hi, c] += np.bincount(local, weights=radiance[:, c] ** 2,
+                                                 minlength=hi - lo)
+        self.count[lo:hi] += np.bincount(local if counted is None else local[counted],
+                                         minlength=hi - lo)
 
     def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths,
                   counted: np.ndarray | None = None) -> None:

@@ -1,4 +1,5 @@
-"""OpenEXR (float) and PNG (tone-mapped sRGB) output, written atomically; EXR input."""
+"""Image output chosen by extension (OpenEXR float with layers, PFM, Radiance HDR, tone-mapped
+sRGB PNG), written atomically with the umask's mode; EXR/PFM/NPY input."""
 
 from __future__ import annotations
 
@@ -11,6 +12,15 @@ import numpy as np
 import OpenEXR
 
 from vastray.scene.errors import InputError
+from vastray.scene.filemode import publish_mode
+
+#: Output formats by extension: what ``write_image`` writes for ``-o``.
+IMAGE_FORMATS = {
+    ".exr": "OpenEXR, float32 RGB plus depth.Z and normal.X/Y/Z layers",
+    ".pfm": "Portable Float Map, float32 RGB",
+    ".hdr": "Radiance RGBE",
+    ".png": "8-bit sRGB, clamped (see --exposure)",
+}
 
 
 @contextmanager
@@ -22,6 +32,7 @@ def atomic_path(path: str | os.PathLike):
     os.close(fd)
     try:
         yield tmp
+        publish_mode(tmp)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
@@ -47,6 +58,79 @@ def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,
         f.write(tmp)
 
 
+def write_pfm(path, rgb: np.ndarray) -> None:
+    """Write (H, W, 3) radiance as a little-endian Portable Float Map (rows bottom to top)."""
+    rgb = np.ascontiguousarray(np.asarray(rgb, dtype="<f4")[::-1])
+    height, width = rgb.shape[:2]
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(f"PF\n{width} {height}\n-1.0\n".encode("ascii"))
+        fh.write(rgb.tobytes())
+
+
+def write_hdr(path, rgb: np.ndarray) -> None:
+    """Write (H, W, 3) radiance as an uncompressed Radiance RGBE (.hdr) file."""
+    rgb = np.nan_to_num(np.maximum(np.asarray(rgb, np.float64), 0.0), posinf=0.0)
+    height, width = rgb.shape[:2]
+    peak = rgb.max(axis=2)
+    mantissa, exponent = np.frexp(peak)
+    scale = np.where(peak > 1e-32, mantissa * 256.0 / np.where(peak > 0, peak, 1.0), 0.0)
+    rgbe = np.zeros((height, width, 4), np.uint8)
+    rgbe[..., :3] = np.minimum(rgb * scale[..., None], 255).astype(np.uint8)
+    rgbe[..., 3] = np.where(peak > 1e-32, exponent + 128, 0).astype(np.uint8)
+    header = f"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {height} +X {width}\n"
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(rgbe.tobytes())
+
+
+def check_image_path(path, option: str = "-o") -> Path:
+    """Refuse, before any work, an output whose extension names no format or that is a folder.
+
+    Raises
+    ------
+    InputError
+        Naming the path and what to do instead.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(path, f"{option} is a folder; give a file name such as "
+                               f"{path / 'render.exr'}")
+    if path.suffix.lower() not in IMAGE_FORMATS:
+        raise InputError(path, f"{option}: unknown image format {path.suffix or '(none)'!r}; "
+                               f"use one of {', '.join(IMAGE_FORMATS)}")
+    return path
+
+
+def write_image(path, rgb: np.ndarray, depth: np.ndarray | None = None,
+                normal: np.ndarray | None = None, exposure: float = 1.0) -> None:
+    """Write ``rgb`` (H, W, 3) in the format the extension names (see ``IMAGE_FORMATS``);
+    only OpenEXR keeps the ``depth`` (H, W) and ``normal`` (H, W, 3) layers."""
+    suffix = check_image_path(path).suffix.lower()
+    if suffix == ".exr":
+        write_exr(path, rgb, depth, normal)
+    elif suffix == ".pfm":
+        write_pfm(path, rgb)
+    elif suffix == ".hdr":
+        write_hdr(path, rgb)
+    else:
+        write_png(path, rgb, exposure)
+
+
+def read_pfm(path) -> np.ndarray:
+    """(H, W, 3) float32 from a colour Portable Float Map."""
+    data = Path(path).read_bytes()
+    try:
+        magic, size, scale, body = data.split(b"\n", 3)
+        width, height = (int(v) for v in size.split())
+        order = "<" if float(scale) < 0 else ">"
+        if magic != b"PF":
+            raise ValueError("not a colour PFM")
+        rgb = np.frombuffer(body, dtype=f"{order}f4", count=width * height * 3)
+    except ValueError as exc:
+        raise InputError(path, f"not a readable PFM image ({exc})") from None
+    return rgb.reshape(height, width, 3)[::-1].astype(np.float32)
+
+
 def read_exr(path) -> np.ndarray:
     """Read the RGB layer of an EXR file as (H, W, 3) float32."""
     path = Path(path)
@@ -65,8 +149,12 @@ def read_exr(path) -> np.ndarray:
 
 
 def read_image(path) -> np.ndarray:
-    """(H, W, 3) float32 from ``.exr`` or ``.npy``."""
+    """(H, W, 3) float32 from ``.exr``, ``.pfm`` or ``.npy``."""
     path = Path(path)
+    if path.suffix.lower() == ".pfm":
+        if not path.is_file():
+            raise InputError(path, "image not found")
+        return read_pfm(path)
     if path.suffix.lower() == ".npy":
         if not path.is_file():
             raise InputError(path, "image not found")
@@ -93,11 +181,13 @@ def write_png(path, rgb: np.ndarray, exposure: float = 1.0) -> None:
 
 
 def image_error(image: np.ndarray, reference: np.ndarray) -> dict:
-    """MSE, PSNR (peak = reference maximum, at least 1) and max abs difference."""
+    """MSE, PSNR (peak = reference maximum, at least 1) and max abs difference.
+
+    ``psnr_db`` is ``None`` for identical images (infinite PSNR has no JSON spelling)."""
     if image.shape != reference.shape:
         raise ValueError(f"image shapes differ: {image.shape} vs {reference.shape}")
     diff = image.astype(np.float64) - reference.astype(np.float64)
     mse = float(np.mean(diff ** 2))
     peak = max(float(np.max(reference)), 1.0)
-    psnr = float("inf") if mse == 0 else 10.0 * np.log10(peak ** 2 / mse)
+    psnr = None if mse == 0 else float(10.0 * np.log10(peak ** 2 / mse))
     return {"mse": mse, "psnr_db": psnr, "max_abs_diff": float(np.max(np.abs(diff)))}

@@ -61,16 +61,47 @@ class SceneConfig:
     default_material: Material = field(default_factory=Material.default)
     named_materials: dict[str, Material] = field(default_factory=dict)
     object_materials: dict[str, Material] = field(default_factory=dict)
+    source: str | None = None  # the SCENE.toml this came from, named in errors
+    text: str | None = None  # its TOML text (what a coordinator sends its nodes)
 
     def resolve_camera(self, lo: np.ndarray, hi: np.ndarray, width: int, height: int) -> Camera:
-        """The configured camera, with defaults that frame the box ``[lo, hi]``."""
+        """The configured camera, with defaults that frame the box ``[lo, hi]``.
+
+        Raises
+        ------
+        InputError
+            When the camera sits on its target or looks along its up vector.
+        """
         base = Camera.framing(lo, hi, width, height, fov=float(self.camera.get("fov", 35.0)))
-        return Camera(
+        camera = Camera(
             position=np.asarray(self.camera.get("position", base.position), np.float64),
             look_at=np.asarray(self.camera.get("look_at", base.look_at), np.float64),
             up=np.asarray(self.camera.get("up", base.up), np.float64),
             fov=base.fov, width=width, height=height,
         )
+        where = self.source or "camera"
+        if np.array_equal(camera.position, camera.look_at):
+            raise InputError(where, f"[camera] position {camera.position.tolist()} equals "
+                                    "look_at: the camera has no view direction")
+        forward = camera.look_at - camera.position
+        if np.linalg.norm(np.cross(forward / np.linalg.norm(forward), camera.up)) < 1e-9:
+            raise InputError(where, f"[camera] up {camera.up.tolist()} is parallel to the view "
+                                    "direction; pick an up vector across it")
+        return camera
+
+    def check_objects(self, objects: list[dict]) -> None:
+        """Refuse ``[[object]]`` entries that name no object of the store.
+
+        Raises
+        ------
+        InputError
+            Naming the unmatched file names and the store's objects.
+        """
+        names = {o.get("name", "") for o in objects}
+        unmatched = sorted(set(self.object_materials) - names)
+        if unmatched:
+            raise InputError(self.source, f"[[object]] file(s) {unmatched} match no object "
+                                          f"of the store; its objects are {sorted(names)}")
 
     def resolve_lights(self) -> list[Light]:
         """Configured lights, or the default key light plus ambient."""
@@ -102,17 +133,29 @@ def load_scene_config(path: str | os.PathLike | None) -> SceneConfig:
     if not path.is_file():
         raise InputError(path, "scene file not found")
     try:
-        doc = tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        text = path.read_text()
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not valid TOML ({exc})") from None
+    return parse_scene_config(text, path)
+
+
+def parse_scene_config(text: str, path: str | os.PathLike) -> SceneConfig:
+    """Parse SCENE.toml text; ``path`` names it in errors."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
         raise InputError(path, f"not valid TOML ({exc})") from None
     unknown = set(doc) - {"camera", "light", "material", "materials", "object"}
     if unknown:
         raise InputError(path, f"unknown section(s) {sorted(unknown)}")
-    cfg = SceneConfig()
+    cfg = SceneConfig(source=str(path), text=text)
     cam = doc.get("camera", {})
     _check_keys(path, "[camera]", cam, _CAMERA_KEYS)
     cfg.camera = {k: (_vec(path, f"camera.{k}", v) if k != "fov" else _number(path, "camera.fov", v))
                   for k, v in cam.items()}
+    if not 0 < cfg.camera.get("fov", 35.0) < 180:
+        raise InputError(path, f"camera.fov must lie between 0 and 180 degrees, got "
+                               f"{cfg.camera['fov']}")
     if "light" in doc:
         cfg.lights = [_light(path, i, spec) for i, spec in enumerate(doc["light"])]
     if "material" in doc:

@@ -91,6 +91,16 @@ class RichtmyerMeshkov:
         half = float(np.sum(self.wave_amp)) + self.clip + 2 * self.width
         self.layer = (self.z0 - half, self.z0 + half)
 
+    #: name of the per-vertex scalar ``vertex_scalars`` gives (recorded in the store)
+    scalar_name = "tanh(height above the unperturbed interface / 2 noise sigma)"
+
+    def vertex_scalars(self, vertices: np.ndarray) -> np.ndarray:
+        """(n,) float32 height of each vertex above the unperturbed interface plane, in units
+        of twice the mixing noise's sigma and squashed into (-1, 1) by tanh: how far the
+        mixing has carried the fluid, with spikes and bubbles at the ends of the colour map."""
+        height = (vertices[:, 2] - self.z0) / (2.0 * self.noise.sigma)
+        return np.tanh(height).astype(np.float32)
+
     def __call__(self, xr: range, yr: range, zr: range) -> np.ndarray | None:
         x, y, z = _coords(xr, self.n), _coords(yr, self.n), _coords(zr, self.n)
         if z[-1] < self.layer[0] or z[0] > self.layer[1]:

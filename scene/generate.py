@@ -99,12 +99,14 @@ def generate(scene: str, store: str | os.PathLike, resolution: int,
                 total += _flush(writer, pending, grid, cuts, spacing, cells)
                 slab = ix
             cid = (ix * grid[1] + int(cell_of[1][j])) * grid[2] + int(cell_of[2][k])
-            pending[cid].append(DomainArrays(verts, faces))
+            scalars = field.vertex_scalars(verts) if hasattr(field, "vertex_scalars") else None
+            pending[cid].append(DomainArrays(verts, faces, scalars=scalars))
         total += _flush(writer, pending, grid, cuts, spacing, cells)
         writer.extra = {
             "partition": {"method": "grid", "grid": list(grid), "cells": cells},
             "generator": {"scene": scene, "resolution": n, "seed": int(seed),
-                          "level": float(field.level), "brick": int(brick)},
+                          "level": float(field.level), "brick": int(brick),
+                          "scalars": getattr(field, "scalar_name", None)},
         }
     log.info("generated %s at %d^3: %d triangles in %d domains", scene, n, total, len(cells))
     return total

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from vastray.scene.errors import InputError
+from vastray.scene.filemode import publish_mode
 
 FORMAT = "vastray-store"
 VERSION = 1
@@ -250,10 +251,10 @@ class StoreWriter:
         self.extra: dict = {}
 
     def __enter__(self) -> StoreWriter:
-        if self.path.exists() and not self.overwrite:
-            raise InputError(self.path, "already exists (pass --force to replace it)")
+        check_replaceable(self.path, self.overwrite)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        publish_mode(self._tmp, directory=True)
         return self
 
     def add_domain(self, dom: DomainArrays, bounds: np.ndarray | None = None) -> int:
@@ -321,6 +322,48 @@ class StoreWriter:
             **self.extra,
         }
         (self._tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
-        if self.path.exists():
-            shutil.rmtree(self.path)
+        try:
+            check_replaceable(self.path, self.overwrite)  # it may have appeared meanwhile
+        except InputError:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
+        old = None
+        if self.path.exists():  # move the old store aside first: never a moment without one
+            old = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.old.", dir=self.path.parent))
+            os.replace(self.path, old / "store")
         os.replace(self._tmp, self.path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def is_store(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a folder holding a vastray store manifest."""
+    manifest = Path(path) / MANIFEST
+    try:
+        return json.loads(manifest.read_text()).get("format") == FORMAT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def check_replaceable(path: str | os.PathLike, force: bool) -> None:
+    """Refuse to write a store at ``path`` unless nothing is there, or ``force`` is given and
+    what is there is a vastray store (or an empty folder): ``--force`` never deletes a user's
+    other files.
+
+    Raises
+    ------
+    InputError
+        Naming the path and why it is kept.
+    """
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        return
+    if path.is_symlink() or not path.is_dir():
+        raise InputError(path, "exists and is not a folder; give another STORE path "
+                               "(--force replaces only vastray stores)")
+    if is_store(path) or not any(path.iterdir()):
+        if not force:
+            raise InputError(path, "already exists (pass --force to replace it)")
+        return
+    raise InputError(path, "exists and is not a vastray store (no manifest.json of one); "
+                           "refusing to replace it, even with --force")

@@ -5,14 +5,17 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+import os
 import sys
+from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
 
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.local import render_out_of_core
+from vastray.preflight import check_memory, check_output_paths, estimate_memory
 from vastray.render.driver import render
-from vastray.render.imageio import image_error, read_image, write_exr, write_png
+from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
 from vastray.report import build_report, write_report
@@ -24,16 +27,25 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SAMPLES_IN_FLIGHT = 262144
 
+#: Defaults for a user's store, and for the built-in scene (a first picture in a few seconds:
+#: larger, smoother, one bounce and two shadow rays toward the sky).
+STORE_DEFAULTS = {"width": 320, "height": 240, "spp": 4, "bounces": 3, "shadow_samples": 16}
+BUILTIN_DEFAULTS = {"width": 640, "height": 480, "spp": 8, "bounces": 1, "shadow_samples": 2}
+
 RENDER_EPILOG = """\
 examples:
   vastray render -o default.exr --png default.png
-      the built-in scene (a generated Richtmyer-Meshkov mixing layer, made on first use)
+      the built-in scene (a generated Richtmyer-Meshkov mixing layer, made on first use,
+      coloured by how far the mixing carried the interface)
   vastray render bunny.store -o bunny.exr --integrator ao --spp 8 --ao-distance 0.02
   vastray render rm.store -o rm.exr --scene scene.toml --cache 4 --report rm.json
   vastray render rm.store -o rm.exr --cache 25% --scheduler spec-ooc --history-depth 2
 
-The EXR holds RGB radiance plus depth.Z and normal.X/Y/Z layers; --png is a clamped sRGB
-preview. Path tracing (pt) takes --bounces diffuse bounces after the first hit and does
+The output format follows -o's extension: .exr holds RGB radiance plus depth.Z and
+normal.X/Y/Z layers; .pfm and .hdr hold float RGB; .png is a clamped sRGB preview, as is --png.
+Every output is checked before rendering and written only when the render succeeds.
+
+Path tracing (pt) takes --bounces diffuse bounces after the first hit and does
 next-event estimation to every light at each hit (so --bounces 0 is direct lighting only,
 Mitsuba's max_depth = bounces + 2). Images are identical whatever --cache and --batch-size.
 """
@@ -69,21 +81,31 @@ def register(sub: argparse._SubParsersAction) -> None:
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
     """The options shared by ``render`` and ``launch``."""
     p.add_argument("store", nargs="?", help="STORE folder (default: the built-in scene)")
-    p.add_argument("-o", "--output", required=True, help="output OpenEXR file")
+    p.add_argument("-o", "--output", required=True,
+                   help="output image; the extension picks the format: .exr (float RGB plus "
+                        "depth and normal layers), .pfm, .hdr or .png")
     p.add_argument("--png", help="also write a tone-mapped PNG preview")
     p.add_argument("--scene", help="SCENE.toml with camera, lights and materials")
     p.add_argument("--integrator", choices=["ao", "pt"], default="pt",
                    help="ambient occlusion or path tracing (default: pt)")
-    p.add_argument("--spp", type=_positive, default=4, help="samples per pixel (default: 4)")
-    p.add_argument("--bounces", type=_non_negative, default=3,
-                   help="diffuse bounces for pt (default: 3, as in the SpRay paper)")
-    p.add_argument("--shadow-samples", type=_non_negative, default=16,
+    p.add_argument("--spp", type=_positive,
+                   help=f"samples per pixel (default: {STORE_DEFAULTS['spp']}; "
+                        f"{BUILTIN_DEFAULTS['spp']} for the built-in scene)")
+    p.add_argument("--bounces", type=_non_negative,
+                   help=f"diffuse bounces for pt (default: {STORE_DEFAULTS['bounces']}, as in "
+                        f"the SpRay paper; {BUILTIN_DEFAULTS['bounces']} for the built-in scene)")
+    p.add_argument("--shadow-samples", type=_non_negative,
                    help="shadow rays per hit toward each area/ambient light, and AO rays per "
-                        "hit (default: 16)")
+                        f"hit (default: {STORE_DEFAULTS['shadow_samples']}; "
+                        f"{BUILTIN_DEFAULTS['shadow_samples']} for the built-in scene)")
     p.add_argument("--ao-distance", type=_positive_float,
                    help="AO ray length (default: a tenth of the scene diagonal)")
-    p.add_argument("--width", type=_positive, default=320, help="image width (default: 320)")
-    p.add_argument("--height", type=_positive, default=240, help="image height (default: 240)")
+    p.add_argument("--width", type=_positive,
+                   help=f"image width (default: {STORE_DEFAULTS['width']}; "
+                        f"{BUILTIN_DEFAULTS['width']} for the built-in scene)")
+    p.add_argument("--height", type=_positive,
+                   help=f"image height (default: {STORE_DEFAULTS['height']}; "
+                        f"{BUILTIN_DEFAULTS['height']} for the built-in scene)")
     p.add_argument("--seed", type=_non_negative, default=0, help="random seed (default: 0)")
     p.add_argument("--cache", type=_cache_size, metavar="N|P%",
                    help="most domains in memory at once, as a count or a percentage of the "
@@ -233,15 +255,28 @@ def _free_port() -> int:
         return probe.getsockname()[1]
 
 
+def resolve_defaults(args: argparse.Namespace) -> None:
+    """Fill the options left unset with the defaults of the built-in scene or of a store."""
+    defaults = BUILTIN_DEFAULTS if args.store is None else STORE_DEFAULTS
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
+    resolve_defaults(args)
+    outputs = check_output_paths(args.output, args.png, args.report)
     if args.store is None:
-        from vastray.default_scene import default_store
+        from vastray.default_scene import default_scene_config, default_store
 
         store_path = default_store(quiet=args.quiet)
+        config = load_scene_config(args.scene) if args.scene else default_scene_config()
     else:
         store_path = Path(args.store)
+        config = load_scene_config(args.scene)
     store = Store(store_path)
-    config = load_scene_config(args.scene)
+    config.check_objects(store.objects)
+    config.resolve_camera(store.bounds[0], store.bounds[1], args.width, args.height)
     reference = read_image(args.reference) if args.reference else None
     settings = RenderSettings(
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
@@ -258,6 +293,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     if scheduler in ("domain", "async", "dynamic", "spec-insitu") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
+    _check_render_memory(args, config, scheduler)
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
         result = render_distributed(
@@ -265,7 +301,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             cache_capacity=cache,
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
-            keys=load_keys(args.keys) if args.keys else None, launched=launched)
+            keys=load_keys(args.keys) if args.keys else None, launched=launched,
+            progress=not args.quiet, config=config)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
@@ -276,26 +313,68 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             history_depth=args.history_depth, preload=not args.no_preload,
             progress=not args.quiet)
     image = result.film.image()
-    write_exr(args.output, image, result.film.depth_image(), result.film.normal_image())
-    if args.png:
-        write_png(args.png, image, args.exposure)
     error = image_error(image, reference) if reference is not None else None
-    if args.report:
-        write_report(args.report, build_report(
-            store=str(store_path), settings=asdict(settings), seconds=result.seconds,
-            counters=result.counters, error=error, reference=args.reference,
-            scheduler=scheduler,
-        ))
+    summary = summary_line(args, result, error, outputs)
+    with ExitStack() as written:  # every output, or none: renamed into place together
+        write_image(written.enter_context(atomic_path(outputs[0])), image,
+                    result.film.depth_image(), result.film.normal_image(), args.exposure)
+        if args.png:
+            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure)
+        if args.report:
+            write_report(written.enter_context(atomic_path(args.report)), build_report(
+                store=str(store_path), settings=asdict(settings), seconds=result.seconds,
+                counters=result.counters, error=error, reference=args.reference,
+                scheduler=scheduler,
+            ))
     if not args.quiet:
-        rays = result.counters["rays"]["total"]
-        line = (f"wrote {args.output} ({args.width}x{args.height}, {args.spp} spp, "
-                f"{args.integrator}) in {result.seconds['total']:.2f} s, "
-                f"{rays / max(result.seconds['total'], 1e-9) / 1e6:.2f} M rays/s, "
-                f"{result.counters['loads']} domain loads")
-        if error is not None:
-            line += f", MSE {error['mse']:.4g}, PSNR {error['psnr_db']:.2f} dB"
-        print(line, file=sys.stderr)
+        print(summary, file=sys.stderr)
     return 0
+
+
+def _check_render_memory(args: argparse.Namespace, config, scheduler: str) -> None:
+    """Refuse up front a render whose film and paths in flight cannot fit in memory."""
+    lights = 0 if args.integrator == "ao" else len(config.resolve_lights())
+    shadow_rays = args.shadow_samples * max(lights, 1)
+    threads = args.threads or os.cpu_count() or 1
+    if args.nodes:
+        tile = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4
+        in_flight, films = tile * args.nodes, args.nodes + 1
+    elif scheduler == "reference":
+        in_flight, films = args.batch_size * 2 * (threads + 1), 1
+    else:
+        in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
+    total = args.width * args.height * args.spp
+    estimate = estimate_memory(args.width, args.height, min(in_flight, total), shadow_rays,
+                               processes=films)
+    check_memory(estimate, args.width, args.height)
+
+
+def summary_line(args: argparse.Namespace, result, error: dict | None,
+                 outputs: list[Path]) -> str:
+    """The last line of a render: every file written, the work, the time and the error."""
+    seconds = max(result.seconds["total"], 1e-9)
+    queries = ray_queries(result.counters)
+    line = (f"wrote {', '.join(map(str, outputs))} ({args.width}x{args.height}, {args.spp} spp, "
+            f"{args.integrator}) in {seconds:.2f} s")
+    if queries:
+        line += f", {queries[1] / seconds / 1e6:.2f} M {queries[0]}/s"
+    line += f", {result.counters.get('loads', 0)} domain loads"
+    if error is not None:
+        psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
+        line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"
+    return line
+
+
+def ray_queries(counters: dict) -> tuple[str, int] | None:
+    """What the run counted of its Embree work: ("rays", n) for the reference renderer, which
+    traces each ray once through all its domains, ("ray-domain queries", n) for schedules
+    that query domain by domain (summed over nodes); None when nothing was counted."""
+    if "rays" in counters:
+        return "rays", int(counters["rays"]["total"])
+    parts = [counters] + [node.get("counters", {}) for node in counters.get("per_node", [])]
+    total = sum(int(part.get("radiance_tests", 0)) + int(part.get("shadow_tests", 0))
+                for part in parts)
+    return ("ray-domain queries", total) if total else None
 
 
 def run_compare(args: argparse.Namespace) -> int:
@@ -304,5 +383,6 @@ def run_compare(args: argparse.Namespace) -> int:
         raise InputError(args.image, f"size {image.shape} differs from the reference's "
                                      f"{reference.shape}")
     err = image_error(image, reference)
-    print(f"mse={err['mse']:.6g} psnr_db={err['psnr_db']:.3f} max_abs_diff={err['max_abs_diff']:.6g}")
+    psnr = "inf" if err["psnr_db"] is None else f"{err['psnr_db']:.3f}"
+    print(f"mse={err['mse']:.6g} psnr_db={psnr} max_abs_diff={err['max_abs_diff']:.6g}")
     return 0

@@ -17,7 +17,7 @@ from vastray.scene.generate import generate
 from vastray.scene.isosurface import DEFAULT_BRICK
 from vastray.scene.partition import partition_grid, partition_kd
 from vastray.scene.readers import SUPPORTED, read_mesh
-from vastray.scene.store import ATTRIBUTES, Store, StoreWriter
+from vastray.scene.store import ATTRIBUTES, Store, StoreWriter, check_replaceable
 
 log = logging.getLogger(__name__)
 
@@ -25,11 +25,11 @@ DEFAULT_GRID = (2, 2, 2)
 
 PARTITION_EPILOG = """\
 examples:
-  vastray partition ../shared/data/meshes/stanford_bunny.ply -o bunny.store   # 2x2x2 grid
-  vastray partition bunny.ply -o bunny.store                      # 2x2x2 grid (default)
-  vastray partition bunny.ply spot.obj -o two.store --grid 4x2x2  # two objects, one scene
-  vastray partition lucy.ply -o lucy.store --domains 12 --split kd
-  vastray partition ironProt.vtk -o iron.store --iso 64            # volume -> isosurface
+  vastray data fetch -o samples                                     # the sample meshes
+  vastray partition samples/stanford_bunny.ply -o bunny.store       # 2x2x2 grid (default)
+  vastray partition samples/stanford_bunny.ply samples/spot.obj -o two.store --grid 4x2x2
+  vastray partition samples/lucy_100k.ply -o lucy.store --domains 12 --split kd
+  vastray partition ironProt.vtk -o iron.store --iso 64             # volume -> isosurface
 
 supported inputs: {supported}
 volumes (.npy .raw/.json .nii .nii.gz .vtk) need --iso; a .raw file needs a JSON header
@@ -95,7 +95,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iso", type=float, metavar="VALUE", help="iso value for volume inputs")
     p.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"marching-cubes brick edge in cells (default {DEFAULT_BRICK})")
-    p.add_argument("--force", action="store_true", help="replace STORE if it exists")
+    p.add_argument("--force", action="store_true",
+                   help="replace STORE if it is a vastray store (never another folder)")
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary")
     p.set_defaults(func=cmd_partition)
 
@@ -114,7 +115,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     g.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"brick edge in cells (default {DEFAULT_BRICK})")
-    g.add_argument("--force", action="store_true", help="replace STORE if it exists")
+    g.add_argument("--force", action="store_true",
+                   help="replace STORE if it is a vastray store (never another folder)")
     g.add_argument("--quiet", action="store_true", help="no progress bars or summary")
     g.set_defaults(func=cmd_generate)
 
@@ -125,14 +127,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.set_defaults(func=cmd_info)
 
 
-def _refuse_existing(path: Path, force: bool) -> None:
-    if path.exists() and not force:
-        raise InputError(path, "already exists (pass --force to replace it)")
-
-
 def cmd_partition(args) -> int:
     out = Path(args.output)
-    _refuse_existing(out, args.force)
+    check_replaceable(out, args.force)
     split = args.split or ("kd" if args.domains else "grid")
     if split == "kd" and not args.domains:
         raise InputError(None, "--split kd needs --domains N")
@@ -168,7 +165,7 @@ def cmd_partition(args) -> int:
 
 def cmd_generate(args) -> int:
     out = Path(args.output)
-    _refuse_existing(out, args.force)
+    check_replaceable(out, args.force)
     total = generate(args.scene, out, args.resolution, args.grid, seed=args.seed,
                      brick=args.brick, overwrite=args.force, progress=_show_progress(args))
     if not args.quiet:

@@ -12,7 +12,8 @@ import numpy as np
 from vastray.render.imageio import atomic_path
 
 
-def _version() -> str:
+def package_version() -> str:
+    """The installed vastray's version."""
     try:
         return metadata.version("vastray")
     except metadata.PackageNotFoundError:
@@ -28,7 +29,7 @@ def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
     reader sees what accuracy the time bought.
     """
     report = {
-        "vastray": _version(),
+        "vastray": package_version(),
         "python": sys.version.split()[0],
         "machine": platform.machine(),
         "command": " ".join(sys.argv),
@@ -44,8 +45,21 @@ def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
     return report
 
 
+def strict_json(value):
+    """``value`` with every non-finite float replaced by None: reports are strict JSON (RFC
+    8259 has no NaN or Infinity), so any parser reads them. Where this happens is
+    documented: ``psnr_db`` is null for identical images."""
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
+        return None
+    return value
+
+
 def write_report(path, report: dict) -> None:
-    """Write the report as indented JSON, atomically."""
+    """Write the report as indented, strict JSON (no NaN/Infinity), atomically."""
     def default(obj):
         if isinstance(obj, (np.integer,)):
             return int(obj)
@@ -56,5 +70,5 @@ def write_report(path, report: dict) -> None:
         raise TypeError(f"not JSON serialisable: {type(obj)}")
 
     with atomic_path(path) as tmp, open(tmp, "w") as fh:
-        json.dump(report, fh, indent=1, default=default)
+        json.dump(strict_json(report), fh, indent=1, default=default, allow_nan=False)
         fh.write("\n")
