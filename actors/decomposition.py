@@ -84,6 +84,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
                 await node.dynamic(policy, cache, index)
             else:
                 await node.asynchronous(policy, cache, index)
+            if policy.outbox:  # rays never sent: their paths would silently lose light
+                raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
             stats["shade_s"] += policy.counters["shade_s"]
             if on_tile is not None:
@@ -126,7 +128,15 @@ class _Node:
             pass
 
     async def drain(self, policy, cache) -> None:
-        """Trace every local domain until no local ray waits; send what it produced."""
+        """Send the outbox, then trace every local domain until no local ray waits, sending
+        what each produced.
+
+        The outbox is sent first because rays reach it outside a trace too: ``policy.start``
+        puts the tile's camera rays bound for other nodes' domains there. A node whose share
+        of a tile enters no domain of its own traces nothing, and unless it shipped them here
+        those rays would never leave: no batch counted, the tile would end without them.
+        """
+        await self.ship(policy)
         while (domain := policy.next_domain()) is not None:
             start = time.perf_counter()
             bvh = await asyncio.to_thread(cache.get, domain)
@@ -238,8 +248,8 @@ class _Node:
         while True:
             while not inbox.empty():
                 self.accept(policy, inbox.get_nowait())
-            if policy.next_domain() is not None:
-                await self.drain(policy, cache)
+            await self.drain(policy, cache)  # idle only with no local ray and nothing to send
+            if not inbox.empty():
                 continue
             await self._status(tile, probe=None)
             start = time.perf_counter()
