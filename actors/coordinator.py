@@ -77,6 +77,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         raise ValueError("--nodes must be at least 1")
     store = Store(store_path)
     config = config if config is not None else load_scene_config(scene_path)
+    if config.text is None:
+        raise ValueError("render_distributed needs a SceneConfig read from TOML: its text is "
+                         "what the nodes receive")
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
     job = {

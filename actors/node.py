@@ -217,7 +217,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         management.endpoints = job["endpoints"]
         settings = RenderSettings(**job["settings"])
         store = Store(job["store"])
-        config = (SceneConfig() if job.get("scene_toml") is None
+        config = (SceneConfig() if not job.get("scene_toml")
                   else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
         loop = asyncio.get_running_loop()
         done = {"paths": 0}

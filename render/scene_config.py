@@ -128,7 +128,7 @@ def load_scene_config(path: str | os.PathLike | None) -> SceneConfig:
         Naming the file and the offending key.
     """
     if path is None:
-        return SceneConfig()
+        return SceneConfig(text="")
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "scene file not found")

@@ -1,0 +1,268 @@
+"""The product as a user runs it: the installed CLI in a subprocess, from a folder that is not the
+repository, without ``--quiet``: outputs, formats, reports, file modes, refusals before work,
+and clean-up on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vastray.preflight import MemoryEstimate, check_memory, estimate_memory
+from vastray.render.imageio import read_exr, read_image, write_exr
+from vastray.scene.errors import InputError
+from vastray.scene.store import is_store
+
+from scenes import bumpy_scene, write_store
+
+SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2"]
+
+
+def vastray(*args, cwd: Path, umask: int | None = None, timeout: float = 120):
+    """Run the installed CLI as a user would: ``python -m vastray.cli`` in ``cwd``."""
+    def set_umask():
+        os.umask(umask)
+
+    return subprocess.run([sys.executable, "-m", "vastray.cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=None if umask is None else set_umask)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return write_store(tmp_path_factory.mktemp("flows") / "s.store", bumpy_scene(), grid=(2, 2, 1))
+
+
+@pytest.mark.parametrize("how", [[], ["--cache", "25%", "--scheduler", "spec-ooc"],
+                                 ["--scheduler", "image", "--cache", "1"],
+                                 ["--nodes", "2", "--scheduler", "async"],
+                                 ["--nodes", "2", "--scheduler", "spec-insitu"]])
+def test_every_render_exits_zero_without_quiet_and_names_its_files(store, tmp_path, how):
+    ref = tmp_path / "ref.exr"
+    assert vastray("render", store.path, "-o", ref, *SMALL, "--quiet", cwd=tmp_path).returncode == 0
+    out = vastray("render", store.path, "-o", "a.exr", "--png", "a.png", "--report", "a.json",
+                  "--reference", ref, *SMALL, *how, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("wrote a.exr, a.png, a.json (32x24"), last
+    assert "MSE 0, PSNR inf dB" in last
+    report = json.loads((tmp_path / "a.json").read_text(), parse_constant=_reject)
+    assert report["error"]["psnr_db"] is None and report["error"]["mse"] == 0
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), read_exr(ref))
+
+
+def _reject(name):
+    raise AssertionError(f"report holds {name}: not strict JSON")
+
+
+def test_output_format_follows_the_extension(store, tmp_path):
+    for name in ("i.exr", "i.png", "i.pfm", "i.hdr"):
+        out = vastray("render", store.path, "-o", name, *SMALL, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+    exr = read_exr(tmp_path / "i.exr")
+    assert (tmp_path / "i.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    np.testing.assert_array_equal(read_image(tmp_path / "i.pfm"), exr)
+    assert (tmp_path / "i.hdr").read_bytes().startswith(b"#?RADIANCE\n")
+
+
+@pytest.mark.parametrize("case", ["unknown_extension", "folder", "png_option", "same_file",
+                                  "huge", "camera_on_target", "unmatched_object"])
+def test_refused_before_any_work_with_one_line_and_no_file(store, tmp_path, case):
+    args = ["render", store.path, "-o", "out.exr", *SMALL]
+    if case == "unknown_extension":
+        args[3] = "out.tif"
+    elif case == "folder":
+        (tmp_path / "dir").mkdir()
+        args[3] = "dir"
+    elif case == "png_option":
+        args += ["--png", "preview.jpg"]
+    elif case == "same_file":
+        args += ["--report", "out.exr"]
+    elif case == "huge":
+        args += ["--width", "200000", "--height", "200000"]
+    elif case == "camera_on_target":
+        (tmp_path / "s.toml").write_text("[camera]\nposition = [1, 2, 3]\nlook_at = [1, 2, 3]\n")
+        args += ["--scene", "s.toml"]
+    elif case == "unmatched_object":
+        (tmp_path / "s.toml").write_text('[[object]]\nfile = "wall.obj"\n')
+        args += ["--scene", "s.toml"]
+    start = time.monotonic()
+    out = vastray(*args, cwd=tmp_path)
+    assert time.monotonic() - start < 20  # refused up front, not after the frame
+    assert out.returncode == 2
+    err = out.stderr.strip()
+    assert err.startswith("vastray render: error:") and len(err.splitlines()) == 1, err
+    assert not [p for p in tmp_path.iterdir() if p.is_file() and p.suffix != ".toml"]
+    if case == "huge":
+        assert "200000x200000" in err and "available" in err
+
+
+def test_memory_estimate_refuses_what_does_not_fit():
+    estimate = estimate_memory(20000, 20000, 65536, 16)
+    assert estimate.film == 20000 * 20000 * 72
+    with pytest.raises(InputError, match=r"needs about .* GB .* only 8\.0 GB is available"):
+        check_memory(estimate, 20000, 20000, available=8_000_000_000)
+    check_memory(MemoryEstimate(1000, 1000, 1000), 10, 10, available=10_000)
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_outputs_and_stores_respect_the_umask(tmp_path, umask):
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    assert vastray("partition", mesh, "-o", "m.store", cwd=tmp_path, umask=umask).returncode == 0
+    out = vastray("render", "m.store", "-o", "m.exr", "--png", "m.png", "--report", "m.json",
+                  *SMALL, cwd=tmp_path, umask=umask)
+    assert out.returncode == 0, out.stderr
+    for name in ("m.exr", "m.png", "m.json", "m.store/manifest.json"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
+    assert (tmp_path / "m.store").stat().st_mode & 0o777 == 0o777 & ~umask
+
+
+def test_partition_force_replaces_only_a_store(tmp_path):
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    user = tmp_path / "thesis"
+    user.mkdir()
+    (user / "chapter1.tex").write_text("precious")
+    out = vastray("partition", mesh, "-o", user, "--force", cwd=tmp_path)
+    assert out.returncode == 2 and "not a vastray store" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+    assert (user / "chapter1.tex").read_text() == "precious"
+    plain = tmp_path / "notes.txt"
+    plain.write_text("keep me")
+    out = vastray("partition", mesh, "-o", plain, "--force", cwd=tmp_path)
+    assert out.returncode == 2 and "not a folder" in out.stderr
+    assert "Traceback" not in out.stderr and plain.read_text() == "keep me"
+    assert vastray("partition", mesh, "-o", "m.store", cwd=tmp_path).returncode == 0
+    out = vastray("partition", mesh, "-o", "m.store", cwd=tmp_path)
+    assert out.returncode == 2 and "--force" in out.stderr
+    assert vastray("partition", mesh, "-o", "m.store", "--force", cwd=tmp_path).returncode == 0
+    assert is_store(tmp_path / "m.store")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no leftovers
+
+
+def test_version_and_help_teach(tmp_path):
+    out = vastray("--version", cwd=tmp_path)
+    assert out.returncode == 0 and out.stdout.startswith("vastray ")
+    out = vastray("render", "--help", cwd=tmp_path)
+    assert ".pfm" in out.stdout and "built-in scene" in out.stdout
+    assert "../shared" not in vastray("partition", "--help", cwd=tmp_path).stdout
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text().split()
+        found += [int(c) for c in text]
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state != "Z"
+
+
+def _start_node_render(store, tmp_path) -> tuple[subprocess.Popen, list[int]]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr",
+         "--nodes", "2", "--scheduler", "async", "--width", "400", "--height", "300",
+         "--spp", "64"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    nodes: list[int] = []
+    while len(nodes) < 2 and time.monotonic() < deadline:
+        time.sleep(0.2)
+        nodes = _children(proc.pid)
+    assert len(nodes) == 2, "the coordinator did not start two nodes"
+    time.sleep(2.0)  # let them join and start rendering
+    return proc, nodes
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux /proc")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_stopped_coordinator_leaves_no_node_behind(store, tmp_path, sig):
+    proc, nodes = _start_node_render(store, tmp_path)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=10)
+    deadline = time.monotonic() + 5
+    while any(_alive(n) for n in nodes) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(n) for n in nodes), "a node outlived its coordinator by 5 s"
+    if sig == signal.SIGTERM:
+        assert proc.returncode == 143
+        assert "terminated" in err.decode()
+    assert not (tmp_path / "x.exr").exists()
+
+
+def test_a_remote_node_exits_when_its_coordinator_goes_silent(store, tmp_path):
+    # A node started elsewhere (no parent-death signal) notices the heartbeat stop.
+    port = _free_port()
+    coordinator = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr",
+         "--nodes", "1", "--listen", f"127.0.0.1:{port}", "--width", "400", "--height", "300",
+         "--spp", "64"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    node = subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
+                             f"tcp://127.0.0.1:{port}", "--timeout", "60"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        time.sleep(4.0)
+        assert node.poll() is None, node.stderr.read().decode()
+        coordinator.kill()
+        _, err = coordinator.communicate()
+        _, log = node.communicate(timeout=15)
+        assert "joined" in log.decode() and "lost the coordinator" in log.decode(), log
+        assert "waiting for 1 node(s)" in err.decode() and "node 0 joined" in err.decode(), err
+    finally:
+        for p in (node, coordinator):
+            _reap(p)
+
+
+def test_node_with_other_keys_hears_authentication_failed(store, tmp_path):
+    assert vastray("keys", "-o", "keys", cwd=tmp_path).returncode == 0
+    assert vastray("keys", "-o", "other", cwd=tmp_path).returncode == 0
+    port = _free_port()
+    node = subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
+                             f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys",
+                             str(tmp_path / "other")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--nodes", "1", "--listen",
+                      f"127.0.0.1:{port}", "--keys", "keys", "--node-timeout", "4", cwd=tmp_path)
+        assert out.returncode == 3
+        assert "no node joined within 4 s" in out.stderr, out.stderr
+        _, log = node.communicate(timeout=20)
+        assert node.returncode != 0
+        assert "authentication" in log.decode(), log
+    finally:
+        _reap(node)
+
+
+def _reap(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+    if proc.stderr is not None and not proc.stderr.closed:
+        proc.stderr.close()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_compare_of_identical_images_says_inf(store, tmp_path):
+    write_exr(tmp_path / "ref.exr", np.zeros((24, 32, 3), np.float32))
+    out = vastray("compare", tmp_path / "ref.exr", tmp_path / "ref.exr", cwd=tmp_path)
+    assert out.returncode == 0 and "psnr_db=inf" in out.stdout
