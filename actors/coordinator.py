@@ -93,10 +93,12 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     total = settings.width * settings.height * settings.spp
     with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
               desc=f"render ({scheduler}, {nodes} nodes)", leave=False) as bar:
-        film, reports = asyncio.run(_coordinate(job, nodes, settings, timeout, listen, keys,
-                                                launched or {}, bar, progress))
+        film, reports, barriers = asyncio.run(_coordinate(job, nodes, settings, timeout,
+                                                          listen, keys, launched or {}, bar,
+                                                          progress))
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
+                "global_barriers": barriers,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports)}
     seconds = {"total": round(wall, 4),
                "busy_max": max(r["busy_s"] for r in reports),
@@ -178,7 +180,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         for rank in range(size):
             await router.send_multipart([identities[rank], *encode(protocol.STOP, {})])
         await watch.wait_exit()
-        return film, [reports[r] for r in range(size)]
+        return film, [reports[r] for r in range(size)], control.barriers
     finally:
         if beating is not None:
             beating.cancel()
@@ -208,7 +210,11 @@ class _Termination:
     ``domain``: a round ends when every node has reported; each node is told how many ray
     batches were sent to it; a round in which no batch moved ends the tile.
     ``async``: once every node is idle and batches sent equal batches received, a probe wave
-    asks every node again; if every answer is idle with the same counts, the tile is done.
+    asks every node again; if every answer is idle with the same counts, the frame is done
+    (nodes report only once they have injected all their tiles: one detection per frame).
+
+    ``barriers`` counts the points where every node waits for all the others: each round of
+    ``domain`` and ``dynamic``, and the end of the frame for ``async``.
     """
 
     def __init__(self, size: int, router, identities: dict[int, bytes]):
@@ -219,6 +225,7 @@ class _Termination:
         self.wave = 0
         self.snapshot: dict[int, tuple[int, int]] | None = None
         self.replies: dict[int, tuple[int, int]] = {}
+        self.barriers = 0
 
     async def _send(self, rank: int, kind: str, meta: dict) -> None:
         await self.router.send_multipart([self.identities[rank], *encode(kind, {}, meta)])
@@ -232,6 +239,7 @@ class _Termination:
                   for r in range(self.size)}
         finished = sum(expect.values()) == 0
         del self.rounds[meta["tile"]]
+        self.barriers += 1
         for rank in range(self.size):
             await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
 
@@ -242,6 +250,7 @@ class _Termination:
         if len(reports) < self.size:
             return
         del self.rounds[meta["tile"]]
+        self.barriers += 1
         assign = schedule_next_round({r: m["queues"] for r, m in reports.items()},
                                      {r: m["loaded"] for r, m in reports.items()})
         for rank in range(self.size):
@@ -261,6 +270,7 @@ class _Termination:
             quiet = self.replies == self.snapshot and _balanced(self.replies)
             self.snapshot, self.replies = None, {}
             if quiet:
+                self.barriers += 1
                 self.tile += 1
                 self.latest = {}
                 for r in range(self.size):

@@ -8,10 +8,15 @@ asynchronous baseline of the temporal-coherence paper):
   and tells the coordinator how many batches it sent to whom; the coordinator answers each
   node with how many batches to expect before the next round; a round in which nobody sent
   anything ends the tile.
-- ``async``: no global rounds. Nodes trace and send continuously; when idle they report
-  (batches sent, batches received). The coordinator declares the tile done only when every
-  node is idle, the sums match, and a second probe wave returns the very same counts
-  (Mattern's four-counter termination): nothing can still be in flight.
+- ``async``: no global rounds and no barrier inside a frame (Galaxy). Each node injects the
+  camera rays of its share of the next tile whenever fewer than ``tile`` rays wait in its
+  queues (credit-based flow control), traces the fullest local domain, ships what it
+  produced, and takes whatever arrives, for any tile at once. A tile's path state is made on
+  demand and retired into the film once none of its rays waits here (partial path radiance
+  adds up in the float64 film). Only when a node has injected all its tiles and is idle does
+  it report (batches sent, batches received); the coordinator declares the frame done when
+  every node is idle, the sums match, and a second probe wave returns the very same counts
+  (Mattern's four-counter termination): one termination detection per frame.
 
 - ``dynamic``: Navrátil's ray-weighted rounds (Figs. 5-6). Each round every node reports which
   domains it holds rays for and which domain it has loaded; the coordinator keeps loaded
@@ -68,7 +73,12 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
     node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS))
     try:
-        for index, first in enumerate(range(0, total, tile)):
+        if mode == "async":
+            frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile)
+            await frame.run(cache)
+            stats["shade_s"] += frame.shade_s
+            stats["tiles_made"] = frame.made
+        for index, first in enumerate(range(0, total, tile) if mode != "async" else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
@@ -80,10 +90,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
                 await node.rounds(policy, cache, index)
-            elif mode == "dynamic":
-                await node.dynamic(policy, cache, index)
             else:
-                await node.asynchronous(policy, cache, index)
+                await node.dynamic(policy, cache, index)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
@@ -144,12 +152,14 @@ class _Node:
             self.stats["trace_s"] += time.perf_counter() - start
             await self.ship(policy)
 
-    async def ship(self, policy) -> None:
-        """Send the outbox as ray batches (counted per destination in ``sent_to``).
+    async def ship(self, policy, tile: int | None = None) -> None:
+        """Send the outbox as ray batches (counted per destination in ``sent_to``), labelled
+        with ``tile`` (default: the current tile).
 
         Rays for one destination are coalesced into batches of at most ``max_batch`` rays;
         the outbox is shipped after every domain traced, which bounds a ray's wait too.
         """
+        tile = self.tile if tile is None else tile
         for (queue, node), parts in policy.take_outbox().items():
             all_domains = np.concatenate([d for d, _ in parts])
             all_rays = SoA.concat([r for _, r in parts])
@@ -157,7 +167,7 @@ class _Node:
                 rows = np.arange(first, min(first + self.max_batch, len(all_domains)))
                 domains = all_domains[rows]
                 frames = encode(protocol.RAYS, {"domain": domains, **all_rays.take(rows).fields},
-                                {"queue": queue, "rank": self.rank, "tile": self.tile})
+                                {"queue": queue, "rank": self.rank, "tile": tile})
                 start = time.perf_counter()
                 await self.management.to_peer(self.management.endpoints[node], frames)
                 self.stats["send_s"] += time.perf_counter() - start
@@ -241,39 +251,139 @@ class _Node:
         self.stats["rays_sent"] += len(arrays.get("domain", ()))
         self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
 
-    async def asynchronous(self, policy, cache, tile: int) -> None:
-        """Trace whatever has arrived; report when idle; stop when the coordinator says so."""
-        inbox = self.management.mailbox(protocol.RAYS)
-        control = self.management.mailbox(protocol.PROBE)
-        while True:
-            while not inbox.empty():
-                self.accept(policy, inbox.get_nowait())
-            await self.drain(policy, cache)  # idle only with no local ray and nothing to send
-            if not inbox.empty():
-                continue
-            await self._status(tile, probe=None)
-            start = time.perf_counter()
-            getters = {asyncio.ensure_future(inbox.get()): "rays",
-                       asyncio.ensure_future(control.get()): "control"}
-            done, pending = await asyncio.wait(getters, timeout=self.management.timeout,
-                                               return_when=asyncio.FIRST_COMPLETED)
-            for task in pending:
-                task.cancel()
-            self.stats["wait_s"] += time.perf_counter() - start
-            if not done:
-                raise TimeoutError("no ray batch or control message while idle")
-            # Batches first: one that came with the final probe belongs to a later tile and
-            # must be held back, not dropped.
-            for task in sorted(done, key=lambda t: getters[t] != "rays"):
-                message = task.result()
-                if getters[task] == "rays":
-                    self.accept(policy, message)
-                elif message.meta.get("finished"):
-                    return
-                else:
-                    await self._status(tile, probe=message.meta["probe"])
-
     async def _status(self, tile: int, probe: int | None) -> None:
         await self.management.to_coordinator(encode(protocol.STATUS, {}, {
             "rank": self.rank, "tile": tile, "probe": probe,
             "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
+
+
+class _AsyncFrame:
+    """``async`` on one node: the whole frame without a barrier (see the module docstring).
+
+    Parameters
+    ----------
+    node : the node's sender/receiver and counters.
+    setup, settings : what paths and policies are made from.
+    owner : (D,) owning rank of each domain.
+    tile : paths per tile; also the credit, the most rays waiting here before the next
+        tile's camera rays are injected.
+    film : this node's partial film, fed as tiles retire.
+    on_tile : hears of the paths this node injects.
+    """
+
+    def __init__(self, node: _Node, setup, settings, owner: np.ndarray, rank: int, size: int,
+                 tile: int, film: Film, on_tile=None):
+        self.node, self.setup, self.settings = node, setup, settings
+        self.owner, self.rank, self.size = owner, rank, size
+        self.tile, self.film, self.on_tile = tile, film, on_tile
+        self.n_tiles = -(-setup.total_paths // tile)
+        self.policies: dict[int, ImageSchedule] = {}
+        self.next_tile = 0
+        self.shade_s = 0.0
+        self.made = 0  # policies made (a tile's may be made again when late rays arrive)
+
+    def policy(self, tile: int) -> ImageSchedule:
+        """The tile's policy, made on demand (rays carry their state; the policy only the
+        tile's path keys and the partial radiance gathered here)."""
+        if tile not in self.policies:
+            first = tile * self.tile
+            ctx = path_context(self.setup.shading, self.settings, first,
+                               min(first + self.tile, self.setup.total_paths),
+                               self.setup.ao_distance)
+            self.policies[tile] = ImageSchedule(ctx, self.setup.geometry,
+                                                self.setup.color_source,
+                                                self.setup.scalar_range, owner=self.owner,
+                                                rank=self.rank)
+            self.made += 1
+        return self.policies[tile]
+
+    def waiting(self) -> np.ndarray:
+        """(D,) rays waiting here per domain, over every tile."""
+        total = np.zeros(len(self.owner), np.int64)
+        for policy in self.policies.values():
+            total += policy.radiance.counts() + policy.shadow.counts()
+        return total
+
+    def inject(self) -> None:
+        """Queue the camera rays of this node's share of the next tile."""
+        tile = self.next_tile
+        self.next_tile += 1
+        policy = self.policy(tile)
+        mine = np.nonzero(np.arange(len(policy.ctx.pixel)) % self.size == self.rank)[0]
+        self.film.count_samples(policy.ctx.pixel[mine])
+        policy.start(camera_rays(self.setup.camera, policy.ctx).take(mine))
+        if self.on_tile is not None:
+            self.on_tile(len(mine))
+
+    def accept(self, message) -> None:
+        self.node.deliver(self.policy(int(message.meta["tile"])), message)
+
+    async def step(self, cache) -> bool:
+        """Trace the fullest local domain for every tile that has rays for it, then ship;
+        False when no ray waits here."""
+        waiting = self.waiting()
+        if not waiting.any():
+            return False
+        domain = int(np.argmax(waiting))
+        start = time.perf_counter()
+        bvh = await asyncio.to_thread(cache.get, domain)
+        for policy in [p for p in self.policies.values()
+                       if p.radiance.count(domain) or p.shadow.count(domain)]:
+            await asyncio.to_thread(policy.process, domain, bvh)
+        self.node.stats["trace_s"] += time.perf_counter() - start
+        await self.ship()
+        return True
+
+    async def ship(self) -> None:
+        for tile, policy in list(self.policies.items()):
+            if policy.outbox:
+                await self.node.ship(policy, tile)
+
+    def retire_idle(self) -> None:
+        """Fold every tile with nothing waiting here into the film and drop its state."""
+        for tile in [t for t, p in self.policies.items()
+                     if not p.outbox and not (p.radiance.counts().any()
+                                              or p.shadow.counts().any())]:
+            policy = self.policies.pop(tile)
+            self.film.add_partial(policy.ctx.pixel, policy.ctx.sample, policy.result)
+            self.shade_s += policy.counters["shade_s"]
+
+    async def run(self, cache) -> None:
+        management = self.node.management
+        inbox = management.mailbox(protocol.RAYS)
+        control = management.mailbox(protocol.PROBE)
+        while True:
+            while not inbox.empty():
+                self.accept(inbox.get_nowait())
+            if self.next_tile < self.n_tiles and self.waiting().sum() < self.tile:
+                self.inject()
+                await self.ship()  # camera rays bound for other nodes leave at once
+            if await self.step(cache) or not inbox.empty():
+                continue
+            self.retire_idle()
+            if self.next_tile < self.n_tiles:
+                continue
+            await self.node._status(0, probe=None)
+            start = time.perf_counter()
+            getters = {asyncio.ensure_future(inbox.get()): "rays",
+                       asyncio.ensure_future(control.get()): "control"}
+            done, pending = await asyncio.wait(getters, timeout=management.timeout,
+                                               return_when=asyncio.FIRST_COMPLETED)
+            for task in pending:
+                task.cancel()
+            self.node.stats["wait_s"] += time.perf_counter() - start
+            if not done:
+                raise TimeoutError("no ray batch or control message while idle")
+            finished = False
+            for task in sorted(done, key=lambda t: getters[t] != "rays"):
+                message = task.result()
+                if getters[task] == "rays":
+                    self.accept(message)
+                elif message.meta.get("finished"):
+                    finished = True
+                else:
+                    await self.node._status(0, probe=message.meta["probe"])
+            if finished:
+                if self.policies:
+                    raise RuntimeError("the frame ended with rays still waiting here")
+                return

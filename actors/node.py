@@ -46,7 +46,14 @@ class AuthenticationFailed(RuntimeError):
 
 class ManagementActor:
     """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, DEALERs to
-    peers on demand. Incoming messages go to bounded mailboxes by kind."""
+    peers on demand. Incoming messages go to mailboxes by kind.
+
+    The receive path never waits: a mailbox has no count limit, so a kind whose reader is
+    busy never holds back another kind, and a node sending to a peer is never blocked by a
+    peer that is itself blocked sending (the deadlock of bounded mailboxes). What bounds the
+    memory is the protocol: ray batches in flight are bounded by the paths each node injects
+    (``tile``), control messages by the number of nodes. Kinds no role sends to a node are
+    dropped and logged, never given a mailbox."""
 
     def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
                  advertise: str, timeout: float, keys: ClusterKeys | None):
@@ -76,7 +83,7 @@ class ManagementActor:
         return sock
 
     def mailbox(self, kind: str) -> asyncio.Queue:
-        return self.mailboxes.setdefault(kind, asyncio.Queue(maxsize=64))
+        return self.mailboxes.setdefault(kind, asyncio.Queue())
 
     async def _route(self, sock: zmq.asyncio.Socket, identity: bool) -> None:
         while True:
@@ -86,7 +93,10 @@ class ManagementActor:
                 self.coordinator_heard = time.monotonic()
                 if message.kind == protocol.HEARTBEAT:
                     continue
-            await self.mailbox(message.kind).put(message)
+            if message.kind not in protocol.TO_NODE:
+                log.warning("dropped a message of unknown kind %r", message.kind[:40])
+                continue
+            self.mailbox(message.kind).put_nowait(message)
 
     async def watch_coordinator(self, silence: float) -> None:
         """Exit the process once the coordinator has been silent for ``silence`` seconds: it

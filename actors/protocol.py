@@ -17,6 +17,9 @@ SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for thi
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 
+#: Kinds a node accepts (from the coordinator or from peers); anything else is dropped.
+TO_NODE = frozenset({JOB, FILM, STOP, RAYS, GO, PROBE, SCHEDULE, REDUCE, BROADCAST})
+
 #: Seconds between the coordinator's heartbeats to its nodes; a node that hears nothing from
 #: the coordinator for ``COORDINATOR_SILENCE_S`` exits (the coordinator died or was cut off).
 HEARTBEAT_S = 0.5

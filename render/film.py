@@ -58,6 +58,23 @@ class Film:
         self.depth[pixel[zero]] = paths.first_t[zero]
         self.normal[pixel[zero]] = paths.first_normal[zero]
 
+    def count_samples(self, pixel: np.ndarray) -> None:
+        """Count one sample per entry of ``pixel`` (n,) without adding radiance: a path is
+        counted where it starts, its radiance may arrive later and in parts."""
+        if len(pixel):
+            lo, hi = int(pixel.min()), int(pixel.max()) + 1
+            self.count[lo:hi] += np.bincount(pixel - lo, minlength=hi - lo)
+
+    def add_partial(self, pixel: np.ndarray, sample: np.ndarray, paths) -> None:
+        """Add what part of a batch of paths was gathered here (a ``PathResult``): radiance
+        sums, and the first-hit layers of sample 0 where this part saw the camera hit. Parts
+        of one path from elsewhere add up (``sum_sq`` then holds squared parts, so
+        ``variance_of_mean`` is approximate); samples are counted by ``count_samples``."""
+        self.add(pixel.astype(np.int64), paths.radiance, counted=np.zeros(len(pixel), bool))
+        zero = np.nonzero(sample == 0)[0]
+        np.minimum.at(self.depth, pixel[zero], paths.first_t[zero])
+        self.normal[pixel[zero]] += paths.first_normal[zero]
+
     def merge(self, other: Film) -> None:
         """Add another node's partial film. Sums and counts add; each pixel's depth and normal
         come from the one film that traced its sample 0 (the others hold inf and zeros), so

@@ -83,6 +83,10 @@ class DomainQueues:
         """(D,) rays waiting per domain."""
         return self._counts.copy()
 
+    def count(self, domain: int) -> int:
+        """Rays waiting for ``domain``."""
+        return int(self._counts[domain])
+
     def total(self) -> int:
         return int(self._counts.sum())
 

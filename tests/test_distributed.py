@@ -158,7 +158,7 @@ def test_killed_node_fails_the_run_with_its_name_and_no_output(scene, tmp_path, 
     thread.start()
     start = time.monotonic()
     code = main(["render", str(store.path), "-o", str(out), "--scene", str(toml), "--nodes", "2",
-                 "--width", "64", "--height", "48", "--spp", "16", "--node-timeout", "30",
+                 "--width", "64", "--height", "48", "--spp", "256", "--node-timeout", "30",
                  "--max-samples-in-flight", "500", "--quiet"])
     thread.join()
     assert killed, "the test could not find node 1 to kill"
