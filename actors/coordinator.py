@@ -283,24 +283,33 @@ class _Termination:
                 await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
 
 
-def schedule_next_round(queues: dict[int, dict[str, int]], loaded: dict[int, int]
+def schedule_next_round(queues: dict[int, dict[str, int]], loaded: dict[int, list[int]]
                         ) -> dict[int, int]:
     """Navrátil's ScheduleNextRound (Fig. 5): domain -> node for the next round.
 
+    The paper's processes hold one domain each; ours hold a cache of several, so each node
+    reports its whole resident set and "keep loaded domains where they are wanted" applies to
+    every resident domain: a wanted domain resident somewhere stays with the lowest-ranked
+    node holding it. The most-wanted of the others go, one each, to the nodes none of whose
+    resident domains is wanted (the paper's ``to_evict``), in rank order.
+
     Parameters
     ----------
-    queues : node -> {domain: rays waiting}; loaded : node -> its loaded domain (-1: none).
+    queues : node -> {domain: rays waiting}.
+    loaded : node -> the domains resident in its cache.
     """
     wanted: dict[int, int] = {}
     for per_node in queues.values():
         for domain, count in per_node.items():
             wanted[int(domain)] = wanted.get(int(domain), 0) + count
-    holder = {}
+    holder: dict[int, int] = {}
     for node in sorted(loaded):
-        holder.setdefault(loaded[node], node)
+        for domain in sorted(loaded[node]):
+            holder.setdefault(int(domain), node)
     schedule = {d: holder[d] for d in wanted if d in holder}
     to_assign = sorted((d for d in wanted if d not in holder), key=lambda d: (-wanted[d], d))
-    to_evict = [n for n in sorted(loaded) if loaded[n] not in schedule or schedule[loaded[n]] != n]
+    busy = set(schedule.values())
+    to_evict = [n for n in sorted(loaded) if n not in busy]
     for domain, node in zip(to_assign, to_evict, strict=False):
         schedule[domain] = node
     return schedule

@@ -204,12 +204,12 @@ class _Node:
             self.stats["wait_s"] += time.perf_counter() - start
 
     async def dynamic(self, policy, cache, tile: int) -> None:
-        """Ray-weighted rounds: report queues, get this round's domain, swap rays, trace."""
-        loaded = -1
+        """Ray-weighted rounds: report queues and resident domains, get this round's
+        domains, swap rays, trace."""
         while True:
             waiting = policy.radiance.counts() + policy.shadow.counts()
             await self.management.to_coordinator(encode(protocol.QUEUES, {}, {
-                "rank": self.rank, "tile": tile, "loaded": loaded,
+                "rank": self.rank, "tile": tile, "loaded": sorted(cache.resident_set()),
                 "queues": {str(d): int(n) for d, n in enumerate(waiting) if n}}))
             start = time.perf_counter()
             plan = await self.management.receive(protocol.SCHEDULE, "this round's schedule")
@@ -234,7 +234,6 @@ class _Node:
                 bvh = await asyncio.to_thread(cache.get, domain)
                 await asyncio.to_thread(policy.process, domain, bvh)
                 self.stats["trace_s"] += time.perf_counter() - t0
-                loaded = domain
 
     async def _send_batch(self, node: int, queue: str, parts: list) -> None:
         if parts:

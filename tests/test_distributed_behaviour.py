@@ -103,3 +103,18 @@ def test_spec_insitu_speculates(scene):
     per_node = [r["counters"] for r in result.counters["per_node"]]
     assert sum(c["speculative_rays"] for c in per_node) > 0
     assert sum(c["wasted_rays"] for c in per_node) > 0  # speculation costs something
+
+
+def test_dynamic_keeps_resident_domains_where_they_are(scene):
+    # Nodes report every resident domain (not the last one traced), so with room for all of
+    # them each domain is loaded once in the whole cluster, and the work is spread.
+    store, toml = scene
+    st = settings(width=32, height=24, spp=2, integrator="pt")
+    result = render_distributed(store.path, toml, st, 2, scheduler="dynamic",
+                                max_samples_in_flight=800, timeout=60)
+    loads = [r["counters"]["loads"] for r in result.counters["per_node"]]
+    assert sum(loads) <= sum(d.n_triangles > 0 for d in store.domains)
+    assert min(loads) > 0  # both nodes were handed domains
+    assert result.counters["global_barriers"] > 1  # and it still works in rounds
+    reference = _reference(store, toml, st)
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
