@@ -82,7 +82,8 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
-             "speculative_rays": 0, "wasted_rays": 0, "iterations": 0,
+             "speculative_rays": 0, "wasted_rays": 0, "intersection_cache_hits": 0,
+             "iterations": 0,
              "loads": cache.stats.loads}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats)
@@ -292,6 +293,10 @@ class _InSitu:
         keep_shadow = won[shadow.path] & ~blocked_here
         keep_cont = won[cont.path]
         self.stats["wasted_rays"] += int((~won[shadow.path]).sum() + (~keep_cont).sum())
+        # Results of the intersection cache that a winning hit's children reuse: shadow rays
+        # already found blocked here, continuation rays already holding a local hit.
+        self.stats["intersection_cache_hits"] += int(
+            (won[shadow.path] & blocked_here).sum() + np.isfinite(cand.t[keep_cont]).sum())
         s = shadow.take(np.nonzero(keep_shadow)[0])
         shadows = SoA(**{f: getattr(s, f) for f in SHADOW_FIELDS},
                       slot=shadow_slots(shadow.path)[keep_shadow],

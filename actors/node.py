@@ -157,6 +157,9 @@ class TreeReduceActor:
 
     def __init__(self, management: ManagementActor, rank: int, size: int, endpoints: list[str]):
         self.management, self.rank, self.size, self.endpoints = management, rank, size, endpoints
+        #: levels the last all-reduce climbed below this node (at the root: the tree's height,
+        #: floor(log2 P) <= ceil(log2 P)); carried up in each partial's header.
+        self.levels = 0
 
     async def reduce_film(self, film, width: int, height: int):
         """Sum this subtree's films; the root returns the total, others send it up."""
@@ -173,14 +176,16 @@ class TreeReduceActor:
         """Combine ``arrays`` over all nodes (``ops``: name -> "min" | "or" | "sum") up the
         tree, then broadcast the result down it; every node returns the same arrays."""
         total = {k: np.array(v, copy=True) for k, v in arrays.items()}
+        self.levels = 0
         for _ in children(self.rank, self.size):
             message = await self.management.receive(protocol.REDUCE, "partial from a child node")
+            self.levels = max(self.levels, int(message.meta.get("levels", 0)) + 1)
             for name, op in ops.items():
                 total[name] = COMBINE[op](total[name], message.arrays[name])
         up = parent(self.rank)
         if up is not None:
-            await self.management.to_peer(self.endpoints[up],
-                                          encode(protocol.REDUCE, total, {"rank": self.rank}))
+            await self.management.to_peer(self.endpoints[up], encode(
+                protocol.REDUCE, total, {"rank": self.rank, "levels": self.levels}))
             message = await self.management.receive(protocol.BROADCAST, "reduced result")
             total = {k: np.array(v) for k, v in message.arrays.items()}
         for child in children(self.rank, self.size):

@@ -103,6 +103,7 @@ def test_spec_insitu_speculates(scene):
     per_node = [r["counters"] for r in result.counters["per_node"]]
     assert sum(c["speculative_rays"] for c in per_node) > 0
     assert sum(c["wasted_rays"] for c in per_node) > 0  # speculation costs something
+    assert sum(c["intersection_cache_hits"] for c in per_node) > 0  # and pays off
 
 
 def test_dynamic_keeps_resident_domains_where_they_are(scene):
