@@ -51,7 +51,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        listen: str | None = None, keys: ClusterKeys | None = None,
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
                        max_batch_rays: int = 65536, progress: bool = False,
-                       config: SceneConfig | None = None) -> RenderResult:
+                       config: SceneConfig | None = None, threads: int | None = None
+                       ) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -69,6 +70,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         also a line for the wait and for every node that joins.
     config : the scene configuration (default: read from ``scene_path``); nodes receive its
         TOML text, so they need no copy of the file.
+    threads : Embree query threads per node (default: this machine's cores shared among the
+        nodes started here; with ``listen``, each node's own cores).
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -88,6 +91,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
         "max_batch_rays": max_batch_rays,
+        "threads": threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)),
     }
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp

@@ -40,6 +40,7 @@ from vastray.actors.local import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
+from vastray.scene.bvh import query_pool
 from vastray.scene.cache import DomainCache
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.soa import SoA
@@ -64,7 +65,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
     owned = int(np.count_nonzero(owner == rank))
-    cache = DomainCache(store, job.get("cache") or max(owned, 1), setup.keep)
+    pool = query_pool(job.get("threads"))
+    cache = DomainCache(store, job.get("cache") or max(owned, 1), setup.keep, pool=pool)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
@@ -100,6 +102,9 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
                 on_tile(int(np.count_nonzero(mine)))
     finally:
         cache.close()
+        if pool is not None:
+            pool.shutdown()
+    stats["threads"] = pool._max_workers if pool is not None else 1
     stats.update({k: v for k, v in cache.stats.as_dict().items() if k in ("loads", "load_s")})
     return film, stats
 

@@ -28,6 +28,7 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
+from vastray.scene.bvh import query_pool
 from vastray.scene.cache import DomainCache
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 from vastray.schedule.soa import SoA
@@ -75,7 +76,8 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     lo, hi = store.domain_boxes()
     owner = zorder_owners(lo, hi, size)
     local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
-    cache = DomainCache(store, max(len(local), 1), setup.keep)
+    pool = query_pool(job.get("threads"))
+    cache = DomainCache(store, max(len(local), 1), setup.keep, pool=pool)
     bvhs = {d: cache.get(d) for d in local}  # in situ: the node's data stays loaded
     film = Film(settings.width, settings.height)
     total = setup.total_paths
@@ -96,6 +98,9 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
         if on_tile is not None:
             on_tile(int(np.count_nonzero(mine)))
     cache.close()
+    if pool is not None:
+        pool.shutdown()
+    stats["threads"] = pool._max_workers if pool is not None else 1
     return film, stats
 
 

@@ -22,6 +22,7 @@ from vastray.render.driver import (
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.bvh import query_pool
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
@@ -66,7 +67,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        history_depth: int | None = None, preload: bool = True,
                        drop_page_cache: bool = False, progress: bool = True,
                        share: tuple[int, int] = (0, 1),
-                       on_tile: Callable[[int], None] | None = None) -> RenderResult:
+                       on_tile: Callable[[int], None] | None = None,
+                       threads: int | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
@@ -79,13 +81,15 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     drop_page_cache : make each domain load a real read from disk.
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
+    threads : threads every Embree query splits its rays over (default: all cores).
     """
     if scheduler not in SCHEDULERS:
         raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
     start = time.perf_counter()
     setup = RenderSetup.of(store, config, settings)
     capacity = cache_capacity or max(len(store.domains), 1)
-    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache)
+    pool = query_pool(threads)
+    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache, pool=pool)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(max_samples_in_flight or total, total))
@@ -116,6 +120,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                     on_tile(len(ctx.pixel))
     finally:
         cache.close()
+        if pool is not None:
+            pool.shutdown()
     wall = time.perf_counter() - start
     stats = cache.stats
     counters.update({
@@ -124,6 +130,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "distinct_domains_loaded": len(stats.loaded_domains),
         "cache_capacity": capacity,
         "max_samples_in_flight": tile,
+        "threads": pool._max_workers if pool is not None else 1,
         **stats.as_dict(),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     })

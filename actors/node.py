@@ -263,7 +263,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                 render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
                 cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
                 history_depth=job.get("history_depth"), progress=False, share=(rank, size),
-                on_tile=report)
+                on_tile=report, threads=job.get("threads"))
             film, counters = result.film, result.counters
         busy = time.perf_counter() - start
         reduce_start = time.perf_counter()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -22,10 +23,14 @@ class DomainBVH:
     arrays : its triangles (memory-mapped arrays are copied into Embree's buffers).
     keep : names of the attributes (``"objects"``, ``"colors"``, ``"scalars"``) to keep for
         shading; the others are dropped at once (the scene does not use them).
+    pool : threads that queries of this domain split their rays over by default (Embree
+        releases the GIL); None: the calling thread only.
     """
 
-    def __init__(self, domain_id: int, arrays: DomainArrays, keep: frozenset[str] = frozenset()):
+    def __init__(self, domain_id: int, arrays: DomainArrays, keep: frozenset[str] = frozenset(),
+                 pool: ThreadPoolExecutor | None = None):
         self.domain_id = domain_id
+        self.pool = pool
         self.n_triangles = arrays.n_triangles
         self._scene = rtcore_scene.EmbreeScene()
         mesh_construction.TriangleMesh(
@@ -56,7 +61,8 @@ class DomainBVH:
         ----------
         origins, directions : (n, 3) float32
         t_far : (n,) float32 (not modified)
-        pool : optional thread pool; Embree releases the GIL, so chunks run in parallel.
+        pool : thread pool to split the rays over (default: the domain's ``pool``); Embree
+            releases the GIL, so chunks run in parallel.
 
         Returns
         -------
@@ -66,7 +72,7 @@ class DomainBVH:
         def run(sl):
             return self._scene.run(origins[sl], directions[sl], dists=t_far[sl].copy(), output=1)
 
-        parts = _map_chunks(run, len(origins), pool)
+        parts = _map_chunks(run, len(origins), pool or self.pool)
         if len(parts) == 1:
             return parts[0]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
@@ -83,7 +89,14 @@ class DomainBVH:
             return self._scene.run(origins[sl], directions[sl], dists=t_far[sl].copy(),
                                    query="OCCLUDED") >= 0
 
-        return np.concatenate(_map_chunks(run, len(origins), pool))
+        return np.concatenate(_map_chunks(run, len(origins), pool or self.pool))
+
+
+def query_pool(threads: int | None) -> ThreadPoolExecutor | None:
+    """Threads for Embree queries: ``threads`` (default: every core), or None for one.
+    The caller shuts the pool down."""
+    threads = threads or os.cpu_count() or 1
+    return ThreadPoolExecutor(threads, thread_name_prefix="embree") if threads > 1 else None
 
 
 def _map_chunks(fn, n: int, pool: ThreadPoolExecutor | None) -> list:

@@ -55,16 +55,18 @@ class DomainCache:
     keep : attributes each loaded domain keeps for shading (see ``DomainBVH``).
     drop_page_cache : read domain files fully and advise the kernel to drop their pages, so a
         reload after eviction is a real disk read (out-of-core benchmarks).
+    pool : threads each loaded domain's queries split their rays over (``query_pool``).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
-                 drop_page_cache: bool = False):
+                 drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None):
         if capacity < 1:
             raise ValueError("cache capacity must be at least 1 domain")
         self.store = store
         self.capacity = capacity
         self.keep = keep
         self.drop_page_cache = drop_page_cache
+        self.pool = pool  # the threads every loaded domain's queries split their rays over
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
         # Render workers and the preloader share the cache.
@@ -152,7 +154,7 @@ class DomainCache:
         arrays = self.store.load_domain(domain_id, mmap=not self.drop_page_cache,
                                         drop_cache=self.drop_page_cache)
         read_done = time.perf_counter()
-        bvh = DomainBVH(domain_id, arrays, self.keep)
+        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool)
         done = time.perf_counter()
         with self._lock:
             self.stats.loads += 1

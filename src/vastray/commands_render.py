@@ -146,7 +146,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="image/spec-ooc: do not load the next domain in the background")
     p.add_argument("--batch-size", type=_positive, default=65536,
                    help="paths traced together (default: 65536)")
-    p.add_argument("--threads", type=_positive, help="Embree threads (default: all cores)")
+    p.add_argument("--threads", type=_positive,
+                   help="threads Embree queries split their rays over, per process (default: "
+                        "all cores; with --nodes N on this machine, cores / N per node; with "
+                        "--listen, each node's own cores)")
     p.add_argument("--report", help="write a JSON report (timings, counts, error)")
     p.add_argument("--reference", help="reference image (.exr/.npy) to report MSE/PSNR against")
     p.add_argument("--exposure", type=_positive_float, default=1.0,
@@ -302,7 +305,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
             keys=load_keys(args.keys) if args.keys else None, launched=launched,
-            progress=not args.quiet, config=config)
+            progress=not args.quiet, config=config, threads=args.threads)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
@@ -311,7 +314,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             store, config, settings, scheduler=scheduler, cache_capacity=cache,
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT,
             history_depth=args.history_depth, preload=not args.no_preload,
-            progress=not args.quiet)
+            progress=not args.quiet, threads=args.threads)
     image = result.film.image()
     error = image_error(image, reference) if reference is not None else None
     summary = summary_line(args, result, error, outputs)
