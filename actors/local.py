@@ -65,8 +65,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        scheduler: str = "image", cache_capacity: int | None = None,
                        max_samples_in_flight: int | None = None,
                        history_depth: int | None = None, preload: bool = True,
-                       drop_page_cache: bool = False, progress: bool = True,
-                       share: tuple[int, int] = (0, 1),
+                       resident_first: bool = True, drop_page_cache: bool = False,
+                       progress: bool = True, share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
                        threads: int | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
@@ -77,7 +77,10 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     cache_capacity : most domains in memory (default: all).
     max_samples_in_flight : paths traced at once (tile size); bounds rays held in memory.
     history_depth : spec-ooc's H, bounces speculated per window (default: all bounces).
-    preload : load the next domain on a background thread while rendering the current one.
+    preload : load the schedule's guess at its next domain (``likely_next``) on a background
+        thread while rendering the current one; False loads sequentially, as the papers do.
+    resident_first : let the schedule serve domains in memory before loading others (see the
+        schedules' ``resident_first``); False is the papers' order (SpRay Listings 1 and 2).
     drop_page_cache : make each domain load a real read from disk.
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
@@ -96,6 +99,10 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     firsts = list(range(0, total, tile))[share[0]::share[1]]
     counters: dict = {}
     process_seconds = 0.0
+    # Loads followed by at least one traced ray (before the domain's next load), and the
+    # domains any ray was traced against (the floor: each must be loaded at least once).
+    productive: set[tuple[int, int]] = set()  # (domain, its load number)
+    traced_domains: set[int] = set()
     try:
         with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
                   desc=f"render ({scheduler})", leave=False) as bar:
@@ -104,15 +111,20 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                                    setup.ao_distance)
                 kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
                 policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
-                                               setup.scalar_range, **kwargs)
+                                               setup.scalar_range, resident_first=resident_first,
+                                               **kwargs)
                 policy.start(camera_rays(setup.camera, ctx))
                 while (domain := policy.next_domain(cache.resident_set())) is not None:
                     bvh = cache.get(domain)
                     if preload:
                         cache.prefetch(policy.likely_next(domain))
                     t0 = time.perf_counter()
+                    tests = _tests(policy.counters)
                     policy.process(domain, bvh)
                     process_seconds += time.perf_counter() - t0
+                    if _tests(policy.counters) > tests:
+                        traced_domains.add(domain)
+                        productive.add((domain, cache.load_count(domain)))
                 film.add_paths(ctx.pixel, ctx.sample, policy.result)
                 _merge(counters, policy.counters)
                 bar.update(len(ctx.pixel))
@@ -128,10 +140,12 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "scheduler": scheduler,
         "domains": len(store.domains),
         "distinct_domains_loaded": len(stats.loaded_domains),
+        "domains_traced": len(traced_domains),
         "cache_capacity": capacity,
         "max_samples_in_flight": tile,
         "threads": pool._max_workers if pool is not None else 1,
         **stats.as_dict(),
+        "untraced_loads": stats.loads - len(productive),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     })
     seconds = {
@@ -141,6 +155,10 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "render": round(process_seconds, 4),
     }
     return RenderResult(film, setup.camera, seconds, counters)
+
+
+def _tests(counters: dict) -> int:
+    return counters["radiance_tests"] + counters["shadow_tests"]
 
 
 def _merge(total: dict, part: dict) -> None:

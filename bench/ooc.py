@@ -1,15 +1,31 @@
 """Out-of-core scheduling: SpRay's speculative schedule against the baseline (SpRay Figs. 6, 8).
 
 Generates (or reuses, in .bench_cache/) a Richtmyer-Meshkov-like scene split into many domains
-and a second one with fewer, larger domains, then renders AO and PT with domain caches of 25,
+and a second one with fewer, larger domains, then renders PT and AO with domain caches of 25,
 50, 75 and 100 % of the domains, with both schedules, in one run. Every load is a real read
 (the kernel is told to drop a domain's pages after reading it) plus the BVH build, which the
-papers count in load time. "load wait s" is the part of the load time the render thread
-actually waited: the rest was hidden by the preloader. Prints a table and, per cache size,
-``loads_ratio=`` and ``time_ratio=`` (baseline / speculative); the first pair printed is the
-25 % cache's. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3).
+papers count in load time.
 
-    python bench/ooc.py            # full run (about 10 minutes on 2 cores)
+Both schedules run in two configurations, and each is compared only with the other in the same
+one:
+
+* ``paper-faithful``: as the papers describe them: domains loaded sequentially (SpRay 5.1.1,
+  "data loading is run sequentially"), the baseline's fullest queue first (Listing 1) and
+  spec-ooc's pure traversal-score order (Listing 2);
+* ``strongest``: both with every improvement this project has: the preloader thread (each
+  schedule's ``likely_next``) and the resident-first rule (domains in memory are served before
+  anything is loaded).
+
+"load wait s" is the part of the load time the render thread actually waited: the rest was
+hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
+be loaded at least once); "untraced loads" are loads after which no ray was traced against the
+domain (with the preloader: wrong guesses). Per cache size, integrator and configuration it
+prints ``loads_ratio=`` and ``time_ratio=`` (baseline / speculative) and ``loads_over_floor=``
+(spec-ooc loads / floor); the first triple printed is the strongest comparison at a 25 % cache
+with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
+``--ablation`` adds every switch combination for both schedules (PT, 25 % cache, first scene).
+
+    python bench/ooc.py            # full run (well over an hour on 2 cores)
     python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
 """
 
@@ -49,32 +65,56 @@ def scene(name: str, resolution: int, grid: tuple[int, int, int]) -> Store:
     return Store(path)
 
 
+CONFIGS = {  # name -> render_out_of_core switches, the same for both schedules
+    "strongest": {"preload": True, "resident_first": True},
+    "paper-faithful": {"preload": False, "resident_first": False},
+}
+
+
 def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
-        history_depth: int | None = None) -> dict:
+        history_depth: int | None = None, **switches) -> dict:
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings, scheduler=scheduler,
                                 cache_capacity=cache, history_depth=history_depth,
-                                drop_page_cache=True, progress=False)
+                                drop_page_cache=True, progress=False, **switches)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
+        "floor": c["domains_traced"], "untraced": c["untraced_loads"],
         "load_s": c["load_s"], "wait_s": c["load_wait_s"], "render_s": result.seconds["render"],
         "total_s": time.perf_counter() - start, "wasted": c.get("wasted_rays", 0),
         "speculative": c.get("speculative_rays", 0),
     }
 
 
-def row(integrator: str, r: dict, n_domains: int) -> str:
+HEADER = ("| integrator | config | scheduler | cache | loads | floor | untraced loads | load s "
+          "| load wait s | render s | total s | wasted speculative rays |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+
+
+def row(integrator: str, config: str, r: dict, n_domains: int) -> str:
     pct = round(100 * r["cache"] / n_domains)
-    return (f"| {integrator} | {r['scheduler']:8} | {r['cache']:3d} ({pct:3d}%) | {r['loads']:5d} "
-            f"| {r['load_s']:7.2f} | {r['wait_s']:7.2f} | {r['render_s']:7.2f} | {r['total_s']:7.2f} "
+    return (f"| {integrator} | {config} | {r['scheduler']:8} | {r['cache']:3d} ({pct:3d}%) "
+            f"| {r['loads']:5d} | {r['floor']} | {r['untraced']} | {r['load_s']:7.2f} "
+            f"| {r['wait_s']:7.2f} | {r['render_s']:7.2f} | {r['total_s']:7.2f} "
             f"| {r['wasted']:,} of {r['speculative']:,} |")
+
+
+def comparison(integrator: str, fraction: float, config: str, base: dict, spec: dict) -> str:
+    loads = base["loads"] / max(spec["loads"], 1)
+    time_ratio = base["total_s"] / spec["total_s"]
+    line = (f"{integrator} cache={round(100 * fraction)}% {config}: loads_ratio={loads:.2f} "
+            f"time_ratio={time_ratio:.2f} loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+    wins = [what for what, ratio in (("loads", loads), ("time", time_ratio)) if ratio < 1]
+    return line + (f"  <- the baseline wins on {' and '.join(wins)}" if wins else "")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="a 2-minute subset")
+    parser.add_argument("--quick", action="store_true", help="a few-minute subset")
+    parser.add_argument("--ablation", action="store_true",
+                        help="also every switch combination (PT, 25%% cache, first scene)")
     args = parser.parse_args()
     plan = QUICK if args.quick else FULL
     width, height = plan["image"]
@@ -84,38 +124,58 @@ def main() -> None:
         print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains, "
               f"{width}x{height}, {plan['spp']} spp, {plan['shadow_samples']} shadow rays, "
               f"{plan['bounces']} bounces\n", flush=True)
-        print("| integrator | scheduler | cache | loads | load s | load wait s | render s "
-              "| total s | wasted speculative rays |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+        print(HEADER, flush=True)
         for fraction in plan["caches"]:
             cache = max(1, math.ceil(fraction * n))
-            for integrator in ("ao", "pt"):
-                settings = RenderSettings(width=width, height=height, spp=plan["spp"],
-                                          integrator=integrator, bounces=plan["bounces"],
-                                          shadow_samples=plan["shadow_samples"])
-                base = run(store, settings, "image", cache)
-                spec_run = run(store, settings, "spec-ooc", cache)
-                print(row(integrator, base, n))
-                print(row(integrator, spec_run, n))
-                print(f"{integrator} cache={round(100 * fraction)}% "
-                      f"loads_ratio={base['loads'] / max(spec_run['loads'], 1):.2f} "
-                      f"time_ratio={base['total_s'] / spec_run['total_s']:.2f}", flush=True)
+            for integrator in ("pt", "ao"):
+                st = settings(plan, integrator)
+                for config, switches in CONFIGS.items():
+                    base = run(store, st, "image", cache, **switches)
+                    spec_run = run(store, st, "spec-ooc", cache, **switches)
+                    print(row(integrator, config, base, n))
+                    print(row(integrator, config, spec_run, n))
+                    print(comparison(integrator, fraction, config, base, spec_run), flush=True)
         if spec is plan["scenes"][0]:
             sweep(store, plan)
+            if args.ablation:
+                ablation(store, plan)
+
+
+def settings(plan: dict, integrator: str) -> RenderSettings:
+    width, height = plan["image"]
+    return RenderSettings(width=width, height=height, spp=plan["spp"], integrator=integrator,
+                          bounces=plan["bounces"], shadow_samples=plan["shadow_samples"])
+
+
+def ablation(store: Store, plan: dict) -> None:
+    """Each switch alone, for both schedules: PT at a 25 % cache."""
+    n = len(store.domains)
+    cache = max(1, math.ceil(0.25 * n))
+    st = settings(plan, "pt")
+    print(f"\n### switches (pt, cache {cache} of {n} domains)\n")
+    print("| scheduler | resident first | preload | loads | floor | untraced loads | load wait s "
+          "| total s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    for scheduler in ("image", "spec-ooc"):
+        for resident_first in (False, True):
+            for preload in (False, True):
+                r = run(store, st, scheduler, cache, resident_first=resident_first,
+                        preload=preload)
+                print(f"| {scheduler} | {'yes' if resident_first else 'no'} "
+                      f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
+                      f"| {r['untraced']} | {r['wait_s']:.2f} | {r['total_s']:.2f} |", flush=True)
 
 
 def sweep(store: Store, plan: dict) -> None:
-    """Fig. 8: history depth H = 1..B at a 25 % cache (PT)."""
+    """Fig. 8: history depth H = 1..B at a 25 % cache (PT, strongest configuration)."""
     n = len(store.domains)
     cache = max(1, math.ceil(0.25 * n))
-    width, height = plan["image"]
-    settings = RenderSettings(width=width, height=height, spp=plan["spp"], integrator="pt",
-                              bounces=plan["bounces"], shadow_samples=plan["shadow_samples"])
-    print(f"\n### history depth sweep (pt, cache {cache} of {n} domains)\n")
+    st = settings(plan, "pt")
+    print(f"\n### history depth sweep (pt, strongest, cache {cache} of {n} domains)\n")
     print("| H | loads | load s | render s | total s | wasted speculative rays |")
     print("| --- | --- | --- | --- | --- | --- |", flush=True)
     for h in range(1, plan["bounces"] + 1):
-        r = run(store, settings, "spec-ooc", cache, history_depth=h)
+        r = run(store, st, "spec-ooc", cache, history_depth=h, **CONFIGS["strongest"])
         print(f"| {h} | {r['loads']} | {r['load_s']:.2f} | {r['render_s']:.2f} "
               f"| {r['total_s']:.2f} | {r['wasted']:,} of {r['speculative']:,} |", flush=True)
 

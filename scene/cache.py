@@ -26,6 +26,7 @@ class CacheStats:
     read_seconds: float = 0.0
     build_seconds: float = 0.0
     loaded_domains: set = field(default_factory=set)
+    loads_per_domain: dict = field(default_factory=dict)
     peak_resident_bytes: int = 0
     preloads: int = 0
     wait_seconds: float = 0.0
@@ -85,6 +86,11 @@ class DomainCache:
         """Domains resident or being preloaded."""
         with self._lock:
             return frozenset(self._resident) | frozenset(self._pending)
+
+    def load_count(self, domain_id: int) -> int:
+        """How many times ``domain_id`` has been loaded (preloads included) so far."""
+        with self._lock:
+            return self.stats.loads_per_domain.get(domain_id, 0)
 
     def get(self, domain_id: int) -> DomainBVH:
         """The built domain, loading it (and evicting the LRU one) if needed."""
@@ -159,6 +165,7 @@ class DomainCache:
         with self._lock:
             self.stats.loads += 1
             self.stats.loaded_domains.add(domain_id)
+            self.stats.loads_per_domain[domain_id] = self.stats.loads_per_domain.get(domain_id, 0) + 1
             self.stats.read_seconds += read_done - start
             self.stats.build_seconds += done - read_done
             self.stats.load_seconds += done - start

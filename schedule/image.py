@@ -45,13 +45,18 @@ class ImageSchedule:
     owner, rank : for domain decomposition across nodes, the (D,) node owning each domain and
         this node's rank: rays bound for another node's domain go to ``outbox`` instead of a
         local queue. Default: this node owns every domain.
+    resident_first : serve a domain already in memory (``next_domain``'s ``resident``) before
+        loading one, the same rule ``SpeculativeSchedule`` has; False is Listing 1 as written
+        (the fullest queue, wherever it is). Default True: the strongest honest baseline.
     """
 
     name = "image"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], owner: np.ndarray | None = None,
-                 rank: int = 0):
+                 rank: int = 0, resident_first: bool = True):
+        self.resident_first = resident_first
+        self._resident: frozenset[int] = frozenset()
         self.owner = np.zeros(geometry.n_domains, np.int64) if owner is None else owner
         self.rank = rank
         #: (queue name, destination node) -> [(domains (m,), rays SoA)] waiting to be sent.
@@ -74,18 +79,36 @@ class ImageSchedule:
     def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
         """The domain with the most waiting rays (lowest id on ties); None when done.
 
-        ``resident`` is ignored: the baseline knows nothing of the cache (SpRay Listing 1).
+        With ``resident_first``, a domain in ``resident`` (in memory now) with waiting rays
+        goes before any other, the fullest first: its rays cost no load now and might cost one
+        later. Without it, ``resident`` is ignored (SpRay Listing 1).
         """
         waiting = self.radiance.counts() + self.shadow.counts()
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"],
                                                    int(waiting.sum()))
-        return int(np.argmax(waiting)) if waiting.any() else None
+        self._resident = resident
+        if not waiting.any():
+            return None
+        if self.resident_first:
+            here = [d for d in resident if waiting[d]]
+            if here:
+                return max(here, key=lambda d: (waiting[d], -d))
+        return int(np.argmax(waiting))
 
     def likely_next(self, current: int) -> int | None:
-        """None: the baseline picks its next domain only after processing this one (its
-        choice depends on the rays this one sends on), so there is nothing to preload. Guessing
-        was measured: wrong guesses cost BVH builds that compete for the cores."""
-        return None
+        """A guess at the next domain, for the preloader: the one ``next_domain`` would pick
+        if ``current`` sent no rays on (the second-fullest queue, or with ``resident_first``
+        the fullest resident one). The real choice depends on the rays ``current`` sends on,
+        so the guess can be wrong; a wrong guess costs a load and evicts a domain."""
+        waiting = self.radiance.counts() + self.shadow.counts()
+        waiting[current] = 0
+        if not waiting.any():
+            return None
+        if self.resident_first:
+            here = [d for d in self._resident if waiting[d]]
+            if here:
+                return max(here, key=lambda d: (waiting[d], -d))
+        return int(np.argmax(waiting))
 
     def process(self, domain: int, bvh) -> None:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""

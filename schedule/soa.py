@@ -92,3 +92,7 @@ class DomainQueues:
 
     def nbytes(self) -> int:
         return sum(c.nbytes() for chunks in self._chunks for c in chunks)
+
+    def peek(self, domain: int) -> list[SoA]:
+        """The chunks queued in ``domain``, left queued (do not modify them)."""
+        return list(self._chunks[domain])

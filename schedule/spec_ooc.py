@@ -12,11 +12,13 @@ descends from is final and still matches.
 
 Per round, domains are processed in order of the **front-to-back traversal score**
 ``Score[i] = sum_j (M - j) * Counter[i][j]``, where ``Counter[i][j]`` counts queued rays for which
-domain i is the j-th box along the ray. Before a domain's rays are traced they are **filtered**:
-radiance rays whose closest hit so far is nearer than the domain, rays with a stale history and
-shadow rays already found occluded are dropped. Unoccluded shadow rays that have visited all
-their domains are **committed**; at the end of a round the **retire** queue (committed in the
-previous round) is resolved against the history buffer, and the queues swap (double buffering).
+domain i is the j-th box along the ray (``traversal_order``). Before a domain is loaded its rays
+are **filtered** (Listing 2, lines 15-19): radiance rays whose closest hit so far is nearer than
+the domain, rays with a stale history and shadow rays already found occluded are dropped, and a
+domain left with nothing to trace is skipped without a load. Unoccluded shadow rays that have
+visited all their domains are **committed**; at the end of a round the **retire** queue
+(committed in the previous round) is resolved against the history buffer, and the queues swap
+(double buffering).
 
 The **history depth** H bounds speculation across bounces: a window holds H + 1 path vertices;
 continuation rays beyond it wait in the **spill queue** until the window is resolved.
@@ -51,12 +53,17 @@ class SpeculativeSchedule:
     geometry : domain boxes.
     color_source, scalar_range : what hit records interpolate.
     history_depth : H, bounces speculated per window (default: every bounce of the path).
+    resident_first : start each round with the domains in memory (``next_domain``'s
+        ``resident``) and serve a resident domain again when rays reach it after its turn,
+        before anything new is loaded. False is the paper's pure score order. Default True.
     """
 
     name = "spec-ooc"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
-                 scalar_range: tuple[float, float], history_depth: int | None = None):
+                 scalar_range: tuple[float, float], history_depth: int | None = None,
+                 resident_first: bool = True):
+        self.resident_first = resident_first
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -83,11 +90,13 @@ class SpeculativeSchedule:
         self.shadow_blocked = np.zeros(0, bool)
         self._schedule: list[int] = []
         self._resident: frozenset[int] = frozenset()
+        # The domain chosen by next_domain, with its filtered rays: (domain, radiance, shadow).
+        self._staged: tuple[int, SoA | None, SoA | None] | None = None
         self._camera: RadianceRays | None = None
         self.counters = {
             "radiance_tests": 0, "shadow_tests": 0, "speculative_rays": 0,
             "wasted_rays": 0, "filtered_rays": 0, "rounds": 0, "windows": 0,
-            "rays_in_flight_peak": 0, "shade_s": 0.0,
+            "rays_in_flight_peak": 0, "shade_s": 0.0, "skipped_domains": 0,
         }
 
     # -- the driver's interface ---------------------------------------------------------------
@@ -97,22 +106,32 @@ class SpeculativeSchedule:
         self._queue_radiance(self._with_history(rays))
 
     def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
-        """The next domain of the current round's schedule; between rounds, retire and
-        reschedule; between windows, resume spilled rays. None when the tile is done.
+        """The next domain of the current round's schedule whose rays survive the filter;
+        between rounds, retire and reschedule; between windows, resume spilled rays. None when
+        the tile is done.
 
-        ``resident`` (domains in memory now) lets a new round start with them, and a resident
-        domain that has received rays since it was processed is served again before anything
-        new is loaded: its rays cost no load now, and might cost one next round.
+        A domain's queues are filtered here, before it is returned (Listing 2, lines 15-18):
+        one whose rays are all stale, beaten by a closer hit or already blocked is skipped
+        without being loaded (counted in ``skipped_domains``); ``process`` traces what is left.
+
+        With ``resident_first``, ``resident`` (domains in memory now) lets a new round start
+        with them, and a resident domain that has received rays since it was processed is
+        served again before anything new is loaded: its rays cost no load now, and might cost
+        one next round.
         """
+        if self._staged is not None:
+            return self._staged[0]  # chosen and filtered already, not processed yet
         self._resident = resident
         while True:
-            waiting = self.radiance.counts() + self.shadow.counts()
-            again = [d for d in resident if waiting[d] and d not in self._schedule]
-            if again and self.counters["rounds"]:
-                return max(again, key=lambda d: (waiting[d], -d))
+            if self.resident_first and self.counters["rounds"]:
+                waiting = self.radiance.counts() + self.shadow.counts()
+                again = [d for d in resident if waiting[d] and d not in self._schedule]
+                for domain in sorted(again, key=lambda d: (-waiting[d], d)):
+                    if self._filter(domain):
+                        return domain
             while self._schedule:
                 domain = self._schedule.pop(0)
-                if self.radiance.counts()[domain] or self.shadow.counts()[domain]:
+                if self._filter(domain):
                     return domain
             if self.counters["rounds"] and not self._end_round():
                 if not self._end_window():
@@ -120,31 +139,80 @@ class SpeculativeSchedule:
             self._new_round()
 
     def likely_next(self, current: int) -> int | None:
-        waiting = self.radiance.counts() + self.shadow.counts()
-        return next((d for d in self._schedule if waiting[d]), None)
+        """A guess at the next domain, for the preloader: the first one after ``current`` in
+        this round's schedule with a ray that would survive the filter now (the preloader
+        ignores a resident one)."""
+        return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
     def process(self, domain: int, bvh) -> None:
-        """Filter the domain's queues, then trace what is left (Listing 2, lines 15-22)."""
-        rays = self.radiance.pop(domain)
-        if rays is not None:
-            self._process_radiance(domain, bvh, rays)
-        rays = self.shadow.pop(domain)
-        if rays is not None:
-            self._process_shadow(domain, bvh, rays)
+        """Trace the domain's filtered rays (Listing 2, lines 20-22)."""
+        if self._staged is not None and self._staged[0] != domain:
+            raise RuntimeError(f"spec-ooc: process({domain}) while next_domain chose "
+                               f"{self._staged[0]}")
+        if self._staged is None:
+            self._filter(domain)  # called without next_domain: filter now
+        _, radiance, shadow = self._staged or (domain, None, None)
+        self._staged = None
+        if radiance is not None:
+            self._process_radiance(domain, bvh, radiance)
+        if shadow is not None:
+            self._process_shadow(domain, bvh, shadow)
         in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
 
+    # -- filtering (Listing 3) ----------------------------------------------------------------
+    def _filter(self, domain: int) -> bool:
+        """Take the domain's queues, update the statistics, drop the rays that need no test
+        here and stage the rest for ``process``. True if any ray is left to trace."""
+        radiance = self.radiance.pop(domain)
+        if radiance is not None:
+            level = radiance["depth"].astype(np.int64) - self.window_start
+            np.add.at(self.counter, (np.full(len(radiance), domain), radiance["rank"]), -1)
+            np.subtract.at(self.pending, (radiance["path"], level), 1)
+            live, keep = self._radiance_predicate(radiance, level)
+            self.counters["wasted_rays"] += int(np.count_nonzero(~live))
+            self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+            radiance = radiance.take(keep) if keep.any() else None
+        shadow = self.shadow.pop(domain)
+        if shadow is not None:
+            sid = shadow["sid"]
+            np.add.at(self.counter, (np.full(len(shadow), domain), shadow["rank"]), -1)
+            self.shadow_pending[sid] -= 1
+            live, keep = self._shadow_predicate(shadow)
+            self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
+            self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+            self.shadow_blocked[sid[~live]] = True  # stale: never needs another visit
+            shadow = shadow.take(keep) if keep.any() else None
+        if radiance is None and shadow is None:
+            self.counters["skipped_domains"] += 1
+            return False
+        self._staged = (domain, radiance, shadow)
+        return True
+
+    def _radiance_predicate(self, rays: SoA, level: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(live, keep): a live history, and no hit found yet before the domain starts."""
+        live = self._history_matches(rays, level)
+        return live, live & (rays["entry"] < self.hbuf_t[rays["path"], level])
+
+    def _shadow_predicate(self, rays: SoA) -> tuple[np.ndarray, np.ndarray]:
+        """(live, keep): a live history (through the hit that cast it), and not blocked yet."""
+        level = rays["depth"].astype(np.int64) - self.window_start
+        live = self._history_matches(rays, level + 1)
+        return live, live & ~self.shadow_blocked[rays["sid"]]
+
+    def _would_trace(self, domain: int) -> bool:
+        """Whether a ray queued for ``domain`` would survive the filter now (nothing changes)."""
+        for chunk in self.radiance.peek(domain):
+            level = chunk["depth"].astype(np.int64) - self.window_start
+            if self._radiance_predicate(chunk, level)[1].any():
+                return True
+        return any(self._shadow_predicate(chunk)[1].any() for chunk in self.shadow.peek(domain))
+
     # -- rounds and windows -------------------------------------------------------------------
     def _new_round(self) -> None:
-        """Schedule: domains by descending traversal score (Listing 2, line 12), except that
-        domains already in memory go first. A fixed cyclic order is the worst case for an LRU
-        cache smaller than the cycle (every access misses); starting each round with what the
-        last one left resident turns those misses into hits. Measured in bench/ooc.py."""
-        m = self.counter.shape[1]
-        score = self.counter @ (m - np.arange(m))
-        resident = self._resident
-        self._schedule = sorted(range(len(score)),
-                                key=lambda d: (d not in resident, -score[d], d))
+        """Schedule the round (Listing 2, line 12; see ``traversal_order``)."""
+        self._schedule = traversal_order(self.counter,
+                                         self._resident if self.resident_first else frozenset())
         self.counters["rounds"] += 1
 
     def _end_round(self) -> bool:
@@ -210,9 +278,8 @@ class SpeculativeSchedule:
         self.radiance.push(domain, copies)
 
     def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
+        """Trace filtered radiance rays (statistics and pending visits already updated)."""
         level = rays["depth"].astype(np.int64) - self.window_start
-        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
-        np.subtract.at(self.pending, (rays["path"], level), 1)
         # Shallow first: a new closest hit at one depth makes the same path's deeper rays in
         # this batch stale, and the filter must see that. Within one depth a path has at most
         # one live ray, so its path id names its parent.
@@ -220,12 +287,11 @@ class SpeculativeSchedule:
             self._process_level(domain, bvh, rays.take(np.nonzero(level == depth)[0]), depth)
 
     def _process_level(self, domain: int, bvh, rays: SoA, level: int) -> None:
-        path = rays["path"]
-        # Filter (Listing 3): a live history, and no hit found yet before the domain starts.
-        live = self._history_matches(rays, level)
-        keep = live & (rays["entry"] < self.hbuf_t[path, level])
+        # Filter again: a shallower level of this batch may have found a closer hit since.
+        live, keep = self._radiance_predicate(rays, level)
         self.counters["wasted_rays"] += int(np.count_nonzero(~live))
         self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        path = rays["path"]
         if not keep.any():
             return
         rays, path = rays.take(keep), path[keep]
@@ -302,22 +368,20 @@ class SpeculativeSchedule:
             self.shadow.push(dom, copies)
 
     def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
+        """Test filtered shadow rays (statistics and pending visits already updated); commit
+        the unblocked ones that have visited every domain."""
         sid = rays["sid"]
-        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
-        self.shadow_pending[sid] -= 1
-        level = rays["depth"].astype(np.int64) - self.window_start
-        live = self._history_matches(rays, level + 1)
-        keep = live & ~self.shadow_blocked[sid]
+        # Filter again: this domain's radiance rays may have just found closer hits.
+        live, keep = self._shadow_predicate(rays)
         self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
         self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        self.shadow_blocked[sid[~live]] = True
         if keep.any():
             tested = np.nonzero(keep)[0]
             self.counters["shadow_tests"] += len(tested)
             blocked = bvh.occluded(rays["origin"][tested], rays["direction"][tested],
                                    rays["t_max"][tested])
             self.shadow_blocked[sid[tested[blocked]]] = True
-        if not live.all():
-            self.shadow_blocked[sid[~live]] = True  # stale: never needs another visit
         ready = (self.shadow_pending[sid] == 0) & ~self.shadow_blocked[sid]
         if ready.any():
             self.commit.append(rays.take(ready).without("entry", "rank"))
@@ -347,3 +411,17 @@ def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Position of each of ``values`` in ``keys`` (unique keys, every value present)."""
     order = np.argsort(keys, kind="stable")
     return order[np.searchsorted(keys[order], values)]
+
+
+def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset()) -> list[int]:
+    """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
+    ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M), lowest id on ties.
+
+    Domains in ``resident`` go first (still by score among themselves). A fixed cyclic order is
+    the worst case for an LRU cache smaller than the cycle (every access misses); starting each
+    round with what the last one left resident turns those misses into hits (bench/ooc.py
+    measures both orders). Empty ``resident`` gives the paper's order.
+    """
+    m = counter.shape[1]
+    score = counter @ (m - np.arange(m))
+    return sorted(range(len(score)), key=lambda d: (d not in resident, -score[d], d))

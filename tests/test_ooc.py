@@ -7,15 +7,18 @@ import json
 import numpy as np
 import pytest
 
-from vastray.actors.local import render_out_of_core
+from vastray.actors.local import RenderSetup, render_out_of_core
 from vastray.cli import main
-from vastray.render.driver import render
+from vastray.render.driver import path_context, render
+from vastray.render.integrators import camera_rays
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.cache import DomainCache
 from vastray.scene.generate import generate
 from vastray.scene.partition import partition_kd
 from vastray.scene.readers import read_mesh
 from vastray.scene.store import Store, StoreWriter
+from vastray.schedule.spec_ooc import SpeculativeSchedule, traversal_order
 
 from scenes import bumpy_scene, camera_config, settings, write_store
 
@@ -77,6 +80,76 @@ def test_speculation_loads_fewer_domains_and_reports_its_waste(bumpy, config):
             assert key in counters
 
 
+@pytest.mark.parametrize("integrator", ["ao", "pt"])
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_every_switch_combination_matches_reference(bumpy, config, integrator, scheduler):
+    # Residency and preloading change the order domains are visited in, never the image.
+    st = settings(width=24, height=18, spp=2, integrator=integrator, bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+    for resident_first in (False, True):
+        for preload in (False, True):
+            result = render_out_of_core(bumpy, config, st, scheduler=scheduler, cache_capacity=4,
+                                        resident_first=resident_first, preload=preload,
+                                        progress=False)
+            assert_same(result.film.image(), reference,
+                        f"{scheduler} resident_first={resident_first} preload={preload}")
+
+
+@pytest.mark.parametrize("resident_first", [False, True])
+def test_spec_ooc_filters_before_it_loads(bumpy, config, resident_first):
+    # Listing 2, lines 15-19: a domain whose rays are all stale, beaten or blocked is skipped,
+    # not loaded. With sequential loading every load traces at least one ray.
+    st = settings(width=48, height=36, spp=2, integrator="pt", bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+    result = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=7,
+                                resident_first=resident_first, preload=False, progress=False)
+    c = result.counters
+    assert_same(result.film.image(), reference, f"resident_first={resident_first}")
+    assert c["skipped_domains"] > 0
+    assert c["untraced_loads"] == 0
+    assert c["domains_traced"] == 27 <= c["loads"]
+
+
+def test_resident_first_saves_baseline_loads(bumpy, config):
+    # The baseline gets the rule spec-ooc has: serve what is in memory before loading more.
+    st = settings(width=48, height=36, spp=2, integrator="pt", bounces=3)
+    loads = {rule: render_out_of_core(bumpy, config, st, scheduler="image", cache_capacity=7,
+                                      resident_first=rule, preload=False, progress=False
+                                      ).counters["loads"]
+             for rule in (False, True)}
+    assert loads[True] < loads[False]
+
+
+def test_traversal_order_follows_the_score():
+    # Score[i] = sum_j (M - j) Counter[i][j], M = 3: 3, 3, 4, 8; ties go to the lower id.
+    counter = np.array([[0, 0, 3],
+                        [1, 0, 0],
+                        [0, 2, 0],
+                        [2, 1, 0]])
+    assert traversal_order(counter) == [3, 2, 0, 1]
+    assert traversal_order(counter, frozenset({1, 2})) == [2, 1, 3, 0]
+    assert traversal_order(np.zeros((3, 3), np.int64)) == [0, 1, 2]
+
+
+def test_spec_ooc_first_round_follows_the_score(bumpy, config):
+    # In the paper's order (no resident rule) the first round visits domains in descending
+    # score of the camera rays' Counter; skipped domains only leave gaps.
+    st = settings(width=24, height=18, spp=1, integrator="pt", bounces=2)
+    setup = RenderSetup.of(bumpy, config, st)
+    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
+    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                                 resident_first=False)
+    policy.start(camera_rays(setup.camera, ctx))
+    expected = traversal_order(policy.counter.copy())
+    cache = DomainCache(bumpy, len(bumpy.domains), setup.keep)
+    visited = []
+    while (domain := policy.next_domain()) is not None and policy.counters["rounds"] == 1:
+        visited.append(domain)
+        policy.process(domain, cache.get(domain))
+    assert len(visited) > 3 and visited[0] == expected[0]
+    assert visited == sorted(visited, key=expected.index)
+
+
 def test_samples_in_flight_bound_peak_rays(bumpy, config):
     # SpRay's memory explosion (sections 5.1.2, 6) must not happen: with a tile of 500 paths
     # the peak number of queued rays does not grow with the samples per pixel.
@@ -88,7 +161,9 @@ def test_samples_in_flight_bound_peak_rays(bumpy, config):
 
     bounded = [peak(spp, 500) for spp in (2, 8)]
     unbounded = peak(8, None)
-    assert bounded[1] <= 2 * bounded[0]
+    # 4x the paths, not 4x the peak. The peak is a max over tiles (2 tiles at 2 spp, 7 at
+    # 8 spp) and depends on the domain order: over render seeds 1-7 the ratio ranges 1.4-2.1.
+    assert bounded[1] <= 2.5 * bounded[0]
     assert bounded[1] * 3 < unbounded
 
 
