@@ -2,10 +2,14 @@
 
 1. Ray batches through the codec and ZeroMQ (msgpack header + raw frames, zero-copy) against
    raw ZeroMQ multipart messages of the same bytes, over loopback TCP between two processes:
-   ``transport_ratio=`` (floor 0.5).
-2. N = 1, 2, 4 local node processes with every distributed scheduler, on a scene with more
-   domains than a node's cache: time, rays and bytes sent, loads, and each scheduler's time
-   ratio against ``async`` (the Galaxy-style baseline of the temporal-coherence paper).
+   ``transport_ratio=`` (floor 0.8). The clock starts after a warm-up round trip (the
+   receiver process is up and connected) and stops when the receiver has taken the last
+   message, so process start-up and teardown are in neither timing.
+2. N = 1, 2, 4 local node processes with every distributed scheduler at an equal memory
+   budget: each node may hold ceil(D / N) domains, the share ``spec-insitu`` keeps resident
+   (it ignores --cache), so every scheduler holds as many domains as the others. Time, rays
+   and bytes sent, loads, threads per node, and each scheduler's time ratio against
+   ``async`` (the Galaxy-style baseline of the temporal-coherence paper).
 
     python bench/distributed.py [--quick]
 """
@@ -41,19 +45,25 @@ def ray_batch(n: int) -> dict[str, np.ndarray]:
             "kind": rng.integers(0, 2, n).astype(np.uint8)}
 
 
-def _receiver(endpoint: str, messages: int, codec: bool) -> None:
+def _receiver(endpoint: str, reply: str, messages: int, codec: bool) -> None:
     ctx = zmq.Context()
     sock = ctx.socket(zmq.PULL)
     sock.connect(endpoint)
+    back = ctx.socket(zmq.PUSH)
+    back.connect(reply)
+    sock.recv_multipart(copy=False)  # the warm-up message
+    back.send(b"ready")
     for _ in range(messages):
         frames = sock.recv_multipart(copy=False)
         if codec:
             decode(frames)
-    ctx.destroy(linger=0)
+    back.send(b"done")
+    ctx.destroy(linger=1000)
 
 
 def transport(n_rays: int, messages: int) -> tuple[float, float]:
-    """Rays per second through raw multipart frames and through the codec."""
+    """Rays per second through raw multipart frames and through the codec, timed from after
+    a warm-up round trip to the receiver's acknowledgement of the last message."""
     batch = ray_batch(n_rays)
     raw_frames = [np.ascontiguousarray(a).data for a in batch.values()]
     rates = []
@@ -62,15 +72,25 @@ def transport(n_rays: int, messages: int) -> tuple[float, float]:
         sock = ctx.socket(zmq.PUSH)
         sock.setsockopt(zmq.SNDHWM, 16)
         port = sock.bind_to_random_port("tcp://127.0.0.1")
+        replies = ctx.socket(zmq.PULL)
+        reply_port = replies.bind_to_random_port("tcp://127.0.0.1")
         proc = mp.get_context("spawn").Process(
-            target=_receiver, args=(f"tcp://127.0.0.1:{port}", messages, codec))
+            target=_receiver, args=(f"tcp://127.0.0.1:{port}", f"tcp://127.0.0.1:{reply_port}",
+                                    messages, codec))
         proc.start()
+        sock.send_multipart(encode("rays", batch) if codec else raw_frames, copy=False)
+        if not replies.poll(60_000):
+            raise TimeoutError("the receiver process did not start within 60 s")
+        assert replies.recv() == b"ready"
         start = time.perf_counter()
         for _ in range(messages):
             frames = encode("rays", batch) if codec else raw_frames
             sock.send_multipart(frames, copy=False)
-        proc.join()
+        if not replies.poll(120_000):
+            raise TimeoutError("the receiver did not take every message within 120 s")
+        assert replies.recv() == b"done"
         rates.append(n_rays * messages / (time.perf_counter() - start))
+        proc.join()
         ctx.destroy(linger=0)
     return rates[0], rates[1]
 
@@ -89,17 +109,18 @@ def main() -> None:
     if not (path / "manifest.json").is_file():
         generate("rm", path, resolution, grid=(4, 4, 2), seed=0, overwrite=True)
     store = Store(path)
-    cache = max(1, len(store.domains) // 4)
     settings = RenderSettings(width=48, height=36, spp=4 if args.quick else 8, integrator="pt",
                               bounces=2, shadow_samples=4)
     print(f"\nscene: {store.n_triangles:,} triangles in {len(store.domains)} domains, "
-          f"cache {cache} per node, pt {settings.width}x{settings.height} {settings.spp} spp\n")
-    print("| scheduler | nodes | total s | rays sent | MB sent | loads (all nodes) "
-          "| busiest node s |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+          f"pt {settings.width}x{settings.height} {settings.spp} spp; each node may hold "
+          "ceil(domains / N) domains (spec-insitu's resident share: equal memory)\n")
+    print("| scheduler | nodes | cache per node | threads per node | total s | rays sent "
+          "| MB sent | loads (all nodes) | busiest node s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     schedulers = ("async", "domain", "dynamic", "spec-insitu", "image", "spec-ooc")
     times = {}
     for nodes in (1, 2, 4):
+        cache = -(-len(store.domains) // nodes)
         for scheduler in schedulers:
             result = render_distributed(path, None, settings, nodes, scheduler=scheduler,
                                         cache_capacity=cache, max_samples_in_flight=1024)
@@ -107,9 +128,11 @@ def main() -> None:
             rays = sum(c.get("rays_sent", 0) for c in per_node)
             megabytes = sum(c.get("bytes_sent", 0) for c in per_node) / 1e6
             loads = sum(c.get("loads", 0) for c in per_node)
+            threads = per_node[0].get("threads", 1)
             times[scheduler, nodes] = result.seconds["total"]
-            print(f"| {scheduler} | {nodes} | {result.seconds['total']:.2f} | {rays:,} "
-                  f"| {megabytes:.1f} | {loads} | {result.seconds['busy_max']:.2f} |", flush=True)
+            print(f"| {scheduler} | {nodes} | {cache} | {threads} | "
+                  f"{result.seconds['total']:.2f} | {rays:,} | {megabytes:.1f} | {loads} "
+                  f"| {result.seconds['busy_max']:.2f} |", flush=True)
     for nodes in (1, 2, 4):
         ratios = " ".join(f"{s}={times['async', nodes] / times[s, nodes]:.2f}"
                           for s in schedulers if s != "async")

@@ -98,7 +98,9 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     threads : Embree query threads (default: all cores).
     progress : show a progress bar on stderr for renders longer than two seconds.
     drop_page_cache : make every domain load a real disk read.
-    record_rays : if a list, every traced batch's (origins, directions) is appended to it.
+    record_rays : if a list, every query batch is appended to it as (kind, origins,
+        directions, t_max): ``"closest"`` queries (t_max None: unbounded) and ``"occluded"``
+        queries bounded by t_max, exactly what was asked of the domains.
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")

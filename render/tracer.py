@@ -311,7 +311,7 @@ class DomainTracer:
         with self._stats_lock:
             self.stats.rays[kind] += n
         if self.record is not None:
-            self.record.append((origins, directions))
+            self.record.append(("closest", origins, directions, None))
         best = ClosestHits.empty(n, self.color_source is not None)
         slabs = self.slabs(origins, directions)
         for d, idx in self._visits(slabs, best.t):
@@ -338,7 +338,7 @@ class DomainTracer:
         with self._stats_lock:
             self.stats.rays["shadow"] += n
         if self.record is not None:
-            self.record.append((origins, directions))
+            self.record.append(("occluded", origins, directions, t_max))
         blocked = np.zeros(n, dtype=bool)
         live = np.ones(n, dtype=bool)
         for d, idx in self._visits(self.slabs(origins, directions), t_max, live):
