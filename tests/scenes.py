@@ -57,3 +57,18 @@ def settings(**kw) -> RenderSettings:
     base = dict(width=48, height=36, spp=2, bounces=2, shadow_samples=4, seed=7)
     base.update(kw)
     return RenderSettings(**base)
+
+
+#: A camera on ``bumpy_scene``, a point light and a dim sky (the distributed tests' scene).
+POINT_AND_SKY_TOML = """
+[camera]
+position = [3.0, 2.2, 4.5]
+look_at = [0.0, -0.5, 0.0]
+[[light]]
+type = "point"
+position = [2.0, 3.0, 1.0]
+intensity = 12.0
+[[light]]
+type = "ambient"
+radiance = 0.2
+"""

@@ -21,20 +21,9 @@ from vastray.scene.errors import InputError
 from vastray.transport.security import load_keys
 from vastray.transport.tree import children, parent
 
-from scenes import bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
 
-SCENE_TOML = """
-[camera]
-position = [3.0, 2.2, 4.5]
-look_at = [0.0, -0.5, 0.0]
-[[light]]
-type = "point"
-position = [2.0, 3.0, 1.0]
-intensity = 12.0
-[[light]]
-type = "ambient"
-radiance = 0.2
-"""
+SCENE_TOML = POINT_AND_SKY_TOML
 
 
 @pytest.fixture(scope="module")

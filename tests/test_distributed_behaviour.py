@@ -12,21 +12,9 @@ from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.store import DomainArrays
 
-from scenes import bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
 
-SCENE_TOML = """
-[camera]
-position = [3.0, 2.2, 4.5]
-look_at = [0.0, -0.5, 0.0]
-fov = 40.0
-[[light]]
-type = "point"
-position = [2.0, 4.0, 3.0]
-intensity = 30.0
-[[light]]
-type = "ambient"
-radiance = 0.2
-"""
+SCENE_TOML = POINT_AND_SKY_TOML
 
 
 @pytest.fixture(scope="module")

@@ -339,7 +339,9 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str) -> No
     lights = 0 if args.integrator == "ao" else len(config.resolve_lights())
     shadow_rays = args.shadow_samples * max(lights, 1)
     threads = args.threads or os.cpu_count() or 1
-    if args.nodes:
+    if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
+        in_flight, films = 0, 1
+    elif args.nodes:  # every node holds a film and its tile of paths on this machine
         tile = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4
         in_flight, films = tile * args.nodes, args.nodes + 1
     elif scheduler == "reference":

@@ -74,6 +74,12 @@ def _show_progress(args) -> bool:
     return not args.quiet and sys.stderr.isatty()
 
 
+def _add_store_output_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="replace STORE if it is a vastray store (never another folder)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the ``partition``, ``generate`` and ``info`` sub-commands."""
     fmt = argparse.RawDescriptionHelpFormatter
@@ -95,9 +101,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iso", type=float, metavar="VALUE", help="iso value for volume inputs")
     p.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"marching-cubes brick edge in cells (default {DEFAULT_BRICK})")
-    p.add_argument("--force", action="store_true",
-                   help="replace STORE if it is a vastray store (never another folder)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+    _add_store_output_options(p)
     p.set_defaults(func=cmd_partition)
 
     g = sub.add_parser(
@@ -115,9 +119,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     g.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"brick edge in cells (default {DEFAULT_BRICK})")
-    g.add_argument("--force", action="store_true",
-                   help="replace STORE if it is a vastray store (never another folder)")
-    g.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+    _add_store_output_options(g)
     g.set_defaults(func=cmd_generate)
 
     i = sub.add_parser("info", help="describe a domain store",
