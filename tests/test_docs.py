@@ -107,3 +107,17 @@ def test_fetch_from_a_mirror_of_the_real_samples(shared_data, tmp_path, capsys):
                  str(shared_data / "meshes")]) == 0
     assert sorted(p.name for p in (tmp_path / "s").iterdir()) == sorted(s.name for s in SAMPLES)
     assert "checksum ok" in capsys.readouterr().err
+
+
+def test_hero_image_is_what_the_first_command_renders(tmp_path, monkeypatch):
+    # README: "The picture above is exactly what the first command writes to default.png".
+    from PIL import Image
+
+    monkeypatch.setenv("VASTRAY_CACHE", str(tmp_path / "cache"))
+    assert "vastray render -o default.exr --png default.png" in _blocks("bash")[0]
+    assert main(["render", "-o", str(tmp_path / "default.exr"), "--png",
+                 str(tmp_path / "default.png"), "--quiet"]) == 0
+    made = np.asarray(Image.open(tmp_path / "default.png"))
+    shown = np.asarray(Image.open(ROOT / "docs" / "default.png"))
+    assert made.shape == (480, 640, 3)
+    np.testing.assert_array_equal(made, shown)
