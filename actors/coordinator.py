@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import secrets
 import subprocess
 import sys
 import tempfile
@@ -26,7 +27,7 @@ from vastray.render.driver import RenderResult
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.store import Store
-from vastray.transport.codec import decode, encode
+from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.security import (
     ClusterKeys,
     check_bind,
@@ -128,6 +129,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
     logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
     beating = None
+    token = secrets.token_bytes(16)  # the job's identity: every message carries it
     try:
         if listen is None:
             for rank in range(size):
@@ -136,12 +138,14 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                     [sys.executable, "-m", "vastray.actors.node", "--coordinator",
                      f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout)],
                     stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL,
-                    env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid())})))
+                    env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid()),
+                                            protocol.JOB_TOKEN_ENV: token.hex()})))
                 log_file.close()
         elif verbose:
             print(f"waiting for {size} node(s) on tcp://{host}:{port}", file=sys.stderr)
         address = f"tcp://{host}:{port}"
-        watch = _Watch(size, procs, logs.name, timeout, launched, address)
+        watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
+                       open_join=listen is not None)
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
@@ -151,7 +155,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                     rank = min(set(range(size)) - set(identities))
                 identities[rank] = identity
                 endpoints[rank] = message.meta["endpoint"]
-                watch.joined(rank)
+                watch.joined(rank, identity)
                 if listen is not None and verbose:
                     print(f"node {rank} joined from {message.meta.get('host', '?')} "
                           f"(pid {message.meta.get('pid', '?')}), {len(identities)} of {size}",
@@ -159,11 +163,11 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         for rank in range(size):
             frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints, rank=rank,
                                                    size=size))
-            await router.send_multipart([identities[rank], *frames])
-        beating = asyncio.ensure_future(_heartbeat(router, identities))
+            await router.send_multipart([identities[rank], token, *frames])
+        beating = asyncio.ensure_future(_heartbeat(router, identities, token))
         film, reports = None, {}
         done_paths: dict[int, int] = {}
-        control = _Termination(size, router, identities)
+        control = _Termination(size, router, identities, token)
         while film is None or len(reports) < size:
             identity, message = await watch.receive(router)
             if message.kind == protocol.PROGRESS:
@@ -172,7 +176,11 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 bar.update(paths - done_paths.get(rank, 0))
                 done_paths[rank] = paths
             elif message.kind == protocol.FILM:
-                film = film_from(message, settings.width, settings.height)
+                try:
+                    film = film_from(message, settings.width, settings.height)
+                except ValueError as exc:
+                    raise NodeFailure(f"node 0 sent a film that does not fit the image: "
+                                      f"{exc}") from None
             elif message.kind == protocol.DONE:
                 reports[int(message.meta["rank"])] = message.meta
             elif message.kind == protocol.ROUND:
@@ -182,8 +190,10 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             elif message.kind == protocol.QUEUES:
                 await control.queues(message.meta)
         for rank in range(size):
-            await router.send_multipart([identities[rank], *encode(protocol.STOP, {})])
+            await router.send_multipart([identities[rank], token, *encode(protocol.STOP, {})])
         await watch.wait_exit()
+        for report in reports.values():
+            report["counters"]["coordinator_rejected_messages"] = watch.rejections.total
         return film, [reports[r] for r in range(size)], control.barriers
     finally:
         if beating is not None:
@@ -199,12 +209,12 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         logs.cleanup()
 
 
-async def _heartbeat(router, identities: dict[int, bytes]) -> None:
+async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None:
     """Tell every node, twice a second, that the coordinator is alive."""
     frames = encode(protocol.HEARTBEAT, {}, {})
     while True:
         for identity in identities.values():
-            await router.send_multipart([identity, *frames])
+            await router.send_multipart([identity, token, *frames])
         await asyncio.sleep(protocol.HEARTBEAT_S)
 
 
@@ -221,8 +231,8 @@ class _Termination:
     ``domain`` and ``dynamic``, and the end of the frame for ``async``.
     """
 
-    def __init__(self, size: int, router, identities: dict[int, bytes]):
-        self.size, self.router, self.identities = size, router, identities
+    def __init__(self, size: int, router, identities: dict[int, bytes], token: bytes):
+        self.size, self.router, self.identities, self.token = size, router, identities, token
         self.rounds: dict[int, dict] = {}
         self.tile = 0
         self.latest: dict[int, tuple[int, int]] = {}
@@ -232,7 +242,8 @@ class _Termination:
         self.barriers = 0
 
     async def _send(self, rank: int, kind: str, meta: dict) -> None:
-        await self.router.send_multipart([self.identities[rank], *encode(kind, {}, meta)])
+        await self.router.send_multipart([self.identities[rank], self.token,
+                                          *encode(kind, {}, meta)])
 
     async def round_done(self, meta: dict) -> None:
         reports = self.rounds.setdefault(meta["tile"], {})
@@ -328,15 +339,21 @@ class _Watch:
     exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
     def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
-                 launched: dict[str, tuple[subprocess.Popen, Path]], address: str = ""):
+                 launched: dict[str, tuple[subprocess.Popen, Path]], address: str = "",
+                 token: bytes = b"", open_join: bool = False):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
         self.launched, self.address = launched, address
+        self.token, self.open_join = token, open_join
         self.started = time.monotonic()
         self.last_heard = [self.started] * size
         self.ranks_joined: set[int] = set()
+        self.members: dict[bytes, int] = {}  # socket identity -> rank
+        self.once: set[tuple[str, int]] = set()
+        self.rejections = protocol.Rejections()
 
-    def joined(self, rank: int) -> None:
+    def joined(self, rank: int, identity: bytes) -> None:
         self.ranks_joined.add(rank)
+        self.members[identity] = rank
         self.heard(rank)
 
     def heard(self, rank: int) -> None:
@@ -376,15 +393,48 @@ class _Watch:
                 raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")
 
     async def receive(self, router):
+        """The next message that passes ``_admit`` (as identity, message); others are dropped
+        and counted in ``rejections``, and never end the wait."""
         while True:
             self.check()
             if await router.poll(500):
                 frames = await router.recv_multipart(copy=False)
-                message = decode(frames[1:])
-                rank = message.meta.get("rank")
-                if isinstance(rank, int) and 0 <= rank < self.size:
-                    self.heard(rank)
-                return frames[0].bytes, message
+                try:
+                    admitted = self._admit(frames)
+                except (CodecError, protocol.ProtocolError) as exc:
+                    self.rejections.add("malformed", str(exc))
+                    continue
+                if admitted is not None:
+                    return admitted
+
+    def _admit(self, frames: list):
+        """Check one message: the job token, the sender (a member speaks only for its own
+        rank; a stranger may only say hello, with the token, or with none where nodes join
+        from elsewhere under CURVE), the kind's schema, and once-only kinds (the film from
+        rank 0, each rank's done)."""
+        if len(frames) < 3:
+            raise protocol.ProtocolError("no identity, token or header frame")
+        identity, token, body = frames[0].bytes, frames[1].bytes, frames[2:]
+        rank = self.members.get(identity)
+        open_hello = rank is None and self.open_join and token == b""
+        if token != self.token and not open_hello:
+            self.rejections.add("stranger", "a message without this job's token")
+            return None
+        message = decode(body)
+        protocol.check(message, protocol.FROM_NODE if rank is not None
+                       else frozenset({protocol.HELLO}))
+        if rank is not None:
+            if message.meta.get("rank", rank) != rank:
+                raise protocol.ProtocolError(f"node {rank} spoke for rank "
+                                             f"{message.meta.get('rank')}")
+            once = (message.kind, rank) if message.kind in (protocol.DONE, protocol.FILM) else None
+            if once is not None:
+                if once in self.once or (message.kind == protocol.FILM and rank != 0):
+                    raise protocol.ProtocolError(f"a second or unexpected {message.kind} from "
+                                                 f"node {rank}")
+                self.once.add(once)
+            self.heard(rank)
+        return identity, message
 
     async def wait_exit(self) -> None:
         deadline = time.monotonic() + self.timeout

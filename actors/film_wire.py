@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from vastray.actors.protocol import FILM_FIELDS
 from vastray.render.film import Film
 from vastray.transport.codec import Message, encode
-
-FILM_FIELDS = ("sum", "sum_sq", "count", "depth", "normal")
 
 
 def film_frames(film: Film, meta: dict | None = None) -> list:

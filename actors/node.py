@@ -26,7 +26,7 @@ from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.render.scene_config import SceneConfig, parse_scene_config
-from vastray.transport.codec import decode, encode
+from vastray.transport.codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
 from vastray.transport.security import (
     ClusterKeys,
     check_bind,
@@ -44,25 +44,58 @@ class AuthenticationFailed(RuntimeError):
     """The coordinator refused this node's CURVE handshake."""
 
 
+class _Mailbox(asyncio.Queue):
+    """An unbounded mailbox that knows how many bytes of messages it holds."""
+
+    def _init(self, maxsize):
+        super()._init(maxsize)
+        self.nbytes = 0
+
+    def _put(self, item):
+        super()._put(item)
+        self.nbytes += item_nbytes(item)
+
+    def _get(self):
+        item = super()._get()
+        self.nbytes -= item_nbytes(item)
+        return item
+
+
+def item_nbytes(message) -> int:
+    return sum(a.nbytes for a in message.arrays.values())
+
+
 class ManagementActor:
     """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, DEALERs to
     peers on demand. Incoming messages go to mailboxes by kind.
 
-    The receive path never waits: a mailbox has no count limit, so a kind whose reader is
-    busy never holds back another kind, and a node sending to a peer is never blocked by a
-    peer that is itself blocked sending (the deadlock of bounded mailboxes). What bounds the
-    memory is the protocol: ray batches in flight are bounded by the paths each node injects
-    (``tile``), control messages by the number of nodes. Kinds no role sends to a node are
-    dropped and logged, never given a mailbox."""
+    The receive path never waits and never dies: a mailbox has no count limit, so a kind whose
+    reader is busy never holds back another kind, and a node sending to a peer is never
+    blocked by a peer that is itself blocked sending (the deadlock of bounded mailboxes).
+    Every message is checked before delivery: the job token frame (a message from outside
+    the job is dropped undecoded), the codec, the sender's role (control kinds only from the
+    coordinator, data kinds only from peers), the kind's schema, and the budget of bytes held
+    undelivered. A message that fails is dropped, logged at a bounded rate and counted in
+    ``rejections`` (the node's report). Sockets refuse frames over the codec's size limit.
+
+    Parameters
+    ----------
+    token : the job token, when known at start (nodes started by the coordinator); else the
+        token of the first job received is adopted.
+    """
 
     def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
-                 advertise: str, timeout: float, keys: ClusterKeys | None):
+                 advertise: str, timeout: float, keys: ClusterKeys | None,
+                 token: bytes | None = None):
         self.ctx = ctx
         self.timeout = timeout
         self.keys = keys
+        self.token = token
+        self.rejections = protocol.Rejections()
         self.router = ctx.socket(zmq.ROUTER)
         self.router.setsockopt(zmq.LINGER, 0)
         self.router.setsockopt(zmq.RCVHWM, 64)
+        self.router.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
         secure_server(self.router, keys)
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
@@ -70,33 +103,75 @@ class ManagementActor:
         self.coordinator_heard = time.monotonic()
         self.peers: dict[str, zmq.asyncio.Socket] = {}
         self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
-        self.mailboxes: dict[str, asyncio.Queue] = {}
-        self._tasks = [asyncio.ensure_future(self._route(self.router, identity=True)),
-                       asyncio.ensure_future(self._route(self.coordinator, identity=False))]
+        self.mailboxes: dict[str, _Mailbox] = {}
+        # Peer messages that came before this node knew its job token (a fast peer may send
+        # before the job reached this node); checked once the token is known.
+        self._early: list[tuple[bytes, list]] = []
+        self._tasks = [asyncio.ensure_future(self._route(self.router, from_peer=True)),
+                       asyncio.ensure_future(self._route(self.coordinator, from_peer=False))]
 
     def _dealer(self, endpoint: str) -> zmq.asyncio.Socket:
         sock = self.ctx.socket(zmq.DEALER)
         sock.setsockopt(zmq.LINGER, 0)
         sock.setsockopt(zmq.SNDHWM, 64)
+        sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
         secure_client(sock, self.keys)
         sock.connect(endpoint)
         return sock
 
-    def mailbox(self, kind: str) -> asyncio.Queue:
-        return self.mailboxes.setdefault(kind, asyncio.Queue())
+    def mailbox(self, kind: str) -> _Mailbox:
+        return self.mailboxes.setdefault(kind, _Mailbox())
 
-    async def _route(self, sock: zmq.asyncio.Socket, identity: bool) -> None:
+    async def _route(self, sock: zmq.asyncio.Socket, from_peer: bool) -> None:
         while True:
             frames = await sock.recv_multipart(copy=False)
-            message = decode(frames[1:] if identity else frames)
-            if not identity:
-                self.coordinator_heard = time.monotonic()
-                if message.kind == protocol.HEARTBEAT:
-                    continue
-            if message.kind not in protocol.TO_NODE:
-                log.warning("dropped a message of unknown kind %r", message.kind[:40])
-                continue
-            self.mailbox(message.kind).put_nowait(message)
+            try:
+                self._take(frames[1:] if from_peer else frames, from_peer)
+            except Exception as exc:  # noqa: BLE001 - the receive path must never die
+                self.rejections.add("internal", f"{type(exc).__name__}: {exc}")
+
+    def _take(self, frames: list, from_peer: bool) -> None:
+        """Check one received message and deliver it to its mailbox, or drop it."""
+        if len(frames) < 2:
+            self.rejections.add("malformed", "no token or header frame")
+            return
+        token, body = frames[0].bytes, frames[1:]
+        if from_peer:
+            if self.token is None:
+                if len(self._early) < 4096:
+                    self._early.append((token, body))
+                else:
+                    self.rejections.add("budget", "too many messages before the job")
+                return
+            if token != self.token:
+                self.rejections.add("stranger", "a peer message without this job's token")
+                return
+        else:
+            self.coordinator_heard = time.monotonic()
+        try:
+            message = decode(body)
+            protocol.check(message, protocol.FROM_PEER if from_peer
+                           else protocol.FROM_COORDINATOR)
+        except (CodecError, protocol.ProtocolError) as exc:
+            self.rejections.add("malformed", str(exc))
+            return
+        if not from_peer:
+            if message.kind == protocol.HEARTBEAT:
+                return
+            if message.kind == protocol.JOB and self.token is None:
+                self.adopt_token(token)
+        held = sum(box.nbytes for box in self.mailboxes.values())
+        if held + item_nbytes(message) > protocol.UNDELIVERED_BUDGET:
+            self.rejections.add("budget", f"{held} bytes already undelivered")
+            return
+        self.mailbox(message.kind).put_nowait(message)
+
+    def adopt_token(self, token: bytes) -> None:
+        """Learn the job token (from the first job) and check the peer messages held back."""
+        self.token = token
+        early, self._early = self._early, []
+        for peer_token, body in early:
+            self._take([zmq.Frame(peer_token), *body], from_peer=True)
 
     async def watch_coordinator(self, silence: float) -> None:
         """Exit the process once the coordinator has been silent for ``silence`` seconds: it
@@ -137,13 +212,16 @@ class ManagementActor:
             raise TimeoutError(f"no {what} within {self.timeout:.0f} s") from None
 
     async def to_coordinator(self, frames: list) -> None:
-        await asyncio.wait_for(self.coordinator.send_multipart(frames, copy=False), self.timeout)
+        """Send a message to the coordinator, behind the job token frame."""
+        await asyncio.wait_for(self.coordinator.send_multipart(
+            [self.token or b"", *frames], copy=False), self.timeout)
 
     async def to_peer(self, endpoint: str, frames: list) -> None:
+        """Send a message to the node at ``endpoint``, behind the job token frame."""
         if endpoint not in self.peers:
             self.peers[endpoint] = self._dealer(endpoint)
-        await asyncio.wait_for(self.peers[endpoint].send_multipart(frames, copy=False),
-                               self.timeout)
+        await asyncio.wait_for(self.peers[endpoint].send_multipart(
+            [self.token or b"", *frames], copy=False), self.timeout)
 
     def close(self) -> None:
         for task in self._tasks:
@@ -209,7 +287,10 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     auth = start_authenticator(ctx, keys)
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
-    management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys)
+    token = os.environ.get(protocol.JOB_TOKEN_ENV)
+    management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
+                                 token=None if token is None else bytes.fromhex(token))
+    log.info("listening for peers on %s", management.endpoint)
     watchers = []
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
@@ -268,10 +349,13 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         busy = time.perf_counter() - start
         reduce_start = time.perf_counter()
         film = await tree.reduce_film(film, settings.width, settings.height)
+        rejected = management.rejections
         stats = {"rank": rank, "busy_s": round(busy, 4),
                  "reduce_s": round(time.perf_counter() - reduce_start, 4),
-                 "counters": {k: v for k, v in counters.items()
-                              if isinstance(v, (int, float, str))}}
+                 "counters": {**{k: v for k, v in counters.items()
+                                 if isinstance(v, (int, float, str))},
+                              "rejected_messages": rejected.total,
+                              **{f"rejected_{k}": v for k, v in rejected.counts.items()}}}
         if rank == 0:
             await management.to_coordinator(film_frames(film, {"rank": rank}))
         await management.to_coordinator(encode(protocol.DONE, {}, stats))

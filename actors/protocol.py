@@ -1,4 +1,19 @@
-"""Message kinds between the coordinator and nodes (each a codec message; payload in meta)."""
+"""Message kinds between the coordinator and nodes (each a codec message; payload in meta),
+who may send each, and what each must hold.
+
+On the wire every message is ``[job token, header, frame, ...]``: the token frame is the job's
+secret (made by the coordinator; handed to the nodes it starts in their environment and to
+every node in the job), so a message from outside the job is dropped before it is decoded.
+CURVE, where configured, authenticates the connection underneath.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+log = logging.getLogger(__name__)
 
 HELLO = "hello"          # node -> coordinator: rank, endpoint
 JOB = "job"              # coordinator -> node: store, scene, settings, peers
@@ -17,8 +32,102 @@ SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for thi
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 
-#: Kinds a node accepts (from the coordinator or from peers); anything else is dropped.
-TO_NODE = frozenset({JOB, FILM, STOP, RAYS, GO, PROBE, SCHEDULE, REDUCE, BROADCAST})
+#: Who may send what. A node takes control kinds only from its coordinator connection and
+#: data kinds only from peers of its job; the coordinator takes only node kinds.
+FROM_COORDINATOR = frozenset({JOB, STOP, GO, PROBE, SCHEDULE, HEARTBEAT})
+FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
+FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, ROUND, STATUS, QUEUES})
+
+_NUMBER = (int, float)
+
+#: Required meta keys and their types, per kind (extra keys are allowed).
+META = {
+    HELLO: {"rank": int, "endpoint": str},
+    JOB: {"store": str, "settings": dict, "node_scheduler": str, "rank": int, "size": int,
+          "endpoints": list, "tile": int},
+    PROGRESS: {"rank": int, "paths": int},
+    HEARTBEAT: {},
+    FILM: {"rank": int},
+    DONE: {"rank": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
+    STOP: {},
+    RAYS: {"rank": int, "tile": int, "queue": str},
+    ROUND: {"rank": int, "tile": int, "sent_to": dict},
+    GO: {"expect": int, "finished": bool},
+    STATUS: {"rank": int, "tile": int, "sent": int, "received": int},
+    PROBE: {"finished": bool, "probe": int},
+    QUEUES: {"rank": int, "tile": int, "loaded": list, "queues": dict},
+    SCHEDULE: {"assign": dict, "size": int, "finished": bool},
+    REDUCE: {"rank": int},
+    BROADCAST: {"rank": int},
+}
+
+#: Arrays a film carries, all with one row per pixel.
+FILM_FIELDS = ("sum", "sum_sq", "count", "depth", "normal")
+
+
+class ProtocolError(ValueError):
+    """A message that decodes but breaks the protocol: unknown kind, wrong sender, missing or
+    mistyped fields, inconsistent shapes."""
+
+
+def check(message, allowed: frozenset[str]) -> None:
+    """Check a decoded message against its kind's schema and the kinds ``allowed`` from its
+    sender.
+
+    Raises
+    ------
+    ProtocolError
+        Saying what is wrong.
+    """
+    kind = message.kind
+    if kind not in allowed:
+        raise ProtocolError(f"kind {kind[:40]!r} not accepted from this sender")
+    for key, types in META[kind].items():
+        value = message.meta.get(key)
+        ok = (type(value) is bool) if types is bool else (
+            isinstance(value, types) and not isinstance(value, bool))
+        if not ok:
+            raise ProtocolError(f"{kind}: meta {key!r} missing or not {types}")
+    if kind == RAYS:
+        _check_rays(message)
+    elif kind == FILM:
+        _check_film(message)
+    elif message.arrays and kind not in (REDUCE, BROADCAST):
+        raise ProtocolError(f"{kind} carries no arrays")
+
+
+def _check_rays(message) -> None:
+    from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
+
+    queue = message.meta["queue"]
+    if queue not in ("radiance", "shadow"):
+        raise ProtocolError(f"rays: unknown queue {queue[:40]!r}")
+    arrays = message.arrays
+    if not arrays:
+        return  # an empty batch: counted, carries nothing
+    domain = arrays.get("domain")
+    if domain is None or domain.ndim != 1 or domain.dtype.kind not in "iu":
+        raise ProtocolError("rays: needs a 1-D integer 'domain' field")
+    missing = set(RADIANCE_FIELDS if queue == "radiance" else SHADOW_FIELDS) - set(arrays)
+    if missing:
+        raise ProtocolError(f"rays: missing fields {sorted(missing)}")
+    n = len(domain)
+    if any(a.ndim == 0 or a.shape[0] != n for a in arrays.values()):
+        raise ProtocolError(f"rays: every field needs {n} rows")
+    if n and (int(domain.min()) < 0):
+        raise ProtocolError("rays: negative domain id")
+
+
+def _check_film(message) -> None:
+    arrays = message.arrays
+    missing = set(FILM_FIELDS) - set(arrays)
+    if missing:
+        raise ProtocolError(f"film: missing fields {sorted(missing)}")
+    n = len(arrays["count"])
+    if any(arrays[f].ndim == 0 or arrays[f].shape[0] != n for f in FILM_FIELDS):
+        raise ProtocolError("film: fields differ in pixel count")
+    if not all(np.issubdtype(arrays[f].dtype, np.number) for f in FILM_FIELDS):
+        raise ProtocolError("film: fields must be numeric")
 
 #: Seconds between the coordinator's heartbeats to its nodes; a node that hears nothing from
 #: the coordinator for ``COORDINATOR_SILENCE_S`` exits (the coordinator died or was cut off).
@@ -28,3 +137,27 @@ COORDINATOR_SILENCE_S = 5.0
 #: Environment variable naming the coordinator's pid to the nodes it starts on its own machine:
 #: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).
 PARENT_PID_ENV = "VASTRAY_PARENT_PID"
+
+#: Environment variable handing the job token to the nodes a coordinator starts itself.
+JOB_TOKEN_ENV = "VASTRAY_JOB_TOKEN"
+
+#: Bytes of received messages a node holds undelivered at most; beyond, messages are dropped
+#: (the protocol bounds honest traffic far below: rays in flight are bounded by the tiles).
+UNDELIVERED_BUDGET = 4 << 30
+
+
+class Rejections:
+    """Messages dropped on receipt, counted by reason and logged at a bounded rate (the first
+    few of each reason, then every thousandth), so a flood cannot flood the log too."""
+
+    def __init__(self):
+        self.counts: dict[str, int] = {}
+
+    def add(self, reason: str, detail: str) -> None:
+        n = self.counts[reason] = self.counts.get(reason, 0) + 1
+        if n <= 5 or n % 1000 == 0:
+            log.warning("dropped a message (%s, %d so far): %s", reason, n, detail[:200])
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())

@@ -235,7 +235,7 @@ async def test_tree_allreduce_over_real_sockets(size):
     coordinator = ctx.socket(zmq.ROUTER)
     port = coordinator.bind_to_random_port("tcp://127.0.0.1")
     nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                             None) for _ in range(size)]
+                             None, token=b"job") for _ in range(size)]
     endpoints = [n.endpoint for n in nodes]
     rng = np.random.default_rng(size)
     values = [{"t": rng.integers(0, 1 << 60, 100, dtype=np.uint64),

@@ -12,6 +12,7 @@ followed by one frame per field, in order, each exactly ``prod(shape) * itemsize
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import msgpack
@@ -95,6 +96,8 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     kind, fields, meta = header.get("kind"), header.get("fields"), header.get("meta", {})
     if not isinstance(kind, str) or not isinstance(fields, list) or not isinstance(meta, dict):
         raise CodecError("header needs kind (str), fields (list) and meta (map)")
+    if len(kind) > 64:
+        raise CodecError("kind longer than 64 characters")
     if len(fields) > MAX_FIELDS:
         raise CodecError(f"{len(fields)} fields; at most {MAX_FIELDS}")
     if len(buffers) != 1 + len(fields):
@@ -102,7 +105,7 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     arrays, total = {}, header_bytes
     for spec, buf in zip(fields, buffers[1:], strict=True):
         name, dtype, shape = _field(spec)
-        expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        expected = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
         total += expected
         if total > max_bytes:
             raise CodecError(f"message exceeds {max_bytes} bytes")
@@ -110,6 +113,8 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         if view.nbytes != expected:
             raise CodecError(f"field {name!r}: frame has {view.nbytes} bytes, header says "
                              f"{expected}")
+        if name in arrays:
+            raise CodecError(f"field {name!r} appears twice")
         arrays[name] = np.frombuffer(view, dtype=dtype).reshape(shape) if expected else \
             np.zeros(shape, dtype)
     return Message(kind, arrays, meta)
@@ -122,6 +127,6 @@ def _field(spec) -> tuple[str, np.dtype, tuple[int, ...]]:
     name, dtype, shape = spec
     if dtype not in ALLOWED_DTYPES:
         raise CodecError(f"field {name!r}: dtype {dtype!r} not allowed")
-    if len(shape) > 4 or not all(isinstance(s, int) and 0 <= s < (1 << 40) for s in shape):
+    if len(shape) > 4 or not all(type(s) is int and 0 <= s < (1 << 40) for s in shape):
         raise CodecError(f"field {name!r}: bad shape {shape!r}")
     return name, np.dtype(dtype), tuple(shape)
