@@ -37,7 +37,7 @@ def test_compose_commands_parse_with_the_real_cli():
     args = parser.parse_args([a.replace("${NODES:-4}", "4") for a in services["coordinator"]["command"]])
     assert args.nodes == 4 and args.listen == "0.0.0.0:5555"
     args = parser.parse_args(services["keys"]["command"])
-    assert args.output == "/keys"
+    assert args.output == "/keys" and args.keep_existing  # a second `up` keeps the keys
     args = build_node_parser().parse_args(services["node"]["command"][1:])
     assert args.coordinator == "tcp://coordinator:5555" and args.keys == "/keys"
 

@@ -19,6 +19,7 @@ from vastray.preflight import MemoryEstimate, check_memory, estimate_memory
 from vastray.render.imageio import read_exr, read_image, write_exr
 from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
+from vastray.transport.security import KEY_FILE
 
 from scenes import bumpy_scene, write_store
 
@@ -266,3 +267,16 @@ def test_compare_of_identical_images_says_inf(store, tmp_path):
     write_exr(tmp_path / "ref.exr", np.zeros((24, 32, 3), np.float32))
     out = vastray("compare", tmp_path / "ref.exr", tmp_path / "ref.exr", cwd=tmp_path)
     assert out.returncode == 0 and "psnr_db=inf" in out.stdout
+
+
+def test_keys_are_never_replaced_silently(tmp_path):
+    assert vastray("keys", "-o", "k", cwd=tmp_path).returncode == 0
+    key = tmp_path / "k" / KEY_FILE
+    before = key.read_bytes()
+    out = vastray("keys", "-o", "k", cwd=tmp_path)
+    assert out.returncode == 2 and "--force" in out.stderr
+    assert key.read_bytes() == before
+    assert vastray("keys", "-o", "k", "--keep-existing", cwd=tmp_path).returncode == 0
+    assert key.read_bytes() == before  # docker compose's keys service, run again
+    assert vastray("keys", "-o", "k", "--force", cwd=tmp_path).returncode == 0
+    assert key.read_bytes() != before

@@ -30,9 +30,19 @@ class ClusterKeys:
     public_dir: Path
 
 
-def generate_keys(folder: str | os.PathLike) -> Path:
-    """Write a new cluster key pair into ``folder`` (secret file readable by the owner only)."""
+def generate_keys(folder: str | os.PathLike, force: bool = False) -> Path:
+    """Write a new cluster key pair into ``folder`` (secret file readable by the owner only).
+
+    Raises
+    ------
+    InputError
+        When ``folder`` already holds a key and ``force`` is not given: replacing it would
+        lock every node that has the old one out of the cluster.
+    """
     folder = Path(folder)
+    if (folder / KEY_FILE).exists() and not force:
+        raise InputError(folder / KEY_FILE, "a cluster key exists already; nodes holding it "
+                                           "would be locked out (pass --force to replace it)")
     (folder / PUBLIC_DIR).mkdir(parents=True, exist_ok=True)
     public, secret = zmq.curve_keypair()
     key_file = folder / KEY_FILE

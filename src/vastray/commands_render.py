@@ -21,7 +21,7 @@ from vastray.render.scene_config import load_scene_config
 from vastray.report import build_report, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
-from vastray.transport.security import generate_keys, load_keys
+from vastray.transport.security import KEY_FILE, generate_keys, load_keys
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,14 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
-    k.set_defaults(func=lambda args: print(generate_keys(args.output)) or 0)
+    replace = k.add_mutually_exclusive_group()
+    replace.add_argument("--force", action="store_true",
+                         help="replace a key pair already in the folder (nodes holding the old "
+                              "one can no longer join)")
+    replace.add_argument("--keep-existing", action="store_true",
+                         help="keep a key pair already in the folder and succeed (for scripts "
+                              "and docker compose that run this on every start)")
+    k.set_defaults(func=run_keys)
 
     c = sub.add_parser(
         "compare", help="print MSE, PSNR and max difference of two images",
@@ -179,6 +186,16 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
     c.add_argument("image")
     c.add_argument("reference")
     c.set_defaults(func=run_compare)
+
+
+def run_keys(args: argparse.Namespace) -> int:
+    key_file = Path(args.output) / KEY_FILE
+    if args.keep_existing and key_file.exists():
+        load_keys(args.output)  # refuses a malformed one
+        print(key_file)
+        return 0
+    print(generate_keys(args.output, args.force))
+    return 0
 
 
 def _positive(text: str) -> int:
