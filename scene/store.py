@@ -11,26 +11,45 @@ Layout of a STORE folder::
 
 Every file loads with ``np.load(path, mmap_mode="r")``. A store is written into a temporary
 folder and renamed into place when complete, so a failed run never leaves a partial store.
+Since format version 2 each domain entry records the SHA-256 of each of its files
+(``"sha256": {"vertices": ..., ...}``), which ``vastray verify`` checks; version 1 stores (no
+checksums) still open. How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
-
-FORMAT = "vastray-store"
-VERSION = 1
-MANIFEST = "manifest.json"
-ATTRIBUTES = ("objects", "scalars", "colors")
+from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInfo: re-exported)
+    ARRAYS,
+    ATTRIBUTES,
+    FORMAT,
+    MANIFEST,
+    MAX_DOMAINS,
+    MAX_MANIFEST_BYTES,
+    REWRITE,
+    VERSION,
+    DomainInfo,
+    DomainParser,
+    StoreRoot,
+    domain_file,
+    manifest_size_ok,
+    mismatch,
+    one_line,
+    read_manifest,
+    scene_fields,
+    totals,
+)
 
 
 @dataclass
@@ -71,64 +90,32 @@ class DomainArrays:
         return int(sum(a.nbytes for a in arrays if a is not None))
 
 
-@dataclass(frozen=True)
-class DomainInfo:
-    """A domain's manifest entry: id, box (may overlap neighbours), counts and files."""
-
-    id: int
-    lo: np.ndarray  # (3,) float64
-    hi: np.ndarray  # (3,) float64
-    n_triangles: int
-    n_vertices: int
-    nbytes: int
-    files: dict = field(hash=False)
-
-
 class Store:
     """A read-only view of a STORE folder; loads domains on demand.
+
+    Opening checks the whole manifest and the ``.npy`` header of every file it names (see
+    :mod:`vastray.scene.manifest`); loading a domain checks its data (shapes, dtypes, index
+    ranges). Nothing the manifest says is used unchecked, so a damaged or hand-edited store
+    fails with an :class:`InputError` naming the file, never a silently missing domain.
 
     Parameters
     ----------
     path : path to the STORE folder.
+
+    Raises
+    ------
+    InputError
+        The first problem found, naming ``manifest.json`` or the ``.npy`` file at fault.
     """
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
-        manifest_path = self.path / MANIFEST
-        if not self.path.exists():
-            raise InputError(self.path, "no such store (run `vastray partition` or `vastray generate`)")
-        if not manifest_path.is_file():
-            raise InputError(manifest_path, "missing manifest; is this a vastray store?")
-        try:
-            self.manifest = json.loads(manifest_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InputError(manifest_path, f"not valid JSON ({exc})") from None
-        if self.manifest.get("format") != FORMAT:
-            raise InputError(manifest_path, f"not a {FORMAT} manifest")
-        if self.manifest.get("version") != VERSION:
-            raise InputError(
-                manifest_path,
-                f"store format version {self.manifest.get('version')} is not supported "
-                f"(this vastray reads version {VERSION}); re-run `vastray partition`",
-            )
-        try:
-            self.domains = [
-                DomainInfo(
-                    id=int(d["id"]),
-                    lo=np.asarray(d["bounds"][0], dtype=np.float64),
-                    hi=np.asarray(d["bounds"][1], dtype=np.float64),
-                    n_triangles=int(d["triangles"]),
-                    n_vertices=int(d["vertices"]),
-                    nbytes=int(d["bytes"]),
-                    files=dict(d["files"]),
-                )
-                for d in self.manifest["domains"]
-            ]
-            self.bounds = np.asarray(self.manifest["bounds"], dtype=np.float64)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(manifest_path, f"malformed manifest entry ({exc!r})") from None
-        if [d.id for d in self.domains] != list(range(len(self.domains))):
-            raise InputError(manifest_path, "domain ids must be 0..N-1 in order")
+        self.root = StoreRoot.of(self.path)
+        self.manifest = read_manifest(self.root)
+        self.bounds = scene_fields(self.manifest, self.root.manifest)
+        self.domains: list[DomainInfo] = [_raise_if_error(item)
+                                          for item in DomainParser(self.root, self.manifest)]
+        totals(self.manifest, self.domains, self.bounds, self.root.manifest)
 
     @property
     def objects(self) -> list[dict]:
@@ -163,6 +150,11 @@ class Store:
             return np.zeros((0, 3)), np.zeros((0, 3))
         return np.stack([d.lo for d in self.domains]), np.stack([d.hi for d in self.domains])
 
+    def domain_path(self, info: DomainInfo, kind: str) -> Path:
+        """Path of a domain's ``kind`` file, checked again to stay inside the store (a symlink
+        may have changed since the store was opened)."""
+        return domain_file(self.root, info.files[kind], kind, f"domain {info.id}")
+
     def load_domain(self, domain_id: int, mmap: bool = True, drop_cache: bool = False) -> DomainArrays:
         """Read one domain's arrays and check them against the manifest.
 
@@ -172,20 +164,29 @@ class Store:
         mmap : memory-map the files instead of reading them.
         drop_cache : after reading (``mmap=False`` only), advise the kernel to drop the files'
             pages so a later load is a real read from disk.
+
+        Raises
+        ------
+        InputError
+            A file missing, truncated, or whose data does not match the manifest (shape, dtype,
+            an index beyond the domain's vertices, an object beyond the manifest's objects).
         """
         info = self.domains[domain_id]
-        arrays = {}
-        for name in ("vertices", "indices", *ATTRIBUTES):
-            rel = info.files.get(name)
-            if rel is None:
-                arrays[name] = None
-                continue
-            arrays[name] = _read_array(self.path / rel, mmap=mmap, drop_cache=drop_cache)
-        if arrays["vertices"] is None or arrays["indices"] is None:
-            raise InputError(self.path / MANIFEST, f"domain {domain_id} lists no vertices/indices file")
+        arrays = dict.fromkeys(ARRAYS)
+        for kind in info.files:
+            arrays[kind] = _read_array(self.domain_path(info, kind), mmap=mmap,
+                                       drop_cache=drop_cache)
         dom = DomainArrays(**arrays)
-        _check_domain(dom, info, self.path)
+        problems = domain_problems(dom, info, self.path, len(self.objects))
+        if problems:
+            raise problems[0]
         return dom
+
+
+def _raise_if_error(item: DomainInfo | InputError) -> DomainInfo:
+    if isinstance(item, InputError):
+        raise item
+    return item
 
 
 def _read_array(path: Path, mmap: bool, drop_cache: bool) -> np.ndarray:
@@ -200,30 +201,49 @@ def _read_array(path: Path, mmap: bool, drop_cache: bool) -> np.ndarray:
                 os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
         return arr
     except (ValueError, OSError, EOFError) as exc:
-        raise InputError(path, f"unreadable or truncated domain file ({exc})") from None
+        raise InputError(path, f"unreadable or truncated domain file ({one_line(exc)})") from None
 
 
-def _check_domain(dom: DomainArrays, info: DomainInfo, root: Path) -> None:
-    where = root / info.files["indices"]
-    expect = {
-        "vertices": ((info.n_vertices, 3), np.float32),
-        "indices": ((info.n_triangles, 3), np.uint32),
-        "objects": ((info.n_triangles,), np.uint16),
-        "scalars": ((info.n_vertices,), np.float32),
-        "colors": ((info.n_vertices, 3), np.float32),
-    }
-    for name, (shape, dtype) in expect.items():
-        arr = getattr(dom, name)
-        if arr is None:
-            continue
-        if arr.shape != shape or arr.dtype != dtype:
-            raise InputError(
-                root / info.files[name],
-                f"does not match the manifest: expected {shape} {np.dtype(dtype)}, "
-                f"found {arr.shape} {arr.dtype}",
-            )
-    if info.n_triangles and info.n_vertices and int(np.max(dom.indices)) >= info.n_vertices:
-        raise InputError(where, "triangle index out of range of the domain's vertices")
+def domain_problems(dom: DomainArrays, info: DomainInfo, root: Path,
+                    n_objects: int) -> list[InputError]:
+    """What is wrong with a domain's data, given its manifest entry (empty when nothing).
+
+    Checks each array's shape and dtype against the counts, then (vectorised, one pass each)
+    that every triangle index is below the vertex count and every object index names one of
+    the manifest's ``n_objects`` objects.
+
+    Parameters
+    ----------
+    dom : the arrays as read.
+    info : the domain's (checked) manifest entry.
+    root : the store folder, to name the files.
+    n_objects : entries in the manifest's ``objects`` (0: one default object).
+
+    Returns
+    -------
+    One :class:`InputError` per problem, each naming the ``.npy`` file.
+    """
+    problems = []
+    for kind in ARRAYS:
+        arr = getattr(dom, kind)
+        why = None if arr is None else mismatch(kind, info.n_triangles, info.n_vertices,
+                                                arr.shape, arr.dtype)
+        if why:
+            problems.append(InputError(root / info.files[kind], why))
+    if problems or not info.n_triangles:
+        return problems
+    top = int(dom.indices.max())
+    if top >= info.n_vertices:
+        problems.append(InputError(
+            root / info.files["indices"],
+            f"triangle index {top:,} is out of range: the domain has {info.n_vertices:,} "
+            f"vertices (indices must be < {info.n_vertices:,}); {REWRITE}"))
+    if dom.objects is not None and int(dom.objects.max()) >= max(n_objects, 1):
+        problems.append(InputError(
+            root / info.files["objects"],
+            f"object index {int(dom.objects.max()):,} is out of range: the manifest lists "
+            f"{n_objects} object(s); {REWRITE}"))
+    return problems
 
 
 class StoreWriter:
@@ -248,6 +268,7 @@ class StoreWriter:
         self._scalar_lo = np.inf
         self._scalar_hi = -np.inf
         self._has = {"objects": False, "scalars": False, "colors": False}
+        self._max_object = -1
         self.extra: dict = {}
 
     def __enter__(self) -> StoreWriter:
@@ -260,29 +281,38 @@ class StoreWriter:
     def add_domain(self, dom: DomainArrays, bounds: np.ndarray | None = None) -> int:
         """Write one domain; returns its id.
 
+        Each file is hashed (SHA-256) as it is written; the digests go into the manifest.
+
         Parameters
         ----------
         dom : the domain's arrays (converted to the store dtypes here).
         bounds : (2, 3) box; defaults to the box of the domain's triangles.
+
+        Raises
+        ------
+        InputError
+            More than :data:`MAX_DOMAINS` domains, a box that is not finite (NaN or infinite
+            vertices), or an object index beyond ``objects``: a store that could not be read.
         """
         assert self._tmp is not None, "use StoreWriter as a context manager"
         did = len(self._entries)
+        if did >= MAX_DOMAINS:
+            raise InputError(None, f"a store holds at most {MAX_DOMAINS:,} domains; use a "
+                                   "coarser --grid or fewer --domains")
+        arrays = _store_dtypes(dom)
+        self._check_domain(did, arrays)
+        box = np.asarray(bounds if bounds is not None else DomainArrays(**arrays).bounds(), float)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[0] > box[1]).any():
+            raise InputError(None, f"domain {did}: bounds {one_line(box.tolist(), 80)} are not a "
+                                   "finite box with lo <= hi (NaN or infinite vertices?)")
         rel_dir = Path("domains") / f"{did:05d}"
         (self._tmp / rel_dir).mkdir(parents=True)
-        arrays = {
-            "vertices": np.ascontiguousarray(dom.vertices, dtype=np.float32),
-            "indices": np.ascontiguousarray(dom.indices, dtype=np.uint32),
-            "objects": None if dom.objects is None else np.ascontiguousarray(dom.objects, np.uint16),
-            "scalars": None if dom.scalars is None else np.ascontiguousarray(dom.scalars, np.float32),
-            "colors": None if dom.colors is None else np.ascontiguousarray(dom.colors, np.float32),
-        }
-        files = {}
-        nbytes = 0
+        files, sha256, nbytes = {}, {}, 0
         for name, arr in arrays.items():
             if arr is None:
                 continue
             rel = rel_dir / f"{name}.npy"
-            np.save(self._tmp / rel, arr, allow_pickle=False)
+            sha256[name] = _save_hashed(self._tmp / rel, arr)
             files[name] = rel.as_posix()
             nbytes += arr.nbytes
             if name in self._has:
@@ -290,7 +320,6 @@ class StoreWriter:
         if arrays["scalars"] is not None and arrays["scalars"].size:
             self._scalar_lo = min(self._scalar_lo, float(arrays["scalars"].min()))
             self._scalar_hi = max(self._scalar_hi, float(arrays["scalars"].max()))
-        box = np.asarray(bounds if bounds is not None else DomainArrays(**arrays).bounds(), float)
         self._entries.append({
             "id": did,
             "bounds": box.tolist(),
@@ -298,14 +327,22 @@ class StoreWriter:
             "vertices": int(arrays["vertices"].shape[0]),
             "bytes": nbytes,
             "files": files,
+            "sha256": sha256,
         })
         return did
 
-    def __exit__(self, exc_type, exc, tb) -> None:
-        assert self._tmp is not None
-        if exc_type is not None:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            return
+    def _check_domain(self, did: int, arrays: dict) -> None:
+        """Refuse indices a reader would refuse; note the largest object index (checked
+        against ``objects`` on exit)."""
+        indices, objects = arrays["indices"], arrays["objects"]
+        if indices.size and int(indices.max()) >= arrays["vertices"].shape[0]:
+            raise InputError(None, f"domain {did}: triangle index {int(indices.max())} is out of "
+                                   f"range of its {arrays['vertices'].shape[0]} vertices")
+        if objects is not None and objects.size:
+            self._max_object = max(self._max_object, int(objects.max()))
+
+    def _manifest_text(self) -> str:
+        """The manifest as JSON, refused when a reader would refuse it for its size."""
         boxes = [e["bounds"] for e in self._entries if e["triangles"] > 0] or [[[0, 0, 0], [0, 0, 0]]]
         lo = np.min([b[0] for b in boxes], axis=0)
         hi = np.max([b[1] for b in boxes], axis=0)
@@ -321,8 +358,33 @@ class StoreWriter:
             "domains": self._entries,
             **self.extra,
         }
-        (self._tmp / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        text = json.dumps(manifest, indent=1)
+        if len(text) > MAX_MANIFEST_BYTES:
+            raise InputError(None, f"the store's manifest would be {len(text):,} bytes, more than "
+                                   f"the {MAX_MANIFEST_BYTES:,} a reader accepts; use fewer domains")
+        return text
+
+    def _check_attributes(self) -> None:
+        """Every non-empty domain must carry the attributes any domain carries, and object
+        indices must name one of ``objects``."""
+        if self._max_object >= len(self.objects):
+            raise InputError(None, f"object index {self._max_object} is out of range of the "
+                                   f"{len(self.objects)} object(s) given")
+        for name, present in self._has.items():
+            lacking = [e["id"] for e in self._entries
+                       if present and e["triangles"] and name not in e["files"]]
+            if lacking:
+                raise InputError(None, f"domain {lacking[0]} has no {name} while others do; give "
+                                       f"every domain the same attributes")
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        assert self._tmp is not None
+        if exc_type is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            return
         try:
+            self._check_attributes()
+            (self._tmp / MANIFEST).write_text(self._manifest_text())
             check_replaceable(self.path, self.overwrite)  # it may have appeared meanwhile
         except InputError:
             shutil.rmtree(self._tmp, ignore_errors=True)
@@ -336,12 +398,53 @@ class StoreWriter:
             shutil.rmtree(old, ignore_errors=True)
 
 
+def _store_dtypes(dom: DomainArrays) -> dict:
+    """A domain's arrays as the contiguous store dtypes (None for absent attributes)."""
+    def conv(arr, dtype):
+        return None if arr is None else np.ascontiguousarray(arr, dtype=dtype)
+
+    return {
+        "vertices": conv(dom.vertices, np.float32),
+        "indices": conv(dom.indices, np.uint32),
+        "objects": conv(dom.objects, np.uint16),
+        "scalars": conv(dom.scalars, np.float32),
+        "colors": conv(dom.colors, np.float32),
+    }
+
+
+class _HashingWriter:
+    """A write-only file object that feeds everything written to a hash as well."""
+
+    def __init__(self, fh, digest):
+        self._fh = fh
+        self._digest = digest
+
+    def write(self, data) -> int:
+        self._digest.update(data)
+        return self._fh.write(data)
+
+
+def _save_hashed(path: Path, arr: np.ndarray) -> str:
+    """``np.save`` ``arr`` to ``path`` and return the file's SHA-256 (hashed as written).
+
+    Returns
+    -------
+    The hex digest, the same as ``hashlib.sha256(path.read_bytes()).hexdigest()``.
+    """
+    digest = hashlib.sha256()
+    with open(path, "wb") as fh:
+        np.save(_HashingWriter(fh, digest), arr, allow_pickle=False)
+    return digest.hexdigest()
+
+
 def is_store(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a folder holding a vastray store manifest."""
     manifest = Path(path) / MANIFEST
+    if not manifest_size_ok(manifest):  # never parse an oversized file
+        return False
     try:
         return json.loads(manifest.read_text()).get("format") == FORMAT
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         return False
 
 

@@ -22,6 +22,7 @@ typical use (every line runs on a fresh install):
   vastray render -o default.exr --png default.png          # built-in scene, one command
   vastray generate rm -o rm.store --resolution 256 --grid 4x4x4   # a procedural scene
   vastray info rm.store
+  vastray verify rm.store                                  # checksums, counts, indices
   vastray render rm.store -o rm.exr --integrator pt --spp 16 --cache 25%
   vastray data fetch -o samples                            # real scans, checksummed
   vastray partition samples/stanford_bunny.ply -o bunny.store --grid 2x2x2
