@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import os
 import secrets
+import socket
 import subprocess
 import sys
 import tempfile
@@ -23,6 +24,7 @@ from tqdm import tqdm
 
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_from
+from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
@@ -52,8 +54,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        listen: str | None = None, keys: ClusterKeys | None = None,
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
                        max_batch_rays: int = 65536, progress: bool = False,
-                       config: SceneConfig | None = None, threads: int | None = None
-                       ) -> RenderResult:
+                       config: SceneConfig | None = None, threads: int | None = None,
+                       rendezvous: str | os.PathLike | None = None) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -73,6 +75,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         TOML text, so they need no copy of the file.
     threads : Embree query threads per node (default: this machine's cores shared among the
         nodes started here; with ``listen``, each node's own cores).
+    rendezvous : with ``listen``, a file (on a file system the nodes share) to write this
+        coordinator's address into once it listens, for ``vastray node --rendezvous``;
+        removed when the render ends.
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -100,7 +105,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
               desc=f"render ({scheduler}, {nodes} nodes)", leave=False) as bar:
         film, reports, barriers = asyncio.run(_coordinate(job, nodes, settings, timeout,
                                                           listen, keys, launched or {}, bar,
-                                                          progress))
+                                                          progress, rendezvous))
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
                 "global_barriers": barriers,
@@ -114,7 +119,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
                       listen: str | None, keys: ClusterKeys | None,
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
-                      verbose: bool):
+                      verbose: bool, rendezvous: str | os.PathLike | None = None):
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -141,8 +146,13 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                     env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid()),
                                             protocol.JOB_TOKEN_ENV: token.hex()})))
                 log_file.close()
-        elif verbose:
-            print(f"waiting for {size} node(s) on tcp://{host}:{port}", file=sys.stderr)
+        else:
+            if rendezvous is not None:
+                reachable = socket.getfqdn() if host in ("0.0.0.0", "*", "") else host
+                write_address(rendezvous, f"tcp://{reachable}:{port}")
+            if verbose:
+                print(f"waiting for {size} node(s) on tcp://{host}:{port}"
+                      + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
         address = f"tcp://{host}:{port}"
         watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
                        open_join=listen is not None)
@@ -207,6 +217,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             auth.stop()
         ctx.destroy(linger=0)
         logs.cleanup()
+        if rendezvous is not None and listen is not None:
+            Path(rendezvous).unlink(missing_ok=True)
 
 
 async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None:

@@ -25,6 +25,7 @@ from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
+from vastray.actors.rendezvous import launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.transport.codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
 from vastray.transport.security import (
@@ -380,11 +381,28 @@ def _outbound_address(coordinator: str) -> str:
         return probe.getsockname()[0]
 
 
+NODE_EPILOG = """\
+examples:
+  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 --keys /shared/keys
+  srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
+  mpirun -n 8 vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
+(see examples/slurm.sbatch)
+"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="vastray node", description=__doc__)
-    parser.add_argument("--coordinator", required=True, help="tcp://HOST:PORT")
-    parser.add_argument("--rank", type=int, default=-1,
-                        help="this node's rank (default: assigned by the coordinator)")
+    parser = argparse.ArgumentParser(
+        prog="vastray node", description=__doc__, epilog=NODE_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--coordinator", help="tcp://HOST:PORT")
+    where.add_argument("--rendezvous", metavar="FILE",
+                       help="read the coordinator's address from FILE on a shared file "
+                            "system, waiting for it to appear (the coordinator's --rendezvous)")
+    parser.add_argument("--rank", type=int,
+                        help="this node's rank (default: the launcher's, from SLURM_PROCID, "
+                             "PMI_RANK, PMIX_RANK or OMPI_COMM_WORLD_RANK; else assigned by "
+                             "the coordinator)")
     parser.add_argument("--timeout", type=float, default=120.0,
                         help="seconds any wait may last before the node gives up")
     parser.add_argument("--bind", default="127.0.0.1",
@@ -415,7 +433,9 @@ def die_with_parent() -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     die_with_parent()
-    logging.basicConfig(level=logging.INFO, format=f"node {args.rank}: %(message)s")
+    rank = args.rank if args.rank is not None else launcher_rank()
+    label = "?" if rank is None else rank
+    logging.basicConfig(level=logging.INFO, format=f"node {label}: %(message)s")
     try:
         import uvloop
         uvloop.install()
@@ -423,10 +443,11 @@ def main(argv: list[str] | None = None) -> int:
         pass
     try:
         keys = load_keys(args.keys) if args.keys else None
-        asyncio.run(run_node(args.coordinator, args.rank, args.timeout, args.bind,
+        coordinator = args.coordinator or read_address(args.rendezvous, args.timeout)
+        asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
                              args.advertise, keys))
     except Exception as exc:  # report, then fail: the coordinator names this node
-        print(f"node {args.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(f"node {label}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
     return 0
 

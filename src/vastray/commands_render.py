@@ -139,6 +139,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --nodes N: wait for N nodes started elsewhere (`vastray node "
                         "--coordinator tcp://HOST:PORT`, docker compose, SSH) instead of "
                         "starting them here")
+    p.add_argument("--rendezvous", metavar="FILE",
+                   help="with --listen: write this coordinator's address into FILE on a file "
+                        "system the nodes share, for `vastray node --rendezvous FILE` under "
+                        "srun or mpirun (see examples/slurm.sbatch)")
     p.add_argument("--keys", metavar="DIR",
                    help="cluster keys from `vastray keys` (ZeroMQ CURVE: encrypted, only key "
                         "holders may join); needed to listen beyond loopback")
@@ -310,6 +314,9 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     scheduler = args.scheduler
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
+    if args.rendezvous and not args.listen:
+        raise InputError(None, "--rendezvous FILE needs --listen HOST:PORT (the nodes it "
+                               "guides are started elsewhere)")
     if scheduler in ("domain", "async", "dynamic", "spec-insitu") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
@@ -322,7 +329,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
             keys=load_keys(args.keys) if args.keys else None, launched=launched,
-            progress=not args.quiet, config=config, threads=args.threads)
+            progress=not args.quiet, config=config, threads=args.threads,
+            rendezvous=args.rendezvous)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)

@@ -1,0 +1,95 @@
+"""Launch under the engines clusters already run: ranks from Slurm / PMI / Open MPI variables,
+the coordinator found through a rendezvous file, and the shipped Slurm batch script run for N
+local processes with the variables srun would set."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vastray.actors.rendezvous import launcher_rank, launcher_size, read_address, write_address
+from vastray.cli import main
+from vastray.render.driver import render
+from vastray.render.imageio import read_exr
+from vastray.render.scene_config import load_scene_config
+from vastray.scene.errors import InputError
+
+from scenes import bumpy_scene, settings, write_store
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: A stand-in for srun: SLURM_NTASKS copies of the command, each with its SLURM_PROCID.
+FAKE_SRUN = """#!/bin/sh
+i=0; pids=""
+while [ "$i" -lt "$SLURM_NTASKS" ]; do
+  SLURM_PROCID=$i "$@" 2> "$NODE_LOGS/node$i.log" &
+  pids="$pids $!"; i=$((i + 1))
+done
+status=0
+for p in $pids; do wait "$p" || status=1; done
+exit $status
+"""
+
+
+@pytest.mark.parametrize("variables, rank, size", [
+    ({"SLURM_PROCID": "3", "SLURM_NTASKS": "8"}, 3, 8),
+    ({"PMI_RANK": "1", "PMI_SIZE": "4"}, 1, 4),
+    ({"OMPI_COMM_WORLD_RANK": "2", "OMPI_COMM_WORLD_SIZE": "3"}, 2, 3),
+    ({}, None, None),
+])
+def test_rank_and_size_from_the_launcher(monkeypatch, variables, rank, size):
+    for name in ("SLURM_PROCID", "SLURM_NTASKS", "PMI_RANK", "PMI_SIZE", "PMIX_RANK",
+                 "PMIX_SIZE", "OMPI_COMM_WORLD_RANK", "OMPI_COMM_WORLD_SIZE"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in variables.items():
+        monkeypatch.setenv(name, value)
+    assert launcher_rank() == rank and launcher_size() == size
+
+
+def test_rendezvous_file(tmp_path):
+    with pytest.raises(InputError, match="no coordinator address appeared"):
+        read_address(tmp_path / "job.addr", timeout=0.3)
+    write_address(tmp_path / "job.addr", "tcp://head:5555")
+    assert read_address(tmp_path / "job.addr", timeout=1) == "tcp://head:5555"
+    (tmp_path / "bad.addr").write_text("head:5555\n")
+    with pytest.raises(InputError, match="not a tcp://HOST:PORT"):
+        read_address(tmp_path / "bad.addr", timeout=1)
+
+
+def test_rendezvous_needs_listen(tmp_path, capsys):
+    store = write_store(tmp_path / "s", bumpy_scene(), grid=(2, 1, 1))
+    assert main(["render", str(store.path), "-o", str(tmp_path / "o.exr"), "--nodes", "2",
+                 "--rendezvous", str(tmp_path / "a"), "--quiet"]) == 2
+    assert "--rendezvous FILE needs --listen" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="a POSIX shell script")
+def test_the_slurm_batch_script_renders_with_srun_ranks(tmp_path):
+    store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
+    srun = tmp_path / "fake-srun"
+    srun.write_text(FAKE_SRUN)
+    srun.chmod(0o755)
+    (tmp_path / "logs").mkdir()
+    env = dict(os.environ, STORE=str(store.path), OUT=str(tmp_path / "o.exr"),
+               KEYS=str(tmp_path / "keys"), RDV=str(tmp_path / "job.addr"), SRUN=str(srun),
+               LISTEN="127.0.0.1:0", BIND="127.0.0.1", SLURM_NTASKS="3", SLURM_JOB_ID="42",
+               NODE_LOGS=str(tmp_path / "logs"),
+               PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+    out = subprocess.run(["bash", str(ROOT / "examples" / "slurm.sbatch"), "--width", "24",
+                          "--height", "18", "--spp", "2", "--scheduler", "async",
+                          "--node-timeout", "30"],
+                         env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    st = settings(width=24, height=18, spp=2, bounces=3, shadow_samples=16, seed=0)
+    reference = render(store, load_scene_config(None), st, progress=False).film.image()
+    np.testing.assert_allclose(read_exr(tmp_path / "o.exr"), reference, rtol=1e-6, atol=1e-6)
+    for i in range(3):  # each node took the rank srun gave it
+        log = (tmp_path / "logs" / f"node{i}.log").read_text()
+        assert re.search(rf"as node {i} of 3", log), log
+    assert not (tmp_path / "job.addr").exists()  # the coordinator removed its rendezvous
