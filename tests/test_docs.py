@@ -41,11 +41,12 @@ def test_readme_names_no_file_a_user_lacks():
 
 def test_readme_commands_parse_with_the_real_cli():
     parser = build_parser()
-    commands = [line for block in _blocks("bash") for line in block.splitlines()
-                if line.startswith("vastray ")]
+    lines = [line for block in _blocks("bash")
+             for line in block.replace("\\\n", " ").splitlines()]  # join continued lines
+    commands = [line for line in lines if line.startswith("vastray ")]
     assert len(commands) >= 15
     for line in commands:
-        words = shlex.split(line.split(" #")[0].split("&&")[0])[1:]
+        words = shlex.split(line.split(" #")[0].split("&&")[0].rstrip(" &"))[1:]
         if words[:1] == ["node"]:
             continue
         parser.parse_args(words)  # raises SystemExit on an option that does not exist
