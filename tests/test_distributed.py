@@ -118,9 +118,13 @@ def _node_pids(rank: int) -> list[int]:
             cmd = (proc / "cmdline").read_bytes().split(b"\0")
         except OSError:
             continue
+        try:
+            parent = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        # only this test's own nodes (children of this process), never another run's
         if b"vastray.actors.node" in cmd and b"--rank" in cmd and \
-                cmd[cmd.index(b"--rank") + 1] == str(rank).encode() and \
-                str(os.getpid()).encode() not in cmd:
+                cmd[cmd.index(b"--rank") + 1] == str(rank).encode() and parent == os.getpid():
             pids.append(int(proc.name))
     return pids
 
