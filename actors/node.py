@@ -27,6 +27,7 @@ from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.rendezvous import launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
+from vastray.scene.errors import InputError
 from vastray.transport.codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
 from vastray.transport.security import (
     ClusterKeys,
@@ -411,6 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
                                             "--bind, or for 0.0.0.0 this host's address on "
                                             "the route to the coordinator)")
     parser.add_argument("--keys", help="cluster key folder from `vastray keys` (CURVE)")
+    parser.add_argument("--key-name", metavar="NAME",
+                        help="connect with this node's own key pair from the key folder "
+                             "(`vastray keys --node NAME`; default: the cluster's)")
     return parser
 
 
@@ -442,7 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         pass
     try:
-        keys = load_keys(args.keys) if args.keys else None
+        if args.key_name and not args.keys:
+            raise InputError(None, "--key-name needs --keys DIR")
+        keys = load_keys(args.keys, args.key_name) if args.keys else None
         coordinator = args.coordinator or read_address(args.rendezvous, args.timeout)
         asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
                              args.advertise, keys))

@@ -280,3 +280,37 @@ def test_keys_are_never_replaced_silently(tmp_path):
     assert key.read_bytes() == before  # docker compose's keys service, run again
     assert vastray("keys", "-o", "k", "--force", cwd=tmp_path).returncode == 0
     assert key.read_bytes() != before
+
+
+def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged(store,
+                                                                                 tmp_path):
+    assert vastray("keys", "-o", "keys", "--node", "alpha", "--node", "beta",
+                   cwd=tmp_path).returncode == 0
+    (tmp_path / "keys" / "public" / "beta.key").unlink()  # beta is shut out
+    port = _free_port()
+
+    def node(name):
+        return subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
+                                 f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys",
+                                 str(tmp_path / "keys"), "--key-name", name],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+    beta, alpha = node("beta"), None
+    coordinator = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr", *SMALL,
+         "--nodes", "1", "--listen", f"127.0.0.1:{port}", "--keys", "keys",
+         "--node-timeout", "30"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        _, beta_log = beta.communicate(timeout=30)
+        assert beta.returncode != 0 and b"authentication" in beta_log, beta_log
+        alpha = node("alpha")
+        _, err = coordinator.communicate(timeout=60)
+        _, alpha_log = alpha.communicate(timeout=30)
+        assert coordinator.returncode == 0, err
+        assert alpha.returncode == 0 and b"joined" in alpha_log, alpha_log
+        assert b"refused a CURVE connection from 127.0.0.1" in err, err
+        assert (tmp_path / "x.exr").is_file()
+    finally:
+        for proc in (beta, coordinator, alpha):
+            if proc is not None:
+                _reap(proc)

@@ -21,7 +21,13 @@ from vastray.render.scene_config import load_scene_config
 from vastray.report import build_report, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
-from vastray.transport.security import KEY_FILE, generate_keys, load_keys
+from vastray.transport.security import (
+    KEY_FILE,
+    NODES_DIR,
+    add_node_key,
+    generate_keys,
+    load_keys,
+)
 
 log = logging.getLogger(__name__)
 
@@ -166,12 +172,19 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
         "keys", help="make a cluster key pair (ZeroMQ CURVE) for --keys",
         description="Write a new cluster key pair into a folder; give the folder to the "
                     "coordinator (--keys) and to every node (vastray node --keys).",
-        epilog="example:\n  vastray keys -o cluster-keys\n"
+        epilog="examples:\n  vastray keys -o cluster-keys\n"
                "  vastray render s.store -o o.exr --nodes 4 --listen 0.0.0.0:5555 "
-               "--keys cluster-keys",
+               "--keys cluster-keys\n"
+               "  vastray keys -o cluster-keys --node gpu01 --node gpu02   # per-node keys\n"
+               "  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 "
+               "--keys cluster-keys --key-name gpu01",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
+    k.add_argument("--node", action="append", metavar="NAME", default=[],
+                   help="also give node NAME its own key pair and allow it in (repeatable); "
+                        "start it with `vastray node --keys DIR --key-name NAME`; delete "
+                        "DIR/public/NAME.key to shut it out")
     replace = k.add_mutually_exclusive_group()
     replace.add_argument("--force", action="store_true",
                          help="replace a key pair already in the folder (nodes holding the old "
@@ -194,11 +207,18 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
 
 def run_keys(args: argparse.Namespace) -> int:
     key_file = Path(args.output) / KEY_FILE
-    if args.keep_existing and key_file.exists():
+    if key_file.exists() and (args.keep_existing or (args.node and not args.force)):
         load_keys(args.output)  # refuses a malformed one
         print(key_file)
-        return 0
-    print(generate_keys(args.output, args.force))
+    else:
+        print(generate_keys(args.output, args.force))
+    for name in args.node:
+        node_file = Path(args.output) / NODES_DIR / f"{name}.key"
+        if args.keep_existing and node_file.exists():
+            load_keys(args.output, name)
+            print(node_file)
+        else:
+            print(add_node_key(args.output, name, args.force))
     return 0
 
 
