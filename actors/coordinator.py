@@ -109,7 +109,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
                 "global_barriers": barriers,
-                "loads": sum(r["counters"].get("loads", 0) for r in reports)}
+                "loads": sum(r["counters"].get("loads", 0) for r in reports),
+                "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
+                                          for r in reports)}
     seconds = {"total": round(wall, 4),
                "busy_max": max(r["busy_s"] for r in reports),
                "reduce_max": max(r["reduce_s"] for r in reports)}

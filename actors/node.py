@@ -11,6 +11,7 @@ import argparse
 import asyncio
 import logging
 import os
+import resource
 import socket
 import sys
 import time
@@ -357,6 +358,8 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                  "counters": {**{k: v for k, v in counters.items()
                                  if isinstance(v, (int, float, str))},
                               "rejected_messages": rejected.total,
+                              "peak_rss_bytes": resource.getrusage(
+                                  resource.RUSAGE_SELF).ru_maxrss * 1024,
                               **{f"rejected_{k}": v for k, v in rejected.counts.items()}}}
         if rank == 0:
             await management.to_coordinator(film_frames(film, {"rank": rank}))

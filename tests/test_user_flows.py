@@ -314,3 +314,25 @@ def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged
         for proc in (beta, coordinator, alpha):
             if proc is not None:
                 _reap(proc)
+
+
+def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
+    from vastray.preflight import domain_footprints, estimate_memory
+
+    out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--memory-limit", "64K",
+                  cwd=tmp_path)
+    assert out.returncode == 2 and "--memory-limit" in out.stderr and "too small" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.exr").exists()
+    # room for the film, paths and outputs plus the two largest domains: the cache holds two
+    two = sum(sorted(domain_footprints(store.domains))[-2:])
+    limit = estimate_memory(32, 24, 32 * 24 * 2, 2 * 2).total + two + 1
+    ref = vastray("render", store.path, "-o", "ref.exr", *SMALL, cwd=tmp_path)
+    assert ref.returncode == 0
+    out = vastray("render", store.path, "-o", "x.exr", "--report", "x.json", *SMALL,
+                  "--memory-limit", str(limit), "--reference", "ref.exr", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    report = json.loads((tmp_path / "x.json").read_text())
+    assert report["counters"]["cache_capacity"] == 2 < len(store.domains)
+    assert report["scheduler"] == "spec-ooc"  # auto: the domains no longer all fit
+    assert report["error"]["mse"] == 0
+    assert report["counters"]["peak_rss_bytes"] > 0

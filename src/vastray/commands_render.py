@@ -13,7 +13,14 @@ from pathlib import Path
 
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.local import render_out_of_core
-from vastray.preflight import check_memory, check_output_paths, estimate_memory
+from vastray.preflight import (
+    cache_within,
+    check_memory,
+    check_output_paths,
+    domain_footprints,
+    estimate_memory,
+    parse_size,
+)
 from vastray.render.driver import render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -130,6 +137,11 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "ownership, speculation, t-buffer MIN / o-buffer OR all-reduce). All "
                         "give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
+    p.add_argument("--memory-limit", type=_size, metavar="SIZE",
+                   help="most memory each process (each node) may use, e.g. 8G: bounds its "
+                        "domain cache after its film and paths in flight; a render that "
+                        "cannot fit is refused before it starts (default: the free memory "
+                        "is only checked)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
                    help="image/spec-ooc: paths traced at once; bounds the rays held in memory "
                         "(default: 262144)")
@@ -220,6 +232,13 @@ def run_keys(args: argparse.Namespace) -> int:
         else:
             print(add_node_key(args.output, name, args.force))
     return 0
+
+
+def _size(text: str) -> int:
+    try:
+        return parse_size(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _positive(text: str) -> int:
@@ -332,6 +351,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                                          f", the render is {args.width}x{args.height}")
     cache = resolve_cache(args.cache, len(store.domains))
     scheduler = args.scheduler
+    cache = _check_render_memory(args, config, "reference" if scheduler == "auto" else scheduler,
+                                 store, cache)
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
     if args.rendezvous and not args.listen:
@@ -340,7 +361,6 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     if scheduler in ("domain", "async", "dynamic", "spec-insitu") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
-    _check_render_memory(args, config, scheduler)
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
         result = render_distributed(
@@ -379,8 +399,10 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     return 0
 
 
-def _check_render_memory(args: argparse.Namespace, config, scheduler: str) -> None:
-    """Refuse up front a render whose film and paths in flight cannot fit in memory."""
+def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
+                         cache: int | None) -> int | None:
+    """Refuse up front a render whose film and paths in flight cannot fit in memory; with
+    ``--memory-limit``, also bound the domain cache by what is left. Returns the cache."""
     lights = 0 if args.integrator == "ao" else len(config.resolve_lights())
     shadow_rays = args.shadow_samples * max(lights, 1)
     threads = args.threads or os.cpu_count() or 1
@@ -397,6 +419,14 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str) -> No
     estimate = estimate_memory(args.width, args.height, min(in_flight, total), shadow_rays,
                                processes=films)
     check_memory(estimate, args.width, args.height)
+    if args.memory_limit is None:
+        return cache
+    per_process = estimate_memory(args.width, args.height,
+                                  min(in_flight // max(args.nodes or 1, 1), total), shadow_rays)
+    fitting = cache_within(args.memory_limit, per_process, domain_footprints(store.domains),
+                           args.width, args.height)
+    log.info("--memory-limit leaves room for %d domains per process", fitting)
+    return fitting if cache is None else min(cache, fitting)
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,

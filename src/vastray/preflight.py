@@ -94,6 +94,58 @@ def check_memory(estimate: MemoryEstimate, width: int, height: int,
                            "--max-samples-in-flight, or use fewer --nodes")
 
 
+#: Bytes a loaded domain holds per triangle besides its arrays: Embree's copy of the mesh and
+#: its BVH (the estimate ``DomainBVH.nbytes`` reports).
+BVH_BYTES_PER_TRIANGLE = 36 + 12 + 64
+
+
+def parse_size(text: str) -> int:
+    """``"8G"``, ``"512M"``, ``"1.5G"``, ``"100000"`` -> bytes (powers of 1024)."""
+    units = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
+    text = text.strip().upper().removesuffix("B").removesuffix("I")
+    number, unit = (text[:-1], text[-1]) if text[-1:] in units and text[-1:] else (text, "")
+    try:
+        value = float(number) * units[unit]
+    except (ValueError, KeyError):
+        raise ValueError(f"expected a size such as 8G, 512M or 100000, got {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"a size must be positive, got {text!r}")
+    return int(value)
+
+
+def domain_footprints(domains) -> list[int]:
+    """Bytes each domain holds once loaded: its arrays plus Embree's mesh and BVH."""
+    return [int(d.nbytes) + int(d.n_triangles) * BVH_BYTES_PER_TRIANGLE for d in domains]
+
+
+def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
+                 height: int) -> int:
+    """The most domains a process can hold under ``limit`` besides its film, paths and
+    outputs (``fixed``): counted with the largest domains, so any choice of that many fits.
+
+    Raises
+    ------
+    InputError
+        When even the film and paths, or those plus the largest domain, exceed the limit.
+    """
+    room = limit - fixed.total
+    if room <= 0:
+        raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
+                               f"{width}x{height} render needs {gigabytes(fixed.total)} for "
+                               "its film and paths in flight before any domain; raise it, or "
+                               "lower --width/--height or --max-samples-in-flight")
+    held, count = 0, 0
+    for size in sorted(footprints, reverse=True):
+        if held + size > room:
+            break
+        held, count = held + size, count + 1
+    if count == 0:
+        raise InputError(None, f"--memory-limit {gigabytes(limit)} leaves {gigabytes(room)} "
+                               f"for domains, but the largest needs "
+                               f"{gigabytes(max(footprints))}; raise it or partition finer")
+    return count
+
+
 def _nearest_existing(path: Path) -> Path:
     path = path.absolute()
     while not path.exists() and path != path.parent:
