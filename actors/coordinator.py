@@ -8,6 +8,7 @@ message naming it, and the caller writes no output.
 from __future__ import annotations
 
 import asyncio
+import logging
 import os
 import secrets
 import socket
@@ -43,8 +44,16 @@ NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
                  "async": "async", "dynamic": "dynamic", "spec-insitu": "spec-insitu"}
 
 
+log = logging.getLogger(__name__)
+
+
 class NodeFailure(RuntimeError):
     """A node died or went silent; the message names it."""
+
+
+class NodeLost(NodeFailure):
+    """A node that had joined died or stalled mid-frame (a frame on the others can replace
+    it, unlike a node that never joined or a protocol failure)."""
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
@@ -55,7 +64,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
                        max_batch_rays: int = 65536, progress: bool = False,
                        config: SceneConfig | None = None, threads: int | None = None,
-                       rendezvous: str | os.PathLike | None = None) -> RenderResult:
+                       rendezvous: str | os.PathLike | None = None,
+                       heartbeat_timeout: float | None = None,
+                       survive_node_loss: bool = True) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -78,6 +89,13 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     rendezvous : with ``listen``, a file (on a file system the nodes share) to write this
         coordinator's address into once it listens, for ``vastray node --rendezvous``;
         removed when the render ends.
+    heartbeat_timeout : a node silent this long mid-frame counts as lost (a stall); default
+        ``timeout``.
+    survive_node_loss : with nodes started here, a node that dies or stalls mid-frame is
+        survived: the frame is rendered again on the others (domains reassigned, every path
+        re-traced from its deterministic seeds, nothing counted twice), so the image equals
+        the fault-free one. Nodes started elsewhere (``listen``) cannot be replaced: the run
+        fails naming the node.
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -101,13 +119,29 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     }
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp
-    with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
-              desc=f"render ({scheduler}, {nodes} nodes)", leave=False) as bar:
-        film, reports, barriers = asyncio.run(_coordinate(job, nodes, settings, timeout,
-                                                          listen, keys, launched or {}, bar,
-                                                          progress, rendezvous))
+    failures: list[str] = []
+    size = nodes
+    while True:
+        try:
+            with tqdm(total=total, unit="path", unit_scale=True, delay=2.0,
+                      disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
+                      leave=False) as bar:
+                film, reports, barriers = asyncio.run(_coordinate(
+                    job, size, settings, timeout, listen, keys, launched or {}, bar, progress,
+                    rendezvous, heartbeat_timeout or timeout))
+            break
+        except NodeLost as lost:
+            if listen is not None or not survive_node_loss or size == 1:
+                raise NodeFailure(str(lost)) from None
+            failures.append(str(lost))
+            size -= 1
+            log.warning("%s; rendering the frame again on the %d other node(s)", lost, size)
+            if progress:
+                print(f"{lost}; rendering the frame again on the {size} other node(s)",
+                      file=sys.stderr)
     wall = time.perf_counter() - start
-    counters = {"scheduler": scheduler, "nodes": nodes, "per_node": reports,
+    counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": nodes,
+                "node_failures": failures, "per_node": reports,
                 "global_barriers": barriers,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
@@ -121,7 +155,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
                       listen: str | None, keys: ClusterKeys | None,
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
-                      verbose: bool, rendezvous: str | os.PathLike | None = None):
+                      verbose: bool, rendezvous: str | os.PathLike | None = None,
+                      heartbeat_timeout: float | None = None):
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -157,7 +192,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
         address = f"tcp://{host}:{port}"
         watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
-                       open_join=listen is not None)
+                       open_join=listen is not None,
+                       heartbeat_timeout=heartbeat_timeout or timeout)
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
@@ -354,8 +390,10 @@ class _Watch:
 
     def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
                  launched: dict[str, tuple[subprocess.Popen, Path]], address: str = "",
-                 token: bytes = b"", open_join: bool = False):
+                 token: bytes = b"", open_join: bool = False,
+                 heartbeat_timeout: float | None = None):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
+        self.heartbeat_timeout = heartbeat_timeout or timeout
         self.launched, self.address = launched, address
         self.token, self.open_join = token, open_join
         self.started = time.monotonic()
@@ -373,19 +411,23 @@ class _Watch:
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
 
-    def _failure(self, rank: int, why: str) -> NodeFailure:
+    def _failure(self, rank: int, why: str, kind: type = NodeFailure) -> NodeFailure:
         if rank < len(self.procs):
             text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
             last = text.splitlines()[-1] if text else "no output"
-            return NodeFailure(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
-        return NodeFailure(f"node {rank} {why}")
+            return kind(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+        return kind(f"node {rank} {why}")
 
     def check(self) -> None:
         now = time.monotonic()
         for rank, proc in enumerate(self.procs):
             code = proc.poll()
             if code is not None and code != 0:
-                raise self._failure(rank, f"exited with code {code}")
+                # A joined node, or one killed by a signal (kill -9, the OOM killer), is a
+                # loss the others can make up for; a node failing its start is not.
+                lost = rank in self.ranks_joined or code < 0
+                raise self._failure(rank, f"exited with code {code}",
+                                    NodeLost if lost else NodeFailure)
         for name, (proc, log) in self.launched.items():
             code = proc.poll()
             if code is not None and code != 0:
@@ -402,9 +444,12 @@ class _Watch:
                 f"within {self.timeout:.0f} s on {self.address}; check that each node's "
                 "--coordinator names this address and that its --keys match this run's "
                 "(a node with other keys is refused and says 'authentication failed')")
-        for rank in self.ranks_joined:
-            if now - self.last_heard[rank] > self.timeout:
-                raise self._failure(rank, f"sent nothing for {self.timeout:.0f} s")
+        silent = [r for r in self.ranks_joined
+                  if now - self.last_heard[r] > self.heartbeat_timeout]
+        if silent:  # blame the one silent longest: the others may only be waiting for it
+            rank = min(silent, key=lambda r: self.last_heard[r])
+            raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
+                                      "(stalled)", NodeLost)
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped
@@ -450,13 +495,21 @@ class _Watch:
             self.heard(rank)
         return identity, message
 
-    async def wait_exit(self) -> None:
-        deadline = time.monotonic() + self.timeout
-        while any(p.poll() is None for p in self.procs):
-            if time.monotonic() > deadline:
-                raise NodeFailure("nodes did not shut down within the timeout")
+    async def wait_exit(self, grace: float = 5.0) -> None:
+        """Let the nodes started here exit after the stop. The frame is complete by now, so
+        a node that hangs (stopped, say) is killed after ``grace`` seconds and one that fails
+        on its way out is only logged: neither changes the result."""
+        deadline = time.monotonic() + min(grace, self.timeout)
+        while any(p.poll() is None for p in self.procs) and time.monotonic() < deadline:
             await asyncio.sleep(0.05)
-        self.check()
+        for rank, proc in enumerate(self.procs):
+            if proc.poll() is None:
+                log.warning("node %d did not exit after the frame; killed", rank)
+                proc.kill()
+                proc.wait()
+            elif proc.returncode != 0:
+                log.warning("node %d exited with code %d after the frame", rank,
+                            proc.returncode)
 
 
 __all__ = ["render_distributed", "NodeFailure"]

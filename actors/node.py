@@ -330,7 +330,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
         async def heartbeat() -> None:
             while True:
-                await asyncio.sleep(1.0)
+                await asyncio.sleep(protocol.HEARTBEAT_S)
                 await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
 
         beating = asyncio.ensure_future(heartbeat())
@@ -365,6 +365,8 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
             await management.to_coordinator(film_frames(film, {"rank": rank}))
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
         beating.cancel()
+        for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
+            task.cancel()
         await management.receive(protocol.STOP, "stop from the coordinator")
         log.info("finished: busy %.2f s, %d domain loads", busy,
                     int(counters.get("loads", 0)))

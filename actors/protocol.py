@@ -132,7 +132,7 @@ def _check_film(message) -> None:
 #: Seconds between the coordinator's heartbeats to its nodes; a node that hears nothing from
 #: the coordinator for ``COORDINATOR_SILENCE_S`` exits (the coordinator died or was cut off).
 HEARTBEAT_S = 0.5
-COORDINATOR_SILENCE_S = 5.0
+COORDINATOR_SILENCE_S = 2.0
 
 #: Environment variable naming the coordinator's pid to the nodes it starts on its own machine:
 #: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).

@@ -153,6 +153,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "loopback (schedulers image and spec-ooc: sort-first tiles)")
     p.add_argument("--node-timeout", type=_positive_float, default=120.0, metavar="S",
                    help="with --nodes: fail when a node is silent this long (default: 120)")
+    p.add_argument("--heartbeat-timeout", type=_positive_float, default=10.0, metavar="S",
+                   help="with --nodes: a node silent this long mid-frame is lost (stalled); "
+                        "nodes started here are survived by rendering the frame again on the "
+                        "others (default: 10)")
     p.add_argument("--listen", metavar="HOST:PORT",
                    help="with --nodes N: wait for N nodes started elsewhere (`vastray node "
                         "--coordinator tcp://HOST:PORT`, docker compose, SSH) instead of "
@@ -370,7 +374,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
             keys=load_keys(args.keys) if args.keys else None, launched=launched,
             progress=not args.quiet, config=config, threads=args.threads,
-            rendezvous=args.rendezvous)
+            rendezvous=args.rendezvous, heartbeat_timeout=args.heartbeat_timeout)
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
