@@ -1,4 +1,10 @@
-"""One Embree scene (BVH) per loaded domain, queried with structure-of-arrays ray batches."""
+"""One Embree scene (BVH) per loaded domain, queried with structure-of-arrays ray batches.
+
+Scenes are built and traced through our compiled binding (``vastray.scene.embree``): the
+domain's (memory-mapped) arrays are Embree's buffers, and queries run in numba kernels over
+the caller's thread count without the GIL. Where that binding is unavailable, embreex's
+``run`` is used as before (same results: both use Embree's robust scene flag).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
+from vastray.scene import embree
 from vastray.scene.store import DomainArrays
 
 #: Below this many rays a query runs on the calling thread only.
@@ -20,11 +27,18 @@ class DomainBVH:
     Parameters
     ----------
     domain_id : the domain's id in the store.
-    arrays : its triangles (memory-mapped arrays are copied into Embree's buffers).
+    arrays : its triangles. With the compiled binding, Embree uses the vertex and index
+        arrays in place (memory-mapped or not; no copy) and they stay referenced until the scene
+        is released; with embreex they are copied into Embree's buffers.
     keep : names of the attributes (``"objects"``, ``"colors"``, ``"scalars"``) to keep for
         shading; the others are dropped at once (the scene does not use them).
-    pool : threads that queries of this domain split their rays over by default (Embree
-        releases the GIL); None: the calling thread only.
+    pool : the threads queries of this domain use by default: its size is the number of numba
+        threads of the compiled kernels (embreex fallback: the rays are split over the pool);
+        None: the calling thread only.
+
+    The Embree scene is released by ``close()``, or when the last reference goes (a cache's
+    eviction drops its reference; a query in flight on another thread keeps the domain alive
+    until it returns).
     """
 
     def __init__(self, domain_id: int, arrays: DomainArrays, keep: frozenset[str] = frozenset(),
@@ -32,16 +46,26 @@ class DomainBVH:
         self.domain_id = domain_id
         self.pool = pool
         self.n_triangles = arrays.n_triangles
-        self._scene = rtcore_scene.EmbreeScene()
-        mesh_construction.TriangleMesh(
-            self._scene,
-            np.ascontiguousarray(arrays.vertices, dtype=np.float32),
-            np.ascontiguousarray(arrays.indices, dtype=np.uint32),
-        )
-        # embreex builds the BVH on the first query: do it now, so load time includes the build.
-        self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="DISTANCE")
+        self.compiled = embree.binding() is not None
+        if self.compiled:
+            self._scene = embree.Scene(arrays.vertices, arrays.indices)
+        else:
+            self._scene = rtcore_scene.EmbreeScene()
+            mesh_construction.TriangleMesh(
+                self._scene,
+                np.ascontiguousarray(arrays.vertices, dtype=np.float32),
+                np.ascontiguousarray(arrays.indices, dtype=np.uint32),
+            )
+            # embreex builds the BVH on the first query: do it now, so load time includes it.
+            self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32),
+                            query="DISTANCE")
         needs_indices = bool(keep & {"colors", "scalars"})
-        self.indices = np.array(arrays.indices) if needs_indices else None
+        if not needs_indices:
+            self.indices = None
+        elif self.compiled and self._scene.indices is not None:
+            self.indices = np.asarray(self._scene.indices)  # the scene's own (shared) array
+        else:
+            self.indices = np.array(arrays.indices)
         self.objects = (np.array(arrays.objects) if "objects" in keep and arrays.objects is not None
                         else None)
         self.colors = np.array(arrays.colors) if "colors" in keep and arrays.colors is not None else None
@@ -49,7 +73,8 @@ class DomainBVH:
                         else None)
 
     def nbytes(self) -> int:
-        """Approximate resident bytes: Embree's copy of the mesh plus kept attributes."""
+        """Approximate resident bytes: the mesh (Embree's buffers, or with the compiled binding
+        the store's arrays it uses in place), the BVH, plus kept attributes."""
         kept = [self.indices, self.objects, self.colors, self.scalars]
         return self.n_triangles * (36 + 12 + 64) + sum(a.nbytes for a in kept if a is not None)
 
@@ -61,14 +86,17 @@ class DomainBVH:
         ----------
         origins, directions : (n, 3) float32
         t_far : (n,) float32 (not modified)
-        pool : thread pool to split the rays over (default: the domain's ``pool``); Embree
-            releases the GIL, so chunks run in parallel.
+        pool : the threads to use (default: the domain's ``pool``): as many numba threads as
+            it has (embreex fallback: the rays are split over it; Embree releases the GIL).
 
         Returns
         -------
         dict with ``primID`` (n,) int32 (-1 = no hit), ``tfar`` (n,) float32, ``u``, ``v`` (n,)
         float32 barycentrics and ``Ng`` (n, 3) float32 unnormalised geometric normals.
         """
+        if self.compiled:
+            return self._scene.intersect(origins, directions, t_far, _threads(pool or self.pool))
+
         def run(sl):
             return self._scene.run(origins[sl], directions[sl], dists=t_far[sl].copy(), output=1)
 
@@ -85,16 +113,31 @@ class DomainBVH:
         -------
         (n,) bool
         """
+        if self.compiled:
+            return self._scene.occluded(origins, directions, t_far, _threads(pool or self.pool))
+
         def run(sl):
             return self._scene.run(origins[sl], directions[sl], dists=t_far[sl].copy(),
                                    query="OCCLUDED") >= 0
 
         return np.concatenate(_map_chunks(run, len(origins), pool or self.pool))
 
+    def close(self) -> None:
+        """Release the Embree scene now (compiled binding; embreex's is freed with the object).
+        No query may run on this domain afterwards."""
+        if self.compiled:
+            self._scene.close()
+
+
+def _threads(pool: ThreadPoolExecutor | None) -> int:
+    """Threads for one query of the compiled kernels: the pool's size (None: one)."""
+    return pool._max_workers if pool is not None else 1
+
 
 def query_pool(threads: int | None) -> ThreadPoolExecutor | None:
     """Threads for Embree queries: ``threads`` (default: every core), or None for one.
-    The caller shuts the pool down."""
+    The caller shuts the pool down. (The compiled kernels use only the pool's size, as their
+    number of numba threads; the embreex fallback runs on the pool's threads.)"""
     threads = threads or os.cpu_count() or 1
     return ThreadPoolExecutor(threads, thread_name_prefix="embree") if threads > 1 else None
 
