@@ -212,6 +212,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints, rank=rank,
                                                    size=size))
             await router.send_multipart([identities[rank], token, *frames])
+        watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
         film, reports = None, {}
         done_paths: dict[int, int] = {}
@@ -399,6 +400,8 @@ class _Watch:
         self.started = time.monotonic()
         self.last_heard = [self.started] * size
         self.ranks_joined: set[int] = set()
+        self.last_join = self.started
+        self.job_sent = False
         self.members: dict[bytes, int] = {}  # socket identity -> rank
         self.once: set[tuple[str, int]] = set()
         self.rejections = protocol.Rejections()
@@ -406,7 +409,13 @@ class _Watch:
     def joined(self, rank: int, identity: bytes) -> None:
         self.ranks_joined.add(rank)
         self.members[identity] = rank
+        self.last_join = time.monotonic()
         self.heard(rank)
+
+    def job_out(self) -> None:
+        """Every node has its job: from now on each must heartbeat."""
+        self.job_sent = True
+        self.last_heard = [time.monotonic()] * self.size
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
@@ -434,6 +443,12 @@ class _Watch:
                 text = Path(log).read_text(errors="replace").strip() if Path(log).exists() else ""
                 last = text.splitlines()[-1] if text else "no output"
                 raise NodeFailure(f"node on {name} exited with code {code}: {last}")
+        waiting = set(range(len(self.procs))) - self.ranks_joined
+        if self.ranks_joined and waiting and now - self.last_join > self.heartbeat_timeout:
+            # the others joined long ago: a node started here that has not is stuck
+            raise self._failure(min(waiting), f"did not join within "
+                                              f"{self.heartbeat_timeout:.0f} s of the others "
+                                              "(stalled)", NodeLost)
         if len(self.ranks_joined) < self.size and now - self.started > self.timeout:
             if self.procs:  # nodes started here: name the one that never said hello
                 rank = min(set(range(self.size)) - self.ranks_joined)
@@ -444,8 +459,9 @@ class _Watch:
                 f"within {self.timeout:.0f} s on {self.address}; check that each node's "
                 "--coordinator names this address and that its --keys match this run's "
                 "(a node with other keys is refused and says 'authentication failed')")
+        # Nodes heartbeat once they have the job; until then a joined node is rightly quiet.
         silent = [r for r in self.ranks_joined
-                  if now - self.last_heard[r] > self.heartbeat_timeout]
+                  if self.job_sent and now - self.last_heard[r] > self.heartbeat_timeout]
         if silent:  # blame the one silent longest: the others may only be waiting for it
             rank = min(silent, key=lambda r: self.last_heard[r])
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "

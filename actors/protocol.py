@@ -129,10 +129,11 @@ def _check_film(message) -> None:
     if not all(np.issubdtype(arrays[f].dtype, np.number) for f in FILM_FIELDS):
         raise ProtocolError("film: fields must be numeric")
 
-#: Seconds between the coordinator's heartbeats to its nodes; a node that hears nothing from
-#: the coordinator for ``COORDINATOR_SILENCE_S`` exits (the coordinator died or was cut off).
-HEARTBEAT_S = 0.5
-COORDINATOR_SILENCE_S = 2.0
+#: Seconds between heartbeats (coordinator to nodes, and nodes to coordinator); a node that
+#: hears nothing from the coordinator for two heartbeats exits (the coordinator died or was
+#: cut off). Nothing on the coordinator's event loop blocks that long while nodes work.
+HEARTBEAT_S = 1.0
+COORDINATOR_SILENCE_S = 2 * HEARTBEAT_S
 
 #: Environment variable naming the coordinator's pid to the nodes it starts on its own machine:
 #: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).
