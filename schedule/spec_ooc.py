@@ -74,7 +74,10 @@ class SpeculativeSchedule:
         self.window_start = 0
         self.radiance = DomainQueues(n_domains)
         self.shadow = DomainQueues(n_domains)
-        self.counter = np.zeros((n_domains, max(n_domains, 1)), np.int64)  # Counter[i][j]
+        # Counter[i][j] enters the score only as sum_j (M - j) Counter[i][j]
+        # = M * queued[i] - rank_sum[i]: two (D,) vectors, not a (D, D) matrix.
+        self.queued = np.zeros(n_domains, np.int64)    # sum_j Counter[i][j]
+        self.rank_sum = np.zeros(n_domains, np.int64)  # sum_j j * Counter[i][j]
         self.spill: list[SoA] = []
         self.commit: list[SoA] = []
         self.retire: list[SoA] = []
@@ -82,6 +85,7 @@ class SpeculativeSchedule:
         self.shadow_pending = np.zeros(0, np.int32)
         self.shadow_blocked = np.zeros(0, bool)
         self._schedule: list[int] = []
+        self._in_schedule = np.zeros(n_domains, bool)  # which domains _schedule still holds
         self._resident: frozenset[int] = frozenset()
         self._camera: RadianceRays | None = None
         self.counters = {
@@ -105,14 +109,17 @@ class SpeculativeSchedule:
         new is loaded: its rays cost no load now, and might cost one next round.
         """
         self._resident = resident
+        held = np.fromiter(resident, np.int64, len(resident))
         while True:
             waiting = self.radiance.counts() + self.shadow.counts()
-            again = [d for d in resident if waiting[d] and d not in self._schedule]
-            if again and self.counters["rounds"]:
-                return max(again, key=lambda d: (waiting[d], -d))
-            while self._schedule:
+            if self.counters["rounds"] and len(held):
+                again = held[(waiting[held] > 0) & ~self._in_schedule[held]]
+                if len(again):  # most waiting rays first, then the lowest id
+                    return int(again[np.lexsort((again, -waiting[again]))[0]])
+            while self._schedule:  # nothing is queued while popping: ``waiting`` holds
                 domain = self._schedule.pop(0)
-                if self.radiance.counts()[domain] or self.shadow.counts()[domain]:
+                self._in_schedule[domain] = False
+                if waiting[domain]:
                     return domain
             if self.counters["rounds"] and not self._end_round():
                 if not self._end_window():
@@ -140,12 +147,24 @@ class SpeculativeSchedule:
         domains already in memory go first. A fixed cyclic order is the worst case for an LRU
         cache smaller than the cycle (every access misses); starting each round with what the
         last one left resident turns those misses into hits. Measured in bench/ooc.py."""
-        m = self.counter.shape[1]
-        score = self.counter @ (m - np.arange(m))
-        resident = self._resident
-        self._schedule = sorted(range(len(score)),
-                                key=lambda d: (d not in resident, -score[d], d))
+        m = max(len(self.queued), 1)
+        score = m * self.queued - self.rank_sum
+        resident = np.zeros(len(score), bool)
+        resident[[d for d in self._resident if d < len(score)]] = True
+        ids = np.arange(len(score))
+        self._schedule = ids[np.lexsort((ids, -score, ~resident))].tolist()
+        self._in_schedule[:] = True
         self.counters["rounds"] += 1
+
+    def _count(self, domain: np.ndarray | int, rank: np.ndarray, sign: int) -> None:
+        """Add (``sign`` = 1) or remove (-1) queued rays with ``rank`` ((m,)) in ``domain``
+        ((m,), or one domain for all) to the traversal-score counters."""
+        if np.ndim(domain) == 0:
+            self.queued[domain] += sign * len(rank)
+            self.rank_sum[domain] += sign * int(rank.sum(dtype=np.int64))
+        else:
+            np.add.at(self.queued, domain, sign)
+            np.add.at(self.rank_sum, domain, sign * rank.astype(np.int64))
 
     def _end_round(self) -> bool:
         """Retire, swap commit and retire queues; True while the window has work left."""
@@ -173,6 +192,7 @@ class SpeculativeSchedule:
         resumed = as_radiance(spilled.take(valid))
         self._queue_radiance(self._with_history(resumed))
         self._schedule = []
+        self._in_schedule[:] = False
         return True
 
     # -- history ------------------------------------------------------------------------------
@@ -206,12 +226,12 @@ class SpeculativeSchedule:
         copies["rank"] = rank
         level = copies["depth"].astype(np.int64) - self.window_start
         np.add.at(self.pending, (copies["path"], level), 1)
-        np.add.at(self.counter, (domain, rank), 1)
+        self._count(domain, rank, 1)
         self.radiance.push(domain, copies)
 
     def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
         level = rays["depth"].astype(np.int64) - self.window_start
-        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
+        self._count(domain, rays["rank"], -1)
         np.subtract.at(self.pending, (rays["path"], level), 1)
         # Shallow first: a new closest hit at one depth makes the same path's deeper rays in
         # this batch stale, and the filter must see that. Within one depth a path has at most
@@ -298,12 +318,12 @@ class SpeculativeSchedule:
         if len(ray):
             copies = soa.take(ray)
             copies["entry"], copies["rank"] = entry, rank
-            np.add.at(self.counter, (dom, rank), 1)
+            self._count(dom, rank, 1)
             self.shadow.push(dom, copies)
 
     def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
         sid = rays["sid"]
-        np.add.at(self.counter, (np.full(len(rays), domain), rays["rank"]), -1)
+        self._count(domain, rays["rank"], -1)
         self.shadow_pending[sid] -= 1
         level = rays["depth"].astype(np.int64) - self.window_start
         live = self._history_matches(rays, level + 1)
