@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vastray.render.boxtree import BoxTree
 from vastray.render.materials import colormap
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
@@ -248,6 +249,9 @@ class DomainTracer:
         #: Largest origin coordinate expected (the camera is set by the renderer).
         self.origin_bound = 2.0 * self.box_magnitude
         self.nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
+        self.tree_ids = np.nonzero(self.nonempty)[0]
+        #: The non-empty domains' boxes in a BVH (``BoxTree``), for the ray-box queries.
+        self.tree = BoxTree(self.lo, self.hi, self.tree_ids)
         threads = threads or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
 
@@ -269,7 +273,12 @@ class DomainTracer:
 
         ``limit`` (the closest hit so far, or a shadow ray's length) and ``live`` may change
         between yields; each visit reads them afresh, so rays skip domains that start beyond
-        what they already found.
+        what they already found. Which rays enter which boxes is found once per query, by
+        walking the tree of domain boxes (``BoxTree.pairs``; with few domains, one flat pass
+        over all of them): the cost grows with the domains the rays cross, not with the domain
+        count. A visit's rows are the rays for which
+        ``(t0 <= t1) & (t1 >= 0) & (t0 < limit) & live`` holds at that moment, ascending, as
+        the per-domain slab test gave them.
 
         When every domain fits in the cache, domains are visited nearest first as seen from
         the batch's mean origin (cheap, and measured faster than per-ray front-to-back waves,
@@ -277,26 +286,51 @@ class DomainTracer:
         visited once, resident ones first, then by waiting rays (LoadAnyOnce), so a bounded
         cache reloads as little as possible.
         """
-        ids = np.nonzero(self.nonempty)[0]
-        if self.cache.capacity >= len(ids):
-            center = slabs.origin.mean(axis=1, dtype=np.float64)
-            gap = np.maximum(self.lo[ids] - center, 0) + np.maximum(center - self.hi[ids], 0)
-            order = ids[np.argsort(np.einsum("ij,ij->i", gap, gap), kind="stable")]
-        else:
-            waiting = {d: np.count_nonzero(self._entering(slabs, d, limit)) for d in ids}
-            resident = set(self.cache.resident())
-            order = sorted((d for d in ids if waiting[d]),
-                           key=lambda d: (d not in resident, -waiting[d], d))
-        for d in order:
-            entering = self._entering(slabs, d, limit)
-            rows = np.nonzero(entering if live is None else entering & live)[0]
-            if len(rows):
-                yield int(d), rows
+        all_fit = self.cache.capacity >= len(self.tree_ids)
+        if self.tree.flat:  # few domains: every ray against every box, (m, n) at once
+            t0, t1 = self.tree.flat_intervals(slabs)
+            ahead = (t0 <= t1) & (t1 >= 0)
+            domains = self.tree.flat_ids
+            waiting = (np.ones(len(domains), np.int64) if all_fit  # (empty visits yield nothing)
+                       else np.count_nonzero(ahead & (t0 < limit), axis=1))
 
-    def _entering(self, slabs: RaySlabs, d: int, t_limit: np.ndarray) -> np.ndarray:
-        """(n,) bool: the ray enters domain ``d``'s box before ``t_limit``, ahead of its origin."""
-        t0, t1 = slabs.intervals(self.lo[d], self.hi[d])
-        return (t0 <= t1) & (t1 >= 0) & (t0 < t_limit)
+            def rows_of(i: int) -> np.ndarray:
+                rows = ahead[i] & (t0[i] < limit)
+                if live is not None:
+                    rows &= live
+                return np.nonzero(rows)[0]
+        else:
+            ray, dom, t0, t1 = self.tree.pairs(slabs, limit)
+            enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
+            ray, dom, t0 = ray[enter], dom[enter], t0[enter]
+            # Group by domain; rays ascend within a domain in ``pairs`` and a stable sort
+            # keeps them so (a radix sort, for 16-bit keys).
+            key = dom.astype(np.uint16) if len(self.lo) <= 1 << 16 else dom
+            by_domain = np.argsort(key, kind="stable")
+            ray, t0 = ray[by_domain], t0[by_domain]
+            waiting = np.bincount(dom, minlength=len(self.lo))
+            first = np.cumsum(waiting) - waiting
+            domains = np.nonzero(waiting)[0]
+            waiting, first = waiting[domains], first[domains]
+
+            def rows_of(i: int) -> np.ndarray:
+                rows = ray[first[i]:first[i] + waiting[i]]
+                still = t0[first[i]:first[i] + waiting[i]] < limit[rows]
+                if live is not None:
+                    still &= live[rows]
+                return rows[still]
+        if all_fit:
+            center = slabs.origin.mean(axis=1, dtype=np.float64)
+            gap = (np.maximum(self.lo[domains] - center, 0)
+                   + np.maximum(center - self.hi[domains], 0))
+            order = np.argsort(np.einsum("ij,ij->i", gap, gap), kind="stable")
+        else:
+            resident = np.isin(domains, np.asarray(self.cache.resident(), np.int64))
+            order = np.lexsort((domains, -waiting, ~resident))
+        for i in order[waiting[order] > 0]:
+            rows = rows_of(i)
+            if len(rows):
+                yield int(domains[i]), rows
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, kind: str = "bounce"
                   ) -> Hits:

@@ -70,6 +70,7 @@ class DomainCache:
         self.pool = pool  # the threads every loaded domain's queries split their rays over
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
+        self._resident_bytes = 0  # sum of the resident domains' nbytes()
         # Render workers and the preloader share the cache.
         self._lock = threading.RLock()
         self._pending: dict[int, Future] = {}
@@ -116,14 +117,20 @@ class DomainCache:
     def _make_room(self, slots: int) -> None:
         """Evict least recently used domains until ``slots`` more fit (loads in flight count)."""
         while self._resident and len(self._resident) + len(self._pending) + slots > self.capacity:
-            evicted, _ = self._resident.popitem(last=False)
+            evicted, gone = self._resident.popitem(last=False)
+            self._resident_bytes -= gone.nbytes()
             self.stats.evictions += 1
             log.debug("evicted domain %d", evicted)
 
     def _insert(self, domain_id: int, bvh: DomainBVH) -> None:
+        replaced = self._resident.get(domain_id)
+        if replaced is not None:
+            self._resident_bytes -= replaced.nbytes()
         self._resident[domain_id] = bvh
-        resident_bytes = sum(b.nbytes() for b in self._resident.values())
-        self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes, resident_bytes)
+        # A running total: summing over every resident domain at each load costs O(domains).
+        self._resident_bytes += bvh.nbytes()
+        self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
+                                             self._resident_bytes)
 
     def prefetch(self, domain_id: int | None) -> None:
         """Start loading ``domain_id`` on the preloader thread, so its read and BVH build

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vastray.render.boxtree import BoxTree
 from vastray.render.tracer import RaySlabs, box_pad
 
 
@@ -11,7 +12,10 @@ class DomainGeometry:
     """Domain boxes and the ray-box questions schedulers ask.
 
     Box distances are clamped at 0 (a ray starting inside a box enters it at 0). Domains along
-    a ray are ordered by (entry distance, domain id), so ties have one answer.
+    a ray are ordered by (entry distance, domain id), so ties have one answer. Queries walk a
+    ``BoxTree`` over the non-empty domains' boxes: a ray's cost grows with the domains it
+    crosses, not with the domain count, and the answers are those of the per-domain slab test
+    (``crossings_by_loop``, ``next_domain_by_loop``) bit for bit.
 
     Parameters
     ----------
@@ -27,16 +31,12 @@ class DomainGeometry:
         self.n_domains = len(lo)
         self.box_magnitude = float(max(np.abs(lo).max(initial=0), np.abs(hi).max(initial=0)))
         self.origin_bound = max(origin_bound, 2.0 * self.box_magnitude)
+        self.tree = BoxTree(lo, hi, self.ids)
 
-    def _entries(self, origins, directions):
-        """Yield (domain, entry (n,) float32 with inf where the ray misses the box)."""
-        slabs = RaySlabs(origins, directions,
-                         box_pad(self.box_magnitude, self.origin_bound, origins))
-        for d in self.ids:
-            t0, t1 = slabs.intervals(self.lo[d], self.hi[d])
-            entry = np.maximum(t0, np.float32(0))
-            entry[(t0 > t1) | (t1 < 0)] = np.inf
-            yield int(d), entry
+    def slabs(self, origins: np.ndarray, directions: np.ndarray) -> RaySlabs:
+        """The rays' slab-test data, padded as every query of this geometry pads its boxes."""
+        return RaySlabs(origins, directions,
+                        box_pad(self.box_magnitude, self.origin_bound, origins))
 
     def next_domain(self, origins: np.ndarray, directions: np.ndarray, after_t: np.ndarray,
                     after_d: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -53,39 +53,97 @@ class DomainGeometry:
         domain : (n,) int32, -1 where there is none
         entry : (n,) float32 its entry distance
         """
-        n = len(origins)
-        best_d = np.full(n, -1, np.int32)
-        best_e = np.full(n, np.inf, np.float32)
-        for d, entry in self._entries(origins, directions):
-            later = (entry > after_t) | ((entry == after_t) & (d > after_d))
-            take = later & (entry < limit) & (entry < best_e)  # ids ascend: ties keep the lower
-            best_d[take] = d
-            best_e[take] = entry[take]
-        return best_d, best_e
+        return self.tree.first_after(self.slabs(origins, directions), after_t, after_d, limit)
 
     def crossings(self, origins: np.ndarray, directions: np.ndarray, limit: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every (ray, domain) pair whose box the ray enters before ``limit``.
 
+        Parameters
+        ----------
+        origins, directions : (n, 3) float32
+        limit : (n,) float32
+
         Returns
         -------
-        ray, domain : (m,) int64 / int32
+        ray, domain : (m,) int64 / int32, sorted by ray, then entry, then domain
         entry : (m,) float32
         rank : (m,) int32, the domain's position along the ray (0 = nearest), SpRay's
             "domain hit depth"
         """
-        rays, domains, entries = [], [], []
-        for d, entry in self._entries(origins, directions):
-            rows = np.nonzero(entry < limit)[0]
-            rays.append(rows)
-            domains.append(np.full(len(rows), d, np.int32))
-            entries.append(entry[rows])
-        if not rays:
-            empty = np.zeros(0, np.int64)
-            return empty, empty.astype(np.int32), empty.astype(np.float32), empty.astype(np.int32)
-        ray, domain, entry = np.concatenate(rays), np.concatenate(domains), np.concatenate(entries)
+        n = len(origins)
+        limit = np.broadcast_to(np.asarray(limit), (n,))
+        parts = []
+        for first, stop, ray, domain, t0, t1 in self.tree.pair_chunks(
+                self.slabs(origins, directions), limit):
+            entry = np.maximum(t0, np.float32(0))
+            entry[(t0 > t1) | (t1 < 0)] = np.inf
+            keep = entry < limit[ray]
+            parts.append(_ordered(ray[keep], domain[keep], entry[keep], first, stop))
+        if not parts:
+            return _ordered(np.zeros(0, np.int64), np.zeros(0, np.int32),
+                            np.zeros(0, np.float32), 0, 0)
+        # Chunks hold ascending runs of rays: concatenated, they stay sorted by ray.
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+
+
+def _ordered(ray, domain, entry, first: int = 0, stop: int | None = None):
+    """Sort (ray, domain, entry) by ray, entry, domain; add each pair's rank along its ray.
+
+    Rays lie in ``first:stop`` (None: anywhere). With fewer than 2^15 rays and 2^17 domains
+    the three keys pack into one integer (the bits of a float32 >= 0 sort as the float does;
+    -0.0 sorts as +0.0), so one argsort replaces a three-key lexsort.
+
+    Returns
+    -------
+    ray : (m,) int64; domain : (m,) int32; entry : (m,) float32; rank : (m,) int32
+    """
+    if stop is not None and stop - first <= 1 << 15 and (len(domain) == 0
+                                                         or domain.max() < 1 << 17):
+        bits = (entry + np.float32(0)).view(np.uint32).astype(np.int64)  # entry < inf: < 2^31
+        key = ((ray - first) << 48) | (bits << 17) | domain
+        order = np.argsort(key)
+    else:
         order = np.lexsort((domain, entry, ray))
-        ray, domain, entry = ray[order], domain[order], entry[order]
-        first = np.searchsorted(ray, ray, side="left")
-        rank = (np.arange(len(ray)) - first).astype(np.int32)
-        return ray, domain, entry, rank
+    ray, domain, entry = ray[order], domain[order], entry[order]
+    first_of_ray = np.searchsorted(ray, ray, side="left")
+    rank = (np.arange(len(ray)) - first_of_ray).astype(np.int32)
+    return ray, domain, entry, rank
+
+
+# -- the per-domain loop: O(domains x rays), the reference for tests and bench/domains.py ----
+def _loop_entries(geometry: DomainGeometry, origins, directions):
+    """Yield (domain, entry (n,) float32 with inf where the ray misses the box)."""
+    slabs = geometry.slabs(origins, directions)
+    for d in geometry.ids:
+        t0, t1 = slabs.intervals(geometry.lo[d], geometry.hi[d])
+        entry = np.maximum(t0, np.float32(0))
+        entry[(t0 > t1) | (t1 < 0)] = np.inf
+        yield int(d), entry
+
+
+def next_domain_by_loop(geometry: DomainGeometry, origins, directions, after_t, after_d, limit):
+    """``DomainGeometry.next_domain`` by testing every domain box in turn (the former code)."""
+    n = len(origins)
+    best_d = np.full(n, -1, np.int32)
+    best_e = np.full(n, np.inf, np.float32)
+    for d, entry in _loop_entries(geometry, origins, directions):
+        later = (entry > after_t) | ((entry == after_t) & (d > after_d))
+        take = later & (entry < limit) & (entry < best_e)  # ids ascend: ties keep the lower
+        best_d[take] = d
+        best_e[take] = entry[take]
+    return best_d, best_e
+
+
+def crossings_by_loop(geometry: DomainGeometry, origins, directions, limit):
+    """``DomainGeometry.crossings`` by testing every domain box in turn (the former code)."""
+    rays, domains, entries = [], [], []
+    for d, entry in _loop_entries(geometry, origins, directions):
+        rows = np.nonzero(entry < limit)[0]
+        rays.append(rows)
+        domains.append(np.full(len(rows), d, np.int32))
+        entries.append(entry[rows])
+    if not rays:
+        empty = np.zeros(0, np.int64)
+        return empty, empty.astype(np.int32), empty.astype(np.float32), empty.astype(np.int32)
+    return _ordered(np.concatenate(rays), np.concatenate(domains), np.concatenate(entries))

@@ -72,3 +72,26 @@ intensity = 12.0
 type = "ambient"
 radiance = 0.2
 """
+
+
+def terrain_scene(n: int = 48, size: float = 4.0, seed: int = 5) -> DomainArrays:
+    """A rolling heightfield of ``2 n^2`` triangles under a bumpy sphere and a few boxes: it
+    fills its box sideways, so fine grid and k-d partitions leave a thousand or more domains
+    non-empty, and its boxes overlap where triangles cross cell boundaries."""
+    x = np.linspace(-size / 2, size / 2, n + 1)
+    gx, gz = np.meshgrid(x, x, indexing="ij")
+    gy = 0.25 * np.sin(2.1 * gx) * np.cos(1.7 * gz) + 0.1 * np.sin(5 * gx + 3 * gz) - 0.6
+    corner = (np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]).ravel()
+    faces = np.concatenate([np.stack([corner, corner + 1, corner + n + 1], axis=1),
+                            np.stack([corner + 1, corner + n + 2, corner + n + 1], axis=1)])
+    ground = trimesh.Trimesh(np.stack([gx.ravel(), gy.ravel(), gz.ravel()], axis=1), faces,
+                             process=False)
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.7)
+    bump = 1.0 + 0.12 * np.sin(5 * sphere.vertices[:, 0]) * np.cos(4 * sphere.vertices[:, 2])
+    sphere.vertices *= bump[:, None]
+    sphere.apply_translation([0.2, 0.3, -0.1])
+    rng = np.random.default_rng(seed)
+    boxes = [trimesh.creation.box(extents=rng.uniform(0.2, 0.5, 3)) for _ in range(4)]
+    for box in boxes:
+        box.apply_translation([rng.uniform(-1.5, 1.5), -0.3, rng.uniform(-1.5, 1.5)])
+    return mesh_arrays(trimesh.util.concatenate([ground, sphere, *boxes]))
