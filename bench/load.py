@@ -25,24 +25,18 @@ import gc
 import os
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
+from bench_scenes import cached_rm
 from embreex import mesh_construction, rtcore_scene
 
 from vastray.scene import embree
 from vastray.scene.bvh import DomainBVH
-from vastray.scene.generate import generate
 from vastray.scene.store import Store
-
-CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 
 
 def scene(resolution: int) -> Store:
-    path = CACHE / f"rm-{resolution}-2x2x2.store"
-    if not (path / "manifest.json").is_file():
-        generate("rm", path, resolution, grid=(2, 2, 2), seed=0, overwrite=True, progress=True)
-    return Store(path)
+    return cached_rm(resolution)
 
 
 def drop_pages(store: Store, domain: int) -> None:

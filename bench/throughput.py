@@ -18,25 +18,19 @@ import argparse
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import numpy as np
+from bench_scenes import cached_rm
 from embreex import mesh_construction, rtcore_scene
 
 from vastray.render.driver import render
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
-from vastray.scene.generate import generate
 from vastray.scene.store import Store
-
-CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 
 
 def scene(resolution: int) -> Store:
-    path = CACHE / f"rm-{resolution}-2x2x2.store"
-    if not (path / "manifest.json").is_file():
-        generate("rm", path, resolution, grid=(2, 2, 2), seed=0, overwrite=True, progress=True)
-    return Store(path)
+    return cached_rm(resolution)
 
 
 def raw_embree(store: Store, batches: list, threads: int) -> tuple[int, float]:
