@@ -135,10 +135,11 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
             size -= 1
-            log.warning("%s; rendering the frame again on the %d other node(s)", lost, size)
-            if progress:
-                print(f"{lost}; rendering the frame again on the {size} other node(s)",
-                      file=sys.stderr)
+            message = f"{lost}; rendering the frame again on the {size} other node(s)"
+            if progress:  # the CLI's user sees it as a plain line, not as a log record
+                print(message, file=sys.stderr)
+            else:
+                log.warning("%s", message)
     wall = time.perf_counter() - start
     counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": nodes,
                 "node_failures": failures, "per_node": reports,

@@ -51,7 +51,7 @@ def test_hostfile_parsing(tmp_path):
         read_hostfile(path)
 
 
-def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh):
+def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh, capsys):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
     main(["keys", "-o", str(tmp_path / "keys")])
     (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
@@ -60,8 +60,9 @@ def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh):
     args = ["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
             "--ssh", local_ssh, "--logs", str(tmp_path / "logs"), str(store.path), "-o",
             str(out), "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
-            "--spp", "2", "--node-timeout", "30", "--quiet"]
+            "--spp", "2", "--node-timeout", "30"]  # as a user runs it: no --quiet
     assert main(args) == 0
+    assert f"wrote {out}" in capsys.readouterr().err.strip().splitlines()[-1]
     _assert_reference_image(store, out, tmp_path)
     logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
     assert logs == ["node0-alpha.log", "node1-beta.log", "node2-beta.log"]
