@@ -26,6 +26,7 @@ from embreex import mesh_construction, rtcore_scene
 from vastray.render.driver import render
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
+from vastray.scene import embree
 from vastray.scene.store import Store
 
 
@@ -33,8 +34,8 @@ def scene(resolution: int) -> Store:
     return cached_rm(resolution)
 
 
-def raw_embree(store: Store, batches: list, threads: int) -> tuple[int, float]:
-    """Closest-hit queries of the recorded rays on one Embree scene of all triangles."""
+def all_triangles(store: Store) -> tuple[np.ndarray, np.ndarray]:
+    """Every domain's triangles as one mesh: (V, 3) float32 vertices, (T, 3) uint32 indices."""
     parts, offset = [], 0
     vertices = []
     for d in range(len(store.domains)):
@@ -42,16 +43,39 @@ def raw_embree(store: Store, batches: list, threads: int) -> tuple[int, float]:
         vertices.append(np.asarray(dom.vertices))
         parts.append(np.asarray(dom.indices) + offset)
         offset += len(dom.vertices)
-    embree = rtcore_scene.EmbreeScene()
-    mesh_construction.TriangleMesh(embree, np.concatenate(vertices), np.concatenate(parts))
-    embree.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="DISTANCE")
+    return np.concatenate(vertices), np.concatenate(parts).astype(np.uint32)
+
+
+def raw_compiled(store: Store, batches: list, threads: int) -> float:
+    """Seconds for the recorded queries through vastray's compiled Embree kernels
+    (``scene/embree.py``) on one scene of all triangles: the renderer's own query path,
+    without anything around it."""
+    scene = embree.Scene(*all_triangles(store))
+    one = np.zeros((1, 3), np.float32)
+    scene.intersect(one, one + 1, np.full(1, np.inf, np.float32), threads)  # load the kernels
+    start = time.perf_counter()
+    for kind, o, d, t_max in batches:
+        if kind == "occluded":
+            scene.occluded(o, d, t_max, threads)
+        else:
+            scene.intersect(o, d, np.full(len(o), np.inf, np.float32), threads)
+    seconds = time.perf_counter() - start
+    scene.close()
+    return seconds
+
+
+def raw_embree(store: Store, batches: list, threads: int) -> tuple[int, float]:
+    """The recorded queries through embreex on one Embree scene of all triangles."""
+    scene = rtcore_scene.EmbreeScene()
+    mesh_construction.TriangleMesh(scene, *all_triangles(store))
+    scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32), query="DISTANCE")
     pool = ThreadPoolExecutor(threads)
 
     def query(args):
         kind, o, d, t_max = args
         if kind == "occluded":
-            return embree.run(o, d, dists=t_max.copy(), query="OCCLUDED")
-        return embree.run(o, d, dists=np.full(len(o), np.inf, np.float32), output=1)
+            return scene.run(o, d, dists=t_max.copy(), query="OCCLUDED")
+        return scene.run(o, d, dists=np.full(len(o), np.inf, np.float32), output=1)
 
     chunks = []
     for kind, o, d, t_max in batches:
@@ -96,6 +120,11 @@ def main() -> None:
           f"{result.counters['bvh_build_s']:.2f} s excluded)")
     print(f"raw_embree_rays_per_s={raw_rate:,.0f}  ({raw_seconds:.2f} s, the same closest-hit "
           f"and bounded occlusion queries, {args.threads} threads)")
+    if embree.binding() is not None:
+        compiled_rate = rays / raw_compiled(store, batches, args.threads)
+        print(f"raw_compiled_rays_per_s={compiled_rate:,.0f}  (the same queries through "
+              f"vastray's compiled kernels, {args.threads} threads)")
+        print(f"compiled_throughput_ratio={e2e_rate / compiled_rate:.3f}  (issue 9: goal 0.7)")
     print(f"throughput_ratio={e2e_rate / raw_rate:.3f}")
 
 
