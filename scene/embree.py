@@ -423,6 +423,29 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
     i32[11] = 0
 
 
+@njit(inline="always")
+def _store_hit(f, i32, at_prim, at_t, at_ng, stride, prim, tfar, u, v, ng, i):
+    """Copy ray ``i``'s hit out of an RTCRayHit / RTCRayHit16 buffer: primID at ``at_prim``,
+    tfar at ``at_t``, then Ng_x, Ng_y, Ng_z, u, v from ``at_ng`` every ``stride`` words
+    (1 for a single ray, 16 for a packet). A miss reads as primID -1, zero u, v and Ng."""
+    p = i32[at_prim]
+    tfar[i] = f[at_t]
+    if p == _INVALID:
+        prim[i] = -1
+        u[i] = 0.0
+        v[i] = 0.0
+        ng[i, 0] = 0.0
+        ng[i, 1] = 0.0
+        ng[i, 2] = 0.0
+    else:
+        prim[i] = p
+        ng[i, 0] = f[at_ng]
+        ng[i, 1] = f[at_ng + stride]
+        ng[i, 2] = f[at_ng + 2 * stride]
+        u[i] = f[at_ng + 3 * stride]
+        v[i] = f[at_ng + 4 * stride]
+
+
 @njit(parallel=True, nogil=True, cache=True)
 def _intersect1(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
     n = org.shape[0]
@@ -438,22 +461,7 @@ def _intersect1(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
             i32[18] = _INVALID
             i32[19] = _INVALID
             _rtcIntersect1(scene, ptr, 0)
-            p = i32[17]
-            tfar[i] = f[8]
-            if p == _INVALID:
-                prim[i] = -1
-                u[i] = 0.0
-                v[i] = 0.0
-                ng[i, 0] = 0.0
-                ng[i, 1] = 0.0
-                ng[i, 2] = 0.0
-            else:
-                prim[i] = p
-                ng[i, 0] = f[12]
-                ng[i, 1] = f[13]
-                ng[i, 2] = f[14]
-                u[i] = f[15]
-                v[i] = f[16]
+            _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
 
 
 @njit(parallel=True, nogil=True, cache=True)
@@ -518,23 +526,8 @@ def _intersect16(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
                 i32[304 + j] = _INVALID  # instID
             _rtcIntersect16(vptr, scene, ptr, 0)
             for j in range(min(16, n - base)):
-                i = base + j
-                p = i32[272 + j]
-                tfar[i] = f[128 + j]
-                if p == _INVALID:
-                    prim[i] = -1
-                    u[i] = 0.0
-                    v[i] = 0.0
-                    ng[i, 0] = 0.0
-                    ng[i, 1] = 0.0
-                    ng[i, 2] = 0.0
-                else:
-                    prim[i] = p
-                    ng[i, 0] = f[192 + j]
-                    ng[i, 1] = f[208 + j]
-                    ng[i, 2] = f[224 + j]
-                    u[i] = f[240 + j]
-                    v[i] = f[256 + j]
+                _store_hit(f, i32, 272 + j, 128 + j, 192 + j, 16, prim, tfar, u, v, ng,
+                           base + j)
 
 
 @njit(parallel=True, nogil=True, cache=True)
