@@ -336,3 +336,12 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     assert report["scheduler"] == "spec-ooc"  # auto: the domains no longer all fit
     assert report["error"]["mse"] == 0
     assert report["counters"]["peak_rss_bytes"] > 0
+
+
+def test_generate_and_info_as_a_user_runs_them(tmp_path):
+    out = vastray("generate", "rm", "-o", "g.store", "--resolution", "24", "--grid", "2x1x1",
+                  cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("g.store: rm at 24^3") and "2x1x1 grid" in out.stdout
+    info = vastray("info", "g.store", cwd=tmp_path)
+    assert info.returncode == 0 and "attributes: scalars" in info.stdout, info.stdout
