@@ -16,6 +16,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -66,7 +67,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        config: SceneConfig | None = None, threads: int | None = None,
                        rendezvous: str | os.PathLike | None = None,
                        heartbeat_timeout: float | None = None,
-                       survive_node_loss: bool = True) -> RenderResult:
+                       survive_node_loss: bool = True, frames: list[int] | None = None,
+                       on_frame: Callable[[int, RenderResult], None] | None = None,
+                       options: dict | None = None) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -96,6 +99,19 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         re-traced from its deterministic seeds, nothing counted twice), so the image equals
         the fault-free one. Nodes started elsewhere (``listen``) cannot be replaced: the run
         fails naming the node.
+    frames : an animation's frame numbers: every node renders them all in one job (caches
+        and statistics carry over from frame to frame), each frame with the camera and lights
+        ``config.at_frame`` gives and the seed ``frame_seed(settings.seed, frame)``. None:
+        one image with ``config`` and ``settings`` as they are.
+    on_frame : with ``frames``, called as ``on_frame(frame, result)`` as each frame arrives
+        (a node loss re-renders only the frames not yet delivered).
+    options : more job entries for the node schedulers (``preload``, ``load_bandwidth``,
+        ``assignment``, ``priority``, ...).
+
+    Returns
+    -------
+    The result of the image, or with ``frames`` of the last frame (its counters list every
+    frame's under ``"frames"``).
     """
     if scheduler not in NODE_SCHEDULE:
         raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
@@ -116,33 +132,61 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
         "max_batch_rays": max_batch_rays,
         "threads": threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)),
+        **(options or {}),
     }
     start = time.perf_counter()
-    total = settings.width * settings.height * settings.spp
+    total = settings.width * settings.height * settings.spp * len(frames or [None])
     failures: list[str] = []
     size = nodes
+    delivered: dict[int, RenderResult] = {}
+
+    def frame_done(frame: int, film, reports: list[dict], barriers: int, seconds: float) -> None:
+        lo, hi = store.bounds
+        frame_camera = config.at_frame(frame, lo, hi, settings.width, settings.height
+                                       ).resolve_camera(lo, hi, settings.width, settings.height)
+        result = _result(film, frame_camera, reports, barriers, scheduler, size, nodes,
+                         failures, seconds)
+        result.counters["frame"] = frame
+        delivered[frame] = result
+        if on_frame is not None:
+            on_frame(frame, result)
+
     while True:
+        remaining = None if frames is None else [f for f in frames if f not in delivered]
         try:
             with tqdm(total=total, unit="path", unit_scale=True, delay=2.0,
                       disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                       leave=False) as bar:
                 film, reports, barriers = asyncio.run(_coordinate(
-                    job, size, settings, timeout, listen, keys, launched or {}, bar, progress,
-                    rendezvous, heartbeat_timeout or timeout))
+                    dict(job, frames=remaining), size, settings, timeout, listen, keys,
+                    launched or {}, bar, progress, rendezvous, heartbeat_timeout or timeout,
+                    frame_done))
             break
         except NodeLost as lost:
             if listen is not None or not survive_node_loss or size == 1:
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
             size -= 1
-            message = f"{lost}; rendering the frame again on the {size} other node(s)"
+            what = "the frame" if frames is None else "the frames not yet delivered"
+            message = f"{lost}; rendering {what} again on the {size} other node(s)"
             if progress:  # the CLI's user sees it as a plain line, not as a log record
                 print(message, file=sys.stderr)
             else:
                 log.warning("%s", message)
     wall = time.perf_counter() - start
-    counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": nodes,
-                "node_failures": failures, "per_node": reports,
+    if frames is None:
+        return _result(film, camera, reports, barriers, scheduler, size, nodes, failures, wall)
+    last = delivered[frames[-1]]
+    last.counters["frames"] = [delivered[f].counters for f in frames]
+    last.seconds["animation_total"] = round(wall, 4)
+    return last
+
+
+def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, size: int,
+            asked: int, failures: list[str], wall: float) -> RenderResult:
+    """A render's result from the nodes' reports (of the job, or of one frame)."""
+    counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": asked,
+                "node_failures": list(failures), "per_node": reports,
                 "global_barriers": barriers,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
@@ -157,7 +201,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       listen: str | None, keys: ClusterKeys | None,
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
-                      heartbeat_timeout: float | None = None):
+                      heartbeat_timeout: float | None = None, frame_done=None):
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -218,6 +262,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         film, reports = None, {}
         done_paths: dict[int, int] = {}
         control = _Termination(size, router, identities, token)
+        frames = _Frames(size, job.get("frames"), frame_done)
         while film is None or len(reports) < size:
             identity, message = await watch.receive(router)
             if message.kind == protocol.PROGRESS:
@@ -231,6 +276,9 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 except ValueError as exc:
                     raise NodeFailure(f"node 0 sent a film that does not fit the image: "
                                       f"{exc}") from None
+                frames.film(message.meta.get("frame"), film, control.barriers)
+            elif message.kind == protocol.FRAME:
+                frames.report(message.meta, control.barriers)
             elif message.kind == protocol.DONE:
                 reports[int(message.meta["rank"])] = message.meta
             elif message.kind == protocol.ROUND:
@@ -239,6 +287,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 await control.status(message.meta)
             elif message.kind == protocol.QUEUES:
                 await control.queues(message.meta)
+        frames.check_complete()
         for rank in range(size):
             await router.send_multipart([identities[rank], token, *encode(protocol.STOP, {})])
         await watch.wait_exit()
@@ -259,6 +308,53 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         logs.cleanup()
         if rendezvous is not None and listen is not None:
             Path(rendezvous).unlink(missing_ok=True)
+
+
+class _Frames:
+    """An animation's frames as they arrive: a frame is done when node 0's film and every
+    node's report of it are in; then ``frame_done(frame, film, reports, barriers, seconds)``.
+
+    Without frames (one image) it does nothing: the film and the done reports are the result.
+    """
+
+    def __init__(self, size: int, frames: list[int] | None, frame_done):
+        self.size, self.frame_done = size, frame_done
+        self.expected = None if frames is None else list(frames)
+        self.films: dict[int, object] = {}
+        self.reports: dict[int, dict[int, dict]] = {}
+        self.started = time.perf_counter()
+        self.barriers_before = 0
+
+    def film(self, frame: int | None, film, barriers: int) -> None:
+        if self.expected is None:
+            return
+        if frame not in self.expected or frame in self.films:
+            raise NodeFailure(f"node 0 sent a film for frame {frame}, which it did not "
+                              "have to render or had sent already")
+        self.films[frame] = film
+        self._finish(frame, barriers)
+
+    def report(self, meta: dict, barriers: int) -> None:
+        frame = int(meta["frame"])
+        if self.expected is None or frame not in self.expected:
+            raise NodeFailure(f"node {meta['rank']} reported frame {frame}, which is not "
+                              "one of this job's")
+        self.reports.setdefault(frame, {})[int(meta["rank"])] = meta
+        self._finish(frame, barriers)
+
+    def _finish(self, frame: int, barriers: int) -> None:
+        if frame not in self.films or len(self.reports.get(frame, {})) < self.size:
+            return
+        now = time.perf_counter()
+        reports = self.reports.pop(frame)
+        self.frame_done(frame, self.films.pop(frame), [reports[r] for r in range(self.size)],
+                        barriers - self.barriers_before, now - self.started)
+        self.started, self.barriers_before = now, barriers
+
+    def check_complete(self) -> None:
+        if self.expected is not None and (self.films or self.reports):
+            raise NodeFailure(f"the nodes finished with frames {sorted(self.reports)} "
+                              "incomplete")
 
 
 async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None:
@@ -503,7 +599,8 @@ class _Watch:
             if message.meta.get("rank", rank) != rank:
                 raise protocol.ProtocolError(f"node {rank} spoke for rank "
                                              f"{message.meta.get('rank')}")
-            once = (message.kind, rank) if message.kind in (protocol.DONE, protocol.FILM) else None
+            once = ((message.kind, rank, message.meta.get("frame"))
+                    if message.kind in (protocol.DONE, protocol.FILM, protocol.FRAME) else None)
             if once is not None:
                 if once in self.once or (message.kind == protocol.FILM and rank != 0):
                     raise protocol.ProtocolError(f"a second or unexpected {message.kind} from "

@@ -32,16 +32,17 @@ from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from vastray.actors import protocol
 from vastray.actors.local import RenderSetup
+from vastray.actors.preloader import DomainPreloader
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.scene.bvh import query_pool
-from vastray.scene.cache import DomainCache
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
@@ -56,28 +57,80 @@ def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
     return np.arange(n_domains) % size
 
 
+@dataclass
+class NodeState:
+    """What a node keeps from one frame of an animation to the next: its domain preloader (the
+    domains it holds stay resident), its query threads, ray batches that arrived for a later
+    frame, and the frame's position in the job (``ordinal``), which labels its tiles."""
+
+    preloader: DomainPreloader | None = None
+    pool: object = None
+    ordinal: int = 0
+    #: tile label -> ray batches received for a tile this node has not reached yet.
+    early: dict = field(default_factory=dict)
+    #: per-scheduler memory across frames (the temporal scheduler's statistics).
+    memory: dict = field(default_factory=dict)
+
+    def preloader_for(self, store, capacity: int, keep, job: dict) -> DomainPreloader:
+        """The node's preloader, made on the first frame (threads from ``job``)."""
+        if self.preloader is None:
+            self.pool = query_pool(job.get("threads"))
+            self.preloader = DomainPreloader(store, capacity, keep, pool=self.pool,
+                                             load_bandwidth=node_bandwidth(job),
+                                             preload=job.get("preload", True))
+        return self.preloader
+
+    def threads(self) -> int:
+        return self.pool._max_workers if self.pool is not None else 1
+
+    def close(self) -> None:
+        if self.preloader is not None:
+            self.preloader.close()
+        if self.pool is not None:
+            self.pool.shutdown()
+
+
+def node_bandwidth(job: dict) -> float | None:
+    """This node's emulated storage bandwidth in bytes/s (``job["load_bandwidth"]``: MB/s, one
+    number for every node or a list by rank, reused cyclically), or None."""
+    value = job.get("load_bandwidth")
+    if value is None:
+        return None
+    if isinstance(value, list):
+        value = value[int(job["rank"]) % len(value)]
+    return float(value) * 1e6
+
+
 async def render_owned_domains(management, job: dict, rank: int, size: int, store, config,
-                               settings, on_tile=None) -> tuple[Film, dict]:
+                               settings, on_tile=None, state: NodeState | None = None,
+                               tree=None) -> tuple[Film, dict]:
     """Render this node's part of every tile under domain decomposition; returns the node's
     partial film (to be summed over nodes) and its counters. ``on_tile(paths)`` hears of the
-    paths this node started, after each tile."""
+    paths this node started, after each tile. ``state`` carries the preloader and held
+    messages from one frame to the next (default: a fresh one, closed at the end)."""
     mode = job["node_scheduler"]
+    own_state = state is None
+    state = NodeState() if state is None else state
     setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
     owned = int(np.count_nonzero(owner == rank))
-    pool = query_pool(job.get("threads"))
-    cache = DomainCache(store, job.get("cache") or max(owned, 1), setup.keep, pool=pool)
+    preloader = state.preloader_for(store, job.get("cache") or max(owned, 1), setup.keep, job)
+    before = preloader.stats()
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
+    n_tiles = -(-total // tile)
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
-    node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS))
+    node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS),
+                 early=state.early)
+    base = state.ordinal * n_tiles  # tile labels are unique over the frames of a job
     try:
         if mode == "async":
-            frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile)
-            await frame.run(cache)
+            frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
+                                base=base, status_label=state.ordinal)
+            await frame.run(preloader)
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
         for index, first in enumerate(range(0, total, tile) if mode != "async" else ()):
@@ -88,12 +141,12 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             mine = np.arange(len(ctx.pixel)) % size == rank
             if mode == "dynamic":  # rays stay where they are made until a round moves them
                 policy.owner = np.full(len(store.domains), rank)
-            node.begin_tile(index, policy)
+            node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
-                await node.rounds(policy, cache, index)
+                await node.rounds(policy, preloader, base + index)
             else:
-                await node.dynamic(policy, cache, index)
+                await node.dynamic(policy, preloader, base + index)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
@@ -101,25 +154,35 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             if on_tile is not None:
                 on_tile(int(np.count_nonzero(mine)))
     finally:
-        cache.close()
-        if pool is not None:
-            pool.shutdown()
-    stats["threads"] = pool._max_workers if pool is not None else 1
-    stats.update({k: v for k, v in cache.stats.as_dict().items() if k in ("loads", "load_s")})
+        if own_state:
+            state.close()
+    stats["threads"] = state.threads()
+    stats.update(frame_load_stats(before, preloader.stats()))
     return film, stats
+
+
+#: Load counters a frame reports: what the preloader did during the frame.
+_LOAD_COUNTERS = ("loads", "preloads", "load_s", "load_wait_s", "bytes_loaded", "load_throttle_s")
+
+
+def frame_load_stats(before: dict, after: dict) -> dict:
+    """The preloader's counters over one frame (its totals run over the whole job)."""
+    return {k: (round(after[k] - before[k], 4) if isinstance(after[k], float)
+                else after[k] - before[k]) for k in _LOAD_COUNTERS}
 
 
 class _Node:
     """The node side of the decomposition: trace local work, ship outboxes, take deliveries."""
 
-    def __init__(self, management, rank: int, stats: dict, max_batch: int = MAX_BATCH_RAYS):
+    def __init__(self, management, rank: int, stats: dict, max_batch: int = MAX_BATCH_RAYS,
+                 early: dict | None = None):
         self.management, self.rank, self.stats = management, rank, stats
         self.max_batch = max(1, int(max_batch))
         self.sent_to: dict[int, int] = {}  # batches sent per destination since last asked
         self.tile = 0
-        # Batches of a later tile, from nodes that finished this one first: held back (and not
-        # counted) until this node starts that tile.
-        self.early: dict[int, list] = {}
+        # Batches of a later tile (or frame), from nodes that finished this one first: held
+        # back (and not counted) until this node starts that tile.
+        self.early: dict[int, list] = {} if early is None else early
 
     def begin_tile(self, tile: int, policy) -> None:
         self.tile = tile
@@ -140,7 +203,7 @@ class _Node:
                                                                     "ray batch")):
             pass
 
-    async def drain(self, policy, cache) -> None:
+    async def drain(self, policy, preloader) -> None:
         """Send the outbox, then trace every local domain until no local ray waits, sending
         what each produced.
 
@@ -152,7 +215,8 @@ class _Node:
         await self.ship(policy)
         while (domain := policy.next_domain()) is not None:
             start = time.perf_counter()
-            bvh = await asyncio.to_thread(cache.get, domain)
+            bvh = await preloader.get(domain)
+            preloader.preload(policy.likely_next(domain))
             await asyncio.to_thread(policy.process, domain, bvh)
             self.stats["trace_s"] += time.perf_counter() - start
             await self.ship(policy)
@@ -192,11 +256,11 @@ class _Node:
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
         policy.receive(message.meta["queue"], domains, rays)
 
-    async def rounds(self, policy, cache, tile: int) -> None:
+    async def rounds(self, policy, preloader, tile: int) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes."""
         while True:
             self.stats["rounds"] += 1
-            await self.drain(policy, cache)
+            await self.drain(policy, preloader)
             sent, self.sent_to = self.sent_to, {}
             await self.management.to_coordinator(encode(protocol.ROUND, {}, {
                 "rank": self.rank, "tile": tile, "sent_to": {str(k): v for k, v in sent.items()}}))
@@ -208,13 +272,13 @@ class _Node:
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
 
-    async def dynamic(self, policy, cache, tile: int) -> None:
+    async def dynamic(self, policy, preloader, tile: int) -> None:
         """Ray-weighted rounds: report queues and resident domains, get this round's
         domains, swap rays, trace."""
         while True:
             waiting = policy.radiance.counts() + policy.shadow.counts()
             await self.management.to_coordinator(encode(protocol.QUEUES, {}, {
-                "rank": self.rank, "tile": tile, "loaded": sorted(cache.resident_set()),
+                "rank": self.rank, "tile": tile, "loaded": sorted(preloader.resident()),
                 "queues": {str(d): int(n) for d, n in enumerate(waiting) if n}}))
             start = time.perf_counter()
             plan = await self.management.receive(protocol.SCHEDULE, "this round's schedule")
@@ -234,9 +298,11 @@ class _Node:
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
             self.stats["rounds"] += 1
-            for domain in (d for d, p in assign.items() if p == self.rank):
+            mine = [d for d, p in assign.items() if p == self.rank]
+            for i, domain in enumerate(mine):
                 t0 = time.perf_counter()
-                bvh = await asyncio.to_thread(cache.get, domain)
+                bvh = await preloader.get(domain)
+                preloader.preload(mine[i + 1] if i + 1 < len(mine) else None)
                 await asyncio.to_thread(policy.process, domain, bvh)
                 self.stats["trace_s"] += time.perf_counter() - t0
 
@@ -273,13 +339,17 @@ class _AsyncFrame:
         tile's camera rays are injected.
     film : this node's partial film, fed as tiles retire.
     on_tile : hears of the paths this node injects.
+    base : label of the frame's first tile (labels are unique over the frames of a job; a
+        batch labelled outside this frame's is held for its frame).
+    status_label : this frame's number in the termination detection.
     """
 
     def __init__(self, node: _Node, setup, settings, owner: np.ndarray, rank: int, size: int,
-                 tile: int, film: Film, on_tile=None):
+                 tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0):
         self.node, self.setup, self.settings = node, setup, settings
         self.owner, self.rank, self.size = owner, rank, size
         self.tile, self.film, self.on_tile = tile, film, on_tile
+        self.base, self.status_label = base, status_label
         self.n_tiles = -(-setup.total_paths // tile)
         self.policies: dict[int, ImageSchedule] = {}
         self.next_tile = 0
@@ -320,17 +390,35 @@ class _AsyncFrame:
             self.on_tile(len(mine))
 
     def accept(self, message) -> None:
-        self.node.deliver(self.policy(int(message.meta["tile"])), message)
+        tile = int(message.meta["tile"]) - self.base
+        if 0 <= tile < self.n_tiles:
+            self.node.deliver(self.policy(tile), message)
+        else:  # a later frame's batch, from a node that went on first
+            self.node.early.setdefault(int(message.meta["tile"]), []).append(message)
 
-    async def step(self, cache) -> bool:
-        """Trace the fullest local domain for every tile that has rays for it, then ship;
+    def take_early(self) -> None:
+        """Deliver the batches of this frame that arrived during an earlier one."""
+        for label in [t for t in self.node.early if 0 <= t - self.base < self.n_tiles]:
+            for message in self.node.early.pop(label):
+                self.accept(message)
+
+    def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
+        """The domain to trace now and the one to load meanwhile: the fullest queue, and the
+        second fullest (the Galaxy baseline's ray-count priority)."""
+        order = np.argsort(-waiting, kind="stable")
+        nxt = int(order[1]) if len(order) > 1 and waiting[order[1]] else None
+        return int(order[0]), nxt
+
+    async def step(self, preloader) -> bool:
+        """Trace the chosen local domain for every tile that has rays for it, then ship;
         False when no ray waits here."""
         waiting = self.waiting()
         if not waiting.any():
             return False
-        domain = int(np.argmax(waiting))
+        domain, upcoming = self.choose(waiting)
         start = time.perf_counter()
-        bvh = await asyncio.to_thread(cache.get, domain)
+        bvh = await preloader.get(domain)
+        preloader.preload(upcoming)
         for policy in [p for p in self.policies.values()
                        if p.radiance.count(domain) or p.shadow.count(domain)]:
             await asyncio.to_thread(policy.process, domain, bvh)
@@ -352,22 +440,23 @@ class _AsyncFrame:
             self.film.add_partial(policy.ctx.pixel, policy.ctx.sample, policy.result)
             self.shade_s += policy.counters["shade_s"]
 
-    async def run(self, cache) -> None:
+    async def run(self, preloader) -> None:
         management = self.node.management
         inbox = management.mailbox(protocol.RAYS)
         control = management.mailbox(protocol.PROBE)
+        self.take_early()
         while True:
             while not inbox.empty():
                 self.accept(inbox.get_nowait())
             if self.next_tile < self.n_tiles and self.waiting().sum() < self.tile:
                 self.inject()
                 await self.ship()  # camera rays bound for other nodes leave at once
-            if await self.step(cache) or not inbox.empty():
+            if await self.step(preloader) or not inbox.empty():
                 continue
             self.retire_idle()
             if self.next_tile < self.n_tiles:
                 continue
-            await self.node._status(0, probe=None)
+            await self.node._status(self.status_label, probe=None)
             start = time.perf_counter()
             getters = {asyncio.ensure_future(inbox.get()): "rays",
                        asyncio.ensure_future(control.get()): "control"}
@@ -386,7 +475,7 @@ class _AsyncFrame:
                 elif message.meta.get("finished"):
                     finished = True
                 else:
-                    await self.node._status(0, probe=message.meta["probe"])
+                    await self.node._status(self.status_label, probe=message.meta["probe"])
             if finished:
                 if self.policies:
                     raise RuntimeError("the frame ended with rays still waiting here")

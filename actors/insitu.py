@@ -23,13 +23,12 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
+from vastray.actors.decomposition import NodeState, frame_load_stats
 from vastray.actors.local import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
-from vastray.scene.bvh import query_pool
-from vastray.scene.cache import DomainCache
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
@@ -69,24 +68,30 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
 
 
 async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, store, config,
-                             settings, on_tile=None) -> tuple[Film, dict]:
+                             settings, on_tile=None, state: NodeState | None = None
+                             ) -> tuple[Film, dict]:
     """This node's partial film of a spec-insitu render (summed over nodes afterwards);
-    ``on_tile(paths)`` hears of the paths this node started, after each tile."""
+    ``on_tile(paths)`` hears of the paths this node started, after each tile. ``state``
+    keeps the node's preloader (its domains stay loaded) from one frame to the next."""
     setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
     owner = zorder_owners(lo, hi, size)
     local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
-    pool = query_pool(job.get("threads"))
-    cache = DomainCache(store, max(len(local), 1), setup.keep, pool=pool)
-    bvhs = {d: cache.get(d) for d in local}  # in situ: the node's data stays loaded
+    own_state = state is None
+    state = NodeState() if state is None else state
+    preloader = state.preloader_for(store, max(len(local), 1), setup.keep, job)
+    before = preloader.stats()
+    bvhs = {}
+    for i, d in enumerate(local):  # in situ: the node's data stays loaded
+        bvhs[d] = await preloader.get(d)
+        preloader.preload(local[i + 1] if i + 1 < len(local) else None)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(job["tile"], total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "speculative_rays": 0, "wasted_rays": 0, "intersection_cache_hits": 0,
-             "iterations": 0,
-             "loads": cache.stats.loads}
+             "iterations": 0}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats)
     for index, first in enumerate(range(0, total, tile)):
@@ -97,10 +102,10 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
         film.add_paths(ctx.pixel, ctx.sample, result, counted=mine)
         if on_tile is not None:
             on_tile(int(np.count_nonzero(mine)))
-    cache.close()
-    if pool is not None:
-        pool.shutdown()
-    stats["threads"] = pool._max_workers if pool is not None else 1
+    stats["threads"] = state.threads()
+    stats.update(frame_load_stats(before, preloader.stats()))
+    if own_state:
+        state.close()
     return film, stats
 
 

@@ -23,7 +23,7 @@ from zmq.utils.monitor import parse_monitor_message
 
 from vastray.actors import protocol
 from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
-from vastray.actors.decomposition import render_owned_domains
+from vastray.actors.decomposition import NodeState, render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.rendezvous import launcher_rank, read_address
@@ -281,7 +281,6 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
     ``rank`` -1 lets the coordinator assign one (nodes started by docker compose or SSH).
     """
-    from vastray.actors.local import render_out_of_core
     from vastray.render.integrators import RenderSettings
     from vastray.scene.store import Store
 
@@ -334,42 +333,44 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                 await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
 
         beating = asyncio.ensure_future(heartbeat())
-        start = time.perf_counter()
         tree = TreeReduceActor(management, rank, size, job["endpoints"])
-        if job["node_scheduler"] == "spec-insitu":
-            film, counters = await render_spec_insitu(management, tree, job, rank, size, store,
-                                                      config, settings, on_tile=report)
-        elif job["node_scheduler"] in DECOMPOSITION_MODES:
-            film, counters = await render_owned_domains(management, job, rank, size, store,
-                                                        config, settings, on_tile=report)
-        else:
-            result = await asyncio.to_thread(
-                render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
-                cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
-                history_depth=job.get("history_depth"), progress=False, share=(rank, size),
-                on_tile=report, threads=job.get("threads"))
-            film, counters = result.film, result.counters
-        busy = time.perf_counter() - start
-        reduce_start = time.perf_counter()
-        film = await tree.reduce_film(film, settings.width, settings.height)
-        rejected = management.rejections
-        stats = {"rank": rank, "busy_s": round(busy, 4),
-                 "reduce_s": round(time.perf_counter() - reduce_start, 4),
-                 "counters": {**{k: v for k, v in counters.items()
-                                 if isinstance(v, (int, float, str))},
-                              "rejected_messages": rejected.total,
-                              "peak_rss_bytes": resource.getrusage(
-                                  resource.RUSAGE_SELF).ru_maxrss * 1024,
-                              **{f"rejected_{k}": v for k, v in rejected.counts.items()}}}
-        if rank == 0:
-            await management.to_coordinator(film_frames(film, {"rank": rank}))
+        state = NodeState()
+        frames = job.get("frames")
+        totals: dict = {}
+        busy_total = reduce_total = 0.0
+        try:
+            for ordinal, frame in enumerate(frames if frames is not None else [None]):
+                frame_settings, frame_config = frame_inputs(settings, config, store, frame)
+                state.ordinal = ordinal
+                start = time.perf_counter()
+                film, counters = await render_share(management, tree, job, rank, size, store,
+                                                    frame_config, frame_settings, report, state)
+                busy = time.perf_counter() - start
+                reduce_start = time.perf_counter()
+                film = await tree.reduce_film(film, settings.width, settings.height)
+                reduce_s = time.perf_counter() - reduce_start
+                busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
+                counters = _report_counters(counters, management.rejections)
+                _accumulate(totals, counters)
+                if frame is not None:  # an animation: each frame's counters on their own
+                    await management.to_coordinator(encode(protocol.FRAME, {}, {
+                        "rank": rank, "frame": frame, "busy_s": round(busy, 4),
+                        "reduce_s": round(reduce_s, 4), "counters": counters}))
+                if rank == 0:
+                    meta = {"rank": rank} if frame is None else {"rank": rank, "frame": frame}
+                    await management.to_coordinator(film_frames(film, meta))
+        finally:
+            state.close()
+        stats = {"rank": rank, "busy_s": round(busy_total, 4),
+                 "reduce_s": round(reduce_total, 4),
+                 "counters": _report_counters(totals, management.rejections)}
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
         beating.cancel()
         for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
             task.cancel()
         await management.receive(protocol.STOP, "stop from the coordinator")
-        log.info("finished: busy %.2f s, %d domain loads", busy,
-                    int(counters.get("loads", 0)))
+        log.info("finished: busy %.2f s, %d domain loads", busy_total,
+                 int(totals.get("loads", 0)))
     finally:
         for task in watchers:
             task.cancel()
@@ -377,6 +378,58 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         if auth is not None:
             auth.stop()
         ctx.destroy(linger=0)
+
+
+async def render_share(management, tree, job: dict, rank: int, size: int, store, config,
+                       settings, report, state: NodeState):
+    """This node's partial film of one frame and its counters, by the job's scheduler."""
+    from vastray.actors.local import render_out_of_core
+
+    if job["node_scheduler"] == "spec-insitu":
+        return await render_spec_insitu(management, tree, job, rank, size, store, config,
+                                        settings, on_tile=report, state=state)
+    if job["node_scheduler"] in DECOMPOSITION_MODES:
+        return await render_owned_domains(management, job, rank, size, store, config,
+                                          settings, on_tile=report, state=state, tree=tree)
+    result = await asyncio.to_thread(
+        render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
+        cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
+        history_depth=job.get("history_depth"), progress=False, share=(rank, size),
+        on_tile=report, threads=job.get("threads"), preload=job.get("preload", True))
+    return result.film, result.counters
+
+
+def frame_inputs(settings, config: SceneConfig, store, frame: int | None):
+    """The settings and scene of one frame of an animation (``frame`` None: the job's own):
+    the camera and lights where the frame puts them, the seed hashed with the frame."""
+    if frame is None:
+        return settings, config
+    from dataclasses import replace
+
+    from vastray.render.rng import frame_seed
+
+    lo, hi = store.bounds
+    return (replace(settings, seed=frame_seed(settings.seed, frame)),
+            config.at_frame(frame, lo, hi, settings.width, settings.height))
+
+
+def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
+    """A frame's (or the job's) counters as the node reports them: numbers and names only,
+    plus the messages it dropped and its peak memory."""
+    return {**{k: v for k, v in counters.items() if isinstance(v, (int, float, str))},
+            "rejected_messages": rejected.total,
+            "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            **{f"rejected_{k}": v for k, v in rejected.counts.items()}}
+
+
+def _accumulate(totals: dict, counters: dict) -> None:
+    """Sum numeric counters over frames (names and peaks: the latest)."""
+    for key, value in counters.items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool) \
+                and not key.startswith("peak") and key != "threads":
+            totals[key] = totals.get(key, 0) + value
+        else:
+            totals[key] = value
 
 
 def _outbound_address(coordinator: str) -> str:

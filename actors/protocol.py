@@ -21,6 +21,7 @@ PROGRESS = "progress"    # node -> coordinator: paths done
 HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
 FILM = "film"            # node -> parent node / root -> coordinator: partial film
 DONE = "done"            # node -> coordinator: per-node timings and counters
+FRAME = "frame"          # node -> coordinator: one animation frame's timings and counters
 STOP = "stop"            # coordinator -> node: shut down
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
 ROUND = "round"          # node -> coordinator (domain): round done, batches sent per node
@@ -36,7 +37,7 @@ BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
 FROM_COORDINATOR = frozenset({JOB, STOP, GO, PROBE, SCHEDULE, HEARTBEAT})
 FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
-FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, ROUND, STATUS, QUEUES})
+FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, ROUND, STATUS, QUEUES})
 
 _NUMBER = (int, float)
 
@@ -49,6 +50,7 @@ META = {
     HEARTBEAT: {},
     FILM: {"rank": int},
     DONE: {"rank": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
+    FRAME: {"rank": int, "frame": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
     STOP: {},
     RAYS: {"rank": int, "tile": int, "queue": str},
     ROUND: {"rank": int, "tile": int, "sent_to": dict},

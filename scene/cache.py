@@ -1,4 +1,5 @@
-"""The domain cache: at most ``capacity`` domains resident, least recently used evicted."""
+"""The domain cache: at most ``capacity`` domains resident; the least recently used is evicted,
+or, when a scheduler gives priorities, the resident domain of lowest priority."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -30,6 +32,8 @@ class CacheStats:
     peak_resident_bytes: int = 0
     preloads: int = 0
     wait_seconds: float = 0.0
+    bytes_loaded: int = 0
+    throttle_seconds: float = 0.0
 
     def as_dict(self) -> dict:
         return {
@@ -40,6 +44,8 @@ class CacheStats:
             "preloads": self.preloads,
             "load_s": round(self.load_seconds, 4),
             "load_wait_s": round(self.wait_seconds, 4),
+            "bytes_loaded": self.bytes_loaded,
+            "load_throttle_s": round(self.throttle_seconds, 4),
             "read_s": round(self.read_seconds, 4),
             "bvh_build_s": round(self.build_seconds, 4),
             "peak_resident_bytes": self.peak_resident_bytes,
@@ -57,12 +63,23 @@ class DomainCache:
     drop_page_cache : read domain files fully and advise the kernel to drop their pages, so a
         reload after eviction is a real disk read (out-of-core benchmarks).
     pool : threads each loaded domain's queries split their rays over (``query_pool``).
+    load_bandwidth : bytes per second, to emulate network storage (the temporal-coherence
+        paper's cluster): after the real read of a domain, the load waits until its size
+        divided by this has passed (a sleep, costing no CPU). None: as fast as the disk.
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
-                 drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None):
+                 drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None,
+                 load_bandwidth: float | None = None):
         if capacity < 1:
             raise ValueError("cache capacity must be at least 1 domain")
+        if load_bandwidth is not None and not load_bandwidth > 0:
+            raise ValueError(f"load bandwidth must be positive, got {load_bandwidth}")
+        self.load_bandwidth = load_bandwidth
+        #: (D,) eviction priorities from the scheduler (lowest evicted first) and domains never
+        #: evicted for a preload; None: least recently used first.
+        self._priority = None
+        self._protect: frozenset[int] = frozenset()
         self.store = store
         self.capacity = capacity
         self.keep = keep
@@ -114,13 +131,38 @@ class DomainCache:
         self._insert(domain_id, bvh)
         return bvh
 
-    def _make_room(self, slots: int) -> None:
-        """Evict least recently used domains until ``slots`` more fit (loads in flight count)."""
-        while self._resident and len(self._resident) + len(self._pending) + slots > self.capacity:
-            evicted, gone = self._resident.popitem(last=False)
+    def prioritise(self, priority, protect: Iterable[int] = ()) -> None:
+        """Evict by ``priority`` ((D,) numbers, lowest first; None: least recently used) and
+        never evict a domain of ``protect`` (the active domain and the next one) to make room
+        for a preload. A load the renderer waits for may still evict a protected domain when
+        nothing else is resident: the cache never holds more than ``capacity``."""
+        with self._lock:
+            self._priority = priority
+            self._protect = frozenset(int(d) for d in protect)
+
+    def _victim(self, for_preload: bool) -> int | None:
+        """The resident domain to evict next: the lowest priority (least recently used on
+        ties, or when there are no priorities) outside the protected set."""
+        order = list(self._resident)  # least recently used first
+        free = [d for d in order if d not in self._protect]
+        if not free:
+            return None if for_preload else order[0]
+        if self._priority is None:
+            return free[0]
+        return min(free, key=lambda d: self._priority[d])  # min keeps the first (LRU) on ties
+
+    def _make_room(self, slots: int, for_preload: bool = False) -> bool:
+        """Evict domains until ``slots`` more fit (loads in flight count); False when a
+        preload would have to evict a protected domain (nothing is evicted then)."""
+        while len(self._resident) + len(self._pending) + slots > self.capacity:
+            evicted = self._victim(for_preload) if self._resident else None
+            if evicted is None:
+                return False
+            gone = self._resident.pop(evicted)
             self._resident_bytes -= gone.nbytes()
             self.stats.evictions += 1
             log.debug("evicted domain %d", evicted)
+        return True
 
     def _insert(self, domain_id: int, bvh: DomainBVH) -> None:
         replaced = self._resident.get(domain_id)
@@ -140,7 +182,8 @@ class DomainCache:
         with self._lock:
             if domain_id in self._resident or domain_id in self._pending:
                 return
-            self._make_room(1)
+            if not self._make_room(1, for_preload=True):
+                return
             if self._preloader is None:
                 self._preloader = ThreadPoolExecutor(1, thread_name_prefix="preloader")
             self._pending[domain_id] = self._preloader.submit(self._preload, domain_id)
@@ -166,6 +209,11 @@ class DomainCache:
         start = time.perf_counter()
         arrays = self.store.load_domain(domain_id, mmap=not self.drop_page_cache,
                                         drop_cache=self.drop_page_cache)
+        size = self.store.domains[domain_id].nbytes
+        throttle = 0.0
+        if self.load_bandwidth is not None:  # emulated network storage: wait out the rest
+            throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))
+            time.sleep(throttle)
         read_done = time.perf_counter()
         bvh = DomainBVH(domain_id, arrays, self.keep, self.pool)
         done = time.perf_counter()
@@ -174,6 +222,8 @@ class DomainCache:
             self.stats.loaded_domains.add(domain_id)
             self.stats.loads_per_domain[domain_id] = self.stats.loads_per_domain.get(domain_id, 0) + 1
             self.stats.read_seconds += read_done - start
+            self.stats.bytes_loaded += size
+            self.stats.throttle_seconds += throttle
             self.stats.build_seconds += done - read_done
             self.stats.load_seconds += done - start
         log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,

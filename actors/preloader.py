@@ -1,0 +1,82 @@
+"""The domain preloader: the third actor of a node (beside the management actor and the render
+workers). It owns the node's domain cache, loads the domain the scheduler expects next on its
+own thread while the render workers trace, evicts the resident domain the scheduler values
+least, and counts what loading cost (load time, time the workers waited, bytes).
+
+The scheduler drives it with two calls: ``prioritise`` (eviction order; least recently used
+when it gives none) and ``preload`` (load this one ahead). ``get`` is what a render worker
+awaits before tracing a domain; it returns at once for a resident domain, joins a preload in
+flight, or loads on the preloader's thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from vastray.scene.bvh import DomainBVH
+from vastray.scene.cache import DomainCache
+from vastray.scene.store import Store
+
+
+class DomainPreloader:
+    """A node's domain cache with a loading thread.
+
+    Parameters
+    ----------
+    store : the store the node loads from.
+    capacity : most domains resident at once (preloading needs 2: the one being traced stays).
+    keep : attributes each loaded domain keeps for shading.
+    pool : threads each loaded domain's queries split their rays over.
+    load_bandwidth : bytes per second to emulate network storage with (None: the disk's).
+    preload : False turns loading ahead off (``preload`` does nothing): the ablation of the
+        temporal-coherence paper's Table 2 and the benchmarks' "no preloading" rows.
+    """
+
+    def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
+                 pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
+                 preload: bool = True):
+        self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth)
+        self.enabled = preload
+        self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
+
+    @property
+    def capacity(self) -> int:
+        return self.cache.capacity
+
+    async def get(self, domain: int) -> DomainBVH:
+        """The built domain, loading it if it is not resident (the wait is counted)."""
+        if domain in self.cache:
+            return self.cache.get(domain)  # resident: no thread hop
+        return await asyncio.get_running_loop().run_in_executor(self._loader, self.cache.get,
+                                                                domain)
+
+    def preload(self, domain: int | None) -> None:
+        """Start loading ``domain`` ahead (no-op when resident, loading, disabled, or when
+        only protected domains could make room)."""
+        if self.enabled and domain is not None:
+            self.cache.prefetch(int(domain))
+
+    def prioritise(self, priority: np.ndarray | None, protect: Iterable[int] = ()) -> None:
+        """Evict the lowest of ``priority`` ((D,), None: least recently used) first, and never
+        ``protect`` (the active domain and the one preloaded next) for a preload."""
+        self.cache.prioritise(priority, protect)
+
+    def resident(self) -> frozenset[int]:
+        """Domains resident or being loaded."""
+        return self.cache.resident_set()
+
+    def loads_per_domain(self) -> dict[int, int]:
+        return dict(self.cache.stats.loads_per_domain)
+
+    def stats(self) -> dict:
+        """Counters for the node's report: loads, preloads, load_s, load_wait_s,
+        bytes_loaded, ..."""
+        return self.cache.stats.as_dict()
+
+    def close(self) -> None:
+        self.cache.close()
+        self._loader.shutdown(wait=True)
