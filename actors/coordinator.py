@@ -42,7 +42,8 @@ from vastray.transport.security import (
 #: Distributed schedulers and what each node runs: a schedule over its sort-first tiles
 #: (image, spec-ooc), or its share of the domains (domain, async; see actors.decomposition).
 NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
-                 "async": "async", "dynamic": "dynamic", "spec-insitu": "spec-insitu"}
+                 "async": "async", "dynamic": "dynamic", "spec-insitu": "spec-insitu",
+                 "temporal": "temporal"}
 
 
 log = logging.getLogger(__name__)
@@ -119,6 +120,10 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if nodes < 1:
         raise ValueError("--nodes must be at least 1")
     store = Store(store_path)
+    if scheduler == "temporal":
+        from vastray.actors.temporal import check_temporal_domains
+
+        check_temporal_domains(store)
     config = config if config is not None else load_scene_config(scene_path)
     if config.text is None:
         raise ValueError("render_distributed needs a SceneConfig read from TOML: its text is "

@@ -47,7 +47,7 @@ from vastray.schedule.image import ImageSchedule
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
-MODES = ("domain", "async", "dynamic")
+MODES = ("domain", "async", "dynamic", "temporal")
 #: Most rays in one batch between two nodes by default (about 6 MB of path-tracing rays).
 MAX_BATCH_RAYS = 65536
 
@@ -114,6 +114,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
     owned = int(np.count_nonzero(owner == rank))
+    if mode == "temporal":  # groups change from frame to frame: room for the largest
+        owned = -(-len(store.domains) // size) + 1
     preloader = state.preloader_for(store, job.get("cache") or max(owned, 1), setup.keep, job)
     before = preloader.stats()
     film = Film(settings.width, settings.height)
@@ -131,9 +133,14 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
                                 base=base, status_label=state.ordinal)
             await frame.run(preloader)
+        elif mode == "temporal":
+            frame = await _temporal_frame(node, setup, settings, store, job, rank, size, tile,
+                                          film, on_tile, base, state, preloader, tree, stats)
+        if mode in ("async", "temporal"):
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
-        for index, first in enumerate(range(0, total, tile) if mode != "async" else ()):
+        for index, first in enumerate(range(0, total, tile) if mode in ("domain", "dynamic")
+                                      else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
@@ -159,6 +166,28 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     stats["threads"] = state.threads()
     stats.update(frame_load_stats(before, preloader.stats()))
     return film, stats
+
+
+async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, film, on_tile,
+                          base, state: NodeState, preloader, tree, stats: dict):
+    """One frame of ``temporal``: plan from the last frame's statistics, render, and sum this
+    frame's statistics over the nodes for the next (kept in ``state.memory``)."""
+    from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
+
+    previous = state.memory.get("temporal_stats")
+    assignment = frame_assignment(job.get("assignment", "temporal"), store, setup.camera,
+                                  settings.width, settings.height, size, previous)
+    frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
+                          job.get("priority", "cost-benefit"), previous, on_tile, base=base,
+                          status_label=state.ordinal)
+    await frame.run(preloader)
+    start = time.perf_counter()
+    state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
+    stats["stats_reduce_s"] = round(time.perf_counter() - start, 4)
+    stats["local_domains"] = int(frame.local.sum())
+    stats["assignment_digest"] = int(np.abs(assignment.owner * np.arange(
+        1, len(assignment.owner) + 1)).sum())
+    return frame
 
 
 #: Load counters a frame reports: what the preloader did during the frame.
@@ -371,6 +400,13 @@ class _AsyncFrame:
             self.made += 1
         return self.policies[tile]
 
+    def my_paths(self, policy) -> np.ndarray:
+        """Rows of the tile's paths whose camera rays this node makes: every P-th."""
+        return np.nonzero(np.arange(len(policy.ctx.pixel)) % self.size == self.rank)[0]
+
+    def traced(self, domain: int, rays: int, seconds: float) -> None:
+        """Hears that ``rays`` rays of ``domain`` took ``seconds`` to trace and shade."""
+
     def waiting(self) -> np.ndarray:
         """(D,) rays waiting here per domain, over every tile."""
         total = np.zeros(len(self.owner), np.int64)
@@ -383,7 +419,7 @@ class _AsyncFrame:
         tile = self.next_tile
         self.next_tile += 1
         policy = self.policy(tile)
-        mine = np.nonzero(np.arange(len(policy.ctx.pixel)) % self.size == self.rank)[0]
+        mine = self.my_paths(policy)
         self.film.count_samples(policy.ctx.pixel[mine])
         policy.start(camera_rays(self.setup.camera, policy.ctx).take(mine))
         if self.on_tile is not None:
@@ -419,10 +455,13 @@ class _AsyncFrame:
         start = time.perf_counter()
         bvh = await preloader.get(domain)
         preloader.preload(upcoming)
+        loaded = time.perf_counter()
         for policy in [p for p in self.policies.values()
                        if p.radiance.count(domain) or p.shadow.count(domain)]:
             await asyncio.to_thread(policy.process, domain, bvh)
-        self.node.stats["trace_s"] += time.perf_counter() - start
+        done = time.perf_counter()
+        self.traced(domain, int(waiting[domain]), done - loaded)
+        self.node.stats["trace_s"] += done - start
         await self.ship()
         return True
 

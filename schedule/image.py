@@ -48,14 +48,19 @@ class ImageSchedule:
     resident_first : serve a domain already in memory (``next_domain``'s ``resident``) before
         loading one, the same rule ``SpeculativeSchedule`` has; False is Listing 1 as written
         (the fullest queue, wherever it is). Default True: the strongest honest baseline.
+    tally : where to count the temporal-coherence paper's ray statistics (§4.1), or None (the
+        default: nothing counted). An object with ``sent`` ((D, D) int64: rays forwarded from
+        domain A to domain B != A, a new ray counting from the domain of the hit that spawned
+        it) and ``received`` ((D,) int64: rays each domain processed).
     """
 
     name = "image"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], owner: np.ndarray | None = None,
-                 rank: int = 0, resident_first: bool = True):
+                 rank: int = 0, resident_first: bool = True, tally=None):
         self.resident_first = resident_first
+        self.tally = tally
         self._resident: frozenset[int] = frozenset()
         self.owner = np.zeros(geometry.n_domains, np.int64) if owner is None else owner
         self.rank = rank
@@ -113,11 +118,13 @@ class ImageSchedule:
     def process(self, domain: int, bvh) -> None:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""
         rays = self.radiance.pop(domain)
+        shadows = self.shadow.pop(domain)
+        if self.tally is not None:
+            self.tally.received[domain] += sum(len(r) for r in (rays, shadows) if r is not None)
         if rays is not None:
             self._process_radiance(domain, bvh, rays)
-        rays = self.shadow.pop(domain)
-        if rays is not None:
-            self._process_shadow(domain, bvh, rays)
+        if shadows is not None:
+            self._process_shadow(domain, bvh, shadows)
 
     # -- radiance rays ------------------------------------------------------------------------
     def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
@@ -127,8 +134,12 @@ class ImageSchedule:
                                  self.scalar_range)
         self._advance_radiance(rays)
 
-    def _forward(self, rays: SoA, queues: DomainQueues, limit: np.ndarray) -> np.ndarray:
+    def _forward(self, rays: SoA, queues: DomainQueues, limit: np.ndarray,
+                 spawned_in: np.ndarray | None = None) -> np.ndarray:
         """Queue each ray into the next domain on its path that starts before ``limit``.
+
+        ``spawned_in`` ((n,) int) is, for new rays, the domain of the hit that spawned each
+        (-1 for camera rays): where the tally counts them sent from.
 
         Returns
         -------
@@ -137,6 +148,8 @@ class ImageSchedule:
         nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
                                                rays["at_d"], limit)
         moving = nxt >= 0
+        if self.tally is not None:
+            self._count_sent(rays["at_d"] if spawned_in is None else spawned_in, nxt)
         if moving.any():
             movers = rays.take(moving)
             movers["at_t"], movers["at_d"] = entry[moving], nxt[moving]
@@ -153,6 +166,14 @@ class ImageSchedule:
                         (nxt[moving][rows], movers.take(rows)))
         return ~moving
 
+    def _count_sent(self, source: np.ndarray, destination: np.ndarray) -> None:
+        """Add rays moving from domain ``source`` to another ``destination`` to s(A, B)."""
+        counted = (source >= 0) & (destination >= 0) & (source != destination)
+        if counted.any():
+            n = self.geometry.n_domains
+            pairs = source[counted].astype(np.int64) * n + destination[counted]
+            np.add.at(self.tally.sent.reshape(-1), pairs, 1)
+
     def receive(self, queue: str, domains: np.ndarray, rays: SoA) -> None:
         """Queue rays another node sent for this node's ``domains`` ((m,) each)."""
         (self.radiance if queue == "radiance" else self.shadow).push(domains, rays)
@@ -162,9 +183,9 @@ class ImageSchedule:
         out, self.outbox = self.outbox, {}
         return out
 
-    def _advance_radiance(self, rays: SoA) -> None:
+    def _advance_radiance(self, rays: SoA, spawned_in: np.ndarray | None = None) -> None:
         """Queue rays into their next domain; shade the ones whose hit is final."""
-        final = self._forward(rays, self.radiance, rays["hit_t"])
+        final = self._forward(rays, self.radiance, rays["hit_t"], spawned_in)
         if final.any():
             self._finalize(rays.take(final))
 
@@ -182,18 +203,23 @@ class ImageSchedule:
         start = time.perf_counter()
         shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
         self.counters["shade_s"] += time.perf_counter() - start
-        self._launch_shadow(shadow)
-        self._launch_radiance(continuation)
+        hit_domain = None
+        if self.tally is not None:  # each path has one final hit here: its domain by path
+            hit_domain = np.full(len(self.ctx.pixel), -1, np.int64)
+            hit_domain[radiance.path[hit]] = hits.domain[hit]
+        self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow.path])
+        self._launch_radiance(continuation,
+                              None if hit_domain is None else hit_domain[continuation.path])
 
-    def _launch_radiance(self, rays: RadianceRays) -> None:
+    def _launch_radiance(self, rays: RadianceRays, spawned_in: np.ndarray | None = None) -> None:
         if len(rays):
             soa = radiance_soa(rays, self.color_source is not None, **start_cursor(len(rays)))
-            self._advance_radiance(soa)
+            self._advance_radiance(soa, spawned_in)
 
     # -- shadow rays --------------------------------------------------------------------------
-    def _launch_shadow(self, rays: ShadowRays) -> None:
+    def _launch_shadow(self, rays: ShadowRays, spawned_in: np.ndarray | None = None) -> None:
         if len(rays):
-            self._advance_shadow(shadow_soa(rays, **start_cursor(len(rays))))
+            self._advance_shadow(shadow_soa(rays, **start_cursor(len(rays))), spawned_in)
 
     def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
         self.counters["shadow_tests"] += len(rays)
@@ -201,8 +227,8 @@ class ImageSchedule:
         if not blocked.all():
             self._advance_shadow(rays.take(~blocked))
 
-    def _advance_shadow(self, rays: SoA) -> None:
+    def _advance_shadow(self, rays: SoA, spawned_in: np.ndarray | None = None) -> None:
         """Queue unblocked shadow rays into their next domain; past the last, they bring light."""
-        through = self._forward(rays, self.shadow, rays["t_max"])
+        through = self._forward(rays, self.shadow, rays["t_max"], spawned_in)
         if through.any():
             add_unoccluded(self.result.radiance, as_shadow(rays), through)

@@ -125,7 +125,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "domains (default: all)")
     p.add_argument("--scheduler",
                    choices=["auto", "reference", "image", "spec-ooc", "domain", "async",
-                            "dynamic", "spec-insitu"],
+                            "dynamic", "spec-insitu", "temporal"],
                    default="auto",
                    help="how rays meet domains: 'reference' traces each wavefront through all "
                         "domains it enters; 'image' queues rays per domain and processes the "
@@ -134,8 +134,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "ownership, synchronous rounds), 'async' (owned domains, rays move "
                         "without global rounds), 'dynamic' (Navratil's ray-weighted rounds "
                         "re-assigning domains) and 'spec-insitu' (SpRay in situ: z-order "
-                        "ownership, speculation, t-buffer MIN / o-buffer OR all-reduce). All "
-                        "give the same image. 'auto' (default): "
+                        "ownership, speculation, t-buffer MIN / o-buffer OR all-reduce) and "
+                        "'temporal' (async with each frame's domain groups and screen tiles "
+                        "planned from the last frame's ray statistics, and cost-benefit "
+                        "preloading: Xu et al. 2022). All give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G: bounds its "
@@ -169,7 +171,21 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="cluster keys from `vastray keys` (ZeroMQ CURVE: encrypted, only key "
                         "holders may join); needed to listen beyond loopback")
     p.add_argument("--no-preload", action="store_true",
-                   help="image/spec-ooc: do not load the next domain in the background")
+                   help="do not load the next domain in the background (every scheduler with "
+                        "a cache; the 'no preloading' rows of the benchmarks)")
+    p.add_argument("--assignment", choices=["sequential", "spatial", "temporal"],
+                   help="async/temporal: which node owns which domain: round robin "
+                        "(sequential; async's default), contiguous z-order runs (spatial), or "
+                        "the temporal-coherence paper's Algorithm 1 from the last frame's ray "
+                        "transmissions (temporal's default; frame 0 uses spatial)")
+    p.add_argument("--priority", choices=["queue", "spray", "queue+act", "cost-benefit"],
+                   help="temporal: how a node picks the next domain and what it preloads: "
+                        "most queued rays, SpRay's traversal score, queued plus expected rays "
+                        "from the active domain, or the paper's cost-benefit Eq. 1 (default)")
+    p.add_argument("--load-bandwidth", type=_bandwidths, metavar="MB/s[,MB/s...]",
+                   help="with --nodes: emulate network storage: a domain load takes at least "
+                        "its size over this bandwidth (per node, or a list cycled over the "
+                        "ranks); an emulation by waiting after the real read, for benchmarks")
     p.add_argument("--batch-size", type=_positive, default=65536,
                    help="paths traced together (default: 65536)")
     p.add_argument("--threads", type=_positive,
@@ -269,6 +285,18 @@ def resolve_cache(cache: int | str | None, n_domains: int) -> int | None:
     return cache
 
 
+def _bandwidths(text: str) -> float | list[float]:
+    """``MB/s`` or a comma-separated list of them (one per rank, cycled)."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected MB/s numbers like 200 or 200,100; got "
+                                         f"{text!r}") from None
+    if not all(0 < v < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"bandwidths must be positive, got {text!r}")
+    return values[0] if len(values) == 1 else values
+
+
 def _non_negative(text: str) -> int:
     value = int(text)
     if value < 0:
@@ -362,7 +390,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     if args.rendezvous and not args.listen:
         raise InputError(None, "--rendezvous FILE needs --listen HOST:PORT (the nodes it "
                                "guides are started elsewhere)")
-    if scheduler in ("domain", "async", "dynamic", "spec-insitu") and not args.nodes:
+    if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
     if args.nodes:
@@ -374,7 +402,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
             keys=load_keys(args.keys) if args.keys else None, launched=launched,
             progress=not args.quiet, config=config, threads=args.threads,
-            rendezvous=args.rendezvous, heartbeat_timeout=args.heartbeat_timeout)
+            rendezvous=args.rendezvous, heartbeat_timeout=args.heartbeat_timeout,
+            options=node_options(args, scheduler))
     elif scheduler == "reference":
         result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
                         progress=not args.quiet)
@@ -401,6 +430,20 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     if not args.quiet:
         print(summary, file=sys.stderr)
     return 0
+
+
+def node_options(args: argparse.Namespace, scheduler: str) -> dict:
+    """The job entries the node schedulers read beyond the common ones."""
+    options = {"preload": not args.no_preload}
+    if args.load_bandwidth is not None:
+        options["load_bandwidth"] = args.load_bandwidth
+    if scheduler == "temporal":
+        options["assignment"] = args.assignment or "temporal"
+        options["priority"] = args.priority or "cost-benefit"
+    elif args.assignment not in (None, "sequential") or args.priority is not None:
+        raise InputError(None, "--assignment and --priority choose how --scheduler temporal "
+                               "plans (async takes only --assignment sequential so far)")
+    return options
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
