@@ -165,6 +165,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             state.close()
     stats["threads"] = state.threads()
     stats.update(frame_load_stats(before, preloader.stats()))
+    stats["cache_capacity"] = preloader.capacity
+    stats["peak_resident_domains"] = preloader.stats()["peak_resident_domains"]
     return film, stats
 
 
@@ -185,6 +187,7 @@ async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, f
     state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
     stats["stats_reduce_s"] = round(time.perf_counter() - start, 4)
     stats["local_domains"] = int(frame.local.sum())
+    stats["nonlocal_loads"] = frame.nonlocal_loads
     stats["assignment_digest"] = int(np.abs(assignment.owner * np.arange(
         1, len(assignment.owner) + 1)).sum())
     return frame

@@ -203,8 +203,9 @@ class ManagementActor:
                     raise AuthenticationFailed(
                         f"authentication with the coordinator at {endpoint} failed: its cluster "
                         "keys differ from this node's --keys (or one side has none)")
-        finally:
-            self.coordinator.disable_monitor()
+        finally:  # the socket may be closed already when the node stops on an error
+            if not self.coordinator.closed:
+                self.coordinator.disable_monitor()
             monitor.close(linger=0)
 
     async def receive(self, kind: str, what: str):

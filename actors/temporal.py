@@ -81,6 +81,10 @@ class TemporalFrame(_AsyncFrame):
         if priority not in plan.PRIORITIES:
             raise ValueError(f"unknown priority {priority!r}; expected one of "
                              f"{plan.PRIORITIES}")
+        # Frame 0 has no statistics for Eq. 1-4 (S_PROC, S_LOAD, R): the paper's bootstrap
+        # frame schedules by queued rays.
+        if previous is None and priority in ("cost-benefit", "queue+act"):
+            priority = "queue"
         self.assignment, self.priority_kind, self.previous = assignment, priority, previous
         n = len(owner)
         self.local = assignment.owns(rank)
@@ -92,6 +96,7 @@ class TemporalFrame(_AsyncFrame):
         self.dep = plan.dep_prime(setup.camera.position, lo, hi, nonempty)
         self.domain_bytes = np.array([d.nbytes for d in store.domains], np.float64)
         self.upcoming: int | None = None  # d*, being preloaded
+        self.nonlocal_loads = 0  # loads of domains outside this node's group (none, ever)
         self.preloader = None
         self.loads_before: dict[int, int] = {}
         if previous is not None:
@@ -191,6 +196,7 @@ class TemporalFrame(_AsyncFrame):
         after = preloader.stats()
         for d, count in preloader.loads_per_domain().items():
             self.stats.loads[d] += count - self.loads_before.get(d, 0)
+        self.nonlocal_loads = int(self.stats.loads[~self.local].sum())
         self.stats.load_bytes[self.rank] += after["bytes_loaded"] - before["bytes_loaded"]
         self.stats.load_s[self.rank] += after["load_s"] - before["load_s"]
 

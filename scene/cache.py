@@ -34,6 +34,7 @@ class CacheStats:
     wait_seconds: float = 0.0
     bytes_loaded: int = 0
     throttle_seconds: float = 0.0
+    peak_resident_domains: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -49,6 +50,7 @@ class CacheStats:
             "read_s": round(self.read_seconds, 4),
             "bvh_build_s": round(self.build_seconds, 4),
             "peak_resident_bytes": self.peak_resident_bytes,
+            "peak_resident_domains": self.peak_resident_domains,
         }
 
 
@@ -173,6 +175,8 @@ class DomainCache:
         self._resident_bytes += bvh.nbytes()
         self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
                                              self._resident_bytes)
+        self.stats.peak_resident_domains = max(self.stats.peak_resident_domains,
+                                               len(self._resident) + len(self._pending))
 
     def prefetch(self, domain_id: int | None) -> None:
         """Start loading ``domain_id`` on the preloader thread, so its read and BVH build

@@ -206,7 +206,7 @@ class ImageSchedule:
         hit_domain = None
         if self.tally is not None:  # each path has one final hit here: its domain by path
             hit_domain = np.full(len(self.ctx.pixel), -1, np.int64)
-            hit_domain[radiance.path[hit]] = hits.domain[hit]
+            hit_domain[radiance.path[hit]] = rays["hit_domain"][hit]
         self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow.path])
         self._launch_radiance(continuation,
                               None if hit_domain is None else hit_domain[continuation.path])

@@ -9,10 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from scenes import bumpy_scene, write_store
 from vastray.actors.decomposition import NodeState, node_bandwidth
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.cache import DomainCache
+
+from scenes import bumpy_scene, write_store
 
 
 @pytest.fixture(scope="module")
