@@ -31,6 +31,7 @@ from vastray.schedule.paths import (
     shadow_soa,
     start_cursor,
 )
+from vastray.schedule.simplified import luminance
 from vastray.schedule.soa import DomainQueues, SoA
 
 
@@ -52,15 +53,18 @@ class ImageSchedule:
         default: nothing counted). An object with ``sent`` ((D, D) int64: rays forwarded from
         domain A to domain B != A, a new ray counting from the domain of the hit that spawned
         it) and ``received`` ((D,) int64: rays each domain processed).
+    simple : routing to the node's simplified model (``schedule.simplified``), or None (the
+        default: every ray is traced on the fine domains).
     """
 
     name = "image"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], owner: np.ndarray | None = None,
-                 rank: int = 0, resident_first: bool = True, tally=None):
+                 rank: int = 0, resident_first: bool = True, tally=None, simple=None):
         self.resident_first = resident_first
         self.tally = tally
+        self.simple = simple
         self._resident: frozenset[int] = frozenset()
         self.owner = np.zeros(geometry.n_domains, np.int64) if owner is None else owner
         self.rank = rank
@@ -168,9 +172,9 @@ class ImageSchedule:
 
     def _count_sent(self, source: np.ndarray, destination: np.ndarray) -> None:
         """Add rays moving from domain ``source`` to another ``destination`` to s(A, B)."""
-        counted = (source >= 0) & (destination >= 0) & (source != destination)
+        n = self.geometry.n_domains
+        counted = (source >= 0) & (source < n) & (destination >= 0) & (source != destination)
         if counted.any():
-            n = self.geometry.n_domains
             pairs = source[counted].astype(np.int64) * n + destination[counted]
             np.add.at(self.tally.sent.reshape(-1), pairs, 1)
 
@@ -185,6 +189,10 @@ class ImageSchedule:
 
     def _advance_radiance(self, rays: SoA, spawned_in: np.ndarray | None = None) -> None:
         """Queue rays into their next domain; shade the ones whose hit is final."""
+        if self.simple is not None and self.simple.uses_portals:
+            rays, spawned_in = self._cross_portals(rays, spawned_in)
+            if len(rays) == 0:
+                return
         final = self._forward(rays, self.radiance, rays["hit_t"], spawned_in)
         if final.any():
             self._finalize(rays.take(final))
@@ -197,6 +205,10 @@ class ImageSchedule:
         if camera.any():
             rows = np.nonzero(camera)[0]
             self.result.record_camera_hits(self.ctx, radiance.take(rows), hits.take(rows))
+        recording = (self.simple is not None and self.simple.recording
+                     and self.simple.uses_portals)
+        if recording:  # crossed portals start dark: a miss or a shadowed hit records 0
+            self._record_crossings(rays)
         hit = np.nonzero(hits.hit)[0]
         if len(hit) == 0:
             return
@@ -204,22 +216,150 @@ class ImageSchedule:
         shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
         self.counters["shade_s"] += time.perf_counter() - start
         hit_domain = None
-        if self.tally is not None:  # each path has one final hit here: its domain by path
+        if self.tally is not None or self.simple is not None:
+            # each path has one final hit here: its domain by path
             hit_domain = np.full(len(self.ctx.pixel), -1, np.int64)
             hit_domain[radiance.path[hit]] = rays["hit_domain"][hit]
-        self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow.path])
+        portal = self._portal_fields(rays, hit, shadow) if recording else None
+        self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow.path],
+                            portal)
         self._launch_radiance(continuation,
                               None if hit_domain is None else hit_domain[continuation.path])
 
     def _launch_radiance(self, rays: RadianceRays, spawned_in: np.ndarray | None = None) -> None:
-        if len(rays):
-            soa = radiance_soa(rays, self.color_source is not None, **start_cursor(len(rays)))
+        if not len(rays):
+            return
+        extra = start_cursor(len(rays))
+        if self.simple is not None:
+            extra.update(portal_t=np.full(len(rays), np.inf, np.float32),
+                         portal_from=np.full(len(rays), -1, np.int32),
+                         portal_cell=np.full(len(rays), -1, np.int64))
+        soa = radiance_soa(rays, self.color_source is not None, **extra)
+        if self.simple is None:
             self._advance_radiance(soa, spawned_in)
+            return
+        simple = self.simple.simplified_at_start(rays.depth, spawned_in)
+        if simple.any():
+            self._trace_simplified(soa.take(simple), np.zeros(int(simple.sum())))
+        if simple.all():
+            return
+        soa = soa.take(~simple)
+        spawned_in = None if spawned_in is None else spawned_in[~simple]
+        if self.simple.uses_portals and spawned_in is not None:
+            first = np.nonzero(soa["depth"] == 1)[0]
+            soa["portal_from"][first] = spawned_in[first]
+            soa["portal_t"][first] = self.simple.portal_exit(
+                soa["origin"][first], soa["direction"][first], spawned_in[first])
+        self._advance_radiance(soa, spawned_in)
+
+    # -- the simplified model -----------------------------------------------------------------
+    def _cross_portals(self, rays: SoA, spawned_in: np.ndarray | None
+                       ) -> tuple[SoA, np.ndarray | None]:
+        """Depth-1 rays about to leave their spawning domain with no hit before its portal:
+        record where they crossed (recording frame), or send those the portal predicts dark
+        on through the simplified model. Returns the rays that stay fine."""
+        pending = np.nonzero(np.isfinite(rays["portal_t"])
+                             & (rays["hit_t"] > rays["portal_t"]))[0]
+        if len(pending) == 0:
+            return rays, spawned_in
+        nxt, entry = self.geometry.next_domain(
+            rays["origin"][pending], rays["direction"][pending], rays["at_t"][pending],
+            rays["at_d"][pending], rays["hit_t"][pending])
+        crossing = pending[(nxt < 0) | (entry >= rays["portal_t"][pending])]
+        if len(crossing) == 0:
+            return rays, spawned_in
+        simple = self.simple
+        t_exit = rays["portal_t"][crossing].astype(np.float64)[:, None]
+        points = rays["origin"][crossing] + t_exit * rays["direction"][crossing]
+        cells = simple.portals.cells(rays["portal_from"][crossing], points,
+                                     rays["direction"][crossing], simple.lo, simple.hi)
+        simple.counters["portal_crossings"] += len(crossing)
+        rays["portal_t"][crossing] = np.inf  # crossed: the decision is made once
+        if simple.recording:
+            rays["portal_cell"][crossing] = cells
+            return rays, spawned_in
+        low = simple.portals.predict(cells) <= simple.threshold
+        if not low.any():
+            return rays, spawned_in
+        simple.counters["predicted_low"] += int(low.sum())
+        diverted = crossing[low]
+        self._trace_simplified(rays.take(diverted), t_exit[low, 0])
+        keep = np.ones(len(rays), bool)
+        keep[diverted] = False
+        return rays.take(keep), None if spawned_in is None else spawned_in[keep]
+
+    def _trace_simplified(self, rays: SoA, t_start: np.ndarray) -> None:
+        """Trace radiance rays on the simplified model from ``t_start``; their hits are final
+        (a fine hit already found before the portal stays if it is nearer)."""
+        simple = self.simple
+        simple.counters["simplified_rays"] += len(rays)
+        r = simple.trace(rays["origin"], rays["direction"], t_start, rays["hit_t"])
+        closest_hits(rays).offer(np.arange(len(rays)), simple.domain, simple.bvh, r,
+                                 self.color_source, self.scalar_range)
+        self._finalize(rays)
+
+    def _record_crossings(self, rays: SoA) -> None:
+        """Recording frame: every final ray that crossed its portal records 0 in its cell
+        (dark until the light its hit receives says otherwise)."""
+        cells = rays["portal_cell"]
+        crossed = cells >= 0
+        if crossed.any():
+            self.simple.portals.record(cells[crossed], np.zeros(int(crossed.sum()), np.float32))
+            self.simple.counters["portal_records"] += int(crossed.sum())
+
+    def _portal_fields(self, rays: SoA, hit: np.ndarray, shadow: ShadowRays
+                       ) -> dict[str, np.ndarray]:
+        """Recording frame: the shadow rays of a hit whose ray crossed a portal carry the cell
+        and the light each would bring back, ``k * contribution / beta`` in luminance for the
+        ``k`` shadow rays of the hit (the per-cell maximum keeps the brightest estimate)."""
+        cells = rays["portal_cell"]
+        n = len(self.ctx.pixel)
+        cell_of = np.full(n, -1, np.int64)
+        beta_of = np.ones((n, 3))
+        path = rays["path"][hit]
+        cell_of[path] = cells[hit]
+        beta_of[path] = rays["beta"][hit]
+        k = np.bincount(shadow.path, minlength=n)[shadow.path]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            per_beta = np.where(beta_of[shadow.path] > 0,
+                                shadow.contribution / beta_of[shadow.path], 0.0)
+        value = (luminance(per_beta) * k).astype(np.float32)
+        return {"portal_cell": cell_of[shadow.path], "portal_value": value}
 
     # -- shadow rays --------------------------------------------------------------------------
-    def _launch_shadow(self, rays: ShadowRays, spawned_in: np.ndarray | None = None) -> None:
-        if len(rays):
-            self._advance_shadow(shadow_soa(rays, **start_cursor(len(rays))), spawned_in)
+    def _launch_shadow(self, rays: ShadowRays, spawned_in: np.ndarray | None = None,
+                       portal: dict | None = None) -> None:
+        if not len(rays):
+            return
+        extra = start_cursor(len(rays))
+        if self.simple is not None:
+            extra.update(portal or {"portal_cell": np.full(len(rays), -1, np.int64),
+                                    "portal_value": np.zeros(len(rays), np.float32)})
+        soa = shadow_soa(rays, **extra)
+        if self.simple is not None and spawned_in is not None:
+            simple = spawned_in == self.simple.domain
+            if simple.any():  # from a hit on the simplified model: traced there, here
+                self.simple.counters["simplified_shadow_rays"] += int(simple.sum())
+                local = soa.take(simple)
+                blocked = self.simple.occluded(local["origin"], local["direction"],
+                                               local["t_max"])
+                self._bring_light(local, ~blocked)
+                if simple.all():
+                    return
+                soa, spawned_in = soa.take(~simple), spawned_in[~simple]
+        self._advance_shadow(soa, spawned_in)
+
+    def _bring_light(self, rays: SoA, lit: np.ndarray) -> None:
+        """Unblocked shadow rays add their light to their paths (and, in a recording frame,
+        to their portal cell)."""
+        if not lit.any():
+            return
+        add_unoccluded(self.result.radiance, as_shadow(rays), lit)
+        if self.simple is not None and self.simple.recording:
+            cells = rays["portal_cell"]
+            record = lit & (cells >= 0)
+            if record.any():
+                self.simple.portals.record(cells[record], rays["portal_value"][record])
 
     def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
         self.counters["shadow_tests"] += len(rays)
@@ -230,5 +370,4 @@ class ImageSchedule:
     def _advance_shadow(self, rays: SoA, spawned_in: np.ndarray | None = None) -> None:
         """Queue unblocked shadow rays into their next domain; past the last, they bring light."""
         through = self._forward(rays, self.shadow, rays["t_max"], spawned_in)
-        if through.any():
-            add_unoccluded(self.result.radiance, as_shadow(rays), through)
+        self._bring_light(rays, through)
