@@ -255,8 +255,8 @@ class TreeReduceActor:
 
     async def allreduce(self, arrays: dict[str, np.ndarray], ops: dict[str, str]
                         ) -> dict[str, np.ndarray]:
-        """Combine ``arrays`` over all nodes (``ops``: name -> "min" | "or" | "sum") up the
-        tree, then broadcast the result down it; every node returns the same arrays."""
+        """Combine ``arrays`` over all nodes (``ops``: name -> "max" | "min" | "or" | "sum")
+        up the tree, then broadcast the result down it; every node returns the same arrays."""
         total = {k: np.array(v, copy=True) for k, v in arrays.items()}
         self.levels = 0
         for _ in children(self.rank, self.size):

@@ -13,6 +13,9 @@ A manifest is a file anyone can edit, so every value in it is checked before it 
 The checks that need the data itself (index ranges, checksums) run when a domain is loaded
 (``Store.load_domain``) and in ``vastray verify``.
 
+The optional ``"simplified"`` entry (the simplified whole-scene model) gets the same checks as
+a domain entry (:func:`simplified_entry`); a manifest without it is as valid as before.
+
 Every problem is an :class:`~vastray.scene.errors.InputError` naming the file to fix
 (``manifest.json`` or the ``.npy``) and what is wrong with it.
 """
@@ -38,6 +41,8 @@ FORMAT = "vastray-store"
 VERSION = 2
 READABLE_VERSIONS = (1, 2)
 MANIFEST = "manifest.json"
+#: The manifest key, and the store folder, of the simplified whole-scene model (optional).
+SIMPLIFIED = "simplified"
 ATTRIBUTES = ("objects", "scalars", "colors")
 ARRAYS = ("vertices", "indices", *ATTRIBUTES)
 
@@ -48,6 +53,7 @@ MAX_DOMAINS = 100_000
 MAX_MANIFEST_BYTES = 256 * 2**20
 
 REWRITE = "rewrite the store with `vastray partition` or `vastray generate`"
+RESIMPLIFY = "rebuild it with `vastray simplify STORE --ratio R --force`"
 
 _SHA256 = re.compile(r"[0-9a-f]{64}")
 _DRIVE = re.compile(r"[A-Za-z]:")  # C:... is absolute on Windows
@@ -72,6 +78,36 @@ class DomainInfo:
     nbytes: int
     files: dict = field(hash=False)
     sha256: dict = field(default_factory=dict, hash=False)
+
+    @property
+    def label(self) -> str:
+        """How messages name it: ``"domain N"``."""
+        return f"domain {self.id}"
+
+
+@dataclass(frozen=True)
+class SimplifiedInfo(DomainInfo):
+    """The manifest's ``"simplified"`` entry, checked: the decimated whole-scene model.
+
+    The inherited fields mean what they mean for a domain (``id`` is -1; ``lo``/``hi`` the box
+    of its triangles, inside the scene bounds). Besides them:
+
+    Attributes
+    ----------
+    ratio : the triangle fraction asked for, in (0, 1].
+    rate : the fraction achieved, simplified triangles / the domains' triangles.
+    memory_rate : ``nbytes`` / the domains' bytes (arrays only; BVHs are built on loading).
+    min_faces : object pieces with fewer triangles were kept whole.
+    """
+
+    ratio: float = 1.0
+    rate: float = 1.0
+    memory_rate: float = 1.0
+    min_faces: int = 0
+
+    @property
+    def label(self) -> str:
+        return "simplified model"
 
 
 @dataclass(frozen=True)
@@ -346,6 +382,73 @@ class DomainParser:
                 raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
                                         f"digits: {one_line(repr(digest), 80)}")
         return dict(sha)
+
+
+def simplified_entry(root: StoreRoot, manifest: dict, bounds: np.ndarray | None,
+                     read_headers: bool = True) -> SimplifiedInfo | None:
+    """Check the manifest's optional ``"simplified"`` entry as a domain entry is checked.
+
+    Its files must stay inside the store and be named ``<kind>.npy``; its counts must be whole
+    numbers that the ``.npy`` headers (and ``bytes``) agree with; it needs a checksum of every
+    file (it is newer than format version 2, so always has them); it carries the attributes
+    the scene declares; its box is finite and lies inside the scene ``bounds`` (when given);
+    ``ratio`` is in (0, 1] and ``rate``, ``memory_rate`` are finite numbers >= 0.
+
+    Returns
+    -------
+    The checked entry, or None when the store has no simplified model (stores written before
+    it existed).
+
+    Raises
+    ------
+    InputError
+        Naming the manifest, or the ``.npy`` file whose header disagrees with it.
+    """
+    if SIMPLIFIED not in manifest:
+        return None
+    where = root.manifest
+    label = "simplified model"
+    entry = manifest[SIMPLIFIED]
+    if not isinstance(entry, dict):
+        raise InputError(where, f"'{SIMPLIFIED}' must be an object, found "
+                                f"{one_line(repr(entry), 60)}; {RESIMPLIFY}")
+    n_tri = _count(entry.get("triangles"), where, f"{label} 'triangles'")
+    n_vert = _count(entry.get("vertices"), where, f"{label} 'vertices'")
+    nbytes = _count(entry.get("bytes"), where, f"{label} 'bytes'")
+    min_faces = _count(entry.get("min_faces", 0), where, f"{label} 'min_faces'")
+    if n_tri and not n_vert:
+        raise InputError(where, f"{label} has {n_tri:,} triangles but 0 vertices; {RESIMPLIFY}")
+    ratio = entry.get("ratio")
+    if not (_is_number(ratio) and 0 < ratio <= 1):
+        raise InputError(where, f"{label} 'ratio' must be a number in (0, 1], found "
+                                f"{one_line(repr(ratio), 40)}; {RESIMPLIFY}")
+    rate, memory_rate = (_rate(entry.get(key), where, f"{label} '{key}'")
+                         for key in ("rate", "memory_rate"))
+    lo, hi = box(entry.get("bounds"), where, f"{label} bounds")
+    if bounds is not None and n_tri and not _inside(lo, hi, bounds[0], bounds[1]):
+        raise InputError(where, f"{label} bounds stick out of the scene 'bounds'; {RESIMPLIFY}")
+    parser = DomainParser(root, manifest, check_headers=False)
+    files = parser._files(entry.get("files"), label, n_tri)
+    sha = entry.get("sha256")
+    if not isinstance(sha, dict) or set(sha) != set(files):
+        raise InputError(where, f"{label} 'sha256' must give a checksum for each of its files "
+                                f"({', '.join(files)}), found {one_line(repr(sha), 80)}")
+    for kind, digest in sha.items():
+        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+            raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
+                                    f"digits: {one_line(repr(digest), 80)}")
+    if read_headers:
+        check_headers(root, files, n_tri, n_vert, nbytes, label)
+    return SimplifiedInfo(-1, lo, hi, n_tri, n_vert, nbytes, dict(files), dict(sha),
+                          ratio=float(ratio), rate=rate, memory_rate=memory_rate,
+                          min_faces=min_faces)
+
+
+def _rate(value, where: Path, what: str) -> float:
+    if not (_is_number(value) and math.isfinite(value) and value >= 0):
+        raise InputError(where, f"{what} must be a finite number >= 0, found "
+                                f"{one_line(repr(value), 40)}; {RESIMPLIFY}")
+    return float(value)
 
 
 def domain_file(root: StoreRoot, rel, kind: str, label: str) -> Path:

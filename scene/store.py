@@ -8,12 +8,20 @@ Layout of a STORE folder::
     STORE/domains/00000/objects.npy    (T,)   uint16, index into manifest["objects"]   [optional]
     STORE/domains/00000/scalars.npy    (V,)   float32 per-vertex scalar field           [optional]
     STORE/domains/00000/colors.npy     (V, 3) float32 per-vertex linear RGB in [0, 1]   [optional]
+    STORE/simplified/vertices.npy      the simplified whole-scene model, the same files as a
+    STORE/simplified/indices.npy ...   domain's                                        [optional]
 
 Every file loads with ``np.load(path, mmap_mode="r")``. A store is written into a temporary
 folder and renamed into place when complete, so a failed run never leaves a partial store.
 Since format version 2 each domain entry records the SHA-256 of each of its files
 (``"sha256": {"vertices": ..., ...}``), which ``vastray verify`` checks; version 1 stores (no
 checksums) still open. How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
+
+The optional ``"simplified"`` manifest entry describes a decimated copy of the whole scene
+(:mod:`vastray.scene.simplify`; paper §6.1): its counts, box, files and checksums like a
+domain entry, plus ``ratio`` (asked), ``rate`` (achieved triangle fraction), ``memory_rate``
+(its bytes over the domains' bytes) and ``min_faces``. :func:`write_simplified` adds or
+replaces it in an existing store; stores without it open as before.
 """
 
 from __future__ import annotations
@@ -38,9 +46,11 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     MAX_DOMAINS,
     MAX_MANIFEST_BYTES,
     REWRITE,
+    SIMPLIFIED,
     VERSION,
     DomainInfo,
     DomainParser,
+    SimplifiedInfo,
     StoreRoot,
     domain_file,
     manifest_size_ok,
@@ -48,6 +58,7 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     one_line,
     read_manifest,
     scene_fields,
+    simplified_entry,
     totals,
 )
 
@@ -116,6 +127,9 @@ class Store:
         self.domains: list[DomainInfo] = [_raise_if_error(item)
                                           for item in DomainParser(self.root, self.manifest)]
         totals(self.manifest, self.domains, self.bounds, self.root.manifest)
+        #: The checked ``"simplified"`` entry, or None when the store has no simplified model.
+        self.simplified: SimplifiedInfo | None = simplified_entry(self.root, self.manifest,
+                                                                  self.bounds)
 
     @property
     def objects(self) -> list[dict]:
@@ -153,7 +167,7 @@ class Store:
     def domain_path(self, info: DomainInfo, kind: str) -> Path:
         """Path of a domain's ``kind`` file, checked again to stay inside the store (a symlink
         may have changed since the store was opened)."""
-        return domain_file(self.root, info.files[kind], kind, f"domain {info.id}")
+        return domain_file(self.root, info.files[kind], kind, info.label)
 
     def load_domain(self, domain_id: int, mmap: bool = True, drop_cache: bool = False) -> DomainArrays:
         """Read one domain's arrays and check them against the manifest.
@@ -171,7 +185,27 @@ class Store:
             A file missing, truncated, or whose data does not match the manifest (shape, dtype,
             an index beyond the domain's vertices, an object beyond the manifest's objects).
         """
-        info = self.domains[domain_id]
+        return self._load(self.domains[domain_id], mmap, drop_cache)
+
+    def load_simplified(self, mmap: bool = True, drop_cache: bool = False) -> DomainArrays:
+        """Read the simplified whole-scene model and check it against its manifest entry.
+
+        Parameters
+        ----------
+        mmap, drop_cache : as for :meth:`load_domain`.
+
+        Raises
+        ------
+        InputError
+            The store has no simplified model, or a file of it is missing, truncated or does
+            not match the manifest (as for :meth:`load_domain`).
+        """
+        if self.simplified is None:
+            raise InputError(self.root.manifest, "the store has no simplified model; build one "
+                                                 "with `vastray simplify STORE --ratio R`")
+        return self._load(self.simplified, mmap, drop_cache)
+
+    def _load(self, info: DomainInfo, mmap: bool, drop_cache: bool) -> DomainArrays:
         arrays = dict.fromkeys(ARRAYS)
         for kind in info.files:
             arrays[kind] = _read_array(self.domain_path(info, kind), mmap=mmap,
@@ -435,6 +469,141 @@ def _save_hashed(path: Path, arr: np.ndarray) -> str:
     with open(path, "wb") as fh:
         np.save(_HashingWriter(fh, digest), arr, allow_pickle=False)
     return digest.hexdigest()
+
+
+def check_simplified_replaceable(store: Store, force: bool) -> None:
+    """Refuse to write a simplified model into ``store`` over an existing one (its manifest
+    entry, or a ``simplified`` folder left behind) unless ``force``.
+
+    Raises
+    ------
+    InputError
+        Naming the ``simplified`` folder.
+    """
+    target = store.path / SIMPLIFIED
+    there = SIMPLIFIED in store.manifest or target.exists() or target.is_symlink()
+    if there and not force:
+        raise InputError(target, "the store already has a simplified model (pass --force to "
+                                 "replace it)")
+
+
+def write_simplified(store: Store, model: DomainArrays, ratio: float, min_faces: int = 0,
+                     force: bool = False) -> SimplifiedInfo:
+    """Add the simplified whole-scene ``model`` to an existing store (or replace it, ``force``).
+
+    The files are written and hashed in a temporary folder inside the store, then renamed to
+    ``STORE/simplified``; the manifest is replaced atomically (a temporary file renamed over
+    it). When an old model is replaced, the manifest first drops its entry, so at every moment
+    the manifest names either the old files, no simplified model, or the new files.
+
+    Parameters
+    ----------
+    store : the open store (its manifest as read when it was opened is the one rewritten).
+    model : the simplified triangles and the attributes the scene declares.
+    ratio : the triangle fraction asked for, in (0, 1].
+    min_faces : the floor below which object pieces were kept whole (recorded).
+    force : replace an existing simplified model.
+
+    Returns
+    -------
+    The new entry, checked as a reader checks it.
+
+    Raises
+    ------
+    InputError
+        A simplified model exists and not ``force``; the model lacks an attribute the scene
+        has, names an object beyond the manifest's, has a triangle index out of range or
+        non-finite vertices; or the manifest would grow too large.
+    """
+    check_simplified_replaceable(store, force)
+    arrays = _store_dtypes(model)
+    _check_simplified(store, arrays)
+    n_tri = int(arrays["indices"].shape[0])
+    box = DomainArrays(**arrays).bounds()
+    domain_bytes = sum(d.nbytes for d in store.domains)
+    root = store.path
+    tmp: Path | None = Path(tempfile.mkdtemp(prefix=f".{SIMPLIFIED}.", dir=root))
+    old: Path | None = None
+    try:
+        publish_mode(tmp, directory=True)
+        files, sha256, nbytes = {}, {}, 0
+        for name, arr in arrays.items():
+            if arr is None:
+                continue
+            sha256[name] = _save_hashed(tmp / f"{name}.npy", arr)
+            files[name] = f"{SIMPLIFIED}/{name}.npy"
+            nbytes += arr.nbytes
+        entry = {
+            "triangles": n_tri,
+            "vertices": int(arrays["vertices"].shape[0]),
+            "bounds": box.tolist(),
+            "ratio": float(ratio),
+            "min_faces": int(min_faces),
+            "rate": n_tri / store.n_triangles if store.n_triangles else 0.0,
+            "bytes": nbytes,
+            "memory_rate": nbytes / domain_bytes if domain_bytes else 0.0,
+            "files": files,
+            "sha256": sha256,
+        }
+        without = {k: v for k, v in store.manifest.items() if k != SIMPLIFIED}
+        text = _manifest_json({**without, SIMPLIFIED: entry})
+        if SIMPLIFIED in store.manifest:
+            _replace_manifest(root, _manifest_json(without))
+        target = root / SIMPLIFIED
+        if target.exists() or target.is_symlink():
+            old = Path(tempfile.mkdtemp(prefix=f".{SIMPLIFIED}.old.", dir=root))
+            os.replace(target, old / SIMPLIFIED)
+        os.replace(tmp, target)
+        tmp = None
+        _replace_manifest(root, text)
+    finally:
+        for leftover in (tmp, old):
+            if leftover is not None:
+                shutil.rmtree(leftover, ignore_errors=True)
+    manifest = json.loads(text)
+    return simplified_entry(StoreRoot.of(root), manifest, store.bounds)
+
+
+def _check_simplified(store: Store, arrays: dict) -> None:
+    """Refuse a simplified model a reader would refuse."""
+    n_vert = arrays["vertices"].shape[0]
+    indices, objects = arrays["indices"], arrays["objects"]
+    if indices.size and int(indices.max()) >= n_vert:
+        raise InputError(None, f"simplified model: triangle index {int(indices.max())} is out of "
+                               f"range of its {n_vert} vertices")
+    if objects is not None and objects.size and int(objects.max()) >= max(len(store.objects), 1):
+        raise InputError(None, f"simplified model: object index {int(objects.max())} is out of "
+                               f"range of the store's {len(store.objects)} object(s)")
+    if not np.isfinite(arrays["vertices"]).all():
+        raise InputError(None, "simplified model: vertices are NaN or infinite")
+    declared = store.manifest.get("attributes", {})
+    for kind in ATTRIBUTES:
+        if declared.get(kind) and indices.size and arrays[kind] is None:
+            raise InputError(None, f"simplified model has no {kind}, but the scene has {kind}")
+
+
+def _manifest_json(manifest: dict) -> str:
+    """``manifest`` as the JSON a store holds, refused when a reader would refuse its size."""
+    text = json.dumps(manifest, indent=1)
+    if len(text) > MAX_MANIFEST_BYTES:
+        raise InputError(None, f"the store's manifest would be {len(text):,} bytes, more than "
+                               f"the {MAX_MANIFEST_BYTES:,} a reader accepts")
+    return text
+
+
+def _replace_manifest(root: Path, text: str) -> None:
+    """Write ``root``'s manifest atomically: a temporary file, synced, renamed over it."""
+    fd, name = tempfile.mkstemp(prefix=f".{MANIFEST}.", dir=root)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        publish_mode(name)
+        os.replace(name, root / MANIFEST)
+    except BaseException:
+        Path(name).unlink(missing_ok=True)
+        raise
 
 
 def is_store(path: str | os.PathLike) -> bool:

@@ -9,6 +9,9 @@ every file once, so it also checks what needs the data:
 * every triangle index is below the domain's vertex count, every object index names an object;
 * vertices, scalars and colours are finite, and the vertices the triangles use lie inside the
   domain's box (a ray skips a domain whose box misses its triangles).
+
+The simplified whole-scene model, when the manifest has one, gets the same checks as a domain
+(its box must also lie inside the scene bounds).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from vastray.scene.manifest import (
     parse_npy_header,
     read_manifest,
     scene_fields,
+    simplified_entry,
     totals,
 )
 from vastray.scene.store import DomainArrays, domain_problems
@@ -52,6 +56,7 @@ class VerifyResult:
     triangles : triangles in the checked domains.
     files : array files read.
     checksummed : the store records checksums (format version 2 and later).
+    simplified : triangles of the simplified model checked, None when the store has none.
     problems : every problem, each naming its file.
     """
 
@@ -61,6 +66,7 @@ class VerifyResult:
     triangles: int = 0
     files: int = 0
     checksummed: bool = False
+    simplified: int | None = None
     problems: list[InputError] = field(default_factory=list)
 
     @property
@@ -71,8 +77,10 @@ class VerifyResult:
         """One line: the verdict and what was checked."""
         sums = ("checksums checked" if self.checksummed
                 else "a version 1 store has no checksums; rewrite it to add them")
-        what = (f"{self.domains:,} domains, {self.triangles:,} triangles, {self.files:,} files, "
-                f"{sums}")
+        simplified = ("" if self.simplified is None
+                      else f", a simplified model of {self.simplified:,} triangles")
+        what = (f"{self.domains:,} domains, {self.triangles:,} triangles{simplified}, "
+                f"{self.files:,} files, {sums}")
         if self.ok:
             return f"{self.store}: OK: {what}"
         n = len(self.problems)
@@ -136,7 +144,24 @@ def verify_store(path: str | Path, progress: bool = False,
             totals(manifest, infos, bounds, root.manifest)
         except InputError as exc:
             found(exc)
+    _verify_simplified(root, manifest, bounds, n_objects, result, found)
     return result
+
+
+def _verify_simplified(root: StoreRoot, manifest: dict, bounds, n_objects: int,
+                       result: VerifyResult, found: Callable[[InputError], None]) -> None:
+    """Check the simplified model's entry and data like a domain's (nothing when absent)."""
+    try:
+        info = simplified_entry(root, manifest, bounds)
+    except InputError as exc:
+        found(exc)
+        return
+    if info is None:
+        return
+    for problem in check_domain_data(root, info, n_objects):
+        found(problem)
+    result.simplified = info.n_triangles
+    result.files += len(info.files)
 
 
 def _domains_listed(manifest: dict) -> bool:
@@ -162,7 +187,7 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     unreadable = False
     for kind, rel in info.files.items():
         try:
-            path = domain_file(root, rel, kind, f"domain {info.id}")
+            path = domain_file(root, rel, kind, info.label)
             data = path.read_bytes()
         except InputError as exc:
             problems.append(exc)

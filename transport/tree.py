@@ -22,6 +22,7 @@ def children(rank: int, size: int) -> list[int]:
 
 #: Element-wise combiners of the reductions the schedulers need.
 COMBINE: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "max": np.maximum,
     "min": np.minimum,
     "or": np.bitwise_or,
     "sum": np.add,

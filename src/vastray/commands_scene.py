@@ -1,5 +1,6 @@
 """Scene commands: ``partition`` (files -> domain store), ``generate`` (procedural scene ->
-domain store), ``info`` (describe a store) and ``verify`` (check every file of a store)."""
+domain store), ``simplify`` (add the simplified whole-scene model to a store), ``info``
+(describe a store) and ``verify`` (check every file of a store)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from vastray.scene.generate import generate
 from vastray.scene.isosurface import DEFAULT_BRICK
 from vastray.scene.partition import partition_grid, partition_kd
 from vastray.scene.readers import SUPPORTED, read_mesh
+from vastray.scene.simplify import DEFAULT_MIN_FACES, build_simplified, check_ratio
 from vastray.scene.store import ATTRIBUTES, Store, StoreWriter, check_replaceable
 from vastray.scene.verify import verify_store
 
@@ -47,6 +49,19 @@ scenes:
   cosmo  cosmology-like density: Gaussian halos strung along filaments (a cosmic web)
 The field is evaluated and isosurfaced brick by brick; memory holds one brick and the
 triangles of one x-slab of the grid, never the whole volume.
+"""
+
+SIMPLIFY_EPILOG = """\
+examples:
+  vastray generate rm -o rm.store --resolution 128 --grid 4x4x4
+  vastray simplify rm.store --ratio 0.05          # keep 5 % of the triangles
+  vastray simplify rm.store --ratio 0.01 --force  # replace it
+  vastray partition samples/lucy_100k.ply -o lucy.store --simplify 0.02   # in one go
+
+Every object piece (one material slot of one domain) is decimated by quadric edge collapse;
+pieces with fewer than --min-faces triangles are kept whole. The result is one mesh of the
+whole scene in STORE/simplified/, checksummed in the manifest with its triangle rate
+(triangles kept / all triangles) and memory rate (its bytes / the domains' bytes).
 """
 
 VERIFY_EPILOG = """\
@@ -84,6 +99,24 @@ def _positive(text: str) -> int:
     return value
 
 
+def _ratio(text: str) -> float:
+    try:
+        return check_ratio(float(text))
+    except (ValueError, InputError):
+        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1] (the share of triangles "
+                                         f"kept), got {text!r}") from None
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
 def _show_progress(args) -> bool:
     return not args.quiet and sys.stderr.isatty()
 
@@ -94,8 +127,23 @@ def _add_store_output_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bars or summary")
 
 
+def _add_simplify_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--simplify", type=_ratio, metavar="RATIO",
+                   help="also build the simplified whole-scene model keeping RATIO of the "
+                        "triangles (in (0, 1]; see `vastray simplify -h`)")
+
+
+def _simplify_after(args, out: Path) -> None:
+    """``--simplify RATIO``: build the simplified model into the store just written."""
+    if args.simplify is None:
+        return
+    result = build_simplified(Store(out), args.simplify, progress=_show_progress(args))
+    if not args.quiet:
+        print(result.summary(out))
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the ``partition``, ``generate``, ``info`` and ``verify`` sub-commands."""
+    """Add the ``partition``, ``generate``, ``simplify``, ``info`` and ``verify`` sub-commands."""
     fmt = argparse.RawDescriptionHelpFormatter
 
     p = sub.add_parser(
@@ -115,6 +163,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iso", type=float, metavar="VALUE", help="iso value for volume inputs")
     p.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"marching-cubes brick edge in cells (default {DEFAULT_BRICK})")
+    _add_simplify_option(p)
     _add_store_output_options(p)
     p.set_defaults(func=cmd_partition)
 
@@ -133,8 +182,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     g.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"brick edge in cells (default {DEFAULT_BRICK})")
+    _add_simplify_option(g)
     _add_store_output_options(g)
     g.set_defaults(func=cmd_generate)
+
+    s = sub.add_parser(
+        "simplify", help="add the simplified whole-scene model to a store",
+        description="Decimate every object of every domain of STORE by quadric edge collapse "
+                    "and store the result as one resident whole-scene mesh (paper 6.1), "
+                    "checksummed, with its triangle and memory rates in the manifest.",
+        epilog=SIMPLIFY_EPILOG, formatter_class=fmt)
+    s.add_argument("store", metavar="STORE")
+    s.add_argument("--ratio", type=_ratio, required=True, metavar="RATIO",
+                   help="fraction of the triangles kept, in (0, 1] (1: an identical copy)")
+    s.add_argument("--min-faces", type=_count, default=DEFAULT_MIN_FACES, metavar="N",
+                   help=f"keep object pieces with fewer triangles whole (default "
+                        f"{DEFAULT_MIN_FACES})")
+    s.add_argument("--force", action="store_true", help="replace an existing simplified model")
+    s.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    s.set_defaults(func=cmd_simplify)
 
     i = sub.add_parser("info", help="describe a domain store",
                        description="Print a store's domains, totals, bounds and attributes.",
@@ -185,6 +251,7 @@ def cmd_partition(args) -> int:
     if not args.quiet:
         print(f"{out}: {mesh.n_triangles:,} triangles from {len(meshes)} input(s) in "
               f"{len(part.domains)} domains ({split})")
+    _simplify_after(args, out)
     return 0
 
 
@@ -196,6 +263,17 @@ def cmd_generate(args) -> int:
     if not args.quiet:
         print(f"{out}: {args.scene} at {args.resolution}^3, {total:,} triangles "
               f"({'x'.join(map(str, args.grid))} grid)")
+    _simplify_after(args, out)
+    return 0
+
+
+def cmd_simplify(args) -> int:
+    """``vastray simplify STORE --ratio R``: build and store the simplified model."""
+    store = Store(args.store)
+    result = build_simplified(store, args.ratio, min_faces=args.min_faces, force=args.force,
+                              progress=_show_progress(args))
+    if not args.quiet:
+        print(result.summary(store.path))
     return 0
 
 
@@ -238,6 +316,12 @@ def cmd_info(args) -> int:
     gen = m.get("generator")
     if gen:
         print(f"generator: {gen['scene']} resolution {gen['resolution']} seed {gen['seed']}")
+    simp = store.simplified
+    if simp is not None:
+        print(f"simplified: {simp.n_triangles:,} triangles, {simp.n_vertices:,} vertices, "
+              f"{_size(simp.nbytes)}; triangle rate {simp.rate:.2%} (asked {simp.ratio:.2%}, "
+              f"pieces under {simp.min_faces:,} triangles kept whole), memory rate "
+              f"{simp.memory_rate:.2%}")
     return 0
 
 

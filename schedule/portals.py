@@ -1,0 +1,258 @@
+"""Virtual portals (paper §4.2, §6.2, §7.3.3): a 4D max-radiance cache on the 6 faces of every
+domain box, recorded in one frame and used to predict the radiance of rays in later ones.
+
+Layout. ``values[d, face, i, j, angle]``, shape (D, 6, R, R, 8) float32 (R = 32 by default),
+with a ``recorded`` bool mask of the same shape.
+
+* ``face``: the box face the ray leaves through, ordered (-x, +x, -y, +y, -z, +z): the axis
+  of the smallest slab exit distance, and the sign of the direction along it.
+* ``i, j``: the exit point's cell on that face. The face's (u, v) axes are the two other box
+  axes in cyclic order (x: (y, z), y: (z, x), z: (x, y)), the same for both faces of an axis;
+  u and v are normalised over the face rectangle, ``i = clamp(floor(R u), 0, R - 1)`` and
+  likewise j.
+* ``angle = 4 * cos_bin + phi_bin``: the direction in the outgoing hemisphere. ``cos_bin`` is
+  1 when cos(theta) = direction . outward normal >= 0.5 (the upper bin, around the normal),
+  else 0; ``phi_bin`` is the quadrant of phi = atan2(direction . t_v, direction . t_u) with
+  t_u, t_v the unit (u, v) axes: 0 for [0, pi/2), 1 for [pi/2, pi), 2 for [-pi, -pi/2), 3 for
+  [-pi/2, 0) (a direction along the normal has phi = 0). Since solid angle is
+  d(cos theta) d(phi), the 8 bins cover equal solid angles (pi / 4 sr each).
+
+Recording keeps the maximum per cell (``np.maximum.at``: "we only keep the maximum radiance");
+nodes merge portals element-wise by MAX (values) and OR (mask), which does not depend on the
+order, so P nodes record what one process does. A cell never recorded predicts +inf:
+conservative, the ray is traced on the fine model.
+
+Memory: D x 6 x R^2 x 8 cells, 4 bytes each for ``values`` (D x 196,608 B at R = 32, 25.2 MB
+at D = 128) plus 1 byte each for the bool ``recorded`` mask (D x 49,152 B); :meth:`nbytes`
+counts both. :meth:`to_arrays` sends the mask packed to 1 bit per cell (D x 6,144 B).
+
+Pure numpy; no I/O, no asyncio.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Face order: face index = 2 * axis + (direction along the axis > 0).
+FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
+#: Angular bins per cell: 2 cos(theta) bins x 4 phi quadrants.
+ANGLES = 8
+#: cos(theta) at which the two cos bins split (equal solid angle).
+COS_SPLIT = 0.5
+DEFAULT_RESOLUTION = 32
+#: Rec. 709 / sRGB luminance weights.
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """Y = 0.2126 R + 0.7152 G + 0.0722 B of linear RGB.
+
+    Parameters
+    ----------
+    rgb : (n, 3) linear RGB (any float dtype; integers become float64).
+
+    Returns
+    -------
+    (n,) luminance in the input's float dtype.
+    """
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 2 or rgb.shape[1] != 3:
+        raise ValueError(f"expected (n, 3) RGB, got shape {rgb.shape}")
+    dtype = rgb.dtype if np.issubdtype(rgb.dtype, np.floating) else np.float64
+    return rgb.astype(dtype, copy=False) @ np.asarray(LUMINANCE, dtype=dtype)
+
+
+class Portals:
+    """The virtual portals of D domain boxes.
+
+    Parameters
+    ----------
+    n_domains : D.
+    resolution : R, spatial cells per face edge.
+
+    Attributes
+    ----------
+    values : (D, 6, R, R, 8) float32, the largest radiance recorded per cell (0 where none).
+    recorded : (D, 6, R, R, 8) bool, whether anything was recorded in the cell.
+    """
+
+    #: Names and combiners (``transport.tree.COMBINE``) of :meth:`to_arrays`' arrays, for an
+    #: all-reduce: ``allreduce(portals.to_arrays(), Portals.REDUCE)``.
+    REDUCE = {"portal_values": "max", "portal_recorded": "or"}
+
+    def __init__(self, n_domains: int, resolution: int = DEFAULT_RESOLUTION):
+        if int(n_domains) < 0 or int(resolution) < 1:
+            raise ValueError(f"need n_domains >= 0 and resolution >= 1, got {n_domains}, "
+                             f"{resolution}")
+        self.resolution = int(resolution)
+        self.values = np.zeros(self.shape_for(int(n_domains), self.resolution), np.float32)
+        self.recorded = np.zeros(self.values.shape, bool)
+
+    @staticmethod
+    def shape_for(n_domains: int, resolution: int = DEFAULT_RESOLUTION) -> tuple[int, ...]:
+        return (n_domains, len(FACES), resolution, resolution, ANGLES)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.values.shape
+
+    @property
+    def n_domains(self) -> int:
+        return self.values.shape[0]
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held: ``values`` (4 B per cell) plus the bool ``recorded`` mask (1 B per cell)."""
+        return int(self.values.nbytes + self.recorded.nbytes)
+
+    # --- binning -------------------------------------------------------------------------------
+
+    def cells(self, domains: np.ndarray, points: np.ndarray, directions: np.ndarray,
+              lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Flat cell index of rays leaving their domain box.
+
+        Parameters
+        ----------
+        domains : (n,) int, the box each ray leaves.
+        points : (n, 3) the exit points, on the box surface (a little off it is fine: u and v
+            are clamped).
+        directions : (n, 3) ray directions (any non-zero length), pointing out of the box.
+        lo, hi : (D, 3) all domain boxes (e.g. ``Store.domain_boxes()``), indexed by
+            ``domains``.
+
+        Returns
+        -------
+        (n,) int64 indices into ``values.ravel()``; :meth:`unravel` splits them.
+        """
+        domains = np.asarray(domains, dtype=np.int64).reshape(-1)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        n = len(domains)
+        if len(points) != n or len(d) != n:
+            raise ValueError(f"{n} domains but {len(points)} points and {len(d)} directions")
+        if n and (domains.min() < 0 or domains.max() >= self.n_domains):
+            raise ValueError(f"domain ids must be in 0..{self.n_domains - 1}")
+        box_lo = np.asarray(lo, dtype=np.float64)[domains]
+        box_hi = np.asarray(hi, dtype=np.float64)[domains]
+        rows = np.arange(n)
+        face, axis = self._exit_face(points, d, box_lo, box_hi)
+        u_axis, v_axis = (axis + 1) % 3, (axis + 2) % 3
+        r = self.resolution
+        i = _cell(points[rows, u_axis], box_lo[rows, u_axis], box_hi[rows, u_axis], r)
+        j = _cell(points[rows, v_axis], box_lo[rows, v_axis], box_hi[rows, v_axis], r)
+        length = np.linalg.norm(d, axis=1)
+        cos_theta = np.abs(d[rows, axis]) / np.where(length > 0, length, 1.0)
+        cos_bin = (cos_theta >= COS_SPLIT).astype(np.int64)
+        phi = np.arctan2(d[rows, v_axis], d[rows, u_axis])  # in [-pi, pi]; 0 along the normal
+        # quadrants [0, pi/2) 0, [pi/2, pi) 1, [-pi, -pi/2) 2, [-pi/2, 0) 3 (phi = pi: 2)
+        phi_bin = np.floor(phi / (np.pi / 2)).astype(np.int64) % 4
+        angle = 4 * cos_bin + phi_bin
+        return np.ravel_multi_index((domains, face, i, j, angle), self.shape).astype(np.int64)
+
+    @staticmethod
+    def _exit_face(points, d, box_lo, box_hi) -> tuple[np.ndarray, np.ndarray]:
+        """(face, axis) of the smallest slab exit distance along each direction."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plane = np.where(d > 0, box_hi, box_lo)
+            t = np.where(d != 0, (plane - points) / d, np.inf)
+        axis = np.argmin(t, axis=1)
+        positive = d[np.arange(len(d)), axis] > 0
+        return 2 * axis + positive, axis
+
+    def unravel(self, cells: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(domain, face, i, j, angle) arrays of flat cell indices; ``angle // 4`` is the
+        cos(theta) bin (1: the upper one, around the normal) and ``angle % 4`` the phi
+        quadrant."""
+        return np.unravel_index(np.asarray(cells, dtype=np.int64), self.shape)
+
+    # --- recording and prediction --------------------------------------------------------------
+
+    def record(self, cells: np.ndarray, values: np.ndarray) -> None:
+        """Keep, in each cell, the largest value recorded there (repeated cells are fine).
+
+        ``values`` are radiances (>= 0); NaN is recorded as +inf (never predicts low).
+        """
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+        values = np.asarray(values, dtype=np.float32).reshape(-1)
+        if len(cells) != len(values):
+            raise ValueError(f"{len(cells)} cells but {len(values)} values")
+        values = np.where(np.isnan(values), np.float32(np.inf), values)
+        np.maximum.at(self.values.reshape(-1), cells, values)
+        self.recorded.reshape(-1)[cells] = True
+
+    def predict(self, cells: np.ndarray) -> np.ndarray:
+        """(n,) float32 recorded maximum per cell; +inf where nothing was recorded."""
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+        return np.where(self.recorded.reshape(-1)[cells], self.values.reshape(-1)[cells],
+                        np.float32(np.inf)).astype(np.float32)
+
+    def merge(self, other: Portals) -> Portals:
+        """Fold ``other`` in (element-wise MAX of values, OR of the masks); returns self."""
+        if other.shape != self.shape:
+            raise ValueError(f"cannot merge portals of shape {other.shape} into {self.shape}")
+        np.maximum(self.values, other.values, out=self.values)
+        np.logical_or(self.recorded, other.recorded, out=self.recorded)
+        return self
+
+    def copy(self) -> Portals:
+        out = Portals(0, self.resolution)
+        out.values, out.recorded = self.values.copy(), self.recorded.copy()
+        return out
+
+    def clear(self) -> None:
+        """Forget everything (the start of a recording frame)."""
+        self.values.fill(0)
+        self.recorded.fill(False)
+
+    def __eq__(self, other) -> bool:
+        return (isinstance(other, Portals) and self.shape == other.shape
+                and np.array_equal(self.values, other.values)
+                and np.array_equal(self.recorded, other.recorded))
+
+    __hash__ = None  # mutable
+
+    # --- all-reduce ----------------------------------------------------------------------------
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The portals as arrays to all-reduce with :attr:`REDUCE` (views, no copy):
+
+        * ``portal_values``: the float32 values as (D * 6, R, R, 8), combined by MAX (the wire
+          codec sends at most 4 dimensions);
+        * ``portal_recorded``: the mask packed to 1 bit per cell, uint8, combined by OR (the
+          OR of packed bits is the packed OR).
+        """
+        d, faces, r, _, angles = self.shape
+        return {"portal_values": self.values.reshape(d * faces, r, r, angles),
+                "portal_recorded": np.packbits(self.recorded.reshape(-1))}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Portals:
+        """The portals :meth:`to_arrays` (or an all-reduce of it) describes (copied).
+
+        Raises
+        ------
+        ValueError
+            Arrays of the wrong shape or dtype.
+        """
+        values = np.asarray(arrays["portal_values"])
+        packed = np.asarray(arrays["portal_recorded"])
+        faces = len(FACES)
+        if (values.ndim != 4 or values.shape[0] % faces or values.shape[1] != values.shape[2]
+                or values.shape[3] != ANGLES or values.dtype != np.float32):
+            raise ValueError(f"portal values must be (D * 6, R, R, 8) float32, got "
+                             f"{values.shape} {values.dtype}")
+        if packed.dtype != np.uint8 or packed.shape != ((values.size + 7) // 8,):
+            raise ValueError(f"portal mask must be ({(values.size + 7) // 8},) uint8, got "
+                             f"{packed.shape} {packed.dtype}")
+        out = cls(values.shape[0] // faces, values.shape[1])
+        out.values[...] = values.reshape(out.shape)
+        out.recorded[...] = np.unpackbits(packed, count=values.size).astype(bool).reshape(
+            out.shape)
+        return out
+
+
+def _cell(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, r: int) -> np.ndarray:
+    """clamp(floor(r * (x - lo) / (hi - lo)), 0, r - 1); cell 0 on a flat side."""
+    extent = hi - lo
+    u = np.divide(x - lo, extent, out=np.zeros_like(x), where=extent > 0)
+    return np.clip(np.floor(r * u), 0, r - 1).astype(np.int64)

@@ -1,0 +1,249 @@
+"""Virtual portals (notes §5, acceptance A10, A11's merge): binning of exit points and
+directions, the 8 equal-solid-angle bins, record/predict, MAX merge, and the tree "max"."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+import pytest
+
+from vastray.schedule.portals import ANGLES, FACES, Portals, luminance
+from vastray.transport.tree import COMBINE
+
+LO = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 3.0], [-5.0, -5.0, -5.0]])
+HI = np.array([[1.0, 1.0, 1.0], [3.0, 2.0, 3.5], [5.0, 5.0, 5.0]])
+NORMALS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], float)
+
+
+def face_centre(box: int, face: int) -> np.ndarray:
+    centre = (LO[box] + HI[box]) / 2
+    axis = face // 2
+    centre[axis] = HI[box, axis] if face % 2 else LO[box, axis]
+    return centre
+
+
+def uniform_hemisphere(rng, n: int, normal: np.ndarray) -> np.ndarray:
+    """Directions uniform over the hemisphere around ``normal`` (uniform sphere, flipped)."""
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.where((d @ normal)[:, None] < 0, -d, d)
+
+
+def exits(rng, n: int, boxes=(0, 1, 2)):
+    """Rays from random interior points: (domain, exit point, direction, true face)."""
+    dom = rng.choice(boxes, n)
+    lo, hi = LO[dom], HI[dom]
+    o = lo + rng.random((n, 3)) * (hi - lo)
+    d = rng.normal(size=(n, 3))
+    with np.errstate(divide="ignore"):
+        t = np.where(d > 0, (hi - o) / d, (lo - o) / d)
+    axis = np.argmin(t, axis=1)
+    rows = np.arange(n)
+    face = 2 * axis + (d[rows, axis] > 0)
+    return dom, o + t[rows, axis][:, None] * d, d, face
+
+
+# --- A10: binning -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("face", range(6))
+@pytest.mark.parametrize("box", range(3))
+def test_face_centre_along_the_normal_is_cell_16_16_upper_cos_bin(box, face):
+    portals = Portals(len(LO))
+    cell = portals.cells([box], face_centre(box, face)[None], NORMALS[face][None] * 2.5, LO, HI)
+    d, f, i, j, angle = (int(x[0]) for x in portals.unravel(cell))
+    assert (d, f, i, j) == (box, face, 16, 16)
+    assert angle // 4 == 1  # cos(theta) = 1: the upper bin
+    assert cell.dtype == np.int64 and cell.shape == (1,)
+
+
+def test_exit_face_is_right_for_all_six_faces():
+    rng = np.random.default_rng(1)
+    portals = Portals(len(LO))
+    dom, points, d, face = exits(rng, 60_000)
+    got_dom, got_face, i, j, angle = portals.unravel(portals.cells(dom, points, d, LO, HI))
+    np.testing.assert_array_equal(got_face, face)
+    np.testing.assert_array_equal(got_dom, dom)
+    assert set(np.unique(face)) == set(range(6))
+    assert i.min() == 0 and i.max() == 31 and j.min() == 0 and j.max() == 31
+    assert set(np.unique(angle)) == set(range(ANGLES))
+
+
+def test_spatial_cells_are_the_floor_of_32u():
+    portals = Portals(1)
+    lo, hi = LO[:1], HI[:1]
+    rng = np.random.default_rng(2)
+    uv = rng.random((1000, 2))
+    uv[:4] = [[0, 0], [1, 1], [0.5, 1 / 32], [31.5 / 32, 0.999999]]  # corners, edges: clamped
+    points = np.column_stack([np.ones(len(uv)), uv])  # the +x face: u = y, v = z
+    d = np.tile([1.0, 0.2, -0.3], (len(uv), 1))
+    _, face, i, j, _ = portals.unravel(portals.cells(np.zeros(len(uv), int), points, d, lo, hi))
+    assert (face == FACES.index("+x")).all()
+    np.testing.assert_array_equal(i, np.clip(np.floor(32 * uv[:, 0]), 0, 31))
+    np.testing.assert_array_equal(j, np.clip(np.floor(32 * uv[:, 1]), 0, 31))
+
+
+@pytest.mark.parametrize("face", range(6))
+def test_uniform_hemisphere_fills_the_8_angle_bins_equally(face):
+    rng = np.random.default_rng(10 + face)
+    n = 80_000
+    portals = Portals(len(LO))
+    d = uniform_hemisphere(rng, n, NORMALS[face])
+    points = np.tile(face_centre(1, face), (n, 1))
+    angle = portals.unravel(portals.cells(np.ones(n, int), points, d, LO, HI))[4]
+    counts = np.bincount(angle, minlength=ANGLES)
+    sigma = np.sqrt(n * (1 / 8) * (7 / 8))
+    assert np.all(np.abs(counts - n / 8) < 4 * sigma), counts
+
+
+def test_angle_bins_split_cos_at_half_and_phi_by_quadrant():
+    portals = Portals(1)
+    lo, hi = LO[:1], HI[:1]
+    point = face_centre(0, FACES.index("+z"))[None]  # +z face: t_u = x, t_v = y
+    s = np.sqrt(1 - 0.4 ** 2)
+    cases = {  # direction -> (cos bin, phi quadrant)
+        (0.3, 0.3, 0.9): (1, 0), (-0.3, 0.3, 0.9): (1, 1), (-0.3, -0.3, 0.9): (1, 2),
+        (0.3, -0.3, 0.9): (1, 3), (s, 0.0, 0.4): (0, 0), (0.0, s, 0.4): (0, 1),
+        (-s, -1e-9, 0.4): (0, 2), (0.0, -s, 0.4): (0, 3),
+    }
+    for direction, (cos_bin, quadrant) in cases.items():
+        angle = int(portals.unravel(portals.cells([0], point, [direction], lo, hi))[4][0])
+        assert (angle // 4, angle % 4) == (cos_bin, quadrant), direction
+
+
+def test_nbytes_is_values_plus_the_mask():
+    for d in (1, 3, 128):
+        portals = Portals(d)
+        assert portals.values.nbytes == d * 6 * 32 * 32 * 8 * 4  # A10: D x 196,608 B
+        assert portals.recorded.nbytes == d * 6 * 32 * 32 * 8     # the bool mask, 1 B a cell
+        assert portals.nbytes == d * 6 * 32 * 32 * 8 * 5
+        assert portals.to_arrays()["portal_recorded"].nbytes == d * 6 * 32 * 32  # 1 bit sent
+    assert Portals(2, resolution=8).shape == (2, 6, 8, 8, 8)
+
+
+# --- record / predict / merge -----------------------------------------------------------------
+
+
+def test_record_then_predict_round_trip_keeps_the_maximum():
+    rng = np.random.default_rng(3)
+    portals = Portals(len(LO))
+    dom, points, d, _ = exits(rng, 20_000)
+    cells = portals.cells(dom, points, d, LO, HI)
+    values = rng.random(len(cells)).astype(np.float32) * 5
+    portals.record(cells, values)
+    expected = np.full(portals.values.size, -np.inf, np.float32)
+    np.maximum.at(expected, cells, values)
+    np.testing.assert_array_equal(portals.predict(cells), expected[cells])
+    assert portals.predict(cells).dtype == np.float32
+    assert portals.recorded.sum() == len(np.unique(cells))
+
+
+def test_unrecorded_cells_predict_inf():
+    portals = Portals(2)
+    assert np.isinf(portals.predict(np.arange(0, portals.values.size, 997))).all()
+    portals.record([5, 5, 9], [0.0, 0.0, 0.25])  # a recorded zero (a miss) is not unrecorded
+    np.testing.assert_array_equal(portals.predict([5, 9, 6]), [0.0, 0.25, np.inf])
+    portals.record([7], [np.nan])
+    assert portals.predict([7])[0] == np.inf
+
+
+def random_portals(rng, n_domains=2, resolution=4, fill=0.3) -> Portals:
+    p = Portals(n_domains, resolution)
+    cells = rng.choice(p.values.size, int(fill * p.values.size), replace=False)
+    p.record(cells, rng.random(len(cells)).astype(np.float32))
+    return p
+
+
+def test_max_merge_is_commutative_associative_and_idempotent():
+    rng = np.random.default_rng(4)
+    a, b, c = (random_portals(rng) for _ in range(3))
+    assert a.copy().merge(b) == b.copy().merge(a)
+    assert a.copy().merge(b).merge(c) == a.copy().merge(b.copy().merge(c))
+    assert a.copy().merge(a) == a
+    merged = a.copy().merge(b)
+    np.testing.assert_array_equal(merged.values, np.maximum(a.values, b.values))
+    np.testing.assert_array_equal(merged.recorded, a.recorded | b.recorded)
+    with pytest.raises(ValueError, match="shape"):
+        a.merge(Portals(3, 4))
+
+
+def test_recording_split_over_nodes_equals_one_recording():
+    """A5's portal half: any split of the records over nodes, merged, equals one process."""
+    rng = np.random.default_rng(5)
+    whole = Portals(len(LO), 8)
+    dom, points, d, _ = exits(rng, 5000)
+    cells = whole.cells(dom, points, d, LO, HI)
+    values = rng.random(len(cells)).astype(np.float32)
+    whole.record(cells, values)
+    node = rng.integers(0, 3, len(cells))
+    parts = []
+    for k in range(3):
+        p = Portals(len(LO), 8)
+        p.record(cells[node == k], values[node == k])
+        parts.append(p)
+    assert parts[2].copy().merge(parts[0]).merge(parts[1]) == whole
+
+
+def test_arrays_round_trip_through_the_reduce_combiners():
+    rng = np.random.default_rng(6)
+    a, b = random_portals(rng, 3, 5), random_portals(rng, 3, 5)
+    assert Portals.from_arrays(a.to_arrays()) == a
+    x, y = a.to_arrays(), b.to_arrays()
+    combined = {k: COMBINE[op](x[k], y[k]) for k, op in Portals.REDUCE.items()}
+    assert Portals.from_arrays(combined) == a.copy().merge(b)
+    with pytest.raises(ValueError, match="float32"):
+        Portals.from_arrays({**x, "portal_values": x["portal_values"].astype(np.float64)})
+
+
+def test_tree_max_combiner():
+    a = np.array([1.0, -2.0, np.inf, 0.0], np.float32)
+    b = np.array([0.5, -1.0, 3.0, 0.0], np.float32)
+    np.testing.assert_array_equal(COMBINE["max"](a, b), [1.0, -1.0, np.inf, 0.0])
+    assert set(COMBINE) >= {"max", "min", "or", "sum"}
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 5])
+async def test_portals_allreduce_over_real_sockets(size):
+    """The tree all-reduce of P nodes (ZeroMQ, one event loop) with "max" and "or" gives every
+    node the merge of all nodes' portals."""
+    import zmq
+    import zmq.asyncio
+
+    from vastray.actors.node import ManagementActor, TreeReduceActor
+
+    rng = np.random.default_rng(size)
+    portals = [random_portals(rng, 2, 4) for _ in range(size)]
+
+    ctx = zmq.asyncio.Context()
+    coordinator = ctx.socket(zmq.ROUTER)
+    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
+    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                             None, token=b"job") for _ in range(size)]
+    endpoints = [n.endpoint for n in nodes]
+    actors = [TreeReduceActor(nodes[r], r, size, endpoints) for r in range(size)]
+    try:
+        results = await asyncio.gather(*[actors[r].allreduce(portals[r].to_arrays(),
+                                                             Portals.REDUCE)
+                                         for r in range(size)])
+    finally:
+        for n in nodes:
+            n.close()
+        coordinator.close(linger=0)
+        ctx.destroy(linger=0)
+    expected = portals[0].copy()
+    for p in portals[1:]:
+        expected.merge(p)
+    for result in results:
+        assert Portals.from_arrays(result) == expected
+
+
+def test_luminance():
+    rgb = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [0.5, 0.25, 2.0]], np.float32)
+    y = luminance(rgb)
+    assert y.dtype == np.float32 and y.shape == (5,)
+    np.testing.assert_allclose(y, [0.2126, 0.7152, 0.0722, 1.0,
+                                   0.2126 * 0.5 + 0.7152 * 0.25 + 0.0722 * 2.0], rtol=1e-6)
+    assert luminance(np.zeros((0, 3))).shape == (0,)
+    with pytest.raises(ValueError):
+        luminance(np.ones(3))
