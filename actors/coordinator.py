@@ -30,6 +30,7 @@ from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
+from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.security import (
@@ -124,6 +125,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         from vastray.actors.temporal import check_temporal_domains
 
         check_temporal_domains(store)
+    if (options or {}).get("simplified") not in (None, "none") and store.simplified is None:
+        raise InputError(store.path, "has no simplified model for --simplified; make one with "
+                                     f"`vastray simplify {store.path} --ratio 0.01`")
     config = config if config is not None else load_scene_config(scene_path)
     if config.text is None:
         raise ValueError("render_distributed needs a SceneConfig read from TOML: its text is "

@@ -66,6 +66,9 @@ class NodeState:
     preloader: DomainPreloader | None = None
     pool: object = None
     ordinal: int = 0
+    #: the animation frame being rendered (0 for a single image): recording frames of
+    #: portals are those divisible by the portal interval.
+    frame: int = 0
     #: tile label -> ray batches received for a tile this node has not reached yet.
     early: dict = field(default_factory=dict)
     #: per-scheduler memory across frames (the temporal scheduler's statistics).
@@ -88,6 +91,49 @@ class NodeState:
             self.preloader.close()
         if self.pool is not None:
             self.pool.shutdown()
+
+
+def simplified_routing(store, setup, job: dict, state: NodeState):
+    """This frame's routing to the simplified model (``job["simplified"]``: a policy of
+    ``schedule.simplified``), or None. The model is loaded once per node and never evicted;
+    the portals recorded in the last recording frame are kept in ``state.memory``."""
+    policy = job.get("simplified")
+    if policy is None:
+        return None
+    from vastray.scene.bvh import DomainBVH
+    from vastray.schedule.portals import Portals
+    from vastray.schedule.simplified import SimplifiedRouting
+
+    memory = state.memory
+    if "simplified_bvh" not in memory and policy != "none":
+        memory["simplified_bvh"] = DomainBVH(len(store.domains), store.load_simplified(),
+                                             setup.keep, state.pool)
+    lo, hi = store.domain_boxes()
+    interval = int(job.get("portal_interval", 10))
+    recording = policy == "portal" and (state.frame % interval == 0
+                                        or "portals" not in memory)
+    portals = None
+    if policy == "portal":
+        portals = (Portals(len(store.domains), int(job.get("portal_resolution", 32)))
+                   if recording else memory["portals"])
+    return SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo, hi,
+                             portals=portals, recording=recording,
+                             threshold=float(job.get("portal_threshold", 0.5)))
+
+
+async def finish_simplified(routing, tree, state: NodeState, stats: dict) -> None:
+    """After a frame: merge a recording frame's portals over the nodes (MAX, by the
+    tree-reduce actor) for the frames that follow, and report the routing's counters."""
+    if routing is None:
+        return
+    stats.update(routing.counters)
+    stats["portal_recording"] = int(routing.recording)
+    if routing.recording:
+        from vastray.schedule.portals import Portals
+
+        arrays = routing.portals.to_arrays()
+        merged = await tree.allreduce(arrays, Portals.REDUCE) if tree is not None else arrays
+        state.memory["portals"] = Portals.from_arrays(merged)
 
 
 def node_bandwidth(job: dict) -> float | None:
@@ -128,17 +174,20 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS),
                  early=state.early)
     base = state.ordinal * n_tiles  # tile labels are unique over the frames of a job
+    routing = simplified_routing(store, setup, job, state)
     try:
         if mode == "async":
             frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
-                                base=base, status_label=state.ordinal)
+                                base=base, status_label=state.ordinal, simple=routing)
             await frame.run(preloader)
         elif mode == "temporal":
             frame = await _temporal_frame(node, setup, settings, store, job, rank, size, tile,
-                                          film, on_tile, base, state, preloader, tree, stats)
+                                          film, on_tile, base, state, preloader, tree, stats,
+                                          routing)
         if mode in ("async", "temporal"):
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
+            await finish_simplified(routing, tree, state, stats)
         for index, first in enumerate(range(0, total, tile) if mode in ("domain", "dynamic")
                                       else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
@@ -171,7 +220,7 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
 
 
 async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, film, on_tile,
-                          base, state: NodeState, preloader, tree, stats: dict):
+                          base, state: NodeState, preloader, tree, stats: dict, routing=None):
     """One frame of ``temporal``: plan from the last frame's statistics, render, and sum this
     frame's statistics over the nodes for the next (kept in ``state.memory``)."""
     from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
@@ -181,7 +230,7 @@ async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, f
                                   settings.width, settings.height, size, previous)
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
                           job.get("priority", "cost-benefit"), previous, on_tile, base=base,
-                          status_label=state.ordinal)
+                          status_label=state.ordinal, simple=routing)
     await frame.run(preloader)
     start = time.perf_counter()
     state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
@@ -374,11 +423,14 @@ class _AsyncFrame:
     base : label of the frame's first tile (labels are unique over the frames of a job; a
         batch labelled outside this frame's is held for its frame).
     status_label : this frame's number in the termination detection.
+    simple : routing to the node's simplified model (``simplified_routing``), or None.
     """
 
     def __init__(self, node: _Node, setup, settings, owner: np.ndarray, rank: int, size: int,
-                 tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0):
+                 tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0,
+                 simple=None):
         self.node, self.setup, self.settings = node, setup, settings
+        self.simple = simple
         self.owner, self.rank, self.size = owner, rank, size
         self.tile, self.film, self.on_tile = tile, film, on_tile
         self.base, self.status_label = base, status_label
@@ -399,7 +451,7 @@ class _AsyncFrame:
             self.policies[tile] = ImageSchedule(ctx, self.setup.geometry,
                                                 self.setup.color_source,
                                                 self.setup.scalar_range, owner=self.owner,
-                                                rank=self.rank)
+                                                rank=self.rank, simple=self.simple)
             self.made += 1
         return self.policies[tile]
 

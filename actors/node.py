@@ -342,7 +342,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         try:
             for ordinal, frame in enumerate(frames if frames is not None else [None]):
                 frame_settings, frame_config = frame_inputs(settings, config, store, frame)
-                state.ordinal = ordinal
+                state.ordinal, state.frame = ordinal, frame or 0
                 start = time.perf_counter()
                 film, counters = await render_share(management, tree, job, rank, size, store,
                                                     frame_config, frame_settings, report, state)

@@ -31,7 +31,7 @@ from vastray.schedule.paths import (
     shadow_soa,
     start_cursor,
 )
-from vastray.schedule.simplified import luminance
+from vastray.schedule.portals import luminance
 from vastray.schedule.soa import DomainQueues, SoA
 
 

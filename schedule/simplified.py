@@ -125,7 +125,3 @@ class SimplifiedRouting:
     def occluded(self, origins, directions, t_max) -> np.ndarray:
         return self.bvh.occluded(origins, directions, t_max)
 
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """(n,) Rec. 709 luminance of (n, 3) linear RGB."""
-    return rgb @ np.array([0.2126, 0.7152, 0.0722])

@@ -182,6 +182,19 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="temporal: how a node picks the next domain and what it preloads: "
                         "most queued rays, SpRay's traversal score, queued plus expected rays "
                         "from the active domain, or the paper's cost-benefit Eq. 1 (default)")
+    p.add_argument("--simplified", nargs="?", const="portal", metavar="POLICY",
+                   choices=["portal", "depth>0", "depth>1", "depth>2", "none"],
+                   help="async/temporal: trace some rays on the store's simplified model "
+                        "(`vastray simplify STORE --ratio 0.01`) held by every node, never "
+                        "sending them between nodes: 'portal' (default) sends depth-1 rays "
+                        "whose virtual portal predicts little light, and every deeper ray; "
+                        "'depth>K' every ray deeper than K; 'none' nothing. Lossy: compare "
+                        "with --reference")
+    p.add_argument("--portal-interval", type=_positive, default=10, metavar="N",
+                   help="--simplified portal: record the portals every N frames (default 10)")
+    p.add_argument("--portal-threshold", type=float, default=0.5, metavar="L",
+                   help="--simplified portal: predicted radiance at or below which a depth-1 "
+                        "ray goes to the simplified model (default 0.5)")
     p.add_argument("--load-bandwidth", type=_bandwidths, metavar="MB/s[,MB/s...]",
                    help="with --nodes: emulate network storage: a domain load takes at least "
                         "its size over this bandwidth (per node, or a list cycled over the "
@@ -437,6 +450,11 @@ def node_options(args: argparse.Namespace, scheduler: str) -> dict:
     options = {"preload": not args.no_preload}
     if args.load_bandwidth is not None:
         options["load_bandwidth"] = args.load_bandwidth
+    if args.simplified is not None:
+        if scheduler not in ("async", "temporal"):
+            raise InputError(None, "--simplified works with --scheduler async or temporal")
+        options.update(simplified=args.simplified, portal_interval=args.portal_interval,
+                       portal_threshold=args.portal_threshold)
     if scheduler == "temporal":
         options["assignment"] = args.assignment or "temporal"
         options["priority"] = args.priority or "cost-benefit"
