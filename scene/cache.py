@@ -175,8 +175,9 @@ class DomainCache:
         self._resident_bytes += bvh.nbytes()
         self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
                                              self._resident_bytes)
-        self.stats.peak_resident_domains = max(self.stats.peak_resident_domains,
-                                               len(self._resident) + len(self._pending))
+        # A preloaded domain is still pending while it is inserted: count it once.
+        self.stats.peak_resident_domains = max(
+            self.stats.peak_resident_domains, len(self._resident.keys() | self._pending.keys()))
 
     def prefetch(self, domain_id: int | None) -> None:
         """Start loading ``domain_id`` on the preloader thread, so its read and BVH build

@@ -1,0 +1,120 @@
+"""The temporal scheduler and the simplified model on real node processes: lossless runs give
+the reference image, nodes load only their own domains within their cache, and simplified
+rays never travel between nodes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vastray.actors.coordinator import render_distributed
+from vastray.render.driver import render
+from vastray.render.scene_config import load_scene_config
+from vastray.scene.simplify import build_simplified
+from vastray.scene.store import Store
+
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("temporal")
+    store = write_store(root / "grid", bumpy_scene(), grid=(3, 2, 3))
+    (root / "scene.toml").write_text(POINT_AND_SKY_TOML)
+    return store, root / "scene.toml"
+
+
+@pytest.fixture(scope="module")
+def reference(scene):
+    store, toml = scene
+    return render(store, load_scene_config(toml), settings(width=32, height=24, spp=2),
+                  progress=False).film
+
+
+def run(scene, nodes, **options):
+    store, toml = scene
+    cache = options.pop("cache", None)
+    return render_distributed(store.path, toml, settings(width=32, height=24, spp=2), nodes,
+                              scheduler=options.pop("scheduler", "temporal"),
+                              cache_capacity=cache, max_samples_in_flight=400, timeout=60,
+                              options=options)
+
+
+@pytest.mark.parametrize("nodes,cache", [(1, 1), (2, 2), (3, None), (4, 2)])
+def test_temporal_gives_the_reference_image(scene, reference, nodes, cache):
+    result = run(scene, nodes, cache=cache)
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(result.film.count, reference.count)
+    per_node = result.counters["per_node"]
+    for report in per_node:
+        counters = report["counters"]
+        assert counters["nonlocal_loads"] == 0  # a node loads only its own group
+        assert counters["peak_resident_domains"] <= counters["cache_capacity"]
+    # every domain with triangles belongs to exactly one group
+    nonempty = sum(d.n_triangles > 0 for d in Store(scene[0].path).domains)
+    assert sum(r["counters"]["local_domains"] for r in per_node) >= nonempty
+
+
+@pytest.mark.parametrize("priority", ["queue", "spray", "queue+act", "cost-benefit"])
+@pytest.mark.parametrize("assignment", ["sequential", "spatial", "temporal"])
+def test_every_assignment_and_priority_is_lossless(scene, reference, assignment, priority):
+    result = run(scene, 2, cache=2, assignment=assignment, priority=priority)
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+
+
+def test_preloading_overlaps_rendering(scene):
+    result = run(scene, 2, cache=3, load_bandwidth=20.0)  # 20 MB/s: loads take time
+    for report in result.counters["per_node"]:
+        counters = report["counters"]
+        assert counters["preloads"] > 0
+        assert counters["load_wait_s"] < counters["load_s"]
+
+
+def test_simplified_none_is_the_reference_and_identity_model_is_close(scene, reference,
+                                                                       tmp_path):
+    store, toml = scene
+    exact = run(scene, 2, cache=2, simplified="none")
+    np.testing.assert_array_equal(exact.film.image(), reference.image())
+    identity = write_store(tmp_path / "identity", bumpy_scene(), grid=(3, 2, 3))
+    build_simplified(identity, 1.0)  # the original triangles: only the BVH differs
+    result = render_distributed(identity.path, toml, settings(width=32, height=24, spp=2), 2,
+                                scheduler="async", max_samples_in_flight=400, timeout=60,
+                                options={"simplified": "depth>0"})
+    image, ref = result.film.image(), reference.image()
+    rel_mse = float(np.mean((image - ref) ** 2) / np.mean(ref ** 2))
+    assert rel_mse < 1e-4
+    assert sum(r["counters"]["simplified_rays"] for r in result.counters["per_node"]) > 0
+
+
+def test_simplified_rays_never_travel_and_policies_nest(scene, reference, tmp_path):
+    store, toml = scene
+    simple = write_store(tmp_path / "simple", bumpy_scene(), grid=(3, 2, 3))
+    build_simplified(simple, 0.2, min_faces=50)
+    sent, simplified = {}, {}
+    for policy in ("none", "depth>1", "depth>0"):
+        result = render_distributed(simple.path, toml, settings(width=32, height=24, spp=2), 2,
+                                    scheduler="temporal", cache_capacity=2,
+                                    max_samples_in_flight=400, timeout=60,
+                                    options={"simplified": policy})
+        per_node = result.counters["per_node"]
+        sent[policy] = sum(r["counters"]["rays_sent"] for r in per_node)
+        simplified[policy] = sum(r["counters"]["simplified_rays"] for r in per_node)
+        if policy != "none":
+            assert np.mean((result.film.image() - reference.image()) ** 2) > 0  # lossy
+    assert simplified["none"] == 0 < simplified["depth>1"] < simplified["depth>0"]
+    assert sent["depth>0"] <= sent["depth>1"] <= sent["none"]
+
+
+def test_portal_policy_records_then_predicts(scene, tmp_path):
+    store, toml = scene
+    simple = write_store(tmp_path / "simple", bumpy_scene(), grid=(3, 2, 3))
+    build_simplified(simple, 0.2, min_faces=50)
+    result = render_distributed(simple.path, toml, settings(width=32, height=24, spp=2), 2,
+                                scheduler="temporal", cache_capacity=2,
+                                max_samples_in_flight=400, timeout=60,
+                                options={"simplified": "portal"})
+    counters = [r["counters"] for r in result.counters["per_node"]]
+    assert all(c["portal_recording"] == 1 for c in counters)  # a single image records
+    assert sum(c["portal_crossings"] for c in counters) > 0
+    assert sum(c["portal_records"] for c in counters) > 0
+    assert sum(c["predicted_low"] for c in counters) == 0  # nothing predicted while recording
