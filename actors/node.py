@@ -318,6 +318,8 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         store = Store(job["store"])
         config = (SceneConfig() if not job.get("scene_toml")
                   else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
+        config = config.at_frame(int(job.get("frame", 0)), store.bounds[0], store.bounds[1],
+                                 settings.width, settings.height)
         loop = asyncio.get_running_loop()
         done = {"paths": 0}
 
