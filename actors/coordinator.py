@@ -137,6 +137,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     job = {
         "store": str(Path(store_path).resolve()),
         "scene_toml": config.text, "scene_source": config.source,
+        "frame": config.frame,  # nodes resolve the scene's camera and lights at this frame
         "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
         "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
         "max_batch_rays": max_batch_rays,

@@ -318,6 +318,9 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
         store = Store(job["store"])
         config = (SceneConfig() if not job.get("scene_toml")
                   else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
+        if job.get("frames") is None:  # one image: the scene where the job's frame puts it
+            config = config.at_frame(int(job.get("frame", 0)), store.bounds[0],
+                                     store.bounds[1], settings.width, settings.height)
         loop = asyncio.get_running_loop()
         done = {"paths": 0}
 
@@ -405,12 +408,10 @@ def frame_inputs(settings, config: SceneConfig, store, frame: int | None):
     the camera and lights where the frame puts them, the seed hashed with the frame."""
     if frame is None:
         return settings, config
-    from dataclasses import replace
-
-    from vastray.render.rng import frame_seed
+    from vastray.animation import frame_settings
 
     lo, hi = store.bounds
-    return (replace(settings, seed=frame_seed(settings.seed, frame)),
+    return (frame_settings(settings, frame),
             config.at_frame(frame, lo, hi, settings.width, settings.height))
 
 

@@ -181,13 +181,19 @@ def write_png(path, rgb: np.ndarray, exposure: float = 1.0) -> None:
 
 
 def image_error(image: np.ndarray, reference: np.ndarray) -> dict:
-    """MSE, PSNR (peak = reference maximum, at least 1) and max abs difference.
+    """MSE, PSNR (peak = reference maximum, at least 1), relative MSE and max abs difference.
 
-    ``psnr_db`` is ``None`` for identical images (infinite PSNR has no JSON spelling)."""
+    ``rel_mse`` is ``mse / mean(reference**2)``: the error relative to the reference's own
+    energy, comparable across scenes and exposures. ``psnr_db`` is ``None`` for identical
+    images (infinite PSNR has no JSON spelling), ``rel_mse`` for an all-black reference."""
     if image.shape != reference.shape:
         raise ValueError(f"image shapes differ: {image.shape} vs {reference.shape}")
-    diff = image.astype(np.float64) - reference.astype(np.float64)
+    ref = reference.astype(np.float64)
+    diff = image.astype(np.float64) - ref
     mse = float(np.mean(diff ** 2))
     peak = max(float(np.max(reference)), 1.0)
     psnr = None if mse == 0 else float(10.0 * np.log10(peak ** 2 / mse))
-    return {"mse": mse, "psnr_db": psnr, "max_abs_diff": float(np.max(np.abs(diff)))}
+    energy = float(np.mean(ref ** 2))
+    rel_mse = mse / energy if energy > 0 else (0.0 if mse == 0 else None)
+    return {"mse": mse, "psnr_db": psnr, "rel_mse": rel_mse,
+            "max_abs_diff": float(np.max(np.abs(diff)))}

@@ -39,6 +39,34 @@ def _mix(h: np.ndarray) -> np.ndarray:
     return h
 
 
+def frame_seed(seed: int, frame: int) -> int:
+    """The seed of frame ``frame`` of an animation rendered with ``seed``.
+
+    A 63-bit hash of ``(seed, frame)`` through the same splitmix64 mixer as ``hash_keys``, so
+    the frames of an animation are independent Monte Carlo samples (no frame repeats another's
+    noise pattern) while each frame stays a pure function of the run's seed and its index:
+    a frame renders the same alone, in a sequence, or on any scheduler.
+
+    Parameters
+    ----------
+    seed : the run's seed (``--seed``), 0 <= seed < 2**64.
+    frame : the frame index, >= 0.
+
+    Returns
+    -------
+    int
+        In [0, 2**63): fits a signed 64-bit integer (msgpack, JSON readers).
+    """
+    if frame < 0 or seed < 0:
+        raise ValueError(f"frame and seed must not be negative, got frame {frame}, seed {seed}")
+    with np.errstate(over="ignore"):
+        h = np.array([np.uint64(seed) * _GOLDEN], dtype=np.uint64)
+        h = _mix(h + _GOLDEN)
+        h ^= np.uint64(frame)
+        h = _mix(h + _GOLDEN)
+    return int(h[0] >> np.uint64(1))
+
+
 def hash_keys(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce: int | np.ndarray,
               purpose: int, index: int | np.ndarray = 0) -> np.ndarray:
     """Hash the key tuple of each ray into 64 random bits.

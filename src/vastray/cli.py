@@ -28,11 +28,13 @@ typical use (every line runs on a fresh install):
   vastray partition samples/stanford_bunny.ply -o bunny.store --grid 2x2x2
   vastray render bunny.store -o bunny.exr --png bunny.png
   vastray compare rm.exr reference.exr
+  vastray render rm.store -o orbit.exr --scene orbit.toml --frames 36   # an animation
+  vastray plot a.json b.json -o error_vs_time.png          # error vs time of several runs
 """
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vastray import commands_data, commands_render, commands_scene
+    from vastray import commands_data, commands_render, commands_scene, plot
 
     parser = argparse.ArgumentParser(
         prog="vastray", description=DESCRIPTION,
@@ -45,6 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands_scene.register(sub)
     commands_render.register(sub)
     commands_data.register(sub)
+    plot.register(sub)
     node = sub.add_parser("node", help="run one render node (started by a coordinator)",
                           add_help=False)
     node.set_defaults(func=None)

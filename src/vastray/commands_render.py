@@ -7,12 +7,14 @@ import logging
 import math
 import os
 import sys
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
 
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.local import render_out_of_core
+from vastray.animation import check_frame_outputs, run_animation
 from vastray.preflight import (
     cache_within,
     check_memory,
@@ -21,7 +23,7 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
-from vastray.render.driver import render
+from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
@@ -53,6 +55,10 @@ examples:
   vastray render bunny.store -o bunny.exr --integrator ao --spp 8 --ao-distance 0.02
   vastray render rm.store -o rm.exr --scene scene.toml --cache 4 --report rm.json
   vastray render rm.store -o rm.exr --cache 25% --scheduler spec-ooc --history-depth 2
+  vastray render rm.store -o anim.exr --png anim.png --scene orbit.toml --frames 36 \\
+      --report anim.json
+      frames anim_0000.exr ... anim_0035.exr (orbit.toml: [camera.orbit] with
+      degrees_per_frame = 10), a report per frame and the summary anim.json
 
 The output format follows -o's extension: .exr holds RGB radiance plus depth.Z and
 normal.X/Y/Z layers; .pfm and .hdr hold float RGB; .png is a clamped sRGB preview, as is --png.
@@ -206,7 +212,20 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "all cores; with --nodes N on this machine, cores / N per node; with "
                         "--listen, each node's own cores)")
     p.add_argument("--report", help="write a JSON report (timings, counts, error)")
-    p.add_argument("--reference", help="reference image (.exr/.npy) to report MSE/PSNR against")
+    p.add_argument("--reference",
+                   help="reference image (.exr/.pfm/.npy) to report MSE, PSNR and relative MSE "
+                        "against; with --frames, a pattern such as ref_{frame:04d}.exr or a "
+                        "plain name ref.exr meaning ref_0000.exr, ref_0001.exr ...")
+    p.add_argument("--frames", type=_positive, metavar="N",
+                   help="render an animation of N frames (moved by the scene's "
+                        "[[camera.key]], [camera.orbit], [[light.key]] or light move); -o "
+                        "a.exr writes "
+                        "a_0000.exr, a_0001.exr ..., as do --png and --report, and the "
+                        "--report path gets a summary of every frame. Frame f uses the seed "
+                        "hash(--seed, f) (default: one image, no numbering, the seed as given)")
+    p.add_argument("--first-frame", type=_non_negative, metavar="F",
+                   help="the first frame's number (default: 0); without --frames, "
+                        "renders that one frame (numbered outputs, its own seed)")
     p.add_argument("--exposure", type=_positive_float, default=1.0,
                    help="PNG exposure multiplier (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -373,7 +392,13 @@ def resolve_defaults(args: argparse.Namespace) -> None:
 
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     resolve_defaults(args)
-    outputs = check_output_paths(args.output, args.png, args.report)
+    animating = args.frames is not None or args.first_frame is not None
+    if animating:
+        first = args.first_frame or 0
+        frame_outputs = check_frame_outputs(args.output, args.png, args.report,
+                                            list(range(first, first + (args.frames or 1))))
+    else:
+        outputs = check_output_paths(args.output, args.png, args.report)
     if args.store is None:
         from vastray.default_scene import default_scene_config, default_store
 
@@ -384,8 +409,9 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         config = load_scene_config(args.scene)
     store = Store(store_path)
     config.check_objects(store.objects)
-    config.resolve_camera(store.bounds[0], store.bounds[1], args.width, args.height)
-    reference = read_image(args.reference) if args.reference else None
+    if not animating:  # an animation checks the camera of each of its frames
+        config.resolve_camera(store.bounds[0], store.bounds[1], args.width, args.height)
+    reference = read_image(args.reference) if args.reference and not animating else None
     settings = RenderSettings(
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
@@ -408,24 +434,14 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                                "give --nodes N")
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
-        result = render_distributed(
-            store_path, args.scene, settings, args.nodes, scheduler=scheduler,
-            cache_capacity=cache,
-            max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
-            history_depth=args.history_depth, timeout=args.node_timeout, listen=args.listen,
-            keys=load_keys(args.keys) if args.keys else None, launched=launched,
-            progress=not args.quiet, config=config, threads=args.threads,
-            rendezvous=args.rendezvous, heartbeat_timeout=args.heartbeat_timeout,
-            options=node_options(args, scheduler))
-    elif scheduler == "reference":
-        result = render(store, config, settings, cache_capacity=cache, threads=args.threads,
-                        progress=not args.quiet)
-    else:
-        result = render_out_of_core(
-            store, config, settings, scheduler=scheduler, cache_capacity=cache,
-            max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT,
-            history_depth=args.history_depth, preload=not args.no_preload,
-            progress=not args.quiet, threads=args.threads)
+    render_one = _renderer(args, store, store_path, scheduler, cache, launched)
+    options = run_options(args, cache)
+    if animating:
+        return run_animation(args, store_path=str(store_path), config=config,
+                             settings=settings, bounds=store.bounds, scheduler=scheduler,
+                             options=options, outputs=frame_outputs, render_one=render_one,
+                             render_many=_render_many(args, config, settings, render_one))
+    result = render_one(config, settings)
     image = result.film.image()
     error = image_error(image, reference) if reference is not None else None
     summary = summary_line(args, result, error, outputs)
@@ -438,7 +454,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             write_report(written.enter_context(atomic_path(args.report)), build_report(
                 store=str(store_path), settings=asdict(settings), seconds=result.seconds,
                 counters=result.counters, error=error, reference=args.reference,
-                scheduler=scheduler,
+                scheduler=scheduler, options=options,
             ))
     if not args.quiet:
         print(summary, file=sys.stderr)
@@ -462,6 +478,58 @@ def node_options(args: argparse.Namespace, scheduler: str) -> dict:
         raise InputError(None, "--assignment and --priority choose how --scheduler temporal "
                                "plans (async takes only --assignment sequential so far)")
     return options
+
+
+def _renderer(args: argparse.Namespace, store: Store, store_path: Path, scheduler: str,
+              cache: int | None, launched: dict | None) -> Callable[..., RenderResult]:
+    """The chosen scheduler as ``render_one(config, settings) -> RenderResult`` (the
+    distributed one also takes ``render_distributed``'s ``frames`` and ``on_frame``)."""
+    if args.nodes:
+        def render_one(config, settings, **frames):
+            return render_distributed(
+                store_path, args.scene, settings, args.nodes, scheduler=scheduler,
+                cache_capacity=cache,
+                max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
+                history_depth=args.history_depth, timeout=args.node_timeout,
+                listen=args.listen, keys=load_keys(args.keys) if args.keys else None,
+                launched=launched, progress=not args.quiet, config=config,
+                threads=args.threads, rendezvous=args.rendezvous,
+                heartbeat_timeout=args.heartbeat_timeout,
+                options=node_options(args, scheduler), **frames)
+    elif scheduler == "reference":
+        def render_one(config, settings):
+            return render(store, config, settings, cache_capacity=cache, threads=args.threads,
+                          progress=not args.quiet)
+    else:
+        def render_one(config, settings):
+            return render_out_of_core(
+                store, config, settings, scheduler=scheduler, cache_capacity=cache,
+                max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT,
+                history_depth=args.history_depth, preload=not args.no_preload,
+                progress=not args.quiet, threads=args.threads)
+    return render_one
+
+
+def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
+                 render_one: Callable[..., RenderResult]) -> Callable | None:
+    """With ``--nodes``, where the distributed runtime renders several frames in one job:
+    ``render_many(frames, on_frame)`` (nodes started once, each frame's config and seed
+    resolved on the nodes); else None, and each frame is a job of its own."""
+    if not args.nodes:
+        return None
+    return lambda frames, on_frame: render_one(config, settings, frames=frames,
+                                               on_frame=on_frame)
+
+
+def run_options(args: argparse.Namespace, cache: int | None) -> dict:
+    """The run's switches besides the scheduler, for its report (and ``vastray plot``'s
+    labels): what changes how, or how exactly, the image is made."""
+    return {"nodes": args.nodes, "cache": cache, "history_depth": args.history_depth,
+            "preload": not args.no_preload, "batch_size": args.batch_size,
+            "max_samples_in_flight": args.max_samples_in_flight, "threads": args.threads,
+            "simplified": args.simplified, "assignment": args.assignment,
+            "priority": args.priority, "load_bandwidth": args.load_bandwidth,
+            "frames": args.frames, "first_frame": args.first_frame}
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,

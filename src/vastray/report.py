@@ -20,29 +20,58 @@ def package_version() -> str:
         return "unknown"
 
 
-def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
-                 error: dict | None = None, reference: str | None = None,
-                 scheduler: str = "image") -> dict:
-    """Assemble a report dictionary (see DESIGN.md, "Reports").
-
-    ``error`` (MSE, PSNR, max difference against ``reference``) sits beside the run time so a
-    reader sees what accuracy the time bought.
-    """
-    report = {
+def run_header(store: str, scheduler: str, options: dict | None) -> dict:
+    """What every report opens with: versions, the command, the store and how it was run."""
+    return {
         "vastray": package_version(),
         "python": sys.version.split()[0],
         "machine": platform.machine(),
         "command": " ".join(sys.argv),
         "store": store,
         "scheduler": scheduler,
-        "settings": settings,
-        "seconds": seconds,
-        "counters": counters,
+        "options": dict(options or {}),
     }
+
+
+def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
+                 error: dict | None = None, reference: str | None = None,
+                 scheduler: str = "image", options: dict | None = None,
+                 frame: int | None = None) -> dict:
+    """Assemble a report dictionary (see DESIGN.md, "Reports").
+
+    ``error`` (MSE, PSNR, relative MSE, max difference against ``reference``) sits beside the
+    run time so a reader sees what accuracy the time bought. ``options`` are the run's
+    switches beside the scheduler (nodes, cache, preload, ``simplified``...): with it they
+    label the run in ``vastray plot``. ``frame`` is set for a frame of an animation.
+    """
+    report = run_header(store, scheduler, options)
+    if frame is not None:
+        report["frame"] = frame
+    report.update(settings=settings, seconds=seconds, counters=counters)
     if error is not None:
         report["error"] = dict(error, reference=reference)
         report["error_vs_time"] = [{"seconds": seconds.get("total"), **error}]
     return report
+
+
+def run_label(report: dict) -> str:
+    """A short name for the run a report describes: its scheduler and the options that change
+    what or how it renders, e.g. ``"spec-ooc --spp 4 --cache 4 --no-preload"``."""
+    options = report.get("options") or {}
+    parts = [str(report.get("scheduler", "?"))]
+    if (report.get("settings") or {}).get("spp") is not None:
+        parts.append(f"--spp {report['settings']['spp']}")
+    if options.get("nodes"):
+        parts.append(f"--nodes {options['nodes']}")
+    if options.get("cache") is not None:
+        parts.append(f"--cache {options['cache']}")
+    if options.get("history_depth") is not None:
+        parts.append(f"--history-depth {options['history_depth']}")
+    if options.get("preload") is False:
+        parts.append("--no-preload")
+    if options.get("simplified"):
+        parts.append("simplified")
+    return " ".join(parts)
 
 
 def strict_json(value):
