@@ -523,7 +523,7 @@ class _AsyncFrame:
     async def ship(self) -> None:
         for tile, policy in list(self.policies.items()):
             if policy.outbox:
-                await self.node.ship(policy, tile)
+                await self.node.ship(policy, self.base + tile)
 
     def retire_idle(self) -> None:
         """Fold every tile with nothing waiting here into the film and drop its state."""
