@@ -324,27 +324,22 @@ def _writable(a: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 _serial_lock = threading.Lock()
-_layer_checked = False
-_layer_safe = True
+
+# The kernels run on numba's own "workqueue" thread pool, one launch at a time. With the
+# OpenMP layer, launches from two Python threads corrupted memory here (render workers
+# tracing batches side by side: wrong array shapes, then a segfault), even when serialised;
+# the workqueue layer, serialised, is safe. (numba picks its layer at the first parallel
+# launch of the process, so this must be set before any.)
+numba.config.THREADING_LAYER = "workqueue"
 
 
 def _launch(kernel, threads: int, *args) -> None:
-    """Run ``kernel`` on ``threads`` numba threads (clamped to numba's pool).
-
-    numba's workqueue threading layer (used when neither TBB nor OpenMP is available) must not
-    be entered by two Python threads at once: then launches are serialised.
-    """
-    global _layer_checked, _layer_safe
-    # numba's thread count is a per-calling-thread setting
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
-    if _layer_checked and _layer_safe:
-        kernel(*args)
-        return
+    """Run ``kernel`` on ``threads`` numba threads (clamped to numba's pool), one launch at a
+    time: numba's workqueue pool must not be entered by two Python threads at once."""
     with _serial_lock:
+        # numba's thread count is a per-calling-thread setting
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
         kernel(*args)
-        if not _layer_checked:
-            _layer_safe = numba.threading_layer() != "workqueue"
-            _layer_checked = True
 
 
 #: Rays per work item of the parallel loops.
