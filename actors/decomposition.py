@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -233,7 +234,12 @@ async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, f
                           status_label=state.ordinal, simple=routing)
     await frame.run(preloader)
     start = time.perf_counter()
-    state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
+    summed = state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
+    # The same on every node and for any node count, cache or priority (a lossless frame's
+    # ray statistics depend on the scene, camera and seed only): the tests compare these.
+    stats["ray_stats_digest"] = zlib.crc32(np.ascontiguousarray(summed.sent).tobytes()
+                                           + np.ascontiguousarray(summed.received).tobytes())
+    stats["ray_transmissions"] = int(summed.sent.sum())
     stats["stats_reduce_s"] = round(time.perf_counter() - start, 4)
     stats["local_domains"] = int(frame.local.sum())
     stats["nonlocal_loads"] = frame.nonlocal_loads

@@ -39,8 +39,8 @@ import argparse
 import time
 
 import numpy as np
-
 from bench_scenes import CACHE
+
 from vastray.actors.coordinator import render_distributed
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import parse_scene_config

@@ -161,7 +161,7 @@ def test_killed_last_node_fails_the_run_with_its_name_and_no_output(scene, tmp_p
 def test_unknown_scheduler_for_nodes_is_refused(scene):
     store, toml = scene
     with pytest.raises(ValueError, match="supports schedulers"):
-        render_distributed(store.path, toml, settings(), 2, scheduler="temporal")
+        render_distributed(store.path, toml, settings(), 2, scheduler="galaxy")
 
 
 def _start_external_node(coordinator: str, keys: Path | None, log: Path):

@@ -154,3 +154,15 @@ def test_animation_frames_equal_the_single_process_frames(scene, tmp_path, sched
         digests = [delivered[f].counters["per_node"][0]["counters"]["assignment_digest"]
                    for f in (0, 1, 2)]
         assert digests[1] != digests[0]
+
+
+def test_ray_statistics_do_not_depend_on_nodes_cache_or_priority(scene):
+    # A4/A5: s(A, B) and r(A) of a lossless frame depend on the scene, camera and seed only,
+    # and after the tree all-reduce every node holds the same.
+    digests = set()
+    for nodes, cache, priority in [(1, None, "queue"), (2, 1, "cost-benefit"), (3, 2, "spray")]:
+        result = run(scene, nodes, cache=cache, priority=priority)
+        per_node = [r["counters"] for r in result.counters["per_node"]]
+        digests |= {c["ray_stats_digest"] for c in per_node}
+        assert all(c["ray_transmissions"] > 0 for c in per_node)
+    assert len(digests) == 1
