@@ -121,4 +121,7 @@ def test_hero_image_is_what_the_first_command_renders(tmp_path, monkeypatch):
     made = np.asarray(Image.open(tmp_path / "default.png"))
     shown = np.asarray(Image.open(ROOT / "docs" / "default.png"))
     assert made.shape == (480, 640, 3)
-    np.testing.assert_array_equal(made, shown)
+    # Embree picks its kernels by the CPU (SSE, AVX2, AVX-512), and their rounding differs in
+    # the last bits: on another machine a handful of pixels may land one or two levels apart.
+    diff = np.abs(made.astype(np.int16) - shown.astype(np.int16))
+    assert diff.max() <= 2 and np.count_nonzero(diff) <= 0.0001 * diff.size
