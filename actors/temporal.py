@@ -144,10 +144,26 @@ class TemporalFrame(_AsyncFrame):
         scores = self._scores(waiting, active, int(waiting[active]))
         upcoming = plan.best(scores)
         self.upcoming = upcoming
-        if self.preloader is not None:
-            protect = {active} | ({upcoming} if upcoming is not None else set())
-            self.preloader.prioritise(scores, protect)
-        return active, upcoming
+        if self.preloader is None:
+            return active, upcoming
+        protect = {active} | ({upcoming} if upcoming is not None else set())
+        self.preloader.prioritise(scores, protect)
+        return active, upcoming if self._worth_loading(upcoming, scores, protect) else None
+
+    def _worth_loading(self, domain: int | None, scores: np.ndarray, protect: set) -> bool:
+        """Whether to preload ``domain`` now: it is not resident, and the cache has room or
+        the domain it would evict (the lowest priority) ranks below it. Our render steps are
+        short (a domain's queue takes milliseconds, not the paper's seconds), so without this
+        guard a fresh d* every step would evict domains worth more than itself."""
+        if domain is None:
+            return False
+        resident = self.preloader.resident()
+        if domain in resident:
+            return False
+        if len(resident) < self.preloader.capacity:
+            return True
+        victim = plan.victim(scores, list(resident), protect)
+        return victim is not None and scores[victim] < scores[domain]
 
     def _scores(self, waiting: np.ndarray, active: int | None, q_act: int) -> np.ndarray:
         resident = np.zeros(len(waiting), bool)
