@@ -371,17 +371,22 @@ class DomainParser:
         return dict(files)
 
     def _checksums(self, sha, files: dict, label: str) -> dict:
-        where = self.root.manifest
         if self.manifest["version"] < 2:
             return {}
-        if not isinstance(sha, dict) or set(sha) != set(files):
-            raise InputError(where, f"{label} 'sha256' must give a checksum for each of its files "
-                                    f"({', '.join(files)}), found {one_line(repr(sha), 80)}")
-        for kind, digest in sha.items():
-            if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
-                raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
-                                        f"digits: {one_line(repr(digest), 80)}")
-        return dict(sha)
+        return checked_checksums(sha, files, label, self.root.manifest)
+
+
+def checked_checksums(sha, files: dict, label: str, where) -> dict:
+    """``sha`` ({kind: hex SHA-256} for each of ``files``) if well formed, else InputError
+    naming the manifest ``where``."""
+    if not isinstance(sha, dict) or set(sha) != set(files):
+        raise InputError(where, f"{label} 'sha256' must give a checksum for each of its files "
+                                f"({', '.join(files)}), found {one_line(repr(sha), 80)}")
+    for kind, digest in sha.items():
+        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+            raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
+                                    f"digits: {one_line(repr(digest), 80)}")
+    return dict(sha)
 
 
 def simplified_entry(root: StoreRoot, manifest: dict, bounds: np.ndarray | None,
@@ -429,14 +434,7 @@ def simplified_entry(root: StoreRoot, manifest: dict, bounds: np.ndarray | None,
         raise InputError(where, f"{label} bounds stick out of the scene 'bounds'; {RESIMPLIFY}")
     parser = DomainParser(root, manifest, check_headers=False)
     files = parser._files(entry.get("files"), label, n_tri)
-    sha = entry.get("sha256")
-    if not isinstance(sha, dict) or set(sha) != set(files):
-        raise InputError(where, f"{label} 'sha256' must give a checksum for each of its files "
-                                f"({', '.join(files)}), found {one_line(repr(sha), 80)}")
-    for kind, digest in sha.items():
-        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
-            raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
-                                    f"digits: {one_line(repr(digest), 80)}")
+    sha = checked_checksums(entry.get("sha256"), files, label, where)
     if read_headers:
         check_headers(root, files, n_tri, n_vert, nbytes, label)
     return SimplifiedInfo(-1, lo, hi, n_tri, n_vert, nbytes, dict(files), dict(sha),
