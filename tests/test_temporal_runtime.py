@@ -183,3 +183,19 @@ def test_ray_statistics_do_not_depend_on_nodes_cache_or_priority(scene):
         digests |= {c["ray_stats_digest"] for c in per_node}
         assert all(c["ray_transmissions"] > 0 for c in per_node)
     assert len(digests) == 1
+
+
+@pytest.mark.parametrize("extra,message", [
+    (["--nodes", "2", "--scheduler", "temporal", "--simplified"], "vastray simplify"),
+    (["--nodes", "2", "--scheduler", "domain", "--simplified", "none"], "async or temporal"),
+    (["--nodes", "2", "--scheduler", "async", "--priority", "queue"], "--scheduler temporal"),
+    (["--scheduler", "temporal"], "--nodes"),
+])
+def test_temporal_options_refused_with_what_to_do(scene, tmp_path, capsys, extra, message):
+    from vastray.cli import main
+
+    out = tmp_path / "out.exr"
+    assert main(["render", str(scene[0].path), "-o", str(out), "--width", "16", "--height",
+                 "12", "--spp", "1", *extra]) != 0
+    assert message in capsys.readouterr().err
+    assert not out.exists()
