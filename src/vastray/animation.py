@@ -142,10 +142,11 @@ def render_frames(frames: list[int], configs: dict[int, SceneConfig], settings: 
     frames : frame numbers.
     configs : each frame's resolved config (``resolve_frames``).
     settings : the run's settings; frame f renders with ``frame_seed(settings.seed, f)``.
-    render_one : renders one frame from its config and settings (single-process schedulers,
-        or the distributed runtime one job per frame).
-    render_many : where given, renders every frame in one job instead (the distributed runtime
-        resolving each frame's config and seed on its nodes) and calls ``on_frame`` itself.
+    render_one : renders one frame from its config and settings (the single-process
+        schedulers).
+    render_many : where given, renders every frame in one job instead (the distributed runtime:
+        its nodes resolve each frame's config and seed, and keep their caches and statistics
+        from frame to frame) and calls ``on_frame`` itself.
     """
     if render_many is not None:
         render_many(list(frames), on_frame)
