@@ -199,3 +199,28 @@ def test_temporal_options_refused_with_what_to_do(scene, tmp_path, capsys, extra
                  "12", "--spp", "1", *extra]) != 0
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_cli_temporal_simplified_animation_without_quiet(tmp_path, capsys):
+    # As a user runs it: two frames on two nodes, temporal scheduling and the simplified
+    # model, progress and summary lines on stderr, every file written, reports that say how.
+    import json
+
+    from vastray.cli import main
+
+    store = write_store(tmp_path / "s.store", bumpy_scene(), grid=(3, 2, 3))
+    assert main(["simplify", str(store.path), "--ratio", "0.2", "--min-faces", "50"]) == 0
+    toml = tmp_path / "orbit.toml"
+    toml.write_text(ORBIT_TOML)
+    out, report = tmp_path / "t.exr", tmp_path / "t.json"
+    assert main(["render", str(store.path), "-o", str(out), "--scene", str(toml), "--frames", "2",
+                 "--nodes", "2", "--scheduler", "temporal", "--cache", "2", "--simplified",
+                 "--report", str(report), "--width", "32", "--height", "24", "--spp", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "wrote 2 frames" in err and "frame 1 (2/2)" in err
+    assert all((tmp_path / f"t_000{f}.exr").is_file() for f in (0, 1))
+    summary = json.loads(report.read_text())
+    assert summary["scheduler"] == "temporal" and summary["options"]["simplified"] == "portal"
+    frame1 = json.loads((tmp_path / "t_0001.json").read_text())
+    per_node = frame1["counters"]["per_node"]
+    assert sum(n["counters"]["simplified_rays"] for n in per_node) > 0
