@@ -486,12 +486,15 @@ class _AsyncFrame:
         if self.on_tile is not None:
             self.on_tile(len(mine))
 
-    def accept(self, message) -> None:
+    def accept(self, message) -> bool:
+        """Deliver a batch of this frame (True), or hold one of a later frame (False)."""
         tile = int(message.meta["tile"]) - self.base
         if 0 <= tile < self.n_tiles:
             self.node.deliver(self.policy(tile), message)
-        else:  # a later frame's batch, from a node that went on first
-            self.node.early.setdefault(int(message.meta["tile"]), []).append(message)
+            return True
+        # a later frame's batch, from a node that went on first
+        self.node.early.setdefault(int(message.meta["tile"]), []).append(message)
+        return False
 
     def take_early(self) -> None:
         """Deliver the batches of this frame that arrived during an earlier one."""

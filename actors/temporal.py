@@ -121,12 +121,11 @@ class TemporalFrame(_AsyncFrame):
         """Rows of the tile's paths whose pixel lies in this node's screen tile."""
         return np.nonzero(self.pixel_node[policy.ctx.pixel] == self.rank)[0]
 
-    def accept(self, message) -> None:
-        domains = message.arrays.get("domain") if message.arrays else None
-        tile = int(message.meta["tile"]) - self.base
-        if domains is not None and 0 <= tile < self.n_tiles:
-            np.add.at(self.arrived, np.asarray(domains, np.int64), 1)
-        super().accept(message)
+    def accept(self, message) -> bool:
+        delivered = super().accept(message)
+        if delivered and message.arrays:  # Q_CUR_RECV: rays from other nodes' domains
+            np.add.at(self.arrived, np.asarray(message.arrays["domain"], np.int64), 1)
+        return delivered
 
     def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
         """Activate d* if it has rays, else the best-scored domain with rays; then score the

@@ -95,3 +95,37 @@ def terrain_scene(n: int = 48, size: float = 4.0, seed: int = 5) -> DomainArrays
     for box in boxes:
         box.apply_translation([rng.uniform(-1.5, 1.5), -0.3, rng.uniform(-1.5, 1.5)])
     return mesh_arrays(trimesh.util.concatenate([ground, sphere, *boxes]))
+
+
+async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
+    """Run ``TreeReduceActor.allreduce`` on ``len(arrays)`` management actors talking over real
+    ZeroMQ sockets in one event loop (rank r contributes ``arrays[r]``).
+
+    Returns
+    -------
+    (results, actors): every rank's result, and the actors (``levels`` climbed).
+    """
+    import asyncio
+
+    import zmq
+    import zmq.asyncio
+
+    from vastray.actors.node import ManagementActor, TreeReduceActor
+
+    size = len(arrays)
+    ctx = zmq.asyncio.Context()
+    coordinator = ctx.socket(zmq.ROUTER)
+    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
+    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                             None, token=b"job") for _ in range(size)]
+    endpoints = [n.endpoint for n in nodes]
+    actors = [TreeReduceActor(nodes[r], r, size, endpoints) for r in range(size)]
+    try:
+        results = await asyncio.gather(*[actors[r].allreduce(arrays[r], ops)
+                                         for r in range(size)])
+    finally:
+        for n in nodes:
+            n.close()
+        coordinator.close(linger=0)
+        ctx.destroy(linger=0)
+    return results, actors

@@ -3,7 +3,6 @@ killed mid-render fails the run naming the node, and leaves no output."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import signal
 import threading
@@ -21,7 +20,7 @@ from vastray.scene.errors import InputError
 from vastray.transport.security import load_keys
 from vastray.transport.tree import children, parent
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, allreduce_over_sockets, bumpy_scene, settings, write_store
 
 SCENE_TOML = POINT_AND_SKY_TOML
 
@@ -231,31 +230,11 @@ def test_listening_beyond_loopback_needs_keys(scene):
 async def test_tree_allreduce_over_real_sockets(size):
     """The tree-reduce actor of P nodes (real ZeroMQ sockets, one event loop): MIN, OR and
     SUM reach every node in ceil(log2 P) levels."""
-    import zmq
-    import zmq.asyncio
-
-    from vastray.actors.node import ManagementActor, TreeReduceActor
-
-    ctx = zmq.asyncio.Context()
-    coordinator = ctx.socket(zmq.ROUTER)
-    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
-    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                             None, token=b"job") for _ in range(size)]
-    endpoints = [n.endpoint for n in nodes]
     rng = np.random.default_rng(size)
     values = [{"t": rng.integers(0, 1 << 60, 100, dtype=np.uint64),
                "o": rng.integers(0, 256, 64).astype(np.uint8),
                "n": rng.integers(0, 1000, 10)} for _ in range(size)]
-    actors = [TreeReduceActor(nodes[r], r, size, endpoints) for r in range(size)]
-    try:
-        results = await asyncio.gather(*[
-            actors[r].allreduce(values[r], {"t": "min", "o": "or", "n": "sum"})
-            for r in range(size)])
-    finally:
-        for n in nodes:
-            n.close()
-        coordinator.close(linger=0)
-        ctx.destroy(linger=0)
+    results, actors = await allreduce_over_sockets(values, {"t": "min", "o": "or", "n": "sum"})
     assert actors[0].levels == (int(np.floor(np.log2(size))) if size > 1 else 0)
     assert actors[0].levels <= int(np.ceil(np.log2(size)))
     for result in results:

@@ -3,13 +3,13 @@ directions, the 8 equal-solid-angle bins, record/predict, MAX merge, and the tre
 
 from __future__ import annotations
 
-import asyncio
-
 import numpy as np
 import pytest
 
 from vastray.schedule.portals import ANGLES, FACES, Portals, luminance
 from vastray.transport.tree import COMBINE
+
+from scenes import allreduce_over_sockets
 
 LO = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 3.0], [-5.0, -5.0, -5.0]])
 HI = np.array([[1.0, 1.0, 1.0], [3.0, 2.0, 3.5], [5.0, 5.0, 5.0]])
@@ -207,30 +207,9 @@ def test_tree_max_combiner():
 async def test_portals_allreduce_over_real_sockets(size):
     """The tree all-reduce of P nodes (ZeroMQ, one event loop) with "max" and "or" gives every
     node the merge of all nodes' portals."""
-    import zmq
-    import zmq.asyncio
-
-    from vastray.actors.node import ManagementActor, TreeReduceActor
-
     rng = np.random.default_rng(size)
     portals = [random_portals(rng, 2, 4) for _ in range(size)]
-
-    ctx = zmq.asyncio.Context()
-    coordinator = ctx.socket(zmq.ROUTER)
-    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
-    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                             None, token=b"job") for _ in range(size)]
-    endpoints = [n.endpoint for n in nodes]
-    actors = [TreeReduceActor(nodes[r], r, size, endpoints) for r in range(size)]
-    try:
-        results = await asyncio.gather(*[actors[r].allreduce(portals[r].to_arrays(),
-                                                             Portals.REDUCE)
-                                         for r in range(size)])
-    finally:
-        for n in nodes:
-            n.close()
-        coordinator.close(linger=0)
-        ctx.destroy(linger=0)
+    results, _ = await allreduce_over_sockets([p.to_arrays() for p in portals], Portals.REDUCE)
     expected = portals[0].copy()
     for p in portals[1:]:
         expected.merge(p)
