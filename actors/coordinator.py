@@ -32,6 +32,7 @@ from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
+from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.security import (
     ClusterKeys,
@@ -201,10 +202,42 @@ def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, si
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
                                           for r in reports)}
+    counters.update(portal_shares([r["counters"] for r in reports]))
     seconds = {"total": round(wall, 4),
                "busy_max": max(r["busy_s"] for r in reports),
                "reduce_max": max(r["reduce_s"] for r in reports)}
     return RenderResult(film, camera, seconds, counters)
+
+
+def portal_shares(per_node: list[dict]) -> dict:
+    """A simplified-model run's shares from its nodes' counters (of a frame, or summed over
+    frames); empty for other runs.
+
+    * ``simplified_share``: Simple/total, depth-1 portal crossings predicted low (sent to the
+      simplified model) over all crossings; None where no ray crossed a portal (policies
+      without portals). 0 in a recording frame, which predicts nothing.
+    * ``acc`` and ``acc_simplified_share`` (instrumented ``portal_accuracy`` runs only): the
+      share of crossings whose predicted class matches the actual one, and the share
+      predicted low, classified with the portals a timed run predicts the frame with
+      (``schedule.portals.prediction_accuracy``); ``replay_acc`` and ``replay_false_low``
+      classify with the frame's own recorded portals.
+    """
+    out = {}
+    if any("portal_crossings" in c for c in per_node):
+        crossings = sum(c.get("portal_crossings", 0) for c in per_node)
+        low = sum(c.get("predicted_low", 0) for c in per_node)
+        out["simplified_share"] = low / crossings if crossings else None
+    for prefix in ("acc_", "replay_"):
+        # global counts, reported by one node: summing over nodes adds that one
+        parts = [a for a in (Accuracy.from_counters(c, prefix) for c in per_node) if a]
+        if not parts:
+            continue
+        total = sum(parts[1:], parts[0])
+        if prefix == "acc_":
+            out.update(acc=total.acc, acc_simplified_share=total.simplified_share)
+        else:
+            out.update(replay_acc=total.acc, replay_false_low=total.false_low)
+    return out
 
 
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,

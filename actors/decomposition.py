@@ -97,12 +97,17 @@ class NodeState:
 def simplified_routing(store, setup, job: dict, state: NodeState):
     """This frame's routing to the simplified model (``job["simplified"]``: a policy of
     ``schedule.simplified``), or None. The model is loaded once per node and never evicted;
-    the portals recorded in the last recording frame are kept in ``state.memory``."""
+    the portals recorded in the last recording frame are kept in ``state.memory``.
+
+    ``job["portal_accuracy"]`` (portal policy) makes the run an instrumented one, for ACC:
+    every frame is traced as a recording frame with a crossing log, and the crossings are
+    classified with the portals a timed run would predict the frame with; only the frames a
+    timed run records replace those portals (``finish_simplified``)."""
     policy = job.get("simplified")
     if policy is None:
         return None
     from vastray.scene.bvh import DomainBVH
-    from vastray.schedule.portals import Portals
+    from vastray.schedule.portals import CrossingLog, Portals
     from vastray.schedule.simplified import SimplifiedRouting
 
     memory = state.memory
@@ -113,28 +118,53 @@ def simplified_routing(store, setup, job: dict, state: NodeState):
     interval = int(job.get("portal_interval", 10))
     recording = policy == "portal" and (state.frame % interval == 0
                                         or "portals" not in memory)
+    measuring = policy == "portal" and bool(job.get("portal_accuracy"))
     portals = None
     if policy == "portal":
         portals = (Portals(len(store.domains), int(job.get("portal_resolution", 32)))
-                   if recording else memory["portals"])
-    return SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo, hi,
-                             portals=portals, recording=recording,
-                             threshold=float(job.get("portal_threshold", 0.5)))
+                   if recording or measuring else memory["portals"])
+    routing = SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo,
+                                hi, portals=portals, recording=recording or measuring,
+                                threshold=float(job.get("portal_threshold", 0.5)))
+    if measuring:
+        routing.log = CrossingLog(setup.total_paths)
+        routing.reference = memory.get("portals")
+        routing.keeps_portals = recording
+    return routing
 
 
-async def finish_simplified(routing, tree, state: NodeState, stats: dict) -> None:
+async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: int = 0
+                            ) -> None:
     """After a frame: merge a recording frame's portals over the nodes (MAX, by the
-    tree-reduce actor) for the frames that follow, and report the routing's counters."""
+    tree-reduce actor) for the frames that follow, and report the routing's counters.
+
+    An instrumented frame (``routing.log``) merges its crossing log in the same all-reduce,
+    and node 0 reports, for every node (the counts are global), the crossings classified
+    with the portals a timed run would predict the frame with (``acc_*``, from the second
+    frame on) and with the portals recorded in this very frame (``replay_*``: no false
+    lows, since cells keep maxima)."""
     if routing is None:
         return
     stats.update(routing.counters)
-    stats["portal_recording"] = int(routing.recording)
+    stats["portal_recording"] = int(routing.recording and routing.keeps_portals)
     if routing.recording:
-        from vastray.schedule.portals import Portals
+        from vastray.schedule.portals import CrossingLog, Portals, prediction_accuracy
 
-        arrays = routing.portals.to_arrays()
-        merged = await tree.allreduce(arrays, Portals.REDUCE) if tree is not None else arrays
-        state.memory["portals"] = Portals.from_arrays(merged)
+        arrays, ops = routing.portals.to_arrays(), dict(Portals.REDUCE)
+        if routing.log is not None:
+            arrays.update(routing.log.to_arrays())
+            ops.update(CrossingLog.REDUCE)
+        merged = await tree.allreduce(arrays, ops) if tree is not None else arrays
+        recorded = Portals.from_arrays(merged)
+        if routing.keeps_portals:
+            state.memory["portals"] = recorded
+        if routing.log is not None and rank == 0:
+            cells, actual = CrossingLog.from_arrays(merged).crossings()
+            stats.update(prediction_accuracy(recorded.predict(cells), actual,
+                                             routing.threshold).counters("replay_"))
+            if routing.reference is not None:
+                stats.update(prediction_accuracy(routing.reference.predict(cells), actual,
+                                                 routing.threshold).counters("acc_"))
 
 
 def node_bandwidth(job: dict) -> float | None:
@@ -188,7 +218,7 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
         if mode in ("async", "temporal"):
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
-            await finish_simplified(routing, tree, state, stats)
+            await finish_simplified(routing, tree, state, stats, rank)
         for index, first in enumerate(range(0, total, tile) if mode in ("domain", "dynamic")
                                       else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),

@@ -306,6 +306,14 @@ class ImageSchedule:
         if crossed.any():
             self.simple.portals.record(cells[crossed], np.zeros(int(crossed.sum()), np.float32))
             self.simple.counters["portal_records"] += int(crossed.sum())
+            if self.simple.log is not None:  # an instrumented frame: which path crossed where
+                self.simple.log.crossed(self._path_ids(rays["path"][crossed]), cells[crossed])
+
+    def _path_ids(self, path: np.ndarray) -> np.ndarray:
+        """(m,) int64 frame-wide ids ``pixel * spp + sample`` of rows ``path`` of the tile."""
+        ctx = self.ctx
+        return (ctx.pixel[path].astype(np.int64) * ctx.settings.spp
+                + ctx.sample[path].astype(np.int64))
 
     def _portal_fields(self, rays: SoA, hit: np.ndarray, shadow: ShadowRays
                        ) -> dict[str, np.ndarray]:
@@ -360,6 +368,9 @@ class ImageSchedule:
             record = lit & (cells >= 0)
             if record.any():
                 self.simple.portals.record(cells[record], rays["portal_value"][record])
+                if self.simple.log is not None:
+                    self.simple.log.lit(self._path_ids(rays["path"][record]),
+                                        rays["portal_value"][record])
 
     def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
         self.counters["shadow_tests"] += len(rays)

@@ -22,6 +22,13 @@ nodes merge portals element-wise by MAX (values) and OR (mask), which does not d
 order, so P nodes record what one process does. A cell never recorded predicts +inf:
 conservative, the ray is traced on the fine model.
 
+Prediction accuracy (notes S9, "ACC (reading)"): :class:`CrossingLog` keeps, per path, the
+cell where an instrumented recording frame's depth-1 ray crossed its portal and the radiance
+it actually brought back (the value recording keeps: the largest ``k c / beta`` of its lit
+shadow rays, 0 for a miss or a shadowed hit); :func:`prediction_accuracy` classifies those
+crossings with the portals of an earlier frame: ACC is the share whose predicted class
+(<= threshold / > threshold) is the actual one, Simple/total the share predicted low.
+
 Memory: D x 6 x R^2 x 8 cells, 4 bytes each for ``values`` (D x 196,608 B at R = 32, 25.2 MB
 at D = 128) plus 1 byte each for the bool ``recorded`` mask (D x 49,152 B); :meth:`nbytes`
 counts both. :meth:`to_arrays` sends the mask packed to 1 bit per cell (D x 6,144 B).
@@ -30,6 +37,8 @@ Pure numpy; no I/O, no asyncio.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -248,6 +257,139 @@ class Portals:
         out.values[...] = values.reshape(out.shape)
         out.recorded[...] = np.unpackbits(packed, count=values.size).astype(bool).reshape(
             out.shape)
+        return out
+
+
+@dataclass(frozen=True)
+class Accuracy:
+    """How well predicted radiances classify crossings against the radiance they brought.
+
+    Attributes
+    ----------
+    crossings : crossings classified.
+    agree : those whose predicted class (<= threshold: low, else high) is the actual one.
+    predicted_low : those predicted low (they would go to the simplified model).
+    false_low : predicted low, actually high (light the simplified model may lose).
+    false_high : predicted high, actually low (a ray traced fine that need not be).
+    """
+
+    crossings: int
+    agree: int
+    predicted_low: int
+    false_low: int
+    false_high: int
+
+    @property
+    def acc(self) -> float | None:
+        """ACC, the share of crossings classified right (None without crossings)."""
+        return self.agree / self.crossings if self.crossings else None
+
+    @property
+    def simplified_share(self) -> float | None:
+        """Simple/total, the share of crossings predicted low (None without crossings)."""
+        return self.predicted_low / self.crossings if self.crossings else None
+
+    def counters(self, prefix: str) -> dict[str, int]:
+        """The counts as ``{prefix + name: count}`` (integers: they add up over frames)."""
+        return {f"{prefix}{k}": int(getattr(self, k)) for k in _ACCURACY_COUNTS}
+
+    @classmethod
+    def from_counters(cls, counters: dict, prefix: str) -> Accuracy | None:
+        """The inverse of :meth:`counters` (None if ``counters`` has none of them)."""
+        if f"{prefix}crossings" not in counters:
+            return None
+        return cls(*(int(counters[f"{prefix}{k}"]) for k in _ACCURACY_COUNTS))
+
+    def __add__(self, other: Accuracy) -> Accuracy:
+        """The counts of both sets of crossings together (frames, nodes)."""
+        return Accuracy(*(getattr(self, k) + getattr(other, k) for k in _ACCURACY_COUNTS))
+
+
+_ACCURACY_COUNTS = ("crossings", "agree", "predicted_low", "false_low", "false_high")
+
+
+def prediction_accuracy(predicted: np.ndarray, actual: np.ndarray, threshold: float = 0.5
+                        ) -> Accuracy:
+    """Classify crossings by predicted radiance and compare with the radiance they brought.
+
+    A crossing is low when its radiance is at most ``threshold`` (the routing rule: a
+    prediction <= threshold sends the ray to the simplified model), else high. Unrecorded
+    cells predict +inf (high); NaN counts as high on either side.
+
+    Parameters
+    ----------
+    predicted : (n,) predicted radiance per crossing (e.g. ``Portals.predict(cells)``).
+    actual : (n,) radiance each crossing actually brought back (``CrossingLog.crossings``).
+    threshold : tau.
+
+    Returns
+    -------
+    Accuracy with the counts; ``acc`` and ``simplified_share`` are ratios of them.
+    """
+    predicted = np.asarray(predicted, dtype=np.float64).reshape(-1)
+    actual = np.asarray(actual, dtype=np.float64).reshape(-1)
+    if len(predicted) != len(actual):
+        raise ValueError(f"{len(predicted)} predictions but {len(actual)} actual values")
+    low = predicted <= threshold
+    actual_low = actual <= threshold
+    return Accuracy(crossings=len(low), agree=int(np.count_nonzero(low == actual_low)),
+                    predicted_low=int(np.count_nonzero(low)),
+                    false_low=int(np.count_nonzero(low & ~actual_low)),
+                    false_high=int(np.count_nonzero(~low & actual_low)))
+
+
+class CrossingLog:
+    """Per path of a frame: the portal cell its depth-1 ray crossed and the radiance it brought.
+
+    Filled during an instrumented recording frame (every depth-1 ray traced fine), on the
+    node where the crossing ray's hit became final (:meth:`crossed`) and on the nodes where
+    its shadow rays came through unblocked (:meth:`lit`); nodes then combine their logs by
+    MAX (:attr:`REDUCE`): a path crosses at most once, so its cell comes from one node, and
+    the value is the largest over its lit shadow rays, as in the portals themselves.
+
+    Parameters
+    ----------
+    n_paths : N, the frame's paths (width x height x spp), indexed by ``pixel * spp + sample``.
+
+    Attributes
+    ----------
+    cell : (N,) int64 flat portal cell crossed, -1 where the path crossed none.
+    value : (N,) float32 radiance brought back (0 where no shadow ray of it was lit).
+    """
+
+    REDUCE = {"crossing_cell": "max", "crossing_value": "max"}
+
+    def __init__(self, n_paths: int):
+        self.cell = np.full(int(n_paths), -1, np.int64)
+        self.value = np.zeros(int(n_paths), np.float32)
+
+    def crossed(self, paths: np.ndarray, cells: np.ndarray) -> None:
+        """Paths ((m,) frame path ids) whose depth-1 ray crossed its portal in ``cells``."""
+        self.cell[np.asarray(paths, dtype=np.int64)] = cells
+
+    def lit(self, paths: np.ndarray, values: np.ndarray) -> None:
+        """Lit shadow rays of crossing rays: keep each path's largest value (NaN: +inf)."""
+        values = np.asarray(values, dtype=np.float32)
+        values = np.where(np.isnan(values), np.float32(np.inf), values)
+        np.maximum.at(self.value, np.asarray(paths, dtype=np.int64), values)
+
+    def crossings(self) -> tuple[np.ndarray, np.ndarray]:
+        """(cells (m,) int64, values (m,) float32) of the paths that crossed a portal."""
+        crossed = self.cell >= 0
+        return self.cell[crossed], self.value[crossed]
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"crossing_cell": self.cell, "crossing_value": self.value}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> CrossingLog:
+        cell = np.asarray(arrays["crossing_cell"], dtype=np.int64)
+        value = np.asarray(arrays["crossing_value"], dtype=np.float32)
+        if cell.shape != value.shape or cell.ndim != 1:
+            raise ValueError(f"crossing log arrays must be two (N,) arrays, got {cell.shape} "
+                             f"and {value.shape}")
+        out = cls(0)
+        out.cell, out.value = cell.copy(), value.copy()
         return out
 
 

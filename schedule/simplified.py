@@ -19,6 +19,11 @@ another node.
 Recording frames (every ``--portal-interval``-th) trace every depth-1 ray fine and record, in
 the cell where it crossed its portal, the direct light its hit receives divided by the ray's
 throughput (luminance; a miss or a fully shadowed hit records 0), keeping the maximum per cell.
+
+Prediction accuracy (ACC, notes S9) is measured in a separate instrumented run (the job's
+``portal_accuracy`` option): every frame is traced as a recording frame, each path's depth-1
+crossing is logged with the radiance it brought back, and the crossings are classified with
+the portals the timed run would predict that frame with (``schedule.portals``).
 """
 
 from __future__ import annotations
@@ -64,6 +69,13 @@ class SimplifiedRouting:
     portals : the recorded portals (``schedule.portals.Portals``), or None without ``portal``.
     recording : this frame records portals (every depth-1 ray fine) rather than predicts.
     threshold : predicted radiance at or below which a depth-1 ray is simplified.
+    log : an instrumented recording frame's ``schedule.portals.CrossingLog`` (which cell
+        each path's depth-1 ray crossed, and the radiance it brought back), or None (the
+        default: nothing logged, as in every timed run).
+    reference : with ``log``, the portals a timed run would predict this frame with (those
+        of the last recording frame), to classify the logged crossings with (ACC), or None.
+    keeps_portals : whether the portals recorded this frame replace the ones predicted with
+        (False on an instrumented run's frames that a timed run would not record).
     """
 
     bvh: object
@@ -74,6 +86,9 @@ class SimplifiedRouting:
     portals: object = None
     recording: bool = False
     threshold: float = 0.5
+    log: object = None
+    reference: object = None
+    keeps_portals: bool = True
     counters: dict = field(default_factory=lambda: {
         "simplified_rays": 0, "simplified_shadow_rays": 0, "portal_crossings": 0,
         "predicted_low": 0, "portal_records": 0})
