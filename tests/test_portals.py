@@ -1,12 +1,22 @@
 """Virtual portals (notes §5, acceptance A10, A11's merge): binning of exit points and
-directions, the 8 equal-solid-angle bins, record/predict, MAX merge, and the tree "max"."""
+directions, the 8 equal-solid-angle bins, record/predict, MAX merge, and the tree "max"; the
+prediction accuracy (ACC and Simple/total, notes §9) and the crossing log of instrumented
+frames."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from vastray.schedule.portals import ANGLES, FACES, Portals, luminance
+from vastray.schedule.portals import (
+    ANGLES,
+    FACES,
+    Accuracy,
+    CrossingLog,
+    Portals,
+    luminance,
+    prediction_accuracy,
+)
 from vastray.transport.tree import COMBINE
 
 from scenes import allreduce_over_sockets
@@ -226,3 +236,95 @@ def test_luminance():
     assert luminance(np.zeros((0, 3))).shape == (0,)
     with pytest.raises(ValueError):
         luminance(np.ones(3))
+
+
+# --- prediction accuracy (ACC, Simple/total) and the crossing log ------------------------------
+
+
+def test_prediction_accuracy_on_hand_numbers():
+    # tau = 0.5: predicted classes L L H H H L; actual L H L H L L (0.5 itself is low)
+    predicted = [0.1, 0.5, 0.9, np.inf, 2.0, 0.0]
+    actual = [0.2, 0.7, 0.5, 3.0, 0.0, 0.5]
+    acc = prediction_accuracy(predicted, actual, 0.5)
+    assert acc == Accuracy(crossings=6, agree=3, predicted_low=3, false_low=1, false_high=2)
+    assert acc.acc == pytest.approx(0.5) and acc.simplified_share == pytest.approx(0.5)
+    # a lower threshold: predicted L H H H H L; actual L H H H L H
+    acc = prediction_accuracy(predicted, actual, 0.25)
+    assert (acc.agree, acc.predicted_low, acc.false_low, acc.false_high) == (4, 2, 1, 1)
+    assert acc.acc == pytest.approx(4 / 6) and acc.simplified_share == pytest.approx(1 / 3)
+
+
+def test_prediction_accuracy_edges():
+    empty = prediction_accuracy([], [], 0.5)
+    assert empty.crossings == 0 and empty.acc is None and empty.simplified_share is None
+    perfect = prediction_accuracy([0.1, 7.0], [0.4, 0.6], 0.5)
+    assert perfect.acc == 1.0 and perfect.false_low == perfect.false_high == 0
+    nan = prediction_accuracy([np.nan, 0.1], [0.1, np.nan], 0.5)  # NaN is never low
+    assert (nan.false_high, nan.false_low) == (1, 1)
+    with pytest.raises(ValueError, match="2 predictions but 1"):
+        prediction_accuracy([0.1, 0.2], [0.3], 0.5)
+
+
+def test_accuracy_counters_round_trip_and_add():
+    rng = np.random.default_rng(9)
+    a = prediction_accuracy(rng.random(50), rng.random(50), 0.5)
+    b = prediction_accuracy(rng.random(30), rng.random(30), 0.5)
+    counters = a.counters("acc_")
+    assert set(counters) == {"acc_crossings", "acc_agree", "acc_predicted_low",
+                             "acc_false_low", "acc_false_high"}
+    assert all(type(v) is int for v in counters.values())  # JSON and frame sums
+    assert Accuracy.from_counters(counters, "acc_") == a
+    assert Accuracy.from_counters(counters, "replay_") is None
+    both = a + b
+    assert both.crossings == 80 and both.agree == a.agree + b.agree
+    rows = [(rng.random(50), rng.random(50)), (rng.random(30), rng.random(30))]
+    joined = prediction_accuracy(np.concatenate([p for p, _ in rows]),
+                                 np.concatenate([q for _, q in rows]), 0.5)
+    assert joined == prediction_accuracy(*rows[0], 0.5) + prediction_accuracy(*rows[1], 0.5)
+
+
+def test_a12_portal_recorded_from_the_crossings_never_predicts_them_low():
+    # The replay property on its own: whatever the crossings, a portal recorded from them
+    # predicts each at least its own value, so no threshold gives a false low.
+    rng = np.random.default_rng(10)
+    portals = Portals(len(LO), resolution=4)  # coarse: many crossings share a cell
+    dom, points, d, _ = exits(rng, 5_000)
+    cells = portals.cells(dom, points, d, LO, HI)
+    actual = (rng.exponential(0.5, len(cells)) * (rng.random(len(cells)) < 0.7)).astype(
+        np.float32)
+    portals.record(cells, actual)
+    for tau in (0.0, 0.1, 0.5, 1.0, 2.0):
+        acc = prediction_accuracy(portals.predict(cells), actual, tau)
+        assert acc.false_low == 0
+        assert acc.agree == acc.crossings - acc.false_high
+    assert prediction_accuracy(portals.predict(cells), actual, 0.5).false_high > 0
+
+
+def test_crossing_log_keeps_each_paths_cell_and_largest_value():
+    log = CrossingLog(6)
+    log.crossed([4, 1, 2], [30, 10, 20])
+    log.lit([1, 1, 4, 5], [0.25, 0.75, np.nan, 9.0])  # path 5 crossed nowhere: not listed
+    cells, values = log.crossings()
+    np.testing.assert_array_equal(cells, [10, 20, 30])
+    np.testing.assert_array_equal(values, [0.75, 0.0, np.inf])  # 2: dark; 4: NaN -> +inf
+    assert cells.dtype == np.int64 and values.dtype == np.float32
+
+
+def test_crossing_logs_of_nodes_combine_by_the_tree_combiners():
+    # A crossing is logged on the node where its hit became final; its light on the nodes
+    # where its shadow rays came through: the MAX of the logs is one process's log.
+    whole, parts = CrossingLog(5), [CrossingLog(5), CrossingLog(5)]
+    for log, paths, cells in ((whole, [0, 3], [7, 8]), (parts[0], [0], [7]),
+                              (parts[1], [3], [8])):
+        log.crossed(paths, cells)
+    for log, paths, values in ((whole, [0, 3, 0], [0.2, 0.6, 0.4]), (parts[1], [0], [0.2]),
+                               (parts[0], [3, 0], [0.6, 0.4])):
+        log.lit(paths, values)
+    a, b = (p.to_arrays() for p in parts)
+    combined = {k: COMBINE[op](a[k], b[k]) for k, op in CrossingLog.REDUCE.items()}
+    merged = CrossingLog.from_arrays(combined)
+    for got, want in zip(merged.crossings(), whole.crossings(), strict=True):
+        np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError):
+        CrossingLog.from_arrays({"crossing_cell": np.zeros(3, np.int64),
+                                 "crossing_value": np.zeros(2, np.float32)})
