@@ -143,6 +143,90 @@ def test_portal_policy_records_then_predicts(scene, tmp_path):
 
 
 
+@pytest.fixture(scope="module")
+def simple_store(tmp_path_factory):
+    store = write_store(tmp_path_factory.mktemp("simple") / "grid", bumpy_scene(),
+                        grid=(3, 2, 3))
+    build_simplified(store, 0.2, min_faces=50)
+    return Store(store.path)
+
+
+def portal_frames(store, nodes: int, scheduler: str = "temporal", cache: int | None = None,
+                  **options) -> dict:
+    """Frames 0 (recording the portals) and 1 (predicting with them; the camera has moved)
+    of an orbit under the portal policy: {frame: result}."""
+    from vastray.render.scene_config import parse_scene_config
+
+    delivered = {}
+    render_distributed(store.path, None, settings(width=32, height=24, spp=2), nodes,
+                       scheduler=scheduler, cache_capacity=cache, max_samples_in_flight=400,
+                       timeout=60, config=parse_scene_config(ORBIT_TOML, "orbit.toml"),
+                       frames=[0, 1], on_frame=lambda f, r: delivered.setdefault(f, r),
+                       options={"simplified": "portal", **options})
+    return delivered
+
+
+def summed(result, key: str) -> int:
+    """A counter summed over a frame's nodes."""
+    return sum(n["counters"].get(key, 0) for n in result.counters["per_node"])
+
+
+@pytest.fixture(scope="module")
+def portal_reference(simple_store):
+    return portal_frames(simple_store, 2, cache=2, priority="cost-benefit")
+
+
+@pytest.mark.parametrize("scheduler,nodes,cache,priority", [("temporal", 1, None, "queue"),
+                                                            ("temporal", 3, 1, "spray"),
+                                                            ("async", 2, 2, None)])
+def test_a14_simplified_frames_do_not_depend_on_nodes_cache_or_priority(
+        simple_store, portal_reference, scheduler, nodes, cache, priority):
+    # The choice of model is a function of the portals and the ray only, and the portals
+    # merge by MAX: every ray makes the same choice on any P, C and priority.
+    got = portal_frames(simple_store, nodes, scheduler, cache,
+                        **({} if priority is None else {"priority": priority}))
+    assert summed(portal_reference[1], "predicted_low") > 0  # frame 1 predicts with frame 0's
+    assert portal_reference[0].counters["simplified_share"] == 0.0  # a recording frame
+    assert 0 < portal_reference[1].counters["simplified_share"] < 1
+    for frame in (0, 1):
+        want = portal_reference[frame]
+        np.testing.assert_allclose(got[frame].film.image(), want.film.image(), rtol=1e-6,
+                                   atol=1e-6, err_msg=f"frame {frame}")
+        np.testing.assert_array_equal(got[frame].film.count, want.film.count)
+        for key in ("portal_crossings", "predicted_low", "simplified_rays",
+                    "simplified_shadow_rays"):
+            assert summed(got[frame], key) == summed(want, key), (frame, key)
+        assert got[frame].counters["simplified_share"] == want.counters["simplified_share"]
+
+
+def test_acc_is_measured_in_an_instrumented_run(simple_store, portal_reference):
+    # Notes §9 "ACC (reading)": the instrumented run traces every frame as a recording frame
+    # (every depth-1 ray fine, so each crossing's radiance is known) and classifies its
+    # crossings with the portals the timed run predicts the frame with (frame 0's here).
+    timed = portal_reference
+    measured = portal_frames(simple_store, 3, cache=2, portal_accuracy=True)
+    assert "acc" not in measured[0].counters  # frame 0 has nothing to predict with
+    counters = measured[1].counters
+    crossings = summed(timed[1], "portal_crossings")
+    assert summed(measured[1], "acc_crossings") == crossings > 0  # the same crossings
+    assert summed(measured[1], "acc_predicted_low") == summed(timed[1], "predicted_low")
+    assert counters["acc_simplified_share"] == timed[1].counters["simplified_share"]
+    agree = summed(measured[1], "acc_agree")
+    assert 0 <= counters["acc"] == agree / crossings <= 1
+    assert (summed(measured[1], "acc_false_low") + summed(measured[1], "acc_false_high")
+            == crossings - agree)
+    for frame in (0, 1):  # traced as recording frames; their own portals never predict low
+        assert summed(measured[frame], "predicted_low") == 0
+        assert measured[frame].counters["simplified_share"] == 0.0
+        assert measured[frame].counters["replay_false_low"] == 0
+        assert (summed(measured[frame], "replay_crossings")
+                == summed(measured[frame], "portal_crossings") > 0)
+    # only frame 0 records as the timed run does, and its image is the timed run's
+    assert [summed(measured[f], "portal_recording") for f in (0, 1)] == [3, 0]
+    np.testing.assert_allclose(measured[0].film.image(), timed[0].film.image(), rtol=1e-6,
+                               atol=1e-6)
+
+
 @pytest.mark.parametrize("scheduler,nodes,cache", [("temporal", 2, 1), ("temporal", 3, 2),
                                                    ("temporal", 4, None), ("async", 2, 2)])
 def test_animation_frames_equal_the_single_process_frames(scene, tmp_path, scheduler, nodes,
