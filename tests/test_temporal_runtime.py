@@ -308,3 +308,10 @@ def test_cli_temporal_simplified_animation_without_quiet(tmp_path, capsys):
     frame1 = json.loads((tmp_path / "t_0001.json").read_text())
     per_node = frame1["counters"]["per_node"]
     assert sum(n["counters"]["simplified_rays"] for n in per_node) > 0
+    # Simple/total in every frame's report: 0 while recording, then the crossings predicted low
+    frame0 = json.loads((tmp_path / "t_0000.json").read_text())
+    assert frame0["counters"]["simplified_share"] == 0.0
+    crossings = sum(n["counters"]["portal_crossings"] for n in per_node)
+    low = sum(n["counters"]["predicted_low"] for n in per_node)
+    assert frame1["counters"]["simplified_share"] == pytest.approx(low / crossings)
+    assert low > 0
