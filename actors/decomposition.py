@@ -140,9 +140,9 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
 
     An instrumented frame (``routing.log``) merges its crossing log in the same all-reduce,
     and node 0 reports, for every node (the counts are global), the crossings classified
-    with the portals a timed run would predict the frame with (``acc_*``, from the second
-    frame on) and with the portals recorded in this very frame (``replay_*``: no false
-    lows, since cells keep maxima)."""
+    with the portals a timed run would predict the frame with (``acc_*``, on the frames a
+    timed run predicts, not on its recording frames) and with the portals recorded in this
+    very frame (``replay_*``: no false lows, since cells keep maxima)."""
     if routing is None:
         return
     stats.update(routing.counters)
@@ -162,7 +162,7 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
             cells, actual = CrossingLog.from_arrays(merged).crossings()
             stats.update(prediction_accuracy(recorded.predict(cells), actual,
                                              routing.threshold).counters("replay_"))
-            if routing.reference is not None:
+            if routing.reference is not None and not routing.keeps_portals:
                 stats.update(prediction_accuracy(routing.reference.predict(cells), actual,
                                                  routing.threshold).counters("acc_"))
 

@@ -26,7 +26,12 @@ Printed: mean time per frame over frames 1.. (frame 0 bootstraps the statistics)
 MB loaded, rays sent between nodes, MSE and relative MSE against the lossless frames,
 ``temporal_speedup=`` (baseline / temporal) and ``simplified_speedup=`` (baseline / temporal
 --simplified) with ``simplified_rel_mse=``. The paper: +26 % average for temporal scheduling
-alone, +56 % average (81 % max) with both. ``--full`` adds Table 2 (assignment x priority)
+alone, +56 % average (81 % max) with both. Then ``acc=`` and ``simplified_share=`` of temporal
+--simplified (the paper's ACC and Simple/total, Tables 4-5): Simple/total from the timed run,
+ACC from a separate instrumented run of the same frames (notes S9: every depth-1 ray traced
+fine, each portal crossing classified with the portals the timed run predicts that frame
+with), which also counts the crossings predicted low (``acc_run_simplified_share=``, equal to
+the timed run's by construction). ``--full`` adds Table 2 (assignment x priority)
 and Table 3 (simplification policies).
 
     python bench/temporal.py --quick      # N = 4, 8 frames, a few minutes
@@ -95,7 +100,17 @@ def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], c
 
     busy = sum(c.get("trace_s", 0) + c.get("wait_s", 0) + c.get("send_s", 0)
                for frame in counters[1:] for c in frame)
+    # Simple/total over the frames that predict (recording frames predict nothing)
+    predicting = [frame for frame in counters[1:]
+                  if not any(c.get("portal_recording") for c in frame)]
+    crossings = total("portal_crossings", predicting)
+    acc_crossings = total("acc_crossings")
     return {"images": images, "seconds": seconds, "wall": wall,
+            "simplified_share": (total("predicted_low", predicting) / crossings if crossings
+                                 else None),
+            "acc": total("acc_agree") / acc_crossings if acc_crossings else None,
+            "acc_simplified_share": (total("acc_predicted_low") / acc_crossings
+                                     if acc_crossings else None),
             "mean_s": float(np.mean([seconds[f] for f in later])),
             "loads": total("loads") / len(later), "mb": total("bytes_loaded") / 1e6 / len(later),
             "rays_sent": total("rays_sent") / len(later),
@@ -117,6 +132,10 @@ def row(name: str, r: dict, lossless: dict | None, base_s: float) -> str:
     return (f"| {name} | {r['mean_s']:.2f} | {base_s / r['mean_s']:.2f} | {r['loads']:.0f} | "
             f"{r['preloads']:.0f} | {r['mb']:.1f} | {r['rays_sent']:,.0f} | "
             f"{r['simplified']:,.0f} | {mse:.3g} | {rel:.3g} |")
+
+
+def share(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
 
 
 HEADER = ("| run | s per frame | speedup vs baseline | loads per frame | of them preloads "
@@ -180,6 +199,11 @@ def main() -> None:
     print(f"temporal_speedup={base_s / temporal['mean_s']:.3f} (floor 1.15; paper +26 %)")
     print(f"simplified_speedup={base_s / both['mean_s']:.3f} (floor 1.4; paper +56 %) "
           f"simplified_rel_mse={rel:.3g} (bound 1e-3)", flush=True)
+    measured = run(scheduler="temporal", simplified="portal", portal_accuracy=True, **common)
+    print(f"acc={share(measured['acc'])} simplified_share={share(both['simplified_share'])} "
+          f"acc_run_simplified_share={share(measured['acc_simplified_share'])} (temporal "
+          "--simplified, predicting frames: ACC from an instrumented run; paper T4/T5 at 32x32: "
+          "Courtyard 84.3 %/85.7 %, Agent327 98.3 %/16.5 %)", flush=True)
     if not args.full:
         return
     print("\nTable 2: assignment (no preloading, queue priority), then priority (temporal "
