@@ -219,8 +219,9 @@ def portal_shares(per_node: list[dict]) -> dict:
     * ``acc`` and ``acc_simplified_share`` (instrumented ``portal_accuracy`` runs only): the
       share of crossings whose predicted class matches the actual one, and the share
       predicted low, classified with the portals a timed run predicts the frame with
-      (``schedule.portals.prediction_accuracy``); ``replay_acc`` and ``replay_false_low``
-      classify with the frame's own recorded portals.
+      (``schedule.portals.prediction_accuracy``), and ``acc_unrecorded_share`` the share
+      whose cell those portals never recorded (predicted high); ``replay_acc`` and
+      ``replay_false_low`` classify with the frame's own recorded portals.
     """
     out = {}
     if any("portal_crossings" in c for c in per_node):
@@ -234,7 +235,9 @@ def portal_shares(per_node: list[dict]) -> dict:
             continue
         total = sum(parts[1:], parts[0])
         if prefix == "acc_":
-            out.update(acc=total.acc, acc_simplified_share=total.simplified_share)
+            out.update(acc=total.acc, acc_simplified_share=total.simplified_share,
+                       acc_unrecorded_share=(total.unrecorded / total.crossings
+                                             if total.crossings else None))
         else:
             out.update(replay_acc=total.acc, replay_false_low=total.false_low)
     return out

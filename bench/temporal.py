@@ -31,8 +31,9 @@ alone, +56 % average (81 % max) with both. Then ``acc=`` and ``simplified_share=
 ACC from a separate instrumented run of the same frames (notes S9: every depth-1 ray traced
 fine, each portal crossing classified with the portals the timed run predicts that frame
 with), which also counts the crossings predicted low (``acc_run_simplified_share=``, equal to
-the timed run's by construction). ``--full`` adds Table 2 (assignment x priority)
-and Table 3 (simplification policies).
+the timed run's by construction) and those whose cell frame 0 never recorded
+(``unrecorded_share=``: predicted high, so traced fine; a sparse portal mispredicts).
+``--full`` adds Table 2 (assignment x priority) and Table 3 (simplification policies).
 
     python bench/temporal.py --quick      # N = 4, 8 frames, a few minutes
     python bench/temporal.py              # N = 4, 12 frames
@@ -110,6 +111,8 @@ def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], c
                                  else None),
             "acc": total("acc_agree") / acc_crossings if acc_crossings else None,
             "acc_simplified_share": (total("acc_predicted_low") / acc_crossings
+                                     if acc_crossings else None),
+            "acc_unrecorded_share": (total("acc_unrecorded") / acc_crossings
                                      if acc_crossings else None),
             "mean_s": float(np.mean([seconds[f] for f in later])),
             "loads": total("loads") / len(later), "mb": total("bytes_loaded") / 1e6 / len(later),
@@ -201,7 +204,8 @@ def main() -> None:
           f"simplified_rel_mse={rel:.3g} (bound 1e-3)", flush=True)
     measured = run(scheduler="temporal", simplified="portal", portal_accuracy=True, **common)
     print(f"acc={share(measured['acc'])} simplified_share={share(both['simplified_share'])} "
-          f"acc_run_simplified_share={share(measured['acc_simplified_share'])} (temporal "
+          f"acc_run_simplified_share={share(measured['acc_simplified_share'])} "
+          f"unrecorded_share={share(measured['acc_unrecorded_share'])} (temporal "
           "--simplified, predicting frames: ACC from an instrumented run; paper T4/T5 at 32x32: "
           "Courtyard 84.3 %/85.7 %, Agent327 98.3 %/16.5 %)", flush=True)
     if not args.full:

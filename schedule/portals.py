@@ -271,6 +271,7 @@ class Accuracy:
     predicted_low : those predicted low (they would go to the simplified model).
     false_low : predicted low, actually high (light the simplified model may lose).
     false_high : predicted high, actually low (a ray traced fine that need not be).
+    unrecorded : predicted +inf: their cell was never recorded (so predicted high).
     """
 
     crossings: int
@@ -278,6 +279,7 @@ class Accuracy:
     predicted_low: int
     false_low: int
     false_high: int
+    unrecorded: int = 0
 
     @property
     def acc(self) -> float | None:
@@ -305,7 +307,8 @@ class Accuracy:
         return Accuracy(*(getattr(self, k) + getattr(other, k) for k in _ACCURACY_COUNTS))
 
 
-_ACCURACY_COUNTS = ("crossings", "agree", "predicted_low", "false_low", "false_high")
+_ACCURACY_COUNTS = ("crossings", "agree", "predicted_low", "false_low", "false_high",
+                    "unrecorded")
 
 
 def prediction_accuracy(predicted: np.ndarray, actual: np.ndarray, threshold: float = 0.5
@@ -335,7 +338,8 @@ def prediction_accuracy(predicted: np.ndarray, actual: np.ndarray, threshold: fl
     return Accuracy(crossings=len(low), agree=int(np.count_nonzero(low == actual_low)),
                     predicted_low=int(np.count_nonzero(low)),
                     false_low=int(np.count_nonzero(low & ~actual_low)),
-                    false_high=int(np.count_nonzero(~low & actual_low)))
+                    false_high=int(np.count_nonzero(~low & actual_low)),
+                    unrecorded=int(np.count_nonzero(np.isposinf(predicted))))
 
 
 class CrossingLog:

@@ -246,7 +246,8 @@ def test_prediction_accuracy_on_hand_numbers():
     predicted = [0.1, 0.5, 0.9, np.inf, 2.0, 0.0]
     actual = [0.2, 0.7, 0.5, 3.0, 0.0, 0.5]
     acc = prediction_accuracy(predicted, actual, 0.5)
-    assert acc == Accuracy(crossings=6, agree=3, predicted_low=3, false_low=1, false_high=2)
+    assert acc == Accuracy(crossings=6, agree=3, predicted_low=3, false_low=1, false_high=2,
+                           unrecorded=1)
     assert acc.acc == pytest.approx(0.5) and acc.simplified_share == pytest.approx(0.5)
     # a lower threshold: predicted L H H H H L; actual L H H H L H
     acc = prediction_accuracy(predicted, actual, 0.25)
@@ -260,7 +261,9 @@ def test_prediction_accuracy_edges():
     perfect = prediction_accuracy([0.1, 7.0], [0.4, 0.6], 0.5)
     assert perfect.acc == 1.0 and perfect.false_low == perfect.false_high == 0
     nan = prediction_accuracy([np.nan, 0.1], [0.1, np.nan], 0.5)  # NaN is never low
-    assert (nan.false_high, nan.false_low) == (1, 1)
+    assert (nan.false_high, nan.false_low, nan.unrecorded) == (1, 1, 0)
+    unseen = prediction_accuracy([np.inf, np.inf, 3.0], [0.0, 9.0, 0.0], 0.5)
+    assert (unseen.unrecorded, unseen.false_high, unseen.agree) == (2, 2, 1)
     with pytest.raises(ValueError, match="2 predictions but 1"):
         prediction_accuracy([0.1, 0.2], [0.3], 0.5)
 
@@ -271,7 +274,7 @@ def test_accuracy_counters_round_trip_and_add():
     b = prediction_accuracy(rng.random(30), rng.random(30), 0.5)
     counters = a.counters("acc_")
     assert set(counters) == {"acc_crossings", "acc_agree", "acc_predicted_low",
-                             "acc_false_low", "acc_false_high"}
+                             "acc_false_low", "acc_false_high", "acc_unrecorded"}
     assert all(type(v) is int for v in counters.values())  # JSON and frame sums
     assert Accuracy.from_counters(counters, "acc_") == a
     assert Accuracy.from_counters(counters, "replay_") is None
