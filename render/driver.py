@@ -86,7 +86,7 @@ def _bounded_map(fn, items, workers: int):
 def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
            progress: bool = True, drop_page_cache: bool = False,
-           record_rays: list | None = None) -> RenderResult:
+           record_rays: list | None = None, two_level: bool = True) -> RenderResult:
     """Render a store with one process and an LRU domain cache.
 
     Parameters
@@ -101,6 +101,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     record_rays : if a list, every query batch is appended to it as (kind, origins,
         directions, t_max): ``"closest"`` queries (t_max None: unbounded) and ``"occluded"``
         queries bounded by t_max, exactly what was asked of the domains.
+    two_level : with every domain resident, trace through one top-level Embree scene of
+        instances (``DomainTracer``); False: domain by domain (the same image, bit for bit).
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")
@@ -116,7 +118,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     # splits its Embree queries over the threads instead.
     all_fit = capacity >= len(store.domains)
     workers = threads + 1 if all_fit and threads > 1 else 1
-    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads)
+    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
+                          two_level=two_level)
     tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
