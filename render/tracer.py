@@ -266,8 +266,9 @@ class DomainTracer:
         threads = threads or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
         self.two_level = two_level
-        #: (resident domain ids, their TopScene or None, the non-empty domains not resident)
-        self._top: tuple[frozenset, embree.TopScene | None, np.ndarray] | None = None
+        #: (resident domain ids, their TopScene or None, the boxes of the non-empty domains
+        #: not resident, in a BoxTree)
+        self._top: tuple[frozenset, embree.TopScene | None, BoxTree] | None = None
         self._top_lock = threading.Lock()
 
     def close(self) -> None:
@@ -278,9 +279,10 @@ class DomainTracer:
         if top is not None and top[1] is not None:
             top[1].close()
 
-    def _top_level(self) -> tuple[embree.TopScene | None, np.ndarray, dict] | None:
-        """The top-level scene of the resident domains, the non-empty domains not resident
-        and the resident ``DomainBVH`` by id; None where queries go domain by domain (the
+    def _top_level(self) -> tuple[embree.TopScene | None, BoxTree, dict] | None:
+        """The top-level scene of the resident domains, a ``BoxTree`` of the non-empty
+        domains not resident (the only ones still visited one by one: rays test their boxes
+        only) and the resident ``DomainBVH`` by id; None where queries go domain by domain (the
         cache cannot hold every domain, ``two_level`` is off, or the compiled binding is not
         in use).
 
@@ -301,7 +303,7 @@ class DomainTracer:
                 top = (embree.TopScene([resident[d]._scene for d in ids], ids) if ids
                        else None)
                 missing = np.setdiff1d(self.tree_ids, np.asarray(ids, np.int64))
-                self._top = (key, top, missing)
+                self._top = (key, top, BoxTree(self.lo, self.hi, missing))
             _, top, missing = self._top
         return top, missing, resident
 
@@ -315,7 +317,7 @@ class DomainTracer:
             self.stats.ray_domain_tests += n_rays
 
     def _visits(self, slabs: RaySlabs, limit: np.ndarray, live: np.ndarray | None = None,
-                only: np.ndarray | None = None):
+                tree: BoxTree | None = None):
         """Yield ``(domain, rows)``: the rays to test against each domain, in visiting order.
 
         ``limit`` (the closest hit so far, or a shadow ray's length) and ``live`` may change
@@ -333,13 +335,14 @@ class DomainTracer:
         visited once, resident ones first, then by waiting rays (LoadAnyOnce), so a bounded
         cache reloads as little as possible.
 
-        ``only`` : (k,) domain ids; when given, other domains are not visited.
+        ``tree`` : the boxes of the domains to visit (default: every non-empty domain's).
         """
         all_fit = self.cache.capacity >= len(self.tree_ids)
-        if self.tree.flat:  # few domains: every ray against every box, (m, n) at once
-            t0, t1 = self.tree.flat_intervals(slabs)
+        tree = self.tree if tree is None else tree
+        if tree.flat:  # few domains: every ray against every box, (m, n) at once
+            t0, t1 = tree.flat_intervals(slabs)
             ahead = (t0 <= t1) & (t1 >= 0)
-            domains = self.tree.flat_ids
+            domains = tree.flat_ids
             waiting = (np.ones(len(domains), np.int64) if all_fit  # (empty visits yield nothing)
                        else np.count_nonzero(ahead & (t0 < limit), axis=1))
 
@@ -349,7 +352,7 @@ class DomainTracer:
                     rows &= live
                 return np.nonzero(rows)[0]
         else:
-            ray, dom, t0, t1 = self.tree.pairs(slabs, limit)
+            ray, dom, t0, t1 = tree.pairs(slabs, limit)
             enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
             ray, dom, t0 = ray[enter], dom[enter], t0[enter]
             # Group by domain; rays ascend within a domain in ``pairs`` and a stable sort
@@ -376,10 +379,7 @@ class DomainTracer:
         else:
             resident = np.isin(domains, np.asarray(self.cache.resident(), np.int64))
             order = np.lexsort((domains, -waiting, ~resident))
-        order = order[waiting[order] > 0]
-        if only is not None:
-            order = order[np.isin(domains[order], only)]
-        for i in order:
+        for i in order[waiting[order] > 0]:
             rows = rows_of(i)
             if len(rows):
                 yield int(domains[i]), rows
@@ -435,17 +435,17 @@ class DomainTracer:
             self.record.append(("closest", origins, directions, None))
         best = ClosestHits.empty(n, self.color_source is not None)
         top = self._top_level()
-        only = None
+        tree = None
         if top is not None:
-            scene, only, resident = top
+            scene, tree, resident = top
             if scene is not None:
                 self._take_top_hits(best, scene.intersect(origins, directions,
                                                           np.full(n, np.inf, np.float32),
                                                           self._threads()), resident)
-            if len(only) == 0:
+            if tree.size == 0:
                 return best.hits()
         slabs = self.slabs(origins, directions)
-        for d, idx in self._visits(slabs, best.t, only=only):
+        for d, idx in self._visits(slabs, best.t, tree=tree):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             r = bvh.intersect(origins[idx], directions[idx], best.t[idx], self.pool)
@@ -472,17 +472,17 @@ class DomainTracer:
             self.record.append(("occluded", origins, directions, t_max))
         blocked = np.zeros(n, dtype=bool)
         top = self._top_level()
-        only = None
+        tree = None
         if top is not None:
-            scene, only, _ = top
+            scene, tree, _ = top
             if scene is not None:
                 blocked = scene.occluded(origins, directions, t_max, self._threads())
                 with self._stats_lock:
                     self.stats.ray_domain_tests += n
-            if len(only) == 0:
+            if tree.size == 0:
                 return blocked
         live = ~blocked
-        for d, idx in self._visits(self.slabs(origins, directions), t_max, live, only=only):
+        for d, idx in self._visits(self.slabs(origins, directions), t_max, live, tree=tree):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             blocked[idx] = bvh.occluded(origins[idx], directions[idx], t_max[idx], self.pool)
