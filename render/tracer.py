@@ -290,7 +290,8 @@ class DomainTracer:
         changed since the last query, which happens only while domains are first loaded: with
         every domain fitting, nothing is evicted. A query in flight keeps the scene it got.
         """
-        if not self.two_level or self.cache.capacity < len(self.tree_ids):
+        if (not self.two_level or self.cache.capacity < len(self.tree_ids)
+                or len(self.tree_ids) < 2):  # one domain: its own scene is the one query
             return None
         resident = self.cache.resident_domains()
         key = frozenset(resident)
