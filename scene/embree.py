@@ -45,6 +45,14 @@ incoherent: 1.70 vs 1.71 Mrays/s closest hit, 1.76 vs 1.80 occlusion; coherent: 
 3.70 vs 3.54), both equal embreex's results bit for bit, and a ray's result does not depend on
 the other rays of its packet (tested on rays through edges and vertices, where ties happen).
 
+Two levels
+----------
+``TopScene`` holds one instance (identity transform: the instanced triangles are met exactly
+as by a query of their own scene) of each of several scenes: the in-core tracer queries every
+resident domain at once through it. Closest hits use 1-ray queries with an argument filter
+(``_tie_filter``, a numba ``cfunc``) that gives ties between instances to the lower instance
+id, i.e. the lower domain id, as per-domain queries do; occlusion uses the packet kernel.
+
 Fallback
 --------
 When the library cannot be found or loaded, or its major version is not 4 (the layouts and
@@ -737,6 +745,9 @@ class TopScene:
             raise RuntimeError("the compiled Embree binding is unavailable")
         self._api = api
         self.scenes = list(scenes)
+        # Embree keeps each instanced scene alive (reference counted), but not the arrays it
+        # reads in place: hold them even if a scene is closed meanwhile.
+        self._buffers = [(scene.vertices, scene.indices) for scene in self.scenes]
         self.ids = np.asarray(ids, np.int64)
         if len(self.ids) != len(self.scenes):
             raise ValueError("one id per scene")
@@ -775,6 +786,7 @@ class TopScene:
             with _live_lock:
                 _live_scenes -= 1
         self.scenes = []
+        self._buffers = []
 
     def __del__(self):
         self.close()
