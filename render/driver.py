@@ -86,7 +86,8 @@ def _bounded_map(fn, items, workers: int):
 def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
            progress: bool = True, drop_page_cache: bool = False,
-           record_rays: list | None = None) -> RenderResult:
+           record_rays: list | None = None, two_level: bool = True,
+           cache: DomainCache | None = None) -> RenderResult:
     """Render a store with one process and an LRU domain cache.
 
     Parameters
@@ -101,13 +102,20 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     record_rays : if a list, every query batch is appended to it as (kind, origins,
         directions, t_max): ``"closest"`` queries (t_max None: unbounded) and ``"occluded"``
         queries bounded by t_max, exactly what was asked of the domains.
+    two_level : with every domain resident, trace through one top-level Embree scene of
+        instances (``DomainTracer``); False: domain by domain (the same image, bit for bit).
+    cache : a domain cache of ``store`` to use (e.g. with every domain already loaded, so
+        benchmarks time no loads); its capacity replaces ``cache_capacity``, and the
+        ``load`` seconds and cache counters reported are its totals so far.
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")
     start = time.perf_counter()
     shading, keep, color_source = shading_inputs(store, config, settings.integrator)
-    capacity = cache_capacity or max(len(store.domains), 1)
-    cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
+    if cache is None:
+        capacity = cache_capacity or max(len(store.domains), 1)
+        cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
+    capacity = cache.capacity
     threads = threads or os.cpu_count() or 1
     # With every domain resident, whole batches run on parallel workers (numpy and Embree both
     # release the GIL); one worker more than threads lets one worker's Python shading overlap
@@ -116,7 +124,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     # splits its Embree queries over the threads instead.
     all_fit = capacity >= len(store.domains)
     workers = threads + 1 if all_fit and threads > 1 else 1
-    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads)
+    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
+                          two_level=two_level)
     tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)

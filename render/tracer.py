@@ -6,6 +6,13 @@ current closest hit, once: nearest first when all domains are resident, else res
 first and then those with the most waiting rays (the image-plane schedule, Navrátil's
 LoadAnyOnce). The result does not depend on that order: the minimum over domains is the same
 whichever domain comes first.
+
+Two levels: when every domain fits in the cache, a query first goes, one Embree query per ray,
+through a top-level scene holding an instance of every resident domain (``embree.TopScene``);
+only domains not resident yet are then visited one by one (which loads them), and once all the
+domains rays enter are resident no ray-box work is left at all. Ties between domains still go
+to the lower domain id, so the hits, and the image, are the same bit for bit. A bounded cache
+(out of core) keeps the per-domain queries.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import numpy as np
 
 from vastray.render.boxtree import BoxTree
 from vastray.render.materials import colormap
+from vastray.scene import embree
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 
@@ -232,10 +240,13 @@ class DomainTracer:
     cache : the domain cache (its capacity bounds memory).
     color_source : ``"colors"``, ``"scalars"`` or None: the per-vertex data shading uses.
     threads : Embree query threads (Embree releases the GIL).
+    two_level : when the cache holds every domain and the compiled Embree binding is in use,
+        query resident domains through one top-level scene of instances (the default); False:
+        domain by domain always (the same hits; for comparisons).
     """
 
     def __init__(self, store: Store, cache: DomainCache, color_source: str | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, two_level: bool = True):
         self.store = store
         self.cache = cache
         self.color_source = color_source
@@ -254,10 +265,48 @@ class DomainTracer:
         self.tree = BoxTree(self.lo, self.hi, self.tree_ids)
         threads = threads or os.cpu_count() or 1
         self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
+        self.two_level = two_level
+        #: (resident domain ids, their TopScene or None, the boxes of the non-empty domains
+        #: not resident, in a BoxTree)
+        self._top: tuple[frozenset, embree.TopScene | None, BoxTree] | None = None
+        self._top_lock = threading.Lock()
 
     def close(self) -> None:
         if self.pool is not None:
             self.pool.shutdown()
+        with self._top_lock:
+            top, self._top = self._top, None
+        if top is not None and top[1] is not None:
+            top[1].close()
+
+    def _top_level(self) -> tuple[embree.TopScene | None, BoxTree, dict] | None:
+        """The top-level scene of the resident domains, a ``BoxTree`` of the non-empty
+        domains not resident (the only ones still visited one by one: rays test their boxes
+        only) and the resident ``DomainBVH`` by id; None where queries go domain by domain (the
+        cache cannot hold every domain, ``two_level`` is off, or the compiled binding is not
+        in use).
+
+        The scene is rebuilt (a BVH over the instances' boxes only) when the resident set has
+        changed since the last query, which happens only while domains are first loaded: with
+        every domain fitting, nothing is evicted. A query in flight keeps the scene it got.
+        """
+        if (not self.two_level or self.cache.capacity < len(self.tree_ids)
+                or len(self.tree_ids) < 2):  # one domain: its own scene is the one query
+            return None
+        resident = self.cache.resident_domains()
+        key = frozenset(resident)
+        with self._top_lock:
+            if self._top is None or self._top[0] != key:
+                ids = sorted(d for d in key if self.nonempty[d])
+                if any(not resident[d].compiled for d in ids):
+                    return None
+                # instances in ascending domain id: the filter's ties go to the lower id
+                top = (embree.TopScene([resident[d]._scene for d in ids], ids) if ids
+                       else None)
+                missing = np.setdiff1d(self.tree_ids, np.asarray(ids, np.int64))
+                self._top = (key, top, BoxTree(self.lo, self.hi, missing))
+            _, top, missing = self._top
+        return top, missing, resident
 
     def slabs(self, origins: np.ndarray, directions: np.ndarray) -> RaySlabs:
         return RaySlabs(origins, directions,
@@ -268,7 +317,8 @@ class DomainTracer:
             self.stats.domains_entered.add(domain)
             self.stats.ray_domain_tests += n_rays
 
-    def _visits(self, slabs: RaySlabs, limit: np.ndarray, live: np.ndarray | None = None):
+    def _visits(self, slabs: RaySlabs, limit: np.ndarray, live: np.ndarray | None = None,
+                tree: BoxTree | None = None):
         """Yield ``(domain, rows)``: the rays to test against each domain, in visiting order.
 
         ``limit`` (the closest hit so far, or a shadow ray's length) and ``live`` may change
@@ -285,12 +335,15 @@ class DomainTracer:
         whose bookkeeping costs more than the Embree work it saves). Otherwise each domain is
         visited once, resident ones first, then by waiting rays (LoadAnyOnce), so a bounded
         cache reloads as little as possible.
+
+        ``tree`` : the boxes of the domains to visit (default: every non-empty domain's).
         """
         all_fit = self.cache.capacity >= len(self.tree_ids)
-        if self.tree.flat:  # few domains: every ray against every box, (m, n) at once
-            t0, t1 = self.tree.flat_intervals(slabs)
+        tree = self.tree if tree is None else tree
+        if tree.flat:  # few domains: every ray against every box, (m, n) at once
+            t0, t1 = tree.flat_intervals(slabs)
             ahead = (t0 <= t1) & (t1 >= 0)
-            domains = self.tree.flat_ids
+            domains = tree.flat_ids
             waiting = (np.ones(len(domains), np.int64) if all_fit  # (empty visits yield nothing)
                        else np.count_nonzero(ahead & (t0 < limit), axis=1))
 
@@ -300,7 +353,7 @@ class DomainTracer:
                     rows &= live
                 return np.nonzero(rows)[0]
         else:
-            ray, dom, t0, t1 = self.tree.pairs(slabs, limit)
+            ray, dom, t0, t1 = tree.pairs(slabs, limit)
             enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
             ray, dom, t0 = ray[enter], dom[enter], t0[enter]
             # Group by domain; rays ascend within a domain in ``pairs`` and a stable sort
@@ -332,6 +385,41 @@ class DomainTracer:
             if len(rows):
                 yield int(domains[i]), rows
 
+    def _threads(self) -> int:
+        return self.pool._max_workers if self.pool is not None else 1
+
+    def _take_top_hits(self, best: ClosestHits, r: dict, resident: dict) -> None:
+        """Fill ``best`` (empty so far) from a top-level query's output ``r``.
+
+        Counted as one ray-domain test per ray, and the domains hit as entered (a domain a ray
+        crossed without hitting it goes uncounted here).
+        """
+        rows = np.nonzero(r["primID"] >= 0)[0]
+        with self._stats_lock:
+            self.stats.ray_domain_tests += len(r["primID"])
+        if len(rows) == 0:
+            return
+        domain = r["id"][rows]
+        best.t[rows] = r["tfar"][rows]
+        best.domain[rows] = domain
+        best.ng[rows] = r["Ng"][rows]
+        needs_bvh = self.color_source is not None or any(
+            resident[d].objects is not None for d in np.unique(domain))
+        hit_domains = np.unique(domain)
+        with self._stats_lock:
+            self.stats.domains_entered.update(int(d) for d in hit_domains)
+        if not needs_bvh:
+            return
+        for d in hit_domains:
+            sub = domain == d
+            won, prim = rows[sub], r["primID"][rows[sub]]
+            bvh = resident[int(d)]
+            if bvh.objects is not None:
+                best.material[won] = bvh.objects[prim]
+            if best.color is not None:
+                best.color[won] = vertex_color(bvh, prim, r["u"][won], r["v"][won],
+                                               self.color_source, self.scalar_range)
+
     def intersect(self, origins: np.ndarray, directions: np.ndarray, kind: str = "bounce"
                   ) -> Hits:
         """Closest hit of each ray among all domains.
@@ -347,8 +435,18 @@ class DomainTracer:
         if self.record is not None:
             self.record.append(("closest", origins, directions, None))
         best = ClosestHits.empty(n, self.color_source is not None)
+        top = self._top_level()
+        tree = None
+        if top is not None:
+            scene, tree, resident = top
+            if scene is not None:
+                self._take_top_hits(best, scene.intersect(origins, directions,
+                                                          np.full(n, np.inf, np.float32),
+                                                          self._threads()), resident)
+            if tree.size == 0:
+                return best.hits()
         slabs = self.slabs(origins, directions)
-        for d, idx in self._visits(slabs, best.t):
+        for d, idx in self._visits(slabs, best.t, tree=tree):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             r = bvh.intersect(origins[idx], directions[idx], best.t[idx], self.pool)
@@ -374,8 +472,18 @@ class DomainTracer:
         if self.record is not None:
             self.record.append(("occluded", origins, directions, t_max))
         blocked = np.zeros(n, dtype=bool)
-        live = np.ones(n, dtype=bool)
-        for d, idx in self._visits(self.slabs(origins, directions), t_max, live):
+        top = self._top_level()
+        tree = None
+        if top is not None:
+            scene, tree, _ = top
+            if scene is not None:
+                blocked = scene.occluded(origins, directions, t_max, self._threads())
+                with self._stats_lock:
+                    self.stats.ray_domain_tests += n
+            if tree.size == 0:
+                return blocked
+        live = ~blocked
+        for d, idx in self._visits(self.slabs(origins, directions), t_max, live, tree=tree):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             blocked[idx] = bvh.occluded(origins[idx], directions[idx], t_max[idx], self.pool)

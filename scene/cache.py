@@ -102,6 +102,12 @@ class DomainCache:
         """Ids of the resident domains, least recently used first."""
         return list(self._resident)
 
+    def resident_domains(self) -> dict[int, DomainBVH]:
+        """The resident domains by id (a snapshot; neither counted as hits nor moved in the
+        LRU order)."""
+        with self._lock:
+            return dict(self._resident)
+
     def resident_set(self) -> frozenset[int]:
         """Domains resident or being preloaded."""
         with self._lock:

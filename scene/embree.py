@@ -45,6 +45,14 @@ incoherent: 1.70 vs 1.71 Mrays/s closest hit, 1.76 vs 1.80 occlusion; coherent: 
 3.70 vs 3.54), both equal embreex's results bit for bit, and a ray's result does not depend on
 the other rays of its packet (tested on rays through edges and vertices, where ties happen).
 
+Two levels
+----------
+``TopScene`` holds one instance (identity transform: the instanced triangles are met exactly
+as by a query of their own scene) of each of several scenes: the in-core tracer queries every
+resident domain at once through it. Closest hits use 1-ray queries with an argument filter
+(``_tie_filter``, a numba ``cfunc``) that gives ties between instances to the lower instance
+id, i.e. the lower domain id, as per-domain queries do; occlusion uses the packet kernel.
+
 Fallback
 --------
 When the library cannot be found or loaded, or its major version is not 4 (the layouts and
@@ -81,6 +89,9 @@ RTC_FORMAT_FLOAT3 = 0x9003
 RTC_SCENE_FLAG_NONE = 0
 RTC_SCENE_FLAG_ROBUST = 4
 RTC_INVALID_GEOMETRY_ID = 0xFFFFFFFF
+RTC_GEOMETRY_TYPE_INSTANCE = 121
+RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
+RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER = 1 << 1
 
 #: Scene flags of every scene built here (see the module docstring).
 SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
@@ -133,6 +144,8 @@ class _Api:
             "rtcReleaseGeometry": (None, [p]),
             "rtcGetGeometry": (p, [p, u32]),
             "rtcGetGeometryBufferData": (p, [p, i32, u32]),
+            "rtcSetGeometryInstancedScene": (None, [p, p]),
+            "rtcSetGeometryTransform": (None, [p, u32, i32, p]),
         }
         for name, (res, args) in sigs.items():
             fn = getattr(self.lib, name)
@@ -565,3 +578,245 @@ def bench_kernels(scene: Scene, origins, directions, t_far, kind: str, threads: 
     _launch(KERNELS[kind], threads, scene._live(), org, dirs, tf, out)
     return out
 
+
+
+# ---------------------------------------------------------------------------------------------
+# Two levels: one top-level scene holding an instance of each domain's scene
+# ---------------------------------------------------------------------------------------------
+
+def _memory(width: int, kind: str):
+    """Intrinsics loading (``kind="load"``) or storing a ``width``-bit word at an address
+    given as an integer: the filter below reads Embree's structures through them."""
+    is_float = width == 32 and kind.endswith("f")
+
+    def llvm_type():
+        return cgutils.ir.FloatType() if is_float else cgutils.ir.IntType(width)
+
+    value_type = types.float32 if is_float else types.int32 if width == 32 else types.int64
+    if kind.startswith("load"):
+        @intrinsic
+        def load(typingctx, addr):
+            if isinstance(addr, types.Integer):
+                def codegen(context, builder, signature, values):
+                    ptr = builder.inttoptr(values[0], cgutils.ir.PointerType(llvm_type()))
+                    return builder.load(ptr)
+
+                return value_type(addr), codegen
+            return None
+
+        return load
+
+    @intrinsic
+    def store(typingctx, addr, value):
+        if isinstance(addr, types.Integer):
+            def codegen(context, builder, signature, values):
+                ptr = builder.inttoptr(values[0], cgutils.ir.PointerType(llvm_type()))
+                v = context.cast(builder, values[1], signature.args[1], value_type)
+                builder.store(v, ptr)
+                return context.get_dummy_value()
+
+            return types.void(addr, value), codegen
+        return None
+
+    return store
+
+
+_load_i64 = _memory(64, "load")
+_load_i32 = _memory(32, "load")
+_load_f32 = _memory(32, "loadf")
+_store_i32 = _memory(32, "store")
+_store_f32 = _memory(32, "storef")
+
+#: Byte offset, in the ray query context, of our per-ray record (best t: float32, its instance:
+#: int32): past ``RTCRayQueryContext``'s instID[1] (and instPrimID[1] where the library has
+#: instance arrays), with room to spare.
+_CTX_RECORD = 16
+_CTX_WORDS = 8  # int32 words of context buffer: 16 bytes of Embree's, 8 of ours, padding
+#: int64 words of RTCIntersectArguments: flags and feature_mask, context, filter, intersect,
+#: (minWidthDistanceFactor where built with it), spare.
+_ARGS_WORDS = 6
+_NO_INSTANCE = np.int32(0x7FFFFFFF)
+
+
+def _tie_filter(args):
+    """Embree filter (``RTCFilterFunctionN``) that breaks ties between instances by their id.
+
+    Embree accepts a triangle hit when ``t <= tfar`` (inclusive), so of equally near hits the
+    last one found wins, which depends on the traversal order over instances. Per-domain
+    queries break ties between domains by the lower domain id; this filter reproduces that:
+    it accepts a candidate if it is nearer than the best so far, or as near and in an
+    instance of lower *or equal* id (equal: within one domain the last found still wins, as in
+    a query of that domain alone). The best so far is kept per ray in our part of the ray
+    query context, indexed by the ray's ``id``.
+
+    ``args`` is the address of ``RTCFilterFunctionNArguments``: valid (int*), geometryUserPtr,
+    context, ray (RTCRayN*), hit (RTCHitN*), N (unsigned int). The candidate's distance is in
+    the ray's tfar, its instance in the hit's instID[0].
+    """
+    valid = _load_i64(args)
+    ctx = _load_i64(args + 16)
+    ray = _load_i64(args + 24)
+    hit = _load_i64(args + 32)
+    n = _load_i32(args + 40)
+    for lane in range(n):
+        if _load_i32(valid + 4 * lane) == 0:
+            continue
+        t = _load_f32(ray + 4 * (8 * n + lane))
+        inst = _load_i32(hit + 4 * (7 * n + lane))
+        rid = _load_i32(ray + 4 * (10 * n + lane))
+        record = ctx + _CTX_RECORD + 8 * rid
+        best_t = _load_f32(record)
+        best_inst = _load_i32(record + 4)
+        if t < best_t or (t == best_t and inst <= best_inst):
+            _store_f32(record, t)
+            _store_i32(record + 4, inst)
+        else:
+            _store_i32(valid + 4 * lane, 0)
+
+
+_filter_cfunc = None
+_filter_lock = threading.Lock()
+
+
+def _filter_address() -> int:
+    """Address of the compiled ``_tie_filter`` (compiled, or loaded from numba's cache, on
+    first use)."""
+    global _filter_cfunc
+    with _filter_lock:
+        if _filter_cfunc is None:
+            _filter_cfunc = numba.cfunc(types.void(types.int64), nogil=True, cache=True)(
+                _tie_filter)
+        return _filter_cfunc.address
+
+
+@njit(parallel=True, nogil=True, cache=True)
+def _intersect_top(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    """Closest hits through a top-level scene, 1-ray queries with the tie filter; ``inst``
+    receives the instance (top-level geometry id) of each hit, -1 for a miss."""
+    n = org.shape[0]
+    for c in prange((n + _CHUNK - 1) // _CHUNK):
+        raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
+        f = _aligned(raw, 4, _RAYHIT1_WORDS)
+        i32 = f.view(np.int32)
+        ptr = f.ctypes.data
+        context = np.zeros(_CTX_WORDS, np.int32)
+        cf = context.view(np.float32)
+        arguments = np.zeros(_ARGS_WORDS, np.int64)
+        a32 = arguments.view(np.int32)
+        arguments[1] = context.ctypes.data
+        arguments[2] = filt
+        aptr = arguments.ctypes.data
+        for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+            # (set in the loop, so the buffers Embree reads stay referenced through it)
+            a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
+            a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
+            _set_ray1(f, i32, org, dirs, tfar_in, i)  # ray id 0: the record at _CTX_RECORD
+            i32[17] = _INVALID
+            i32[18] = _INVALID
+            i32[19] = _INVALID
+            context[0] = _INVALID  # instID[0]
+            context[1] = _INVALID  # instPrimID[0] (where present)
+            cf[_CTX_RECORD // 4] = tfar_in[i]
+            context[_CTX_RECORD // 4 + 1] = _NO_INSTANCE
+            _rtcIntersect1(scene, ptr, aptr)
+            _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
+            inst[i] = i32[19] if prim[i] >= 0 else -1
+
+
+class TopScene:
+    """One Embree scene holding an instance of each given scene: a two-level BVH.
+
+    Every instance has the identity transform, so a ray meets each instanced scene's
+    triangles exactly as a query of that scene alone does (the transform of a point or
+    vector by the identity is exact). Closest hits are found in one query per ray; of equally
+    near hits in several instances the one of the lowest instance id wins (``_tie_filter``),
+    as when the scenes are queried one by one and ties go to the lower id.
+
+    Parameters
+    ----------
+    scenes : the instanced scenes (kept referenced: their buffers must outlive the instances).
+    ids : (k,) the caller's id of each scene (e.g. its domain), returned with each hit.
+    """
+
+    def __init__(self, scenes: list[Scene], ids, api: _Api | None = None):
+        global _live_scenes
+        api = api or binding()
+        if api is None:
+            raise RuntimeError("the compiled Embree binding is unavailable")
+        self._api = api
+        self.scenes = list(scenes)
+        # Embree keeps each instanced scene alive (reference counted), but not the arrays it
+        # reads in place: hold them even if a scene is closed meanwhile.
+        self._buffers = [(scene.vertices, scene.indices) for scene in self.scenes]
+        self.ids = np.asarray(ids, np.int64)
+        if len(self.ids) != len(self.scenes):
+            raise ValueError("one id per scene")
+        self._filter = _filter_address()
+        self.handle = api.rtcNewScene(api.device)
+        if not self.handle:
+            api.check("rtcNewScene")
+            raise RuntimeError("rtcNewScene failed")
+        with _live_lock:
+            _live_scenes += 1
+        api.rtcSetSceneFlags(self.handle, SCENE_FLAGS)
+        identity = np.zeros((4, 3), np.float32)  # column major 3x4: columns x, y, z, p
+        identity[0, 0] = identity[1, 1] = identity[2, 2] = 1.0
+        for k, scene in enumerate(self.scenes):
+            geom = api.rtcNewGeometry(api.device, RTC_GEOMETRY_TYPE_INSTANCE)
+            if not geom:
+                api.check("rtcNewGeometry")
+                raise RuntimeError("rtcNewGeometry failed")
+            api.rtcSetGeometryInstancedScene(geom, scene._live())
+            api.rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR,
+                                        identity.ctypes.data)
+            api.rtcCommitGeometry(geom)
+            got = api.rtcAttachGeometry(self.handle, geom)
+            api.rtcReleaseGeometry(geom)
+            if got != k:
+                raise RuntimeError(f"instance {k} was attached as geometry {got}")
+        api.rtcCommitScene(self.handle)
+        api.check("building a top-level scene")
+
+    def close(self) -> None:
+        """Release the top-level scene and drop the instanced scenes."""
+        global _live_scenes
+        handle, self.handle = getattr(self, "handle", None), None
+        if handle:
+            self._api.rtcReleaseScene(handle)
+            with _live_lock:
+                _live_scenes -= 1
+        self.scenes = []
+        self._buffers = []
+
+    def __del__(self):
+        self.close()
+
+    def _live(self) -> int:
+        if not self.handle:
+            raise RuntimeError("the scene was closed")
+        return self.handle
+
+    def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
+        """Closest hits over all instances: ``Scene.intersect``'s output plus ``id`` (n,)
+        int64, the id (``ids``) of the scene hit, -1 for a miss."""
+        org, dirs, tf = _rays(origins, directions, t_far)
+        n = len(org)
+        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
+               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
+               "Ng": np.empty((n, 3), np.float32)}
+        inst = np.empty(n, np.int32)
+        if n:
+            _launch(_intersect_top, threads, self._live(), self._filter, org, dirs, tf,
+                    out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
+        out["id"] = np.where(inst >= 0, self.ids[np.maximum(inst, 0)], -1) if n else \
+            np.empty(0, np.int64)
+        return out
+
+    def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
+        """Whether anything of any instance lies within ``t_far`` (16-ray packets, no filter:
+        which instance blocks does not matter)."""
+        org, dirs, tf = _rays(origins, directions, t_far)
+        out = np.empty(len(org), np.bool_)
+        if len(org):
+            _launch(_QUERY["occluded"], threads, self._live(), org, dirs, tf, out)
+        return out

@@ -1,0 +1,270 @@
+"""vastray against a peer renderer, Mitsuba 3, on the same scene (issue 9).
+
+Both render one ~1 M-triangle isosurface (the ``rm`` scene, one domain, its scalars dropped so
+the surface is plain diffuse) at the same resolution, samples per pixel, path depth, camera,
+light and material, on the same number of threads:
+
+* camera: pinhole, 35 degree vertical field of view, box pixel filter (uniform jitter);
+* light: one point light (intensity in W/sr on both sides);
+* material: two-sided Lambertian, albedo 0.7 (vastray's default material; Mitsuba
+  ``twosided(diffuse)``), flat shading (geometric normals; Mitsuba ``face_normals``);
+* depth: vastray ``--bounces 2`` = Mitsuba ``path`` ``max_depth=4``. In vastray
+  (``render/integrators.py``) the camera ray finds path vertex 0 and a vertex of depth d
+  spawns a continuation only while ``d < bounces``: vertices 0, 1, 2 each send a shadow ray
+  to the light. Mitsuba samples the emitter at the vertex of depth d (0-based) while
+  ``d + 1 < max_depth``: vertices 0, 1, 2 for ``max_depth=4``. Russian roulette is off
+  (``rr_depth`` beyond the depth) and the point light is a delta light, so both estimate the
+  same integral with the same strategy; their images differ only by noise.
+
+Timing: each renderer renders once untimed (vastray loads its numba kernels, Mitsuba's LLVM
+backend compiles its kernel), then ``--repeat`` times, interleaved with the other, with other
+seeds; the best time of each side makes the ratio (on a shared machine noise only slows).
+Scene loading (vastray: the domain's read and BVH build, which the renderer reports; Mitsuba:
+``load_dict``, i.e. the PLY read and its BVH build) is excluded from the render times on both
+sides and printed apart.
+Mitsuba's ``llvm_ad_rgb`` variant (vectorised LLVM JIT, the one to beat) needs a system
+libLLVM; where it cannot load the script says so and compares with ``scalar_rgb`` only.
+
+Prints ``mitsuba_ratio=`` (vastray render s / Mitsuba ``llvm_ad_rgb`` render s; issue 9:
+floor 2.5, goal 1.5), ``mitsuba_scalar_ratio=`` (the same against ``scalar_rgb``) and
+``mean_rel_diff_*=`` (relative difference of the images' means: they must agree within 2 %).
+
+Install Mitsuba (optional extra): ``pip install -e ".[peers]"`` (or ``pip install mitsuba``);
+for ``llvm_ad_rgb`` also a recent system libLLVM: Dr.Jit 1.5 refuses LLVM 14 and, with LLVM 15
+(Debian 12's ``llvm`` package), aborted on its first kernel ("Cannot select ... fminimum");
+LLVM 19 works: ``apt-get install -y libllvm19`` (Debian 12), or point ``DRJIT_LIBLLVM_PATH``
+at a ``libLLVM-*.so``.
+
+    python bench/peers.py [--quick] [--spp 16] [--resolution 288] [--threads N] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_scenes import CACHE, cached_rm
+
+from vastray.render.camera import Camera
+from vastray.render.driver import render
+from vastray.render.integrators import RenderSettings
+from vastray.render.lights import PointLight
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.store import DomainArrays, Store, StoreWriter
+
+WIDTH = HEIGHT = 256
+FOV = 35.0
+BOUNCES = 2  # vastray --bounces
+MAX_DEPTH = BOUNCES + 2  # Mitsuba: see the module docstring
+ALBEDO = 0.7
+
+
+def plain_store(resolution: int) -> Store:
+    """The ``rm`` scene at ``resolution``^3 as one domain without scalars (plain diffuse)."""
+    path = CACHE / f"peers-rm-{resolution}.store"
+    if not (path / "manifest.json").is_file():
+        source = cached_rm(resolution, (1, 1, 1))
+        dom = source.load_domain(0, mmap=False)
+        with StoreWriter(path, objects=[{"name": "rm"}], overwrite=True) as writer:
+            writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
+    return Store(path)
+
+
+def write_ply(path: Path, vertices: np.ndarray, indices: np.ndarray) -> None:
+    """A binary little-endian PLY of the mesh (what Mitsuba loads)."""
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {len(indices)}\nproperty list uchar uint vertex_indices\n"
+              "end_header\n").encode()
+    faces = np.empty(len(indices), dtype=[("n", "u1"), ("i", "<u4", 3)])
+    faces["n"] = 3
+    faces["i"] = indices
+    with open(path, "wb") as f:
+        f.write(header)
+        f.write(np.ascontiguousarray(vertices, "<f4").tobytes())
+        f.write(faces.tobytes())
+
+
+def setup(store: Store):
+    """Camera and point light shared by both renderers."""
+    lo, hi = store.bounds
+    camera = Camera.framing(lo, hi, WIDTH, HEIGHT, fov=FOV)
+    center, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2
+    light_pos = center + np.array([0.6, 1.6, 0.9]) * radius
+    intensity = 1.5 * radius ** 2  # about 1 W/m^2 irradiance at the scene's centre
+    return camera, light_pos, intensity
+
+
+def run_vastray(store: Store, camera: Camera, light_pos, intensity, spp: int, threads: int,
+                seed: int):
+    config = SceneConfig(camera={"position": camera.position, "look_at": camera.look_at,
+                                 "up": camera.up, "fov": FOV},
+                         lights=[PointLight(np.asarray(light_pos, float), np.full(3, intensity))])
+    settings = RenderSettings(width=WIDTH, height=HEIGHT, spp=spp, integrator="pt",
+                              bounces=BOUNCES, seed=seed)
+    result = render(store, config, settings, threads=threads, progress=False)
+    return result.film.image(), result.seconds["load"], result.seconds["trace_and_shade"], result
+
+
+def mitsuba_scene(mi, ply: Path, camera: Camera, light_pos, intensity, spp: int) -> dict:
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": MAX_DEPTH, "rr_depth": 1000},
+        "sensor": {
+            "type": "perspective", "fov": FOV, "fov_axis": "y",
+            "to_world": mi.ScalarTransform4f().look_at(origin=camera.position.tolist(),
+                                                       target=camera.look_at.tolist(),
+                                                       up=camera.up.tolist()),
+            "sampler": {"type": "independent", "sample_count": spp},
+            "film": {"type": "hdrfilm", "width": WIDTH, "height": HEIGHT,
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        },
+        "light": {"type": "point", "position": list(map(float, light_pos)),
+                  "intensity": {"type": "rgb", "value": [intensity] * 3}},
+        "mesh": {"type": "ply", "filename": str(ply), "face_normals": True,
+                 "bsdf": {"type": "twosided",
+                          "material": {"type": "diffuse",
+                                       "reflectance": {"type": "rgb", "value": [ALBEDO] * 3}}}},
+    }
+
+
+class MitsubaRenderer:
+    """One Mitsuba variant with the scene loaded (load timed) and its kernel warmed up."""
+
+    def __init__(self, variant: str, ply: Path, camera, light_pos, intensity, spp: int,
+                 threads: int):
+        import drjit as dr
+        import mitsuba as mi
+
+        self.mi, self.variant = mi, variant
+        mi.set_variant(variant)
+        # Dr.Jit's thread pool: the LLVM backend's kernels and scalar block rendering
+        dr.set_thread_count(threads)
+        start = time.perf_counter()
+        self.scene = mi.load_dict(mitsuba_scene(mi, ply, camera, light_pos, intensity, spp))
+        self.load = time.perf_counter() - start
+        start = time.perf_counter()
+        self.render(seed=1)  # llvm: traces the Python code and compiles the kernel
+        self.warm = time.perf_counter() - start
+
+    def render(self, seed: int) -> np.ndarray:
+        """The image, evaluated: (H, W, 3) float32 linear RGB, row 0 at the top."""
+        return np.array(self.mi.render(self.scene, seed=seed)).astype(np.float32)
+
+
+def try_llvm() -> str | None:
+    """None when ``llvm_ad_rgb`` renders, else why not. Tried in a child process: with too old
+    a libLLVM (15 here) the first kernel aborts the whole process (LLVM's "Cannot select")."""
+    import mitsuba as mi
+
+    if "llvm_ad_rgb" not in mi.variants():
+        return "this Mitsuba build has no llvm_ad_rgb variant"
+    probe = ("import mitsuba as mi, numpy as np; mi.set_variant('llvm_ad_rgb'); "
+             "mi.set_log_level(mi.LogLevel.Error); "
+             "np.array(mi.render(mi.load_dict(mi.cornell_box()), spp=1))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True)
+    if done.returncode == 0:
+        return None
+    lines = [ln for ln in (done.stderr or "").splitlines() if ln and not ln.startswith(" ")]
+    return f"exit status {done.returncode}: {(lines or ['?'])[-1][:300]}"
+
+
+def _blocks(image: np.ndarray) -> np.ndarray:
+    """Means of 8 x 8 pixel blocks: (H / 8, W / 8, 3)."""
+    return image.reshape(HEIGHT // 8, 8, WIDTH // 8, 8, 3).mean(axis=(1, 3))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="smaller scene (160^3, ~0.3 M triangles) and 4 spp")
+    parser.add_argument("--resolution", type=int, default=None,
+                        help="rm scene resolution (default 288: ~1 M triangles)")
+    parser.add_argument("--spp", type=int, default=None, help="samples per pixel (default 16)")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--repeat", type=int, default=None,
+                        help="timed runs of each side, interleaved (default 3; --quick 1)")
+    parser.add_argument("--save", type=Path, default=None,
+                        help="write both images (.npy) into this folder")
+    args = parser.parse_args()
+    resolution = args.resolution or (160 if args.quick else 288)
+    spp = args.spp or (4 if args.quick else 16)
+    args.repeat = args.repeat or (1 if args.quick else 3)
+    try:
+        import mitsuba  # noqa: F401
+    except ImportError:
+        print("Mitsuba 3 is not installed: pip install -e \".[peers]\" (or pip install "
+              "mitsuba); its llvm_ad_rgb variant also needs a recent system libLLVM, "
+              "e.g. apt-get install -y libllvm19", file=sys.stderr)
+        return 2
+
+    store = plain_store(resolution)
+    n_tri = sum(d.n_triangles for d in store.domains)
+    camera, light_pos, intensity = setup(store)
+    print(f"scene: rm {resolution}^3, {n_tri:,} triangles, 1 domain; {WIDTH}x{HEIGHT}, {spp} "
+          f"spp, vastray --bounces {BOUNCES} = Mitsuba max_depth {MAX_DEPTH}, point light, "
+          f"two-sided diffuse {ALBEDO}, {args.threads} threads")
+
+    # vastray: a warm-up render (numba kernels from the on-disk cache), then timed ones
+    start = time.perf_counter()
+    run_vastray(store, camera, light_pos, intensity, spp, args.threads, seed=1)
+    print(f"vastray: warm-up render (incl. load) {time.perf_counter() - start:.3f} s")
+
+    results = {}
+    why_not = try_llvm()
+    variants = ["llvm_ad_rgb", "scalar_rgb"] if why_not is None else ["scalar_rgb"]
+    if why_not is not None:
+        print(f"llvm_ad_rgb unavailable ({why_not}): comparing with scalar_rgb only "
+              "(install a recent system libLLVM, e.g. apt-get install -y libllvm19)")
+    with tempfile.TemporaryDirectory() as tmp:
+        ply = Path(tmp) / "scene.ply"
+        dom = store.load_domain(0)
+        write_ply(ply, np.asarray(dom.vertices), np.asarray(dom.indices))
+        for variant in variants:
+            peer = MitsubaRenderer(variant, ply, camera, light_pos, intensity, spp, args.threads)
+            print(f"mitsuba {variant}: load (PLY read + BVH build) {peer.load:.3f} s, warm-up "
+                  f"render {peer.warm:.3f} s")
+            # interleaved: vastray, Mitsuba, vastray, ... ; best of each side
+            v_times, m_times, v_loads = [], [], []
+            for rep in range(args.repeat):
+                v_img, v_load, v_s, _ = run_vastray(store, camera, light_pos, intensity, spp,
+                                                    args.threads, seed=2 + rep)
+                v_times.append(v_s)
+                v_loads.append(v_load)
+                start = time.perf_counter()
+                img = peer.render(seed=2 + rep)
+                m_times.append(time.perf_counter() - start)
+            results[variant] = img
+            print(f"  render s, {args.repeat} interleaved runs: vastray "
+                  f"{' '.join(f'{t:.3f}' for t in v_times)} (load excluded: "
+                  f"{' '.join(f'{t:.3f}' for t in v_loads)} s of read + BVH build); "
+                  f"mitsuba {variant} {' '.join(f'{t:.3f}' for t in m_times)}")
+            key = "mitsuba_ratio" if variant == "llvm_ad_rgb" else "mitsuba_scalar_ratio"
+            rel = float(v_img.mean() / img.mean() - 1.0)
+            per_channel = v_img.mean(axis=(0, 1)) / img.mean(axis=(0, 1)) - 1.0
+            # pixel-wise: noise of both at this spp dominates; 8x8 block means average it out
+            block_mad = float(np.abs(_blocks(v_img) - _blocks(img)).mean() / img.mean())
+            print(f"{key}={min(v_times) / min(m_times):.3f} (best vastray / best mitsuba)  "
+                  f"mean_rel_diff_{variant}={rel:+.4f} (per channel "
+                  f"{np.array2string(per_channel, precision=4)}; 8x8-block mean abs diff / "
+                  f"mean {block_mad:.4f})")
+            if abs(rel) > 0.02:
+                print(f"WARNING: images differ by {rel:+.2%} in mean (> 2 %)")
+    if args.save:
+        args.save.mkdir(parents=True, exist_ok=True)
+        np.save(args.save / "vastray.npy", v_img)
+        for variant, img in results.items():
+            np.save(args.save / f"mitsuba_{variant}.npy", img)
+    if "llvm_ad_rgb" not in results:
+        print("mitsuba_ratio=n/a (llvm_ad_rgb unavailable)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
