@@ -315,21 +315,25 @@ WARM_START = textwrap.dedent("""
     blocked = scene.occluded(o, d, t, threads=2)[0]
     done = time.perf_counter()
     assert hit == 0 and blocked
-    print(f"{imported - start:.3f} {done - imported:.3f}")
+    kernels = [getattr(embree, name) for name in dir(embree) if name.startswith(("_intersect", "_occluded"))]
+    hits = sum(sum(k.stats.cache_hits.values()) for k in kernels if hasattr(k, "stats"))
+    misses = sum(sum(k.stats.cache_misses.values()) for k in kernels if hasattr(k, "stats"))
+    print(f"{imported - start:.3f} {done - imported:.3f} {hits} {misses}")
 """)
 
 
 def test_kernels_are_cached_warm_process_traces_at_once(api):
     """A second process loads the compiled kernels from numba's cache instead of compiling
-    them: from its first import to its first traced rays within 2 s on a loaded 2-core
-    machine (measured about 0.3-0.5 s there; a cold process takes several seconds)."""
+    them (every kernel it launches is a cache hit, none a miss). Its time from first import
+    to first traced rays is printed, not asserted (timings belong to bench/): about
+    0.3-0.5 s on an idle 2-core machine, several seconds when the kernels compile."""
     env = {**os.environ, "PYTHONWARNINGS": "error::numba.NumbaWarning"}
     run = [sys.executable, "-c", WARM_START]
     subprocess.run(run, check=True, env=env, capture_output=True, text=True)  # warms the cache
     out = subprocess.run(run, check=True, env=env, capture_output=True, text=True).stdout
-    imported, traced = map(float, out.split())
+    imported, traced, hits, misses = (float(x) for x in out.split())
     print(f"warm process: import {imported:.3f} s, build + first queries {traced:.3f} s")
-    assert imported + traced <= 2.0
+    assert hits >= 2 and misses == 0
 
 
 def test_environment_chooses_embreex_without_warning(reload_binding, monkeypatch):
