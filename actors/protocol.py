@@ -23,6 +23,7 @@ FILM = "film"            # node -> parent node / root -> coordinator: partial fi
 DONE = "done"            # node -> coordinator: per-node timings and counters
 FRAME = "frame"          # node -> coordinator: one animation frame's timings and counters
 STOP = "stop"            # coordinator -> node: shut down
+REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, join again
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
 ROUND = "round"          # node -> coordinator (domain): round done, batches sent per node
 GO = "go"                # coordinator -> node (domain): batches to expect, or finished
@@ -35,7 +36,7 @@ BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
-FROM_COORDINATOR = frozenset({JOB, STOP, GO, PROBE, SCHEDULE, HEARTBEAT})
+FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, PROBE, SCHEDULE, HEARTBEAT})
 FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
 FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, ROUND, STATUS, QUEUES})
 
@@ -52,6 +53,7 @@ META = {
     DONE: {"rank": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
     FRAME: {"rank": int, "frame": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
     STOP: {},
+    REGROUP: {"lost": str},
     RAYS: {"rank": int, "tile": int, "queue": str},
     ROUND: {"rank": int, "tile": int, "sent_to": dict},
     GO: {"expect": int, "finished": bool},
