@@ -1,8 +1,10 @@
 """The coordinator (rank 0's driver): starts node processes, hands out the job, watches that
 every node stays alive, receives the reduced film and the per-node reports.
 
-Every wait has a timeout; a node that exits early or stops answering fails the run with a
-message naming it, and the caller writes no output.
+Every wait has a timeout; a node that fails to start or join fails the run with a message
+naming it, and the caller writes no output. A node lost mid-frame (it exits, or stops answering
+for the heartbeat timeout) is survived: the frame is rendered again on one node fewer, started
+again here, or regrouped from the nodes started elsewhere (see ``render_distributed``).
 """
 
 from __future__ import annotations
@@ -643,8 +645,11 @@ class _Watch:
                   if self.job_sent and now - self.last_heard[r] > self.heartbeat_timeout]
         if silent:  # blame the one silent longest: the others may only be waiting for it
             rank = min(silent, key=lambda r: self.last_heard[r])
+            # a node started here that is silent but running is stalled; from elsewhere,
+            # silence is all the coordinator sees of a stall or a death
+            how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
-                                      "(stalled)", NodeLost)
+                                      f"({how})", NodeLost)
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped

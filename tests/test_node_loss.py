@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 from test_distributed import _node_pids
 
-from vastray.actors.coordinator import render_distributed
+from vastray.actors.coordinator import NodeFailure, render_distributed
 from vastray.render.driver import render
+from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
@@ -141,3 +142,67 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler):
         text = logs[i].read_text()
         assert nodes[i].returncode == 0, text
         assert "regroups" in text and re.search(r"joined \S+ as node [01] of 2", text), text
+
+
+def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp_path):
+    # survive_node_loss=False: no regroup is called; the run fails naming the node, and the
+    # others, hearing nothing more from the coordinator, exit on their own.
+    store, toml = scene
+    port = _free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
+    striker.start()
+    try:
+        with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
+            render_distributed(store.path, toml, settings(width=32, height=24, spp=32,
+                                                          integrator="pt"),
+                               3, scheduler="async", listen=f"127.0.0.1:{port}", timeout=60,
+                               heartbeat_timeout=3.0, max_samples_in_flight=300,
+                               survive_node_loss=False)
+    finally:
+        striker.join()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    for i in set(range(3)) - set(hit):
+        text = logs[i].read_text()
+        assert nodes[i].returncode == 4 and "lost the coordinator" in text, text
+        assert "regroups" not in text, text
+
+def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
+    # As a user runs it, without --quiet: `vastray render --listen` and three `vastray node`.
+    store, toml = scene
+    port = _free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    common = ["--scene", str(toml), "--width", "32", "--height", "24", "--spp", "32",
+              "--integrator", "pt", "--bounces", "2", "--shadow-samples", "4", "--seed", "7"]
+    coordinator = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr", *common,
+         "--scheduler", "async", "--nodes", "3", "--listen", f"127.0.0.1:{port}",
+         "--heartbeat-timeout", "3", "--node-timeout", "60", "--max-samples-in-flight", "300"],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    try:
+        _kill_rank_2_once_joined(nodes, logs, hit)
+        _, err = coordinator.communicate(timeout=180)
+    finally:
+        if coordinator.poll() is None:
+            coordinator.kill()
+            coordinator.communicate()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    assert coordinator.returncode == 0, err
+    assert "waiting for 3 node(s)" in err and "waiting for 2 node(s)" in err, err
+    assert re.search(r"node 2 \(pid \d+ on \S+\) sent nothing for 3 s \(stalled or gone\); "
+                     r"rendering the frame again on the 2 other node\(s\) once they have "
+                     r"joined again", err), err
+    assert "wrote x.exr" in err.strip().splitlines()[-1], err
+    reference = subprocess.run(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "ref.exr",
+         *common, "--quiet"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert reference.returncode == 0, reference.stderr
+    image, expected = read_exr(tmp_path / "x.exr"), read_exr(tmp_path / "ref.exr")
+    assert expected.max() > 0.05
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-6)
