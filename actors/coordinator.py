@@ -311,40 +311,15 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             await router.send_multipart([identities[rank], token, *frames])
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
-        film, reports = None, {}
-        done_paths: dict[int, int] = {}
         control = _Termination(size, router, identities, token)
         frames = _Frames(size, job.get("frames"), frame_done)
-        while film is None or len(reports) < size:
-            try:
-                identity, message = await watch.receive(router)
-            except NodeLost as lost:
-                if regroup and listen is not None:
-                    await _call_regroup(router, identities, token, lost)
-                    linger = 2000  # let the regroup reach the survivors before the close
-                raise
-            if message.kind == protocol.PROGRESS:
-                rank = int(message.meta["rank"])
-                paths = int(message.meta["paths"])
-                bar.update(paths - done_paths.get(rank, 0))
-                done_paths[rank] = paths
-            elif message.kind == protocol.FILM:
-                try:
-                    film = film_from(message, settings.width, settings.height)
-                except ValueError as exc:
-                    raise NodeFailure(f"node 0 sent a film that does not fit the image: "
-                                      f"{exc}") from None
-                frames.film(message.meta.get("frame"), film, control.barriers)
-            elif message.kind == protocol.FRAME:
-                frames.report(message.meta, control.barriers)
-            elif message.kind == protocol.DONE:
-                reports[int(message.meta["rank"])] = message.meta
-            elif message.kind == protocol.ROUND:
-                await control.round_done(message.meta)
-            elif message.kind == protocol.STATUS:
-                await control.status(message.meta)
-            elif message.kind == protocol.QUEUES:
-                await control.queues(message.meta)
+        try:
+            film, reports = await _gather(router, watch, settings, bar, control, frames, size)
+        except NodeLost as lost:
+            if regroup and listen is not None:
+                await _call_regroup(router, identities, token, lost)
+                linger = 2000  # let the regroup reach the survivors before the close
+            raise
         frames.check_complete()
         for rank in range(size):
             await router.send_multipart([identities[rank], token, *encode(protocol.STOP, {})])
@@ -366,6 +341,41 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         logs.cleanup()
         if rendezvous is not None and listen is not None:
             Path(rendezvous).unlink(missing_ok=True)
+
+
+async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
+                  control: _Termination, frames: _Frames, size: int):
+    """Receive the job's messages until the film and every node's report are in: progress,
+    films and frame reports, termination control; a node's failure raises ``NodeLost``."""
+    film, reports = None, {}
+    done_paths: dict[int, int] = {}
+    while film is None or len(reports) < size:
+        _, message = await watch.receive(router)
+        if message.kind == protocol.PROGRESS:
+            rank = int(message.meta["rank"])
+            paths = int(message.meta["paths"])
+            bar.update(paths - done_paths.get(rank, 0))
+            done_paths[rank] = paths
+        elif message.kind == protocol.FILM:
+            try:
+                film = film_from(message, settings.width, settings.height)
+            except ValueError as exc:
+                raise NodeFailure(f"node 0 sent a film that does not fit the image: "
+                                  f"{exc}") from None
+            frames.film(message.meta.get("frame"), film, control.barriers)
+        elif message.kind == protocol.FRAME:
+            frames.report(message.meta, control.barriers)
+        elif message.kind == protocol.DONE:
+            reports[int(message.meta["rank"])] = message.meta
+        elif message.kind == protocol.ROUND:
+            await control.round_done(message.meta)
+        elif message.kind == protocol.STATUS:
+            await control.status(message.meta)
+        elif message.kind == protocol.QUEUES:
+            await control.queues(message.meta)
+        elif message.kind == protocol.FAILED:
+            raise watch.failed(int(message.meta["rank"]), message.meta["error"])
+    return film, reports
 
 
 class _Frames:
@@ -601,6 +611,10 @@ class _Watch:
         if isinstance(failure, NodeLost):
             failure.rank = rank
         return failure
+
+    def failed(self, rank: int, error: str) -> NodeLost:
+        """A node's report that its job failed: lost, like a node that exits mid-frame."""
+        return self._failure(rank, f"failed: {error}", NodeLost)
 
     def check(self) -> None:
         now = time.monotonic()

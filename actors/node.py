@@ -324,12 +324,16 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
                                  token=token)
     log.info("listening for peers on %s", management.endpoint)
+    advertised = os.environ.get(protocol.FAULT_PEER_ENDPOINT_ENV) or management.endpoint
+    if advertised != management.endpoint:
+        log.warning("fault injection: peers are told to send to %s (%s), not here",
+                    advertised, protocol.FAULT_PEER_ENDPOINT_ENV)
     watchers = []
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
         watchers.append(handshake)
         await management.to_coordinator(encode(protocol.HELLO, {}, {
-            "rank": rank, "endpoint": management.endpoint, "host": socket.gethostname(),
+            "rank": rank, "endpoint": advertised, "host": socket.gethostname(),
             "pid": os.getpid()}))
         waiting = asyncio.ensure_future(management.receive(protocol.JOB,
                                                            "job from the coordinator"))
@@ -346,10 +350,19 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         work = asyncio.ensure_future(_serve(management, job, watchers, aborted))
         regroup = asyncio.ensure_future(management.mailbox(protocol.REGROUP).get())
         await asyncio.wait([work, regroup], return_when=asyncio.FIRST_COMPLETED)
-        if work.done():
+        if work.done() and work.exception() is None:  # done and stopped
             regroup.cancel()
-            work.result()  # raises what failed the job
             return False
+        if work.done() and not regroup.done():
+            # Failed: say why, then give the coordinator a moment to call a regroup instead
+            # (the failure may follow from a node lost elsewhere, such as a wait on it).
+            await _report_failure(management, int(job["rank"]), work.exception())
+            for task in watchers:  # the wait is bounded: no exit on the coordinator's silence
+                task.cancel()
+            await asyncio.wait([regroup], timeout=protocol.COORDINATOR_SILENCE_S)
+            if not regroup.done():
+                regroup.cancel()
+                work.result()  # raises what failed the job
         aborted.set()  # a render thread still running stops at its next tile
         work.cancel()
         try:
@@ -363,6 +376,20 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         for task in watchers:
             task.cancel()
         management.close()
+
+
+async def _report_failure(management: ManagementActor, rank: int, exc: BaseException) -> None:
+    """Tell the coordinator why this node's job failed, before the node exits: it names the
+    node and the error at once (a node started elsewhere has no log the coordinator reads),
+    and counts it lost like any node that exits mid-frame. Best effort: a second at most."""
+    message = encode(protocol.FAILED, {}, {"rank": rank,
+                                          "error": f"{type(exc).__name__}: {exc}"[:300]})
+    management.coordinator.setsockopt(zmq.LINGER, 1000)  # let it leave before the close
+    try:
+        await asyncio.wait_for(management.coordinator.send_multipart(
+            [management.token or b"", *message], copy=False), 1.0)
+    except (TimeoutError, zmq.ZMQError):
+        pass
 
 
 async def _serve(management: ManagementActor, job: dict, watchers: list,
