@@ -294,7 +294,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
-            if message.kind == protocol.HELLO:
+            if message.kind == protocol.HELLO and identity not in watch.members:
                 rank = int(message.meta["rank"])
                 if not 0 <= rank < size or rank in identities:  # let the coordinator choose
                     rank = min(set(range(size)) - set(identities))
@@ -684,16 +684,20 @@ class _Watch:
         """Check one message: the job token, the sender (a member speaks only for its own
         rank; a stranger may only say hello, with the token, or with none where nodes join
         from elsewhere under CURVE), the kind's schema, and once-only kinds (the film from
-        rank 0, each rank's done)."""
+        rank 0, each rank's done). A node joining from elsewhere repeats its hello (without
+        the token) until its job comes; a member's repeat passes here, to be ignored."""
         if len(frames) < 3:
             raise protocol.ProtocolError("no identity, token or header frame")
         identity, token, body = frames[0].bytes, frames[1].bytes, frames[2:]
         rank = self.members.get(identity)
-        open_hello = rank is None and self.open_join and token == b""
+        open_hello = self.open_join and token == b""
         if token != self.token and not open_hello:
             self.rejections.add("stranger", "a message without this job's token")
             return None
         message = decode(body)
+        if token != self.token:  # a hello without the token (a member's repeat included)
+            protocol.check(message, frozenset({protocol.HELLO}))
+            return identity, message
         protocol.check(message, protocol.FROM_NODE if rank is not None
                        else frozenset({protocol.HELLO}))
         if rank is not None:

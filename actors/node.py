@@ -227,6 +227,17 @@ class ManagementActor:
         await asyncio.wait_for(self.coordinator.send_multipart(
             [self.token or b"", *frames], copy=False), self.timeout)
 
+    async def repeat_to_coordinator(self, frames: list) -> None:
+        """Send a message to the coordinator again every heartbeat, never waiting: a repeat
+        that finds the queue full (no coordinator yet) is skipped."""
+        while True:
+            await asyncio.sleep(protocol.HEARTBEAT_S)
+            try:
+                await self.coordinator.send_multipart([self.token or b"", *frames],
+                                                      flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                pass
+
     async def to_peer(self, endpoint: str, frames: list) -> None:
         """Send a message to the node at ``endpoint``, behind the job token frame."""
         if endpoint not in self.peers:
@@ -332,12 +343,20 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
         watchers.append(handshake)
-        await management.to_coordinator(encode(protocol.HELLO, {}, {
+        hello = encode(protocol.HELLO, {}, {
             "rank": rank, "endpoint": advertised, "host": socket.gethostname(),
-            "pid": os.getpid()}))
+            "pid": os.getpid()})
+        await management.to_coordinator(hello)
+        if token is None:
+            # Joining from elsewhere: say hello again every heartbeat until the job comes. A
+            # hello that reached a coordinator socket about to close (the last job's, after
+            # a regroup) is lost with it; the repeat reaches the next one.
+            watchers.append(asyncio.ensure_future(management.repeat_to_coordinator(hello)))
         waiting = asyncio.ensure_future(management.receive(protocol.JOB,
                                                            "job from the coordinator"))
         await asyncio.wait([waiting, handshake], return_when=asyncio.FIRST_COMPLETED)
+        if token is None:
+            watchers.pop().cancel()
         if not waiting.done():
             waiting.cancel()
             handshake.result()  # raises AuthenticationFailed

@@ -191,9 +191,11 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
             proxy.stop()
         ctx.destroy(linger=0)
     if proxies:
+        lost = outcome["result"].counters["node_failures"] if "result" in outcome else []
         print(f"  {fault}: the proxies forwarded {sum(p.forwarded for p in proxies)} peer "
-              f"messages and dropped {sum(p.dropped for p in proxies)} ray batches in "
-              f"{outcome.get('seconds', float('nan')):.1f} s", file=sys.stderr)
+              f"messages and dropped {sum(p.dropped for p in proxies)} ray batches; "
+              f"{outcome.get('seconds', float('nan')):.1f} s"
+              + "".join(f"; lost {failure}" for failure in lost), file=sys.stderr)
     if "error" in outcome:
         raise outcome["error"]
     if "result" not in outcome:
