@@ -7,12 +7,20 @@ fault-free render of the same frame:
 - ``stop``: SIGSTOP of one of 4 nodes mid-frame (lost after ``--heartbeat-timeout``);
 - ``storm``: 10,000 malformed, truncated, oversized, wrong-role and random messages sent to a
   node while it renders (dropped and counted);
-- ``forged``: a forged film and a stranger's ``done`` sent to the coordinator mid-render.
+- ``forged``: a forged film and a stranger's ``done`` sent to the coordinator mid-render;
+- ``delay``: every message between the 2 nodes (ray batches, films, all-reduce) passes a
+  ZeroMQ proxy (``fault_proxy.PeerProxy``, one per node: each node advertises its proxy's
+  endpoint to its peers through the fault-injection-only ``VASTRAY_FAULT_PEER_ENDPOINT``)
+  that holds each a random 0-50 ms, keeping each sender's order as TCP does;
+- ``drop``: the same proxies drop 1 % of the ray batches. Nothing retransmits a batch, so
+  the frame cannot finish on 2 nodes: the nodes wait for it until their timeout (30 s here),
+  the first to give up tells the coordinator (``failed``), and the node-loss path re-renders
+  the frame on the other alone (no peer traffic left to drop), or the run fails naming the
+  node when both gave up at once.
 
-Floors: 100 % completed and identical for ``kill`` and ``storm``. (Delayed and dropped
-messages through a proxy are not measured yet.)
+Floors: 100 % completed and identical for ``kill``, ``storm`` and ``delay``.
 
-    python bench/faults.py [--runs 3] [--scheduler async]
+    python bench/faults.py [--runs 3] [--scheduler async] [--only delay drop]
 """
 
 from __future__ import annotations
