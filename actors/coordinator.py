@@ -1,8 +1,10 @@
 """The coordinator (rank 0's driver): starts node processes, hands out the job, watches that
 every node stays alive, receives the reduced film and the per-node reports.
 
-Every wait has a timeout; a node that exits early or stops answering fails the run with a
-message naming it, and the caller writes no output.
+Every wait has a timeout; a node that fails to start or join fails the run with a message
+naming it, and the caller writes no output. A node lost mid-frame (it exits, or stops answering
+for the heartbeat timeout) is survived: the frame is rendered again on one node fewer, started
+again here, or regrouped from the nodes started elsewhere (see ``render_distributed``).
 """
 
 from __future__ import annotations
@@ -57,7 +59,14 @@ class NodeFailure(RuntimeError):
 
 class NodeLost(NodeFailure):
     """A node that had joined died or stalled mid-frame (a frame on the others can replace
-    it, unlike a node that never joined or a protocol failure)."""
+    it, unlike a node that never joined or a protocol failure).
+
+    ``rank`` is the lost node's, or None where only its launcher (an ssh session) is known.
+    """
+
+    def __init__(self, message: str, rank: int | None = None):
+        super().__init__(message)
+        self.rank = rank
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
@@ -97,11 +106,13 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         removed when the render ends.
     heartbeat_timeout : a node silent this long mid-frame counts as lost (a stall); default
         ``timeout``.
-    survive_node_loss : with nodes started here, a node that dies or stalls mid-frame is
-        survived: the frame is rendered again on the others (domains reassigned, every path
-        re-traced from its deterministic seeds, nothing counted twice), so the image equals
-        the fault-free one. Nodes started elsewhere (``listen``) cannot be replaced: the run
-        fails naming the node.
+    survive_node_loss : a node that dies or stalls mid-frame is survived: the frame is
+        rendered again on the others (domains reassigned, every path re-traced from its
+        deterministic seeds, nothing counted twice), so the image equals the fault-free one.
+        Nodes started here are started again, one fewer; nodes started elsewhere
+        (``listen``) are told to regroup: each drops the job and joins the same address again,
+        and the coordinator waits for one node fewer (``timeout``, and the progress lines)
+        before it sends the job again with new ranks. False: the run fails naming the node.
     frames : an animation's frame numbers: every node renders them all in one job (caches
         and statistics carry over from frame to frame), each frame with the camera and lights
         ``config.at_frame`` gives and the seed ``frame_seed(settings.seed, frame)``. None:
@@ -150,6 +161,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     failures: list[str] = []
     size = nodes
     delivered: dict[int, RenderResult] = {}
+    bound: dict[str, str] = {}  # the listen address as bound (its port, where 0 was asked)
+    spare_exits = 0  # launched sessions of lost nodes still to exit (not failures)
 
     def frame_done(frame: int, film, reports: list[dict], barriers: int, seconds: float) -> None:
         lo, hi = store.bounds
@@ -171,15 +184,21 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                 film, reports, barriers = asyncio.run(_coordinate(
                     dict(job, frames=remaining), size, settings, timeout, listen, keys,
                     launched or {}, bar, progress, rendezvous, heartbeat_timeout or timeout,
-                    frame_done))
+                    frame_done, regroup=survive_node_loss and size > 1, bound=bound,
+                    spare_exits=spare_exits))
             break
         except NodeLost as lost:
-            if listen is not None or not survive_node_loss or size == 1:
+            if not survive_node_loss or size == 1:
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
             size -= 1
+            if listen is not None:  # the survivors regroup on the address bound first
+                listen = bound["listen"]
+                bound["regrouping"] = True
+                launched, spare_exits = _without_exited(launched or {}, spare_exits)
             what = "the frame" if frames is None else "the frames not yet delivered"
-            message = f"{lost}; rendering {what} again on the {size} other node(s)"
+            again = "" if listen is None else " once they have joined again"
+            message = f"{lost}; rendering {what} again on the {size} other node(s){again}"
             if progress:  # the CLI's user sees it as a plain line, not as a log record
                 print(message, file=sys.stderr)
             else:
@@ -243,11 +262,25 @@ def portal_shares(per_node: list[dict]) -> dict:
     return out
 
 
+def _without_exited(launched: dict[str, tuple[subprocess.Popen, Path]], spare_exits: int
+                    ) -> tuple[dict[str, tuple[subprocess.Popen, Path]], int]:
+    """After a node loss: the launched sessions still running (those that exited are not
+    waited for again), and how many of them belong to lost nodes and may still exit (a
+    stalled node's session ends once its node notices the coordinator's silence)."""
+    running = {name: entry for name, entry in launched.items() if entry[0].poll() is None}
+    exited = len(launched) - len(running)
+    return running, max(0, spare_exits + 1 - exited)
+
+
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
                       listen: str | None, keys: ClusterKeys | None,
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
-                      heartbeat_timeout: float | None = None, frame_done=None):
+                      heartbeat_timeout: float | None = None, frame_done=None,
+                      regroup: bool = False, bound: dict | None = None, spare_exits: int = 0):
+    """One attempt at the job on ``size`` nodes. With ``listen`` and ``regroup``, a node lost
+    mid-frame makes the coordinator tell the others to regroup before ``NodeLost`` is raised;
+    ``bound["listen"]`` gets the address bound, for the next attempt."""
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -255,10 +288,20 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
     secure_server(router, keys)
-    if int(port or 0):
-        router.bind(f"tcp://{host}:{port}")
-    else:
-        port = router.bind_to_random_port(f"tcp://{host}")
+    try:
+        if int(port or 0):
+            router.bind(f"tcp://{host}:{port}")
+        else:
+            port = router.bind_to_random_port(f"tcp://{host}")
+    except zmq.ZMQError as exc:
+        router.close(linger=0)
+        if auth is not None:
+            auth.stop()
+        ctx.destroy(linger=0)
+        raise NodeFailure(f"cannot listen on tcp://{host}:{port}: {exc}") from None
+    if bound is not None:
+        bound["listen"] = f"{host}:{port}"
+    linger = 0
     logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
     beating = None
@@ -284,17 +327,18 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         address = f"tcp://{host}:{port}"
         watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
                        open_join=listen is not None,
-                       heartbeat_timeout=heartbeat_timeout or timeout)
+                       heartbeat_timeout=heartbeat_timeout or timeout, spare_exits=spare_exits,
+                       regrouping=bool(bound and bound.get("regrouping")))
         identities, endpoints = {}, [None] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
-            if message.kind == protocol.HELLO:
+            if message.kind == protocol.HELLO and identity not in watch.members:
                 rank = int(message.meta["rank"])
                 if not 0 <= rank < size or rank in identities:  # let the coordinator choose
                     rank = min(set(range(size)) - set(identities))
                 identities[rank] = identity
                 endpoints[rank] = message.meta["endpoint"]
-                watch.joined(rank, identity)
+                watch.joined(rank, identity, message.meta)
                 if listen is not None and verbose:
                     print(f"node {rank} joined from {message.meta.get('host', '?')} "
                           f"(pid {message.meta.get('pid', '?')}), {len(identities)} of {size}",
@@ -305,34 +349,15 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             await router.send_multipart([identities[rank], token, *frames])
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
-        film, reports = None, {}
-        done_paths: dict[int, int] = {}
         control = _Termination(size, router, identities, token)
         frames = _Frames(size, job.get("frames"), frame_done)
-        while film is None or len(reports) < size:
-            identity, message = await watch.receive(router)
-            if message.kind == protocol.PROGRESS:
-                rank = int(message.meta["rank"])
-                paths = int(message.meta["paths"])
-                bar.update(paths - done_paths.get(rank, 0))
-                done_paths[rank] = paths
-            elif message.kind == protocol.FILM:
-                try:
-                    film = film_from(message, settings.width, settings.height)
-                except ValueError as exc:
-                    raise NodeFailure(f"node 0 sent a film that does not fit the image: "
-                                      f"{exc}") from None
-                frames.film(message.meta.get("frame"), film, control.barriers)
-            elif message.kind == protocol.FRAME:
-                frames.report(message.meta, control.barriers)
-            elif message.kind == protocol.DONE:
-                reports[int(message.meta["rank"])] = message.meta
-            elif message.kind == protocol.ROUND:
-                await control.round_done(message.meta)
-            elif message.kind == protocol.STATUS:
-                await control.status(message.meta)
-            elif message.kind == protocol.QUEUES:
-                await control.queues(message.meta)
+        try:
+            film, reports = await _gather(router, watch, settings, bar, control, frames, size)
+        except NodeLost as lost:
+            if regroup and listen is not None:
+                await _call_regroup(router, identities, token, lost)
+                linger = 2000  # let the regroup reach the survivors before the close
+            raise
         frames.check_complete()
         for rank in range(size):
             await router.send_multipart([identities[rank], token, *encode(protocol.STOP, {})])
@@ -347,13 +372,48 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-        router.close(linger=0)
+        router.close(linger=linger)
         if auth is not None:
             auth.stop()
         ctx.destroy(linger=0)
         logs.cleanup()
         if rendezvous is not None and listen is not None:
             Path(rendezvous).unlink(missing_ok=True)
+
+
+async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
+                  control: _Termination, frames: _Frames, size: int):
+    """Receive the job's messages until the film and every node's report are in: progress,
+    films and frame reports, termination control; a node's failure raises ``NodeLost``."""
+    film, reports = None, {}
+    done_paths: dict[int, int] = {}
+    while film is None or len(reports) < size:
+        _, message = await watch.receive(router)
+        if message.kind == protocol.PROGRESS:
+            rank = int(message.meta["rank"])
+            paths = int(message.meta["paths"])
+            bar.update(paths - done_paths.get(rank, 0))
+            done_paths[rank] = paths
+        elif message.kind == protocol.FILM:
+            try:
+                film = film_from(message, settings.width, settings.height)
+            except ValueError as exc:
+                raise NodeFailure(f"node 0 sent a film that does not fit the image: "
+                                  f"{exc}") from None
+            frames.film(message.meta.get("frame"), film, control.barriers)
+        elif message.kind == protocol.FRAME:
+            frames.report(message.meta, control.barriers)
+        elif message.kind == protocol.DONE:
+            reports[int(message.meta["rank"])] = message.meta
+        elif message.kind == protocol.ROUND:
+            await control.round_done(message.meta)
+        elif message.kind == protocol.STATUS:
+            await control.status(message.meta)
+        elif message.kind == protocol.QUEUES:
+            await control.queues(message.meta)
+        elif message.kind == protocol.FAILED:
+            raise watch.failed(int(message.meta["rank"]), message.meta["error"])
+    return film, reports
 
 
 class _Frames:
@@ -401,6 +461,16 @@ class _Frames:
         if self.expected is not None and (self.films or self.reports):
             raise NodeFailure(f"the nodes finished with frames {sorted(self.reports)} "
                               "incomplete")
+
+
+async def _call_regroup(router, identities: dict[int, bytes], token: bytes,
+                        lost: NodeLost) -> None:
+    """Tell every node but the lost one to drop the job and join again (a stalled node that
+    wakes up later hears nothing, and exits on the coordinator's silence)."""
+    frames = encode(protocol.REGROUP, {}, {"lost": str(lost)[:200]})
+    for rank, identity in identities.items():
+        if rank != lost.rank:
+            await router.send_multipart([identity, token, *frames])
 
 
 async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None:
@@ -535,10 +605,12 @@ class _Watch:
     def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
                  launched: dict[str, tuple[subprocess.Popen, Path]], address: str = "",
                  token: bytes = b"", open_join: bool = False,
-                 heartbeat_timeout: float | None = None):
+                 heartbeat_timeout: float | None = None, spare_exits: int = 0,
+                 regrouping: bool = False):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
+        self.regrouping = regrouping  # the survivors of a node loss are to join again
         self.heartbeat_timeout = heartbeat_timeout or timeout
-        self.launched, self.address = launched, address
+        self.launched, self.address = dict(launched), address
         self.token, self.open_join = token, open_join
         self.started = time.monotonic()
         self.last_heard = [self.started] * size
@@ -548,10 +620,13 @@ class _Watch:
         self.members: dict[bytes, int] = {}  # socket identity -> rank
         self.once: set[tuple[str, int]] = set()
         self.rejections = protocol.Rejections()
+        self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
+        self.hellos: dict[int, dict] = {}
 
-    def joined(self, rank: int, identity: bytes) -> None:
+    def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
         self.members[identity] = rank
+        self.hellos[rank] = hello or {}
         self.last_join = time.monotonic()
         self.heard(rank)
 
@@ -567,8 +642,19 @@ class _Watch:
         if rank < len(self.procs):
             text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
             last = text.splitlines()[-1] if text else "no output"
-            return kind(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
-        return kind(f"node {rank} {why}")
+            failure = kind(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+        else:
+            hello = self.hellos.get(rank, {})
+            where = (f" (pid {hello['pid']} on {hello.get('host', '?')})" if "pid" in hello
+                     else "")
+            failure = kind(f"node {rank}{where} {why}")
+        if isinstance(failure, NodeLost):
+            failure.rank = rank
+        return failure
+
+    def failed(self, rank: int, error: str) -> NodeLost:
+        """A node's report that its job failed: lost, like a node that exits mid-frame."""
+        return self._failure(rank, f"failed: {error}", NodeLost)
 
     def check(self) -> None:
         now = time.monotonic()
@@ -580,12 +666,18 @@ class _Watch:
                 lost = rank in self.ranks_joined or code < 0
                 raise self._failure(rank, f"exited with code {code}",
                                     NodeLost if lost else NodeFailure)
-        for name, (proc, log) in self.launched.items():
+        for name, (proc, log) in list(self.launched.items()):
             code = proc.poll()
             if code is not None and code != 0:
+                if self.spare_exits > 0:  # the session of a node lost before: no news
+                    self.spare_exits -= 1
+                    del self.launched[name]
+                    continue
                 text = Path(log).read_text(errors="replace").strip() if Path(log).exists() else ""
                 last = text.splitlines()[-1] if text else "no output"
-                raise NodeFailure(f"node on {name} exited with code {code}: {last}")
+                # mid-frame, a lost node the others can make up for; before, a failed start
+                raise (NodeLost if self.job_sent else NodeFailure)(
+                    f"node on {name} exited with code {code}: {last}")
         waiting = set(range(len(self.procs))) - self.ranks_joined
         if self.ranks_joined and waiting and now - self.last_join > self.heartbeat_timeout:
             # the others joined long ago: a node started here that has not is stuck
@@ -597,6 +689,12 @@ class _Watch:
                 rank = min(set(range(self.size)) - self.ranks_joined)
                 raise self._failure(rank, f"did not join within {self.timeout:.0f} s")
             joined = len(self.ranks_joined)
+            if self.regrouping:
+                raise NodeFailure(
+                    f"after the node loss, "
+                    f"{'no' if joined == 0 else f'only {joined} of the {self.size}'} surviving "
+                    f"node(s) joined again within {self.timeout:.0f} s on {self.address}; the others "
+                    "ended or lost this coordinator (see their logs)")
             raise NodeFailure(
                 f"{'no node' if joined == 0 else f'only {joined} of {self.size} nodes'} joined "
                 f"within {self.timeout:.0f} s on {self.address}; check that each node's "
@@ -607,8 +705,11 @@ class _Watch:
                   if self.job_sent and now - self.last_heard[r] > self.heartbeat_timeout]
         if silent:  # blame the one silent longest: the others may only be waiting for it
             rank = min(silent, key=lambda r: self.last_heard[r])
+            # a node started here that is silent but running is stalled; from elsewhere,
+            # silence is all the coordinator sees of a stall or a death
+            how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
-                                      "(stalled)", NodeLost)
+                                      f"({how})", NodeLost)
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped
@@ -629,16 +730,20 @@ class _Watch:
         """Check one message: the job token, the sender (a member speaks only for its own
         rank; a stranger may only say hello, with the token, or with none where nodes join
         from elsewhere under CURVE), the kind's schema, and once-only kinds (the film from
-        rank 0, each rank's done)."""
+        rank 0, each rank's done). A node joining from elsewhere repeats its hello (without
+        the token) until its job comes; a member's repeat passes here, to be ignored."""
         if len(frames) < 3:
             raise protocol.ProtocolError("no identity, token or header frame")
         identity, token, body = frames[0].bytes, frames[1].bytes, frames[2:]
         rank = self.members.get(identity)
-        open_hello = rank is None and self.open_join and token == b""
+        open_hello = self.open_join and token == b""
         if token != self.token and not open_hello:
             self.rejections.add("stranger", "a message without this job's token")
             return None
         message = decode(body)
+        if token != self.token:  # a hello without the token (a member's repeat included)
+            protocol.check(message, frozenset({protocol.HELLO}))
+            return identity, message
         protocol.check(message, protocol.FROM_NODE if rank is not None
                        else frozenset({protocol.HELLO}))
         if rank is not None:

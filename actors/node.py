@@ -14,6 +14,7 @@ import os
 import resource
 import socket
 import sys
+import threading
 import time
 
 import numpy as np
@@ -76,10 +77,11 @@ class ManagementActor:
     reader is busy never holds back another kind, and a node sending to a peer is never
     blocked by a peer that is itself blocked sending (the deadlock of bounded mailboxes).
     Every message is checked before delivery: the job token frame (a message from outside
-    the job is dropped undecoded), the codec, the sender's role (control kinds only from the
-    coordinator, data kinds only from peers), the kind's schema, and the budget of bytes held
-    undelivered. A message that fails is dropped, logged at a bounded rate and counted in
-    ``rejections`` (the node's report). Sockets refuse frames over the codec's size limit.
+    the job is dropped undecoded; from the coordinator too, once the token is known), the
+    codec, the sender's role (control kinds only from the coordinator, data kinds only from
+    peers), the kind's schema, and the budget of bytes held undelivered. A message that fails
+    is dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
+    Sockets refuse frames over the codec's size limit.
 
     Parameters
     ----------
@@ -150,6 +152,11 @@ class ManagementActor:
                 self.rejections.add("stranger", "a peer message without this job's token")
                 return
         else:
+            if self.token is not None and token != self.token:
+                # the coordinator connection is this node's own, but once the job is known
+                # its control messages (a regroup above all) must carry the job's token
+                self.rejections.add("stranger", "a control message without this job's token")
+                return
             self.coordinator_heard = time.monotonic()
         try:
             message = decode(body)
@@ -220,6 +227,17 @@ class ManagementActor:
         await asyncio.wait_for(self.coordinator.send_multipart(
             [self.token or b"", *frames], copy=False), self.timeout)
 
+    async def repeat_to_coordinator(self, frames: list) -> None:
+        """Send a message to the coordinator again every heartbeat, never waiting: a repeat
+        that finds the queue full (no coordinator yet) is skipped."""
+        while True:
+            await asyncio.sleep(protocol.HEARTBEAT_S)
+            try:
+                await self.coordinator.send_multipart([self.token or b"", *frames],
+                                                      flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                pass
+
     async def to_peer(self, endpoint: str, frames: list) -> None:
         """Send a message to the node at ``endpoint``, behind the job token frame."""
         if endpoint not in self.peers:
@@ -276,72 +294,164 @@ class TreeReduceActor:
         return total
 
 
+class JobAborted(RuntimeError):
+    """The coordinator called a regroup: the work of the current job is dropped."""
+
+
 async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str = "127.0.0.1",
                    advertise: str | None = None, keys: ClusterKeys | None = None) -> None:
-    """Serve one render job: say hello, render this node's share, reduce films, stop.
+    """Serve render jobs from ``coordinator``: say hello, render this node's share, reduce
+    films, stop.
 
     ``rank`` -1 lets the coordinator assign one (nodes started by docker compose or SSH).
+    When the coordinator loses another node mid-frame it tells the survivors to regroup: this
+    node drops the job (its work, sockets and caches) and joins the same coordinator again,
+    with the same keys, for the job on one node fewer (new ranks, domains reassigned). A node
+    that hears nothing from the coordinator mid-job (no regroup, no heartbeat) still exits on
+    its own after ``protocol.COORDINATOR_SILENCE_S``.
     """
-    from vastray.render.integrators import RenderSettings
-    from vastray.scene.store import Store
-
     check_bind(bind_host, keys)
     ctx = zmq.asyncio.Context()
     auth = start_authenticator(ctx, keys)
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
-    token = os.environ.get(protocol.JOB_TOKEN_ENV)
+    env_token = os.environ.get(protocol.JOB_TOKEN_ENV)
+    token = None if env_token is None else bytes.fromhex(env_token)
+    try:
+        while await _serve_job(ctx, coordinator, rank, timeout, bind_host, advertise, keys,
+                               token):
+            token = None  # the next job has a token of its own, learnt from its job message
+            log.info("joining %s again", coordinator)
+    finally:
+        if auth is not None:
+            auth.stop()
+        ctx.destroy(linger=0)
+
+
+async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host: str,
+                     advertise: str, keys: ClusterKeys | None, token: bytes | None) -> bool:
+    """Join the coordinator and serve one job on fresh sockets; True when the coordinator
+    called a regroup (join again), False once the job is done and stopped."""
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
-                                 token=None if token is None else bytes.fromhex(token))
+                                 token=token)
     log.info("listening for peers on %s", management.endpoint)
+    advertised = os.environ.get(protocol.FAULT_PEER_ENDPOINT_ENV) or management.endpoint
+    if advertised != management.endpoint:
+        log.warning("fault injection: peers are told to send to %s (%s), not here",
+                    advertised, protocol.FAULT_PEER_ENDPOINT_ENV)
     watchers = []
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
         watchers.append(handshake)
-        await management.to_coordinator(encode(protocol.HELLO, {}, {
-            "rank": rank, "endpoint": management.endpoint, "host": socket.gethostname(),
-            "pid": os.getpid()}))
+        hello = encode(protocol.HELLO, {}, {
+            "rank": rank, "endpoint": advertised, "host": socket.gethostname(),
+            "pid": os.getpid()})
+        await management.to_coordinator(hello)
+        if token is None:
+            # Joining from elsewhere: say hello again every heartbeat until the job comes. A
+            # hello that reached a coordinator socket about to close (the last job's, after
+            # a regroup) is lost with it; the repeat reaches the next one.
+            watchers.append(asyncio.ensure_future(management.repeat_to_coordinator(hello)))
         waiting = asyncio.ensure_future(management.receive(protocol.JOB,
                                                            "job from the coordinator"))
         await asyncio.wait([waiting, handshake], return_when=asyncio.FIRST_COMPLETED)
+        if token is None:
+            watchers.pop().cancel()
         if not waiting.done():
             waiting.cancel()
             handshake.result()  # raises AuthenticationFailed
         job = waiting.result().meta
-        rank, size = int(job["rank"]), int(job["size"])
-        log.info("joined %s as node %d of %d", coordinator, rank, size)
+        log.info("joined %s as node %d of %d", coordinator, int(job["rank"]), int(job["size"]))
         management.coordinator_heard = time.monotonic()
         watchers.append(asyncio.ensure_future(
             management.watch_coordinator(protocol.COORDINATOR_SILENCE_S)))
-        management.endpoints = job["endpoints"]
-        settings = RenderSettings(**job["settings"])
-        store = Store(job["store"])
-        config = (SceneConfig() if not job.get("scene_toml")
-                  else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
-        if job.get("frames") is None:  # one image: the scene where the job's frame puts it
-            config = config.at_frame(int(job.get("frame", 0)), store.bounds[0],
-                                     store.bounds[1], settings.width, settings.height)
-        loop = asyncio.get_running_loop()
-        done = {"paths": 0}
+        aborted = threading.Event()
+        work = asyncio.ensure_future(_serve(management, job, watchers, aborted))
+        regroup = asyncio.ensure_future(management.mailbox(protocol.REGROUP).get())
+        await asyncio.wait([work, regroup], return_when=asyncio.FIRST_COMPLETED)
+        if work.done() and work.exception() is None:  # done and stopped
+            regroup.cancel()
+            return False
+        if work.done() and not regroup.done():
+            # Failed: say why, then give the coordinator a moment to call a regroup instead
+            # (the failure may follow from a node lost elsewhere, such as a wait on it).
+            await _report_failure(management, int(job["rank"]), work.exception())
+            for task in watchers:  # the wait is bounded: no exit on the coordinator's silence
+                task.cancel()
+            await asyncio.wait([regroup], timeout=protocol.COORDINATOR_SILENCE_S)
+            if not regroup.done():
+                regroup.cancel()
+                work.result()  # raises what failed the job
+        aborted.set()  # a render thread still running stops at its next tile
+        work.cancel()
+        try:
+            await work
+        except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
+            pass
+        log.warning("the coordinator regroups (%s); dropping this job",
+                    regroup.result().meta["lost"])
+        return True
+    finally:
+        for task in watchers:
+            task.cancel()
+        management.close()
 
-        def report(paths: int) -> None:
-            """Tell the coordinator this node finished ``paths`` more paths (any thread)."""
-            done["paths"] += paths
-            message = encode(protocol.PROGRESS, {}, {"rank": rank, "paths": done["paths"]})
-            loop.call_soon_threadsafe(
-                lambda: asyncio.ensure_future(management.to_coordinator(message)))
 
-        async def heartbeat() -> None:
-            while True:
-                await asyncio.sleep(protocol.HEARTBEAT_S)
-                await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
+async def _report_failure(management: ManagementActor, rank: int, exc: BaseException) -> None:
+    """Tell the coordinator why this node's job failed, before the node exits: it names the
+    node and the error at once (a node started elsewhere has no log the coordinator reads),
+    and counts it lost like any node that exits mid-frame. Best effort: a second at most."""
+    message = encode(protocol.FAILED, {}, {"rank": rank,
+                                          "error": f"{type(exc).__name__}: {exc}"[:300]})
+    management.coordinator.setsockopt(zmq.LINGER, 1000)  # let it leave before the close
+    try:
+        await asyncio.wait_for(management.coordinator.send_multipart(
+            [management.token or b"", *message], copy=False), 1.0)
+    except (TimeoutError, zmq.ZMQError):
+        pass
 
-        beating = asyncio.ensure_future(heartbeat())
-        tree = TreeReduceActor(management, rank, size, job["endpoints"])
-        state = NodeState()
-        frames = job.get("frames")
-        totals: dict = {}
-        busy_total = reduce_total = 0.0
+
+async def _serve(management: ManagementActor, job: dict, watchers: list,
+                 aborted: threading.Event) -> None:
+    """Render this node's share of ``job`` (every frame), reduce the films, report, and wait
+    for the stop. Once ``aborted`` is set, progress reports raise ``JobAborted`` (in a render
+    thread: at its next tile)."""
+    from vastray.render.integrators import RenderSettings
+    from vastray.scene.store import Store
+
+    rank, size = int(job["rank"]), int(job["size"])
+    management.endpoints = job["endpoints"]
+    settings = RenderSettings(**job["settings"])
+    store = Store(job["store"])
+    config = (SceneConfig() if not job.get("scene_toml")
+              else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
+    if job.get("frames") is None:  # one image: the scene where the job's frame puts it
+        config = config.at_frame(int(job.get("frame", 0)), store.bounds[0],
+                                 store.bounds[1], settings.width, settings.height)
+    loop = asyncio.get_running_loop()
+    done = {"paths": 0}
+
+    def report(paths: int) -> None:
+        """Tell the coordinator this node finished ``paths`` more paths (any thread)."""
+        if aborted.is_set():
+            raise JobAborted("the coordinator called a regroup")
+        done["paths"] += paths
+        message = encode(protocol.PROGRESS, {}, {"rank": rank, "paths": done["paths"]})
+        loop.call_soon_threadsafe(
+            lambda: asyncio.ensure_future(management.to_coordinator(message)))
+
+    async def heartbeat() -> None:
+        while True:
+            await asyncio.sleep(protocol.HEARTBEAT_S)
+            await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
+
+    beating = asyncio.ensure_future(heartbeat())
+    tree = TreeReduceActor(management, rank, size, job["endpoints"])
+    state = NodeState()
+    frames = job.get("frames")
+    totals: dict = {}
+    busy_total = reduce_total = 0.0
+    try:
         try:
             for ordinal, frame in enumerate(frames if frames is not None else [None]):
                 frame_settings, frame_config = frame_inputs(settings, config, store, frame)
@@ -369,19 +479,12 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                  "reduce_s": round(reduce_total, 4),
                  "counters": _report_counters(totals, management.rejections)}
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
-        beating.cancel()
-        for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
-            task.cancel()
-        await management.receive(protocol.STOP, "stop from the coordinator")
-        log.info("finished: busy %.2f s, %d domain loads", busy_total,
-                 int(totals.get("loads", 0)))
     finally:
-        for task in watchers:
-            task.cancel()
-        management.close()
-        if auth is not None:
-            auth.stop()
-        ctx.destroy(linger=0)
+        beating.cancel()
+    for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
+        task.cancel()
+    await management.receive(protocol.STOP, "stop from the coordinator")
+    log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
 
 
 async def render_share(management, tree, job: dict, rank: int, size: int, store, config,

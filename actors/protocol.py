@@ -22,7 +22,9 @@ HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
 FILM = "film"            # node -> parent node / root -> coordinator: partial film
 DONE = "done"            # node -> coordinator: per-node timings and counters
 FRAME = "frame"          # node -> coordinator: one animation frame's timings and counters
+FAILED = "failed"        # node -> coordinator: this node's job failed (the error), it exits
 STOP = "stop"            # coordinator -> node: shut down
+REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, join again
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
 ROUND = "round"          # node -> coordinator (domain): round done, batches sent per node
 GO = "go"                # coordinator -> node (domain): batches to expect, or finished
@@ -35,9 +37,10 @@ BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
-FROM_COORDINATOR = frozenset({JOB, STOP, GO, PROBE, SCHEDULE, HEARTBEAT})
+FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, PROBE, SCHEDULE, HEARTBEAT})
 FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
-FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, ROUND, STATUS, QUEUES})
+FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED, ROUND, STATUS,
+                       QUEUES})
 
 _NUMBER = (int, float)
 
@@ -51,7 +54,9 @@ META = {
     FILM: {"rank": int},
     DONE: {"rank": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
     FRAME: {"rank": int, "frame": int, "busy_s": _NUMBER, "reduce_s": _NUMBER, "counters": dict},
+    FAILED: {"rank": int, "error": str},
     STOP: {},
+    REGROUP: {"lost": str},
     RAYS: {"rank": int, "tile": int, "queue": str},
     ROUND: {"rank": int, "tile": int, "sent_to": dict},
     GO: {"expect": int, "finished": bool},
@@ -143,6 +148,11 @@ PARENT_PID_ENV = "VASTRAY_PARENT_PID"
 
 #: Environment variable handing the job token to the nodes a coordinator starts itself.
 JOB_TOKEN_ENV = "VASTRAY_JOB_TOKEN"
+
+#: For fault injection only (``bench/faults.py``): a node with this variable set tells its
+#: peers to send to this endpoint instead of its own, where a proxy that delays or drops
+#: messages forwards them to the node's real endpoint (the one it logs). Never set otherwise.
+FAULT_PEER_ENDPOINT_ENV = "VASTRAY_FAULT_PEER_ENDPOINT"
 
 #: Bytes of received messages a node holds undelivered at most; beyond, messages are dropped
 #: (the protocol bounds honest traffic far below: rays in flight are bounded by the tiles).

@@ -7,12 +7,20 @@ fault-free render of the same frame:
 - ``stop``: SIGSTOP of one of 4 nodes mid-frame (lost after ``--heartbeat-timeout``);
 - ``storm``: 10,000 malformed, truncated, oversized, wrong-role and random messages sent to a
   node while it renders (dropped and counted);
-- ``forged``: a forged film and a stranger's ``done`` sent to the coordinator mid-render.
+- ``forged``: a forged film and a stranger's ``done`` sent to the coordinator mid-render;
+- ``delay``: every message between the 2 nodes (ray batches, films, all-reduce) passes a
+  ZeroMQ proxy (``fault_proxy.PeerProxy``, one per node: each node advertises its proxy's
+  endpoint to its peers through the fault-injection-only ``VASTRAY_FAULT_PEER_ENDPOINT``)
+  that holds each a random 0-50 ms, keeping each sender's order as TCP does;
+- ``drop``: the same proxies drop 1 % of the ray batches. Nothing retransmits a batch, so
+  the frame cannot finish on 2 nodes: the nodes wait for it until their timeout (30 s here),
+  the first to give up tells the coordinator (``failed``), and the node-loss path re-renders
+  the frame on the other alone (no peer traffic left to drop), or the run fails naming the
+  node when both gave up at once.
 
-Floors: 100 % completed and identical for ``kill`` and ``storm``. (Delayed and dropped
-messages through a proxy are not measured yet.)
+Floors: 100 % completed and identical for ``kill``, ``storm`` and ``delay``.
 
-    python bench/faults.py [--runs 3] [--scheduler async]
+    python bench/faults.py [--runs 3] [--scheduler async] [--only delay drop]
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 import zmq
+from fault_proxy import PeerProxy
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
@@ -38,6 +47,9 @@ from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 from vastray.transport.codec import encode
+
+#: The share of ray batches the ``drop`` fault's proxies drop.
+DROP_FRACTION = 0.01
 
 SCENE_TOML = """
 [camera]
@@ -107,24 +119,40 @@ def signal_run(store, toml, settings, scheduler, sig) -> tuple[object, float]:
     return result, time.perf_counter() - start
 
 
-def storm_run(store, toml, settings, scheduler, fault: str | None) -> tuple[object, float]:
+def storm_run(store, toml, settings, scheduler, fault: str | None,
+              seed: int = 0) -> tuple[object, float]:
     """Nodes started as `vastray node`; mid-render, node 0 gets the storm (``"storm"``) or the
-    coordinator a forged film and done (``"forged"``); None: no fault (the baseline)."""
+    coordinator a forged film and done (``"forged"``); or from the start, every node's peers
+    send to it through a ``PeerProxy`` that delays (``"delay"``) or drops (``"drop"``)
+    messages; None: no fault (the baseline)."""
     port = free_port()
     logs = Path(tempfile.mkdtemp(prefix="vastray-faults-"))
-    nodes = []
+    nodes, proxies = [], []
+    # proxied runs: shorter waits, so that a run that hangs on lost messages ends in minutes
+    timeout, heartbeat = (30.0, 5.0) if fault in ("delay", "drop") else (60.0, None)
     for i in range(2):
+        env = dict(os.environ)
+        if fault in ("delay", "drop"):
+            proxy_port = free_port()
+            env[protocol.FAULT_PEER_ENDPOINT_ENV] = f"tcp://127.0.0.1:{proxy_port}"
+            proxies.append(PeerProxy(proxy_port, logs / f"n{i}.log", fault, seed=seed + i,
+                                     drop_fraction=DROP_FRACTION))
+            proxies[-1].start()
         with open(logs / f"n{i}.log", "wb") as err:
             nodes.append(subprocess.Popen([sys.executable, "-m", "vastray.cli", "node",
-                                           "--coordinator", f"tcp://127.0.0.1:{port}"],
-                                          stdout=subprocess.DEVNULL, stderr=err))
+                                           "--coordinator", f"tcp://127.0.0.1:{port}",
+                                           "--timeout", str(timeout)],
+                                          stdout=subprocess.DEVNULL, stderr=err, env=env))
     outcome = {}
 
     def run():
         start = time.perf_counter()
-        outcome["result"] = render_distributed(store, toml, settings, 2, scheduler=scheduler,
-                                               listen=f"127.0.0.1:{port}", timeout=60,
-                                               max_samples_in_flight=2000)
+        try:
+            outcome["result"] = render_distributed(
+                store, toml, settings, 2, scheduler=scheduler, listen=f"127.0.0.1:{port}",
+                timeout=timeout, heartbeat_timeout=heartbeat, max_samples_in_flight=2000)
+        except Exception as exc:  # noqa: BLE001 - reported by the caller
+            outcome["error"] = exc
         outcome["seconds"] = time.perf_counter() - start
 
     thread = threading.Thread(target=run)
@@ -136,7 +164,7 @@ def storm_run(store, toml, settings, scheduler, fault: str | None) -> tuple[obje
                 "joined" in (logs / f"n{i}.log").read_text() for i in range(2)):
             time.sleep(0.05)
         rng = np.random.default_rng(0)
-        if fault is None:
+        if fault in (None, "delay", "drop"):
             pass
         elif fault == "forged":
             sock = ctx.socket(zmq.DEALER)
@@ -167,7 +195,17 @@ def storm_run(store, toml, settings, scheduler, fault: str | None) -> tuple[obje
             if node.poll() is None:
                 node.kill()
             node.wait()
+        for proxy in proxies:
+            proxy.stop()
         ctx.destroy(linger=0)
+    if proxies:
+        lost = outcome["result"].counters["node_failures"] if "result" in outcome else []
+        print(f"  {fault}: the proxies forwarded {sum(p.forwarded for p in proxies)} peer "
+              f"messages and dropped {sum(p.dropped for p in proxies)} ray batches; "
+              f"{outcome.get('seconds', float('nan')):.1f} s"
+              + "".join(f"; lost {failure}" for failure in lost), file=sys.stderr)
+    if "error" in outcome:
+        raise outcome["error"]
     if "result" not in outcome:
         raise RuntimeError("the render did not complete")
     return outcome["result"], outcome["seconds"]
@@ -185,6 +223,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--only", nargs="+", metavar="FAULT",
+                        choices=["kill", "stop", "storm", "forged", "delay", "drop"],
+                        help="run only these faults (the baselines always run)")
     parser.add_argument("--scheduler", default="async",
                         choices=["image", "spec-ooc", "domain", "async", "spec-insitu"])
     args = parser.parse_args()
@@ -220,13 +261,19 @@ def main() -> None:
         "storm": ("external", lambda: storm_run(store, toml, settings, args.scheduler, "storm")),
         "forged": ("external", lambda: storm_run(store, toml, settings, args.scheduler,
                                                  "forged")),
+        "delay": ("external", lambda i: storm_run(store, toml, settings, args.scheduler,
+                                                  "delay", seed=10 * i)),
+        "drop": ("external", lambda i: storm_run(store, toml, settings, args.scheduler,
+                                                 "drop", seed=10 * i)),
     }
     for name, (baseline, run) in faults.items():
+        if args.only and name not in args.only:
+            continue
         completed = identical = 0
         overheads = []
-        for _ in range(args.runs):
+        for i in range(args.runs):
             try:
-                result, seconds = run()
+                result, seconds = run(i) if name in ("delay", "drop") else run()
             except Exception as exc:  # noqa: BLE001 - a failed run is a data point
                 print(f"  {name}: failed: {exc}", file=sys.stderr)
                 continue

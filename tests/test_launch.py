@@ -144,3 +144,61 @@ def test_launch_over_a_real_ssh_server(tmp_path, sshd):
                  str(out), "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
                  "--spp", "2", "--node-timeout", "30", "--scheduler", "async", "--quiet"]) == 0
     _assert_reference_image(store, out, tmp_path)
+
+
+def test_launch_survives_a_node_killed_mid_frame(tmp_path, local_ssh, capsys):
+    # kill -9 of the node that got rank 2: its session exits, the coordinator does not wait
+    # for it again, and the two others regroup and render the frame.
+    import os
+    import re
+    import signal
+    import threading
+    import time
+
+    store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
+    main(["keys", "-o", str(tmp_path / "keys")])
+    (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
+                                    f"beta python={sys.executable} slots=2\n")
+    logs, out, hit = tmp_path / "logs", tmp_path / "o.exr", []
+
+    def strike():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not hit:
+            texts = {p: p.read_text(errors="replace") for p in logs.glob("*.log")}
+            if len(texts) == 3 and all("joined" in t for t in texts.values()):
+                time.sleep(1.0)
+                victim = next(p for p, t in texts.items() if "as node 2 of 3" in t)
+                for pid in _writing_to(victim):  # the node (and its stand-in ssh session)
+                    os.kill(pid, signal.SIGKILL)
+                    hit.append(pid)
+                return
+            time.sleep(0.05)
+
+    striker = threading.Thread(target=strike)
+    striker.start()
+    try:
+        code = main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
+                     "--ssh", local_ssh, "--logs", str(logs), str(store.path), "-o", str(out),
+                     "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
+                     "--spp", "2", "--node-timeout", "30", "--heartbeat-timeout", "5",
+                     "--scheduler", "async", "--max-samples-in-flight", "50"])
+    finally:
+        striker.join()
+    err = capsys.readouterr().err
+    assert hit, "the test found no node 2 to kill"
+    assert code == 0, err
+    assert re.search(r"node on \S+ \(node \d\) exited with code \S+: .*; rendering the frame "
+                     r"again on the 2 other node\(s\) once they have joined again", err), err
+    _assert_reference_image(store, out, tmp_path)
+
+
+def _writing_to(log: Path) -> list[int]:
+    """Pids of the processes whose stderr is ``log``."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if proc.name.isdigit() and (proc / "fd" / "2").readlink() == log.resolve():
+                found.append(int(proc.name))
+        except OSError:
+            continue
+    return found

@@ -1,19 +1,27 @@
 """A node loss is survived, not just reported: kill -9 or SIGSTOP one of 4 nodes mid-frame, and
-the frame completes with the image of the fault-free render."""
+the frame completes with the image of the fault-free render. Nodes started elsewhere (`vastray
+node --coordinator`, as a user starts them) survive too: the others regroup on the same address
+and render the frame again."""
 
 from __future__ import annotations
 
 import os
+import re
 import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 from test_distributed import _node_pids
 
-from vastray.actors.coordinator import render_distributed
+from vastray.actors.coordinator import NodeFailure, render_distributed
 from vastray.render.driver import render
+from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
@@ -59,3 +67,142 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
     reference = render(store, load_scene_config(toml), st, progress=False).film
     np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
     np.testing.assert_array_equal(result.film.count, reference.count)  # nothing counted twice
+
+
+def _start_nodes(port: int, logs: list[Path]) -> list[subprocess.Popen]:
+    """`vastray node` processes started as a user starts them on other machines."""
+    nodes = []
+    for log in logs:
+        with open(log, "wb") as err:
+            nodes.append(subprocess.Popen(
+                [sys.executable, "-m", "vastray.cli", "node", "--coordinator",
+                 f"tcp://127.0.0.1:{port}", "--timeout", "60"],
+                stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL))
+    return nodes
+
+
+def _kill_rank_2_once_joined(nodes: list[subprocess.Popen], logs: list[Path], hit: list) -> None:
+    """kill -9 the node that got rank 2, a second after all three have their job."""
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        texts = [log.read_text(errors="replace") for log in logs]
+        if all("joined" in t for t in texts):
+            time.sleep(1.0)
+            victim = next(i for i, t in enumerate(texts) if "as node 2 of 3" in t)
+            nodes[victim].kill()
+            hit.append(victim)
+            return
+        time.sleep(0.05)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _reap(nodes: list[subprocess.Popen]) -> None:
+    for node in nodes:
+        try:
+            node.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            node.wait()
+
+
+@pytest.mark.parametrize("scheduler", ["async", "image"])
+def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler):
+    store, toml = scene
+    st = settings(width=32, height=24, spp=32, integrator="pt")
+    port = _free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
+    striker.start()
+    try:
+        result = render_distributed(store.path, toml, st, 3, scheduler=scheduler,
+                                    listen=f"127.0.0.1:{port}", timeout=60,
+                                    heartbeat_timeout=3.0, max_samples_in_flight=300)
+    finally:
+        striker.join()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    assert result.counters["nodes_asked"] == 3 and result.counters["nodes"] == 2
+    failures = result.counters["node_failures"]
+    assert len(failures) == 1 and failures[0].startswith("node 2 (pid "), failures
+    assert f"pid {nodes[hit[0]].pid} " in failures[0]
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(result.film.count, reference.count)  # nothing counted twice
+    # the killed node died of the signal; the two others regrouped, joined as 2 nodes, rendered
+    # the frame and stopped cleanly
+    assert nodes[hit[0]].returncode == -signal.SIGKILL
+    for i in set(range(3)) - set(hit):
+        text = logs[i].read_text()
+        assert nodes[i].returncode == 0, text
+        assert "regroups" in text and re.search(r"joined \S+ as node [01] of 2", text), text
+
+
+def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp_path):
+    # survive_node_loss=False: no regroup is called; the run fails naming the node, and the
+    # others, hearing nothing more from the coordinator, exit on their own.
+    store, toml = scene
+    port = _free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
+    striker.start()
+    try:
+        with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
+            render_distributed(store.path, toml, settings(width=32, height=24, spp=32,
+                                                          integrator="pt"),
+                               3, scheduler="async", listen=f"127.0.0.1:{port}", timeout=60,
+                               heartbeat_timeout=3.0, max_samples_in_flight=300,
+                               survive_node_loss=False)
+    finally:
+        striker.join()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    for i in set(range(3)) - set(hit):
+        text = logs[i].read_text()
+        assert nodes[i].returncode == 4 and "lost the coordinator" in text, text
+        assert "regroups" not in text, text
+
+def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
+    # As a user runs it, without --quiet: `vastray render --listen` and three `vastray node`.
+    store, toml = scene
+    port = _free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    common = ["--scene", str(toml), "--width", "32", "--height", "24", "--spp", "32",
+              "--integrator", "pt", "--bounces", "2", "--shadow-samples", "4", "--seed", "7"]
+    coordinator = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr", *common,
+         "--scheduler", "async", "--nodes", "3", "--listen", f"127.0.0.1:{port}",
+         "--heartbeat-timeout", "3", "--node-timeout", "60", "--max-samples-in-flight", "300"],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    try:
+        _kill_rank_2_once_joined(nodes, logs, hit)
+        _, err = coordinator.communicate(timeout=180)
+    finally:
+        if coordinator.poll() is None:
+            coordinator.kill()
+            coordinator.communicate()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    assert coordinator.returncode == 0, err
+    assert "waiting for 3 node(s)" in err and "waiting for 2 node(s)" in err, err
+    assert re.search(r"node 2 \(pid \d+ on \S+\) sent nothing for 3 s \(stalled or gone\); "
+                     r"rendering the frame again on the 2 other node\(s\) once they have "
+                     r"joined again", err), err
+    assert "wrote x.exr" in err.strip().splitlines()[-1], err
+    reference = subprocess.run(
+        [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "ref.exr",
+         *common, "--quiet"], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert reference.returncode == 0, reference.stderr
+    image, expected = read_exr(tmp_path / "x.exr"), read_exr(tmp_path / "ref.exr")
+    assert expected.max() > 0.05
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-6)

@@ -163,8 +163,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --nodes: fail when a node is silent this long (default: 120)")
     p.add_argument("--heartbeat-timeout", type=_positive_float, default=10.0, metavar="S",
                    help="with --nodes: a node silent this long mid-frame is lost (stalled); "
-                        "nodes started here are survived by rendering the frame again on the "
-                        "others (default: 10)")
+                        "it is survived by rendering the frame again on the others (with "
+                        "--listen, once they have joined again) (default: 10)")
     p.add_argument("--listen", metavar="HOST:PORT",
                    help="with --nodes N: wait for N nodes started elsewhere (`vastray node "
                         "--coordinator tcp://HOST:PORT`, docker compose, SSH) instead of "
