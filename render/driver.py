@@ -124,8 +124,10 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     # splits its Embree queries over the threads instead.
     all_fit = capacity >= len(store.domains)
     workers = threads + 1 if all_fit and threads > 1 else 1
-    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
-                          two_level=two_level)
+    # Every worker's Embree queries use all the threads: the compiled kernels run one launch
+    # at a time (scene/embree.py), so a launch on one thread would leave the other cores to
+    # the other workers' shading only (measured: throughput_ratio 0.30 -> 0.41-0.44).
+    tracer = DomainTracer(store, cache, color_source, threads=threads, two_level=two_level)
     tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
