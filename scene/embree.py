@@ -229,7 +229,43 @@ def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
     return out[:-1]
 
 
-class Scene:
+class _SceneHandle:
+    """What each of our Embree scenes has: a handle released once (on ``close`` or when
+    collected), a check that it is still open, and 16-ray occlusion queries."""
+
+    handle = None
+    _api: _Api
+
+    def _release(self) -> None:
+        global _live_scenes
+        handle, self.handle = getattr(self, "handle", None), None
+        if handle:
+            self._api.rtcReleaseScene(handle)
+            with _live_lock:
+                _live_scenes -= 1
+
+    def close(self) -> None:
+        self._release()
+
+    def __del__(self):
+        self.close()
+
+    def _live(self) -> int:
+        if not self.handle:
+            raise RuntimeError("the scene was closed")
+        return self.handle
+
+    def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
+        """Whether anything lies within ``t_far`` (for a top-level scene: anything of any
+        instance; which one blocks does not matter): see ``DomainBVH.occluded``."""
+        org, dirs, tf = _rays(origins, directions, t_far)
+        out = np.empty(len(org), np.bool_)
+        if len(org):
+            _launch(_QUERY["occluded"], threads, self._live(), org, dirs, tf, out)
+        return out
+
+
+class Scene(_SceneHandle):
     """One Embree scene of one triangle mesh whose buffers are the given arrays (no copy).
 
     ``vertices`` (V, 3) float32 and ``indices`` (T, 3) uint32 are kept referenced as long as
@@ -278,16 +314,8 @@ class Scene:
 
     def close(self) -> None:
         """Release the Embree scene (and with it the BVH); the arrays are dropped too."""
-        global _live_scenes
-        handle, self.handle = getattr(self, "handle", None), None
-        if handle:
-            self._api.rtcReleaseScene(handle)
-            with _live_lock:
-                _live_scenes -= 1
+        self._release()
         self.vertices = self.indices = None
-
-    def __del__(self):
-        self.close()
 
     def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
         """Closest hits: see ``DomainBVH.intersect``."""
@@ -301,18 +329,6 @@ class Scene:
                     out["tfar"], out["u"], out["v"], out["Ng"])
         return out
 
-    def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
-        """Whether anything lies within ``t_far``: see ``DomainBVH.occluded``."""
-        org, dirs, tf = _rays(origins, directions, t_far)
-        out = np.empty(len(org), np.bool_)
-        if len(org):
-            _launch(_QUERY["occluded"], threads, self._live(), org, dirs, tf, out)
-        return out
-
-    def _live(self) -> int:
-        if not self.handle:
-            raise RuntimeError("the scene was closed")
-        return self.handle
 
 
 def _rays(origins, directions, t_far) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -723,7 +739,7 @@ def _intersect_top(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
             inst[i] = i32[19] if prim[i] >= 0 else -1
 
 
-class TopScene:
+class TopScene(_SceneHandle):
     """One Embree scene holding an instance of each given scene: a two-level BVH.
 
     Every instance has the identity transform, so a ray meets each instanced scene's
@@ -779,22 +795,9 @@ class TopScene:
 
     def close(self) -> None:
         """Release the top-level scene and drop the instanced scenes."""
-        global _live_scenes
-        handle, self.handle = getattr(self, "handle", None), None
-        if handle:
-            self._api.rtcReleaseScene(handle)
-            with _live_lock:
-                _live_scenes -= 1
+        self._release()
         self.scenes = []
         self._buffers = []
-
-    def __del__(self):
-        self.close()
-
-    def _live(self) -> int:
-        if not self.handle:
-            raise RuntimeError("the scene was closed")
-        return self.handle
 
     def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
         """Closest hits over all instances: ``Scene.intersect``'s output plus ``id`` (n,)
@@ -812,11 +815,3 @@ class TopScene:
             np.empty(0, np.int64)
         return out
 
-    def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
-        """Whether anything of any instance lies within ``t_far`` (16-ray packets, no filter:
-        which instance blocks does not matter)."""
-        org, dirs, tf = _rays(origins, directions, t_far)
-        out = np.empty(len(org), np.bool_)
-        if len(org):
-            _launch(_QUERY["occluded"], threads, self._live(), org, dirs, tf, out)
-        return out
