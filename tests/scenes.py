@@ -8,6 +8,7 @@ import numpy as np
 import trimesh
 
 from vastray.render.integrators import RenderSettings
+from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.partition import partition_grid, partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
@@ -129,3 +130,13 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
         coordinator.close(linger=0)
         ctx.destroy(linger=0)
     return results, actors
+
+
+def bumpy_config() -> SceneConfig:
+    """The camera and lights (point, quad, ambient) the renders of ``bumpy_scene`` use."""
+    return camera_config(
+        position=[3.0, 2.2, 4.5], look_at=[0.0, -0.5, 0.0], fov=45,
+        lights=[PointLight(np.array([2.0, 3.0, 1.0]), np.full(3, 12.0)),
+                QuadLight(np.array([-1.0, 3.0, -1.0]), np.array([0.0, 0.0, 0.8]),
+                          np.array([0.8, 0.0, 0.0]), np.full(3, 4.0)),
+                AmbientLight(np.full(3, 0.2))])

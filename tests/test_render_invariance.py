@@ -6,20 +6,11 @@ import numpy as np
 import pytest
 
 from vastray.render.driver import render
-from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
 from vastray.scene.partition import partition_grid
 
-from scenes import bumpy_scene, camera_config, settings, write_store
-
-CONFIG = dict(
-    position=[3.0, 2.2, 4.5], look_at=[0.0, -0.5, 0.0], fov=45,
-    lights=[PointLight(np.array([2.0, 3.0, 1.0]), np.full(3, 12.0)),
-            QuadLight(np.array([-1.0, 3.0, -1.0]), np.array([0.0, 0.0, 0.8]),
-                      np.array([0.8, 0.0, 0.0]), np.full(3, 4.0)),
-            AmbientLight(np.full(3, 0.2))],
-)
+from scenes import bumpy_config, bumpy_scene, settings, write_store
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +26,7 @@ def stores(tmp_path_factory):
 
 @pytest.mark.parametrize("integrator", ["ao", "pt"])
 def test_image_identical_across_domains_cache_and_batch(stores, integrator):
-    cfg = camera_config(**CONFIG)
+    cfg = bumpy_config()
     base = dict(width=96, height=72, spp=4, integrator=integrator)
     reference = render(stores[1], cfg, settings(**base, batch_size=262144),
                        progress=False).film.image()
@@ -55,7 +46,7 @@ def test_image_identical_across_domains_cache_and_batch(stores, integrator):
 
 
 def test_cache_of_one_domain_reloads_and_still_completes(stores):
-    result = render(stores[64], camera_config(**CONFIG), settings(integrator="ao"),
+    result = render(stores[64], bumpy_config(), settings(integrator="ao"),
                     cache_capacity=1, progress=False)
     counters = result.counters
     assert counters["loads"] > counters["distinct_domains_loaded"]  # evictions forced reloads

@@ -12,24 +12,16 @@ import pytest
 import trimesh
 
 from vastray.render.driver import render
-from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.tracer import DomainTracer
 from vastray.scene import embree
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 
-from scenes import bumpy_scene, camera_config, mesh_arrays, settings, write_store
+from scenes import bumpy_config, bumpy_scene, mesh_arrays, settings, write_store
 
 pytestmark = pytest.mark.skipif(embree.binding() is None,
                                 reason="the compiled Embree binding is unavailable")
 
-CONFIG = dict(
-    position=[3.0, 2.2, 4.5], look_at=[0.0, -0.5, 0.0], fov=45,
-    lights=[PointLight(np.array([2.0, 3.0, 1.0]), np.full(3, 12.0)),
-            QuadLight(np.array([-1.0, 3.0, -1.0]), np.array([0.0, 0.0, 0.8]),
-                      np.array([0.8, 0.0, 0.0]), np.full(3, 4.0)),
-            AmbientLight(np.full(3, 0.2))],
-)
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +54,7 @@ def _count_top_queries(monkeypatch) -> dict:
 @pytest.mark.parametrize("integrator", ["ao", "pt"])
 @pytest.mark.parametrize("name", ["grid8", "kd64", "colors27"])
 def test_image_bit_identical_to_domain_by_domain(stores, name, integrator, monkeypatch):
-    cfg = camera_config(**CONFIG)
+    cfg = bumpy_config()
     st = settings(width=64, height=48, spp=2, integrator=integrator, batch_size=1024)
     per_domain = render(stores[name], cfg, st, progress=False, two_level=False)
     calls = _count_top_queries(monkeypatch)
@@ -77,7 +69,7 @@ def test_image_bit_identical_to_domain_by_domain(stores, name, integrator, monke
 
 def test_bounded_cache_keeps_per_domain_queries(stores, monkeypatch):
     calls = _count_top_queries(monkeypatch)
-    render(stores["kd64"], camera_config(**CONFIG), settings(integrator="ao"),
+    render(stores["kd64"], bumpy_config(), settings(integrator="ao"),
            cache_capacity=8, progress=False)
     assert calls == {"intersect": 0, "occluded": 0}
 
