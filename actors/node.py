@@ -201,12 +201,19 @@ class ManagementActor:
         monitor = self.coordinator.get_monitor_socket(
             zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
             | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+        unclear = 0
         try:
             while True:
                 event = parse_monitor_message(await monitor.recv_multipart())
-                if event["event"] & (zmq.EVENT_HANDSHAKE_FAILED_AUTH
-                                     | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+                if event["event"] & (zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
                                      | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL):
+                    # A refusal (other mechanism, other keys) repeats on every reconnect; a
+                    # single one can also be a connection to a coordinator socket that is
+                    # closing (the last job's, after a regroup): wait for the repeat.
+                    unclear += 1
+                    log.info("handshake with %s failed (event %d), %d time(s)", endpoint,
+                             event["event"], unclear)
+                if event["event"] & zmq.EVENT_HANDSHAKE_FAILED_AUTH or unclear >= 3:
                     raise AuthenticationFailed(
                         f"authentication with the coordinator at {endpoint} failed: its cluster "
                         "keys differ from this node's --keys (or one side has none)")
