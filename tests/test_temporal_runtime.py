@@ -315,3 +315,31 @@ def test_cli_temporal_simplified_animation_without_quiet(tmp_path, capsys):
     low = sum(n["counters"]["predicted_low"] for n in per_node)
     assert frame1["counters"]["simplified_share"] == pytest.approx(low / crossings)
     assert low > 0
+
+
+def test_cli_measures_portal_accuracy_without_quiet(tmp_path, capsys):
+    # `--portal-accuracy`: the instrumented run as a user asks for it; frame 1 is classified
+    # with frame 0's portals, and a frame's own portals never predict a false low (A12).
+    import json
+
+    from vastray.cli import main
+
+    store = write_store(tmp_path / "s.store", bumpy_scene(), grid=(3, 2, 3))
+    assert main(["simplify", str(store.path), "--ratio", "0.2", "--min-faces", "50"]) == 0
+    toml = tmp_path / "orbit.toml"
+    toml.write_text(ORBIT_TOML)
+    common = ["render", str(store.path), "--scene", str(toml), "--frames", "2", "--nodes", "2",
+              "--scheduler", "async", "--width", "32", "--height", "24", "--spp", "1"]
+    assert main([*common, "-o", str(tmp_path / "a.exr"), "--report", str(tmp_path / "a.json"),
+                 "--simplified", "--portal-accuracy"]) == 0
+    assert "wrote 2 frames" in capsys.readouterr().err
+    frame0 = json.loads((tmp_path / "a_0000.json").read_text())["counters"]
+    frame1 = json.loads((tmp_path / "a_0001.json").read_text())["counters"]
+    assert "acc" not in frame0  # nothing to predict frame 0 with
+    assert 0 <= frame1["acc"] <= 1 and 0 <= frame1["acc_unrecorded_share"] <= 1
+    assert frame0["replay_false_low"] == frame1["replay_false_low"] == 0
+    # without the portal policy there is nothing to measure: a one-line error, no output
+    assert main([*common, "-o", str(tmp_path / "b.exr"), "--simplified", "depth>1",
+                 "--portal-accuracy"]) == 2
+    assert "--portal-accuracy" in capsys.readouterr().err
+    assert not list(tmp_path.glob("b*.exr"))

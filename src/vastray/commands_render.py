@@ -201,6 +201,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--portal-threshold", type=float, default=0.5, metavar="L",
                    help="--simplified portal: predicted radiance at or below which a depth-1 "
                         "ray goes to the simplified model (default 0.5)")
+    p.add_argument("--portal-accuracy", action="store_true",
+                   help="--simplified portal: an instrumented run for evaluation, not for "
+                        "timing: every frame is traced as a recording frame (every depth-1 "
+                        "ray on the full model) and each depth-1 portal crossing is "
+                        "classified with the portals a timed run would predict it with; each "
+                        "frame's report gets acc (the paper's prediction accuracy), "
+                        "acc_simplified_share, acc_unrecorded_share and replay_false_low")
     p.add_argument("--load-bandwidth", type=_bandwidths, metavar="MB/s[,MB/s...]",
                    help="with --nodes: emulate network storage: a domain load takes at least "
                         "its size over this bandwidth (per node, or a list cycled over the "
@@ -471,6 +478,11 @@ def node_options(args: argparse.Namespace, scheduler: str) -> dict:
             raise InputError(None, "--simplified works with --scheduler async or temporal")
         options.update(simplified=args.simplified, portal_interval=args.portal_interval,
                        portal_threshold=args.portal_threshold)
+    if args.portal_accuracy:
+        if args.simplified != "portal":
+            raise InputError(None, "--portal-accuracy measures the portals' predictions: use "
+                                   "it with --simplified portal (and --frames 2 or more)")
+        options["portal_accuracy"] = True
     if scheduler == "temporal":
         options["assignment"] = args.assignment or "temporal"
         options["priority"] = args.priority or "cost-benefit"
