@@ -236,6 +236,18 @@ class _SceneHandle:
     handle = None
     _api: _Api
 
+    def _open(self, api: _Api, flags: int) -> None:
+        """Create the (empty) Embree scene, counted as live, with ``flags``."""
+        global _live_scenes
+        self._api = api
+        self.handle = api.rtcNewScene(api.device)
+        if not self.handle:
+            api.check("rtcNewScene")
+            raise RuntimeError("rtcNewScene failed")
+        with _live_lock:
+            _live_scenes += 1
+        api.rtcSetSceneFlags(self.handle, flags)
+
     def _release(self) -> None:
         global _live_scenes
         handle, self.handle = getattr(self, "handle", None), None
@@ -275,21 +287,13 @@ class Scene(_SceneHandle):
 
     def __init__(self, vertices: np.ndarray, indices: np.ndarray, flags: int = SCENE_FLAGS,
                  api: _Api | None = None):
-        global _live_scenes
         api = api or binding()
         if api is None:
             raise RuntimeError("the compiled Embree binding is unavailable")
-        self._api = api
         self.vertices = _padded(vertices, np.float32, 3)
         self.indices = _padded(indices, np.uint32, 3) if len(indices) else None
         self.flags = flags
-        self.handle = api.rtcNewScene(api.device)
-        if not self.handle:
-            api.check("rtcNewScene")
-            raise RuntimeError("rtcNewScene failed")
-        with _live_lock:
-            _live_scenes += 1
-        api.rtcSetSceneFlags(self.handle, flags)
+        self._open(api, flags)
         self.geom_id = None
         if self.indices is not None:
             geom = api.rtcNewGeometry(api.device, RTC_GEOMETRY_TYPE_TRIANGLE)
@@ -755,11 +759,9 @@ class TopScene(_SceneHandle):
     """
 
     def __init__(self, scenes: list[Scene], ids, api: _Api | None = None):
-        global _live_scenes
         api = api or binding()
         if api is None:
             raise RuntimeError("the compiled Embree binding is unavailable")
-        self._api = api
         self.scenes = list(scenes)
         # Embree keeps each instanced scene alive (reference counted), but not the arrays it
         # reads in place: hold them even if a scene is closed meanwhile.
@@ -768,13 +770,7 @@ class TopScene(_SceneHandle):
         if len(self.ids) != len(self.scenes):
             raise ValueError("one id per scene")
         self._filter = _filter_address()
-        self.handle = api.rtcNewScene(api.device)
-        if not self.handle:
-            api.check("rtcNewScene")
-            raise RuntimeError("rtcNewScene failed")
-        with _live_lock:
-            _live_scenes += 1
-        api.rtcSetSceneFlags(self.handle, SCENE_FLAGS)
+        self._open(api, SCENE_FLAGS)
         identity = np.zeros((4, 3), np.float32)  # column major 3x4: columns x, y, z, p
         identity[0, 0] = identity[1, 1] = identity[2, 2] = 1.0
         for k, scene in enumerate(self.scenes):
