@@ -134,6 +134,10 @@ class ManagementActor:
                 self._take(frames[1:] if from_peer else frames, from_peer)
             except Exception as exc:  # noqa: BLE001 - the receive path must never die
                 self.rejections.add("internal", f"{type(exc).__name__}: {exc}")
+            # A receive that finds a message waiting completes without yielding to the event
+            # loop: under a flood this loop would starve the heartbeat (the node then looked
+            # stalled to its coordinator in one CI run of the flood test). Yield each time.
+            await asyncio.sleep(0)
 
     def _take(self, frames: list, from_peer: bool) -> None:
         """Check one received message and deliver it to its mailbox, or drop it."""
