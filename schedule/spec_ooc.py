@@ -27,6 +27,7 @@ continuation rays beyond it wait in the **spill queue** until the window is reso
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -56,14 +57,24 @@ class SpeculativeSchedule:
     resident_first : start each round with the domains in memory (``next_domain``'s
         ``resident``) and serve a resident domain again when rays reach it after its turn,
         before anything new is loaded. False is the paper's pure score order. Default True.
+    serve_before_evict : with ``resident_first``, serve a resident domain's new rays when the
+        cache is about to evict it (``next_domain``'s ``victim``) rather than as soon as they
+        arrive: the same loads are avoided with fewer, larger batches. Default True.
+    rescore : with ``resident_first``, re-rank the rest of a round by the traversal scores of
+        now before each pick (the paper ranks a round once, Listing 2, line 12): rays queued
+        during the round count for the domains they will reach. Default True.
     """
 
     name = "spec-ooc"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], history_depth: int | None = None,
-                 resident_first: bool = True):
+                 resident_first: bool = True, serve_before_evict: bool = True,
+                 rescore: bool = True):
+        self.rescore = rescore
         self.resident_first = resident_first
+        self.serve_before_evict = serve_before_evict
+        self._victim_of: Callable[[], int | None] | None = None
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -105,7 +116,8 @@ class SpeculativeSchedule:
         self._camera = rays
         self._queue_radiance(self._with_history(rays))
 
-    def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
+    def next_domain(self, resident: frozenset[int] = frozenset(),
+                    victim: Callable[[], int | None] | None = None) -> int | None:
         """The next domain of the current round's schedule whose rays survive the filter;
         between rounds, retire and reschedule; between windows, resume spilled rays. None when
         the tile is done.
@@ -117,20 +129,32 @@ class SpeculativeSchedule:
         With ``resident_first``, ``resident`` (domains in memory now) lets a new round start
         with them, and a resident domain that has received rays since it was processed is
         served again before anything new is loaded: its rays cost no load now, and might cost
-        one next round.
+        one next round. With ``serve_before_evict`` and a ``victim`` (the domain the cache
+        would evict for a load now, None while there is room), a resident domain is served
+        again only when it is about to be evicted: the rays that reached it while it stayed
+        are traced in one batch instead of one batch per arrival.
         """
         if self._staged is not None:
             return self._staged[0]  # chosen and filtered already, not processed yet
         self._resident = resident
+        self._victim_of = victim
+        lazy = self.resident_first and self.serve_before_evict and victim is not None
         while True:
-            if self.resident_first and self.counters["rounds"]:
+            if self.resident_first and not lazy and self.counters["rounds"]:
                 waiting = self.radiance.counts() + self.shadow.counts()
                 again = [d for d in resident if waiting[d] and d not in self._schedule]
                 for domain in sorted(again, key=lambda d: (-waiting[d], d)):
                     if self._filter(domain):
                         return domain
             while self._schedule:
-                domain = self._schedule.pop(0)
+                if self.resident_first and self.rescore and len(self._schedule) > 1:
+                    self._schedule = traversal_order(self.counter, resident, self._schedule)
+                domain = self._schedule[0]
+                if lazy and domain not in resident:
+                    going = victim()
+                    if going is not None and going != domain and self._filter(going):
+                        return going  # its rays now, or a load for them later
+                self._schedule.pop(0)
                 if self._filter(domain):
                     return domain
             if self.counters["rounds"] and not self._end_round():
@@ -141,7 +165,12 @@ class SpeculativeSchedule:
     def likely_next(self, current: int) -> int | None:
         """A guess at the next domain, for the preloader: the first one after ``current`` in
         this round's schedule with a ray that would survive the filter now (the preloader
-        ignores a resident one)."""
+        ignores a resident one). With ``serve_before_evict``, None while the domain a load
+        would evict still has such rays (``next_domain`` serves it first)."""
+        if self.resident_first and self.serve_before_evict and self._victim_of is not None:
+            going = self._victim_of()
+            if going is not None and going != current and self._would_trace(going):
+                return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
     def process(self, domain: int, bvh) -> None:
@@ -413,15 +442,19 @@ def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
     return order[np.searchsorted(keys[order], values)]
 
 
-def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset()) -> list[int]:
+def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
+                    domains: list[int] | None = None) -> list[int]:
     """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
     ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M), lowest id on ties.
 
     Domains in ``resident`` go first (still by score among themselves). A fixed cyclic order is
     the worst case for an LRU cache smaller than the cycle (every access misses); starting each
     round with what the last one left resident turns those misses into hits (bench/ooc.py
-    measures both orders). Empty ``resident`` gives the paper's order.
+    measures both orders). Empty ``resident`` gives the paper's order. ``domains`` (ids) ranks
+    only those (the rest of a round, re-ranked by the scores of now); default: every domain.
     """
     m = counter.shape[1]
-    score = counter @ (m - np.arange(m))
-    return sorted(range(len(score)), key=lambda d: (d not in resident, -score[d], d))
+    ids = np.arange(len(counter)) if domains is None else np.asarray(domains, np.int64)
+    score = counter[ids] @ (m - np.arange(m))
+    near = np.fromiter((d not in resident for d in ids.tolist()), bool, len(ids))
+    return ids[np.lexsort((ids, -score, near))].tolist()
