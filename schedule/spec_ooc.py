@@ -307,50 +307,74 @@ class SpeculativeSchedule:
         self.radiance.push(domain, copies)
 
     def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
-        """Trace filtered radiance rays (statistics and pending visits already updated)."""
-        level = rays["depth"].astype(np.int64) - self.window_start
-        # Shallow first: a new closest hit at one depth makes the same path's deeper rays in
-        # this batch stale, and the filter must see that. Within one depth a path has at most
-        # one live ray, so its path id names its parent.
-        for depth in np.unique(level):
-            self._process_level(domain, bvh, rays.take(np.nonzero(level == depth)[0]), depth)
+        """Trace filtered radiance rays (statistics and pending visits already updated).
 
-    def _process_level(self, domain: int, bvh, rays: SoA, level: int) -> None:
-        # Filter again: a shallower level of this batch may have found a closer hit since.
-        live, keep = self._radiance_predicate(rays, level)
-        self.counters["wasted_rays"] += int(np.count_nonzero(~live))
-        self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        One Embree query for every depth in the batch, each ray bounded by its closest hit of
+        now; then, shallow first, the hits are offered to the history buffer: a new closest
+        hit at one depth makes the same path's deeper rays in this batch stale, and they are
+        dropped before they offer theirs (their query was wasted, and counted as a test).
+        Every winner of the batch is shaded in one call (Listing 4), whatever its depth: a
+        path has at most one winner per batch, since a win makes its deeper rays stale.
+        """
+        level = rays["depth"].astype(np.int64) - self.window_start
         path = rays["path"]
-        if not keep.any():
-            return
-        rays, path = rays.take(keep), path[keep]
         self.counters["radiance_tests"] += len(rays)
         r = bvh.intersect(rays["origin"], rays["direction"], self.hbuf_t[path, level])
         hits = ClosestHits(self.hbuf_t[path, level], self.hbuf_d[path, level],
                            rays["hit_ng"], rays["hit_material"], rays.fields.get("hit_color"))
-        won = hits.offer(np.arange(len(rays)), domain, bvh, r, self.color_source,
-                         self.scalar_range)
-        if not won.any():
+        winners = []
+        for depth in np.unique(level):
+            rows = np.nonzero(level == depth)[0]
+            live, keep = self._radiance_predicate_rows(rays, rows, int(depth))
+            self.counters["wasted_rays"] += int(np.count_nonzero(~live))
+            self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+            rows = rows[keep]
+            if len(rows) == 0:
+                continue
+            # the batch-wide record was read before this depth's paths could change: refresh
+            hits.t[rows] = self.hbuf_t[path[rows], depth]
+            hits.domain[rows] = self.hbuf_d[path[rows], depth]
+            won = rows[hits.offer(rows, domain, bvh, {k: v[rows] for k, v in r.items()},
+                                  self.color_source, self.scalar_range)]
+            if len(won) == 0:
+                continue
+            # The closest hit so far: record it; deeper entries belonged to the hit that just
+            # lost, so its descendants are stale now.
+            won_path = path[won]
+            self.hbuf_t[won_path, depth] = hits.t[won]
+            self.hbuf_d[won_path, depth] = domain
+            self.hbuf_t[won_path, depth + 1:] = np.inf
+            self.hbuf_d[won_path, depth + 1:] = NO_DOMAIN
+            if self.window_start == 0 and depth == 0:
+                self.first_normal[won_path] = hits.ng[won]
+            winners.append(won)
+        if not winners:
             return
-        # The closest hit so far: record it, and shade it speculatively (Listing 4).
-        rows = np.nonzero(won)[0]
-        path = path[rows]
-        self.hbuf_t[path, level] = hits.t[rows]
-        self.hbuf_d[path, level] = domain
-        # Deeper entries belonged to the hit that just lost; its descendants are stale now.
-        self.hbuf_t[path, level + 1:] = np.inf
-        self.hbuf_d[path, level + 1:] = NO_DOMAIN
-        if self.window_start == 0 and level == 0:
-            self.first_normal[path] = hits.ng[rows]
-        winners = rays.take(rows)
-        hist_t, hist_d = winners["hist_t"].copy(), winners["hist_d"].copy()
-        hist_t[:, level] = hits.t[rows]
-        hist_d[:, level] = domain
+        # Shade every winner speculatively (Listing 4).
+        won = np.concatenate(winners)
+        won_path, won_level = path[won], level[won]
+        if len(np.unique(won_path)) != len(won):  # _index_of names parents by path
+            raise RuntimeError("spec-ooc: two winners of one path in one batch")
+        hist_t, hist_d = rays["hist_t"][won], rays["hist_d"][won]
+        hist_t[np.arange(len(won)), won_level] = hits.t[won]
+        hist_d[np.arange(len(won)), won_level] = domain
         start = time.perf_counter()
-        shadow, continuation = shade(self.ctx, as_radiance(winners), hits.hits(rows))
+        shadow, continuation = shade(self.ctx, as_radiance(rays.take(won)), hits.hits(won))
         self.counters["shade_s"] += time.perf_counter() - start
-        self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, path)
-        self._spawn_radiance(continuation, hist_t, hist_d, path)
+        self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, won_path)
+        self._spawn_radiance(continuation, hist_t, hist_d, won_path)
+
+    def _radiance_predicate_rows(self, rays: SoA, rows: np.ndarray, depth: int
+                                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``_radiance_predicate`` for the rays ``rows`` (m,), all at window depth ``depth``."""
+        path = rays["path"][rows]
+        if depth:
+            same = ((rays["hist_t"][rows, :depth] == self.hbuf_t[path, :depth])
+                    & (rays["hist_d"][rows, :depth] == self.hbuf_d[path, :depth]))
+            live = np.all(same, axis=1)
+        else:
+            live = np.ones(len(rows), bool)
+        return live, live & (rays["entry"][rows] < self.hbuf_t[path, depth])
 
     def _spawn_radiance(self, rays: RadianceRays, hist_t, hist_d, parent_path) -> None:
         if len(rays) == 0:
