@@ -182,10 +182,23 @@ class SpeculativeSchedule:
             self._filter(domain)  # called without next_domain: filter now
         _, radiance, shadow = self._staged or (domain, None, None)
         self._staged = None
-        if radiance is not None:
-            self._process_radiance(domain, bvh, radiance)
+        spawned = None if radiance is None else self._process_radiance(domain, bvh, radiance)
+        tested = None if shadow is None else self._refilter_shadow(shadow)
+        # One occlusion query for the shadow rays just cast here and those queued here.
+        parts = [] if spawned is None else [spawned[0]]
+        if tested is not None and len(tested):
+            parts.append(as_shadow(shadow.take(tested)))
+        if parts:
+            blocked = bvh.occluded(*(np.concatenate([getattr(p, f) for p in parts])
+                                     for f in ("origin", "direction", "t_max")))
+            self.counters["shadow_tests"] += len(blocked)
+            n_new = 0 if spawned is None else len(spawned[0])
+            if spawned is not None:
+                self._spawn_shadow(domain, *spawned, blocked[:n_new])
+            if tested is not None and len(tested):
+                self.shadow_blocked[shadow["sid"][tested[blocked[n_new:]]]] = True
         if shadow is not None:
-            self._process_shadow(domain, bvh, shadow)
+            self._commit_ready(shadow)
         in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
 
@@ -306,7 +319,8 @@ class SpeculativeSchedule:
         np.add.at(self.counter, (domain, rank), 1)
         self.radiance.push(domain, copies)
 
-    def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
+    def _process_radiance(self, domain: int, bvh, rays: SoA
+                          ) -> tuple[ShadowRays, np.ndarray, np.ndarray, np.ndarray] | None:
         """Trace filtered radiance rays (statistics and pending visits already updated).
 
         One Embree query for every depth in the batch, each ray bounded by its closest hit of
@@ -315,6 +329,12 @@ class SpeculativeSchedule:
         dropped before they offer theirs (their query was wasted, and counted as a test).
         Every winner of the batch is shaded in one call (Listing 4), whatever its depth: a
         path has at most one winner per batch, since a win makes its deeper rays stale.
+
+        Returns
+        -------
+        The shadow rays the winners cast, untested, with their histories ((k, H + 1) t and
+        domain) and their paths ((k,)): ``process`` tests them here with the queued ones.
+        None when nothing won or nothing was cast.
         """
         level = rays["depth"].astype(np.int64) - self.window_start
         path = rays["path"]
@@ -349,7 +369,7 @@ class SpeculativeSchedule:
                 self.first_normal[won_path] = hits.ng[won]
             winners.append(won)
         if not winners:
-            return
+            return None
         # Shade every winner speculatively (Listing 4).
         won = np.concatenate(winners)
         won_path, won_level = path[won], level[won]
@@ -361,8 +381,8 @@ class SpeculativeSchedule:
         start = time.perf_counter()
         shadow, continuation = shade(self.ctx, as_radiance(rays.take(won)), hits.hits(won))
         self.counters["shade_s"] += time.perf_counter() - start
-        self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, won_path)
         self._spawn_radiance(continuation, hist_t, hist_d, won_path)
+        return (shadow, hist_t, hist_d, won_path) if len(shadow) else None
 
     def _radiance_predicate_rows(self, rays: SoA, rows: np.ndarray, depth: int
                                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -389,14 +409,11 @@ class SpeculativeSchedule:
         self._queue_radiance(soa.take(~beyond))
 
     # -- shadow rays --------------------------------------------------------------------------
-    def _spawn_shadow(self, domain: int, bvh, rays: ShadowRays, hist_t, hist_d,
-                      parent_path) -> None:
-        """processSecondary: test the current domain now, queue into the others it crosses."""
-        if len(rays) == 0:
-            return
+    def _spawn_shadow(self, domain: int, rays: ShadowRays, hist_t, hist_d, parent_path,
+                      blocked: np.ndarray) -> None:
+        """processSecondary: ``rays`` (k,) were tested against this domain (``blocked`` (k,));
+        queue the others into the other domains they cross, commit those that cross none."""
         self.counters["speculative_rays"] += len(rays)
-        self.counters["shadow_tests"] += len(rays)
-        blocked = bvh.occluded(rays.origin, rays.direction, rays.t_max)
         rows = np.nonzero(~blocked)[0]
         self.counters["filtered_rays"] += len(rays) - len(rows)
         if len(rows) == 0:
@@ -420,21 +437,21 @@ class SpeculativeSchedule:
             np.add.at(self.counter, (dom, rank), 1)
             self.shadow.push(dom, copies)
 
-    def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
-        """Test filtered shadow rays (statistics and pending visits already updated); commit
-        the unblocked ones that have visited every domain."""
+    def _refilter_shadow(self, rays: SoA) -> np.ndarray:
+        """Filter queued shadow rays again (statistics and pending visits already updated):
+        this domain's radiance rays may have just found closer hits. Returns the rows (m,)
+        still to test here."""
         sid = rays["sid"]
-        # Filter again: this domain's radiance rays may have just found closer hits.
         live, keep = self._shadow_predicate(rays)
         self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
         self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
         self.shadow_blocked[sid[~live]] = True
-        if keep.any():
-            tested = np.nonzero(keep)[0]
-            self.counters["shadow_tests"] += len(tested)
-            blocked = bvh.occluded(rays["origin"][tested], rays["direction"][tested],
-                                   rays["t_max"][tested])
-            self.shadow_blocked[sid[tested[blocked]]] = True
+        return np.nonzero(keep)[0]
+
+    def _commit_ready(self, rays: SoA) -> None:
+        """Commit the queued shadow rays, tested here, that are unblocked and have visited
+        every domain they cross."""
+        sid = rays["sid"]
         ready = (self.shadow_pending[sid] == 0) & ~self.shadow_blocked[sid]
         if ready.any():
             self.commit.append(rays.take(ready).without("entry", "rank"))
