@@ -14,7 +14,11 @@ one:
   spec-ooc's pure traversal-score order (Listing 2);
 * ``strongest``: both with every improvement this project has: the preloader thread (each
   schedule's ``likely_next``) and the resident-first rule (domains in memory are served before
-  anything is loaded).
+  anything is loaded); with it, spec-ooc also serves a resident domain's new rays when the
+  cache is about to evict it rather than on each arrival (``serve_before_evict``) and re-ranks
+  the rest of a round before each pick (``rescore``). The baseline has no counterpart to
+  either: it serves a resident domain's rays as soon as they arrive (before anything is
+  loaded, so never evicts one with rays waiting) and picks its fullest queue afresh each time.
 
 "load wait s" is the part of the load time the render thread actually waited: the rest was
 hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
@@ -23,7 +27,8 @@ domain (with the preloader: wrong guesses). Per cache size, integrator and confi
 prints ``loads_ratio=`` and ``time_ratio=`` (baseline / speculative) and ``loads_over_floor=``
 (spec-ooc loads / floor); the first triple printed is the strongest comparison at a 25 % cache
 with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
-``--ablation`` adds every switch combination for both schedules (PT, 25 % cache, first scene).
+``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
+turned off one at a time (PT, 25 % cache, first scene).
 
     python bench/ooc.py            # full run (well over an hour on 2 cores)
     python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
@@ -72,11 +77,13 @@ CONFIGS = {  # name -> render_out_of_core switches, the same for both schedules
 
 
 def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
-        history_depth: int | None = None, **switches) -> dict:
+        history_depth: int | None = None, schedule_options: dict | None = None,
+        **switches) -> dict:
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings, scheduler=scheduler,
                                 cache_capacity=cache, history_depth=history_depth,
-                                drop_page_cache=True, progress=False, **switches)
+                                drop_page_cache=True, progress=False,
+                                schedule_options=schedule_options, **switches)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
@@ -164,6 +171,17 @@ def ablation(store: Store, plan: dict) -> None:
                 print(f"| {scheduler} | {'yes' if resident_first else 'no'} "
                       f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
                       f"| {r['untraced']} | {r['wait_s']:.2f} | {r['total_s']:.2f} |", flush=True)
+    print(f"\n### spec-ooc's own switches (pt, strongest, cache {cache} of {n} domains)\n")
+    print("| serve before evict | rescore | preload | loads | floor | render s | total s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    for serve in (False, True):
+        for rescore in (False, True):
+            for preload in (False, True):
+                r = run(store, st, "spec-ooc", cache, resident_first=True, preload=preload,
+                        schedule_options={"serve_before_evict": serve, "rescore": rescore})
+                print(f"| {'yes' if serve else 'no'} | {'yes' if rescore else 'no'} "
+                      f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
+                      f"| {r['render_s']:.2f} | {r['total_s']:.2f} |", flush=True)
 
 
 def sweep(store: Store, plan: dict) -> None:
