@@ -24,11 +24,12 @@ one:
 hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
 be loaded at least once); "untraced loads" are loads after which no ray was traced against the
 domain (with the preloader: wrong guesses). Per cache size, integrator and configuration it
-prints ``loads_ratio=`` and ``time_ratio=`` (baseline / speculative) and ``loads_over_floor=``
-(spec-ooc loads / floor); the first triple printed is the strongest comparison at a 25 % cache
-with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
+prints ``loads_ratio=``, ``time_ratio=``, ``load_time_ratio=`` and ``render_ratio=`` (baseline
+/ speculative; render = the render thread's tracing time, without loads) and
+``loads_over_floor=`` (spec-ooc loads / floor), paper-faithful lines beside SpRay's figures;
+the first line printed is the strongest comparison at a 25 % cache with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
 ``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
-turned off one at a time (PT, 25 % cache, first scene).
+in every combination (PT, 25 % cache, first scene).
 
     python bench/ooc.py            # full run (well over an hour on 2 cores)
     python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
@@ -107,11 +108,23 @@ def row(integrator: str, config: str, r: dict, n_domains: int) -> str:
             f"| {r['wasted']:,} of {r['speculative']:,} |")
 
 
+SPRAY = "SpRay Fig. 6 (RM/Enzo, paper-faithful): 1.7-2.3x total, 2.7-3.2x load time"
+
+
 def comparison(integrator: str, fraction: float, config: str, base: dict, spec: dict) -> str:
+    """One line of ratios, baseline / speculative: loads, total time, load time and the
+    render thread's tracing time (what is not loading: per-batch work the two schedules do
+    differently), and spec-ooc's loads over its floor."""
     loads = base["loads"] / max(spec["loads"], 1)
     time_ratio = base["total_s"] / spec["total_s"]
+    load_time = base["load_s"] / max(spec["load_s"], 1e-9)
+    render = base["render_s"] / max(spec["render_s"], 1e-9)
     line = (f"{integrator} cache={round(100 * fraction)}% {config}: loads_ratio={loads:.2f} "
-            f"time_ratio={time_ratio:.2f} loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+            f"time_ratio={time_ratio:.2f} load_time_ratio={load_time:.2f} "
+            f"render_ratio={render:.2f} "
+            f"loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+    if config == "paper-faithful":
+        line += f"  [{SPRAY}]"
     wins = [what for what, ratio in (("loads", loads), ("time", time_ratio)) if ratio < 1]
     return line + (f"  <- the baseline wins on {' and '.join(wins)}" if wins else "")
 
