@@ -497,5 +497,5 @@ def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
     m = counter.shape[1]
     ids = np.arange(len(counter)) if domains is None else np.asarray(domains, np.int64)
     score = counter[ids] @ (m - np.arange(m))
-    near = np.fromiter((d not in resident for d in ids.tolist()), bool, len(ids))
-    return ids[np.lexsort((ids, -score, near))].tolist()
+    away = ~np.isin(ids, np.fromiter(resident, np.int64, len(resident)))
+    return ids[np.lexsort((ids, -score, away))].tolist()
