@@ -27,7 +27,8 @@ domain (with the preloader: wrong guesses). Per cache size, integrator and confi
 prints ``loads_ratio=``, ``time_ratio=``, ``load_time_ratio=`` and ``render_ratio=`` (baseline
 / speculative; render = the render thread's tracing time, without loads) and
 ``loads_over_floor=`` (spec-ooc loads / floor), paper-faithful lines beside SpRay's figures;
-the first line printed is the strongest comparison at a 25 % cache with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
+the first line printed is the strongest comparison at a 25 % cache with PT. Then the
+history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
 ``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
 in every combination (PT, 25 % cache, first scene).
 
