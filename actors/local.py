@@ -68,7 +68,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        resident_first: bool = True, drop_page_cache: bool = False,
                        progress: bool = True, share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
-                       threads: int | None = None) -> RenderResult:
+                       threads: int | None = None,
+                       schedule_options: dict | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
@@ -85,6 +86,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
     threads : threads every Embree query splits its rays over (default: all cores).
+    schedule_options : more keyword arguments of the schedule's constructor (e.g. spec-ooc's
+        ``serve_before_evict=False``, for ablations).
     """
     if scheduler not in SCHEDULERS:
         raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
@@ -110,11 +113,13 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                 ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                    setup.ao_distance)
                 kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
+                kwargs.update(schedule_options or {})
+                victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
                 policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
                                                setup.scalar_range, resident_first=resident_first,
                                                **kwargs)
                 policy.start(camera_rays(setup.camera, ctx))
-                while (domain := policy.next_domain(cache.resident_set())) is not None:
+                while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
                     bvh = cache.get(domain)
                     if preload:
                         cache.prefetch(policy.likely_next(domain))

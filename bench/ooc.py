@@ -14,16 +14,23 @@ one:
   spec-ooc's pure traversal-score order (Listing 2);
 * ``strongest``: both with every improvement this project has: the preloader thread (each
   schedule's ``likely_next``) and the resident-first rule (domains in memory are served before
-  anything is loaded).
+  anything is loaded); with it, spec-ooc also serves a resident domain's new rays when the
+  cache is about to evict it rather than on each arrival (``serve_before_evict``) and re-ranks
+  the rest of a round before each pick (``rescore``). The baseline has no counterpart to
+  either: it serves a resident domain's rays as soon as they arrive (before anything is
+  loaded, so never evicts one with rays waiting) and picks its fullest queue afresh each time.
 
 "load wait s" is the part of the load time the render thread actually waited: the rest was
 hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
 be loaded at least once); "untraced loads" are loads after which no ray was traced against the
 domain (with the preloader: wrong guesses). Per cache size, integrator and configuration it
-prints ``loads_ratio=`` and ``time_ratio=`` (baseline / speculative) and ``loads_over_floor=``
-(spec-ooc loads / floor); the first triple printed is the strongest comparison at a 25 % cache
-with PT. Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
-``--ablation`` adds every switch combination for both schedules (PT, 25 % cache, first scene).
+prints ``loads_ratio=``, ``time_ratio=``, ``load_time_ratio=`` and ``render_ratio=`` (baseline
+/ speculative; render = the render thread's tracing time, without loads) and
+``loads_over_floor=`` (spec-ooc loads / floor), paper-faithful lines beside SpRay's figures;
+the first line printed is the strongest comparison at a 25 % cache with PT. Then the
+history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
+``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
+in every combination (PT, 25 % cache, first scene).
 
     python bench/ooc.py            # full run (well over an hour on 2 cores)
     python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
@@ -72,11 +79,13 @@ CONFIGS = {  # name -> render_out_of_core switches, the same for both schedules
 
 
 def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
-        history_depth: int | None = None, **switches) -> dict:
+        history_depth: int | None = None, schedule_options: dict | None = None,
+        **switches) -> dict:
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings, scheduler=scheduler,
                                 cache_capacity=cache, history_depth=history_depth,
-                                drop_page_cache=True, progress=False, **switches)
+                                drop_page_cache=True, progress=False,
+                                schedule_options=schedule_options, **switches)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
@@ -100,11 +109,23 @@ def row(integrator: str, config: str, r: dict, n_domains: int) -> str:
             f"| {r['wasted']:,} of {r['speculative']:,} |")
 
 
+SPRAY = "SpRay Fig. 6 (RM/Enzo, paper-faithful): 1.7-2.3x total, 2.7-3.2x load time"
+
+
 def comparison(integrator: str, fraction: float, config: str, base: dict, spec: dict) -> str:
+    """One line of ratios, baseline / speculative: loads, total time, load time and the
+    render thread's tracing time (what is not loading: per-batch work the two schedules do
+    differently), and spec-ooc's loads over its floor."""
     loads = base["loads"] / max(spec["loads"], 1)
     time_ratio = base["total_s"] / spec["total_s"]
+    load_time = base["load_s"] / max(spec["load_s"], 1e-9)
+    render = base["render_s"] / max(spec["render_s"], 1e-9)
     line = (f"{integrator} cache={round(100 * fraction)}% {config}: loads_ratio={loads:.2f} "
-            f"time_ratio={time_ratio:.2f} loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+            f"time_ratio={time_ratio:.2f} load_time_ratio={load_time:.2f} "
+            f"render_ratio={render:.2f} "
+            f"loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+    if config == "paper-faithful":
+        line += f"  [{SPRAY}]"
     wins = [what for what, ratio in (("loads", loads), ("time", time_ratio)) if ratio < 1]
     return line + (f"  <- the baseline wins on {' and '.join(wins)}" if wins else "")
 
@@ -164,6 +185,17 @@ def ablation(store: Store, plan: dict) -> None:
                 print(f"| {scheduler} | {'yes' if resident_first else 'no'} "
                       f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
                       f"| {r['untraced']} | {r['wait_s']:.2f} | {r['total_s']:.2f} |", flush=True)
+    print(f"\n### spec-ooc's own switches (pt, strongest, cache {cache} of {n} domains)\n")
+    print("| serve before evict | rescore | preload | loads | floor | render s | total s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    for serve in (False, True):
+        for rescore in (False, True):
+            for preload in (False, True):
+                r = run(store, st, "spec-ooc", cache, resident_first=True, preload=preload,
+                        schedule_options={"serve_before_evict": serve, "rescore": rescore})
+                print(f"| {'yes' if serve else 'no'} | {'yes' if rescore else 'no'} "
+                      f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
+                      f"| {r['render_s']:.2f} | {r['total_s']:.2f} |", flush=True)
 
 
 def sweep(store: Store, plan: dict) -> None:

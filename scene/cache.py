@@ -148,6 +148,14 @@ class DomainCache:
             self._priority = priority
             self._protect = frozenset(int(d) for d in protect)
 
+    def victim(self) -> int | None:
+        """The domain a load now would evict (None while there is room): what a schedule
+        serves before it goes (see ``SpeculativeSchedule``'s ``serve_before_evict``)."""
+        with self._lock:
+            if len(self._resident) + len(self._pending) < self.capacity or not self._resident:
+                return None
+            return self._victim(False)
+
     def _victim(self, for_preload: bool) -> int | None:
         """The resident domain to evict next: the lowest priority (least recently used on
         ties, or when there are no priorities) outside the protected set."""

@@ -27,6 +27,7 @@ continuation rays beyond it wait in the **spill queue** until the window is reso
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -56,14 +57,24 @@ class SpeculativeSchedule:
     resident_first : start each round with the domains in memory (``next_domain``'s
         ``resident``) and serve a resident domain again when rays reach it after its turn,
         before anything new is loaded. False is the paper's pure score order. Default True.
+    serve_before_evict : with ``resident_first``, serve a resident domain's new rays when the
+        cache is about to evict it (``next_domain``'s ``victim``) rather than as soon as they
+        arrive: the same loads are avoided with fewer, larger batches. Default True.
+    rescore : with ``resident_first``, re-rank the rest of a round by the traversal scores of
+        now before each pick (the paper ranks a round once, Listing 2, line 12): rays queued
+        during the round count for the domains they will reach. Default True.
     """
 
     name = "spec-ooc"
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], history_depth: int | None = None,
-                 resident_first: bool = True):
+                 resident_first: bool = True, serve_before_evict: bool = True,
+                 rescore: bool = True):
+        self.rescore = rescore
         self.resident_first = resident_first
+        self.serve_before_evict = serve_before_evict
+        self._victim_of: Callable[[], int | None] | None = None
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -105,7 +116,8 @@ class SpeculativeSchedule:
         self._camera = rays
         self._queue_radiance(self._with_history(rays))
 
-    def next_domain(self, resident: frozenset[int] = frozenset()) -> int | None:
+    def next_domain(self, resident: frozenset[int] = frozenset(),
+                    victim: Callable[[], int | None] | None = None) -> int | None:
         """The next domain of the current round's schedule whose rays survive the filter;
         between rounds, retire and reschedule; between windows, resume spilled rays. None when
         the tile is done.
@@ -117,20 +129,32 @@ class SpeculativeSchedule:
         With ``resident_first``, ``resident`` (domains in memory now) lets a new round start
         with them, and a resident domain that has received rays since it was processed is
         served again before anything new is loaded: its rays cost no load now, and might cost
-        one next round.
+        one next round. With ``serve_before_evict`` and a ``victim`` (the domain the cache
+        would evict for a load now, None while there is room), a resident domain is served
+        again only when it is about to be evicted: the rays that reached it while it stayed
+        are traced in one batch instead of one batch per arrival.
         """
         if self._staged is not None:
             return self._staged[0]  # chosen and filtered already, not processed yet
         self._resident = resident
+        self._victim_of = victim
+        lazy = self.resident_first and self.serve_before_evict and victim is not None
         while True:
-            if self.resident_first and self.counters["rounds"]:
+            if self.resident_first and not lazy and self.counters["rounds"]:
                 waiting = self.radiance.counts() + self.shadow.counts()
                 again = [d for d in resident if waiting[d] and d not in self._schedule]
                 for domain in sorted(again, key=lambda d: (-waiting[d], d)):
                     if self._filter(domain):
                         return domain
             while self._schedule:
-                domain = self._schedule.pop(0)
+                if self.resident_first and self.rescore and len(self._schedule) > 1:
+                    self._schedule = traversal_order(self.counter, resident, self._schedule)
+                domain = self._schedule[0]
+                if lazy and domain not in resident:
+                    going = victim()
+                    if going is not None and going != domain and self._filter(going):
+                        return going  # its rays now, or a load for them later
+                self._schedule.pop(0)
                 if self._filter(domain):
                     return domain
             if self.counters["rounds"] and not self._end_round():
@@ -141,7 +165,12 @@ class SpeculativeSchedule:
     def likely_next(self, current: int) -> int | None:
         """A guess at the next domain, for the preloader: the first one after ``current`` in
         this round's schedule with a ray that would survive the filter now (the preloader
-        ignores a resident one)."""
+        ignores a resident one). With ``serve_before_evict``, None while the domain a load
+        would evict still has such rays (``next_domain`` serves it first)."""
+        if self.resident_first and self.serve_before_evict and self._victim_of is not None:
+            going = self._victim_of()
+            if going is not None and going != current and self._would_trace(going):
+                return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
     def process(self, domain: int, bvh) -> None:
@@ -153,10 +182,23 @@ class SpeculativeSchedule:
             self._filter(domain)  # called without next_domain: filter now
         _, radiance, shadow = self._staged or (domain, None, None)
         self._staged = None
-        if radiance is not None:
-            self._process_radiance(domain, bvh, radiance)
+        spawned = None if radiance is None else self._process_radiance(domain, bvh, radiance)
+        tested = None if shadow is None else self._refilter_shadow(shadow)
+        # One occlusion query for the shadow rays just cast here and those queued here.
+        parts = [] if spawned is None else [spawned[0]]
+        if tested is not None and len(tested):
+            parts.append(as_shadow(shadow.take(tested)))
+        if parts:
+            blocked = bvh.occluded(*(np.concatenate([getattr(p, f) for p in parts])
+                                     for f in ("origin", "direction", "t_max")))
+            self.counters["shadow_tests"] += len(blocked)
+            n_new = 0 if spawned is None else len(spawned[0])
+            if spawned is not None:
+                self._spawn_shadow(domain, *spawned, blocked[:n_new])
+            if tested is not None and len(tested):
+                self.shadow_blocked[shadow["sid"][tested[blocked[n_new:]]]] = True
         if shadow is not None:
-            self._process_shadow(domain, bvh, shadow)
+            self._commit_ready(shadow)
         in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
 
@@ -277,51 +319,82 @@ class SpeculativeSchedule:
         np.add.at(self.counter, (domain, rank), 1)
         self.radiance.push(domain, copies)
 
-    def _process_radiance(self, domain: int, bvh, rays: SoA) -> None:
-        """Trace filtered radiance rays (statistics and pending visits already updated)."""
-        level = rays["depth"].astype(np.int64) - self.window_start
-        # Shallow first: a new closest hit at one depth makes the same path's deeper rays in
-        # this batch stale, and the filter must see that. Within one depth a path has at most
-        # one live ray, so its path id names its parent.
-        for depth in np.unique(level):
-            self._process_level(domain, bvh, rays.take(np.nonzero(level == depth)[0]), depth)
+    def _process_radiance(self, domain: int, bvh, rays: SoA
+                          ) -> tuple[ShadowRays, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Trace filtered radiance rays (statistics and pending visits already updated).
 
-    def _process_level(self, domain: int, bvh, rays: SoA, level: int) -> None:
-        # Filter again: a shallower level of this batch may have found a closer hit since.
-        live, keep = self._radiance_predicate(rays, level)
-        self.counters["wasted_rays"] += int(np.count_nonzero(~live))
-        self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+        One Embree query for every depth in the batch, each ray bounded by its closest hit of
+        now; then, shallow first, the hits are offered to the history buffer: a new closest
+        hit at one depth makes the same path's deeper rays in this batch stale, and they are
+        dropped before they offer theirs (their query was wasted, and counted as a test).
+        Every winner of the batch is shaded in one call (Listing 4), whatever its depth: a
+        path has at most one winner per batch, since a win makes its deeper rays stale.
+
+        Returns
+        -------
+        The shadow rays the winners cast, untested, with their histories ((k, H + 1) t and
+        domain) and their paths ((k,)): ``process`` tests them here with the queued ones.
+        None when nothing won or nothing was cast.
+        """
+        level = rays["depth"].astype(np.int64) - self.window_start
         path = rays["path"]
-        if not keep.any():
-            return
-        rays, path = rays.take(keep), path[keep]
         self.counters["radiance_tests"] += len(rays)
         r = bvh.intersect(rays["origin"], rays["direction"], self.hbuf_t[path, level])
         hits = ClosestHits(self.hbuf_t[path, level], self.hbuf_d[path, level],
                            rays["hit_ng"], rays["hit_material"], rays.fields.get("hit_color"))
-        won = hits.offer(np.arange(len(rays)), domain, bvh, r, self.color_source,
-                         self.scalar_range)
-        if not won.any():
-            return
-        # The closest hit so far: record it, and shade it speculatively (Listing 4).
-        rows = np.nonzero(won)[0]
-        path = path[rows]
-        self.hbuf_t[path, level] = hits.t[rows]
-        self.hbuf_d[path, level] = domain
-        # Deeper entries belonged to the hit that just lost; its descendants are stale now.
-        self.hbuf_t[path, level + 1:] = np.inf
-        self.hbuf_d[path, level + 1:] = NO_DOMAIN
-        if self.window_start == 0 and level == 0:
-            self.first_normal[path] = hits.ng[rows]
-        winners = rays.take(rows)
-        hist_t, hist_d = winners["hist_t"].copy(), winners["hist_d"].copy()
-        hist_t[:, level] = hits.t[rows]
-        hist_d[:, level] = domain
+        winners = []
+        for depth in np.unique(level):
+            rows = np.nonzero(level == depth)[0]
+            live, keep = self._radiance_predicate_rows(rays, rows, int(depth))
+            self.counters["wasted_rays"] += int(np.count_nonzero(~live))
+            self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
+            rows = rows[keep]
+            if len(rows) == 0:
+                continue
+            # the batch-wide record was read before this depth's paths could change: refresh
+            hits.t[rows] = self.hbuf_t[path[rows], depth]
+            hits.domain[rows] = self.hbuf_d[path[rows], depth]
+            won = rows[hits.offer(rows, domain, bvh, {k: v[rows] for k, v in r.items()},
+                                  self.color_source, self.scalar_range)]
+            if len(won) == 0:
+                continue
+            # The closest hit so far: record it; deeper entries belonged to the hit that just
+            # lost, so its descendants are stale now.
+            won_path = path[won]
+            self.hbuf_t[won_path, depth] = hits.t[won]
+            self.hbuf_d[won_path, depth] = domain
+            self.hbuf_t[won_path, depth + 1:] = np.inf
+            self.hbuf_d[won_path, depth + 1:] = NO_DOMAIN
+            if self.window_start == 0 and depth == 0:
+                self.first_normal[won_path] = hits.ng[won]
+            winners.append(won)
+        if not winners:
+            return None
+        # Shade every winner speculatively (Listing 4).
+        won = np.concatenate(winners)
+        won_path, won_level = path[won], level[won]
+        if len(np.unique(won_path)) != len(won):  # _index_of names parents by path
+            raise RuntimeError("spec-ooc: two winners of one path in one batch")
+        hist_t, hist_d = rays["hist_t"][won], rays["hist_d"][won]
+        hist_t[np.arange(len(won)), won_level] = hits.t[won]
+        hist_d[np.arange(len(won)), won_level] = domain
         start = time.perf_counter()
-        shadow, continuation = shade(self.ctx, as_radiance(winners), hits.hits(rows))
+        shadow, continuation = shade(self.ctx, as_radiance(rays.take(won)), hits.hits(won))
         self.counters["shade_s"] += time.perf_counter() - start
-        self._spawn_shadow(domain, bvh, shadow, hist_t, hist_d, path)
-        self._spawn_radiance(continuation, hist_t, hist_d, path)
+        self._spawn_radiance(continuation, hist_t, hist_d, won_path)
+        return (shadow, hist_t, hist_d, won_path) if len(shadow) else None
+
+    def _radiance_predicate_rows(self, rays: SoA, rows: np.ndarray, depth: int
+                                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``_radiance_predicate`` for the rays ``rows`` (m,), all at window depth ``depth``."""
+        path = rays["path"][rows]
+        if depth:
+            same = ((rays["hist_t"][rows, :depth] == self.hbuf_t[path, :depth])
+                    & (rays["hist_d"][rows, :depth] == self.hbuf_d[path, :depth]))
+            live = np.all(same, axis=1)
+        else:
+            live = np.ones(len(rows), bool)
+        return live, live & (rays["entry"][rows] < self.hbuf_t[path, depth])
 
     def _spawn_radiance(self, rays: RadianceRays, hist_t, hist_d, parent_path) -> None:
         if len(rays) == 0:
@@ -336,14 +409,11 @@ class SpeculativeSchedule:
         self._queue_radiance(soa.take(~beyond))
 
     # -- shadow rays --------------------------------------------------------------------------
-    def _spawn_shadow(self, domain: int, bvh, rays: ShadowRays, hist_t, hist_d,
-                      parent_path) -> None:
-        """processSecondary: test the current domain now, queue into the others it crosses."""
-        if len(rays) == 0:
-            return
+    def _spawn_shadow(self, domain: int, rays: ShadowRays, hist_t, hist_d, parent_path,
+                      blocked: np.ndarray) -> None:
+        """processSecondary: ``rays`` (k,) were tested against this domain (``blocked`` (k,));
+        queue the others into the other domains they cross, commit those that cross none."""
         self.counters["speculative_rays"] += len(rays)
-        self.counters["shadow_tests"] += len(rays)
-        blocked = bvh.occluded(rays.origin, rays.direction, rays.t_max)
         rows = np.nonzero(~blocked)[0]
         self.counters["filtered_rays"] += len(rays) - len(rows)
         if len(rows) == 0:
@@ -367,21 +437,21 @@ class SpeculativeSchedule:
             np.add.at(self.counter, (dom, rank), 1)
             self.shadow.push(dom, copies)
 
-    def _process_shadow(self, domain: int, bvh, rays: SoA) -> None:
-        """Test filtered shadow rays (statistics and pending visits already updated); commit
-        the unblocked ones that have visited every domain."""
+    def _refilter_shadow(self, rays: SoA) -> np.ndarray:
+        """Filter queued shadow rays again (statistics and pending visits already updated):
+        this domain's radiance rays may have just found closer hits. Returns the rows (m,)
+        still to test here."""
         sid = rays["sid"]
-        # Filter again: this domain's radiance rays may have just found closer hits.
         live, keep = self._shadow_predicate(rays)
         self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
         self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
         self.shadow_blocked[sid[~live]] = True
-        if keep.any():
-            tested = np.nonzero(keep)[0]
-            self.counters["shadow_tests"] += len(tested)
-            blocked = bvh.occluded(rays["origin"][tested], rays["direction"][tested],
-                                   rays["t_max"][tested])
-            self.shadow_blocked[sid[tested[blocked]]] = True
+        return np.nonzero(keep)[0]
+
+    def _commit_ready(self, rays: SoA) -> None:
+        """Commit the queued shadow rays, tested here, that are unblocked and have visited
+        every domain they cross."""
+        sid = rays["sid"]
         ready = (self.shadow_pending[sid] == 0) & ~self.shadow_blocked[sid]
         if ready.any():
             self.commit.append(rays.take(ready).without("entry", "rank"))
@@ -413,15 +483,19 @@ def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
     return order[np.searchsorted(keys[order], values)]
 
 
-def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset()) -> list[int]:
+def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
+                    domains: list[int] | None = None) -> list[int]:
     """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
     ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M), lowest id on ties.
 
     Domains in ``resident`` go first (still by score among themselves). A fixed cyclic order is
     the worst case for an LRU cache smaller than the cycle (every access misses); starting each
     round with what the last one left resident turns those misses into hits (bench/ooc.py
-    measures both orders). Empty ``resident`` gives the paper's order.
+    measures both orders). Empty ``resident`` gives the paper's order. ``domains`` (ids) ranks
+    only those (the rest of a round, re-ranked by the scores of now); default: every domain.
     """
     m = counter.shape[1]
-    score = counter @ (m - np.arange(m))
-    return sorted(range(len(score)), key=lambda d: (d not in resident, -score[d], d))
+    ids = np.arange(len(counter)) if domains is None else np.asarray(domains, np.int64)
+    score = counter[ids] @ (m - np.arange(m))
+    away = ~np.isin(ids, np.fromiter(resident, np.int64, len(resident)))
+    return ids[np.lexsort((ids, -score, away))].tolist()

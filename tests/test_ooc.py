@@ -131,6 +131,67 @@ def test_traversal_order_follows_the_score():
     assert traversal_order(np.zeros((3, 3), np.int64)) == [0, 1, 2]
 
 
+def test_traversal_order_ranks_the_rest_of_a_round():
+    # rescore: only the domains still to visit are ranked, by the scores of now.
+    counter = np.array([[0, 0, 3],
+                        [1, 0, 0],
+                        [0, 2, 0],
+                        [2, 1, 0]])
+    assert traversal_order(counter, domains=[0, 1, 2]) == [2, 0, 1]
+    counter[1, 0] = 5  # rays queued for domain 1 during the round
+    assert traversal_order(counter, domains=[0, 1, 2]) == [1, 2, 0]
+    assert traversal_order(counter, frozenset({0}), [0, 1, 2]) == [0, 1, 2]
+
+
+def _drive(store, config, st, cache_capacity, **options):
+    """Run spec-ooc over one tile by hand (sequential loads). Returns (evicted with rays
+    that would still be traced, process calls, film radiance, most loads of one domain in
+    one round)."""
+    setup = RenderSetup.of(store, config, st)
+    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
+    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                                 **options)
+    policy.start(camera_rays(setup.camera, ctx))
+    cache = DomainCache(store, cache_capacity, setup.keep)
+    unserved = calls = 0
+    loads: dict[tuple[int, int], int] = {}  # (round, domain) -> loads
+    while (domain := policy.next_domain(cache.resident_set(), victim=cache.victim)) is not None:
+        going = cache.victim()
+        if domain not in cache:
+            key = (policy.counters["rounds"], domain)
+            loads[key] = loads.get(key, 0) + 1
+            if going is not None and policy._would_trace(going):
+                unserved += 1
+        policy.process(domain, cache.get(domain))
+        calls += 1
+    return unserved, calls, policy.result.radiance, max(loads.values())
+
+
+def test_spec_ooc_serves_a_resident_domain_before_it_is_evicted(bumpy, config):
+    # serve_before_evict: rays that reached a resident domain are traced before a load evicts
+    # it (never a reload for them), in fewer batches than serving each arrival at once.
+    st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
+    lazy, lazy_calls, lazy_radiance, lazy_reloads = _drive(bumpy, config, st, 5)
+    eager, eager_calls, eager_radiance, _ = _drive(bumpy, config, st, 5,
+                                                   serve_before_evict=False)
+    paper, _, _, _ = _drive(bumpy, config, st, 5, resident_first=False)
+    assert lazy == 0 and eager == 0
+    assert lazy_reloads == 1  # no domain is loaded twice in one round
+    assert paper > 0  # the paper's order evicts domains with rays left (the check can fail)
+    assert lazy_calls < eager_calls
+    np.testing.assert_allclose(lazy_radiance, eager_radiance, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("options", [{"serve_before_evict": False}, {"rescore": False},
+                                     {"serve_before_evict": False, "rescore": False}])
+def test_spec_ooc_switches_match_reference(bumpy, config, options):
+    st = settings(width=24, height=18, spp=2, integrator="pt", bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+    result = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=4,
+                                schedule_options=options, progress=False)
+    assert_same(result.film.image(), reference, str(options))
+
+
 def test_spec_ooc_first_round_follows_the_score(bumpy, config):
     # In the paper's order (no resident rule) the first round visits domains in descending
     # score of the camera rays' Counter; skipped domains only leave gaps.

@@ -110,3 +110,21 @@ def test_node_state_keeps_one_preloader_across_frames(store):
     first = state.preloader_for(store, 2, frozenset(), {"threads": 1})
     assert state.preloader_for(store, 3, frozenset(), {"threads": 1}) is first
     state.close()
+
+
+def test_victim_names_the_domain_a_load_would_evict(store):
+    ids = nonempty(store)[:3]
+    cache = DomainCache(store, 2)
+    assert cache.victim() is None  # room left: a load evicts nothing
+    cache.get(ids[0])
+    assert cache.victim() is None
+    cache.get(ids[1])
+    assert cache.victim() == ids[0]  # least recently used
+    cache.get(ids[0])
+    assert cache.victim() == ids[1]
+    priority = np.zeros(len(store.domains))
+    priority[ids[1]] = 1.0
+    cache.prioritise(priority)
+    assert cache.victim() == ids[0]  # lowest priority first
+    cache.get(ids[2])
+    assert set(cache.resident()) == {ids[1], ids[2]}  # what victim() named went
