@@ -28,12 +28,12 @@ def local_ssh(tmp_path):
     return str(script)
 
 
-def _assert_reference_image(store, out: Path, tmp_path: Path) -> None:
-    """The launched render equals the single-process render of the same settings (a black or
-    partial image does not pass)."""
+def _assert_reference_image(store, out: Path, tmp_path: Path, spp: int = 2) -> None:
+    """The launched render (24x18, ``spp``) equals the single-process render of the same
+    settings (a black or partial image does not pass)."""
     reference = tmp_path / "reference.exr"
     assert main(["render", str(store.path), "-o", str(reference), "--width", "24", "--height",
-                 "18", "--spp", "2", "--quiet"]) == 0
+                 "18", "--spp", str(spp), "--quiet"]) == 0
     expected = read_exr(reference)
     assert expected.max() > 0.05
     np.testing.assert_allclose(read_exr(out), expected, rtol=1e-6, atol=1e-6)
@@ -148,7 +148,8 @@ def test_launch_over_a_real_ssh_server(tmp_path, sshd):
 
 def test_launch_survives_a_node_killed_mid_frame(tmp_path, local_ssh, capsys):
     # kill -9 of the node that got rank 2: its session exits, the coordinator does not wait
-    # for it again, and the two others regroup and render the frame.
+    # for it again, and the two others regroup and render the frame. 16 spp in tiles of 50
+    # paths keep the frame going for seconds after the kill (at 2 spp it could end first).
     import os
     import re
     import signal
@@ -180,7 +181,7 @@ def test_launch_survives_a_node_killed_mid_frame(tmp_path, local_ssh, capsys):
         code = main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
                      "--ssh", local_ssh, "--logs", str(logs), str(store.path), "-o", str(out),
                      "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
-                     "--spp", "2", "--node-timeout", "30", "--heartbeat-timeout", "5",
+                     "--spp", "16", "--node-timeout", "30", "--heartbeat-timeout", "5",
                      "--scheduler", "async", "--max-samples-in-flight", "50"])
     finally:
         striker.join()
@@ -189,7 +190,7 @@ def test_launch_survives_a_node_killed_mid_frame(tmp_path, local_ssh, capsys):
     assert code == 0, err
     assert re.search(r"node on \S+ \(node \d\) exited with code \S+: .*; rendering the frame "
                      r"again on the 2 other node\(s\) once they have joined again", err), err
-    _assert_reference_image(store, out, tmp_path)
+    _assert_reference_image(store, out, tmp_path, spp=16)
 
 
 def _writing_to(log: Path) -> list[int]:
