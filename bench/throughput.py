@@ -18,6 +18,7 @@ import argparse
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 from bench_scenes import cached_rm
@@ -100,6 +101,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                         help="Embree threads for both sides (default: all cores)")
     parser.add_argument("--batch-size", type=int, default=65536)
+    parser.add_argument("--cold", action="store_true",
+                        help="no untimed warm-up render (numba's start is timed)")
     args = parser.parse_args()
     store = scene(args.resolution)
     print(f"scene: rm {args.resolution}^3, {store.n_triangles:,} triangles in "
@@ -107,6 +110,11 @@ def main() -> None:
     settings = RenderSettings(width=args.width, height=args.height, spp=args.spp,
                               integrator="pt", bounces=3, shadow_samples=args.shadow_samples,
                               batch_size=args.batch_size)
+    if not args.cold:
+        start = time.perf_counter()
+        render(store, SceneConfig(), replace(settings, width=32, height=24, spp=1),
+               threads=args.threads, progress=False)
+        print(f"warm-up render (untimed): {time.perf_counter() - start:.2f} s")
     batches: list = []
     result = render(store, SceneConfig(), settings, threads=args.threads, progress=False,
                     record_rays=batches)
