@@ -145,3 +145,40 @@ def test_fused_radiance_sum_equals_bincount():
     add_unoccluded(numpy_sum, shadow, lit, fused=False)
     assert not np.array_equal(fused, start)
     np.testing.assert_array_equal(fused, numpy_sum)
+
+
+@pytest.mark.parametrize("pad", [0.0, 1e-6])
+def test_fused_flat_box_intervals_equal_the_slab_test(pad):
+    # Rays from box corners and planes, along axes, with denormal direction components (their
+    # inverse is inf: 0 * inf = NaN in the slab arithmetic) and at random: the kernel's
+    # distances are the numpy pass's and RaySlabs.intervals', bit for bit (NaN where they are).
+    from vastray.render.boxtree import BoxTree
+    from vastray.render.tracer import RaySlabs
+
+    rng = np.random.default_rng(4)
+    edges = np.linspace(-1.0, 1.0, 4)
+    cells = np.stack(np.meshgrid(edges[:-1], edges[:-1], edges[:-1], indexing="ij"), -1)
+    lo = cells.reshape(-1, 3)
+    hi = lo + 2.0 / 3.0
+    tree = BoxTree(lo, hi)
+    assert tree.flat
+    n = 6000
+    origin = rng.uniform(-1.5, 1.5, (n, 3))
+    origin[:1000] = rng.choice(edges, (1000, 3))  # on corners and planes
+    direction = rng.standard_normal((n, 3))
+    direction[:2000, rng.integers(0, 3, 2000)] = 0.0
+    direction[2000:2500, :2] = 0.0
+    direction[:500, 0] = 1e-45  # float32 denormal, on the planes of the first 1000 origins
+    slabs = RaySlabs(origin.astype(np.float32), direction.astype(np.float32), pad)
+    near, far = tree.flat_intervals(slabs)
+    rays, boxes = tree._rays(slabs), tree.padded(slabs.pad)
+    ref_near, ref_far = tree._flat_intervals_numpy(rays, boxes, 0, n)
+    np.testing.assert_array_equal(near, ref_near)
+    np.testing.assert_array_equal(far, ref_far)
+    for i, box in enumerate(tree.flat_ids):
+        t0, t1 = slabs.intervals(lo[box], hi[box])
+        np.testing.assert_array_equal(near[i], t0)
+        np.testing.assert_array_equal(far[i], t1)
+    assert np.isfinite(near).mean() > 0.5
+    if pad == 0.0:  # origins exactly on the (unpadded) planes
+        assert np.isnan(near).any()
