@@ -23,8 +23,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vastray.render import kernels
-
 if TYPE_CHECKING:  # the tracer builds a BoxTree: import its RaySlabs for annotations only
     from vastray.render.tracer import RaySlabs
 
@@ -192,21 +190,12 @@ class BoxTree:
     def _flat_intervals(self, rays: np.ndarray, boxes: np.ndarray, first: int, stop: int
                         ) -> tuple[np.ndarray, np.ndarray]:
         """Entry and exit distances of rays ``first:stop`` through every box (ascending ids),
-        with the operations of ``RaySlabs.intervals`` in its order (one fused kernel,
-        ``kernels.flat_intervals``; ``_flat_intervals_numpy`` is the same in numpy).
+        with the operations of ``RaySlabs.intervals`` in its order.
 
         Returns
         -------
         t_enter, t_exit : (m, stop - first) float32
         """
-        near = np.empty((self.size, stop - first), np.float32)
-        far = np.empty((self.size, stop - first), np.float32)
-        kernels.flat_intervals(rays, boxes, self._flat_nodes, first, stop, near, far)
-        return near, far
-
-    def _flat_intervals_numpy(self, rays: np.ndarray, boxes: np.ndarray, first: int, stop: int
-                              ) -> tuple[np.ndarray, np.ndarray]:
-        """``_flat_intervals`` as numpy broadcasts (the kernel's reference in tests)."""
         r = rays[:, None, first:stop]  # (6, 1, c): rays run along the fast axis
         ab = boxes[:, self._flat_nodes, None]  # (6, m, 1)
         with np.errstate(over="ignore", invalid="ignore"):
@@ -231,9 +220,16 @@ class BoxTree:
             bit-identical to ``slabs.intervals``.
         """
         n = slabs.origin.shape[1]
-        if not (self.size and n):
-            return np.empty((self.size, n), np.float32), np.empty((self.size, n), np.float32)
-        return self._flat_intervals(self._rays(slabs), self.padded(slabs.pad), 0, n)
+        near = np.empty((self.size, n), np.float32)
+        far = np.empty((self.size, n), np.float32)
+        if self.size and n:
+            boxes, rays = self.padded(slabs.pad), self._rays(slabs)
+            chunk = max(FLAT_PAIRS // self.size, 1)
+            for first in range(0, n, chunk):
+                stop = min(first + chunk, n)
+                near[:, first:stop], far[:, first:stop] = self._flat_intervals(rays, boxes,
+                                                                              first, stop)
+        return near, far
 
     def pairs(self, slabs: RaySlabs, limit: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
