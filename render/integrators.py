@@ -7,6 +7,10 @@ summed per path. The reference renderer (``trace_paths``) runs the steps in orde
 out-of-core and distributed schedulers run the very same steps in their own order, which is why
 their images are identical. All randomness comes from ``render.rng`` keyed by (seed, pixel,
 sample, bounce, purpose, index), never from processing order.
+
+``shade`` and ``add_unoccluded`` run as fused numba kernels (``render.kernels``) over the batch;
+the numpy chain beside them gives the same rays bit for bit (tested) and takes over for light
+kinds the kernels do not know.
 """
 
 from __future__ import annotations
@@ -141,10 +145,10 @@ def spawn(points: np.ndarray, normals: np.ndarray, reach: np.ndarray) -> np.ndar
 
 def camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """One camera ray per path of the batch."""
-    origin, direction = camera.generate(ctx.pixel, ctx.sample, ctx.settings.seed)
+    origin, direction = camera.generate32(ctx.pixel, ctx.sample, ctx.settings.seed)
     n = len(ctx.pixel)
-    return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8),
-                        origin.astype(np.float32), direction.astype(np.float32), np.ones((n, 3)))
+    return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8), origin, direction,
+                        np.ones((n, 3)))
 
 
 def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> np.ndarray:
@@ -162,9 +166,11 @@ def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> 
     out = np.zeros((len(rays), 3))
     if ctx.settings.integrator != "pt":
         return out
-    o, d = rays.origin.astype(np.float64), rays.direction.astype(np.float64)
+    o = d = None
     for light in ctx.shading.lights:
         if isinstance(light, QuadLight):
+            if o is None:
+                o, d = rays.origin.astype(np.float64), rays.direction.astype(np.float64)
             out[light.intersect(o, d) < t_hit] += light.radiance
         elif isinstance(light, AmbientLight):
             out[~np.isfinite(t_hit)] += light.radiance

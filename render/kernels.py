@@ -396,3 +396,48 @@ def add_unoccluded(radiance, path, contribution, lit):
         radiance[p, 0] += acc[p, 0]
         radiance[p, 1] += acc[p, 1]
         radiance[p, 2] += acc[p, 2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera rays and hit records
+# ---------------------------------------------------------------------------------------------
+
+@njit(nogil=True, cache=True)
+def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, position,
+                forward, right, up, origin, direction):
+    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it.
+
+    Parameters
+    ----------
+    pixel, sample : (n,) uint32; seed, purpose : uint64 (``Purpose.CAMERA_JITTER``).
+    width, height : image size; tan_half, aspect : ``tan(fov / 2)`` and ``width / height``
+        as ``Camera.generate`` computes them.
+    position, forward, right, up : (3,) float64 (``Camera.frame``).
+    origin, direction : (n, 3) float32 out.
+    """
+    start = key_start(seed, purpose)
+    w, h = np.float64(width), np.float64(height)
+    for i in range(pixel.shape[0]):
+        jx, jy = _uniform_pair(hash_key(start, pixel[i], sample[i], 0, 0))
+        column = np.float64(pixel[i] % width) + np.float64(jx)
+        row = np.float64(pixel[i] // width) + np.float64(jy)
+        sx = (2.0 * column / w - 1.0) * tan_half * aspect
+        sy = (1.0 - 2.0 * row / h) * tan_half
+        d0 = forward[0] + sx * right[0] + sy * up[0]
+        d1 = forward[1] + sx * right[1] + sy * up[1]
+        d2 = forward[2] + sx * right[2] + sy * up[2]
+        length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+        direction[i, 0], direction[i, 1], direction[i, 2] = d0 / length, d1 / length, d2 / length
+        origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
+
+
+@njit(nogil=True, cache=True)
+def unit_normals(ng, out):
+    """``ClosestHits.hits``' normals: float32 ``ng`` ((n, 3)) to float64 unit vectors in
+    ``out`` (rows of length 0 stay 0), as ``ng / norm(ng)`` in numpy."""
+    for i in range(ng.shape[0]):
+        x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
+        length = np.sqrt((x * x + y * y) + z * z)
+        if not length > 0:
+            length = 1.0
+        out[i, 0], out[i, 1], out[i, 2] = x / length, y / length, z / length

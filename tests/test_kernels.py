@@ -145,3 +145,34 @@ def test_fused_radiance_sum_equals_bincount():
     add_unoccluded(numpy_sum, shadow, lit, fused=False)
     assert not np.array_equal(fused, start)
     np.testing.assert_array_equal(fused, numpy_sum)
+
+
+@pytest.mark.parametrize("fov, width, height", [(40.0, 96, 72), (90.0, 33, 101)])
+def test_fused_camera_rays_equal_generate(fov, width, height):
+    from vastray.render.camera import Camera
+
+    camera = Camera(np.array([0.3, 1.2, 4.0]), np.array([0.0, -0.2, 0.1]),
+                    np.array([0.0, 1.0, 0.0]), fov, width, height)
+    n = width * height * 3
+    pixel = (np.arange(n) // 3).astype(np.uint32)
+    sample = (np.arange(n) % 3).astype(np.uint32)
+    origin, direction = camera.generate(pixel, sample, 17)
+    o32, d32 = camera.generate32(pixel, sample, 17)
+    np.testing.assert_array_equal(o32, origin.astype(np.float32))
+    np.testing.assert_array_equal(d32, direction.astype(np.float32))
+    assert len(np.unique(d32, axis=0)) == n  # jittered: every ray differs
+
+
+def test_fused_unit_normals_equal_numpy():
+    from vastray.render.tracer import ClosestHits
+
+    rng = np.random.default_rng(8)
+    best = ClosestHits.empty(5000, False)
+    best.ng[:] = (rng.standard_normal((5000, 3)) * rng.uniform(1e-6, 1e6, (5000, 1)))
+    best.ng[:10] = 0.0  # misses: zero normals stay zero
+    rows = rng.permutation(5000)[:3000]
+    got = best.hits(rows).normal
+    n64 = best.ng[rows].astype(np.float64)
+    length = np.linalg.norm(n64, axis=1, keepdims=True)
+    np.testing.assert_array_equal(got, n64 / np.where(length > 0, length, 1.0))
+    np.testing.assert_array_equal(best.hits().normal[:10], 0.0)
