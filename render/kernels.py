@@ -441,3 +441,27 @@ def unit_normals(ng, out):
         if not length > 0:
             length = 1.0
         out[i, 0], out[i, 1], out[i, 2] = x / length, y / length, z / length
+
+
+@njit(nogil=True, cache=True)
+def offer(rows, domain, prim, tfar, ng, best_t, best_domain, best_ng, got):
+    """``ClosestHits.offer``'s comparison and stores: ray ``rows[k]`` takes hit ``k`` of
+    ``domain`` where it hit (``prim[k] >= 0``) nearer than its best so far, or as near in a
+    lower domain; ``got[k]`` says whether it did.
+
+    Parameters
+    ----------
+    rows : (k,) int64 distinct rays; domain : int64.
+    prim : (k,) int32; tfar : (k,) float32; ng : (k, 3) float32 Embree's output.
+    best_t : (n,) float32; best_domain : (n,) int32; best_ng : (n, 3) float32, updated.
+    got : (k,) bool out.
+    """
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        t = tfar[k]
+        ok = prim[k] >= 0 and (t < best_t[i] or (t == best_t[i] and domain < best_domain[i]))
+        got[k] = ok
+        if ok:
+            best_t[i] = t
+            best_domain[i] = domain
+            best_ng[i, 0], best_ng[i, 1], best_ng[i, 2] = ng[k, 0], ng[k, 1], ng[k, 2]

@@ -107,16 +107,27 @@ class ClosestHits:
         -------
         (k,) bool, which of ``rows`` improved.
         """
-        t_old = self.t[rows]
-        got = (r["primID"] >= 0) & ((r["tfar"] < t_old)
-                                    | ((r["tfar"] == t_old) & (domain < self.domain[rows])))
-        if not got.any():
-            return got
-        won = rows[got]
-        prim = r["primID"][got]
-        self.t[won] = r["tfar"][got]
-        self.domain[won] = domain
-        self.ng[won] = r["Ng"][got]
+        if (self.t.dtype == np.float32 and self.domain.dtype == np.int32
+                and self.ng.dtype == np.float32 and r["Ng"].dtype == np.float32):
+            rows = np.ascontiguousarray(rows, np.int64)
+            got = np.empty(len(rows), np.bool_)
+            kernels.offer(rows, np.int64(domain), r["primID"], r["tfar"], r["Ng"], self.t,
+                          self.domain, self.ng, got)  # the comparison and stores below, fused
+            if not got.any():
+                return got
+            won = rows[got]
+            prim = r["primID"][got]
+        else:
+            t_old = self.t[rows]
+            got = (r["primID"] >= 0) & ((r["tfar"] < t_old)
+                                        | ((r["tfar"] == t_old) & (domain < self.domain[rows])))
+            if not got.any():
+                return got
+            won = rows[got]
+            prim = r["primID"][got]
+            self.t[won] = r["tfar"][got]
+            self.domain[won] = domain
+            self.ng[won] = r["Ng"][got]
         if bvh.objects is not None:
             self.material[won] = bvh.objects[prim]
         if self.color is not None:
@@ -187,13 +198,17 @@ class RaySlabs:
     """
 
     def __init__(self, origins: np.ndarray, directions: np.ndarray, pad: float):
+        n = origins.shape[0]
+        #: (6, n) float32, C-contiguous: origins (rows 0-2) and inverse directions (3-5), the
+        #: layout ``BoxTree`` reads; ``origin`` and ``inv`` are views of it.
+        self.rays = np.empty((6, n), np.float32)
+        self.origin, self.inv = self.rays[:3], self.rays[3:]
         d = directions.T.astype(np.float32)  # (3, n)
         d[d == 0] = np.float32(1e-30)
-        self.origin = origins.T.astype(np.float32)  # (3, n)
+        self.origin[:] = origins.T
         with np.errstate(over="ignore"):
-            self.inv = np.float32(1.0) / d  # (3, n)
+            np.divide(np.float32(1.0), d, out=self.inv)
         self.pad = pad
-        n = origins.shape[0]
         self._a = np.empty(n, np.float32)
         self._b = np.empty(n, np.float32)
 

@@ -176,3 +176,35 @@ def test_fused_unit_normals_equal_numpy():
     length = np.linalg.norm(n64, axis=1, keepdims=True)
     np.testing.assert_array_equal(got, n64 / np.where(length > 0, length, 1.0))
     np.testing.assert_array_equal(best.hits().normal[:10], 0.0)
+
+
+def test_fused_offer_equals_numpy_comparison_with_ties():
+    from types import SimpleNamespace
+
+    from vastray.render.tracer import ClosestHits
+
+    rng = np.random.default_rng(12)
+    n = 4000
+    fused = ClosestHits.empty(n, False)
+    ref = ClosestHits.empty(n, False)
+    bvh = SimpleNamespace(objects=None)
+    for domain in (5, 2, 7, 2 + 1):
+        rows = np.sort(rng.choice(n, 2500, replace=False))
+        k = len(rows)
+        r = {"primID": np.where(rng.random(k) < 0.2, -1, rng.integers(0, 100, k)).astype(np.int32),
+             "tfar": rng.choice(np.float32([1.0, 1.5, 2.0, 3.0]), k),  # many ties
+             "Ng": rng.standard_normal((k, 3)).astype(np.float32),
+             "u": np.zeros(k, np.float32), "v": np.zeros(k, np.float32)}
+        got = fused.offer(rows, domain, bvh, r, None, (0.0, 1.0))
+        # the numpy comparison the kernel replaced
+        t_old = ref.t[rows]
+        want = (r["primID"] >= 0) & ((r["tfar"] < t_old)
+                                     | ((r["tfar"] == t_old) & (domain < ref.domain[rows])))
+        won = rows[want]
+        ref.t[won], ref.domain[won], ref.ng[won] = r["tfar"][want], domain, r["Ng"][want]
+        np.testing.assert_array_equal(got, want)
+        assert want.any() and not want.all()
+    np.testing.assert_array_equal(fused.t, ref.t)
+    np.testing.assert_array_equal(fused.domain, ref.domain)
+    np.testing.assert_array_equal(fused.ng, ref.ng)
+    assert len(np.unique(fused.domain)) >= 3  # ties went to lower domains
