@@ -24,6 +24,10 @@ Every float operation is the one numpy performs, in the same order and precision
 
 The light kinds are the four of ``render.lights``; a batch with any other light uses the numpy
 path (chosen per batch, never per ray).
+
+Compilation: ``cache=True``, so a process loads them from ``__pycache__``; the very first use
+compiles them (measured: a fresh numba cache made the first tiny render take 13.9 s instead of
+6.4 s before these kernels, on the shared machine under load; 0.4-0.6 s once cached).
 """
 
 from __future__ import annotations
