@@ -159,6 +159,9 @@ class BoxTree:
         """(6, n) float32, C-contiguous: rows 0-2 the ray origins, rows 3-5 the inverse
         directions. (``take`` copies a non-contiguous array whole before gathering, which
         would cost O(n) per tree level; the flat pass's arithmetic runs along the rows.)"""
+        rays = getattr(slabs, "rays", None)
+        if rays is not None:  # RaySlabs keeps them so
+            return rays
         return np.ascontiguousarray(np.concatenate([slabs.origin, slabs.inv]))
 
     @staticmethod

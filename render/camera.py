@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vastray.render import kernels
 from vastray.render.rng import Purpose, uniform2
 
 
@@ -78,3 +79,18 @@ class Camera:
         d = forward[None, :] + sx[:, None] * right[None, :] + sy[:, None] * up[None, :]
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d
+
+    def generate32(self, pixel: np.ndarray, sample: np.ndarray, seed: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """``generate``'s rays cast to float32 ((n, 3) each), in one fused kernel
+        (``kernels.camera_rays``; bit for bit the same, tested)."""
+        forward, right, up = self.frame()
+        n = len(pixel)
+        origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        kernels.camera_rays(np.ascontiguousarray(pixel, np.uint32),
+                            np.ascontiguousarray(sample, np.uint32), np.uint64(seed),
+                            np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
+                            float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
+                            np.asarray(self.position, np.float64), forward, right, up,
+                            origin, direction)
+        return origin, direction

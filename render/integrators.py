@@ -7,6 +7,10 @@ summed per path. The reference renderer (``trace_paths``) runs the steps in orde
 out-of-core and distributed schedulers run the very same steps in their own order, which is why
 their images are identical. All randomness comes from ``render.rng`` keyed by (seed, pixel,
 sample, bounce, purpose, index), never from processing order.
+
+``shade`` and ``add_unoccluded`` run as fused numba kernels (``render.kernels``) over the batch;
+the numpy chain beside them gives the same rays bit for bit (tested) and takes over for light
+kinds the kernels do not know.
 """
 
 from __future__ import annotations
@@ -15,8 +19,10 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from vastray.render.lights import AmbientLight, Light, QuadLight, SampleKeys
-from vastray.render.materials import MaterialTable, blinn_phong_lobe
+from vastray.render import kernels
+from vastray.render.lights import (AmbientLight, DirectionalLight, Light, PointLight, QuadLight,
+                                   SampleKeys)
+from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer, Hits, facing
@@ -24,6 +30,7 @@ from vastray.render.tracer import DomainTracer, Hits, facing
 #: Spawned rays start this far (relative to the hit's coordinate magnitude plus the distance it
 #: was reached from) off the surface: about 64 float32 ulps, so they never re-hit it.
 SPAWN_EPSILON = 4e-6
+assert kernels._SPAWN_EPSILON == SPAWN_EPSILON
 
 
 @dataclass(frozen=True)
@@ -138,10 +145,10 @@ def spawn(points: np.ndarray, normals: np.ndarray, reach: np.ndarray) -> np.ndar
 
 def camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """One camera ray per path of the batch."""
-    origin, direction = camera.generate(ctx.pixel, ctx.sample, ctx.settings.seed)
+    origin, direction = camera.generate32(ctx.pixel, ctx.sample, ctx.settings.seed)
     n = len(ctx.pixel)
-    return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8),
-                        origin.astype(np.float32), direction.astype(np.float32), np.ones((n, 3)))
+    return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8), origin, direction,
+                        np.ones((n, 3)))
 
 
 def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> np.ndarray:
@@ -159,21 +166,27 @@ def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> 
     out = np.zeros((len(rays), 3))
     if ctx.settings.integrator != "pt":
         return out
-    o, d = rays.origin.astype(np.float64), rays.direction.astype(np.float64)
+    o = d = None
     for light in ctx.shading.lights:
         if isinstance(light, QuadLight):
+            if o is None:
+                o, d = rays.origin.astype(np.float64), rays.direction.astype(np.float64)
             out[light.intersect(o, d) < t_hit] += light.radiance
         elif isinstance(light, AmbientLight):
             out[~np.isfinite(t_hit)] += light.radiance
     return out
 
 
-def shade(ctx: PathContext, rays: RadianceRays, hits: Hits) -> tuple[ShadowRays, RadianceRays]:
+def shade(ctx: PathContext, rays: RadianceRays, hits: Hits, fused: bool = True
+          ) -> tuple[ShadowRays, RadianceRays]:
     """Turn final closest hits into shadow rays and continuation rays.
 
     Parameters
     ----------
     rays : k radiance rays that hit; hits : their hits (all rows hit).
+    fused : use the compiled kernels (``render.kernels``) where every light is of a kind they
+        know; False: the numpy chain (the same rays, bit for bit; kept for other light kinds
+        and as the kernels' reference in tests).
 
     Returns
     -------
@@ -181,6 +194,8 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits) -> tuple[ShadowRays,
         light (contribution = throughput x BRDF x cos x incident radiance / samples)
     continuation : cosine-weighted diffuse bounces (path tracing, below ``bounces``)
     """
+    if fused and (ctx.settings.integrator == "ao" or _light_table(ctx.shading.lights) is not None):
+        return _shade_fused(ctx, rays, hits)
     settings = ctx.settings
     o = rays.origin.astype(np.float64)
     d = rays.direction.astype(np.float64)
@@ -207,6 +222,123 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits) -> tuple[ShadowRays,
                                 origin[more][keep].astype(np.float32),
                                 direction[keep].astype(np.float32), beta[keep])
     return shadow, continuation
+
+
+_LIGHT_KINDS = {PointLight: kernels.POINT, DirectionalLight: kernels.DIRECTIONAL,
+                QuadLight: kernels.QUAD, AmbientLight: kernels.AMBIENT}
+
+
+def _light_table(lights: list[Light]) -> tuple[np.ndarray, np.ndarray] | None:
+    """The lights as the kernels read them: (L,) int64 kinds and (L, ``LIGHT_PARAMS``)
+    float64 parameters, with what each light's numpy ``sample`` derives from its fields
+    computed here by the same numpy expressions; None if a light is of another kind."""
+    kinds = np.zeros(len(lights), np.int64)
+    params = np.zeros((len(lights), kernels.LIGHT_PARAMS))
+    for i, light in enumerate(lights):
+        kind = _LIGHT_KINDS.get(type(light))
+        if kind is None:
+            return None
+        kinds[i] = kind
+        if kind == kernels.POINT:
+            params[i, :6] = np.concatenate([light.position, light.intensity])
+        elif kind == kernels.DIRECTIONAL:
+            wi = -light.direction / np.linalg.norm(light.direction)
+            params[i, :6] = np.concatenate([wi, light.irradiance])
+        elif kind == kernels.QUAD:
+            area_normal = light.area_normal
+            params[i, :15] = np.concatenate([light.corner, light.edge1, light.edge2,
+                                             light.radiance, area_normal])
+            params[i, 15] = np.linalg.norm(area_normal)
+        else:
+            params[i, :3] = light.radiance
+    return kinds, params
+
+
+def _hemisphere_samples(ctx: PathContext, path: np.ndarray, bounce: np.ndarray, purpose: int,
+                        m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u and the azimuth's cos, sin ((k * m,) float32 each) of ``m`` cosine-hemisphere
+    samples per vertex (``kernels.hemisphere_uniforms``)."""
+    u, v = kernels.hemisphere_uniforms(np.uint64(ctx.settings.seed), np.uint64(purpose),
+                                       ctx.pixel, ctx.sample, path, bounce, m)
+    return (u, *kernels.hemisphere_angles(v))
+
+
+def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
+                 ) -> tuple[ShadowRays, RadianceRays]:
+    """``shade`` through ``render.kernels``: the same rays as the numpy chain, bit for bit."""
+    settings, mats = ctx.settings, ctx.shading.materials
+    k = len(rays)
+    has_color = hits.color is not None
+    color = hits.color if has_color else np.zeros((0, 3))
+    org, dirs = _c(rays.origin, np.float32), _c(rays.direction, np.float32)
+    t, normal = _c(hits.t, np.float64), _c(hits.normal, np.float64)
+    if settings.integrator == "ao":
+        m = settings.shadow_samples
+        if m <= 0 or k == 0:
+            return _no_shadow(), _no_rays()
+        hu, hc, hs = _hemisphere_samples(ctx, rays.path, np.ones(k, np.uint8),
+                                         Purpose.AO_DIRECTION, m)
+        s_org, s_dir = np.empty((k * m, 3), np.float32), np.empty((k * m, 3), np.float32)
+        contribution = np.empty((k * m, 3))
+        kernels.shade_ao(org, dirs, t, normal, _c(color, np.float64), has_color, m, hu, hc, hs,
+                         s_org, s_dir, contribution)
+        return ShadowRays(np.repeat(rays.path, m), np.zeros(k * m, np.uint8), s_org, s_dir,
+                          np.full(k * m, ctx.ao_distance, np.float32), contribution), _no_rays()
+    kinds, params = _light_table(ctx.shading.lights)
+    counts = np.array([settings.shadow_samples if light.stochastic else 1
+                       for light in ctx.shading.lights], np.int64)
+    purposes = np.array([Purpose.LIGHT_SAMPLE + 16 * i for i in range(len(kinds))], np.uint64)
+    # Hemisphere samples of ambient lights and of the bounce: drawn and turned into angles
+    # before the kernel (numpy's float32 cos/sin; see render.kernels).
+    ambient = np.nonzero((kinds == kernels.AMBIENT) & (counts > 0))[0]
+    hem_slot = np.full(len(kinds), -1, np.int64)
+    hem = np.zeros((3, len(ambient), k * settings.shadow_samples), np.float32)
+    for slot, li in enumerate(ambient):
+        hem_slot[li] = slot
+        hem[:, slot] = _hemisphere_samples(ctx, rays.path, rays.depth, purposes[li],
+                                           counts[li])
+    more = rays.depth < settings.bounces
+    if more.any():
+        bu, bc, bs = _hemisphere_samples(ctx, rays.path, rays.depth, Purpose.BOUNCE_DIRECTION, 1)
+    else:
+        bu = bc = bs = np.zeros(k, np.float32)
+    n = k * int(counts.sum())
+    ns = n if mats.has_specular else 0
+    shadow = ShadowRays(np.empty(n, np.int64), np.empty(n, np.uint8),
+                        np.empty((n, 3), np.float32), np.empty((n, 3), np.float32),
+                        np.empty(n, np.float32), np.empty((n, 3)))
+    s_vertex, s_weight, s_cos_h = np.empty(ns, np.int64), np.empty((ns, 3)), np.empty(ns)
+    cont = RadianceRays(np.empty(k, np.int64), np.empty(k, np.uint8),
+                        np.empty((k, 3), np.float32), np.empty((k, 3), np.float32),
+                        np.empty((k, 3)))
+    n_shadow, n_cont = kernels.shade_pt(
+        _c(rays.path, np.int64), _c(rays.depth, np.uint8), org, dirs, _c(rays.beta, np.float64),
+        t, normal, _c(hits.material, np.int64), _c(color, np.float64), has_color,
+        ctx.pixel, ctx.sample, np.uint64(settings.seed), settings.bounces, mats.diffuse,
+        mats.has_specular, kinds, counts, purposes, params, hem_slot, hem[0], hem[1], hem[2],
+        bu, bc, bs, shadow.path, shadow.depth, shadow.origin, shadow.direction, shadow.t_max,
+        shadow.contribution, s_vertex, s_weight, s_cos_h,
+        cont.path, cont.depth, cont.origin, cont.direction, cont.beta)
+    shadow = shadow.take(slice(0, n_shadow))
+    if mats.has_specular and n_shadow:
+        vertex = s_vertex[:n_shadow]
+        material = hits.material[vertex]
+        lobe = blinn_phong_lobe_of_cos(mats.shininess[material], s_cos_h[:n_shadow])
+        shadow.contribution += (rays.beta[vertex] * mats.specular[material]
+                                * lobe[:, None] * s_weight[:n_shadow])
+    return shadow, cont.take(slice(0, n_cont))
+
+
+def _c(a: np.ndarray, dtype) -> np.ndarray:
+    """``a`` as a C-contiguous array of ``dtype`` (a copy only where it is not one): one
+    kernel signature per argument."""
+    return np.ascontiguousarray(a, dtype=dtype)
+
+
+def _no_shadow() -> ShadowRays:
+    return ShadowRays(np.zeros(0, np.int64), np.zeros(0, np.uint8),
+                      np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
+                      np.zeros(0, np.float32), np.zeros((0, 3)))
 
 
 def _no_rays() -> RadianceRays:
@@ -275,14 +407,21 @@ def _next_event_rays(ctx, rays, origin, nf, wo, albedo, material) -> ShadowRays:
                                 (dist[useful] * (1.0 - SPAWN_EPSILON)).astype(np.float32),
                                 contribution))
     if not parts:
-        return ShadowRays(np.zeros(0, np.int64), np.zeros(0, np.uint8),
-                          np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
-                          np.zeros(0, np.float32), np.zeros((0, 3)))
+        return _no_shadow()
     return ShadowRays.concat(parts)
 
 
-def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
-    """Add the contribution of the shadow rays ``lit`` (bool (n,)) to ``radiance`` (P, 3)."""
+def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray,
+                   fused: bool = True) -> None:
+    """Add the contribution of the shadow rays ``lit`` (bool (n,)) to ``radiance`` (P, 3).
+
+    Per path, the contributions are summed in row order, then added (``np.bincount``'s
+    rounding; ``kernels.add_unoccluded`` does the same in one pass where ``fused``).
+    """
+    if fused and radiance.dtype == np.float64 and radiance.flags.c_contiguous:
+        kernels.add_unoccluded(radiance, _c(shadow.path, np.int64),
+                               _c(shadow.contribution, np.float64), _c(lit, np.bool_))
+        return
     path = shadow.path[lit]
     contribution = shadow.contribution[lit]
     for c in range(3):

@@ -82,9 +82,15 @@ class QuadLight:
         wi = to_light / np.maximum(dist, 1e-300)[:, None]
         area_normal = self.area_normal
         area = np.linalg.norm(area_normal)
-        cos_light = np.maximum(0.0, -(wi @ area_normal) / area)
+        cos_light = np.maximum(0.0, -self._facing(wi, area_normal) / area)
         weight = self.radiance[None, :] * (cos_light * area / np.maximum(dist2, 1e-300))[:, None]
         return wi, dist, weight
+
+    @staticmethod
+    def _facing(wi: np.ndarray, area_normal: np.ndarray) -> np.ndarray:
+        """``wi @ area_normal`` summed in a fixed order (BLAS's order varies by machine and
+        uses FMA; ``render.kernels`` sums the same way)."""
+        return (wi[:, 0] * area_normal[0] + wi[:, 1] * area_normal[1]) + wi[:, 2] * area_normal[2]
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Distance along each ray to the emitting side of the quad, ``inf`` where missed.

@@ -81,4 +81,10 @@ def blinn_phong_lobe(shininess: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: n
     h = wo + wi
     h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
     cos_h = np.maximum(0.0, np.einsum("ij,ij->i", n, h))
+    return blinn_phong_lobe_of_cos(shininess, cos_h)
+
+
+def blinn_phong_lobe_of_cos(shininess: np.ndarray, cos_h: np.ndarray) -> np.ndarray:
+    """``blinn_phong_lobe`` from ``cos(theta_h)`` ((k,) each; numpy's ``pow``, which the
+    fused kernels leave to numpy: see ``render.kernels``)."""
     return (shininess + 2.0) / (2.0 * np.pi) * cos_h ** shininess

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vastray.render import kernels
 from vastray.render.boxtree import BoxTree
 from vastray.render.materials import colormap
 from vastray.scene import embree
@@ -106,16 +107,27 @@ class ClosestHits:
         -------
         (k,) bool, which of ``rows`` improved.
         """
-        t_old = self.t[rows]
-        got = (r["primID"] >= 0) & ((r["tfar"] < t_old)
-                                    | ((r["tfar"] == t_old) & (domain < self.domain[rows])))
-        if not got.any():
-            return got
-        won = rows[got]
-        prim = r["primID"][got]
-        self.t[won] = r["tfar"][got]
-        self.domain[won] = domain
-        self.ng[won] = r["Ng"][got]
+        if (self.t.dtype == np.float32 and self.domain.dtype == np.int32
+                and self.ng.dtype == np.float32 and r["Ng"].dtype == np.float32):
+            rows = np.ascontiguousarray(rows, np.int64)
+            got = np.empty(len(rows), np.bool_)
+            kernels.offer(rows, np.int64(domain), r["primID"], r["tfar"], r["Ng"], self.t,
+                          self.domain, self.ng, got)  # the comparison and stores below, fused
+            if not got.any():
+                return got
+            won = rows[got]
+            prim = r["primID"][got]
+        else:
+            t_old = self.t[rows]
+            got = (r["primID"] >= 0) & ((r["tfar"] < t_old)
+                                        | ((r["tfar"] == t_old) & (domain < self.domain[rows])))
+            if not got.any():
+                return got
+            won = rows[got]
+            prim = r["primID"][got]
+            self.t[won] = r["tfar"][got]
+            self.domain[won] = domain
+            self.ng[won] = r["Ng"][got]
         if bvh.objects is not None:
             self.material[won] = bvh.objects[prim]
         if self.color is not None:
@@ -125,9 +137,9 @@ class ClosestHits:
 
     def hits(self, rows: np.ndarray | slice = slice(None)) -> Hits:
         """The hits of ``rows`` with float64 distances and unit normals."""
-        n64 = self.ng[rows].astype(np.float64)
-        length = np.linalg.norm(n64, axis=1, keepdims=True)
-        n64 /= np.where(length > 0, length, 1.0)
+        ng = np.ascontiguousarray(self.ng[rows])
+        n64 = np.empty(ng.shape)
+        kernels.unit_normals(ng, n64)  # ng / norm(ng) in one pass, bit for bit
         return Hits(self.t[rows].astype(np.float64), n64, self.material[rows],
                     None if self.color is None else self.color[rows])
 
@@ -186,13 +198,17 @@ class RaySlabs:
     """
 
     def __init__(self, origins: np.ndarray, directions: np.ndarray, pad: float):
+        n = origins.shape[0]
+        #: (6, n) float32, C-contiguous: origins (rows 0-2) and inverse directions (3-5), the
+        #: layout ``BoxTree`` reads; ``origin`` and ``inv`` are views of it.
+        self.rays = np.empty((6, n), np.float32)
+        self.origin, self.inv = self.rays[:3], self.rays[3:]
         d = directions.T.astype(np.float32)  # (3, n)
         d[d == 0] = np.float32(1e-30)
-        self.origin = origins.T.astype(np.float32)  # (3, n)
+        self.origin[:] = origins.T
         with np.errstate(over="ignore"):
-            self.inv = np.float32(1.0) / d  # (3, n)
+            np.divide(np.float32(1.0), d, out=self.inv)
         self.pad = pad
-        n = origins.shape[0]
         self._a = np.empty(n, np.float32)
         self._b = np.empty(n, np.float32)
 
@@ -372,7 +388,9 @@ class DomainTracer:
                 if live is not None:
                     still &= live[rows]
                 return rows[still]
-        if all_fit:
+        if len(domains) == 1:  # nothing to order
+            order = np.zeros(1, np.int64)
+        elif all_fit:
             center = slabs.origin.mean(axis=1, dtype=np.float64)
             gap = (np.maximum(self.lo[domains] - center, 0)
                    + np.maximum(center - self.hi[domains], 0))

@@ -1,0 +1,471 @@
+"""Fused numba kernels for the shading hot path (issue 9).
+
+``render.integrators.shade`` used to be a chain of numpy passes over the batch (hit point,
+facing normal, spawned origin, one ``light.sample`` per light, cosines, masks, takes,
+concatenations, the continuation bounce), each allocating its temporaries. Here the same
+arithmetic runs in one serial ``nogil`` kernel per batch, row by row, writing the shadow rays
+and continuation rays straight into their output arrays. Serial on purpose: the render workers
+call shading side by side on their own threads while another worker's Embree launch uses all
+the cores (``scene/embree.py`` runs launches one at a time).
+
+Bit for bit the numpy path's results
+------------------------------------
+Every float operation is the one numpy performs, in the same order and precision:
+
+- the counter-based RNG (``render.rng``) is ported as is (uint64 arithmetic wraps the same);
+- ``np.einsum("ij,ij->i", a, b)`` over 3 columns sums ``(a0 b0 + a2 b2) + a1 b1`` (its SIMD
+  tail: products in vector lanes, then a horizontal sum; measured equal on 1 M rows), and
+  ``np.linalg.norm(v, axis=1)`` is ``sqrt((v0^2 + v1^2) + v2^2)``: the kernels use those orders;
+- two things numpy computes with its own SIMD routines that libm does not reproduce (float32
+  ``cos``/``sin``: 17 % of values differ in the last bit; float64 ``pow``: 5 %) stay in numpy:
+  the cosine-hemisphere angles are drawn by ``hemisphere_uniforms`` and their cos/sin taken
+  by numpy before the shading kernel runs, and the Blinn-Phong power is applied afterwards
+  (``integrators._add_specular``).
+
+The light kinds are the four of ``render.lights``; a batch with any other light uses the numpy
+path (chosen per batch, never per ray).
+
+Compilation: ``cache=True``, so a process loads them from ``__pycache__``; the very first use
+compiles them (measured: a fresh numba cache made the first tiny render take 13.9 s instead of
+6.4 s before these kernels, on the shared machine under load; 0.4-0.6 s once cached).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# render.rng's constants, as numpy scalars so numba types them as uint64 / float32.
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_S8, _S27, _S30, _S31 = np.uint64(8), np.uint64(27), np.uint64(30), np.uint64(31)
+_TOP24, _MID24 = np.uint64(40), np.uint64(16)
+_MASK24 = np.uint64(0xFFFFFF)
+_INV24 = np.float32(1.0 / (1 << 24))
+
+#: Light kinds in the light table (``integrators._light_table``).
+POINT, DIRECTIONAL, QUAD, AMBIENT = 0, 1, 2, 3
+#: Columns of the light table's parameter rows.
+LIGHT_PARAMS = 16
+
+_PI = math.pi
+_SPAWN_EPSILON = 4e-6  # integrators.SPAWN_EPSILON (asserted equal there)
+_SHORTEN = 1.0 - _SPAWN_EPSILON  # shadow rays stop this fraction of the way to the light
+_F32_ZERO = np.float32(0.0)
+_F32_ONE = np.float32(1.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Counter-based RNG (render.rng, bit for bit)
+# ---------------------------------------------------------------------------------------------
+
+@njit(inline="always")
+def _mix(h):
+    """splitmix64 finaliser of one uint64."""
+    h ^= h >> _S30
+    h *= _M1
+    h ^= h >> _S27
+    h *= _M2
+    h ^= h >> _S31
+    return h
+
+
+@njit(inline="always")
+def key_start(seed, purpose):
+    """The part of ``rng.hash_keys`` that depends on (seed, purpose) only."""
+    return _mix(np.uint64(seed) * _GOLDEN + np.uint64(purpose))
+
+
+@njit(inline="always")
+def hash_key(start, pixel, sample, bounce, index):
+    """``rng.hash_keys`` of one key, from ``key_start(seed, purpose)``."""
+    h = start ^ np.uint64(pixel)
+    h = _mix(h + _GOLDEN)
+    h ^= np.uint64(sample)
+    h = _mix(h + _GOLDEN)
+    h ^= np.uint64(bounce) | (np.uint64(index) << _S8)
+    return _mix(h + _GOLDEN)
+
+
+@njit(inline="always")
+def _uniform_pair(h):
+    """``rng.uniform2``'s two float32 uniforms from one hash."""
+    u = np.float32(h >> _TOP24) * _INV24
+    v = np.float32((h >> _MID24) & _MASK24) * _INV24
+    return u, v
+
+
+@njit(nogil=True, cache=True)
+def uniform2(seed, purpose, pixel, sample, bounce, index):
+    """``rng.uniform2`` for arrays of keys (tests compare the two).
+
+    Parameters
+    ----------
+    seed, purpose : uint64 scalars.
+    pixel, sample, bounce, index : (n,) unsigned integer arrays.
+
+    Returns
+    -------
+    u, v : (n,) float32 each
+    """
+    n = pixel.shape[0]
+    u = np.empty(n, np.float32)
+    v = np.empty(n, np.float32)
+    start = key_start(seed, purpose)
+    for i in range(n):
+        u[i], v[i] = _uniform_pair(hash_key(start, pixel[i], sample[i], bounce[i], index[i]))
+    return u, v
+
+
+@njit(nogil=True, cache=True)
+def hemisphere_uniforms(seed, purpose, pixel, sample, path, bounce, m):
+    """The uniforms of ``m`` cosine-hemisphere samples per vertex, vertex-major.
+
+    Parameters
+    ----------
+    seed, purpose : uint64 scalars.
+    pixel, sample : (P,) uint32 keys of the batch's paths.
+    path : (k,) int64 path of each vertex; bounce : (k,) its bounce (path vertex) index.
+    m : samples per vertex; sample ``j`` of vertex ``i`` is row ``i * m + j``, index ``j``.
+
+    Returns
+    -------
+    u, v : (k * m,) float32 each
+    """
+    k = path.shape[0]
+    u = np.empty(k * m, np.float32)
+    v = np.empty(k * m, np.float32)
+    start = key_start(seed, purpose)
+    for i in range(k):
+        p = path[i]
+        for j in range(m):
+            u[i * m + j], v[i * m + j] = _uniform_pair(
+                hash_key(start, pixel[p], sample[p], bounce[i], j))
+    return u, v
+
+
+def hemisphere_angles(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of the azimuths ``2 pi v`` ((n,) float32 each), with numpy's float32
+    routines, exactly as ``sampling.cosine_hemisphere`` takes them."""
+    phi = 2.0 * np.pi * v
+    return np.cos(phi), np.sin(phi)
+
+
+# ---------------------------------------------------------------------------------------------
+# Row helpers (numpy's operation order; see the module docstring)
+# ---------------------------------------------------------------------------------------------
+
+@njit(inline="always")
+def _maximum(a, b):
+    """``np.maximum`` of two scalars (NaN in ``a`` propagates)."""
+    return a if (a >= b or a != a) else b
+
+
+@njit(inline="always")
+def _dot(a0, a1, a2, b0, b1, b2):
+    """``np.einsum("ij,ij->i")`` of one 3-row."""
+    return (a0 * b0 + a2 * b2) + a1 * b1
+
+
+@njit(inline="always")
+def _hemisphere(n0, n1, n2, u, c, s):
+    """``sampling.cosine_hemisphere`` of one normal, uniform ``u`` and azimuth cos/sin."""
+    r = np.sqrt(u)
+    x = r * c
+    y = r * s
+    z = np.sqrt(_maximum(_F32_ZERO, _F32_ONE - u))
+    sign = 1.0 if n2 >= 0 else -1.0
+    a = -1.0 / (sign + n2)
+    b_ = n0 * n1 * a
+    t0 = 1.0 + sign * n0 * n0 * a
+    t1 = sign * b_
+    t2 = -sign * n0
+    b1 = sign + n1 * n1 * a
+    b2 = -n1
+    xf, yf, zf = np.float64(x), np.float64(y), np.float64(z)
+    return (t0 * xf + b_ * yf + n0 * zf, t1 * xf + b1 * yf + n1 * zf, t2 * xf + b2 * yf + n2 * zf)
+
+
+@njit(inline="always")
+def _frame(org, dirs, t, normal, i):
+    """Hit point, facing normal and spawned origin of row ``i`` (``integrators.shade``'s
+    first lines and ``spawn``): returns (d0, d1, d2, nf0, nf1, nf2, o0, o1, o2)."""
+    d0, d1, d2 = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
+    ti = t[i]
+    p0 = np.float64(org[i, 0]) + d0 * ti
+    p1 = np.float64(org[i, 1]) + d1 * ti
+    p2 = np.float64(org[i, 2]) + d2 * ti
+    g0, g1, g2 = normal[i, 0], normal[i, 1], normal[i, 2]
+    side = -1.0 if _dot(g0, g1, g2, d0, d1, d2) > 0 else 1.0
+    nf0, nf1, nf2 = g0 * side, g1 * side, g2 * side
+    scale = _SPAWN_EPSILON * (max(abs(p0), abs(p1), abs(p2)) + ti)
+    return (d0, d1, d2, nf0, nf1, nf2,
+            p0 + nf0 * scale, p1 + nf1 * scale, p2 + nf2 * scale)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ambient occlusion
+# ---------------------------------------------------------------------------------------------
+
+@njit(nogil=True, cache=True)
+def shade_ao(org, dirs, t, normal, color, has_color, m, hu, hc, hs, s_org, s_dir, s_contrib):
+    """``integrators._ambient_occlusion_rays``: ``m`` cosine-weighted rays per hit.
+
+    Parameters
+    ----------
+    org, dirs : (k, 3) float32 radiance rays; t : (k,) float64; normal : (k, 3) float64.
+    color : (k, 3) float64 (read only when ``has_color``).
+    m : rays per hit (>= 1); hu, hc, hs : (k * m,) float32 uniform u and azimuth cos/sin.
+    s_org, s_dir : (k * m, 3) float32 out; s_contrib : (k * m, 3) float64 out.
+    """
+    k = org.shape[0]
+    for i in range(k):
+        _, _, _, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+        if has_color:
+            c0, c1, c2 = color[i, 0] / m, color[i, 1] / m, color[i, 2] / m
+        else:
+            c0 = c1 = c2 = 1.0 / m
+        for j in range(m):
+            r = i * m + j
+            w0, w1, w2 = _hemisphere(nf0, nf1, nf2, hu[r], hc[r], hs[r])
+            s_org[r, 0], s_org[r, 1], s_org[r, 2] = o0, o1, o2
+            s_dir[r, 0], s_dir[r, 1], s_dir[r, 2] = w0, w1, w2
+            s_contrib[r, 0], s_contrib[r, 1], s_contrib[r, 2] = c0, c1, c2
+
+
+# ---------------------------------------------------------------------------------------------
+# Path tracing: next-event estimation and the continuation bounce
+# ---------------------------------------------------------------------------------------------
+
+@njit(inline="always")
+def _sample_light(kind, prm, o0, o1, o2, nf0, nf1, nf2, su, sv, hu, hc, hs):
+    """``Light.sample`` for one row: (wi0, wi1, wi2, dist, inc0, inc1, inc2).
+
+    ``su, sv``: the row's quad-light uniforms; ``hu, hc, hs``: its ambient hemisphere sample.
+    """
+    if kind == POINT:
+        l0, l1, l2 = prm[0] - o0, prm[1] - o1, prm[2] - o2
+        dist = np.sqrt((l0 * l0 + l1 * l1) + l2 * l2)
+        inv = _maximum(dist, 1e-300)
+        d2 = _maximum(dist * dist, 1e-300)
+        return l0 / inv, l1 / inv, l2 / inv, dist, prm[3] / d2, prm[4] / d2, prm[5] / d2
+    if kind == DIRECTIONAL:
+        return prm[0], prm[1], prm[2], np.inf, prm[3], prm[4], prm[5]
+    if kind == QUAD:
+        s, tt = np.float64(su), np.float64(sv)
+        l0 = (prm[0] + s * prm[3]) + tt * prm[6] - o0
+        l1 = (prm[1] + s * prm[4]) + tt * prm[7] - o1
+        l2 = (prm[2] + s * prm[5]) + tt * prm[8] - o2
+        dist2 = _dot(l0, l1, l2, l0, l1, l2)
+        dist = np.sqrt(dist2)
+        inv = _maximum(dist, 1e-300)
+        w0, w1, w2 = l0 / inv, l1 / inv, l2 / inv
+        area = prm[15]
+        facing = (w0 * prm[12] + w1 * prm[13]) + w2 * prm[14]  # lights.QuadLight._cos_area
+        cos_light = _maximum(0.0, -facing / area)
+        g = cos_light * area / _maximum(dist2, 1e-300)
+        return w0, w1, w2, dist, prm[9] * g, prm[10] * g, prm[11] * g
+    # AMBIENT
+    w0, w1, w2 = _hemisphere(nf0, nf1, nf2, hu, hc, hs)
+    cos = _maximum(_dot(w0, w1, w2, nf0, nf1, nf2), 1e-12)
+    g = _PI / cos
+    return w0, w1, w2, np.inf, prm[0] * g, prm[1] * g, prm[2] * g
+
+
+@njit(nogil=True, cache=True)
+def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color,
+             pixel, sample, seed, bounces, diffuse, has_specular,
+             kinds, counts, purposes, params, hem_slot, hem_u, hem_c, hem_s, bu, bc, bs,
+             s_path, s_depth, s_org, s_dir, s_tmax, s_contrib, s_vertex, s_weight, s_cos_h,
+             c_path, c_depth, c_org, c_dir, c_beta):
+    """``integrators.shade`` for path tracing: next-event rays to every light, then the
+    continuation bounce. Rows come out in the numpy path's order: light by light, vertex-major
+    within a light (sample ``j`` innermost), unoccluded-useless samples left out.
+
+    Parameters
+    ----------
+    path : (k,) int64; depth : (k,) uint8; org, dirs : (k, 3) float32; beta : (k, 3) float64
+        the radiance rays that hit.
+    t : (k,) float64; normal : (k, 3) float64 unit geometric normals; material : (k,) int64;
+        color : (k, 3) float64 (read only when ``has_color``).
+    pixel, sample : (P,) uint32 path keys; seed : uint64; bounces : the last vertex that
+        continues is ``bounces - 1``.
+    diffuse : (M, 3) float64 albedo per material; has_specular : also fill ``s_vertex``,
+        ``s_weight`` and ``s_cos_h`` for the Blinn-Phong term (added afterwards in numpy).
+    kinds, counts : (L,) int64 light kind and samples per vertex (0: skipped);
+        purposes : (L,) uint64 each light's RNG purpose (``Purpose.LIGHT_SAMPLE + 16 * l``);
+        params : (L, LIGHT_PARAMS) float64 (``integrators._light_table``).
+    hem_slot : (L,) int64 row of ``hem_u/c/s`` holding an ambient light's hemisphere samples;
+        hem_u, hem_c, hem_s : (A, k * m) float32 uniform u and azimuth cos/sin.
+    bu, bc, bs : (k,) float32 the continuation bounce's u and azimuth cos/sin (read only for
+        rows with ``depth < bounces``).
+    s_* : shadow-ray outputs with room for every sample: path, depth, origin, direction,
+        t_max, contribution; s_vertex (int64), s_weight ((n, 3) float64), s_cos_h (float64).
+    c_* : continuation outputs with room for k rows: path, depth, origin, direction, beta.
+
+    Returns
+    -------
+    (shadow rays written, continuation rays written)
+    """
+    k = path.shape[0]
+    n_shadow = 0
+    for li in range(kinds.shape[0]):
+        m = counts[li]
+        if m == 0:
+            continue
+        kind = kinds[li]
+        prm = params[li]
+        start = key_start(seed, purposes[li])
+        slot = hem_slot[li]
+        for i in range(k):
+            d0, d1, d2, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+            a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
+            if has_color:
+                a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
+            td0 = beta[i, 0] * a0 / _PI
+            td1 = beta[i, 1] * a1 / _PI
+            td2 = beta[i, 2] * a2 / _PI
+            p = path[i]
+            for j in range(m):
+                su = sv = hu = hc = hs = _F32_ZERO
+                if kind == QUAD:
+                    su, sv = _uniform_pair(hash_key(start, pixel[p], sample[p], depth[i], j))
+                elif kind == AMBIENT:
+                    r = i * m + j
+                    hu, hc, hs = hem_u[slot, r], hem_c[slot, r], hem_s[slot, r]
+                w0, w1, w2, dist, e0, e1, e2 = _sample_light(kind, prm, o0, o1, o2,
+                                                             nf0, nf1, nf2, su, sv, hu, hc, hs)
+                cos_i = _dot(nf0, nf1, nf2, w0, w1, w2)
+                if not (cos_i > 0 and (e0 + e1) + e2 > 0):
+                    continue
+                c = cos_i / m
+                g0, g1, g2 = c * e0, c * e1, c * e2
+                n = n_shadow
+                s_path[n] = p
+                s_depth[n] = depth[i]
+                s_org[n, 0], s_org[n, 1], s_org[n, 2] = o0, o1, o2
+                s_dir[n, 0], s_dir[n, 1], s_dir[n, 2] = w0, w1, w2
+                s_tmax[n] = dist * _SHORTEN
+                s_contrib[n, 0], s_contrib[n, 1], s_contrib[n, 2] = td0 * g0, td1 * g1, td2 * g2
+                if has_specular:
+                    h0, h1, h2 = -d0 + w0, -d1 + w1, -d2 + w2
+                    hn = _maximum(np.sqrt((h0 * h0 + h1 * h1) + h2 * h2), 1e-300)
+                    s_vertex[n] = i
+                    s_weight[n, 0], s_weight[n, 1], s_weight[n, 2] = g0, g1, g2
+                    s_cos_h[n] = _maximum(0.0, _dot(nf0, nf1, nf2, h0 / hn, h1 / hn, h2 / hn))
+                n_shadow += 1
+    n_cont = 0
+    for i in range(k):
+        if depth[i] >= bounces:
+            continue
+        _, _, _, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+        a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
+        if has_color:
+            a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
+        b0, b1, b2 = beta[i, 0] * a0, beta[i, 1] * a1, beta[i, 2] * a2
+        if not (b0 > 0 or b1 > 0 or b2 > 0):
+            continue
+        w0, w1, w2 = _hemisphere(nf0, nf1, nf2, bu[i], bc[i], bs[i])
+        n = n_cont
+        c_path[n] = path[i]
+        c_depth[n] = depth[i] + 1
+        c_org[n, 0], c_org[n, 1], c_org[n, 2] = o0, o1, o2
+        c_dir[n, 0], c_dir[n, 1], c_dir[n, 2] = w0, w1, w2
+        c_beta[n, 0], c_beta[n, 1], c_beta[n, 2] = b0, b1, b2
+        n_cont += 1
+    return n_shadow, n_cont
+
+
+@njit(nogil=True, cache=True)
+def add_unoccluded(radiance, path, contribution, lit):
+    """``radiance[path[r]] += contribution[r]`` for the rows ``r`` with ``lit[r]``, summed per
+    path in row order first (as ``np.bincount`` does), then added.
+
+    Parameters
+    ----------
+    radiance : (P, 3) float64, updated; path : (n,) int64; contribution : (n, 3) float64;
+    lit : (n,) bool
+    """
+    acc = np.zeros(radiance.shape)
+    for r in range(path.shape[0]):
+        if lit[r]:
+            p = path[r]
+            acc[p, 0] += contribution[r, 0]
+            acc[p, 1] += contribution[r, 1]
+            acc[p, 2] += contribution[r, 2]
+    for p in range(radiance.shape[0]):
+        radiance[p, 0] += acc[p, 0]
+        radiance[p, 1] += acc[p, 1]
+        radiance[p, 2] += acc[p, 2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera rays and hit records
+# ---------------------------------------------------------------------------------------------
+
+@njit(nogil=True, cache=True)
+def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, position,
+                forward, right, up, origin, direction):
+    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it.
+
+    Parameters
+    ----------
+    pixel, sample : (n,) uint32; seed, purpose : uint64 (``Purpose.CAMERA_JITTER``).
+    width, height : image size; tan_half, aspect : ``tan(fov / 2)`` and ``width / height``
+        as ``Camera.generate`` computes them.
+    position, forward, right, up : (3,) float64 (``Camera.frame``).
+    origin, direction : (n, 3) float32 out.
+    """
+    start = key_start(seed, purpose)
+    w, h = np.float64(width), np.float64(height)
+    for i in range(pixel.shape[0]):
+        jx, jy = _uniform_pair(hash_key(start, pixel[i], sample[i], 0, 0))
+        column = np.float64(pixel[i] % width) + np.float64(jx)
+        row = np.float64(pixel[i] // width) + np.float64(jy)
+        sx = (2.0 * column / w - 1.0) * tan_half * aspect
+        sy = (1.0 - 2.0 * row / h) * tan_half
+        d0 = forward[0] + sx * right[0] + sy * up[0]
+        d1 = forward[1] + sx * right[1] + sy * up[1]
+        d2 = forward[2] + sx * right[2] + sy * up[2]
+        length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+        direction[i, 0], direction[i, 1], direction[i, 2] = d0 / length, d1 / length, d2 / length
+        origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
+
+
+@njit(nogil=True, cache=True)
+def unit_normals(ng, out):
+    """``ClosestHits.hits``' normals: float32 ``ng`` ((n, 3)) to float64 unit vectors in
+    ``out`` (rows of length 0 stay 0), as ``ng / norm(ng)`` in numpy."""
+    for i in range(ng.shape[0]):
+        x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
+        length = np.sqrt((x * x + y * y) + z * z)
+        if not length > 0:
+            length = 1.0
+        out[i, 0], out[i, 1], out[i, 2] = x / length, y / length, z / length
+
+
+@njit(nogil=True, cache=True)
+def offer(rows, domain, prim, tfar, ng, best_t, best_domain, best_ng, got):
+    """``ClosestHits.offer``'s comparison and stores: ray ``rows[k]`` takes hit ``k`` of
+    ``domain`` where it hit (``prim[k] >= 0``) nearer than its best so far, or as near in a
+    lower domain; ``got[k]`` says whether it did.
+
+    Parameters
+    ----------
+    rows : (k,) int64 distinct rays; domain : int64.
+    prim : (k,) int32; tfar : (k,) float32; ng : (k, 3) float32 Embree's output.
+    best_t : (n,) float32; best_domain : (n,) int32; best_ng : (n, 3) float32, updated.
+    got : (k,) bool out.
+    """
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        t = tfar[k]
+        ok = prim[k] >= 0 and (t < best_t[i] or (t == best_t[i] and domain < best_domain[i]))
+        got[k] = ok
+        if ok:
+            best_t[i] = t
+            best_domain[i] = domain
+            best_ng[i, 0], best_ng[i, 1], best_ng[i, 2] = ng[k, 0], ng[k, 1], ng[k, 2]
