@@ -20,17 +20,14 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from vastray.render import kernels
-from vastray.render.lights import (AmbientLight, DirectionalLight, Light, PointLight, QuadLight,
-                                   SampleKeys)
+from vastray.render.lights import AmbientLight, DirectionalLight, Light, PointLight, QuadLight, SampleKeys
 from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer, Hits, facing
 
-#: Spawned rays start this far (relative to the hit's coordinate magnitude plus the distance it
-#: was reached from) off the surface: about 64 float32 ulps, so they never re-hit it.
-SPAWN_EPSILON = 4e-6
-assert kernels._SPAWN_EPSILON == SPAWN_EPSILON
+#: Spawned rays start this far off the surface (see ``render.kernels.SPAWN_EPSILON``).
+SPAWN_EPSILON = kernels.SPAWN_EPSILON
 
 
 @dataclass(frozen=True)

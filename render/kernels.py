@@ -52,8 +52,11 @@ POINT, DIRECTIONAL, QUAD, AMBIENT = 0, 1, 2, 3
 LIGHT_PARAMS = 16
 
 _PI = math.pi
-_SPAWN_EPSILON = 4e-6  # integrators.SPAWN_EPSILON (asserted equal there)
-_SHORTEN = 1.0 - _SPAWN_EPSILON  # shadow rays stop this fraction of the way to the light
+#: Spawned rays start this far (relative to the hit's coordinate magnitude plus the distance it
+#: was reached from) off the surface: about 64 float32 ulps, so they never re-hit it. Defined
+#: here, where numba freezes it into the kernels, and re-exported by ``render.integrators``.
+SPAWN_EPSILON = 4e-6
+_SHORTEN = 1.0 - SPAWN_EPSILON  # shadow rays stop this fraction of the way to the light
 _F32_ZERO = np.float32(0.0)
 _F32_ONE = np.float32(1.0)
 
@@ -201,7 +204,7 @@ def _frame(org, dirs, t, normal, i):
     g0, g1, g2 = normal[i, 0], normal[i, 1], normal[i, 2]
     side = -1.0 if _dot(g0, g1, g2, d0, d1, d2) > 0 else 1.0
     nf0, nf1, nf2 = g0 * side, g1 * side, g2 * side
-    scale = _SPAWN_EPSILON * (max(abs(p0), abs(p1), abs(p2)) + ti)
+    scale = SPAWN_EPSILON * (max(abs(p0), abs(p1), abs(p2)) + ti)
     return (d0, d1, d2, nf0, nf1, nf2,
             p0 + nf0 * scale, p1 + nf1 * scale, p2 + nf2 * scale)
 

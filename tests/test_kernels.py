@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 
 from vastray.render import kernels
-from vastray.render.integrators import (PathContext, RadianceRays, RenderSettings, Shading,
-                                        add_unoccluded, shade)
+from vastray.render.integrators import (
+    PathContext,
+    RadianceRays,
+    RenderSettings,
+    Shading,
+    add_unoccluded,
+    shade,
+)
 from vastray.render.lights import AmbientLight, DirectionalLight, PointLight, QuadLight
 from vastray.render.materials import Material, MaterialTable
 from vastray.render.rng import Purpose, uniform2
