@@ -490,11 +490,13 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                  "reduce_s": round(reduce_total, 4),
                  "counters": _report_counters(totals, management.rejections)}
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
+        for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
+            task.cancel()
+        # Heartbeats go on until the stop: a node done with its share is still in the job (a
+        # regroup may call it back), and the coordinator tells a lost node by its silence.
+        await management.receive(protocol.STOP, "stop from the coordinator")
     finally:
         beating.cancel()
-    for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
-        task.cancel()
-    await management.receive(protocol.STOP, "stop from the coordinator")
     log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
 
 

@@ -1,7 +1,9 @@
 """A node loss is survived, not just reported: kill -9 or SIGSTOP one of 4 nodes mid-frame, and
 the frame completes with the image of the fault-free render. Nodes started elsewhere (`vastray
 node --coordinator`, as a user starts them) survive too: the others regroup on the same address
-and render the frame again."""
+and render the frame again. Frames are 32x24 at 128 spp: long enough that the kill, a second
+after the nodes have their job, lands mid-frame (a node done with its share may be killed
+without loss)."""
 
 from __future__ import annotations
 
@@ -39,7 +41,7 @@ def scene(tmp_path_factory):
     ("image", signal.SIGKILL), ("async", signal.SIGSTOP), ("image", signal.SIGSTOP)])
 def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig):
     store, toml = scene
-    st = settings(width=32, height=24, spp=32, integrator="pt")
+    st = settings(width=32, height=24, spp=128, integrator="pt")
     hit = []
 
     def strike():  # node 2, once it is rendering
@@ -113,7 +115,7 @@ def _reap(nodes: list[subprocess.Popen]) -> None:
 @pytest.mark.parametrize("scheduler", ["async", "image"])
 def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler):
     store, toml = scene
-    st = settings(width=32, height=24, spp=32, integrator="pt")
+    st = settings(width=32, height=24, spp=128, integrator="pt")
     port = _free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
     nodes = _start_nodes(port, logs)
@@ -156,7 +158,7 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
     striker.start()
     try:
         with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
-            render_distributed(store.path, toml, settings(width=32, height=24, spp=32,
+            render_distributed(store.path, toml, settings(width=32, height=24, spp=128,
                                                           integrator="pt"),
                                3, scheduler="async", listen=f"127.0.0.1:{port}", timeout=60,
                                heartbeat_timeout=3.0, max_samples_in_flight=300,
@@ -175,7 +177,7 @@ def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
     store, toml = scene
     port = _free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    common = ["--scene", str(toml), "--width", "32", "--height", "24", "--spp", "32",
+    common = ["--scene", str(toml), "--width", "32", "--height", "24", "--spp", "128",
               "--integrator", "pt", "--bounces", "2", "--shadow-samples", "4", "--seed", "7"]
     coordinator = subprocess.Popen(
         [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr", *common,
@@ -206,3 +208,19 @@ def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
     image, expected = read_exr(tmp_path / "x.exr"), read_exr(tmp_path / "ref.exr")
     assert expected.max() > 0.05
     np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-6)
+
+
+def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
+    # Sort-first with one tile: node 1 has no share, sends its empty film and `done` at once,
+    # then waits seconds for node 0's stop. It must go on heartbeating meanwhile: a node that
+    # fell silent once done was declared lost after heartbeat_timeout (and, with a real loss
+    # elsewhere, blamed in its place, since it had been silent longest).
+    store, toml = scene
+    st = settings(width=64, height=48, spp=256, integrator="pt")
+    paths = st.width * st.height * st.spp
+    start = time.monotonic()
+    result = render_distributed(store.path, toml, st, 2, scheduler="image", timeout=60,
+                                heartbeat_timeout=2.0, max_samples_in_flight=paths)
+    assert time.monotonic() - start > 3.0, "node 0's tile should outlast the heartbeat timeout"
+    assert result.counters["node_failures"] == []
+    assert result.counters["nodes_asked"] == 2 and result.counters["nodes"] == 2
