@@ -20,7 +20,7 @@ Every float operation is the one numpy performs, in the same order and precision
   ``cos``/``sin``: 17 % of values differ in the last bit; float64 ``pow``: 5 %) stay in numpy:
   the cosine-hemisphere angles are drawn by ``hemisphere_uniforms`` and their cos/sin taken
   by numpy before the shading kernel runs, and the Blinn-Phong power is applied afterwards
-  (``integrators._add_specular``).
+  (``integrators._shade_fused`` through ``materials.blinn_phong_lobe_of_cos``).
 
 The light kinds are the four of ``render.lights``; a batch with any other light uses the numpy
 path (chosen per batch, never per ray).
