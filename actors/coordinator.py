@@ -474,7 +474,7 @@ async def _call_regroup(router, identities: dict[int, bytes], token: bytes,
 
 
 async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None:
-    """Tell every node, twice a second, that the coordinator is alive."""
+    """Tell every node, every ``protocol.HEARTBEAT_S``, that the coordinator is alive."""
     frames = encode(protocol.HEARTBEAT, {}, {})
     while True:
         for identity in identities.values():

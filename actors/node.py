@@ -393,8 +393,18 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
             if not regroup.done():
                 regroup.cancel()
                 work.result()  # raises what failed the job
+        # The regroup is the coordinator's last word on this job: it is silent from now on
+        # until the next job, so its silence while the job is dropped (a pool or loader thread
+        # still finishing a long trace or load) is no loss of it.
+        for task in watchers:
+            task.cancel()
         aborted.set()  # a render thread still running stops at its next tile
         work.cancel()
+        slow_drop = float(os.environ.get(protocol.FAULT_SLOW_DROP_ENV) or 0)
+        if slow_drop > 0:
+            log.warning("fault injection: dropping the job takes %.1f s more (%s)", slow_drop,
+                        protocol.FAULT_SLOW_DROP_ENV)
+            await asyncio.sleep(slow_drop)
         try:
             await work
         except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
