@@ -117,25 +117,27 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
     capacity = cache.capacity
     threads = threads or os.cpu_count() or 1
-    # With every domain resident, whole batches run on parallel workers (numpy and Embree both
-    # release the GIL); one worker more than threads lets one worker's Python shading overlap
-    # the others' Embree queries (measured: +10-15 % rays/s on 2 cores, bench/throughput.py).
-    # A bounded cache is shared by one worker, which would otherwise thrash it; that worker
-    # splits its Embree queries over the threads instead.
+    total = settings.width * settings.height * settings.spp
+    batch = max(1, settings.batch_size)
+    # With every domain resident, whole batches run on one worker per thread, each tracing its
+    # Embree queries on its own thread (serial kernels, no GIL, side by side): one worker's
+    # Python and numpy work overlaps the others' queries. A frame of fewer batches than twice
+    # the workers is cut finer so that every worker has some. (Measured on bench/peers.py, 2
+    # cores: 0.43 s with threads + 1 workers whose queries took turns on both threads, one
+    # launch at a time; 0.33 s so.) A bounded cache is shared by one worker, which would
+    # otherwise thrash it; that worker splits its Embree queries over the threads instead.
     all_fit = capacity >= len(store.domains)
-    workers = threads + 1 if all_fit and threads > 1 else 1
-    # Every worker's Embree queries use all the threads: the compiled kernels run one launch
-    # at a time (scene/embree.py), so a launch on one thread would leave the other cores to
-    # the other workers' shading only (measured: throughput_ratio 0.30 -> 0.41-0.44).
-    tracer = DomainTracer(store, cache, color_source, threads=threads, two_level=two_level)
+    workers = threads if all_fit and threads > 1 else 1
+    if workers > 1:
+        batch = min(batch, -(-total // (2 * workers)))
+    tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
+                          two_level=two_level)
     tracer.record = record_rays
     camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
                                    settings.height)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))
     ao_distance = settings.ao_distance or default_ao_distance(store)
     film = Film(settings.width, settings.height)
-    total = settings.width * settings.height * settings.spp
-    batch = max(1, settings.batch_size)
 
     def trace_batch(first: int):
         ctx = path_context(shading, settings, first, min(first + batch, total), ao_distance)
@@ -157,6 +159,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         "rays": dict(tracer.stats.rays, total=sum(tracer.stats.rays.values())),
         "ray_domain_tests": tracer.stats.ray_domain_tests,
         "cache_capacity": capacity,
+        "threads": threads,
+        "render_workers": workers,
         **stats.as_dict(),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     }

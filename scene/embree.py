@@ -17,8 +17,11 @@ Pieces
   on the shared 2-core machine, the first queries 0.25-0.45 s more, most of it numba's one-off
   set-up on its first dispatch (it imports ``scipy.linalg`` to probe BLAS).
 - Threads: ``numba.set_num_threads`` from the caller's thread count before each launch (a
-  per-Python-thread setting). Several Python threads may trace at once with numba's OpenMP or
-  TBB threading layer; with its workqueue layer (no ``libgomp``) launches are serialised.
+  per-Python-thread setting). numba's workqueue threading layer (no ``libgomp``) must not be
+  entered by two Python threads at once, so parallel launches are serialised; a query on one
+  thread runs a serial twin of its kernel instead (``_SERIAL``), outside that lock, so several
+  Python threads tracing on one thread each trace side by side (the in-core renderer's
+  workers: 0.43 -> 0.33 s on ``bench/peers.py``, 2 cores).
 
 Scene flags: robust
 -------------------
@@ -368,10 +371,17 @@ numba.config.THREADING_LAYER = "workqueue"
 
 def _launch(kernel, threads: int, *args) -> None:
     """Run ``kernel`` on ``threads`` numba threads (clamped to numba's pool), one launch at a
-    time: numba's workqueue pool must not be entered by two Python threads at once."""
+    time: numba's workqueue pool must not be entered by two Python threads at once. On one
+    thread, a kernel's serial twin (``_SERIAL``) runs instead, outside the lock and without
+    the GIL: render workers that each trace on one thread trace side by side."""
+    threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    serial = _SERIAL.get(kernel)
+    if threads == 1 and serial is not None:
+        serial(*args)
+        return
     with _serial_lock:
         # numba's thread count is a per-calling-thread setting
-        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+        numba.set_num_threads(threads)
         kernel(*args)
 
 
@@ -535,49 +545,73 @@ def _set_ray16(f, i32, valid, org, dirs, tfar, base, n):
         i32[176 + j] = 0  # flags
 
 
+@njit(inline="always")
+def _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c):
+    n = org.shape[0]
+    raw = np.empty(16 + _RAYHIT16_WORDS + 16, np.float32)
+    buf = _aligned(raw, 16, 16 + _RAYHIT16_WORDS)
+    valid = buf[:16].view(np.int32)
+    f = buf[16:]
+    i32 = f.view(np.int32)
+    vptr = valid.ctypes.data
+    ptr = f.ctypes.data
+    for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
+        _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
+        for j in range(16):
+            i32[272 + j] = _INVALID  # primID
+            i32[288 + j] = _INVALID  # geomID
+            i32[304 + j] = _INVALID  # instID
+        _rtcIntersect16(vptr, scene, ptr, 0)
+        for j in range(min(16, n - base)):
+            _store_hit(f, i32, 272 + j, 128 + j, 192 + j, 16, prim, tfar, u, v, ng,
+                       base + j)
+
+
 @njit(parallel=True, nogil=True, cache=True)
 def _intersect16(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
+    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c)
+
+
+@njit(nogil=True, cache=True)
+def _intersect16_serial(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
+    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c)
+
+
+@njit(inline="always")
+def _occluded16_chunk(scene, org, dirs, tfar_in, out, c):
     n = org.shape[0]
-    for c in prange((n + _CHUNK - 1) // _CHUNK):
-        raw = np.empty(16 + _RAYHIT16_WORDS + 16, np.float32)
-        buf = _aligned(raw, 16, 16 + _RAYHIT16_WORDS)
-        valid = buf[:16].view(np.int32)
-        f = buf[16:]
-        i32 = f.view(np.int32)
-        vptr = valid.ctypes.data
-        ptr = f.ctypes.data
-        for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
-            _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
-            for j in range(16):
-                i32[272 + j] = _INVALID  # primID
-                i32[288 + j] = _INVALID  # geomID
-                i32[304 + j] = _INVALID  # instID
-            _rtcIntersect16(vptr, scene, ptr, 0)
-            for j in range(min(16, n - base)):
-                _store_hit(f, i32, 272 + j, 128 + j, 192 + j, 16, prim, tfar, u, v, ng,
-                           base + j)
+    raw = np.empty(16 + 192 + 16, np.float32)
+    buf = _aligned(raw, 16, 16 + 192)
+    valid = buf[:16].view(np.int32)
+    f = buf[16:]
+    i32 = f.view(np.int32)
+    vptr = valid.ctypes.data
+    ptr = f.ctypes.data
+    for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
+        _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
+        _rtcOccluded16(vptr, scene, ptr, 0)
+        for j in range(min(16, n - base)):
+            out[base + j] = f[128 + j] < 0
 
 
 @njit(parallel=True, nogil=True, cache=True)
 def _occluded16(scene, org, dirs, tfar_in, out):
-    n = org.shape[0]
-    for c in prange((n + _CHUNK - 1) // _CHUNK):
-        raw = np.empty(16 + 192 + 16, np.float32)
-        buf = _aligned(raw, 16, 16 + 192)
-        valid = buf[:16].view(np.int32)
-        f = buf[16:]
-        i32 = f.view(np.int32)
-        vptr = valid.ctypes.data
-        ptr = f.ctypes.data
-        for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
-            _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
-            _rtcOccluded16(vptr, scene, ptr, 0)
-            for j in range(min(16, n - base)):
-                out[base + j] = f[128 + j] < 0
+    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _occluded16_chunk(scene, org, dirs, tfar_in, out, c)
+
+
+@njit(nogil=True, cache=True)
+def _occluded16_serial(scene, org, dirs, tfar_in, out):
+    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _occluded16_chunk(scene, org, dirs, tfar_in, out, c)
 
 
 #: The kernels the queries use (see the module docstring: packets).
 _QUERY = {"intersect": _intersect16, "occluded": _occluded16}
+#: The serial twin of each parallel query kernel (``_launch`` on one thread).
+_SERIAL = {_intersect16: _intersect16_serial, _occluded16: _occluded16_serial}
 #: All kernels, for benchmarks.
 KERNELS = {"intersect1": _intersect1, "occluded1": _occluded1,
            "intersect16": _intersect16, "occluded16": _occluded16}
@@ -709,38 +743,52 @@ def _filter_address() -> int:
         return _filter_cfunc.address
 
 
+@njit(inline="always")
+def _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c):
+    n = org.shape[0]
+    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, _RAYHIT1_WORDS)
+    i32 = f.view(np.int32)
+    ptr = f.ctypes.data
+    context = np.zeros(_CTX_WORDS, np.int32)
+    cf = context.view(np.float32)
+    arguments = np.zeros(_ARGS_WORDS, np.int64)
+    a32 = arguments.view(np.int32)
+    arguments[1] = context.ctypes.data
+    arguments[2] = filt
+    aptr = arguments.ctypes.data
+    for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+        # (set in the loop, so the buffers Embree reads stay referenced through it)
+        a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
+        a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
+        _set_ray1(f, i32, org, dirs, tfar_in, i)  # ray id 0: the record at _CTX_RECORD
+        i32[17] = _INVALID
+        i32[18] = _INVALID
+        i32[19] = _INVALID
+        context[0] = _INVALID  # instID[0]
+        context[1] = _INVALID  # instPrimID[0] (where present)
+        cf[_CTX_RECORD // 4] = tfar_in[i]
+        context[_CTX_RECORD // 4 + 1] = _NO_INSTANCE
+        _rtcIntersect1(scene, ptr, aptr)
+        _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
+        inst[i] = i32[19] if prim[i] >= 0 else -1
+
+
 @njit(parallel=True, nogil=True, cache=True)
 def _intersect_top(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
     """Closest hits through a top-level scene, 1-ray queries with the tie filter; ``inst``
     receives the instance (top-level geometry id) of each hit, -1 for a miss."""
-    n = org.shape[0]
-    for c in prange((n + _CHUNK - 1) // _CHUNK):
-        raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
-        f = _aligned(raw, 4, _RAYHIT1_WORDS)
-        i32 = f.view(np.int32)
-        ptr = f.ctypes.data
-        context = np.zeros(_CTX_WORDS, np.int32)
-        cf = context.view(np.float32)
-        arguments = np.zeros(_ARGS_WORDS, np.int64)
-        a32 = arguments.view(np.int32)
-        arguments[1] = context.ctypes.data
-        arguments[2] = filt
-        aptr = arguments.ctypes.data
-        for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-            # (set in the loop, so the buffers Embree reads stay referenced through it)
-            a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
-            a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
-            _set_ray1(f, i32, org, dirs, tfar_in, i)  # ray id 0: the record at _CTX_RECORD
-            i32[17] = _INVALID
-            i32[18] = _INVALID
-            i32[19] = _INVALID
-            context[0] = _INVALID  # instID[0]
-            context[1] = _INVALID  # instPrimID[0] (where present)
-            cf[_CTX_RECORD // 4] = tfar_in[i]
-            context[_CTX_RECORD // 4 + 1] = _NO_INSTANCE
-            _rtcIntersect1(scene, ptr, aptr)
-            _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
-            inst[i] = i32[19] if prim[i] >= 0 else -1
+    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c)
+
+
+@njit(nogil=True, cache=True)
+def _intersect_top_serial(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
+        _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c)
+
+
+_SERIAL[_intersect_top] = _intersect_top_serial
 
 
 class TopScene(_SceneHandle):

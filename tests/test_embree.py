@@ -239,10 +239,13 @@ def test_empty_domain_misses(api):
                             np.full(5, np.inf, np.float32)).any()
 
 
-def test_concurrent_queries_from_python_threads(api):
+@pytest.mark.parametrize("query_threads", [1, 2])
+def test_concurrent_queries_from_python_threads(api, query_threads):
+    # query_threads 1: each Python thread runs the serial kernels, side by side; 2: the
+    # parallel kernels, one launch at a time
     arrays = _arrays(MESHES["icosphere"]())
     origins, dirs, t_far = _rays(arrays, 50000, seed=9)
-    bvh = DomainBVH(0, arrays, pool=ThreadPoolExecutor(2))
+    bvh = DomainBVH(0, arrays, pool=ThreadPoolExecutor(2) if query_threads > 1 else None)
     expect = bvh.intersect(origins, dirs, t_far)["primID"]
     results, errors = [], []
 
@@ -262,7 +265,29 @@ def test_concurrent_queries_from_python_threads(api):
     assert len(results) == 9
     for r in results:
         np.testing.assert_array_equal(r, expect)
-    bvh.pool.shutdown()
+    if bvh.pool is not None:
+        bvh.pool.shutdown()
+
+
+def test_one_thread_queries_do_not_wait_for_parallel_launches(api):
+    # A query on one thread runs its kernel's serial twin outside the launch lock, so render
+    # workers tracing on one thread each trace side by side (they queued behind each other
+    # before); with the lock held elsewhere, such a query still completes.
+    arrays = _arrays(MESHES["icosphere"]())
+    origins, dirs, t_far = _rays(arrays, 5000, seed=4)
+    bvh = DomainBVH(0, arrays)
+    parallel = embree.bench_kernels(bvh._scene, origins, dirs, t_far, "intersect16", threads=2)
+    done = []
+    with embree._serial_lock:  # as if another worker's parallel launch were running
+        worker = threading.Thread(target=lambda: done.append(
+            (bvh.intersect(origins, dirs, t_far), bvh.occluded(origins, dirs, t_far))))
+        worker.start()
+        worker.join(timeout=30)
+        assert done, "a one-thread query waited for the launch lock"
+    hits, blocked = done[0]
+    for key in ("primID", "tfar"):  # the serial and parallel kernels agree bit for bit
+        np.testing.assert_array_equal(hits[key], parallel[key])
+    np.testing.assert_array_equal(blocked, parallel["primID"] >= 0)
 
 
 @pytest.fixture

@@ -32,6 +32,23 @@ def test_out_of_core_schedules_split_queries_over_threads(store, scheduler, monk
         np.testing.assert_array_equal(result.film.image(), reference)
 
 
+def test_in_core_render_workers_trace_side_by_side_with_the_same_image(store):
+    # one worker per thread, each tracing on its own thread; a frame of few batches is cut
+    # finer so each worker has some (the image does not depend on how paths are batched)
+    st = settings(width=40, height=30, spp=4, integrator="pt")
+    reference = render(store, SceneConfig(text=""), st, threads=1, progress=False)
+    assert reference.counters["render_workers"] == 1
+    for threads in (2, 3):
+        result = render(store, SceneConfig(text=""), st, threads=threads, progress=False)
+        assert result.counters["threads"] == threads
+        assert result.counters["render_workers"] == threads
+        np.testing.assert_array_equal(result.film.image(), reference.film.image())
+    bounded = render(store, SceneConfig(text=""), st, threads=2, cache_capacity=3,
+                     progress=False)  # a bounded cache: one worker, queries split over threads
+    assert bounded.counters["render_workers"] == 1
+    np.testing.assert_array_equal(bounded.film.image(), reference.film.image())
+
+
 @pytest.mark.parametrize("scheduler", ["image", "async", "spec-insitu"])
 def test_nodes_get_their_share_of_the_cores(store, scheduler, tmp_path):
     toml = tmp_path / "scene.toml"
