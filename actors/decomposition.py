@@ -273,6 +273,7 @@ async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, f
     stats["stats_reduce_s"] = round(time.perf_counter() - start, 4)
     stats["local_domains"] = int(frame.local.sum())
     stats["nonlocal_loads"] = frame.nonlocal_loads
+    stats["proc_s"] = round(float(frame.stats.proc_s.sum()), 4)  # this node's, for S_PROC
     stats["assignment_digest"] = int(np.abs(assignment.owner * np.arange(
         1, len(assignment.owner) + 1)).sum())
     return frame
@@ -496,7 +497,8 @@ class _AsyncFrame:
         return np.nonzero(np.arange(len(policy.ctx.pixel)) % self.size == self.rank)[0]
 
     def traced(self, domain: int, rays: int, seconds: float) -> None:
-        """Hears that ``rays`` rays of ``domain`` took ``seconds`` to trace and shade."""
+        """Hears that an activation of ``domain`` processed ``rays`` rays in ``seconds``: the
+        wait for its load (what preloading did not hide) and the tracing and shading."""
 
     def waiting(self) -> np.ndarray:
         """(D,) rays waiting here per domain, over every tile."""
@@ -549,12 +551,11 @@ class _AsyncFrame:
         start = time.perf_counter()
         bvh = await preloader.get(domain)
         preloader.preload(upcoming)
-        loaded = time.perf_counter()
         for policy in [p for p in self.policies.values()
                        if p.radiance.count(domain) or p.shadow.count(domain)]:
             await asyncio.to_thread(policy.process, domain, bvh)
         done = time.perf_counter()
-        self.traced(domain, int(waiting[domain]), done - loaded)
+        self.traced(domain, int(waiting[domain]), done - start)
         self.node.stats["trace_s"] += done - start
         await self.ship()
         return True

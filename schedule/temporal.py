@@ -198,8 +198,14 @@ class FrameStats:
     received : (D,) int64, r(A): rays A processed (from other domains, from the camera or
         spawned in A; note S12.2).
     loads : (D,) int64, N(d): loads of domain d.
-    proc_rays : (D,) int64 and proc_s : (D,) float64: rays processed in d and seconds spent
-        tracing and shading them (for S_PROC).
+    proc_rays : (D,) int64 and proc_s : (D,) float64: rays processed in d and the seconds of
+        d's activations that processed them, from the activation to the end of its tracing
+        and shading: the wait for d's load (what preloading did not hide) is included (for
+        S_PROC). Reading: S_PROC(d) is the speed at which the node processed d's rays, as the
+        node spent its time. Timing the tracing alone made Eq. 1's load term swamp Q/S_PROC
+        wherever a domain's queue takes less time to trace than to load, so every domain not
+        cached ranked near -T_LOAD whatever its rays, and the node loaded cheap domains
+        holding few rays (bench/README.md, temporal.py: 1,152 loads per frame against 546).
     load_bytes : (P,) float64 and load_s : (P,) float64: bytes loaded by node n and seconds
         spent loading them (for S_LOAD).
 

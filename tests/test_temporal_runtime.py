@@ -92,6 +92,17 @@ def test_preloading_overlaps_rendering(scene):
         assert counters["load_wait_s"] < counters["load_s"]
 
 
+def test_s_proc_times_activations_with_their_load_waits(scene):
+    # S_PROC(d) is the rays of d over the seconds of its activations, the wait for its load
+    # included: with slow loads (one domain cached, 2 MB/s) nearly all of a node's activation
+    # time is that wait, which tracing time alone would leave out.
+    result = run(scene, 2, cache=1, load_bandwidth=2.0, priority="cost-benefit")
+    for report in result.counters["per_node"]:
+        counters = report["counters"]
+        assert counters["load_wait_s"] > 0.05
+        assert counters["proc_s"] >= 0.99 * counters["load_wait_s"]
+
+
 def test_simplified_none_is_the_reference_and_identity_model_is_close(scene, reference,
                                                                        tmp_path):
     store, toml = scene
