@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -358,6 +359,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 await _call_regroup(router, identities, token, lost)
                 linger = 2000  # let the regroup reach the survivors before the close
             raise
+        finally:
+            await frames.drain()  # the frames delivered are written, even when one is lost
         frames.check_complete()
         for rank in range(size):
             await router.send_multipart([identities[rank], token, *encode(protocol.STOP, {})])
@@ -418,7 +421,11 @@ async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
 
 class _Frames:
     """An animation's frames as they arrive: a frame is done when node 0's film and every
-    node's report of it are in; then ``frame_done(frame, film, reports, barriers, seconds)``.
+    node's report of it are in; then ``frame_done(frame, film, reports, barriers, seconds)``
+    runs on a writer thread, frame after frame in order, while the event loop goes on (the
+    heartbeats above all: writing a 4K frame's EXR and PNG takes seconds, and nodes that hear
+    nothing for ``protocol.COORDINATOR_SILENCE_S`` exit). ``drain`` waits for the writes; a
+    write that failed raises there, or at the next frame done.
 
     Without frames (one image) it does nothing: the film and the done reports are the result.
     """
@@ -430,6 +437,26 @@ class _Frames:
         self.reports: dict[int, dict[int, dict]] = {}
         self.started = time.perf_counter()
         self.barriers_before = 0
+        self.writer = None if frames is None else ThreadPoolExecutor(
+            1, thread_name_prefix="frame-done")
+        self.writing: list[asyncio.Future] = []
+
+    def _raise_failed_write(self) -> None:
+        for future in self.writing:
+            if future.done() and future.exception() is not None:
+                raise future.exception()
+        self.writing = [f for f in self.writing if not f.done()]
+
+    async def drain(self) -> None:
+        """Wait for every frame handed to ``frame_done``; raise the first failure."""
+        if self.writer is None:
+            return
+        try:
+            for future in self.writing:
+                await future
+        finally:
+            self.writing = []
+            self.writer.shutdown(wait=True)
 
     def film(self, frame: int | None, film, barriers: int) -> None:
         if self.expected is None:
@@ -451,10 +478,13 @@ class _Frames:
     def _finish(self, frame: int, barriers: int) -> None:
         if frame not in self.films or len(self.reports.get(frame, {})) < self.size:
             return
+        self._raise_failed_write()
         now = time.perf_counter()
         reports = self.reports.pop(frame)
-        self.frame_done(frame, self.films.pop(frame), [reports[r] for r in range(self.size)],
-                        barriers - self.barriers_before, now - self.started)
+        self.writing.append(asyncio.get_running_loop().run_in_executor(
+            self.writer, self.frame_done, frame, self.films.pop(frame),
+            [reports[r] for r in range(self.size)], barriers - self.barriers_before,
+            now - self.started))
         self.started, self.barriers_before = now, barriers
 
     def check_complete(self) -> None:

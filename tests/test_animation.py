@@ -313,6 +313,30 @@ def test_nodes_give_the_single_process_frames(store, orbit_toml, tmp_path):
     assert summary["scheduler"] == "async" and summary["options"]["nodes"] == 2
 
 
+def test_a_slow_frame_write_does_not_silence_the_coordinator(store, orbit_toml):
+    # Writing a frame (a 4K EXR and PNG take seconds) must not stop the coordinator's
+    # heartbeats: nodes hearing nothing for 2 s exit, and frames were then rendered again on
+    # fewer nodes. Here each frame's callback takes 3 s while the nodes render the next.
+    import time
+
+    from vastray.actors import protocol
+    from vastray.actors.coordinator import render_distributed
+    from vastray.render.scene_config import load_scene_config
+
+    seen = []
+
+    def on_frame(frame, result):
+        time.sleep(protocol.COORDINATOR_SILENCE_S + 1.0)
+        seen.append(frame)
+
+    result = render_distributed(store.path, None, settings(width=32, height=24, spp=16), 2,
+                                scheduler="async", config=load_scene_config(orbit_toml),
+                                frames=[0, 1, 2], on_frame=on_frame, timeout=60,
+                                max_samples_in_flight=200)
+    assert seen == [0, 1, 2]  # every frame, in order
+    assert result.counters["node_failures"] == [] and result.counters["nodes"] == 2
+
+
 def test_reference_pattern_gives_error_per_frame(store, orbit_toml, tmp_path, capsys):
     ref = tmp_path / "ref.exr"
     common = [str(store.path), "--scene", str(orbit_toml), "--frames", "2", *SMALL]
