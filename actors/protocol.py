@@ -137,10 +137,12 @@ def _check_film(message) -> None:
         raise ProtocolError("film: fields must be numeric")
 
 #: Seconds between heartbeats (coordinator to nodes, and nodes to coordinator); a node that
-#: hears nothing from the coordinator for two heartbeats exits (the coordinator died or was
-#: cut off). Nothing on the coordinator's event loop blocks that long while nodes work.
+#: hears nothing from the coordinator for five heartbeats exits (the coordinator died or was
+#: cut off). Nothing on the coordinator's event loop blocks that long while nodes work (frames
+#: are written on a thread); five, not two, so that a coordinator starved of the CPU for a
+#: moment on a loaded machine is not taken for dead.
 HEARTBEAT_S = 1.0
-COORDINATOR_SILENCE_S = 2 * HEARTBEAT_S
+COORDINATOR_SILENCE_S = 5 * HEARTBEAT_S
 
 #: Environment variable naming the coordinator's pid to the nodes it starts on its own machine:
 #: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).

@@ -315,8 +315,9 @@ def test_nodes_give_the_single_process_frames(store, orbit_toml, tmp_path):
 
 def test_a_slow_frame_write_does_not_silence_the_coordinator(store, orbit_toml):
     # Writing a frame (a 4K EXR and PNG take seconds) must not stop the coordinator's
-    # heartbeats: nodes hearing nothing for 2 s exit, and frames were then rendered again on
-    # fewer nodes. Here each frame's callback takes 3 s while the nodes render the next.
+    # heartbeats: nodes hearing nothing for COORDINATOR_SILENCE_S exit, and frames were then
+    # rendered again on fewer nodes. Here each frame's callback takes a second longer than
+    # that while the nodes render the next.
     import time
 
     from vastray.actors import protocol
