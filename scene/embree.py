@@ -546,15 +546,21 @@ def _set_ray16(f, i32, valid, org, dirs, tfar, base, n):
 
 
 @njit(inline="always")
-def _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c):
-    n = org.shape[0]
-    raw = np.empty(16 + _RAYHIT16_WORDS + 16, np.float32)
-    buf = _aligned(raw, 16, 16 + _RAYHIT16_WORDS)
+def _packet16(words):
+    """A 64-byte aligned packet of ``words`` float32 words (RTCRayHit16: 336, RTCRay16: 192)
+    behind its 16-lane valid mask: the packet as float32 and int32, the mask, and the
+    addresses of mask and packet (the views keep the buffer alive)."""
+    raw = np.empty(16 + words + 16, np.float32)
+    buf = _aligned(raw, 16, 16 + words)
     valid = buf[:16].view(np.int32)
     f = buf[16:]
-    i32 = f.view(np.int32)
-    vptr = valid.ctypes.data
-    ptr = f.ctypes.data
+    return f, f.view(np.int32), valid, valid.ctypes.data, f.ctypes.data
+
+
+@njit(inline="always")
+def _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c):
+    n = org.shape[0]
+    f, i32, valid, vptr, ptr = _packet16(_RAYHIT16_WORDS)
     for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
         _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
         for j in range(16):
@@ -582,13 +588,7 @@ def _intersect16_serial(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
 @njit(inline="always")
 def _occluded16_chunk(scene, org, dirs, tfar_in, out, c):
     n = org.shape[0]
-    raw = np.empty(16 + 192 + 16, np.float32)
-    buf = _aligned(raw, 16, 16 + 192)
-    valid = buf[:16].view(np.int32)
-    f = buf[16:]
-    i32 = f.view(np.int32)
-    vptr = valid.ctypes.data
-    ptr = f.ctypes.data
+    f, i32, valid, vptr, ptr = _packet16(192)
     for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
         _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
         _rtcOccluded16(vptr, scene, ptr, 0)
