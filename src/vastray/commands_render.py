@@ -557,7 +557,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
         tile = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4
         in_flight, films = tile * args.nodes, args.nodes + 1
     elif scheduler == "reference":
-        in_flight, films = args.batch_size * 2 * (threads + 1), 1
+        in_flight, films = args.batch_size * 2 * threads, 1  # 2 batches per render worker
     else:
         in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp
