@@ -213,11 +213,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "its size over this bandwidth (per node, or a list cycled over the "
                         "ranks); an emulation by waiting after the real read, for benchmarks")
     p.add_argument("--batch-size", type=_positive, default=65536,
-                   help="paths traced together (default: 65536)")
+                   help="paths traced together (default: 65536; in core, cut finer when a "
+                        "frame has fewer than two batches per render worker)")
     p.add_argument("--threads", type=_positive,
-                   help="threads Embree queries split their rays over, per process (default: "
-                        "all cores; with --nodes N on this machine, cores / N per node; with "
-                        "--listen, each node's own cores)")
+                   help="threads per process (default: all cores; with --nodes N on this "
+                        "machine, cores / N per node; with --listen, each node's own cores). In "
+                        "core, one render worker per thread traces batches side by side; out of "
+                        "core, each Embree query splits its rays over the threads")
     p.add_argument("--report", help="write a JSON report (timings, counts, error)")
     p.add_argument("--reference",
                    help="reference image (.exr/.pfm/.npy) to report MSE, PSNR and relative MSE "
