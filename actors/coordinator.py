@@ -141,6 +141,14 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if (options or {}).get("simplified") not in (None, "none") and store.simplified is None:
         raise InputError(store.path, "has no simplified model for --simplified; make one with "
                                      f"`vastray simplify {store.path} --ratio 0.01`")
+    if (options or {}).get("simplified") == "portal":
+        from vastray.schedule.portals import DEFAULT_RESOLUTION, check_portal_size
+
+        try:
+            check_portal_size(len(store.domains),
+                              options.get("portal_resolution", DEFAULT_RESOLUTION))
+        except ValueError as exc:
+            raise InputError(store.path, str(exc)) from None
     config = config if config is not None else load_scene_config(scene_path)
     if config.text is None:
         raise ValueError("render_distributed needs a SceneConfig read from TOML: its text is "
@@ -233,6 +241,7 @@ def portal_shares(per_node: list[dict]) -> dict:
     """A simplified-model run's shares from its nodes' counters (of a frame, or summed over
     frames); empty for other runs.
 
+    * ``portal_resolution``: cells per portal edge (``--portal-resolution``).
     * ``simplified_share``: Simple/total, depth-1 portal crossings predicted low (sent to the
       simplified model) over all crossings; None where no ray crossed a portal (policies
       without portals). 0 in a recording frame, which predicts nothing.
@@ -244,6 +253,8 @@ def portal_shares(per_node: list[dict]) -> dict:
       ``replay_false_low`` classify with the frame's own recorded portals.
     """
     out = {}
+    if any("portal_resolution" in c for c in per_node):
+        out["portal_resolution"] = max(c.get("portal_resolution", 0) for c in per_node)
     if any("portal_crossings" in c for c in per_node):
         crossings = sum(c.get("portal_crossings", 0) for c in per_node)
         low = sum(c.get("predicted_low", 0) for c in per_node)

@@ -107,7 +107,7 @@ def simplified_routing(store, setup, job: dict, state: NodeState):
     if policy is None:
         return None
     from vastray.scene.bvh import DomainBVH
-    from vastray.schedule.portals import CrossingLog, Portals
+    from vastray.schedule.portals import DEFAULT_RESOLUTION, CrossingLog, Portals
     from vastray.schedule.simplified import SimplifiedRouting
 
     memory = state.memory
@@ -121,7 +121,8 @@ def simplified_routing(store, setup, job: dict, state: NodeState):
     measuring = policy == "portal" and bool(job.get("portal_accuracy"))
     portals = None
     if policy == "portal":
-        portals = (Portals(len(store.domains), int(job.get("portal_resolution", 32)))
+        portals = (Portals(len(store.domains),
+                           int(job.get("portal_resolution", DEFAULT_RESOLUTION)))
                    if recording or measuring else memory["portals"])
     routing = SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo,
                                 hi, portals=portals, recording=recording or measuring,
@@ -147,6 +148,8 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
         return
     stats.update(routing.counters)
     stats["portal_recording"] = int(routing.recording and routing.keeps_portals)
+    if routing.portals is not None:
+        stats["portal_resolution"] = routing.portals.resolution
     if routing.recording:
         from vastray.schedule.portals import CrossingLog, Portals, prediction_accuracy
 

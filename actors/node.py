@@ -550,11 +550,15 @@ def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
             **{f"rejected_{k}": v for k, v in rejected.counts.items()}}
 
 
+#: Counters that are settings, not counts: a job's total keeps the latest frame's.
+_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution"})
+
+
 def _accumulate(totals: dict, counters: dict) -> None:
-    """Sum numeric counters over frames (names and peaks: the latest)."""
+    """Sum numeric counters over frames (names, peaks and settings: the latest)."""
     for key, value in counters.items():
         if isinstance(value, (int, float)) and not isinstance(value, bool) \
-                and not key.startswith("peak") and key != "threads":
+                and not key.startswith("peak") and key not in _SETTINGS:
             totals[key] = totals.get(key, 0) + value
         else:
             totals[key] = value

@@ -53,6 +53,27 @@ DEFAULT_RESOLUTION = 32
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
 
+#: Most bytes of portals a node may hold: they travel in one tree-reduce message (values and
+#: recorded flags), which the codec caps at 1 GiB; half of it leaves room for the rest.
+MAX_PORTAL_BYTES = 512 << 20
+
+
+def portal_bytes(n_domains: int, resolution: int) -> int:
+    """Bytes of a node's portals: float32 values and a bool recorded flag per cell."""
+    return int(n_domains) * len(FACES) * int(resolution) ** 2 * ANGLES * 5
+
+
+def check_portal_size(n_domains: int, resolution: int) -> None:
+    """Refuse portals too large to merge over the nodes, saying what to do (ValueError)."""
+    size = portal_bytes(n_domains, resolution)
+    if size > MAX_PORTAL_BYTES:
+        fits = int((MAX_PORTAL_BYTES / (int(n_domains) * len(FACES) * ANGLES * 5)) ** 0.5)
+        raise ValueError(f"--portal-resolution {resolution} needs {size / 2**20:,.0f} MiB of "
+                         f"portals on every node for {n_domains} domains, more than the "
+                         f"{MAX_PORTAL_BYTES >> 20} MiB one tree-reduce message carries; use "
+                         f"--portal-resolution {max(fits, 1)} or less")
+
+
 def luminance(rgb: np.ndarray) -> np.ndarray:
     """Y = 0.2126 R + 0.7152 G + 0.0722 B of linear RGB.
 

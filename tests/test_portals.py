@@ -331,3 +331,13 @@ def test_crossing_logs_of_nodes_combine_by_the_tree_combiners():
     with pytest.raises(ValueError):
         CrossingLog.from_arrays({"crossing_cell": np.zeros(3, np.int64),
                                  "crossing_value": np.zeros(2, np.float32)})
+
+
+def test_portal_size_is_checked_before_a_render_with_what_fits():
+    from vastray.schedule.portals import MAX_PORTAL_BYTES, check_portal_size, portal_bytes
+
+    assert portal_bytes(64, 128) == 64 * 6 * 128 * 128 * 8 * 5  # float32 value + bool flag
+    check_portal_size(64, 128)  # 240 MiB: fits
+    with pytest.raises(ValueError, match="--portal-resolution 47 or less"):
+        check_portal_size(1000, 64)  # 938 MiB for 1,000 domains
+    assert portal_bytes(1000, 47) <= MAX_PORTAL_BYTES < portal_bytes(1000, 48)

@@ -342,10 +342,11 @@ def test_cli_measures_portal_accuracy_without_quiet(tmp_path, capsys):
     common = ["render", str(store.path), "--scene", str(toml), "--frames", "2", "--nodes", "2",
               "--scheduler", "async", "--width", "32", "--height", "24", "--spp", "1"]
     assert main([*common, "-o", str(tmp_path / "a.exr"), "--report", str(tmp_path / "a.json"),
-                 "--simplified", "--portal-accuracy"]) == 0
+                 "--simplified", "--portal-accuracy", "--portal-resolution", "8"]) == 0
     assert "wrote 2 frames" in capsys.readouterr().err
     frame0 = json.loads((tmp_path / "a_0000.json").read_text())["counters"]
     frame1 = json.loads((tmp_path / "a_0001.json").read_text())["counters"]
+    assert frame0["portal_resolution"] == frame1["portal_resolution"] == 8
     assert "acc" not in frame0  # nothing to predict frame 0 with
     assert 0 <= frame1["acc"] <= 1 and 0 <= frame1["acc_unrecorded_share"] <= 1
     assert frame0["replay_false_low"] == frame1["replay_false_low"] == 0
@@ -354,3 +355,7 @@ def test_cli_measures_portal_accuracy_without_quiet(tmp_path, capsys):
                  "--portal-accuracy"]) == 2
     assert "--portal-accuracy" in capsys.readouterr().err
     assert not list(tmp_path.glob("b*.exr"))
+    with pytest.raises(SystemExit) as exit_:  # argparse: beyond the paper's largest portal
+        main([*common, "-o", str(tmp_path / "c.exr"), "--simplified",
+              "--portal-resolution", "200"])
+    assert exit_.value.code == 2 and "at most 128" in capsys.readouterr().err
