@@ -33,11 +33,14 @@ fine, each portal crossing classified with the portals the timed run predicts th
 with), which also counts the crossings predicted low (``acc_run_simplified_share=``, equal to
 the timed run's by construction) and those whose cell frame 0 never recorded
 (``unrecorded_share=``: predicted high, so traced fine; a sparse portal mispredicts).
-``--full`` adds Table 2 (assignment x priority) and Table 3 (simplification policies).
+``--full`` adds Table 2 (assignment x priority), Table 3 (simplification policies) and Table 4
+(portal resolution 8-64: time, error, ACC, Simple/total); ``--table4`` runs only the baseline
+and Table 4.
 
     python bench/temporal.py --quick      # N = 4, 8 frames, a few minutes
     python bench/temporal.py              # N = 4, 12 frames
     python bench/temporal.py --nodes 8 --full
+    python bench/temporal.py --quick --table4   # portal resolution only, a few minutes
 """
 
 from __future__ import annotations
@@ -151,7 +154,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="8 frames, a smaller image")
-    parser.add_argument("--full", action="store_true", help="also Tables 2 and 3")
+    parser.add_argument("--full", action="store_true", help="also Tables 2, 3 and 4")
+    parser.add_argument("--table4", action="store_true",
+                        help="only the baseline and Table 4 (portal resolution 8-64)")
     parser.add_argument("--nodes", type=int, default=4)
     parser.add_argument("--load-ms", type=float, default=30.0,
                         help="milliseconds the fastest node takes to load a domain of mean "
@@ -178,6 +183,9 @@ def main() -> None:
                   cache=cache, bandwidth=args.bandwidth)
     baseline = run(scheduler="temporal", assignment="spatial", priority="queue", **common)
     lossless = baseline["images"]
+    if args.table4:
+        table4(common, lossless, baseline["mean_s"])
+        return
     runs = {
         "async (as shipped: round robin, path-split camera rays)": run(scheduler="async",
                                                                          **common),
@@ -227,6 +235,28 @@ def main() -> None:
         r = run(scheduler="temporal", simplified=policy, portal_threshold=threshold, **common)
         label = f"{policy} (threshold {threshold})" if policy == "portal" else policy
         print(row(label, r, lossless, base_s), flush=True)
+    table4(common, lossless, base_s)
+
+
+def table4(common: dict, lossless: dict, base_s: float) -> None:
+    """The paper's Table 4: temporal --simplified (portal policy) at portal resolutions 8-64
+    (the paper: 8-128; 128 holds 64 x 6 x 128^2 x 8 cells per node, 240 MiB here), each
+    timed, then measured in an instrumented run for ACC."""
+    print("\nTable 4: portal resolution (temporal --simplified, threshold 0.5)\n")
+    print("| resolution | s per frame | speedup vs baseline | MSE | rel MSE | ACC | "
+          "Simple/total | unrecorded share | simplified rays per frame |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for resolution in (8, 16, 32, 64):
+        timed = run(scheduler="temporal", simplified="portal", portal_resolution=resolution,
+                    **common)
+        measured = run(scheduler="temporal", simplified="portal", portal_accuracy=True,
+                       portal_resolution=resolution, **common)
+        mse, rel = errors(timed["images"], lossless)
+        print(f"| {resolution}x{resolution} | {timed['mean_s']:.2f} | "
+              f"{base_s / timed['mean_s']:.2f} | {mse:.3g} | {rel:.3g} | "
+              f"{share(measured['acc'])} | {share(timed['simplified_share'])} | "
+              f"{share(measured['acc_unrecorded_share'])} | {timed['simplified']:,.0f} |",
+              flush=True)
 
 
 if __name__ == "__main__":
