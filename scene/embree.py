@@ -610,8 +610,6 @@ def _occluded16_serial(scene, org, dirs, tfar_in, out):
 
 #: The kernels the queries use (see the module docstring: packets).
 _QUERY = {"intersect": _intersect16, "occluded": _occluded16}
-#: The serial twin of each parallel query kernel (``_launch`` on one thread).
-_SERIAL = {_intersect16: _intersect16_serial, _occluded16: _occluded16_serial}
 #: All kernels, for benchmarks.
 KERNELS = {"intersect1": _intersect1, "occluded1": _occluded1,
            "intersect16": _intersect16, "occluded16": _occluded16}
@@ -788,7 +786,9 @@ def _intersect_top_serial(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng,
         _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c)
 
 
-_SERIAL[_intersect_top] = _intersect_top_serial
+#: The serial twin of each parallel query kernel (``_launch`` on one thread).
+_SERIAL = {_intersect16: _intersect16_serial, _occluded16: _occluded16_serial,
+           _intersect_top: _intersect_top_serial}
 
 
 class TopScene(_SceneHandle):
