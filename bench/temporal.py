@@ -35,12 +35,14 @@ the timed run's by construction) and those whose cell frame 0 never recorded
 (``unrecorded_share=``: predicted high, so traced fine; a sparse portal mispredicts).
 ``--full`` adds Table 2 (assignment x priority), Table 3 (simplification policies) and Table 4
 (portal resolution 8-64: time, error, ACC, Simple/total); ``--table4`` runs only the baseline
-and Table 4.
+and Table 4; ``--fig7`` only Fig. 7 (baseline and temporal at caches of 1, 2, 4, 8 and
+all of a node's group).
 
     python bench/temporal.py --quick      # N = 4, 8 frames, a few minutes
     python bench/temporal.py              # N = 4, 12 frames
     python bench/temporal.py --nodes 8 --full
     python bench/temporal.py --quick --table4   # portal resolution only, a few minutes
+    python bench/temporal.py --quick --fig7     # cache sizes only, a few minutes
 """
 
 from __future__ import annotations
@@ -157,6 +159,9 @@ def main() -> None:
     parser.add_argument("--full", action="store_true", help="also Tables 2, 3 and 4")
     parser.add_argument("--table4", action="store_true",
                         help="only the baseline and Table 4 (portal resolution 8-64)")
+    parser.add_argument("--fig7", action="store_true",
+                        help="only Fig. 7: baseline and temporal at caches of 1, 2, 4, 8 and "
+                             "all of a node's group")
     parser.add_argument("--nodes", type=int, default=4)
     parser.add_argument("--load-ms", type=float, default=30.0,
                         help="milliseconds the fastest node takes to load a domain of mean "
@@ -181,6 +186,9 @@ def main() -> None:
           flush=True)
     common = dict(store=store, settings=settings, nodes=args.nodes, frames=frames,
                   cache=cache, bandwidth=args.bandwidth)
+    if args.fig7:
+        fig7(common, group)
+        return
     baseline = run(scheduler="temporal", assignment="spatial", priority="queue", **common)
     lossless = baseline["images"]
     if args.table4:
@@ -236,6 +244,24 @@ def main() -> None:
         label = f"{policy} (threshold {threshold})" if policy == "portal" else policy
         print(row(label, r, lossless, base_s), flush=True)
     table4(common, lossless, base_s)
+
+
+def fig7(common: dict, group: int) -> None:
+    """The paper's Fig. 7: time per frame against the cache size per node, baseline and
+    temporal (lossless), with loads and the baseline's load-wait share."""
+    print("Fig. 7: cache size per node (baseline: spatial groups, queue priority; temporal: "
+          "Algorithm 1, Eq. 1-4)\n")
+    print("| cache (domains) | baseline s per frame | temporal s per frame | temporal_speedup | "
+          "baseline loads | temporal loads | baseline load-wait share |\n"
+          "| --- | --- | --- | --- | --- | --- | --- |")
+    for cache in sorted({1, 2, 4, 8, group}):
+        options = dict(common, cache=cache)
+        base = run(scheduler="temporal", assignment="spatial", priority="queue", **options)
+        temporal = run(scheduler="temporal", **options)
+        print(f"| {cache}{' (all)' if cache == group else ''} | {base['mean_s']:.2f} | "
+              f"{temporal['mean_s']:.2f} | {base['mean_s'] / temporal['mean_s']:.2f} | "
+              f"{base['loads']:.0f} | {temporal['loads']:.0f} | "
+              f"{base['load_wait_share']:.2f} |", flush=True)
 
 
 def table4(common: dict, lossless: dict, base_s: float) -> None:
