@@ -49,6 +49,8 @@ ANGLES = 8
 #: cos(theta) at which the two cos bins split (equal solid angle).
 COS_SPLIT = 0.5
 DEFAULT_RESOLUTION = 32
+#: The finest portals ``--portal-resolution`` takes (the paper's Table 4 goes up to 128).
+MAX_RESOLUTION = 128
 #: Rec. 709 / sRGB luminance weights.
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
@@ -67,7 +69,7 @@ def check_portal_size(n_domains: int, resolution: int) -> None:
     """Refuse portals too large to merge over the nodes, saying what to do (ValueError)."""
     size = portal_bytes(n_domains, resolution)
     if size > MAX_PORTAL_BYTES:
-        fits = int((MAX_PORTAL_BYTES / (int(n_domains) * len(FACES) * ANGLES * 5)) ** 0.5)
+        fits = int((MAX_PORTAL_BYTES / portal_bytes(n_domains, 1)) ** 0.5)
         raise ValueError(f"--portal-resolution {resolution} needs {size / 2**20:,.0f} MiB of "
                          f"portals on every node for {n_domains} domains, more than the "
                          f"{MAX_PORTAL_BYTES >> 20} MiB one tree-reduce message carries; use "

@@ -30,6 +30,7 @@ from vastray.render.scene_config import load_scene_config
 from vastray.report import build_report, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
+from vastray.schedule import portals
 from vastray.transport.security import (
     KEY_FILE,
     NODES_DIR,
@@ -198,7 +199,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "with --reference")
     p.add_argument("--portal-interval", type=_positive, default=10, metavar="N",
                    help="--simplified portal: record the portals every N frames (default 10)")
-    p.add_argument("--portal-resolution", type=_portal_resolution, default=32, metavar="R",
+    p.add_argument("--portal-resolution", type=_portal_resolution,
+                   default=portals.DEFAULT_RESOLUTION, metavar="R",
                    help="--simplified portal: cells per portal edge, R x R x 8 directions on "
                         "each domain face (default 32, the paper's; its Table 4 sweeps "
                         "8-128). Coarser portals fill with fewer paths: at small images most "
@@ -317,8 +319,9 @@ def _positive(text: str) -> int:
 
 def _portal_resolution(text: str) -> int:
     value = _positive(text)
-    if value > 128:
-        raise argparse.ArgumentTypeError(f"at most 128 (the paper's largest), got {value}")
+    if value > portals.MAX_RESOLUTION:
+        raise argparse.ArgumentTypeError(f"at most {portals.MAX_RESOLUTION} (the paper's "
+                                         f"largest), got {value}")
     return value
 
 
