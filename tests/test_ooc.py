@@ -261,17 +261,25 @@ def test_real_mesh_bunny(shared_data, tmp_path):
             assert_same(result.film.image(), reference, f"{scheduler} {integrator}")
 
 
-def test_cli_cache_percentage_and_report(bumpy, tmp_path):
+def test_cli_cache_percentage_and_report(bumpy, tmp_path, capsys):
+    # without --quiet, as a user runs it: the out-of-core summary line is printed too
     out, report = tmp_path / "o.exr", tmp_path / "r.json"
-    assert main(["render", str(bumpy.path), "-o", str(out), "--cache", "25%", "--width", "24",
-                 "--height", "18", "--spp", "1", "--shadow-samples", "2", "--report",
-                 str(report), "--quiet"]) == 0
+    small = ["--width", "24", "--height", "18", "--spp", "1", "--shadow-samples", "2"]
+    assert main(["render", str(bumpy.path), "-o", str(out), "--cache", "25%", *small,
+                 "--report", str(report)]) == 0
+    err = capsys.readouterr().err
+    assert f"wrote {out}" in err and "domain loads" in err, err
     doc = json.loads(report.read_text())
     assert doc["scheduler"] == "spec-ooc"  # auto picks speculation when domains do not fit
     assert doc["counters"]["cache_capacity"] == 7  # ceil(25% of 27)
     assert doc["counters"]["max_samples_in_flight"] == 24 * 18
     for key in ("load", "render", "total"):
         assert doc["seconds"][key] >= 0
+    image = tmp_path / "image.exr"  # the baseline schedule's summary as well
+    assert main(["render", str(bumpy.path), "-o", str(image), "--cache", "25%", *small,
+                 "--scheduler", "image"]) == 0
+    err = capsys.readouterr().err
+    assert f"wrote {image}" in err and "domain loads" in err, err
     with pytest.raises(SystemExit):
         main(["render", str(bumpy.path), "-o", str(tmp_path / "x.exr"), "--cache", "150%"])
     assert not (tmp_path / "x.exr").exists()
