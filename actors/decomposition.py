@@ -263,7 +263,7 @@ async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, f
     assignment = frame_assignment(job.get("assignment", "temporal"), store, setup.camera,
                                   settings.width, settings.height, size, previous)
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
-                          job.get("priority", "cost-benefit"), previous, on_tile, base=base,
+                          job.get("priority", "cost-rate"), previous, on_tile, base=base,
                           status_label=state.ordinal, simple=routing)
     await frame.run(preloader)
     start = time.perf_counter()

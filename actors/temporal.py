@@ -12,9 +12,11 @@ termination detection. What the previous frame taught drives this one:
   deals domains round robin.
 - **priority** (``--priority``): which local domain to trace next and which to load meanwhile,
   scored by Q_CUR (``queue``), SpRay's traversal score (``spray``), Q_CUR plus the rays the
-  active domain will send (``queue+act``) or the paper's cost-benefit Eq. 1-4
-  (``cost-benefit``). The preloader loads the best-scored domain while the active one is
-  traced, and evicts the lowest-scored one.
+  active domain will send (``queue+act``), the paper's cost-benefit Eq. 1-4 as written
+  (``cost-benefit``: predicted work minus load time), Eq. 1's terms as a ratio (``cost-rate``,
+  the default: predicted work per second of loading) or Q_CUR with cached domains first
+  (``queue+resident``, the cache-aware baseline). The preloader loads the best-scored domain
+  while the active one is traced, and evicts the lowest-scored one.
 - **statistics**: s(A, B), r(A), loads per domain, S_PROC and S_LOAD are counted during the
   frame and summed over nodes by the tree-reduce actor at its end, so every node plans the
   next frame from the same numbers (and so computes the same assignment, with no coordinator
@@ -83,7 +85,7 @@ class TemporalFrame(_AsyncFrame):
                              f"{plan.PRIORITIES}")
         # Frame 0 has no statistics for Eq. 1-4 (S_PROC, S_LOAD, R): the paper's bootstrap
         # frame schedules by queued rays.
-        if previous is None and priority in ("cost-benefit", "queue+act"):
+        if previous is None and priority in ("cost-benefit", "cost-rate", "queue+act"):
             priority = "queue"
         self.assignment, self.priority_kind, self.previous = assignment, priority, previous
         n = len(owner)

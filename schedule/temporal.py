@@ -10,9 +10,10 @@ Frame t uses the counters of frame t-1 (``FrameStats``, SUM-reduced over nodes) 
   units are bound to nodes, the unit with the most bytes to the node that loads fastest. The
   comparators of the paper's Table 2 are ``sequential_owners`` and ``spatial_owners``.
 * **Preload priority** (Eq 1-4, ``priority``): while the active domain renders, every other local
-  domain is scored by the cost-benefit function
-  ``P(n,d) = (1 - Dep'(d)) * (Q_PRED(d)/S_PROC(d) - T_LOAD(n,d))``, or by one of the Table 2
-  ablation priorities (``PRIORITIES``). ``best`` is the next active domain, ``victim`` the
+  domain is scored by Eq 1's terms, as the paper's difference
+  ``P(n,d) = (1 - Dep'(d)) * (Q_PRED(d)/S_PROC(d) - T_LOAD(n,d))`` (``cost-benefit``) or as
+  a ratio, work per second of loading (``cost-rate``, the default: see ``priority``), or by
+  one of the Table 2 ablation priorities (``PRIORITIES``). ``best`` is the next active domain, ``victim`` the
   domain to evict.
 
 Readings (implementation note ``shared/notes/temporal-coherence.md``, S12): R(A,B) = s(A,B)/s(A)
@@ -57,8 +58,14 @@ __all__ = [
     "victim",
 ]
 
-#: Preload priorities of the paper's Table 2 ablation (Eq 1 is "cost-benefit").
-PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit")
+#: Preload priorities: the paper's Table 2 ablation (Eq 1 is "cost-benefit"), Eq 1's terms as
+#: a ratio ("cost-rate", ``temporal``'s default) and the queue baseline made cache-aware
+#: ("queue+resident"), the strongest baseline of ``bench/temporal.py``.
+PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
+#: T_LOAD floor of ``"cost-rate"``, seconds: what activating a resident domain costs (its
+#: BVH is built; a queue pop and a dispatch remain). A resident domain outranks a domain that
+#: must be loaded unless that one promises more than T_LOAD / RESIDENT_COST_S times the work.
+RESIDENT_COST_S = 1e-3
 #: Domain assignments of Table 2.
 ASSIGNMENTS = ("sequential", "spatial", "temporal")
 
@@ -680,6 +687,16 @@ def priority(kind: str, inputs: PriorityInputs) -> np.ndarray:
       (loading costs more than the predicted work), (1 - Dep') scales it towards 0 for *far*
       domains, so among such domains the far one ranks higher (note S12.4, kept literally).
       S_PROC is floored at a tiny epsilon against division by zero.
+    * ``"cost-rate"``: Eq 1's benefit over its cost,
+      (1 - Dep'(d)) * (Q_PRED(d) / S_PROC(d)) / max(T_LOAD(n, d), RESIDENT_COST_S): predicted
+      seconds of work per second of loading. The difference form compares seconds of work
+      with seconds of loading on one scale, so wherever a domain's queue traces faster than it
+      loads (ours: milliseconds against tens), -T_LOAD decides alone and the node loads small
+      domains holding few rays; the ratio keeps the work in every score, ranks a resident
+      domain by its work alone, and is never negative, so (1 - Dep') always favours the near.
+    * ``"queue+resident"``: Q_CUR(d), every resident domain (cached or being loaded) ahead of
+      every one that must be loaded: the baseline given the cache awareness that the
+      cost-based priorities have through T_LOAD (ties -> lower id as everywhere).
 
     Returns
     -------
@@ -702,10 +719,18 @@ def priority(kind: str, inputs: PriorityInputs) -> np.ndarray:
         score = np.asarray(inputs.spray_score, dtype=np.float64)
     elif kind == "queue+act":
         score = q_cur + act_term
+    elif kind == "queue+resident":
+        # Q_CUR >= 0, so adding more than the largest one puts every resident domain first.
+        lead = float(q_cur.max(initial=0.0)) + 1.0
+        score = q_cur + np.where(np.asarray(inputs.resident, dtype=bool), lead, 0.0)
     else:
         t_load = load_time(inputs.domain_bytes, inputs.s_load_n, inputs.resident)
         s_proc = np.maximum(np.asarray(inputs.s_proc, dtype=np.float64), 1e-300)
-        score = (1.0 - np.asarray(inputs.dep, dtype=np.float64)) * (q_pred / s_proc - t_load)
+        near = 1.0 - np.asarray(inputs.dep, dtype=np.float64)
+        if kind == "cost-benefit":
+            score = near * (q_pred / s_proc - t_load)
+        else:
+            score = near * (q_pred / s_proc) / np.maximum(t_load, RESIDENT_COST_S)
     return np.where(cand, score, -np.inf)
 
 

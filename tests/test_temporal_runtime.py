@@ -62,10 +62,12 @@ def test_temporal_gives_the_reference_image(scene, reference, nodes, cache):
 
 @pytest.mark.parametrize("assignment,priority", [("sequential", "spray"),
                                                  ("spatial", "queue"),
-                                                 ("temporal", "queue+act")])
+                                                 ("temporal", "queue+act"),
+                                                 ("temporal", "cost-benefit"),
+                                                 ("spatial", "queue+resident")])
 def test_every_assignment_and_priority_is_lossless(scene, assignment, priority):
     # Two frames: frame 0 bootstraps (spatial groups, queue order); frame 1 plans from its
-    # statistics. (Temporal with cost-benefit: test_animation_frames_equal_...)
+    # statistics. (Temporal with its default cost-rate: test_animation_frames_equal_...)
     from vastray.animation import frame_settings
     from vastray.render.scene_config import parse_scene_config
 

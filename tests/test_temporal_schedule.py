@@ -349,7 +349,8 @@ def test_spatial_owners_balance_the_non_empty_domains():
 
 
 def test_names():
-    assert PRIORITIES == ("queue", "spray", "queue+act", "cost-benefit")
+    assert PRIORITIES == ("queue", "spray", "queue+act", "cost-benefit", "cost-rate",
+                          "queue+resident")
     assert ASSIGNMENTS == ("sequential", "spatial", "temporal")
 
 
@@ -469,6 +470,12 @@ def test_priorities_on_hand_numbers():
     assert np.allclose(priority("cost-benefit", inp), [neg, 0.25, 2.625, -4.0, neg])
     assert best(priority("cost-benefit", inp)) == 2
     assert best(priority("queue", inp)) == 3
+    # cost-rate: work over max(T_LOAD, 1 ms): d=1: 0.5 * (5/2) / 2 = 0.625;
+    # d=2 (resident): 0.75 * (14/4) / 1e-3 = 2625; d=3: 1 * 6 / 10 = 0.6
+    assert np.allclose(priority("cost-rate", inp), [neg, 0.625, 2625.0, 0.6, neg])
+    # queue+resident: resident domain 2 (0 rays queued) leads by max Q_CUR + 1 = 11
+    assert priority("queue+resident", inp).tolist() == [neg, 4.0, 11.0, 6.0, neg]
+    assert best(priority("queue+resident", hand_inputs(resident=np.zeros(5, bool)))) == 3
     # a domain with Q_PRED = 0 is not a candidate; without an active domain there's no act term
     inp2 = hand_inputs(active=None, q_pre=np.zeros(5), q_cur=np.array([0.0, 4, 0, 6, 9]))
     assert priority("queue", inp2).tolist() == [neg, 4.0, neg, 6.0, neg]
@@ -486,6 +493,30 @@ def test_eq1_is_literal_a_negative_bracket_favours_the_far_domain():
     p = priority("cost-benefit", inp)
     assert np.allclose(p[1:3], [0.9 * (1 - 5), 0.1 * (1 - 5)])
     assert best(p) == 2  # the far one
+
+
+def test_cost_rate_ranks_work_per_load_second_and_keeps_near_ahead():
+    """The ratio form: a cached domain ranks by its work alone (ahead of one that must be
+    loaded unless that promises T_LOAD / 1 ms times more); among domains to load, more work
+    per second of loading wins, where Eq. 1 as written prefers the cheap load with less work;
+    nearer wins at equal work and cost, where Eq. 1's negative bracket prefers the far one."""
+    inp = hand_inputs(q_cur=np.array([0.0, 100, 2, 10, 0]), active=None, q_pre=np.zeros(5),
+                      s_proc=np.full(5, 1000.0), domain_bytes=np.array([0.0, 20, .5, 4, 0]) * MB,
+                      s_load_n=100 * MB, resident=np.zeros(5, bool), dep=np.zeros(5))
+    # work = (0.1, 0.002, 0.01) s; T_LOAD = (0.2, 0.005, 0.04) s
+    assert np.allclose(priority("cost-benefit", inp)[1:4], [-0.1, -0.003, -0.03])
+    assert best(priority("cost-benefit", inp)) == 2  # the cheap load with 2 rays
+    rate = priority("cost-rate", inp)
+    assert np.allclose(rate[1:4], [0.5, 0.4, 0.25]) and best(rate) == 1
+    cached = hand_inputs(**{**inp.__dict__, "resident": np.array([False, True, False, False,
+                                                                   False])})
+    assert best(priority("cost-rate", cached)) == 1  # 0.1 s of work / 1 ms
+    far = hand_inputs(**{**inp.__dict__, "q_cur": np.array([0.0, 0, 10, 10, 0]),
+                         "domain_bytes": np.array([0.0, 0, 4, 4, 0]) * MB,
+                         "dep": np.array([0.0, 0, 0.9, 0.1, 0])})
+    assert best(priority("cost-rate", far)) == 3  # near
+    assert best(priority("cost-benefit", far)) == 2  # far (note S12.4)
+    assert np.all(priority("cost-rate", far)[2:4] > 0)
 
 
 def test_best_and_victim():

@@ -143,7 +143,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "re-assigning domains) and 'spec-insitu' (SpRay in situ: z-order "
                         "ownership, speculation, t-buffer MIN / o-buffer OR all-reduce) and "
                         "'temporal' (async with each frame's domain groups and screen tiles "
-                        "planned from the last frame's ray statistics, and cost-benefit "
+                        "planned from the last frame's ray statistics, and cost-based "
                         "preloading: Xu et al. 2022). All give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
@@ -185,10 +185,15 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "(sequential; async's default), contiguous z-order runs (spatial), or "
                         "the temporal-coherence paper's Algorithm 1 from the last frame's ray "
                         "transmissions (temporal's default; frame 0 uses spatial)")
-    p.add_argument("--priority", choices=["queue", "spray", "queue+act", "cost-benefit"],
+    p.add_argument("--priority", choices=["queue", "spray", "queue+act", "cost-benefit",
+                                          "cost-rate", "queue+resident"],
                    help="temporal: how a node picks the next domain and what it preloads: "
-                        "most queued rays, SpRay's traversal score, queued plus expected rays "
-                        "from the active domain, or the paper's cost-benefit Eq. 1 (default)")
+                        "most queued rays (queue), SpRay's traversal score, queued plus "
+                        "expected rays from the active domain (queue+act), the paper's "
+                        "cost-benefit Eq. 1 as written (predicted work minus load time), "
+                        "cost-rate (default: Eq. 1's predicted work per second of loading, so "
+                        "cached domains go first), or queue+resident (most queued rays, cached "
+                        "domains first: the queue baseline made cache-aware)")
     p.add_argument("--simplified", nargs="?", const="portal", metavar="POLICY",
                    choices=["portal", "depth>0", "depth>1", "depth>2", "none"],
                    help="async/temporal: trace some rays on the store's simplified model "
@@ -504,7 +509,7 @@ def node_options(args: argparse.Namespace, scheduler: str) -> dict:
         options["portal_accuracy"] = True
     if scheduler == "temporal":
         options["assignment"] = args.assignment or "temporal"
-        options["priority"] = args.priority or "cost-benefit"
+        options["priority"] = args.priority or "cost-rate"
     elif args.assignment not in (None, "sequential") or args.priority is not None:
         raise InputError(None, "--assignment and --priority choose how --scheduler temporal "
                                "plans (async takes only --assignment sequential so far)")
