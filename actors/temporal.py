@@ -142,7 +142,8 @@ class TemporalFrame(_AsyncFrame):
             active = plan.best(scores)
             if active is None:  # rays only in domains that are no candidates: the fullest
                 active = int(np.argmax(waiting))
-        scores = self._scores(waiting, active, int(waiting[active]))
+        scores = self._scores(waiting, active, int(waiting[active]), self._resident_after(
+            waiting, active))
         upcoming = plan.best(scores)
         self.upcoming = upcoming
         if self.preloader is None:
@@ -166,10 +167,26 @@ class TemporalFrame(_AsyncFrame):
         victim = plan.victim(scores, list(resident), protect)
         return victim is not None and scores[victim] < scores[domain]
 
-    def _scores(self, waiting: np.ndarray, active: int | None, q_act: int) -> np.ndarray:
+    def _resident_after(self, waiting: np.ndarray, active: int) -> set[int] | None:
+        """The domains resident once ``active`` is (None: no preloader). Loading it into a
+        full cache evicts the lowest-scored other one, which must not then count as cached
+        when d* is picked: with one slot, d* would be the domain the load just evicted, and
+        the node would load two domains that trade rays in turn, one activation each."""
+        if self.preloader is None:
+            return None
+        return plan.resident_after_load(self.preloader.resident(), self.preloader.capacity,
+                                        active, self._scores(waiting, active,
+                                                             int(waiting[active])))
+
+    def _scores(self, waiting: np.ndarray, active: int | None, q_act: int,
+                resident_set: set[int] | None = None) -> np.ndarray:
+        """Every domain's priority (``plan.priority``) for what this node has queued now,
+        with the domains of ``resident_set`` counted as cached (default: the cache's)."""
         resident = np.zeros(len(waiting), bool)
-        if self.preloader is not None:
-            resident[list(self.preloader.resident())] = True
+        if resident_set is None and self.preloader is not None:
+            resident_set = self.preloader.resident()
+        if resident_set:
+            resident[list(resident_set)] = True
         n_cur = np.zeros(len(waiting))
         if self.preloader is not None:
             for d, count in self.preloader.loads_per_domain().items():

@@ -28,6 +28,7 @@ half-open; ties go to the lower id everywhere.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import TYPE_CHECKING, ClassVar
@@ -52,6 +53,7 @@ __all__ = [
     "potential",
     "priority",
     "projected_rects",
+    "resident_after_load",
     "screen_tiles",
     "sequential_owners",
     "spatial_owners",
@@ -742,6 +744,29 @@ def best(priorities: np.ndarray) -> int | None:
     if not len(p) or (p == -np.inf).all():
         return None
     return int(np.argmax(p))
+
+
+def resident_after_load(resident: Iterable[int], capacity: int, active: int,
+                        priorities: np.ndarray) -> set[int]:
+    """The domains cached once ``active`` is loaded: a full cache gives up its lowest of
+    ``priorities`` (``victim``) to make room. d* must be picked from these, or a domain about
+    to be evicted would count as cached.
+
+    Parameters
+    ----------
+    resident : ids cached (or being loaded) now.
+    capacity : the cache's size in domains.
+    active : the domain about to be traced (loaded first if not resident).
+    priorities : (D,) from ``priority``.
+
+    Returns
+    -------
+    set of ids, ``active`` included, at most ``max(capacity, 1)`` of them.
+    """
+    after = {int(d) for d in resident}
+    if active not in after and len(after) >= capacity:
+        after.discard(victim(priorities, list(after), {active}))
+    return after | {int(active)}
 
 
 def victim(priorities: np.ndarray, resident: list[int], protect: set[int]) -> int | None:

@@ -24,6 +24,7 @@ from vastray.schedule.temporal import (
     potential,
     priority,
     projected_rects,
+    resident_after_load,
     screen_tiles,
     sequential_owners,
     spatial_owners,
@@ -517,6 +518,15 @@ def test_cost_rate_ranks_work_per_load_second_and_keeps_near_ahead():
     assert best(priority("cost-rate", far)) == 3  # near
     assert best(priority("cost-benefit", far)) == 2  # far (note S12.4)
     assert np.all(priority("cost-rate", far)[2:4] > 0)
+
+
+def test_resident_after_load_drops_the_victim_of_the_active_domains_load():
+    p = np.array([5.0, 1.0, 9.0, 3.0])
+    # one slot: loading 2 evicts 0, which must not count as cached for d*
+    assert resident_after_load({0}, 1, 2, p) == {2}
+    assert resident_after_load({0, 1, 3}, 3, 2, p) == {0, 2, 3}  # the lowest (1) goes
+    assert resident_after_load({0, 1}, 3, 2, p) == {0, 1, 2}  # room: nothing goes
+    assert resident_after_load({0, 2}, 2, 2, p) == {0, 2}  # already cached
 
 
 def test_best_and_victim():
