@@ -174,9 +174,11 @@ class TemporalFrame(_AsyncFrame):
         the node would load two domains that trade rays in turn, one activation each."""
         if self.preloader is None:
             return None
-        return plan.resident_after_load(self.preloader.resident(), self.preloader.capacity,
-                                        active, self._scores(waiting, active,
-                                                             int(waiting[active])))
+        resident = self.preloader.resident()
+        if active in resident or len(resident) < self.preloader.capacity:
+            return set(resident) | {active}  # nothing is evicted: skip scoring twice
+        return plan.resident_after_load(resident, self.preloader.capacity, active,
+                                        self._scores(waiting, active, int(waiting[active])))
 
     def _scores(self, waiting: np.ndarray, active: int | None, q_act: int,
                 resident_set: set[int] | None = None) -> np.ndarray:

@@ -13,8 +13,9 @@ Frame t uses the counters of frame t-1 (``FrameStats``, SUM-reduced over nodes) 
   domain is scored by Eq 1's terms, as the paper's difference
   ``P(n,d) = (1 - Dep'(d)) * (Q_PRED(d)/S_PROC(d) - T_LOAD(n,d))`` (``cost-benefit``) or as
   a ratio, work per second of loading (``cost-rate``, the default: see ``priority``), or by
-  one of the Table 2 ablation priorities (``PRIORITIES``). ``best`` is the next active domain, ``victim`` the
-  domain to evict.
+  one of the Table 2 ablation priorities (``PRIORITIES``). ``best`` is the next active
+  domain (d* is picked among the domains still cached once the active one is loaded,
+  ``resident_after_load``), ``victim`` the domain to evict.
 
 Readings (implementation note ``shared/notes/temporal-coherence.md``, S12): R(A,B) = s(A,B)/s(A)
 (the paper's literal s(A,B)/r(A) behind ``literal=True``); r(A) counts every ray A processes; the
