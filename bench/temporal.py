@@ -46,11 +46,11 @@ the timed run's by construction) and those whose cell frame 0 never recorded
 and Table 4; ``--fig7`` only Fig. 7 (baseline and temporal at caches of 1, 2, 4, 8 and
 all of a node's group).
 
-    python bench/temporal.py --quick      # N = 4, 8 frames, a few minutes
+    python bench/temporal.py --quick      # N = 4, 8 frames, about 6 minutes on 2 cores
     python bench/temporal.py              # N = 4, 12 frames
     python bench/temporal.py --nodes 8 --full
     python bench/temporal.py --quick --table4   # portal resolution only, a few minutes
-    python bench/temporal.py --quick --fig7     # cache sizes only, a few minutes
+    python bench/temporal.py --quick --fig7     # cache sizes only, about 10 minutes
 """
 
 from __future__ import annotations
