@@ -33,8 +33,8 @@ Printed: mean time per frame over frames 1.. (frame 0 bootstraps the statistics)
 MB loaded, rays sent between nodes, MSE and relative MSE against the lossless frames,
 ``temporal_speedup=`` (baseline / temporal) and ``simplified_speedup=`` (baseline / temporal
 --simplified) with ``simplified_rel_mse=``, each against the paper's baseline and (the
-``_strongest`` figures) against the cache-aware one. The paper: +26 % average for temporal scheduling
-alone, +56 % average (81 % max) with both. Then ``acc=`` and ``simplified_share=`` of temporal
+``_strongest`` figures) against the cache-aware one. The paper: +26 % average for temporal
+scheduling alone, +56 % average (81 % max) with both. Then ``acc=`` and ``simplified_share=`` of temporal
 --simplified (the paper's ACC and Simple/total, Tables 4-5): Simple/total from the timed run,
 ACC from a separate instrumented run of the same frames (notes S9: every depth-1 ray traced
 fine, each portal crossing classified with the portals the timed run predicts that frame
@@ -43,8 +43,8 @@ the timed run's by construction) and those whose cell frame 0 never recorded
 (``unrecorded_share=``: predicted high, so traced fine; a sparse portal mispredicts).
 ``--full`` adds Table 2 (assignment x priority), Table 3 (simplification policies) and Table 4
 (portal resolution 8-64: time, error, ACC, Simple/total); ``--table4`` runs only the baseline
-and Table 4; ``--fig7`` only Fig. 7 (baseline and temporal at caches of 1, 2, 4, 8 and
-all of a node's group).
+and Table 4; ``--fig7`` only Fig. 7 (both baselines and temporal at caches of 1, 2, 4, 8
+and all of a node's group).
 
     python bench/temporal.py --quick      # N = 4, 8 frames, about 6 minutes on 2 cores
     python bench/temporal.py              # N = 4, 12 frames
@@ -278,8 +278,9 @@ def main() -> None:
 
 
 def fig7(common: dict, group: int) -> None:
-    """The paper's Fig. 7: time per frame against the cache size per node, baseline and
-    temporal (lossless), with loads and the baseline's load-wait share."""
+    """The paper's Fig. 7: time per frame against the cache size per node, for the paper's
+    baseline, the cache-aware one and temporal (all lossless), with loads and the paper's
+    baseline's load-wait share."""
     print("Fig. 7: cache size per node (baseline: spatial groups, queue priority; cache-aware: "
           "the same, cached domains first; temporal: Algorithm 1, Eq. 1-4 as a ratio)\n")
     print("| cache (domains) | baseline s per frame | cache-aware s per frame | temporal s per "
