@@ -15,8 +15,9 @@ termination detection. What the previous frame taught drives this one:
   active domain will send (``queue+act``), the paper's cost-benefit Eq. 1-4 as written
   (``cost-benefit``: predicted work minus load time), Eq. 1's terms as a ratio (``cost-rate``,
   the default: predicted work per second of loading) or Q_CUR with cached domains first
-  (``queue+resident``, the cache-aware baseline). The preloader loads the best-scored domain
-  while the active one is traced, and evicts the lowest-scored one.
+  (``queue+resident``, the cache-aware baseline); frame 0, with no statistics yet, uses
+  ``schedule.temporal.bootstrap_priority``. The preloader loads the best-scored domain while
+  the active one is traced, and evicts the lowest-scored one.
 - **statistics**: s(A, B), r(A), loads per domain, S_PROC and S_LOAD are counted during the
   frame and summed over nodes by the tree-reduce actor at its end, so every node plans the
   next frame from the same numbers (and so computes the same assignment, with no coordinator
@@ -83,10 +84,8 @@ class TemporalFrame(_AsyncFrame):
         if priority not in plan.PRIORITIES:
             raise ValueError(f"unknown priority {priority!r}; expected one of "
                              f"{plan.PRIORITIES}")
-        # Frame 0 has no statistics for Eq. 1-4 (S_PROC, S_LOAD, R): the paper's bootstrap
-        # frame schedules by queued rays.
-        if previous is None and priority in ("cost-benefit", "cost-rate", "queue+act"):
-            priority = "queue"
+        if previous is None:
+            priority = plan.bootstrap_priority(priority)
         self.assignment, self.priority_kind, self.previous = assignment, priority, previous
         n = len(owner)
         self.local = assignment.owns(rank)

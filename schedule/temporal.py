@@ -47,6 +47,7 @@ __all__ = [
     "PriorityInputs",
     "assign_temporal",
     "best",
+    "bootstrap_priority",
     "dep_prime",
     "eye_domain",
     "load_time",
@@ -735,6 +736,15 @@ def priority(kind: str, inputs: PriorityInputs) -> np.ndarray:
         else:
             score = near * (q_pred / s_proc) / np.maximum(t_load, RESIDENT_COST_S)
     return np.where(cand, score, -np.inf)
+
+
+def bootstrap_priority(kind: str) -> str:
+    """The priority frame 0 uses in place of ``kind``: it has no statistics yet (S_PROC,
+    S_LOAD, R), so Eq 1's forms fall back to queued rays, as the paper's bootstrap frame
+    does (``cost-benefit``, ``queue+act`` -> ``queue``), and ``cost-rate`` keeps its cache rule
+    (-> ``queue+resident``: cached domains first, by queued rays); the others need none."""
+    return {"cost-benefit": "queue", "queue+act": "queue",
+            "cost-rate": "queue+resident"}.get(kind, kind)
 
 
 def best(priorities: np.ndarray) -> int | None:

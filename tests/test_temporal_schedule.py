@@ -17,6 +17,7 @@ from vastray.schedule.temporal import (
     PriorityInputs,
     assign_temporal,
     best,
+    bootstrap_priority,
     dep_prime,
     eye_domain,
     load_time,
@@ -518,6 +519,15 @@ def test_cost_rate_ranks_work_per_load_second_and_keeps_near_ahead():
     assert best(priority("cost-rate", far)) == 3  # near
     assert best(priority("cost-benefit", far)) == 2  # far (note S12.4)
     assert np.all(priority("cost-rate", far)[2:4] > 0)
+
+
+def test_frame_0_priorities_need_no_statistics():
+    assert bootstrap_priority("cost-benefit") == "queue"  # the paper's bootstrap frame
+    assert bootstrap_priority("queue+act") == "queue"
+    assert bootstrap_priority("cost-rate") == "queue+resident"  # keeps its cache rule
+    for kind in ("queue", "spray", "queue+resident"):
+        assert bootstrap_priority(kind) == kind
+    assert {bootstrap_priority(k) for k in PRIORITIES} <= set(PRIORITIES)
 
 
 def test_resident_after_load_drops_the_victim_of_the_active_domains_load():
