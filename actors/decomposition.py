@@ -212,7 +212,8 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     try:
         if mode == "async":
             frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
-                                base=base, status_label=state.ordinal, simple=routing)
+                                base=base, status_label=state.ordinal, simple=routing,
+                                resident_first=job.get("resident_first", True))
             await frame.run(preloader)
         elif mode == "temporal":
             frame = await _temporal_frame(node, setup, settings, store, job, rank, size, tile,
@@ -448,6 +449,15 @@ class _Node:
             "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
 
 
+def _fullest(waiting: np.ndarray, first: frozenset[int]) -> int:
+    """The domain with the most ``waiting`` rays (ties -> lower id), taken among ``first``
+    when one of those has any."""
+    here = [d for d in first if waiting[d]]
+    if here:
+        return max(here, key=lambda d: (waiting[d], -d))
+    return int(np.argmax(waiting))
+
+
 class _AsyncFrame:
     """``async`` on one node: the whole frame without a barrier (see the module docstring).
 
@@ -464,12 +474,17 @@ class _AsyncFrame:
         batch labelled outside this frame's is held for its frame).
     status_label : this frame's number in the termination detection.
     simple : routing to the node's simplified model (``simplified_routing``), or None.
+    resident_first : trace a cached domain with waiting rays before loading another, the
+        fullest first (as the out-of-core schedules' ``resident_first``); False is Galaxy's
+        order, the fullest queue whatever it costs to load.
     """
 
     def __init__(self, node: _Node, setup, settings, owner: np.ndarray, rank: int, size: int,
                  tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0,
-                 simple=None):
+                 simple=None, resident_first: bool = True):
         self.node, self.setup, self.settings = node, setup, settings
+        self.resident_first = resident_first
+        self.preloader = None  # set by ``run``
         self.simple = simple
         self.owner, self.rank, self.size = owner, rank, size
         self.tile, self.film, self.on_tile = tile, film, on_tile
@@ -539,10 +554,15 @@ class _AsyncFrame:
 
     def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
         """The domain to trace now and the one to load meanwhile: the fullest queue, and the
-        second fullest (the Galaxy baseline's ray-count priority)."""
-        order = np.argsort(-waiting, kind="stable")
-        nxt = int(order[1]) if len(order) > 1 and waiting[order[1]] else None
-        return int(order[0]), nxt
+        second fullest (the Galaxy baseline's ray-count priority); with ``resident_first``,
+        the fullest cached domain with rays goes before any other, for both."""
+        cached = (self.preloader.resident() if self.resident_first and self.preloader
+                  else frozenset())
+        active = _fullest(waiting, cached)
+        rest = waiting.copy()
+        rest[active] = 0
+        upcoming = _fullest(rest, cached - {active}) if rest.any() else None
+        return active, upcoming
 
     async def step(self, preloader) -> bool:
         """Trace the chosen local domain for every tile that has rays for it, then ship;
@@ -578,6 +598,7 @@ class _AsyncFrame:
             self.shade_s += policy.counters["shade_s"]
 
     async def run(self, preloader) -> None:
+        self.preloader = preloader
         management = self.node.management
         inbox = management.mailbox(protocol.RAYS)
         control = management.mailbox(protocol.PROBE)

@@ -43,6 +43,30 @@ def test_async_has_one_barrier_per_frame_of_many_tiles(scene):
     assert sum(r["counters"]["tiles_made"] for r in result.counters["per_node"]) >= 3 * tiles
 
 
+def test_async_order_takes_the_fullest_cached_domain_first():
+    from vastray.actors.decomposition import _fullest
+
+    waiting = np.array([5, 9, 0, 9, 3])
+    assert _fullest(waiting, frozenset()) == 1  # the fullest, ties -> lower id
+    assert _fullest(waiting, frozenset({0, 4})) == 0  # a cached one with rays goes first
+    assert _fullest(waiting, frozenset({2})) == 1  # cached but empty: the fullest
+    assert _fullest(waiting, frozenset({4, 3, 1})) == 1  # ties among the cached -> lower id
+
+
+@pytest.mark.parametrize("resident_first", [False, True])
+def test_async_with_a_small_cache_gives_the_reference_in_either_order(scene, resident_first):
+    # Cached domains first (the default) or Galaxy's fullest-queue order: the same image.
+    store, toml = scene
+    st = settings(width=32, height=24, spp=2, integrator="pt")
+    result = render_distributed(store.path, toml, st, 2, scheduler="async", cache_capacity=2,
+                                max_samples_in_flight=400, timeout=60,
+                                options={"resident_first": resident_first})
+    reference = _reference(store, toml, st)
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+    per_node = [r["counters"] for r in result.counters["per_node"]]
+    assert all(c["loads"] > c["cache_capacity"] for c in per_node)  # the cache was too small
+
+
 def test_domain_rounds_are_barriers(scene):
     store, toml = scene
     st = settings(width=24, height=18, spp=1, integrator="ao")
