@@ -12,7 +12,8 @@ for loads.
 Fig. 5 rows (every run renders the same frames with the same seeds):
 
 - ``async``: vastray's asynchronous baseline as it ships (round-robin domains, camera rays
-  split by path, fullest queue first, preloading the next fullest).
+  split by path, the fullest cached domain with rays first, else the fullest queue,
+  preloading its guess at the next).
 - ``baseline``: the paper's baseline on the same runtime as ``temporal`` ("async (spatial
   assignment, queue priority)"): contiguous z-order groups, screen tiles, fullest queue
   first, and the same preloader (the next fullest queue), so the comparison is of the
