@@ -44,7 +44,7 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.scene.bvh import query_pool
-from vastray.schedule.image import ImageSchedule
+from vastray.schedule.image import ImageSchedule, fullest
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
@@ -449,15 +449,6 @@ class _Node:
             "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
 
 
-def _fullest(waiting: np.ndarray, first: frozenset[int]) -> int:
-    """The domain with the most ``waiting`` rays (ties -> lower id), taken among ``first``
-    when one of those has any."""
-    here = [d for d in first if waiting[d]]
-    if here:
-        return max(here, key=lambda d: (waiting[d], -d))
-    return int(np.argmax(waiting))
-
-
 class _AsyncFrame:
     """``async`` on one node: the whole frame without a barrier (see the module docstring).
 
@@ -558,10 +549,10 @@ class _AsyncFrame:
         the fullest cached domain with rays goes before any other, for both."""
         cached = (self.preloader.resident() if self.resident_first and self.preloader
                   else frozenset())
-        active = _fullest(waiting, cached)
+        active = fullest(waiting, cached)
         rest = waiting.copy()
         rest[active] = 0
-        upcoming = _fullest(rest, cached - {active}) if rest.any() else None
+        upcoming = fullest(rest, cached - {active}) if rest.any() else None
         return active, upcoming
 
     async def step(self, preloader) -> bool:

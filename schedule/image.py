@@ -11,6 +11,7 @@ wasted, but each domain may be loaded many times as new rays keep arriving.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -33,6 +34,15 @@ from vastray.schedule.paths import (
 )
 from vastray.schedule.portals import luminance
 from vastray.schedule.soa import DomainQueues, SoA
+
+
+def fullest(waiting: np.ndarray, first: Iterable[int] = ()) -> int:
+    """The domain with the most ``waiting`` ((D,) counts) rays, ties -> the lower id; taken
+    among ``first`` (e.g. the domains in memory) when one of those has any."""
+    here = [d for d in first if waiting[d]]
+    if here:
+        return max(here, key=lambda d: (waiting[d], -d))
+    return int(np.argmax(waiting))
 
 
 class ImageSchedule:
@@ -98,11 +108,7 @@ class ImageSchedule:
         self._resident = resident
         if not waiting.any():
             return None
-        if self.resident_first:
-            here = [d for d in resident if waiting[d]]
-            if here:
-                return max(here, key=lambda d: (waiting[d], -d))
-        return int(np.argmax(waiting))
+        return fullest(waiting, resident if self.resident_first else ())
 
     def likely_next(self, current: int) -> int | None:
         """A guess at the next domain, for the preloader: the one ``next_domain`` would pick
@@ -113,11 +119,7 @@ class ImageSchedule:
         waiting[current] = 0
         if not waiting.any():
             return None
-        if self.resident_first:
-            here = [d for d in self._resident if waiting[d]]
-            if here:
-                return max(here, key=lambda d: (waiting[d], -d))
-        return int(np.argmax(waiting))
+        return fullest(waiting, self._resident if self.resident_first else ())
 
     def process(self, domain: int, bvh) -> None:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""

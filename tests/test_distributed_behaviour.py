@@ -43,14 +43,14 @@ def test_async_has_one_barrier_per_frame_of_many_tiles(scene):
     assert sum(r["counters"]["tiles_made"] for r in result.counters["per_node"]) >= 3 * tiles
 
 
-def test_async_order_takes_the_fullest_cached_domain_first():
-    from vastray.actors.decomposition import _fullest
+def test_the_cached_first_order_takes_the_fullest_cached_domain_first():
+    from vastray.schedule.image import fullest  # async's order and the baseline's out of core
 
     waiting = np.array([5, 9, 0, 9, 3])
-    assert _fullest(waiting, frozenset()) == 1  # the fullest, ties -> lower id
-    assert _fullest(waiting, frozenset({0, 4})) == 0  # a cached one with rays goes first
-    assert _fullest(waiting, frozenset({2})) == 1  # cached but empty: the fullest
-    assert _fullest(waiting, frozenset({4, 3, 1})) == 1  # ties among the cached -> lower id
+    assert fullest(waiting) == 1  # the fullest, ties -> lower id
+    assert fullest(waiting, frozenset({0, 4})) == 0  # a cached one with rays goes first
+    assert fullest(waiting, frozenset({2})) == 1  # cached but empty: the fullest
+    assert fullest(waiting, frozenset({4, 3, 1})) == 1  # ties among the cached -> lower id
 
 
 @pytest.mark.parametrize("resident_first", [False, True])
