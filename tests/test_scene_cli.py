@@ -54,10 +54,12 @@ def test_partition_two_inputs_into_objects(main, meshes, tmp_path, capsys):
     assert "2 input(s)" in capsys.readouterr().out
 
 
-def test_partition_single_input_kd(main, meshes, tmp_path):
+def test_partition_single_input_kd(main, meshes, tmp_path, capsys):
     ball, _, n_ball, _ = meshes
     out = tmp_path / "kd.store"
-    assert main(["partition", str(ball), "-o", str(out), "--domains", "5", "--quiet"]) == 0
+    # without --quiet, as a user runs it: the k-d path's summary is printed too
+    assert main(["partition", str(ball), "-o", str(out), "--domains", "5"]) == 0
+    assert str(out.name) in capsys.readouterr().out
     store = Store(out)
     assert len(store.domains) == 5 and store.n_triangles == n_ball
     assert "objects" not in store.domains[0].files
@@ -67,14 +69,15 @@ def test_partition_single_input_kd(main, meshes, tmp_path):
     assert Store(tmp_path / "g").manifest["partition"]["grid"] == [2, 2, 2]
 
 
-def test_partition_volume_with_iso(main, tmp_path):
+def test_partition_volume_with_iso(main, tmp_path, capsys):
     axes = np.linspace(-1, 1, 30, dtype=np.float32)
     vol = np.sqrt(axes[:, None, None] ** 2 + axes[None, :, None] ** 2 + axes[None, None, :] ** 2)
     np.save(tmp_path / "v.npy", vol)
     out = tmp_path / "v.store"
     assert main(["partition", str(tmp_path / "v.npy"), "-o", str(out), "--iso", "0.7",
-                 "--brick", "8", "--quiet"]) == 0
+                 "--brick", "8"]) == 0  # without --quiet: the volume path's summary too
     assert Store(out).n_triangles > 1000
+    assert str(out.name) in capsys.readouterr().out
 
 
 def test_generate_and_info(main, tmp_path, capsys):

@@ -44,6 +44,8 @@ def store(tmp_path_factory):
 @pytest.mark.parametrize("how", [[], ["--cache", "25%", "--scheduler", "spec-ooc"],
                                  ["--scheduler", "image", "--cache", "1"],
                                  ["--nodes", "2", "--scheduler", "async"],
+                                 ["--nodes", "2", "--scheduler", "domain"],
+                                 ["--nodes", "2", "--scheduler", "dynamic"],
                                  ["--nodes", "2", "--scheduler", "spec-insitu"]])
 def test_every_render_exits_zero_without_quiet_and_names_its_files(store, tmp_path, how):
     ref = tmp_path / "ref.exr"
