@@ -98,7 +98,6 @@ class TemporalFrame(_AsyncFrame):
         self.domain_bytes = np.array([d.nbytes for d in store.domains], np.float64)
         self.upcoming: int | None = None  # d*, being preloaded
         self.nonlocal_loads = 0  # loads of domains outside this node's group (none, ever)
-        self.preloader = None
         self.loads_before: dict[int, int] = {}
         if previous is not None:
             self.R = previous.transmission_ratio()
@@ -224,7 +223,6 @@ class TemporalFrame(_AsyncFrame):
         self.stats.proc_s[domain] += seconds
 
     async def run(self, preloader) -> None:
-        self.preloader = preloader
         self.loads_before = preloader.loads_per_domain()
         before = preloader.stats()
         await super().run(preloader)
