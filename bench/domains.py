@@ -1,5 +1,6 @@
-"""Ray-domain enumeration at thousands of domains: the tree over domain boxes against the
-former per-domain loop (issue "Honest comparisons and a runtime that scales", section 3).
+"""Ray-domain enumeration at thousands of domains: the tree over domain boxes, walked in
+compiled code, against the numpy walks and the former per-domain loop (issue "Honest
+comparisons and a runtime that scales", section 3; issue 9's compiled enumeration).
 
 The same rays meet 8, 64, 512 and 4,096 box domains: uniform grids of 2^3 .. 16^3 cells over
 the unit cube (neighbouring boxes share faces, so rays run along faces and edges and ties are
@@ -13,6 +14,11 @@ directions (as bounce rays do). For each domain count it times, as the scheduler
   for the rays still moving (the image schedule's front-to-back walk), per call and ray;
 - ``loop``: the former per-domain slab loop's ``crossings`` (O(domains x rays)), on a subset
   of the rays, against ``crossings`` on the same subset (the two results are checked equal).
+
+Queries walk the tree each ray in compiled code (``render.boxwalk``, the default); the
+``numpy`` columns time the same queries through the numpy walks they replaced (breadth first
+over the tree, a flat pass up to 64 boxes), with the same rays, boxes and answers (checked
+equal), one thread each.
 
 Each figure is the best of a few runs (the machine is shared). A ray crosses more domains in a
 finer grid, so the per-ray cost of any exact enumeration grows with them; the cost that should
@@ -110,8 +116,9 @@ def main() -> None:
           f"tree is walked\n")
     print("| domains | tree levels | domains crossed per ray | crossings us/ray "
           "| us per domain crossed | walk us per call and ray | walk us/ray | loop us/ray "
-          "| loop / crossings, same rays |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+          "| loop / crossings, same rays | numpy crossings us/ray | numpy walk us per call "
+          "and ray |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
     rows = {}
     subset = np.r_[0:m // 2, len(origins) // 2:len(origins) // 2 + m // 2]
     sub = origins[subset], directions[subset], limit[subset]
@@ -127,15 +134,26 @@ def main() -> None:
                               lambda g=geometry: crossings_by_loop(g, *sub))
         t_sub, new = best_of(plan["repeat"], lambda g=geometry: g.crossings(*sub))
         assert all(np.array_equal(a, b) for a, b in zip(new, old, strict=True)), "not exact"
+        geometry.tree.compiled = False  # the numpy walks, on the same rays
+        t_np_cross, np_found = best_of(plan["repeat"],
+                                       lambda g=geometry: g.crossings(origins, directions, limit))
+        t_np_walk, (_, np_ray_calls) = best_of(
+            plan["repeat"], lambda g=geometry: walk(g, origins, directions, limit))
+        geometry.tree.compiled = True
+        assert all(np.array_equal(a, b) for a, b in zip(found, np_found, strict=True))
+        assert np_ray_calls == ray_calls
         r = {"domains": len(lo), "levels": 1 if geometry.tree.flat else geometry.tree.height,
              "crossed": crossed, "cross_ray": t_cross / len(origins) * 1e6,
              "walk_call": t_walk / ray_calls * 1e6, "walk_ray": t_walk / len(origins) * 1e6,
-             "loop_ray": t_loop / len(subset) * 1e6, "sub_ray": t_sub / len(subset) * 1e6}
+             "loop_ray": t_loop / len(subset) * 1e6, "sub_ray": t_sub / len(subset) * 1e6,
+             "np_cross_ray": t_np_cross / len(origins) * 1e6,
+             "np_walk_call": t_np_walk / ray_calls * 1e6}
         r["per_crossed"] = r["cross_ray"] / crossed
         rows[len(lo)] = r
         print(f"| {r['domains']:,} | {r['levels']} | {crossed:.2f} | {r['cross_ray']:.2f} "
               f"| {r['per_crossed']:.3f} | {r['walk_call']:.2f} | {r['walk_ray']:.2f} "
-              f"| {r['loop_ray']:.2f} | {r['loop_ray'] / r['sub_ray']:.1f} |", flush=True)
+              f"| {r['loop_ray']:.2f} | {r['loop_ray'] / r['sub_ray']:.1f} "
+              f"| {r['np_cross_ray']:.2f} | {r['np_walk_call']:.2f} |", flush=True)
     first, last = rows[SIDES[0] ** 3], rows[SIDES[-1] ** 3]
     print(f"\ncrossed_ratio={last['crossed'] / first['crossed']:.2f} "
           f"(domains crossed per ray, {last['domains']:,} vs {first['domains']})")
@@ -143,6 +161,13 @@ def main() -> None:
           f"(crossings us/ray; the loop's: {last['loop_ray'] / first['loop_ray']:.1f})")
     print(f"walk_call_scaling={last['walk_call'] / first['walk_call']:.2f} "
           f"(next_domain us per call and ray)")
+    speedups = " / ".join(f"{rows[s ** 3]['np_cross_ray'] / rows[s ** 3]['cross_ray']:.2f}"
+                          for s in SIDES)
+    walk_speedups = " / ".join(f"{rows[s ** 3]['np_walk_call'] / rows[s ** 3]['walk_call']:.2f}"
+                               for s in SIDES)
+    print(f"compiled_speedup_crossings={speedups} (numpy walk / compiled walk, "
+          f"{' / '.join(f'{s ** 3:,}' for s in SIDES)} domains)")
+    print(f"compiled_speedup_walk={walk_speedups}")
     print(f"domain_scaling={last['per_crossed'] / first['per_crossed']:.2f}")
 
 

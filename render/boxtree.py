@@ -23,6 +23,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vastray.render import boxwalk
+
 if TYPE_CHECKING:  # the tracer builds a BoxTree: import its RaySlabs for annotations only
     from vastray.render.tracer import RaySlabs
 
@@ -77,7 +79,10 @@ class BoxTree:
         self.box = np.full(n_nodes, -1, np.int32)
         self.height = 0
         self.first_leaf_level = 0
-        self._padded: dict[float, np.ndarray] = {}
+        #: Walk each ray in compiled code (``render.boxwalk``) for ``first_after`` and
+        #: ``DomainGeometry.crossings``; False: the numpy walks (the same answers, bit for bit).
+        self.compiled = True
+        self._padded: dict = {}  # pad (or ("nodes", pad)) -> padded boxes
         if m == 0:
             self._finish()
             return
@@ -152,6 +157,20 @@ class BoxTree:
             if len(self._padded) > 8:  # a render keeps one pad (``box_pad``): a few suffice
                 self._padded.clear()
             self._padded[pad] = got
+        return got
+
+    def padded_nodes(self, pad: float) -> np.ndarray:
+        """``padded(pad)`` node by node, for the compiled walks (``render.boxwalk``).
+
+        Returns
+        -------
+        (N, 6) float32, C-contiguous: columns 0-2 a node's low corner, 3-5 its high one.
+        """
+        key = ("nodes", pad)
+        got = self._padded.get(key)
+        if got is None:
+            got = np.ascontiguousarray(self.padded(pad).T)
+            self._padded[key] = got
         return got
 
     @staticmethod
@@ -255,6 +274,36 @@ class BoxTree:
         parts = [p[2:] for p in self.pair_chunks(slabs, limit)]
         if not parts:
             return _no_pairs()
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+
+    def entered(self, slabs: RaySlabs, limit: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (ray, box) pairs where ``t_enter <= t_exit``, ``t_exit >= 0`` and
+        ``t_enter < limit``, through the compiled walk (``boxwalk.entered``): what ``pairs``
+        and that test give, bit for bit.
+
+        Parameters
+        ----------
+        slabs : the rays (n of them); limit : (n,) float32.
+
+        Returns
+        -------
+        ray : (m,) int64, ascending; box : (m,) int32; t_enter : (m,) float32
+        """
+        n = slabs.origin.shape[1]
+        if not self.size or n == 0:
+            return _no_pairs()[:3]
+        limit = np.ascontiguousarray(np.broadcast_to(limit, (n,)), np.float32)
+        nodes, rays = self.padded_nodes(slabs.pad), self._rays(slabs)
+        cap = 2 * n + 64
+        parts, first = [], 0
+        while first < n:
+            out = np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap, np.float32)
+            first, count = boxwalk.entered(rays, nodes, self.child, self.box, limit, first, *out)
+            parts.append(tuple(a[:count] for a in out))
+            cap *= 2  # a ray's pairs did not fit: the rest gets more room
         if len(parts) == 1:
             return parts[0]
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
@@ -371,6 +420,14 @@ class BoxTree:
         best_e = np.full(n, np.inf, np.float32)
         if not self.size or n == 0:
             return best_d, best_e
+        if self.compiled and _exact_dtypes(after_t, after_d, limit):
+            boxwalk.first_after(self._rays(slabs), self.padded_nodes(slabs.pad), self.child,
+                                self.box, *(np.ascontiguousarray(np.broadcast_to(a, (n,)), t)
+                                            for a, t in ((after_t, np.float32),
+                                                         (after_d, np.int64),
+                                                         (limit, np.float32))),
+                                best_d, best_e)
+            return best_d, best_e
         boxes, rays = self.padded(slabs.pad), self._rays(slabs)
         # Inputs keep their dtypes: comparisons promote exactly as the per-box loop's did.
         # (contiguous: ``take`` copies other arrays whole)
@@ -454,6 +511,14 @@ class BoxTree:
         best_d[first:stop] = np.where(found, self.flat_ids[col], -1)
         best_e[first:stop] = np.where(found, entry[col, np.arange(stop - first)],
                                       np.float32(np.inf))
+
+
+def _exact_dtypes(after_t, after_d, limit) -> bool:
+    """Whether the compiled ``first_after`` compares as the numpy walk would: float32
+    distances (a float64 ``after_t`` or ``limit`` would compare the float32 entries in
+    float64) and integer ids."""
+    return (np.asarray(after_t).dtype == np.float32 and np.asarray(limit).dtype == np.float32
+            and np.asarray(after_d).dtype.kind in "iu")
 
 
 def _no_pairs() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

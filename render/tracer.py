@@ -340,7 +340,8 @@ class DomainTracer:
         ``limit`` (the closest hit so far, or a shadow ray's length) and ``live`` may change
         between yields; each visit reads them afresh, so rays skip domains that start beyond
         what they already found. Which rays enter which boxes is found once per query, by
-        walking the tree of domain boxes (``BoxTree.pairs``; with few domains, one flat pass
+        walking the tree of domain boxes, each ray in compiled code (``BoxTree.entered``; with
+        ``tree.compiled`` off, numpy's ``BoxTree.pairs`` or, with few domains, one flat pass
         over all of them): the cost grows with the domains the rays cross, not with the domain
         count. A visit's rows are the rays for which
         ``(t0 <= t1) & (t1 >= 0) & (t0 < limit) & live`` holds at that moment, ascending, as
@@ -356,7 +357,8 @@ class DomainTracer:
         """
         all_fit = self.cache.capacity >= len(self.tree_ids)
         tree = self.tree if tree is None else tree
-        if tree.flat:  # few domains: every ray against every box, (m, n) at once
+        compiled = tree.compiled and np.asarray(limit).dtype == np.float32
+        if tree.flat and not compiled:  # few domains: every ray against every box at once
             t0, t1 = tree.flat_intervals(slabs)
             ahead = (t0 <= t1) & (t1 >= 0)
             domains = tree.flat_ids
@@ -369,9 +371,12 @@ class DomainTracer:
                     rows &= live
                 return np.nonzero(rows)[0]
         else:
-            ray, dom, t0, t1 = tree.pairs(slabs, limit)
-            enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
-            ray, dom, t0 = ray[enter], dom[enter], t0[enter]
+            if compiled:  # each ray walks the tree in compiled code (``render.boxwalk``)
+                ray, dom, t0 = tree.entered(slabs, limit)
+            else:
+                ray, dom, t0, t1 = tree.pairs(slabs, limit)
+                enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
+                ray, dom, t0 = ray[enter], dom[enter], t0[enter]
             # Group by domain; rays ascend within a domain in ``pairs`` and a stable sort
             # keeps them so (a radix sort, for 16-bit keys).
             key = dom.astype(np.uint16) if len(self.lo) <= 1 << 16 else dom

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vastray.render import boxwalk
 from vastray.render.boxtree import BoxTree
 from vastray.render.tracer import RaySlabs, box_pad
 
@@ -73,6 +74,8 @@ class DomainGeometry:
         """
         n = len(origins)
         limit = np.broadcast_to(np.asarray(limit), (n,))
+        if self.tree.compiled:
+            return self._crossings_compiled(origins, directions, limit)
         parts = []
         for first, stop, ray, domain, t0, t1 in self.tree.pair_chunks(
                 self.slabs(origins, directions), limit):
@@ -86,6 +89,30 @@ class DomainGeometry:
         # Chunks hold ascending runs of rays: concatenated, they stay sorted by ray.
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
+
+    def _crossings_compiled(self, origins, directions, limit):
+        """``crossings`` by ``boxwalk.crossings``: each ray walks the tree in compiled code
+        and writes its crossings in order; no sort follows."""
+        n = len(origins)
+        tree = self.tree
+        if tree.size == 0 or n == 0:
+            return _ordered(np.zeros(0, np.int64), np.zeros(0, np.int32),
+                            np.zeros(0, np.float32), 0, 0)
+        slabs = self.slabs(origins, directions)
+        nodes = tree.padded_nodes(slabs.pad)
+        limit = np.ascontiguousarray(limit, np.float32)
+        cap = 4 * n + 64
+        parts, first = [], 0
+        while first < n:
+            out = (np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap, np.float32),
+                   np.empty(cap, np.int32))
+            first, count = boxwalk.crossings(slabs.rays, nodes, tree.child, tree.box, limit,
+                                             first, *out)
+            parts.append(tuple(a[:count] for a in out))
+            cap *= 2  # a ray's crossings did not fit: the rest gets more room
+        if len(parts) == 1:
+            return parts[0]
+        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
 
 def _ordered(ray, domain, entry, first: int = 0, stop: int | None = None):
     """Sort (ray, domain, entry) by ray, entry, domain; add each pair's rank along its ray.

@@ -79,13 +79,23 @@ def assert_crossings_equal(got, want):
     np.testing.assert_array_equal(rank, rank0)
 
 
-@pytest.fixture(params=["tree", "flat"])
+#: The three walks that must agree: the compiled per-ray walk (the default), the numpy
+#: breadth-first walk of the tree, and the numpy flat pass over every box.
+WALKS = ("compiled", "tree", "flat")
+
+
+def walk_with(tree: BoxTree, mode: str) -> None:
+    tree.compiled = mode == "compiled"
+    tree.flat = mode == "flat"
+
+
+@pytest.fixture(params=WALKS)
 def geometry_and_rays(request):
     rng = np.random.default_rng(11)
     lo, hi, nonempty = hard_boxes(rng)
     geometry = DomainGeometry(lo, hi, nonempty, origin_bound=1.5)
-    assert geometry.tree.size > FLAT_BOXES and not geometry.tree.flat
-    geometry.tree.flat = request.param == "flat"  # the same boxes, both ways
+    assert geometry.tree.size > FLAT_BOXES and not geometry.tree.flat and geometry.tree.compiled
+    walk_with(geometry.tree, request.param)  # the same boxes, each way
     return geometry, hard_rays(rng, lo, hi)
 
 
@@ -124,10 +134,14 @@ def test_tree_pairs_are_the_tracers_slab_test(geometry_and_rays):
     # DomainTracer's test: t0 <= t1, t1 >= 0, t0 < limit (t0 not clamped), for every box.
     geometry, (origins, directions, limit) = geometry_and_rays
     slabs = geometry.slabs(origins, directions)
-    ray, box, t0, t1 = geometry.tree.pairs(slabs, limit)
-    enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
-    got = sorted(zip(box[enter].tolist(), ray[enter].tolist(), bits(t0[enter]).tolist(),
-                     strict=True))
+    if geometry.tree.compiled:
+        ray, box, t0 = geometry.tree.entered(slabs, limit)
+        assert (np.diff(ray) >= 0).all()  # by ray, as the tracer groups them
+    else:
+        ray, box, t0, t1 = geometry.tree.pairs(slabs, limit)
+        enter = (t0 <= t1) & (t1 >= 0) & (t0 < limit[ray])
+        ray, box, t0 = ray[enter], box[enter], t0[enter]
+    got = sorted(zip(box.tolist(), ray.tolist(), bits(t0).tolist(), strict=True))
     want = []
     for d in geometry.ids:
         w0, w1 = slabs.intervals(geometry.lo[d], geometry.hi[d])
@@ -142,9 +156,9 @@ def test_trees_of_any_size(count):
     center = rng.uniform(-1, 1, (count, 3))
     lo, hi = center - 0.3, center + 0.3
     origins, directions, limit = hard_rays(rng, lo, hi, 500)
-    for flat in (True, False):
+    for mode in WALKS:
         geometry = DomainGeometry(lo, hi, np.ones(count, bool), 1.5)
-        geometry.tree.flat = flat
+        walk_with(geometry.tree, mode)
         assert_crossings_equal(geometry.crossings(origins, directions, limit),
                                crossings_by_loop(geometry, origins, directions, limit))
         at_t = np.full(len(origins), -np.inf, np.float32)
@@ -185,8 +199,8 @@ def test_nan_distances_give_the_per_box_answers():
                    for d in range(len(lo)))
     assert nans > 50 and t0.dtype == np.float32
     limit = np.full(n, np.inf, np.float32)
-    for flat in (False, True):
-        geometry.tree.flat = flat
+    for mode in WALKS:
+        walk_with(geometry.tree, mode)
         assert_crossings_equal(geometry.crossings(origins, directions, limit),
                                crossings_by_loop(geometry, origins, directions, limit))
         at_t = np.full(n, -np.inf, np.float32)
@@ -251,17 +265,20 @@ def _old_visits(tracer: DomainTracer, slabs: RaySlabs, limit, live=None):
             yield int(d), rows
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("bounded", [False, True])
 @pytest.mark.parametrize("store_name", ["few", "grid"])
-def test_tracer_visits_what_the_per_domain_loop_visited(terrain, store_name, bounded):
+def test_tracer_visits_what_the_per_domain_loop_visited(terrain, store_name, bounded, compiled):
     # Same domains, same order, same rows, also while limits shrink and rays die between
     # visits (both walks get the same updates): with all domains resident (nearest first) and
-    # with a bounded cache (LoadAnyOnce), through the tree and through the flat pass.
+    # with a bounded cache (LoadAnyOnce), through the compiled walk, and in numpy through the
+    # tree and through the flat pass.
     store = terrain[store_name]
     n_domains = len(store.domains)
     capacity = n_domains // 4 if bounded else n_domains
     tracer = DomainTracer(store, DomainCache(store, capacity), threads=1)
     assert tracer.tree.flat == (store_name == "few")
+    tracer.tree.compiled = compiled
     if bounded:
         for d in range(0, n_domains, 7):
             tracer.cache.get(d)
@@ -330,3 +347,21 @@ def test_box_padding_is_the_tracers():
         mine = box == d
         np.testing.assert_array_equal(bits(t0[mine]), bits(w0[ray[mine]]))
         np.testing.assert_array_equal(bits(t1[mine]), bits(w1[ray[mine]]))
+
+
+def test_compiled_crossings_grow_their_output():
+    # Rays along a 16^3 grid's diagonals cross far more boxes than the first output holds
+    # (4 per ray + 64): the compiled walk stops, the output grows, the walk goes on.
+    edges = np.linspace(0.0, 1.0, 17)
+    ix, iy, iz = (a.ravel() for a in np.meshgrid(*[np.arange(16)] * 3, indexing="ij"))
+    lo = np.stack([edges[ix], edges[iy], edges[iz]], axis=1)
+    hi = np.stack([edges[ix + 1], edges[iy + 1], edges[iz + 1]], axis=1)
+    geometry = DomainGeometry(lo, hi, np.ones(len(lo), bool), origin_bound=2.0)
+    origins = np.array([[-0.5, -0.5, -0.5], [1.5, -0.5, -0.5], [0.3, 0.3, -1.0]], np.float32)
+    directions = np.array([[1, 1, 1], [-1, 1, 1], [0, 0, 1]], np.float32)
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    limit = np.full(3, np.inf, np.float32)
+    got = geometry.crossings(origins, directions, limit)
+    assert len(got[0]) > 4 * len(origins) + 64
+    assert np.bincount(got[0]).min() >= 16  # each ray crosses at least a row of cells
+    assert_crossings_equal(got, crossings_by_loop(geometry, origins, directions, limit))
