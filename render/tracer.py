@@ -11,8 +11,9 @@ Two levels: when every domain fits in the cache, a query first goes, one Embree 
 through a top-level scene holding an instance of every resident domain (``embree.TopScene``);
 only domains not resident yet are then visited one by one (which loads them), and once all the
 domains rays enter are resident no ray-box work is left at all. Ties between domains still go
-to the lower domain id, so the hits, and the image, are the same bit for bit. A bounded cache
-(out of core) keeps the per-domain queries.
+to the lower domain id, so the hits, and the image, are the same bit for bit. A store of one
+domain needs no top level: its own scene takes every ray, with no ray-box work either. A
+bounded cache (out of core) keeps the per-domain queries.
 """
 
 from __future__ import annotations
@@ -324,6 +325,14 @@ class DomainTracer:
             _, top, missing = self._top
         return top, missing, resident
 
+    def _only_domain(self) -> int | None:
+        """The one non-empty domain, where the store has just one and queries may skip the
+        ray-box test (``two_level``, as the top-level scene does for several): its Embree
+        query rejects the rays that miss its box itself. None otherwise."""
+        if self.two_level and len(self.tree_ids) == 1:
+            return int(self.tree_ids[0])
+        return None
+
     def slabs(self, origins: np.ndarray, directions: np.ndarray) -> RaySlabs:
         return RaySlabs(origins, directions,
                         box_pad(self.box_magnitude, self.origin_bound, origins))
@@ -460,6 +469,13 @@ class DomainTracer:
         if self.record is not None:
             self.record.append(("closest", origins, directions, None))
         best = ClosestHits.empty(n, self.color_source is not None)
+        only = self._only_domain()
+        if only is not None:
+            self._count_visit(only, n)
+            bvh = self.cache.get(only)
+            r = bvh.intersect(origins, directions, best.t, self.pool)
+            best.offer(np.arange(n), only, bvh, r, self.color_source, self.scalar_range)
+            return best.hits()
         top = self._top_level()
         tree = None
         if top is not None:
@@ -496,6 +512,10 @@ class DomainTracer:
             self.stats.rays["shadow"] += n
         if self.record is not None:
             self.record.append(("occluded", origins, directions, t_max))
+        only = self._only_domain()
+        if only is not None:
+            self._count_visit(only, n)
+            return self.cache.get(only).occluded(origins, directions, t_max, self.pool)
         blocked = np.zeros(n, dtype=bool)
         top = self._top_level()
         tree = None

@@ -35,6 +35,7 @@ def stores(tmp_path_factory):
         "grid8": write_store(root / "grid8", mesh, grid=(2, 2, 2)),
         "kd64": write_store(root / "kd64", mesh, kd=64),
         "colors27": write_store(root / "colors27", colored, grid=(3, 3, 3)),
+        "one": write_store(root / "one", colored, grid=(1, 1, 1)),
     }
 
 
@@ -65,6 +66,24 @@ def test_image_bit_identical_to_domain_by_domain(stores, name, integrator, monke
     np.testing.assert_array_equal(two_level.film.depth_image(), per_domain.film.depth_image())
     np.testing.assert_array_equal(two_level.film.normal_image(),
                                   per_domain.film.normal_image())
+
+
+@pytest.mark.parametrize("integrator", ["ao", "pt"])
+def test_one_domain_is_queried_without_box_tests(stores, integrator):
+    # One domain: every ray goes straight to its Embree scene (no ray-box test), as rays go
+    # to the top-level scene with several; the image is the per-domain query's, bit for bit.
+    cfg = bumpy_config()
+    st = settings(width=64, height=48, spp=2, integrator=integrator, batch_size=1024)
+    per_domain = render(stores["one"], cfg, st, progress=False, two_level=False)
+    direct = render(stores["one"], cfg, st, progress=False)
+    rays = direct.counters["rays"]["total"]
+    assert rays == per_domain.counters["rays"]["total"]
+    assert direct.counters["ray_domain_tests"] == rays  # every ray, none box-culled
+    assert per_domain.counters["ray_domain_tests"] < rays  # the box test culled some
+    assert per_domain.film.image().max() > 0.05
+    np.testing.assert_array_equal(direct.film.image(), per_domain.film.image())
+    np.testing.assert_array_equal(direct.film.depth_image(), per_domain.film.depth_image())
+    np.testing.assert_array_equal(direct.film.normal_image(), per_domain.film.normal_image())
 
 
 def test_bounded_cache_keeps_per_domain_queries(stores, monkeypatch):
