@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vastray.render import kernels
+
 #: Bytes of film state per pixel: sum and sum_sq (3 float64 each), count, depth, normal.
 FILM_BYTES_PER_PIXEL = 24 + 24 + 8 + 4 + 12
 
@@ -26,7 +28,7 @@ class Film:
         self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
 
     def add(self, pixel: np.ndarray, radiance: np.ndarray,
-            counted: np.ndarray | None = None) -> None:
+            counted: np.ndarray | None = None, fused: bool = True) -> None:
         """Add one sample per row.
 
         Parameters
@@ -35,6 +37,8 @@ class Film:
         radiance : (n, 3) float64 radiance of each sample's whole path.
         counted : (n,) bool, the rows that count as samples (default: all). Under domain
             decomposition several nodes add parts of one path; exactly one counts it.
+        fused : sum in one compiled pass (``kernels.film_add``); False: with ``np.bincount``
+            (the same sums, bit for bit).
         """
         if len(pixel) == 0:
             return
@@ -42,6 +46,13 @@ class Film:
         # follows the batch, not the film. Adding the zeros of other pixels changed nothing.
         lo, hi = int(pixel.min()), int(pixel.max()) + 1
         local = pixel - lo
+        if fused and radiance.dtype == np.float64:
+            kernels.film_add(self.sum, self.sum_sq, self.count, lo,
+                             np.ascontiguousarray(local, np.int64),
+                             np.ascontiguousarray(radiance),
+                             np.ones(len(local), np.bool_) if counted is None
+                             else np.ascontiguousarray(counted, np.bool_))
+            return
         for c in range(3):
             self.sum[lo:hi, c] += np.bincount(local, weights=radiance[:, c], minlength=hi - lo)
             self.sum_sq[lo:hi, c] += np.bincount(local, weights=radiance[:, c] ** 2,

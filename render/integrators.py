@@ -447,7 +447,10 @@ class PathResult:
 
     def record_camera_hits(self, ctx: PathContext, rays: RadianceRays, hits: Hits) -> None:
         """Camera emission and the first-hit layers, once camera hits are final."""
-        self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
+        if ctx.settings.integrator == "pt" and any(
+                isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights):
+            # (nothing else is seen directly: point and directional lights have no area)
+            self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
         self.first_t[rays.path] = hits.t
         self.first_normal[rays.path] = facing(hits.normal, rays.direction.astype(np.float64))
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from vastray.render import kernels
+from vastray.render.film import Film
 from vastray.render.integrators import (
     PathContext,
     RadianceRays,
@@ -214,3 +215,22 @@ def test_fused_offer_equals_numpy_comparison_with_ties():
     np.testing.assert_array_equal(fused.domain, ref.domain)
     np.testing.assert_array_equal(fused.ng, ref.ng)
     assert len(np.unique(fused.domain)) >= 3  # ties went to lower domains
+
+
+@pytest.mark.parametrize("counting", ["all", "some"])
+def test_fused_film_add_equals_bincount(counting):
+    # Several batches over overlapping pixel runs, repeated pixels, values of every scale:
+    # the sums, squares and counts are numpy's bit for bit.
+    rng = np.random.default_rng(5)
+    films = [Film(37, 11), Film(37, 11)]
+    for _ in range(6):
+        first = rng.integers(0, 300)
+        pixel = rng.integers(first, min(first + 120, 37 * 11), 500)
+        radiance = rng.lognormal(0.0, 4.0, (500, 3)) * rng.choice([0.0, 1.0], (500, 1))
+        counted = None if counting == "all" else rng.random(500) < 0.6
+        for film, fused in zip(films, (True, False), strict=True):
+            film.add(pixel, radiance, counted, fused=fused)
+    for name in ("sum", "sum_sq", "count"):
+        got, want = getattr(films[0], name), getattr(films[1], name)
+        assert got.any()
+        np.testing.assert_array_equal(got, want)
