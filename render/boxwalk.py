@@ -45,15 +45,17 @@ def _max(a, b):
 
 
 @njit(inline="always")
-def _interval(nodes, node, ox, oy, oz, ix, iy, iz, finite):
-    """Entry and exit distance of the ray (origin ``o*``, inverse direction ``i*``) through
-    node ``node``, with the operations of ``RaySlabs.intervals`` in its order.
+def _interval(nodes, node, ray):
+    """Entry and exit distance of the ray (``_ray``: origin ``o*``, inverse direction
+    ``i*``, ``finite``) through node ``node``, with the operations of ``RaySlabs.intervals``
+    in its order.
 
     ``finite``: every inverse direction component is finite, so no distance is NaN (an
     overflow gives an infinity, never a NaN) and plain comparisons are numpy's minimum and
     maximum; else (a denormal direction component, whose inverse overflowed) the NaN-aware
     ones.
     """
+    ox, oy, oz, ix, iy, iz, finite = ray
     a = (nodes[node, 0] - ox) * ix
     b = (nodes[node, 3] - ox) * ix
     c = (nodes[node, 1] - oy) * iy
@@ -73,6 +75,33 @@ def _interval(nodes, node, ox, oy, oz, ix, iy, iz, finite):
     near = _max(_min(a, b), _min(c, d))
     far = _min(_max(a, b), _max(c, d))
     return _max(near, _min(e, f)), _min(far, _max(e, f))
+
+
+@njit(inline="always")
+def _ray(rays, i):
+    """Ray ``i`` of ``rays`` ((6, n)) as the walks read it: origin, inverse direction and
+    ``_finite``."""
+    return (rays[0, i], rays[1, i], rays[2, i], rays[3, i], rays[4, i], rays[5, i],
+            _finite(rays, i))
+
+
+@njit(inline="always")
+def _pop(stack, sp, nodes, ray):
+    """Pop a node off the walk's stack (``sp`` nodes on it): the new size, the node, the ray's
+    entry and exit distances, and whether the ray may overlap it (not ``t_enter > t_exit``
+    nor ``t_exit < 0``: NaN never rules a node out)."""
+    sp -= 1
+    node = stack[sp]
+    near, far = _interval(nodes, node, ray)
+    return sp, node, near, far, not (near > far or far < np.float32(0))
+
+
+@njit(inline="always")
+def _push_children(stack, sp, child, node):
+    """Push both children of ``node`` (the first on top); returns the new stack size."""
+    stack[sp] = child[node, 1]
+    stack[sp + 1] = child[node, 0]
+    return sp + 2
 
 
 @njit(inline="always")
@@ -116,17 +145,13 @@ def crossings(rays, nodes, child, box, limit, first, out_ray, out_box, out_entry
     count = 0
     for i in range(first, n):
         lim = limit[i]
-        ox, oy, oz = rays[0, i], rays[1, i], rays[2, i]
-        ix, iy, iz = rays[3, i], rays[4, i], rays[5, i]
-        finite = _finite(rays, i)
+        ray = _ray(rays, i)
         m = 0
-        stack[0] = 0
+        stack[0] = 0  # the root
         sp = 1
         while sp:
-            sp -= 1
-            node = stack[sp]
-            near, far = _interval(nodes, node, ox, oy, oz, ix, iy, iz, finite)
-            if near > far or far < zero:
+            sp, node, near, far, overlaps = _pop(stack, sp, nodes, ray)
+            if not overlaps:
                 continue
             if box[node] >= 0:
                 entry = _max(near, zero)
@@ -143,9 +168,7 @@ def crossings(rays, nodes, child, box, limit, first, out_ray, out_box, out_entry
                     got_box[j] = b
                     m += 1
             elif not near >= lim:  # (NaN compares false: kept, as in the numpy walk)
-                stack[sp] = child[node, 1]
-                stack[sp + 1] = child[node, 0]
-                sp += 2
+                sp = _push_children(stack, sp, child, node)
         if count + m > cap:
             return i, count
         for j in range(m):
@@ -179,18 +202,14 @@ def first_after(rays, nodes, child, box, after_t, after_d, limit, best_box, best
     zero = np.float32(0)
     for i in range(n):
         at, ad, lim = after_t[i], after_d[i], limit[i]
-        ox, oy, oz = rays[0, i], rays[1, i], rays[2, i]
-        ix, iy, iz = rays[3, i], rays[4, i], rays[5, i]
-        finite = _finite(rays, i)
+        ray = _ray(rays, i)
         got_box = np.int32(-1)
         got_entry = np.float32(np.inf)
-        stack[0] = 0
+        stack[0] = 0  # the root
         sp = 1
         while sp:
-            sp -= 1
-            node = stack[sp]
-            near, far = _interval(nodes, node, ox, oy, oz, ix, iy, iz, finite)
-            if near > far or far < zero:
+            sp, node, near, far, overlaps = _pop(stack, sp, nodes, ray)
+            if not overlaps:
                 continue
             b = box[node]
             if b >= 0:
@@ -200,9 +219,7 @@ def first_after(rays, nodes, child, box, after_t, after_d, limit, best_box, best
                     got_box = b
                     got_entry = entry
             elif not (far < at or near >= lim or _max(near, zero) > got_entry):
-                stack[sp] = child[node, 1]
-                stack[sp + 1] = child[node, 0]
-                sp += 2
+                sp = _push_children(stack, sp, child, node)
         best_box[i] = got_box
         best_entry[i] = got_entry
 
@@ -224,26 +241,19 @@ def entered(rays, nodes, child, box, limit, first, out_ray, out_box, out_enter):
     n = rays.shape[1]
     cap = out_ray.shape[0]
     stack = np.empty(_STACK, np.int32)
-    zero = np.float32(0)
     count = 0
     for i in range(first, n):
         lim = limit[i]
-        ox, oy, oz = rays[0, i], rays[1, i], rays[2, i]
-        ix, iy, iz = rays[3, i], rays[4, i], rays[5, i]
-        finite = _finite(rays, i)
+        ray = _ray(rays, i)
         start = count
-        stack[0] = 0
+        stack[0] = 0  # the root
         sp = 1
         while sp:
-            sp -= 1
-            node = stack[sp]
-            near, far = _interval(nodes, node, ox, oy, oz, ix, iy, iz, finite)
-            if near > far or far < zero or near >= lim:
+            sp, node, near, far, overlaps = _pop(stack, sp, nodes, ray)
+            if not overlaps or near >= lim:
                 continue
             if box[node] < 0:
-                stack[sp] = child[node, 1]
-                stack[sp + 1] = child[node, 0]
-                sp += 2
+                sp = _push_children(stack, sp, child, node)
             elif near <= far and near < lim:  # (a NaN distance fails here)
                 if count == cap:
                     return i, start  # this ray's pairs did not fit: it starts the next call
