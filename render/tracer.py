@@ -354,9 +354,9 @@ class DomainTracer:
         rays cross, not with the domain count. With few domains (``tree.flat``) one numpy pass
         tests every ray against every box instead: no grouping by domain is needed after it,
         and it measured faster than the compiled walk (one domain, ``bench/peers.py``'s scene:
-        0.05 s against 0.13 s of a 2.7 s render, plus the grouping). A visit's rows are the rays for which
-        ``(t0 <= t1) & (t1 >= 0) & (t0 < limit) & live`` holds at that moment, ascending, as
-        the per-domain slab test gave them.
+        0.05 s against 0.13 s of a 2.7 s render, plus the grouping). A visit's rows are the
+        rays for which ``(t0 <= t1) & (t1 >= 0) & (t0 < limit) & live`` holds at that moment,
+        ascending, as the per-domain slab test gave them.
 
         When every domain fits in the cache, domains are visited nearest first as seen from
         the batch's mean origin (cheap, and measured faster than per-ray front-to-back waves,

@@ -74,7 +74,8 @@ class DomainGeometry:
         """
         n = len(origins)
         limit = np.broadcast_to(np.asarray(limit), (n,))
-        if self.tree.compiled:
+        # The compiled walk compares in float32: a float64 limit takes the numpy walk.
+        if self.tree.compiled and limit.dtype == np.float32:
             return self._crossings_compiled(origins, directions, limit)
         parts = []
         for first, stop, ray, domain, t0, t1 in self.tree.pair_chunks(
@@ -88,7 +89,6 @@ class DomainGeometry:
                             np.zeros(0, np.float32), 0, 0)
         # Chunks hold ascending runs of rays: concatenated, they stay sorted by ray.
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
-
 
     def _crossings_compiled(self, origins, directions, limit):
         """``crossings`` by ``boxwalk.crossings``: each ray walks the tree in compiled code
