@@ -50,10 +50,10 @@ def _interval(nodes, node, ray):
     ``i*``, ``finite``) through node ``node``, with the operations of ``RaySlabs.intervals``
     in its order.
 
-    ``finite``: every inverse direction component is finite, so no distance is NaN (an
-    overflow gives an infinity, never a NaN) and plain comparisons are numpy's minimum and
-    maximum; else (a denormal direction component, whose inverse overflowed) the NaN-aware
-    ones.
+    ``finite`` (``_finite``: a finite origin, inverse direction components finite and
+    non-zero): no distance can be NaN (an overflow gives an infinity, never a NaN), and plain
+    comparisons are numpy's minimum and maximum; else (e.g. a denormal direction component,
+    whose inverse overflowed) the NaN-aware ones.
     """
     ox, oy, oz, ix, iy, iz, finite = ray
     a = (nodes[node, 0] - ox) * ix
