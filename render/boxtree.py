@@ -292,18 +292,38 @@ class BoxTree:
         -------
         ray : (m,) int64, ascending; box : (m,) int32; t_enter : (m,) float32
         """
+        return self.walk_all(boxwalk.entered, slabs, limit, (np.int64, np.int32, np.float32),
+                             per_ray=2)
+
+    def walk_all(self, kernel, slabs: RaySlabs, limit: np.ndarray, dtypes: tuple,
+                 per_ray: int) -> tuple[np.ndarray, ...]:
+        """Run a compiled walk (``boxwalk.crossings`` or ``boxwalk.entered``) over every ray,
+        growing its output where a ray's answer does not fit.
+
+        Parameters
+        ----------
+        kernel : called as ``kernel(rays, nodes, child, box, limit, first, *out)``, returning
+            (the first ray not written, entries written).
+        slabs : the rays (n of them); limit : (n,) float32.
+        dtypes : of the output arrays, in the kernel's order.
+        per_ray : output entries to allow per ray at first.
+
+        Returns
+        -------
+        The output arrays, trimmed (empty ones for no rays or no boxes).
+        """
         n = slabs.origin.shape[1]
         if not self.size or n == 0:
-            return _no_pairs()[:3]
+            return tuple(np.zeros(0, t) for t in dtypes)
         limit = np.ascontiguousarray(np.broadcast_to(limit, (n,)), np.float32)
         nodes, rays = self.padded_nodes(slabs.pad), self._rays(slabs)
-        cap = 2 * n + 64
+        cap = per_ray * n + 64
         parts, first = [], 0
         while first < n:
-            out = np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap, np.float32)
-            first, count = boxwalk.entered(rays, nodes, self.child, self.box, limit, first, *out)
+            out = tuple(np.empty(cap, t) for t in dtypes)
+            first, count = kernel(rays, nodes, self.child, self.box, limit, first, *out)
             parts.append(tuple(a[:count] for a in out))
-            cap *= 2  # a ray's pairs did not fit: the rest gets more room
+            cap *= 2  # a ray's answer did not fit: the rest gets more room
         if len(parts) == 1:
             return parts[0]
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))

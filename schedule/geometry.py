@@ -93,26 +93,9 @@ class DomainGeometry:
     def _crossings_compiled(self, origins, directions, limit):
         """``crossings`` by ``boxwalk.crossings``: each ray walks the tree in compiled code
         and writes its crossings in order; no sort follows."""
-        n = len(origins)
-        tree = self.tree
-        if tree.size == 0 or n == 0:
-            return _ordered(np.zeros(0, np.int64), np.zeros(0, np.int32),
-                            np.zeros(0, np.float32), 0, 0)
-        slabs = self.slabs(origins, directions)
-        nodes = tree.padded_nodes(slabs.pad)
-        limit = np.ascontiguousarray(limit, np.float32)
-        cap = 4 * n + 64
-        parts, first = [], 0
-        while first < n:
-            out = (np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap, np.float32),
-                   np.empty(cap, np.int32))
-            first, count = boxwalk.crossings(slabs.rays, nodes, tree.child, tree.box, limit,
-                                             first, *out)
-            parts.append(tuple(a[:count] for a in out))
-            cap *= 2  # a ray's crossings did not fit: the rest gets more room
-        if len(parts) == 1:
-            return parts[0]
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
+        return self.tree.walk_all(boxwalk.crossings, self.slabs(origins, directions), limit,
+                                  (np.int64, np.int32, np.float32, np.int32), per_ray=4)
+
 
 def _ordered(ray, domain, entry, first: int = 0, stop: int | None = None):
     """Sort (ray, domain, entry) by ray, entry, domain; add each pair's rank along its ray.
