@@ -28,25 +28,43 @@ class SoA:
     def __setitem__(self, name: str, value: np.ndarray) -> None:
         self.fields[name] = value
 
+    @classmethod
+    def _trusted(cls, fields: dict[str, np.ndarray]) -> SoA:
+        """An SoA over ``fields`` known to be of equal length (no check: hot paths)."""
+        soa = cls.__new__(cls)
+        soa.fields = fields
+        return soa
+
     def take(self, rows: np.ndarray) -> SoA:
-        return SoA(**{k: a[rows] for k, a in self.fields.items()})
+        return SoA._trusted({k: a[rows] for k, a in self.fields.items()})
+
+    def rows(self, start: int, stop: int) -> SoA:
+        """Rows ``start:stop`` as views (no copy)."""
+        return SoA._trusted({k: a[start:stop] for k, a in self.fields.items()})
 
     def nbytes(self) -> int:
         return sum(a.nbytes for a in self.fields.values())
 
     def without(self, *names: str) -> SoA:
         """The same rays without the fields ``names``."""
-        return SoA(**{k: a for k, a in self.fields.items() if k not in names})
+        return SoA._trusted({k: a for k, a in self.fields.items() if k not in names})
 
     @staticmethod
     def concat(parts: list[SoA]) -> SoA:
         if len(parts) == 1:
             return parts[0]
-        return SoA(**{k: np.concatenate([p[k] for p in parts]) for k in parts[0].fields})
+        return SoA._trusted({k: np.concatenate([p.fields[k] for p in parts])
+                             for k in parts[0].fields})
 
 
 class DomainQueues:
     """One queue of rays per domain; a ray set is pushed split by destination domain.
+
+    A push sorts its rays by destination once (one gather per field) and queues, per domain,
+    the bounds of that domain's run in the sorted block: the per-domain rays are sliced out
+    (views) only when the queue is popped or peeked, instead of one gather per field and
+    domain on every push. A block stays in memory until its last run is popped (``nbytes``
+    counts what is held); a tile's rays bound that.
 
     Parameters
     ----------
@@ -54,20 +72,25 @@ class DomainQueues:
     """
 
     def __init__(self, n_domains: int):
-        self._chunks: list[list[SoA]] = [[] for _ in range(n_domains)]
+        # per domain: (sorted block, start, stop) runs, oldest first
+        self._chunks: list[list[tuple[SoA, int, int]]] = [[] for _ in range(n_domains)]
         self._counts = np.zeros(n_domains, dtype=np.int64)
 
     def push(self, domain: np.ndarray, rays: SoA) -> None:
-        """Queue row i of ``rays`` into ``domain[i]`` ((n,) ints)."""
+        """Queue row i of ``rays`` into ``domain[i]`` ((n,) ints). The queue may keep
+        ``rays``' arrays without copying them: do not modify them afterwards."""
         if len(rays) == 0:
             return
-        order = np.argsort(domain, kind="stable")
         counts = np.bincount(domain, minlength=len(self._counts))
-        start = 0
-        for d in np.nonzero(counts)[0]:
-            stop = start + counts[d]
-            self._chunks[d].append(rays.take(order[start:stop]))
-            start = stop
+        present = np.flatnonzero(counts)
+        if len(present) == 1:
+            block = SoA._trusted(dict(rays.fields))  # one destination: no sort, no copy
+        else:
+            block = rays.take(np.argsort(domain, kind="stable"))
+        stops = np.cumsum(counts)[present]
+        starts = stops - counts[present]
+        for d, start, stop in zip(present.tolist(), starts.tolist(), stops.tolist(), strict=True):
+            self._chunks[d].append((block, start, stop))
         self._counts += counts
 
     def pop(self, domain: int) -> SoA | None:
@@ -77,7 +100,12 @@ class DomainQueues:
             return None
         self._chunks[domain] = []
         self._counts[domain] = 0
-        return SoA.concat(chunks)
+        if len(chunks) == 1:
+            block, start, stop = chunks[0]
+            return block.rows(start, stop)
+        return SoA._trusted({
+            k: np.concatenate([block.fields[k][start:stop] for block, start, stop in chunks])
+            for k in chunks[0][0].fields})
 
     def counts(self) -> np.ndarray:
         """(D,) rays waiting per domain."""
@@ -91,8 +119,10 @@ class DomainQueues:
         return int(self._counts.sum())
 
     def nbytes(self) -> int:
-        return sum(c.nbytes() for chunks in self._chunks for c in chunks)
+        """Bytes held: every block some queue still has a run in, counted once."""
+        held = {id(block): block for chunks in self._chunks for block, _, _ in chunks}
+        return sum(block.nbytes() for block in held.values())
 
     def peek(self, domain: int) -> list[SoA]:
-        """The chunks queued in ``domain``, left queued (do not modify them)."""
-        return list(self._chunks[domain])
+        """The chunks queued in ``domain``, left queued (views: do not modify them)."""
+        return [block.rows(start, stop) for block, start, stop in self._chunks[domain]]

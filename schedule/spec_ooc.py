@@ -41,7 +41,7 @@ from vastray.render.integrators import (
 )
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
-from vastray.schedule.paths import as_radiance, as_shadow, radiance_soa, shadow_soa
+from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
 from vastray.schedule.soa import DomainQueues, SoA
 
 
@@ -214,7 +214,7 @@ class SpeculativeSchedule:
             live, keep = self._radiance_predicate(radiance, level)
             self.counters["wasted_rays"] += int(np.count_nonzero(~live))
             self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
-            radiance = radiance.take(keep) if keep.any() else None
+            radiance = _kept(radiance, keep)
         shadow = self.shadow.pop(domain)
         if shadow is not None:
             sid = shadow["sid"]
@@ -224,7 +224,7 @@ class SpeculativeSchedule:
             self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
             self.counters["filtered_rays"] += int(np.count_nonzero(~keep))
             self.shadow_blocked[sid[~live]] = True  # stale: never needs another visit
-            shadow = shadow.take(keep) if keep.any() else None
+            shadow = _kept(shadow, keep)
         if radiance is None and shadow is None:
             self.counters["skipped_domains"] += 1
             return False
@@ -288,9 +288,8 @@ class SpeculativeSchedule:
     # -- history ------------------------------------------------------------------------------
     def _with_history(self, rays: RadianceRays) -> SoA:
         n = len(rays)
-        return radiance_soa(rays, self.color_source is not None,
-                            hist_t=np.full((n, self.window), np.inf, np.float32),
-                            hist_d=np.full((n, self.window), NO_DOMAIN, np.int32))
+        return _radiance(rays, np.full((n, self.window), np.inf, np.float32),
+                         np.full((n, self.window), NO_DOMAIN, np.int32))
 
     def _history_matches(self, rays: SoA, upto: np.ndarray | int) -> np.ndarray:
         """Whether each ray's ancestors at window depths ``< upto`` match the history buffer."""
@@ -340,8 +339,11 @@ class SpeculativeSchedule:
         path = rays["path"]
         self.counters["radiance_tests"] += len(rays)
         r = bvh.intersect(rays["origin"], rays["direction"], self.hbuf_t[path, level])
+        # The rays carry no hit record: the buffer holds (t, domain), the rest is scratch.
+        n = len(rays)
         hits = ClosestHits(self.hbuf_t[path, level], self.hbuf_d[path, level],
-                           rays["hit_ng"], rays["hit_material"], rays.fields.get("hit_color"))
+                           np.zeros((n, 3), np.float32), np.zeros(n, np.int64),
+                           np.zeros((n, 3)) if self.color_source is not None else None)
         winners = []
         for depth in np.unique(level):
             rows = np.nonzero(level == depth)[0]
@@ -400,8 +402,7 @@ class SpeculativeSchedule:
         if len(rays) == 0:
             return
         parent = _index_of(parent_path, rays.path)
-        soa = radiance_soa(rays, self.color_source is not None, hist_t=hist_t[parent],
-                           hist_d=hist_d[parent])
+        soa = _radiance(rays, hist_t[parent], hist_d[parent])
         self.counters["speculative_rays"] += len(soa)
         beyond = (rays.depth.astype(np.int64) - self.window_start) >= self.window
         if beyond.any():
@@ -475,6 +476,19 @@ class SpeculativeSchedule:
         valid = self._history_matches(rays, level + 1)
         self.counters["wasted_rays"] += int(np.count_nonzero(~valid))
         add_unoccluded(self.result.radiance, as_shadow(rays), valid)
+
+
+def _radiance(rays: RadianceRays, hist_t: np.ndarray, hist_d: np.ndarray) -> SoA:
+    """Radiance rays as queued here: the integrator's fields and the history ((n, H + 1) t and
+    domain of the hits they descend from). No hit record: the history buffer keeps it."""
+    return SoA(**{f: getattr(rays, f) for f in RADIANCE_FIELDS}, hist_t=hist_t, hist_d=hist_d)
+
+
+def _kept(rays: SoA, keep: np.ndarray) -> SoA | None:
+    """The rows of ``rays`` where ``keep`` ((n,) bool) holds; None if none does."""
+    if keep.all():
+        return rays
+    return rays.take(keep) if keep.any() else None
 
 
 def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -1,0 +1,57 @@
+"""Per-domain ray queues: what goes in comes out, per domain, in push order."""
+
+import numpy as np
+
+from vastray.schedule.soa import DomainQueues, SoA
+
+
+def _rays(ids: np.ndarray) -> SoA:
+    return SoA(id=ids.astype(np.int64), origin=np.repeat(ids[:, None], 3, 1).astype(np.float32))
+
+
+def test_each_domain_pops_its_rays_in_push_order():
+    rng = np.random.default_rng(3)
+    queues = DomainQueues(5)
+    expected = {d: [] for d in range(5)}
+    next_id = 0
+    for n in (40, 1, 0, 17, 64):
+        domain = rng.integers(0, 5, n)
+        ids = np.arange(next_id, next_id + n)
+        next_id += n
+        queues.push(domain, _rays(ids))
+        for d in range(5):
+            expected[d].extend(ids[domain == d].tolist())
+    assert queues.counts().tolist() == [len(expected[d]) for d in range(5)]
+    assert queues.total() == next_id
+    for d in range(5):
+        peeked = [c["id"] for c in queues.peek(d)]
+        got = queues.pop(d)
+        want = expected[d]
+        if not want:
+            assert got is None and peeked == []
+            continue
+        assert got["id"].tolist() == want
+        assert np.concatenate(peeked).tolist() == want  # peek showed the same, in order
+        assert (got["origin"] == np.asarray(want, np.float32)[:, None]).all()
+        assert queues.count(d) == 0 and queues.pop(d) is None
+    assert queues.total() == 0
+
+
+def test_a_one_destination_push_is_not_changed_by_the_callers_later_field_swaps():
+    queues = DomainQueues(3)
+    rays = _rays(np.arange(4))
+    queues.push(np.full(4, 2), rays)
+    rays["id"] = np.full(4, -1)  # the caller rebinds a field after the push
+    assert queues.pop(2)["id"].tolist() == [0, 1, 2, 3]
+
+
+def test_nbytes_counts_each_held_block_once_until_its_last_run_is_popped():
+    queues = DomainQueues(4)
+    rays = _rays(np.arange(100))
+    queues.push(np.arange(100) % 4, rays)
+    assert queues.nbytes() == rays.nbytes()  # one sorted block, four runs
+    for d in range(3):
+        queues.pop(d)
+        assert queues.nbytes() == rays.nbytes()  # domain 3 still holds the block
+    queues.pop(3)
+    assert queues.nbytes() == 0
