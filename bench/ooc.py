@@ -20,6 +20,8 @@ one:
   either: it serves a resident domain's rays as soon as they arrive (before anything is
   loaded, so never evicts one with rays waiting) and picks its fullest queue afresh each time.
 
+Before anything is timed, each schedule renders once untimed (``warm_up``).
+
 "load wait s" is the part of the load time the render thread actually waited: the rest was
 hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
 be loaded at least once); "untraced loads" are loads after which no ray was traced against the
@@ -30,7 +32,9 @@ prints ``loads_ratio=``, ``time_ratio=``, ``load_time_ratio=`` and ``render_rati
 the first line printed is the strongest comparison at a 25 % cache with PT. Then the
 history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
 ``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
-in every combination (PT, 25 % cache, first scene).
+in every combination (PT, 25 % cache, first scene). ``--ray-sweep`` adds the strongest PT
+comparison at a 25 % cache with 4x and 16x the paths (first scene): speculation saves more
+loads the more rays each domain gathers, and the papers render 1024x1024 at 32 spp.
 
     python bench/ooc.py            # full run (well over an hour on 2 cores)
     python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
@@ -136,12 +140,17 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="a few-minute subset")
     parser.add_argument("--ablation", action="store_true",
                         help="also every switch combination (PT, 25%% cache, first scene)")
+    parser.add_argument("--ray-sweep", action="store_true",
+                        help="also the strongest PT 25%% comparison with 4x and 16x the paths "
+                             "(first scene)")
     args = parser.parse_args()
     plan = QUICK if args.quick else FULL
     width, height = plan["image"]
     for spec in plan["scenes"]:
         store = scene(*spec)
         n = len(store.domains)
+        if spec is plan["scenes"][0]:
+            warm_up(store, plan)
         print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains, "
               f"{width}x{height}, {plan['spp']} spp, {plan['shadow_samples']} shadow rays, "
               f"{plan['bounces']} bounces\n", flush=True)
@@ -158,8 +167,23 @@ def main() -> None:
                     print(comparison(integrator, fraction, config, base, spec_run), flush=True)
         if spec is plan["scenes"][0]:
             sweep(store, plan)
+            if args.ray_sweep:
+                ray_sweep(store, plan)
             if args.ablation:
                 ablation(store, plan)
+
+
+def warm_up(store: Store, plan: dict) -> None:
+    """One untimed render per schedule before anything is timed. Without it the first timed
+    render (the baseline's, which runs first) also pays numba's first kernel loads and the
+    first touches of code and data: measured 0.97-1.12 s warm against 1.26-1.32 s first for
+    the same baseline render, which made ``time_ratio`` 1.2-1.4 where it is 1.0."""
+    start = time.perf_counter()
+    cache = max(1, math.ceil(0.25 * len(store.domains)))
+    for scheduler in ("image", "spec-ooc"):
+        run(store, settings(plan, "pt"), scheduler, cache, **CONFIGS["strongest"])
+    print(f"warm-up: one untimed render per schedule, {time.perf_counter() - start:.1f} s",
+          flush=True)
 
 
 def settings(plan: dict, integrator: str) -> RenderSettings:
@@ -196,6 +220,26 @@ def ablation(store: Store, plan: dict) -> None:
                 print(f"| {'yes' if serve else 'no'} | {'yes' if rescore else 'no'} "
                       f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
                       f"| {r['render_s']:.2f} | {r['total_s']:.2f} |", flush=True)
+
+
+def ray_sweep(store: Store, plan: dict) -> None:
+    """The strongest PT comparison at a 25 % cache with 1x, 4x and 16x the plan's paths (2x the
+    width and height, then also 4x the samples): both schedules trace the same paths each time."""
+    n = len(store.domains)
+    cache = max(1, math.ceil(0.25 * n))
+    width, height = plan["image"]
+    print(f"\n### paths sweep (pt, strongest, cache {cache} of {n} domains)\n")
+    print("| image | spp | paths | image loads | spec-ooc loads | loads_ratio | time_ratio |")
+    print("| --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    for scale, spp_scale in ((1, 1), (2, 1), (2, 4)):
+        sized = {**plan, "image": (width * scale, height * scale), "spp": plan["spp"] * spp_scale}
+        st = settings(sized, "pt")
+        base = run(store, st, "image", cache, **CONFIGS["strongest"])
+        spec_run = run(store, st, "spec-ooc", cache, **CONFIGS["strongest"])
+        w, h = sized["image"]
+        print(f"| {w}x{h} | {sized['spp']} | {w * h * sized['spp']:,} | {base['loads']} "
+              f"| {spec_run['loads']} | {base['loads'] / max(spec_run['loads'], 1):.2f} "
+              f"| {base['total_s'] / spec_run['total_s']:.2f} |", flush=True)
 
 
 def sweep(store: Store, plan: dict) -> None:

@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 
 from vastray.render.integrators import (
     PathContext,
@@ -292,11 +293,13 @@ class SpeculativeSchedule:
                          np.full((n, self.window), NO_DOMAIN, np.int32))
 
     def _history_matches(self, rays: SoA, upto: np.ndarray | int) -> np.ndarray:
-        """Whether each ray's ancestors at window depths ``< upto`` match the history buffer."""
-        path = rays["path"]
-        used = np.arange(self.window)[None, :] < np.asarray(upto).reshape(-1, 1)
-        same = (rays["hist_t"] == self.hbuf_t[path]) & (rays["hist_d"] == self.hbuf_d[path])
-        return np.all(same | ~used, axis=1)
+        """Whether each ray's ancestors at window depths ``< upto`` (an int or (n,) ints)
+        match the history buffer."""
+        out = np.empty(len(rays), np.bool_)
+        upto = np.broadcast_to(np.asarray(upto, np.int64), (len(rays),))
+        _matches(rays["path"], rays["hist_t"], rays["hist_d"], self.hbuf_t, self.hbuf_d, upto,
+                 out)
+        return out
 
     def _final(self, path: np.ndarray, upto: np.ndarray) -> np.ndarray:
         """Whether the buffer is final at window depths ``<= upto`` for each path."""
@@ -489,6 +492,20 @@ def _kept(rays: SoA, keep: np.ndarray) -> SoA | None:
     if keep.all():
         return rays
     return rays.take(keep) if keep.any() else None
+
+
+@njit(nogil=True, cache=True)
+def _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto, out):
+    """out[i]: ray i's history ((n, W) t and domain) equals the buffer's ((P, W)) row path[i]
+    at the depths below upto[i] ((n,) each). NaN never equals (as numpy's ==)."""
+    for i in range(len(path)):
+        p = path[i]
+        same = True
+        for j in range(min(upto[i], hist_t.shape[1])):
+            if not (hist_t[i, j] == hbuf_t[p, j] and hist_d[i, j] == hbuf_d[p, j]):
+                same = False
+                break
+        out[i] = same
 
 
 def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
