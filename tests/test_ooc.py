@@ -283,3 +283,28 @@ def test_cli_cache_percentage_and_report(bumpy, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["render", str(bumpy.path), "-o", str(tmp_path / "x.exr"), "--cache", "150%"])
     assert not (tmp_path / "x.exr").exists()
+
+
+def test_the_compiled_history_match_is_numpys_comparison():
+    """``_matches`` (one compiled pass) against the numpy expression it replaced: equal
+    histories, a differing t or domain at each depth, NaN (never equal), and every bound from
+    below 0 to beyond the window."""
+    from vastray.schedule.spec_ooc import _matches
+
+    rng = np.random.default_rng(11)
+    n_paths, window, n = 40, 4, 2000
+    hbuf_t = rng.choice([0.5, 1.0, 2.0, np.inf, np.nan], (n_paths, window)).astype(np.float32)
+    hbuf_d = rng.integers(0, 3, (n_paths, window)).astype(np.int32)
+    path = rng.integers(0, n_paths, n)
+    hist_t, hist_d = hbuf_t[path].copy(), hbuf_d[path].copy()
+    row, col = rng.integers(0, n, n // 2), rng.integers(0, window, n // 2)
+    hist_t[row[::2], col[::2]] = 3.0  # a different t
+    hist_d[row[1::2], col[1::2]] += 1  # a different domain
+    upto = rng.integers(-1, window + 2, n)
+    used = np.arange(window)[None, :] < upto[:, None]
+    same = (hist_t == hbuf_t[path]) & (hist_d == hbuf_d[path])
+    expected = np.all(same | ~used, axis=1)
+    out = np.empty(n, np.bool_)
+    _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto.astype(np.int64), out)
+    assert expected.any() and not expected.all()
+    assert (out == expected).all()
