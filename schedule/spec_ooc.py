@@ -292,13 +292,16 @@ class SpeculativeSchedule:
         return _radiance(rays, np.full((n, self.window), np.inf, np.float32),
                          np.full((n, self.window), NO_DOMAIN, np.int32))
 
-    def _history_matches(self, rays: SoA, upto: np.ndarray | int) -> np.ndarray:
-        """Whether each ray's ancestors at window depths ``< upto`` (an int or (n,) ints)
-        match the history buffer."""
-        out = np.empty(len(rays), np.bool_)
-        upto = np.broadcast_to(np.asarray(upto, np.int64), (len(rays),))
-        _matches(rays["path"], rays["hist_t"], rays["hist_d"], self.hbuf_t, self.hbuf_d, upto,
-                 out)
+    def _history_matches(self, rays: SoA, upto: np.ndarray | int,
+                         rows: np.ndarray | None = None) -> np.ndarray:
+        """Whether each ray's ancestors at window depths ``< upto`` (an int or one per ray)
+        match the history buffer; for the rays ``rows`` (m,) only when given."""
+        path, hist_t, hist_d = rays["path"], rays["hist_t"], rays["hist_d"]
+        if rows is not None:
+            path, hist_t, hist_d = path[rows], hist_t[rows], hist_d[rows]
+        out = np.empty(len(path), np.bool_)
+        upto = np.broadcast_to(np.asarray(upto, np.int64), (len(path),))
+        _matches(path, hist_t, hist_d, self.hbuf_t, self.hbuf_d, upto, out)
         return out
 
     def _final(self, path: np.ndarray, upto: np.ndarray) -> np.ndarray:
@@ -392,14 +395,8 @@ class SpeculativeSchedule:
     def _radiance_predicate_rows(self, rays: SoA, rows: np.ndarray, depth: int
                                  ) -> tuple[np.ndarray, np.ndarray]:
         """``_radiance_predicate`` for the rays ``rows`` (m,), all at window depth ``depth``."""
-        path = rays["path"][rows]
-        if depth:
-            same = ((rays["hist_t"][rows, :depth] == self.hbuf_t[path, :depth])
-                    & (rays["hist_d"][rows, :depth] == self.hbuf_d[path, :depth]))
-            live = np.all(same, axis=1)
-        else:
-            live = np.ones(len(rows), bool)
-        return live, live & (rays["entry"][rows] < self.hbuf_t[path, depth])
+        live = self._history_matches(rays, depth, rows)
+        return live, live & (rays["entry"][rows] < self.hbuf_t[rays["path"][rows], depth])
 
     def _spawn_radiance(self, rays: RadianceRays, hist_t, hist_d, parent_path) -> None:
         if len(rays) == 0:
