@@ -8,20 +8,22 @@ Pieces
 - ``ctypes`` calls build scenes: the store's arrays (memory-mapped or not) become the geometry's
   buffers in place with ``rtcSetSharedGeometryBuffer`` (no copy), the BVH is built on Embree's
   own thread pool (the GIL is released while ``rtcCommitScene`` runs).
-- ``@njit(parallel=True, nogil=True, cache=True)`` kernels trace structure-of-arrays batches over
-  numba's threads without the GIL, calling Embree through ``@intrinsic`` declarations of the
-  functions *by name*: the library is loaded into LLVM's process symbol table (with its
-  version check) when the binding is first used, so the compiled kernels hold no raw addresses
-  and numba caches them on disk (``__pycache__``). A warm process loads them instead of
-  compiling (about 2-3 s per process before): importing numba and this module took 0.27-0.49 s
-  on the shared 2-core machine, the first queries 0.25-0.45 s more, most of it numba's one-off
-  set-up on its first dispatch (it imports ``scipy.linalg`` to probe BLAS).
-- Threads: ``numba.set_num_threads`` from the caller's thread count before each launch (a
-  per-Python-thread setting). numba's workqueue threading layer (no ``libgomp``) must not be
-  entered by two Python threads at once, so parallel launches are serialised; a query on one
-  thread runs a serial twin of its kernel instead (``_SERIAL``), outside that lock, so several
-  Python threads tracing on one thread each trace side by side (the in-core renderer's
-  workers: 0.43 -> 0.33 s on ``bench/peers.py``, 2 cores).
+- ``@njit(nogil=True, cache=True)`` serial kernels trace structure-of-arrays batches without
+  the GIL, calling Embree through ``@intrinsic`` declarations of the functions *by name*: the
+  library is loaded into LLVM's process symbol table (with its version check) when the binding
+  is first used, so the compiled kernels hold no raw addresses and numba caches them on disk
+  (``__pycache__``). A warm process loads them instead of compiling (about 2-3 s per process
+  before).
+- Threads: a query of several threads splits its rays into contiguous parts, each traced by the
+  serial kernel on a thread of one process-wide pool (``_launch``); render workers that trace on
+  one thread each run their kernels side by side. No kernel is ``parallel=True``: numba's
+  threading layer, whose default (workqueue) is not safe to enter from two Python threads at
+  once, is never used (issue 20: heap corruption under load was reported only with two
+  threads in compiled code; with no kernel sharing native state, that class is ruled out).
+- Ownership: every query leases its scene (``_SceneHandle._lease``: ``rtcRetainScene`` and a
+  reference to each array Embree reads in place, until the kernel returns); every buffer a
+  kernel hands Embree (ray, hit, context, arguments) is that call's own, aligned as Embree's
+  headers declare.
 
 Scene flags: robust
 -------------------
@@ -36,25 +38,28 @@ exactly at a vertex (to float32 rounding) from an off-centre inside point miss e
 around it (12 % with flags 0; embreex's results are the same, bit for bit); the test bounds
 that rate.
 
-With the same flag the results are bit-identical to embreex's ``run``: primID, tfar, u, v, Ng
-and occlusion (tested).
+With the same flag the results are bit-identical to embreex's ``run`` (primID, tfar, u, v, Ng
+and occlusion; tested) except where a ray meets several triangles at exactly the same distance:
+there the tie rule below picks the lowest primitive, where embreex keeps whichever Embree met
+under its traversal order.
 
-Queries: 16-ray packets
------------------------
-The kernels call ``rtcIntersect16``/``rtcOccluded16`` on consecutive rays of the batch (the
-1-ray ``rtcIntersect1``/``rtcOccluded1`` kernels are kept for comparison: ``KERNELS``). With the
-robust flag both measured the same within noise on one thread (1.7 M-triangle isosurface,
-incoherent: 1.70 vs 1.71 Mrays/s closest hit, 1.76 vs 1.80 occlusion; coherent: 3.21 vs 3.23,
-3.70 vs 3.54), both equal embreex's results bit for bit, and a ray's result does not depend on
-the other rays of its packet (tested on rays through edges and vertices, where ties happen).
+Queries: closest hits one ray at a time, occlusion in 16-ray packets
+--------------------------------------------------------------------
+Closest hits use ``rtcIntersect1`` with an argument filter (``_tie_filter``) that keeps, of
+equally near hits, the lowest (instance, primitive) id: the hit of a ray does not depend on the
+order Embree meets tied candidates in, so a domain queried directly and the same domain met as
+an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
+different triangles on the two paths: issue 20). Occlusion (any hit) uses ``rtcOccluded16``
+packets. 1-ray and packet closest-hit queries measured the same speed with the robust flag
+(1.7 M-triangle isosurface, one thread: 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23
+coherent), so the filter's determinism costs no packet speed.
 
 Two levels
 ----------
 ``TopScene`` holds one instance (identity transform: the instanced triangles are met exactly
 as by a query of their own scene) of each of several scenes: the in-core tracer queries every
-resident domain at once through it. Closest hits use 1-ray queries with an argument filter
-(``_tie_filter``, a numba ``cfunc``) that gives ties between instances to the lower instance
-id, i.e. the lower domain id, as per-domain queries do; occlusion uses the packet kernel.
+resident domain at once through it. Instances are attached in ascending domain id, so the
+filter's lowest instance is the lowest domain, as the per-domain queries' merge decides.
 
 Fallback
 --------
@@ -66,6 +71,7 @@ chooses embreex's ``run`` on purpose (no warning), e.g. to compare the two.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import glob
 import importlib.util
@@ -73,11 +79,12 @@ import mmap
 import os
 import threading
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numba
 import numpy as np
-from numba import njit, prange, types
+from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
@@ -139,6 +146,7 @@ class _Api:
             "rtcNewScene": (p, [p]),
             "rtcSetSceneFlags": (None, [p, i32]),
             "rtcCommitScene": (None, [p]),
+            "rtcRetainScene": (None, [p]),
             "rtcReleaseScene": (None, [p]),
             "rtcNewGeometry": (p, [p, i32]),
             "rtcSetSharedGeometryBuffer": (None, [p, i32, u32, i32, p, sz, sz, sz]),
@@ -197,13 +205,6 @@ def binding() -> _Api | None:
     return _api
 
 
-def _reset_for_tests() -> None:
-    """Forget the loaded library, so the next ``binding()`` loads (or fails) again."""
-    global _api, _api_tried
-    with _api_lock:
-        _api, _api_tried = None, False
-
-
 _live_scenes = 0
 _live_lock = threading.RLock()  # reentrant: __del__ may run anywhere
 
@@ -233,8 +234,15 @@ def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
 
 
 class _SceneHandle:
-    """What each of our Embree scenes has: a handle released once (on ``close`` or when
-    collected), a check that it is still open, and 16-ray occlusion queries."""
+    """What each of our Embree scenes has: one owner of its handle, released once (on
+    ``close`` or when collected), and leased by every query while it runs.
+
+    A query takes a lease (``_lease``): under the scene's lock it checks the scene is open,
+    retains the Embree scene (``rtcRetainScene``) and holds the arrays Embree reads in place;
+    it gives both back when the kernel has returned. A ``close`` on another thread meanwhile
+    drops only the owner's reference: the Embree scene and its buffers outlive every query
+    that started before it, and a query that starts after it is refused.
+    """
 
     handle = None
     _api: _Api
@@ -243,6 +251,7 @@ class _SceneHandle:
         """Create the (empty) Embree scene, counted as live, with ``flags``."""
         global _live_scenes
         self._api = api
+        self._handle_lock = threading.Lock()
         self.handle = api.rtcNewScene(api.device)
         if not self.handle:
             api.check("rtcNewScene")
@@ -251,9 +260,17 @@ class _SceneHandle:
             _live_scenes += 1
         api.rtcSetSceneFlags(self.handle, flags)
 
+    def _buffers_in_use(self) -> tuple:
+        """The arrays Embree reads in place (held by a query's lease)."""
+        return ()
+
     def _release(self) -> None:
         global _live_scenes
-        handle, self.handle = getattr(self, "handle", None), None
+        lock = getattr(self, "_handle_lock", None)
+        if lock is None:  # __init__ failed before the scene was created
+            return
+        with lock:
+            handle, self.handle = self.handle, None
         if handle:
             self._api.rtcReleaseScene(handle)
             with _live_lock:
@@ -265,10 +282,20 @@ class _SceneHandle:
     def __del__(self):
         self.close()
 
-    def _live(self) -> int:
-        if not self.handle:
-            raise RuntimeError("the scene was closed")
-        return self.handle
+    @contextlib.contextmanager
+    def _lease(self):
+        """The scene handle, retained (with the arrays Embree reads) until the block ends."""
+        with self._handle_lock:
+            handle = self.handle
+            if not handle:
+                raise RuntimeError("the scene was closed")
+            self._api.rtcRetainScene(handle)
+            buffers = self._buffers_in_use()
+        try:
+            yield handle
+        finally:
+            self._api.rtcReleaseScene(handle)
+            del buffers
 
     def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
         """Whether anything lies within ``t_far`` (for a top-level scene: anything of any
@@ -276,8 +303,30 @@ class _SceneHandle:
         org, dirs, tf = _rays(origins, directions, t_far)
         out = np.empty(len(org), np.bool_)
         if len(org):
-            _launch(_QUERY["occluded"], threads, self._live(), org, dirs, tf, out)
+            with self._lease() as handle:
+                _launch(_occluded16, threads, len(org), handle, org, dirs, tf, out)
         return out
+
+    def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
+        """Closest hits: see ``DomainBVH.intersect``. Of equally near hits the one of the
+        lowest (instance, primitive) id wins (``_tie_filter``), whatever the order Embree
+        meets them in; for a top-level scene the output also has ``id`` (n,) int64, the
+        caller's id (``TopScene.ids``) of the scene hit, -1 for a miss."""
+        org, dirs, tf = _rays(origins, directions, t_far)
+        n = len(org)
+        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
+               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
+               "Ng": np.empty((n, 3), np.float32)}
+        inst = np.empty(n, np.int32)
+        if n:
+            with self._lease() as handle:
+                _launch(_intersect_nearest, threads, n, handle, _filter_address(), org, dirs,
+                        tf, out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
+        self._label_hits(out, inst)
+        return out
+
+    def _label_hits(self, out: dict, inst: np.ndarray) -> None:
+        """Add what a subclass tells of each hit's instance (nothing for one mesh)."""
 
 
 class Scene(_SceneHandle):
@@ -313,29 +362,21 @@ class Scene(_SceneHandle):
         api.rtcCommitScene(self.handle)  # builds the BVH (the GIL is released meanwhile)
         api.check("building a scene")
 
+    def _buffers_in_use(self) -> tuple:
+        return self.vertices, self.indices
+
     def buffer_pointer(self, vertex: bool = True) -> int:
         """Address of the vertex (or index) buffer Embree uses (tests: it is the array's)."""
-        geom = self._api.rtcGetGeometry(self.handle, self.geom_id)
-        return self._api.rtcGetGeometryBufferData(
-            geom, RTC_BUFFER_TYPE_VERTEX if vertex else RTC_BUFFER_TYPE_INDEX, 0) or 0
+        with self._lease() as handle:
+            geom = self._api.rtcGetGeometry(handle, self.geom_id)
+            return self._api.rtcGetGeometryBufferData(
+                geom, RTC_BUFFER_TYPE_VERTEX if vertex else RTC_BUFFER_TYPE_INDEX, 0) or 0
 
     def close(self) -> None:
-        """Release the Embree scene (and with it the BVH); the arrays are dropped too."""
+        """Release the Embree scene (and with it the BVH); the arrays are dropped too (a query
+        in flight holds its own references to both)."""
         self._release()
         self.vertices = self.indices = None
-
-    def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
-        """Closest hits: see ``DomainBVH.intersect``."""
-        org, dirs, tf = _rays(origins, directions, t_far)
-        n = len(org)
-        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
-               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
-               "Ng": np.empty((n, 3), np.float32)}
-        if n:
-            _launch(_QUERY["intersect"], threads, self._live(), org, dirs, tf, out["primID"],
-                    out["tfar"], out["u"], out["v"], out["Ng"])
-        return out
-
 
 
 def _rays(origins, directions, t_far) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -359,38 +400,52 @@ def _writable(a: np.ndarray) -> np.ndarray:
 # numba kernels
 # ---------------------------------------------------------------------------------------------
 
-_serial_lock = threading.Lock()
-
-# The kernels run on numba's own "workqueue" thread pool, one launch at a time. With the
-# OpenMP layer, launches from two Python threads corrupted memory here (render workers
-# tracing batches side by side: wrong array shapes, then a segfault), even when serialised;
-# the workqueue layer, serialised, is safe. (numba picks its layer at the first parallel
-# launch of the process, so this must be set before any.)
-numba.config.THREADING_LAYER = "workqueue"
+#: Fewest rays per part when a query is split over several threads.
+_SPLIT_MIN = 4096
+_splitter: ThreadPoolExecutor | None = None
+_splitter_lock = threading.Lock()
 
 
-def _launch(kernel, threads: int, *args) -> None:
-    """Run ``kernel`` on ``threads`` numba threads (clamped to numba's pool), one launch at a
-    time: numba's workqueue pool must not be entered by two Python threads at once. On one
-    thread, a kernel's serial twin (``_SERIAL``) runs instead, outside the lock and without
-    the GIL: render workers that each trace on one thread trace side by side."""
-    threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
-    serial = _SERIAL.get(kernel)
-    if threads == 1 and serial is not None:
-        serial(*args)
-        return
-    with _serial_lock:
-        # numba's thread count is a per-calling-thread setting
-        numba.set_num_threads(threads)
+def _split_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool that runs the parts of split queries (grown on demand)."""
+    global _splitter
+    with _splitter_lock:
+        if _splitter is None or _splitter._max_workers < threads:
+            old, _splitter = _splitter, ThreadPoolExecutor(threads,
+                                                           thread_name_prefix="embree-part")
+            if old is not None:
+                old.shutdown(wait=False)
+        return _splitter
+
+
+def _launch(kernel, threads: int, n: int, *args) -> None:
+    """Run the serial ``kernel`` on ``n`` rays, split into at most ``threads`` contiguous
+    parts that run side by side on ``_split_pool`` (one part: on the calling thread).
+
+    Every kernel here is serial and releases the GIL: numba's threading layer (whose default,
+    workqueue, must not be entered by two Python threads at once) is never used, so any number
+    of Python threads may query at the same time. Each part writes only its own rows of the
+    outputs (array arguments are sliced along their first axis; the others, such as the scene
+    handle, are passed whole); the caller holds every array until all parts have returned.
+    """
+    parts = max(1, min(int(threads), n // _SPLIT_MIN))
+    if parts == 1:
         kernel(*args)
+        return
+    bounds = np.linspace(0, n, parts + 1).astype(np.int64)
+
+    def run(k: int) -> None:
+        lo, hi = bounds[k], bounds[k + 1]
+        kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a for a in args))
+
+    for future in [_split_pool(parts).submit(run, k) for k in range(parts)]:
+        future.result()
 
 
-#: Rays per work item of the parallel loops.
-_CHUNK = 1024
 #: float32 words of RTCRayHit (the hit's instPrimID included: 96 bytes, 16-byte aligned).
 _RAYHIT1_WORDS = 24
-#: float32 words of RTCRayHit16: 12 x 16 ray words, 9 x 16 hit words (1344 bytes, 64-aligned).
-_RAYHIT16_WORDS = 336
+#: float32 words of RTCRay16: 12 x 16 ray words (768 bytes, 64-aligned).
+_RAY16_WORDS = 192
 _INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
 
 
@@ -429,17 +484,16 @@ def _external4(name: str):
 
 
 _rtcIntersect1 = _external3("rtcIntersect1")  # (scene, rayhit, args)
-_rtcOccluded1 = _external3("rtcOccluded1")  # (scene, ray, args)
-_rtcIntersect16 = _external4("rtcIntersect16")  # (valid, scene, rayhit, args)
 _rtcOccluded16 = _external4("rtcOccluded16")  # (valid, scene, ray, args)
 
 
 @njit(inline="always")
 def _aligned(raw, align_words, n_words):
-    """A view of ``n_words`` float32 of ``raw`` starting on an ``align_words * 4``-byte
+    """A view of ``n_words`` words of ``raw`` starting on an ``align_words`` x itemsize byte
     boundary (``raw`` has ``align_words`` spare words)."""
+    size = raw.itemsize
     addr = raw.ctypes.data
-    mis = (addr // 4) % align_words
+    mis = (addr // size) % align_words
     off = (align_words - mis) % align_words
     return raw[off:off + n_words]
 
@@ -459,61 +513,6 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
     i32[9] = -1
     i32[10] = 0
     i32[11] = 0
-
-
-@njit(inline="always")
-def _store_hit(f, i32, at_prim, at_t, at_ng, stride, prim, tfar, u, v, ng, i):
-    """Copy ray ``i``'s hit out of an RTCRayHit / RTCRayHit16 buffer: primID at ``at_prim``,
-    tfar at ``at_t``, then Ng_x, Ng_y, Ng_z, u, v from ``at_ng`` every ``stride`` words
-    (1 for a single ray, 16 for a packet). A miss reads as primID -1, zero u, v and Ng."""
-    p = i32[at_prim]
-    tfar[i] = f[at_t]
-    if p == _INVALID:
-        prim[i] = -1
-        u[i] = 0.0
-        v[i] = 0.0
-        ng[i, 0] = 0.0
-        ng[i, 1] = 0.0
-        ng[i, 2] = 0.0
-    else:
-        prim[i] = p
-        ng[i, 0] = f[at_ng]
-        ng[i, 1] = f[at_ng + stride]
-        ng[i, 2] = f[at_ng + 2 * stride]
-        u[i] = f[at_ng + 3 * stride]
-        v[i] = f[at_ng + 4 * stride]
-
-
-@njit(parallel=True, nogil=True, cache=True)
-def _intersect1(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
-    n = org.shape[0]
-    for c in prange((n + _CHUNK - 1) // _CHUNK):
-        raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
-        f = _aligned(raw, 4, _RAYHIT1_WORDS)
-        i32 = f.view(np.int32)
-        ptr = f.ctypes.data
-        for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-            _set_ray1(f, i32, org, dirs, tfar_in, i)
-            # RTCHit: Ng_x, Ng_y, Ng_z, u, v, primID, geomID, instID[1], instPrimID[1]
-            i32[17] = _INVALID
-            i32[18] = _INVALID
-            i32[19] = _INVALID
-            _rtcIntersect1(scene, ptr, 0)
-            _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
-
-
-@njit(parallel=True, nogil=True, cache=True)
-def _occluded1(scene, org, dirs, tfar_in, out):
-    n = org.shape[0]
-    for c in prange((n + _CHUNK - 1) // _CHUNK):
-        raw = np.empty(12 + 4, np.float32)
-        f = _aligned(raw, 4, 12)
-        i32 = f.view(np.int32)
-        ptr = f.ctypes.data
-        for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
-            _set_ray1(f, i32, org, dirs, tfar_in, i)
-            _rtcOccluded1(scene, ptr, 0)
-            out[i] = f[8] < 0  # Embree sets tfar to -inf on a hit
 
 
 @njit(inline="always")
@@ -545,95 +544,27 @@ def _set_ray16(f, i32, valid, org, dirs, tfar, base, n):
         i32[176 + j] = 0  # flags
 
 
-@njit(inline="always")
-def _packet16(words):
-    """A 64-byte aligned packet of ``words`` float32 words (RTCRayHit16: 336, RTCRay16: 192)
-    behind its 16-lane valid mask: the packet as float32 and int32, the mask, and the
-    addresses of mask and packet (the views keep the buffer alive)."""
-    raw = np.empty(16 + words + 16, np.float32)
-    buf = _aligned(raw, 16, 16 + words)
+@njit(nogil=True, cache=True)
+def _occluded16(scene, org, dirs, tfar_in, out):
+    """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, in 16-ray packets
+    (``rtcOccluded16``); ``out`` (n,) bool. (Which primitive blocks does not matter, so the
+    packet's traversal order cannot change a result.)"""
+    n = org.shape[0]
+    # 64-byte aligned: the 16-lane valid mask, then the RTCRay16 packet
+    raw = np.empty(16 + _RAY16_WORDS + 16, np.float32)
+    buf = _aligned(raw, 16, 16 + _RAY16_WORDS)
     valid = buf[:16].view(np.int32)
     f = buf[16:]
-    return f, f.view(np.int32), valid, valid.ctypes.data, f.ctypes.data
-
-
-@njit(inline="always")
-def _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c):
-    n = org.shape[0]
-    f, i32, valid, vptr, ptr = _packet16(_RAYHIT16_WORDS)
-    for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
+    i32 = f.view(np.int32)
+    for base in range(0, n, 16):
         _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
-        for j in range(16):
-            i32[272 + j] = _INVALID  # primID
-            i32[288 + j] = _INVALID  # geomID
-            i32[304 + j] = _INVALID  # instID
-        _rtcIntersect16(vptr, scene, ptr, 0)
+        _rtcOccluded16(valid.ctypes.data, scene, f.ctypes.data, 0)
         for j in range(min(16, n - base)):
-            _store_hit(f, i32, 272 + j, 128 + j, 192 + j, 16, prim, tfar, u, v, ng,
-                       base + j)
-
-
-@njit(parallel=True, nogil=True, cache=True)
-def _intersect16(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
-    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c)
-
-
-@njit(nogil=True, cache=True)
-def _intersect16_serial(scene, org, dirs, tfar_in, prim, tfar, u, v, ng):
-    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _intersect16_chunk(scene, org, dirs, tfar_in, prim, tfar, u, v, ng, c)
-
-
-@njit(inline="always")
-def _occluded16_chunk(scene, org, dirs, tfar_in, out, c):
-    n = org.shape[0]
-    f, i32, valid, vptr, ptr = _packet16(192)
-    for base in range(c * _CHUNK, min(n, (c + 1) * _CHUNK), 16):
-        _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
-        _rtcOccluded16(vptr, scene, ptr, 0)
-        for j in range(min(16, n - base)):
-            out[base + j] = f[128 + j] < 0
-
-
-@njit(parallel=True, nogil=True, cache=True)
-def _occluded16(scene, org, dirs, tfar_in, out):
-    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _occluded16_chunk(scene, org, dirs, tfar_in, out, c)
-
-
-@njit(nogil=True, cache=True)
-def _occluded16_serial(scene, org, dirs, tfar_in, out):
-    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _occluded16_chunk(scene, org, dirs, tfar_in, out, c)
-
-
-#: The kernels the queries use (see the module docstring: packets).
-_QUERY = {"intersect": _intersect16, "occluded": _occluded16}
-#: All kernels, for benchmarks.
-KERNELS = {"intersect1": _intersect1, "occluded1": _occluded1,
-           "intersect16": _intersect16, "occluded16": _occluded16}
-
-
-def bench_kernels(scene: Scene, origins, directions, t_far, kind: str, threads: int = 1):
-    """Run one named kernel (``KERNELS``) on ``scene``: for benchmarks of 1-ray vs packets."""
-    org, dirs, tf = _rays(origins, directions, t_far)
-    n = len(org)
-    if kind.startswith("intersect"):
-        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
-               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
-               "Ng": np.empty((n, 3), np.float32)}
-        _launch(KERNELS[kind], threads, scene._live(), org, dirs, tf, out["primID"], out["tfar"],
-                out["u"], out["v"], out["Ng"])
-        return out
-    out = np.empty(n, np.bool_)
-    _launch(KERNELS[kind], threads, scene._live(), org, dirs, tf, out)
-    return out
-
+            out[base + j] = f[128 + j] < 0  # Embree sets tfar to -inf on a hit
 
 
 # ---------------------------------------------------------------------------------------------
-# Two levels: one top-level scene holding an instance of each domain's scene
+# Closest hits: 1-ray queries whose ties an argument filter breaks by id
 # ---------------------------------------------------------------------------------------------
 
 def _memory(width: int, kind: str):
@@ -679,49 +610,60 @@ _load_f32 = _memory(32, "loadf")
 _store_i32 = _memory(32, "store")
 _store_f32 = _memory(32, "storef")
 
-#: Byte offset, in the ray query context, of our per-ray record (best t: float32, its instance:
-#: int32): past ``RTCRayQueryContext``'s instID[1] (and instPrimID[1] where the library has
-#: instance arrays), with room to spare.
+#: Byte offset, in the ray query context, of our per-lane records (best t: float32, its
+#: instance: int32, its primitive: int32, padding): past ``RTCRayQueryContext``'s instID[1]
+#: (and instPrimID[1] where the library has instance arrays), with room to spare.
 _CTX_RECORD = 16
-_CTX_WORDS = 8  # int32 words of context buffer: 16 bytes of Embree's, 8 of ours, padding
+_RECORD_BYTES = 16
+#: int32 words of the context buffer: Embree's 16 bytes, then one record per lane of the
+#: widest call Embree can make (16), whatever lane a call uses.
+_CTX_WORDS = (_CTX_RECORD + 16 * _RECORD_BYTES) // 4
 #: int64 words of RTCIntersectArguments: flags and feature_mask, context, filter, intersect,
 #: (minWidthDistanceFactor where built with it), spare.
 _ARGS_WORDS = 6
-_NO_INSTANCE = np.int32(0x7FFFFFFF)
+_NO_ID = np.int32(0x7FFFFFFF)
 
 
 def _tie_filter(args):
-    """Embree filter (``RTCFilterFunctionN``) that breaks ties between instances by their id.
+    """Embree filter (``RTCFilterFunctionN``) that makes the closest hit independent of the
+    order in which Embree meets equally near candidates.
 
     Embree accepts a triangle hit when ``t <= tfar`` (inclusive), so of equally near hits the
-    last one found wins, which depends on the traversal order over instances. Per-domain
-    queries break ties between domains by the lower domain id; this filter reproduces that:
-    it accepts a candidate if it is nearer than the best so far, or as near and in an
-    instance of lower *or equal* id (equal: within one domain the last found still wins, as in
-    a query of that domain alone). The best so far is kept per ray in our part of the ray
-    query context, indexed by the ray's ``id``.
+    one kept depends on the traversal: the leaf order, and, inside a leaf, whether a filter
+    runs (without one, the first of the leaf's tied lanes; with one, every tied lane is offered
+    in turn). A direct query of a domain and the same domain met as an instance of a top-level
+    scene could thus keep different triangles (issue 20: one pixel in 65,536 differed). This
+    filter accepts a candidate only if it is nearer than the best so far, or as near with a
+    lower (instance, primitive) id, so the same ray always ends with the same hit: the lowest
+    domain (instances are attached in ascending domain id; a direct query has no instance,
+    id -1) and, within it, the lowest primitive id among the nearest.
 
     ``args`` is the address of ``RTCFilterFunctionNArguments``: valid (int*), geometryUserPtr,
     context, ray (RTCRayN*), hit (RTCHitN*), N (unsigned int). The candidate's distance is in
-    the ray's tfar, its instance in the hit's instID[0].
+    the ray's tfar, its primitive in the hit's primID, its instance in instID[0]. The best so
+    far is kept per lane in our part of the ray query context (16 records, one per possible
+    lane: no lane indexes past it).
     """
     valid = _load_i64(args)
     ctx = _load_i64(args + 16)
     ray = _load_i64(args + 24)
     hit = _load_i64(args + 32)
-    n = _load_i32(args + 40)
+    n = min(_load_i32(args + 40), 16)
     for lane in range(n):
         if _load_i32(valid + 4 * lane) == 0:
             continue
         t = _load_f32(ray + 4 * (8 * n + lane))
+        prim = _load_i32(hit + 4 * (5 * n + lane))
         inst = _load_i32(hit + 4 * (7 * n + lane))
-        rid = _load_i32(ray + 4 * (10 * n + lane))
-        record = ctx + _CTX_RECORD + 8 * rid
+        record = ctx + _CTX_RECORD + _RECORD_BYTES * lane
         best_t = _load_f32(record)
         best_inst = _load_i32(record + 4)
-        if t < best_t or (t == best_t and inst <= best_inst):
+        best_prim = _load_i32(record + 8)
+        if t < best_t or (t == best_t and (inst < best_inst or (
+                inst == best_inst and prim < best_prim))):
             _store_f32(record, t)
             _store_i32(record + 4, inst)
+            _store_i32(record + 8, prim)
         else:
             _store_i32(valid + 4 * lane, 0)
 
@@ -732,7 +674,8 @@ _filter_lock = threading.Lock()
 
 def _filter_address() -> int:
     """Address of the compiled ``_tie_filter`` (compiled, or loaded from numba's cache, on
-    first use)."""
+    first use; the cfunc object is kept for the life of the process, so the address stays
+    valid)."""
     global _filter_cfunc
     with _filter_lock:
         if _filter_cfunc is None:
@@ -742,53 +685,69 @@ def _filter_address() -> int:
 
 
 @njit(inline="always")
-def _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c):
+def _store_hit(f, i32, prim, tfar, u, v, ng, i):
+    """Copy ray ``i``'s hit out of an RTCRayHit buffer: tfar at word 8, then the hit's Ng_x,
+    Ng_y, Ng_z, u, v, primID at words 12-17. A miss reads as primID -1, zero u, v and Ng."""
+    p = i32[17]
+    tfar[i] = f[8]
+    if p == _INVALID:
+        prim[i] = -1
+        u[i] = 0.0
+        v[i] = 0.0
+        ng[i, 0] = 0.0
+        ng[i, 1] = 0.0
+        ng[i, 2] = 0.0
+    else:
+        prim[i] = p
+        ng[i, 0] = f[12]
+        ng[i, 1] = f[13]
+        ng[i, 2] = f[14]
+        u[i] = f[15]
+        v[i] = f[16]
+
+
+@njit(nogil=True, cache=True)
+def _intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt``: the outputs
+    are (n,) each (``ng`` (n, 3)); ``inst`` receives the instance (top-level geometry id) of
+    each hit, -1 for a miss or a scene without instances.
+
+    The ray, the context and the arguments Embree reads live in this call's own buffers,
+    aligned as Embree's headers declare them (RTCRayHit, RTCRayQueryContext and
+    RTCIntersectArguments: 16 bytes).
+    """
     n = org.shape[0]
     raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
     f = _aligned(raw, 4, _RAYHIT1_WORDS)
     i32 = f.view(np.int32)
-    ptr = f.ctypes.data
-    context = np.zeros(_CTX_WORDS, np.int32)
+    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
+    context = _aligned(raw_context, 4, _CTX_WORDS)
     cf = context.view(np.float32)
-    arguments = np.zeros(_ARGS_WORDS, np.int64)
+    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
+    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
     a32 = arguments.view(np.int32)
-    arguments[1] = context.ctypes.data
-    arguments[2] = filt
-    aptr = arguments.ctypes.data
-    for i in range(c * _CHUNK, min(n, (c + 1) * _CHUNK)):
+    for i in range(n):
         # (set in the loop, so the buffers Embree reads stay referenced through it)
         a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
         a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
-        _set_ray1(f, i32, org, dirs, tfar_in, i)  # ray id 0: the record at _CTX_RECORD
-        i32[17] = _INVALID
-        i32[18] = _INVALID
-        i32[19] = _INVALID
+        arguments[1] = context.ctypes.data
+        arguments[2] = filt
+        _set_ray1(f, i32, org, dirs, tfar_in, i)
+        i32[17] = _INVALID  # primID
+        i32[18] = _INVALID  # geomID
+        i32[19] = _INVALID  # instID[0]
         context[0] = _INVALID  # instID[0]
         context[1] = _INVALID  # instPrimID[0] (where present)
-        cf[_CTX_RECORD // 4] = tfar_in[i]
-        context[_CTX_RECORD // 4 + 1] = _NO_INSTANCE
-        _rtcIntersect1(scene, ptr, aptr)
-        _store_hit(f, i32, 17, 8, 12, 1, prim, tfar, u, v, ng, i)
+        cf[_CTX_RECORD // 4] = tfar_in[i]  # lane 0's record: a 1-ray call has one lane
+        context[_CTX_RECORD // 4 + 1] = _NO_ID
+        context[_CTX_RECORD // 4 + 2] = _NO_ID
+        _rtcIntersect1(scene, f.ctypes.data, arguments.ctypes.data)
+        _store_hit(f, i32, prim, tfar, u, v, ng, i)
         inst[i] = i32[19] if prim[i] >= 0 else -1
 
 
-@njit(parallel=True, nogil=True, cache=True)
-def _intersect_top(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
-    """Closest hits through a top-level scene, 1-ray queries with the tie filter; ``inst``
-    receives the instance (top-level geometry id) of each hit, -1 for a miss."""
-    for c in prange((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c)
-
-
-@njit(nogil=True, cache=True)
-def _intersect_top_serial(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
-    for c in range((org.shape[0] + _CHUNK - 1) // _CHUNK):
-        _intersect_top_chunk(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst, c)
-
-
-#: The serial twin of each parallel query kernel (``_launch`` on one thread).
-_SERIAL = {_intersect16: _intersect16_serial, _occluded16: _occluded16_serial,
-           _intersect_top: _intersect_top_serial}
+#: The query kernels by name (benchmarks and tests run them through ``_launch``).
+KERNELS = {"intersect": _intersect_nearest, "occluded": _occluded16}
 
 
 class TopScene(_SceneHandle):
@@ -817,7 +776,6 @@ class TopScene(_SceneHandle):
         self.ids = np.asarray(ids, np.int64)
         if len(self.ids) != len(self.scenes):
             raise ValueError("one id per scene")
-        self._filter = _filter_address()
         self._open(api, SCENE_FLAGS)
         identity = np.zeros((4, 3), np.float32)  # column major 3x4: columns x, y, z, p
         identity[0, 0] = identity[1, 1] = identity[2, 2] = 1.0
@@ -826,7 +784,8 @@ class TopScene(_SceneHandle):
             if not geom:
                 api.check("rtcNewGeometry")
                 raise RuntimeError("rtcNewGeometry failed")
-            api.rtcSetGeometryInstancedScene(geom, scene._live())
+            with scene._lease() as handle:  # Embree retains the instanced scene itself
+                api.rtcSetGeometryInstancedScene(geom, handle)
             api.rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR,
                                         identity.ctypes.data)
             api.rtcCommitGeometry(geom)
@@ -837,25 +796,17 @@ class TopScene(_SceneHandle):
         api.rtcCommitScene(self.handle)
         api.check("building a top-level scene")
 
+    def _buffers_in_use(self) -> tuple:
+        return self.scenes, self._buffers
+
     def close(self) -> None:
-        """Release the top-level scene and drop the instanced scenes."""
+        """Release the top-level scene and drop the instanced scenes (a query in flight holds
+        its own references to them)."""
         self._release()
         self.scenes = []
         self._buffers = []
 
-    def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
-        """Closest hits over all instances: ``Scene.intersect``'s output plus ``id`` (n,)
-        int64, the id (``ids``) of the scene hit, -1 for a miss."""
-        org, dirs, tf = _rays(origins, directions, t_far)
-        n = len(org)
-        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
-               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
-               "Ng": np.empty((n, 3), np.float32)}
-        inst = np.empty(n, np.int32)
-        if n:
-            _launch(_intersect_top, threads, self._live(), self._filter, org, dirs, tf,
-                    out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
-        out["id"] = np.where(inst >= 0, self.ids[np.maximum(inst, 0)], -1) if n else \
-            np.empty(0, np.int64)
-        return out
-
+    def _label_hits(self, out: dict, inst: np.ndarray) -> None:
+        """``id`` (n,) int64: the caller's id (``ids``) of the scene each ray hit, -1 for a
+        miss."""
+        out["id"] = np.where(inst >= 0, self.ids[np.maximum(inst, 0)], -1)

@@ -105,8 +105,8 @@ def _escapes(scene: embree.Scene, origin, targets) -> int:
     o = np.broadcast_to(origin, targets.shape).astype(np.float32)
     d = (targets - origin).astype(np.float32)
     inf = np.full(len(o), np.inf, np.float32)
-    hits = embree.bench_kernels(scene, o, d, inf, "intersect16")
-    blocked = embree.bench_kernels(scene, o, d, inf, "occluded16")
+    hits = scene.intersect(o, d, inf)
+    blocked = scene.occluded(o, d, inf)
     return int(np.count_nonzero(hits["primID"] < 0) + np.count_nonzero(~blocked))
 
 
@@ -140,9 +140,14 @@ def test_watertight(api):
     assert embree.SCENE_FLAGS == robust
 
 
-def test_packet_companions_do_not_change_a_ray(api):
-    """A ray's result does not depend on the other rays of its 16-ray packet, even at ties
-    (rays through edges and vertices), and equals the 1-ray calls'."""
+def test_ties_keep_the_lowest_id_whatever_the_path(api):
+    """Rays through shared edges and vertices meet several triangles at the same distance.
+    The hit kept is the lowest (instance, primitive) id, whatever the order Embree meets them
+    in: a query, the same query split over threads or shuffled, and the scenes as instances
+    of a top-level scene (the in-core path) against the scenes queried one by one and merged
+    by (distance, scene) (the per-domain path) keep the same triangle. Before the tie filter
+    ran on direct queries too, the two paths kept different triangles for some rays through
+    edges (issue 20: one pixel of 65,536 differed between in-core and out-of-core renders)."""
     rng = np.random.default_rng(2)
     mesh = MESHES["icosphere"]()
     arrays = _arrays(mesh)
@@ -152,16 +157,36 @@ def test_packet_companions_do_not_change_a_ray(api):
     dirs = (targets - origins).astype(np.float32)
     t_far = np.full(len(targets), np.inf, np.float32)
     scene = embree.Scene(arrays.vertices, arrays.indices)
-    one = embree.bench_kernels(scene, origins, dirs, t_far, "intersect1")
-    packed = embree.bench_kernels(scene, origins, dirs, t_far, "intersect16")
+    whole = scene.intersect(origins, dirs, t_far)
+    split = scene.intersect(origins, dirs, t_far, threads=3)
     perm = rng.permutation(len(targets))
-    shuffled = embree.bench_kernels(scene, origins[perm], dirs[perm], t_far, "intersect16")
-    for key in ("primID", "tfar"):
-        np.testing.assert_array_equal(packed[key], one[key])
-        np.testing.assert_array_equal(shuffled[key], packed[key][perm])
-    occ = embree.bench_kernels(scene, origins[perm], dirs[perm], t_far, "occluded16")
-    np.testing.assert_array_equal(occ, embree.bench_kernels(scene, origins, dirs, t_far,
-                                                            "occluded1")[perm])
+    shuffled = scene.intersect(origins[perm], dirs[perm], t_far)
+    assert (whole["primID"] >= 0).mean() > 0.99
+    for key in ("primID", "tfar", "u", "v", "Ng"):
+        np.testing.assert_array_equal(split[key], whole[key])
+        np.testing.assert_array_equal(shuffled[key], whole[key][perm])
+    # three parts whose shared edges tie between scenes: merged one by one as the per-domain
+    # path does (nearer, or as near in a lower scene), and through one top-level query
+    cut = np.linspace(0, len(arrays.indices), 4).astype(int)
+    parts = [embree.Scene(arrays.vertices, arrays.indices[a:b]) for a, b in zip(cut, cut[1:])]
+    merged = {"primID": np.full(len(targets), -1, np.int32), "tfar": t_far.copy(),
+              "id": np.full(len(targets), -1)}
+    ties_between = 0
+    for k, part in enumerate(parts):
+        r = part.intersect(origins, dirs, merged["tfar"])
+        ties_between += int(np.count_nonzero((r["primID"] >= 0) & (merged["primID"] >= 0)
+                                             & (r["tfar"] == merged["tfar"])))
+        won = (r["primID"] >= 0) & ((r["tfar"] < merged["tfar"]) | (merged["primID"] < 0))
+        for key in ("primID", "tfar"):
+            merged[key][won] = r[key][won]
+        merged["id"][won] = k
+    top = embree.TopScene(parts, [0, 1, 2]).intersect(origins, dirs, t_far)
+    assert ties_between > 10  # the case the filter is for happened
+    for key in ("primID", "tfar", "id"):
+        np.testing.assert_array_equal(top[key], merged[key])
+    occ = scene.occluded(origins[perm], dirs[perm], t_far)
+    np.testing.assert_array_equal(occ, scene.occluded(origins, dirs, t_far, threads=2)[perm])
+    np.testing.assert_array_equal(occ, (whole["primID"] >= 0)[perm])
 
 
 def test_zero_copy_from_memory_mapped_store(api, tmp_path):
@@ -241,8 +266,8 @@ def test_empty_domain_misses(api):
 
 @pytest.mark.parametrize("query_threads", [1, 2])
 def test_concurrent_queries_from_python_threads(api, query_threads):
-    # query_threads 1: each Python thread runs the serial kernels, side by side; 2: the
-    # parallel kernels, one launch at a time
+    # query_threads 1: each Python thread runs the serial kernels, side by side; 2: each
+    # query is split into two parts on the binding's pool as well
     arrays = _arrays(MESHES["icosphere"]())
     origins, dirs, t_far = _rays(arrays, 50000, seed=9)
     bvh = DomainBVH(0, arrays, pool=ThreadPoolExecutor(2) if query_threads > 1 else None)
@@ -269,32 +294,63 @@ def test_concurrent_queries_from_python_threads(api, query_threads):
         bvh.pool.shutdown()
 
 
-def test_one_thread_queries_do_not_wait_for_parallel_launches(api):
-    # A query on one thread runs its kernel's serial twin outside the launch lock, so render
-    # workers tracing on one thread each trace side by side (they queued behind each other
-    # before); with the lock held elsewhere, such a query still completes.
+def test_no_kernel_uses_numbas_threading_layer(api):
+    # numba's default threading layer (workqueue) must not be entered by two Python threads
+    # at once; no kernel of the binding is parallel, so it is never entered (issue 20).
+    from numba.np.ufunc import parallel
+
+    for kernel in (*embree.KERNELS.values(),):
+        assert not kernel.targetoptions.get("parallel"), kernel
     arrays = _arrays(MESHES["icosphere"]())
-    origins, dirs, t_far = _rays(arrays, 5000, seed=4)
-    bvh = DomainBVH(0, arrays)
-    parallel = embree.bench_kernels(bvh._scene, origins, dirs, t_far, "intersect16", threads=2)
-    done = []
-    with embree._serial_lock:  # as if another worker's parallel launch were running
-        worker = threading.Thread(target=lambda: done.append(
-            (bvh.intersect(origins, dirs, t_far), bvh.occluded(origins, dirs, t_far))))
-        worker.start()
-        worker.join(timeout=30)
-        assert done, "a one-thread query waited for the launch lock"
-    hits, blocked = done[0]
-    for key in ("primID", "tfar"):  # the serial and parallel kernels agree bit for bit
-        np.testing.assert_array_equal(hits[key], parallel[key])
-    np.testing.assert_array_equal(blocked, parallel["primID"] >= 0)
+    origins, dirs, t_far = _rays(arrays, 20000, seed=4)
+    scene = embree.Scene(arrays.vertices, arrays.indices)
+    scene.intersect(origins, dirs, t_far, threads=2)
+    scene.occluded(origins, dirs, t_far, threads=2)
+    assert not parallel._is_initialized
+
+
+def test_a_query_holds_its_scene_while_another_thread_closes_it(api):
+    """``close`` on one thread while queries run on others: each query that started keeps
+    its scene (retained) and buffers until it returns and gives the same hits; later ones are
+    refused with a clear error, never a crash."""
+    arrays = _arrays(MESHES["icosphere"]())
+    origins, dirs, t_far = _rays(arrays, 20000, seed=6)
+    expect = embree.Scene(np.array(arrays.vertices), np.array(arrays.indices)).intersect(
+        origins, dirs, t_far)["primID"]
+    for _ in range(5):
+        scene = embree.Scene(np.array(arrays.vertices), np.array(arrays.indices))
+        outcomes = []
+
+        def query(scene=scene, outcomes=outcomes):
+            try:
+                outcomes.append(scene.intersect(origins, dirs, t_far)["primID"])
+            except RuntimeError as exc:
+                outcomes.append(str(exc))
+
+        workers = [threading.Thread(target=query) for _ in range(3)]
+        for w in workers:
+            w.start()
+        scene.close()
+        for w in workers:
+            w.join()
+        for got in outcomes:
+            if isinstance(got, str):
+                assert "closed" in got
+            else:
+                np.testing.assert_array_equal(got, expect)
+
+
+def _forget_binding() -> None:
+    """Forget the loaded library, so the next ``binding()`` loads (or fails) again."""
+    with embree._api_lock:
+        embree._api, embree._api_tried = None, False
 
 
 @pytest.fixture
 def reload_binding():
-    embree._reset_for_tests()
+    _forget_binding()
     yield
-    embree._reset_for_tests()
+    _forget_binding()
 
 
 def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
@@ -312,7 +368,7 @@ def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
     np.testing.assert_array_equal(got["primID"], ref["primID"])
     np.testing.assert_array_equal(bvh.occluded(origins, dirs, t_far), ref["primID"] >= 0)
     monkeypatch.undo()
-    embree._reset_for_tests()
+    _forget_binding()
     assert DomainBVH(0, arrays).compiled
 
 
