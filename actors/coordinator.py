@@ -13,6 +13,7 @@ import asyncio
 import logging
 import os
 import secrets
+import signal
 import socket
 import subprocess
 import sys
@@ -62,12 +63,26 @@ class NodeLost(NodeFailure):
     """A node that had joined died or stalled mid-frame (a frame on the others can replace
     it, unlike a node that never joined or a protocol failure).
 
-    ``rank`` is the lost node's, or None where only its launcher (an ssh session) is known.
+    ``rank`` is the lost node's, or None where only its launcher (an ssh session) is known;
+    ``cause`` says how it was lost in a word or two: the signal that killed it (``"SIGSEGV"``,
+    ``"SIGKILL"``), ``"exit code N"``, ``"stalled"`` or ``"failed"``.
     """
 
-    def __init__(self, message: str, rank: int | None = None):
+    def __init__(self, message: str, rank: int | None = None, cause: str = "lost"):
         super().__init__(message)
         self.rank = rank
+        self.cause = cause
+
+
+def exit_cause(code: int) -> str:
+    """How a process with exit status ``code`` (``Popen.returncode``) ended, in a word or two:
+    the signal's name for a negative code (killed by it), else ``"exit code N"``."""
+    if code < 0:
+        try:
+            return signal.Signals(-code).name
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
@@ -168,6 +183,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp * len(frames or [None])
     failures: list[str] = []
+    recoveries: list[dict] = []  # per node lost: who, how, and which frames were done again
     size = nodes
     delivered: dict[int, RenderResult] = {}
     bound: dict[str, str] = {}  # the listen address as bound (its port, where 0 was asked)
@@ -178,7 +194,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         frame_camera = config.at_frame(frame, lo, hi, settings.width, settings.height
                                        ).resolve_camera(lo, hi, settings.width, settings.height)
         result = _result(film, frame_camera, reports, barriers, scheduler, size, nodes,
-                         failures, seconds)
+                         failures, seconds, recoveries)
         result.counters["frame"] = frame
         delivered[frame] = result
         if on_frame is not None:
@@ -200,6 +216,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
             if not survive_node_loss or size == 1:
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
+            recoveries.append({"node": lost.rank, "cause": lost.cause,
+                               "frames": [0] if remaining is None else list(remaining)})
             size -= 1
             if listen is not None:  # the survivors regroup on the address bound first
                 listen = bound["listen"]
@@ -214,7 +232,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                 log.warning("%s", message)
     wall = time.perf_counter() - start
     if frames is None:
-        return _result(film, camera, reports, barriers, scheduler, size, nodes, failures, wall)
+        return _result(film, camera, reports, barriers, scheduler, size, nodes, failures, wall,
+                       recoveries)
     last = delivered[frames[-1]]
     last.counters["frames"] = [delivered[f].counters for f in frames]
     last.seconds["animation_total"] = round(wall, 4)
@@ -222,10 +241,20 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
 
 
 def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, size: int,
-            asked: int, failures: list[str], wall: float) -> RenderResult:
-    """A render's result from the nodes' reports (of the job, or of one frame)."""
+            asked: int, failures: list[str], wall: float,
+            recoveries: list[dict] = ()) -> RenderResult:
+    """A render's result from the nodes' reports (of the job, or of one frame).
+
+    ``recoveries`` : one entry per node lost so far (``node``, ``cause``, the ``frames`` done
+    again on the others); the counters keep them and count the losses by cause
+    (``node_deaths``, e.g. ``{"SIGSEGV": 1}``), so a recovery is never silent.
+    """
+    deaths: dict[str, int] = {}
+    for entry in recoveries:
+        deaths[entry["cause"]] = deaths.get(entry["cause"], 0) + 1
     counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": asked,
-                "node_failures": list(failures), "per_node": reports,
+                "node_failures": list(failures), "node_deaths": deaths,
+                "recoveries": [dict(entry) for entry in recoveries], "per_node": reports,
                 "global_barriers": barriers,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
@@ -235,6 +264,23 @@ def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, si
                "busy_max": max(r["busy_s"] for r in reports),
                "reduce_max": max(r["reduce_s"] for r in reports)}
     return RenderResult(film, camera, seconds, counters)
+
+
+def recovery_lines(counters: dict) -> list[str]:
+    """One line per node lost during a render, for the CLI's last lines: which frames were
+    rendered again, after which node died and how (e.g. ``frame 0 re-rendered after node 1
+    died (SIGSEGV)``); none when no node was lost."""
+    lines = []
+    for entry in counters.get("recoveries", []):
+        frames = entry["frames"]
+        which = (f"frame {frames[0]}" if len(frames) == 1 else
+                 f"frames {frames[0]}-{frames[-1]}" if frames == list(range(frames[0],
+                                                                             frames[-1] + 1))
+                 else "frames " + ", ".join(map(str, frames)))
+        node = "a node" if entry["node"] is None else f"node {entry['node']}"
+        how = "stalled" if entry["cause"] == "stalled" else f"died ({entry['cause']})"
+        lines.append(f"{which} re-rendered after {node} {how}")
+    return lines
 
 
 def portal_shares(per_node: list[dict]) -> dict:
@@ -663,6 +709,7 @@ class _Watch:
         self.rejections = protocol.Rejections()
         self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
         self.hellos: dict[int, dict] = {}
+        self.last_check = self.started
 
     def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
@@ -679,7 +726,8 @@ class _Watch:
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
 
-    def _failure(self, rank: int, why: str, kind: type = NodeFailure) -> NodeFailure:
+    def _failure(self, rank: int, why: str, kind: type = NodeFailure,
+                 cause: str = "lost") -> NodeFailure:
         if rank < len(self.procs):
             text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
             last = text.splitlines()[-1] if text else "no output"
@@ -691,22 +739,25 @@ class _Watch:
             failure = kind(f"node {rank}{where} {why}")
         if isinstance(failure, NodeLost):
             failure.rank = rank
+            failure.cause = cause
         return failure
 
     def failed(self, rank: int, error: str) -> NodeLost:
         """A node's report that its job failed: lost, like a node that exits mid-frame."""
-        return self._failure(rank, f"failed: {error}", NodeLost)
+        return self._failure(rank, f"failed: {error}", NodeLost, cause="failed")
 
-    def check(self) -> None:
-        now = time.monotonic()
+    def check(self, judge_silence: bool = True) -> None:
+        """Raise for a node that exited, never joined, or (``judge_silence``) went silent."""
+        now = self.last_check = time.monotonic()
         for rank, proc in enumerate(self.procs):
             code = proc.poll()
             if code is not None and code != 0:
                 # A joined node, or one killed by a signal (kill -9, the OOM killer), is a
                 # loss the others can make up for; a node failing its start is not.
                 lost = rank in self.ranks_joined or code < 0
-                raise self._failure(rank, f"exited with code {code}",
-                                    NodeLost if lost else NodeFailure)
+                how = f" ({exit_cause(code)})" if code < 0 else ""
+                raise self._failure(rank, f"exited with code {code}{how}",
+                                    NodeLost if lost else NodeFailure, cause=exit_cause(code))
         for name, (proc, log) in list(self.launched.items()):
             code = proc.poll()
             if code is not None and code != 0:
@@ -717,14 +768,16 @@ class _Watch:
                 text = Path(log).read_text(errors="replace").strip() if Path(log).exists() else ""
                 last = text.splitlines()[-1] if text else "no output"
                 # mid-frame, a lost node the others can make up for; before, a failed start
-                raise (NodeLost if self.job_sent else NodeFailure)(
+                failure = (NodeLost if self.job_sent else NodeFailure)(
                     f"node on {name} exited with code {code}: {last}")
+                failure.cause = exit_cause(code)
+                raise failure
         waiting = set(range(len(self.procs))) - self.ranks_joined
         if self.ranks_joined and waiting and now - self.last_join > self.heartbeat_timeout:
             # the others joined long ago: a node started here that has not is stuck
             raise self._failure(min(waiting), f"did not join within "
                                               f"{self.heartbeat_timeout:.0f} s of the others "
-                                              "(stalled)", NodeLost)
+                                              "(stalled)", NodeLost, cause="stalled")
         if len(self.ranks_joined) < self.size and now - self.started > self.timeout:
             if self.procs:  # nodes started here: name the one that never said hello
                 rank = min(set(range(self.size)) - self.ranks_joined)
@@ -742,22 +795,28 @@ class _Watch:
                 "--coordinator names this address and that its --keys match this run's "
                 "(a node with other keys is refused and says 'authentication failed')")
         # Nodes heartbeat once they have the job; until then a joined node is rightly quiet.
-        silent = [r for r in self.ranks_joined
-                  if self.job_sent and now - self.last_heard[r] > self.heartbeat_timeout]
+        silent = [r for r in self.ranks_joined if judge_silence and self.job_sent
+                  and now - self.last_heard[r] > self.heartbeat_timeout]
         if silent:  # blame the one silent longest: the others may only be waiting for it
             rank = min(silent, key=lambda r: self.last_heard[r])
             # a node started here that is silent but running is stalled; from elsewhere,
             # silence is all the coordinator sees of a stall or a death
             how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
-                                      f"({how})", NodeLost)
+                                      f"({how})", NodeLost, cause="stalled")
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped
         and counted in ``rejections``, and never end the wait."""
         while True:
-            self.check()
-            if await router.poll(500):
+            # Silence is judged only on an empty queue: a coordinator that was itself kept
+            # off the CPU (a loaded machine) first reads the heartbeats waiting for it,
+            # instead of taking their senders for stalled. Exits are checked at least once
+            # a second even while messages keep coming.
+            pending = await router.poll(0)
+            if not pending or time.monotonic() - self.last_check > 1.0:
+                self.check(judge_silence=not pending)
+            if pending or await router.poll(500):
                 frames = await router.recv_multipart(copy=False)
                 try:
                     admitted = self._admit(frames)

@@ -168,7 +168,8 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
     # three parts whose shared edges tie between scenes: merged one by one as the per-domain
     # path does (nearer, or as near in a lower scene), and through one top-level query
     cut = np.linspace(0, len(arrays.indices), 4).astype(int)
-    parts = [embree.Scene(arrays.vertices, arrays.indices[a:b]) for a, b in zip(cut, cut[1:])]
+    parts = [embree.Scene(arrays.vertices, arrays.indices[a:b])
+             for a, b in zip(cut, cut[1:], strict=False)]
     merged = {"primID": np.full(len(targets), -1, np.int32), "tfar": t_far.copy(),
               "id": np.full(len(targets), -1)}
     ties_between = 0

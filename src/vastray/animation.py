@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vastray.actors.coordinator import recovery_lines
 from vastray.preflight import check_output_paths
 from vastray.render.driver import RenderResult
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
@@ -204,6 +205,7 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
     references = _check_references(args.reference, frames, settings) if args.reference else {}
     summary = _Summary()
     start = time.perf_counter()
+    recoveries: list[dict] = []  # nodes lost so far (each frame's result lists them all)
 
     with ExitStack() as written:  # every frame's files, or none: renamed into place together
         def on_frame(frame: int, result: RenderResult) -> None:
@@ -223,6 +225,7 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
                     reference=None if reference is None else str(reference),
                     scheduler=scheduler, options=options, frame=frame))
             entry = summary.add(frame, seed, files, result, error, reference)
+            recoveries[:] = result.counters.get("recoveries", recoveries)
             if not args.quiet:
                 print(_frame_line(entry, len(summary.entries), len(frames)), file=sys.stderr)
 
@@ -244,6 +247,8 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             write_report(written.enter_context(atomic_path(outputs.report)), report)
     if not args.quiet:
         print(_summary_line(args, outputs, frames, totals, means), file=sys.stderr)
+        for line in recovery_lines({"recoveries": recoveries}):
+            print(line, file=sys.stderr)
     return 0
 
 

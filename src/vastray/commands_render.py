@@ -12,7 +12,7 @@ from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
 
-from vastray.actors.coordinator import render_distributed
+from vastray.actors.coordinator import recovery_lines, render_distributed
 from vastray.actors.local import render_out_of_core
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.preflight import (
@@ -488,6 +488,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             ))
     if not args.quiet:
         print(summary, file=sys.stderr)
+        for line in recovery_lines(result.counters):  # a recovery is never silent
+            print(line, file=sys.stderr)
     return 0
 
 
