@@ -79,13 +79,14 @@ class DomainBVH:
             # embreex builds the BVH on the first query: do it now, so load time includes it.
             self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32),
                             query="DISTANCE")
-        needs_indices = bool(keep & {"colors", "scalars"})
-        if not needs_indices:
-            self.indices = None
-        elif self.compiled and self._scene.indices is not None:
-            self.indices = np.asarray(self._scene.indices)  # the scene's own (shared) array
+        # Vertices and indices stay reachable for rebuilding hit points
+        # (``ClosestHits.rebuild_points``): the compiled scene's own (shared) arrays.
+        if self.compiled and self._scene.indices is not None:
+            self.vertices = np.asarray(self._scene.vertices)
+            self.indices = np.asarray(self._scene.indices)
         else:
-            self.indices = np.array(arrays.indices)
+            self.vertices = np.ascontiguousarray(arrays.vertices, dtype=np.float32)
+            self.indices = np.ascontiguousarray(arrays.indices, dtype=np.uint32)
         self.objects = (np.array(arrays.objects) if "objects" in keep and arrays.objects is not None
                         else None)
         self.colors = np.array(arrays.colors) if "colors" in keep and arrays.colors is not None else None
