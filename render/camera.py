@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,16 @@ class Camera:
         distance = radius / np.sin(half_min) * 1.02
         return Camera(center + view * distance, center, np.array([0.0, 1.0, 0.0]), fov,
                       width, height)
+
+    def in_frame(self, origin: np.ndarray) -> Camera:
+        """This camera in a frame whose origin sits at ``origin`` ((3,) float64, world): its
+        position and target minus ``origin`` (in float64, so a camera far from the world
+        origin keeps its place relative to the data); itself when ``origin`` is zero."""
+        origin = np.asarray(origin, np.float64)
+        if not origin.any():
+            return self
+        return dataclasses.replace(self, position=self.position - origin,
+                                   look_at=self.look_at - origin)
 
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit forward, right and up vectors (float64)."""

@@ -8,6 +8,7 @@ lights need ``--shadow-samples`` of them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,3 +136,20 @@ class AmbientLight:
 
 
 Light = PointLight | DirectionalLight | QuadLight | AmbientLight
+
+
+def in_frame(lights: list[Light], origin: np.ndarray) -> list[Light]:
+    """``lights`` moved into a frame whose origin sits at ``origin`` ((3,) float64, world):
+    point positions and quad corners minus ``origin`` (in float64); directions, edges and
+    powers unchanged. The same list when ``origin`` is zero."""
+    origin = np.asarray(origin, np.float64)
+    if not origin.any():
+        return lights
+    moved = []
+    for light in lights:
+        if isinstance(light, PointLight):
+            light = dataclasses.replace(light, position=light.position - origin)
+        elif isinstance(light, QuadLight):
+            light = dataclasses.replace(light, corner=light.corner - origin)
+        moved.append(light)
+    return moved

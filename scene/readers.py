@@ -21,7 +21,7 @@ import numpy as np
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
 from vastray.scene.isosurface import DEFAULT_BRICK, iter_brick_triangles
-from vastray.scene.store import DomainArrays
+from vastray.scene.store import DomainArrays, relative_to
 from vastray.scene.volumes import VOLUME_SUFFIXES, read_volume, volume_suffix
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,8 @@ def _read_trimesh(path: Path) -> DomainArrays:
     if not np.all(np.isfinite(vertices64)):
         bad = int(np.count_nonzero(~np.all(np.isfinite(vertices64), axis=1)))
         raise InputError(path, f"{bad} vertices have NaN or infinite coordinates")
-    vertices = vertices64.astype(np.float32)
+    framed = relative_to(vertices64)  # far from the world origin: relative to the data's centre
+    vertices = framed.vertices
     if not np.all(np.isfinite(vertices)):
         raise InputError(path, "vertex coordinates overflow float32")
     if indices.min() < 0 or indices.max() >= len(vertices):
@@ -105,6 +106,7 @@ def _read_trimesh(path: Path) -> DomainArrays:
         indices=indices.astype(np.uint32),
         scalars=_ply_scalars(mesh, path),
         colors=_vertex_colors(mesh, path),
+        origin=framed.origin,
     )
     if path.suffix.lower() == ".stl":  # STL stores three private vertices per triangle
         result = meshops.weld(result)
