@@ -19,6 +19,7 @@ from vastray.render.driver import (
     path_context,
     shading_inputs,
     store_camera,
+    with_camera_clip,
 )
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
@@ -52,6 +53,7 @@ class RenderSetup:
     def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
         shading, keep, color_source = shading_inputs(store, config, settings.integrator)
         camera = store_camera(config, store, settings.width, settings.height)
+        shading = with_camera_clip(shading, store, camera)
         lo, hi = store.domain_boxes()
         nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         return RenderSetup(
