@@ -17,7 +17,7 @@ from tqdm import tqdm
 from vastray.render.camera import Camera
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
-from vastray.render.lights import QuadLight, in_frame
+from vastray.render.lights import QuadLight, check_power, in_frame
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
@@ -47,6 +47,7 @@ def shading_inputs(store: Store, config: SceneConfig, integrator: str):
     """
     color_source = "colors" if store.has_colors else "scalars" if store.has_scalars else None
     lights = [] if integrator == "ao" else in_frame(config.resolve_lights(), store.origin)
+    check_power(lights, config.source or "scene")
     materials = config.material_table(store.objects)
     keep = set()
     if color_source:

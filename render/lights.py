@@ -153,3 +153,31 @@ def in_frame(lights: list[Light], origin: np.ndarray) -> list[Light]:
             light = dataclasses.replace(light, corner=light.corner - origin)
         moved.append(light)
     return moved
+
+
+#: The largest power a light may have: float32's largest value. Images are written in float32
+#: (EXR, PFM, HDR), so a light beyond it could only make infinite pixels.
+MAX_POWER = float(np.finfo(np.float32).max)
+_POWER = {PointLight: "intensity", DirectionalLight: "irradiance", QuadLight: "radiance",
+          AmbientLight: "radiance"}
+
+
+def check_power(lights: list[Light], where) -> None:
+    """Refuse a light whose power is not a finite number within float32's range.
+
+    Raises
+    ------
+    InputError
+        Naming ``where`` (the scene file), the light (1-based) and its value.
+    """
+    from vastray.scene.errors import InputError
+
+    for index, light in enumerate(lights):
+        name = _POWER.get(type(light))
+        if name is None:
+            continue
+        value = np.asarray(getattr(light, name), np.float64)
+        if not np.all(np.isfinite(value)) or np.any(np.abs(value) > MAX_POWER):
+            raise InputError(where, f"[[light]] #{index + 1}: {name} {value.tolist()} is beyond "
+                                    f"float32's range ({MAX_POWER:.3g}); the image would be "
+                                    "infinite. Give it in other units (scale every light alike)")

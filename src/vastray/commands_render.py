@@ -27,7 +27,7 @@ from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
-from vastray.report import build_report, write_report
+from vastray.report import build_report, count_overflow, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import portals
@@ -473,6 +473,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                              render_many=_render_many(args, config, settings, render_one))
     result = render_one(config, settings)
     image = result.film.image()
+    count_overflow(image, result.counters, outputs[0])
     error = image_error(image, reference) if reference is not None else None
     summary = summary_line(args, result, error, outputs)
     with ExitStack() as written:  # every output, or none: renamed into place together
