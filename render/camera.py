@@ -92,16 +92,11 @@ class Camera:
         return np.broadcast_to(self.position, d.shape).copy(), d
 
     def generate32(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
-                   clip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   advance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """``generate``'s rays cast to float32 ((n, 3) each), in one fused kernel
-        (``kernels.camera_rays``; bit for bit the same, tested).
-
-        ``clip`` : (2, 3) box of the scene and its area lights; rays that reach it only
-        beyond ``far_clip(clip)`` start near it instead (``kernels.camera_rays``).
-        """
+        (``kernels.camera_rays``; bit for bit the same, tested), each starting ``advance``
+        along its direction (``start_distance``), computed in float64."""
         forward, right, up = self.frame()
-        lo, hi = (np.zeros(3), np.zeros(3)) if clip is None else np.asarray(clip, np.float64)
-        far = np.inf if clip is None else far_clip(clip)
         n = len(pixel)
         origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         kernels.camera_rays(np.ascontiguousarray(pixel, np.uint32),
@@ -109,12 +104,22 @@ class Camera:
                             np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
                             float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
                             np.asarray(self.position, np.float64), forward, right, up,
-                            lo, hi, far, origin, direction)
+                            float(advance), origin, direction)
         return origin, direction
 
 
-def far_clip(clip: np.ndarray) -> float:
-    """The distance to the box ``clip`` ((2, 3)) beyond which camera rays start near it: 16
-    box diagonals. Nearer, float32's rounding of the camera and the direction moves a sample
-    by under 2^-19 diagonals, and rays stay exactly as ``generate`` makes them."""
-    return 16.0 * max(float(np.linalg.norm(np.asarray(clip[1]) - np.asarray(clip[0]))), 1e-30)
+def start_distance(eye: np.ndarray, clip: np.ndarray) -> float:
+    """How far from the camera at ``eye`` ((3,)) its rays may start: 0, unless the box
+    ``clip`` ((2, 3): the scene and its area lights) is more than 16 box diagonals away; then
+    the distance to the box less one diagonal, where nothing can be hit yet.
+
+    From that far, float32's rounding of the camera's coordinates and of the directions
+    (2^-24 of the distance each) would move every sample by up to a pixel; a ray that starts
+    near the box, placed in float64 along its float64 direction, is off by 2^-24 of a few
+    diagonals instead. Nearer cameras keep their rays exactly as ``Camera.generate`` makes
+    them.
+    """
+    lo, hi = np.asarray(clip, np.float64)
+    diagonal = float(np.linalg.norm(hi - lo))
+    gap = float(np.linalg.norm(np.maximum(np.maximum(lo - eye, eye - hi), 0.0)))
+    return gap - diagonal if gap > 16.0 * diagonal else 0.0

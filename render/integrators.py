@@ -20,7 +20,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from vastray.render import kernels
-from vastray.render.camera import far_clip
+from vastray.render.camera import start_distance
 from vastray.render.lights import AmbientLight, DirectionalLight, Light, PointLight, QuadLight, SampleKeys
 from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose, uniform2
@@ -52,7 +52,7 @@ class Shading:
 
     ``clip`` ((2, 3) float64, the box of the scene and its area lights) and ``eye`` ((3,)
     float64, the camera's position), both in the store's frame, let camera rays from far away
-    start near the scene (``Camera.generate32``); None: they start at the camera.
+    start near the scene (``camera.start_distance``); None: they start at the camera.
     """
 
     lights: list[Light]
@@ -164,7 +164,7 @@ def hit_points(rays: RadianceRays, hits: Hits) -> tuple[np.ndarray, np.ndarray]:
 def camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """One camera ray per path of the batch."""
     origin, direction = camera.generate32(ctx.pixel, ctx.sample, ctx.settings.seed,
-                                          ctx.shading.clip)
+                                          _camera_start(ctx))
     n = len(ctx.pixel)
     return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8), origin, direction,
                         np.ones((n, 3)))
@@ -478,17 +478,16 @@ class PathResult:
                 isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights):
             # (nothing else is seen directly: point and directional lights have no area)
             self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
-        self.first_t[rays.path] = hits.t + _clipped_distance(ctx, rays)
+        self.first_t[rays.path] = hits.t + _camera_start(ctx)
         self.first_normal[rays.path] = facing(hits.normal, rays.direction.astype(np.float64))
 
 
-def _clipped_distance(ctx: PathContext, rays: RadianceRays) -> np.ndarray | float:
-    """How far camera ``rays`` start from the camera ((n,) float64, or 0 where none was
-    moved; see ``Shading.clip``)."""
+def _camera_start(ctx: PathContext) -> float:
+    """How far from the camera its rays start (``camera.start_distance``; 0 without
+    ``Shading.clip``)."""
     if ctx.shading.clip is None:
         return 0.0
-    moved = np.linalg.norm(rays.origin.astype(np.float64) - ctx.shading.eye, axis=1)
-    return np.where(moved > far_clip(ctx.shading.clip) / 2, moved, 0.0)
+    return start_distance(ctx.shading.eye, ctx.shading.clip)
 
 
 def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:

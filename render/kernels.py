@@ -519,22 +519,17 @@ def film_add(total, total_sq, count, lo, local, radiance, counted):
 
 @njit(nogil=True, cache=True)
 def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, position,
-                forward, right, up, clip_lo, clip_hi, far, origin, direction):
-    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it.
-
-    A ray that enters the box ``[clip_lo, clip_hi]`` farther than ``far`` from the camera
-    starts at its entry point less ``far / 16`` instead, computed in float64 along the float64
-    direction: from a camera far away, float32's ulp of the camera's coordinates and of the
-    direction, times the distance, would move every sample by up to a pixel.
+                forward, right, up, advance, origin, direction):
+    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it, each ray
+    starting ``advance`` along its float64 direction from the camera (``Camera.start``: 0
+    unless the camera is far from the scene).
 
     Parameters
     ----------
     pixel, sample : (n,) uint32; seed, purpose : uint64 (``Purpose.CAMERA_JITTER``).
     width, height : image size; tan_half, aspect : ``tan(fov / 2)`` and ``width / height``
         as ``Camera.generate`` computes them.
-    position, forward, right, up : (3,) float64 (``Camera.frame``).
-    clip_lo, clip_hi : (3,) float64 the box holding the scene and its area lights;
-        far : float64 (``inf``: never move an origin).
+    position, forward, right, up : (3,) float64 (``Camera.frame``); advance : float64.
     origin, direction : (n, 3) float32 out.
     """
     start = key_start(seed, purpose)
@@ -551,30 +546,12 @@ def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, p
         length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
         d0, d1, d2 = d0 / length, d1 / length, d2 / length
         direction[i, 0], direction[i, 1], direction[i, 2] = d0, d1, d2
-        advance = 0.0
-        if far < np.inf:
-            enter = _box_entry(position, d0, d1, d2, clip_lo, clip_hi)
-            if far < enter < np.inf:  # (a ray that misses the box keeps its origin)
-                advance = enter - far / 16.0
-        origin[i, 0] = position[0] + d0 * advance
-        origin[i, 1] = position[1] + d1 * advance
-        origin[i, 2] = position[2] + d2 * advance
-
-
-@njit(inline="always")
-def _box_entry(o, d0, d1, d2, lo, hi):
-    """Distance along the float64 ray ``o + t d`` to the box ``[lo, hi]`` (0 inside it,
-    ``inf`` when it misses)."""
-    near, far_ = 0.0, np.inf
-    for k in range(3):
-        dk = d0 if k == 0 else (d1 if k == 1 else d2)
-        if dk == 0.0:
-            if o[k] < lo[k] or o[k] > hi[k]:
-                return np.inf
-            continue
-        a, b = (lo[k] - o[k]) / dk, (hi[k] - o[k]) / dk
-        near, far_ = max(near, min(a, b)), min(far_, max(a, b))
-    return near if near <= far_ else np.inf
+        if advance > 0:
+            origin[i, 0] = position[0] + d0 * advance
+            origin[i, 1] = position[1] + d1 * advance
+            origin[i, 2] = position[2] + d2 * advance
+        else:
+            origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
 
 
 @njit(nogil=True, cache=True)
