@@ -26,9 +26,9 @@ from unittest import mock
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from scenes import compare, far_config, far_settings, far_store  # noqa: E402
-
 from vastray.render import driver  # noqa: E402
+
+from scenes import compare, far_config, far_settings, far_store  # noqa: E402
 
 
 def image(store, config, settings):

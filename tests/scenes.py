@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from vastray.render.integrators import RenderSettings
-import dataclasses
-
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.partition import partition_grid, partition_kd
