@@ -109,6 +109,31 @@ def test_an_old_store_opens_in_the_world_frame(far, tmp_path):
     np.testing.assert_array_equal(store.world_bounds, store.bounds)
 
 
+@pytest.mark.parametrize("suffix", [".ply", ".obj"])
+def test_a_far_mesh_file_is_read_into_a_frame_of_its_own(tmp_path, suffix):
+    import trimesh
+
+    from vastray.scene.readers import read_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.01)
+    sphere.apply_translation([3e6, -2e6, 1e6])
+    path = tmp_path / f"far{suffix}"
+    if suffix == ".ply":  # trimesh writes float32 PLY; a simulation's own file has doubles
+        lines = ["ply", "format ascii 1.0", f"element vertex {len(sphere.vertices)}",
+                 *(f"property double {c}" for c in "xyz"), f"element face {len(sphere.faces)}",
+                 "property list uchar int vertex_indices", "end_header"]
+        lines += [" ".join(f"{c:.17g}" for c in v) for v in sphere.vertices]
+        lines += ["3 " + " ".join(map(str, f)) for f in sphere.faces]
+        path.write_text("\n".join(lines) + "\n")
+    else:
+        sphere.export(path)
+    mesh = read_mesh(path)
+    assert mesh.origin is not None and np.abs(mesh.origin - [3e6, -2e6, 1e6]).max() < 0.02
+    back = mesh.vertices.astype(np.float64) + mesh.origin
+    # float32 at 3e6 would round by 0.125, more than the sphere's radius; relative: 1e-9
+    assert np.abs(back - sphere.vertices).max() < 1e-8
+
+
 # --- constant-radiance planes: any self-intersection shows as a dark pixel ------------------
 
 def _plane(vertices: np.ndarray, faces: np.ndarray, shift: float = 0.0) -> DomainArrays:
