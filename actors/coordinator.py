@@ -31,7 +31,7 @@ from tqdm import tqdm
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_from
 from vastray.actors.rendezvous import write_address
-from vastray.render.driver import RenderResult
+from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.errors import InputError
@@ -168,8 +168,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if config.text is None:
         raise ValueError("render_distributed needs a SceneConfig read from TOML: its text is "
                          "what the nodes receive")
-    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                   settings.height)
+    camera = store_camera(config, store, settings.width, settings.height)
     job = {
         "store": str(Path(store_path).resolve()),
         "scene_toml": config.text, "scene_source": config.source,
@@ -190,9 +189,10 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     spare_exits = 0  # launched sessions of lost nodes still to exit (not failures)
 
     def frame_done(frame: int, film, reports: list[dict], barriers: int, seconds: float) -> None:
-        lo, hi = store.bounds
-        frame_camera = config.at_frame(frame, lo, hi, settings.width, settings.height
-                                       ).resolve_camera(lo, hi, settings.width, settings.height)
+        lo, hi = store.world_bounds
+        frame_camera = store_camera(config.at_frame(frame, lo, hi, settings.width,
+                                                    settings.height),
+                                    store, settings.width, settings.height)
         result = _result(film, frame_camera, reports, barriers, scheduler, size, nodes,
                          failures, seconds, recoveries)
         result.counters["frame"] = frame

@@ -215,6 +215,7 @@ class _InSitu:
             p = rays["path"][has]
             best.t[p], best.domain[p] = rays["cand_t"][has], rays["cand_d"][has]
             best.ng[p], best.material[p] = rays["cand_ng"][has], rays["cand_material"][has]
+            best.point[p], best.error[p] = rays["cand_point"][has], rays["cand_error"][has]
             if best.color is not None:
                 best.color[p] = rays["cand_color"][has]
             ray_of_path["own"] = rays
@@ -339,9 +340,10 @@ def _with_candidate(rays: RadianceRays, local_done: bool, color: bool,
     n = len(rays)
     c = ClosestHits.empty(n, color) if cand is None else ClosestHits(
         cand.t[rows], cand.domain[rows], cand.ng[rows], cand.material[rows],
-        None if cand.color is None else cand.color[rows])
+        None if cand.color is None else cand.color[rows], cand.point[rows], cand.error[rows])
     fields = {f: getattr(rays, f) for f in RADIANCE_FIELDS}
     fields.update(cand_t=c.t, cand_d=c.domain, cand_ng=c.ng, cand_material=c.material,
+                  cand_point=c.point, cand_error=c.error,
                   local_done=np.full(n, local_done))
     if color:
         fields["cand_color"] = c.color

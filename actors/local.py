@@ -18,6 +18,8 @@ from vastray.render.driver import (
     default_ao_distance,
     path_context,
     shading_inputs,
+    store_camera,
+    with_camera_clip,
 )
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
@@ -50,8 +52,8 @@ class RenderSetup:
     @staticmethod
     def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
         shading, keep, color_source = shading_inputs(store, config, settings.integrator)
-        camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                       settings.height)
+        camera = store_camera(config, store, settings.width, settings.height)
+        shading = with_camera_clip(shading, store, camera)
         lo, hi = store.domain_boxes()
         nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         return RenderSetup(

@@ -447,8 +447,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     config = (SceneConfig() if not job.get("scene_toml")
               else parse_scene_config(job["scene_toml"], job.get("scene_source") or "scene"))
     if job.get("frames") is None:  # one image: the scene where the job's frame puts it
-        config = config.at_frame(int(job.get("frame", 0)), store.bounds[0],
-                                 store.bounds[1], settings.width, settings.height)
+        config = config.at_frame(int(job.get("frame", 0)), *store.world_bounds,
+                                 settings.width, settings.height)
     loop = asyncio.get_running_loop()
     done = {"paths": 0}
 
@@ -536,7 +536,7 @@ def frame_inputs(settings, config: SceneConfig, store, frame: int | None):
         return settings, config
     from vastray.animation import frame_settings
 
-    lo, hi = store.bounds
+    lo, hi = store.world_bounds
     return (frame_settings(settings, frame),
             config.at_frame(frame, lo, hi, settings.width, settings.height))
 

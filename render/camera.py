@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,16 @@ class Camera:
         return Camera(center + view * distance, center, np.array([0.0, 1.0, 0.0]), fov,
                       width, height)
 
+    def in_frame(self, origin: np.ndarray) -> Camera:
+        """This camera in a frame whose origin sits at ``origin`` ((3,) float64, world): its
+        position and target minus ``origin`` (in float64, so a camera far from the world
+        origin keeps its place relative to the data); itself when ``origin`` is zero."""
+        origin = np.asarray(origin, np.float64)
+        if not origin.any():
+            return self
+        return dataclasses.replace(self, position=self.position - origin,
+                                   look_at=self.look_at - origin)
+
     def frame(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit forward, right and up vectors (float64)."""
         forward = self.look_at - self.position
@@ -80,10 +91,11 @@ class Camera:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d
 
-    def generate32(self, pixel: np.ndarray, sample: np.ndarray, seed: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
+    def generate32(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
+                   advance: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """``generate``'s rays cast to float32 ((n, 3) each), in one fused kernel
-        (``kernels.camera_rays``; bit for bit the same, tested)."""
+        (``kernels.camera_rays``; bit for bit the same, tested), each starting ``advance``
+        along its direction (``start_distance``), computed in float64."""
         forward, right, up = self.frame()
         n = len(pixel)
         origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
@@ -92,5 +104,22 @@ class Camera:
                             np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
                             float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
                             np.asarray(self.position, np.float64), forward, right, up,
-                            origin, direction)
+                            float(advance), origin, direction)
         return origin, direction
+
+
+def start_distance(eye: np.ndarray, clip: np.ndarray) -> float:
+    """How far from the camera at ``eye`` ((3,)) its rays may start: 0, unless the box
+    ``clip`` ((2, 3): the scene and its area lights) is more than 16 box diagonals away; then
+    the distance to the box less one diagonal, where nothing can be hit yet.
+
+    From that far, float32's rounding of the camera's coordinates and of the directions
+    (2^-24 of the distance each) would move every sample by up to a pixel; a ray that starts
+    near the box, placed in float64 along its float64 direction, is off by 2^-24 of a few
+    diagonals instead. Nearer cameras keep their rays exactly as ``Camera.generate`` makes
+    them.
+    """
+    lo, hi = np.asarray(clip, np.float64)
+    diagonal = float(np.linalg.norm(hi - lo))
+    gap = float(np.linalg.norm(np.maximum(np.maximum(lo - eye, eye - hi), 0.0)))
+    return gap - diagonal if gap > 16.0 * diagonal else 0.0

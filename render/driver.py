@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import resource
@@ -16,6 +17,7 @@ from tqdm import tqdm
 from vastray.render.camera import Camera
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
+from vastray.render.lights import QuadLight, check_power, in_frame
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
@@ -44,7 +46,8 @@ def shading_inputs(store: Store, config: SceneConfig, integrator: str):
     color_source : "colors", "scalars" or None
     """
     color_source = "colors" if store.has_colors else "scalars" if store.has_scalars else None
-    lights = [] if integrator == "ao" else config.resolve_lights()
+    lights = [] if integrator == "ao" else in_frame(config.resolve_lights(), store.origin)
+    check_power(lights, config.source or "scene")
     materials = config.material_table(store.objects)
     keep = set()
     if color_source:
@@ -52,6 +55,26 @@ def shading_inputs(store: Store, config: SceneConfig, integrator: str):
     if integrator == "pt" and len(materials) > 1:
         keep.add("objects")
     return Shading(lights, materials, color_source is not None), frozenset(keep), color_source
+
+
+def with_camera_clip(shading: Shading, store: Store, camera: Camera) -> Shading:
+    """``shading`` with the box camera rays from far away start near (``Shading.clip``): the
+    store's bounds and its quad lights, in the store's frame."""
+    corners = [store.bounds]
+    for light in shading.lights:
+        if isinstance(light, QuadLight):
+            corners.append(light.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
+                [light.edge1, light.edge2]))
+    points = np.concatenate(corners)
+    clip = np.stack([points.min(axis=0), points.max(axis=0)])
+    return dataclasses.replace(shading, clip=clip, eye=np.asarray(camera.position, np.float64))
+
+
+def store_camera(config: SceneConfig, store: Store, width: int, height: int) -> Camera:
+    """The configured camera (defaults framing the scene) in the store's frame, where rays
+    are traced: resolved in world coordinates, then moved by ``-store.origin``."""
+    lo, hi = store.world_bounds
+    return config.resolve_camera(lo, hi, width, height).in_frame(store.origin)
 
 
 def path_context(shading: Shading, settings: RenderSettings, first: int, stop: int,
@@ -133,8 +156,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
                           two_level=two_level)
     tracer.record = record_rays
-    camera = config.resolve_camera(store.bounds[0], store.bounds[1], settings.width,
-                                   settings.height)
+    camera = store_camera(config, store, settings.width, settings.height)
+    shading = with_camera_clip(shading, store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))
     ao_distance = settings.ao_distance or default_ao_distance(store)
     film = Film(settings.width, settings.height)

@@ -100,9 +100,11 @@ class Film:
         return a.reshape(self.height, self.width, *a.shape[1:])
 
     def image(self) -> np.ndarray:
-        """(H, W, 3) float32 mean radiance."""
+        """(H, W, 3) float32 mean radiance; a mean beyond float32's range becomes ``inf``
+        (``report.count_overflow`` counts and reports those pixels)."""
         mean = self.sum / np.maximum(self.count, 1)[:, None]
-        return self._grid(mean).astype(np.float32)
+        with np.errstate(over="ignore"):
+            return self._grid(mean).astype(np.float32)
 
     def variance_of_mean(self) -> np.ndarray:
         """(H, W, 3) float64 estimated variance of each pixel's mean (sample variance / n)."""

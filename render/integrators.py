@@ -20,13 +20,14 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from vastray.render import kernels
+from vastray.render.camera import start_distance
 from vastray.render.lights import AmbientLight, DirectionalLight, Light, PointLight, QuadLight, SampleKeys
 from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer, Hits, facing
 
-#: Spawned rays start this far off the surface (see ``render.kernels.SPAWN_EPSILON``).
+#: Shadow rays stop this fraction short of their light (see ``render.kernels.SPAWN_EPSILON``).
 SPAWN_EPSILON = kernels.SPAWN_EPSILON
 
 
@@ -47,11 +48,18 @@ class RenderSettings:
 
 @dataclass(frozen=True)
 class Shading:
-    """Everything the integrators need besides geometry."""
+    """Everything the integrators need besides geometry.
+
+    ``clip`` ((2, 3) float64, the box of the scene and its area lights) and ``eye`` ((3,)
+    float64, the camera's position), both in the store's frame, let camera rays from far away
+    start near the scene (``camera.start_distance``); None: they start at the camera.
+    """
 
     lights: list[Light]
     materials: MaterialTable
     has_color: bool
+    clip: np.ndarray | None = None
+    eye: np.ndarray | None = None
 
 
 class _RaySet:
@@ -124,25 +132,39 @@ class PathContext:
     ao_distance: float
 
 
-def spawn(points: np.ndarray, normals: np.ndarray, reach: np.ndarray) -> np.ndarray:
-    """Ray origins just off a surface, on the side of ``normals``.
+def spawn(points: np.ndarray, normals: np.ndarray, error: np.ndarray) -> np.ndarray:
+    """Ray origins just off a surface, on the side of ``normals`` (pbrt-v4's
+    ``OffsetRayOrigin``).
 
     Parameters
     ----------
     points : (k, 3) float64 hit points; normals : (k, 3) unit normals of the side to leave by;
-    reach : (k,) distance from which the point was reached (its rounding error grows with it).
+    error : (k,) bound on how far a float32 query may misplace the surface near each point
+        (``kernels.hit_points``): the origin moves that far, whatever the ray's length.
 
     Returns
     -------
     (k, 3) float64
     """
-    scale = np.abs(points).max(axis=1) + reach
-    return points + normals * (SPAWN_EPSILON * scale)[:, None]
+    return points + normals * error[:, None]
+
+
+def hit_points(rays: RadianceRays, hits: Hits) -> tuple[np.ndarray, np.ndarray]:
+    """The hits' points and error bounds ((k, 3) and (k,) float64): those the tracer rebuilt
+    from barycentrics, or ``o + t d`` where the hit record has none."""
+    if hits.point is not None:
+        return _c(hits.point, np.float64), _c(hits.error, np.float64)
+    k = len(rays)
+    point, error = np.empty((k, 3)), np.empty(k)
+    kernels.ray_points(_c(rays.origin, np.float32), _c(rays.direction, np.float32),
+                       _c(hits.t, np.float64), point, error)
+    return point, error
 
 
 def camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """One camera ray per path of the batch."""
-    origin, direction = camera.generate32(ctx.pixel, ctx.sample, ctx.settings.seed)
+    origin, direction = camera.generate32(ctx.pixel, ctx.sample, ctx.settings.seed,
+                                          _camera_start(ctx))
     n = len(ctx.pixel)
     return RadianceRays(np.arange(n, dtype=np.int64), np.zeros(n, np.uint8), origin, direction,
                         np.ones((n, 3)))
@@ -194,17 +216,16 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits, fused: bool = True
     if fused and (ctx.settings.integrator == "ao" or _light_table(ctx.shading.lights) is not None):
         return _shade_fused(ctx, rays, hits)
     settings = ctx.settings
-    o = rays.origin.astype(np.float64)
     d = rays.direction.astype(np.float64)
-    p = o + d * hits.t[:, None]
+    p, error = hit_points(rays, hits)
     nf = facing(hits.normal, d)
-    origin = spawn(p, nf, hits.t)
+    origin = spawn(p, nf, error)
     if settings.integrator == "ao":
         return _ambient_occlusion_rays(ctx, rays, hits, origin, nf), _no_rays()
     albedo = ctx.shading.materials.diffuse[hits.material]
     if hits.color is not None:
         albedo = albedo * hits.color
-    shadow = _next_event_rays(ctx, rays, origin, nf, -d, albedo, hits.material)
+    shadow = _next_event_rays(ctx, rays, p, origin, nf, -d, albedo, hits.material)
     more = rays.depth < settings.bounces
     if not more.any():
         return shadow, _no_rays()
@@ -267,8 +288,9 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
     k = len(rays)
     has_color = hits.color is not None
     color = hits.color if has_color else np.zeros((0, 3))
-    org, dirs = _c(rays.origin, np.float32), _c(rays.direction, np.float32)
-    t, normal = _c(hits.t, np.float64), _c(hits.normal, np.float64)
+    dirs = _c(rays.direction, np.float32)
+    point, error = hit_points(rays, hits)
+    normal = _c(hits.normal, np.float64)
     if settings.integrator == "ao":
         m = settings.shadow_samples
         if m <= 0 or k == 0:
@@ -277,7 +299,7 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
                                          Purpose.AO_DIRECTION, m)
         s_org, s_dir = np.empty((k * m, 3), np.float32), np.empty((k * m, 3), np.float32)
         contribution = np.empty((k * m, 3))
-        kernels.shade_ao(org, dirs, t, normal, _c(color, np.float64), has_color, m, hu, hc, hs,
+        kernels.shade_ao(dirs, point, error, normal, _c(color, np.float64), has_color, m, hu, hc, hs,
                          s_org, s_dir, contribution)
         return ShadowRays(np.repeat(rays.path, m), np.zeros(k * m, np.uint8), s_org, s_dir,
                           np.full(k * m, ctx.ao_distance, np.float32), contribution), _no_rays()
@@ -309,8 +331,8 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
                         np.empty((k, 3), np.float32), np.empty((k, 3), np.float32),
                         np.empty((k, 3)))
     n_shadow, n_cont = kernels.shade_pt(
-        _c(rays.path, np.int64), _c(rays.depth, np.uint8), org, dirs, _c(rays.beta, np.float64),
-        t, normal, _c(hits.material, np.int64), _c(color, np.float64), has_color,
+        _c(rays.path, np.int64), _c(rays.depth, np.uint8), dirs, _c(rays.beta, np.float64),
+        point, error, normal, _c(hits.material, np.int64), _c(color, np.float64), has_color,
         ctx.pixel, ctx.sample, np.uint64(settings.seed), settings.bounces, mats.diffuse,
         mats.has_specular, kinds, counts, purposes, params, hem_slot, hem[0], hem[1], hem[2],
         bu, bc, bs, shadow.path, shadow.depth, shadow.origin, shadow.direction, shadow.t_max,
@@ -358,13 +380,17 @@ def _ambient_occlusion_rays(ctx, rays, hits, origin, nf) -> ShadowRays:
                       np.repeat(color / max(m, 1), m, axis=0))
 
 
-def _next_event_rays(ctx, rays, origin, nf, wo, albedo, material) -> ShadowRays:
+def _next_event_rays(ctx, rays, point, origin, nf, wo, albedo, material) -> ShadowRays:
     """Shadow rays from ``k`` path vertices to every light, with the light they would bring.
+
+    Lights are sampled from the hit point (distance, direction and cosines); the rays leave
+    from the spawned origin.
 
     Parameters
     ----------
     rays : the k radiance rays whose hits these are (path, depth, beta).
-    origin, nf, wo : (k, 3) spawned origin, facing normal, direction to the viewer.
+    point, origin, nf, wo : (k, 3) hit point, spawned origin, facing normal, direction to the
+        viewer.
     albedo : (k, 3); material : (k,) slots.
     """
     settings, mats = ctx.settings, ctx.shading.materials
@@ -377,14 +403,15 @@ def _next_event_rays(ctx, rays, origin, nf, wo, albedo, material) -> ShadowRays:
             continue
         # One row per (vertex, shadow sample j), vertex-major.
         if m == 1:
-            o_rep, n_rep, j = origin, nf, 0
+            p_rep, o_rep, n_rep, j = point, origin, nf, 0
             keys = SampleKeys(settings.seed, pixel, sample, rays.depth)
         else:
-            o_rep, n_rep = np.repeat(origin, m, axis=0), np.repeat(nf, m, axis=0)
+            p_rep, o_rep = np.repeat(point, m, axis=0), np.repeat(origin, m, axis=0)
+            n_rep = np.repeat(nf, m, axis=0)
             keys = SampleKeys(settings.seed, np.repeat(pixel, m), np.repeat(sample, m),
                               np.repeat(rays.depth, m))
             j = np.tile(np.arange(m, dtype=np.uint64), len(rays))
-        wi, dist, incident = light.sample(o_rep, n_rep, keys, index, j)
+        wi, dist, incident = light.sample(p_rep, n_rep, keys, index, j)
         cos_i = np.einsum("ij,ij->i", n_rep, wi)
         lit = incident[:, 0] + incident[:, 1] + incident[:, 2] > 0
         useful = np.nonzero((cos_i > 0) & lit)[0]
@@ -451,8 +478,16 @@ class PathResult:
                 isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights):
             # (nothing else is seen directly: point and directional lights have no area)
             self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
-        self.first_t[rays.path] = hits.t
+        self.first_t[rays.path] = hits.t + _camera_start(ctx)
         self.first_normal[rays.path] = facing(hits.normal, rays.direction.astype(np.float64))
+
+
+def _camera_start(ctx: PathContext) -> float:
+    """How far from the camera its rays start (``camera.start_distance``; 0 without
+    ``Shading.clip``)."""
+    if ctx.shading.clip is None:
+        return 0.0
+    return start_distance(ctx.shading.eye, ctx.shading.clip)
 
 
 def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:

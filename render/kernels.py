@@ -52,11 +52,17 @@ POINT, DIRECTIONAL, QUAD, AMBIENT = 0, 1, 2, 3
 LIGHT_PARAMS = 16
 
 _PI = math.pi
-#: Spawned rays start this far (relative to the hit's coordinate magnitude plus the distance it
-#: was reached from) off the surface: about 64 float32 ulps, so they never re-hit it. Defined
-#: here, where numba freezes it into the kernels, and re-exported by ``render.integrators``.
+#: Shadow rays to a light at distance r stop at ``r * (1 - SPAWN_EPSILON)``, short of geometry
+#: that touches the light. Re-exported by ``render.integrators``.
 SPAWN_EPSILON = 4e-6
-_SHORTEN = 1.0 - SPAWN_EPSILON  # shadow rays stop this fraction of the way to the light
+_SHORTEN = 1.0 - SPAWN_EPSILON
+#: Error bound of a reconstructed hit point, relative to the float32 coordinates the query
+#: used: 32 units of float32 roundoff (2^-24), about 4.5 times pbrt-v4's gamma(7) bound for a
+#: barycentric point, since Embree's own float32 ray-triangle test, not ours, decides whether
+#: a spawned ray re-hits its surface (``hit_points``).
+HIT_ERROR = 2.0 ** -19
+#: 1 / sin of the triangle angle below which ``hit_points`` treats a triangle as a sliver.
+_SLIVER = 2.0 ** 12
 _F32_ZERO = np.float32(0.0)
 _F32_ONE = np.float32(1.0)
 
@@ -193,20 +199,85 @@ def _hemisphere(n0, n1, n2, u, c, s):
 
 
 @njit(inline="always")
-def _frame(org, dirs, t, normal, i):
-    """Hit point, facing normal and spawned origin of row ``i`` (``integrators.shade``'s
-    first lines and ``spawn``): returns (d0, d1, d2, nf0, nf1, nf2, o0, o1, o2)."""
+def _frame(dirs, point, error, normal, i):
+    """Direction, facing normal, hit point and spawned origin of row ``i`` (``integrators.shade``'s
+    first lines and ``spawn``): returns (d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, o0, o1, o2).
+
+    The origin is the hit point moved ``error[i]`` along the facing normal (pbrt-v4's
+    ``OffsetRayOrigin``): far enough that Embree cannot find the surface again, and
+    independent of the distance the hit was reached from."""
     d0, d1, d2 = np.float64(dirs[i, 0]), np.float64(dirs[i, 1]), np.float64(dirs[i, 2])
-    ti = t[i]
-    p0 = np.float64(org[i, 0]) + d0 * ti
-    p1 = np.float64(org[i, 1]) + d1 * ti
-    p2 = np.float64(org[i, 2]) + d2 * ti
+    p0, p1, p2 = point[i, 0], point[i, 1], point[i, 2]
     g0, g1, g2 = normal[i, 0], normal[i, 1], normal[i, 2]
     side = -1.0 if _dot(g0, g1, g2, d0, d1, d2) > 0 else 1.0
     nf0, nf1, nf2 = g0 * side, g1 * side, g2 * side
-    scale = SPAWN_EPSILON * (max(abs(p0), abs(p1), abs(p2)) + ti)
-    return (d0, d1, d2, nf0, nf1, nf2,
-            p0 + nf0 * scale, p1 + nf1 * scale, p2 + nf2 * scale)
+    e = error[i]
+    return (d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, p0 + nf0 * e, p1 + nf1 * e, p2 + nf2 * e)
+
+
+@njit(nogil=True, cache=True)
+def hit_points(rows, prim, u, v, vertices, indices, point, error):
+    """Hit points rebuilt from Embree's barycentrics, with a bound on their error.
+
+    ``p = v0 + u (v1 - v0) + v (v2 - v0)`` in float64 from the float32 vertices lies on the
+    triangle's plane up to float64 rounding, whatever the distance the ray travelled (its
+    float32 ``tfar`` would put ``o + t d`` up to ``t`` float32 ulps off the surface). The bound
+    ``HIT_ERROR * (M + L / sin)`` covers what the float32 query itself gets wrong: roundoff of
+    coordinates of magnitude ``M`` (the largest vertex coordinate) and the tilt of the float32
+    normal of a thin triangle (longest edge ``L``, ``sin`` of its angle at ``v0``, capped at
+    ``1 / _SLIVER``).
+
+    Parameters
+    ----------
+    rows : (k,) int64 rows of ``point``/``error`` to write; prim : (k,) int32 triangles.
+    u, v : (k,) float32 Embree's barycentrics of ``v1`` and ``v2``.
+    vertices : (V, 3) float32; indices : (T, 3) uint32 the domain's triangles.
+    point : (n, 3) float64 out; error : (n,) float64 out.
+    """
+    for k in range(rows.shape[0]):
+        i = rows[k]
+        a, b, c = indices[prim[k], 0], indices[prim[k], 1], indices[prim[k], 2]
+        uk, vk = np.float64(u[k]), np.float64(v[k])
+        magnitude = 0.0
+        e1 = np.empty(3)
+        e2 = np.empty(3)
+        for x in range(3):
+            q0 = np.float64(vertices[a, x])
+            q1 = np.float64(vertices[b, x])
+            q2 = np.float64(vertices[c, x])
+            e1[x], e2[x] = q1 - q0, q2 - q0
+            point[i, x] = q0 + uk * e1[x] + vk * e2[x]
+            magnitude = max(magnitude, abs(q0), abs(q1), abs(q2))
+        n0 = e1[1] * e2[2] - e1[2] * e2[1]
+        n1 = e1[2] * e2[0] - e1[0] * e2[2]
+        n2 = e1[0] * e2[1] - e1[1] * e2[0]
+        area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        l1 = np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+        l2 = np.sqrt(e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2])
+        l3 = np.sqrt((e2[0] - e1[0]) ** 2 + (e2[1] - e1[1]) ** 2 + (e2[2] - e1[2]) ** 2)
+        longest = max(l1, l2, l3)
+        product = l1 * l2
+        tilt = longest * _SLIVER if area2 * _SLIVER <= product else longest * product / area2
+        error[i] = HIT_ERROR * (magnitude + tilt)
+
+
+@njit(nogil=True, cache=True)
+def ray_points(org, dirs, t, point, error):
+    """Hit points ``o + t d`` (float64) with the bound ``HIT_ERROR * (max|p| + t)``: for hit
+    records that carry no rebuilt point (``Hits.point`` None; tests build such hits).
+
+    Parameters
+    ----------
+    org, dirs : (k, 3) float32; t : (k,) float64; point : (k, 3) float64 out;
+    error : (k,) float64 out.
+    """
+    for i in range(org.shape[0]):
+        ti = t[i]
+        p0 = np.float64(org[i, 0]) + np.float64(dirs[i, 0]) * ti
+        p1 = np.float64(org[i, 1]) + np.float64(dirs[i, 1]) * ti
+        p2 = np.float64(org[i, 2]) + np.float64(dirs[i, 2]) * ti
+        point[i, 0], point[i, 1], point[i, 2] = p0, p1, p2
+        error[i] = HIT_ERROR * (max(abs(p0), abs(p1), abs(p2)) + abs(ti))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,19 +285,21 @@ def _frame(org, dirs, t, normal, i):
 # ---------------------------------------------------------------------------------------------
 
 @njit(nogil=True, cache=True)
-def shade_ao(org, dirs, t, normal, color, has_color, m, hu, hc, hs, s_org, s_dir, s_contrib):
+def shade_ao(dirs, point, error, normal, color, has_color, m, hu, hc, hs, s_org, s_dir,
+             s_contrib):
     """``integrators._ambient_occlusion_rays``: ``m`` cosine-weighted rays per hit.
 
     Parameters
     ----------
-    org, dirs : (k, 3) float32 radiance rays; t : (k,) float64; normal : (k, 3) float64.
+    dirs : (k, 3) float32 radiance ray directions; point : (k, 3) float64 hit points;
+    error : (k,) float64 their error bounds; normal : (k, 3) float64.
     color : (k, 3) float64 (read only when ``has_color``).
     m : rays per hit (>= 1); hu, hc, hs : (k * m,) float32 uniform u and azimuth cos/sin.
     s_org, s_dir : (k * m, 3) float32 out; s_contrib : (k * m, 3) float64 out.
     """
-    k = org.shape[0]
+    k = dirs.shape[0]
     for i in range(k):
-        _, _, _, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, i)
         if has_color:
             c0, c1, c2 = color[i, 0] / m, color[i, 1] / m, color[i, 2] / m
         else:
@@ -279,7 +352,7 @@ def _sample_light(kind, prm, o0, o1, o2, nf0, nf1, nf2, su, sv, hu, hc, hs):
 
 
 @njit(nogil=True, cache=True)
-def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color,
+def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has_color,
              pixel, sample, seed, bounces, diffuse, has_specular,
              kinds, counts, purposes, params, hem_slot, hem_u, hem_c, hem_s, bu, bc, bs,
              s_path, s_depth, s_org, s_dir, s_tmax, s_contrib, s_vertex, s_weight, s_cos_h,
@@ -290,9 +363,11 @@ def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color
 
     Parameters
     ----------
-    path : (k,) int64; depth : (k,) uint8; org, dirs : (k, 3) float32; beta : (k, 3) float64
+    path : (k,) int64; depth : (k,) uint8; dirs : (k, 3) float32; beta : (k, 3) float64
         the radiance rays that hit.
-    t : (k,) float64; normal : (k, 3) float64 unit geometric normals; material : (k,) int64;
+    point : (k, 3) float64 hit points and error : (k,) float64 their bounds
+        (``hit_points``); lights are sampled from the point, rays leave from it offset.
+    normal : (k, 3) float64 unit geometric normals; material : (k,) int64;
         color : (k, 3) float64 (read only when ``has_color``).
     pixel, sample : (P,) uint32 path keys; seed : uint64; bounces : the last vertex that
         continues is ``bounces - 1``.
@@ -324,7 +399,8 @@ def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color
         start = key_start(seed, purposes[li])
         slot = hem_slot[li]
         for i in range(k):
-            d0, d1, d2, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+            d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, o0, o1, o2 = _frame(dirs, point, error,
+                                                                       normal, i)
             a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
             if has_color:
                 a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
@@ -339,7 +415,7 @@ def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color
                 elif kind == AMBIENT:
                     r = i * m + j
                     hu, hc, hs = hem_u[slot, r], hem_c[slot, r], hem_s[slot, r]
-                w0, w1, w2, dist, e0, e1, e2 = _sample_light(kind, prm, o0, o1, o2,
+                w0, w1, w2, dist, e0, e1, e2 = _sample_light(kind, prm, p0, p1, p2,
                                                              nf0, nf1, nf2, su, sv, hu, hc, hs)
                 cos_i = _dot(nf0, nf1, nf2, w0, w1, w2)
                 if not (cos_i > 0 and (e0 + e1) + e2 > 0):
@@ -364,7 +440,7 @@ def shade_pt(path, depth, org, dirs, beta, t, normal, material, color, has_color
     for i in range(k):
         if depth[i] >= bounces:
             continue
-        _, _, _, nf0, nf1, nf2, o0, o1, o2 = _frame(org, dirs, t, normal, i)
+        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, i)
         a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
         if has_color:
             a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
@@ -443,15 +519,17 @@ def film_add(total, total_sq, count, lo, local, radiance, counted):
 
 @njit(nogil=True, cache=True)
 def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, position,
-                forward, right, up, origin, direction):
-    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it.
+                forward, right, up, advance, origin, direction):
+    """``Camera.generate`` cast to float32, as ``integrators.camera_rays`` uses it, each ray
+    starting ``advance`` along its float64 direction from the camera (``Camera.start``: 0
+    unless the camera is far from the scene).
 
     Parameters
     ----------
     pixel, sample : (n,) uint32; seed, purpose : uint64 (``Purpose.CAMERA_JITTER``).
     width, height : image size; tan_half, aspect : ``tan(fov / 2)`` and ``width / height``
         as ``Camera.generate`` computes them.
-    position, forward, right, up : (3,) float64 (``Camera.frame``).
+    position, forward, right, up : (3,) float64 (``Camera.frame``); advance : float64.
     origin, direction : (n, 3) float32 out.
     """
     start = key_start(seed, purpose)
@@ -466,8 +544,14 @@ def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, p
         d1 = forward[1] + sx * right[1] + sy * up[1]
         d2 = forward[2] + sx * right[2] + sy * up[2]
         length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
-        direction[i, 0], direction[i, 1], direction[i, 2] = d0 / length, d1 / length, d2 / length
-        origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
+        d0, d1, d2 = d0 / length, d1 / length, d2 / length
+        direction[i, 0], direction[i, 1], direction[i, 2] = d0, d1, d2
+        if advance > 0:
+            origin[i, 0] = position[0] + d0 * advance
+            origin[i, 1] = position[1] + d1 * advance
+            origin[i, 2] = position[2] + d2 * advance
+        else:
+            origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
 
 
 @njit(nogil=True, cache=True)

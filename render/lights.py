@@ -8,6 +8,7 @@ lights need ``--shadow-samples`` of them.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,3 +136,48 @@ class AmbientLight:
 
 
 Light = PointLight | DirectionalLight | QuadLight | AmbientLight
+
+
+def in_frame(lights: list[Light], origin: np.ndarray) -> list[Light]:
+    """``lights`` moved into a frame whose origin sits at ``origin`` ((3,) float64, world):
+    point positions and quad corners minus ``origin`` (in float64); directions, edges and
+    powers unchanged. The same list when ``origin`` is zero."""
+    origin = np.asarray(origin, np.float64)
+    if not origin.any():
+        return lights
+    moved = []
+    for light in lights:
+        if isinstance(light, PointLight):
+            light = dataclasses.replace(light, position=light.position - origin)
+        elif isinstance(light, QuadLight):
+            light = dataclasses.replace(light, corner=light.corner - origin)
+        moved.append(light)
+    return moved
+
+
+#: The largest power a light may have: float32's largest value. Images are written in float32
+#: (EXR, PFM, HDR), so a light beyond it could only make infinite pixels.
+MAX_POWER = float(np.finfo(np.float32).max)
+_POWER = {PointLight: "intensity", DirectionalLight: "irradiance", QuadLight: "radiance",
+          AmbientLight: "radiance"}
+
+
+def check_power(lights: list[Light], where) -> None:
+    """Refuse a light whose power is not a finite number within float32's range.
+
+    Raises
+    ------
+    InputError
+        Naming ``where`` (the scene file), the light (1-based) and its value.
+    """
+    from vastray.scene.errors import InputError
+
+    for index, light in enumerate(lights):
+        name = _POWER.get(type(light))
+        if name is None:
+            continue
+        value = np.asarray(getattr(light, name), np.float64)
+        if not np.all(np.isfinite(value)) or np.any(np.abs(value) > MAX_POWER):
+            raise InputError(where, f"[[light]] #{index + 1}: {name} {value.tolist()} is beyond "
+                                    f"float32's range ({MAX_POWER:.3g}); the image would be "
+                                    "infinite. Give it in other units (scale every light alike)")

@@ -43,12 +43,17 @@ class Hits:
     normal : (n, 3) float64 unit geometric normal (not yet facing the ray).
     material : (n,) int64 material slot (0 where the store has one object).
     color : (n, 3) float64 per-vertex or colour-mapped colour, or None when the scene has none.
+    point : (n, 3) float64 hit point rebuilt from the triangle and barycentrics, and
+    error : (n,) float64 its error bound (``kernels.hit_points``); None: shading takes
+        ``o + t d`` (hits made up in tests).
     """
 
     t: np.ndarray
     normal: np.ndarray
     material: np.ndarray
     color: np.ndarray | None
+    point: np.ndarray | None = None
+    error: np.ndarray | None = None
 
     @property
     def hit(self) -> np.ndarray:
@@ -56,7 +61,8 @@ class Hits:
 
     def take(self, rows: np.ndarray) -> Hits:
         return Hits(self.t[rows], self.normal[rows], self.material[rows],
-                    None if self.color is None else self.color[rows])
+                    *(None if a is None else a[rows]
+                      for a in (self.color, self.point, self.error)))
 
 
 def facing(normal: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -86,6 +92,8 @@ class ClosestHits:
     t : (n,) float32 (inf = none yet); domain : (n,) int32 domain of the hit
     ng : (n, 3) float32 unnormalised geometric normal; material : (n,) int64
     color : (n, 3) float64 or None
+    point : (n, 3) float64 hit point and error : (n,) float64 its bound, rebuilt from the
+        winning triangle (``kernels.hit_points``); None for records that only keep distances.
     """
 
     t: np.ndarray
@@ -93,12 +101,27 @@ class ClosestHits:
     ng: np.ndarray
     material: np.ndarray
     color: np.ndarray | None
+    point: np.ndarray | None = None
+    error: np.ndarray | None = None
 
     @staticmethod
     def empty(n: int, with_color: bool) -> ClosestHits:
         return ClosestHits(np.full(n, np.inf, np.float32), np.full(n, NO_DOMAIN, np.int32),
                            np.zeros((n, 3), np.float32), np.zeros(n, np.int64),
-                           np.zeros((n, 3)) if with_color else None)
+                           np.zeros((n, 3)) if with_color else None,
+                           np.zeros((n, 3)), np.zeros(n))
+
+    def rebuild_points(self, won: np.ndarray, bvh, prim: np.ndarray, u: np.ndarray,
+                       v: np.ndarray) -> None:
+        """Store the hit points of rays ``won`` ((k,)) on triangles ``prim`` of ``bvh`` at
+        barycentrics ``u, v`` (where this record keeps points)."""
+        if self.point is None or len(won) == 0:
+            return
+        kernels.hit_points(np.ascontiguousarray(won, np.int64),
+                           np.ascontiguousarray(prim, np.int32),
+                           np.ascontiguousarray(u, np.float32),
+                           np.ascontiguousarray(v, np.float32),
+                           bvh.vertices, bvh.indices, self.point, self.error)
 
     def offer(self, rows: np.ndarray, domain: int, bvh, r: dict, color_source: str | None,
               scalar_range: tuple[float, float]) -> np.ndarray:
@@ -134,6 +157,7 @@ class ClosestHits:
         if self.color is not None:
             self.color[won] = vertex_color(bvh, prim, r["u"][got], r["v"][got], color_source,
                                            scalar_range)
+        self.rebuild_points(won, bvh, prim, r["u"][got], r["v"][got])
         return got
 
     def hits(self, rows: np.ndarray | slice = slice(None)) -> Hits:
@@ -142,7 +166,8 @@ class ClosestHits:
         n64 = np.empty(ng.shape)
         kernels.unit_normals(ng, n64)  # ng / norm(ng) in one pass, bit for bit
         return Hits(self.t[rows].astype(np.float64), n64, self.material[rows],
-                    None if self.color is None else self.color[rows])
+                    *(None if a is None else a[rows]
+                      for a in (self.color, self.point, self.error)))
 
 
 NO_DOMAIN = np.iinfo(np.int32).max
@@ -437,17 +462,14 @@ class DomainTracer:
         best.t[rows] = r["tfar"][rows]
         best.domain[rows] = domain
         best.ng[rows] = r["Ng"][rows]
-        needs_bvh = self.color_source is not None or any(
-            resident[d].objects is not None for d in np.unique(domain))
         hit_domains = np.unique(domain)
         with self._stats_lock:
             self.stats.domains_entered.update(int(d) for d in hit_domains)
-        if not needs_bvh:
-            return
         for d in hit_domains:
             sub = domain == d
             won, prim = rows[sub], r["primID"][rows[sub]]
             bvh = resident[int(d)]
+            best.rebuild_points(won, bvh, prim, r["u"][won], r["v"][won])
             if bvh.objects is not None:
                 best.material[won] = bvh.objects[prim]
             if best.color is not None:

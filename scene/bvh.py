@@ -79,13 +79,18 @@ class DomainBVH:
             # embreex builds the BVH on the first query: do it now, so load time includes it.
             self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32),
                             query="DISTANCE")
-        needs_indices = bool(keep & {"colors", "scalars"})
-        if not needs_indices:
-            self.indices = None
-        elif self.compiled and self._scene.indices is not None:
-            self.indices = np.asarray(self._scene.indices)  # the scene's own (shared) array
+        # Vertices and indices stay reachable for rebuilding hit points
+        # (``ClosestHits.rebuild_points``): the compiled scene's own (shared) arrays, or the
+        # store's (no copy where they are contiguous).
+        # nbytes counts them apart only where colours need them, as before: the mesh term of
+        # ``nbytes`` covers the arrays Embree reads in place
+        self._indices_counted = bool(keep & {"colors", "scalars"})
+        if self.compiled and self._scene.indices is not None:
+            self.vertices = np.asarray(self._scene.vertices)
+            self.indices = np.asarray(self._scene.indices)
         else:
-            self.indices = np.array(arrays.indices)
+            self.vertices = np.ascontiguousarray(arrays.vertices, dtype=np.float32)
+            self.indices = np.ascontiguousarray(arrays.indices, dtype=np.uint32)
         self.objects = (np.array(arrays.objects) if "objects" in keep and arrays.objects is not None
                         else None)
         self.colors = np.array(arrays.colors) if "colors" in keep and arrays.colors is not None else None
@@ -95,7 +100,8 @@ class DomainBVH:
     def nbytes(self) -> int:
         """Approximate resident bytes: the mesh (Embree's buffers, or with the compiled binding
         the store's arrays it uses in place), the BVH, plus kept attributes."""
-        kept = [self.indices, self.objects, self.colors, self.scalars]
+        kept = [self.indices if self._indices_counted else None, self.objects, self.colors,
+                self.scalars]
         return self.n_triangles * (36 + 12 + 64) + sum(a.nbytes for a in kept if a is not None)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray,

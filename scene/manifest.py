@@ -37,9 +37,11 @@ from vastray.scene.errors import InputError
 
 FORMAT = "vastray-store"
 #: Version written. 2 added a SHA-256 checksum of every array file (``"sha256"`` in each
-#: domain entry); version 1 stores, without checksums, still open.
-VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: domain entry); 3 added ``"origin"``, the world position of the store's frame: vertices and
+#: every box of the manifest are relative to it, so float32 vertices keep their precision
+#: wherever the data sits. Version 1 and 2 stores (frame at the world origin) still open.
+VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 MANIFEST = "manifest.json"
 #: The manifest key, and the store folder, of the simplified whole-scene model (optional).
 SIMPLIFIED = "simplified"
@@ -249,6 +251,25 @@ def scene_fields(manifest: dict, where: Path) -> np.ndarray:
     _count(manifest.get("triangles"), where, "'triangles' (the total)")
     lo, hi = box(manifest.get("bounds"), where, "scene 'bounds'")
     return np.stack([lo, hi])
+
+
+def frame_origin(manifest: dict, where: Path) -> np.ndarray:
+    """The store frame's origin in world coordinates ((3,) float64): ``"origin"`` of a
+    version 3 manifest, zero for older ones.
+
+    Raises
+    ------
+    InputError
+        A version 3 manifest without a finite 3-vector ``"origin"``.
+    """
+    if manifest["version"] < 3:
+        return np.zeros(3)
+    value = manifest.get("origin")
+    if not (isinstance(value, list) and len(value) == 3 and all(map(_is_number, value))
+            and all(map(math.isfinite, value))):
+        raise InputError(where, f"'origin' must be a finite [x, y, z], found "
+                                f"{one_line(repr(value), 80)}; {REWRITE}")
+    return np.asarray(value, np.float64)
 
 
 def _interval(value, where: Path, what: str) -> None:

@@ -87,6 +87,7 @@ def subset(mesh: DomainArrays, triangles: np.ndarray) -> DomainArrays:
         objects=None if mesh.objects is None else np.asarray(mesh.objects)[triangles],
         scalars=None if mesh.scalars is None else np.asarray(mesh.scalars)[used],
         colors=None if mesh.colors is None else np.asarray(mesh.colors)[used],
+        origin=mesh.origin,
     )
 
 
@@ -128,6 +129,7 @@ def weld(mesh: DomainArrays) -> DomainArrays:
         objects=mesh.objects,
         scalars=None if mesh.scalars is None else np.asarray(mesh.scalars)[keep],
         colors=None if mesh.colors is None else np.asarray(mesh.colors)[keep],
+        origin=mesh.origin,
     )
 
 
@@ -143,7 +145,8 @@ def concat(parts: list[DomainArrays], objects: list[int] | None = None) -> Domai
 
     Returns
     -------
-    DomainArrays with sum(V_i) vertices and sum(T_i) triangles.
+    DomainArrays with sum(V_i) vertices and sum(T_i) triangles, in the first part's frame
+    (``origin``; the other parts' vertices are moved into it in float64).
     """
     if not parts:
         return DomainArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.uint32))
@@ -166,10 +169,20 @@ def concat(parts: list[DomainArrays], objects: list[int] | None = None) -> Domai
                         [p.n_triangles for p in parts])
     else:
         obj = _all("objects")
+    origin = parts[0].origin
+    base = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+
+    def _in_frame(p: DomainArrays) -> np.ndarray:
+        shift = (np.zeros(3) if p.origin is None else np.asarray(p.origin, np.float64)) - base
+        if not shift.any():
+            return np.asarray(p.vertices, np.float32)
+        return (np.asarray(p.vertices, np.float64) + shift).astype(np.float32)
+
     return DomainArrays(
-        vertices=np.concatenate([np.asarray(p.vertices, np.float32) for p in parts]).reshape(-1, 3),
+        vertices=np.concatenate([_in_frame(p) for p in parts]).reshape(-1, 3),
         indices=indices.astype(np.uint32),
         objects=obj,
         scalars=_all("scalars"),
         colors=_all("colors"),
+        origin=origin,
     )

@@ -21,7 +21,7 @@ import numpy as np
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
 from vastray.scene.isosurface import DEFAULT_BRICK, iter_brick_triangles
-from vastray.scene.store import DomainArrays
+from vastray.scene.store import DomainArrays, frame_for, relative_to
 from vastray.scene.volumes import VOLUME_SUFFIXES, read_volume, volume_suffix
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,8 @@ def _read_trimesh(path: Path) -> DomainArrays:
     if not np.all(np.isfinite(vertices64)):
         bad = int(np.count_nonzero(~np.all(np.isfinite(vertices64), axis=1)))
         raise InputError(path, f"{bad} vertices have NaN or infinite coordinates")
-    vertices = vertices64.astype(np.float32)
+    framed = relative_to(vertices64)  # far from the world origin: relative to the data's centre
+    vertices = framed.vertices
     if not np.all(np.isfinite(vertices)):
         raise InputError(path, "vertex coordinates overflow float32")
     if indices.min() < 0 or indices.max() >= len(vertices):
@@ -105,6 +106,7 @@ def _read_trimesh(path: Path) -> DomainArrays:
         indices=indices.astype(np.uint32),
         scalars=_ply_scalars(mesh, path),
         colors=_vertex_colors(mesh, path),
+        origin=framed.origin,
     )
     if path.suffix.lower() == ".stl":  # STL stores three private vertices per triangle
         result = meshops.weld(result)
@@ -165,9 +167,13 @@ def _vertex_colors(mesh, path: Path) -> np.ndarray | None:
 
 def _isosurface(path: Path, iso: float, brick: int, progress: bool) -> DomainArrays:
     vol = read_volume(path)
+    # far from the world origin: vertices relative to the volume's centre (``frame_for``)
+    far_corner = vol.origin + vol.spacing * (np.asarray(vol.data.shape[:3], np.float64) - 1)
+    frame = frame_for(np.minimum(vol.origin, far_corner), np.maximum(vol.origin, far_corner))
+    offset = vol.origin if frame is None else vol.origin - frame
     try:
-        parts = [DomainArrays(v, f) for _, v, f in
-                 iter_brick_triangles(vol.data, iso, brick, vol.spacing, vol.origin, progress)]
+        parts = [DomainArrays(v, f, origin=frame) for _, v, f in
+                 iter_brick_triangles(vol.data, iso, brick, vol.spacing, offset, progress)]
     except ValueError as exc:
         raise InputError(path, str(exc)) from None
     if not parts:

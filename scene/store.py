@@ -15,7 +15,10 @@ Every file loads with ``np.load(path, mmap_mode="r")``. A store is written into 
 folder and renamed into place when complete, so a failed run never leaves a partial store.
 Since format version 2 each domain entry records the SHA-256 of each of its files
 (``"sha256": {"vertices": ..., ...}``), which ``vastray verify`` checks; version 1 stores (no
-checksums) still open. How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
+checksums) still open. Since version 3 the manifest's ``"origin"`` places the store's frame in
+the world: vertices and boxes are stored relative to it (float32 vertices of data far from
+the world origin keep their precision; the renderer moves camera and lights into that frame).
+How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
 
 The optional ``"simplified"`` manifest entry describes a decimated copy of the whole scene
 (:mod:`vastray.scene.simplify`; paper §6.1): its counts, box, files and checksums like a
@@ -31,7 +34,7 @@ import json
 import os
 import shutil
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +56,7 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     SimplifiedInfo,
     StoreRoot,
     domain_file,
+    frame_origin,
     manifest_size_ok,
     mismatch,
     one_line,
@@ -77,6 +81,9 @@ class DomainArrays:
         Per-vertex scalar field (colour-mapped at render time).
     colors : (V, 3) float32 or None
         Per-vertex linear RGB colour in [0, 1].
+    origin : (3,) float64 or None
+        World position the vertices are relative to (None: the world origin). Readers set it
+        for data far from the world origin (``frame_for``), so float32 vertices stay precise.
     """
 
     vertices: np.ndarray
@@ -84,6 +91,7 @@ class DomainArrays:
     objects: np.ndarray | None = None
     scalars: np.ndarray | None = None
     colors: np.ndarray | None = None
+    origin: np.ndarray | None = None
 
     @property
     def n_triangles(self) -> int:
@@ -99,6 +107,31 @@ class DomainArrays:
     def nbytes(self) -> int:
         arrays = [self.vertices, self.indices, self.objects, self.scalars, self.colors]
         return int(sum(a.nbytes for a in arrays if a is not None))
+
+
+def frame_for(lo: np.ndarray, hi: np.ndarray) -> np.ndarray | None:
+    """A frame origin for data in the box ``[lo, hi]`` ((3,) float64 each): None (the world
+    origin) when the box reaches to within its own size of the world origin, where float32
+    coordinates lose nothing worth keeping; otherwise the box centre, rounded to float32.
+
+    Returns
+    -------
+    (3,) float64 or None
+    """
+    center = (np.asarray(lo, np.float64) + np.asarray(hi, np.float64)) / 2.0
+    extent = float(np.max(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), initial=0.0))
+    if float(np.abs(center).max(initial=0.0)) <= max(extent, 0.0):
+        return None
+    return center
+
+
+def relative_to(vertices64: np.ndarray) -> DomainArrays:
+    """``vertices64`` ((V, 3) float64 world positions) as float32 vertices in their own frame
+    (``frame_for`` of their box): DomainArrays with no triangles yet (fill ``indices``)."""
+    v = np.asarray(vertices64, np.float64)
+    origin = frame_for(v.min(axis=0), v.max(axis=0)) if len(v) else None
+    rel = v if origin is None else v - origin
+    return DomainArrays(rel.astype(np.float32), np.zeros((0, 3), np.uint32), origin=origin)
 
 
 class Store:
@@ -124,6 +157,9 @@ class Store:
         self.root = StoreRoot.of(self.path)
         self.manifest = read_manifest(self.root)
         self.bounds = scene_fields(self.manifest, self.root.manifest)
+        #: (3,) float64 world position of the store's frame: vertices, ``bounds`` and domain
+        #: boxes are relative to it (zero before format version 3).
+        self.origin = frame_origin(self.manifest, self.root.manifest)
         self.domains: list[DomainInfo] = [_raise_if_error(item)
                                           for item in DomainParser(self.root, self.manifest)]
         totals(self.manifest, self.domains, self.bounds, self.root.manifest)
@@ -152,6 +188,11 @@ class Store:
     @property
     def n_triangles(self) -> int:
         return sum(d.n_triangles for d in self.domains)
+
+    @property
+    def world_bounds(self) -> np.ndarray:
+        """(2, 3) float64 scene bounds in world coordinates (``bounds`` + ``origin``)."""
+        return self.bounds + self.origin
 
     def domain_boxes(self) -> tuple[np.ndarray, np.ndarray]:
         """Domain boxes as arrays.
@@ -210,7 +251,7 @@ class Store:
         for kind in info.files:
             arrays[kind] = _read_array(self.domain_path(info, kind), mmap=mmap,
                                        drop_cache=drop_cache)
-        dom = DomainArrays(**arrays)
+        dom = DomainArrays(**arrays, origin=self.origin)
         problems = domain_problems(dom, info, self.path, len(self.objects))
         if problems:
             raise problems[0]
@@ -293,8 +334,10 @@ class StoreWriter:
     """
 
     def __init__(self, path: str | os.PathLike, objects: list[dict] | None = None,
-                 overwrite: bool = True):
+                 overwrite: bool = True, origin: np.ndarray | None = None):
         self.path = Path(path)
+        #: The store frame's world position: ``origin``, else the first domain's own.
+        self.origin = None if origin is None else np.asarray(origin, np.float64)
         self.objects = list(objects or [{"name": "default"}])
         self.overwrite = overwrite
         self._entries: list[dict] = []
@@ -319,8 +362,9 @@ class StoreWriter:
 
         Parameters
         ----------
-        dom : the domain's arrays (converted to the store dtypes here).
-        bounds : (2, 3) box; defaults to the box of the domain's triangles.
+        dom : the domain's arrays (converted to the store dtypes here); its vertices are moved
+            (in float64) from its own frame (``dom.origin``) into the store's.
+        bounds : (2, 3) box in the domain's frame; defaults to the box of its triangles.
 
         Raises
         ------
@@ -333,6 +377,13 @@ class StoreWriter:
         if did >= MAX_DOMAINS:
             raise InputError(None, f"a store holds at most {MAX_DOMAINS:,} domains; use a "
                                    "coarser --grid or fewer --domains")
+        own = np.zeros(3) if dom.origin is None else np.asarray(dom.origin, np.float64)
+        if self.origin is None:
+            self.origin = own
+        shift = own - self.origin
+        if shift.any():
+            dom = replace(dom, vertices=np.asarray(dom.vertices, np.float64) + shift)
+            bounds = None if bounds is None else np.asarray(bounds, float) + shift
         arrays = _store_dtypes(dom)
         self._check_domain(did, arrays)
         box = np.asarray(bounds if bounds is not None else DomainArrays(**arrays).bounds(), float)
@@ -383,6 +434,7 @@ class StoreWriter:
         manifest = {
             "format": FORMAT,
             "version": VERSION,
+            "origin": (np.zeros(3) if self.origin is None else self.origin).tolist(),
             "bounds": [lo.tolist(), hi.tolist()],
             "objects": self.objects,
             "attributes": self._has,

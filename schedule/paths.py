@@ -20,7 +20,7 @@ def radiance_soa(rays: RadianceRays, with_color: bool, **extra: np.ndarray) -> S
     hits = ClosestHits.empty(n, with_color)
     fields = {f: getattr(rays, f) for f in RADIANCE_FIELDS}
     fields.update(hit_t=hits.t, hit_domain=hits.domain, hit_ng=hits.ng,
-                  hit_material=hits.material)
+                  hit_material=hits.material, hit_point=hits.point, hit_error=hits.error)
     if with_color:
         fields["hit_color"] = hits.color
     fields.update(extra)
@@ -30,7 +30,7 @@ def radiance_soa(rays: RadianceRays, with_color: bool, **extra: np.ndarray) -> S
 def closest_hits(rays: SoA) -> ClosestHits:
     """The ``hit_*`` fields of ``rays`` as a ClosestHits view (offers write into ``rays``)."""
     return ClosestHits(rays["hit_t"], rays["hit_domain"], rays["hit_ng"], rays["hit_material"],
-                       rays.fields.get("hit_color"))
+                       rays.fields.get("hit_color"), rays["hit_point"], rays["hit_error"])
 
 
 def as_radiance(rays: SoA) -> RadianceRays:

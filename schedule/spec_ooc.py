@@ -349,7 +349,8 @@ class SpeculativeSchedule:
         n = len(rays)
         hits = ClosestHits(self.hbuf_t[path, level], self.hbuf_d[path, level],
                            np.zeros((n, 3), np.float32), np.zeros(n, np.int64),
-                           np.zeros((n, 3)) if self.color_source is not None else None)
+                           np.zeros((n, 3)) if self.color_source is not None else None,
+                           np.zeros((n, 3)), np.zeros(n))
         winners = []
         for depth in np.unique(level):
             rows = np.nonzero(level == depth)[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from vastray.render.integrators import RenderSettings
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.partition import partition_grid, partition_kd
-from vastray.scene.store import DomainArrays, Store, StoreWriter
+from vastray.scene.store import DomainArrays, Store, StoreWriter, relative_to
 
 
 def mesh_arrays(mesh: trimesh.Trimesh, flip: bool = False) -> DomainArrays:
@@ -140,3 +141,64 @@ def bumpy_config() -> SceneConfig:
                 QuadLight(np.array([-1.0, 3.0, -1.0]), np.array([0.0, 0.0, 0.8]),
                           np.array([0.8, 0.0, 0.0]), np.full(3, 4.0)),
                 AmbientLight(np.full(3, 0.2))])
+
+
+# --- far from the origin (issue 20; tests/test_numerics.py, bench/numerics.py) ---------------
+
+#: Where the far scene's camera looks from (a unit direction) and at.
+FAR_VIEW = np.array([0.55, 0.45, 1.0]) / np.linalg.norm([0.55, 0.45, 1.0])
+FAR_TARGET = np.array([0.0, -0.2, 0.0])
+
+
+def far_mesh(shift: float) -> DomainArrays:
+    """A bumpy sphere, six boxes and a ground slab (about 5,200 triangles, 2.6 units across)
+    moved by ``shift`` along (1, 1, 1): positions in float64, stored relative to their centre
+    (``relative_to``), as a reader does."""
+    rng = np.random.default_rng(3)
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    bump = 1.0 + 0.15 * np.sin(8 * sphere.vertices[:, 0]) * np.cos(10 * sphere.vertices[:, 1])
+    sphere.vertices *= bump[:, None]
+    boxes = []
+    for _ in range(6):
+        box = trimesh.creation.box(extents=rng.uniform(0.1, 0.3, 3))
+        box.apply_translation([rng.uniform(-1, 1), -0.5, rng.uniform(-1, 1)])
+        boxes.append(box)
+    ground = trimesh.creation.box(extents=[2.6, 0.05, 2.6])
+    ground.apply_translation([0, -0.65, 0])
+    mesh = trimesh.util.concatenate([sphere, ground, *boxes])
+    framed = relative_to(np.asarray(mesh.vertices, np.float64) + shift)
+    return dataclasses.replace(framed, indices=np.asarray(mesh.faces, np.uint32))
+
+
+def far_store(path: Path, shift: float, grid=(2, 2, 2)) -> Store:
+    """``far_mesh(shift)`` written as a ``grid`` of domains."""
+    return write_store(path, far_mesh(shift), grid=grid)
+
+
+def far_config(shift: float = 0.0, distance: float = 4.0, power: float = 6.0) -> SceneConfig:
+    """The far scene's camera ``distance`` from its target along ``FAR_VIEW`` (the field of
+    view keeps the framing of a camera 4 units away), a point light of intensity ``power``
+    and a sky, all moved by ``shift`` along (1, 1, 1)."""
+    offset = np.full(3, shift)
+    fov = float(np.degrees(2 * np.arctan(np.tan(np.radians(20.0)) * 4.0 / distance)))
+    lights = [PointLight(np.array([0.8, 2.0, 0.6]) + offset, np.full(3, power)),
+              AmbientLight(np.full(3, 0.15))]
+    return SceneConfig(camera={"position": FAR_TARGET + offset + FAR_VIEW * distance,
+                               "look_at": FAR_TARGET + offset, "up": np.array([0.0, 1.0, 0.0]),
+                               "fov": fov}, lights=lights)
+
+
+def far_settings(spp: int = 8, seed: int = 1) -> RenderSettings:
+    """Path tracing, one bounce, 64 x 48."""
+    return RenderSettings(width=64, height=48, spp=spp, integrator="pt", bounces=1,
+                          shadow_samples=2, seed=seed)
+
+
+def compare(image: np.ndarray, reference: np.ndarray) -> dict:
+    """Relative change of the mean and relative MSE (MSE / mean(reference^2)) of ``image``
+    against ``reference`` (non-finite pixels counted apart, as 0)."""
+    finite = np.isfinite(image)
+    clean = np.where(finite, image, 0.0)
+    return {"mean": float(clean.mean() / reference.mean() - 1.0),
+            "rel_mse": float(np.mean((clean - reference) ** 2) / np.mean(reference ** 2)),
+            "nonfinite": int(np.count_nonzero(~finite))}

@@ -194,7 +194,9 @@ def test_fused_offer_equals_numpy_comparison_with_ties():
     n = 4000
     fused = ClosestHits.empty(n, False)
     ref = ClosestHits.empty(n, False)
-    bvh = SimpleNamespace(objects=None)
+    bvh = SimpleNamespace(objects=None,  # 100 triangles to rebuild hit points on
+                          vertices=rng.uniform(-1, 1, (300, 3)).astype(np.float32),
+                          indices=np.arange(300, dtype=np.uint32).reshape(100, 3))
     for domain in (5, 2, 7, 2 + 1):
         rows = np.sort(rng.choice(n, 2500, replace=False))
         k = len(rows)

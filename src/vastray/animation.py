@@ -33,7 +33,7 @@ from vastray.render.imageio import atomic_path, image_error, read_image, write_i
 from vastray.render.integrators import RenderSettings
 from vastray.render.rng import frame_seed
 from vastray.render.scene_config import SceneConfig
-from vastray.report import build_report, run_header, write_report
+from vastray.report import build_report, count_overflow, run_header, write_report
 from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -211,6 +211,7 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
         def on_frame(frame: int, result: RenderResult) -> None:
             files = outputs.of(frame)
             image = result.film.image()
+            count_overflow(image, result.counters, str(files[0]))
             reference = references.get(frame)
             error = image_error(image, read_image(reference)) if reference else None
             seed = frame_seed(settings.seed, frame)

@@ -27,7 +27,7 @@ from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
-from vastray.report import build_report, write_report
+from vastray.report import build_report, count_overflow, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import portals
@@ -440,7 +440,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     store = Store(store_path)
     config.check_objects(store.objects)
     if not animating:  # an animation checks the camera of each of its frames
-        config.resolve_camera(store.bounds[0], store.bounds[1], args.width, args.height)
+        config.resolve_camera(*store.world_bounds, args.width, args.height)
     reference = read_image(args.reference) if args.reference and not animating else None
     settings = RenderSettings(
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
@@ -468,11 +468,12 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     options = run_options(args, cache)
     if animating:
         return run_animation(args, store_path=str(store_path), config=config,
-                             settings=settings, bounds=store.bounds, scheduler=scheduler,
+                             settings=settings, bounds=store.world_bounds, scheduler=scheduler,
                              options=options, outputs=frame_outputs, render_one=render_one,
                              render_many=_render_many(args, config, settings, render_one))
     result = render_one(config, settings)
     image = result.film.image()
+    count_overflow(image, result.counters, outputs[0])
     error = image_error(image, reference) if reference is not None else None
     summary = summary_line(args, result, error, outputs)
     with ExitStack() as written:  # every output, or none: renamed into place together

@@ -285,9 +285,9 @@ def _size(n: int) -> str:
     return f"{n} B"
 
 
-def _box(lo, hi) -> str:
-    return ("[" + " ".join(f"{v:.4g}" for v in lo) + "] .. ["
-            + " ".join(f"{v:.4g}" for v in hi) + "]")
+def _box(lo, hi, digits: int = 4) -> str:
+    return ("[" + " ".join(f"{v:.{digits}g}" for v in lo) + "] .. ["
+            + " ".join(f"{v:.{digits}g}" for v in hi) + "]")
 
 
 def cmd_info(args) -> int:
@@ -303,7 +303,11 @@ def cmd_info(args) -> int:
     n_bytes = sum(d.nbytes for d in store.domains)
     print(f"total: {len(store.domains)} domains, {store.n_triangles:,} triangles, "
           f"{n_vert:,} vertices, {_size(n_bytes)}")
-    print(f"scene bounds: {_box(store.bounds[0], store.bounds[1])}")
+    lo, hi = store.world_bounds
+    print(f"scene bounds: {_box(lo, hi, digits=4 if not store.origin.any() else 10)}")
+    if store.origin.any():  # domain boxes above are relative to it
+        print(f"frame origin: ({', '.join(f'{c:.9g}' for c in store.origin)}); domain boxes "
+              "are relative to it")
     attrs = [a for a in ATTRIBUTES if m.get("attributes", {}).get(a)]
     extra = f" (scalar range {store.scalar_range[0]:.4g} .. {store.scalar_range[1]:.4g})" \
         if store.scalar_range else ""

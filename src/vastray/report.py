@@ -33,6 +33,26 @@ def run_header(store: str, scheduler: str, options: dict | None) -> dict:
     }
 
 
+def count_overflow(image: np.ndarray, counters: dict, where: str) -> int:
+    """Count the pixels of ``image`` ((H, W, 3)) that are NaN or infinite once written as
+    float32, as ``counters["nonfinite_pixels"]``, and say so on stderr when there are any:
+    such a pixel never reaches a file silently.
+
+    Returns
+    -------
+    The count.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(np.asarray(image).astype(np.float32)).all(axis=-1)
+    count = int(np.count_nonzero(~finite))
+    counters["nonfinite_pixels"] = count
+    if count:
+        print(f"warning: {where}: {count:,} of {finite.size:,} pixels are NaN or infinite in "
+              "float32 (a light too strong for the scene's units?); written as they are",
+              file=sys.stderr)
+    return count
+
+
 def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
                  error: dict | None = None, reference: str | None = None,
                  scheduler: str = "image", options: dict | None = None,
