@@ -216,8 +216,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
             if not survive_node_loss or size == 1:
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
-            recoveries.append({"node": lost.rank, "cause": lost.cause,
-                               "frames": [0] if remaining is None else list(remaining)})
+            recoveries.append({"node": lost.rank, "cause": lost.cause, "frames": [0] if (
+                frames is None) else [f for f in frames if f not in delivered]})
             size -= 1
             if listen is not None:  # the survivors regroup on the address bound first
                 listen = bound["listen"]

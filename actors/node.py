@@ -271,16 +271,34 @@ class TreeReduceActor:
         #: levels the last all-reduce climbed below this node (at the root: the tree's height,
         #: floor(log2 P) <= ceil(log2 P)); carried up in each partial's header.
         self.levels = 0
+        #: films from children for a later frame than the one being reduced, by (child rank,
+        #: frame ordinal): a child goes on to its next frame without waiting for this node.
+        self._early_films: dict[tuple[int, int], object] = {}
 
-    async def reduce_film(self, film, width: int, height: int):
-        """Sum this subtree's films; the root returns the total, others send it up."""
-        for _ in children(self.rank, self.size):
-            message = await self.management.receive("film", "film from a child node")
-            film.merge(film_from(message, width, height))
+    async def reduce_film(self, film, width: int, height: int, ordinal: int = 0):
+        """Sum this subtree's films of frame ``ordinal`` (the job's frames counted from 0);
+        the root returns the total, others send it up.
+
+        Each child's film is the one it labelled with ``ordinal``, taken in ascending child
+        rank, so the sum is the same whatever order films arrive in. (Taking the next film to
+        arrive mixed frames in animations: a child one frame ahead sent its next film before
+        the other child's film of this frame came, and frames lost or doubled samples.)
+        """
+        for child in children(self.rank, self.size):
+            film.merge(film_from(await self._child_film(child, ordinal), width, height))
         up = parent(self.rank)
         if up is not None:
-            await self.management.to_peer(self.endpoints[up], film_frames(film, {"rank": self.rank}))
+            await self.management.to_peer(self.endpoints[up], film_frames(
+                film, {"rank": self.rank, "ordinal": ordinal}))
         return film
+
+    async def _child_film(self, child: int, ordinal: int):
+        """The film ``child`` sent for frame ``ordinal`` (those of later frames are kept)."""
+        while (child, ordinal) not in self._early_films:
+            message = await self.management.receive("film", "film from a child node")
+            key = (int(message.meta["rank"]), int(message.meta.get("ordinal", 0)))
+            self._early_films[key] = message
+        return self._early_films.pop((child, ordinal))
 
     async def allreduce(self, arrays: dict[str, np.ndarray], ops: dict[str, str]
                         ) -> dict[str, np.ndarray]:
@@ -482,7 +500,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                                                     frame_config, frame_settings, report, state)
                 busy = time.perf_counter() - start
                 reduce_start = time.perf_counter()
-                film = await tree.reduce_film(film, settings.width, settings.height)
+                film = await tree.reduce_film(film, settings.width, settings.height, ordinal)
                 reduce_s = time.perf_counter() - reduce_start
                 busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
                 counters = _report_counters(counters, management.rejections)
