@@ -27,6 +27,7 @@ from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import NodeState, render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
+from vastray.actors.job_options import JobOptions
 from vastray.actors.rendezvous import launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -442,6 +443,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
 
     rank, size = int(job["rank"]), int(job["size"])
     management.endpoints = job["endpoints"]
+    options = JobOptions.from_wire(job["options"])  # refuses another version, unknown fields
     settings = RenderSettings(**job["settings"])
     store = Store(job["store"])
     config = (SceneConfig() if not job.get("scene_toml")
@@ -478,8 +480,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 frame_settings, frame_config = frame_inputs(settings, config, store, frame)
                 state.ordinal, state.frame = ordinal, frame or 0
                 start = time.perf_counter()
-                film, counters = await render_share(management, tree, job, rank, size, store,
-                                                    frame_config, frame_settings, report, state)
+                film, counters = await render_share(management, tree, options, rank, size,
+                                                    store, frame_config, frame_settings, report,
+                                                    state)
                 busy = time.perf_counter() - start
                 reduce_start = time.perf_counter()
                 film = await tree.reduce_film(film, settings.width, settings.height)
@@ -510,22 +513,20 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
 
 
-async def render_share(management, tree, job: dict, rank: int, size: int, store, config,
-                       settings, report, state: NodeState):
+async def render_share(management, tree, options: JobOptions, rank: int, size: int, store,
+                       config, settings, report, state: NodeState):
     """This node's partial film of one frame and its counters, by the job's scheduler."""
     from vastray.actors.local import render_out_of_core
 
-    if job["node_scheduler"] == "spec-insitu":
-        return await render_spec_insitu(management, tree, job, rank, size, store, config,
+    if options.scheduler == "spec-insitu":
+        return await render_spec_insitu(management, tree, options, rank, size, store, config,
                                         settings, on_tile=report, state=state)
-    if job["node_scheduler"] in DECOMPOSITION_MODES:
-        return await render_owned_domains(management, job, rank, size, store, config,
+    if options.scheduler in DECOMPOSITION_MODES:
+        return await render_owned_domains(management, options, rank, size, store, config,
                                           settings, on_tile=report, state=state, tree=tree)
     result = await asyncio.to_thread(
-        render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
-        cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
-        history_depth=job.get("history_depth"), progress=False, share=(rank, size),
-        on_tile=report, threads=job.get("threads"), preload=job.get("preload", True))
+        render_out_of_core, store, config, settings, options, progress=False,
+        share=(rank, size), on_tile=report)
     return result.film, result.counters
 
 
@@ -551,7 +552,8 @@ def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
 
 
 #: Counters that are settings, not counts: a job's total keeps the latest frame's.
-_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution"})
+_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution",
+                       "load_bandwidth_mb_s"})
 
 
 def _accumulate(totals: dict, counters: dict) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 HELLO = "hello"          # node -> coordinator: rank, endpoint
-JOB = "job"              # coordinator -> node: store, scene, settings, peers
+JOB = "job"              # coordinator -> node: store, scene, settings, job options, peers
 PROGRESS = "progress"    # node -> coordinator: paths done
 HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
 FILM = "film"            # node -> parent node / root -> coordinator: partial film
@@ -47,8 +47,8 @@ _NUMBER = (int, float)
 #: Required meta keys and their types, per kind (extra keys are allowed).
 META = {
     HELLO: {"rank": int, "endpoint": str},
-    JOB: {"store": str, "settings": dict, "node_scheduler": str, "rank": int, "size": int,
-          "endpoints": list, "tile": int},
+    JOB: {"store": str, "settings": dict, "options": dict, "rank": int, "size": int,
+          "endpoints": list},
     PROGRESS: {"rank": int, "paths": int},
     HEARTBEAT: {},
     FILM: {"rank": int},

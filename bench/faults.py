@@ -43,6 +43,7 @@ from fault_proxy import PeerProxy
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
@@ -112,8 +113,9 @@ def signal_run(store, toml, settings, scheduler, sig) -> tuple[object, float]:
     striker.start()
     start = time.perf_counter()
     try:
-        result = render_distributed(store, toml, settings, 4, scheduler=scheduler, timeout=60,
-                                    heartbeat_timeout=5.0, max_samples_in_flight=300)
+        result = render_distributed(store, toml, settings, 4,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    timeout=60, heartbeat_timeout=5.0)
     finally:
         striker.join()
     return result, time.perf_counter() - start
@@ -148,9 +150,11 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
     def run():
         start = time.perf_counter()
         try:
-            outcome["result"] = render_distributed(
-                store, toml, settings, 2, scheduler=scheduler, listen=f"127.0.0.1:{port}",
-                timeout=timeout, heartbeat_timeout=heartbeat, max_samples_in_flight=2000)
+            outcome["result"] = render_distributed(store, toml, settings, 2,
+                                                   options=JobOptions(scheduler=scheduler,
+                                                                      max_samples_in_flight=2000),
+                                                   listen=f"127.0.0.1:{port}", timeout=timeout,
+                                                   heartbeat_timeout=heartbeat)
         except Exception as exc:  # noqa: BLE001 - reported by the caller
             outcome["error"] = exc
         outcome["seconds"] = time.perf_counter() - start
@@ -233,7 +237,8 @@ def main() -> None:
     store, toml = make_scene(root)
     settings = RenderSettings(width=32, height=24, spp=32, integrator="pt", bounces=2,
                               shadow_samples=4)
-    render_distributed(store, toml, settings, 2, scheduler=args.scheduler, timeout=60)  # warm-up
+    render_distributed(store, toml, settings, 2, options=JobOptions(scheduler=args.scheduler),
+                       timeout=60)  # warm-up
     # The fault-free runs each fault is compared with, started the same way as the faulty ones:
     # 4 nodes started by the coordinator (kill, stop), 2 started as `vastray node` (storm,
     # forged); the median of --runs.

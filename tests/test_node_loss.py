@@ -23,6 +23,7 @@ from test_distributed import _node_pids
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
@@ -59,8 +60,9 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
     striker = threading.Thread(target=strike)
     striker.start()
     try:
-        result = render_distributed(store.path, toml, st, 4, scheduler=scheduler, timeout=60,
-                                    heartbeat_timeout=5.0, max_samples_in_flight=300)
+        result = render_distributed(store.path, toml, st, 4,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    timeout=60, heartbeat_timeout=5.0)
     finally:
         striker.join()
     assert hit, "the test found no node 2 to stop"
@@ -130,9 +132,9 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
     striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
     striker.start()
     try:
-        result = render_distributed(store.path, toml, st, 3, scheduler=scheduler,
-                                    listen=f"127.0.0.1:{port}", timeout=60,
-                                    heartbeat_timeout=3.0, max_samples_in_flight=300)
+        result = render_distributed(store.path, toml, st, 3,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0)
     finally:
         striker.join()
         _reap(nodes)
@@ -166,10 +168,11 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
     striker.start()
     try:
         with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
-            render_distributed(store.path, toml, settings(width=32, height=24, spp=128,
-                                                          integrator="pt"),
-                               3, scheduler="async", listen=f"127.0.0.1:{port}", timeout=60,
-                               heartbeat_timeout=3.0, max_samples_in_flight=300,
+            render_distributed(store.path, toml,
+                               settings(width=32, height=24, spp=128,
+                                                          integrator="pt"), 3,
+                               options=JobOptions(scheduler="async", max_samples_in_flight=300),
+                               listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0,
                                survive_node_loss=False)
     finally:
         striker.join()
@@ -227,8 +230,9 @@ def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
     st = settings(width=64, height=48, spp=256, integrator="pt")
     paths = st.width * st.height * st.spp
     start = time.monotonic()
-    result = render_distributed(store.path, toml, st, 2, scheduler="image", timeout=60,
-                                heartbeat_timeout=2.0, max_samples_in_flight=paths)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="image", max_samples_in_flight=paths),
+                                timeout=60, heartbeat_timeout=2.0)
     assert time.monotonic() - start > 3.0, "node 0's tile should outlast the heartbeat timeout"
     assert result.counters["node_failures"] == []
     assert result.counters["nodes_asked"] == 2 and result.counters["nodes"] == 2
