@@ -316,3 +316,31 @@ def test_the_compiled_history_match_is_numpys_comparison():
     _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto.astype(np.int64), out)
     assert expected.any() and not expected.all()
     assert (out == expected).all()
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_load_bandwidth_throttles_every_load_of_the_out_of_core_schedules(bumpy, config,
+                                                                          scheduler):
+    """--load-bandwidth reaches the domain cache of image and spec-ooc (it was dropped on the
+    way once): each load is held to its size over the bandwidth, so the time spent waiting is
+    at least the bytes loaded over the bandwidth, less the real reads (a lower bound: a busy
+    machine only makes the reads longer, and the waits then shorter, never the sum). Same
+    image."""
+    st = settings(width=24, height=18, spp=1, integrator="pt", bounces=1)
+    free = render_out_of_core(bumpy, config, st, JobOptions(scheduler=scheduler, cache=4),
+                              progress=False)
+    per_load = max(d.nbytes for d in bumpy.domains)
+    megabytes_per_s = per_load / 0.02 / 1e6  # the largest domain takes 20 ms
+    slowed = render_out_of_core(bumpy, config, st,
+                                JobOptions(scheduler=scheduler, cache=4,
+                                           load_bandwidth=megabytes_per_s), progress=False)
+    c = slowed.counters
+    floor = c["bytes_loaded"] / (megabytes_per_s * 1e6)
+    assert c["loads"] == free.counters["loads"] > 0
+    assert c["load_bandwidth_mb_s"] == pytest.approx(megabytes_per_s)
+    assert free.counters["load_bandwidth_mb_s"] is None
+    assert free.counters["load_throttle_s"] == 0
+    assert c["read_s"] >= floor - 1e-3  # read_s: each read and its wait
+    assert c["load_throttle_s"] >= 0.5 * floor  # a 50 KB read takes far less than 10 ms
+    assert slowed.seconds["total"] >= floor * 0.9
+    np.testing.assert_array_equal(slowed.film.image(), free.film.image())
