@@ -73,3 +73,45 @@ def test_load_bandwidth_is_cycled_over_the_ranks_in_bytes_per_second():
     options = JobOptions(load_bandwidth=[100, 50])
     assert [options.load_bytes_per_second(r) for r in range(3)] == [100e6, 50e6, 100e6]
     assert JobOptions(load_bandwidth=2).for_report()["load_bandwidth"] == 2.0
+
+
+def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
+    """A real node process, given a job whose options carry another version, reports the
+    failure to its coordinator with the reason (and renders nothing)."""
+    import subprocess
+    import sys
+
+    import zmq
+
+    from vastray.actors import protocol
+    from vastray.transport.codec import decode, encode
+
+    ctx = zmq.Context()
+    router = ctx.socket(zmq.ROUTER)
+    router.setsockopt(zmq.LINGER, 0)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    node = subprocess.Popen([sys.executable, "-m", "vastray.actors.node", "--coordinator",
+                             f"tcp://127.0.0.1:{port}", "--rank", "0", "--timeout", "30"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert router.poll(30_000), "the node never said hello"
+        identity, _, *hello = router.recv_multipart()
+        assert decode(hello).kind == protocol.HELLO
+        wire = dict(JobOptions().to_wire(), version=99)
+        job = {"store": str(tmp_path), "settings": {}, "options": wire, "rank": 0, "size": 1,
+               "endpoints": [decode(hello).meta["endpoint"]]}
+        router.send_multipart([identity, b"token", *encode(protocol.JOB, {}, job)])
+        failed = None
+        while failed is None and router.poll(30_000):
+            _, token, *body = router.recv_multipart()
+            message = decode(body)
+            if message.kind == protocol.FAILED:
+                failed = message.meta["error"]
+        assert failed is not None and "job options version 99" in failed, failed
+        assert node.wait(30) != 0
+    finally:
+        if node.poll() is None:
+            node.kill()
+        node.wait()
+        router.close()
+        ctx.term()
