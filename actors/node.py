@@ -347,10 +347,7 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
                                  token=token)
     log.info("listening for peers on %s", management.endpoint)
-    advertised = os.environ.get(protocol.FAULT_PEER_ENDPOINT_ENV) or management.endpoint
-    if advertised != management.endpoint:
-        log.warning("fault injection: peers are told to send to %s (%s), not here",
-                    advertised, protocol.FAULT_PEER_ENDPOINT_ENV)
+    advertised = peer_endpoint(management)
     watchers = []
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
@@ -400,16 +397,7 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         for task in watchers:
             task.cancel()
         aborted.set()  # a render thread still running stops at its next tile
-        work.cancel()
-        slow_drop = float(os.environ.get(protocol.FAULT_SLOW_DROP_ENV) or 0)
-        if slow_drop > 0:
-            log.warning("fault injection: dropping the job takes %.1f s more (%s)", slow_drop,
-                        protocol.FAULT_SLOW_DROP_ENV)
-            await asyncio.sleep(slow_drop)
-        try:
-            await work
-        except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
-            pass
+        await drop_job(work)
         log.warning("the coordinator regroups (%s); dropping this job",
                     regroup.result().meta["lost"])
         return True
@@ -417,6 +405,23 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         for task in watchers:
             task.cancel()
         management.close()
+
+
+def peer_endpoint(management: ManagementActor) -> str:
+    """The endpoint this node tells its peers (in its hello) to send to: its own.
+    (``bench/fault_node.py`` replaces it to put a fault-injecting proxy in between.)"""
+    return management.endpoint
+
+
+async def drop_job(work: asyncio.Future) -> None:
+    """Cancel the work of a job the coordinator regrouped away from, and wait for it to end.
+    (``bench/fault_node.py`` slows it down to test that the coordinator's silence meanwhile
+    is not taken for its loss.)"""
+    work.cancel()
+    try:
+        await work
+    except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
+        pass
 
 
 async def _report_failure(management: ManagementActor, rank: int, exc: BaseException) -> None:

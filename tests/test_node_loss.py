@@ -74,17 +74,24 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
     np.testing.assert_array_equal(result.film.count, reference.count)  # nothing counted twice
 
 
-def _start_nodes(port: int, logs: list[Path], env: dict | None = None
+#: The node launcher with fault injection (the production node reads no fault hooks).
+FAULT_NODE = Path(__file__).resolve().parents[1] / "bench" / "fault_node.py"
+
+
+def _start_nodes(port: int, logs: list[Path], slow_drop_s: float = 0.0
                  ) -> list[subprocess.Popen]:
-    """`vastray node` processes started as a user starts them on other machines."""
+    """`vastray node` processes started as a user starts them on other machines; with
+    ``slow_drop_s``, through ``bench/fault_node.py``, dropping a regrouped job that much
+    slower."""
+    node_args = ["--coordinator", f"tcp://127.0.0.1:{port}", "--timeout", "60"]
+    command = ([sys.executable, str(FAULT_NODE), "--slow-drop", str(slow_drop_s), "--",
+                *node_args] if slow_drop_s > 0 else [sys.executable, "-m", "vastray.cli",
+                                                     "node", *node_args])
     nodes = []
     for log in logs:
         with open(log, "wb") as err:
-            nodes.append(subprocess.Popen(
-                [sys.executable, "-m", "vastray.cli", "node", "--coordinator",
-                 f"tcp://127.0.0.1:{port}", "--timeout", "60"],
-                stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, **(env or {}))))
+            nodes.append(subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err,
+                                          stdin=subprocess.DEVNULL))
     return nodes
 
 
@@ -127,7 +134,7 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
     st = settings(width=32, height=24, spp=128, integrator="pt")
     port = _free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    nodes = _start_nodes(port, logs, {protocol.FAULT_SLOW_DROP_ENV: str(slow_drop)})
+    nodes = _start_nodes(port, logs, slow_drop)
     hit: list[int] = []
     striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
     striker.start()
