@@ -13,8 +13,9 @@ from vastray.render.driver import render
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.tracer import DomainTracer, RaySlabs, box_pad
 from vastray.scene.cache import DomainCache
-from vastray.schedule.geometry import DomainGeometry, crossings_by_loop, next_domain_by_loop
+from vastray.schedule.geometry import DomainGeometry
 
+from domain_loops import crossings_by_loop, next_domain_by_loop
 from scenes import camera_config, settings, terrain_scene, write_store
 
 
