@@ -546,10 +546,12 @@ def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
 def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
     """The run's switches besides the scheduler, for its report (and ``vastray plot``'s
     labels): the job's options as the schedulers receive them (defaults filled in), the node
-    count and the frames."""
+    count, timeouts and address, and the frames."""
     report = options.for_report()
     del report["scheduler"]  # the report's own "scheduler"
-    return {"nodes": args.nodes, **report, "frames": args.frames,
+    nodes = {"node_timeout_s": args.node_timeout, "heartbeat_timeout_s": args.heartbeat_timeout,
+             "listen": args.listen} if args.nodes else {}
+    return {"nodes": args.nodes, **report, **nodes, "frames": args.frames,
             "first_frame": args.first_frame}
 
 
