@@ -43,33 +43,45 @@ class JobOptionsError(InputError):
 
 @dataclass(frozen=True)
 class JobOptions:
-    """How one render job runs. The reader of each field is named beside it.
+    """How one render job runs. Each runtime reads each field in one place, named beside
+    it: the in-core reference (``commands_render._renderer``), the out-of-core runtime of
+    one process or of a node's sort-first tiles (``local.render_out_of_core``), and the
+    domain-decomposition runtimes of the nodes (``decomposition.render_owned_domains`` and
+    ``insitu.render_spec_insitu``, through ``NodeState.preloader_for`` for the cache, threads,
+    preloading and bandwidth).
 
     Parameters
     ----------
-    scheduler : the schedule every process runs (``vastray.commands_render``'s renderer,
-        ``actors.local.render_out_of_core`` and ``actors.node.render_share`` dispatch on it).
-    cache : most domains resident per process; None: all (or as many as a node owns) (the
-        domain cache's capacity).
+    scheduler : the schedule every process runs (the CLI's renderer, ``render_share`` on a
+        node and ``render_out_of_core`` dispatch on it).
+    cache : most domains resident per process; None: all (or as many as a node owns).
     max_samples_in_flight : paths traced at once per process (the tile); None: all of them
-        (``render_out_of_core``; the node runtimes' tile).
+        (``render_distributed`` fills in 65536 for the nodes).
     history_depth : spec-ooc's H, bounces speculated before hits resolve; None: every bounce
-        (``schedule.spec_ooc.SpeculativeSchedule``).
+        (passed to ``schedule.spec_ooc.SpeculativeSchedule``).
     max_batch_rays : most rays in one batch between two nodes (``decomposition._Node``).
     threads : threads each process's Embree queries split their rays over; None: all cores
-        (``scene.bvh.query_pool``).
+        (``render_distributed`` fills in this machine's cores shared among its nodes).
     preload : load the next domain in the background (the domain cache's preloading).
-    resident_first : schedules serve domains in memory before loading others (the schedules).
+    resident_first : schedules serve domains in memory before loading others (the image and
+        spec-ooc schedules, and async's).
     load_bandwidth : MB/s of emulated network storage: a domain load takes at least its size
-        over this; one number for every process or one per rank, cycled; None: the disk's own
-        speed (the domain cache, through ``load_bytes_per_second``).
-    simplified : the simplified-model policy of ``schedule.simplified``; None: off
-        (``decomposition.simplified_routing``).
+        over this; one number for every process or one per rank, cycled
+        (``load_bytes_per_second``); None: the disk's own speed.
+    simplified : the simplified-model policy of ``schedule.simplified`` (async, temporal);
+        None: off (``decomposition.simplified_routing``).
     portal_interval, portal_threshold, portal_resolution, portal_accuracy : the virtual
         portals of ``simplified="portal"`` (``decomposition.simplified_routing``).
-    assignment : async/temporal domain ownership; None: the scheduler's default
-        (``decomposition._temporal_frame``).
+    assignment : domain ownership, ``sequential`` (async's round robin, its only one so far),
+        ``spatial`` or ``temporal``; None: the scheduler's default
+        (``decomposition._temporal_frame`` for temporal).
     priority : temporal's domain priority; None: ``cost-rate`` (``decomposition._temporal_frame``).
+
+    Raises
+    ------
+    JobOptionsError
+        On construction, for a value of the wrong type or range, or options that do not fit
+        the scheduler (each message names the command-line option).
     """
 
     scheduler: str = "image"
