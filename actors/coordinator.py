@@ -21,7 +21,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import zmq
@@ -30,6 +30,12 @@ from tqdm import tqdm
 
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_from
+from vastray.actors.job_options import (
+    NODE_ONLY_SCHEDULERS,
+    TILE_SCHEDULERS,
+    JobOptions,
+    JobOptionsError,
+)
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
@@ -45,14 +51,10 @@ from vastray.transport.security import (
     start_authenticator,
 )
 
-#: Distributed schedulers and what each node runs: a schedule over its sort-first tiles
-#: (image, spec-ooc), or its share of the domains (domain, async; see actors.decomposition).
-NODE_SCHEDULE = {"image": "image", "spec-ooc": "spec-ooc", "domain": "domain",
-                 "async": "async", "dynamic": "dynamic", "spec-insitu": "spec-insitu",
-                 "temporal": "temporal"}
-
-
 log = logging.getLogger(__name__)
+
+#: Paths each node traces at once where the job's options leave ``max_samples_in_flight`` unset.
+DEFAULT_NODE_TILE = 65536
 
 
 class NodeFailure(RuntimeError):
@@ -86,24 +88,24 @@ def exit_cause(code: int) -> str:
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
-                       settings: RenderSettings, nodes: int, scheduler: str = "image",
-                       cache_capacity: int | None = None, max_samples_in_flight: int = 65536,
-                       history_depth: int | None = None, timeout: float = 120.0,
-                       listen: str | None = None, keys: ClusterKeys | None = None,
+                       settings: RenderSettings, nodes: int, options: JobOptions | None = None,
+                       timeout: float = 120.0, listen: str | None = None,
+                       keys: ClusterKeys | None = None,
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
-                       max_batch_rays: int = 65536, progress: bool = False,
-                       config: SceneConfig | None = None, threads: int | None = None,
+                       progress: bool = False, config: SceneConfig | None = None,
                        rendezvous: str | os.PathLike | None = None,
                        heartbeat_timeout: float | None = None,
                        survive_node_loss: bool = True, frames: list[int] | None = None,
-                       on_frame: Callable[[int, RenderResult], None] | None = None,
-                       options: dict | None = None) -> RenderResult:
+                       on_frame: Callable[[int, RenderResult], None] | None = None
+                       ) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
     ----------
-    scheduler : ``image`` (sort-first tiles, each node out of core with its own cache) or
-        ``spec-ooc`` (the same split, SpRay's speculative schedule on each node).
+    options : the job's options, sent whole to every node (default: ``JobOptions()``, the
+        ``image`` schedule on sort-first tiles). Where they leave them unset, the tile
+        (``max_samples_in_flight``) is 65536 paths per node, and ``threads`` this machine's
+        cores shared among the nodes started here (with ``listen``: each node's own cores).
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,
         SSH); default: start them here as child processes, on loopback.
@@ -115,8 +117,6 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         also a line for the wait and for every node that joins.
     config : the scene configuration (default: read from ``scene_path``); nodes receive its
         TOML text, so they need no copy of the file.
-    threads : Embree query threads per node (default: this machine's cores shared among the
-        nodes started here; with ``listen``, each node's own cores).
     rendezvous : with ``listen``, a file (on a file system the nodes share) to write this
         coordinator's address into once it listens, for ``vastray node --rendezvous``;
         removed when the render ends.
@@ -135,33 +135,35 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         one image with ``config`` and ``settings`` as they are.
     on_frame : with ``frames``, called as ``on_frame(frame, result)`` as each frame arrives
         (a node loss re-renders only the frames not yet delivered).
-    options : more job entries for the node schedulers (``preload``, ``load_bandwidth``,
-        ``assignment``, ``priority``, ...).
-
     Returns
     -------
     The result of the image, or with ``frames`` of the last frame (its counters list every
     frame's under ``"frames"``).
     """
-    if scheduler not in NODE_SCHEDULE:
-        raise ValueError(f"--nodes supports schedulers {sorted(NODE_SCHEDULE)} so far; "
-                         f"got {scheduler!r}")
+    options = JobOptions() if options is None else options
+    scheduler = options.scheduler
+    if scheduler not in TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS:
+        raise JobOptionsError(f"--nodes runs the schedulers "
+                              f"{', '.join(TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS)}; got "
+                              f"{scheduler!r}")
     if nodes < 1:
         raise ValueError("--nodes must be at least 1")
+    options = replace(
+        options, max_samples_in_flight=options.max_samples_in_flight or DEFAULT_NODE_TILE,
+        threads=options.threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)))
     store = Store(store_path)
     if scheduler == "temporal":
         from vastray.actors.temporal import check_temporal_domains
 
         check_temporal_domains(store)
-    if (options or {}).get("simplified") not in (None, "none") and store.simplified is None:
+    if options.simplified not in (None, "none") and store.simplified is None:
         raise InputError(store.path, "has no simplified model for --simplified; make one with "
                                      f"`vastray simplify {store.path} --ratio 0.01`")
-    if (options or {}).get("simplified") == "portal":
-        from vastray.schedule.portals import DEFAULT_RESOLUTION, check_portal_size
+    if options.simplified == "portal":
+        from vastray.schedule.portals import check_portal_size
 
         try:
-            check_portal_size(len(store.domains),
-                              options.get("portal_resolution", DEFAULT_RESOLUTION))
+            check_portal_size(len(store.domains), options.portal_resolution)
         except ValueError as exc:
             raise InputError(store.path, str(exc)) from None
     config = config if config is not None else load_scene_config(scene_path)
@@ -173,11 +175,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "store": str(Path(store_path).resolve()),
         "scene_toml": config.text, "scene_source": config.source,
         "frame": config.frame,  # nodes resolve the scene's camera and lights at this frame
-        "settings": asdict(settings), "node_scheduler": NODE_SCHEDULE[scheduler],
-        "cache": cache_capacity, "tile": max_samples_in_flight, "history_depth": history_depth,
-        "max_batch_rays": max_batch_rays,
-        "threads": threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)),
-        **(options or {}),
+        "settings": asdict(settings), "options": options.to_wire(),
     }
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp * len(frames or [None])
@@ -257,6 +255,9 @@ def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, si
                 "recoveries": [dict(entry) for entry in recoveries], "per_node": reports,
                 "global_barriers": barriers,
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
+                "bytes_loaded": sum(r["counters"].get("bytes_loaded", 0) for r in reports),
+                "load_throttle_s": round(sum(r["counters"].get("load_throttle_s", 0.0)
+                                             for r in reports), 4),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
                                           for r in reports)}
     counters.update(portal_shares([r["counters"] for r in reports]))

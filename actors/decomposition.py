@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.actors import protocol
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import RenderSetup
 from vastray.actors.preloader import DomainPreloader
 from vastray.render.driver import path_context
@@ -75,13 +76,15 @@ class NodeState:
     #: per-scheduler memory across frames (the temporal scheduler's statistics).
     memory: dict = field(default_factory=dict)
 
-    def preloader_for(self, store, capacity: int, keep, job: dict) -> DomainPreloader:
-        """The node's preloader, made on the first frame (threads from ``job``)."""
+    def preloader_for(self, store, capacity: int, keep, options: JobOptions, rank: int
+                      ) -> DomainPreloader:
+        """The node's preloader, made on the first frame (its threads, preloading switch and
+        emulated storage bandwidth from ``options``, the bandwidth of ``rank``)."""
         if self.preloader is None:
-            self.pool = query_pool(job.get("threads"))
-            self.preloader = DomainPreloader(store, capacity, keep, pool=self.pool,
-                                             load_bandwidth=node_bandwidth(job),
-                                             preload=job.get("preload", True))
+            self.pool = query_pool(options.threads)
+            self.preloader = DomainPreloader(
+                store, capacity, keep, pool=self.pool,
+                load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload)
         return self.preloader
 
     def threads(self) -> int:
@@ -94,20 +97,20 @@ class NodeState:
             self.pool.shutdown()
 
 
-def simplified_routing(store, setup, job: dict, state: NodeState):
-    """This frame's routing to the simplified model (``job["simplified"]``: a policy of
+def simplified_routing(store, setup, options: JobOptions, state: NodeState):
+    """This frame's routing to the simplified model (``options.simplified``: a policy of
     ``schedule.simplified``), or None. The model is loaded once per node and never evicted;
     the portals recorded in the last recording frame are kept in ``state.memory``.
 
-    ``job["portal_accuracy"]`` (portal policy) makes the run an instrumented one, for ACC:
+    ``options.portal_accuracy`` (portal policy) makes the run an instrumented one, for ACC:
     every frame is traced as a recording frame with a crossing log, and the crossings are
     classified with the portals a timed run would predict the frame with; only the frames a
     timed run records replace those portals (``finish_simplified``)."""
-    policy = job.get("simplified")
+    policy = options.simplified
     if policy is None:
         return None
     from vastray.scene.bvh import DomainBVH
-    from vastray.schedule.portals import DEFAULT_RESOLUTION, CrossingLog, Portals
+    from vastray.schedule.portals import CrossingLog, Portals
     from vastray.schedule.simplified import SimplifiedRouting
 
     memory = state.memory
@@ -115,18 +118,17 @@ def simplified_routing(store, setup, job: dict, state: NodeState):
         memory["simplified_bvh"] = DomainBVH(len(store.domains), store.load_simplified(),
                                              setup.keep, state.pool)
     lo, hi = store.domain_boxes()
-    interval = int(job.get("portal_interval", 10))
+    interval = options.portal_interval
     recording = policy == "portal" and (state.frame % interval == 0
                                         or "portals" not in memory)
-    measuring = policy == "portal" and bool(job.get("portal_accuracy"))
+    measuring = policy == "portal" and options.portal_accuracy
     portals = None
     if policy == "portal":
-        portals = (Portals(len(store.domains),
-                           int(job.get("portal_resolution", DEFAULT_RESOLUTION)))
+        portals = (Portals(len(store.domains), options.portal_resolution)
                    if recording or measuring else memory["portals"])
     routing = SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo,
                                 hi, portals=portals, recording=recording or measuring,
-                                threshold=float(job.get("portal_threshold", 0.5)))
+                                threshold=float(options.portal_threshold))
     if measuring:
         routing.log = CrossingLog(setup.total_paths)
         routing.reference = memory.get("portals")
@@ -170,25 +172,14 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
                                                  routing.threshold).counters("acc_"))
 
 
-def node_bandwidth(job: dict) -> float | None:
-    """This node's emulated storage bandwidth in bytes/s (``job["load_bandwidth"]``: MB/s, one
-    number for every node or a list by rank, reused cyclically), or None."""
-    value = job.get("load_bandwidth")
-    if value is None:
-        return None
-    if isinstance(value, list):
-        value = value[int(job["rank"]) % len(value)]
-    return float(value) * 1e6
-
-
-async def render_owned_domains(management, job: dict, rank: int, size: int, store, config,
-                               settings, on_tile=None, state: NodeState | None = None,
+async def render_owned_domains(management, options: JobOptions, rank: int, size: int, store,
+                               config, settings, on_tile=None, state: NodeState | None = None,
                                tree=None) -> tuple[Film, dict]:
     """Render this node's part of every tile under domain decomposition; returns the node's
     partial film (to be summed over nodes) and its counters. ``on_tile(paths)`` hears of the
     paths this node started, after each tile. ``state`` carries the preloader and held
     messages from one frame to the next (default: a fresh one, closed at the end)."""
-    mode = job["node_scheduler"]
+    mode = options.scheduler
     own_state = state is None
     state = NodeState() if state is None else state
     setup = RenderSetup.of(store, config, settings)
@@ -196,27 +187,28 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
     owned = int(np.count_nonzero(owner == rank))
     if mode == "temporal":  # groups change from frame to frame: room for the largest
         owned = -(-len(store.domains) // size) + 1
-    preloader = state.preloader_for(store, job.get("cache") or max(owned, 1), setup.keep, job)
+    preloader = state.preloader_for(store, options.cache or max(owned, 1), setup.keep, options,
+                                    rank)
     before = preloader.stats()
     film = Film(settings.width, settings.height)
     total = setup.total_paths
-    tile = max(1, min(job["tile"], total))
+    tile = max(1, min(options.max_samples_in_flight or total, total))
     n_tiles = -(-total // tile)
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
-    node = _Node(management, rank, stats, job.get("max_batch_rays", MAX_BATCH_RAYS),
+    node = _Node(management, rank, stats, options.max_batch_rays,
                  early=state.early)
     base = state.ordinal * n_tiles  # tile labels are unique over the frames of a job
-    routing = simplified_routing(store, setup, job, state)
+    routing = simplified_routing(store, setup, options, state)
     try:
         if mode == "async":
             frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
                                 base=base, status_label=state.ordinal, simple=routing,
-                                resident_first=job.get("resident_first", True))
+                                resident_first=options.resident_first)
             await frame.run(preloader)
         elif mode == "temporal":
-            frame = await _temporal_frame(node, setup, settings, store, job, rank, size, tile,
+            frame = await _temporal_frame(node, setup, settings, store, options, rank, size, tile,
                                           film, on_tile, base, state, preloader, tree, stats,
                                           routing)
         if mode in ("async", "temporal"):
@@ -249,22 +241,26 @@ async def render_owned_domains(management, job: dict, rank: int, size: int, stor
             state.close()
     stats["threads"] = state.threads()
     stats.update(frame_load_stats(before, preloader.stats()))
+    stats["load_bandwidth_mb_s"] = preloader.load_bandwidth_mb_s()
     stats["cache_capacity"] = preloader.capacity
     stats["peak_resident_domains"] = preloader.stats()["peak_resident_domains"]
     return film, stats
 
 
-async def _temporal_frame(node, setup, settings, store, job, rank, size, tile, film, on_tile,
-                          base, state: NodeState, preloader, tree, stats: dict, routing=None):
+async def _temporal_frame(node, setup, settings, store, options: JobOptions, rank, size, tile,
+                          film, on_tile, base, state: NodeState, preloader, tree, stats: dict,
+                          routing=None):
     """One frame of ``temporal``: plan from the last frame's statistics, render, and sum this
     frame's statistics over the nodes for the next (kept in ``state.memory``)."""
     from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
 
     previous = state.memory.get("temporal_stats")
-    assignment = frame_assignment(job.get("assignment", "temporal"), store, setup.camera,
+    stats["assignment"] = options.assignment or "temporal"  # the effective ones, reported
+    stats["priority"] = options.priority or "cost-rate"
+    assignment = frame_assignment(stats["assignment"], store, setup.camera,
                                   settings.width, settings.height, size, previous)
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
-                          job.get("priority", "cost-rate"), previous, on_tile, base=base,
+                          stats["priority"], previous, on_tile, base=base,
                           status_label=state.ordinal, simple=routing)
     await frame.run(preloader)
     start = time.perf_counter()

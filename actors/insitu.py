@@ -24,6 +24,7 @@ import numpy as np
 
 from vastray.actors import protocol
 from vastray.actors.decomposition import NodeState, frame_load_stats
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.film import Film
@@ -67,9 +68,9 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
     return slot
 
 
-async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, store, config,
-                             settings, on_tile=None, state: NodeState | None = None
-                             ) -> tuple[Film, dict]:
+async def render_spec_insitu(management, tree, options: JobOptions, rank: int, size: int,
+                             store, config, settings, on_tile=None,
+                             state: NodeState | None = None) -> tuple[Film, dict]:
     """This node's partial film of a spec-insitu render (summed over nodes afterwards);
     ``on_tile(paths)`` hears of the paths this node started, after each tile. ``state``
     keeps the node's preloader (its domains stay loaded) from one frame to the next."""
@@ -79,7 +80,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
     local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
     own_state = state is None
     state = NodeState() if state is None else state
-    preloader = state.preloader_for(store, max(len(local), 1), setup.keep, job)
+    preloader = state.preloader_for(store, max(len(local), 1), setup.keep, options, rank)
     before = preloader.stats()
     bvhs = {}
     for i, d in enumerate(local):  # in situ: the node's data stays loaded
@@ -87,7 +88,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
         preloader.preload(local[i + 1] if i + 1 < len(local) else None)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
-    tile = max(1, min(job["tile"], total))
+    tile = max(1, min(options.max_samples_in_flight or total, total))
     stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
              "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
              "speculative_rays": 0, "wasted_rays": 0, "intersection_cache_hits": 0,
@@ -104,6 +105,7 @@ async def render_spec_insitu(management, tree, job: dict, rank: int, size: int, 
             on_tile(int(np.count_nonzero(mine)))
     stats["threads"] = state.threads()
     stats.update(frame_load_stats(before, preloader.stats()))
+    stats["load_bandwidth_mb_s"] = preloader.load_bandwidth_mb_s()
     if own_state:
         state.close()
     return film, stats

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
+from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.render.camera import Camera
 from vastray.render.driver import (
     RenderResult,
@@ -64,43 +65,47 @@ class RenderSetup:
 
 
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
-                       scheduler: str = "image", cache_capacity: int | None = None,
-                       max_samples_in_flight: int | None = None,
-                       history_depth: int | None = None, preload: bool = True,
-                       resident_first: bool = True, drop_page_cache: bool = False,
+                       options: JobOptions | None = None, *, drop_page_cache: bool = False,
                        progress: bool = True, share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
-                       threads: int | None = None,
                        schedule_options: dict | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
     ----------
-    scheduler : ``"image"`` (baseline) or ``"spec-ooc"`` (SpRay speculative).
-    cache_capacity : most domains in memory (default: all).
-    max_samples_in_flight : paths traced at once (tile size); bounds rays held in memory.
-    history_depth : spec-ooc's H, bounces speculated per window (default: all bounces).
-    preload : load the schedule's guess at its next domain (``likely_next``) on a background
-        thread while rendering the current one; False loads sequentially, as the papers do.
-    resident_first : let the schedule serve domains in memory before loading others (see the
-        schedules' ``resident_first``); False is the papers' order (SpRay Listings 1 and 2).
+    options : the job's options (default: ``JobOptions()``, the ``image`` schedule). This
+        runtime reads ``scheduler`` (``"image"``, the baseline, or ``"spec-ooc"``, SpRay's
+        speculative schedule), ``cache`` (most domains in memory; None: all),
+        ``max_samples_in_flight`` (paths traced at once: the tile; None: all),
+        ``history_depth`` (spec-ooc's H), ``preload`` (load the schedule's guess at its next
+        domain, ``likely_next``, on a background thread while rendering the current one;
+        False loads sequentially, as the papers do), ``resident_first`` (let the schedule
+        serve domains in memory before loading others; False is the papers' order, SpRay
+        Listings 1 and 2), ``threads`` (threads every Embree query splits its rays over) and
+        ``load_bandwidth`` (emulated storage: every load takes at least its size over the
+        bandwidth of rank ``share[0]``).
     drop_page_cache : make each domain load a real read from disk.
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
-    threads : threads every Embree query splits its rays over (default: all cores).
     schedule_options : more keyword arguments of the schedule's constructor (e.g. spec-ooc's
         ``serve_before_evict=False``, for ablations).
     """
+    options = JobOptions() if options is None else options
+    scheduler = options.scheduler
     if scheduler not in SCHEDULERS:
-        raise ValueError(f"unknown scheduler {scheduler!r}; choose from {sorted(SCHEDULERS)}")
+        raise JobOptionsError(f"the out-of-core runtime runs {' or '.join(SCHEDULERS)}, not "
+                              f"{scheduler!r} (the domain schedulers need --nodes N; the "
+                              "in-core reference is vastray.render.driver.render)")
     start = time.perf_counter()
     setup = RenderSetup.of(store, config, settings)
-    capacity = cache_capacity or max(len(store.domains), 1)
-    pool = query_pool(threads)
-    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache, pool=pool)
+    capacity = options.cache or max(len(store.domains), 1)
+    pool = query_pool(options.threads)
+    bandwidth = options.load_bytes_per_second(share[0])
+    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache, pool=pool,
+                        load_bandwidth=bandwidth)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
-    tile = max(1, min(max_samples_in_flight or total, total))
+    tile = max(1, min(options.max_samples_in_flight or total, total))
     firsts = list(range(0, total, tile))[share[0]::share[1]]
     counters: dict = {}
     process_seconds = 0.0
@@ -114,16 +119,18 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
             for first in firsts:
                 ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                    setup.ao_distance)
-                kwargs = {"history_depth": history_depth} if scheduler == "spec-ooc" else {}
+                kwargs = ({"history_depth": options.history_depth} if scheduler == "spec-ooc"
+                          else {})
                 kwargs.update(schedule_options or {})
                 victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
                 policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
-                                               setup.scalar_range, resident_first=resident_first,
+                                               setup.scalar_range,
+                                               resident_first=options.resident_first,
                                                **kwargs)
                 policy.start(camera_rays(setup.camera, ctx))
                 while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
                     bvh = cache.get(domain)
-                    if preload:
+                    if options.preload:
                         cache.prefetch(policy.likely_next(domain))
                     t0 = time.perf_counter()
                     tests = _tests(policy.counters)
@@ -151,6 +158,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "cache_capacity": capacity,
         "max_samples_in_flight": tile,
         "threads": pool._max_workers if pool is not None else 1,
+        "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,
         **stats.as_dict(),
         "untraced_loads": stats.loads - len(productive),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,

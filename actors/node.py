@@ -27,6 +27,7 @@ from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import NodeState, render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
+from vastray.actors.job_options import JobOptions
 from vastray.actors.rendezvous import launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -364,10 +365,7 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
                                  token=token)
     log.info("listening for peers on %s", management.endpoint)
-    advertised = os.environ.get(protocol.FAULT_PEER_ENDPOINT_ENV) or management.endpoint
-    if advertised != management.endpoint:
-        log.warning("fault injection: peers are told to send to %s (%s), not here",
-                    advertised, protocol.FAULT_PEER_ENDPOINT_ENV)
+    advertised = peer_endpoint(management)
     watchers = []
     try:
         handshake = asyncio.ensure_future(management.watch_handshake(coordinator))
@@ -417,16 +415,7 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         for task in watchers:
             task.cancel()
         aborted.set()  # a render thread still running stops at its next tile
-        work.cancel()
-        slow_drop = float(os.environ.get(protocol.FAULT_SLOW_DROP_ENV) or 0)
-        if slow_drop > 0:
-            log.warning("fault injection: dropping the job takes %.1f s more (%s)", slow_drop,
-                        protocol.FAULT_SLOW_DROP_ENV)
-            await asyncio.sleep(slow_drop)
-        try:
-            await work
-        except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
-            pass
+        await drop_job(work)
         log.warning("the coordinator regroups (%s); dropping this job",
                     regroup.result().meta["lost"])
         return True
@@ -434,6 +423,23 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
         for task in watchers:
             task.cancel()
         management.close()
+
+
+def peer_endpoint(management: ManagementActor) -> str:
+    """The endpoint this node tells its peers (in its hello) to send to: its own.
+    (``bench/fault_node.py`` replaces it to put a fault-injecting proxy in between.)"""
+    return management.endpoint
+
+
+async def drop_job(work: asyncio.Future) -> None:
+    """Cancel the work of a job the coordinator regrouped away from, and wait for it to end.
+    (``bench/fault_node.py`` slows it down to test that the coordinator's silence meanwhile
+    is not taken for its loss.)"""
+    work.cancel()
+    try:
+        await work
+    except (asyncio.CancelledError, Exception):  # noqa: BLE001 - the job is dropped
+        pass
 
 
 async def _report_failure(management: ManagementActor, rank: int, exc: BaseException) -> None:
@@ -460,6 +466,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
 
     rank, size = int(job["rank"]), int(job["size"])
     management.endpoints = job["endpoints"]
+    options = JobOptions.from_wire(job["options"])  # refuses another version, unknown fields
     settings = RenderSettings(**job["settings"])
     store = Store(job["store"])
     config = (SceneConfig() if not job.get("scene_toml")
@@ -496,8 +503,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 frame_settings, frame_config = frame_inputs(settings, config, store, frame)
                 state.ordinal, state.frame = ordinal, frame or 0
                 start = time.perf_counter()
-                film, counters = await render_share(management, tree, job, rank, size, store,
-                                                    frame_config, frame_settings, report, state)
+                film, counters = await render_share(management, tree, options, rank, size,
+                                                    store, frame_config, frame_settings, report,
+                                                    state)
                 busy = time.perf_counter() - start
                 reduce_start = time.perf_counter()
                 film = await tree.reduce_film(film, settings.width, settings.height, ordinal)
@@ -528,22 +536,20 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
 
 
-async def render_share(management, tree, job: dict, rank: int, size: int, store, config,
-                       settings, report, state: NodeState):
+async def render_share(management, tree, options: JobOptions, rank: int, size: int, store,
+                       config, settings, report, state: NodeState):
     """This node's partial film of one frame and its counters, by the job's scheduler."""
     from vastray.actors.local import render_out_of_core
 
-    if job["node_scheduler"] == "spec-insitu":
-        return await render_spec_insitu(management, tree, job, rank, size, store, config,
+    if options.scheduler == "spec-insitu":
+        return await render_spec_insitu(management, tree, options, rank, size, store, config,
                                         settings, on_tile=report, state=state)
-    if job["node_scheduler"] in DECOMPOSITION_MODES:
-        return await render_owned_domains(management, job, rank, size, store, config,
+    if options.scheduler in DECOMPOSITION_MODES:
+        return await render_owned_domains(management, options, rank, size, store, config,
                                           settings, on_tile=report, state=state, tree=tree)
     result = await asyncio.to_thread(
-        render_out_of_core, store, config, settings, scheduler=job["node_scheduler"],
-        cache_capacity=job.get("cache"), max_samples_in_flight=job["tile"],
-        history_depth=job.get("history_depth"), progress=False, share=(rank, size),
-        on_tile=report, threads=job.get("threads"), preload=job.get("preload", True))
+        render_out_of_core, store, config, settings, options, progress=False,
+        share=(rank, size), on_tile=report)
     return result.film, result.counters
 
 
@@ -569,7 +575,8 @@ def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
 
 
 #: Counters that are settings, not counts: a job's total keeps the latest frame's.
-_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution"})
+_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution",
+                       "load_bandwidth_mb_s"})
 
 
 def _accumulate(totals: dict, counters: dict) -> None:

@@ -69,6 +69,11 @@ class DomainPreloader:
         """Domains resident or being loaded."""
         return self.cache.resident_set()
 
+    def load_bandwidth_mb_s(self) -> float | None:
+        """The emulated storage bandwidth every load is held to, in MB/s (None: none)."""
+        bandwidth = self.cache.load_bandwidth
+        return None if bandwidth is None else bandwidth / 1e6
+
     def loads_per_domain(self) -> dict[int, int]:
         return dict(self.cache.stats.loads_per_domain)
 

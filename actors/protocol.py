@@ -16,7 +16,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 HELLO = "hello"          # node -> coordinator: rank, endpoint
-JOB = "job"              # coordinator -> node: store, scene, settings, peers
+JOB = "job"              # coordinator -> node: store, scene, settings, job options, peers
 PROGRESS = "progress"    # node -> coordinator: paths done
 HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
 FILM = "film"            # node -> parent node / root -> coordinator: partial film
@@ -47,8 +47,8 @@ _NUMBER = (int, float)
 #: Required meta keys and their types, per kind (extra keys are allowed).
 META = {
     HELLO: {"rank": int, "endpoint": str},
-    JOB: {"store": str, "settings": dict, "node_scheduler": str, "rank": int, "size": int,
-          "endpoints": list, "tile": int},
+    JOB: {"store": str, "settings": dict, "options": dict, "rank": int, "size": int,
+          "endpoints": list},
     PROGRESS: {"rank": int, "paths": int},
     HEARTBEAT: {},
     FILM: {"rank": int},
@@ -150,16 +150,6 @@ PARENT_PID_ENV = "VASTRAY_PARENT_PID"
 
 #: Environment variable handing the job token to the nodes a coordinator starts itself.
 JOB_TOKEN_ENV = "VASTRAY_JOB_TOKEN"
-
-#: For fault injection only (``bench/faults.py``): a node with this variable set tells its
-#: peers to send to this endpoint instead of its own, where a proxy that delays or drops
-#: messages forwards them to the node's real endpoint (the one it logs). Never set otherwise.
-FAULT_PEER_ENDPOINT_ENV = "VASTRAY_FAULT_PEER_ENDPOINT"
-
-#: For fault injection only (tests): seconds a node takes, on top of its own, to drop a job
-#: when the coordinator calls a regroup (a slow drop: a long trace or load still running). The
-#: coordinator is silent meanwhile; the node must not take that silence for its loss.
-FAULT_SLOW_DROP_ENV = "VASTRAY_FAULT_SLOW_DROP_S"
 
 #: Bytes of received messages a node holds undelivered at most; beyond, messages are dropped
 #: (the protocol bounds honest traffic far below: rays in flight are bounded by the tiles).

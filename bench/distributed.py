@@ -25,6 +25,7 @@ import numpy as np
 import zmq
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
@@ -122,8 +123,9 @@ def main() -> None:
     for nodes in (1, 2, 4):
         cache = -(-len(store.domains) // nodes)
         for scheduler in schedulers:
-            result = render_distributed(path, None, settings, nodes, scheduler=scheduler,
-                                        cache_capacity=cache, max_samples_in_flight=1024)
+            result = render_distributed(path, None, settings, nodes,
+                                        options=JobOptions(scheduler=scheduler, cache=cache,
+                                                           max_samples_in_flight=1024))
             per_node = [n["counters"] for n in result.counters["per_node"]]
             rays = sum(c.get("rays_sent", 0) for c in per_node)
             megabytes = sum(c.get("bytes_sent", 0) for c in per_node) / 1e6

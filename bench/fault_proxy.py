@@ -1,7 +1,7 @@
 """A ZeroMQ proxy between a node and its peers, for fault injection (``bench/faults.py``).
 
-A node started with ``VASTRAY_FAULT_PEER_ENDPOINT=tcp://127.0.0.1:PORT`` tells its peers to
-send there; this proxy binds that endpoint and forwards every message to the node's real peer
+A node started with ``bench/fault_node.py --peer-endpoint tcp://127.0.0.1:PORT`` tells its
+peers to send there; this proxy binds that endpoint and forwards every message to the node's real peer
 endpoint, which it reads from the node's log (``listening for peers on ...``; followed again
 after a regroup, where the node binds a new one). On the way each message is
 

@@ -10,7 +10,7 @@ fault-free render of the same frame:
 - ``forged``: a forged film and a stranger's ``done`` sent to the coordinator mid-render;
 - ``delay``: every message between the 2 nodes (ray batches, films, all-reduce) passes a
   ZeroMQ proxy (``fault_proxy.PeerProxy``, one per node: each node advertises its proxy's
-  endpoint to its peers through the fault-injection-only ``VASTRAY_FAULT_PEER_ENDPOINT``)
+  endpoint to its peers: each node is started through ``bench/fault_node.py --peer-endpoint``)
   that holds each a random 0-50 ms, keeping each sender's order as TCP does;
 - ``drop``: the same proxies drop 1 % of the ray batches. Nothing retransmits a batch, so
   the frame cannot finish on 2 nodes: the nodes wait for it until their timeout (30 s here),
@@ -39,10 +39,12 @@ from pathlib import Path
 import numpy as np
 import trimesh
 import zmq
+from fault_node import command as fault_node_command
 from fault_proxy import PeerProxy
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
@@ -112,8 +114,9 @@ def signal_run(store, toml, settings, scheduler, sig) -> tuple[object, float]:
     striker.start()
     start = time.perf_counter()
     try:
-        result = render_distributed(store, toml, settings, 4, scheduler=scheduler, timeout=60,
-                                    heartbeat_timeout=5.0, max_samples_in_flight=300)
+        result = render_distributed(store, toml, settings, 4,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    timeout=60, heartbeat_timeout=5.0)
     finally:
         striker.join()
     return result, time.perf_counter() - start
@@ -131,26 +134,28 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
     # proxied runs: shorter waits, so that a run that hangs on lost messages ends in minutes
     timeout, heartbeat = (30.0, 5.0) if fault in ("delay", "drop") else (60.0, None)
     for i in range(2):
-        env = dict(os.environ)
+        peer_endpoint = None
         if fault in ("delay", "drop"):
             proxy_port = free_port()
-            env[protocol.FAULT_PEER_ENDPOINT_ENV] = f"tcp://127.0.0.1:{proxy_port}"
+            peer_endpoint = f"tcp://127.0.0.1:{proxy_port}"
             proxies.append(PeerProxy(proxy_port, logs / f"n{i}.log", fault, seed=seed + i,
                                      drop_fraction=DROP_FRACTION))
             proxies[-1].start()
         with open(logs / f"n{i}.log", "wb") as err:
-            nodes.append(subprocess.Popen([sys.executable, "-m", "vastray.cli", "node",
-                                           "--coordinator", f"tcp://127.0.0.1:{port}",
-                                           "--timeout", str(timeout)],
-                                          stdout=subprocess.DEVNULL, stderr=err, env=env))
+            nodes.append(subprocess.Popen(
+                fault_node_command(["--coordinator", f"tcp://127.0.0.1:{port}",
+                                    "--timeout", str(timeout)], peer_endpoint=peer_endpoint),
+                stdout=subprocess.DEVNULL, stderr=err))
     outcome = {}
 
     def run():
         start = time.perf_counter()
         try:
-            outcome["result"] = render_distributed(
-                store, toml, settings, 2, scheduler=scheduler, listen=f"127.0.0.1:{port}",
-                timeout=timeout, heartbeat_timeout=heartbeat, max_samples_in_flight=2000)
+            outcome["result"] = render_distributed(store, toml, settings, 2,
+                                                   options=JobOptions(scheduler=scheduler,
+                                                                      max_samples_in_flight=2000),
+                                                   listen=f"127.0.0.1:{port}", timeout=timeout,
+                                                   heartbeat_timeout=heartbeat)
         except Exception as exc:  # noqa: BLE001 - reported by the caller
             outcome["error"] = exc
         outcome["seconds"] = time.perf_counter() - start
@@ -233,7 +238,8 @@ def main() -> None:
     store, toml = make_scene(root)
     settings = RenderSettings(width=32, height=24, spp=32, integrator="pt", bounces=2,
                               shadow_samples=4)
-    render_distributed(store, toml, settings, 2, scheduler=args.scheduler, timeout=60)  # warm-up
+    render_distributed(store, toml, settings, 2, options=JobOptions(scheduler=args.scheduler),
+                       timeout=60)  # warm-up
     # The fault-free runs each fault is compared with, started the same way as the faulty ones:
     # 4 nodes started by the coordinator (kill, stop), 2 started as `vastray node` (storm,
     # forged); the median of --runs.

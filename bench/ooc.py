@@ -48,6 +48,7 @@ import sys
 import time
 from pathlib import Path
 
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
@@ -86,10 +87,10 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
         history_depth: int | None = None, schedule_options: dict | None = None,
         **switches) -> dict:
     start = time.perf_counter()
-    result = render_out_of_core(store, SceneConfig(), settings, scheduler=scheduler,
-                                cache_capacity=cache, history_depth=history_depth,
-                                drop_page_cache=True, progress=False,
-                                schedule_options=schedule_options, **switches)
+    result = render_out_of_core(store, SceneConfig(), settings,
+                                options=JobOptions(scheduler=scheduler, cache=cache,
+                                                   history_depth=history_depth), drop_page_cache=True,
+                                progress=False, schedule_options=schedule_options, **switches)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],

@@ -63,6 +63,7 @@ import numpy as np
 from bench_scenes import CACHE
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import parse_scene_config
 from vastray.scene.generate import generate
@@ -104,9 +105,10 @@ def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], c
                "preload": True, **options}
     config = parse_scene_config(ORBIT, "orbit")
     start = time.perf_counter()
-    render_distributed(store.path, None, settings, nodes, scheduler=scheduler,
-                       cache_capacity=cache, max_samples_in_flight=1 << 20, timeout=600,
-                       config=config, frames=frames, on_frame=on_frame, options=options)
+    render_distributed(store.path, None, settings, nodes,
+                       options=JobOptions(scheduler=scheduler, cache=cache,
+                                          max_samples_in_flight=1 << 20, **options), timeout=600,
+                       config=config, frames=frames, on_frame=on_frame)
     wall = time.perf_counter() - start
     later = [f for f in frames if f != frames[0]]
 

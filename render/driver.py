@@ -110,7 +110,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
            progress: bool = True, drop_page_cache: bool = False,
            record_rays: list | None = None, two_level: bool = True,
-           cache: DomainCache | None = None) -> RenderResult:
+           cache: DomainCache | None = None, load_bandwidth: float | None = None
+           ) -> RenderResult:
     """Render a store with one process and an LRU domain cache.
 
     Parameters
@@ -130,6 +131,9 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     cache : a domain cache of ``store`` to use (e.g. with every domain already loaded, so
         benchmarks time no loads); its capacity replaces ``cache_capacity``, and the
         ``load`` seconds and cache counters reported are its totals so far.
+    load_bandwidth : bytes per second to emulate network storage with: every domain load
+        takes at least its size over this (None: the disk's own speed; ignored with
+        ``cache``).
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")
@@ -137,7 +141,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     shading, keep, color_source = shading_inputs(store, config, settings.integrator)
     if cache is None:
         capacity = cache_capacity or max(len(store.domains), 1)
-        cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache)
+        cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache,
+                            load_bandwidth=load_bandwidth)
     capacity = cache.capacity
     threads = threads or os.cpu_count() or 1
     total = settings.width * settings.height * settings.spp
@@ -184,6 +189,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         "cache_capacity": capacity,
         "threads": threads,
         "render_workers": workers,
+        "load_bandwidth_mb_s": None if cache.load_bandwidth is None else cache.load_bandwidth / 1e6,
         **stats.as_dict(),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     }

@@ -28,8 +28,9 @@ class Film:
         self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
 
     def add(self, pixel: np.ndarray, radiance: np.ndarray,
-            counted: np.ndarray | None = None, fused: bool = True) -> None:
-        """Add one sample per row.
+            counted: np.ndarray | None = None) -> None:
+        """Add one sample per row, in one compiled pass (``kernels.film_add``; the sums are
+        those of ``np.bincount`` bit for bit, ``tests/test_kernels.py`` compares them).
 
         Parameters
         ----------
@@ -37,28 +38,18 @@ class Film:
         radiance : (n, 3) float64 radiance of each sample's whole path.
         counted : (n,) bool, the rows that count as samples (default: all). Under domain
             decomposition several nodes add parts of one path; exactly one counts it.
-        fused : sum in one compiled pass (``kernels.film_add``); False: with ``np.bincount``
-            (the same sums, bit for bit).
         """
         if len(pixel) == 0:
             return
         # Bins over the batch's pixel range only (a batch covers a run of pixels): the cost
         # follows the batch, not the film. Adding the zeros of other pixels changed nothing.
-        lo, hi = int(pixel.min()), int(pixel.max()) + 1
+        lo = int(pixel.min())
         local = pixel - lo
-        if fused and radiance.dtype == np.float64:
-            kernels.film_add(self.sum, self.sum_sq, self.count, lo,
-                             np.ascontiguousarray(local, np.int64),
-                             np.ascontiguousarray(radiance),
-                             np.ones(len(local), np.bool_) if counted is None
-                             else np.ascontiguousarray(counted, np.bool_))
-            return
-        for c in range(3):
-            self.sum[lo:hi, c] += np.bincount(local, weights=radiance[:, c], minlength=hi - lo)
-            self.sum_sq[lo:hi, c] += np.bincount(local, weights=radiance[:, c] ** 2,
-                                                 minlength=hi - lo)
-        self.count[lo:hi] += np.bincount(local if counted is None else local[counted],
-                                         minlength=hi - lo)
+        kernels.film_add(self.sum, self.sum_sq, self.count, lo,
+                         np.ascontiguousarray(local, np.int64),
+                         np.ascontiguousarray(radiance, np.float64),
+                         np.ones(len(local), np.bool_) if counted is None
+                         else np.ascontiguousarray(counted, np.bool_))
 
     def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths,
                   counted: np.ndarray | None = None) -> None:

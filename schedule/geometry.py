@@ -16,7 +16,7 @@ class DomainGeometry:
     a ray are ordered by (entry distance, domain id), so ties have one answer. Queries walk a
     ``BoxTree`` over the non-empty domains' boxes: a ray's cost grows with the domains it
     crosses, not with the domain count, and the answers are those of the per-domain slab test
-    (``crossings_by_loop``, ``next_domain_by_loop``) bit for bit.
+    (``tests/domain_loops.py``) bit for bit.
 
     Parameters
     ----------
@@ -83,9 +83,9 @@ class DomainGeometry:
             entry = np.maximum(t0, np.float32(0))
             entry[(t0 > t1) | (t1 < 0)] = np.inf
             keep = entry < limit[ray]
-            parts.append(_ordered(ray[keep], domain[keep], entry[keep], first, stop))
+            parts.append(order_crossings(ray[keep], domain[keep], entry[keep], first, stop))
         if not parts:
-            return _ordered(np.zeros(0, np.int64), np.zeros(0, np.int32),
+            return order_crossings(np.zeros(0, np.int64), np.zeros(0, np.int32),
                             np.zeros(0, np.float32), 0, 0)
         # Chunks hold ascending runs of rays: concatenated, they stay sorted by ray.
         return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
@@ -97,7 +97,7 @@ class DomainGeometry:
                                   (np.int64, np.int32, np.float32, np.int32), per_ray=4)
 
 
-def _ordered(ray, domain, entry, first: int = 0, stop: int | None = None):
+def order_crossings(ray, domain, entry, first: int = 0, stop: int | None = None):
     """Sort (ray, domain, entry) by ray, entry, domain; add each pair's rank along its ray.
 
     Rays lie in ``first:stop`` (None: anywhere). With fewer than 2^15 rays and 2^17 domains
@@ -119,41 +119,3 @@ def _ordered(ray, domain, entry, first: int = 0, stop: int | None = None):
     first_of_ray = np.searchsorted(ray, ray, side="left")
     rank = (np.arange(len(ray)) - first_of_ray).astype(np.int32)
     return ray, domain, entry, rank
-
-
-# -- the per-domain loop: O(domains x rays), the reference for tests and bench/domains.py ----
-def _loop_entries(geometry: DomainGeometry, origins, directions):
-    """Yield (domain, entry (n,) float32 with inf where the ray misses the box)."""
-    slabs = geometry.slabs(origins, directions)
-    for d in geometry.ids:
-        t0, t1 = slabs.intervals(geometry.lo[d], geometry.hi[d])
-        entry = np.maximum(t0, np.float32(0))
-        entry[(t0 > t1) | (t1 < 0)] = np.inf
-        yield int(d), entry
-
-
-def next_domain_by_loop(geometry: DomainGeometry, origins, directions, after_t, after_d, limit):
-    """``DomainGeometry.next_domain`` by testing every domain box in turn (the former code)."""
-    n = len(origins)
-    best_d = np.full(n, -1, np.int32)
-    best_e = np.full(n, np.inf, np.float32)
-    for d, entry in _loop_entries(geometry, origins, directions):
-        later = (entry > after_t) | ((entry == after_t) & (d > after_d))
-        take = later & (entry < limit) & (entry < best_e)  # ids ascend: ties keep the lower
-        best_d[take] = d
-        best_e[take] = entry[take]
-    return best_d, best_e
-
-
-def crossings_by_loop(geometry: DomainGeometry, origins, directions, limit):
-    """``DomainGeometry.crossings`` by testing every domain box in turn (the former code)."""
-    rays, domains, entries = [], [], []
-    for d, entry in _loop_entries(geometry, origins, directions):
-        rows = np.nonzero(entry < limit)[0]
-        rays.append(rows)
-        domains.append(np.full(len(rows), d, np.int32))
-        entries.append(entry[rows])
-    if not rays:
-        empty = np.zeros(0, np.int64)
-        return empty, empty.astype(np.int32), empty.astype(np.float32), empty.astype(np.int32)
-    return _ordered(np.concatenate(rays), np.concatenate(domains), np.concatenate(entries))

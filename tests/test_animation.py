@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from vastray.actors.job_options import JobOptions
 from vastray.animation import frame_path, reference_path
 from vastray.cli import main
 from vastray.render.driver import render
@@ -331,9 +332,9 @@ def test_a_slow_frame_write_does_not_silence_the_coordinator(store, orbit_toml):
         seen.append(frame)
 
     result = render_distributed(store.path, None, settings(width=32, height=24, spp=16), 2,
-                                scheduler="async", config=load_scene_config(orbit_toml),
-                                frames=[0, 1, 2], on_frame=on_frame, timeout=60,
-                                max_samples_in_flight=200)
+                                options=JobOptions(scheduler="async", max_samples_in_flight=200),
+                                config=load_scene_config(orbit_toml), frames=[0, 1, 2],
+                                on_frame=on_frame, timeout=60)
     assert seen == [0, 1, 2]  # every frame, in order
     assert result.counters["node_failures"] == [] and result.counters["nodes"] == 2
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
@@ -48,8 +49,9 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
     st = settings(width=32, height=24, spp=2, integrator=integrator)
     reference = render(store, load_scene_config(toml), st, progress=False).film
     for nodes in (1, 2, 3, 4):
-        result = render_distributed(store.path, toml, st, nodes, scheduler=scheduler,
-                                    cache_capacity=4, max_samples_in_flight=300, timeout=60)
+        result = render_distributed(store.path, toml, st, nodes,
+                                    options=JobOptions(scheduler=scheduler, cache=4,
+                                                       max_samples_in_flight=300), timeout=60)
         np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6,
                                    atol=1e-6, err_msg=f"{scheduler} on {nodes} nodes")
         np.testing.assert_array_equal(result.film.count, reference.count)
@@ -87,8 +89,9 @@ def test_big_outboxes_travel_in_bounded_batches(scene):
     reference = render(store, load_scene_config(toml), st, progress=False).film.image()
     counts = []
     for bound in (65536, 50):
-        result = render_distributed(store.path, toml, st, 2, scheduler="async", timeout=60,
-                                    max_batch_rays=bound)
+        result = render_distributed(store.path, toml, st, 2,
+                                    options=JobOptions(scheduler="async", max_batch_rays=bound),
+                                    timeout=60)
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
         counts.append(sum(n["counters"]["batches_sent"] for n in result.counters["per_node"]))
     assert counts[1] > counts[0]
@@ -159,8 +162,8 @@ def test_killed_last_node_fails_the_run_with_its_name_and_no_output(scene, tmp_p
 
 def test_unknown_scheduler_for_nodes_is_refused(scene):
     store, toml = scene
-    with pytest.raises(ValueError, match="supports schedulers"):
-        render_distributed(store.path, toml, settings(), 2, scheduler="galaxy")
+    with pytest.raises(ValueError, match="unknown scheduler"):
+        render_distributed(store.path, toml, settings(), 2, options=JobOptions(scheduler="galaxy"))
 
 
 def _start_external_node(coordinator: str, keys: Path | None, log: Path):
@@ -195,7 +198,7 @@ def test_external_nodes_join_with_curve_keys(scene, tmp_path):
         st = settings(width=24, height=18, spp=2, integrator="pt")
         result = render_distributed(store.path, toml, st, 3, listen=f"127.0.0.1:{port}",
                                     keys=load_keys(tmp_path / "keys"), timeout=30,
-                                    max_samples_in_flight=200)
+                                    options=JobOptions(max_samples_in_flight=200))
         reference = render(store, load_scene_config(toml), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
     finally:

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.store import DomainArrays
@@ -31,8 +32,9 @@ def _reference(store, toml, st):
 def test_async_has_one_barrier_per_frame_of_many_tiles(scene):
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator="pt")
-    result = render_distributed(store.path, toml, st, 3, scheduler="async",
-                                max_samples_in_flight=200, timeout=60)
+    result = render_distributed(store.path, toml, st, 3,
+                                options=JobOptions(scheduler="async", max_samples_in_flight=200),
+                                timeout=60)
     tiles = -(-32 * 24 * 2 // 200)
     assert tiles >= 8
     assert result.counters["global_barriers"] == 1
@@ -58,9 +60,10 @@ def test_async_with_a_small_cache_gives_the_reference_in_either_order(scene, res
     # Cached domains first (the default) or Galaxy's fullest-queue order: the same image.
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator="pt")
-    result = render_distributed(store.path, toml, st, 2, scheduler="async", cache_capacity=2,
-                                max_samples_in_flight=400, timeout=60,
-                                options={"resident_first": resident_first})
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="async", cache=2,
+                                                   max_samples_in_flight=400,
+                                                   resident_first=resident_first), timeout=60)
     reference = _reference(store, toml, st)
     np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
     per_node = [r["counters"] for r in result.counters["per_node"]]
@@ -70,8 +73,9 @@ def test_async_with_a_small_cache_gives_the_reference_in_either_order(scene, res
 def test_domain_rounds_are_barriers(scene):
     store, toml = scene
     st = settings(width=24, height=18, spp=1, integrator="ao")
-    result = render_distributed(store.path, toml, st, 2, scheduler="domain",
-                                max_samples_in_flight=200, timeout=60)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="domain", max_samples_in_flight=200),
+                                timeout=60)
     rounds = result.counters["per_node"][0]["counters"]["rounds"]
     assert result.counters["global_barriers"] == rounds > 1
 
@@ -99,8 +103,9 @@ def test_hundreds_of_domains_and_tiny_batches_never_deadlock(tmp_path, scheduler
                     '[[light]]\ntype = "ambient"\nradiance = 1.0\n')
     st = settings(width=32, height=24, spp=1, integrator="ao", shadow_samples=2,
                   ao_distance=0.2)
-    result = render_distributed(store.path, toml, st, 3, scheduler=scheduler,
-                                max_samples_in_flight=60, max_batch_rays=2, timeout=120)
+    result = render_distributed(store.path, toml, st, 3,
+                                options=JobOptions(scheduler=scheduler, max_samples_in_flight=60,
+                                                   max_batch_rays=2), timeout=120)
     reference = _reference(store, toml, st)
     np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
     sent = sum(r["counters"]["batches_sent"] for r in result.counters["per_node"])
@@ -110,8 +115,9 @@ def test_hundreds_of_domains_and_tiny_batches_never_deadlock(tmp_path, scheduler
 def test_spec_insitu_speculates(scene):
     store, toml = scene
     st = settings(width=24, height=18, spp=2, integrator="pt")
-    result = render_distributed(store.path, toml, st, 2, scheduler="spec-insitu",
-                                max_samples_in_flight=400, timeout=60)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="spec-insitu", max_samples_in_flight=400),
+                                timeout=60)
     per_node = [r["counters"] for r in result.counters["per_node"]]
     assert sum(c["speculative_rays"] for c in per_node) > 0
     assert sum(c["wasted_rays"] for c in per_node) > 0  # speculation costs something
@@ -123,8 +129,9 @@ def test_dynamic_keeps_resident_domains_where_they_are(scene):
     # them each domain is loaded once in the whole cluster, and the work is spread.
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator="pt")
-    result = render_distributed(store.path, toml, st, 2, scheduler="dynamic",
-                                max_samples_in_flight=800, timeout=60)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="dynamic", max_samples_in_flight=800),
+                                timeout=60)
     loads = [r["counters"]["loads"] for r in result.counters["per_node"]]
     assert sum(loads) <= sum(d.n_triangles > 0 for d in store.domains)
     assert min(loads) > 0  # both nodes were handed domains

@@ -16,6 +16,7 @@ import pytest
 import trimesh
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.store import Store, StoreWriter
@@ -61,8 +62,9 @@ def test_multi_tile_frames_give_the_reference_image(two_boxes, scheduler, integr
     reference = render(store, load_scene_config(toml), st, progress=False).film
     # 512 paths in tiles of 64: two image rows per tile, eight tiles.
     for tile in (512, 64):
-        result = render_distributed(store.path, toml, st, 2, scheduler=scheduler,
-                                    cache_capacity=2, max_samples_in_flight=tile, timeout=60)
+        result = render_distributed(store.path, toml, st, 2,
+                                    options=JobOptions(scheduler=scheduler, cache=2,
+                                                       max_samples_in_flight=tile), timeout=60)
         what = f"{scheduler} on 2 nodes, tiles of {tile} paths"
         np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6,
                                    atol=1e-6, err_msg=what)

@@ -6,14 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.render.boxtree import FLAT_BOXES, BoxTree
 from vastray.render.driver import render
 from vastray.render.lights import AmbientLight, PointLight, QuadLight
 from vastray.render.tracer import DomainTracer, RaySlabs, box_pad
 from vastray.scene.cache import DomainCache
-from vastray.schedule.geometry import DomainGeometry, crossings_by_loop, next_domain_by_loop
+from vastray.schedule.geometry import DomainGeometry
 
+from domain_loops import crossings_by_loop, next_domain_by_loop
 from scenes import camera_config, settings, terrain_scene, write_store
 
 
@@ -322,7 +324,7 @@ def test_image_identical_to_one_domain_at_a_thousand_domains(terrain, partition,
         runs = [render(store, cfg, st, progress=False),
                 render(store, cfg, st, cache_capacity=300, progress=False)]
     else:
-        runs = [render_out_of_core(store, cfg, st, scheduler=runner, cache_capacity=300,
+        runs = [render_out_of_core(store, cfg, st, options=JobOptions(scheduler=runner, cache=300),
                                    progress=False)]
     assert runs[0].counters["loads"] > 300  # most domains took part
     for result in runs:

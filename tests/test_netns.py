@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import SceneConfig
 from vastray.transport.security import generate_keys, load_keys
@@ -69,7 +70,7 @@ def test_nodes_in_separate_network_namespaces(namespaces, tmp_path):
         st = settings(width=24, height=18, spp=2, integrator="pt")
         result = render_distributed(store.path, None, st, 2, listen=f"{SUBNET}.1:{port}",
                                     keys=load_keys(tmp_path / "keys"), timeout=30,
-                                    max_samples_in_flight=200)
+                                    options=JobOptions(max_samples_in_flight=200))
         reference = render(store, SceneConfig(), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
     finally:

@@ -23,6 +23,7 @@ from test_distributed import _node_pids
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
@@ -60,8 +61,9 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
     striker = threading.Thread(target=strike)
     striker.start()
     try:
-        result = render_distributed(store.path, toml, st, 4, scheduler=scheduler, timeout=60,
-                                    heartbeat_timeout=5.0, max_samples_in_flight=300)
+        result = render_distributed(store.path, toml, st, 4,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    timeout=60, heartbeat_timeout=5.0)
     finally:
         striker.join()
     assert hit, "the test found no node 2 to stop"
@@ -78,17 +80,24 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
     np.testing.assert_array_equal(result.film.count, reference.count)  # nothing counted twice
 
 
-def _start_nodes(port: int, logs: list[Path], env: dict | None = None
+#: The node launcher with fault injection (the production node reads no fault hooks).
+FAULT_NODE = Path(__file__).resolve().parents[1] / "bench" / "fault_node.py"
+
+
+def _start_nodes(port: int, logs: list[Path], slow_drop_s: float = 0.0
                  ) -> list[subprocess.Popen]:
-    """`vastray node` processes started as a user starts them on other machines."""
+    """`vastray node` processes started as a user starts them on other machines; with
+    ``slow_drop_s``, through ``bench/fault_node.py``, dropping a regrouped job that much
+    slower."""
+    node_args = ["--coordinator", f"tcp://127.0.0.1:{port}", "--timeout", "60"]
+    command = ([sys.executable, str(FAULT_NODE), "--slow-drop", str(slow_drop_s), "--",
+                *node_args] if slow_drop_s > 0 else [sys.executable, "-m", "vastray.cli",
+                                                     "node", *node_args])
     nodes = []
     for log in logs:
         with open(log, "wb") as err:
-            nodes.append(subprocess.Popen(
-                [sys.executable, "-m", "vastray.cli", "node", "--coordinator",
-                 f"tcp://127.0.0.1:{port}", "--timeout", "60"],
-                stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL,
-                env=dict(os.environ, **(env or {}))))
+            nodes.append(subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err,
+                                          stdin=subprocess.DEVNULL))
     return nodes
 
 
@@ -131,14 +140,14 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
     st = settings(width=32, height=24, spp=128, integrator="pt")
     port = _free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    nodes = _start_nodes(port, logs, {protocol.FAULT_SLOW_DROP_ENV: str(slow_drop)})
+    nodes = _start_nodes(port, logs, slow_drop)
     hit: list[int] = []
     striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
     striker.start()
     try:
-        result = render_distributed(store.path, toml, st, 3, scheduler=scheduler,
-                                    listen=f"127.0.0.1:{port}", timeout=60,
-                                    heartbeat_timeout=3.0, max_samples_in_flight=300)
+        result = render_distributed(store.path, toml, st, 3,
+                                    options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
+                                    listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0)
     finally:
         striker.join()
         _reap(nodes)
@@ -172,10 +181,11 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
     striker.start()
     try:
         with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
-            render_distributed(store.path, toml, settings(width=32, height=24, spp=128,
-                                                          integrator="pt"),
-                               3, scheduler="async", listen=f"127.0.0.1:{port}", timeout=60,
-                               heartbeat_timeout=3.0, max_samples_in_flight=300,
+            render_distributed(store.path, toml,
+                               settings(width=32, height=24, spp=128,
+                                                          integrator="pt"), 3,
+                               options=JobOptions(scheduler="async", max_samples_in_flight=300),
+                               listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0,
                                survive_node_loss=False)
     finally:
         striker.join()
@@ -235,8 +245,9 @@ def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
     st = settings(width=64, height=48, spp=256, integrator="pt")
     paths = st.width * st.height * st.spp
     start = time.monotonic()
-    result = render_distributed(store.path, toml, st, 2, scheduler="image", timeout=60,
-                                heartbeat_timeout=2.0, max_samples_in_flight=paths)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="image", max_samples_in_flight=paths),
+                                timeout=60, heartbeat_timeout=2.0)
     assert time.monotonic() - start > 3.0, "node 0's tile should outlast the heartbeat timeout"
     assert result.counters["node_failures"] == []
     assert result.counters["nodes_asked"] == 2 and result.counters["nodes"] == 2
@@ -270,10 +281,9 @@ def test_frames_recovered_after_a_node_dies_equal_the_fault_free_frames(scene, s
                 os.kill(pid, sig)
                 hit.append(pid)
 
-    result = render_distributed(store.path, None, base, 3, scheduler=scheduler,
-                                cache_capacity=2, max_samples_in_flight=100, timeout=60,
-                                heartbeat_timeout=10.0, config=config, frames=frames,
-                                on_frame=on_frame)
+    result = render_distributed(store.path, None, base, 3, JobOptions(
+        scheduler=scheduler, cache=2, max_samples_in_flight=100), timeout=60,
+        heartbeat_timeout=10.0, config=config, frames=frames, on_frame=on_frame)
     assert hit, "the test found no node 1 to kill"
     assert sorted(delivered) == frames
     assert result.counters["node_deaths"] == {sig.name: 1}

@@ -19,6 +19,7 @@ from unittest import mock
 import numpy as np
 import pytest
 
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.cli import main
 from vastray.render import driver
@@ -79,8 +80,8 @@ def test_far_data_and_far_camera_give_one_image_whatever_the_schedule(far, sched
     config = far_config(1e6, distance=6e5)
     st = far_settings(spp=2)
     in_core = driver.render(store, config, st, threads=1, progress=False)
-    ooc = render_out_of_core(store, config, st, scheduler=scheduler, cache_capacity=2,
-                             max_samples_in_flight=1500, progress=False)
+    ooc = render_out_of_core(store, config, st, JobOptions(
+        scheduler=scheduler, cache=2, max_samples_in_flight=1500), progress=False)
     assert ooc.counters["loads"] > 8  # domains were evicted and loaded again
     np.testing.assert_array_equal(ooc.film.image(), in_core.film.image())
     np.testing.assert_array_equal(ooc.film.depth_image(), in_core.film.depth_image())

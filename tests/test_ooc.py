@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import RenderSetup, render_out_of_core
 from vastray.cli import main
 from vastray.render.driver import path_context, render
@@ -48,8 +49,9 @@ def test_schedules_match_reference_for_any_cache_and_tile(bumpy, config, integra
     st = settings(width=40, height=30, spp=2, integrator=integrator, bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
     for cache, in_flight in [(None, None), (7, None), (1, 700)]:
-        result = render_out_of_core(bumpy, config, st, scheduler=scheduler, cache_capacity=cache,
-                                    max_samples_in_flight=in_flight, progress=False)
+        result = render_out_of_core(bumpy, config, st,
+                                    options=JobOptions(scheduler=scheduler, cache=cache,
+                                                       max_samples_in_flight=in_flight), progress=False)
         assert_same(result.film.image(), reference, f"{scheduler} cache={cache} tile={in_flight}")
         assert result.film.depth.tolist() == render(bumpy, config, st, progress=False
                                                     ).film.depth.tolist()
@@ -59,8 +61,9 @@ def test_schedules_match_reference_for_any_cache_and_tile(bumpy, config, integra
 def test_spec_ooc_any_history_depth_matches_reference(bumpy, config, history_depth):
     st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
-    result = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=5,
-                                history_depth=history_depth, progress=False)
+    result = render_out_of_core(bumpy, config, st,
+                                options=JobOptions(scheduler="spec-ooc", cache=5,
+                                                   history_depth=history_depth), progress=False)
     assert_same(result.film.image(), reference, f"H={history_depth}")
     windows = result.counters["windows"]
     assert windows == -(-4 // (1 + min(history_depth, 3)))  # ceil(vertices / window)
@@ -68,9 +71,9 @@ def test_spec_ooc_any_history_depth_matches_reference(bumpy, config, history_dep
 
 def test_speculation_loads_fewer_domains_and_reports_its_waste(bumpy, config):
     st = settings(width=48, height=36, spp=2, integrator="pt", bounces=3)
-    base = render_out_of_core(bumpy, config, st, scheduler="image", cache_capacity=7,
+    base = render_out_of_core(bumpy, config, st, options=JobOptions(scheduler="image", cache=7),
                               progress=False).counters
-    spec = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=7,
+    spec = render_out_of_core(bumpy, config, st, options=JobOptions(scheduler="spec-ooc", cache=7),
                               progress=False).counters
     assert spec["loads"] * 1.5 < base["loads"]
     assert spec["speculative_rays"] > 0 and 0 < spec["wasted_rays"] < spec["speculative_rays"]
@@ -88,9 +91,10 @@ def test_every_switch_combination_matches_reference(bumpy, config, integrator, s
     reference = render(bumpy, config, st, progress=False).film.image()
     for resident_first in (False, True):
         for preload in (False, True):
-            result = render_out_of_core(bumpy, config, st, scheduler=scheduler, cache_capacity=4,
-                                        resident_first=resident_first, preload=preload,
-                                        progress=False)
+            result = render_out_of_core(bumpy, config, st,
+                                        options=JobOptions(scheduler=scheduler, cache=4,
+                                                           resident_first=resident_first,
+                                                           preload=preload), progress=False)
             assert_same(result.film.image(), reference,
                         f"{scheduler} resident_first={resident_first} preload={preload}")
 
@@ -101,8 +105,10 @@ def test_spec_ooc_filters_before_it_loads(bumpy, config, resident_first):
     # not loaded. With sequential loading every load traces at least one ray.
     st = settings(width=48, height=36, spp=2, integrator="pt", bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
-    result = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=7,
-                                resident_first=resident_first, preload=False, progress=False)
+    result = render_out_of_core(bumpy, config, st,
+                                options=JobOptions(scheduler="spec-ooc", cache=7,
+                                                   resident_first=resident_first, preload=False),
+                                progress=False)
     c = result.counters
     assert_same(result.film.image(), reference, f"resident_first={resident_first}")
     assert c["skipped_domains"] > 0
@@ -113,9 +119,10 @@ def test_spec_ooc_filters_before_it_loads(bumpy, config, resident_first):
 def test_resident_first_saves_baseline_loads(bumpy, config):
     # The baseline gets the rule spec-ooc has: serve what is in memory before loading more.
     st = settings(width=48, height=36, spp=2, integrator="pt", bounces=3)
-    loads = {rule: render_out_of_core(bumpy, config, st, scheduler="image", cache_capacity=7,
-                                      resident_first=rule, preload=False, progress=False
-                                      ).counters["loads"]
+    loads = {rule: render_out_of_core(bumpy, config, st,
+                                      options=JobOptions(scheduler="image", cache=7,
+                                                         resident_first=rule, preload=False),
+                                      progress=False).counters["loads"]
              for rule in (False, True)}
     assert loads[True] < loads[False]
 
@@ -187,7 +194,7 @@ def test_spec_ooc_serves_a_resident_domain_before_it_is_evicted(bumpy, config):
 def test_spec_ooc_switches_match_reference(bumpy, config, options):
     st = settings(width=24, height=18, spp=2, integrator="pt", bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
-    result = render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=4,
+    result = render_out_of_core(bumpy, config, st, options=JobOptions(scheduler="spec-ooc", cache=4),
                                 schedule_options=options, progress=False)
     assert_same(result.film.image(), reference, str(options))
 
@@ -218,10 +225,11 @@ def test_samples_in_flight_bound_peak_rays(bumpy, config):
         st = settings(width=24, height=18, spp=spp, integrator="pt", bounces=3)
         # No preloading: which domains are resident when the next is chosen would then depend
         # on thread timing (a loaded machine), and with it the domain order and the peak.
-        return render_out_of_core(bumpy, config, st, scheduler="spec-ooc", cache_capacity=7,
-                                  max_samples_in_flight=tile, progress=False, preload=False,
-                                  threads=1
-                                  ).counters["rays_in_flight_peak"]
+        return render_out_of_core(bumpy, config, st,
+                                  options=JobOptions(scheduler="spec-ooc", cache=7,
+                                                     max_samples_in_flight=tile, preload=False,
+                                                     threads=1),
+                                  progress=False).counters["rays_in_flight_peak"]
 
     bounded = [peak(spp, 500) for spp in (2, 8)]
     unbounded = peak(8, None)
@@ -238,8 +246,8 @@ def test_generated_rm_scene(tmp_path):
     st = settings(width=32, height=24, spp=2, integrator="pt", bounces=2, shadow_samples=2)
     reference = render(store, SceneConfig(), st, progress=False).film.image()
     for scheduler in ("image", "spec-ooc"):
-        result = render_out_of_core(store, SceneConfig(), st, scheduler=scheduler,
-                                    cache_capacity=4, progress=False)
+        result = render_out_of_core(store, SceneConfig(), st,
+                                    options=JobOptions(scheduler=scheduler, cache=4), progress=False)
         assert_same(result.film.image(), reference, scheduler)
 
 
@@ -256,8 +264,8 @@ def test_real_mesh_bunny(shared_data, tmp_path):
         reference = render(store, SceneConfig(), st, progress=False).film.image()
         assert reference.max() > 0
         for scheduler in ("image", "spec-ooc"):
-            result = render_out_of_core(store, SceneConfig(), st, scheduler=scheduler,
-                                        cache_capacity=2, progress=False)
+            result = render_out_of_core(store, SceneConfig(), st,
+                                        options=JobOptions(scheduler=scheduler, cache=2), progress=False)
             assert_same(result.film.image(), reference, f"{scheduler} {integrator}")
 
 
@@ -308,3 +316,31 @@ def test_the_compiled_history_match_is_numpys_comparison():
     _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto.astype(np.int64), out)
     assert expected.any() and not expected.all()
     assert (out == expected).all()
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_load_bandwidth_throttles_every_load_of_the_out_of_core_schedules(bumpy, config,
+                                                                          scheduler):
+    """--load-bandwidth reaches the domain cache of image and spec-ooc (it was dropped on the
+    way once): each load is held to its size over the bandwidth, so the time spent waiting is
+    at least the bytes loaded over the bandwidth, less the real reads (a lower bound: a busy
+    machine only makes the reads longer, and the waits then shorter, never the sum). Same
+    image."""
+    st = settings(width=24, height=18, spp=1, integrator="pt", bounces=1)
+    free = render_out_of_core(bumpy, config, st, JobOptions(scheduler=scheduler, cache=4),
+                              progress=False)
+    per_load = max(d.nbytes for d in bumpy.domains)
+    megabytes_per_s = per_load / 0.02 / 1e6  # the largest domain takes 20 ms
+    slowed = render_out_of_core(bumpy, config, st,
+                                JobOptions(scheduler=scheduler, cache=4,
+                                           load_bandwidth=megabytes_per_s), progress=False)
+    c = slowed.counters
+    floor = c["bytes_loaded"] / (megabytes_per_s * 1e6)
+    assert c["loads"] == free.counters["loads"] > 0
+    assert c["load_bandwidth_mb_s"] == pytest.approx(megabytes_per_s)
+    assert free.counters["load_bandwidth_mb_s"] is None
+    assert free.counters["load_throttle_s"] == 0
+    assert c["read_s"] >= floor - 1e-3  # read_s: each read and its wait
+    assert c["load_throttle_s"] >= 0.5 * floor  # a 50 KB read takes far less than 10 ms
+    assert slowed.seconds["total"] >= floor * 0.9
+    np.testing.assert_array_equal(slowed.film.image(), free.film.image())

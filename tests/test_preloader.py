@@ -9,7 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from vastray.actors.decomposition import NodeState, node_bandwidth
+from vastray.actors.decomposition import NodeState
+from vastray.actors.job_options import JobOptions
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.cache import DomainCache
 
@@ -100,15 +101,15 @@ def test_disabled_preloading_loads_nothing_ahead(store):
 
 
 def test_node_bandwidth_per_rank():
-    assert node_bandwidth({"rank": 0}) is None
-    assert node_bandwidth({"rank": 1, "load_bandwidth": 50}) == 50e6
-    assert node_bandwidth({"rank": 3, "load_bandwidth": [100, 50]}) == 50e6
+    assert JobOptions().load_bytes_per_second(0) is None
+    assert JobOptions(load_bandwidth=50).load_bytes_per_second(1) == 50e6
+    assert JobOptions(load_bandwidth=[100, 50]).load_bytes_per_second(3) == 50e6
 
 
 def test_node_state_keeps_one_preloader_across_frames(store):
     state = NodeState()
-    first = state.preloader_for(store, 2, frozenset(), {"threads": 1})
-    assert state.preloader_for(store, 3, frozenset(), {"threads": 1}) is first
+    first = state.preloader_for(store, 2, frozenset(), JobOptions(threads=1), rank=0)
+    assert state.preloader_for(store, 3, frozenset(), JobOptions(threads=1), rank=0) is first
     state.close()
 
 

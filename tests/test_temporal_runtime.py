@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.simplify import build_simplified
@@ -40,9 +41,9 @@ def run(scene, nodes, **options):
     store, toml = scene
     cache = options.pop("cache", None)
     return render_distributed(store.path, toml, settings(width=32, height=24, spp=2), nodes,
-                              scheduler=options.pop("scheduler", "temporal"),
-                              cache_capacity=cache, max_samples_in_flight=400, timeout=60,
-                              options=options)
+                              options=JobOptions(scheduler=options.pop("scheduler", "temporal"),
+                                                 cache=cache, max_samples_in_flight=400, **options),
+                              timeout=60)
 
 
 @pytest.mark.parametrize("nodes,cache", [(1, 1), (2, 2), (3, None), (4, 2)])
@@ -75,10 +76,11 @@ def test_every_assignment_and_priority_is_lossless(scene, assignment, priority):
     config = parse_scene_config(ORBIT_TOML, "orbit.toml")
     base = settings(width=32, height=24, spp=2)
     got = {}
-    render_distributed(store.path, None, base, 2, scheduler="temporal", cache_capacity=2,
-                       max_samples_in_flight=400, timeout=60, config=config, frames=[0, 1],
-                       on_frame=lambda f, r: got.setdefault(f, r.film.image()),
-                       options={"assignment": assignment, "priority": priority})
+    render_distributed(store.path, None, base, 2,
+                       options=JobOptions(scheduler="temporal", cache=2, max_samples_in_flight=400,
+                                          assignment=assignment, priority=priority), timeout=60,
+                       config=config, frames=[0, 1],
+                       on_frame=lambda f, r: got.setdefault(f, r.film.image()))
     lo, hi = store.bounds
     for frame in (0, 1):
         expected = render(store, config.at_frame(frame, lo, hi, base.width, base.height),
@@ -113,8 +115,8 @@ def test_simplified_none_is_the_reference_and_identity_model_is_close(scene, ref
     identity = write_store(tmp_path / "identity", bumpy_scene(), grid=(3, 2, 3))
     build_simplified(identity, 1.0)  # the original triangles: only the BVH differs
     result = render_distributed(identity.path, toml, settings(width=32, height=24, spp=2), 2,
-                                scheduler="async", max_samples_in_flight=400, timeout=60,
-                                options={"simplified": "depth>0"})
+                                options=JobOptions(scheduler="async", max_samples_in_flight=400,
+                                                   simplified="depth>0"), timeout=60)
     image, ref = result.film.image(), reference.image()
     rel_mse = float(np.mean((image - ref) ** 2) / np.mean(ref ** 2))
     assert rel_mse < 1e-4
@@ -128,9 +130,9 @@ def test_simplified_rays_never_travel_and_policies_nest(scene, reference, tmp_pa
     sent, simplified = {}, {}
     for policy in ("none", "depth>1", "depth>0"):
         result = render_distributed(simple.path, toml, settings(width=32, height=24, spp=2), 2,
-                                    scheduler="temporal", cache_capacity=2,
-                                    max_samples_in_flight=400, timeout=60,
-                                    options={"simplified": policy})
+                                    options=JobOptions(scheduler="temporal", cache=2,
+                                                       max_samples_in_flight=400, simplified=policy),
+                                    timeout=60)
         per_node = result.counters["per_node"]
         sent[policy] = sum(r["counters"]["rays_sent"] for r in per_node)
         simplified[policy] = sum(r["counters"]["simplified_rays"] for r in per_node)
@@ -145,9 +147,9 @@ def test_portal_policy_records_then_predicts(scene, tmp_path):
     simple = write_store(tmp_path / "simple", bumpy_scene(), grid=(3, 2, 3))
     build_simplified(simple, 0.2, min_faces=50)
     result = render_distributed(simple.path, toml, settings(width=32, height=24, spp=2), 2,
-                                scheduler="temporal", cache_capacity=2,
-                                max_samples_in_flight=400, timeout=60,
-                                options={"simplified": "portal"})
+                                options=JobOptions(scheduler="temporal", cache=2,
+                                                   max_samples_in_flight=400, simplified="portal"),
+                                timeout=60)
     counters = [r["counters"] for r in result.counters["per_node"]]
     assert all(c["portal_recording"] == 1 for c in counters)  # a single image records
     assert sum(c["portal_crossings"] for c in counters) > 0
@@ -172,10 +174,10 @@ def portal_frames(store, nodes: int, scheduler: str = "temporal", cache: int | N
 
     delivered = {}
     render_distributed(store.path, None, settings(width=32, height=24, spp=2), nodes,
-                       scheduler=scheduler, cache_capacity=cache, max_samples_in_flight=400,
-                       timeout=60, config=parse_scene_config(ORBIT_TOML, "orbit.toml"),
-                       frames=[0, 1], on_frame=lambda f, r: delivered.setdefault(f, r),
-                       options={"simplified": "portal", **options})
+                       options=JobOptions(scheduler=scheduler, cache=cache, max_samples_in_flight=400,
+                                          simplified="portal", **options), timeout=60,
+                       config=parse_scene_config(ORBIT_TOML, "orbit.toml"), frames=[0, 1],
+                       on_frame=lambda f, r: delivered.setdefault(f, r))
     return delivered
 
 
@@ -251,8 +253,9 @@ def test_animation_frames_equal_the_single_process_frames(scene, tmp_path, sched
     config = parse_scene_config(ORBIT_TOML, "orbit.toml")
     base = settings(width=32, height=24, spp=2)
     delivered = {}
-    result = render_distributed(store.path, None, base, nodes, scheduler=scheduler,
-                                cache_capacity=cache, max_samples_in_flight=400, timeout=60,
+    result = render_distributed(store.path, None, base, nodes,
+                                options=JobOptions(scheduler=scheduler, cache=cache,
+                                                   max_samples_in_flight=400), timeout=60,
                                 config=config, frames=[0, 1, 2],
                                 on_frame=lambda f, r: delivered.setdefault(f, r))
     assert sorted(delivered) == [0, 1, 2]

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.render.driver import render
 from vastray.render.scene_config import SceneConfig, load_scene_config
@@ -26,8 +27,9 @@ def test_out_of_core_schedules_split_queries_over_threads(store, scheduler, monk
     st = settings(width=40, height=30, spp=4, integrator="pt")
     reference = render(store, SceneConfig(text=""), st, progress=False).film.image()
     for threads in (1, 2, 3):
-        result = render_out_of_core(store, SceneConfig(text=""), st, scheduler=scheduler,
-                                    cache_capacity=3, threads=threads, progress=False)
+        result = render_out_of_core(store, SceneConfig(text=""), st,
+                                    options=JobOptions(scheduler=scheduler, cache=3, threads=threads),
+                                    progress=False)
         assert result.counters["threads"] == threads
         np.testing.assert_array_equal(result.film.image(), reference)
 
@@ -54,8 +56,9 @@ def test_nodes_get_their_share_of_the_cores(store, scheduler, tmp_path):
     toml = tmp_path / "scene.toml"
     toml.write_text("")
     st = settings(width=24, height=18, spp=2, integrator="ao")
-    result = render_distributed(store.path, toml, st, 2, scheduler=scheduler, threads=2,
-                                max_samples_in_flight=300, timeout=60)
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler=scheduler, threads=2,
+                                                   max_samples_in_flight=300), timeout=60)
     assert [r["counters"]["threads"] for r in result.counters["per_node"]] == [2, 2]
     reference = render(store, load_scene_config(toml), st, progress=False).film.image()
     np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)

@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
@@ -110,9 +111,10 @@ def flooded_render(tmp_path_factory):
 
     def run():
         try:
-            outcome["result"] = render_distributed(
-                store.path, toml, st_, 2, scheduler="async", listen=f"127.0.0.1:{port}",
-                timeout=60, max_samples_in_flight=2000)
+            outcome["result"] = render_distributed(store.path, toml, st_, 2,
+                                                   options=JobOptions(scheduler="async",
+                                                                      max_samples_in_flight=2000),
+                                                   listen=f"127.0.0.1:{port}", timeout=60)
         except BaseException as exc:  # noqa: BLE001 - reported by the test
             outcome["error"] = exc
 

@@ -13,6 +13,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from vastray.actors.coordinator import recovery_lines, render_distributed
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.preflight import (
@@ -27,6 +28,17 @@ from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import load_scene_config
+from vastray.render_job import (
+    DEFAULT_BATCH_SIZE,
+    DEFAULT_EXPOSURE,
+    DEFAULT_HEARTBEAT_TIMEOUT_S,
+    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
+    DEFAULT_NODE_TIMEOUT_S,
+    DEFAULT_SAMPLES_IN_FLIGHT,
+    job_options,
+    refuse_for_scheduler,
+    refuse_inapplicable,
+)
 from vastray.report import build_report, count_overflow, write_report
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
@@ -40,8 +52,6 @@ from vastray.transport.security import (
 )
 
 log = logging.getLogger(__name__)
-
-DEFAULT_SAMPLES_IN_FLIGHT = 262144
 
 #: Defaults for a user's store, and for the built-in scene (a first picture in a few seconds:
 #: larger, smoother, one bounce and two shadow rays toward the sky).
@@ -152,17 +162,17 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "cannot fit is refused before it starts (default: the free memory "
                         "is only checked)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
-                   help="image/spec-ooc: paths traced at once; bounds the rays held in memory "
-                        "(default: 262144)")
+                   help="out-of-core and node schedulers: paths traced at once; bounds the "
+                        "rays held in memory (default: 262144; with --nodes, 65536 per node)")
     p.add_argument("--history-depth", type=_non_negative, metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")
     p.add_argument("--nodes", type=_positive, metavar="N",
                    help="render with N node processes on this machine, talking ZeroMQ over "
                         "loopback (schedulers image and spec-ooc: sort-first tiles)")
-    p.add_argument("--node-timeout", type=_positive_float, default=120.0, metavar="S",
+    p.add_argument("--node-timeout", type=_positive_float, metavar="S",
                    help="with --nodes: fail when a node is silent this long (default: 120)")
-    p.add_argument("--heartbeat-timeout", type=_positive_float, default=10.0, metavar="S",
+    p.add_argument("--heartbeat-timeout", type=_positive_float, metavar="S",
                    help="with --nodes: a node silent this long mid-frame is lost (stalled); "
                         "it is survived by rendering the frame again on the others (with "
                         "--listen, once they have joined again) (default: 10)")
@@ -202,16 +212,15 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "whose virtual portal predicts little light, and every deeper ray; "
                         "'depth>K' every ray deeper than K; 'none' nothing. Lossy: compare "
                         "with --reference")
-    p.add_argument("--portal-interval", type=_positive, default=10, metavar="N",
+    p.add_argument("--portal-interval", type=_positive, metavar="N",
                    help="--simplified portal: record the portals every N frames (default 10)")
-    p.add_argument("--portal-resolution", type=_portal_resolution,
-                   default=portals.DEFAULT_RESOLUTION, metavar="R",
+    p.add_argument("--portal-resolution", type=_portal_resolution, metavar="R",
                    help="--simplified portal: cells per portal edge, R x R x 8 directions on "
                         "each domain face (default 32, the paper's; its Table 4 sweeps "
                         "8-128). Coarser portals fill with fewer paths: at small images most "
                         "crossings of a 32 x 32 portal land in cells no path has recorded, "
                         "which are traced fine")
-    p.add_argument("--portal-threshold", type=float, default=0.5, metavar="L",
+    p.add_argument("--portal-threshold", type=float, metavar="L",
                    help="--simplified portal: predicted radiance at or below which a depth-1 "
                         "ray goes to the simplified model (default 0.5)")
     p.add_argument("--portal-accuracy", action="store_true",
@@ -222,12 +231,14 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "frame's report gets acc (the paper's prediction accuracy), "
                         "acc_simplified_share, acc_unrecorded_share and replay_false_low")
     p.add_argument("--load-bandwidth", type=_bandwidths, metavar="MB/s[,MB/s...]",
-                   help="with --nodes: emulate network storage: a domain load takes at least "
-                        "its size over this bandwidth (per node, or a list cycled over the "
-                        "ranks); an emulation by waiting after the real read, for benchmarks")
-    p.add_argument("--batch-size", type=_positive, default=65536,
-                   help="paths traced together (default: 65536; in core, cut finer when a "
-                        "frame has fewer than two batches per render worker)")
+                   help="emulate network storage, for every scheduler: a domain load takes at "
+                        "least its size over this bandwidth (per process; with --nodes a list "
+                        "is cycled over the ranks); an emulation by waiting after the real "
+                        "read, for benchmarks. The report gives bytes_loaded and "
+                        "load_throttle_s, the time spent waiting")
+    p.add_argument("--batch-size", type=_positive,
+                   help="in-core reference render: paths traced together (default: 65536; cut "
+                        "finer when a frame has fewer than two batches per render worker)")
     p.add_argument("--threads", type=_positive,
                    help="threads per process (default: all cores; with --nodes N on this "
                         "machine, cores / N per node; with --listen, each node's own cores). In "
@@ -248,8 +259,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--first-frame", type=_non_negative, metavar="F",
                    help="the first frame's number (default: 0); without --frames, "
                         "renders that one frame (numbered outputs, its own seed)")
-    p.add_argument("--exposure", type=_positive_float, default=1.0,
-                   help="PNG exposure multiplier (default: 1)")
+    p.add_argument("--exposure", type=_positive_float,
+                   help="PNG exposure multiplier, for --png or a .png -o (default: 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -396,7 +407,7 @@ def run_launch(args: argparse.Namespace) -> int:
     port = args.port or _free_port()
     coordinator = f"tcp://{args.advertise or this_host()}:{port}"
     started = start_nodes(hosts, coordinator, str(Path(args.keys).resolve()), Path(args.logs),
-                          ssh=args.ssh, timeout=args.node_timeout)
+                          ssh=args.ssh, timeout=args.node_timeout or DEFAULT_NODE_TIMEOUT_S)
     args.nodes, args.listen = len(hosts), f"0.0.0.0:{port}"
     try:
         return run_render(args, launched=started)
@@ -413,14 +424,19 @@ def _free_port() -> int:
 
 
 def resolve_defaults(args: argparse.Namespace) -> None:
-    """Fill the options left unset with the defaults of the built-in scene or of a store."""
+    """Fill the options left unset with the defaults of the built-in scene or of a store (and
+    the defaults of the options ``refuse_inapplicable`` checks for presence)."""
     defaults = BUILTIN_DEFAULTS if args.store is None else STORE_DEFAULTS
+    defaults = dict(defaults, exposure=DEFAULT_EXPOSURE,
+                    node_timeout=DEFAULT_NODE_TIMEOUT_S,
+                    heartbeat_timeout=DEFAULT_HEARTBEAT_TIMEOUT_S)
     for key, value in defaults.items():
         if getattr(args, key) is None:
             setattr(args, key, value)
 
 
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
+    refuse_inapplicable(args)  # before the defaults fill in what was not given
     resolve_defaults(args)
     animating = args.frames is not None or args.first_frame is not None
     if animating:
@@ -445,7 +461,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     settings = RenderSettings(
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
-        seed=args.seed, batch_size=args.batch_size,
+        seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
     )
     if reference is not None and reference.shape != (args.height, args.width, 3):
         raise InputError(args.reference, f"reference is {reference.shape[1]}x{reference.shape[0]}"
@@ -464,12 +480,14 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                                "give --nodes N")
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
-    render_one = _renderer(args, store, store_path, scheduler, cache, launched)
-    options = run_options(args, cache)
+    refuse_for_scheduler(args, scheduler)
+    options = job_options(args, scheduler, cache)
+    render_one = _renderer(args, store, store_path, options, launched)
+    report_options = run_options(args, options)
     if animating:
         return run_animation(args, store_path=str(store_path), config=config,
                              settings=settings, bounds=store.world_bounds, scheduler=scheduler,
-                             options=options, outputs=frame_outputs, render_one=render_one,
+                             options=report_options, outputs=frame_outputs, render_one=render_one,
                              render_many=_render_many(args, config, settings, render_one))
     result = render_one(config, settings)
     image = result.film.image()
@@ -485,7 +503,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
             write_report(written.enter_context(atomic_path(args.report)), build_report(
                 store=str(store_path), settings=asdict(settings), seconds=result.seconds,
                 counters=result.counters, error=error, reference=args.reference,
-                scheduler=scheduler, options=options,
+                scheduler=scheduler, options=report_options,
             ))
     if not args.quiet:
         print(summary, file=sys.stderr)
@@ -494,58 +512,26 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     return 0
 
 
-def node_options(args: argparse.Namespace, scheduler: str) -> dict:
-    """The job entries the node schedulers read beyond the common ones."""
-    options = {"preload": not args.no_preload}
-    if args.load_bandwidth is not None:
-        options["load_bandwidth"] = args.load_bandwidth
-    if args.simplified is not None:
-        if scheduler not in ("async", "temporal"):
-            raise InputError(None, "--simplified works with --scheduler async or temporal")
-        options.update(simplified=args.simplified, portal_interval=args.portal_interval,
-                       portal_threshold=args.portal_threshold,
-                       portal_resolution=args.portal_resolution)
-    if args.portal_accuracy:
-        if args.simplified != "portal":
-            raise InputError(None, "--portal-accuracy measures the portals' predictions: use "
-                                   "it with --simplified portal (and --frames 2 or more)")
-        options["portal_accuracy"] = True
-    if scheduler == "temporal":
-        options["assignment"] = args.assignment or "temporal"
-        options["priority"] = args.priority or "cost-rate"
-    elif args.assignment not in (None, "sequential") or args.priority is not None:
-        raise InputError(None, "--assignment and --priority choose how --scheduler temporal "
-                               "plans (async takes only --assignment sequential so far)")
-    return options
-
-
-def _renderer(args: argparse.Namespace, store: Store, store_path: Path, scheduler: str,
-              cache: int | None, launched: dict | None) -> Callable[..., RenderResult]:
-    """The chosen scheduler as ``render_one(config, settings) -> RenderResult`` (the
+def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
+              launched: dict | None) -> Callable[..., RenderResult]:
+    """The job's scheduler as ``render_one(config, settings) -> RenderResult`` (the
     distributed one also takes ``render_distributed``'s ``frames`` and ``on_frame``)."""
     if args.nodes:
         def render_one(config, settings, **frames):
             return render_distributed(
-                store_path, args.scene, settings, args.nodes, scheduler=scheduler,
-                cache_capacity=cache,
-                max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4,
-                history_depth=args.history_depth, timeout=args.node_timeout,
-                listen=args.listen, keys=load_keys(args.keys) if args.keys else None,
-                launched=launched, progress=not args.quiet, config=config,
-                threads=args.threads, rendezvous=args.rendezvous,
-                heartbeat_timeout=args.heartbeat_timeout,
-                options=node_options(args, scheduler), **frames)
-    elif scheduler == "reference":
+                store_path, args.scene, settings, args.nodes, options,
+                timeout=args.node_timeout, listen=args.listen,
+                keys=load_keys(args.keys) if args.keys else None, launched=launched,
+                progress=not args.quiet, config=config, rendezvous=args.rendezvous,
+                heartbeat_timeout=args.heartbeat_timeout, **frames)
+    elif options.scheduler == "reference":
         def render_one(config, settings):
-            return render(store, config, settings, cache_capacity=cache, threads=args.threads,
-                          progress=not args.quiet)
+            return render(store, config, settings, cache_capacity=options.cache,
+                          threads=options.threads, progress=not args.quiet,
+                          load_bandwidth=options.load_bytes_per_second())
     else:
         def render_one(config, settings):
-            return render_out_of_core(
-                store, config, settings, scheduler=scheduler, cache_capacity=cache,
-                max_samples_in_flight=args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT,
-                history_depth=args.history_depth, preload=not args.no_preload,
-                progress=not args.quiet, threads=args.threads)
+            return render_out_of_core(store, config, settings, options, progress=not args.quiet)
     return render_one
 
 
@@ -560,15 +546,16 @@ def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
                                                on_frame=on_frame)
 
 
-def run_options(args: argparse.Namespace, cache: int | None) -> dict:
+def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
     """The run's switches besides the scheduler, for its report (and ``vastray plot``'s
-    labels): what changes how, or how exactly, the image is made."""
-    return {"nodes": args.nodes, "cache": cache, "history_depth": args.history_depth,
-            "preload": not args.no_preload, "batch_size": args.batch_size,
-            "max_samples_in_flight": args.max_samples_in_flight, "threads": args.threads,
-            "simplified": args.simplified, "assignment": args.assignment,
-            "priority": args.priority, "load_bandwidth": args.load_bandwidth,
-            "frames": args.frames, "first_frame": args.first_frame}
+    labels): the job's options as the schedulers receive them (defaults filled in), the node
+    count, timeouts and address, and the frames."""
+    report = options.for_report()
+    del report["scheduler"]  # the report's own "scheduler"
+    nodes = {"node_timeout_s": args.node_timeout, "heartbeat_timeout_s": args.heartbeat_timeout,
+             "listen": args.listen} if args.nodes else {}
+    return {"nodes": args.nodes, **report, **nodes, "frames": args.frames,
+            "first_frame": args.first_frame}
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
@@ -581,10 +568,11 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
         in_flight, films = 0, 1
     elif args.nodes:  # every node holds a film and its tile of paths on this machine
-        tile = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT // 4
+        tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
         in_flight, films = tile * args.nodes, args.nodes + 1
     elif scheduler == "reference":
-        in_flight, films = args.batch_size * 2 * threads, 1  # 2 batches per render worker
+        batch = args.batch_size or DEFAULT_BATCH_SIZE
+        in_flight, films = batch * 2 * threads, 1  # 2 batches per render worker
     else:
         in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp

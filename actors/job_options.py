@@ -1,0 +1,241 @@
+"""A render job's options: everything a scheduler is told besides the scene and the image
+settings, as one typed, frozen, versioned object.
+
+``vastray render`` builds it once from its command line; ``render_out_of_core`` (one process)
+and every node scheduler (``--nodes``) receive it whole, and each field has one reader (named
+in the field's comment). Between the coordinator and the nodes it travels as a plain dict with
+a ``version`` (``to_wire``), checked on receipt (``from_wire``): an unknown version, an unknown
+or missing field, or a value of the wrong type is refused with an error that names it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from vastray.scene.errors import InputError
+from vastray.schedule.portals import DEFAULT_RESOLUTION
+
+#: The wire layout's version: a node refuses a job whose options carry another.
+VERSION = 1
+
+#: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
+#: (one process, or sort-first tiles on every node), and those that distribute domains over
+#: nodes (``--nodes`` only).
+IN_CORE_SCHEDULERS = ("reference",)
+TILE_SCHEDULERS = ("image", "spec-ooc")
+NODE_ONLY_SCHEDULERS = ("domain", "async", "dynamic", "spec-insitu", "temporal")
+SCHEDULERS = IN_CORE_SCHEDULERS + TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS
+
+SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
+ASSIGNMENTS = ("sequential", "spatial", "temporal")
+PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
+
+DEFAULT_PORTAL_RESOLUTION = DEFAULT_RESOLUTION  # the paper's
+
+
+class JobOptionsError(InputError):
+    """Job options that do not fit together, or a wire dict that is not job options of this
+    version; the message names the option and what to do."""
+
+    def __init__(self, problem: str):
+        super().__init__(None, problem)
+
+
+@dataclass(frozen=True)
+class JobOptions:
+    """How one render job runs. Each runtime reads each field in one place, named beside
+    it: the in-core reference (``commands_render._renderer``), the out-of-core runtime of
+    one process or of a node's sort-first tiles (``local.render_out_of_core``), and the
+    domain-decomposition runtimes of the nodes (``decomposition.render_owned_domains`` and
+    ``insitu.render_spec_insitu``, through ``NodeState.preloader_for`` for the cache, threads,
+    preloading and bandwidth).
+
+    Parameters
+    ----------
+    scheduler : the schedule every process runs (the CLI's renderer, ``render_share`` on a
+        node and ``render_out_of_core`` dispatch on it).
+    cache : most domains resident per process; None: all (or as many as a node owns).
+    max_samples_in_flight : paths traced at once per process (the tile); None: all of them
+        (``render_distributed`` fills in 65536 for the nodes).
+    history_depth : spec-ooc's H, bounces speculated before hits resolve; None: every bounce
+        (passed to ``schedule.spec_ooc.SpeculativeSchedule``).
+    max_batch_rays : most rays in one batch between two nodes (``decomposition._Node``).
+    threads : threads each process's Embree queries split their rays over; None: all cores
+        (``render_distributed`` fills in this machine's cores shared among its nodes).
+    preload : load the next domain in the background (the domain cache's preloading).
+    resident_first : schedules serve domains in memory before loading others (the image and
+        spec-ooc schedules, and async's).
+    load_bandwidth : MB/s of emulated network storage: a domain load takes at least its size
+        over this; one number for every process or one per rank, cycled
+        (``load_bytes_per_second``); None: the disk's own speed.
+    simplified : the simplified-model policy of ``schedule.simplified`` (async, temporal);
+        None: off (``decomposition.simplified_routing``).
+    portal_interval, portal_threshold, portal_resolution, portal_accuracy : the virtual
+        portals of ``simplified="portal"`` (``decomposition.simplified_routing``).
+    assignment : domain ownership, ``sequential`` (async's round robin, its only one so far),
+        ``spatial`` or ``temporal``; None: the scheduler's default
+        (``decomposition._temporal_frame`` for temporal).
+    priority : temporal's domain priority; None: ``cost-rate`` (``decomposition._temporal_frame``).
+
+    Raises
+    ------
+    JobOptionsError
+        On construction, for a value of the wrong type or range, or options that do not fit
+        the scheduler (each message names the command-line option).
+    """
+
+    scheduler: str = "image"
+    cache: int | None = None
+    max_samples_in_flight: int | None = None
+    history_depth: int | None = None
+    max_batch_rays: int = 65536
+    threads: int | None = None
+    preload: bool = True
+    resident_first: bool = True
+    load_bandwidth: tuple[float, ...] | None = None
+    simplified: str | None = None
+    portal_interval: int = 10
+    portal_threshold: float = 0.5
+    portal_resolution: int = DEFAULT_PORTAL_RESOLUTION
+    portal_accuracy: bool = False
+    assignment: str | None = None
+    priority: str | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.load_bandwidth, (int, float)) and not isinstance(self.load_bandwidth,
+                                                                             bool):
+            object.__setattr__(self, "load_bandwidth", (float(self.load_bandwidth),))
+        elif isinstance(self.load_bandwidth, list):
+            object.__setattr__(self, "load_bandwidth", tuple(self.load_bandwidth))
+        self._check_types()
+        self._check_values()
+
+    def _check_types(self) -> None:
+        for name, kinds in _TYPES.items():
+            value = getattr(self, name)
+            if value is None and name in _OPTIONAL:
+                continue
+            if kinds is bool:
+                ok = type(value) is bool
+            else:
+                ok = isinstance(value, kinds) and not isinstance(value, bool)
+            if not ok:
+                raise JobOptionsError(f"job option {name!r} must be {_TYPE_NAMES[name]}, got "
+                                      f"{value!r}")
+        if self.load_bandwidth is not None and not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool)
+                for v in self.load_bandwidth):
+            raise JobOptionsError(f"job option 'load_bandwidth' must be MB/s numbers, got "
+                                  f"{self.load_bandwidth!r}")
+
+    def _check_values(self) -> None:
+        if self.scheduler not in SCHEDULERS:
+            raise JobOptionsError(f"unknown scheduler {self.scheduler!r}; choose from "
+                                  f"{', '.join(SCHEDULERS)}")
+        for name in ("cache", "max_samples_in_flight", "max_batch_rays", "threads",
+                     "portal_interval", "portal_resolution"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise JobOptionsError(f"job option {name!r} must be at least 1, got {value}")
+        if self.history_depth is not None and self.history_depth < 0:
+            raise JobOptionsError(f"--history-depth must not be negative, got "
+                                  f"{self.history_depth}")
+        if self.load_bandwidth is not None and not (
+                self.load_bandwidth and all(0 < v < float("inf") for v in self.load_bandwidth)):
+            raise JobOptionsError(f"--load-bandwidth must be positive MB/s, got "
+                                  f"{list(self.load_bandwidth)}")
+        if self.scheduler == "reference" and (self.max_samples_in_flight is not None
+                                              or not self.preload):
+            raise JobOptionsError("--max-samples-in-flight and --no-preload apply to the "
+                                  "out-of-core schedulers, not to the in-core reference render")
+        if self.history_depth is not None and self.scheduler != "spec-ooc":
+            raise JobOptionsError(f"--history-depth bounds spec-ooc's speculation; --scheduler "
+                                  f"{self.scheduler} does not speculate (drop it or use "
+                                  "--scheduler spec-ooc)")
+        if self.simplified is not None:
+            if self.simplified not in SIMPLIFIED_POLICIES:
+                raise JobOptionsError(f"unknown --simplified policy {self.simplified!r}; "
+                                      f"choose from {', '.join(SIMPLIFIED_POLICIES)}")
+            if self.scheduler not in ("async", "temporal"):
+                raise JobOptionsError("--simplified works with --scheduler async or temporal")
+        if self.portal_accuracy and self.simplified != "portal":
+            raise JobOptionsError("--portal-accuracy measures the portals' predictions: use it "
+                                  "with --simplified portal (and --frames 2 or more)")
+        if self.assignment is not None and self.assignment not in ASSIGNMENTS:
+            raise JobOptionsError(f"unknown --assignment {self.assignment!r}; choose from "
+                                  f"{', '.join(ASSIGNMENTS)}")
+        if self.priority is not None and self.priority not in PRIORITIES:
+            raise JobOptionsError(f"unknown --priority {self.priority!r}; choose from "
+                                  f"{', '.join(PRIORITIES)}")
+        if self.scheduler != "temporal" and (
+                self.assignment not in (None, "sequential") or self.priority is not None
+                or (self.assignment is not None and self.scheduler != "async")):
+            raise JobOptionsError("--assignment and --priority choose how --scheduler temporal "
+                                  "plans (async takes only --assignment sequential so far)")
+
+    def load_bytes_per_second(self, rank: int = 0) -> float | None:
+        """The emulated storage bandwidth of process ``rank`` in bytes/s (``load_bandwidth``
+        cycled over the ranks), or None."""
+        if self.load_bandwidth is None:
+            return None
+        return float(self.load_bandwidth[rank % len(self.load_bandwidth)]) * 1e6
+
+    def to_wire(self) -> dict:
+        """A msgpack-ready dict: the fields (tuples as lists) and ``version``."""
+        wire = asdict(self)
+        if self.load_bandwidth is not None:
+            wire["load_bandwidth"] = list(self.load_bandwidth)
+        wire["version"] = VERSION
+        return wire
+
+    @classmethod
+    def from_wire(cls, wire: object) -> JobOptions:
+        """The options a ``to_wire`` dict holds.
+
+        Raises
+        ------
+        JobOptionsError
+            For anything else: not a dict, another version, an unknown or missing field, a
+            value of the wrong type or out of range.
+        """
+        if not isinstance(wire, dict):
+            raise JobOptionsError(f"job options must be a dict, got {type(wire).__name__}")
+        version = wire.get("version")
+        if version != VERSION:
+            raise JobOptionsError(f"job options version {version!r} is not this node's "
+                                  f"({VERSION}): run the same vastray version on the "
+                                  "coordinator and every node")
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(str(k) for k in set(wire) - names - {"version"})
+        if unknown:
+            raise JobOptionsError(f"job options carry unknown field(s) {unknown[:5]} for "
+                                  f"version {VERSION}: run the same vastray version on the "
+                                  "coordinator and every node")
+        missing = sorted(names - set(wire))
+        if missing:
+            raise JobOptionsError(f"job options lack field(s) {missing} of version {VERSION}")
+        return cls(**{name: wire[name] for name in names})
+
+    def for_report(self) -> dict:
+        """The options as a report records them (JSON-ready)."""
+        report = asdict(self)
+        if self.load_bandwidth is not None:
+            report["load_bandwidth"] = (self.load_bandwidth[0] if len(self.load_bandwidth) == 1
+                                        else list(self.load_bandwidth))
+        return report
+
+
+_INT, _FLOAT = (int,), (int, float)
+_TYPES = {
+    "scheduler": str, "cache": _INT, "max_samples_in_flight": _INT, "history_depth": _INT,
+    "max_batch_rays": _INT, "threads": _INT, "preload": bool, "resident_first": bool,
+    "load_bandwidth": tuple, "simplified": str, "portal_interval": _INT,
+    "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
+    "assignment": str, "priority": str,
+}
+_OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads",
+                       "load_bandwidth", "simplified", "assignment", "priority"})
+_TYPE_NAMES = {name: ("true or false" if kinds is bool else "a string" if kinds is str
+                      else "a number" if kinds is _FLOAT else "a list" if kinds is tuple
+                      else "an integer") + (" or None" if name in _OPTIONAL else "")
+               for name, kinds in _TYPES.items()}

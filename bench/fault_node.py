@@ -1,0 +1,80 @@
+"""`vastray node` with faults injected, for ``bench/faults.py`` and the node-loss tests only.
+
+    python bench/fault_node.py [--peer-endpoint tcp://HOST:PORT] [--slow-drop S] -- NODE-ARGS
+
+runs ``vastray.actors.node.main(NODE-ARGS)`` after replacing two of the node's functions:
+
+- ``--peer-endpoint``: the node tells its peers to send to this endpoint instead of its own,
+  where a ``fault_proxy.PeerProxy`` that delays or drops messages forwards them to the node's
+  real endpoint (the one it logs, ``listening for peers on ...``);
+- ``--slow-drop S``: dropping a job when the coordinator calls a regroup takes S seconds more
+  (a long trace or load still running); the coordinator is silent meanwhile, and the node must
+  not take that silence for its loss.
+
+The production node reads no fault hooks: a stray environment variable cannot redirect its
+peer traffic. Faults exist only in a process started through this launcher.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+
+from vastray.actors import node
+
+log = logging.getLogger("fault_node")
+
+#: This file, for the tests and benchmarks that start nodes through it.
+LAUNCHER = __file__
+
+
+def install_faults(peer_endpoint: str | None = None, slow_drop_s: float = 0.0) -> None:
+    """Replace the node functions the faults act through (see the module's docstring)."""
+    if peer_endpoint is not None:
+        def proxied_endpoint(management) -> str:
+            log.warning("fault injection: peers are told to send to %s, not here",
+                        peer_endpoint)
+            return peer_endpoint
+
+        node.peer_endpoint = proxied_endpoint
+    if slow_drop_s > 0:
+        drop_job = node.drop_job
+
+        async def slow_drop(work) -> None:
+            log.warning("fault injection: dropping the job takes %.1f s more", slow_drop_s)
+            await asyncio.sleep(slow_drop_s)
+            await drop_job(work)
+
+        node.drop_job = slow_drop
+
+
+def command(node_args: list[str], peer_endpoint: str | None = None,
+            slow_drop_s: float = 0.0) -> list[str]:
+    """The command line that starts a node with these faults (for ``subprocess``)."""
+    faults = []
+    if peer_endpoint is not None:
+        faults += ["--peer-endpoint", peer_endpoint]
+    if slow_drop_s > 0:
+        faults += ["--slow-drop", str(slow_drop_s)]
+    return [sys.executable, LAUNCHER, *faults, "--", *node_args]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--peer-endpoint", metavar="URL",
+                        help="endpoint the node tells its peers to send to (a proxy's)")
+    parser.add_argument("--slow-drop", type=float, default=0.0, metavar="S",
+                        help="seconds more that dropping a regrouped job takes")
+    parser.add_argument("node_args", nargs=argparse.REMAINDER,
+                        help="-- then the arguments of `vastray node`")
+    args = parser.parse_args(argv)
+    node_args = args.node_args[1:] if args.node_args[:1] == ["--"] else args.node_args
+    install_faults(args.peer_endpoint, args.slow_drop)
+    return node.main(node_args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
