@@ -204,13 +204,16 @@ def main(argv: list[str] | None = None) -> int:
                            if o.stalled else "ok")
                 print(f"[{k + 1}/{len(plan)}] {' '.join(o.options)}: {verdict} in "
                       f"{o.seconds:.1f} s{'  ' + o.detail if o.detail else ''}", flush=True)
+    from vastray.scene import embree
+
+    binding = "compiled" if embree.binding() is not None else "embreex-fallback"
     crashes = sum(o.native for o in outcomes)
     wrong = sum(o.wrong for o in outcomes)
     stalls = sum(o.stalled and not o.native for o in outcomes)
     failures = sum(o.failed for o in outcomes)
     async_runs = sum("async" in o.options for o in outcomes)
     print(f"native_crashes={crashes} wrong_images={wrong} stalls={stalls} failures={failures} "
-          f"runs={len(outcomes)} async_runs={async_runs} hog={args.hog}/core "
+          f"runs={len(outcomes)} async_runs={async_runs} hog={args.hog}/core binding={binding} "
           f"seconds={time.perf_counter() - start:.0f}")
     return 0 if crashes == wrong == failures == 0 else 1
 

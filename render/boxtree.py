@@ -133,6 +133,10 @@ class BoxTree:
         self._finish()
 
     def _finish(self) -> None:
+        # The compiled walks keep a fixed stack of _STACK nodes (a depth-first walk holds at
+        # most height + 1); a deeper tree, which a median split never builds below 2^62
+        # boxes, takes the numpy walks rather than writing past it.
+        self.compiled = self.compiled and self.height + 1 <= boxwalk._STACK
         self._is_leaf = self.box >= 0
         self._flat_nodes = np.nonzero(self._is_leaf)[0][np.argsort(self.box[self._is_leaf])]
         self.flat_ids = self.box[self._flat_nodes]
