@@ -5,7 +5,7 @@ Every render is a separate ``vastray render`` process, as a user runs it, on a s
 store: single-process renders in core (1-3 threads, several render workers side by side), out of
 core with caches that force evictions (``image``, ``spec-ooc``) and an in-core animation (every
 domain closed and reloaded each frame), then distributed renders on 2-3 nodes with every
-scheduler (``async`` most: it must be bit-identical run to run). Meanwhile a hog of busy
+scheduler (``async`` in three runs of five: it must be bit-identical run to run). Meanwhile a hog of busy
 processes (4 per core by default) keeps the machine loaded, which widens races.
 
 Each run is compared, bit for bit, with the reference render (``--threads 1``, no hog): every
@@ -68,19 +68,30 @@ LOCAL = [
     ["--cache", "3", "--scheduler", "spec-ooc", "--threads", "3"],
     ["--frames", str(FRAMES), "--threads", "2"],
 ]
-#: Distributed configurations, cycled: ``async`` every other run (run-to-run identity).
-DISTRIBUTED = [
+#: Distributed configurations: ``async`` (which must be bit-identical run to run) three runs in
+#: five, in these variants, cycled ...
+ASYNC = [
     ["--nodes", "2", "--scheduler", "async"],
-    ["--nodes", "2", "--scheduler", "image", "--cache", "2"],
     ["--nodes", "3", "--scheduler", "async", "--cache", "3"],
-    ["--nodes", "2", "--scheduler", "spec-ooc", "--cache", "25%"],
     ["--nodes", "2", "--scheduler", "async", "--threads", "2"],
-    ["--nodes", "3", "--scheduler", "domain"],
     ["--nodes", "2", "--scheduler", "async", "--cache", "2"],
-    ["--nodes", "2", "--scheduler", "dynamic", "--cache", "4"],
     ["--nodes", "3", "--scheduler", "async"],
-    ["--nodes", "2", "--scheduler", "spec-insitu"],
 ]
+#: ... and every other scheduler in the other runs, cycled.
+OTHERS = [
+    ["--nodes", "2", "--scheduler", "image", "--cache", "2"],
+    ["--nodes", "2", "--scheduler", "spec-ooc", "--cache", "25%"],
+    ["--nodes", "3", "--scheduler", "domain"],
+    ["--nodes", "2", "--scheduler", "dynamic", "--cache", "4"],
+    ["--nodes", "2", "--scheduler", "spec-insitu"],
+    ["--nodes", "3", "--scheduler", "temporal", "--cache", "3"],
+]
+
+
+def distributed_plan(n: int) -> list[list[str]]:
+    """``n`` distributed runs: ``async`` at three positions in every five, the others between."""
+    asyncs, others = itertools.cycle(ASYNC), itertools.cycle(OTHERS)
+    return [next(asyncs) if k % 5 in (0, 1, 3) else next(others) for k in range(n)]
 
 
 @dataclass
@@ -185,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.local, args.distributed = min(args.local, 8), min(args.distributed, 8)
     plan = ([opts for opts, _ in zip(itertools.cycle(LOCAL), range(args.local))]
-            + [opts for opts, _ in zip(itertools.cycle(DISTRIBUTED), range(args.distributed))])
+            + distributed_plan(args.distributed))
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="vastray-stress-") as tmp:
         work = Path(tmp)

@@ -52,9 +52,9 @@ class DomainBVH:
         is released; with embreex they are copied into Embree's buffers.
     keep : names of the attributes (``"objects"``, ``"colors"``, ``"scalars"``) to keep for
         shading; the others are dropped at once (the scene does not use them).
-    pool : the threads queries of this domain use by default: its size is the number of numba
-        threads of the compiled kernels (embreex fallback: the rays are split over the pool);
-        None: the calling thread only.
+    pool : the threads queries of this domain use by default: its size is the number of parts
+        a compiled query is split into (``embree._launch``; embreex fallback: the rays are
+        split over the pool); None: the calling thread only.
 
     The Embree scene is released by ``close()``, or when the last reference goes (a cache's
     eviction drops its reference; a query in flight on another thread keeps the domain alive
@@ -112,8 +112,9 @@ class DomainBVH:
         ----------
         origins, directions : (n, 3) float32
         t_far : (n,) float32 (not modified)
-        pool : the threads to use (default: the domain's ``pool``): as many numba threads as
-            it has (embreex fallback: the rays are split over it; Embree releases the GIL).
+        pool : the threads to use (default: the domain's ``pool``): the compiled query is
+            split into as many parts as it has threads (embreex fallback: the rays are split
+            over it; Embree releases the GIL).
 
         Returns
         -------
@@ -162,8 +163,8 @@ def _threads(pool: ThreadPoolExecutor | None) -> int:
 
 def query_pool(threads: int | None) -> ThreadPoolExecutor | None:
     """Threads for Embree queries: ``threads`` (default: every core), or None for one.
-    The caller shuts the pool down. (The compiled kernels use only the pool's size, as their
-    number of numba threads; the embreex fallback runs on the pool's threads.)"""
+    The caller shuts the pool down. (The compiled binding uses only the pool's size, as the
+    number of parts a query is split into; the embreex fallback runs on the pool's threads.)"""
     threads = threads or os.cpu_count() or 1
     return ThreadPoolExecutor(threads, thread_name_prefix="embree") if threads > 1 else None
 

@@ -43,16 +43,18 @@ and occlusion; tested) except where a ray meets several triangles at exactly the
 there the tie rule below picks the lowest primitive, where embreex keeps whichever Embree met
 under its traversal order.
 
-Queries: closest hits one ray at a time, occlusion in 16-ray packets
---------------------------------------------------------------------
+Queries: one ray at a time
+--------------------------
 Closest hits use ``rtcIntersect1`` with an argument filter (``_tie_filter``) that keeps, of
 equally near hits, the lowest (instance, primitive) id: the hit of a ray does not depend on the
 order Embree meets tied candidates in, so a domain queried directly and the same domain met as
 an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
-different triangles on the two paths: issue 20). Occlusion (any hit) uses ``rtcOccluded16``
-packets. 1-ray and packet closest-hit queries measured the same speed with the robust flag
-(1.7 M-triangle isosurface, one thread: 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23
-coherent), so the filter's determinism costs no packet speed.
+different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``: 16-ray
+occlusion packets through a top-level scene's instances, from two threads at once, corrupted
+the heap (``bench/README.md``, session 4), the pattern of issue 20's crashes. With the robust
+flag, 1-ray and 16-ray packet queries measured the same speed (1.7 M-triangle isosurface, one
+thread: closest hit 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23 coherent; occlusion 1.76 vs
+1.80 incoherent, 3.70 vs 3.54 coherent), so neither choice gives up packet speed.
 
 Two levels
 ----------
@@ -304,7 +306,7 @@ class _SceneHandle:
         out = np.empty(len(org), np.bool_)
         if len(org):
             with self._lease() as handle:
-                _launch(_occluded16, threads, len(org), handle, org, dirs, tf, out)
+                _launch(_occluded1, threads, len(org), handle, org, dirs, tf, out)
         return out
 
     def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
@@ -444,8 +446,6 @@ def _launch(kernel, threads: int, n: int, *args) -> None:
 
 #: float32 words of RTCRayHit (the hit's instPrimID included: 96 bytes, 16-byte aligned).
 _RAYHIT1_WORDS = 24
-#: float32 words of RTCRay16: 12 x 16 ray words (768 bytes, 64-aligned).
-_RAY16_WORDS = 192
 _INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
 
 
@@ -473,18 +473,8 @@ def _external3(name: str):
     return call
 
 
-def _external4(name: str):
-    @intrinsic
-    def call(typingctx, a, b, c, d):
-        if all(isinstance(x, types.Integer) for x in (a, b, c, d)):
-            return types.void(a, b, c, d), _codegen(name, 4)
-        return None
-
-    return call
-
-
 _rtcIntersect1 = _external3("rtcIntersect1")  # (scene, rayhit, args)
-_rtcOccluded16 = _external4("rtcOccluded16")  # (valid, scene, ray, args)
+_rtcOccluded1 = _external3("rtcOccluded1")  # (scene, ray, args)
 
 
 @njit(inline="always")
@@ -515,52 +505,27 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
     i32[11] = 0
 
 
-@njit(inline="always")
-def _set_ray16(f, i32, valid, org, dirs, tfar, base, n):
-    for j in range(16):
-        i = base + j
-        if i < n:
-            valid[j] = -1
-            f[j] = org[i, 0]
-            f[16 + j] = org[i, 1]
-            f[32 + j] = org[i, 2]
-            f[64 + j] = dirs[i, 0]
-            f[80 + j] = dirs[i, 1]
-            f[96 + j] = dirs[i, 2]
-            f[128 + j] = tfar[i]
-        else:
-            valid[j] = 0
-            f[j] = 0.0
-            f[16 + j] = 0.0
-            f[32 + j] = 0.0
-            f[64 + j] = 1.0
-            f[80 + j] = 0.0
-            f[96 + j] = 0.0
-            f[128 + j] = 0.0
-        f[48 + j] = 0.0  # tnear
-        f[112 + j] = 0.0  # time
-        i32[144 + j] = -1  # mask
-        i32[160 + j] = 0  # id
-        i32[176 + j] = 0  # flags
-
-
 @njit(nogil=True, cache=True)
-def _occluded16(scene, org, dirs, tfar_in, out):
-    """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, in 16-ray packets
-    (``rtcOccluded16``); ``out`` (n,) bool. (Which primitive blocks does not matter, so the
-    packet's traversal order cannot change a result.)"""
+def _occluded1(scene, org, dirs, tfar_in, out):
+    """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, one ``rtcOccluded1`` per ray;
+    ``out`` (n,) bool.
+
+    One ray at a time, not 16-ray packets: occlusion through a top-level scene's instances in
+    ``rtcOccluded16`` packets from two threads at once corrupted the heap (bench/README.md,
+    session 4: ``malloc(): unaligned tcache chunk detected`` within 12 renders), the pattern of
+    the crashes reported in issue 20 (in core, two render workers, the top-level scene); with
+    the robust flag 1-ray and packet occlusion measured the same speed. The ray buffer is a
+    whole RTCRayHit (96 bytes, 16-byte aligned), though Embree reads and writes only its
+    RTCRay part.
+    """
     n = org.shape[0]
-    # 64-byte aligned: the 16-lane valid mask, then the RTCRay16 packet
-    raw = np.empty(16 + _RAY16_WORDS + 16, np.float32)
-    buf = _aligned(raw, 16, 16 + _RAY16_WORDS)
-    valid = buf[:16].view(np.int32)
-    f = buf[16:]
+    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, _RAYHIT1_WORDS)
     i32 = f.view(np.int32)
-    for base in range(0, n, 16):
-        _set_ray16(f, i32, valid, org, dirs, tfar_in, base, n)
-        _rtcOccluded16(valid.ctypes.data, scene, f.ctypes.data, 0)
-        for j in range(min(16, n - base)):
-            out[base + j] = f[128 + j] < 0  # Embree sets tfar to -inf on a hit
+    for i in range(n):
+        _set_ray1(f, i32, org, dirs, tfar_in, i)
+        _rtcOccluded1(scene, f.ctypes.data, 0)
+        out[i] = f[8] < 0  # Embree sets tfar to -inf on a hit
 
 
 # ---------------------------------------------------------------------------------------------
@@ -747,7 +712,7 @@ def _intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
 
 
 #: The query kernels by name (benchmarks and tests run them through ``_launch``).
-KERNELS = {"intersect": _intersect_nearest, "occluded": _occluded16}
+KERNELS = {"intersect": _intersect_nearest, "occluded": _occluded1}
 
 
 class TopScene(_SceneHandle):
