@@ -76,6 +76,21 @@ class NodeLost(NodeFailure):
         self.cause = cause
 
 
+#: A silent node started here that is still using the CPU is given this many heartbeat
+#: timeouts before it counts as stalled (``_Watch._busy_here``).
+BUSY_GRACE = 10
+
+
+def _cpu_ticks(pid: int) -> int | None:
+    """CPU time (user + system, in clock ticks) process ``pid`` has used; None where /proc
+    cannot tell (not Linux, or the process is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def exit_cause(code: int) -> str:
     """How a process with exit status ``code`` (``Popen.returncode``) ended, in a word or two:
     the signal's name for a negative code (killed by it), else ``"exit code N"``."""
@@ -711,6 +726,8 @@ class _Watch:
         self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
         self.hellos: dict[int, dict] = {}
         self.last_check = self.started
+        #: (when, CPU ticks) of each silent local node at the start of its current window
+        self._cpu_seen: dict[int, tuple[float, int]] = {}
 
     def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
@@ -726,6 +743,28 @@ class _Watch:
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
+        self._cpu_seen.pop(rank, None)
+
+    def _busy_here(self, rank: int, now: float) -> bool:
+        """Whether node ``rank``, started here and silent, is still using the CPU (so it is
+        slow, not stalled), for at most ``BUSY_GRACE`` heartbeat timeouts of silence.
+
+        A node whose event loop is held up (numba compiling its kernels on a cold cache, on a
+        machine kept busy by other jobs) sends no heartbeat for a while; a stopped or hung
+        node uses no CPU. Only for processes started here (their CPU time is in /proc)."""
+        if rank >= len(self.procs) or now - self.last_heard[rank] > (
+                BUSY_GRACE * self.heartbeat_timeout):
+            return False
+        ticks = _cpu_ticks(self.procs[rank].pid)
+        if ticks is None:
+            return False
+        # CPU time is compared over windows of half a heartbeat timeout: a window still open
+        # is no verdict yet; a closed one without CPU time used means stalled.
+        since, before = self._cpu_seen.setdefault(rank, (now, ticks))
+        if now - since < self.heartbeat_timeout / 2:
+            return True
+        self._cpu_seen[rank] = (now, ticks)
+        return ticks > before
 
     def _failure(self, rank: int, why: str, kind: type = NodeFailure,
                  cause: str = "lost") -> NodeFailure:
@@ -797,7 +836,8 @@ class _Watch:
                 "(a node with other keys is refused and says 'authentication failed')")
         # Nodes heartbeat once they have the job; until then a joined node is rightly quiet.
         silent = [r for r in self.ranks_joined if judge_silence and self.job_sent
-                  and now - self.last_heard[r] > self.heartbeat_timeout]
+                  and now - self.last_heard[r] > self.heartbeat_timeout
+                  and not self._busy_here(r, now)]
         if silent:  # blame the one silent longest: the others may only be waiting for it
             rank = min(silent, key=lambda r: self.last_heard[r])
             # a node started here that is silent but running is stalled; from elsewhere,

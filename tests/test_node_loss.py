@@ -296,3 +296,35 @@ def test_frames_recovered_after_a_node_dies_equal_the_fault_free_frames(scene, s
         np.testing.assert_array_equal(delivered[frame].film.image(), expected.image(),
                                       err_msg=f"frame {frame}")
         np.testing.assert_array_equal(delivered[frame].film.count, expected.count)
+
+
+def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
+    """A node started here that sends nothing but keeps using the CPU (its event loop held up
+    by numba compiling on a busy machine) is given time; one that uses none (stopped, hung) is
+    stalled after the heartbeat timeout and half of it more."""
+    from vastray.actors.coordinator import BUSY_GRACE, NodeLost, _Watch
+
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    for rank in (0, 1):
+        (tmp_path / f"node{rank}.log").write_text(f"node {rank}: joined\n")
+    try:
+        watch = _Watch(2, [busy, idle], str(tmp_path), timeout=60, launched={},
+                       heartbeat_timeout=1.0)
+        for rank in (0, 1):
+            watch.joined(rank, bytes([rank]))
+        watch.job_out()
+        deadline = time.monotonic() + 10
+        with pytest.raises(NodeLost, match=r"node 1 .*sent nothing for 1 s \(stalled\)"):
+            while time.monotonic() < deadline:
+                watch.check()
+                time.sleep(0.2)
+        assert time.monotonic() - watch.last_heard[0] < BUSY_GRACE  # node 0 was not blamed
+        watch.heard(1)  # node 1 answers again: node 0, still silent but busy, is not stalled
+        time.sleep(1.6)
+        watch.check()
+    finally:
+        busy.kill()
+        idle.kill()
+        busy.wait()
+        idle.wait()
