@@ -3,7 +3,9 @@ sRGB PNG), written atomically with the umask's mode; EXR/PFM/NPY input."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,10 +27,18 @@ IMAGE_FORMATS = {
 
 @contextmanager
 def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; rename it into place only on success."""
+    """Yield a temporary path beside ``path``; rename it into place only on success.
+
+    The temporary name carries the writer's process id (``.NAME.PID.RANDOM.EXT``): a writer
+    killed before it could clean up (SIGKILL, a native crash) leaves its file behind, and the
+    next write of the same ``path`` removes it once that process is gone (issue 20: crashed
+    renders left hidden partial images).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+    _remove_orphans(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=path.suffix,
+                               dir=path.parent)
     os.close(fd)
     try:
         yield tmp
@@ -37,6 +47,31 @@ def atomic_path(path: str | os.PathLike):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _remove_orphans(path: Path) -> None:
+    """Delete the temporary files of ``path`` (``atomic_path``'s names) whose writer is no
+    longer running; another process's live temporary file is left alone."""
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[A-Za-z0-9_]{{8}}"
+                         rf"{re.escape(path.suffix)}")
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(path.parent):
+            match = pattern.fullmatch(entry.name)
+            if match and entry.is_file(follow_symlinks=False) and not _running(
+                    int(match.group(1))):
+                with contextlib.suppress(OSError):
+                    os.unlink(entry.path)
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists (ours or another user's)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,

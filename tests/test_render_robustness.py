@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -64,3 +67,27 @@ def test_spawned_rays_from_hit_points_never_rehit(tmp_path, scale):
         out = cosine_hemisphere(normal, u, v)
         again = tracer.intersect(new_origin.astype(np.float32), out.astype(np.float32))
         assert not again.hit.any(), f"{again.hit.sum()} rays re-hit their surface"
+
+
+def test_a_crashed_writers_temporary_file_is_removed_by_the_next_write(tmp_path):
+    # A render killed mid-write (SIGKILL, a native crash) cannot clean up; its hidden
+    # temporary file names its process, and the next write of that output removes it once the
+    # process is gone. Another running writer's file and other files stay.
+    import subprocess
+    import sys
+
+    from vastray.render.imageio import atomic_path
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    dead_pid = int(gone.stdout)
+    orphan = tmp_path / f".a_0000.exr.{dead_pid}.780tnwz9.exr"
+    live = tmp_path / f".a_0000.exr.{os.getpid()}.abcdefgh.exr"
+    other = tmp_path / ".a_0000.exr.notours.exr"
+    for f in (orphan, live, other):
+        f.write_bytes(b"partial")
+    with atomic_path(tmp_path / "a_0000.exr") as tmp:
+        Path(tmp).write_bytes(b"image")
+    assert (tmp_path / "a_0000.exr").read_bytes() == b"image"
+    assert not orphan.exists()
+    assert live.exists() and other.exists()
