@@ -196,16 +196,15 @@ def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> 
     return out
 
 
-def shade(ctx: PathContext, rays: RadianceRays, hits: Hits, fused: bool = True
+def shade(ctx: PathContext, rays: RadianceRays, hits: Hits
           ) -> tuple[ShadowRays, RadianceRays]:
-    """Turn final closest hits into shadow rays and continuation rays.
+    """Turn final closest hits into shadow rays and continuation rays: through the compiled
+    kernels (``render.kernels``) where every light is of a kind they know, else through the
+    numpy chain (``shade_numpy``, the same rays bit for bit).
 
     Parameters
     ----------
     rays : k radiance rays that hit; hits : their hits (all rows hit).
-    fused : use the compiled kernels (``render.kernels``) where every light is of a kind they
-        know; False: the numpy chain (the same rays, bit for bit; kept for other light kinds
-        and as the kernels' reference in tests).
 
     Returns
     -------
@@ -213,8 +212,15 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits, fused: bool = True
         light (contribution = throughput x BRDF x cos x incident radiance / samples)
     continuation : cosine-weighted diffuse bounces (path tracing, below ``bounces``)
     """
-    if fused and (ctx.settings.integrator == "ao" or _light_table(ctx.shading.lights) is not None):
+    if ctx.settings.integrator == "ao" or _light_table(ctx.shading.lights) is not None:
         return _shade_fused(ctx, rays, hits)
+    return shade_numpy(ctx, rays, hits)
+
+
+def shade_numpy(ctx: PathContext, rays: RadianceRays, hits: Hits
+                ) -> tuple[ShadowRays, RadianceRays]:
+    """``shade`` as a chain of numpy operations: for lights of kinds the kernels do not know,
+    and the kernels' reference (they must give the same rays, bit for bit)."""
     settings = ctx.settings
     d = rays.direction.astype(np.float64)
     p, error = hit_points(rays, hits)
@@ -435,17 +441,22 @@ def _next_event_rays(ctx, rays, point, origin, nf, wo, albedo, material) -> Shad
     return ShadowRays.concat(parts)
 
 
-def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray,
-                   fused: bool = True) -> None:
+def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
     """Add the contribution of the shadow rays ``lit`` (bool (n,)) to ``radiance`` (P, 3).
 
-    Per path, the contributions are summed in row order, then added (``np.bincount``'s
-    rounding; ``kernels.add_unoccluded`` does the same in one pass where ``fused``).
+    Per path, the contributions are summed in row order, then added: ``kernels.add_unoccluded``
+    in one pass for a C-contiguous float64 ``radiance``, else ``add_unoccluded_numpy`` (the
+    same rounding).
     """
-    if fused and radiance.dtype == np.float64 and radiance.flags.c_contiguous:
+    if radiance.dtype == np.float64 and radiance.flags.c_contiguous:
         kernels.add_unoccluded(radiance, _c(shadow.path, np.int64),
                                _c(shadow.contribution, np.float64), _c(lit, np.bool_))
         return
+    add_unoccluded_numpy(radiance, shadow, lit)
+
+
+def add_unoccluded_numpy(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
+    """``add_unoccluded`` with ``np.bincount`` (its rounding is the kernel's reference)."""
     path = shadow.path[lit]
     contribution = shadow.contribution[lit]
     for c in range(3):

@@ -16,7 +16,9 @@ from vastray.render.integrators import (
     RenderSettings,
     Shading,
     add_unoccluded,
+    add_unoccluded_numpy,
     shade,
+    shade_numpy,
 )
 from vastray.render.lights import AmbientLight, DirectionalLight, PointLight, QuadLight
 from vastray.render.materials import Material, MaterialTable
@@ -110,7 +112,7 @@ def test_fused_pt_shading_equals_numpy_chain(with_color, specular, lights):
     ctx = PathContext(Shading(lights, MaterialTable(mats), with_color), settings, pixel, sample,
                       1.0)
     shadow, cont = shade(ctx, rays, hits)
-    shadow_np, cont_np = shade(ctx, rays, hits, fused=False)
+    shadow_np, cont_np = shade_numpy(ctx, rays, hits)
     assert len(shadow) > 1000 and len(cont) > 1000  # the comparison compares something
     _assert_same(shadow, shadow_np)
     _assert_same(cont, cont_np)
@@ -123,7 +125,7 @@ def test_fused_ao_shading_equals_numpy_chain(with_color):
     ctx = PathContext(Shading([], MaterialTable([Material.default()]), with_color), settings,
                       pixel, sample, 0.75)
     shadow, cont = shade(ctx, rays, hits)
-    shadow_np, cont_np = shade(ctx, rays, hits, fused=False)
+    shadow_np, cont_np = shade_numpy(ctx, rays, hits)
     assert len(shadow) == 7 * 2000 and len(cont) == 0
     _assert_same(shadow, shadow_np)
     _assert_same(cont, cont_np)
@@ -137,7 +139,7 @@ def test_light_of_another_kind_takes_the_numpy_chain():
     rays, hits, pixel, sample = _batch(500, 2, 1, False)
     ctx = PathContext(Shading(lights, MaterialTable([Material.default()]), False),
                       RenderSettings(shadow_samples=3), pixel, sample, 1.0)
-    _assert_same(shade(ctx, rays, hits)[0], shade(ctx, rays, hits, fused=False)[0])
+    _assert_same(shade(ctx, rays, hits)[0], shade_numpy(ctx, rays, hits)[0])
 
 
 def test_fused_radiance_sum_equals_bincount():
@@ -149,7 +151,7 @@ def test_fused_radiance_sum_equals_bincount():
     start = np.random.default_rng(1).uniform(0, 1, (len(pixel), 3))
     fused, numpy_sum = start.copy(), start.copy()
     add_unoccluded(fused, shadow, lit)
-    add_unoccluded(numpy_sum, shadow, lit, fused=False)
+    add_unoccluded_numpy(numpy_sum, shadow, lit)
     assert not np.array_equal(fused, start)
     np.testing.assert_array_equal(fused, numpy_sum)
 
