@@ -69,8 +69,7 @@ class Run:
 class Renders:
     """Runs `vastray render` in this process on the tiny store, baseline options first."""
 
-    BASE = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1",
-            "--shadow-samples", "1"]
+    BASE = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1"]
 
     def __init__(self, store, folder: Path, capsys):
         self.store, self.folder, self.capsys = store, folder, capsys
@@ -184,6 +183,8 @@ def check_shadow_samples(r: Renders):
     one, four = (r("--integrator", "ao", "--shadow-samples", n, base=ao) for n in ("1", "4"))
     assert four.report["settings"]["shadow_samples"] == 4
     assert four.counters["rays"]["total"] > one.counters["rays"]["total"]
+    # path tracing with only a point light: one shadow ray per hit whatever the count
+    r.refused("--shadow-samples", "4", naming="--shadow-samples")
 
 
 def check_ao_distance(r: Renders):
@@ -233,6 +234,11 @@ def check_memory_limit(r: Renders):
     assert run.code == 0, run.err
     assert run.counters["cache_capacity"] == 2 and run.report["options"]["cache"] == 2
     r.refused(*args, str(fixed + largest[0] - 1), naming="--memory-limit")  # not one domain
+    # in situ a node keeps every domain it owns: a limit that fits two domains, not a node's
+    # share of them, is refused before any node starts
+    r.refused("--nodes", "2", "--scheduler", "spec-insitu", "--max-samples-in-flight", "128",
+              "--memory-limit", str(fixed + largest[0] + largest[1] + 1),
+              naming="--scheduler spec-insitu")
 
 
 def check_max_samples_in_flight(r: Renders):
@@ -414,8 +420,7 @@ def test_option_changes_what_it_says_or_is_refused(option, renders):
 
 @pytest.mark.slow
 def test_node_options_reach_the_nodes(renders):
-    tiny = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1",
-            "--shadow-samples", "1"]
+    tiny = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1"]
     run = renders("--nodes", "2", "--scheduler", "async", "--cache", "2", "--heartbeat-timeout",
                   "7", "--load-bandwidth", "5,10", "--max-samples-in-flight", "64", base=tiny)
     assert run.code == 0, run.err
@@ -438,8 +443,7 @@ def test_node_options_reach_the_nodes(renders):
 @pytest.mark.slow
 def test_temporal_and_simplified_options_reach_the_nodes(renders):
     renders.scene.write_text(ORBIT_TOML)
-    tiny = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1",
-            "--shadow-samples", "1"]
+    tiny = ["--width", "16", "--height", "12", "--spp", "1", "--bounces", "1"]
     run = renders("--nodes", "2", "--scheduler", "temporal", "--assignment", "spatial",
                   "--priority", "queue", base=tiny)
     assert run.code == 0, run.err

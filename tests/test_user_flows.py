@@ -327,7 +327,8 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "x.exr").exists()
     # room for the film, paths and outputs plus the two largest domains: the cache holds two
     two = sum(sorted(domain_footprints(store.domains))[-2:])
-    limit = estimate_memory(32, 24, 32 * 24 * 2, 2 * 2).total + two + 1
+    # shadow rays per hit: one to the default directional light, --shadow-samples 2 to its sky
+    limit = estimate_memory(32, 24, 32 * 24 * 2, 1 + 2).total + two + 1
     ref = vastray("render", store.path, "-o", "ref.exr", *SMALL, cwd=tmp_path)
     assert ref.returncode == 0
     out = vastray("render", store.path, "-o", "x.exr", "--report", "x.json", *SMALL,

@@ -20,6 +20,7 @@ from vastray.preflight import (
     cache_within,
     check_memory,
     check_output_paths,
+    check_owned_fit,
     domain_footprints,
     estimate_memory,
     parse_size,
@@ -36,6 +37,7 @@ from vastray.render_job import (
     DEFAULT_NODE_TIMEOUT_S,
     DEFAULT_SAMPLES_IN_FLIGHT,
     job_options,
+    refuse_for_lights,
     refuse_for_scheduler,
     refuse_inapplicable,
 )
@@ -437,6 +439,7 @@ def resolve_defaults(args: argparse.Namespace) -> None:
 
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     refuse_inapplicable(args)  # before the defaults fill in what was not given
+    shadow_samples_given = args.shadow_samples is not None
     resolve_defaults(args)
     animating = args.frames is not None or args.first_frame is not None
     if animating:
@@ -455,6 +458,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         config = load_scene_config(args.scene)
     store = Store(store_path)
     config.check_objects(store.objects)
+    refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
     if not animating:  # an animation checks the camera of each of its frames
         config.resolve_camera(*store.world_bounds, args.width, args.height)
     reference = read_image(args.reference) if args.reference and not animating else None
@@ -562,8 +566,9 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
                          cache: int | None) -> int | None:
     """Refuse up front a render whose film and paths in flight cannot fit in memory; with
     ``--memory-limit``, also bound the domain cache by what is left. Returns the cache."""
-    lights = 0 if args.integrator == "ao" else len(config.resolve_lights())
-    shadow_rays = args.shadow_samples * max(lights, 1)
+    # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
+    shadow_rays = args.shadow_samples if args.integrator == "ao" else max(sum(
+        args.shadow_samples if light.stochastic else 1 for light in config.resolve_lights()), 1)
     threads = args.threads or os.cpu_count() or 1
     if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
         in_flight, films = 0, 1
@@ -583,6 +588,13 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
         return cache
     per_process = estimate_memory(args.width, args.height,
                                   min(in_flight // max(args.nodes or 1, 1), total), shadow_rays)
+    if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
+        from vastray.actors.insitu import zorder_owners
+
+        nodes = args.nodes or 1
+        check_owned_fit(args.memory_limit, per_process, domain_footprints(store.domains),
+                        zorder_owners(*store.domain_boxes(), nodes), nodes)
+        return cache
     fitting = cache_within(args.memory_limit, per_process, domain_footprints(store.domains),
                            args.width, args.height)
     log.info("--memory-limit leaves room for %d domains per process", fitting)

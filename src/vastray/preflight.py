@@ -146,6 +146,34 @@ def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width
     return count
 
 
+def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], owner,
+                    nodes: int) -> None:
+    """Check that every node can hold all the domains it owns under ``limit`` besides its film
+    and paths (``fixed``): in situ (``spec-insitu``) a node keeps its domains loaded, so the
+    limit cannot be met by evicting.
+
+    Parameters
+    ----------
+    footprints : (D,) bytes of each domain; owner : (D,) owning node of each domain.
+
+    Raises
+    ------
+    InputError
+        Naming the node that needs the most, what it needs, and what to change.
+    """
+    held = [0] * nodes
+    for size, node in zip(footprints, owner, strict=True):
+        held[int(node)] += size
+    worst = max(range(nodes), key=held.__getitem__)
+    if fixed.total + held[worst] > limit:
+        raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small for "
+                               f"--scheduler spec-insitu: node {worst} keeps its domains "
+                               f"loaded, {gigabytes(held[worst])}, besides "
+                               f"{gigabytes(fixed.total)} for its film and paths; raise it, "
+                               "give more --nodes, or use --scheduler async (whose caches "
+                               "evict)")
+
+
 def _nearest_existing(path: Path) -> Path:
     path = path.absolute()
     while not path.exists() and path != path.parent:

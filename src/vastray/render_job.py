@@ -62,6 +62,23 @@ def refuse_inapplicable(args: argparse.Namespace) -> None:
                                "-o, or drop it")
 
 
+def refuse_for_lights(args: argparse.Namespace, shadow_samples_given: bool, lights: list) -> None:
+    """Refuse ``--shadow-samples`` for path tracing where no light is sampled stochastically
+    (point and directional lights get one shadow ray each: the count would change nothing).
+
+    Raises
+    ------
+    InputError
+        Naming the option and what would make it apply.
+    """
+    if (shadow_samples_given and args.integrator == "pt"
+            and not any(getattr(light, "stochastic", False) for light in lights)):
+        raise InputError(None, "--shadow-samples sets the shadow rays per hit for area and sky "
+                               "lights (and ambient occlusion); this scene's lights are point "
+                               "or directional, one shadow ray each: drop it, or add such a "
+                               "light")
+
+
 def refuse_for_scheduler(args: argparse.Namespace, scheduler: str) -> None:
     """Refuse the options given that ``scheduler`` (resolved from ``auto``) does not read.
 
