@@ -21,7 +21,15 @@ import numpy as np
 
 from vastray.render import kernels
 from vastray.render.camera import start_distance
-from vastray.render.lights import AmbientLight, DirectionalLight, Light, PointLight, QuadLight, SampleKeys
+from vastray.render.lights import (
+    AmbientLight,
+    DirectionalLight,
+    Light,
+    PointLight,
+    QuadLight,
+    SampleKeys,
+    shadow_rays,
+)
 from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.sampling import cosine_hemisphere
@@ -310,7 +318,7 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
         return ShadowRays(np.repeat(rays.path, m), np.zeros(k * m, np.uint8), s_org, s_dir,
                           np.full(k * m, ctx.ao_distance, np.float32), contribution), _no_rays()
     kinds, params = _light_table(ctx.shading.lights)
-    counts = np.array([settings.shadow_samples if light.stochastic else 1
+    counts = np.array([shadow_rays(light, settings.shadow_samples)
                        for light in ctx.shading.lights], np.int64)
     purposes = np.array([Purpose.LIGHT_SAMPLE + 16 * i for i in range(len(kinds))], np.uint64)
     # Hemisphere samples of ambient lights and of the bounce: drawn and turned into angles
@@ -404,7 +412,7 @@ def _next_event_rays(ctx, rays, point, origin, nf, wo, albedo, material) -> Shad
     pixel, sample = ctx.pixel[rays.path], ctx.sample[rays.path]
     parts = []
     for index, light in enumerate(ctx.shading.lights):
-        m = settings.shadow_samples if light.stochastic else 1
+        m = shadow_rays(light, settings.shadow_samples)
         if m == 0:
             continue
         # One row per (vertex, shadow sample j), vertex-major.

@@ -27,6 +27,12 @@ class SampleKeys:
     bounce: np.ndarray
 
 
+def shadow_rays(light, samples: int) -> int:
+    """Shadow rays per hit that ``light`` takes: ``samples`` (``--shadow-samples``) for an
+    area or sky light, sampled stochastically; one for a point or directional light."""
+    return samples if light.stochastic else 1
+
+
 @dataclass(frozen=True)
 class PointLight:
     """Isotropic point light; ``intensity`` (3,) in W/sr."""

@@ -28,6 +28,7 @@ from vastray.preflight import (
 from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
+from vastray.render.lights import shadow_rays
 from vastray.render.scene_config import load_scene_config
 from vastray.render_job import (
     DEFAULT_BATCH_SIZE,
@@ -567,8 +568,8 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     """Refuse up front a render whose film and paths in flight cannot fit in memory; with
     ``--memory-limit``, also bound the domain cache by what is left. Returns the cache."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
-    shadow_rays = args.shadow_samples if args.integrator == "ao" else max(sum(
-        args.shadow_samples if light.stochastic else 1 for light in config.resolve_lights()), 1)
+    rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
+        shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
     threads = args.threads or os.cpu_count() or 1
     if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
         in_flight, films = 0, 1
@@ -581,13 +582,13 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     else:
         in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp
-    estimate = estimate_memory(args.width, args.height, min(in_flight, total), shadow_rays,
+    estimate = estimate_memory(args.width, args.height, min(in_flight, total), rays_per_hit,
                                processes=films)
     check_memory(estimate, args.width, args.height)
     if args.memory_limit is None:
         return cache
     per_process = estimate_memory(args.width, args.height,
-                                  min(in_flight // max(args.nodes or 1, 1), total), shadow_rays)
+                                  min(in_flight // max(args.nodes or 1, 1), total), rays_per_hit)
     if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
         from vastray.actors.insitu import zorder_owners
 

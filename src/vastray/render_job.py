@@ -72,7 +72,7 @@ def refuse_for_lights(args: argparse.Namespace, shadow_samples_given: bool, ligh
         Naming the option and what would make it apply.
     """
     if (shadow_samples_given and args.integrator == "pt"
-            and not any(getattr(light, "stochastic", False) for light in lights)):
+            and not any(light.stochastic for light in lights)):
         raise InputError(None, "--shadow-samples sets the shadow rays per hit for area and sky "
                                "lights (and ambient occlusion); this scene's lights are point "
                                "or directional, one shadow ray each: drop it, or add such a "
