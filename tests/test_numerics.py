@@ -241,14 +241,16 @@ def test_overflowing_pixels_are_counted_in_the_report_and_on_stderr(far, tmp_pat
     out, report = tmp_path / "hot.pfm", tmp_path / "hot.json"
     assert main(["render", str(far["base"].path), "-o", str(out), "--scene", str(toml),
                  "--width", "32", "--height", "24", "--spp", "1", "--bounces", "0",
-                 "--report", str(report), "--quiet"]) == 0
+                 "--report", str(report)]) == 0  # as a user runs it: no --quiet
     from vastray.render.imageio import read_image
 
     image = read_image(out)
     bad = int(np.count_nonzero(~np.isfinite(image).all(axis=-1)))
     assert bad > 0  # the case happens ...
     assert json.loads(report.read_text())["counters"]["nonfinite_pixels"] == bad  # ... counted
-    assert f"{bad:,} of 768 pixels are NaN or infinite" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"{bad:,} of 768 pixels are NaN or infinite" in err
+    assert "wrote " in err.strip().splitlines()[-1]  # the summary line survives the overflow
 
 
 def test_count_overflow_counts_pixels_not_channels():
