@@ -348,3 +348,32 @@ def test_generate_and_info_as_a_user_runs_them(tmp_path):
     assert out.stdout.startswith("g.store: rm at 24^3") and "2x1x1 grid" in out.stdout
     info = vastray("info", "g.store", cwd=tmp_path)
     assert info.returncode == 0 and "attributes: scalars" in info.stdout, info.stdout
+
+
+def test_info_piped_into_head_ends_without_a_traceback(store, tmp_path):
+    """`vastray info STORE | head -1`: the reader closes the pipe early."""
+    info = subprocess.Popen([sys.executable, "-m", "vastray.cli", "info", str(store.path)],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    info.stdout.close()  # what head does once it has its lines: the next write fails
+    with info.stderr:
+        err = info.stderr.read().decode()
+    assert info.wait(timeout=60) == 141
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+@pytest.mark.parametrize("args, says", [
+    (["render", "-o", "a.exr", "--resolution", "0x0"], "--width W --height H"),
+    (["render", "-o", "a.exr", "--wdth", "3"], "did you mean --width?"),
+    (["render", "-o", "a.exr", "--width", "abc"], "--width: expected a whole number, got 'abc'"),
+    (["render", "--spp", "4"], "required: -o/--output"),
+    (["data", "fetch", "--bogus"], "unrecognized arguments: --bogus"),
+])
+def test_argument_errors_are_two_lines_naming_the_command_and_the_fix(tmp_path, args, says):
+    out = vastray(*args, cwd=tmp_path)
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    prog = "vastray " + " ".join(a for a in args[:2] if not a.startswith("-"))
+    assert len(lines) == 2, out.stderr
+    assert lines[0].startswith(f"{prog}: error: ") and says in lines[0], lines
+    assert lines[1] == f"(`{prog} --help` lists the options)"
+    assert not list(tmp_path.iterdir())

@@ -6,7 +6,9 @@ Configuration lives here only; library modules log through ``logging.getLogger(_
 from __future__ import annotations
 
 import argparse
+import difflib
 import logging
+import os
 import signal
 import sys
 import threading
@@ -27,16 +29,54 @@ typical use (every line runs on a fresh install):
   vastray data fetch -o samples                            # real scans, checksummed
   vastray partition samples/stanford_bunny.ply -o bunny.store --grid 2x2x2
   vastray render bunny.store -o bunny.exr --png bunny.png
-  vastray compare rm.exr reference.exr
+  vastray render rm.store -o rm-ooc.exr --cache 25% --scheduler spec-ooc
+  vastray compare rm-ooc.exr rm.exr                        # MSE, PSNR: the same image
   vastray render rm.store -o orbit.exr --scene orbit.toml --frames 36   # an animation
   vastray plot a.json b.json -o error_vs_time.png          # error vs time of several runs
 """
 
 
+#: Options users reach for that vastray spells differently: the option the command has
+#: instead, and the hint shown when one is given.
+OPTION_HINTS = {
+    "--resolution": ("--width", "the image size is --width W --height H"),
+    "--size": ("--width", "the image size is --width W --height H"),
+    "--samples": ("--spp", "samples per pixel are --spp N"),
+}
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are two lines: the problem, then where help is (not
+    the whole usage block), and whose sub-commands name an unknown option themselves, with
+    the closest option they have."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n"
+                     f"(`{self.prog} --help` lists the options)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        parsed, extras = super().parse_known_args(args, namespace)
+        if extras and self._subparsers is None:  # a command's own parser, not the top one
+            self.error(f"unrecognized arguments: {' '.join(extras)}{self._hint(extras)}")
+        return parsed, extras
+
+    def _hint(self, extras: list[str]) -> str:
+        """'; did you mean --x?' for the first unknown option, from ``OPTION_HINTS`` or the
+        closest option of this command; else ''."""
+        unknown = next((e.split("=")[0] for e in extras if e.startswith("--")), None)
+        if unknown is None:
+            return ""
+        instead, hint = OPTION_HINTS.get(unknown, (None, ""))
+        if instead in self._option_string_actions:
+            return f" ({hint})"
+        close = difflib.get_close_matches(unknown, list(self._option_string_actions), n=1)
+        return f" (did you mean {close[0]}?)" if close else ""
+
+
 def build_parser() -> argparse.ArgumentParser:
     from vastray import commands_data, commands_render, commands_scene, plot
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="vastray", description=DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -83,7 +123,13 @@ def main(argv: list[str] | None = None) -> int:
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe fails here, not in the interpreter's exit
+        return status
+    except BrokenPipeError:  # `vastray info STORE | head`: the reader has all it wanted
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # so the exit's flush of stdout fails silently
+        return 141  # 128 + SIGPIPE, what a shell reports for a command its pipe closed
     except InputError as exc:
         print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
         return 2
