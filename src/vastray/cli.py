@@ -105,6 +105,9 @@ class Terminated(KeyboardInterrupt):
 
 
 def _raise_terminated(signum, frame) -> None:
+    # `timeout` signals the command and then its whole process group, so the same stop
+    # arrives twice: a second Terminated would break into the clean-up the first started
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise Terminated()
 
 
