@@ -62,7 +62,9 @@ def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh, capsys):
             str(out), "--keys", str(tmp_path / "keys"), "--width", "24", "--height", "18",
             "--spp", "2", "--node-timeout", "30"]  # as a user runs it: no --quiet
     assert main(args) == 0
-    assert f"wrote {out}" in capsys.readouterr().err.strip().splitlines()[-1]
+    err = capsys.readouterr().err
+    assert f"wrote {out}" in err.strip().splitlines()[-1]
+    assert f"3 node(s) started; their logs are in {tmp_path / 'logs'}" in err
     _assert_reference_image(store, out, tmp_path)
     logs = sorted(p.name for p in (tmp_path / "logs").iterdir())
     assert logs == ["node0-alpha.log", "node1-beta.log", "node2-beta.log"]
@@ -87,6 +89,23 @@ def test_launch_needs_keys(tmp_path, capsys):
     assert main(["launch", "--hosts", str(tmp_path / "hosts"), "-o", str(tmp_path / "o.exr"),
                  "x.store"]) != 0
     assert "--keys" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", [["--nodes", "4"], ["--listen", "0.0.0.0:5555"]])
+def test_launch_refuses_the_options_it_sets_itself(tmp_path, capsys, flag):
+    (tmp_path / "hosts").write_text("alpha\n")
+    code = main(["launch", "--hosts", str(tmp_path / "hosts"), "-o", str(tmp_path / "o.exr"),
+                 "--keys", str(tmp_path), "--logs", str(tmp_path / "logs"), "x.store", *flag])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert f"{flag[0]} is for `vastray render`" in err and "one node per HOSTFILE line" in err
+    assert not (tmp_path / "logs").exists() and not (tmp_path / "o.exr").exists()
+
+
+def test_launch_help_shows_where_the_logs_go(capsys):
+    with pytest.raises(SystemExit):
+        main(["launch", "--help"])
+    assert "(default: vastray-logs)" in " ".join(capsys.readouterr().out.split())
 
 
 @pytest.fixture

@@ -105,7 +105,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     launch.add_argument("--port", type=_positive, help="coordinator port (default: a free one)")
     launch.add_argument("--ssh", default="ssh -o BatchMode=yes -tt",
                         help="command that runs a command on a host (default: %(default)s)")
-    launch.add_argument("--logs", default="vastray-logs", help="folder for node logs")
+    launch.add_argument("--logs", default="vastray-logs",
+                        help="folder for the node logs, created if absent (default: "
+                             "%(default)s)")
     add_render_arguments(launch)
     launch.set_defaults(func=run_launch)
     _register_keys_and_compare(sub)
@@ -416,11 +418,19 @@ def run_launch(args: argparse.Namespace) -> int:
 
     if not args.keys:
         raise InputError(None, "launch needs --keys DIR (make them with `vastray keys -o DIR`)")
+    for flag, given in (("--nodes", args.nodes), ("--listen", args.listen),
+                        ("--rendezvous", args.rendezvous)):
+        if given:  # launch sets them itself
+            raise InputError(None, f"launch starts one node per HOSTFILE line (slots=N for "
+                                   f"more) and listens on --port; {flag} is for `vastray "
+                                   "render`")
     hosts = read_hostfile(args.hosts)
     port = args.port or _free_port()
     coordinator = f"tcp://{args.advertise or this_host()}:{port}"
     started = start_nodes(hosts, coordinator, str(Path(args.keys).resolve()), Path(args.logs),
                           ssh=args.ssh, timeout=args.node_timeout or DEFAULT_NODE_TIMEOUT_S)
+    if not args.quiet:
+        print(f"{len(hosts)} node(s) started; their logs are in {args.logs}", file=sys.stderr)
     args.nodes, args.listen = len(hosts), f"0.0.0.0:{port}"
     try:
         return run_render(args, launched=started)
