@@ -28,7 +28,7 @@ from vastray.actors.decomposition import NodeState, render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
-from vastray.actors.rendezvous import launcher_rank, read_address
+from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
 from vastray.transport.codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
@@ -611,7 +611,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="vastray node", description=__doc__, epilog=NODE_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     where = parser.add_mutually_exclusive_group(required=True)
-    where.add_argument("--coordinator", help="tcp://HOST:PORT")
+    where.add_argument("--coordinator", metavar="tcp://HOST:PORT",
+                       help="the coordinator's address (as it prints it; tcp:// may be left "
+                            "out)")
     where.add_argument("--rendezvous", metavar="FILE",
                        help="read the coordinator's address from FILE on a shared file "
                             "system, waiting for it to appear (the coordinator's --rendezvous)")
@@ -620,7 +622,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "PMI_RANK, PMIX_RANK or OMPI_COMM_WORLD_RANK; else assigned by "
                              "the coordinator)")
     parser.add_argument("--timeout", type=float, default=120.0,
-                        help="seconds any wait may last before the node gives up")
+                        help="seconds any wait may last before the node gives up "
+                             "(default: %(default)s)")
     parser.add_argument("--bind", default="127.0.0.1",
                         help="address to listen on for peers (beyond loopback needs --keys)")
     parser.add_argument("--advertise", help="address peers reach this node at (default: "
@@ -664,9 +667,13 @@ def main(argv: list[str] | None = None) -> int:
         if args.key_name and not args.keys:
             raise InputError(None, "--key-name needs --keys DIR")
         keys = load_keys(args.keys, args.key_name) if args.keys else None
-        coordinator = args.coordinator or read_address(args.rendezvous, args.timeout)
+        coordinator = coordinator_address(args.coordinator
+                                          or read_address(args.rendezvous, args.timeout))
         asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
                              args.advertise, keys))
+    except InputError as exc:
+        print(f"node {label}: error: {exc}", file=sys.stderr)
+        return 2
     except Exception as exc:  # report, then fail: the coordinator names this node
         print(f"node {label}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

@@ -67,3 +67,30 @@ def read_address(path: str | os.PathLike, timeout: float) -> str:
     if not address.startswith("tcp://") or ":" not in address[6:]:
         raise InputError(path, f"holds {address[:80]!r}, not a tcp://HOST:PORT address")
     return address
+
+
+def coordinator_address(address: str) -> str:
+    """``tcp://HOST:PORT`` from what a user gave (``HOST:PORT`` too), checked before any
+    socket is made: a bad form or a host name that does not resolve is named, where ZeroMQ
+    would say "Invalid argument" or the node would wait out its timeout.
+
+    Raises
+    ------
+    InputError
+        When ``address`` is not ``[tcp://]HOST:PORT`` or HOST does not resolve.
+    """
+    import socket
+
+    full = address if "://" in address else f"tcp://{address}"
+    host, _, port = full.removeprefix("tcp://").rpartition(":")
+    host = host.strip("[]")  # an IPv6 literal, [::1]
+    if not full.startswith("tcp://") or not host or not port.isdigit() \
+            or not 0 < int(port) < 65536:
+        raise InputError(None, f"--coordinator {address!r} is not tcp://HOST:PORT "
+                               "(the address the coordinator prints)")
+    try:
+        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise InputError(None, f"--coordinator {address!r}: host {host!r} not found "
+                               f"({exc.args[-1]})") from None
+    return full

@@ -8,12 +8,19 @@ import os
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from vastray.actors.rendezvous import launcher_rank, launcher_size, read_address, write_address
+from vastray.actors.rendezvous import (
+    coordinator_address,
+    launcher_rank,
+    launcher_size,
+    read_address,
+    write_address,
+)
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.imageio import read_exr
@@ -60,6 +67,31 @@ def test_rendezvous_file(tmp_path):
     (tmp_path / "bad.addr").write_text("head:5555\n")
     with pytest.raises(InputError, match="not a tcp://HOST:PORT"):
         read_address(tmp_path / "bad.addr", timeout=1)
+
+
+def test_coordinator_address_is_checked_before_any_socket():
+    assert coordinator_address("127.0.0.1:5999") == "tcp://127.0.0.1:5999"
+    assert coordinator_address("tcp://localhost:5999") == "tcp://localhost:5999"
+    for bad in ("udp://head:5555", "tcp://head", "head:port", "tcp://head:70000"):
+        with pytest.raises(InputError, match="is not tcp://HOST:PORT"):
+            coordinator_address(bad)
+    with pytest.raises(InputError, match="host 'nosuch.invalid' not found"):
+        coordinator_address("tcp://nosuch.invalid:5555")
+
+
+@pytest.mark.parametrize("address, says", [
+    ("tcp://nosuch.invalid:5999", "host 'nosuch.invalid' not found"),
+    ("udp://127.0.0.1:5999", "is not tcp://HOST:PORT"),
+])
+def test_node_names_a_bad_coordinator_at_once(address, says):
+    started = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "vastray.cli", "node", "--coordinator", address,
+                          "--timeout", "30"], capture_output=True, text=True, timeout=60)
+    assert time.monotonic() - started < 20  # named, not waited out
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"node ?: error: --coordinator {address!r}")
+    assert says in out.stderr and "ZMQError" not in out.stderr
 
 
 def test_rendezvous_needs_listen(tmp_path, capsys):
