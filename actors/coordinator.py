@@ -767,11 +767,16 @@ class _Watch:
         return ticks > before
 
     def _failure(self, rank: int, why: str, kind: type = NodeFailure,
-                 cause: str = "lost") -> NodeFailure:
+                 cause: str = "lost", log_tail: bool = True) -> NodeFailure:
+        """The error for node ``rank``; ``log_tail``: a local node's last log line is appended
+        (its own words on why it exited), not where ``why`` already says it."""
         if rank < len(self.procs):
-            text = (Path(self.log_dir) / f"node{rank}.log").read_text(errors="replace").strip()
-            last = text.splitlines()[-1] if text else "no output"
-            failure = kind(f"node {rank} (pid {self.procs[rank].pid}) {why}: {last}")
+            last = ""
+            if log_tail:
+                text = (Path(self.log_dir) / f"node{rank}.log").read_text(
+                    errors="replace").strip()
+                last = f": {text.splitlines()[-1] if text else 'no output'}"
+            failure = kind(f"node {rank} (pid {self.procs[rank].pid}) {why}{last}")
         else:
             hello = self.hellos.get(rank, {})
             where = (f" (pid {hello['pid']} on {hello.get('host', '?')})" if "pid" in hello
@@ -784,7 +789,7 @@ class _Watch:
 
     def failed(self, rank: int, error: str) -> NodeLost:
         """A node's report that its job failed: lost, like a node that exits mid-frame."""
-        return self._failure(rank, f"failed: {error}", NodeLost, cause="failed")
+        return self._failure(rank, f"failed: {error}", NodeLost, cause="failed", log_tail=False)
 
     def check(self, judge_silence: bool = True) -> None:
         """Raise for a node that exited, never joined, or (``judge_silence``) went silent."""

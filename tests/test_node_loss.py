@@ -328,3 +328,23 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
         idle.kill()
         busy.wait()
         idle.wait()
+
+
+def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsys):
+    """A node that fails its job (here: a damaged domain) says why itself; its last log line
+    ("node 0: joined ...") is not glued after the reason."""
+    from vastray.cli import main
+
+    store = write_store(tmp_path / "s.store", bumpy_scene(), grid=(2, 1, 1))
+    for indices in (tmp_path / "s.store" / "domains").glob("*/indices.npy"):
+        data = bytearray(indices.read_bytes())
+        data[-64:] = b"\xff" * 64  # indices far past the vertices: refused on load
+        indices.write_bytes(bytes(data))
+    code = main(["render", str(store.path), "-o", str(tmp_path / "o.exr"), "--nodes", "2",
+                 "--width", "16", "--height", "12", "--spp", "1", "--quiet"])
+    assert code == 3
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert re.fullmatch(r"vastray render: error: node \d \(pid \d+\) failed: InputError: \S+"
+                        r"indices\.npy: triangle index [\d,]+ is out of range: .*", last), last
+    assert "joined" not in last
+    assert not (tmp_path / "o.exr").exists()
