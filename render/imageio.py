@@ -197,6 +197,10 @@ def read_image(path) -> np.ndarray:
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise InputError(path, f"expected an (H, W, 3) array, found {arr.shape}")
         return arr.astype(np.float32)
+    if path.suffix.lower() != ".exr":
+        what = ("a PNG is an 8-bit preview, not radiance" if path.suffix.lower() == ".png"
+                else f"cannot read a {path.suffix or 'file without extension'}")
+        raise InputError(path, f"{what}: give the .exr, .pfm or .npy image")
     return read_exr(path)
 
 

@@ -59,7 +59,7 @@ def test_report_has_error_against_reference_beside_time(store, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("case", ["missing_store", "bad_toml", "unknown_light", "bad_reference",
-                                  "reference_size", "truncated_domain"])
+                                  "reference_size", "truncated_domain", "png_reference"])
 def test_bad_input_fails_with_one_line_and_no_output(store, tmp_path, capsys, case):
     out = tmp_path / "never.exr"
     args = ["render", str(store.path), "-o", str(out), *SMALL]
@@ -77,6 +77,9 @@ def test_bad_input_fails_with_one_line_and_no_output(store, tmp_path, capsys, ca
     elif case == "reference_size":
         write_exr(tmp_path / "r.exr", np.zeros((5, 5, 3), np.float32))
         args += ["--reference", str(tmp_path / "r.exr")]
+    elif case == "png_reference":
+        (tmp_path / "r.png").write_bytes(b"\x89PNG\r\n\x1a\n")
+        args += ["--reference", str(tmp_path / "r.png")]
     elif case == "truncated_domain":
         broken = write_store(tmp_path / "broken.store", bumpy_scene(), grid=(2, 1, 1))
         victim = broken.path / broken.domains[1].files["vertices"]
@@ -86,6 +89,8 @@ def test_bad_input_fails_with_one_line_and_no_output(store, tmp_path, capsys, ca
     assert main(args) != 0
     err = capsys.readouterr().err.strip()
     assert err.startswith("vastray render: error:") and len(err.splitlines()) == 1, err
+    if case == "png_reference":
+        assert "r.png: a PNG is an 8-bit preview, not radiance: give the .exr" in err
     assert not out.exists()
     assert not list(tmp_path.glob(".never*"))  # no temporary left behind
 
@@ -117,3 +122,19 @@ def test_exr_round_trip(tmp_path):
     rgb = np.random.default_rng(0).random((7, 9, 3)).astype(np.float32)
     write_exr(tmp_path / "x.exr", rgb, np.ones((7, 9)), np.zeros((7, 9, 3)))
     np.testing.assert_array_equal(read_exr(tmp_path / "x.exr"), rgb)
+
+
+def test_compare_refuses_a_png_naming_what_it_reads(store, tmp_path, capsys):
+    png = tmp_path / "a.png"
+    assert main(["render", str(store.path), "-o", str(png), *SMALL, "--quiet"]) == 0
+    assert main(["compare", str(png), str(png)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"vastray compare: error: {png}: a PNG is an 8-bit preview, not radiance: "
+                   "give the .exr, .pfm or .npy image")
+
+
+def test_more_local_nodes_than_cores_is_warned_of(store, tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr("os.cpu_count", lambda: 1)  # this machine, as one with a single core
+    assert main(["render", str(store.path), "-o", str(tmp_path / "o.exr"), *SMALL, "--nodes",
+                 "2", "--quiet"]) == 0
+    assert "--nodes 2 on 1 core(s): the nodes share them" in caplog.text

@@ -106,7 +106,7 @@ def test_existing_store_needs_force(main, meshes, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("case", ["missing", "unsupported", "no-iso", "nan", "degenerate",
-                                  "kd-without-domains"])
+                                  "kd-without-domains", "folder", "store", "too-many-domains"])
 def test_bad_input_fails_cleanly(main, tmp_path, capsys, meshes, case):
     ball = str(meshes[0])
     args = {
@@ -116,7 +116,12 @@ def test_bad_input_fails_cleanly(main, tmp_path, capsys, meshes, case):
         "nan": [ball, str(tmp_path / "nan.obj")],
         "degenerate": [str(tmp_path / "flat.obj")],
         "kd-without-domains": [ball, "--split", "kd"],
+        "folder": [str(tmp_path / "adir")],
+        "store": [str(tmp_path / "old.store")],
+        "too-many-domains": [ball, "--domains", "100000"],
     }[case]
+    (tmp_path / "adir").mkdir()
+    assert main(["partition", ball, "-o", str(tmp_path / "old.store"), "--quiet"]) == 0
     (tmp_path / "scene.blend").write_text("x")
     np.save(tmp_path / "v.npy", np.zeros((3, 3, 3)))
     (tmp_path / "nan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 nan 0\nf 1 2 3\n")
@@ -125,8 +130,12 @@ def test_bad_input_fails_cleanly(main, tmp_path, capsys, meshes, case):
     assert main(["partition", *args, "-o", str(tmp_path / "out.store"), "--quiet"]) != 0
     err = capsys.readouterr().err.strip()
     assert err.startswith("vastray partition: error: ") and "\n" not in err
-    if case not in ("kd-without-domains",):
+    if case not in ("kd-without-domains", "too-many-domains"):
         assert args[-1].rsplit("/", 1)[-1] in err  # names the file
+    says = {"folder": "is a folder; give the mesh or volume files in it",
+            "store": "is a store already; render it with `vastray render",
+            "too-many-domains": "--domains 100,000 is more than the "}.get(case, "")
+    assert says in err
     assert no_store_left(tmp_path, "out.store")
 
 
@@ -149,3 +158,10 @@ def test_help_has_an_example(main, command, capsys):
     assert exit_.value.code == 0
     out = capsys.readouterr().out
     assert f"vastray {command} " in out and "example" in out
+
+
+def test_domains_holding_a_few_triangles_each_are_warned_of(main, meshes, tmp_path, caplog):
+    domains = meshes[2] // 8
+    assert main(["partition", str(meshes[0]), "-o", str(tmp_path / "s.store"), "--domains",
+                 str(domains), "--quiet"]) == 0
+    assert f"--domains {domains:,} leaves about 8 triangles per domain" in caplog.text

@@ -505,6 +505,10 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                                "give --nodes N")
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
+        if not args.listen and args.nodes > (os.cpu_count() or 1):
+            log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
+                        "nodes render no faster here", args.nodes, os.cpu_count() or 1,
+                        os.cpu_count() or 1)
     refuse_for_scheduler(args, scheduler)
     options = job_options(args, scheduler, cache)
     render_one = _renderer(args, store, store_path, options, launched)

@@ -19,7 +19,7 @@ from vastray.scene.isosurface import DEFAULT_BRICK
 from vastray.scene.partition import partition_grid, partition_kd
 from vastray.scene.readers import SUPPORTED, read_mesh
 from vastray.scene.simplify import DEFAULT_MIN_FACES, build_simplified, check_ratio
-from vastray.scene.store import ATTRIBUTES, Store, StoreWriter, check_replaceable
+from vastray.scene.store import ATTRIBUTES, Store, StoreWriter, check_replaceable, is_store
 from vastray.scene.verify import verify_store
 
 log = logging.getLogger(__name__)
@@ -228,6 +228,11 @@ def cmd_partition(args) -> int:
         raise InputError(None, "--domains N needs --split kd (a grid takes --grid AxBxC)")
     if len(args.inputs) > np.iinfo(np.uint16).max:
         raise InputError(None, f"at most {np.iinfo(np.uint16).max} inputs")
+    for name in args.inputs:
+        if Path(name).is_dir():
+            raise InputError(name, "is a store already; render it with `vastray render "
+                                   f"{name}`" if is_store(Path(name)) else
+                             "is a folder; give the mesh or volume files in it")
 
     progress = _show_progress(args)
     meshes = [read_mesh(p, iso=args.iso, brick=args.brick, progress=progress)
@@ -239,6 +244,7 @@ def cmd_partition(args) -> int:
     several = len(meshes) > 1
     mesh = meshops.concat(meshes, objects=list(range(len(meshes))) if several else None)
     if split == "kd":
+        _check_domain_count(args.domains, mesh.n_triangles)
         part = partition_kd(mesh, args.domains)
     else:
         part = partition_grid(mesh, args.grid or DEFAULT_GRID)
@@ -253,6 +259,22 @@ def cmd_partition(args) -> int:
               f"{len(part.domains)} domains ({split})")
     _simplify_after(args, out)
     return 0
+
+
+#: Fewer triangles than this per domain on average and each domain's own costs (its file,
+#: its Embree scene, its ray queues) outweigh its triangles.
+FEW_TRIANGLES_PER_DOMAIN = 64
+
+
+def _check_domain_count(domains: int, triangles: int) -> None:
+    """Refuse more k-d domains than triangles; warn when they would hold only a few each."""
+    if domains > triangles:
+        raise InputError(None, f"--domains {domains:,} is more than the {triangles:,} "
+                               "triangles of the input; ask for fewer domains")
+    if triangles / domains < FEW_TRIANGLES_PER_DOMAIN:
+        log.warning("--domains %s leaves about %d triangles per domain: each domain's own "
+                    "costs will outweigh them; fewer domains render faster", f"{domains:,}",
+                    triangles // domains)
 
 
 def cmd_generate(args) -> int:
