@@ -106,6 +106,32 @@ def _bounded_map(fn, items, workers: int):
             yield pending.popleft().result()
 
 
+class FrameCache:
+    """One domain cache kept over the frames of a run, so that an animation loads a domain
+    once while the cache can hold it, not once per frame; each frame's counters are its own.
+
+    Parameters
+    ----------
+    store, capacity, load_bandwidth : as ``render``'s (capacity None: every domain).
+    """
+
+    def __init__(self, store: Store, capacity: int | None = None,
+                 load_bandwidth: float | None = None):
+        self.store, self.load_bandwidth = store, load_bandwidth
+        self.capacity = capacity or max(len(store.domains), 1)
+        self.cache: DomainCache | None = None
+
+    def for_frame(self, config: SceneConfig, integrator: str) -> DomainCache:
+        """The cache for the next frame, its counters at zero (a new cache where this
+        frame's shading needs attributes the kept domains dropped)."""
+        keep = shading_inputs(self.store, config, integrator)[1]
+        if self.cache is None or not keep <= self.cache.keep:
+            self.cache = DomainCache(self.store, self.capacity, keep,
+                                     load_bandwidth=self.load_bandwidth)
+        self.cache.count_afresh()
+        return self.cache
+
+
 def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
            progress: bool = True, drop_page_cache: bool = False,

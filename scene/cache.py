@@ -95,6 +95,13 @@ class DomainCache:
         self._pending: dict[int, Future] = {}
         self._preloader: ThreadPoolExecutor | None = None
 
+    def count_afresh(self) -> None:
+        """Start the counters again (a new frame): the resident domains stay, so a domain
+        loaded earlier counts as a hit, and the peaks start at what is resident now."""
+        with self._lock:
+            self.stats = CacheStats(peak_resident_bytes=self._resident_bytes,
+                                    peak_resident_domains=len(self._resident))
+
     def __contains__(self, domain_id: int) -> bool:
         return domain_id in self._resident
 

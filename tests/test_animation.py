@@ -458,3 +458,15 @@ def test_settings_seed_of_frames_leaves_the_default_run_alone(store, tmp_path):
     cfg = parse_scene_config("", "none")
     expected = render(store, cfg, st, progress=False).film.image()
     np.testing.assert_array_equal(read_exr(out), expected.astype(np.float32))
+
+
+def test_an_in_core_animation_loads_each_domain_once(store, orbit_toml, tmp_path):
+    """The domain cache is kept over the frames: a domain that fits is loaded once, not once
+    per frame (each frame's report counts its own loads)."""
+    report = tmp_path / "r.json"
+    assert main(["render", str(store.path), "-o", str(tmp_path / "x.exr"), "--report",
+                 str(report), "--scene", str(orbit_toml), "--frames", "4", *SMALL]) == 0
+    summary = json.loads(report.read_text())
+    loads = [e["loads"] for e in summary["frames"]]
+    assert loads[0] > 0
+    assert summary["totals"]["loads"] <= len(store.domains), loads  # was 4 per frame

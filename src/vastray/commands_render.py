@@ -25,7 +25,7 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
-from vastray.render.driver import RenderResult, render
+from vastray.render.driver import FrameCache, RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.lights import shadow_rays
@@ -554,10 +554,12 @@ def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options:
                 progress=not args.quiet, config=config, rendezvous=args.rendezvous,
                 heartbeat_timeout=args.heartbeat_timeout, **frames)
     elif options.scheduler == "reference":
+        kept = FrameCache(store, options.cache, options.load_bytes_per_second())
+
         def render_one(config, settings):
-            return render(store, config, settings, cache_capacity=options.cache,
-                          threads=options.threads, progress=not args.quiet,
-                          load_bandwidth=options.load_bytes_per_second())
+            return render(store, config, settings, threads=options.threads,
+                          progress=not args.quiet,
+                          cache=kept.for_frame(config, settings.integrator))
     else:
         def render_one(config, settings):
             return render_out_of_core(store, config, settings, options, progress=not args.quiet)
