@@ -413,7 +413,8 @@ def test_plot_draws_error_vs_time_of_runs(tmp_path, capsys):
                            for f, m in enumerate(mse)]}
 
     runs = {"lossless.json": summary("image", {"nodes": None, "cache": 2}, [0.0, 0.0]),
-            "lossy.json": summary("temporal", {"nodes": 4, "simplified": True}, [1e-3, 2e-3]),
+            "lossy.json": summary("temporal", {"nodes": 4, "simplified": "portal"},
+                                  [1e-3, 2e-3]),
             "single.json": {"scheduler": "reference", "seconds": {"total": 2.0},
                             "error": {"mse": 1e-4}}}
     for name, doc in runs.items():
@@ -424,7 +425,8 @@ def test_plot_draws_error_vs_time_of_runs(tmp_path, capsys):
     assert "3 runs, 5 points" in capsys.readouterr().err
     from vastray.plot import load_series
 
-    assert load_series(tmp_path / "lossy.json").label == "temporal --spp 2 --nodes 4 simplified"
+    assert load_series(tmp_path / "lossy.json").label == \
+        "temporal --spp 2 --nodes 4 --simplified portal"
     (tmp_path / "none.json").write_text(json.dumps({"scheduler": "image", "seconds": {}}))
     assert main(["plot", str(tmp_path / "none.json"), "-o", str(tmp_path / "n.png")]) == 2
     assert "render with --reference" in capsys.readouterr().err
@@ -470,3 +472,21 @@ def test_an_in_core_animation_loads_each_domain_once(store, orbit_toml, tmp_path
     loads = [e["loads"] for e in summary["frames"]]
     assert loads[0] > 0
     assert summary["totals"]["loads"] <= len(store.domains), loads  # was 4 per frame
+
+
+def test_plot_labels_tell_simplified_variants_apart():
+    from vastray.report import run_label
+
+    def label(**options):
+        return run_label({"scheduler": "temporal", "settings": {"spp": 4},
+                          "options": {"nodes": 4, "portal_threshold": 0.5,
+                                      "portal_resolution": 32, "portal_interval": 10,
+                                      **options}})
+
+    variants = [label(), label(simplified="portal"), label(simplified="depth>1"),
+                label(simplified="portal", portal_threshold=0.25),
+                label(simplified="portal", portal_resolution=8),
+                label(simplified="portal", priority="queue"),
+                label(simplified="portal", assignment="spatial")]
+    assert len(set(variants)) == len(variants), variants
+    assert variants[3] == "temporal --spp 4 --nodes 4 --simplified portal --portal-threshold 0.25"

@@ -89,8 +89,18 @@ def run_label(report: dict) -> str:
         parts.append(f"--history-depth {options['history_depth']}")
     if options.get("preload") is False:
         parts.append("--no-preload")
+    for name in ("assignment", "priority"):
+        if options.get(name):
+            parts.append(f"--{name} {options[name]}")
     if options.get("simplified"):
-        parts.append("simplified")
+        parts.append(f"--simplified {options['simplified']}")
+        if options["simplified"] == "portal":  # the portal settings a run changed
+            from vastray.actors.job_options import JobOptions
+
+            defaults = JobOptions(scheduler="temporal")
+            for name in ("portal_threshold", "portal_resolution", "portal_interval"):
+                if options.get(name) not in (None, getattr(defaults, name)):
+                    parts.append(f"--{name.replace('_', '-')} {options[name]}")
     return " ".join(parts)
 
 
