@@ -490,3 +490,15 @@ def test_plot_labels_tell_simplified_variants_apart():
                 label(simplified="portal", assignment="spatial")]
     assert len(set(variants)) == len(variants), variants
     assert variants[3] == "temporal --spp 4 --nodes 4 --simplified portal --portal-threshold 0.25"
+
+
+def test_frames_rendered_again_say_how_many_files_they_replaced(store, orbit_toml, tmp_path,
+                                                                capsys):
+    args = ["render", str(store.path), "-o", str(tmp_path / "x.exr"), "--report",
+            str(tmp_path / "r.json"), "--scene", str(orbit_toml), "--frames", "2",
+            *[a for a in SMALL if a != "--quiet"]]
+    assert main(args) == 0
+    assert "replaced" not in capsys.readouterr().err
+    assert main(args) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.endswith("; replaced 5 existing files"), last  # 2 images, 2 reports, summary

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from vastray.cli import build_parser, main
-from vastray.commands_data import SAMPLES, Sample, fetch_sample
+from vastray.commands_data import SAMPLES, Sample, fetch_sample, sha256_of
 from vastray.render.driver import render
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import parse_scene_config
@@ -100,6 +100,38 @@ def test_fetch_verifies_checksums_and_keeps_nothing_bad(served, tmp_path):
     with pytest.raises(InputError, match="download failed"):
         fetch_sample(Sample("missing.obj", "", good.sha256, 0, ""), out, base_url=url, timeout=10)
     assert sorted(p.name for p in out.iterdir()) == ["good.obj"]  # no partial file left
+
+
+def test_fetch_never_replaces_an_edited_sample_without_force(tmp_path):
+    mirror = tmp_path / "mirror"
+    mirror.mkdir()
+    (mirror / "tri.obj").write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    sample = Sample("tri.obj", "unused", sha256_of(mirror / "tri.obj"), 0, "")
+    out = tmp_path / "samples"
+    path, _ = fetch_sample(sample, out, mirror=mirror)
+    path.write_bytes(b"# my edits\n" + path.read_bytes())
+    with pytest.raises(InputError, match="tri.obj: is in the way: it differs from the sample "
+                                         r"\(edited\?\); move it, or give --force"):
+        fetch_sample(sample, out, mirror=mirror)
+    assert path.read_bytes().startswith(b"# my edits")  # untouched
+    assert fetch_sample(sample, out, mirror=mirror, force=True) == (path, True)
+    assert path.read_bytes() == (mirror / "tri.obj").read_bytes()
+    assert sorted(p.name for p in out.iterdir()) == ["tri.obj"]
+
+
+def test_fetch_cli_refuses_to_replace_an_edited_sample(shared_data, tmp_path, capsys):
+    args = ["data", "fetch", "-o", str(tmp_path / "s"), "--from", str(shared_data / "meshes"),
+            "--only", "spot.obj"]
+    assert main(args) == 0
+    (tmp_path / "s" / "spot.obj").write_text("# edited\n")
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "spot.obj (0.3 MB) ... failed"
+    assert err[1].startswith(f"vastray data: error: {tmp_path / 's' / 'spot.obj'}: is in the way")
+    assert (tmp_path / "s" / "spot.obj").read_text() == "# edited\n"
+    assert main([*args, "--force"]) == 0
+    assert "fetched, checksum ok" in capsys.readouterr().err
 
 
 def test_fetch_from_a_mirror_of_the_real_samples(shared_data, tmp_path, capsys):

@@ -386,3 +386,22 @@ def test_argument_errors_are_two_lines_naming_the_command_and_the_fix(tmp_path, 
     assert lines[0].startswith(f"{prog}: error: ") and says in lines[0], lines
     assert lines[1] == f"(`{prog} --help` lists the options)"
     assert not list(tmp_path.iterdir())
+
+
+def test_one_overwrite_rule_files_named_are_replaced_and_said_so_folders_need_force(store,
+                                                                                     tmp_path):
+    """The file a user names with -o/--png/--report is replaced, as renderers do, and the last
+    line says so; a folder (a store, a key folder) is replaced only with --force."""
+    first = vastray("render", store.path, "-o", "a.exr", "--report", "a.json", *SMALL,
+                    cwd=tmp_path)
+    assert first.returncode == 0 and "replaced" not in first.stderr
+    again = vastray("render", store.path, "-o", "a.exr", "--report", "a.json", *SMALL,
+                    cwd=tmp_path)
+    assert again.returncode == 0
+    assert again.stderr.strip().splitlines()[-1].endswith("; replaced the existing a.exr, a.json")
+    for command in (["generate", "rm", "-o", "g.store", "--resolution", "12"],
+                    ["keys", "-o", "keys"]):
+        assert vastray(*command, cwd=tmp_path).returncode == 0
+        refused = vastray(*command, cwd=tmp_path)
+        assert refused.returncode == 2 and "--force" in refused.stderr, refused.stderr
+        assert vastray(*command, "--force", cwd=tmp_path).returncode == 0

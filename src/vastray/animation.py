@@ -82,6 +82,8 @@ class FrameOutputs:
     image: str
     png: str | None
     report: str | None
+    #: how many of these files existed before the run (replaced, and said so)
+    replaced: int = 0
 
     def of(self, frame: int) -> list[Path]:
         """The files of ``frame``: image, then the PNG and the report where asked for."""
@@ -103,6 +105,7 @@ def check_frame_outputs(image: str, png: str | None, report: str | None,
     if report is not None:
         check_output_paths(image, png, report)  # the summary's own path
         seen[Path(report).resolve()] = "the summary report"
+    replaced = int(report is not None and Path(report).exists())
     for frame in frames:
         paths = check_output_paths(str(frame_path(image, frame)),
                                    None if png is None else str(frame_path(png, frame)),
@@ -111,7 +114,8 @@ def check_frame_outputs(image: str, png: str | None, report: str | None,
             other = seen.setdefault(path.resolve(), f"frame {frame}")
             if other != f"frame {frame}":
                 raise InputError(path, f"frame {frame} would overwrite a file of {other}")
-    return FrameOutputs(image, png, report)
+            replaced += path.exists()
+    return FrameOutputs(image, png, report, replaced)
 
 
 def resolve_frames(config: SceneConfig, frames: list[int], lo: np.ndarray, hi: np.ndarray,
@@ -302,4 +306,6 @@ def _summary_line(args, outputs: FrameOutputs, frames: list[int], totals: dict,
         psnr = means["psnr_db"]
         psnr = "inf" if not np.isfinite(psnr) else f"{psnr:.2f}"
         line += f", mean MSE {means['mse']:.4g}, mean PSNR {psnr} dB"
+    if outputs.replaced:
+        line += f"; replaced {outputs.replaced} existing file{'s' * (outputs.replaced > 1)}"
     return line

@@ -55,9 +55,9 @@ example:
   vastray partition samples/stanford_bunny.ply -o bunny.store --grid 2x2x2
   vastray render bunny.store -o bunny.exr --png bunny.png
 
-Files already present with the right checksum are kept. A download whose checksum differs is
-deleted and reported. --from DIR copies from a local mirror (a cluster without internet)
-with the same checks.
+Files already present with the right checksum are kept; one that differs (edited, say) is
+replaced only with --force. A download whose checksum differs is deleted and reported.
+--from DIR copies from a local mirror (a cluster without internet) with the same checks.
 """
 
 
@@ -78,6 +78,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        choices=[s.name for s in SAMPLES], help="fetch only these files")
     fetch.add_argument("--timeout", type=float, default=60.0,
                        help="seconds a download may stall (default: %(default)s)")
+    fetch.add_argument("--force", action="store_true",
+                       help="replace a file of a sample's name that differs from the sample")
     fetch.set_defaults(func=cmd_fetch)
     actions.add_parser("list", help="list the samples").set_defaults(func=cmd_list)
 
@@ -91,22 +93,29 @@ def sha256_of(path: Path) -> str:
 
 
 def fetch_sample(sample: Sample, folder: Path, mirror: Path | None = None,
-                 timeout: float = 60.0, base_url: str | None = None) -> tuple[Path, bool]:
+                 timeout: float = 60.0, base_url: str | None = None,
+                 force: bool = False) -> tuple[Path, bool]:
     """Bring one sample into ``folder``; returns (path, whether it was fetched now).
 
     Parameters
     ----------
     mirror : a local folder to copy from instead of the URL.
     base_url : replaces the URL's folder (tests serve files from loopback).
+    force : replace a file of the sample's name whose content differs from the sample.
 
     Raises
     ------
     InputError
-        The source is unreachable or the checksum differs (nothing is left behind).
+        The source is unreachable or the checksum differs (nothing is left behind), or a
+        different file is in the way without ``force``.
     """
     target = folder / sample.name
     if target.is_file() and sha256_of(target) == sample.sha256:
         return target, False
+    if target.exists() and not (force and target.is_file()):
+        raise InputError(target, "is in the way: it differs from the sample (edited?); move "
+                                 "it, or give --force to replace it" if target.is_file() else
+                         "is in the way and not a file")
     folder.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{sample.name}.", dir=folder)
     tmp = Path(tmp_name)
@@ -144,7 +153,11 @@ def cmd_fetch(args: argparse.Namespace) -> int:
     for sample in chosen:
         print(f"{sample.name} ({sample.size / 1e6:.1f} MB) ...", end=" ", file=sys.stderr,
               flush=True)
-        path, fetched = fetch_sample(sample, folder, mirror, args.timeout)
+        try:
+            path, fetched = fetch_sample(sample, folder, mirror, args.timeout, force=args.force)
+        except InputError:
+            print("failed", file=sys.stderr)  # the error on a line of its own
+            raise
         print("fetched, checksum ok" if fetched else "present, checksum ok", file=sys.stderr)
     print(f"{len(chosen)} sample(s) in {folder}")
     return 0

@@ -118,7 +118,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("store", nargs="?", help="STORE folder (default: the built-in scene)")
     p.add_argument("-o", "--output", required=True,
                    help="output image; the extension picks the format: .exr (float RGB plus "
-                        "depth and normal layers), .pfm, .hdr or .png")
+                        "depth and normal layers), .pfm, .hdr or .png. Like --png and "
+                        "--report, an existing file is replaced (the last line says so)")
     p.add_argument("--png", help="also write a tone-mapped PNG preview")
     p.add_argument("--scene", help="SCENE.toml with camera, lights and materials")
     p.add_argument("--integrator", choices=["ao", "pt"], default="pt",
@@ -641,6 +642,9 @@ def summary_line(args: argparse.Namespace, result, error: dict | None,
     if error is not None:
         psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
         line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"
+    replaced = [str(p) for p in outputs if p.exists()]  # made before the outputs are written
+    if replaced:  # the files a user names are replaced, as renderers do, but never silently
+        line += f"; replaced the existing {', '.join(replaced)}"
     return line
 
 
