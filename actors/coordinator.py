@@ -39,6 +39,7 @@ from vastray.actors.job_options import (
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
+from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
@@ -216,9 +217,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     while True:
         remaining = None if frames is None else [f for f in frames if f not in delivered]
         try:
-            with tqdm(total=total, unit="path", unit_scale=True, delay=2.0,
-                      disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
-                      leave=False) as bar:
+            with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0,
+                          disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
+                          leave=False) as bar:
                 film, reports, barriers = asyncio.run(_coordinate(
                     dict(job, frames=remaining), size, settings, timeout, listen, keys,
                     launched or {}, bar, progress, rendezvous, heartbeat_timeout or timeout,

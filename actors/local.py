@@ -10,7 +10,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.render.camera import Camera
@@ -24,6 +23,7 @@ from vastray.render.driver import (
 )
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
+from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
 from vastray.scene.cache import DomainCache
@@ -114,8 +114,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     productive: set[tuple[int, int]] = set()  # (domain, its load number)
     traced_domains: set[int] = set()
     try:
-        with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
-                  desc=f"render ({scheduler})", leave=False) as bar:
+        with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
+                      desc=f"render ({scheduler})", leave=False) as bar:
             for first in firsts:
                 ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                    setup.ao_distance)

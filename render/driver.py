@@ -12,12 +12,12 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
-from tqdm import tqdm
 
 from vastray.render.camera import Camera
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
 from vastray.render.lights import QuadLight, check_power, in_frame
+from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
@@ -198,8 +198,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         return ctx, trace_paths(tracer, camera, ctx)
 
     try:
-        with tqdm(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
-                  desc="render", leave=False) as bar:
+        with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
+                      desc="render", leave=False) as bar:
             for ctx, paths in _bounded_map(trace_batch, range(0, total, batch), workers):
                 film.add_paths(ctx.pixel, ctx.sample, paths)
                 bar.update(len(ctx.pixel))

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import OpenEXR
@@ -138,3 +142,46 @@ def test_more_local_nodes_than_cores_is_warned_of(store, tmp_path, monkeypatch, 
     assert main(["render", str(store.path), "-o", str(tmp_path / "o.exr"), *SMALL, "--nodes",
                  "2", "--quiet"]) == 0
     assert "--nodes 2 on 1 core(s): the nodes share them" in caplog.text
+
+
+def test_progress_bar_says_compiling_instead_of_an_eta_until_the_first_paths():
+    import io
+
+    from vastray.render.progress import COMPILING, RenderBar
+
+    out = io.StringIO()
+    with RenderBar(total=1000, unit="path", file=out, compiled=False, mininterval=0,
+                   delay=2.0) as bar:
+        assert COMPILING in out.getvalue()  # at once, not after the delay
+        bar.update(100)  # the first paths: the kernels are compiled
+        shown = out.getvalue().split("\r")[-1]
+        assert COMPILING not in shown and "<" not in shown  # no ETA from the compile's rate
+        time.sleep(0.05)
+        bar.update(100)
+        assert "<" in out.getvalue().split("\r")[-1]  # an ETA from the paths since
+    out = io.StringIO()
+    with RenderBar(total=1000, file=out, compiled=True, mininterval=0, delay=0) as bar:
+        bar.update(100)
+    assert COMPILING not in out.getvalue()
+
+
+def test_kernels_compiled_is_false_only_before_numba_has_cached_them(store, tmp_path):
+    from vastray.render.progress import kernels_compiled
+
+    render(store, camera_config([3.0, 2.2, 4.5], [0.0, -0.5, 0.0]), settings(), progress=False)
+    assert kernels_compiled()  # this process's cache: the render above compiled or loaded them
+    ask = [sys.executable, "-c", "from vastray.render.progress import kernels_compiled; "
+                                 "print(kernels_compiled())"]
+    fresh = subprocess.run(ask, env=dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba")),
+                           capture_output=True, text=True, timeout=60)
+    assert fresh.stdout.strip() == "False", fresh.stderr
+
+
+@pytest.mark.slow
+def test_first_render_after_install_says_it_compiles(store, tmp_path):
+    run = subprocess.run([sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o",
+                          str(tmp_path / "o.exr"), "--width", "32", "--height", "24", "--spp",
+                          "1"], env=dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba")),
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert "compiling kernels (first run only)" in run.stderr
