@@ -602,7 +602,12 @@ examples:
   vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 --keys /shared/keys
   srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
   mpirun -n 8 vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
-(see examples/slurm.sbatch)
+
+in a Slurm batch script, the coordinator in the background, then one node per task:
+  vastray render /shared/s.store -o o.exr --nodes "$SLURM_NTASKS" --listen 0.0.0.0:0 \
+      --rendezvous /shared/job.addr --keys /shared/keys &
+  srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
+(the source repository's examples/slurm.sbatch is a complete script)
 """
 
 

@@ -39,6 +39,37 @@ def test_readme_names_no_file_a_user_lacks():
         assert doi in README
 
 
+def test_design_cites_papers_by_title_and_doi_not_by_path():
+    design = (ROOT / "docs" / "DESIGN.md").read_text()
+    assert "../shared" not in design and "navratil-" not in design
+    assert not re.search(r"\b(spray|temporal) §", design)  # nicknames of papers
+    for doi in ("10.2312/EGPGV/EGPGV12/061-070", "10.1109/LDAV.2018.8739224",
+                "10.1109/TVCG.2022.3219982"):
+        assert doi in design
+
+
+def _help(*command: str, capsys) -> str:
+    with pytest.raises(SystemExit):
+        main([*command, "--help"])
+    return " ".join(capsys.readouterr().out.split())  # argparse's wrapping undone
+
+
+def test_help_names_no_file_a_pip_install_lacks(capsys):
+    assert "reference.exr" not in _help(capsys=capsys)  # a file nothing in it makes
+    assert "ironProt" not in _help("partition", capsys=capsys)
+    node = _help("node", capsys=capsys)
+    assert "srun vastray node --rendezvous" in node and "(see examples/" not in node
+    assert "examples/slurm.sbatch)" not in _help("render", capsys=capsys)
+
+
+def test_render_help_says_which_schedulers_nodes_and_samples_in_flight_serve(capsys):
+    text = _help("render", capsys=capsys)
+    nodes = text.split("--nodes N ")[1].split(" --node-timeout")[0]
+    assert all(s in nodes for s in ("image", "spec-ooc", "async", "spec-insitu", "temporal"))
+    in_flight = text.split("--max-samples-in-flight N ")[1].split(" --history-depth")[0]
+    assert "every --nodes scheduler" in in_flight
+
+
 def test_readme_commands_parse_with_the_real_cli():
     parser = build_parser()
     lines = [line for block in _blocks("bash")

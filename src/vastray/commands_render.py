@@ -168,14 +168,17 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "cannot fit is refused before it starts (default: the free memory "
                         "is only checked)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
-                   help="out-of-core and node schedulers: paths traced at once; bounds the "
-                        "rays held in memory (default: 262144; with --nodes, 65536 per node)")
+                   help="out-of-core (image, spec-ooc) and every --nodes scheduler: paths "
+                        "traced at once; bounds the rays held in memory (default: 262144; "
+                        "with --nodes, 65536 per node)")
     p.add_argument("--history-depth", type=_non_negative, metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")
     p.add_argument("--nodes", type=_positive, metavar="N",
                    help="render with N node processes on this machine, talking ZeroMQ over "
-                        "loopback (schedulers image and spec-ooc: sort-first tiles)")
+                        "loopback: image and spec-ooc split the image into tiles (sort-first); "
+                        "domain, async, dynamic, spec-insitu and temporal split the domains "
+                        "(see --scheduler)")
     p.add_argument("--node-timeout", type=_positive_float, metavar="S",
                    help="with --nodes: fail when a node is silent this long (default: 120)")
     p.add_argument("--heartbeat-timeout", type=_positive_float, metavar="S",
@@ -189,7 +192,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rendezvous", metavar="FILE",
                    help="with --listen: write this coordinator's address into FILE on a file "
                         "system the nodes share, for `vastray node --rendezvous FILE` under "
-                        "srun or mpirun (see examples/slurm.sbatch)")
+                        "srun or mpirun (`vastray node --help` shows a Slurm job)")
     p.add_argument("--keys", metavar="DIR",
                    help="cluster keys from `vastray keys` (ZeroMQ CURVE: encrypted, only key "
                         "holders may join); needed to listen beyond loopback")

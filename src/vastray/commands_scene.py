@@ -32,7 +32,7 @@ examples:
   vastray partition samples/stanford_bunny.ply -o bunny.store       # 2x2x2 grid (default)
   vastray partition samples/stanford_bunny.ply samples/spot.obj -o two.store --grid 4x2x2
   vastray partition samples/lucy_100k.ply -o lucy.store --domains 12 --split kd
-  vastray partition ironProt.vtk -o iron.store --iso 64             # volume -> isosurface
+  vastray partition volume.npy -o vol.store --iso 0.5               # volume -> isosurface
 
 supported inputs: {supported}
 volumes (.npy .raw/.json .nii .nii.gz .vtk) need --iso; a .raw file needs a JSON header
