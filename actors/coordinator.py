@@ -36,6 +36,7 @@ from vastray.actors.job_options import (
     JobOptions,
     JobOptionsError,
 )
+from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
@@ -75,20 +76,6 @@ class NodeLost(NodeFailure):
         self.rank = rank
         self.cause = cause
 
-
-#: A silent node started here that is still using the CPU is given this many heartbeat
-#: timeouts before it counts as stalled (``_Watch._busy_here``).
-BUSY_GRACE = 10
-
-
-def _cpu_ticks(pid: int) -> int | None:
-    """CPU time (user + system, in clock ticks) process ``pid`` has used; None where /proc
-    cannot tell (not Linux, or the process is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def exit_cause(code: int) -> str:
@@ -726,8 +713,8 @@ class _Watch:
         self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
         self.hellos: dict[int, dict] = {}
         self.last_check = self.started
-        #: (when, CPU ticks) of each silent local node at the start of its current window
-        self._cpu_seen: dict[int, tuple[float, int]] = {}
+        #: whether a silent node started here still uses CPU (windows of half a timeout)
+        self._cpu = CpuWitness(self.heartbeat_timeout / 2)
 
     def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
@@ -743,7 +730,8 @@ class _Watch:
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
-        self._cpu_seen.pop(rank, None)
+        if rank < len(self.procs):
+            self._cpu.forget(self.procs[rank].pid)
 
     def _busy_here(self, rank: int, now: float) -> bool:
         """Whether node ``rank``, started here and silent, is still using the CPU (so it is
@@ -755,16 +743,7 @@ class _Watch:
         if rank >= len(self.procs) or now - self.last_heard[rank] > (
                 BUSY_GRACE * self.heartbeat_timeout):
             return False
-        ticks = _cpu_ticks(self.procs[rank].pid)
-        if ticks is None:
-            return False
-        # CPU time is compared over windows of half a heartbeat timeout: a window still open
-        # is no verdict yet; a closed one without CPU time used means stalled.
-        since, before = self._cpu_seen.setdefault(rank, (now, ticks))
-        if now - since < self.heartbeat_timeout / 2:
-            return True
-        self._cpu_seen[rank] = (now, ticks)
-        return ticks > before
+        return self._cpu.busy(self.procs[rank].pid, now)
 
     def _failure(self, rank: int, why: str, kind: type = NodeFailure,
                  cause: str = "lost") -> NodeFailure:
