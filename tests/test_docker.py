@@ -267,7 +267,7 @@ def volumes(monkeypatch):
     root.chmod(0o755)
     for name in ("data", "keys", "numba-cache"):
         (root / name).mkdir(mode=0o755)
-    os.chown(root / "numba-cache", IMAGE_UID, IMAGE_UID)
+    (root / "numba-cache").chmod(0o1777)  # whichever uid a test runs as
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(root / "numba-cache"))  # for the subprocesses
     yield root
     shutil.rmtree(root)
