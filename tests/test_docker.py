@@ -199,7 +199,8 @@ def test_dockerfile_copies_every_package_the_license_and_the_entrypoint():
     text = dockerfile()
     assert "pip install" in text
     assert 'ENTRYPOINT ["python", "/usr/local/bin/vastray-entrypoint"]' in text
-    assert f"--uid {IMAGE_UID}" in text and "\nUSER " not in text  # starts as root, drops
+    assert f"useradd --create-home --uid {IMAGE_UID} --gid {IMAGE_UID} vastray" in text
+    assert "\nUSER " not in text  # starts as root to hand the volumes over, then drops root
 
 
 # ------------------------------------------------------------------------- the build context
