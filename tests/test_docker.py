@@ -275,7 +275,7 @@ def volumes(monkeypatch):
     root.chmod(0o755)
     for name in ("data", "keys", "numba-cache"):
         (root / name).mkdir(mode=0o755)
-    (root / "numba-cache").chmod(0o1777)  # whichever uid a test runs as
+    (root / "numba-cache").chmod(0o1777)  # for the one uid (not root) a test runs commands as
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(root / "numba-cache"))  # for the subprocesses
     try:
         problem = _uid_1000_cannot_import_vastray()
@@ -292,7 +292,8 @@ def _uid_1000_cannot_import_vastray() -> str:
     """Why uid 1000 cannot run this environment's vastray ('' when it can)."""
     probe = subprocess.run(["setpriv", f"--reuid={IMAGE_UID}", f"--regid={IMAGE_UID}",
                             "--clear-groups", sys.executable, "-c", "import vastray.cli"],
-                           capture_output=True, text=True, cwd="/", timeout=120)
+                           capture_output=True, text=True, cwd="/", timeout=120,
+                           env={**os.environ, "NUMBA_DISABLE_JIT": "1"})  # no cache written
     return "" if probe.returncode == 0 else (probe.stderr.strip().splitlines() or ["?"])[-1]
 
 
@@ -423,7 +424,8 @@ def test_the_compose_cluster_renders_through_the_entrypoint_on_root_owned_volume
     keys, data = volumes / "keys", volumes / "data"
     store = data / "store"
     made = subprocess.run([Path(sys.executable).parent / "vastray", "generate", "rm", "-o", store,
-                           "--resolution", "16", "--grid", "2x1x1"], capture_output=True, text=True)
+                           "--resolution", "16", "--grid", "2x1x1"], capture_output=True, text=True,
+                          env={k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"})
     assert made.returncode == 0, made.stderr  # root-owned, as a root host user leaves it
     svc, port = services({"NODES": "1"}), _free_port()
 
