@@ -41,6 +41,7 @@ from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
+from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule.portals import Accuracy
@@ -152,7 +153,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         raise ValueError("--nodes must be at least 1")
     options = replace(
         options, max_samples_in_flight=options.max_samples_in_flight or DEFAULT_NODE_TILE,
-        threads=options.threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)))
+        threads=options.threads or (None if listen else max(1, available_cpus() // nodes)))
     store = Store(store_path)
     if scheduler == "temporal":
         from vastray.actors.temporal import check_temporal_domains

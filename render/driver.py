@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import resource
 import time
 from collections import deque
@@ -21,6 +20,7 @@ from vastray.render.lights import QuadLight, check_power, in_frame
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
+from vastray.scene.cpus import available_cpus
 from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
@@ -120,7 +120,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     config : camera, lights and materials.
     settings : image size, integrator and sampling.
     cache_capacity : most domains resident (default: all).
-    threads : Embree query threads (default: all cores).
+    threads : Embree query threads (default: ``scene.cpus.available_cpus``).
     progress : show a progress bar on stderr for renders longer than two seconds.
     drop_page_cache : make every domain load a real disk read.
     record_rays : if a list, every query batch is appended to it as (kind, origins,
@@ -144,7 +144,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache,
                             load_bandwidth=load_bandwidth)
     capacity = cache.capacity
-    threads = threads or os.cpu_count() or 1
+    threads = threads or available_cpus()
     total = settings.width * settings.height * settings.spp
     batch = max(1, settings.batch_size)
     # With every domain resident, whole batches run on one worker per thread, each tracing its

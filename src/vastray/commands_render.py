@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 import sys
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -43,6 +42,7 @@ from vastray.render_job import (
     refuse_inapplicable,
 )
 from vastray.report import build_report, count_overflow, write_report
+from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import portals
@@ -243,8 +243,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="in-core reference render: paths traced together (default: 65536; cut "
                         "finer when a frame has fewer than two batches per render worker)")
     p.add_argument("--threads", type=_positive,
-                   help="threads per process (default: all cores; with --nodes N on this "
-                        "machine, cores / N per node; with --listen, each node's own cores). In "
+                   help="threads per process (default: the cores it may use, its CPU affinity "
+                        "and cgroup CPU quota (docker --cpus); with --nodes N on this machine, "
+                        "those / N per node; with --listen, each node's own). In "
                         "core, one render worker per thread traces batches side by side; out of "
                         "core, each Embree query splits its rays over the threads")
     p.add_argument("--report", help="write a JSON report (timings, counts, error)")
@@ -570,7 +571,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
         shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
-    threads = args.threads or os.cpu_count() or 1
+    threads = args.threads or available_cpus()
     if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
         in_flight, films = 0, 1
     elif args.nodes:  # every node holds a film and its tile of paths on this machine
