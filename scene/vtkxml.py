@@ -289,7 +289,8 @@ def _isosurface(path: Path, data, iso: float, array: str | None, color_by: str |
         to_points.ProcessAllArraysOn()
         _update(vtk, to_points)
         data = to_points.GetOutput()
-    dims = tuple(int(n) for n in data.GetDimensions())
+    ext = data.GetExtent()
+    dims = (ext[1] - ext[0] + 1, ext[3] - ext[2] + 1, ext[5] - ext[4] + 1)
     if min(dims) < 2:
         raise InputError(path, f"grid is {dims[0]}x{dims[1]}x{dims[2]} points: an isosurface "
                                "needs at least 2 points per axis")
