@@ -25,6 +25,7 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
+from vastray.render.colormaps import Legend, colormap_lut, legend_for
 from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -264,6 +265,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "renders that one frame (numbered outputs, its own seed)")
     p.add_argument("--exposure", type=_positive_float,
                    help="PNG exposure multiplier, for --png or a .png -o (default: 1)")
+    p.add_argument("--colormap", metavar="NAME",
+                   help="matplotlib colour map for a store coloured by its scalar field, e.g. "
+                        "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
+                        "'vastray[plot]'; default: a built-in viridis)")
+    p.add_argument("--no-legend", action="store_true",
+                   help="leave out the colour bar (the scalar's name and range) that PNGs of "
+                        "a store coloured by scalars get along their bottom")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -459,6 +467,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         config = load_scene_config(args.scene)
     store = Store(store_path)
     config.check_objects(store.objects)
+    legend = png_legend(args, store)
     refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
     if not animating:  # an animation checks the camera of each of its frames
         config.resolve_camera(*store.world_bounds, args.width, args.height)
@@ -467,6 +476,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
         seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
+        colormap=args.colormap,
     )
     if reference is not None and reference.shape != (args.height, args.width, 3):
         raise InputError(args.reference, f"reference is {reference.shape[1]}x{reference.shape[0]}"
@@ -493,7 +503,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         return run_animation(args, store_path=str(store_path), config=config,
                              settings=settings, bounds=store.world_bounds, scheduler=scheduler,
                              options=report_options, outputs=frame_outputs, render_one=render_one,
-                             render_many=_render_many(args, config, settings, render_one))
+                             render_many=_render_many(args, config, settings, render_one),
+                             legend=legend)
     result = render_one(config, settings)
     image = result.film.image()
     count_overflow(image, result.counters, outputs[0])
@@ -501,9 +512,11 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     summary = summary_line(args, result, error, outputs)
     with ExitStack() as written:  # every output, or none: renamed into place together
         write_image(written.enter_context(atomic_path(outputs[0])), image,
-                    result.film.depth_image(), result.film.normal_image(), args.exposure)
+                    result.film.depth_image(), result.film.normal_image(), args.exposure,
+                    legend=legend)
         if args.png:
-            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure)
+            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
+                      legend=legend)
         if args.report:
             write_report(written.enter_context(atomic_path(args.report)), build_report(
                 store=str(store_path), settings=asdict(settings), seconds=result.seconds,
@@ -515,6 +528,18 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         for line in recovery_lines(result.counters):  # a recovery is never silent
             print(line, file=sys.stderr)
     return 0
+
+
+def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
+    """The colour bar PNGs get (None: not coloured by scalars, or ``--no-legend``); checks
+    the ``--colormap`` name first, so a wrong one is refused before any rendering."""
+    if args.colormap is not None:
+        colormap_lut(args.colormap)
+        if store.has_colors or not store.has_scalars:
+            log.warning("%s has no scalar field to colour (%s); --colormap %s has no effect",
+                        store.path, "it has per-vertex colours" if store.has_colors
+                        else "no scalars", args.colormap)
+    return None if args.no_legend else legend_for(store, args.colormap)
 
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
