@@ -158,10 +158,9 @@ def read_vtk_xml(path: str | os.PathLike, iso: float | None = None, array: str |
 def _vtk():
     """The vtk modules used here (imported on first use: the wheel is large and optional)."""
     try:
-        from vtkmodules import vtkIOXML
+        from vtkmodules import vtkCommonDataModel, vtkIOXML
         from vtkmodules.util import numpy_support
         from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
-        from vtkmodules.vtkCommonDataModel import vtkCellTypes
         from vtkmodules.vtkFiltersCore import vtkCellDataToPointData, vtkTriangleFilter
         from vtkmodules.vtkFiltersGeometry import vtkDataSetSurfaceFilter
     except ImportError:
@@ -170,8 +169,11 @@ def _vtk():
         # VTK prints its errors to stderr; keep them to report one line naming the file
         vtkOutputWindow.SetInstance(vtkStringOutputWindow())
         vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+    # VTK 9.6 moved the cell-type names to vtkCellTypeUtilities (the old one warns)
+    cell_types = (getattr(vtkCommonDataModel, "vtkCellTypeUtilities", None)
+                  or vtkCommonDataModel.vtkCellTypes)
     return {"io": vtkIOXML, "np": numpy_support, "window": vtkOutputWindow,
-            "CellTypes": vtkCellTypes, "CellToPoint": vtkCellDataToPointData,
+            "CellTypes": cell_types, "CellToPoint": vtkCellDataToPointData,
             "Triangles": vtkTriangleFilter, "Surface": vtkDataSetSurfaceFilter}
 
 
