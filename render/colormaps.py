@@ -1,4 +1,5 @@
-"""Named colour maps for scalar colouring (``--colormap``) and the colour bar drawn into PNGs.
+"""Named colour maps for scalar colouring (``--colormap``) and the colour bar drawn into PNGs
+(``--legend``, on by default with ``--colormap``).
 
 A named map is sampled once from matplotlib into a 256-entry table (``ScalarMap.lut``) when
 the render starts; tracing only interpolates that table, so matplotlib is imported only when

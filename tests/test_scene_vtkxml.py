@@ -296,6 +296,13 @@ def test_render_colours_the_halves_by_their_scalar_with_a_legend(tmp_path):
     assert main(["render", str(store), "-o", str(tmp_path / "n.png"), "--colormap", "autumn",
                  "--no-legend", *size]) == 0
     assert np.array_equal(read_png(tmp_path / "n.png"), plain)
+    # no --colormap: the built-in map and no bar unless --legend asks
+    assert main(["render", str(store), "-o", str(tmp_path / "d.png"), *size]) == 0
+    default = read_png(tmp_path / "d.png")
+    assert not np.array_equal(default[:20], plain[:20])  # viridis, not autumn
+    assert main(["render", str(store), "-o", str(tmp_path / "l.png"), "--legend", *size]) == 0
+    assert np.array_equal(read_png(tmp_path / "l.png")[:20], default[:20])
+    assert not np.array_equal(read_png(tmp_path / "l.png")[-20:], default[-20:])
 
 
 def test_unknown_colormap_lists_close_names(tmp_path, capsys):

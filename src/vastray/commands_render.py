@@ -269,9 +269,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="matplotlib colour map for a store coloured by its scalar field, e.g. "
                         "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
                         "'vastray[plot]'; default: a built-in viridis)")
-    p.add_argument("--no-legend", action="store_true",
-                   help="leave out the colour bar (the scalar's name and range) that PNGs of "
-                        "a store coloured by scalars get along their bottom")
+    p.add_argument("--legend", action=argparse.BooleanOptionalAction, default=None,
+                   help="draw a colour bar (the scalar's name and range) along the bottom of "
+                        "the PNG of a store coloured by scalars (default: with --colormap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -531,15 +531,22 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
 
 
 def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
-    """The colour bar PNGs get (None: not coloured by scalars, or ``--no-legend``); checks
+    """The colour bar PNGs get (None: not coloured by scalars, or not asked for: ``--legend``,
+    by default on with ``--colormap``); checks
     the ``--colormap`` name first, so a wrong one is refused before any rendering."""
     if args.colormap is not None:
         colormap_lut(args.colormap)
-        if store.has_colors or not store.has_scalars:
-            log.warning("%s has no scalar field to colour (%s); --colormap %s has no effect",
-                        store.path, "it has per-vertex colours" if store.has_colors
-                        else "no scalars", args.colormap)
-    return None if args.no_legend else legend_for(store, args.colormap)
+    by_scalars = store.has_scalars and not store.has_colors
+    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend)):
+        if given and not by_scalars:
+            raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
+                                         " this one has " + ("per-vertex colours" if
+                                                             store.has_colors else "no scalars"))
+    if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
+        raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
+                               "-o")
+    wanted = args.legend if args.legend is not None else args.colormap is not None
+    return legend_for(store, args.colormap) if wanted else None
 
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
