@@ -14,6 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vastray.render.camera import Camera
+from vastray.render.colormaps import scalar_map
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
 from vastray.render.lights import QuadLight, check_power, in_frame
@@ -161,6 +162,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
                           two_level=two_level)
     tracer.record = record_rays
+    tracer.scalar_range = scalar_map(store.scalar_range, settings.colormap)
     camera = store_camera(config, store, settings.width, settings.height)
     shading = with_camera_clip(shading, store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))

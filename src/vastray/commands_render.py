@@ -24,6 +24,7 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
+from vastray.render.colormaps import Legend, colormap_lut, legend_for
 from vastray.render.driver import RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -265,6 +266,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "renders that one frame (numbered outputs, its own seed)")
     p.add_argument("--exposure", type=_positive_float,
                    help="PNG exposure multiplier, for --png or a .png -o (default: 1)")
+    p.add_argument("--colormap", metavar="NAME",
+                   help="matplotlib colour map for a store coloured by its scalar field, e.g. "
+                        "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
+                        "'vastray[plot]'; default: a built-in viridis)")
+    p.add_argument("--legend", action=argparse.BooleanOptionalAction, default=None,
+                   help="draw a colour bar (the scalar's name and range) along the bottom of "
+                        "the PNG of a store coloured by scalars (default: with --colormap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -460,6 +468,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         config = load_scene_config(args.scene)
     store = Store(store_path)
     config.check_objects(store.objects)
+    legend = png_legend(args, store)
     refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
     if not animating:  # an animation checks the camera of each of its frames
         config.resolve_camera(*store.world_bounds, args.width, args.height)
@@ -468,6 +477,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
         seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
+        colormap=args.colormap,
     )
     if reference is not None and reference.shape != (args.height, args.width, 3):
         raise InputError(args.reference, f"reference is {reference.shape[1]}x{reference.shape[0]}"
@@ -494,7 +504,8 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         return run_animation(args, store_path=str(store_path), config=config,
                              settings=settings, bounds=store.world_bounds, scheduler=scheduler,
                              options=report_options, outputs=frame_outputs, render_one=render_one,
-                             render_many=_render_many(args, config, settings, render_one))
+                             render_many=_render_many(args, config, settings, render_one),
+                             legend=legend)
     result = render_one(config, settings)
     image = result.film.image()
     count_overflow(image, result.counters, outputs[0])
@@ -502,9 +513,11 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     summary = summary_line(args, result, error, outputs)
     with ExitStack() as written:  # every output, or none: renamed into place together
         write_image(written.enter_context(atomic_path(outputs[0])), image,
-                    result.film.depth_image(), result.film.normal_image(), args.exposure)
+                    result.film.depth_image(), result.film.normal_image(), args.exposure,
+                    legend=legend)
         if args.png:
-            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure)
+            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
+                      legend=legend)
         if args.report:
             write_report(written.enter_context(atomic_path(args.report)), build_report(
                 store=str(store_path), settings=asdict(settings), seconds=result.seconds,
@@ -516,6 +529,25 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         for line in recovery_lines(result.counters):  # a recovery is never silent
             print(line, file=sys.stderr)
     return 0
+
+
+def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
+    """The colour bar PNGs get (None: not coloured by scalars, or not asked for: ``--legend``,
+    by default on with ``--colormap``); checks
+    the ``--colormap`` name first, so a wrong one is refused before any rendering."""
+    if args.colormap is not None:
+        colormap_lut(args.colormap)
+    by_scalars = store.has_scalars and not store.has_colors
+    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend)):
+        if given and not by_scalars:
+            raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
+                                         " this one has " + ("per-vertex colours" if
+                                                             store.has_colors else "no scalars"))
+    if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
+        raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
+                               "-o")
+    wanted = args.legend if args.legend is not None else args.colormap is not None
+    return legend_for(store, args.colormap) if wanted else None
 
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
