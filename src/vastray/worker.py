@@ -19,6 +19,13 @@ from typing import TypeVar
 T = TypeVar("T")
 
 
+def _raise_in(thread_id: int, exc: type[BaseException] | None) -> None:
+    """Raise ``exc`` in the thread at its next Python instruction (a native call, such as an
+    Embree query, finishes first); None drops one not yet raised."""
+    ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(thread_id),
+                                               ctypes.py_object(exc) if exc else None)
+
+
 class _Job(threading.Thread):
     def __init__(self, fn: Callable[[], T], on_done: Callable[[], None] | None = None):
         super().__init__(name="vastray-job", daemon=True)
@@ -26,6 +33,11 @@ class _Job(threading.Thread):
         self._on_done = on_done
         self.result = None
         self.error: BaseException | None = None
+        self._lock = threading.Lock()
+        self._open = True  # interrupts go in while fn runs, and never after _close
+        # Waited on instead of join(): in Python 3.11 a join() interrupted by Ctrl-C marks the
+        # thread as stopped while it still runs (its cleanup would go unwaited for).
+        self.finished = threading.Event()
 
     def run(self) -> None:
         try:
@@ -33,18 +45,29 @@ class _Job(threading.Thread):
         except BaseException as exc:  # handed to the caller's thread, re-raised there
             self.error = exc
         finally:
-            if self._on_done is not None:
-                try:
-                    self._on_done()
-                except RuntimeError:  # the caller's loop has closed: nobody is waiting
-                    pass
+            self._close()
+
+    def _close(self) -> None:
+        while True:  # an interrupt sent as fn ended may land here: it is dropped
+            try:
+                with self._lock:
+                    self._open = False
+                    _raise_in(self.ident, None)
+                break
+            except KeyboardInterrupt as exc:
+                self.error = self.error or exc
+        self.finished.set()
+        if self._on_done is not None:
+            try:
+                self._on_done()
+            except RuntimeError:  # the caller's loop has closed: nobody is waiting
+                pass
 
     def interrupt(self) -> None:
-        """Raise ``KeyboardInterrupt`` in the job at its next Python instruction (a native
-        call, such as an Embree query, finishes first)."""
-        if self.is_alive():
-            ctypes.pythonapi.PyThreadState_SetAsyncExc(ctypes.c_ulong(self.ident),
-                                                       ctypes.py_object(KeyboardInterrupt))
+        """Raise ``KeyboardInterrupt`` in ``fn``, unless it has ended."""
+        with self._lock:
+            if self._open:
+                _raise_in(self.ident, KeyboardInterrupt)
 
     def outcome(self) -> T:
         if self.error is not None:
@@ -63,11 +86,11 @@ def run_in_thread(fn: Callable[[], T]) -> T:
     job = _Job(fn)
     job.start()
     try:
-        while job.is_alive():
-            job.join(0.1)
+        while not job.finished.wait(0.1):
+            pass
     except KeyboardInterrupt:
         job.interrupt()
-        job.join()
+        job.finished.wait()
         raise
     return job.outcome()
 
@@ -91,5 +114,4 @@ async def run_in_thread_async(fn: Callable[[], T]) -> T:
         job.interrupt()
         await asyncio.shield(done.wait())
         raise
-    job.join()
     return job.outcome()
