@@ -103,12 +103,14 @@ def test_a_missing_store_is_refused_as_the_cli_refuses_it(tmp_path, capsys):
     ({"camera": {"eye": [0, 0, 1]}}, "unknown key(s) ['eye']"),
     ({"camera": {"position": [0, 0, 1], "look_at": [0, 0, 1]}}, "equals look_at"),
     ({"camera": [0, 0, 1]}, "camera: must be a dict"),
+    ({"store": 3}, "store must be a store folder's path, a Store or None"),
     ({"reference": np.zeros((24, 32))}, "reference: must be an (H, W, 3) array"),
     ({"reference": np.zeros((8, 8, 3))}, "reference: reference is 8x8, the render is 32x24"),
 ])
 def test_bad_arguments_are_refused_by_name(store, kwargs, message):
+    kwargs = {"store": store, **SMALL, **kwargs}
     with pytest.raises(vastray.VastrayError) as refused:
-        vastray.render(store, **{**SMALL, **kwargs})
+        vastray.render(**kwargs)
     assert message in str(refused.value)
 
 
@@ -181,9 +183,13 @@ def test_progress_bar_goes_to_stderr_and_progress_false_hides_it(store, capsys, 
 async def test_render_works_inside_a_running_event_loop(store):
     # as in a Jupyter cell: a loop runs in this thread, and nodes=1 needs asyncio.run
     asyncio.get_running_loop()
-    out = vastray.render(store, nodes=1, scheduler="image", progress=False, **SMALL)
-    alone = vastray.render(store, scheduler="image", progress=False, **SMALL)
+    view = {"position": [2.0, 1.0, 2.5], "fov": 30}  # reaches the node in the scene it is sent
+    out = vastray.render(store, nodes=1, scheduler="image", camera=view, progress=False,
+                         **SMALL)
+    alone = vastray.render(store, scheduler="image", camera=view, progress=False, **SMALL)
     np.testing.assert_allclose(out.image, alone.image, rtol=1e-6, atol=1e-6)
+    default = vastray.render(store, scheduler="image", progress=False, **SMALL)
+    assert not np.array_equal(default.image, alone.image)
     assert len(out.report["counters"]["per_node"]) == 1
     with pytest.raises(vastray.VastrayError, match="--bounces counts"):
         vastray.render(store, integrator="ao", bounces=1)

@@ -222,6 +222,9 @@ def _job(store, kwargs: dict):
     if isinstance(camera, Camera):
         kwargs["width"] = kwargs.get("width") or camera.width
         kwargs["height"] = kwargs.get("height") or camera.height
+    if not (store is None or isinstance(store, (str, os.PathLike, Store))):
+        raise InputError(None, f"store must be a store folder's path, a Store or None (the "
+                               f"built-in scene), got {type(store).__name__}")
     opened = store if isinstance(store, Store) else None
     kwargs["store"] = None if store is None else os.fspath(store.path if opened else store)
     reference = kwargs.get("reference")
@@ -245,7 +248,7 @@ def cli_args(given: dict) -> argparse.Namespace:
     """
     parser = argparse.ArgumentParser(prog="vastray.render", add_help=False)
     add_render_arguments(parser)
-    actions = {action.dest: action for action in parser._actions}
+    actions = {action.dest: action for action in parser._actions}  # argparse has no public list
     args = argparse.Namespace(**{dest: action.default for dest, action in actions.items()})
     for key, value in given.items():
         if key in NOT_IN_API:
