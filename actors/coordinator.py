@@ -42,7 +42,7 @@ from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
-from vastray.scene.errors import InputError
+from vastray.scene.errors import InputError, VastrayError
 from vastray.scene.store import Store
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 DEFAULT_NODE_TILE = 65536
 
 
-class NodeFailure(RuntimeError):
+class NodeFailure(VastrayError, RuntimeError):
     """A node died or went silent; the message names it."""
 
 
