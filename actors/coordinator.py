@@ -36,12 +36,14 @@ from vastray.actors.job_options import (
     JobOptions,
     JobOptionsError,
 )
+from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig, load_scene_config
-from vastray.scene.errors import InputError
+from vastray.scene.cpus import available_cpus
+from vastray.scene.errors import InputError, VastrayError
 from vastray.scene.store import Store
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
@@ -58,7 +60,7 @@ log = logging.getLogger(__name__)
 DEFAULT_NODE_TILE = 65536
 
 
-class NodeFailure(RuntimeError):
+class NodeFailure(VastrayError, RuntimeError):
     """A node died or went silent; the message names it."""
 
 
@@ -76,20 +78,6 @@ class NodeLost(NodeFailure):
         self.rank = rank
         self.cause = cause
 
-
-#: A silent node started here that is still using the CPU is given this many heartbeat
-#: timeouts before it counts as stalled (``_Watch._busy_here``).
-BUSY_GRACE = 10
-
-
-def _cpu_ticks(pid: int) -> int | None:
-    """CPU time (user + system, in clock ticks) process ``pid`` has used; None where /proc
-    cannot tell (not Linux, or the process is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def exit_cause(code: int) -> str:
@@ -166,7 +154,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         raise ValueError("--nodes must be at least 1")
     options = replace(
         options, max_samples_in_flight=options.max_samples_in_flight or DEFAULT_NODE_TILE,
-        threads=options.threads or (None if listen else max(1, (os.cpu_count() or 1) // nodes)))
+        threads=options.threads or (None if listen else max(1, available_cpus() // nodes)))
     store = Store(store_path)
     if scheduler == "temporal":
         from vastray.actors.temporal import check_temporal_domains
@@ -727,8 +715,8 @@ class _Watch:
         self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
         self.hellos: dict[int, dict] = {}
         self.last_check = self.started
-        #: (when, CPU ticks) of each silent local node at the start of its current window
-        self._cpu_seen: dict[int, tuple[float, int]] = {}
+        #: whether a silent node started here still uses CPU (windows of half a timeout)
+        self._cpu = CpuWitness(self.heartbeat_timeout / 2)
 
     def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
@@ -744,7 +732,8 @@ class _Watch:
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
-        self._cpu_seen.pop(rank, None)
+        if rank < len(self.procs):
+            self._cpu.forget(self.procs[rank].pid)
 
     def _busy_here(self, rank: int, now: float) -> bool:
         """Whether node ``rank``, started here and silent, is still using the CPU (so it is
@@ -756,16 +745,7 @@ class _Watch:
         if rank >= len(self.procs) or now - self.last_heard[rank] > (
                 BUSY_GRACE * self.heartbeat_timeout):
             return False
-        ticks = _cpu_ticks(self.procs[rank].pid)
-        if ticks is None:
-            return False
-        # CPU time is compared over windows of half a heartbeat timeout: a window still open
-        # is no verdict yet; a closed one without CPU time used means stalled.
-        since, before = self._cpu_seen.setdefault(rank, (now, ticks))
-        if now - since < self.heartbeat_timeout / 2:
-            return True
-        self._cpu_seen[rank] = (now, ticks)
-        return ticks > before
+        return self._cpu.busy(self.procs[rank].pid, now)
 
     def _failure(self, rank: int, why: str, kind: type = NodeFailure,
                  cause: str = "lost", log_tail: bool = True) -> NodeFailure:

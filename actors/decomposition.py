@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.job_options import JobOptions
+from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS, JobOptions
 from vastray.actors.local import RenderSetup
 from vastray.actors.preloader import DomainPreloader
 from vastray.render.driver import path_context
@@ -50,8 +50,6 @@ from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
 MODES = ("domain", "async", "dynamic", "temporal")
-#: Most rays in one batch between two nodes by default (about 6 MB of path-tracing rays).
-MAX_BATCH_RAYS = 65536
 
 
 def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
@@ -292,7 +290,7 @@ def frame_load_stats(before: dict, after: dict) -> dict:
 class _Node:
     """The node side of the decomposition: trace local work, ship outboxes, take deliveries."""
 
-    def __init__(self, management, rank: int, stats: dict, max_batch: int = MAX_BATCH_RAYS,
+    def __init__(self, management, rank: int, stats: dict, max_batch: int = DEFAULT_MAX_BATCH_RAYS,
                  early: dict | None = None):
         self.management, self.rank, self.stats = management, rank, stats
         self.max_batch = max(1, int(max_batch))

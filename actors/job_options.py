@@ -15,6 +15,14 @@ from dataclasses import asdict, dataclass, fields
 from vastray.scene.errors import InputError
 from vastray.schedule.portals import DEFAULT_RESOLUTION
 
+#: Rays per batch between two nodes unless told otherwise (``decomposition._Node``; about
+#: 6 MB of path-tracing rays).
+DEFAULT_MAX_BATCH_RAYS = 65536
+#: The schedules that choose a domain in memory before loading another (``resident_first``).
+RESIDENT_FIRST_SCHEDULERS = ("image", "spec-ooc", "async")
+#: The schedules whose nodes send each other ray batches (``max_batch_rays``).
+BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
+
 #: The wire layout's version: a node refuses a job whose options carry another.
 VERSION = 1
 
@@ -88,7 +96,7 @@ class JobOptions:
     cache: int | None = None
     max_samples_in_flight: int | None = None
     history_depth: int | None = None
-    max_batch_rays: int = 65536
+    max_batch_rays: int = DEFAULT_MAX_BATCH_RAYS
     threads: int | None = None
     preload: bool = True
     resident_first: bool = True
@@ -148,6 +156,15 @@ class JobOptions:
                                               or not self.preload):
             raise JobOptionsError("--max-samples-in-flight and --no-preload apply to the "
                                   "out-of-core schedulers, not to the in-core reference render")
+        if not self.resident_first and self.scheduler not in RESIDENT_FIRST_SCHEDULERS:
+            raise JobOptionsError(f"resident_first chooses among domains in memory in the "
+                                  f"{', '.join(RESIDENT_FIRST_SCHEDULERS)} schedules; "
+                                  f"--scheduler {self.scheduler} has no such choice")
+        if (self.max_batch_rays != DEFAULT_MAX_BATCH_RAYS
+                and self.scheduler not in BATCHING_SCHEDULERS):
+            raise JobOptionsError(f"max_batch_rays bounds the ray batches nodes send each other "
+                                  f"({', '.join(BATCHING_SCHEDULERS)}); --scheduler "
+                                  f"{self.scheduler} sends none")
         if self.history_depth is not None and self.scheduler != "spec-ooc":
             raise JobOptionsError(f"--history-depth bounds spec-ooc's speculation; --scheduler "
                                   f"{self.scheduler} does not speculate (drop it or use "

@@ -13,6 +13,7 @@ import numpy as np
 
 from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.render.camera import Camera
+from vastray.render.colormaps import scalar_map
 from vastray.render.driver import (
     RenderResult,
     default_ao_distance,
@@ -58,7 +59,7 @@ class RenderSetup:
         lo, hi = store.domain_boxes()
         nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         return RenderSetup(
-            shading, keep, color_source, store.scalar_range or (0.0, 1.0), camera,
+            shading, keep, color_source, scalar_map(store.scalar_range, settings.colormap), camera,
             DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
             settings.ao_distance or default_ao_distance(store),
             settings.width * settings.height * settings.spp)

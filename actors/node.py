@@ -28,6 +28,7 @@ from vastray.actors.decomposition import NodeState, render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
+from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -191,14 +192,30 @@ class ManagementActor:
     async def watch_coordinator(self, silence: float) -> None:
         """Exit the process once the coordinator has been silent for ``silence`` seconds: it
         died or was cut off, and a node must not render on for nobody. (The render worker
-        thread cannot be cancelled, so this ends the process rather than the task.)"""
+        thread cannot be cancelled, so this ends the process rather than the task.)
+
+        On a starved machine silence alone is no verdict: messages already waiting on the
+        socket mean this node's own loop is behind, and a coordinator that started this node
+        (its parent) and still uses CPU is slow, not lost (for up to ``BUSY_GRACE`` times
+        ``silence``)."""
+        parent = os.environ.get(protocol.PARENT_PID_ENV)
+        witness = CpuWitness(silence / 2)
         while True:
             await asyncio.sleep(0.25)
-            quiet = time.monotonic() - self.coordinator_heard
-            if quiet > silence:
-                log.error("lost the coordinator (silent for %.1f s); exiting", quiet)
-                logging.shutdown()
-                os._exit(4)
+            now = time.monotonic()
+            quiet = now - self.coordinator_heard
+            if quiet <= silence:
+                if parent is not None:
+                    witness.forget(int(parent))
+                continue
+            if self.coordinator.getsockopt(zmq.EVENTS) & zmq.POLLIN:
+                continue  # its messages wait here, unread: this node is the slow one
+            if (parent is not None and quiet < BUSY_GRACE * silence
+                    and witness.busy(int(parent), now)):
+                continue  # the coordinator started this node and still works: slow, not lost
+            log.error("lost the coordinator (silent for %.1f s); exiting", quiet)
+            logging.shutdown()
+            os._exit(4)
 
     async def watch_handshake(self, endpoint: str) -> None:
         """Raise ``AuthenticationFailed`` if the coordinator refuses this node's CURVE

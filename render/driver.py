@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import resource
 import time
 from collections import deque
@@ -14,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.render.camera import Camera
+from vastray.render.colormaps import scalar_map
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
 from vastray.render.lights import QuadLight, check_power, in_frame
@@ -21,6 +21,7 @@ from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
+from vastray.scene.cpus import available_cpus
 from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
@@ -146,7 +147,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     config : camera, lights and materials.
     settings : image size, integrator and sampling.
     cache_capacity : most domains resident (default: all).
-    threads : Embree query threads (default: all cores).
+    threads : Embree query threads (default: ``scene.cpus.available_cpus``).
     progress : show a progress bar on stderr for renders longer than two seconds.
     drop_page_cache : make every domain load a real disk read.
     record_rays : if a list, every query batch is appended to it as (kind, origins,
@@ -170,7 +171,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache,
                             load_bandwidth=load_bandwidth)
     capacity = cache.capacity
-    threads = threads or os.cpu_count() or 1
+    threads = threads or available_cpus()
     total = settings.width * settings.height * settings.spp
     batch = max(1, settings.batch_size)
     # With every domain resident, whole batches run on one worker per thread, each tracing its
@@ -187,6 +188,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
                           two_level=two_level)
     tracer.record = record_rays
+    tracer.scalar_range = scalar_map(store.scalar_range, settings.colormap)
     camera = store_camera(config, store, settings.width, settings.height)
     shading = with_camera_clip(shading, store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))

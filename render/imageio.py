@@ -137,9 +137,10 @@ def check_image_path(path, option: str = "-o") -> Path:
 
 
 def write_image(path, rgb: np.ndarray, depth: np.ndarray | None = None,
-                normal: np.ndarray | None = None, exposure: float = 1.0) -> None:
+                normal: np.ndarray | None = None, exposure: float = 1.0, legend=None) -> None:
     """Write ``rgb`` (H, W, 3) in the format the extension names (see ``IMAGE_FORMATS``);
-    only OpenEXR keeps the ``depth`` (H, W) and ``normal`` (H, W, 3) layers."""
+    only OpenEXR keeps the ``depth`` (H, W) and ``normal`` (H, W, 3) layers, and only a PNG
+    gets the ``legend`` (a ``render.colormaps.Legend`` colour bar)."""
     suffix = check_image_path(path).suffix.lower()
     if suffix == ".exr":
         write_exr(path, rgb, depth, normal)
@@ -148,7 +149,7 @@ def write_image(path, rgb: np.ndarray, depth: np.ndarray | None = None,
     elif suffix == ".hdr":
         write_hdr(path, rgb)
     else:
-        write_png(path, rgb, exposure)
+        write_png(path, rgb, exposure, legend)
 
 
 def read_pfm(path) -> np.ndarray:
@@ -211,12 +212,18 @@ def to_srgb8(rgb: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     return np.round(srgb * 255.0).astype(np.uint8)
 
 
-def write_png(path, rgb: np.ndarray, exposure: float = 1.0) -> None:
-    """Write a tone-mapped (clamped sRGB) PNG preview of linear radiance (H, W, 3)."""
+def write_png(path, rgb: np.ndarray, exposure: float = 1.0, legend=None) -> None:
+    """Write a tone-mapped (clamped sRGB) PNG preview of linear radiance (H, W, 3), with the
+    colour bar ``legend`` (a ``render.colormaps.Legend``) drawn over its bottom when given."""
     from PIL import Image
 
+    image = to_srgb8(rgb, exposure)
+    if legend is not None:
+        from vastray.render.colormaps import draw_legend
+
+        image = draw_legend(image, legend)
     with atomic_path(path) as tmp:
-        Image.fromarray(to_srgb8(rgb, exposure), mode="RGB").save(tmp, format="PNG")
+        Image.fromarray(image, mode="RGB").save(tmp, format="PNG")
 
 
 def image_error(image: np.ndarray, reference: np.ndarray) -> dict:

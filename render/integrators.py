@@ -52,6 +52,7 @@ class RenderSettings:
     ao_distance: float | None = None
     seed: int = 0
     batch_size: int = 65536
+    colormap: str | None = None  # matplotlib colour map for scalars; None: built-in viridis
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -46,22 +47,35 @@ _VIRIDIS = np.array([
 ])
 
 
-def colormap(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """Map scalars to colours with viridis.
+class ScalarMap(NamedTuple):
+    """How scalars become colours: the range mapped to the ends of the colour table, and the
+    table ((n, 3) float64; None: the built-in viridis). Unpacks as ``colormap``'s arguments."""
+
+    lo: float
+    hi: float
+    lut: np.ndarray | None = None
+
+
+def colormap(values: np.ndarray, lo: float, hi: float, lut: np.ndarray | None = None
+             ) -> np.ndarray:
+    """Map scalars to colours, interpolating a colour table linearly.
 
     Parameters
     ----------
     values : (n,) scalars; lo, hi : the range mapped to the ends of the map.
+    lut : (k, 3) colour table, k >= 2 (e.g. ``render.colormaps.colormap_lut``); None: viridis
+        sampled at 9 points.
 
     Returns
     -------
     (n, 3) float64 linear-ish RGB in [0, 1]
     """
+    table = _VIRIDIS if lut is None else lut
     span = hi - lo if hi > lo else 1.0
-    x = np.clip((np.asarray(values, np.float64) - lo) / span, 0.0, 1.0) * (len(_VIRIDIS) - 1)
-    i = np.minimum(x.astype(np.int64), len(_VIRIDIS) - 2)
+    x = np.clip((np.asarray(values, np.float64) - lo) / span, 0.0, 1.0) * (len(table) - 1)
+    i = np.minimum(x.astype(np.int64), len(table) - 2)
     f = (x - i)[:, None]
-    return _VIRIDIS[i] * (1.0 - f) + _VIRIDIS[i + 1] * f
+    return table[i] * (1.0 - f) + table[i + 1] * f
 
 
 def blinn_phong_lobe(shininess: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: np.ndarray

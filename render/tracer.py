@@ -18,7 +18,6 @@ bounded cache (out of core) keeps the per-domain queries.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ from vastray.render.boxtree import BoxTree
 from vastray.render.materials import colormap
 from vastray.scene import embree
 from vastray.scene.cache import DomainCache
+from vastray.scene.cpus import available_cpus
 from vastray.scene.store import Store
 
 
@@ -305,7 +305,7 @@ class DomainTracer:
         self.tree_ids = np.nonzero(self.nonempty)[0]
         #: The non-empty domains' boxes in a BVH (``BoxTree``), for the ray-box queries.
         self.tree = BoxTree(self.lo, self.hi, self.tree_ids)
-        threads = threads or os.cpu_count() or 1
+        threads = threads or available_cpus()
         self.pool = ThreadPoolExecutor(threads) if threads > 1 else None
         self.two_level = two_level
         #: (resident domain ids, their TopScene or None, the boxes of the non-empty domains

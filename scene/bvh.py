@@ -8,7 +8,6 @@ the caller's thread count without the GIL. Where that binding is unavailable, em
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -16,6 +15,7 @@ import numpy as np
 from embreex import mesh_construction, rtcore, rtcore_scene
 
 from vastray.scene import embree
+from vastray.scene.cpus import available_cpus
 from vastray.scene.store import DomainArrays
 
 #: Below this many rays a query runs on the calling thread only.
@@ -162,10 +162,10 @@ def _threads(pool: ThreadPoolExecutor | None) -> int:
 
 
 def query_pool(threads: int | None) -> ThreadPoolExecutor | None:
-    """Threads for Embree queries: ``threads`` (default: every core), or None for one.
+    """Threads for Embree queries: ``threads`` (default: every CPU this process may use), or None for one.
     The caller shuts the pool down. (The compiled binding uses only the pool's size, as the
     number of parts a query is split into; the embreex fallback runs on the pool's threads.)"""
-    threads = threads or os.cpu_count() or 1
+    threads = threads or available_cpus()
     return ThreadPoolExecutor(threads, thread_name_prefix="embree") if threads > 1 else None
 
 

@@ -5,7 +5,12 @@ from __future__ import annotations
 import os
 
 
-class InputError(ValueError):
+class VastrayError(Exception):
+    """Every refusal and failure vastray reports to its user: the CLI prints the message on
+    one line, and the Python API (``vastray.render``) raises it. Catch this one type."""
+
+
+class InputError(VastrayError, ValueError):
     """Bad user input: a missing, malformed or unsupported file or setting.
 
     The message always reads ``"<path>: <problem>"`` so the CLI can print it on one line.

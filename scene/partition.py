@@ -205,3 +205,21 @@ def partition_kd(mesh: DomainArrays, n: int) -> Partition:
     leaf, cells = kd_cells_of(meshops.centroids(mesh.vertices, mesh.indices), n, box)
     domains, kept = split_by_cell(mesh, leaf, n, cells)
     return Partition(domains, kept, "kd", {"domains": int(n)})
+
+
+def partition_pieces(mesh: DomainArrays, piece: np.ndarray, n: int) -> Partition:
+    """One domain per piece, as the data came (e.g. the pieces of a ``.pvtu``), not re-split.
+
+    Parameters
+    ----------
+    mesh : vertices (V, 3), indices (T, 3) and optional attributes.
+    piece : (T,) int piece id of each triangle, in [0, n).
+    n : number of pieces; pieces without triangles are dropped.
+
+    Returns
+    -------
+    Partition whose cells are the boxes of the pieces' own triangles.
+    """
+    domains, _ = split_by_cell(mesh, np.asarray(piece, np.int64), n, np.zeros((n, 2, 3)))
+    cells = np.asarray([d.bounds() for d in domains], np.float64).reshape(-1, 2, 3)
+    return Partition(domains, cells, "pieces", {"domains": len(domains)})

@@ -8,17 +8,23 @@ per-vertex scalar field.
 
 Volumes (see :mod:`vastray.scene.volumes`) need an iso value; they are isosurfaced brick by
 brick (:mod:`vastray.scene.isosurface`) and the pieces welded exactly.
+
+VTK XML files (``.vti .vtr .vts .vtu .vtp`` and parallel ``.pvt*``) go through
+:mod:`vastray.scene.vtkxml`: grids are isosurfaced like volumes, unstructured grids and poly
+data give their boundary surface, and a parallel file's pieces stay apart
+(:func:`read_input`), so that each can become one domain.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from vastray.scene import meshops
+from vastray.scene import meshops, vtkxml
 from vastray.scene.errors import InputError
 from vastray.scene.isosurface import DEFAULT_BRICK, iter_brick_triangles
 from vastray.scene.store import DomainArrays, frame_for, relative_to
@@ -27,11 +33,62 @@ from vastray.scene.volumes import VOLUME_SUFFIXES, read_volume, volume_suffix
 log = logging.getLogger(__name__)
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf")
-SUPPORTED = MESH_SUFFIXES + VOLUME_SUFFIXES
+SUPPORTED = MESH_SUFFIXES + VOLUME_SUFFIXES + vtkxml.SUFFIXES
 
 # PLY vertex properties that are geometry or colour, not a scalar field
 _PLY_STANDARD = {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue", "alpha", "r", "g", "b",
                  "a", "s", "t", "u", "v", "texture_u", "texture_v", "texture_s", "texture_t"}
+
+
+@dataclass
+class Input:
+    """One input file read into triangles.
+
+    Attributes
+    ----------
+    pieces : the file's triangles: one part, or one per piece of a parallel VTK XML file
+        (each in its own frame; ``meshops.concat`` joins them).
+    scalar_name : name of the array kept as the per-vertex scalars, where the file names it.
+    parallel : True for a parallel VTK XML file (its pieces are ready-made domains).
+    """
+
+    pieces: list[DomainArrays]
+    scalar_name: str | None = None
+    parallel: bool = False
+
+
+def read_input(path: str | os.PathLike, iso: float | None = None, brick: int = DEFAULT_BRICK,
+               progress: bool = False, array: str | None = None,
+               color_by: str | None = None) -> Input:
+    """Read any supported file (mesh, volume or VTK XML) into triangles, keeping pieces apart.
+
+    Parameters
+    ----------
+    path, iso, brick, progress : as for :func:`read_mesh`.
+    array, color_by : VTK XML only (see :func:`vastray.scene.vtkxml.read_vtk_xml`): the array
+        isosurfaced (grids) or kept as scalars (meshes), and the array sampled on a grid's
+        isosurface as its scalars. Ignored, with a warning, for other files.
+
+    Raises
+    ------
+    InputError : naming the file, as :func:`read_mesh` and ``read_vtk_xml`` do.
+    """
+    path = Path(path)
+    if vtkxml.vtk_xml_suffix(path) is not None:
+        if not vtkxml.is_structured(path) and iso is not None:
+            log.warning("%s: is a mesh; --iso %s ignored", path, iso)
+        pieces = vtkxml.read_vtk_xml(path, iso=iso, array=array, color_by=color_by,
+                                     brick=brick, progress=progress)
+        for piece in pieces:
+            if piece.mesh.n_triangles:
+                piece.mesh = _drop_degenerate(piece.mesh, piece.source, logging.INFO)
+        names = {p.scalar_name for p in pieces}
+        return Input([p.mesh for p in pieces], names.pop() if len(names) == 1 else None,
+                     vtkxml.is_parallel(path))
+    for option, value in (("--array", array), ("--color-by", color_by)):
+        if value is not None:
+            log.warning("%s: %s applies to VTK XML files only; ignored", path, option)
+    return Input([read_mesh(path, iso=iso, brick=brick, progress=progress)])
 
 
 def is_volume(path: str | os.PathLike) -> bool:
@@ -45,8 +102,9 @@ def read_mesh(path: str | os.PathLike, iso: float | None = None,
 
     Parameters
     ----------
-    path : a mesh (``.ply .obj .stl .glb .gltf``) or volume (``.npy .raw .json .nii .nii.gz
-        .vtk``) file.
+    path : a mesh (``.ply .obj .stl .glb .gltf``), volume (``.npy .raw .json .nii .nii.gz
+        .vtk``) or VTK XML (``.vti .vtr .vts .vtu .vtp .pvt*``, default arrays; pieces joined)
+        file.
     iso : iso value; required for volumes, ignored (with a warning) for meshes.
     brick : most cells per marching-cubes brick edge (volumes).
     progress : tqdm bar on stderr while isosurfacing.
@@ -66,6 +124,8 @@ def read_mesh(path: str | os.PathLike, iso: float | None = None,
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file")
+    if vtkxml.vtk_xml_suffix(path) is not None:
+        return meshops.concat(read_input(path, iso, brick, progress).pieces)
     if is_volume(path):
         if iso is None:
             raise InputError(path, "is a volume: give an iso value with --iso VALUE")

@@ -186,6 +186,13 @@ class Store:
         return None if r is None else (float(r[0]), float(r[1]))
 
     @property
+    def scalar_name(self) -> str | None:
+        """Name of the scalar field (from the input file, or the generator's field)."""
+        name = self.manifest.get("scalar_name") or (self.manifest.get("generator") or {}).get(
+            "scalars")
+        return name if isinstance(name, str) else None
+
+    @property
     def n_triangles(self) -> int:
         return sum(d.n_triangles for d in self.domains)
 

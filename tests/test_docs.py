@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import hashlib
 import http.server
+import os
 import re
 import shlex
+import subprocess
+import sys
 import threading
 from functools import partial
 from pathlib import Path
@@ -188,3 +191,18 @@ def test_hero_image_is_what_the_first_command_renders(tmp_path, monkeypatch):
     # the last bits: on another machine a handful of pixels may land one or two levels apart.
     diff = np.abs(made.astype(np.int16) - shown.astype(np.int16))
     assert diff.max() <= 2 and np.count_nonzero(diff) <= 0.0001 * diff.size
+
+
+def test_fetch_offline_suggests_a_mirror_and_leaves_no_folder(tmp_path):
+    # No internet: every proxy points at a closed loopback port, so each download fails at once.
+    env = {**os.environ, "http_proxy": "http://127.0.0.1:9", "https_proxy": "http://127.0.0.1:9",
+           "HTTP_PROXY": "http://127.0.0.1:9", "HTTPS_PROXY": "http://127.0.0.1:9"}
+    env.pop("no_proxy", None)
+    env.pop("NO_PROXY", None)
+    run = subprocess.run([sys.executable, "-m", "vastray", "data", "fetch", "-o", "samples"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode != 0
+    last = run.stderr.strip().splitlines()[-1]
+    assert SAMPLES[0].url in last and "download failed" in last and "--from DIR" in last
+    assert "Traceback" not in run.stderr
+    assert not (tmp_path / "samples").exists()

@@ -62,10 +62,24 @@ def test_a_missing_field_or_a_non_dict_is_refused():
     ({"scheduler": "reference", "max_samples_in_flight": 10}, "in-core reference"),
     ({"scheduler": "reference", "preload": False}, "in-core reference"),
     ({"load_bandwidth": 0.0}, "must be positive"),
+    ({"scheduler": "reference", "resident_first": False}, "--scheduler reference has no such"),
+    ({"scheduler": "temporal", "resident_first": False}, "--scheduler temporal has no such"),
+    ({"scheduler": "spec-insitu", "resident_first": False}, "spec-insitu has no such"),
+    ({"scheduler": "image", "max_batch_rays": 100}, "--scheduler image sends none"),
+    ({"scheduler": "spec-insitu", "max_batch_rays": 100}, "spec-insitu sends none"),
 ])
 def test_options_that_do_not_fit_the_scheduler_are_refused(options, message):
     with pytest.raises(JobOptionsError, match=message):
         JobOptions(**options)
+
+
+def test_every_scheduler_that_consumes_an_option_accepts_it():
+    from vastray.actors.job_options import BATCHING_SCHEDULERS, RESIDENT_FIRST_SCHEDULERS
+
+    for scheduler in RESIDENT_FIRST_SCHEDULERS:
+        assert not JobOptions(scheduler=scheduler, resident_first=False).resident_first
+    for scheduler in BATCHING_SCHEDULERS:
+        assert JobOptions(scheduler=scheduler, max_batch_rays=100).max_batch_rays == 100
 
 
 def test_load_bandwidth_is_cycled_over_the_ranks_in_bytes_per_second():

@@ -7,6 +7,7 @@ without loss)."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import re
 import signal
@@ -328,6 +329,58 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
         idle.kill()
         busy.wait()
         idle.wait()
+
+
+@pytest.mark.parametrize("coordinator", ["busy", "idle", "queued"])
+async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinator, monkeypatch):
+    """A node started by its coordinator that hears nothing for the silence limit exits only
+    when the coordinator is gone or idle: a coordinator that still uses CPU (its loop held up on
+    a starved machine) is slow, and heartbeats already waiting unread on the socket mean the
+    node itself is behind."""
+    import zmq
+    import zmq.asyncio
+
+    from vastray.actors.node import ManagementActor
+
+    script = "while True: pass" if coordinator == "busy" else "import time; time.sleep(60)"
+    parent = subprocess.Popen([sys.executable, "-c", script])
+    monkeypatch.setenv(protocol.PARENT_PID_ENV, str(parent.pid))
+    exits = []
+
+    class Exited(Exception):
+        pass
+
+    def fake_exit(code):
+        exits.append(code)
+        raise Exited(code)
+
+    monkeypatch.setattr(os, "_exit", fake_exit)
+    ctx = zmq.asyncio.Context()
+    router = ctx.socket(zmq.ROUTER)
+    port = router.bind_to_random_port("tcp://127.0.0.1")
+    node = ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                           None, token=b"job")
+    try:
+        if coordinator == "queued":  # a message sits unread on the node's coordinator socket
+            node._tasks[1].cancel()  # the node's reader held up (its loop starved)
+            await node.coordinator.send_multipart([b"job", b"hello"])
+            identity, *_ = await router.recv_multipart()
+            await router.send_multipart([identity, b"job", b"unread"])
+            await asyncio.sleep(0.3)
+        node.coordinator_heard = time.monotonic() - 5.0  # silent for longer than the limit
+        watch = asyncio.ensure_future(node.watch_coordinator(silence=1.0))
+        done, _ = await asyncio.wait([watch], timeout=3.0)
+        if coordinator == "idle":
+            assert exits == [4] and isinstance(watch.exception(), Exited)  # idle: lost
+        else:
+            assert not done and exits == []  # slow, not lost
+            watch.cancel()
+    finally:
+        node.close()
+        router.close(linger=0)
+        ctx.destroy(linger=0)
+        parent.kill()
+        parent.wait()
 
 
 def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsys):

@@ -321,6 +321,18 @@ def check_exposure(r: Renders):
     r.refused("--exposure", "4", naming="--exposure")  # no PNG written
 
 
+def check_colormap(r: Renders):
+    # its effect on a store with scalars: test_scene_vtkxml (halves coloured red and yellow)
+    r.refused("--colormap", "viridis", naming="--colormap")  # the tiny store has no scalars
+    r.refused("--colormap", "virdis", "--png", str(r.folder / "c.png"), naming="viridis")
+
+
+def check_legend(r: Renders):
+    # its effect on a store with scalars: test_scene_vtkxml (the colour bar in the PNG)
+    r.refused("--legend", "--png", str(r.folder / "l.png"), naming="--legend")  # no scalars
+    r.refused("--legend", naming="--legend")  # no PNG written
+
+
 def check_quiet(r: Renders):
     assert "wrote " in r(quiet=False).err
     assert r(quiet=True).err == ""

@@ -195,7 +195,7 @@ class _Summary:
 def run_animation(args, *, store_path: str, config: SceneConfig, settings: RenderSettings,
                   bounds: tuple[np.ndarray, np.ndarray], scheduler: str, options: dict,
                   outputs: FrameOutputs, render_one: RenderOne,
-                  render_many: RenderMany | None = None) -> int:
+                  render_many: RenderMany | None = None, legend=None) -> int:
     """``vastray render --frames N``: render, write and report every frame, then the summary.
 
     ``args`` are the parsed ``render`` options (``frames``, ``first_frame``, ``reference``,
@@ -220,9 +220,11 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             error = image_error(image, read_image(reference)) if reference else None
             seed = frame_seed(settings.seed, frame)
             write_image(written.enter_context(atomic_path(files[0])), image,
-                        result.film.depth_image(), result.film.normal_image(), args.exposure)
+                        result.film.depth_image(), result.film.normal_image(), args.exposure,
+                        legend=legend)
             if outputs.png is not None:
-                write_png(written.enter_context(atomic_path(files[1])), image, args.exposure)
+                write_png(written.enter_context(atomic_path(files[1])), image, args.exposure,
+                          legend=legend)
             if outputs.report is not None:
                 write_report(written.enter_context(atomic_path(files[-1])), build_report(
                     store=store_path, settings=dict(asdict(settings), seed=seed),

@@ -133,7 +133,8 @@ def fetch_sample(sample: Sample, folder: Path, mirror: Path | None = None,
                     with urllib.request.urlopen(url, timeout=timeout) as response:
                         shutil.copyfileobj(response, out)
                 except (urllib.error.URLError, OSError) as exc:
-                    raise InputError(url, f"download failed ({exc})") from None
+                    raise InputError(url, f"download failed ({exc}); without internet, copy "
+                                          "the samples from a local mirror: --from DIR") from None
         got = sha256_of(tmp)
         if got != sample.sha256:
             raise InputError(sample.name, f"checksum mismatch: got sha256 {got}, expected "
@@ -150,15 +151,19 @@ def cmd_fetch(args: argparse.Namespace) -> int:
     folder = Path(args.output)
     mirror = Path(args.mirror) if args.mirror else None
     chosen = [s for s in SAMPLES if not args.only or s.name in args.only]
-    for sample in chosen:
-        print(f"{sample.name} ({sample.size / 1e6:.1f} MB) ...", end=" ", file=sys.stderr,
-              flush=True)
-        try:
-            path, fetched = fetch_sample(sample, folder, mirror, args.timeout, force=args.force)
-        except InputError:
-            print("failed", file=sys.stderr)  # the error on a line of its own
-            raise
-        print("fetched, checksum ok" if fetched else "present, checksum ok", file=sys.stderr)
+    made_folder = not folder.exists()
+    try:
+        for sample in chosen:
+            print(f"{sample.name} ({sample.size / 1e6:.1f} MB) ...", end=" ", file=sys.stderr,
+                  flush=True)
+            path, fetched = fetch_sample(sample, folder, mirror, args.timeout,
+                                         force=args.force)
+            print("fetched, checksum ok" if fetched else "present, checksum ok", file=sys.stderr)
+    except InputError:
+        print("failed", file=sys.stderr)
+        if made_folder and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()  # a failed first fetch leaves no empty folder behind
+        raise
     print(f"{len(chosen)} sample(s) in {folder}")
     return 0
 

@@ -9,8 +9,10 @@ import os
 import sys
 from collections.abc import Callable
 from contextlib import ExitStack
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
+
+import numpy as np
 
 from vastray.actors.coordinator import recovery_lines, render_distributed
 from vastray.actors.job_options import JobOptions
@@ -25,11 +27,13 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
+from vastray.render.colormaps import Legend, colormap_lut, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.lights import shadow_rays
-from vastray.render.scene_config import load_scene_config
+from vastray.render.scene_camera import with_camera
+from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.render_job import (
     DEFAULT_BATCH_SIZE,
     DEFAULT_EXPOSURE,
@@ -43,6 +47,7 @@ from vastray.render_job import (
     refuse_inapplicable,
 )
 from vastray.report import build_report, count_overflow, write_report
+from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import portals
@@ -249,8 +254,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="in-core reference render: paths traced together (default: 65536; cut "
                         "finer when a frame has fewer than two batches per render worker)")
     p.add_argument("--threads", type=_positive,
-                   help="threads per process (default: all cores; with --nodes N on this "
-                        "machine, cores / N per node; with --listen, each node's own cores). In "
+                   help="threads per process (default: the cores it may use, its CPU affinity "
+                        "and cgroup CPU quota (docker --cpus); with --nodes N on this machine, "
+                        "those / N per node; with --listen, each node's own). In "
                         "core, one render worker per thread traces batches side by side; out of "
                         "core, each Embree query splits its rays over the threads")
     p.add_argument("--report", help="write a JSON report (timings, counts, error)")
@@ -270,6 +276,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "renders that one frame (numbered outputs, its own seed)")
     p.add_argument("--exposure", type=_positive_float,
                    help="PNG exposure multiplier, for --png or a .png -o (default: 1)")
+    p.add_argument("--colormap", metavar="NAME",
+                   help="matplotlib colour map for a store coloured by its scalar field, e.g. "
+                        "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
+                        "'vastray[plot]'; default: a built-in viridis)")
+    p.add_argument("--legend", action=argparse.BooleanOptionalAction, default=None,
+                   help="draw a colour bar (the scalar's name and range) along the bottom of "
+                        "the PNG of a store coloured by scalars (default: with --colormap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -462,17 +475,65 @@ def resolve_defaults(args: argparse.Namespace) -> None:
             setattr(args, key, value)
 
 
-def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
+@dataclass
+class RenderPlan:
+    """A render checked and ready to run, as ``vastray render`` and ``vastray.render`` (the
+    Python API) both prepare it with ``plan_render``.
+
+    Attributes
+    ----------
+    store_path : the store's folder (the built-in scene's, without a store).
+    store : the opened store.
+    config : camera, lights and materials.
+    settings : image size, integrator and sampling (defaults filled in).
+    scheduler : as resolved from ``auto``.
+    options : the job's options, as the schedulers receive them.
+    report_options : the run's switches, as its report records them (``run_options``).
+    reference : (H, W, 3) image to measure the error against, or None.
+    render_one : ``render_one(config, settings) -> RenderResult`` (``_renderer``).
+    legend : the colour bar PNGs get, or None (``png_legend``).
+    """
+
+    store_path: Path
+    store: Store
+    config: SceneConfig
+    settings: RenderSettings
+    scheduler: str
+    options: JobOptions
+    report_options: dict
+    reference: np.ndarray | None
+    render_one: Callable[..., RenderResult]
+    legend: Legend | None = None
+
+
+def check_and_default(args: argparse.Namespace) -> bool:
+    """Refuse the options given where they change nothing, then fill in the defaults.
+    Returns whether ``--shadow-samples`` was given (``plan_render`` needs to know)."""
     refuse_inapplicable(args)  # before the defaults fill in what was not given
     shadow_samples_given = args.shadow_samples is not None
     resolve_defaults(args)
-    animating = args.frames is not None or args.first_frame is not None
-    if animating:
-        first = args.first_frame or 0
-        frame_outputs = check_frame_outputs(args.output, args.png, args.report,
-                                            list(range(first, first + (args.frames or 1))))
-    else:
-        outputs = check_output_paths(args.output, args.png, args.report)
+    return shadow_samples_given
+
+
+def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
+                animating: bool = False, launched: dict | None = None,
+                store: Store | None = None, camera: dict | None = None) -> RenderPlan:
+    """Open the store and scene, refuse what cannot work, and pick the scheduler and the
+    job's options: everything before the first ray, for ``args`` as ``check_and_default``
+    left them.
+
+    Parameters
+    ----------
+    animating : an animation checks the camera (and reference) of each of its frames.
+    launched : node processes started elsewhere (``vastray launch``).
+    store : ``args.store`` already opened.
+    camera : ``[camera]`` keys replacing the scene's camera (``scene_config.with_camera``).
+
+    Raises
+    ------
+    InputError
+        Naming the file or option and the problem.
+    """
     if args.store is None:
         from vastray.default_scene import default_scene_config, default_store
 
@@ -481,20 +542,29 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     else:
         store_path = Path(args.store)
         config = load_scene_config(args.scene)
-    store = Store(store_path)
+    store = Store(store_path) if store is None else store
+    if camera is not None:
+        config = with_camera(config, camera)
     config.check_objects(store.objects)
+    legend = png_legend(args, store)
     refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
     if not animating:  # an animation checks the camera of each of its frames
         config.resolve_camera(*store.world_bounds, args.width, args.height)
-    reference = read_image(args.reference) if args.reference and not animating else None
+    reference = None
+    if isinstance(args.reference, np.ndarray):
+        reference = args.reference
+    elif args.reference and not animating:
+        reference = read_image(args.reference)
     settings = RenderSettings(
         width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
         seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
+        colormap=args.colormap,
     )
     if reference is not None and reference.shape != (args.height, args.width, 3):
-        raise InputError(args.reference, f"reference is {reference.shape[1]}x{reference.shape[0]}"
-                                         f", the render is {args.width}x{args.height}")
+        where = args.reference if isinstance(args.reference, str) else "reference"
+        raise InputError(where, f"reference is {reference.shape[1]}x{reference.shape[0]}"
+                                f", the render is {args.width}x{args.height}")
     cache = resolve_cache(args.cache, len(store.domains))
     scheduler = args.scheduler
     cache = _check_render_memory(args, config, "reference" if scheduler == "auto" else scheduler,
@@ -515,34 +585,81 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                         os.cpu_count() or 1)
     refuse_for_scheduler(args, scheduler)
     options = job_options(args, scheduler, cache)
-    render_one = _renderer(args, store, store_path, options, launched)
-    report_options = run_options(args, options)
-    if animating:
-        return run_animation(args, store_path=str(store_path), config=config,
-                             settings=settings, bounds=store.world_bounds, scheduler=scheduler,
-                             options=report_options, outputs=frame_outputs, render_one=render_one,
-                             render_many=_render_many(args, config, settings, render_one))
-    result = render_one(config, settings)
+    return RenderPlan(store_path, store, config, settings, scheduler, options,
+                      run_options(args, options), reference,
+                      _renderer(args, store, store_path, options, launched), legend)
+
+
+def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
+                  reference_name: str | None) -> tuple[np.ndarray, dict | None, dict]:
+    """A finished render's image ((H, W, 3) as the film holds it), its error against the
+    plan's reference (or None) and its report (the dict ``--report`` writes); non-finite
+    pixels are counted (and said on stderr, naming ``where``)."""
     image = result.film.image()
-    count_overflow(image, result.counters, outputs[0])
-    error = image_error(image, reference) if reference is not None else None
+    count_overflow(image, result.counters, where)
+    error = image_error(image, plan.reference) if plan.reference is not None else None
+    report = build_report(
+        store=str(plan.store_path), settings=asdict(plan.settings), seconds=result.seconds,
+        counters=result.counters, error=error, reference=reference_name,
+        scheduler=plan.scheduler, options=plan.report_options,
+    )
+    return image, error, report
+
+
+def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
+    shadow_samples_given = check_and_default(args)
+    animating = args.frames is not None or args.first_frame is not None
+    if animating:
+        first = args.first_frame or 0
+        frame_outputs = check_frame_outputs(args.output, args.png, args.report,
+                                            list(range(first, first + (args.frames or 1))))
+    else:
+        outputs = check_output_paths(args.output, args.png, args.report)
+    plan = plan_render(args, shadow_samples_given, animating=animating, launched=launched)
+    if animating:
+        return run_animation(args, store_path=str(plan.store_path), config=plan.config,
+                             settings=plan.settings, bounds=plan.store.world_bounds,
+                             scheduler=plan.scheduler, options=plan.report_options,
+                             outputs=frame_outputs, render_one=plan.render_one,
+                             render_many=_render_many(args, plan.config, plan.settings,
+                                                      plan.render_one),
+                             legend=plan.legend)
+    result = plan.render_one(plan.config, plan.settings)
+    image, error, report = finish_render(plan, result, outputs[0], args.reference)
     summary = summary_line(args, result, error, outputs)
     with ExitStack() as written:  # every output, or none: renamed into place together
         write_image(written.enter_context(atomic_path(outputs[0])), image,
-                    result.film.depth_image(), result.film.normal_image(), args.exposure)
+                    result.film.depth_image(), result.film.normal_image(), args.exposure,
+                    legend=plan.legend)
         if args.png:
-            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure)
+            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
+                      legend=plan.legend)
         if args.report:
-            write_report(written.enter_context(atomic_path(args.report)), build_report(
-                store=str(store_path), settings=asdict(settings), seconds=result.seconds,
-                counters=result.counters, error=error, reference=args.reference,
-                scheduler=scheduler, options=report_options,
-            ))
+            write_report(written.enter_context(atomic_path(args.report)), report)
     if not args.quiet:
         print(summary, file=sys.stderr)
         for line in recovery_lines(result.counters):  # a recovery is never silent
             print(line, file=sys.stderr)
     return 0
+
+
+def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
+    """The colour bar PNGs get (None: not coloured by scalars, or not asked for: ``--legend``,
+    by default on with ``--colormap``); checks
+    the ``--colormap`` name first, so a wrong one is refused before any rendering."""
+    if args.colormap is not None:
+        colormap_lut(args.colormap)
+    by_scalars = store.has_scalars and not store.has_colors
+    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend)):
+        if given and not by_scalars:
+            raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
+                                         " this one has " + ("per-vertex colours" if
+                                                             store.has_colors else "no scalars"))
+    if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
+        raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
+                               "-o")
+    wanted = args.legend if args.legend is not None else args.colormap is not None
+    return legend_for(store, args.colormap) if wanted else None
 
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
@@ -600,7 +717,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
         shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
-    threads = args.threads or os.cpu_count() or 1
+    threads = args.threads or available_cpus()
     if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
         in_flight, films = 0, 1
     elif args.nodes:  # every node holds a film and its tile of paths on this machine

@@ -16,8 +16,8 @@ from vastray.scene.errors import InputError
 from vastray.scene.fields import SCENES
 from vastray.scene.generate import generate
 from vastray.scene.isosurface import DEFAULT_BRICK
-from vastray.scene.partition import partition_grid, partition_kd
-from vastray.scene.readers import SUPPORTED, read_mesh
+from vastray.scene.partition import partition_grid, partition_kd, partition_pieces
+from vastray.scene.readers import SUPPORTED, read_input
 from vastray.scene.simplify import DEFAULT_MIN_FACES, build_simplified, check_ratio
 from vastray.scene.store import ATTRIBUTES, Store, StoreWriter, check_replaceable, is_store
 from vastray.scene.verify import verify_store
@@ -33,10 +33,22 @@ examples:
   vastray partition samples/stanford_bunny.ply samples/spot.obj -o two.store --grid 4x2x2
   vastray partition samples/lucy_100k.ply -o lucy.store --domains 12 --split kd
   vastray partition volume.npy -o vol.store --iso 0.5               # volume -> isosurface
+  vastray partition flow.vtu -o flow.store --array pressure         # VTK XML mesh + scalar
+  vastray partition cth.vtr -o cth.store --iso 0.5 --array armor --color-by pressure
+  vastray partition run.pvtu -o run.store                           # one domain per piece
 
 supported inputs: {supported}
 volumes (.npy .raw/.json .nii .nii.gz .vtk) need --iso; a .raw file needs a JSON header
 (shape, dtype, spacing, origin, optional order "F"|"C", file, offset) beside it.
+VTK XML (needs `pip install 'vastray[vtk]'`): grids (.vti .vtr .vts) are volumes: --iso on
+--array NAME (default: the first one-component array), and --color-by NAME samples another
+array on the surface for colouring; unstructured grids and poly data (.vtu .vtp) give their
+boundary surface, triangulated, and keep --array NAME (default: the first point array, else
+cell array) as the scalar coloured by `vastray render --colormap`. Vector arrays count by
+their magnitude. Parallel files (.pvti .pvtr .pvts .pvtu .pvtp): when every input is one and
+neither --grid nor --domains is given, each piece becomes one domain as it is (not
+re-partitioned; empty pieces are dropped); with --grid or --domains the pieces are joined
+and split like any other input.
 """
 
 GENERATE_EPILOG = """\
@@ -161,6 +173,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", choices=("grid", "kd"),
                    help="grid (default) or kd; --domains implies kd")
     p.add_argument("--iso", type=float, metavar="VALUE", help="iso value for volume inputs")
+    p.add_argument("--array", metavar="NAME",
+                   help="VTK XML: the array isosurfaced (grids) or kept as the colouring "
+                        "scalar (meshes); default the first one-component array")
+    p.add_argument("--color-by", metavar="NAME",
+                   help="VTK XML grids: the array sampled on the isosurface as its colouring "
+                        "scalar (default: none)")
     p.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"marching-cubes brick edge in cells (default {DEFAULT_BRICK})")
     _add_simplify_option(p)
@@ -235,15 +253,21 @@ def cmd_partition(args) -> int:
                              "is a folder; give the mesh or volume files in it")
 
     progress = _show_progress(args)
-    meshes = [read_mesh(p, iso=args.iso, brick=args.brick, progress=progress)
-              for p in args.inputs]
+    inputs = [read_input(p, iso=args.iso, brick=args.brick, progress=progress,
+                         array=args.array, color_by=args.color_by) for p in args.inputs]
+    meshes = [piece for inp in inputs for piece in inp.pieces]
     for name in ("scalars", "colors"):
         have = [getattr(m, name) is not None for m in meshes]
         if any(have) and not all(have):
             log.warning("only some inputs have per-vertex %s; dropped for the whole scene", name)
-    several = len(meshes) > 1
-    mesh = meshops.concat(meshes, objects=list(range(len(meshes))) if several else None)
-    if split == "kd":
+    several = len(inputs) > 1
+    owner = [i for i, inp in enumerate(inputs) for _ in inp.pieces]
+    mesh = meshops.concat(meshes, objects=owner if several else None)
+    if all(inp.parallel for inp in inputs) and not (args.grid or args.domains or args.split):
+        split = "pieces"
+        piece = np.repeat(np.arange(len(meshes)), [m.n_triangles for m in meshes])
+        part = partition_pieces(mesh, piece, len(meshes))
+    elif split == "kd":
         _check_domain_count(args.domains, mesh.n_triangles)
         part = partition_kd(mesh, args.domains)
     else:
@@ -254,8 +278,11 @@ def cmd_partition(args) -> int:
         for dom in part.domains:
             writer.add_domain(dom)
         writer.extra = {"partition": part.manifest_entry()}
+        scalar_name = _scalar_name(inputs, mesh)
+        if scalar_name is not None:
+            writer.extra["scalar_name"] = scalar_name
     if not args.quiet:
-        print(f"{out}: {mesh.n_triangles:,} triangles from {len(meshes)} input(s) in "
+        print(f"{out}: {mesh.n_triangles:,} triangles from {len(inputs)} input(s) in "
               f"{len(part.domains)} domains ({split})")
     _simplify_after(args, out)
     return 0
@@ -275,6 +302,18 @@ def _check_domain_count(domains: int, triangles: int) -> None:
         log.warning("--domains %s leaves about %d triangles per domain: each domain's own "
                     "costs will outweigh them; fewer domains render faster", f"{domains:,}",
                     triangles // domains)
+
+
+def _scalar_name(inputs, mesh) -> str | None:
+    """The name of the scene's scalar field (for the colour bar), where the inputs name it."""
+    if mesh.scalars is None:
+        return None
+    names = [inp.scalar_name for inp in inputs if inp.scalar_name]
+    if len(set(names)) > 1:
+        log.warning("the inputs' scalars are different arrays (%s): one colour scale for all",
+                    ", ".join(dict.fromkeys(names)))
+        return " / ".join(dict.fromkeys(names))
+    return names[0] if names else None
 
 
 def cmd_generate(args) -> int:
