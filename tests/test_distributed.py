@@ -41,9 +41,11 @@ def test_tree_edges_cover_every_rank_once(size):
     assert all(parent(c) == r for r in ranks for c in children(r, size))
 
 
-@pytest.mark.parametrize("integrator", ["ao", "pt"])
-@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async", "dynamic",
-                                       "spec-insitu"])
+# Path tracing on every scheduler; ambient occlusion on one by default, on all with -m slow.
+@pytest.mark.parametrize("scheduler, integrator", [
+    pytest.param(s, i, marks=[pytest.mark.slow] if i == "ao" and s != "image" else [])
+    for s in ("image", "spec-ooc", "domain", "async", "dynamic", "spec-insitu")
+    for i in ("ao", "pt")])
 def test_nodes_give_the_reference_image(scene, integrator, scheduler):
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator=integrator)

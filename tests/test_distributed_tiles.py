@@ -54,8 +54,10 @@ def two_boxes(tmp_path_factory):
     return Store(root / "store"), root / "scene.toml"
 
 
-@pytest.mark.parametrize("integrator", ["ao", "pt"])
-@pytest.mark.parametrize("scheduler", SCHEDULERS)
+# Path tracing on every scheduler; ambient occlusion on one by default, on all with -m slow.
+@pytest.mark.parametrize("scheduler, integrator", [
+    pytest.param(s, i, marks=[pytest.mark.slow] if i == "ao" and s != "image" else [])
+    for s in SCHEDULERS for i in ("ao", "pt")])
 def test_multi_tile_frames_give_the_reference_image(two_boxes, scheduler, integrator):
     store, toml = two_boxes
     st = settings(width=16, height=16, spp=2, integrator=integrator)

@@ -39,10 +39,12 @@ def scene(tmp_path_factory):
     return write_store(root / "s", bumpy_scene(), kd=8), root / "scene.toml"
 
 
+# Every scheduler and every signal by default; the other pairs with -m slow (CI runs them).
 @pytest.mark.parametrize("scheduler, sig", [
-    ("domain", signal.SIGKILL), ("async", signal.SIGKILL), ("spec-insitu", signal.SIGKILL),
-    ("image", signal.SIGKILL), ("async", signal.SIGSTOP), ("image", signal.SIGSTOP),
-    ("async", signal.SIGSEGV), ("domain", signal.SIGABRT)])
+    ("domain", signal.SIGKILL), pytest.param("async", signal.SIGKILL, marks=pytest.mark.slow),
+    ("spec-insitu", signal.SIGKILL), pytest.param("image", signal.SIGKILL, marks=pytest.mark.slow),
+    pytest.param("async", signal.SIGSTOP, marks=pytest.mark.slow), ("image", signal.SIGSTOP),
+    ("async", signal.SIGSEGV), pytest.param("domain", signal.SIGABRT, marks=pytest.mark.slow)])
 def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig):
     store, toml = scene
     st = settings(width=32, height=24, spp=128, integrator="pt")
@@ -131,7 +133,8 @@ def _reap(nodes: list[subprocess.Popen]) -> None:
             node.wait()
 
 
-@pytest.mark.parametrize("scheduler, slow", [("async", False), ("image", False), ("async", True)])
+@pytest.mark.parametrize("scheduler, slow", [
+    pytest.param("async", False, marks=pytest.mark.slow), ("image", False), ("async", True)])
 def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, slow):
     # slow: the survivors take longer to drop the job than the coordinator's silence allows
     # mid-job; the coordinator is silent after its regroup, and that must not make them exit
