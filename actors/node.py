@@ -198,7 +198,8 @@ class ManagementActor:
         socket mean this node's own loop is behind, and a coordinator that started this node
         (its parent) and still uses CPU is slow, not lost (for up to ``BUSY_GRACE`` times
         ``silence``)."""
-        parent = os.environ.get(protocol.PARENT_PID_ENV)
+        parent_env = os.environ.get(protocol.PARENT_PID_ENV)
+        parent = None if parent_env is None else int(parent_env)
         witness = CpuWitness(silence / 2)
         while True:
             await asyncio.sleep(0.25)
@@ -206,13 +207,14 @@ class ManagementActor:
             quiet = now - self.coordinator_heard
             if quiet <= silence:
                 if parent is not None:
-                    witness.forget(int(parent))
+                    witness.forget(parent)
                 continue
-            if self.coordinator.getsockopt(zmq.EVENTS) & zmq.POLLIN:
-                continue  # its messages wait here, unread: this node is the slow one
-            if (parent is not None and quiet < BUSY_GRACE * silence
-                    and witness.busy(int(parent), now)):
-                continue  # the coordinator started this node and still works: slow, not lost
+            if quiet < BUSY_GRACE * silence and (
+                    self.coordinator.getsockopt(zmq.EVENTS) & zmq.POLLIN
+                    or (parent is not None and witness.busy(parent, now))):
+                # Its messages wait here unread (this node is the one behind), or the
+                # coordinator that started this node still works: slow, not lost.
+                continue
             log.error("lost the coordinator (silent for %.1f s); exiting", quiet)
             logging.shutdown()
             os._exit(4)
