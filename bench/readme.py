@@ -38,6 +38,7 @@ import contextlib
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -147,14 +148,17 @@ def run_block(block: Block, work: Path, small: bool, mirror: Path | None,
     script, skipped = script_for(block, small, mirror)
     env = dict(os.environ, PYTHONFAULTHANDLER="1")
     start = time.perf_counter()
+    # Its own process group, so that a block over time goes with everything it started.
+    proc = subprocess.Popen(["bash", "-euo", "pipefail", "-c", script], cwd=work, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
     try:
-        proc = subprocess.run(["bash", "-euo", "pipefail", "-c", script], cwd=work, env=env,
-                              capture_output=True, text=True, timeout=timeout,
-                              start_new_session=True)
-        code, text = proc.returncode, proc.stdout + proc.stderr
-    except subprocess.TimeoutExpired as exc:
-        out = exc.stdout or b""
-        code, text = 124, f"timed out after {timeout:.0f} s\n{out.decode(errors='replace')}"
+        text, _ = proc.communicate(timeout=timeout)
+        code = proc.returncode
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate()
+        code, text = 124, f"timed out after {timeout:.0f} s\n{out}"
     native = code < 0 or code in (128 + 6, 128 + 11) or bool(NATIVE.search(text))
     tail = "\n".join(text.strip().splitlines()[-12:])
     return Result(block, code, time.perf_counter() - start, native, tail), skipped
