@@ -24,6 +24,7 @@ from vastray.render.driver import (
 )
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
+from vastray.render.materials import ScalarMap
 from vastray.render.progress import RenderBar
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
@@ -45,7 +46,7 @@ class RenderSetup:
     shading: Shading
     keep: frozenset[str]  # attributes loaded domains keep for shading
     color_source: str | None
-    scalar_range: tuple[float, float]
+    scalar_range: ScalarMap  # the scalars' range and colour table (``colormaps.scalar_map``)
     camera: Camera
     geometry: DomainGeometry
     ao_distance: float

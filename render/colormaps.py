@@ -12,6 +12,7 @@ shows each colour as a surface lit at unit radiance appears in the PNG.
 from __future__ import annotations
 
 import difflib
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,8 +30,10 @@ def colormap_names() -> list[str]:
     return sorted(matplotlib.colormaps)
 
 
+@functools.lru_cache(maxsize=8)
 def colormap_lut(name: str) -> np.ndarray:
-    """The matplotlib colour map ``name`` sampled at ``LUT_SIZE`` points: (256, 3) float64.
+    """The matplotlib colour map ``name`` sampled at ``LUT_SIZE`` points: (256, 3) float64,
+    read-only (sampled once per process: the checks, the legend and every frame share it).
 
     Raises
     ------
@@ -49,7 +52,9 @@ def colormap_lut(name: str) -> np.ndarray:
                 else "e.g. viridis, plasma, inferno, magma, cividis, coolwarm, turbo, gray")
         raise InputError(None, f"--colormap: unknown colour map {name!r}; {hint}")
     cmap = matplotlib.colormaps[name].resampled(LUT_SIZE)
-    return np.asarray(cmap(np.arange(LUT_SIZE))[:, :3], dtype=np.float64)
+    lut = np.array(cmap(np.arange(LUT_SIZE))[:, :3], dtype=np.float64)
+    lut.flags.writeable = False
+    return lut
 
 
 def scalar_map(scalar_range: tuple[float, float] | None, name: str | None) -> ScalarMap:
@@ -66,10 +71,15 @@ class Legend:
     name: str
 
 
+def coloured_by_scalars(store) -> bool:
+    """Whether ``store``'s surfaces take their colour from its scalar field (a store with
+    per-vertex colours uses those instead)."""
+    return store.has_scalars and not store.has_colors
+
+
 def legend_for(store, colormap_name: str | None) -> Legend | None:
-    """The colour bar of a render of ``store``: None unless its surfaces are coloured by
-    scalars (a store with per-vertex colours uses those instead)."""
-    if store.has_colors or not store.has_scalars:
+    """The colour bar of a render of ``store``: None unless ``coloured_by_scalars``."""
+    if not coloured_by_scalars(store):
         return None
     return Legend(scalar_map(store.scalar_range, colormap_name), store.scalar_name or "scalar")
 

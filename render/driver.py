@@ -186,9 +186,9 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     if workers > 1:
         batch = min(batch, -(-total // (2 * workers)))
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
-                          two_level=two_level)
+                          two_level=two_level,
+                          scalars=scalar_map(store.scalar_range, settings.colormap))
     tracer.record = record_rays
-    tracer.scalar_range = scalar_map(store.scalar_range, settings.colormap)
     camera = store_camera(config, store, settings.width, settings.height)
     shading = with_camera_clip(shading, store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))

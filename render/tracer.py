@@ -26,7 +26,7 @@ import numpy as np
 
 from vastray.render import kernels
 from vastray.render.boxtree import BoxTree
-from vastray.render.materials import colormap
+from vastray.render.materials import ScalarMap, colormap
 from vastray.scene import embree
 from vastray.scene.cache import DomainCache
 from vastray.scene.cpus import available_cpus
@@ -281,6 +281,8 @@ class DomainTracer:
     store : the domain store.
     cache : the domain cache (its capacity bounds memory).
     color_source : ``"colors"``, ``"scalars"`` or None: the per-vertex data shading uses.
+    scalars : how scalars become colours (``render.colormaps.scalar_map``); None: the store's
+        range on the built-in table.
     threads : Embree query threads (Embree releases the GIL).
     two_level : when the cache holds every domain and the compiled Embree binding is in use,
         query resident domains through one top-level scene of instances (the default); False:
@@ -288,11 +290,13 @@ class DomainTracer:
     """
 
     def __init__(self, store: Store, cache: DomainCache, color_source: str | None = None,
-                 threads: int | None = None, two_level: bool = True):
+                 threads: int | None = None, two_level: bool = True,
+                 scalars: ScalarMap | None = None):
         self.store = store
         self.cache = cache
         self.color_source = color_source
-        self.scalar_range = store.scalar_range or (0.0, 1.0)
+        lo, hi = store.scalar_range or (0.0, 1.0)
+        self.scalar_range = ScalarMap(lo, hi) if scalars is None else scalars
         self.stats = TraceStats()
         self._stats_lock = threading.Lock()  # render workers share one tracer
         #: When a list, every query appends its (origins, directions): benchmarks replay them.

@@ -27,7 +27,7 @@ from vastray.preflight import (
     estimate_memory,
     parse_size,
 )
-from vastray.render.colormaps import Legend, colormap_lut, legend_for
+from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -579,10 +579,10 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                                "give --nodes N")
     if args.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
-        if not args.listen and args.nodes > (os.cpu_count() or 1):
+        cores = available_cpus()
+        if not args.listen and args.nodes > cores:
             log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
-                        "nodes render no faster here", args.nodes, os.cpu_count() or 1,
-                        os.cpu_count() or 1)
+                        "nodes render no faster here", args.nodes, cores, cores)
     refuse_for_scheduler(args, scheduler)
     options = job_options(args, scheduler, cache)
     return RenderPlan(store_path, store, config, settings, scheduler, options,
@@ -649,7 +649,7 @@ def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
     the ``--colormap`` name first, so a wrong one is refused before any rendering."""
     if args.colormap is not None:
         colormap_lut(args.colormap)
-    by_scalars = store.has_scalars and not store.has_colors
+    by_scalars = coloured_by_scalars(store)
     for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend)):
         if given and not by_scalars:
             raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
