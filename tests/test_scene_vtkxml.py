@@ -266,13 +266,16 @@ def test_missing_vtk_names_the_extra(tmp_path, monkeypatch):
 # ---------------------------------------------------------------- colour by scalar, legend
 
 
-def test_render_colours_the_halves_by_their_scalar_with_a_legend(tmp_path):
+def test_render_colours_the_halves_by_their_scalar_with_a_legend(tmp_path, capsys):
     pytest.importorskip("matplotlib", reason="--colormap needs matplotlib")
     store = tmp_path / "h.store"
     assert main(["partition", str(halves_plate(tmp_path)), "-o", str(store), "--quiet"]) == 0
     size = ["--width", "96", "--height", "64", "--spp", "1", "--quiet"]
+    capsys.readouterr()
+    # as a user runs it (no --quiet): the summary line is still the last
     assert main(["render", str(store), "-o", str(tmp_path / "h.exr"), "--png",
-                 str(tmp_path / "h.png"), "--colormap", "autumn", *size]) == 0
+                 str(tmp_path / "h.png"), "--colormap", "autumn", *size[:-1]]) == 0
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("wrote ")
     image = read_image(tmp_path / "h.exr")
     lit = image[..., 0] > 2 * image[..., 2] + 0.02  # the plate: autumn has no blue; sky is grey
     cols = np.nonzero(lit.any(axis=0))[0]
