@@ -41,6 +41,7 @@ from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.progress import RenderBar
+from vastray.render.progressive import Progression, StopRules
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError, VastrayError
@@ -100,7 +101,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        rendezvous: str | os.PathLike | None = None,
                        heartbeat_timeout: float | None = None,
                        survive_node_loss: bool = True, frames: list[int] | None = None,
-                       on_frame: Callable[[int, RenderResult], None] | None = None
+                       on_frame: Callable[[int, RenderResult], None] | None = None,
+                       progression_of: Callable[[int | None], Progression] | None = None
                        ) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
@@ -139,6 +141,12 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         one image with ``config`` and ``settings`` as they are.
     on_frame : with ``frames``, called as ``on_frame(frame, result)`` as each frame arrives
         (a node loss re-renders only the frames not yet delivered).
+    progression_of : ``progression_of(frame)`` (frame None for one image), called once per
+        frame: the sample-major passes to render it in and when to stop
+        (``render.progressive``); node 0's film of each pass is merged there as it arrives,
+        and with a rule that may stop early (``StopRules.paced``) each pass waits for the
+        verdict on the one before. A node loss re-renders only the passes not yet merged.
+        None: each frame in one pass of all its samples.
     Returns
     -------
     The result of the image, or with ``frames`` of the last frame (its counters list every
@@ -183,6 +191,14 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     }
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp * len(frames or [None])
+    progressions: dict[int | None, Progression] = {}
+
+    def progression(frame: int | None) -> Progression:
+        if frame not in progressions:
+            progressions[frame] = (progression_of(frame) if progression_of is not None else
+                                   Progression(settings.width, settings.height,
+                                               StopRules(settings.spp, one_pass=True)))
+        return progressions[frame]
     failures: list[str] = []
     recoveries: list[dict] = []  # per node lost: who, how, and which frames were done again
     size = nodes
@@ -198,21 +214,32 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         result = _result(film, frame_camera, reports, barriers, scheduler, size, nodes,
                          failures, seconds, recoveries)
         result.counters["frame"] = frame
+        if progression_of is not None:
+            result.progress = progression(frame).report()
         delivered[frame] = result
         if on_frame is not None:
             on_frame(frame, result)
 
     while True:
         remaining = None if frames is None else [f for f in frames if f not in delivered]
+        for frame in remaining or ():  # merged whole before a loss, its reports lost with it
+            if progression(frame).stopped_by is not None:
+                frame_done(frame, progression(frame).film, [], 0, 0.0)
+        remaining = None if frames is None else [f for f in frames if f not in delivered]
+        units = [(frame, first, stop) for frame in (remaining or [None])
+                 for first, stop in progression(frame).remaining()]
+        paced = any(progression(frame).rules.paced for frame in (remaining or [None]))
         try:
             with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0,
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                           leave=False) as bar:
+                passes = _Passes(units, progression, paced)
                 film, reports, barriers = asyncio.run(_coordinate(
-                    dict(job, frames=remaining), size, settings, timeout, listen, keys,
-                    launched or {}, bar, progress, rendezvous, heartbeat_timeout or timeout,
-                    frame_done, regroup=survive_node_loss and size > 1, bound=bound,
-                    spare_exits=spare_exits))
+                    dict(job, frames=remaining, units=units, paced=paced), size, settings,
+                    timeout, listen, keys, launched or {}, bar, progress, rendezvous,
+                    heartbeat_timeout or timeout, frame_done,
+                    regroup=survive_node_loss and size > 1, bound=bound,
+                    spare_exits=spare_exits, passes=passes))
             break
         except NodeLost as lost:
             if not survive_node_loss or size == 1:
@@ -234,8 +261,11 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                 log.warning("%s", message)
     wall = time.perf_counter() - start
     if frames is None:
-        return _result(film, camera, reports, barriers, scheduler, size, nodes, failures, wall,
-                       recoveries)
+        result = _result(film, camera, reports, barriers, scheduler, size, nodes, failures,
+                         wall, recoveries)
+        if progression_of is not None:
+            result.progress = progression(None).report()
+        return result
     last = delivered[frames[-1]]
     last.counters["frames"] = [delivered[f].counters for f in frames]
     last.seconds["animation_total"] = round(wall, 4)
@@ -252,6 +282,7 @@ def _result(film, camera, reports: list[dict], barriers: int, scheduler: str, si
     (``node_deaths``, e.g. ``{"SIGSEGV": 1}``), so a recovery is never silent.
     """
     deaths: dict[str, int] = {}
+    reports = list(reports) or [{"busy_s": 0.0, "reduce_s": 0.0, "counters": {}}]
     for entry in recoveries:
         deaths[entry["cause"]] = deaths.get(entry["cause"], 0) + 1
     counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": asked,
@@ -340,10 +371,12 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
                       heartbeat_timeout: float | None = None, frame_done=None,
-                      regroup: bool = False, bound: dict | None = None, spare_exits: int = 0):
-    """One attempt at the job on ``size`` nodes. With ``listen`` and ``regroup``, a node lost
-    mid-frame makes the coordinator tell the others to regroup before ``NodeLost`` is raised;
-    ``bound["listen"]`` gets the address bound, for the next attempt."""
+                      regroup: bool = False, bound: dict | None = None, spare_exits: int = 0,
+                      passes: _Passes | None = None):
+    """One attempt at the job on ``size`` nodes (``passes``: its units, see ``_Passes``).
+    With ``listen`` and ``regroup``, a node lost mid-frame makes the coordinator tell the
+    others to regroup before ``NodeLost`` is raised; ``bound["listen"]`` gets the address
+    bound, for the next attempt."""
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
     check_bind(host, keys)
     ctx = zmq.asyncio.Context()
@@ -414,8 +447,13 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
         control = _Termination(size, router, identities, token)
         frames = _Frames(size, job.get("frames"), frame_done)
+        passes = passes if passes is not None else _Passes(
+            [(None, 0, settings.spp)], lambda frame: Progression(
+                settings.width, settings.height, StopRules(settings.spp, one_pass=True)), False)
+        passes.begin(lambda next_unit: _grant(router, identities, token, next_unit))
         try:
-            film, reports = await _gather(router, watch, settings, bar, control, frames, size)
+            film, reports = await _gather(router, watch, settings, bar, control, frames, size,
+                                          passes)
         except NodeLost as lost:
             if regroup and listen is not None:
                 await _call_regroup(router, identities, token, lost)
@@ -447,11 +485,14 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
 
 
 async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
-                  control: _Termination, frames: _Frames, size: int):
+                  control: _Termination, frames: _Frames, size: int, passes: _Passes):
     """Receive the job's messages until the film and every node's report are in: progress,
-    films and frame reports, termination control; a node's failure raises ``NodeLost``."""
+    films of passes and frame reports, termination control; a node's failure raises
+    ``NodeLost``."""
     film, reports = None, {}
     done_paths: dict[int, int] = {}
+    if passes.done:  # nothing left to render (every pass merged before a node loss)
+        film = passes.image_film()
     while film is None or len(reports) < size:
         _, message = await watch.receive(router)
         if message.kind == protocol.PROGRESS:
@@ -461,11 +502,17 @@ async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
             done_paths[rank] = paths
         elif message.kind == protocol.FILM:
             try:
-                film = film_from(message, settings.width, settings.height)
+                pass_film = film_from(message, settings.width, settings.height)
             except ValueError as exc:
                 raise NodeFailure(f"node 0 sent a film that does not fit the image: "
                                   f"{exc}") from None
-            frames.film(message.meta.get("frame"), film, control.barriers)
+            finished = await passes.film(int(message.meta.get("unit", 0)), pass_film)
+            if finished is not None:
+                frame, whole = finished
+                if frame is None:
+                    film = whole
+                else:
+                    frames.film(frame, whole, control.barriers)
         elif message.kind == protocol.FRAME:
             frames.report(message.meta, control.barriers)
         elif message.kind == protocol.DONE:
@@ -479,6 +526,71 @@ async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
         elif message.kind == protocol.FAILED:
             raise watch.failed(int(message.meta["rank"]), message.meta["error"])
     return film, reports
+
+
+async def _grant(router, identities: dict[int, bytes], token: bytes, next_unit: int) -> None:
+    for rank in sorted(identities):
+        await router.send_multipart([identities[rank], token,
+                                     *encode(protocol.GRANT, {}, {"next": next_unit})])
+
+
+class _Passes:
+    """The job's units, (frame, first sample, stop sample), one per pass of each frame, as
+    node 0's film of each arrives (in unit order): merged into its frame's progression; a
+    frame is whole once its progression stops. Paced (a rule may stop a frame early), every
+    unit waits for a grant: the next pass of the frame, the first of the next frame, or -1.
+
+    Parameters
+    ----------
+    units : the units of this attempt.
+    progression : ``progression(frame)``, the frame's ``Progression``.
+    paced : whether nodes wait for a grant after each unit.
+    """
+
+    def __init__(self, units: list[tuple], progression: Callable, paced: bool):
+        self.units, self.progression, self.paced = units, progression, paced
+        self.expected = 0  # the unit whose film comes next
+        self.send_grant = None
+
+    @property
+    def done(self) -> bool:
+        return not self.units
+
+    def image_film(self):
+        return self.progression(None).film
+
+    def begin(self, send_grant) -> None:
+        """Start the first unit's frame (its clock, its first pass)."""
+        self.send_grant = send_grant
+        if self.units:
+            self._start(self.units[0])
+
+    def _start(self, unit: tuple) -> None:
+        frame, first, stop = unit
+        step = self.progression(frame).next_pass()
+        if step is None or step[1:] != (first, stop):
+            raise RuntimeError(f"frame {frame}: pass {first}:{stop} is not its next")
+
+    async def film(self, unit: int, pass_film) -> tuple | None:
+        """Merge the film of ``unit``; returns (frame, its film) when that frame is whole."""
+        if unit != self.expected or unit >= len(self.units):
+            raise NodeFailure(f"node 0 sent the film of unit {unit}; unit {self.expected} "
+                              "was due")
+        frame, first, stop = self.units[unit]
+        progression = self.progression(frame)
+        progression.add_pass(progression.passes.index((first, stop)), pass_film)
+        step = progression.next_pass()
+        if step is not None:
+            following = unit + 1
+        else:  # the frame is whole: its next units (if a rule stopped it) are skipped
+            following = next((u for u in range(unit + 1, len(self.units))
+                              if self.units[u][0] != frame), len(self.units))
+            if following < len(self.units):
+                self._start(self.units[following])
+        self.expected = following
+        if self.paced:
+            await self.send_grant(following if following < len(self.units) else -1)
+        return None if step is not None else (frame, progression.film)
 
 
 class _Frames:
@@ -877,7 +989,7 @@ class _Watch:
             if message.meta.get("rank", rank) != rank:
                 raise protocol.ProtocolError(f"node {rank} spoke for rank "
                                              f"{message.meta.get('rank')}")
-            once = ((message.kind, rank, message.meta.get("frame"))
+            once = ((message.kind, rank, message.meta.get("frame"), message.meta.get("unit"))
                     if message.kind in (protocol.DONE, protocol.FILM, protocol.FRAME) else None)
             if once is not None:
                 if once in self.once or (message.kind == protocol.FILM and rank != 0):

@@ -66,6 +66,8 @@ class NodeState:
     preloader: DomainPreloader | None = None
     pool: object = None
     ordinal: int = 0
+    #: the first tile label of the next frame or pass (its tiles take the labels after).
+    tile_base: int = 0
     #: the animation frame being rendered (0 for a single image): recording frames of
     #: portals are those divisible by the portal interval.
     frame: int = 0
@@ -197,7 +199,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
              "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
     node = _Node(management, rank, stats, options.max_batch_rays,
                  early=state.early)
-    base = state.ordinal * n_tiles  # tile labels are unique over the frames of a job
+    base = state.tile_base  # tile labels are unique over the frames and passes of a job
+    state.tile_base += n_tiles
     routing = simplified_routing(store, setup, options, state)
     try:
         if mode == "async":

@@ -18,6 +18,7 @@ from vastray.render.driver import (
     RenderResult,
     default_ao_distance,
     path_context,
+    run_passes,
     shading_inputs,
     store_camera,
     with_camera_clip,
@@ -26,6 +27,7 @@ from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, Shading, camera_rays
 from vastray.render.materials import ScalarMap
 from vastray.render.progress import RenderBar
+from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
 from vastray.scene.cache import DomainCache
@@ -63,14 +65,15 @@ class RenderSetup:
             shading, keep, color_source, scalar_map(store.scalar_range, settings.colormap), camera,
             DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
             settings.ao_distance or default_ao_distance(store),
-            settings.width * settings.height * settings.spp)
+            settings.paths)
 
 
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
                        options: JobOptions | None = None, *, drop_page_cache: bool = False,
                        progress: bool = True, share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
-                       schedule_options: dict | None = None) -> RenderResult:
+                       schedule_options: dict | None = None,
+                       progression: Progression | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
@@ -91,6 +94,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     on_tile : called with the number of paths after each finished tile (progress reports).
     schedule_options : more keyword arguments of the schedule's constructor (e.g. spec-ooc's
         ``serve_before_evict=False``, for ablations).
+    progression : render in the sample-major passes it asks for (``driver.render``'s);
+        None: the whole of ``settings.spp`` at once (or the pass ``settings`` name).
     """
     options = JobOptions() if options is None else options
     scheduler = options.scheduler
@@ -105,53 +110,63 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     bandwidth = options.load_bytes_per_second(share[0])
     cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache, pool=pool,
                         load_bandwidth=bandwidth)
-    film = Film(settings.width, settings.height)
-    total = setup.total_paths
-    tile = max(1, min(options.max_samples_in_flight or total, total))
-    firsts = list(range(0, total, tile))[share[0]::share[1]]
+    tile_limit = options.max_samples_in_flight
+    tile = 1
     counters: dict = {}
     process_seconds = 0.0
     # Loads followed by at least one traced ray (before the domain's next load), and the
     # domains any ray was traced against (the floor: each must be loaded at least once).
     productive: set[tuple[int, int]] = set()  # (domain, its load number)
     traced_domains: set[int] = set()
+
+    def trace_pass(window: RenderSettings, bar) -> Film:
+        """The film of one pass (``window.samples``): this node's share of its tiles."""
+        nonlocal tile, process_seconds
+        film = Film(window.width, window.height)
+        total = window.paths
+        size = max(1, min(tile_limit or total, total))
+        tile = max(tile, size)  # reported: the largest tile of any pass
+        for first in list(range(0, total, size))[share[0]::share[1]]:
+            ctx = path_context(setup.shading, window, first, min(first + size, total),
+                               setup.ao_distance)
+            kwargs = ({"history_depth": options.history_depth} if scheduler == "spec-ooc"
+                      else {})
+            kwargs.update(schedule_options or {})
+            victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
+            policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
+                                           setup.scalar_range,
+                                           resident_first=options.resident_first, **kwargs)
+            policy.start(camera_rays(setup.camera, ctx))
+            while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
+                bvh = cache.get(domain)
+                if options.preload:
+                    cache.prefetch(policy.likely_next(domain))
+                t0 = time.perf_counter()
+                tests = _tests(policy.counters)
+                policy.process(domain, bvh)
+                process_seconds += time.perf_counter() - t0
+                if _tests(policy.counters) > tests:
+                    traced_domains.add(domain)
+                    productive.add((domain, cache.load_count(domain)))
+            film.add_paths(ctx.pixel, ctx.sample, policy.result)
+            _merge(counters, policy.counters)
+            bar.update(len(ctx.pixel))
+            if on_tile is not None:
+                on_tile(len(ctx.pixel))
+        return film
+
     try:
-        with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
-                      desc=f"render ({scheduler})", leave=False) as bar:
-            for first in firsts:
-                ctx = path_context(setup.shading, settings, first, min(first + tile, total),
-                                   setup.ao_distance)
-                kwargs = ({"history_depth": options.history_depth} if scheduler == "spec-ooc"
-                          else {})
-                kwargs.update(schedule_options or {})
-                victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
-                policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
-                                               setup.scalar_range,
-                                               resident_first=options.resident_first,
-                                               **kwargs)
-                policy.start(camera_rays(setup.camera, ctx))
-                while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
-                    bvh = cache.get(domain)
-                    if options.preload:
-                        cache.prefetch(policy.likely_next(domain))
-                    t0 = time.perf_counter()
-                    tests = _tests(policy.counters)
-                    policy.process(domain, bvh)
-                    process_seconds += time.perf_counter() - t0
-                    if _tests(policy.counters) > tests:
-                        traced_domains.add(domain)
-                        productive.add((domain, cache.load_count(domain)))
-                film.add_paths(ctx.pixel, ctx.sample, policy.result)
-                _merge(counters, policy.counters)
-                bar.update(len(ctx.pixel))
-                if on_tile is not None:
-                    on_tile(len(ctx.pixel))
+        with RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
+                       disable=not progress, desc=f"render ({scheduler})", leave=False) as bar:
+            film = run_passes(trace_pass, settings, progression, bar)
     finally:
         cache.close()
         if pool is not None:
             pool.shutdown()
     wall = time.perf_counter() - start
     stats = cache.stats
+    for name in ("radiance_tests", "shadow_tests", "shade_s"):  # a share of no tiles
+        counters.setdefault(name, 0)
     counters.update({
         "scheduler": scheduler,
         "domains": len(store.domains),

@@ -513,32 +513,48 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     beating = asyncio.ensure_future(heartbeat())
     tree = TreeReduceActor(management, rank, size, job["endpoints"])
     state = NodeState()
-    frames = job.get("frames")
+    units = job_units(job, settings)
     totals: dict = {}
-    busy_total = reduce_total = 0.0
+    frame_totals: dict = {}
+    busy_total = reduce_total = frame_busy = frame_reduce = 0.0
+    inputs: dict = {}  # frame -> its settings and scene (resolved once per frame)
     try:
         try:
-            for ordinal, frame in enumerate(frames if frames is not None else [None]):
-                frame_settings, frame_config = frame_inputs(settings, config, store, frame)
-                state.ordinal, state.frame = ordinal, frame or 0
+            unit = 0 if units else -1
+            while unit >= 0:
+                frame, first, stop = units[unit]
+                if frame not in inputs:
+                    inputs.clear()
+                    inputs[frame] = frame_inputs(settings, config, store, frame)
+                frame_settings, frame_config = inputs[frame]
+                state.ordinal, state.frame = unit, frame or 0
                 start = time.perf_counter()
-                film, counters = await render_share(management, tree, options, rank, size,
-                                                    store, frame_config, frame_settings, report,
-                                                    state)
+                film, counters = await render_share(
+                    management, tree, options, rank, size, store, frame_config,
+                    frame_settings.window(first, stop), report, state)
                 busy = time.perf_counter() - start
                 reduce_start = time.perf_counter()
-                film = await tree.reduce_film(film, settings.width, settings.height, ordinal)
+                film = await tree.reduce_film(film, settings.width, settings.height, unit)
                 reduce_s = time.perf_counter() - reduce_start
                 busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
+                frame_busy, frame_reduce = frame_busy + busy, frame_reduce + reduce_s
                 counters = _report_counters(counters, management.rejections)
                 _accumulate(totals, counters)
-                if frame is not None:  # an animation: each frame's counters on their own
-                    await management.to_coordinator(encode(protocol.FRAME, {}, {
-                        "rank": rank, "frame": frame, "busy_s": round(busy, 4),
-                        "reduce_s": round(reduce_s, 4), "counters": counters}))
+                _accumulate(frame_totals, counters)
                 if rank == 0:
-                    meta = {"rank": rank} if frame is None else {"rank": rank, "frame": frame}
-                    await management.to_coordinator(film_frames(film, meta))
+                    meta = {"rank": rank, "unit": unit}
+                    await management.to_coordinator(film_frames(
+                        film, meta if frame is None else dict(meta, frame=frame)))
+                if job.get("paced"):  # the coordinator rules on this pass before the next
+                    unit = await _granted(management, unit, len(units))
+                else:
+                    unit = unit + 1 if unit + 1 < len(units) else -1
+                if frame is not None and (unit < 0 or units[unit][0] != frame):
+                    # the frame's last pass: its counters on their own
+                    await management.to_coordinator(encode(protocol.FRAME, {}, {
+                        "rank": rank, "frame": frame, "busy_s": round(frame_busy, 4),
+                        "reduce_s": round(frame_reduce, 4), "counters": frame_totals}))
+                    frame_totals, frame_busy, frame_reduce = {}, 0.0, 0.0
         finally:
             state.close()
         stats = {"rank": rank, "busy_s": round(busy_total, 4),
@@ -553,6 +569,25 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     finally:
         beating.cancel()
     log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
+
+
+def job_units(job: dict, settings) -> list[tuple[int | None, int, int]]:
+    """The job's units of work in order: (frame or None, first sample, stop sample), one per
+    pass of each frame (``job["units"]``; a job without them: each frame whole)."""
+    if job.get("units") is not None:
+        return [(None if u[0] is None else int(u[0]), int(u[1]), int(u[2]))
+                for u in job["units"]]
+    return [(frame, 0, settings.spp) for frame in (job.get("frames") or [None])]
+
+
+async def _granted(management, unit: int, count: int) -> int:
+    """The unit the coordinator grants after ``unit`` (-1: none, the job is done)."""
+    message = await management.receive(protocol.GRANT, "pass grant from the coordinator")
+    granted = int(message.meta["next"])
+    if granted != -1 and not unit < granted < count:
+        raise RuntimeError(f"the coordinator granted unit {granted} after unit {unit} of "
+                           f"{count}")
+    return granted
 
 
 async def render_share(management, tree, options: JobOptions, rank: int, size: int, store,
@@ -593,9 +628,9 @@ def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
             **{f"rejected_{k}": v for k, v in rejected.counts.items()}}
 
 
-#: Counters that are settings, not counts: a job's total keeps the latest frame's.
+#: Counters that are settings, not counts: a job's total keeps the latest frame's (pass's).
 _SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution",
-                       "load_bandwidth_mb_s"})
+                       "load_bandwidth_mb_s", "max_samples_in_flight", "domains"})
 
 
 def _accumulate(totals: dict, counters: dict) -> None:

@@ -34,10 +34,11 @@ QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domai
 SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
+GRANT = "grant"          # coordinator -> node (paced passes): the next unit to render, or -1
 
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
-FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, PROBE, SCHEDULE, HEARTBEAT})
+FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, PROBE, SCHEDULE, HEARTBEAT, GRANT})
 FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
 FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED, ROUND, STATUS,
                        QUEUES})
@@ -66,10 +67,11 @@ META = {
     SCHEDULE: {"assign": dict, "size": int, "finished": bool},
     REDUCE: {"rank": int},
     BROADCAST: {"rank": int},
+    GRANT: {"next": int},
 }
 
 #: Arrays a film carries, all with one row per pixel.
-FILM_FIELDS = ("sum", "sum_sq", "count", "depth", "normal")
+FILM_FIELDS = ("sum", "sum_odd", "count", "depth", "normal")
 
 
 class ProtocolError(ValueError):

@@ -175,7 +175,7 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
             sock = ctx.socket(zmq.DEALER)
             sock.connect(f"tcp://127.0.0.1:{port}")
             n = settings.width * settings.height
-            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "sum_sq": np.zeros((n, 3)),
+            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "sum_odd": np.zeros((n, 3)),
                                           "count": np.ones(n, np.int64),
                                           "depth": np.zeros(n, np.float32),
                                           "normal": np.zeros((n, 3), np.float32)}, {"rank": 0})

@@ -18,6 +18,7 @@ from vastray.render.film import Film
 from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
 from vastray.render.lights import QuadLight, check_power, in_frame
 from vastray.render.progress import RenderBar
+from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
@@ -35,6 +36,8 @@ class RenderResult:
     camera: Camera
     seconds: dict = field(default_factory=dict)
     counters: dict = field(default_factory=dict)
+    #: ``Progression.report()`` of a render in passes: why it stopped and the error series.
+    progress: dict | None = None
 
 
 def shading_inputs(store: Store, config: SceneConfig, integrator: str):
@@ -80,11 +83,29 @@ def store_camera(config: SceneConfig, store: Store, width: int, height: int) -> 
 
 def path_context(shading: Shading, settings: RenderSettings, first: int, stop: int,
                  ao_distance: float) -> PathContext:
-    """The paths ``first <= i < stop`` of a render: pixel ``i // spp``, sample ``i % spp``."""
+    """The paths ``first <= i < stop`` of the pass ``settings.samples`` = (s0, s1): path ``i``
+    is pixel ``i // (s1 - s0)``, sample ``s0 + i % (s1 - s0)``. A pass adds its samples to
+    every pixel; without a window (the whole of ``spp``) it is today's pixel-major order."""
+    s0, s1 = settings.samples
+    per_pixel = np.uint64(s1 - s0)
     ids = np.arange(first, stop, dtype=np.uint64)
-    pixel = (ids // np.uint64(settings.spp)).astype(np.uint32)
-    sample = (ids % np.uint64(settings.spp)).astype(np.uint32)
+    pixel = (ids // per_pixel).astype(np.uint32)
+    sample = (ids % per_pixel + np.uint64(s0)).astype(np.uint32)
     return PathContext(shading, settings, pixel, sample, ao_distance)
+
+
+def run_passes(trace_pass, settings: RenderSettings, progression: Progression | None,
+               bar) -> Film:
+    """The image's film: ``trace_pass(window, bar) -> Film`` for each pass ``progression``
+    asks for (merged there), or once over ``settings`` as they are without one."""
+    if progression is None:
+        return trace_pass(settings, bar)
+    while (step := progression.next_pass()) is not None:
+        index, first, stop = step
+        progression.add_pass(index, trace_pass(settings.window(first, stop), bar))
+    if progression.stopped_by != "spp":  # the bar ends where the render does
+        bar.total = bar.n
+    return progression.film
 
 
 def default_ao_distance(store: Store) -> float:
@@ -137,8 +158,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
            cache_capacity: int | None = None, threads: int | None = None,
            progress: bool = True, drop_page_cache: bool = False,
            record_rays: list | None = None, two_level: bool = True,
-           cache: DomainCache | None = None, load_bandwidth: float | None = None
-           ) -> RenderResult:
+           cache: DomainCache | None = None, load_bandwidth: float | None = None,
+           progression: Progression | None = None) -> RenderResult:
     """Render a store with one process and an LRU domain cache.
 
     Parameters
@@ -161,6 +182,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     load_bandwidth : bytes per second to emulate network storage with: every domain load
         takes at least its size over this (None: the disk's own speed; ignored with
         ``cache``).
+    progression : render in the sample-major passes it asks for, until its rules stop it;
+        the result's film is its film (None: the whole of ``settings.spp`` at once).
     """
     if settings.integrator not in ("ao", "pt"):
         raise ValueError(f"unknown integrator {settings.integrator!r}")
@@ -172,19 +195,15 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
                             load_bandwidth=load_bandwidth)
     capacity = cache.capacity
     threads = threads or available_cpus()
-    total = settings.width * settings.height * settings.spp
-    batch = max(1, settings.batch_size)
     # With every domain resident, whole batches run on one worker per thread, each tracing its
     # Embree queries on its own thread (serial kernels, no GIL, side by side): one worker's
-    # Python and numpy work overlaps the others' queries. A frame of fewer batches than twice
+    # Python and numpy work overlaps the others' queries. A pass of fewer batches than twice
     # the workers is cut finer so that every worker has some. (Measured on bench/peers.py, 2
     # cores: 0.43 s with threads + 1 workers whose queries took turns on both threads, one
     # launch at a time; 0.33 s so.) A bounded cache is shared by one worker, which would
     # otherwise thrash it; that worker splits its Embree queries over the threads instead.
     all_fit = capacity >= len(store.domains)
     workers = threads if all_fit and threads > 1 else 1
-    if workers > 1:
-        batch = min(batch, -(-total // (2 * workers)))
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
                           two_level=two_level,
                           scalars=scalar_map(store.scalar_range, settings.colormap))
@@ -193,18 +212,28 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     shading = with_camera_clip(shading, store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))
     ao_distance = settings.ao_distance or default_ao_distance(store)
-    film = Film(settings.width, settings.height)
 
-    def trace_batch(first: int):
-        ctx = path_context(shading, settings, first, min(first + batch, total), ao_distance)
-        return ctx, trace_paths(tracer, camera, ctx)
+    def trace_pass(window: RenderSettings, bar) -> Film:
+        """The film of one pass (``window.samples``), batch after batch in path order."""
+        total = window.paths
+        batch = max(1, window.batch_size)
+        if workers > 1:
+            batch = min(batch, -(-total // (2 * workers)))
+        film = Film(window.width, window.height)
+
+        def trace_batch(first: int):
+            ctx = path_context(shading, window, first, min(first + batch, total), ao_distance)
+            return ctx, trace_paths(tracer, camera, ctx)
+
+        for ctx, paths in _bounded_map(trace_batch, range(0, total, batch), workers):
+            film.add_paths(ctx.pixel, ctx.sample, paths)
+            bar.update(len(ctx.pixel))
+        return film
 
     try:
-        with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0, disable=not progress,
-                      desc="render", leave=False) as bar:
-            for ctx, paths in _bounded_map(trace_batch, range(0, total, batch), workers):
-                film.add_paths(ctx.pixel, ctx.sample, paths)
-                bar.update(len(ctx.pixel))
+        with RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
+                       disable=not progress, desc="render", leave=False) as bar:
+            film = run_passes(trace_pass, settings, progression, bar)
     finally:
         tracer.close()
     wall = time.perf_counter() - start

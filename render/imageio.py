@@ -229,9 +229,14 @@ def write_png(path, rgb: np.ndarray, exposure: float = 1.0, legend=None) -> None
 def image_error(image: np.ndarray, reference: np.ndarray) -> dict:
     """MSE, PSNR (peak = reference maximum, at least 1), relative MSE and max abs difference.
 
-    ``rel_mse`` is ``mse / mean(reference**2)``: the error relative to the reference's own
-    energy, comparable across scenes and exposures. ``psnr_db`` is ``None`` for identical
-    images (infinite PSNR has no JSON spelling), ``rel_mse`` for an all-black reference."""
+    ``rel_mse`` is the per-pixel relative MSE ``mean((x - r)**2 / (r**2 + ε))``, ε = 1e-2
+    (``progressive.REL_MSE_EPSILON``), the rendering literature's measure: every pixel's
+    error relative to its own brightness. ``rel_mse_global`` is ``mse / mean(reference**2)``,
+    the error relative to the reference's whole energy. ``psnr_db`` is ``None`` for identical
+    images (infinite PSNR has no JSON spelling), ``rel_mse_global`` for an all-black
+    reference."""
+    from vastray.render.progressive import relative_mse
+
     if image.shape != reference.shape:
         raise ValueError(f"image shapes differ: {image.shape} vs {reference.shape}")
     ref = reference.astype(np.float64)
@@ -240,6 +245,6 @@ def image_error(image: np.ndarray, reference: np.ndarray) -> dict:
     peak = max(float(np.max(reference)), 1.0)
     psnr = None if mse == 0 else float(10.0 * np.log10(peak ** 2 / mse))
     energy = float(np.mean(ref ** 2))
-    rel_mse = mse / energy if energy > 0 else (0.0 if mse == 0 else None)
-    return {"mse": mse, "psnr_db": psnr, "rel_mse": rel_mse,
-            "max_abs_diff": float(np.max(np.abs(diff)))}
+    rel_mse_global = mse / energy if energy > 0 else (0.0 if mse == 0 else None)
+    return {"mse": mse, "psnr_db": psnr, "rel_mse": relative_mse(image, reference),
+            "rel_mse_global": rel_mse_global, "max_abs_diff": float(np.max(np.abs(diff)))}

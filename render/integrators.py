@@ -15,7 +15,7 @@ kinds the kernels do not know.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -53,6 +53,27 @@ class RenderSettings:
     seed: int = 0
     batch_size: int = 65536
     colormap: str | None = None  # matplotlib colour map for scalars; None: built-in viridis
+    #: The pass: samples ``sample_start <= s < sample_stop`` of every pixel (None: up to
+    #: ``spp``); its paths are numbered pixel-major within it (``driver.path_context``).
+    sample_start: int = 0
+    sample_stop: int | None = None
+
+    @property
+    def samples(self) -> tuple[int, int]:
+        """(first, stop) sample numbers of the pass."""
+        return self.sample_start, self.spp if self.sample_stop is None else self.sample_stop
+
+    @property
+    def paths(self) -> int:
+        """Paths in the pass: one per pixel and sample."""
+        first, stop = self.samples
+        return self.width * self.height * (stop - first)
+
+    def window(self, first: int, stop: int) -> RenderSettings:
+        """These settings for the pass of samples ``first <= s < stop``."""
+        if not 0 <= first < stop <= self.spp:
+            raise ValueError(f"samples {first}:{stop} are not a pass of {self.spp} spp")
+        return replace(self, sample_start=first, sample_stop=stop)
 
 
 @dataclass(frozen=True)

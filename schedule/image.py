@@ -312,10 +312,12 @@ class ImageSchedule:
                 self.simple.log.crossed(self._path_ids(rays["path"][crossed]), cells[crossed])
 
     def _path_ids(self, path: np.ndarray) -> np.ndarray:
-        """(m,) int64 frame-wide ids ``pixel * spp + sample`` of rows ``path`` of the tile."""
+        """(m,) int64 pass-wide ids ``pixel * n + sample - s0`` of rows ``path`` of the tile,
+        for the pass of samples ``s0 <= sample < s0 + n``."""
         ctx = self.ctx
-        return (ctx.pixel[path].astype(np.int64) * ctx.settings.spp
-                + ctx.sample[path].astype(np.int64))
+        s0, s1 = ctx.settings.samples
+        return (ctx.pixel[path].astype(np.int64) * (s1 - s0)
+                + ctx.sample[path].astype(np.int64) - s0)
 
     def _portal_fields(self, rays: SoA, hit: np.ndarray, shadow: ShadowRays
                        ) -> dict[str, np.ndarray]:

@@ -376,7 +376,8 @@ class CrossingLog:
 
     Parameters
     ----------
-    n_paths : N, the frame's paths (width x height x spp), indexed by ``pixel * spp + sample``.
+    n_paths : N, the pass's paths (width x height x its samples), indexed by
+        ``ImageSchedule._path_ids``.
 
     Attributes
     ----------

@@ -354,8 +354,11 @@ def test_reference_pattern_gives_error_per_frame(store, orbit_toml, tmp_path, ca
         assert error["mse"] > 0 and error["rel_mse"] > 0 and np.isfinite(error["psnr_db"])
         image = read_exr(tmp_path / f"run_{entry['frame']:04d}.exr")
         reference = read_exr(tmp_path / f"ref_{entry['frame']:04d}.exr")
-        assert error["rel_mse"] == pytest.approx(
+        assert error["rel_mse_global"] == pytest.approx(
             error["mse"] / np.mean(reference.astype(np.float64) ** 2))
+        assert error["rel_mse"] == pytest.approx(np.mean(
+            (image.astype(np.float64) - reference) ** 2 / (reference.astype(np.float64) ** 2
+                                                           + 1e-2)))
         assert error == dict(image_error(image, reference), reference=error["reference"])
     assert summary["means"]["mse"] == pytest.approx(
         np.mean([e["error"]["mse"] for e in summary["frames"]]))

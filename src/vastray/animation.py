@@ -31,6 +31,7 @@ from vastray.preflight import check_output_paths
 from vastray.render.driver import RenderResult
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
+from vastray.render.progressive import Progression, StopRules
 from vastray.render.rng import frame_seed
 from vastray.render.scene_config import SceneConfig
 from vastray.report import build_report, count_overflow, run_header, write_report
@@ -139,7 +140,8 @@ def resolve_frames(config: SceneConfig, frames: list[int], lo: np.ndarray, hi: n
 
 def render_frames(frames: list[int], configs: dict[int, SceneConfig], settings: RenderSettings,
                   render_one: RenderOne, on_frame: Callable[[int, RenderResult], None],
-                  render_many: RenderMany | None = None) -> None:
+                  render_many: RenderMany | None = None,
+                  progression_of: Callable[[int], Progression] | None = None) -> None:
     """Render ``frames`` in order, handing each result to ``on_frame(frame, result)``.
 
     Parameters
@@ -152,12 +154,18 @@ def render_frames(frames: list[int], configs: dict[int, SceneConfig], settings: 
     render_many : where given, renders every frame in one job instead (the distributed runtime:
         its nodes resolve each frame's config and seed, and keep their caches and statistics
         from frame to frame) and calls ``on_frame`` itself.
+    progression_of : ``progression_of(frame)``, the passes and stopping rules of each frame
+        (``render.progressive``); None: each frame in one pass.
     """
+    if progression_of is None:
+        def progression_of(frame):
+            return None
     if render_many is not None:
-        render_many(list(frames), on_frame)
+        render_many(list(frames), on_frame, progression_of)
         return
     for frame in frames:
-        on_frame(frame, render_one(configs[frame], frame_settings(settings, frame)))
+        on_frame(frame, render_one(configs[frame], frame_settings(settings, frame),
+                                   progression=progression_of(frame)))
 
 
 @dataclass
@@ -172,6 +180,9 @@ class _Summary:
                  "seconds": result.seconds, "loads": int(result.counters.get("loads", 0))}
         if error is not None:
             entry["error"] = dict(error, reference=str(reference))
+        if result.progress is not None:  # the frame's passes: its error against time
+            entry["stopped_by"] = result.progress["stopped_by"]
+            entry["passes"] = result.progress["passes"]
         self.entries.append(entry)
         return entry
 
@@ -195,12 +206,14 @@ class _Summary:
 def run_animation(args, *, store_path: str, config: SceneConfig, settings: RenderSettings,
                   bounds: tuple[np.ndarray, np.ndarray], scheduler: str, options: dict,
                   outputs: FrameOutputs, render_one: RenderOne,
-                  render_many: RenderMany | None = None, legend=None) -> int:
+                  render_many: RenderMany | None = None, legend=None,
+                  rules: StopRules | None = None) -> int:
     """``vastray render --frames N``: render, write and report every frame, then the summary.
 
     ``args`` are the parsed ``render`` options (``frames``, ``first_frame``, ``reference``,
     ``exposure``, ``quiet``, size and sampling); ``outputs`` come from
-    ``check_frame_outputs``, made before the store was opened.
+    ``check_frame_outputs``, made before the store was opened; ``rules`` say when each
+    frame's passes stop (default: at ``settings.spp``).
     """
     first = args.first_frame or 0
     frames = list(range(first, first + (args.frames or 1)))
@@ -230,13 +243,21 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
                     store=store_path, settings=dict(asdict(settings), seed=seed),
                     seconds=result.seconds, counters=result.counters, error=error,
                     reference=None if reference is None else str(reference),
-                    scheduler=scheduler, options=options, frame=frame))
+                    scheduler=scheduler, options=options, frame=frame,
+                    progress=result.progress))
             entry = summary.add(frame, seed, files, result, error, reference)
             recoveries[:] = result.counters.get("recoveries", recoveries)
             if not args.quiet:
                 print(_frame_line(entry, len(summary.entries), len(frames)), file=sys.stderr)
 
-        render_frames(frames, configs, settings, render_one, on_frame, render_many)
+        def progression_of(frame: int) -> Progression:
+            reference = references.get(frame)
+            return Progression(settings.width, settings.height,
+                               rules or StopRules(settings.spp),
+                               None if reference is None else read_image(reference))
+
+        render_frames(frames, configs, settings, render_one, on_frame, render_many,
+                      progression_of)
         done = {e["frame"] for e in summary.entries}
         if done != set(frames):
             raise RuntimeError(f"the renderer returned frames {sorted(done)}, not {frames}")

@@ -48,6 +48,9 @@ NOT_IN_API = {
     "rendezvous": "use `vastray render --listen --rendezvous`",
     "keys": "use `vastray render --listen --keys`",
     "quiet": "give progress=False",
+    "checkpoint_every": "checkpoints are `vastray render`'s (the API returns the image)",
+    "checkpoint": "checkpoints are `vastray render`'s (the API returns the image)",
+    "resume": "use `vastray render --resume`",
 }
 
 
@@ -319,7 +322,7 @@ def _run(args: argparse.Namespace, store: Store | None, camera, call: str) -> Re
     """The render itself, as ``commands_render.run_render`` does it, to memory."""
     shadow_samples_given = check_and_default(args)
     plan = plan_render(args, shadow_samples_given, store=store, camera=camera)
-    result = plan.render_one(plan.config, plan.settings)
+    result = plan.render_one(plan.config, plan.settings, progression=plan.progression())
     reference = None
     if plan.reference is not None:
         reference = args.reference if isinstance(args.reference, str) else "<array>"

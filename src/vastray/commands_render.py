@@ -6,6 +6,7 @@ import argparse
 import logging
 import math
 import os
+import signal
 import sys
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -18,6 +19,8 @@ from vastray.actors.coordinator import recovery_lines, render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.animation import check_frame_outputs, run_animation
+from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
+from vastray.checkpoint import default_path as default_checkpoint
 from vastray.preflight import (
     cache_within,
     check_memory,
@@ -28,10 +31,11 @@ from vastray.preflight import (
     parse_size,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
-from vastray.render.driver import FrameCache, RenderResult, render
+from vastray.render.driver import FrameCache, RenderResult, render, store_camera
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.lights import shadow_rays
+from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression, StopRules
 from vastray.render.scene_camera import with_camera
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.render_job import (
@@ -284,6 +288,37 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="draw a colour bar (the scalar's name and range) along the bottom of "
                         "the PNG of a store coloured by scalars (default: with --colormap)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    passes = p.add_argument_group(
+        "progressive passes, stopping rules and checkpoints",
+        "Every render runs in sample-major passes: pass k adds samples to every pixel "
+        "(1, 1, 2, 4, 8, ... per pixel, then at most --max-pass-spp), so the image after any "
+        "pass is the whole image at fewer samples, the same whatever the scheduler or node "
+        "count. The report's 'passes' gives each pass's time, spp, error against "
+        "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95%% "
+        "confidence interval; `vastray plot` draws them. --spp is the upper bound.")
+    passes.add_argument("--time-limit", type=_positive_float, metavar="SECONDS",
+                        help="stop before a pass that would end after SECONDS of rendering "
+                             "(predicted from the pass before; the first pass always runs)")
+    passes.add_argument("--target-error", type=_positive_float, metavar="E",
+                        help="stop after the pass whose relative MSE is at most E: against "
+                             "--reference, or without one as the film estimates it from its "
+                             "own variance (from 2 spp on), e.g. 0.01")
+    passes.add_argument("--max-pass-spp", type=_positive, metavar="N",
+                        help=f"most samples per pixel one pass adds (default: "
+                             f"{DEFAULT_MAX_PASS_SPP}): smaller gives more points and "
+                             "checkpoints, larger less overhead per pass")
+    passes.add_argument("--checkpoint-every", type=_positive_float, metavar="SECONDS",
+                        help="every SECONDS (at the end of a pass), write the image so far to "
+                             "-o (and --png) and the film to --checkpoint. SIGUSR1 writes one "
+                             "at once; Ctrl-C writes one before exiting. A run that completes "
+                             "removes the checkpoint it wrote")
+    passes.add_argument("--checkpoint", metavar="FILE",
+                        help="where checkpoints go (default: -o's name + .checkpoint.npz)")
+    passes.add_argument("--resume", metavar="CHECKPOINT",
+                        help="go on from a checkpoint, with the store, scene and options of "
+                             "the run that wrote it (--spp may be larger; any --nodes and "
+                             "lossless scheduler): the image is the one an uninterrupted run "
+                             "gives")
 
 
 def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
@@ -504,6 +539,16 @@ class RenderPlan:
     reference: np.ndarray | None
     render_one: Callable[..., RenderResult]
     legend: Legend | None = None
+    rules: StopRules | None = None
+
+    def progression(self, reference: np.ndarray | None = None,
+                    resumed=None) -> Progression:
+        """A fresh ``Progression`` of one image with the plan's stopping rules, measured
+        against ``reference`` (default: the plan's)."""
+        return Progression(self.settings.width, self.settings.height,
+                           self.rules or StopRules(self.settings.spp),
+                           self.reference if reference is None else reference,
+                           resumed=resumed)
 
 
 def check_and_default(args: argparse.Namespace) -> bool:
@@ -584,10 +629,32 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
             log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
                         "nodes render no faster here", args.nodes, cores, cores)
     refuse_for_scheduler(args, scheduler)
+    refuse_for_passes(args, animating)
     options = job_options(args, scheduler, cache)
+    rules = StopRules(args.spp, args.time_limit, args.target_error,
+                      args.max_pass_spp or DEFAULT_MAX_PASS_SPP)
     return RenderPlan(store_path, store, config, settings, scheduler, options,
                       run_options(args, options), reference,
-                      _renderer(args, store, store_path, options, launched), legend)
+                      _renderer(args, store, store_path, options, launched), legend, rules)
+
+
+def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
+    """Refuse checkpoint options where they cannot work.
+
+    Raises
+    ------
+    InputError
+        Naming the option and what to do instead.
+    """
+    for dest in ("checkpoint_every", "checkpoint", "resume"):
+        if getattr(args, dest, None) is not None and animating:
+            raise InputError(None, f"--{dest.replace('_', '-')} is for one image; an animation goes on "
+                                   "from a frame with --first-frame F")
+    if args.resume is not None and args.simplified not in (None, "none"):
+        raise InputError(args.resume, "--resume is for lossless renders: --simplified keeps "
+                                      "a radiance cache that is not in the checkpoint")
+    if args.checkpoint is not None and args.checkpoint_every is None:
+        log.info("--checkpoint without --checkpoint-every: written on SIGUSR1 and Ctrl-C")
 
 
 def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
@@ -601,7 +668,7 @@ def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLi
     report = build_report(
         store=str(plan.store_path), settings=asdict(plan.settings), seconds=result.seconds,
         counters=result.counters, error=error, reference=reference_name,
-        scheduler=plan.scheduler, options=plan.report_options,
+        scheduler=plan.scheduler, options=plan.report_options, progress=result.progress,
     )
     return image, error, report
 
@@ -623,24 +690,77 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
                              outputs=frame_outputs, render_one=plan.render_one,
                              render_many=_render_many(args, plan.config, plan.settings,
                                                       plan.render_one),
-                             legend=plan.legend)
-    result = plan.render_one(plan.config, plan.settings)
+                             legend=plan.legend, rules=plan.rules)
+    progression, checkpoints = start_progression(args, plan, outputs)
+    replaced = [str(p) for p in outputs if p.exists()]  # before any checkpoint writes them
+    previous = checkpoints.install_signal()
+    try:
+        result = plan.render_one(plan.config, plan.settings, progression=progression)
+    except KeyboardInterrupt:  # Ctrl-C and SIGTERM: the passes done are kept
+        progression.interrupted()
+        if checkpoints.write() and not args.quiet:
+            print(f"interrupted after {progression.snapshot.passes_done} pass(es), "
+                  f"{int(progression.film.count.max())} spp: wrote {', '.join(map(str, outputs))}"
+                  f" and the checkpoint {checkpoints.path}; go on with --resume "
+                  f"{checkpoints.path}", file=sys.stderr)
+        raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGUSR1, previous)
     image, error, report = finish_render(plan, result, outputs[0], args.reference)
-    summary = summary_line(args, result, error, outputs)
-    with ExitStack() as written:  # every output, or none: renamed into place together
-        write_image(written.enter_context(atomic_path(outputs[0])), image,
-                    result.film.depth_image(), result.film.normal_image(), args.exposure,
-                    legend=plan.legend)
-        if args.png:
-            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
-                      legend=plan.legend)
-        if args.report:
-            write_report(written.enter_context(atomic_path(args.report)), report)
+    summary = summary_line(args, result, error, outputs, replaced)
+    write_outputs(args, plan, outputs, result.film, image, report)
+    checkpoints.finished()
     if not args.quiet:
         print(summary, file=sys.stderr)
         for line in recovery_lines(result.counters):  # a recovery is never silent
             print(line, file=sys.stderr)
     return 0
+
+
+def write_outputs(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path], film,
+                  image: np.ndarray, report: dict) -> None:
+    """Write the image (-o, --png) and the report, all or none: renamed into place together."""
+    with ExitStack() as written:
+        write_image(written.enter_context(atomic_path(outputs[0])), image,
+                    film.depth_image(), film.normal_image(), args.exposure, legend=plan.legend)
+        if args.png:
+            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
+                      legend=plan.legend)
+        if args.report:
+            write_report(written.enter_context(atomic_path(args.report)), report)
+
+
+def start_progression(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path]
+                      ) -> tuple[Progression, Checkpointer]:
+    """The image's progression (from ``--resume`` where given) and its checkpoints, which
+    write the film and the image so far (with a report that says where it stopped)."""
+    camera = store_camera(plan.config, plan.store, plan.settings.width, plan.settings.height)
+    identity = render_identity(plan.store, plan.config, camera, plan.settings,
+                               plan.rules.max_pass_spp)
+    resumed = read_checkpoint(args.resume, identity) if args.resume else None
+    try:
+        progression = plan.progression(resumed=resumed)
+    except ValueError as exc:
+        raise InputError(args.resume, str(exc)) from None
+
+    def write_partial(progression: Progression) -> None:
+        snap = progression.snapshot
+        image = snap.film.image()
+        report = build_report(
+            store=str(plan.store_path), settings=asdict(plan.settings),
+            seconds={"total": round(snap.seconds, 4)}, counters={}, scheduler=plan.scheduler,
+            options=plan.report_options, progress=progression.report(),
+            error=None if plan.reference is None else image_error(image, plan.reference),
+            reference=args.reference if isinstance(args.reference, str) else None)
+        report["checkpoint"] = str(checkpoints.path)
+        write_outputs(args, plan, outputs, snap.film, image, report)
+
+    checkpoints = Checkpointer(args.checkpoint or default_checkpoint(outputs[0]), identity,
+                               args.checkpoint_every, write_partial)
+    checkpoints.progression = progression
+    progression.on_pass = checkpoints.after_pass
+    return progression, checkpoints
 
 
 def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
@@ -664,10 +784,14 @@ def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
               launched: dict | None) -> Callable[..., RenderResult]:
-    """The job's scheduler as ``render_one(config, settings) -> RenderResult`` (the
-    distributed one also takes ``render_distributed``'s ``frames`` and ``on_frame``)."""
+    """The job's scheduler as ``render_one(config, settings, progression=None) ->
+    RenderResult``: the image in the passes ``progression`` asks for (None: in one pass),
+    the result's ``progress`` its report. The distributed one also takes
+    ``render_distributed``'s ``frames``, ``on_frame`` and ``progression_of``."""
     if args.nodes:
-        def render_one(config, settings, **frames):
+        def render_one(config, settings, progression=None, **frames):
+            if progression is not None:
+                frames["progression_of"] = lambda frame: progression
             return render_distributed(
                 store_path, args.scene, settings, args.nodes, options,
                 timeout=args.node_timeout, listen=args.listen,
@@ -677,14 +801,23 @@ def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options:
     elif options.scheduler == "reference":
         kept = FrameCache(store, options.cache, options.load_bytes_per_second())
 
-        def render_one(config, settings):
-            return render(store, config, settings, threads=options.threads,
-                          progress=not args.quiet,
-                          cache=kept.for_frame(config, settings.integrator))
+        def render_one(config, settings, progression=None):
+            return _with_progress(render(
+                store, config, settings, threads=options.threads, progress=not args.quiet,
+                cache=kept.for_frame(config, settings.integrator), progression=progression),
+                progression)
     else:
-        def render_one(config, settings):
-            return render_out_of_core(store, config, settings, options, progress=not args.quiet)
+        def render_one(config, settings, progression=None):
+            return _with_progress(render_out_of_core(
+                store, config, settings, options, progress=not args.quiet,
+                progression=progression), progression)
     return render_one
+
+
+def _with_progress(result: RenderResult, progression: Progression | None) -> RenderResult:
+    if progression is not None:
+        result.progress = progression.report()
+    return result
 
 
 def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
@@ -694,8 +827,8 @@ def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
     resolved on the nodes); else None, and each frame is a job of its own."""
     if not args.nodes:
         return None
-    return lambda frames, on_frame: render_one(config, settings, frames=frames,
-                                               on_frame=on_frame)
+    return lambda frames, on_frame, progression_of=None: render_one(
+        config, settings, frames=frames, on_frame=on_frame, progression_of=progression_of)
 
 
 def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
@@ -750,7 +883,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,
-                 outputs: list[Path]) -> str:
+                 outputs: list[Path], replaced: list[str] | None = None) -> str:
     """The last line of a render: every file written, the work, the time and the error."""
     seconds = max(result.seconds["total"], 1e-9)
     queries = ray_queries(result.counters)
@@ -762,7 +895,12 @@ def summary_line(args: argparse.Namespace, result, error: dict | None,
     if error is not None:
         psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
         line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"
-    replaced = [str(p) for p in outputs if p.exists()]  # made before the outputs are written
+    if replaced is None:  # made before the outputs are written
+        replaced = [str(p) for p in outputs if p.exists()]
+    progress = result.progress or {}
+    if progress.get("stopped_by") not in (None, "spp"):
+        line += (f"; stopped by --{progress['stopped_by']} at "
+                 f"{progress['passes'][-1]['spp']} spp")
     if replaced:  # the files a user names are replaced, as renderers do, but never silently
         line += f"; replaced the existing {', '.join(replaced)}"
     return line

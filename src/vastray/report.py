@@ -56,18 +56,22 @@ def count_overflow(image: np.ndarray, counters: dict, where: str) -> int:
 def build_report(*, store: str, settings: dict, seconds: dict, counters: dict,
                  error: dict | None = None, reference: str | None = None,
                  scheduler: str = "image", options: dict | None = None,
-                 frame: int | None = None) -> dict:
+                 frame: int | None = None, progress: dict | None = None) -> dict:
     """Assemble a report dictionary (see DESIGN.md, "Reports").
 
     ``error`` (MSE, PSNR, relative MSE, max difference against ``reference``) sits beside the
     run time so a reader sees what accuracy the time bought. ``options`` are the run's
     switches beside the scheduler (nodes, cache, preload, ``simplified``...): with it they
     label the run in ``vastray plot``. ``frame`` is set for a frame of an animation.
+    ``progress`` (``Progression.report``) adds ``stopped_by`` and the per-pass series
+    ``passes`` (time, spp, error, variance estimate and confidence interval of each pass).
     """
     report = run_header(store, scheduler, options)
     if frame is not None:
         report["frame"] = frame
     report.update(settings=settings, seconds=seconds, counters=counters)
+    if progress is not None:
+        report.update(progress)
     if error is not None:
         report["error"] = dict(error, reference=reference)
         report["error_vs_time"] = [{"seconds": seconds.get("total"), **error}]

@@ -1,0 +1,237 @@
+"""Progressive rendering: sample-major passes, the error after each, and when to stop.
+
+A render of ``spp`` samples per pixel runs as passes: pass k adds samples ``b_k <= s <
+b_{k+1}`` to every pixel, with bounds 0, 1, 2, 4, 8, ... (doubling, so a log-log plot of error
+against time gets evenly spaced points) and then steps of at most ``max_pass_spp``. The bounds
+depend only on the sample numbers, never on time or on the machine, so a run that stops and
+resumes adds exactly the passes an uninterrupted run adds. Each pass renders into a film of
+its own, merged into the image's afterwards: the film after pass k is the same whatever the
+scheduler, node count, cache or threads (DESIGN.md's invariance rule, at every pass).
+
+Nothing here does I/O: the runtimes (``render.driver``, ``actors.local``, the coordinator) ask
+``Progression.next_pass`` what to render and hand back each pass's film.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vastray.render.film import Film
+
+#: The most samples one pass adds per pixel (once the doubling passes reach it).
+DEFAULT_MAX_PASS_SPP = 16
+
+#: ε of the per-pixel relative MSE ``mean((x - r)**2 / (r**2 + ε))`` (as in Rousselle et
+#: al. 2011 and the denoising literature): keeps black pixels from dominating.
+REL_MSE_EPSILON = 1e-2
+
+#: Two-sided 95 % quantile of the normal distribution.
+Z95 = 1.959963984540054
+
+#: Why a render stopped (the report's ``stopped_by``).
+STOP_REASONS = ("spp", "time-limit", "target-error", "interrupted")
+
+
+def pass_bounds(spp: int, max_pass_spp: int = DEFAULT_MAX_PASS_SPP) -> list[tuple[int, int]]:
+    """The passes of ``spp`` samples: [(0, 1), (1, 2), (2, 4), (4, 8), ...], each at most
+    ``max_pass_spp`` samples, the last cut at ``spp``."""
+    if spp < 1 or max_pass_spp < 1:
+        raise ValueError("spp and max_pass_spp must be at least 1")
+    bounds, first = [], 0
+    while first < spp:
+        stop = min(first + min(max(first, 1), max_pass_spp), spp)
+        bounds.append((first, stop))
+        first = stop
+    return bounds
+
+
+@dataclass(frozen=True)
+class StopRules:
+    """When a progressive render stops: at ``spp`` samples per pixel at most; before a pass
+    that would end after ``time_limit`` seconds (predicted from the last pass's time per
+    sample; the first pass always runs); after the pass whose relative MSE is at most
+    ``target_error`` (against the reference, or estimated from the film without one)."""
+
+    spp: int
+    time_limit: float | None = None
+    target_error: float | None = None
+    max_pass_spp: int = DEFAULT_MAX_PASS_SPP
+    #: every sample in one pass (no series to speak of): what runtimes do when asked for
+    #: no passes, e.g. ``render_distributed`` called without progressions.
+    one_pass: bool = False
+
+    @property
+    def paced(self) -> bool:
+        """Whether each pass must wait for the verdict on the one before (a rule that may
+        stop the render early)."""
+        return self.time_limit is not None or self.target_error is not None
+
+
+def relative_mse(image: np.ndarray, reference: np.ndarray) -> float:
+    """Per-pixel relative MSE, ``mean((x - r)**2 / (r**2 + ε))`` over pixels and channels."""
+    x, r = image.astype(np.float64), reference.astype(np.float64)
+    return float(np.mean((x - r) ** 2 / (r ** 2 + REL_MSE_EPSILON)))
+
+
+def pass_point(film: Film, index: int, seconds: float,
+               reference: np.ndarray | None = None) -> dict:
+    """One entry of the report's ``passes``: the film after pass ``index`` at ``seconds``.
+
+    Keys: ``pass``, ``seconds``, ``spp`` (samples per pixel so far); against ``reference``
+    ((H, W, 3), else None) ``mse``, ``rel_mse`` (per pixel, ``relative_mse``),
+    ``rel_mse_global`` (``mse / mean(r**2)``), ``psnr_db``; from the film alone
+    ``variance_of_mean`` (the image's mean of each pixel's estimated variance of its mean),
+    ``estimated_rel_mse`` (``mean(var / (x**2 + ε))``: the relative MSE the noise alone
+    gives) and ``mean_radiance`` with ``ci95``, its 95 % confidence interval. Estimates need
+    2 samples per pixel (None before).
+    """
+    from vastray.render.imageio import image_error
+
+    image = film.image()
+    spp = int(film.count.max()) if film.count.size else 0
+    point = {"pass": int(index), "seconds": round(float(seconds), 4), "spp": spp}
+    error = image_error(image, reference) if reference is not None else {}
+    for key in ("mse", "rel_mse", "rel_mse_global", "psnr_db"):
+        point[key] = error.get(key)
+    x = image.astype(np.float64)
+    mean = float(np.mean(x)) if x.size else 0.0
+    var = film.variance_of_mean() if spp >= 2 else None
+    point["variance_of_mean"] = None if var is None else float(np.mean(var))
+    point["estimated_rel_mse"] = (None if var is None
+                                  else float(np.mean(var / (x ** 2 + REL_MSE_EPSILON))))
+    point["mean_radiance"] = mean
+    spread = film.variance_of_mean_radiance() if spp >= 2 else None
+    point["ci95"] = (None if spread is None else
+                     [mean - Z95 * float(np.sqrt(spread)), mean + Z95 * float(np.sqrt(spread))])
+    return point
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The image after the passes done so far, replaced whole after each pass (so a signal
+    handler that reads it never sees a half-merged film)."""
+
+    film: Film
+    passes_done: int
+    series: tuple = ()  # pass_point dicts
+    seconds: float = 0.0  # render time up to the end of the last pass
+
+
+@dataclass
+class Progression:
+    """The passes of one image: which to render next, the film so far and its error series.
+
+    Parameters
+    ----------
+    width, height : image size.
+    rules : when to stop.
+    reference : (H, W, 3) image to measure against (also what ``target_error`` compares
+        with), or None.
+    resumed : a checkpoint's snapshot to go on from (None: from the first pass).
+    """
+
+    width: int
+    height: int
+    rules: StopRules
+    reference: np.ndarray | None = None
+    resumed: Snapshot | None = None
+    on_pass: object = None  # called as on_pass(progression) after each pass
+    snapshot: Snapshot = field(init=False)
+    stopped_by: str | None = field(init=False, default=None)
+    passes: list = field(init=False)
+
+    def __post_init__(self):
+        self.passes = ([(0, self.rules.spp)] if self.rules.one_pass
+                       else pass_bounds(self.rules.spp, self.rules.max_pass_spp))
+        self.snapshot = self.resumed or Snapshot(Film(self.width, self.height), 0)
+        done = self.snapshot.passes_done
+        if done and (done > len(self.passes)
+                     or int(self.snapshot.film.count.max()) != self.passes[done - 1][1]):
+            raise ValueError(f"the checkpoint holds {int(self.snapshot.film.count.max())} spp "
+                             f"in {done} passes, which are not the first passes of "
+                             f"--spp {self.rules.spp}")
+        self._started = None  # the first next_pass starts the clock
+        self._pass_started = None
+
+    @property
+    def film(self) -> Film:
+        return self.snapshot.film
+
+    @property
+    def series(self) -> list[dict]:
+        return list(self.snapshot.series)
+
+    def elapsed(self) -> float:
+        """Render seconds so far (from the first ``next_pass``), those of the runs this one
+        resumed included."""
+        before = self.resumed.seconds if self.resumed is not None else 0.0
+        if self._started is None:
+            return before
+        return before + time.perf_counter() - self._started
+
+    def remaining(self) -> list[tuple[int, int]]:
+        """The passes not rendered yet (none once a rule stopped the render)."""
+        return [] if self.stopped_by is not None else self.passes[self.snapshot.passes_done:]
+
+    def next_pass(self) -> tuple[int, int, int] | None:
+        """The next pass to render as (index, first sample, stop sample), or None once a
+        rule says stop (``stopped_by`` names it)."""
+        done = self.snapshot.passes_done
+        if self._started is None:
+            self._started = time.perf_counter()
+        if self.stopped_by is not None:
+            return None
+        if done == len(self.passes):
+            return self._stop("spp")
+        last = self.snapshot.series[-1] if self.snapshot.series else None
+        if self.rules.target_error is not None and last is not None:
+            error = last["rel_mse"] if self.reference is not None else last["estimated_rel_mse"]
+            if error is not None and error <= self.rules.target_error:
+                return self._stop("target-error")
+        if self.rules.time_limit is not None and last is not None:
+            first, stop = self.passes[done]
+            spent = last.get("pass_seconds") or 0.0
+            per_sample = spent / max(last["pass_spp"], 1)
+            if self.elapsed() + per_sample * (stop - first) > self.rules.time_limit:
+                return self._stop("time-limit")
+        self._pass_started = time.perf_counter()
+        return (done, *self.passes[done])
+
+    def _stop(self, reason: str) -> None:
+        self.stopped_by = reason
+        return None
+
+    def add_pass(self, index: int, pass_film: Film) -> dict:
+        """Merge the film of pass ``index`` (the next one) into the image; returns its
+        ``pass_point`` (with the pass's own seconds and samples, for the time rule)."""
+        done = self.snapshot.passes_done
+        if index != done:
+            raise ValueError(f"pass {index} arrived where pass {done} was due")
+        film = Film(self.width, self.height)
+        film.merge(self.snapshot.film)
+        film.merge(pass_film)
+        seconds = self.elapsed()
+        point = pass_point(film, index, seconds, self.reference)
+        first, stop = self.passes[index]
+        point["pass_spp"] = stop - first
+        point["pass_seconds"] = round(time.perf_counter() - (self._pass_started or 0.0), 4)
+        self.snapshot = Snapshot(film, done + 1, self.snapshot.series + (point,), seconds)
+        if self.on_pass is not None:
+            self.on_pass(self)
+        return point
+
+    def interrupted(self) -> None:
+        """Mark the render as stopped by the user (Ctrl-C)."""
+        self.stopped_by = "interrupted"
+
+    def report(self) -> dict:
+        """What the report gets: ``stopped_by`` and the ``passes`` series."""
+        return {"stopped_by": self.stopped_by, "max_pass_spp": self.rules.max_pass_spp,
+                "time_limit_s": self.rules.time_limit, "target_error": self.rules.target_error,
+                "target_error_against": (None if self.rules.target_error is None else
+                                         "reference" if self.reference is not None
+                                         else "estimate"),
+                "rel_mse_epsilon": REL_MSE_EPSILON, "passes": self.series}
