@@ -211,8 +211,24 @@ def slope_anchor(curves: list[Curve]) -> float | None:
 
 def plot_convergence(curves: list[Curve], output: str | Path,
                      title: str = "convergence: relMSE against time") -> None:
-    """Write the convergence plot of ``curves`` as a PNG: seconds (log) on x, relMSE (log) on
-    y, a 1/t reference line, and the time-to-error table under the axes."""
+    """Write the convergence plot of ``curves`` as a PNG (see ``convergence_figure``)."""
+    plt = _pyplot()
+    fig = convergence_figure(curves, title)
+    try:
+        _save(fig, output)
+    finally:
+        plt.close(fig)
+
+
+def convergence_figure(curves: list[Curve], title: str = "convergence: relMSE against time"):
+    """The convergence plot of ``curves``: seconds (log) on x, relMSE (log) on y, a 1/t
+    reference line, the legend right of the axes and the time-to-error table under them.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Two subfigures: the plot's, and the table's. The caller closes it.
+    """
     plt = _pyplot()
     positive = [e for c in curves for e in c.rel_mse if e > 0]
     floor = min(positive) / 10.0 if positive else 1e-6
@@ -221,9 +237,9 @@ def plot_convergence(curves: list[Curve], output: str | Path,
     table_lines = 1.6 + sum(label.count("\n") + 1 for label in wrapped)  # + header
     table_h = 0.55 + 0.2 * table_lines  # inches: caption, header and rows
     fig = plt.figure(figsize=(10, 4.6 + table_h), dpi=120, layout="constrained")
-    top, bottom = fig.subfigures(2, 1, height_ratios=[4.6, table_h])
-    ax = top.subplots()
     try:
+        top, bottom = fig.subfigures(2, 1, height_ratios=[4.6, table_h])
+        ax = top.subplots()
         colours = []
         for c in curves:
             rel = [max(e, floor) for e in c.rel_mse]
@@ -251,12 +267,13 @@ def plot_convergence(curves: list[Curve], output: str | Path,
         ax.set_ylabel(_y_label(curves))
         ax.set_title(title)
         ax.grid(True, which="major", alpha=0.3)
-        ax.legend(loc="upper left",
-                  bbox_to_anchor=(1.02, 1.0), borderaxespad=0, fontsize="small")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0,
+                  fontsize="small")
         _draw_table(bottom, cells, wrapped, colours)
-        _save(fig, output)
-    finally:
+    except BaseException:
         plt.close(fig)
+        raise
+    return fig
 
 
 def _y_label(curves: list[Curve]) -> str:
