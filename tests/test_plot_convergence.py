@@ -223,7 +223,7 @@ def test_mode_follows_the_reports_and_can_be_forced(tmp_path, capsys):
     assert "(frames: 2 runs, 2 points)" in capsys.readouterr().err
     assert main(["plot", single_path, "-o", str(out), "--mode", "frames"]) == 0
     captured = capsys.readouterr()
-    assert "(frames: 1 run, 1 points)" in captured.err and captured.out == ""
+    assert "(frames: 1 run, 1 point)" in captured.err and captured.out == ""
     out.unlink()
     assert main(["plot", single_path, summary_path, "-o", str(out), "--mode",
                  "convergence"]) == 2
@@ -240,12 +240,15 @@ def test_reports_that_cannot_be_drawn_say_what_to_run_again(tmp_path, capsys):
     out = tmp_path / "x.png"
     for path, expect in ((no_error, "render with --reference, or with --spp 2 or more"),
                          (old, "has no passes list")):
-        assert main(["plot", path, "-o", str(out)]) == 2
+        assert main(["plot", path, "-o", str(out), "--mode", "convergence"]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith(f"vastray plot: error: {path}: ") and expect in err, err
         assert len(err.splitlines()) == 1
     assert not out.exists()
-    # an old single report still plots as one point in the frames mode
+    assert main(["plot", no_error, "-o", str(out)]) == 2  # convergence, the default for it
+    assert "none of its 1 passes has an error" in capsys.readouterr().err
+    # a report from before renders ran in passes still plots as one point (frames mode)
     pytest.importorskip("matplotlib", reason="vastray[plot] (matplotlib) is not installed")
-    assert main(["plot", old, "-o", str(out), "--mode", "frames"]) == 0
+    assert main(["plot", old, "-o", str(out)]) == 0
+    assert "(frames: 1 run, 1 point)" in capsys.readouterr().err
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -51,11 +51,12 @@ examples:
       --cache 25% --scheduler spec-ooc --reference ref.exr --report c.json
   vastray plot c.json -o error_vs_time.png
 
-The mode follows the reports: animation summaries give --mode frames, single renders
---mode convergence. Without --reference a run's curve is the film's own estimate
-(labelled "estimated, no reference"; needs --spp 2 or more). The table (seconds to
-relMSE 1e-1, 1e-2, 1e-3 and 1/(relMSE·t) at the last pass) is printed on stdout as
-Markdown. An error of 0 (a lossless run against its own reference) is drawn on the floor.
+The mode follows the reports: single renders give --mode convergence, animation
+summaries (or reports from before renders ran in passes) --mode frames. Without
+--reference a run's curve is the film's own estimate (labelled "estimated, no
+reference"; needs --spp 2 or more). The table (seconds to relMSE 1e-1, 1e-2, 1e-3 and
+1/(relMSE·t) at the last pass) is printed on stdout as Markdown. An error of 0 (a
+lossless run against its own reference) is drawn on the floor.
 """
 
 
@@ -83,8 +84,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="PNG file to write")
     p.add_argument("--mode", choices=MODES, default=None,
                    help="convergence: relMSE per pass against time; frames: error per frame "
-                        "against seconds per frame (default: frames when a report is an "
-                        "animation summary, else convergence)")
+                        "against seconds per frame (default: convergence when every report is "
+                        "a single render with passes, else frames)")
     p.add_argument("--title", default=None, help="the plot's title")
     p.set_defaults(func=run_plot)
 
@@ -115,8 +116,12 @@ def load_report(path: str | Path) -> dict:
 
 
 def default_mode(reports: list[dict]) -> str:
-    """``frames`` when any report is an animation summary, else ``convergence``."""
-    return "frames" if any(isinstance(r.get("frames"), list) for r in reports) else "convergence"
+    """``convergence`` when every report is a single render with passes, else ``frames``
+    (an animation summary, or a report written before renders ran in passes)."""
+    if all(isinstance(r.get("passes"), list) and not isinstance(r.get("frames"), list)
+           for r in reports):
+        return "convergence"
+    return "frames"
 
 
 def frame_series(report: dict, path: str | Path | None = None) -> Series:
@@ -355,5 +360,6 @@ def run_plot(args: argparse.Namespace) -> int:
         plot_convergence(series, output, args.title or "convergence: relMSE against time")
         print(markdown_table(table_rows(series)))
         points = sum(len(c.rel_mse) for c in series)
-    print(f"wrote {output} ({mode}: {runs}, {points} points)", file=sys.stderr)
+    print(f"wrote {output} ({mode}: {runs}, {points} point{'s' if points > 1 else ''})",
+          file=sys.stderr)
     return 0
