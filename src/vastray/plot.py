@@ -46,9 +46,9 @@ examples:
   vastray plot a.json b.json -o convergence.png > time_to_error.md
 
   # frames: error against seconds per frame of animations (--frames N summaries)
-  vastray render rm.store -o ref.exr --scene orbit.toml --frames 8 --spp 64
+  vastray render rm.store -o oref.exr --scene orbit.toml --frames 8 --spp 64
   vastray render rm.store -o c.exr --scene orbit.toml --frames 8 --spp 4 \\
-      --cache 25% --scheduler spec-ooc --reference ref.exr --report c.json
+      --cache 25% --scheduler spec-ooc --reference oref.exr --report c.json
   vastray plot c.json -o error_vs_time.png
 
 The mode follows the reports: single renders give --mode convergence, animation
