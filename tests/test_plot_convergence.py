@@ -3,6 +3,7 @@ time-to-error table and efficiency, from reports with a ``passes`` list."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -190,6 +191,15 @@ def test_convergence_figure_text_does_not_overlap(tmp_path, count):
             assert page.y0 - 1 <= box.y0 and box.y1 <= page.y1 + 1, box
         assert legend.x0 >= ax.get_window_extent(renderer).x1  # right of the axes
         assert table.y1 <= caption.y0 < caption.y1 < min(axes.y0, legend.y0)  # under the plot
+        frame = ax.get_window_extent(renderer)
+        for axis, lo, hi in ((ax.xaxis, 0, 2), (ax.yaxis, 1, 3)):  # tick labels apart
+            extents = [t.get_window_extent(renderer).extents for t in axis.get_ticklabels(
+                which="both") if t.get_visible() and t.get_text()]
+            boxes = sorted((e[lo], e[hi]) for e in extents  # those drawn: beside the frame
+                           if frame.extents[lo] - 1 <= (e[lo] + e[hi]) / 2
+                           <= frame.extents[hi] + 1)
+            assert len(boxes) >= 2
+            assert all(a[1] <= b[0] for a, b in itertools.pairwise(boxes)), boxes
         labels = [t.get_text() for t in ax.get_legend().get_texts()]
         assert labels[-1] == "1/t (reference slope)" and len(labels) == count + 1
         if count == 6:

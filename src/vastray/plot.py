@@ -291,8 +291,9 @@ def _y_label(curves: list[Curve]) -> str:
 
 
 def _label_log_ticks(axis) -> None:
-    """Plain numbers (0.2, 1, 5) on a log ``axis``: the decades, and 2 and 5 between them when
-    it spans under two decades (matplotlib's own 3x10^-1 labels run into each other)."""
+    """Plain numbers (0.2, 1, 5) on a log ``axis``: the decades, every tick between them when
+    it spans under one decade, 2 and 5 under two (matplotlib's own 3x10^-1 labels run into
+    each other)."""
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
     axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
@@ -300,10 +301,11 @@ def _label_log_ticks(axis) -> None:
     if low <= 0 or high / low > 100:
         axis.set_minor_formatter(NullFormatter())
         return
+    shown = range(2, 10) if high / low <= 10 else (2, 5)
 
     def minor(v, _):
         mantissa = round(v / 10 ** math.floor(math.log10(v)), 6)
-        return f"{v:g}" if mantissa in (2, 5) else ""
+        return f"{v:g}" if mantissa in shown else ""
 
     axis.set_minor_formatter(FuncFormatter(minor))
 
