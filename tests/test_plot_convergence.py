@@ -89,8 +89,9 @@ def test_the_table_has_a_row_per_run_in_markdown():
 # --- reading a report ----------------------------------------------------------------
 
 def test_convergence_series_uses_rel_mse_and_skips_null_passes():
-    report = render_report([one_pass(0, 0.5, 1, 0.8), one_pass(1, 1.0, 2, None, 0.3),
-                            one_pass(2, 2.0, 4, 0.2, 0.25)], nodes=2, cache=4)
+    report = render_report([one_pass(0, 0.0, 0, 0.9), one_pass(1, 0.5, 1, 0.8),
+                            one_pass(2, 1.0, 2, None, 0.3), one_pass(3, None, 3, 0.25),
+                            one_pass(4, 2.0, 4, 0.2, 0.25)], nodes=2, cache=4)
     curve = convergence_series(report)
     assert (curve.seconds, curve.rel_mse, curve.estimated) == ([0.5, 2.0], [0.8, 0.2], False)
     assert curve.label == "image --spp 4 --nodes 2 --cache 4"
@@ -161,6 +162,13 @@ def test_plot_draws_convergence_and_prints_the_table(tmp_path, capsys):
     # the table grows under the plot, a row per run
     (width, height), (width_one, height_one) = png_size(out), png_size(one)
     assert height > height_one and width == width_one
+    # the same run twice: its file names tell the rows apart
+    twin = write(tmp_path, "twin.json", json.loads((tmp_path / "run0.json").read_text()))
+    capsys.readouterr()
+    assert main(["plot", paths[0], twin, "-o", str(one)]) == 0
+    rows = capsys.readouterr().out.splitlines()[4:]
+    assert [r.split(" | ")[0] for r in rows] == ["| image --spp 32 --cache 0 (run0)",
+                                                 "| image --spp 32 --cache 0 (twin)"]
 
 
 @pytest.mark.parametrize("count", [1, 3, 6])

@@ -94,7 +94,8 @@ def convergence_series(report: dict, path: str | Path | None = None) -> Curve:
     """The convergence curve of a single render's ``report``.
 
     Uses each pass's ``rel_mse`` when the report has a reference, else its
-    ``estimated_rel_mse``; passes whose value (or time) is null are skipped.
+    ``estimated_rel_mse``; passes whose value is null, or whose time is null or 0 (no place
+    on a log axis), are skipped.
 
     Raises
     ------
@@ -109,7 +110,8 @@ def convergence_series(report: dict, path: str | Path | None = None) -> Curve:
     if not isinstance(passes, list):
         raise InputError(path, "has no passes list (written before progressive rendering?); "
                                "render it again with --report, or plot it with --mode frames")
-    passes = [p for p in passes if isinstance(p, dict) and _number(p.get("seconds"))]
+    passes = [p for p in passes
+              if isinstance(p, dict) and _number(p.get("seconds")) and p["seconds"] > 0]
     estimated = not any(_number(p.get("rel_mse")) for p in passes)
     key = "estimated_rel_mse" if estimated else "rel_mse"
     points = [(float(p["seconds"]), float(p[key])) for p in passes if _number(p.get(key))]
