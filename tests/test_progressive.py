@@ -1,0 +1,276 @@
+"""Progressive passes: pass bounds, the film after every pass the same whatever the scheduler,
+the error series in the report, the stopping rules, checkpoints and resume bit for bit."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
+from vastray.actors.local import render_out_of_core
+from vastray.cli import main
+from vastray.render.driver import render
+from vastray.render.film import Film
+from vastray.render.imageio import read_image
+from vastray.render.progressive import Progression, StopRules, pass_bounds
+from vastray.render.scene_config import load_scene_config
+
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("progressive")
+    store = write_store(root / "kd8", bumpy_scene(), kd=8)
+    (root / "scene.toml").write_text(POINT_AND_SKY_TOML)
+    return store, root / "scene.toml"
+
+
+def test_pass_bounds_double_then_step_and_cover_every_sample_once():
+    assert pass_bounds(1) == [(0, 1)]
+    assert pass_bounds(16) == [(0, 1), (1, 2), (2, 4), (4, 8), (8, 16)]
+    assert pass_bounds(40, 16) == [(0, 1), (1, 2), (2, 4), (4, 8), (8, 16), (16, 32), (32, 40)]
+    assert pass_bounds(5, 1) == [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)]
+    for spp in (1, 7, 100):
+        bounds = pass_bounds(spp, 8)
+        assert bounds[0][0] == 0 and bounds[-1][1] == spp
+        assert all(a[1] == b[0] for a, b in zip(bounds, bounds[1:], strict=False))
+    # The bounds depend on the sample numbers only: a larger spp extends, never re-cuts.
+    assert pass_bounds(64)[:6] == pass_bounds(32)[:6]
+
+
+class Recorder(Progression):
+    """A progression that keeps the image after every pass."""
+
+    def add_pass(self, index, pass_film):
+        point = super().add_pass(index, pass_film)
+        self.__dict__.setdefault("images", []).append(self.film.image().copy())
+        return point
+
+
+def test_the_film_after_every_pass_is_the_same_whatever_the_scheduler(scene):
+    # DESIGN.md's invariance at every pass boundary: in core, out of core (spec-ooc on a
+    # small cache), and on 2 nodes (async, spec-insitu): the same images pass after pass.
+    store, toml = scene
+    config = load_scene_config(toml)
+    st = settings(width=32, height=24, spp=6)
+    runs = {}
+    for name in ("reference", "spec-ooc", "async", "spec-insitu"):
+        progression = Recorder(32, 24, StopRules(6, max_pass_spp=2))
+        if name == "reference":
+            render(store, config, st, progress=False, progression=progression)
+        elif name == "spec-ooc":
+            render_out_of_core(store, config, st, JobOptions(scheduler="spec-ooc", cache=2),
+                               progress=False, progression=progression)
+        else:
+            render_distributed(store.path, toml, st, 2, JobOptions(scheduler=name),
+                               timeout=60, progression_of=lambda frame, p=progression: p)
+        runs[name] = progression
+    want = runs["reference"]
+    assert [p["spp"] for p in want.series] == [1, 2, 4, 6]
+    assert len(want.images) == 4
+    for name, progression in runs.items():
+        assert len(progression.images) == 4, name
+        for k, (got, ref) in enumerate(zip(progression.images, want.images, strict=False)):
+            np.testing.assert_array_equal(got, ref, err_msg=f"{name}, after pass {k}")
+    # The passes are sample-major: each pass's image is the whole image at fewer samples.
+    assert want.film.count.min() == want.film.count.max() == 6
+
+
+def test_passes_end_with_the_image_of_one_pass(scene):
+    store, toml = scene
+    config = load_scene_config(toml)
+    st = settings(width=32, height=24, spp=8)
+    whole = render(store, config, st, progress=False).film
+    passes = Progression(32, 24, StopRules(8))
+    film = render(store, config, st, progress=False, progression=passes).film
+    np.testing.assert_array_equal(film.image(), whole.image())
+    np.testing.assert_array_equal(film.count, whole.count)
+    np.testing.assert_array_equal(film.depth, whole.depth)
+    assert passes.stopped_by == "spp"
+
+
+def test_the_variance_estimate_is_unbiased_on_known_noise():
+    # Samples of known variance: the two-halves estimate averages to s2 / n over pixels,
+    # and the confidence interval of the mean covers the truth.
+    rng = np.random.default_rng(1)
+    film = Film(100, 50)
+    pixels = np.arange(100 * 50)
+    for s in range(10):
+        film.add(pixels, rng.normal(2.0, 3.0, (len(pixels), 3)), sample=np.full(len(pixels), s))
+    assert np.nanmean(film.variance_of_mean()) == pytest.approx(9.0 / 10, rel=0.05)
+    assert film.variance_of_mean_radiance() == pytest.approx(3.0 / 10 / len(pixels), rel=0.1)
+    one = Film(2, 1)
+    one.add(np.arange(2), np.ones((2, 3)), sample=np.zeros(2, int))
+    assert np.isnan(one.variance_of_mean()).all()  # one sample: no estimate
+
+
+def _render(tmp: Path, store, toml, *extra: str, name: str = "run", check=True) -> dict:
+    report = tmp / f"{name}.json"
+    code = main(["render", str(store.path), "-o", str(tmp / f"{name}.exr"), "--scene", str(toml),
+                 "--width", "32", "--height", "24", "--report", str(report), "--quiet", *extra])
+    if check:
+        assert code == 0
+    return json.loads(report.read_text(), parse_constant=_no_constants)
+
+
+def _no_constants(name):
+    raise AssertionError(f"the report holds {name}: not strict JSON")
+
+
+def test_report_holds_a_strict_json_series_per_pass(scene, tmp_path):
+    store, toml = scene
+    _render(tmp_path, store, toml, "--spp", "32", name="ref")
+    report = _render(tmp_path, store, toml, "--spp", "32", "--reference",
+                     str(tmp_path / "ref.exr"))
+    passes = report["passes"]
+    assert report["stopped_by"] == "spp"
+    assert [p["spp"] for p in passes] == [1, 2, 4, 8, 16, 32]
+    assert all(b["seconds"] >= a["seconds"] for a, b in zip(passes, passes[1:], strict=False))
+    assert passes[0]["variance_of_mean"] is None and passes[0]["ci95"] is None
+    rel = [p["rel_mse"] for p in passes]
+    assert rel[0] > rel[3] > rel[4] > 0 and rel[-1] == 0  # against itself at the end
+    assert passes[-1]["psnr_db"] is None  # identical images: null, never Infinity
+    est = [p["estimated_rel_mse"] for p in passes[1:]]
+    assert est[0] > est[-1] > 0
+    lo, hi = passes[-1]["ci95"]
+    assert lo < passes[-1]["mean_radiance"] < hi
+    # The estimate alone tracks the measured error (against a reference of 32 spp, which is
+    # not converged: compare while the run has far fewer samples than the reference).
+    assert 0.3 < passes[2]["estimated_rel_mse"] / passes[2]["rel_mse"] < 3.0
+    assert report["error"]["rel_mse"] == 0 and report["error"]["rel_mse_global"] == 0
+
+
+def test_target_error_stops_at_the_first_pass_that_meets_it(scene, tmp_path):
+    store, toml = scene
+    _render(tmp_path, store, toml, "--spp", "64", name="ref")
+    report = _render(tmp_path, store, toml, "--spp", "64", "--target-error", "0.05",
+                     "--reference", str(tmp_path / "ref.exr"))
+    rel = [p["rel_mse"] for p in report["passes"]]
+    assert report["stopped_by"] == "target-error"
+    assert rel[-1] <= 0.05 and all(r > 0.05 for r in rel[:-1])
+    assert report["passes"][-1]["spp"] < 64
+    # Without a reference the film's own estimate decides.
+    alone = _render(tmp_path, store, toml, "--spp", "256", "--target-error", "0.02",
+                    name="alone")
+    est = [p["estimated_rel_mse"] for p in alone["passes"]]
+    assert alone["stopped_by"] == "target-error" and alone["target_error_against"] == "estimate"
+    assert est[-1] <= 0.02 and all(e is None or e > 0.02 for e in est[:-1])
+
+
+def test_time_limit_stops_before_the_pass_that_would_overrun(scene, tmp_path):
+    store, toml = scene
+    report = _render(tmp_path, store, toml, "--spp", "100000", "--time-limit", "2")
+    assert report["stopped_by"] == "time-limit"
+    assert 16 <= report["passes"][-1]["spp"] < 100000
+    # it stops at a pass boundary near the limit, never long after it
+    assert report["passes"][-1]["seconds"] < 2 * 2.0
+    capped = _render(tmp_path, store, toml, "--spp", "8", "--time-limit", "600", name="capped")
+    assert capped["stopped_by"] == "spp" and capped["passes"][-1]["spp"] == 8
+
+
+def test_stopping_rules_stop_nodes_too(scene, tmp_path):
+    store, toml = scene
+    report = _render(tmp_path, store, toml, "--spp", "256", "--target-error", "0.05",
+                     "--nodes", "2", "--scheduler", "async")
+    assert report["stopped_by"] == "target-error"
+    assert report["passes"][-1]["spp"] < 256
+    _render(tmp_path, store, toml, "--spp", str(report["passes"][-1]["spp"]),
+                    name="same-spp")
+    image = read_image(tmp_path / "run.exr")
+    np.testing.assert_array_equal(image, read_image(tmp_path / "same-spp.exr"))
+
+
+def _cli(*args: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "vastray", *args], stderr=subprocess.PIPE,
+                            text=True, **kw)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nodes", [None, 2])
+def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp_path, nodes):
+    # SIGUSR1 writes a checkpoint at once, Ctrl-C writes one and exits 130; --resume goes on
+    # to the image an uninterrupted run gives, bit for bit (on one process, or 2 nodes).
+    store, toml = scene
+    common = [str(store.path), "--scene", str(toml), "--width", "24", "--height", "16",
+              "--spp", "2048", "--max-pass-spp", "64"]
+    where = ["--nodes", str(nodes), "--scheduler", "async"] if nodes else []
+    assert main(["render", *common, "-o", str(tmp_path / "whole.exr"), "--quiet"]) == 0
+    ckpt = tmp_path / "run.exr.checkpoint.npz"
+    proc = _cli("render", *common, *where, "-o", str(tmp_path / "run.exr"), "--report",
+                str(tmp_path / "run.json"), cwd=tmp_path)
+    try:
+        time.sleep(1.0)
+        deadline = time.monotonic() + 120
+        while not ckpt.exists():  # SIGUSR1 until a pass has finished and one is written
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.monotonic() < deadline
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.3)
+        assert proc.poll() is None  # the render goes on after a checkpoint
+        first = np.load(ckpt)["count"].max()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "--resume" in err and str(ckpt.name) in err
+    interrupted = json.loads((tmp_path / "run.json").read_text())
+    assert interrupted["stopped_by"] == "interrupted"
+    done = np.load(ckpt)["count"].max()
+    assert first <= done < 2048
+    partial = read_image(tmp_path / "run.exr")  # the image so far, written with it
+    assert partial.shape == (16, 24, 3) and np.isfinite(partial).all()
+    resume_where = ["--nodes", "2", "--scheduler", "spec-insitu"] if not nodes else where
+    assert main(["render", *common, *resume_where, "-o", str(tmp_path / "run.exr"),
+                 "--report", str(tmp_path / "run.json"), "--resume", str(ckpt),
+                 "--quiet"]) == 0
+    np.testing.assert_array_equal(read_image(tmp_path / "run.exr"),
+                                  read_image(tmp_path / "whole.exr"))
+    resumed = json.loads((tmp_path / "run.json").read_text())
+    assert resumed["stopped_by"] == "spp" and resumed["passes"][-1]["spp"] == 2048
+    assert resumed["passes"][0]["spp"] == 1  # the series goes on from the checkpoint's
+    assert ckpt.exists()  # a checkpoint this run did not write is left to its owner
+
+
+def test_resume_refuses_a_checkpoint_of_another_render(scene, tmp_path):
+    store, toml = scene
+    common = [str(store.path), "--scene", str(toml), "--width", "24", "--height", "16",
+              "--quiet"]
+    from vastray.checkpoint import write_checkpoint
+
+    progression = Progression(24, 16, StopRules(4))
+    progression.next_pass()
+    progression.add_pass(0, Film(24, 16))
+    ckpt = tmp_path / "a.checkpoint.npz"
+    write_checkpoint(ckpt, progression, {"settings": {}})
+    code = main(["render", *common, "-o", str(tmp_path / "b.exr"), "--resume", str(ckpt)])
+    assert code != 0 and not (tmp_path / "b.exr").exists()
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    assert main(["render", *common, "-o", str(tmp_path / "c.exr"), "--resume",
+                 str(tmp_path / "junk.npz")]) != 0
+    assert not (tmp_path / "c.exr").exists()
+
+
+def test_plot_draws_real_reports(scene, tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    store, toml = scene
+    _render(tmp_path, store, toml, "--spp", "32", name="ref")
+    for name, extra in (("a", []), ("b", ["--cache", "2", "--scheduler", "spec-ooc"])):
+        _render(tmp_path, store, toml, "--spp", "16", "--reference", str(tmp_path / "ref.exr"),
+                *extra, name=name)
+    capsys.readouterr()
+    assert main(["plot", str(tmp_path / "a.json"), str(tmp_path / "b.json"), "-o",
+                 str(tmp_path / "c.png")]) == 0
+    out = capsys.readouterr().out
+    assert (tmp_path / "c.png").stat().st_size > 10_000
+    assert "spec-ooc" in out and "reference" in out  # one table row per run
