@@ -4,9 +4,11 @@ the error series in the report, the stopping rules, checkpoints and resume bit f
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -194,6 +196,14 @@ def _cli(*args: str, **kw) -> subprocess.Popen:
                             text=True, **kw)
 
 
+def _catches(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has a handler for ``signum`` (Linux's /proc status)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signum - 1) & 1)
+    return False
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("nodes", [None, 2])
 def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp_path, nodes):
@@ -208,8 +218,10 @@ def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp
     proc = _cli("render", *common, *where, "-o", str(tmp_path / "run.exr"), "--report",
                 str(tmp_path / "run.json"), cwd=tmp_path)
     try:
-        time.sleep(1.0)
         deadline = time.monotonic() + 120
+        while not _catches(proc.pid, signal.SIGUSR1):  # until the render listens for it
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
         while not ckpt.exists():  # SIGUSR1 until a pass has finished and one is written
             assert proc.poll() is None, proc.stderr.read()
             assert time.monotonic() < deadline
@@ -274,3 +286,68 @@ def test_plot_draws_real_reports(scene, tmp_path, capsys):
     out = capsys.readouterr().out
     assert (tmp_path / "c.png").stat().st_size > 10_000
     assert "spec-ooc" in out and "reference" in out  # one table row per run
+
+
+def test_a_node_lost_mid_passes_re_renders_only_the_passes_not_merged(scene):
+    from test_distributed import _node_pids
+
+    store, toml = scene
+    st = settings(width=32, height=24, spp=128)
+    hit = []
+
+    def strike():  # node 2, once a few passes are merged
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not hit:
+            if len(progression.series) >= 3 and _node_pids(2):
+                for pid in _node_pids(2):
+                    os.kill(pid, signal.SIGKILL)
+                    hit.append(pid)
+            time.sleep(0.02)
+
+    progression = Progression(32, 24, StopRules(128))
+    striker = threading.Thread(target=strike)
+    striker.start()
+    try:
+        result = render_distributed(store.path, toml, st, 3, JobOptions(scheduler="async"),
+                                    timeout=60, heartbeat_timeout=5.0,
+                                    progression_of=lambda frame: progression)
+    finally:
+        striker.join()
+    assert hit, "no node 2 to kill"
+    assert result.counters["nodes"] == 2 and result.counters["node_deaths"] == {"SIGKILL": 1}
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    np.testing.assert_array_equal(result.film.image(), reference.image())
+    np.testing.assert_array_equal(result.film.count, reference.count)
+    # every pass merged once: the series goes on where the loss found it
+    assert [p["spp"] for p in result.progress["passes"]] == [1, 2, 4, 8, 16, 32, 48, 64, 80,
+                                                             96, 112, 128]
+
+
+def test_animation_frames_have_their_own_passes_and_rules(scene, tmp_path):
+    store, toml = scene
+    orbit = tmp_path / "orbit.toml"
+    orbit.write_text(toml.read_text() + "\n[camera.orbit]\ndegrees_per_frame = 20\n")
+    for where in ([], ["--nodes", "2", "--scheduler", "async"]):
+        summary = tmp_path / "s.json"
+        assert main(["render", str(store.path), "--scene", str(orbit), "-o",
+                     str(tmp_path / "f.exr"), "--frames", "2", "--width", "32", "--height",
+                     "24", "--spp", "256", "--target-error", "0.05", "--report", str(summary),
+                     "--quiet", *where]) == 0
+        frames = json.loads(summary.read_text(), parse_constant=_no_constants)["frames"]
+        assert [f["frame"] for f in frames] == [0, 1]
+        for frame in frames:
+            est = [p["estimated_rel_mse"] for p in frame["passes"]]
+            assert frame["stopped_by"] == "target-error", where
+            assert est[-1] <= 0.05 and all(e is None or e > 0.05 for e in est[:-1])
+
+
+def test_the_python_api_takes_the_stopping_rules(scene):
+    import vastray
+
+    store, toml = scene
+    out = vastray.render(store.path, scene=toml, width=32, height=24, spp=512,
+                         target_error=0.05, progress=False)
+    assert out.report["stopped_by"] == "target-error"
+    assert out.report["passes"][-1]["spp"] < 512
+    with pytest.raises(vastray.VastrayError, match="checkpoint"):
+        vastray.render(store.path, scene=toml, checkpoint_every=5, progress=False)

@@ -39,12 +39,13 @@ from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
 
-#: ``render_one(config, settings) -> RenderResult``: one frame, its config already resolved
-#: and its settings already carrying the frame's seed.
-RenderOne = Callable[[SceneConfig, RenderSettings], RenderResult]
-#: ``render_many(frames, on_frame)``: every frame in one job (the distributed runtime), calling
-#: ``on_frame(frame, result)`` as each frame's film arrives.
-RenderMany = Callable[[list[int], Callable[[int, RenderResult], None]], object]
+#: ``render_one(config, settings, progression=None) -> RenderResult``: one frame, its config
+#: already resolved and its settings already carrying the frame's seed, in the passes of
+#: ``progression`` (``render.progressive``).
+RenderOne = Callable[..., RenderResult]
+#: ``render_many(frames, on_frame, progression_of)``: every frame in one job (the distributed
+#: runtime), calling ``on_frame(frame, result)`` as each frame's film arrives.
+RenderMany = Callable[..., object]
 
 
 def frame_path(path: str | Path, frame: int) -> Path:

@@ -115,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_terminated)
+        # SIGUSR1 asks a render for a checkpoint (``vastray.checkpoint``); one that comes
+        # before the render is under way must not kill the process (its default action).
+        signal.signal(signal.SIGUSR1, signal.SIG_IGN)
     if argv[:1] == ["node"]:
         from vastray.actors.node import main as node_main
 
@@ -143,9 +146,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"vastray {args.command}: error: out of memory; lower --width/--height, "
               "--batch-size or --max-samples-in-flight", file=sys.stderr)
         return 2
-    except Terminated:
-        print(f"vastray {args.command}: terminated; nodes stopped, no output written",
-              file=sys.stderr)
+    except Terminated as exc:
+        kept = ("the passes done kept" if getattr(exc, "checkpointed", False)
+                else "no output written")
+        print(f"vastray {args.command}: terminated; nodes stopped, {kept}", file=sys.stderr)
         return 143
     except KeyboardInterrupt:
         print(f"vastray {args.command}: interrupted", file=sys.stderr)

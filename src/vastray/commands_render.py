@@ -696,9 +696,10 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     previous = checkpoints.install_signal()
     try:
         result = plan.render_one(plan.config, plan.settings, progression=progression)
-    except KeyboardInterrupt:  # Ctrl-C and SIGTERM: the passes done are kept
+    except KeyboardInterrupt as stop:  # Ctrl-C and SIGTERM: the passes done are kept
         progression.interrupted()
-        if checkpoints.write() and not args.quiet:
+        stop.checkpointed = checkpoints.write()
+        if stop.checkpointed and not args.quiet:
             print(f"interrupted after {progression.snapshot.passes_done} pass(es), "
                   f"{int(progression.film.count.max())} spp: wrote {', '.join(map(str, outputs))}"
                   f" and the checkpoint {checkpoints.path}; go on with --resume "
@@ -823,7 +824,7 @@ def _with_progress(result: RenderResult, progression: Progression | None) -> Ren
 def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
                  render_one: Callable[..., RenderResult]) -> Callable | None:
     """With ``--nodes``, where the distributed runtime renders several frames in one job:
-    ``render_many(frames, on_frame)`` (nodes started once, each frame's config and seed
+    ``render_many(frames, on_frame, progression_of)`` (nodes started once, each frame's config and seed
     resolved on the nodes); else None, and each frame is a job of its own."""
     if not args.nodes:
         return None
