@@ -195,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
         resolution, grid, width, height, spp = "48", "2x2x2", "64", "48", 64
     else:
         resolution, grid, width, height, spp = "96", "3x3x3", "128", "96", 128
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out}: is a file, not a folder")
     out = args.out or Path(tempfile.mkdtemp(prefix="vastray-convergence-"))
     out.mkdir(parents=True, exist_ok=True)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
