@@ -1,0 +1,80 @@
+"""``bench/convergence.py``'s table and bias/variance split, on hand-made reports (the script
+itself renders for a minute or more, so it is not run here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parent.parent / "bench" / "convergence.py"
+spec = importlib.util.spec_from_file_location("bench_convergence", SCRIPT)
+convergence = importlib.util.module_from_spec(spec)
+sys.modules[spec.name] = convergence  # dataclasses look their module up there
+spec.loader.exec_module(convergence)
+
+
+def report(scheduler="async", nodes=2, errors=(1e-1, 1e-2, 1e-3), estimated=None,
+           seconds=(1.0, 2.0, 4.0), stopped_by="spp"):
+    estimated = estimated or [None] + [e * 0.9 for e in errors[1:]]
+    passes = [{"pass": k, "seconds": t, "spp": 2 ** k, "rel_mse": e, "estimated_rel_mse": v}
+              for k, (t, e, v) in enumerate(zip(seconds, errors, estimated, strict=True))]
+    return {"scheduler": scheduler, "options": {"nodes": nodes}, "stopped_by": stopped_by,
+            "passes": [{"pass": -1, "seconds": 0.0, "spp": 0, "rel_mse": None}, *passes]}
+
+
+def test_summary_gives_times_to_each_error_efficiency_and_the_last_pass():
+    row = convergence.summarize(report(errors=(1e-1, 1e-2, 2e-3)))
+    assert row.to_threshold[0] == pytest.approx(2.0)  # reached exactly at a pass
+    assert row.to_threshold[1] is None  # 2e-3 never reaches 1e-3
+    assert (row.spp, row.final_rel_mse, row.first_pass_s) == (4, 2e-3, 1.0)
+    assert row.efficiency == pytest.approx(1 / (2e-3 * 4.0))
+    assert (row.scheduler, row.nodes, row.stopped_by) == ("async", 2, "spp")
+
+
+def test_time_to_error_is_interpolated_log_log_between_the_bracketing_passes():
+    # relMSE 1e-1 at 1 s, 1e-3 at 4 s: 1e-2 lies halfway in log error, so at 2 s
+    row = convergence.summarize(report(errors=(1e-1, 1e-1, 1e-3), seconds=(0.5, 1.0, 4.0)))
+    assert row.to_threshold == [pytest.approx(2.0), pytest.approx(4.0)]
+
+
+def test_summary_refuses_a_report_without_a_reference():
+    bare = report()
+    for p in bare["passes"]:
+        p["rel_mse"] = None
+    with pytest.raises(ValueError, match="--reference"):
+        convergence.summarize(bare)
+
+
+def test_bias_variance_split_against_the_estimate_and_the_lossless_twin():
+    lossy = report(errors=(1e-1, 1e-2, 3e-3), estimated=[None, 9e-3, 2e-3])
+    twin = report(errors=(1e-1, 1e-2, 2.5e-3))
+    split = convergence.bias_variance(lossy, twin)
+    assert split["variance"] == 2e-3 and split["rel_mse"] == 3e-3
+    assert split["bias2"] == pytest.approx(1e-3)
+    assert split["bias2_paired"] == pytest.approx(0.5e-3)
+    assert "bias2_paired" not in convergence.bias_variance(lossy)
+
+
+def test_markdown_table_has_a_row_per_run_and_labels_the_lossy_one():
+    rows = [convergence.summarize(report("reference", None, errors=(1e-2, 1e-3, 0.0))),
+            convergence.summarize(report("temporal", 2), lossy=True)]
+    rows[1].process_s = 3.25
+    lines = convergence.markdown_table(rows).splitlines()
+    assert len(lines) == 4
+    assert all(line.count("|") == lines[0].count("|") for line in lines)
+    assert "1 (single process)" in lines[2] and "∞" in lines[2]  # relMSE 0: efficiency ∞
+    assert "temporal --simplified portal (lossy) | 2 |" in lines[3] and "| 3.25 |" in lines[3]
+    assert math.isinf(rows[0].efficiency)
+
+
+def test_plan_runs_the_reference_first_and_one_lossy_run():
+    quick, full = convergence.plan(True), convergence.plan(False)
+    for runs in (quick, full):
+        assert runs[0].name == "reference-local" and sum(r.lossy for r in runs) == 1
+        assert len({r.name for r in runs}) == len(runs)
+    assert {r.nodes for r in quick if r.scheduler == "async"} == {1, 2, 4}
+    assert len(full) == 2 + 7 * 3 + 1
