@@ -24,7 +24,13 @@ from vastray.render.driver import (
     with_camera_clip,
 )
 from vastray.render.film import Film
-from vastray.render.integrators import RenderSettings, Shading, camera_rays
+from vastray.render.integrators import (
+    PathContext,
+    PathResult,
+    RenderSettings,
+    Shading,
+    camera_rays,
+)
 from vastray.render.materials import ScalarMap
 from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
@@ -119,9 +125,36 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     productive: set[tuple[int, int]] = set()  # (domain, its load number)
     traced_domains: set[int] = set()
 
+    def trace_tile(ctx: PathContext, bar) -> PathResult:
+        """Trace the paths of ``ctx`` through the domains in the schedule's order."""
+        nonlocal process_seconds
+        kwargs = {"history_depth": options.history_depth} if scheduler == "spec-ooc" else {}
+        kwargs.update(schedule_options or {})
+        victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
+        policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
+                                       setup.scalar_range,
+                                       resident_first=options.resident_first, **kwargs)
+        policy.start(camera_rays(setup.camera, ctx))
+        while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
+            bvh = cache.get(domain)
+            if options.preload:
+                cache.prefetch(policy.likely_next(domain))
+            t0 = time.perf_counter()
+            tests = _tests(policy.counters)
+            policy.process(domain, bvh)
+            process_seconds += time.perf_counter() - t0
+            if _tests(policy.counters) > tests:
+                traced_domains.add(domain)
+                productive.add((domain, cache.load_count(domain)))
+        _merge(counters, policy.counters)
+        bar.update(len(ctx.pixel))
+        if on_tile is not None:
+            on_tile(len(ctx.pixel))
+        return policy.result
+
     def trace_pass(window: RenderSettings, bar) -> Film:
         """The film of one pass (``window.samples``): this node's share of its tiles."""
-        nonlocal tile, process_seconds
+        nonlocal tile
         film = Film(window.width, window.height)
         total = window.paths
         size = max(1, min(tile_limit or total, total))
@@ -129,36 +162,31 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         for first in list(range(0, total, size))[share[0]::share[1]]:
             ctx = path_context(setup.shading, window, first, min(first + size, total),
                                setup.ao_distance)
-            kwargs = ({"history_depth": options.history_depth} if scheduler == "spec-ooc"
-                      else {})
-            kwargs.update(schedule_options or {})
-            victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
-            policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
-                                           setup.scalar_range,
-                                           resident_first=options.resident_first, **kwargs)
-            policy.start(camera_rays(setup.camera, ctx))
-            while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
-                bvh = cache.get(domain)
-                if options.preload:
-                    cache.prefetch(policy.likely_next(domain))
-                t0 = time.perf_counter()
-                tests = _tests(policy.counters)
-                policy.process(domain, bvh)
-                process_seconds += time.perf_counter() - t0
-                if _tests(policy.counters) > tests:
-                    traced_domains.add(domain)
-                    productive.add((domain, cache.load_count(domain)))
-            film.add_paths(ctx.pixel, ctx.sample, policy.result)
-            _merge(counters, policy.counters)
-            bar.update(len(ctx.pixel))
-            if on_tile is not None:
-                on_tile(len(ctx.pixel))
+            film.add_paths(ctx.pixel, ctx.sample, trace_tile(ctx, bar))
         return film
 
+    def trace_passes_together(bar) -> Film:
+        """Every pass left, in tiles that run on from one pass into the next (a domain is
+        loaded once per tile, not once per pass); each pass is merged once its last tile is
+        done."""
+        nonlocal tile
+        spans = PassSpans(progression, settings)
+        size = max(1, min(tile_limit or spans.total, spans.total))
+        tile = max(tile, size)
+        for first in range(0, spans.total, size):
+            stop = min(first + size, spans.total)
+            ctx, passes = spans.context(setup.shading, first, stop, setup.ao_distance)
+            spans.add(ctx, passes, trace_tile(ctx, bar), stop)
+        if spans.total == 0:
+            progression.next_pass()  # resumed with nothing left: says why it stops
+        return progression.film
+
+    fused = progression is not None and not progression.rules.paced and share == (0, 1)
     try:
         with RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
                        disable=not progress, desc=f"render ({scheduler})", leave=False) as bar:
-            film = run_passes(trace_pass, settings, progression, bar)
+            film = (trace_passes_together(bar) if fused
+                    else run_passes(trace_pass, settings, progression, bar))
     finally:
         cache.close()
         if pool is not None:
@@ -187,6 +215,61 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "render": round(process_seconds, 4),
     }
     return RenderResult(film, setup.camera, seconds, counters)
+
+
+class PassSpans:
+    """The passes a progression has left, as one run of path ids: pass after pass, each
+    pixel-major within (as ``path_context`` numbers them), so that a tile may run on from the
+    end of one pass into the next.
+
+    Parameters
+    ----------
+    progression : the passes (none of which may stop early: ``StopRules.paced`` False).
+    settings : the render's settings.
+    """
+
+    def __init__(self, progression: Progression, settings: RenderSettings):
+        self.progression, self.settings = progression, settings
+        done = progression.snapshot.passes_done
+        self.windows = progression.remaining()
+        self.index = np.arange(done, done + len(self.windows))  # (K,) pass numbers
+        self.first = np.array([w[0] for w in self.windows], np.int64)  # (K,) first sample
+        self.per_pixel = np.array([w[1] - w[0] for w in self.windows], np.int64)  # (K,)
+        paths = settings.width * settings.height * self.per_pixel
+        self.offsets = np.concatenate([[0], np.cumsum(paths)])  # (K + 1,) first path id
+        self.total = int(self.offsets[-1])
+        self.films: dict[int, Film] = {}
+        self.merged = 0  # passes of ``windows`` merged so far
+        progression.start()
+
+    def context(self, shading, first: int, stop: int, ao_distance: float
+                ) -> tuple[PathContext, np.ndarray]:
+        """The paths ``first <= id < stop`` and (n,) the position in ``windows`` of each's
+        pass."""
+        ids = np.arange(first, stop, dtype=np.int64)
+        k = np.searchsorted(self.offsets, ids, side="right") - 1
+        local = ids - self.offsets[k]
+        pixel = (local // self.per_pixel[k]).astype(np.uint32)
+        sample = (self.first[k] + local % self.per_pixel[k]).astype(np.uint32)
+        return PathContext(shading, self.settings, pixel, sample, ao_distance), k
+
+    def add(self, ctx: PathContext, passes: np.ndarray, result: PathResult, stop: int) -> None:
+        """Add the traced tile of the paths up to id ``stop`` to its passes' films, and merge
+        every pass it completes (tiles come in order)."""
+        for k in np.unique(passes):
+            rows = np.nonzero(passes == k)[0]
+            film = self.films.setdefault(int(k), Film(self.settings.width,
+                                                      self.settings.height))
+            film.add_paths(ctx.pixel[rows], ctx.sample[rows], PathResult(
+                result.radiance[rows], result.first_t[rows], result.first_normal[rows]))
+        while self.merged < len(self.windows) and self.offsets[self.merged + 1] <= stop:
+            step = self.progression.next_pass()
+            if step is None or step[0] != self.index[self.merged]:
+                raise RuntimeError(f"pass {self.index[self.merged]} is not the next one")
+            self.progression.add_pass(step[0], self.films.pop(self.merged))
+            self.merged += 1
+        if self.merged == len(self.windows):
+            self.progression.next_pass()  # says why it stops: every pass is in
 
 
 def _tests(counters: dict) -> int:

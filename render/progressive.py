@@ -172,6 +172,11 @@ class Progression:
             return before
         return before + time.perf_counter() - self._started
 
+    def start(self) -> None:
+        """Start the clock (the first ``next_pass`` does, if nothing did before)."""
+        if self._started is None:
+            self._started = self._pass_started = time.perf_counter()
+
     def remaining(self) -> list[tuple[int, int]]:
         """The passes not rendered yet (none once a rule stopped the render)."""
         return [] if self.stopped_by is not None else self.passes[self.snapshot.passes_done:]
@@ -180,8 +185,7 @@ class Progression:
         """The next pass to render as (index, first sample, stop sample), or None once a
         rule says stop (``stopped_by`` names it)."""
         done = self.snapshot.passes_done
-        if self._started is None:
-            self._started = time.perf_counter()
+        self.start()
         if self.stopped_by is not None:
             return None
         if done == len(self.passes):

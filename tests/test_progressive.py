@@ -65,12 +65,22 @@ def test_the_film_after_every_pass_is_the_same_whatever_the_scheduler(scene):
     config = load_scene_config(toml)
     st = settings(width=32, height=24, spp=6)
     runs = {}
-    for name in ("reference", "spec-ooc", "async", "spec-insitu"):
+    for name in ("reference", "spec-ooc", "spec-ooc tiles", "image paced", "async",
+                 "spec-insitu"):
         progression = Recorder(32, 24, StopRules(6, max_pass_spp=2))
         if name == "reference":
             render(store, config, st, progress=False, progression=progression)
-        elif name == "spec-ooc":
-            render_out_of_core(store, config, st, JobOptions(scheduler="spec-ooc", cache=2),
+        elif name.startswith("spec-ooc"):
+            # tiles of 500 paths run on from one pass into the next (passes of 768 and
+            # 1536 paths), each pass merged when its last tile is done
+            tile = 500 if name.endswith("tiles") else None
+            render_out_of_core(store, config, st, JobOptions(scheduler="spec-ooc", cache=2,
+                                                             max_samples_in_flight=tile),
+                               progress=False, progression=progression)
+        elif name == "image paced":  # a rule that may stop early: pass after pass
+            progression = Recorder(32, 24, StopRules(6, max_pass_spp=2, time_limit=600))
+            render_out_of_core(store, config, st, JobOptions(scheduler="image", cache=2,
+                                                             max_samples_in_flight=500),
                                progress=False, progression=progression)
         else:
             render_distributed(store.path, toml, st, 2, JobOptions(scheduler=name),

@@ -333,6 +333,45 @@ def check_legend(r: Renders):
     r.refused("--legend", naming="--legend")  # no PNG written
 
 
+def check_time_limit(r: Renders):
+    # the rule that stops a long render: tests/test_progressive.py (stops near the limit)
+    run = r("--time-limit", "600", "--spp", "4")
+    assert run.code == 0 and run.report["stopped_by"] == "spp"  # reached --spp first
+    assert run.report["time_limit_s"] == 600
+
+
+def check_target_error(r: Renders):
+    run = r("--target-error", "1e9", "--spp", "64")
+    assert run.report["stopped_by"] == "target-error"
+    assert run.report["passes"][-1]["spp"] == 2  # the first pass with an estimate meets it
+    assert run.report["target_error"] == 1e9 and run.report["target_error_against"] == "estimate"
+
+
+def check_max_pass_spp(r: Renders):
+    run = r("--max-pass-spp", "1", "--spp", "4")
+    assert [p["spp"] for p in run.report["passes"]] == [1, 2, 3, 4]
+    np.testing.assert_array_equal(run.image(), r("--spp", "4").image())
+
+
+def check_checkpoint_every(r: Renders):
+    # written at every pass and removed once the render completes; SIGUSR1, Ctrl-C and
+    # resume bit for bit: tests/test_progressive.py
+    run = r("--checkpoint-every", "0.001", "--spp", "4")
+    assert run.code == 0 and not Path(f"{run.output}.checkpoint.npz").exists()
+    r.refused("--checkpoint-every", "1", "--frames", "2", naming="--checkpoint-every")
+
+
+def check_checkpoint(r: Renders):
+    r.refused("--checkpoint", str(r.folder / "c.npz"), "--frames", "2", naming="--checkpoint")
+    run = r("--checkpoint", str(r.folder / "c.npz"), "--spp", "2")
+    assert run.code == 0 and not (r.folder / "c.npz").exists()  # nothing asked one
+
+
+def check_resume(r: Renders):
+    r.refused("--resume", str(r.folder / "none.npz"), naming="none.npz")
+    r.refused("--resume", str(r.folder / "none.npz"), "--frames", "2", naming="--resume")
+
+
 def check_quiet(r: Renders):
     assert "wrote " in r(quiet=False).err
     assert r(quiet=True).err == ""
