@@ -65,11 +65,12 @@ def test_the_film_after_every_pass_is_the_same_whatever_the_scheduler(scene):
     config = load_scene_config(toml)
     st = settings(width=32, height=24, spp=6)
     runs = {}
-    for name in ("reference", "spec-ooc", "spec-ooc tiles", "image paced", "async",
-                 "spec-insitu"):
+    for name in ("reference", "reference 1 thread", "spec-ooc", "spec-ooc tiles",
+                 "image paced", "async", "spec-insitu", "temporal"):
         progression = Recorder(32, 24, StopRules(6, max_pass_spp=2))
-        if name == "reference":
-            render(store, config, st, progress=False, progression=progression)
+        if name.startswith("reference"):
+            render(store, config, st, progress=False, progression=progression,
+                   threads=1 if name.endswith("thread") else None)
         elif name.startswith("spec-ooc"):
             # tiles of 500 paths run on from one pass into the next (passes of 768 and
             # 1536 paths), each pass merged when its last tile is done
