@@ -518,6 +518,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     frame_totals: dict = {}
     busy_total = reduce_total = frame_busy = frame_reduce = 0.0
     inputs: dict = {}  # frame -> its settings and scene (resolved once per frame)
+    rendered = 0  # units rendered so far: they label tiles, statuses and films in order
     try:
         try:
             unit = 0 if units else -1
@@ -527,14 +528,18 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs.clear()
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
-                state.ordinal, state.frame = unit, frame or 0
+                # the ordinal counts the units rendered, not their number: a rule that stops
+                # a frame early skips its other passes, and labels must follow one another
+                state.ordinal, state.frame = rendered, frame or 0
+                rendered += 1
                 start = time.perf_counter()
                 film, counters = await render_share(
                     management, tree, options, rank, size, store, frame_config,
                     frame_settings.window(first, stop), report, state)
                 busy = time.perf_counter() - start
                 reduce_start = time.perf_counter()
-                film = await tree.reduce_film(film, settings.width, settings.height, unit)
+                film = await tree.reduce_film(film, settings.width, settings.height,
+                                              state.ordinal)
                 reduce_s = time.perf_counter() - reduce_start
                 busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
                 frame_busy, frame_reduce = frame_busy + busy, frame_reduce + reduce_s
