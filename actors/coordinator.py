@@ -507,12 +507,10 @@ async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
                 raise NodeFailure(f"node 0 sent a film that does not fit the image: "
                                   f"{exc}") from None
             finished = await passes.film(int(message.meta.get("unit", 0)), pass_film)
-            if finished is not None:
-                frame, whole = finished
-                if frame is None:
-                    film = whole
-                else:
-                    frames.film(frame, whole, control.barriers)
+            if finished is not None:  # a frame is whole (for an animation, the latest)
+                frame, film = finished
+                if frame is not None:
+                    frames.film(frame, film, control.barriers)
         elif message.kind == protocol.FRAME:
             frames.report(message.meta, control.barriers)
         elif message.kind == protocol.DONE:

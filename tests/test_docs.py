@@ -80,7 +80,8 @@ def test_readme_commands_parse_with_the_real_cli():
     commands = [line for line in lines if line.startswith("vastray ")]
     assert len(commands) >= 15
     for line in commands:
-        words = shlex.split(line.split(" #")[0].split("&&")[0].rstrip(" &"))[1:]
+        words = shlex.split(line.split(" #")[0].split("&&")[0].split(" > ")[0]
+                            .rstrip(" &"))[1:]
         if words[:1] == ["node"]:
             continue
         parser.parse_args(words)  # raises SystemExit on an option that does not exist

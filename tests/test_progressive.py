@@ -346,6 +346,9 @@ def test_animation_frames_have_their_own_passes_and_rules(scene, tmp_path):
                      "--quiet", *where]) == 0
         frames = json.loads(summary.read_text(), parse_constant=_no_constants)["frames"]
         assert [f["frame"] for f in frames] == [0, 1]
+        if where:  # delivered as rendered, not after a node was taken for lost
+            frame_report = json.loads((tmp_path / "s_0001.json").read_text())
+            assert frame_report["counters"]["node_failures"] == []
         for frame in frames:
             est = [p["estimated_rel_mse"] for p in frame["passes"]]
             assert frame["stopped_by"] == "target-error", where
