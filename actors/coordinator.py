@@ -372,7 +372,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
                       heartbeat_timeout: float | None = None, frame_done=None,
                       regroup: bool = False, bound: dict | None = None, spare_exits: int = 0,
-                      passes: _Passes | None = None):
+                      *, passes: _Passes):
     """One attempt at the job on ``size`` nodes (``passes``: its units, see ``_Passes``).
     With ``listen`` and ``regroup``, a node lost mid-frame makes the coordinator tell the
     others to regroup before ``NodeLost`` is raised; ``bound["listen"]`` gets the address
@@ -447,9 +447,6 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
         control = _Termination(size, router, identities, token)
         frames = _Frames(size, job.get("frames"), frame_done)
-        passes = passes if passes is not None else _Passes(
-            [(None, 0, settings.spp)], lambda frame: Progression(
-                settings.width, settings.height, StopRules(settings.spp, one_pass=True)), False)
         passes.begin(lambda next_unit: _grant(router, identities, token, next_unit))
         try:
             film, reports = await _gather(router, watch, settings, bar, control, frames, size,
