@@ -365,3 +365,37 @@ def test_the_python_api_takes_the_stopping_rules(scene):
     assert out.report["passes"][-1]["spp"] < 512
     with pytest.raises(vastray.VastrayError, match="checkpoint"):
         vastray.render(store.path, scene=toml, checkpoint_every=5, progress=False)
+
+
+def test_checkpoints_are_written_when_due_and_read_back(tmp_path):
+    from vastray.checkpoint import Checkpointer, read_checkpoint
+    from vastray.scene.errors import InputError
+
+    identity = {"settings": {"seed": 3}, "max_pass_spp": 16}
+    images = []
+    checkpoints = Checkpointer(tmp_path / "c.npz", identity, every=0.0,
+                               write_image=lambda p: images.append(p.snapshot.passes_done))
+    progression = Progression(4, 2, StopRules(8), on_pass=checkpoints.after_pass)
+    rng = np.random.default_rng(0)
+    while (step := progression.next_pass()) is not None:
+        film = Film(4, 2)
+        for s in range(step[1], step[2]):
+            film.add(np.arange(8), rng.random((8, 3)), sample=np.full(8, s))
+        progression.add_pass(step[0], film)
+    checkpoints.drain()
+    snap = read_checkpoint(tmp_path / "c.npz", identity)
+    assert images and images[-1] == snap.passes_done == 4  # the last pass's, with its image
+    np.testing.assert_array_equal(snap.film.sum, progression.film.sum)
+    assert [p["spp"] for p in snap.series] == [1, 2, 4, 8]
+    with pytest.raises(InputError, match="--seed"):  # another render's checkpoint
+        read_checkpoint(tmp_path / "c.npz", {"settings": {"seed": 4}, "max_pass_spp": 16})
+    checkpoints.finished()
+    assert not (tmp_path / "c.npz").exists()  # its own file, removed once complete
+    # a checkpoint that cannot be written fails the render, naming the file
+    (tmp_path / "c.npz").mkdir()  # a folder where the file should go
+    broken = Checkpointer(tmp_path / "c.npz", identity, every=0.0)
+    progression = Progression(4, 2, StopRules(2), on_pass=broken.after_pass)
+    progression.next_pass()
+    progression.add_pass(0, Film(4, 2))
+    with pytest.raises(InputError, match="c.npz"):
+        broken.drain()

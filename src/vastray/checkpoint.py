@@ -17,6 +17,7 @@ import logging
 import signal
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
@@ -136,12 +137,35 @@ class Checkpointer:
         self.written: int | None = None  # passes done in the last checkpoint written
         self._last = time.monotonic()
         self._lock = threading.Lock()
+        self._writer: ThreadPoolExecutor | None = None
+        self._pending: Future | None = None
 
     def after_pass(self, progression: Progression) -> None:
-        """``Progression.on_pass``: a checkpoint when one is due."""
+        """``Progression.on_pass``: a checkpoint when one is due, written on a thread of its
+        own (on the coordinator, the event loop goes on with its heartbeats meanwhile); a
+        write that failed raises here, at the next pass."""
         self.progression = progression
+        self._raise_failed()
         if self.every is not None and time.monotonic() - self._last >= self.every:
-            self.write()
+            self._last = time.monotonic()
+            if self._writer is None:
+                self._writer = ThreadPoolExecutor(1, thread_name_prefix="checkpoint")
+            self._pending = self._writer.submit(self.write)
+
+    def _raise_failed(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None and pending.done() and pending.exception() is not None:
+            raise InputError(self.path, f"cannot write the checkpoint: "
+                                        f"{pending.exception()}") from None
+        if pending is not None and not pending.done():
+            self._pending = pending
+
+    def drain(self) -> None:
+        """Wait for the checkpoint being written, if any; raise if it failed."""
+        if self._writer is not None:
+            self._writer.shutdown(wait=True)
+            self._writer = None
+        self._raise_failed()
 
     def write(self) -> bool:
         """Write the last finished pass (nothing before the first pass, or while another
@@ -172,5 +196,6 @@ class Checkpointer:
     def finished(self) -> None:
         """The render is complete: its own checkpoint file is removed (a user's resumed
         file is left alone unless this render wrote over it)."""
+        self.drain()
         if self.written is not None:
             self.path.unlink(missing_ok=True)

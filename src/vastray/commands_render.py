@@ -698,6 +698,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
         result = plan.render_one(plan.config, plan.settings, progression=progression)
     except KeyboardInterrupt as stop:  # Ctrl-C and SIGTERM: the passes done are kept
         progression.interrupted()
+        checkpoints.drain()  # a checkpoint under way first: then the latest
         stop.checkpointed = checkpoints.write()
         if stop.checkpointed and not args.quiet:
             print(f"interrupted after {progression.snapshot.passes_done} pass(es), "
@@ -708,6 +709,7 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGUSR1, previous)
+    checkpoints.drain()  # no checkpoint is written after (or over) the final outputs
     image, error, report = finish_render(plan, result, outputs[0], args.reference)
     summary = summary_line(args, result, error, outputs, replaced)
     write_outputs(args, plan, outputs, result.film, image, report)
