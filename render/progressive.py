@@ -15,6 +15,7 @@ Nothing here does I/O: the runtimes (``render.driver``, ``actors.local``, the co
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,6 +132,7 @@ class Progression:
     reference : (H, W, 3) image to measure against (also what ``target_error`` compares
         with), or None.
     resumed : a checkpoint's snapshot to go on from (None: from the first pass).
+    on_pass : called as ``on_pass(progression)`` after each pass is merged (checkpoints).
     """
 
     width: int
@@ -138,7 +140,7 @@ class Progression:
     rules: StopRules
     reference: np.ndarray | None = None
     resumed: Snapshot | None = None
-    on_pass: object = None  # called as on_pass(progression) after each pass
+    on_pass: Callable[[Progression], None] | None = None
     snapshot: Snapshot = field(init=False)
     stopped_by: str | None = field(init=False, default=None)
     passes: list = field(init=False)

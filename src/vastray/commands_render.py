@@ -865,8 +865,9 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     else:
         in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp
+    # passes: the process that merges them also holds the image so far and its merged copy
     estimate = estimate_memory(args.width, args.height, min(in_flight, total), rays_per_hit,
-                               processes=films)
+                               processes=films + 2)
     check_memory(estimate, args.width, args.height)
     if args.memory_limit is None:
         return cache
