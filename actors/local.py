@@ -258,9 +258,9 @@ class PassSpans:
         every pass it completes (tiles come in order)."""
         for k in np.unique(passes):
             rows = np.nonzero(passes == k)[0]
-            film = self.films.setdefault(int(k), Film(self.settings.width,
-                                                      self.settings.height))
-            film.add_paths(ctx.pixel[rows], ctx.sample[rows], PathResult(
+            if int(k) not in self.films:
+                self.films[int(k)] = Film(self.settings.width, self.settings.height)
+            self.films[int(k)].add_paths(ctx.pixel[rows], ctx.sample[rows], PathResult(
                 result.radiance[rows], result.first_t[rows], result.first_normal[rows]))
         while self.merged < len(self.windows) and self.offsets[self.merged + 1] <= stop:
             step = self.progression.next_pass()

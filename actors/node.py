@@ -513,7 +513,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     beating = asyncio.ensure_future(heartbeat())
     tree = TreeReduceActor(management, rank, size, job["endpoints"])
     state = NodeState()
-    units = job_units(job, settings)
+    units = job_units(job)
     totals: dict = {}
     frame_totals: dict = {}
     busy_total = reduce_total = frame_busy = frame_reduce = 0.0
@@ -550,7 +550,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     meta = {"rank": rank, "unit": unit}
                     await management.to_coordinator(film_frames(
                         film, meta if frame is None else dict(meta, frame=frame)))
-                if job.get("paced"):  # the coordinator rules on this pass before the next
+                if job["paced"]:  # the coordinator rules on this pass before the next
                     unit = await _granted(management, unit, len(units))
                 else:
                     unit = unit + 1 if unit + 1 < len(units) else -1
@@ -576,13 +576,10 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     log.info("finished: busy %.2f s, %d domain loads", busy_total, int(totals.get("loads", 0)))
 
 
-def job_units(job: dict, settings) -> list[tuple[int | None, int, int]]:
+def job_units(job: dict) -> list[tuple[int | None, int, int]]:
     """The job's units of work in order: (frame or None, first sample, stop sample), one per
-    pass of each frame (``job["units"]``; a job without them: each frame whole)."""
-    if job.get("units") is not None:
-        return [(None if u[0] is None else int(u[0]), int(u[1]), int(u[2]))
-                for u in job["units"]]
-    return [(frame, 0, settings.spp) for frame in (job.get("frames") or [None])]
+    pass of each frame."""
+    return [(None if u[0] is None else int(u[0]), int(u[1]), int(u[2])) for u in job["units"]]
 
 
 async def _granted(management, unit: int, count: int) -> int:

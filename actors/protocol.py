@@ -16,7 +16,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 HELLO = "hello"          # node -> coordinator: rank, endpoint
-JOB = "job"              # coordinator -> node: store, scene, settings, job options, peers
+JOB = "job"              # coordinator -> node: store, scene, settings, job options, peers,
+                         # units (frame, first sample, stop sample) and whether they are paced
 PROGRESS = "progress"    # node -> coordinator: paths done
 HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
 FILM = "film"            # node -> parent node / root -> coordinator: partial film
@@ -49,7 +50,7 @@ _NUMBER = (int, float)
 META = {
     HELLO: {"rank": int, "endpoint": str},
     JOB: {"store": str, "settings": dict, "options": dict, "rank": int, "size": int,
-          "endpoints": list},
+          "endpoints": list, "units": list, "paced": bool},
     PROGRESS: {"rank": int, "paths": int},
     HEARTBEAT: {},
     FILM: {"rank": int},

@@ -226,17 +226,26 @@ def write_png(path, rgb: np.ndarray, exposure: float = 1.0, legend=None) -> None
         Image.fromarray(image, mode="RGB").save(tmp, format="PNG")
 
 
+#: ε of the per-pixel relative MSE ``mean((x - r)**2 / (r**2 + ε))`` (as in Rousselle et
+#: al. 2011 and the denoising literature): keeps black pixels from dominating.
+REL_MSE_EPSILON = 1e-2
+
+
+def relative_mse(image: np.ndarray, reference: np.ndarray) -> float:
+    """Per-pixel relative MSE, ``mean((x - r)**2 / (r**2 + ε))`` over pixels and channels."""
+    x, r = image.astype(np.float64), reference.astype(np.float64)
+    return float(np.mean((x - r) ** 2 / (r ** 2 + REL_MSE_EPSILON)))
+
+
 def image_error(image: np.ndarray, reference: np.ndarray) -> dict:
     """MSE, PSNR (peak = reference maximum, at least 1), relative MSE and max abs difference.
 
     ``rel_mse`` is the per-pixel relative MSE ``mean((x - r)**2 / (r**2 + ε))``, ε = 1e-2
-    (``progressive.REL_MSE_EPSILON``), the rendering literature's measure: every pixel's
+    (``REL_MSE_EPSILON``), the rendering literature's measure: every pixel's
     error relative to its own brightness. ``rel_mse_global`` is ``mse / mean(reference**2)``,
     the error relative to the reference's whole energy. ``psnr_db`` is ``None`` for identical
     images (infinite PSNR has no JSON spelling), ``rel_mse_global`` for an all-black
     reference."""
-    from vastray.render.progressive import relative_mse
-
     if image.shape != reference.shape:
         raise ValueError(f"image shapes differ: {image.shape} vs {reference.shape}")
     ref = reference.astype(np.float64)

@@ -21,13 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.render.film import Film
+from vastray.render.imageio import REL_MSE_EPSILON, image_error
 
 #: The most samples one pass adds per pixel (once the doubling passes reach it).
 DEFAULT_MAX_PASS_SPP = 16
-
-#: ε of the per-pixel relative MSE ``mean((x - r)**2 / (r**2 + ε))`` (as in Rousselle et
-#: al. 2011 and the denoising literature): keeps black pixels from dominating.
-REL_MSE_EPSILON = 1e-2
 
 #: Two-sided 95 % quantile of the normal distribution.
 Z95 = 1.959963984540054
@@ -71,26 +68,18 @@ class StopRules:
         return self.time_limit is not None or self.target_error is not None
 
 
-def relative_mse(image: np.ndarray, reference: np.ndarray) -> float:
-    """Per-pixel relative MSE, ``mean((x - r)**2 / (r**2 + ε))`` over pixels and channels."""
-    x, r = image.astype(np.float64), reference.astype(np.float64)
-    return float(np.mean((x - r) ** 2 / (r ** 2 + REL_MSE_EPSILON)))
-
-
 def pass_point(film: Film, index: int, seconds: float,
                reference: np.ndarray | None = None) -> dict:
     """One entry of the report's ``passes``: the film after pass ``index`` at ``seconds``.
 
     Keys: ``pass``, ``seconds``, ``spp`` (samples per pixel so far); against ``reference``
-    ((H, W, 3), else None) ``mse``, ``rel_mse`` (per pixel, ``relative_mse``),
+    ((H, W, 3), else None) ``mse``, ``rel_mse`` (per pixel, ``imageio.relative_mse``),
     ``rel_mse_global`` (``mse / mean(r**2)``), ``psnr_db``; from the film alone
     ``variance_of_mean`` (the image's mean of each pixel's estimated variance of its mean),
     ``estimated_rel_mse`` (``mean(var / (x**2 + ε))``: the relative MSE the noise alone
     gives) and ``mean_radiance`` with ``ci95``, its 95 % confidence interval. Estimates need
     2 samples per pixel (None before).
     """
-    from vastray.render.imageio import image_error
-
     image = film.image()
     spp = int(film.count.max()) if film.count.size else 0
     point = {"pass": int(index), "seconds": round(float(seconds), 4), "spp": spp}

@@ -113,7 +113,8 @@ def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
         assert decode(hello).kind == protocol.HELLO
         wire = dict(JobOptions().to_wire(), version=99)
         job = {"store": str(tmp_path), "settings": {}, "options": wire, "rank": 0, "size": 1,
-               "endpoints": [decode(hello).meta["endpoint"]]}
+               "endpoints": [decode(hello).meta["endpoint"]], "units": [[None, 0, 1]],
+               "paced": False}
         router.send_multipart([identity, b"token", *encode(protocol.JOB, {}, job)])
         failed = None
         while failed is None and router.poll(30_000):

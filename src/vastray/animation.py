@@ -224,6 +224,12 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
     summary = _Summary()
     start = time.perf_counter()
     recoveries: list[dict] = []  # nodes lost so far (each frame's result lists them all)
+    loaded: dict[int, np.ndarray] = {}  # a frame's reference, read once for passes and error
+
+    def reference_image(frame: int) -> np.ndarray:
+        if frame not in loaded:
+            loaded[frame] = read_image(references[frame])
+        return loaded[frame]
 
     with ExitStack() as written:  # every frame's files, or none: renamed into place together
         def on_frame(frame: int, result: RenderResult) -> None:
@@ -231,7 +237,8 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             image = result.film.image()
             count_overflow(image, result.counters, str(files[0]))
             reference = references.get(frame)
-            error = image_error(image, read_image(reference)) if reference else None
+            error = image_error(image, reference_image(frame)) if reference else None
+            loaded.pop(frame, None)
             seed = frame_seed(settings.seed, frame)
             write_image(written.enter_context(atomic_path(files[0])), image,
                         result.film.depth_image(), result.film.normal_image(), args.exposure,
@@ -255,7 +262,7 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             reference = references.get(frame)
             return Progression(settings.width, settings.height,
                                rules or StopRules(settings.spp),
-                               None if reference is None else read_image(reference))
+                               None if reference is None else reference_image(frame))
 
         render_frames(frames, configs, settings, render_one, on_frame, render_many,
                       progression_of)
