@@ -217,7 +217,8 @@ def _catches(pid: int, signum: int) -> bool:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("nodes", [None, 2])
-def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp_path, nodes):
+def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp_path, nodes,
+                                                                       capsys):
     # SIGUSR1 writes a checkpoint at once, Ctrl-C writes one and exits 130; --resume goes on
     # to the image an uninterrupted run gives, bit for bit (on one process, or 2 nodes).
     store, toml = scene
@@ -255,8 +256,9 @@ def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp
     assert partial.shape == (16, 24, 3) and np.isfinite(partial).all()
     resume_where = ["--nodes", "2", "--scheduler", "spec-insitu"] if not nodes else where
     assert main(["render", *common, *resume_where, "-o", str(tmp_path / "run.exr"),
-                 "--report", str(tmp_path / "run.json"), "--resume", str(ckpt),
-                 "--quiet"]) == 0
+                 "--report", str(tmp_path / "run.json"), "--resume", str(ckpt)]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]  # without --quiet, as users run it
+    assert last.startswith("wrote ") and "2048 spp" in last, last
     np.testing.assert_array_equal(read_image(tmp_path / "run.exr"),
                                   read_image(tmp_path / "whole.exr"))
     resumed = json.loads((tmp_path / "run.json").read_text())
@@ -399,3 +401,19 @@ def test_checkpoints_are_written_when_due_and_read_back(tmp_path):
     progression.add_pass(0, Film(4, 2))
     with pytest.raises(InputError, match="c.npz"):
         broken.drain()
+
+
+def test_without_quiet_the_last_line_says_which_rule_stopped_the_render(scene, tmp_path,
+                                                                        capsys):
+    # the CLI as users run it (a crash in the summary line once hid behind --quiet)
+    store, toml = scene
+    for where in ([], ["--nodes", "2", "--scheduler", "async"]):
+        assert main(["render", str(store.path), "-o", str(tmp_path / "a.exr"), "--scene",
+                     str(toml), "--width", "32", "--height", "24", "--spp", "256",
+                     "--target-error", "0.05", *where]) == 0
+        last = capsys.readouterr().err.strip().splitlines()[-1]
+        assert last.startswith("wrote ") and "; stopped by --target-error at " in last, last
+    assert main(["render", str(store.path), "-o", str(tmp_path / "b.exr"), "--scene", str(toml),
+                 "--width", "32", "--height", "24", "--spp", "4"]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("wrote ") and "stopped by" not in last, last  # --spp: said by spp
