@@ -49,10 +49,14 @@ from vastray.scene.store import Store
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.security import (
-    ClusterKeys,
+    AllowList,
+    CoordinatorKeys,
+    Credentials,
+    Gate,
     check_bind,
-    secure_server,
-    start_authenticator,
+    new_secret,
+    serve,
+    write_join_secret,
 )
 
 log = logging.getLogger(__name__)
@@ -95,7 +99,7 @@ def exit_cause(code: int) -> str:
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
                        settings: RenderSettings, nodes: int, options: JobOptions | None = None,
                        timeout: float = 120.0, listen: str | None = None,
-                       keys: ClusterKeys | None = None,
+                       keys: CoordinatorKeys | None = None,
                        launched: dict[str, tuple[subprocess.Popen, Path]] | None = None,
                        progress: bool = False, config: SceneConfig | None = None,
                        rendezvous: str | os.PathLike | None = None,
@@ -115,7 +119,10 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,
         SSH); default: start them here as child processes, on loopback.
-    keys : cluster keys; required to listen beyond loopback.
+    keys : the coordinator's keys (``load_coordinator_keys``); with ``listen``, nodes join
+        only with a key on their allow-list. Required to listen beyond loopback. Without
+        keys, only nodes started here, or with ``listen`` (on loopback) nodes of this user on
+        this machine (they read this render's join secret from ``join_secret_path``), join.
     launched : with ``listen``, processes started for the nodes elsewhere (name -> process,
         log file), e.g. ssh sessions: one that exits early fails the run with its name.
     max_batch_rays : most rays in one batch between two nodes (domain, async).
@@ -188,7 +195,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "scene_toml": config.text, "scene_source": config.source,
         "frame": config.frame,  # nodes resolve the scene's camera and lights at this frame
         "settings": asdict(settings), "options": options.to_wire(),
+        "domains": len(store.domains),
     }
+    secret = new_secret()  # the join secret without keys: one for every attempt
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp * len(frames or [None])
     progressions: dict[int | None, Progression] = {}
@@ -239,7 +248,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
                     regroup=survive_node_loss and size > 1, bound=bound,
-                    spare_exits=spare_exits, passes=passes))
+                    spare_exits=spare_exits, passes=passes, secret=secret))
             break
         except NodeLost as lost:
             if not survive_node_loss or size == 1:
@@ -367,23 +376,28 @@ def _without_exited(launched: dict[str, tuple[subprocess.Popen, Path]], spare_ex
 
 
 async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: float,
-                      listen: str | None, keys: ClusterKeys | None,
+                      listen: str | None, keys: CoordinatorKeys | None,
                       launched: dict[str, tuple[subprocess.Popen, Path]], bar: tqdm,
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
                       heartbeat_timeout: float | None = None, frame_done=None,
                       regroup: bool = False, bound: dict | None = None, spare_exits: int = 0,
-                      *, passes: _Passes):
+                      *, passes: _Passes, secret: bytes):
     """One attempt at the job on ``size`` nodes (``passes``: its units, see ``_Passes``).
     With ``listen`` and ``regroup``, a node lost mid-frame makes the coordinator tell the
     others to regroup before ``NodeLost`` is raised; ``bound["listen"]`` gets the address
-    bound, for the next attempt."""
+    bound, for the next attempt. Nodes authenticate with ``keys`` (only with ``listen``), or
+    with the join ``secret``: handed to the nodes started here through a pipe, and left for
+    nodes of this user on this machine in a file only the user can read."""
     host, _, port = (listen or "127.0.0.1:0").rpartition(":")
-    check_bind(host, keys)
+    credentials = (Credentials(keys=keys) if keys is not None and listen is not None
+                   else Credentials(secret=secret))
+    check_bind(host, credentials)
     ctx = zmq.asyncio.Context()
-    auth = start_authenticator(ctx, keys)
+    gate = Gate(ctx, secret=None if credentials.curve else secret,
+                allow=AllowList(keys.allow_dir).keys().__contains__ if credentials.curve
+                else None, what="the coordinator")
     router = ctx.socket(zmq.ROUTER)
-    router.setsockopt(zmq.LINGER, 0)
-    secure_server(router, keys)
+    serve(router, credentials)
     try:
         if int(port or 0):
             router.bind(f"tcp://{host}:{port}")
@@ -391,29 +405,26 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             port = router.bind_to_random_port(f"tcp://{host}")
     except zmq.ZMQError as exc:
         router.close(linger=0)
-        if auth is not None:
-            auth.stop()
+        gate.close()
         ctx.destroy(linger=0)
         raise NodeFailure(f"cannot listen on tcp://{host}:{port}: {exc}") from None
+    gate.watch(router, f"tcp://{host}:{port}")
     if bound is not None:
         bound["listen"] = f"{host}:{port}"
     linger = 0
     logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
     beating = None
-    token = secrets.token_bytes(16)  # the job's identity: every message carries it
+    secret_file = None
+    token = secrets.token_bytes(16)  # this attempt's: every control message carries it
     try:
         if listen is None:
             for rank in range(size):
-                log_file = open(Path(logs.name) / f"node{rank}.log", "wb")  # noqa: SIM115
-                procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "vastray.actors.node", "--coordinator",
-                     f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout)],
-                    stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL,
-                    env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid()),
-                                            protocol.JOB_TOKEN_ENV: token.hex()})))
-                log_file.close()
+                procs.append(_start_local_node(rank, port, timeout, secret,
+                                               Path(logs.name) / f"node{rank}.log"))
         else:
+            if not credentials.curve:
+                secret_file = write_join_secret(int(port), secret)
             if rendezvous is not None:
                 reachable = socket.getfqdn() if host in ("0.0.0.0", "*", "") else host
                 write_address(rendezvous, f"tcp://{reachable}:{port}")
@@ -422,10 +433,9 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
         address = f"tcp://{host}:{port}"
         watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
-                       open_join=listen is not None,
                        heartbeat_timeout=heartbeat_timeout or timeout, spare_exits=spare_exits,
                        regrouping=bool(bound and bound.get("regrouping")))
-        identities, endpoints = {}, [None] * size
+        identities, endpoints, member_keys = {}, [None] * size, [b""] * size
         while len(identities) < size:
             identity, message = await watch.receive(router)
             if message.kind == protocol.HELLO and identity not in watch.members:
@@ -434,14 +444,17 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                     rank = min(set(range(size)) - set(identities))
                 identities[rank] = identity
                 endpoints[rank] = message.meta["endpoint"]
+                member_keys[rank] = watch.user_ids.pop(identity, b"")
                 watch.joined(rank, identity, message.meta)
                 if listen is not None and verbose:
                     print(f"node {rank} joined from {message.meta.get('host', '?')} "
                           f"(pid {message.meta.get('pid', '?')}), {len(identities)} of {size}",
                           file=sys.stderr)
+        peer_tokens = _pair_tokens(size)
         for rank in range(size):
-            frames = encode(protocol.JOB, {}, dict(job, endpoints=endpoints, rank=rank,
-                                                   size=size))
+            frames = encode(protocol.JOB, {}, dict(
+                job, endpoints=endpoints, rank=rank, size=size, peer_tokens=peer_tokens[rank],
+                keys=member_keys if credentials.curve else []))
             await router.send_multipart([identities[rank], token, *frames])
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
@@ -464,6 +477,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         await watch.wait_exit()
         for report in reports.values():
             report["counters"]["coordinator_rejected_messages"] = watch.rejections.total
+            report["counters"]["coordinator_refused_connections"] = (
+                gate.refusals + gate.failed_handshakes)
         return film, [reports[r] for r in range(size)], control.barriers
     finally:
         if beating is not None:
@@ -473,12 +488,41 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 proc.kill()
                 proc.wait()
         router.close(linger=linger)
-        if auth is not None:
-            auth.stop()
+        gate.close()
         ctx.destroy(linger=0)
         logs.cleanup()
+        if secret_file is not None:
+            secret_file.unlink(missing_ok=True)
         if rendezvous is not None and listen is not None:
             Path(rendezvous).unlink(missing_ok=True)
+
+
+def _start_local_node(rank: int, port: int, timeout: float, secret: bytes,
+                      log_path: Path) -> subprocess.Popen:
+    """Start node ``rank`` here, handing it the join secret through a pipe (never argv or
+    the environment, which other processes may read)."""
+    read_end, write_end = os.pipe()
+    os.write(write_end, secret)  # 32 bytes: far below the pipe's buffer
+    os.close(write_end)
+    try:
+        with open(log_path, "wb") as log_file:
+            return subprocess.Popen(
+                [sys.executable, "-m", "vastray.actors.node", "--coordinator",
+                 f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout),
+                 "--secret-fd", str(read_end)],
+                stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL,
+                pass_fds=(read_end,),
+                env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid())}))
+    finally:
+        os.close(read_end)
+
+
+def _pair_tokens(size: int) -> list[list[bytes]]:
+    """For each rank, the token it shares with each other rank (``[i][j] == [j][i]``, each
+    pair's its own): a peer message's token names its sender to its receiver, and no third
+    node knows it."""
+    pairs = {(i, j): secrets.token_bytes(16) for i in range(size) for j in range(i, size)}
+    return [[pairs[min(i, j), max(i, j)] for j in range(size)] for i in range(size)]
 
 
 async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
@@ -797,20 +841,30 @@ def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
     return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
 
 
+def _is_hello(body: list) -> bool:
+    """Whether an undecoded message is a hello (a member repeats its hello, with whatever
+    token it had, until its job comes)."""
+    try:
+        return decode(body).kind == protocol.HELLO
+    except CodecError:
+        return False
+
+
 class _Watch:
     """Receives from the coordinator socket while watching the nodes: child processes that
     exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
     def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
                  launched: dict[str, tuple[subprocess.Popen, Path]], address: str = "",
-                 token: bytes = b"", open_join: bool = False,
+                 token: bytes = b"",
                  heartbeat_timeout: float | None = None, spare_exits: int = 0,
                  regrouping: bool = False):
         self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
         self.regrouping = regrouping  # the survivors of a node loss are to join again
         self.heartbeat_timeout = heartbeat_timeout or timeout
         self.launched, self.address = dict(launched), address
-        self.token, self.open_join = token, open_join
+        self.token = token
+        self.user_ids: dict[bytes, bytes] = {}  # socket identity -> CURVE key, of hellos
         self.started = time.monotonic()
         self.last_heard = [self.started] * size
         self.ranks_joined: set[int] = set()
@@ -961,37 +1015,37 @@ class _Watch:
                     return admitted
 
     def _admit(self, frames: list):
-        """Check one message: the job token, the sender (a member speaks only for its own
-        rank; a stranger may only say hello, with the token, or with none where nodes join
-        from elsewhere under CURVE), the kind's schema, and once-only kinds (the film from
-        rank 0, each rank's done). A node joining from elsewhere repeats its hello (without
-        the token) until its job comes; a member's repeat passes here, to be ignored."""
+        """Check one message (every connection is a member's: the handshake admitted it):
+        the sender (a socket that has not joined may only say hello; a member speaks only
+        for its own rank, with this attempt's token), the kind's schema, and once-only kinds
+        (the film of each unit from rank 0, each rank's done). A node repeats its hello until
+        its job comes; a member's repeat passes here, to be ignored."""
         if len(frames) < 3:
             raise protocol.ProtocolError("no identity, token or header frame")
         identity, token, body = frames[0].bytes, frames[1].bytes, frames[2:]
         rank = self.members.get(identity)
-        open_hello = self.open_join and token == b""
-        if token != self.token and not open_hello:
-            self.rejections.add("stranger", "a message without this job's token")
+        if rank is not None and token != self.token and not _is_hello(body):
+            self.rejections.add("stranger", f"node {rank} without this attempt's token")
             return None
         message = decode(body)
-        if token != self.token:  # a hello without the token (a member's repeat included)
-            protocol.check(message, frozenset({protocol.HELLO}))
-            return identity, message
         protocol.check(message, protocol.FROM_NODE if rank is not None
                        else frozenset({protocol.HELLO}))
-        if rank is not None:
-            if message.meta.get("rank", rank) != rank:
-                raise protocol.ProtocolError(f"node {rank} spoke for rank "
-                                             f"{message.meta.get('rank')}")
-            once = ((message.kind, rank, message.meta.get("frame"), message.meta.get("unit"))
-                    if message.kind in (protocol.DONE, protocol.FILM, protocol.FRAME) else None)
-            if once is not None:
-                if once in self.once or (message.kind == protocol.FILM and rank != 0):
-                    raise protocol.ProtocolError(f"a second or unexpected {message.kind} from "
-                                                 f"node {rank}")
-                self.once.add(once)
-            self.heard(rank)
+        if rank is None:
+            self.user_ids[identity] = frames[1].get("User-Id").encode()
+            return identity, message
+        if message.kind == protocol.HELLO:
+            return identity, message
+        if message.meta.get("rank", rank) != rank:
+            raise protocol.ProtocolError(f"node {rank} spoke for rank "
+                                         f"{message.meta.get('rank')}")
+        once = ((message.kind, rank, message.meta.get("frame"), message.meta.get("unit"))
+                if message.kind in (protocol.DONE, protocol.FILM, protocol.FRAME) else None)
+        if once is not None:
+            if once in self.once or (message.kind == protocol.FILM and rank != 0):
+                raise protocol.ProtocolError(f"a second or unexpected {message.kind} from "
+                                             f"node {rank}")
+            self.once.add(once)
+        self.heard(rank)
         return identity, message
 
     async def wait_exit(self, grace: float = 15.0) -> None:

@@ -309,10 +309,10 @@ class _Node:
             self.deliver(policy, message)
 
     def accept(self, policy, message) -> bool:
-        """Deliver a batch of the current tile (True); hold back one of a later tile."""
+        """Deliver a batch of the current tile (True); hold back one of a later tile, or drop
+        one that does not fit its tile (False)."""
         if message.meta.get("tile") == self.tile:
-            self.deliver(policy, message)
-            return True
+            return self.deliver(policy, message)
         self.early.setdefault(message.meta.get("tile"), []).append(message)
         return False
 
@@ -357,23 +357,31 @@ class _Node:
                 frames = encode(protocol.RAYS, {"domain": domains, **all_rays.take(rows).fields},
                                 {"queue": queue, "rank": self.rank, "tile": tile})
                 start = time.perf_counter()
-                await self.management.to_peer(self.management.endpoints[node], frames)
+                await self.management.to_peer(node, frames)
                 self.stats["send_s"] += time.perf_counter() - start
                 self.sent_to[node] = self.sent_to.get(node, 0) + 1
                 self.stats["batches_sent"] += 1
                 self.stats["rays_sent"] += len(domains)
                 self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
 
-    def deliver(self, policy, message) -> None:
+    def deliver(self, policy, message) -> bool:
+        """Hand a batch to the tile's policy (True), or drop and count one whose path indices
+        are not paths of the tile (False)."""
+        try:
+            protocol.check_ray_paths(message, len(policy.ctx.pixel))
+        except protocol.ProtocolError as exc:
+            self.management.rejections.add("malformed", str(exc))
+            return False
         self.stats["batches_received"] += 1
         if not message.arrays:
-            return
+            return True
         self.stats["rays_received"] += len(message.arrays["domain"])
         self.stats["bytes_received"] += sum(a.nbytes for a in message.arrays.values())
         arrays = dict(message.arrays)
         domains = np.array(arrays.pop("domain"))
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
         policy.receive(message.meta["queue"], domains, rays)
+        return True
 
     async def rounds(self, policy, preloader, tile: int) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes."""
@@ -434,7 +442,7 @@ class _Node:
         frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank,
                                                 "tile": self.tile})
         start = time.perf_counter()
-        await self.management.to_peer(self.management.endpoints[node], frames)
+        await self.management.to_peer(node, frames)
         self.stats["send_s"] += time.perf_counter() - start
         self.stats["batches_sent"] += 1
         self.stats["rays_sent"] += len(arrays.get("domain", ()))
@@ -528,8 +536,7 @@ class _AsyncFrame:
         """Deliver a batch of this frame (True), or hold one of a later frame (False)."""
         tile = int(message.meta["tile"]) - self.base
         if 0 <= tile < self.n_tiles:
-            self.node.deliver(self.policy(tile), message)
-            return True
+            return self.node.deliver(self.policy(tile), message)
         # a later frame's batch, from a node that went on first
         self.node.early.setdefault(int(message.meta["tile"]), []).append(message)
         return False

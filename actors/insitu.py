@@ -130,7 +130,7 @@ class _InSitu:
         shadows: SoA | None = None        # valid shadow rays to test remotely, then retire
         for depth in range(ctx.settings.bounces + 2 if ctx.settings.integrator == "pt" else 2):
             self.stats["iterations"] += 1
-            rad_in, shadow_in = await self._exchange(rays, shadows, tile, depth)
+            rad_in, shadow_in = await self._exchange(rays, shadows, tile, depth, n_paths, slots)
             best, ray_of_path = self._trace_radiance(rays, rad_in, n_paths)
             obuf = np.zeros((n_paths, slots), bool)
             self._trace_shadow(shadow_in, obuf)
@@ -157,7 +157,8 @@ class _InSitu:
         return result
 
     # -- exchange -----------------------------------------------------------------------------
-    async def _exchange(self, rays: SoA, shadows: SoA | None, tile: int, depth: int):
+    async def _exchange(self, rays: SoA, shadows: SoA | None, tile: int, depth: int,
+                        n_paths: int, slots: int):
         """Queue every ray into the domains it crosses (before its cached hit); local copies
         stay, the others go to their owners; returns the copies for this node's domains."""
         parts = {"radiance": [], "shadow": []}
@@ -190,13 +191,27 @@ class _InSitu:
                 frames = encode(protocol.RAYS, arrays, {"queue": name, "rank": self.rank,
                                                         "tile": tile, "depth": depth})
                 start = time.perf_counter()
-                await self.management.to_peer(self.management.endpoints[node], frames)
+                await self.management.to_peer(node, frames)
                 self.stats["send_s"] += time.perf_counter() - start
                 self.stats["batches_sent"] += 1
                 self.stats["rays_sent"] += int(rows.sum())
                 self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
-        for _ in range(2 * (self.size - 1)):
+        received = 0
+        while received < 2 * (self.size - 1):
             message = await self.management.receive(protocol.RAYS, "ray batch")
+            try:  # indices into this tile's paths and shadow slots
+                protocol.check_ray_paths(message, n_paths)
+                slot = message.arrays.get("slot")
+                if slot is not None and len(slot) and not 0 <= int(slot.min()) <= int(
+                        slot.max()) < slots:
+                    raise protocol.ProtocolError(f"rays: slot outside 0..{slots - 1}")
+                domain = message.arrays.get("domain")
+                if domain is not None and not self.is_local[domain].all():
+                    raise protocol.ProtocolError("rays for a domain this node does not hold")
+            except protocol.ProtocolError as exc:
+                self.management.rejections.add("malformed", str(exc))
+                continue
+            received += 1
             self.stats["batches_received"] += 1
             if message.arrays:
                 arrays = {k: np.array(v) for k, v in message.arrays.items()}

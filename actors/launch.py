@@ -7,9 +7,11 @@ HOSTFILE, one node per line (``#`` starts a comment)::
     gpu03 python=/usr/bin/python3.11 slots=2   # two nodes on gpu03
 
 Each node is started as ``ssh HOST PYTHON -m vastray.cli node --coordinator tcp://ME:PORT
---bind 0.0.0.0 --keys KEYS``; its output is collected in ``--logs``. The key folder and the
-STORE must be at the same path on every host (a shared file system). When the render ends,
-fails or is interrupted (Ctrl-C), every ssh session is closed.
+--bind 0.0.0.0 --keys KEYS --key-name HOST``: the key folder holds one key per host, named as
+in the HOSTFILE (``vastray keys -o KEYS --node HOST``); its output is collected in
+``--logs``. The key folder and the STORE must be at the same path on every host (a shared
+file system). When the render ends, fails or is interrupted (Ctrl-C), every ssh session is
+closed.
 """
 
 from __future__ import annotations
@@ -68,13 +70,18 @@ def start_nodes(hosts: list[Host], coordinator: str, keys: str, logs: Path,
     for i, host in enumerate(hosts):
         remote = shlex.join([host.python, "-m", "vastray.cli", "node", "--coordinator",
                              coordinator, "--bind", "0.0.0.0", "--keys", keys,
-                             "--timeout", str(timeout)])
+                             "--key-name", host_key_name(host.name), "--timeout", str(timeout)])
         log = logs / f"node{i}-{host.name}.log"
         with open(log, "wb") as out:
             proc = subprocess.Popen([*shlex.split(ssh), host.name, remote], stdout=out,
                                     stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         started[f"{host.name} (node {i})"] = (proc, log)
     return started
+
+
+def host_key_name(host: str) -> str:
+    """The node key a HOSTFILE host uses: its name, user@ and :port left out."""
+    return host.rpartition("@")[2].split(":")[0]
 
 
 def stop_nodes(started: dict[str, tuple[subprocess.Popen, Path]]) -> None:

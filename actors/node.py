@@ -32,18 +32,25 @@ from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
-from vastray.transport.codec import MAX_MESSAGE_BYTES, CodecError, decode, encode
+from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.security import (
-    ClusterKeys,
+    Credentials,
+    Gate,
     check_bind,
-    load_keys,
-    secure_client,
-    secure_server,
-    start_authenticator,
+    connect_as,
+    default_key_name,
+    load_node_keys,
+    read_join_secret,
+    read_secret_fd,
+    serve,
 )
 from vastray.transport.tree import COMBINE, children, parent
 
 log = logging.getLogger(__name__)
+
+
+#: Bytes of peer messages a node holds back before it has its job (members only get so far).
+EARLY_BUDGET = 256 << 20
 
 
 class AuthenticationFailed(RuntimeError):
@@ -78,51 +85,57 @@ class ManagementActor:
     The receive path never waits and never dies: a mailbox has no count limit, so a kind whose
     reader is busy never holds back another kind, and a node sending to a peer is never
     blocked by a peer that is itself blocked sending (the deadlock of bounded mailboxes).
-    Every message is checked before delivery: the job token frame (a message from outside
-    the job is dropped undecoded; from the coordinator too, once the token is known), the
-    codec, the sender's role (control kinds only from the coordinator, data kinds only from
-    peers), the kind's schema, and the budget of bytes held undelivered. A message that fails
-    is dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
-    Sockets refuse frames over the codec's size limit.
+
+    Who may send is settled in layers. The handshake admits only members of the job (the join
+    secret, or with keys a key on the allow-list for the coordinator and a member's key for
+    peers); nothing else ever reaches this code. Each peer message then carries the token
+    this node shares with its sender alone (``peer_tokens``, from the job), which names the
+    sender's rank; the rank in the message must be that one (and with keys, so must the
+    sender's CURVE key), and the kind must be one that rank may send now (``protocol.
+    peer_rule``: a film only from a tree child, once per unit; a broadcast only from the
+    parent). Ray batches name only domains of the job. A message that fails any check is
+    dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
 
     Parameters
     ----------
-    token : the job token, when known at start (nodes started by the coordinator); else the
-        token of the first job received is adopted.
+    credentials : this node's keys, or the join secret.
     """
 
     def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
-                 advertise: str, timeout: float, keys: ClusterKeys | None,
-                 token: bytes | None = None):
+                 advertise: str, timeout: float, credentials: Credentials, gate: Gate):
         self.ctx = ctx
         self.timeout = timeout
-        self.keys = keys
-        self.token = token
+        self.credentials = credentials
+        self.gate = gate
+        self.token: bytes | None = None  # the coordinator channel's, from the job
         self.rejections = protocol.Rejections()
         self.router = ctx.socket(zmq.ROUTER)
-        self.router.setsockopt(zmq.LINGER, 0)
-        self.router.setsockopt(zmq.RCVHWM, 64)
-        self.router.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
-        secure_server(self.router, keys)
+        serve(self.router, credentials)
+        gate.watch(self.router, "this node's peer port")
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
-        self.coordinator = self._dealer(coordinator)
+        keys = credentials.keys
+        self.coordinator = self._dealer(coordinator, keys.coordinator_public if keys else None)
         self.coordinator_heard = time.monotonic()
-        self.peers: dict[str, zmq.asyncio.Socket] = {}
+        self.peers: dict[int, zmq.asyncio.Socket] = {}
+        self.rank, self.size = -1, 0
         self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
+        self.peer_tokens: list[bytes] = []  # the token shared with each rank (from the job)
+        self.peer_ranks: dict[bytes, int] = {}
+        self.peer_keys: list[bytes] = []  # each rank's CURVE public key (with keys)
+        self.n_domains = 0
+        self.films_taken: set[tuple[int, int]] = set()  # (child rank, unit ordinal)
         self.mailboxes: dict[str, _Mailbox] = {}
-        # Peer messages that came before this node knew its job token (a fast peer may send
-        # before the job reached this node); checked once the token is known.
-        self._early: list[tuple[bytes, list]] = []
+        # Peer messages that came before this node had its job (a fast peer may send before
+        # the job reached this node); checked once it has. Only members get this far.
+        self._early: list[list] = []
+        self._early_bytes = 0
         self._tasks = [asyncio.ensure_future(self._route(self.router, from_peer=True)),
                        asyncio.ensure_future(self._route(self.coordinator, from_peer=False))]
 
-    def _dealer(self, endpoint: str) -> zmq.asyncio.Socket:
+    def _dealer(self, endpoint: str, server_key: bytes | None) -> zmq.asyncio.Socket:
         sock = self.ctx.socket(zmq.DEALER)
-        sock.setsockopt(zmq.LINGER, 0)
-        sock.setsockopt(zmq.SNDHWM, 64)
-        sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
-        secure_client(sock, self.keys)
+        connect_as(sock, self.credentials, server_key)
         sock.connect(endpoint)
         return sock
 
@@ -133,7 +146,10 @@ class ManagementActor:
         while True:
             frames = await sock.recv_multipart(copy=False)
             try:
-                self._take(frames[1:] if from_peer else frames, from_peer)
+                if from_peer:
+                    self._take_peer(frames[1:])
+                else:
+                    self._take_control(frames)
             except Exception as exc:  # noqa: BLE001 - the receive path must never die
                 self.rejections.add("internal", f"{type(exc).__name__}: {exc}")
             # A receive that finds a message waiting completes without yielding to the event
@@ -141,53 +157,114 @@ class ManagementActor:
             # stalled to its coordinator in one CI run of the flood test). Yield each time.
             await asyncio.sleep(0)
 
-    def _take(self, frames: list, from_peer: bool) -> None:
-        """Check one received message and deliver it to its mailbox, or drop it."""
+    def _take_control(self, frames: list) -> None:
+        """Check one message from the coordinator and deliver it, or drop it."""
         if len(frames) < 2:
             self.rejections.add("malformed", "no token or header frame")
             return
-        token, body = frames[0].bytes, frames[1:]
-        if from_peer:
-            if self.token is None:
-                if len(self._early) < 4096:
-                    self._early.append((token, body))
-                else:
-                    self.rejections.add("budget", "too many messages before the job")
-                return
-            if token != self.token:
-                self.rejections.add("stranger", "a peer message without this job's token")
-                return
-        else:
-            if self.token is not None and token != self.token:
-                # the coordinator connection is this node's own, but once the job is known
-                # its control messages (a regroup above all) must carry the job's token
-                self.rejections.add("stranger", "a control message without this job's token")
-                return
-            self.coordinator_heard = time.monotonic()
+        token = frames[0].bytes
+        if self.token is not None and token != self.token:
+            # once the job is known its control messages (a regroup above all) must carry
+            # the job's token: none of an earlier connection's may act on this job
+            self.rejections.add("stranger", "a control message without this job's token")
+            return
+        self.coordinator_heard = time.monotonic()
         try:
-            message = decode(body)
-            protocol.check(message, protocol.FROM_PEER if from_peer
-                           else protocol.FROM_COORDINATOR)
+            message = decode(frames[1:])
+            protocol.check(message, protocol.FROM_COORDINATOR)
         except (CodecError, protocol.ProtocolError) as exc:
             self.rejections.add("malformed", str(exc))
             return
-        if not from_peer:
-            if message.kind == protocol.HEARTBEAT:
+        if message.kind == protocol.HEARTBEAT:
+            return
+        if message.kind == protocol.JOB and self.token is None:
+            try:
+                self.join(token, message.meta)
+            except protocol.ProtocolError as exc:
+                self.rejections.add("malformed", f"job: {exc}")
                 return
-            if message.kind == protocol.JOB and self.token is None:
-                self.adopt_token(token)
+        self._deliver(message)
+
+    def join(self, token: bytes, job: dict) -> None:
+        """Learn the job: the coordinator channel's token, this node's rank, its peers (their
+        endpoints, the token shared with each, their keys), then check the peer messages held
+        back.
+
+        Raises
+        ------
+        ProtocolError
+            For a job whose peer lists do not match its size.
+        """
+        size, rank = int(job["size"]), int(job["rank"])
+        tokens = job.get("peer_tokens")
+        keys = job.get("keys") or []
+        if not (0 <= rank < size and len(job["endpoints"]) == size
+                and isinstance(tokens, list) and len(tokens) == size
+                and all(isinstance(t, bytes) and len(t) >= 16 for t in tokens)
+                and len(set(tokens)) == size
+                and (not self.credentials.curve or (
+                    len(keys) == size and all(isinstance(k, bytes) for k in keys)))):
+            raise protocol.ProtocolError("rank, endpoints, peer tokens or keys do not fit "
+                                         "the job's size")
+        self.token, self.rank, self.size = token, rank, size
+        self.endpoints = list(job["endpoints"])
+        self.peer_tokens = tokens
+        self.peer_ranks = {t: r for r, t in enumerate(tokens)}
+        self.peer_keys = list(keys)
+        if self.credentials.curve:
+            self.gate.open(frozenset(self.peer_keys).__contains__)
+        self.n_domains = int(job.get("domains", 0))
+        early, self._early, self._early_bytes = self._early, [], 0
+        for frames in early:
+            self._take_peer(frames)
+
+    def _take_peer(self, frames: list) -> None:
+        """Check one peer message (``[token, header, frame, ...]``) and deliver it, or drop
+        it."""
+        if len(frames) < 2:
+            self.rejections.add("malformed", "no token or header frame")
+            return
+        if self.token is None:
+            size = sum(len(f) for f in frames)
+            if len(self._early) < 4096 and self._early_bytes + size <= EARLY_BUDGET:
+                self._early.append(frames)
+                self._early_bytes += size
+            else:
+                self.rejections.add("budget", "too many messages before the job")
+            return
+        sender = self.peer_ranks.get(frames[0].bytes)
+        if sender is None:
+            self.rejections.add("stranger", "a peer message without a token of this job")
+            return
+        if self.peer_keys and frames[0].get("User-Id").encode() != self.peer_keys[sender]:
+            self.rejections.add("impersonation", f"node {sender}'s token from another key")
+            return
+        try:
+            message = decode(frames[1:])
+            protocol.check(message, protocol.FROM_PEER)
+            if message.meta["rank"] != sender:
+                raise protocol.ProtocolError(f"node {sender} spoke for rank "
+                                             f"{message.meta['rank']}")
+            protocol.check_peer_kind(message, sender, self.rank, self.size)
+            if message.kind == protocol.RAYS:
+                protocol.check_ray_ids(message, self.n_domains)
+            if message.kind == protocol.FILM:
+                once = (sender, int(message.meta.get("ordinal", 0)))
+                if once in self.films_taken:
+                    raise protocol.ProtocolError(f"a second film from node {sender} for "
+                                                 f"unit {once[1]}")
+                self.films_taken.add(once)
+        except (CodecError, protocol.ProtocolError) as exc:
+            self.rejections.add("malformed", str(exc))
+            return
+        self._deliver(message)
+
+    def _deliver(self, message) -> None:
         held = sum(box.nbytes for box in self.mailboxes.values())
         if held + item_nbytes(message) > protocol.UNDELIVERED_BUDGET:
             self.rejections.add("budget", f"{held} bytes already undelivered")
             return
         self.mailbox(message.kind).put_nowait(message)
-
-    def adopt_token(self, token: bytes) -> None:
-        """Learn the job token (from the first job) and check the peer messages held back."""
-        self.token = token
-        early, self._early = self._early, []
-        for peer_token, body in early:
-            self._take([zmq.Frame(peer_token), *body], from_peer=True)
 
     async def watch_coordinator(self, silence: float) -> None:
         """Exit the process once the coordinator has been silent for ``silence`` seconds: it
@@ -269,12 +346,13 @@ class ManagementActor:
             except zmq.Again:
                 pass
 
-    async def to_peer(self, endpoint: str, frames: list) -> None:
-        """Send a message to the node at ``endpoint``, behind the job token frame."""
-        if endpoint not in self.peers:
-            self.peers[endpoint] = self._dealer(endpoint)
-        await asyncio.wait_for(self.peers[endpoint].send_multipart(
-            [self.token or b"", *frames], copy=False), self.timeout)
+    async def to_peer(self, rank: int, frames: list) -> None:
+        """Send a message to node ``rank``, behind the token this node shares with it."""
+        if rank not in self.peers:
+            self.peers[rank] = self._dealer(
+                self.endpoints[rank], self.peer_keys[rank] if self.peer_keys else None)
+        await asyncio.wait_for(self.peers[rank].send_multipart(
+            [self.peer_tokens[rank], *frames], copy=False), self.timeout)
 
     def close(self) -> None:
         for task in self._tasks:
@@ -286,8 +364,8 @@ class ManagementActor:
 class TreeReduceActor:
     """Combines partial results up the binary tree of ranks (ceil(log2 P) steps)."""
 
-    def __init__(self, management: ManagementActor, rank: int, size: int, endpoints: list[str]):
-        self.management, self.rank, self.size, self.endpoints = management, rank, size, endpoints
+    def __init__(self, management: ManagementActor, rank: int, size: int):
+        self.management, self.rank, self.size = management, rank, size
         #: levels the last all-reduce climbed below this node (at the root: the tree's height,
         #: floor(log2 P) <= ceil(log2 P)); carried up in each partial's header.
         self.levels = 0
@@ -308,7 +386,7 @@ class TreeReduceActor:
             film.merge(film_from(await self._child_film(child, ordinal), width, height))
         up = parent(self.rank)
         if up is not None:
-            await self.management.to_peer(self.endpoints[up], film_frames(
+            await self.management.to_peer(up, film_frames(
                 film, {"rank": self.rank, "ordinal": ordinal}))
         return film
 
@@ -333,12 +411,12 @@ class TreeReduceActor:
                 total[name] = COMBINE[op](total[name], message.arrays[name])
         up = parent(self.rank)
         if up is not None:
-            await self.management.to_peer(self.endpoints[up], encode(
+            await self.management.to_peer(up, encode(
                 protocol.REDUCE, total, {"rank": self.rank, "levels": self.levels}))
             message = await self.management.receive(protocol.BROADCAST, "reduced result")
             total = {k: np.array(v) for k, v in message.arrays.items()}
         for child in children(self.rank, self.size):
-            await self.management.to_peer(self.endpoints[child],
+            await self.management.to_peer(child,
                                           encode(protocol.BROADCAST, total, {"rank": self.rank}))
         return total
 
@@ -348,41 +426,46 @@ class JobAborted(RuntimeError):
 
 
 async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str = "127.0.0.1",
-                   advertise: str | None = None, keys: ClusterKeys | None = None) -> None:
+                   advertise: str | None = None, credentials: Credentials | None = None
+                   ) -> None:
     """Serve render jobs from ``coordinator``: say hello, render this node's share, reduce
     films, stop.
 
     ``rank`` -1 lets the coordinator assign one (nodes started by docker compose or SSH).
+    ``credentials``: this node's keys, or the coordinator's join secret (default: read from
+    the file a coordinator of this user on this machine leaves, ``join_secret_path``).
     When the coordinator loses another node mid-frame it tells the survivors to regroup: this
     node drops the job (its work, sockets and caches) and joins the same coordinator again,
-    with the same keys, for the job on one node fewer (new ranks, domains reassigned). A node
-    that hears nothing from the coordinator mid-job (no regroup, no heartbeat) still exits on
-    its own after ``protocol.COORDINATOR_SILENCE_S``.
+    with the same credentials, for the job on one node fewer (new ranks, domains reassigned).
+    A node that hears nothing from the coordinator mid-job (no regroup, no heartbeat) still
+    exits on its own after ``protocol.COORDINATOR_SILENCE_S``.
     """
-    check_bind(bind_host, keys)
+    if credentials is None:
+        port = int(coordinator.rpartition(":")[2])
+        credentials = Credentials(secret=await asyncio.to_thread(read_join_secret, port,
+                                                                 timeout))
+    check_bind(bind_host, credentials)
     ctx = zmq.asyncio.Context()
-    auth = start_authenticator(ctx, keys)
+    gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
-    env_token = os.environ.get(protocol.JOB_TOKEN_ENV)
-    token = None if env_token is None else bytes.fromhex(env_token)
     try:
-        while await _serve_job(ctx, coordinator, rank, timeout, bind_host, advertise, keys,
-                               token):
-            token = None  # the next job has a token of its own, learnt from its job message
+        while await _serve_job(ctx, gate, coordinator, rank, timeout, bind_host, advertise,
+                               credentials):
             log.info("joining %s again", coordinator)
     finally:
-        if auth is not None:
-            auth.stop()
+        gate.close()
         ctx.destroy(linger=0)
 
 
-async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host: str,
-                     advertise: str, keys: ClusterKeys | None, token: bytes | None) -> bool:
+async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: float,
+                     bind_host: str, advertise: str, credentials: Credentials) -> bool:
     """Join the coordinator and serve one job on fresh sockets; True when the coordinator
     called a regroup (join again), False once the job is done and stopped."""
-    management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, keys,
-                                 token=token)
+    if credentials.curve:
+        gate.close_until_known()  # peers of this job: known from its job message
+    management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, credentials,
+                                 gate)
     log.info("listening for peers on %s", management.endpoint)
     advertised = peer_endpoint(management)
     watchers = []
@@ -393,16 +476,14 @@ async def _serve_job(ctx, coordinator: str, rank: int, timeout: float, bind_host
             "rank": rank, "endpoint": advertised, "host": socket.gethostname(),
             "pid": os.getpid()})
         await management.to_coordinator(hello)
-        if token is None:
-            # Joining from elsewhere: say hello again every heartbeat until the job comes. A
-            # hello that reached a coordinator socket about to close (the last job's, after
-            # a regroup) is lost with it; the repeat reaches the next one.
-            watchers.append(asyncio.ensure_future(management.repeat_to_coordinator(hello)))
+        # Say hello again every heartbeat until the job comes. A hello that reached a
+        # coordinator socket about to close (the last job's, after a regroup) is lost with
+        # it; the repeat reaches the next one.
+        watchers.append(asyncio.ensure_future(management.repeat_to_coordinator(hello)))
         waiting = asyncio.ensure_future(management.receive(protocol.JOB,
                                                            "job from the coordinator"))
         await asyncio.wait([waiting, handshake], return_when=asyncio.FIRST_COMPLETED)
-        if token is None:
-            watchers.pop().cancel()
+        watchers.pop().cancel()
         if not waiting.done():
             waiting.cancel()
             handshake.result()  # raises AuthenticationFailed
@@ -484,7 +565,6 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     from vastray.scene.store import Store
 
     rank, size = int(job["rank"]), int(job["size"])
-    management.endpoints = job["endpoints"]
     options = JobOptions.from_wire(job["options"])  # refuses another version, unknown fields
     settings = RenderSettings(**job["settings"])
     store = Store(job["store"])
@@ -511,7 +591,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
             await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
 
     beating = asyncio.ensure_future(heartbeat())
-    tree = TreeReduceActor(management, rank, size, job["endpoints"])
+    tree = TreeReduceActor(management, rank, size)
     state = NodeState()
     units = job_units(job)
     totals: dict = {}
@@ -690,10 +770,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--advertise", help="address peers reach this node at (default: "
                                             "--bind, or for 0.0.0.0 this host's address on "
                                             "the route to the coordinator)")
-    parser.add_argument("--keys", help="cluster key folder from `vastray keys` (CURVE)")
+    parser.add_argument("--keys", metavar="DIR",
+                        help="key folder from `vastray keys` (CURVE): this node's own key "
+                             "pair and the coordinator's public key; without it, the node "
+                             "joins only a coordinator of this user on this machine")
     parser.add_argument("--key-name", metavar="NAME",
-                        help="connect with this node's own key pair from the key folder "
-                             "(`vastray keys --node NAME`; default: the cluster's)")
+                        help="which node key in DIR/nodes is this node's (`vastray keys "
+                             "--node NAME`; default: this host's short name)")
+    parser.add_argument("--secret-fd", type=int, metavar="FD", help=argparse.SUPPRESS)
     return parser
 
 
@@ -727,11 +811,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.key_name and not args.keys:
             raise InputError(None, "--key-name needs --keys DIR")
-        keys = load_keys(args.keys, args.key_name) if args.keys else None
+        credentials = None  # without keys: the join secret the coordinator left for its user
+        if args.keys:
+            credentials = Credentials(keys=load_node_keys(
+                args.keys, args.key_name or default_key_name()))
+        elif args.secret_fd is not None:  # started by the coordinator: a pipe from it
+            credentials = Credentials(secret=read_secret_fd(args.secret_fd))
         coordinator = coordinator_address(args.coordinator
                                           or read_address(args.rendezvous, args.timeout))
         asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
-                             args.advertise, keys))
+                             args.advertise, credentials))
     except InputError as exc:
         print(f"node {label}: error: {exc}", file=sys.stderr)
         return 2

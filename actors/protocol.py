@@ -1,10 +1,11 @@
 """Message kinds between the coordinator and nodes (each a codec message; payload in meta),
 who may send each, and what each must hold.
 
-On the wire every message is ``[job token, header, frame, ...]``: the token frame is the job's
-secret (made by the coordinator; handed to the nodes it starts in their environment and to
-every node in the job), so a message from outside the job is dropped before it is decoded.
-CURVE, where configured, authenticates the connection underneath.
+Only members of the job connect at all (``transport.security``: the handshake admits them).
+On the wire every message is ``[token, header, frame, ...]``: between the coordinator and a
+node, the job's token (made by the coordinator for each attempt, sent in the job); between
+two nodes, the token those two alone share (``peer_tokens`` in the job), which names the
+sender. A message whose token does not fit is dropped before it is decoded.
 """
 
 from __future__ import annotations
@@ -106,6 +107,72 @@ def check(message, allowed: frozenset[str]) -> None:
         raise ProtocolError(f"{kind} carries no arrays")
 
 
+def check_peer_kind(message, sender: int, rank: int, size: int) -> None:
+    """Whether node ``sender`` may send ``message`` to node ``rank`` of ``size``: films and
+    all-reduce partials go up the tree (only from a child), broadcasts down it (only from the
+    parent); ray batches between any two nodes.
+
+    Raises
+    ------
+    ProtocolError
+        Naming the rule broken.
+    """
+    from vastray.transport.tree import children, parent
+
+    kind = message.kind
+    if kind in (FILM, REDUCE) and sender not in children(rank, size):
+        raise ProtocolError(f"{kind} from node {sender}, which is not a child of node {rank}")
+    if kind == BROADCAST and sender != parent(rank):
+        raise ProtocolError(f"broadcast from node {sender}, which is not node {rank}'s parent")
+    if kind == RAYS and sender == rank:
+        raise ProtocolError("ray batch from this node's own rank")
+
+
+#: Ray fields that hold domain ids, and the id each may hold for "none" besides the job's.
+DOMAIN_FIELDS = {"domain": None, "hit_domain": np.iinfo(np.int32).max,
+                 "cand_d": np.iinfo(np.int32).max, "at_d": -1}
+
+
+def check_ray_ids(message, n_domains: int) -> None:
+    """Every domain id in a ray batch names one of the job's ``n_domains`` domains (or is
+    its field's "none").
+
+    Raises
+    ------
+    ProtocolError
+        For an id out of range.
+    """
+    for name, none in DOMAIN_FIELDS.items():
+        ids = message.arrays.get(name)
+        if ids is None or not len(ids):
+            continue
+        if ids.dtype.kind not in "iu" or ids.ndim != 1:
+            raise ProtocolError(f"rays: {name} must be 1-D integers")
+        bad = (ids < 0) | (ids >= n_domains)
+        if none is not None:
+            bad &= ids != none
+        if bad.any():
+            raise ProtocolError(f"rays: {name} {int(ids[bad][0])} is no domain of the job's "
+                                f"{n_domains}")
+
+
+def check_ray_paths(message, n_paths: int) -> None:
+    """Every path index in a ray batch is one of the ``n_paths`` paths of its tile.
+
+    Raises
+    ------
+    ProtocolError
+        For an index out of range.
+    """
+    path = message.arrays.get("path")
+    if path is None or not len(path):
+        return
+    if path.dtype.kind not in "iu" or path.ndim != 1:
+        raise ProtocolError("rays: path must be 1-D integers")
+    if int(path.min()) < 0 or int(path.max()) >= n_paths:
+        raise ProtocolError(f"rays: path outside 0..{n_paths - 1}")
+
+
 def _check_rays(message) -> None:
     from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 
@@ -151,8 +218,6 @@ COORDINATOR_SILENCE_S = 5 * HEARTBEAT_S
 #: they ask the kernel to kill them the moment it exits (Linux's parent-death signal).
 PARENT_PID_ENV = "VASTRAY_PARENT_PID"
 
-#: Environment variable handing the job token to the nodes a coordinator starts itself.
-JOB_TOKEN_ENV = "VASTRAY_JOB_TOKEN"
 
 #: Bytes of received messages a node holds undelivered at most; beyond, messages are dropped
 #: (the protocol bounds honest traffic far below: rays in flight are bounded by the tiles).

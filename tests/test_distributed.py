@@ -18,7 +18,7 @@ from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.errors import InputError
-from vastray.transport.security import load_keys
+from vastray.transport.security import load_coordinator_keys
 from vastray.transport.tree import children, parent
 
 from scenes import POINT_AND_SKY_TOML, allreduce_over_sockets, bumpy_scene, settings, write_store
@@ -168,14 +168,15 @@ def test_unknown_scheduler_for_nodes_is_refused(scene):
         render_distributed(store.path, toml, settings(), 2, options=JobOptions(scheduler="galaxy"))
 
 
-def _start_external_node(coordinator: str, keys: Path | None, log: Path):
+def _start_external_node(coordinator: str, keys: Path | None, log: Path,
+                         key_name: str = "n0"):
     import subprocess
     import sys
 
     cmd = [sys.executable, "-m", "vastray.cli", "node", "--coordinator", coordinator,
            "--timeout", "30"]
     if keys is not None:
-        cmd += ["--keys", str(keys)]
+        cmd += ["--keys", str(keys), "--key-name", key_name]
     with open(log, "wb") as err:
         return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
 
@@ -192,14 +193,15 @@ def test_external_nodes_join_with_curve_keys(scene, tmp_path):
     # The multi-host path (docker compose, SSH): nodes started separately find the
     # coordinator, get ranks assigned, and all traffic is CURVE-encrypted and authenticated.
     store, toml = scene
-    assert main(["keys", "-o", str(tmp_path / "keys")]) == 0
+    assert main(["keys", "-o", str(tmp_path / "keys"), "--node", "n0", "--node", "n1",
+                 "--node", "n2"]) == 0
     port = _free_port()
     nodes = [_start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "keys",
-                                  tmp_path / f"n{i}.log") for i in range(3)]
+                                  tmp_path / f"n{i}.log", f"n{i}") for i in range(3)]
     try:
         st = settings(width=24, height=18, spp=2, integrator="pt")
         result = render_distributed(store.path, toml, st, 3, listen=f"127.0.0.1:{port}",
-                                    keys=load_keys(tmp_path / "keys"), timeout=30,
+                                    keys=load_coordinator_keys(tmp_path / "keys"), timeout=30,
                                     options=JobOptions(max_samples_in_flight=200))
         reference = render(store, load_scene_config(toml), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
@@ -211,15 +213,15 @@ def test_external_nodes_join_with_curve_keys(scene, tmp_path):
 
 def test_node_without_the_key_is_not_admitted(scene, tmp_path):
     store, toml = scene
-    main(["keys", "-o", str(tmp_path / "keys")])
-    main(["keys", "-o", str(tmp_path / "other")])
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "n0"])
+    main(["keys", "-o", str(tmp_path / "other"), "--node", "n0"])
     port = _free_port()
     intruder = _start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "other",
                                     tmp_path / "intruder.log")
     try:
         with pytest.raises(NodeFailure, match="no node joined"):
             render_distributed(store.path, toml, settings(), 1, listen=f"127.0.0.1:{port}",
-                               keys=load_keys(tmp_path / "keys"), timeout=4)
+                               keys=load_coordinator_keys(tmp_path / "keys"), timeout=4)
     finally:
         intruder.kill()
         intruder.wait()
@@ -227,7 +229,7 @@ def test_node_without_the_key_is_not_admitted(scene, tmp_path):
 
 def test_listening_beyond_loopback_needs_keys(scene):
     store, toml = scene
-    with pytest.raises(InputError, match="needs cluster keys"):
+    with pytest.raises(InputError, match="needs keys"):
         render_distributed(store.path, toml, settings(), 1, listen="0.0.0.0:0")
 
 

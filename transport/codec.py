@@ -7,7 +7,10 @@ Header (msgpack map)::
      "fields": [["origin", "<f4", [4096, 3]], ["pixel", "<u4", [4096]], ...],
      "meta": {...}}                     # small msgpack-able dict (ids, counters)
 
-followed by one frame per field, in order, each exactly ``prod(shape) * itemsize`` bytes.
+followed by one frame per field, in order, each exactly ``prod(shape) * itemsize`` bytes. A
+field larger than ``FRAME_LIMIT`` goes as several frames in a row (its entry then has a fourth
+element, the frame count), so that every socket can refuse frames larger than that before it
+holds them (``ZMQ_MAXMSGSIZE``, which ZeroMQ checks per frame).
 """
 
 from __future__ import annotations
@@ -22,6 +25,10 @@ VERSION = 1
 #: Largest message accepted by default (header + frames).
 MAX_MESSAGE_BYTES = 1 << 30
 MAX_FIELDS = 64
+#: Largest frame on the wire: fields beyond it are split (see the module docstring).
+FRAME_LIMIT = 4 << 20
+#: Most frames one field may be split into (a 1 GiB message at most).
+MAX_PARTS = MAX_MESSAGE_BYTES // FRAME_LIMIT
 MAX_HEADER_BYTES = 1 << 20
 #: Plain little-endian numeric types only: nothing that needs pickling or alignment tricks.
 ALLOWED_DTYPES = frozenset({"|b1", "|u1", "<u2", "<u4", "<u8", "|i1", "<i2", "<i4", "<i8",
@@ -63,8 +70,14 @@ def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -
             a = a.astype(a.dtype.newbyteorder("<"))
         if a.dtype.str not in ALLOWED_DTYPES:
             raise CodecError(f"field {name!r}: dtype {a.dtype} cannot be sent")
-        fields.append([name, a.dtype.str, list(a.shape)])
-        frames.append(memoryview(a).cast("B") if a.size else b"")
+        view = memoryview(a).cast("B") if a.size else b""
+        if len(view) > FRAME_LIMIT:
+            parts = [view[i:i + FRAME_LIMIT] for i in range(0, len(view), FRAME_LIMIT)]
+            fields.append([name, a.dtype.str, list(a.shape), len(parts)])
+            frames.extend(parts)
+        else:
+            fields.append([name, a.dtype.str, list(a.shape)])
+            frames.append(view)
     n = len(next(iter(arrays.values()))) if arrays else 0
     header = msgpack.packb({"v": VERSION, "kind": kind, "n": n, "fields": fields,
                             "meta": meta or {}}, use_bin_type=True)
@@ -100,33 +113,48 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         raise CodecError("kind longer than 64 characters")
     if len(fields) > MAX_FIELDS:
         raise CodecError(f"{len(fields)} fields; at most {MAX_FIELDS}")
-    if len(buffers) != 1 + len(fields):
-        raise CodecError(f"header lists {len(fields)} fields but {len(buffers) - 1} frames came")
-    arrays, total = {}, header_bytes
-    for spec, buf in zip(fields, buffers[1:], strict=True):
-        name, dtype, shape = _field(spec)
+    specs = [_field(spec) for spec in fields]
+    if len(buffers) != 1 + sum(parts for *_, parts in specs):
+        raise CodecError(f"header lists {sum(p for *_, p in specs)} frames but "
+                         f"{len(buffers) - 1} frames came")
+    arrays, total, at = {}, header_bytes, 1
+    for name, dtype, shape, parts in specs:
         expected = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
         total += expected
         if total > max_bytes:
             raise CodecError(f"message exceeds {max_bytes} bytes")
-        view = memoryview(buf)
-        if view.nbytes != expected:
-            raise CodecError(f"field {name!r}: frame has {view.nbytes} bytes, header says "
+        views = [memoryview(b) for b in buffers[at:at + parts]]
+        at += parts
+        got = sum(v.nbytes for v in views)
+        if got != expected or (parts > 1 and any(v.nbytes != FRAME_LIMIT
+                                                 for v in views[:-1])):
+            raise CodecError(f"field {name!r}: frames have {got} bytes, header says "
                              f"{expected}")
         if name in arrays:
             raise CodecError(f"field {name!r} appears twice")
-        arrays[name] = np.frombuffer(view, dtype=dtype).reshape(shape) if expected else \
-            np.zeros(shape, dtype)
+        if not expected:
+            arrays[name] = np.zeros(shape, dtype)
+        elif parts == 1:
+            arrays[name] = np.frombuffer(views[0], dtype=dtype).reshape(shape)
+        else:  # joined: one copy
+            joined = np.empty(expected, np.uint8)
+            offsets = np.cumsum([0] + [v.nbytes for v in views])
+            for view, lo, hi in zip(views, offsets[:-1], offsets[1:], strict=True):
+                joined[lo:hi] = np.frombuffer(view, np.uint8)
+            arrays[name] = joined.view(dtype).reshape(shape)
     return Message(kind, arrays, meta)
 
 
-def _field(spec) -> tuple[str, np.dtype, tuple[int, ...]]:
-    if not (isinstance(spec, list) and len(spec) == 3 and isinstance(spec[0], str)
+def _field(spec) -> tuple[str, np.dtype, tuple[int, ...], int]:
+    if not (isinstance(spec, list) and len(spec) in (3, 4) and isinstance(spec[0], str)
             and isinstance(spec[1], str) and isinstance(spec[2], list)):
-        raise CodecError(f"malformed field entry {spec!r}")
-    name, dtype, shape = spec
+        raise CodecError(f"malformed field entry {str(spec)[:80]}")
+    name, dtype, shape = spec[:3]
+    parts = spec[3] if len(spec) == 4 else 1
+    if type(parts) is not int or not 1 <= parts <= MAX_PARTS:
+        raise CodecError(f"field {name!r}: bad frame count {parts!r}")
     if dtype not in ALLOWED_DTYPES:
         raise CodecError(f"field {name!r}: dtype {dtype!r} not allowed")
     if len(shape) > 4 or not all(type(s) is int and 0 <= s < (1 << 40) for s in shape):
         raise CodecError(f"field {name!r}: bad shape {shape!r}")
-    return name, np.dtype(dtype), tuple(shape)
+    return name, np.dtype(dtype), tuple(shape), parts

@@ -56,11 +56,12 @@ from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import portals
 from vastray.transport.security import (
-    KEY_FILE,
+    COORDINATOR_KEY,
     NODES_DIR,
     add_node_key,
     generate_keys,
-    load_keys,
+    load_coordinator_keys,
+    load_node_keys,
 )
 
 log = logging.getLogger(__name__)
@@ -203,8 +204,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "system the nodes share, for `vastray node --rendezvous FILE` under "
                         "srun or mpirun (`vastray node --help` shows a Slurm job)")
     p.add_argument("--keys", metavar="DIR",
-                   help="cluster keys from `vastray keys` (ZeroMQ CURVE: encrypted, only key "
-                        "holders may join); needed to listen beyond loopback")
+                   help="with --listen: the key folder from `vastray keys` (ZeroMQ CURVE: "
+                        "encrypted; a node joins only with its own key on DIR/public's "
+                        "allow-list); needed to listen beyond loopback. Without it only nodes "
+                        "of your user on this machine may join")
     p.add_argument("--no-preload", action="store_true",
                    help="do not load the next domain in the background (every scheduler with "
                         "a cache; the 'no preloading' rows of the benchmarks)")
@@ -323,28 +326,30 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
 
 def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
     k = sub.add_parser(
-        "keys", help="make a cluster key pair (ZeroMQ CURVE) for --keys",
-        description="Write a new cluster key pair into a folder; give the folder to the "
-                    "coordinator (--keys) and to every node (vastray node --keys).",
-        epilog="examples:\n  vastray keys -o cluster-keys\n"
-               "  vastray render s.store -o o.exr --nodes 4 --listen 0.0.0.0:5555 "
+        "keys", help="make the coordinator's and the nodes' key pairs (ZeroMQ CURVE) for --keys",
+        description="Write the coordinator's key pair into a folder (once), and a key pair "
+                    "for each node named with --node, whose public key goes on the folder's "
+                    "allow-list (DIR/public). The coordinator needs DIR/coordinator.key and "
+                    "DIR/public; a node needs only DIR/coordinator.pub and its own "
+                    "DIR/nodes/NAME.key. Delete DIR/public/NAME.key to shut NAME out.",
+        epilog="examples:\n  vastray keys -o cluster-keys --node gpu01 --node gpu02\n"
+               "  vastray render s.store -o o.exr --nodes 2 --listen 0.0.0.0:5555 "
                "--keys cluster-keys\n"
-               "  vastray keys -o cluster-keys --node gpu01 --node gpu02   # per-node keys\n"
                "  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 "
-               "--keys cluster-keys --key-name gpu01",
+               "--keys cluster-keys   # on gpu01 (its host name picks its key)\n"
+               "  rm cluster-keys/public/gpu02.key   # gpu02 may join no more",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
     k.add_argument("--node", action="append", metavar="NAME", default=[],
-                   help="also give node NAME its own key pair and allow it in (repeatable); "
-                        "start it with `vastray node --keys DIR --key-name NAME`; delete "
-                        "DIR/public/NAME.key to shut it out")
+                   help="give node NAME its own key pair and allow it in (repeatable); a node "
+                        "uses the key of its host's short name, or the one --key-name names")
     replace = k.add_mutually_exclusive_group()
     replace.add_argument("--force", action="store_true",
-                         help="replace a key pair already in the folder (nodes holding the old "
-                              "one can no longer join)")
+                         help="replace key pairs already in the folder (nodes holding the old "
+                              "ones can no longer join)")
     replace.add_argument("--keep-existing", action="store_true",
-                         help="keep a key pair already in the folder and succeed (for scripts "
+                         help="keep key pairs already in the folder and succeed (for scripts "
                               "and docker compose that run this on every start)")
     k.set_defaults(func=run_keys)
 
@@ -360,16 +365,16 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
 
 
 def run_keys(args: argparse.Namespace) -> int:
-    key_file = Path(args.output) / KEY_FILE
+    key_file = Path(args.output) / COORDINATOR_KEY
     if key_file.exists() and (args.keep_existing or (args.node and not args.force)):
-        load_keys(args.output)  # refuses a malformed one
+        load_coordinator_keys(args.output)  # refuses a malformed one
         print(key_file)
     else:
         print(generate_keys(args.output, args.force))
     for name in args.node:
         node_file = Path(args.output) / NODES_DIR / f"{name}.key"
         if args.keep_existing and node_file.exists():
-            load_keys(args.output, name)
+            load_node_keys(args.output, name)
             print(node_file)
         else:
             print(add_node_key(args.output, name, args.force))
@@ -458,18 +463,25 @@ ends, fails or is interrupted. The STORE and the --keys folder must be at the sa
 every host (a shared file system); traffic is CURVE-encrypted."""
 
 LAUNCH_EPILOG = """\
-example:
-  vastray keys -o /shared/keys
+example (one key per host, named as in hosts.txt):
+  vastray keys -o /shared/keys --node gpu01 --node gpu02
   vastray launch --hosts hosts.txt /shared/rm.store -o rm.exr --keys /shared/keys \\
       --scheduler spec-ooc --cache 25%
 """
 
 
 def run_launch(args: argparse.Namespace) -> int:
-    from vastray.actors.launch import read_hostfile, start_nodes, stop_nodes, this_host
+    from vastray.actors.launch import (
+        host_key_name,
+        read_hostfile,
+        start_nodes,
+        stop_nodes,
+        this_host,
+    )
 
     if not args.keys:
-        raise InputError(None, "launch needs --keys DIR (make them with `vastray keys -o DIR`)")
+        raise InputError(None, "launch needs --keys DIR (make them with `vastray keys -o DIR "
+                               "--node HOST ...`, one per host)")
     for flag, given in (("--nodes", args.nodes), ("--listen", args.listen),
                         ("--rendezvous", args.rendezvous)):
         if given:  # launch sets them itself
@@ -477,6 +489,8 @@ def run_launch(args: argparse.Namespace) -> int:
                                    f"more) and listens on --port; {flag} is for `vastray "
                                    "render`")
     hosts = read_hostfile(args.hosts)
+    for host in {h.name for h in hosts}:  # each host's own key, before any ssh session
+        load_node_keys(args.keys, host_key_name(host))
     port = args.port or _free_port()
     coordinator = f"tcp://{args.advertise or this_host()}:{port}"
     started = start_nodes(hosts, coordinator, str(Path(args.keys).resolve()), Path(args.logs),
@@ -619,6 +633,12 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
     if args.rendezvous and not args.listen:
         raise InputError(None, "--rendezvous FILE needs --listen HOST:PORT (the nodes it "
                                "guides are started elsewhere)")
+    if args.keys and not args.listen:
+        raise InputError(None, "--keys is for nodes started elsewhere (--listen HOST:PORT); "
+                               "the nodes --nodes starts here join with a secret handed to "
+                               "them")
+    if args.keys:
+        load_coordinator_keys(args.keys)  # a missing or malformed key fails before the render
     if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
@@ -798,7 +818,8 @@ def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options:
             return render_distributed(
                 store_path, args.scene, settings, args.nodes, options,
                 timeout=args.node_timeout, listen=args.listen,
-                keys=load_keys(args.keys) if args.keys else None, launched=launched,
+                keys=load_coordinator_keys(args.keys) if args.keys else None,
+                launched=launched,
                 progress=not args.quiet, config=config, rendezvous=args.rendezvous,
                 heartbeat_timeout=args.heartbeat_timeout, **frames)
     elif options.scheduler == "reference":
