@@ -393,9 +393,10 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                    else Credentials(secret=secret))
     check_bind(host, credentials)
     ctx = zmq.asyncio.Context()
+    allowed = AllowList(keys.allow_dir) if credentials.curve else None
     gate = Gate(ctx, secret=None if credentials.curve else secret,
-                allow=AllowList(keys.allow_dir).keys().__contains__ if credentials.curve
-                else None, what="the coordinator")
+                allow=None if allowed is None else lambda key: key in allowed.keys(),
+                what="the coordinator")
     router = ctx.socket(zmq.ROUTER)
     serve(router, credentials)
     try:

@@ -316,8 +316,9 @@ class ManagementActor:
                              event["event"], unclear)
                 if event["event"] & zmq.EVENT_HANDSHAKE_FAILED_AUTH or unclear >= 3:
                     raise AuthenticationFailed(
-                        f"authentication with the coordinator at {endpoint} failed: its cluster "
-                        "keys differ from this node's --keys (or one side has none)")
+                        f"authentication with the coordinator at {endpoint} failed: this "
+                        "node's key is not on its allow-list (KEYS/public), or its key is not "
+                        "the one in this node's KEYS/coordinator.pub, or one side has no keys")
         finally:  # the socket may be closed already when the node stops on an error
             if not self.coordinator.closed:
                 self.coordinator.disable_monitor()
@@ -623,7 +624,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 reduce_s = time.perf_counter() - reduce_start
                 busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
                 frame_busy, frame_reduce = frame_busy + busy, frame_reduce + reduce_s
-                counters = _report_counters(counters, management.rejections)
+                counters = _report_counters(counters, management)
                 _accumulate(totals, counters)
                 _accumulate(frame_totals, counters)
                 if rank == 0:
@@ -644,7 +645,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
             state.close()
         stats = {"rank": rank, "busy_s": round(busy_total, 4),
                  "reduce_s": round(reduce_total, 4),
-                 "counters": _report_counters(totals, management.rejections)}
+                 "counters": _report_counters(totals, management)}
         await management.to_coordinator(encode(protocol.DONE, {}, stats))
         for task in watchers:  # the work is delivered: a slow stop is no loss of the coordinator
             task.cancel()
@@ -701,10 +702,13 @@ def frame_inputs(settings, config: SceneConfig, store, frame: int | None):
             config.at_frame(frame, lo, hi, settings.width, settings.height))
 
 
-def _report_counters(counters: dict, rejected: protocol.Rejections) -> dict:
+def _report_counters(counters: dict, management: ManagementActor) -> dict:
     """A frame's (or the job's) counters as the node reports them: numbers and names only,
-    plus the messages it dropped and its peak memory."""
+    plus the connections refused at the handshake, the messages dropped and its peak
+    memory."""
+    rejected = management.rejections
     return {**{k: v for k, v in counters.items() if isinstance(v, (int, float, str))},
+            "refused_connections": management.gate.refusals + management.gate.failed_handshakes,
             "rejected_messages": rejected.total,
             "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
             **{f"rejected_{k}": v for k, v in rejected.counts.items()}}

@@ -99,6 +99,35 @@ def terrain_scene(n: int = 48, size: float = 4.0, seed: int = 5) -> DomainArrays
     return mesh_arrays(trimesh.util.concatenate([ground, sphere, *boxes]))
 
 
+def member_actors(ctx, size: int, domains: int = 8):
+    """``size`` management actors of one job in one asyncio context (real sockets; the
+    PLAIN join secret of a job without keys), each told its job as the coordinator tells it.
+
+    Returns
+    -------
+    (coordinator ROUTER, the context's Gate, actors by rank).
+    """
+    import zmq
+
+    from vastray.actors.coordinator import _pair_tokens
+    from vastray.actors.node import ManagementActor
+    from vastray.transport.security import Credentials, Gate, new_secret, serve
+
+    secret = new_secret()
+    gate = Gate(ctx, secret=secret, what="test")
+    coordinator = ctx.socket(zmq.ROUTER)
+    serve(coordinator, Credentials(secret=secret))
+    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
+    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                             Credentials(secret=secret), gate) for _ in range(size)]
+    tokens = _pair_tokens(size)
+    for rank, node in enumerate(nodes):
+        node.join(b"job-token-0123456", {"rank": rank, "size": size, "domains": domains,
+                                         "endpoints": [n.endpoint for n in nodes],
+                                         "peer_tokens": tokens[rank], "keys": []})
+    return coordinator, gate, nodes
+
+
 async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
     """Run ``TreeReduceActor.allreduce`` on ``len(arrays)`` management actors talking over real
     ZeroMQ sockets in one event loop (rank r contributes ``arrays[r]``).
@@ -112,16 +141,12 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
     import zmq
     import zmq.asyncio
 
-    from vastray.actors.node import ManagementActor, TreeReduceActor
+    from vastray.actors.node import TreeReduceActor
 
     size = len(arrays)
     ctx = zmq.asyncio.Context()
-    coordinator = ctx.socket(zmq.ROUTER)
-    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
-    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                             None, token=b"job") for _ in range(size)]
-    endpoints = [n.endpoint for n in nodes]
-    actors = [TreeReduceActor(nodes[r], r, size, endpoints) for r in range(size)]
+    coordinator, gate, nodes = member_actors(ctx, size)
+    actors = [TreeReduceActor(nodes[r], r, size) for r in range(size)]
     try:
         results = await asyncio.gather(*[actors[r].allreduce(arrays[r], ops)
                                          for r in range(size)])
@@ -129,6 +154,7 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
         for n in nodes:
             n.close()
         coordinator.close(linger=0)
+        gate.close()
         ctx.destroy(linger=0)
     return results, actors
 

@@ -143,8 +143,10 @@ def test_compose_commands_parse_with_the_real_cli():
     assert args.nodes == 4 and args.listen == "0.0.0.0:5555"
     args = parser.parse_args(svc["keys"]["command"])
     assert args.output == "/keys" and args.keep_existing  # a second `up` keeps the keys
+    node_key = args.node
     args = build_node_parser().parse_args(svc["node"]["command"][1:])
     assert args.coordinator == "tcp://coordinator:5555" and args.keys == "/keys"
+    assert [args.key_name] == node_key  # the nodes' key is made, and on the allow-list
 
 
 def test_every_service_runs_as_the_owner_of_the_data_folder_and_owns_what_it_writes():

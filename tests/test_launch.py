@@ -53,7 +53,7 @@ def test_hostfile_parsing(tmp_path):
 
 def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh, capsys):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
-    main(["keys", "-o", str(tmp_path / "keys")])
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "alpha", "--node", "beta"])
     (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
                                     f"beta python={sys.executable} slots=2\n")
     out = tmp_path / "o.exr"
@@ -72,7 +72,7 @@ def test_launch_renders_on_hosts_and_collects_logs(tmp_path, local_ssh, capsys):
 
 def test_launch_failure_names_the_host_and_writes_nothing(tmp_path, local_ssh, capsys):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
-    main(["keys", "-o", str(tmp_path / "keys")])
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "alpha", "--node", "broken"])
     (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
                                     "broken python=/nonexistent/python\n")
     out = tmp_path / "o.exr"
@@ -82,6 +82,17 @@ def test_launch_failure_names_the_host_and_writes_nothing(tmp_path, local_ssh, c
     assert code != 0
     assert "broken" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_launch_needs_a_key_for_every_host_before_any_ssh(tmp_path, capsys):
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "alpha"])
+    (tmp_path / "hosts").write_text("alpha\ngamma\n")
+    code = main(["launch", "--hosts", str(tmp_path / "hosts"), "-o", str(tmp_path / "o.exr"),
+                 "--keys", str(tmp_path / "keys"), "--logs", str(tmp_path / "logs"),
+                 "--ssh", "false", "x.store"])
+    assert code == 2
+    assert "no key for node 'gamma'" in capsys.readouterr().err
+    assert not (tmp_path / "logs").exists()  # no session was started
 
 
 def test_launch_needs_keys(tmp_path, capsys):
@@ -155,7 +166,7 @@ def sshd(tmp_path):
 
 def test_launch_over_a_real_ssh_server(tmp_path, sshd):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
-    main(["keys", "-o", str(tmp_path / "keys")])
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "127.0.0.1"])
     (tmp_path / "hosts").write_text(f"127.0.0.1 python={sys.executable} slots=2\n")
     out = tmp_path / "o.exr"
     assert main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
@@ -176,7 +187,7 @@ def test_launch_survives_a_node_killed_mid_frame(tmp_path, local_ssh, capsys):
     import time
 
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
-    main(["keys", "-o", str(tmp_path / "keys")])
+    main(["keys", "-o", str(tmp_path / "keys"), "--node", "alpha", "--node", "beta"])
     (tmp_path / "hosts").write_text(f"alpha python={sys.executable}\n"
                                     f"beta python={sys.executable} slots=2\n")
     logs, out, hit = tmp_path / "logs", tmp_path / "o.exr", []

@@ -29,7 +29,7 @@ from vastray.render.driver import render
 from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
 
 
 @pytest.fixture(scope="module")
@@ -347,8 +347,6 @@ async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinato
     import zmq
     import zmq.asyncio
 
-    from vastray.actors.node import ManagementActor
-
     script = "while True: pass" if coordinator == "busy" else "import time; time.sleep(60)"
     parent = subprocess.Popen([sys.executable, "-c", script])
     monkeypatch.setenv(protocol.PARENT_PID_ENV, str(parent.pid))
@@ -363,10 +361,7 @@ async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinato
 
     monkeypatch.setattr(os, "_exit", fake_exit)
     ctx = zmq.asyncio.Context()
-    router = ctx.socket(zmq.ROUTER)
-    port = router.bind_to_random_port("tcp://127.0.0.1")
-    node = ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                           None, token=b"job")
+    router, gate, (node,) = member_actors(ctx, 1)
     try:
         if coordinator == "queued":  # a message sits unread on the node's coordinator socket
             node._tasks[1].cancel()  # the node's reader held up (its loop starved)
@@ -385,6 +380,7 @@ async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinato
     finally:
         node.close()
         router.close(linger=0)
+        gate.close()
         ctx.destroy(linger=0)
         parent.kill()
         parent.wait()

@@ -19,7 +19,7 @@ from vastray.preflight import MemoryEstimate, check_memory, estimate_memory
 from vastray.render.imageio import read_exr, read_image, write_exr
 from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
-from vastray.transport.security import KEY_FILE
+from vastray.transport.security import COORDINATOR_KEY
 
 from scenes import bumpy_scene, write_store
 
@@ -245,18 +245,21 @@ def test_a_remote_node_exits_when_its_coordinator_goes_silent(store, tmp_path):
 
 
 def test_node_with_other_keys_hears_authentication_failed(store, tmp_path):
-    assert vastray("keys", "-o", "keys", cwd=tmp_path).returncode == 0
-    assert vastray("keys", "-o", "other", cwd=tmp_path).returncode == 0
+    # its own key, but from another folder: it expects another coordinator key, and the
+    # coordinator logs the failed handshake (no ZAP request is ever made for it)
+    assert vastray("keys", "-o", "keys", "--node", "n", cwd=tmp_path).returncode == 0
+    assert vastray("keys", "-o", "other", "--node", "n", cwd=tmp_path).returncode == 0
     port = _free_port()
     node = subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
                              f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys",
-                             str(tmp_path / "other")],
+                             str(tmp_path / "other"), "--key-name", "n"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--nodes", "1", "--listen",
                       f"127.0.0.1:{port}", "--keys", "keys", "--node-timeout", "4", cwd=tmp_path)
         assert out.returncode == 3
         assert "no node joined within 4 s" in out.stderr, out.stderr
+        assert "failed before authentication" in out.stderr, out.stderr
         _, log = node.communicate(timeout=20)
         assert node.returncode != 0
         assert "authentication" in log.decode(), log
@@ -288,7 +291,7 @@ def test_compare_of_identical_images_says_inf(store, tmp_path):
 
 def test_keys_are_never_replaced_silently(tmp_path):
     assert vastray("keys", "-o", "k", cwd=tmp_path).returncode == 0
-    key = tmp_path / "k" / KEY_FILE
+    key = tmp_path / "k" / COORDINATOR_KEY
     before = key.read_bytes()
     out = vastray("keys", "-o", "k", cwd=tmp_path)
     assert out.returncode == 2 and "--force" in out.stderr
@@ -299,36 +302,52 @@ def test_keys_are_never_replaced_silently(tmp_path):
     assert key.read_bytes() != before
 
 
+def test_keys_into_a_file_is_refused_in_one_line(tmp_path):
+    (tmp_path / "afile").write_text("mine")
+    out = vastray("keys", "-o", "afile", "--node", "n", cwd=tmp_path)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "afile: is a file" in out.stderr, out.stderr
+    assert (tmp_path / "afile").read_text() == "mine"
+
+
 def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged(store,
                                                                                  tmp_path):
     assert vastray("keys", "-o", "keys", "--node", "alpha", "--node", "beta",
                    cwd=tmp_path).returncode == 0
-    (tmp_path / "keys" / "public" / "beta.key").unlink()  # beta is shut out
     port = _free_port()
 
-    def node(name):
+    def node(*key_name):
         return subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
                                  f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys",
-                                 str(tmp_path / "keys"), "--key-name", name],
+                                 str(tmp_path / "keys"), *key_name],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
 
-    beta, alpha = node("beta"), None
+    alpha = beta = anonymous = None
     coordinator = subprocess.Popen(
         [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr", *SMALL,
          "--nodes", "1", "--listen", f"127.0.0.1:{port}", "--keys", "keys",
-         "--node-timeout", "30"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+         "--node-timeout", "40"], cwd=tmp_path, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE)
     try:
+        time.sleep(3.0)  # the coordinator listens, its allow-list read with beta on it
+        (tmp_path / "keys" / "public" / "beta.key").unlink()  # beta is shut out, at once
+        beta = node("--key-name", "beta")
         _, beta_log = beta.communicate(timeout=30)
         assert beta.returncode != 0 and b"authentication" in beta_log, beta_log
-        alpha = node("alpha")
+        # the same host without --key-name: its host name's key, which it has not
+        anonymous = node()
+        _, anonymous_log = anonymous.communicate(timeout=30)
+        assert anonymous.returncode == 2 and b"no key for node" in anonymous_log, anonymous_log
+        alpha = node("--key-name", "alpha")
         _, err = coordinator.communicate(timeout=60)
         _, alpha_log = alpha.communicate(timeout=30)
         assert coordinator.returncode == 0, err
         assert alpha.returncode == 0 and b"joined" in alpha_log, alpha_log
-        assert b"refused a CURVE connection from 127.0.0.1" in err, err
+        assert b"the coordinator refused a connection from 127.0.0.1" in err, err
+        assert b"not on the allow-list" in err, err
         assert (tmp_path / "x.exr").is_file()
     finally:
-        for proc in (beta, coordinator, alpha):
+        for proc in (beta, anonymous, coordinator, alpha):
             if proc is not None:
                 _reap(proc)
 

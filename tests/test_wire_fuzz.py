@@ -2,6 +2,10 @@
 wrong-role and random messages, and forged films and dones; it completes with the reference
 image, and the nodes' reports count what they dropped.
 
+The flood comes from a process of the render's own user (it reads the join secret, as a node
+would): it passes the handshake, so every message meets the checks behind it. A stranger's
+connections (no secret, a wrong one) are refused at the handshake and counted.
+
 Hypothesis draws the messages first (drawing is the slow part); then a render starts and the
 whole flood is sent while it runs."""
 
@@ -26,6 +30,7 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
+from vastray.transport.security import read_join_secret
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, write_store
 from scenes import settings as render_settings
@@ -131,11 +136,19 @@ def flooded_render(tmp_path_factory):
         assert endpoint, "node 0 did not say where it listens"
         while "joined" not in logs[1].read_text() and time.monotonic() < deadline:
             time.sleep(0.05)  # both nodes have their job: the render runs
+        secret = read_join_secret(port, 10)
         to_node = ctx.socket(zmq.DEALER)
         to_node.setsockopt(zmq.SNDHWM, 0)
+        to_node.plain_username, to_node.plain_password = b"vastray", secret
         to_node.connect(endpoint)
         to_coordinator = ctx.socket(zmq.DEALER)
+        to_coordinator.plain_username, to_coordinator.plain_password = b"vastray", secret
         to_coordinator.connect(f"tcp://127.0.0.1:{port}")
+        strangers = [ctx.socket(zmq.DEALER) for _ in range(2)]  # no secret; a wrong one
+        strangers[1].plain_username, strangers[1].plain_password = b"vastray", b"0" * 32
+        for stranger in strangers:
+            stranger.connect(endpoint)
+            stranger.send_multipart([b"", *FLOOD[0]] if FLOOD[0] else [b""])
         sent = 0
         for i, frames in enumerate(FLOOD):
             tokens = [b"", b"forged-token", np.random.default_rng(i).bytes(16)]
@@ -173,6 +186,7 @@ def test_the_render_survives_the_flood_with_the_reference_image(flooded_render):
     assert node0["rejected_messages"] == flooded_render["sent"], node0  # each one, by a rule
     assert node0.get("rejected_internal", 0) == 0, node0
     assert node0["rejected_stranger"] > 0 and node0["rejected_malformed"] > 0
+    assert node0["refused_connections"] >= 2, node0  # the strangers, at the handshake
     # the forged films and dones: refused, and the image above is still the reference
     assert node0["coordinator_rejected_messages"] == 4
 

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import zmq
 import zmq.asyncio
+from zmq.utils import z85
 from zmq.utils.monitor import parse_monitor_message
 
 from vastray.scene.errors import InputError
@@ -412,7 +413,7 @@ class Gate:
                 return True, b"member", "OK"
             return False, b"", "wrong join secret"
         if mechanism == b"CURVE" and self.allow is not None and len(credentials) == 1:
-            key = zmq.utils.z85.encode(credentials[0])
+            key = z85.encode(credentials[0])
             if self.allow(key):
                 return True, key, "OK"
             return False, b"", f"key {key[:8].decode()}... is not on the allow-list"
@@ -443,7 +444,7 @@ class Gate:
         try:
             ok, user, reason = self.admit(mechanism, request[8:])
         except Exception as exc:  # noqa: BLE001 - the gate never dies; refuse
-            ok, user, reason = False, b"", f"bad request ({type(exc).__name__})"
+            ok, user, reason = False, b"", f"bad request ({type(exc).__name__}: {exc})"
         if not ok:
             self.refusals += 1
             if self.refusals <= 5 or self.refusals % 100 == 0:

@@ -1,0 +1,157 @@
+"""Who may join a job and speak in it: the attacks of a probe, each refused.
+
+- without keys, a process that does not hold the render's join secret never gets the job;
+- a peer message is bound to its sender by the token only that pair of nodes shares: a film
+  only from a tree child that owes it, once; a rank spoken for by another is refused;
+- a ray batch naming a domain the job does not have is dropped and counted, never fatal.
+Real ZeroMQ sockets and real processes throughout."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+import zmq.asyncio
+
+from vastray.actors import protocol
+from vastray.actors.coordinator import NodeFailure, _pair_tokens, render_distributed
+from vastray.actors.film_wire import film_frames
+from vastray.render.film import Film
+from vastray.schedule.paths import RADIANCE_FIELDS
+from vastray.transport.codec import encode
+from vastray.transport.security import read_join_secret
+
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
+
+
+def _rays(n: int, domain: int, rank: int) -> list:
+    arrays = {"domain": np.full(n, domain, np.int64), "path": np.arange(n, dtype=np.int64),
+              "depth": np.zeros(n, np.uint8), "origin": np.zeros((n, 3), np.float32),
+              "direction": np.ones((n, 3), np.float32), "beta": np.ones((n, 3))}
+    assert set(RADIANCE_FIELDS) <= set(arrays)
+    return encode(protocol.RAYS, arrays, {"rank": rank, "tile": 0, "queue": "radiance"})
+
+
+async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
+    ctx = zmq.asyncio.Context()
+    router, gate, nodes = member_actors(ctx, 4, domains=8)
+    node0 = nodes[0]  # children 1 and 2; node 3 is node 1's child
+    tokens = _pair_tokens(1)  # a token of no pair of this job
+    film = film_frames(Film(4, 3), {"rank": 1, "ordinal": 0})
+    try:
+        # a member's own connection (holds the join secret): its messages meet every check
+        member = ctx.socket(zmq.DEALER)
+        member.plain_username, member.plain_password = b"vastray", gate.secret
+        member.connect(node0.endpoint)
+        token = {r: node0.peer_tokens[r] for r in range(4)}
+        sends = [
+            [token[3], *film_frames(Film(4, 3), {"rank": 3, "ordinal": 0})],  # not a child
+            [token[2], *film],                       # node 2 speaking for node 1
+            [token[1], *film],                       # node 1's film: taken
+            [token[1], *film],                       # ... once
+            [token[1], *encode(protocol.BROADCAST, {}, {"rank": 1})],  # node 0 has no parent
+            [token[2], *_rays(5, 10**6, 2)],         # a domain the job does not have
+            [token[2], *_rays(5, 7, 2)],             # one it has
+            [tokens[0][0], *_rays(5, 7, 2)],         # a token of no pair of this job
+            [node0.token, *_rays(5, 7, 2)],          # the coordinator channel's token
+        ]
+        for frames in sends:
+            await member.send_multipart(frames)
+        deadline = time.monotonic() + 10
+        while node0.rejections.total < 7 and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        assert node0.mailbox(protocol.FILM).qsize() == 1
+        assert node0.mailbox(protocol.FILM).get_nowait().meta["rank"] == 1
+        assert node0.mailbox(protocol.BROADCAST).qsize() == 0
+        rays = node0.mailbox(protocol.RAYS)
+        assert rays.qsize() == 1 and int(rays.get_nowait().arrays["domain"][0]) == 7
+        assert node0.rejections.counts == {"malformed": 5, "stranger": 2}, \
+            node0.rejections.counts
+        assert node0.rejections.counts.get("internal", 0) == 0
+        member.close(linger=0)
+    finally:
+        for node in nodes:
+            node.close()
+        router.close(linger=0)
+        gate.close()
+        ctx.destroy(linger=0)
+
+
+async def test_a_connection_without_the_join_secret_is_refused_at_the_handshake():
+    ctx = zmq.asyncio.Context()
+    router, gate, nodes = member_actors(ctx, 2)
+    try:
+        strangers = [ctx.socket(zmq.DEALER) for _ in range(2)]
+        strangers[1].plain_username, strangers[1].plain_password = b"vastray", b"f" * 32
+        for stranger in strangers:
+            stranger.connect(nodes[0].endpoint)
+            await stranger.send_multipart([nodes[0].peer_tokens[1], *_rays(2, 1, 1)])
+        deadline = time.monotonic() + 10
+        while gate.refusals + gate.failed_handshakes < 2 and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        assert gate.refusals == 1 and gate.failed_handshakes >= 1  # wrong secret; no secret
+        await asyncio.sleep(0.3)
+        assert nodes[0].mailbox(protocol.RAYS).qsize() == 0  # even with a pair's token
+        assert nodes[0].rejections.total == 0  # nothing got as far as the checks
+        for stranger in strangers:
+            stranger.close(linger=0)
+    finally:
+        for node in nodes:
+            node.close()
+        router.close(linger=0)
+        gate.close()
+        ctx.destroy(linger=0)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("membership")
+    store = write_store(root / "s", bumpy_scene(), kd=4)
+    (root / "scene.toml").write_text(POINT_AND_SKY_TOML)
+    return store, root / "scene.toml"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_without_keys_a_hello_without_the_join_secret_never_gets_the_job(scene):
+    # The probe's first attack: on loopback, without keys, a process sent a hello with an
+    # empty token and received the job 0.05 s later. Now its handshake fails: no job.
+    store, toml = scene
+    port = _free_port()
+    outcome = {}
+
+    def run():
+        try:
+            render_distributed(store.path, toml, settings(width=8, height=6), 1,
+                               listen=f"127.0.0.1:{port}", timeout=4)
+        except NodeFailure as exc:
+            outcome["error"] = str(exc)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    ctx = zmq.Context()
+    try:
+        secret = read_join_secret(port, 10)  # the coordinator runs
+        intruders = [ctx.socket(zmq.DEALER) for _ in range(2)]
+        intruders[1].plain_username, intruders[1].plain_password = b"vastray", b"0" * 32
+        hello = encode(protocol.HELLO, {}, {"rank": 0, "endpoint": "tcp://127.0.0.1:1"})
+        for intruder in intruders:
+            intruder.connect(f"tcp://127.0.0.1:{port}")
+            intruder.send_multipart([b"", *hello])
+        thread.join(timeout=30)
+        assert "no node joined within 4 s" in outcome["error"], outcome
+        assert not any(i.poll(100) for i in intruders)  # nothing ever came back
+        assert secret not in b"".join(hello)
+    finally:
+        thread.join(timeout=30)
+        ctx.destroy(linger=0)
