@@ -176,10 +176,10 @@ FAR_VIEW = np.array([0.55, 0.45, 1.0]) / np.linalg.norm([0.55, 0.45, 1.0])
 FAR_TARGET = np.array([0.0, -0.2, 0.0])
 
 
-def far_mesh(shift: float) -> DomainArrays:
+def far_mesh(shift: float, scale: float = 1.0) -> DomainArrays:
     """A bumpy sphere, six boxes and a ground slab (about 5,200 triangles, 2.6 units across)
-    moved by ``shift`` along (1, 1, 1): positions in float64, stored relative to their centre
-    (``relative_to``), as a reader does."""
+    scaled by ``scale`` and moved by ``shift`` along (1, 1, 1): positions in float64, stored
+    relative to their centre (``relative_to``), as a reader does."""
     rng = np.random.default_rng(3)
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
     bump = 1.0 + 0.15 * np.sin(8 * sphere.vertices[:, 0]) * np.cos(10 * sphere.vertices[:, 1])
@@ -192,26 +192,29 @@ def far_mesh(shift: float) -> DomainArrays:
     ground = trimesh.creation.box(extents=[2.6, 0.05, 2.6])
     ground.apply_translation([0, -0.65, 0])
     mesh = trimesh.util.concatenate([sphere, ground, *boxes])
-    framed = relative_to(np.asarray(mesh.vertices, np.float64) + shift)
+    framed = relative_to(np.asarray(mesh.vertices, np.float64) * scale + shift)
     return dataclasses.replace(framed, indices=np.asarray(mesh.faces, np.uint32))
 
 
-def far_store(path: Path, shift: float, grid=(2, 2, 2)) -> Store:
-    """``far_mesh(shift)`` written as a ``grid`` of domains."""
-    return write_store(path, far_mesh(shift), grid=grid)
+def far_store(path: Path, shift: float, grid=(2, 2, 2), scale: float = 1.0) -> Store:
+    """``far_mesh(shift, scale)`` written as a ``grid`` of domains."""
+    return write_store(path, far_mesh(shift, scale), grid=grid)
 
 
-def far_config(shift: float = 0.0, distance: float = 4.0, power: float = 6.0) -> SceneConfig:
+def far_config(shift: float = 0.0, distance: float = 4.0, power: float = 6.0,
+               scale: float = 1.0) -> SceneConfig:
     """The far scene's camera ``distance`` from its target along ``FAR_VIEW`` (the field of
     view keeps the framing of a camera 4 units away), a point light of intensity ``power``
-    and a sky, all moved by ``shift`` along (1, 1, 1)."""
+    and a sky, all scaled by ``scale`` (the light's intensity by its square, so the image
+    stays the same) and moved by ``shift`` along (1, 1, 1)."""
     offset = np.full(3, shift)
     fov = float(np.degrees(2 * np.arctan(np.tan(np.radians(20.0)) * 4.0 / distance)))
-    lights = [PointLight(np.array([0.8, 2.0, 0.6]) + offset, np.full(3, power)),
+    lights = [PointLight(np.array([0.8, 2.0, 0.6]) * scale + offset,
+                         np.full(3, power * scale * scale)),
               AmbientLight(np.full(3, 0.15))]
-    return SceneConfig(camera={"position": FAR_TARGET + offset + FAR_VIEW * distance,
-                               "look_at": FAR_TARGET + offset, "up": np.array([0.0, 1.0, 0.0]),
-                               "fov": fov}, lights=lights)
+    return SceneConfig(camera={"position": FAR_TARGET * scale + offset + FAR_VIEW * distance * scale,
+                               "look_at": FAR_TARGET * scale + offset,
+                               "up": np.array([0.0, 1.0, 0.0]), "fov": fov}, lights=lights)
 
 
 def far_settings(spp: int = 8, seed: int = 1) -> RenderSettings:

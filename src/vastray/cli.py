@@ -9,6 +9,7 @@ import argparse
 import difflib
 import logging
 import os
+import select
 import signal
 import sys
 import threading
@@ -118,12 +119,16 @@ def main(argv: list[str] | None = None) -> int:
         # SIGUSR1 asks a render for a checkpoint (``vastray.checkpoint``); one that comes
         # before the render is under way must not kill the process (its default action).
         signal.signal(signal.SIGUSR1, signal.SIG_IGN)
+        # SIGPIPE stays ignored (Python's default), so a closed pipe is a BrokenPipeError
+        # that ``_closed_output`` below tells apart, rather than SIG_DFL's silent death at
+        # any write to any pipe or socket: a render would die without a word, its nodes left
+        # running and its checkpoint unwritten, if a node's pipe broke.
     if argv[:1] == ["node"]:
         from vastray.actors.node import main as node_main
 
         return node_main(argv[1:])
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # --help and --version: argparse ignores a closed stdout
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(levelname)s %(name)s: %(message)s",
@@ -133,27 +138,55 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()  # a closed pipe fails here, not in the interpreter's exit
         return status
     except BrokenPipeError:  # `vastray info STORE | head`: the reader has all it wanted
+        if not _closed_output():
+            raise  # a pipe of the command's own broke: a failure, not the reader leaving
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())  # so the exit's flush of stdout fails silently
         return 141  # 128 + SIGPIPE, what a shell reports for a command its pipe closed
     except InputError as exc:
-        print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
+        _say(f"vastray {args.command}: error: {exc}")
         return 2
     except NodeFailure as exc:
-        print(f"vastray {args.command}: error: {exc}", file=sys.stderr)
+        _say(f"vastray {args.command}: error: {exc}")
         return 3
     except MemoryError:
-        print(f"vastray {args.command}: error: out of memory; lower --width/--height, "
-              "--batch-size or --max-samples-in-flight", file=sys.stderr)
+        _say(f"vastray {args.command}: error: out of memory; lower --width/--height, "
+             "--batch-size or --max-samples-in-flight")
         return 2
     except Terminated as exc:
         kept = ("the passes done kept" if getattr(exc, "checkpointed", False)
                 else "no output written")
-        print(f"vastray {args.command}: terminated; nodes stopped, {kept}", file=sys.stderr)
+        _say(f"vastray {args.command}: terminated; nodes stopped, {kept}")
         return 143
     except KeyboardInterrupt:
-        print(f"vastray {args.command}: interrupted", file=sys.stderr)
+        _say(f"vastray {args.command}: interrupted")
         return 130
+
+
+def _say(line: str) -> None:
+    """``line`` on stderr, unless stderr is gone (`2>&1 | head`): the exit status says it."""
+    try:
+        print(line, file=sys.stderr)
+    except OSError:
+        pass
+
+
+def _closed_output() -> bool:
+    """Whether stdout or stderr is a pipe (or socket) whose reader has gone: what a
+    BrokenPipeError from ``head`` closing its end means. True where that cannot be asked
+    (no ``select.poll``), as the likely cause."""
+    if not hasattr(select, "poll"):
+        return True
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError):  # replaced, or closed by the command
+            continue
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        if any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0)):
+            return True
+    return False
 
 
 if __name__ == "__main__":

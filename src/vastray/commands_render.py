@@ -53,6 +53,7 @@ from vastray.render_job import (
 from vastray.report import build_report, count_overflow, write_report
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
+from vastray.scene.extent import check_extent
 from vastray.scene.store import Store
 from vastray.schedule import portals
 from vastray.transport.security import (
@@ -602,6 +603,7 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
         store_path = Path(args.store)
         config = load_scene_config(args.scene)
     store = Store(store_path) if store is None else store
+    check_extent(store.bounds, store.path, "partition it again")
     if camera is not None:
         config = with_camera(config, camera)
     config.check_objects(store.objects)

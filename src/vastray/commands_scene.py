@@ -13,6 +13,7 @@ import numpy as np
 
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
+from vastray.scene.extent import check_extent
 from vastray.scene.fields import SCENES
 from vastray.scene.generate import generate
 from vastray.scene.isosurface import DEFAULT_BRICK
@@ -255,6 +256,8 @@ def cmd_partition(args) -> int:
     progress = _show_progress(args)
     inputs = [read_input(p, iso=args.iso, brick=args.brick, progress=progress,
                          array=args.array, color_by=args.color_by) for p in args.inputs]
+    for name, inp in zip(args.inputs, inputs, strict=True):
+        check_extent(_world_box(inp.pieces), name, "partition it")
     meshes = [piece for inp in inputs for piece in inp.pieces]
     for name in ("scalars", "colors"):
         have = [getattr(m, name) is not None for m in meshes]
@@ -263,6 +266,8 @@ def cmd_partition(args) -> int:
     several = len(inputs) > 1
     owner = [i for i, inp in enumerate(inputs) for _ in inp.pieces]
     mesh = meshops.concat(meshes, objects=owner if several else None)
+    if several:  # each fits, but they may lie too far apart
+        check_extent(_world_box([mesh]), out, "partition them")
     if all(inp.parallel for inp in inputs) and not (args.grid or args.domains or args.split):
         split = "pieces"
         piece = np.repeat(np.arange(len(meshes)), [m.n_triangles for m in meshes])
@@ -286,6 +291,16 @@ def cmd_partition(args) -> int:
               f"{len(part.domains)} domains ({split})")
     _simplify_after(args, out)
     return 0
+
+
+def _world_box(pieces) -> np.ndarray:
+    """(2, 3) float64 box of the vertices of ``pieces`` (DomainArrays) with triangles, in
+    world coordinates (their ``origin`` added)."""
+    boxes = [np.stack([p.vertices.min(axis=0), p.vertices.max(axis=0)]).astype(np.float64)
+             + (0.0 if p.origin is None else p.origin) for p in pieces if p.n_triangles]
+    if not boxes:
+        return np.zeros((2, 3))
+    return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
 
 
 #: Fewer triangles than this per domain on average and each domain's own costs (its file,
