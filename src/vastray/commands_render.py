@@ -22,6 +22,7 @@ from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.preflight import (
+    MemoryEstimate,
     cache_within,
     check_memory,
     check_output_paths,
@@ -29,6 +30,7 @@ from vastray.preflight import (
     domain_footprints,
     estimate_memory,
     parse_size,
+    reference_paths_in_flight,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render, store_camera
@@ -848,42 +850,59 @@ def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
                          cache: int | None) -> int | None:
-    """Refuse up front a render whose film and paths in flight cannot fit in memory; with
-    ``--memory-limit``, also bound the domain cache by what is left. Returns the cache."""
+    """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
+    process it starts here, less a margin for the rest of the machine); with
+    ``--memory-limit``, first bound each process's domain cache by what its base, film and
+    paths in flight leave. Returns the cache."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
         shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
     threads = args.threads or available_cpus()
-    if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
-        in_flight, films = 0, 1
-    elif args.nodes:  # every node holds a film and its tile of paths on this machine
-        tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
-        in_flight, films = tile * args.nodes, args.nodes + 1
-    elif scheduler == "reference":
-        batch = args.batch_size or DEFAULT_BATCH_SIZE
-        in_flight, films = batch * 2 * threads, 1  # 2 batches per render worker
-    else:
-        in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp
-    # passes: the process that merges them also holds the image so far and its merged copy
-    estimate = estimate_memory(args.width, args.height, min(in_flight, total), rays_per_hit,
-                               processes=films + 2)
-    check_memory(estimate, args.width, args.height)
-    if args.memory_limit is None:
-        return cache
-    per_process = estimate_memory(args.width, args.height,
-                                  min(in_flight // max(args.nodes or 1, 1), total), rays_per_hit)
-    if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
-        from vastray.actors.insitu import zorder_owners
+    footprints = domain_footprints(store.domains)
+    reference = bool(args.reference)
 
-        nodes = args.nodes or 1
-        check_owned_fit(args.memory_limit, per_process, domain_footprints(store.domains),
-                        zorder_owners(*store.domain_boxes(), nodes), nodes)
-        return cache
-    fitting = cache_within(args.memory_limit, per_process, domain_footprints(store.domains),
-                           args.width, args.height)
-    log.info("--memory-limit leaves room for %d domains per process", fitting)
-    return fitting if cache is None else min(cache, fitting)
+    def process(cache: int | None) -> MemoryEstimate:
+        """One rendering process (a node with --nodes), its domains left out."""
+        if args.nodes:
+            tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
+            return estimate_memory(args.width, args.height, min(tile, total), rays_per_hit,
+                                   role="node")
+        all_fit = cache is None or cache >= len(footprints)
+        if scheduler == "reference" and (all_fit or args.scheduler != "auto"):
+            in_flight = reference_paths_in_flight(total, args.batch_size or DEFAULT_BATCH_SIZE,
+                                                  threads, all_fit)
+        else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
+            in_flight = min(args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
+        return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
+                               reference=reference)
+
+    if args.memory_limit is not None:
+        if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
+            from vastray.actors.insitu import zorder_owners
+
+            nodes = args.nodes or 1
+            check_owned_fit(args.memory_limit, process(cache), footprints,
+                            zorder_owners(*store.domain_boxes(), nodes), nodes)
+        else:
+            fitting = cache_within(args.memory_limit, process(cache), footprints,
+                                   args.width, args.height)
+            if fitting < len(footprints) and args.scheduler == "auto":  # becomes spec-ooc
+                fitting = cache_within(args.memory_limit, process(fitting), footprints,
+                                       args.width, args.height)
+            log.info("--memory-limit leaves room for %d domains per process", fitting)
+            cache = fitting if cache is None else min(cache, fitting)
+    held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
+    one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
+    if args.nodes:  # the coordinator, and every node unless they run elsewhere
+        machine = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
+                                  reference=reference)
+        if not args.listen:
+            machine = machine + one.times(args.nodes)
+    else:
+        machine = one
+    check_memory(machine, args.width, args.height)
+    return cache
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,
