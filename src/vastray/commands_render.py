@@ -23,6 +23,7 @@ from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.preflight import (
     MemoryEstimate,
+    RenderMemory,
     cache_within,
     check_memory,
     check_output_paths,
@@ -529,6 +530,7 @@ class RenderPlan:
     reference : (H, W, 3) image to measure the error against, or None.
     render_one : ``render_one(config, settings) -> RenderResult`` (``_renderer``).
     legend : the colour bar PNGs get, or None (``png_legend``).
+    memory : the peak memory the preflight expects (``preflight.RenderMemory``).
     """
 
     store_path: Path
@@ -542,6 +544,7 @@ class RenderPlan:
     render_one: Callable[..., RenderResult]
     legend: Legend | None = None
     rules: StopRules | None = None
+    memory: RenderMemory | None = None
 
     def progression(self, reference: np.ndarray | None = None,
                     resumed=None) -> Progression:
@@ -614,8 +617,9 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                                 f", the render is {args.width}x{args.height}")
     cache = resolve_cache(args.cache, len(store.domains))
     scheduler = args.scheduler
-    cache = _check_render_memory(args, config, "reference" if scheduler == "auto" else scheduler,
-                                 store, cache)
+    cache, memory = _check_render_memory(args, config,
+                                         "reference" if scheduler == "auto" else scheduler,
+                                         store, cache)
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
     if args.rendezvous and not args.listen:
@@ -637,7 +641,8 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                       args.max_pass_spp or DEFAULT_MAX_PASS_SPP)
     return RenderPlan(store_path, store, config, settings, scheduler, options,
                       run_options(args, options), reference,
-                      _renderer(args, store, store_path, options, launched), legend, rules)
+                      _renderer(args, store, store_path, options, launched), legend, rules,
+                      memory)
 
 
 def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
@@ -849,11 +854,11 @@ def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
-                         cache: int | None) -> int | None:
+                         cache: int | None) -> tuple[int | None, RenderMemory]:
     """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
     process it starts here, less a margin for the rest of the machine); with
     ``--memory-limit``, first bound each process's domain cache by what its base, film and
-    paths in flight leave. Returns the cache."""
+    paths in flight leave. Returns the cache and the estimates."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
         shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
@@ -894,15 +899,13 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
             cache = fitting if cache is None else min(cache, fitting)
     held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
     one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
+    coordinator, machine = None, one
     if args.nodes:  # the coordinator, and every node unless they run elsewhere
-        machine = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
-                                  reference=reference)
-        if not args.listen:
-            machine = machine + one.times(args.nodes)
-    else:
-        machine = one
+        coordinator = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
+                                      reference=reference)
+        machine = coordinator if args.listen else coordinator + one.times(args.nodes)
     check_memory(machine, args.width, args.height)
-    return cache
+    return cache, RenderMemory(one, coordinator, machine)
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,

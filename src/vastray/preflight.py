@@ -103,6 +103,17 @@ class MemoryEstimate:
         return ", ".join(f"{name} {gigabytes(n)}" for name, n in parts.items() if n)
 
 
+@dataclass(frozen=True)
+class RenderMemory:
+    """What the preflight expects of a render: ``process``, the peak of one rendering process
+    (the single process, or each node) with its domains; ``coordinator``, the coordinator's
+    with ``--nodes`` (else None); ``machine``, every process started on this machine."""
+
+    process: MemoryEstimate
+    coordinator: MemoryEstimate | None
+    machine: MemoryEstimate
+
+
 def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_per_hit: int,
                     role: str = "render", reference: bool = False,
                     domains: int = 0) -> MemoryEstimate:
