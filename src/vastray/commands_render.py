@@ -176,9 +176,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G: bounds its "
-                        "domain cache after its film and paths in flight; a render that "
-                        "cannot fit is refused before it starts (default: the free memory "
-                        "is only checked)")
+                        "domain cache after the rest of the process (interpreter and "
+                        "libraries, film, paths in flight); a render that cannot fit is "
+                        "refused before it starts (default: a render is refused only when it "
+                        "needs more than 85%% of the available memory)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
                    help="out-of-core (image, spec-ooc) and every --nodes scheduler: paths "
                         "traced at once; bounds the rays held in memory (default: 262144; "

@@ -19,7 +19,9 @@ from vastray.scene.errors import InputError
 # Every constant below was measured as peak RSS (ru_maxrss) of `vastray render` processes on
 # the generated store `vastray generate rm --resolution 64 --grid 2x2x2` and the built-in
 # scene (2-core, 24 GiB machine, Python 3.11, numpy 2, numba); `bench/memory.py` re-measures
-# them and prints estimate / measured peak for every case (bench/README.md has the table).
+# them and prints estimate / measured peak for every case (bench/README.md has the table): the
+# estimate is within 0.8-1.5 of every measured peak there. A scene whose paths bounce more or
+# whose materials shade more may use more per path than these two.
 
 #: Resident bytes of a rendering process (single-process render or node) before its image:
 #: the interpreter, numpy, numba's compiled kernels and Embree. Measured: 183 MB peak at
@@ -51,15 +53,21 @@ COORDINATOR_BYTES_PER_PIXEL = 240
 REFERENCE_BYTES_PER_PIXEL = 130
 
 #: Bytes per path in flight besides its shadow rays: path state, the radiance and
-#: continuation rays of its wavefront and Embree's hit records. Measured with
-#: SHADOW_RAY_BYTES on ``--scheduler spec-ooc`` (all 262,144 paths of 256x256 x 4 spp in
-#: flight, 1 thread) at 2, 5 and 17 shadow rays per hit: 288, 321 and 506 MB peak.
-PATH_BYTES = 240
+#: continuation rays of its wavefront, Embree's hit records, and the heap's high-water mark
+#: over batch after batch (a render of many batches peaks up to 2x above one batch's working
+#: set: the same 65,536 paths of rm at 256x256, 1 thread, 233 MB peak for 1 spp, 281 MB for
+#: 16). Measured where every camera path hits (the built-in scene, 3 shadow rays per hit):
+#: 850 B per path at 512x512 x 8 spp with 1 thread, 1,130 B with 2 (131,072 paths); 420 B in
+#: spec-ooc's single tile of 262,144 paths. The value keeps those within the range below.
+PATH_BYTES = 600
 
 #: Bytes per path in flight for each shadow ray a hit spawns (origin, direction, t_max,
-#: contribution, the shading temporaries and the occlusion query), as seen on the measured
-#: scenes, where not every path hits: the slope of the measurement above.
-SHADOW_RAY_BYTES = 60
+#: contribution, the shading temporaries and the occlusion query). Measured: the slope of
+#: spec-ooc's peak over 262,144 paths (256x256 x 4 spp, 1 thread) between 3 and 17 shadow
+#: rays per hit, 64 B on the built-in scene and 60 B on rm (where not every path hits); set
+#: lower since PATH_BYTES already covers the batches' high water (AO, 16 rays and no bounce,
+#: would otherwise be over-estimated 1.5x on rm).
+SHADOW_RAY_BYTES = 45
 
 #: Share of ``MemAvailable`` a render may plan to use: the rest is left to the rest of the
 #: machine (other processes, the page cache the domains are read through) and to the
