@@ -866,7 +866,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     threads = args.threads or available_cpus()
     total = args.width * args.height * args.spp
     footprints = domain_footprints(store.domains)
-    reference = bool(args.reference)
+    reference = args.reference is not None  # a file name, or an array (the Python API)
 
     def process(cache: int | None) -> MemoryEstimate:
         """One rendering process (a node with --nodes), its domains left out."""
