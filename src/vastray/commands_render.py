@@ -22,6 +22,8 @@ from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.preflight import (
+    MemoryEstimate,
+    RenderMemory,
     cache_within,
     check_memory,
     check_output_paths,
@@ -29,6 +31,7 @@ from vastray.preflight import (
     domain_footprints,
     estimate_memory,
     parse_size,
+    reference_paths_in_flight,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render, store_camera
@@ -175,9 +178,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G: bounds its "
-                        "domain cache after its film and paths in flight; a render that "
-                        "cannot fit is refused before it starts (default: the free memory "
-                        "is only checked)")
+                        "domain cache after the rest of the process (interpreter and "
+                        "libraries, film, paths in flight); a render that cannot fit is "
+                        "refused before it starts (default: a render is refused only when it "
+                        "needs more than 85%% of the available memory)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
                    help="out-of-core (image, spec-ooc) and every --nodes scheduler: paths "
                         "traced at once; bounds the rays held in memory (default: 262144; "
@@ -542,6 +546,7 @@ class RenderPlan:
     reference : (H, W, 3) image to measure the error against, or None.
     render_one : ``render_one(config, settings) -> RenderResult`` (``_renderer``).
     legend : the colour bar PNGs get, or None (``png_legend``).
+    memory : the peak memory the preflight expects (``preflight.RenderMemory``).
     """
 
     store_path: Path
@@ -555,6 +560,7 @@ class RenderPlan:
     render_one: Callable[..., RenderResult]
     legend: Legend | None = None
     rules: StopRules | None = None
+    memory: RenderMemory | None = None
 
     def progression(self, reference: np.ndarray | None = None,
                     resumed=None) -> Progression:
@@ -628,8 +634,9 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                                 f", the render is {args.width}x{args.height}")
     cache = resolve_cache(args.cache, len(store.domains))
     scheduler = args.scheduler
-    cache = _check_render_memory(args, config, "reference" if scheduler == "auto" else scheduler,
-                                 store, cache)
+    cache, memory = _check_render_memory(args, config,
+                                         "reference" if scheduler == "auto" else scheduler,
+                                         store, cache)
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
     if args.rendezvous and not args.listen:
@@ -657,7 +664,8 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                       args.max_pass_spp or DEFAULT_MAX_PASS_SPP)
     return RenderPlan(store_path, store, config, settings, scheduler, options,
                       run_options(args, options), reference,
-                      _renderer(args, store, store_path, options, launched), legend, rules)
+                      _renderer(args, store, store_path, options, launched), legend, rules,
+                      memory)
 
 
 def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
@@ -870,43 +878,58 @@ def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
-                         cache: int | None) -> int | None:
-    """Refuse up front a render whose film and paths in flight cannot fit in memory; with
-    ``--memory-limit``, also bound the domain cache by what is left. Returns the cache."""
+                         cache: int | None) -> tuple[int | None, RenderMemory]:
+    """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
+    process it starts here, less a margin for the rest of the machine); with
+    ``--memory-limit``, first bound each process's domain cache by what its base, film and
+    paths in flight leave. Returns the cache and the estimates."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
         shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
     threads = args.threads or available_cpus()
-    if args.nodes and args.listen:  # the nodes run elsewhere: only the coordinator's film
-        in_flight, films = 0, 1
-    elif args.nodes:  # every node holds a film and its tile of paths on this machine
-        tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
-        in_flight, films = tile * args.nodes, args.nodes + 1
-    elif scheduler == "reference":
-        batch = args.batch_size or DEFAULT_BATCH_SIZE
-        in_flight, films = batch * 2 * threads, 1  # 2 batches per render worker
-    else:
-        in_flight, films = args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, 1
     total = args.width * args.height * args.spp
-    # passes: the process that merges them also holds the image so far and its merged copy
-    estimate = estimate_memory(args.width, args.height, min(in_flight, total), rays_per_hit,
-                               processes=films + 2)
-    check_memory(estimate, args.width, args.height)
-    if args.memory_limit is None:
-        return cache
-    per_process = estimate_memory(args.width, args.height,
-                                  min(in_flight // max(args.nodes or 1, 1), total), rays_per_hit)
-    if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
-        from vastray.actors.insitu import zorder_owners
+    footprints = domain_footprints(store.domains)
+    reference = args.reference is not None  # a file name, or an array (the Python API)
 
-        nodes = args.nodes or 1
-        check_owned_fit(args.memory_limit, per_process, domain_footprints(store.domains),
-                        zorder_owners(*store.domain_boxes(), nodes), nodes)
-        return cache
-    fitting = cache_within(args.memory_limit, per_process, domain_footprints(store.domains),
-                           args.width, args.height)
-    log.info("--memory-limit leaves room for %d domains per process", fitting)
-    return fitting if cache is None else min(cache, fitting)
+    def process(cache: int | None) -> MemoryEstimate:
+        """One rendering process (a node with --nodes), its domains left out."""
+        if args.nodes:
+            tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
+            return estimate_memory(args.width, args.height, min(tile, total), rays_per_hit,
+                                   role="node")
+        all_fit = cache is None or cache >= len(footprints)
+        if scheduler == "reference" and (all_fit or args.scheduler != "auto"):
+            in_flight = reference_paths_in_flight(total, args.batch_size or DEFAULT_BATCH_SIZE,
+                                                  threads, all_fit)
+        else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
+            in_flight = min(args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
+        return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
+                               reference=reference)
+
+    if args.memory_limit is not None:
+        if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
+            from vastray.actors.insitu import zorder_owners
+
+            nodes = args.nodes or 1
+            check_owned_fit(args.memory_limit, process(cache), footprints,
+                            zorder_owners(*store.domain_boxes(), nodes), nodes)
+        else:
+            fitting = cache_within(args.memory_limit, process(cache), footprints,
+                                   args.width, args.height)
+            if fitting < len(footprints) and args.scheduler == "auto":  # becomes spec-ooc
+                fitting = cache_within(args.memory_limit, process(fitting), footprints,
+                                       args.width, args.height)
+            log.info("--memory-limit leaves room for %d domains per process", fitting)
+            cache = fitting if cache is None else min(cache, fitting)
+    held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
+    one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
+    coordinator, machine = None, one
+    if args.nodes:  # the coordinator, and every node unless they run elsewhere
+        coordinator = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
+                                      reference=reference)
+        machine = coordinator if args.listen else coordinator + one.times(args.nodes)
+    check_memory(machine, args.width, args.height)
+    return cache, RenderMemory(one, coordinator, machine)
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,

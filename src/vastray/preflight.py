@@ -1,6 +1,7 @@
 """Checks made before a render starts, so that a run that cannot finish fails in a second with a
-one-line error instead of after the whole frame: output paths, and the memory the film, the
-paths in flight and the outputs will take against the memory this machine has free."""
+one-line error instead of after the whole frame: output paths, and the memory the processes,
+their films, paths in flight, outputs and domains will take against the memory this machine
+has free (less a margin for the rest of the machine)."""
 
 from __future__ import annotations
 
@@ -12,47 +13,157 @@ from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.imageio import check_image_path
 from vastray.scene.errors import InputError
 
-#: Bytes per pixel while the outputs are made: the float32 image, depth and normal layers, the
-#: float64 mean they are computed from, and the encoder's copy.
-OUTPUT_BYTES_PER_PIXEL = 28 + 24 + 28
+# The memory model: one process's peak resident memory is
+#   base + pixels x bytes per pixel + paths in flight x (PATH_BYTES + shadow rays per hit x
+#   SHADOW_RAY_BYTES) + the domains it holds.
+# Every constant below was measured as peak RSS (ru_maxrss) of `vastray render` processes on
+# the generated store `vastray generate rm --resolution 64 --grid 2x2x2` and the built-in
+# scene (2-core, 24 GiB machine, Python 3.11, numpy 2, numba); `bench/memory.py` re-measures
+# them and prints estimate / measured peak for every case (bench/README.md has the table): the
+# estimate is within 0.8-1.5 of every measured peak there. A scene whose paths bounce more or
+# whose materials shade more may use more per path than these two.
 
-#: Bytes of path state (pixel, sample, throughput, radiance, first hit) per path in flight.
-PATH_BYTES = 96
+#: Resident bytes of a rendering process (single-process render or node) before its image:
+#: the interpreter, numpy, numba's compiled kernels and Embree. Measured: 183 MB peak at
+#: 64x64, 1 spp, 1 thread on the rm store, less its 6 MB of domains and 4096 paths.
+BASE_BYTES = 175_000_000
 
-#: Bytes of one ray in a batch: origin, direction, t_max, keys, throughput, carried radiance,
-#: plus the hit record and the temporaries of shading it.
-RAY_BYTES = 160
+#: Resident bytes of the coordinator of a ``--nodes`` render before its image (it loads no
+#: Embree scene and traces nothing). Measured: 141 MB peak at 256x256 with 2 nodes, less its
+#: 65,536 pixels.
+COORDINATOR_BASE_BYTES = 125_000_000
+
+#: Bytes per pixel of the process that makes the outputs, besides the film
+#: (``FILM_BYTES_PER_PIXEL``): the image so far and its merged copy between passes, the mean
+#: and variance temporaries (float64), the float32 image, depth and normal layers and the
+#: encoder's copy. Measured: the peak grows by 179 B per pixel from 1024x1024 to 2048x2048
+#: (1 spp, 1 thread: the paths in flight stay one batch), film included.
+OUTPUT_BYTES_PER_PIXEL = 180 - FILM_BYTES_PER_PIXEL
+
+#: Bytes per pixel of a node besides its film: the film's encoded copy sent to the
+#: coordinator. Measured: 207 B per pixel from 256x256 to 1024x1024 (2 nodes, image).
+NODE_BYTES_PER_PIXEL = 210 - FILM_BYTES_PER_PIXEL
+
+#: Bytes per pixel of the coordinator: the films it receives, their merge and the outputs.
+#: Measured: 240 B per pixel from 256x256 to 1024x1024 (2 nodes).
+COORDINATOR_BYTES_PER_PIXEL = 240
+
+#: Bytes per pixel of ``--reference``: the image read and the error computed against it.
+#: Measured: +126 B per pixel at 2048x2048 against the same render without it.
+REFERENCE_BYTES_PER_PIXEL = 130
+
+#: Bytes per path in flight besides its shadow rays: path state, the radiance and
+#: continuation rays of its wavefront, Embree's hit records, and the heap's high-water mark
+#: over batch after batch (a render of many batches peaks up to 2x above one batch's working
+#: set: the same 65,536 paths of rm at 256x256, 1 thread, 233 MB peak for 1 spp, 281 MB for
+#: 16). Measured where every camera path hits (the built-in scene, 3 shadow rays per hit):
+#: 850 B per path at 512x512 x 8 spp with 1 thread, 1,130 B with 2 (131,072 paths); 420 B in
+#: spec-ooc's single tile of 262,144 paths. The value keeps those within the range below.
+PATH_BYTES = 600
+
+#: Bytes per path in flight for each shadow ray a hit spawns (origin, direction, t_max,
+#: contribution, the shading temporaries and the occlusion query). Measured: the slope of
+#: spec-ooc's peak over 262,144 paths (256x256 x 4 spp, 1 thread) between 3 and 17 shadow
+#: rays per hit, 64 B on the built-in scene and 60 B on rm (where not every path hits); set
+#: lower since PATH_BYTES already covers the batches' high water (AO, 16 rays and no bounce,
+#: would otherwise be over-estimated 1.5x on rm).
+SHADOW_RAY_BYTES = 45
+
+#: Share of ``MemAvailable`` a render may plan to use: the rest is left to the rest of the
+#: machine (other processes, the page cache the domains are read through) and to the
+#: estimate's own error (bench/memory.py: estimate / measured within 0.8-1.5).
+MEMORY_HEADROOM = 0.85
 
 
 @dataclass(frozen=True)
 class MemoryEstimate:
-    """Bytes a render will hold at its peak, by part (all on one machine)."""
+    """Bytes a render will hold at its peak, by part (one process, or summed over several).
+
+    ``film``: the film's per-pixel sums; ``paths``: the paths in flight and their rays;
+    ``outputs``: the other per-pixel arrays (merges, outputs, reference); ``base``: the
+    processes' interpreter and libraries; ``domains``: the loaded domains.
+    """
 
     film: int
     paths: int
     outputs: int
+    base: int = 0
+    domains: int = 0
 
     @property
     def total(self) -> int:
-        return self.film + self.paths + self.outputs
+        return self.film + self.paths + self.outputs + self.base + self.domains
+
+    def __add__(self, other: MemoryEstimate) -> MemoryEstimate:
+        return MemoryEstimate(self.film + other.film, self.paths + other.paths,
+                              self.outputs + other.outputs, self.base + other.base,
+                              self.domains + other.domains)
+
+    def times(self, n: int) -> MemoryEstimate:
+        """The estimate of ``n`` processes like this one."""
+        return MemoryEstimate(self.film * n, self.paths * n, self.outputs * n,
+                              self.base * n, self.domains * n)
+
+    def breakdown(self) -> str:
+        """``base 0.2 GB, film 10 MB, ...``: the parts, for an error message."""
+        parts = {"base": self.base, "film": self.film, "outputs": self.outputs,
+                 "paths in flight": self.paths, "domains": self.domains}
+        return ", ".join(f"{name} {gigabytes(n)}" for name, n in parts.items() if n)
+
+
+@dataclass(frozen=True)
+class RenderMemory:
+    """What the preflight expects of a render: ``process``, the peak of one rendering process
+    (the single process, or each node) with its domains; ``coordinator``, the coordinator's
+    with ``--nodes`` (else None); ``machine``, every process started on this machine."""
+
+    process: MemoryEstimate
+    coordinator: MemoryEstimate | None
+    machine: MemoryEstimate
 
 
 def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_per_hit: int,
-                    processes: int = 1) -> MemoryEstimate:
-    """The memory of a render at its peak.
+                    role: str = "render", reference: bool = False,
+                    domains: int = 0) -> MemoryEstimate:
+    """The peak memory of one process of a render.
 
     Parameters
     ----------
     width, height : image size.
-    paths_in_flight : paths traced at once over all processes (batch x workers, or tiles).
+    paths_in_flight : paths this process traces at once (batch x render workers, or its tile).
     shadow_rays_per_hit : shadow rays one hit spawns (lights x shadow samples, AO rays).
-    processes : films held at once: one per node process plus the coordinator's.
+    role : ``"render"`` (a single-process render, which also writes the outputs),
+        ``"node"`` (a node of ``--nodes``) or ``"coordinator"`` (traces nothing).
+    reference : ``--reference`` is read and compared against (where the outputs are made).
+    domains : bytes of the domains this process holds at once (``domain_footprints``).
     """
     pixels = int(width) * int(height)
-    per_path = PATH_BYTES + (2 + int(shadow_rays_per_hit)) * RAY_BYTES
-    return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL * int(processes),
+    if role == "coordinator":
+        return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL, paths=0,
+                              outputs=pixels * (COORDINATOR_BYTES_PER_PIXEL
+                                                - FILM_BYTES_PER_PIXEL
+                                                + REFERENCE_BYTES_PER_PIXEL * reference),
+                              base=COORDINATOR_BASE_BYTES)
+    if role not in ("render", "node"):
+        raise ValueError(f"unknown role {role!r}")
+    per_pixel = (NODE_BYTES_PER_PIXEL if role == "node"
+                 else OUTPUT_BYTES_PER_PIXEL + REFERENCE_BYTES_PER_PIXEL * reference)
+    per_path = PATH_BYTES + int(shadow_rays_per_hit) * SHADOW_RAY_BYTES
+    return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL,
                           paths=int(paths_in_flight) * per_path,
-                          outputs=pixels * OUTPUT_BYTES_PER_PIXEL)
+                          outputs=pixels * per_pixel, base=BASE_BYTES, domains=int(domains))
+
+
+def reference_paths_in_flight(paths: int, batch_size: int, threads: int,
+                              all_domains_fit: bool) -> int:
+    """Paths the single-process ``reference`` renderer traces at once: a batch on each render
+    worker (one per thread when every domain fits, else one), its batch cut so that a pass
+    of fewer paths still gives every worker two (as ``render.driver.render`` does)."""
+    workers = threads if all_domains_fit and threads > 1 else 1
+    batch = max(1, batch_size)
+    if workers > 1:
+        batch = min(batch, -(-paths // (2 * workers)))
+    return min(paths, batch * workers)
 
 
 def available_memory() -> int | None:
@@ -76,22 +187,33 @@ def gigabytes(n: int) -> str:
 
 def check_memory(estimate: MemoryEstimate, width: int, height: int,
                  available: int | None = None) -> None:
-    """Refuse a render whose estimate exceeds the available memory.
+    """Refuse a render whose estimate exceeds ``MEMORY_HEADROOM`` of the available memory:
+    the rest is left to the machine and to the estimate's error.
+
+    Parameters
+    ----------
+    estimate : the whole render on this machine (every process it starts here).
+    available : bytes available (default: ``available_memory()``; None there: no check).
 
     Raises
     ------
     InputError
-        Naming the sizes and what to lower.
+        Naming the sizes, the margin and what to lower.
     """
     available = available_memory() if available is None else available
-    if available is None or estimate.total <= available:
+    if available is None:
         return
+    usable = int(available * MEMORY_HEADROOM)
+    if estimate.total <= usable:
+        return
+    kept = round(100 * (1 - MEMORY_HEADROOM))
     raise InputError(None, f"a {width}x{height} render needs about "
-                           f"{gigabytes(estimate.total)} (film {gigabytes(estimate.film)}, paths "
-                           f"in flight {gigabytes(estimate.paths)}, outputs "
-                           f"{gigabytes(estimate.outputs)}) but only {gigabytes(available)} "
-                           "is available; lower --width/--height, --batch-size or "
-                           "--max-samples-in-flight, or use fewer --nodes")
+                           f"{gigabytes(estimate.total)} ({estimate.breakdown()}) but only "
+                           f"{gigabytes(usable)} of the {gigabytes(available)} available "
+                           f"may be used ({kept}% is kept for the rest of the machine); "
+                           "render a smaller --width/--height, use fewer --threads or "
+                           "--nodes, lower --batch-size or --max-samples-in-flight, or bound "
+                           "the domains held with --memory-limit or --cache")
 
 
 #: Bytes a loaded domain holds per triangle besides its arrays: Embree's copy of the mesh and
@@ -131,9 +253,9 @@ def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width
     room = limit - fixed.total
     if room <= 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
-                               f"{width}x{height} render needs {gigabytes(fixed.total)} for "
-                               "its film and paths in flight before any domain; raise it, or "
-                               "lower --width/--height or --max-samples-in-flight")
+                               f"{width}x{height} render needs {gigabytes(fixed.total)} per process "
+                               f"before any domain ({fixed.breakdown()}); raise it, or lower "
+                               "--width/--height, --threads or --max-samples-in-flight")
     held, count = 0, 0
     for size in sorted(footprints, reverse=True):
         if held + size > room:
@@ -169,7 +291,7 @@ def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], ow
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small for "
                                f"--scheduler spec-insitu: node {worst} keeps its domains "
                                f"loaded, {gigabytes(held[worst])}, besides "
-                               f"{gigabytes(fixed.total)} for its film and paths; raise it, "
+                               f"{gigabytes(fixed.total)} for the rest of the process; raise it, "
                                "give more --nodes, or use --scheduler async (whose caches "
                                "evict)")
 
