@@ -12,7 +12,9 @@ after a regroup, where the node binds a new one). On the way each message is
   other kind passes at once.
 
 Only peer-to-peer traffic passes here (ray batches, films up the reduce tree, all-reduce
-partials and broadcasts); the coordinator's connection to the node is untouched.
+partials and broadcasts); the coordinator's connection to the node is untouched. Peers
+authenticate to the proxy (PLAIN, no check: it is a test tool on loopback), and the proxy to
+the node with the render's join secret, which it reads as a node of this user would.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import msgpack
 import numpy as np
 import zmq
 
+from vastray.transport.security import read_join_secret
+
 ENDPOINT_LINE = re.compile(r"listening for peers on (tcp://\S+)")
 
 
@@ -38,10 +42,12 @@ class PeerProxy(threading.Thread):
     port : the port to bind on loopback (the endpoint the node advertises).
     log : the node's log file, where it names its real peer endpoint.
     mode : ``"delay"`` or ``"drop"``.
+    coordinator_port : the port of the coordinator (without keys) whose join secret admits
+        the proxy to the node.
     seed : seed of the delays and of the drops.
     """
 
-    def __init__(self, port: int, log: Path, mode: str, seed: int = 0,
+    def __init__(self, port: int, log: Path, mode: str, coordinator_port: int, seed: int = 0,
                  max_delay_s: float = 0.05, drop_fraction: float = 0.01):
         super().__init__(daemon=True, name=f"proxy-{port}")
         if mode not in ("delay", "drop"):
@@ -52,8 +58,10 @@ class PeerProxy(threading.Thread):
         self.forwarded = self.dropped = 0
         self.stopping = threading.Event()
         self.ctx = zmq.Context()
+        self.coordinator_port = coordinator_port
         self.front = self.ctx.socket(zmq.ROUTER)
         self.front.setsockopt(zmq.LINGER, 0)
+        self.front.plain_server = True  # no ZAP handler in this context: every peer admitted
         self.front.bind(f"tcp://127.0.0.1:{port}")
 
     def stop(self) -> None:
@@ -77,6 +85,8 @@ class PeerProxy(threading.Thread):
                         back = self.ctx.socket(zmq.DEALER)
                         back.setsockopt(zmq.LINGER, 0)
                         back.setsockopt(zmq.SNDHWM, 0)
+                        back.plain_username = b"vastray"
+                        back.plain_password = read_join_secret(self.coordinator_port, 30)
                         back.connect(target)
                     next_look = now + 0.1
                 while back is not None and held and held[0][0] <= now:

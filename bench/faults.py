@@ -18,9 +18,18 @@ fault-free render of the same frame:
   the frame on the other alone (no peer traffic left to drop), or the run fails naming the
   node when both gave up at once.
 
-Floors: 100 % completed and identical for ``kill``, ``storm`` and ``delay``.
+- ``memory``: an outsider (``bench/fault_attacker.py``: none of the render's credentials)
+  tries to make a node and the coordinator hold memory while they wait for the job: 3 ZeroMQ
+  messages of one 900 MB frame (no secret, then a wrong one), one 900 MB frame over raw TCP
+  after a greeting, and 3 TCP connections each holding half of a declared 900 MB frame
+  (2,000 MB against the coordinator). Prints the peak growth of the target's resident memory
+  during each attack (sampled every 10 ms) against ``MEMORY_BOUND_MB``; then the render goes on
+  and must give the fault-free image.
 
-    python bench/faults.py [--runs 3] [--scheduler async] [--only delay drop]
+Floors: 100 % completed and identical for ``kill``, ``storm`` and ``delay``; every ``memory``
+attack within its bound.
+
+    python bench/faults.py [--runs 3] [--scheduler async] [--only delay drop memory]
 """
 
 from __future__ import annotations
@@ -49,9 +58,16 @@ from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 from vastray.transport.codec import encode
+from vastray.transport.security import read_join_secret
 
 #: The share of ray batches the ``drop`` fault's proxies drop.
 DROP_FRACTION = 0.01
+
+#: Most megabytes an outsider may make a node or the coordinator hold (``memory``): the
+#: largest frame a socket takes before the handshake, 4 MiB, with room for ZeroMQ's buffers.
+MEMORY_BOUND_MB = 16
+
+ATTACKER = Path(__file__).with_name("fault_attacker.py")
 
 SCENE_TOML = """
 [camera]
@@ -138,8 +154,8 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
         if fault in ("delay", "drop"):
             proxy_port = free_port()
             peer_endpoint = f"tcp://127.0.0.1:{proxy_port}"
-            proxies.append(PeerProxy(proxy_port, logs / f"n{i}.log", fault, seed=seed + i,
-                                     drop_fraction=DROP_FRACTION))
+            proxies.append(PeerProxy(proxy_port, logs / f"n{i}.log", fault, port,
+                                     seed=seed + i, drop_fraction=DROP_FRACTION))
             proxies[-1].start()
         with open(logs / f"n{i}.log", "wb") as err:
             nodes.append(subprocess.Popen(
@@ -171,8 +187,9 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
         rng = np.random.default_rng(0)
         if fault in (None, "delay", "drop"):
             pass
-        elif fault == "forged":
+        elif fault == "forged":  # from a process of this user: it holds the join secret
             sock = ctx.socket(zmq.DEALER)
+            sock.plain_username, sock.plain_password = b"vastray", read_join_secret(port, 10)
             sock.connect(f"tcp://127.0.0.1:{port}")
             n = settings.width * settings.height
             film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "sum_odd": np.zeros((n, 3)),
@@ -188,6 +205,7 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
                                  (logs / "n0.log").read_text()).group(1)
             sock = ctx.socket(zmq.DEALER)
             sock.setsockopt(zmq.SNDHWM, 0)
+            sock.plain_username, sock.plain_password = b"vastray", read_join_secret(port, 10)
             sock.connect(endpoint)
             for i in range(10_000):
                 kind = ["rays", "film", "job", "x" * 70, "reduce"][i % 5]
@@ -216,6 +234,98 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
     return outcome["result"], outcome["seconds"]
 
 
+def rss_bytes(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def attack_growth(pid: int, endpoint: str, attack: str, frame_mb: int) -> tuple[int, str]:
+    """Run one attack on ``endpoint`` (the socket of process ``pid``) and return the peak
+    growth of that process's resident memory while it lasted, and what the attacker said."""
+    base = rss_bytes(pid)
+    attacker = subprocess.Popen([sys.executable, str(ATTACKER), endpoint, attack,
+                                 "--frame-mb", str(frame_mb), "--hold", "2"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    peak = base
+    while attacker.poll() is None:
+        peak = max(peak, rss_bytes(pid))
+        time.sleep(0.01)
+    peak = max(peak, rss_bytes(pid))
+    return peak - base, attacker.stdout.read().strip()
+
+
+def memory_run(store, toml, settings, scheduler: str) -> tuple[object, list[tuple]]:
+    """Three nodes of which two join at once: while the coordinator waits for the third and
+    the two wait for their job, every attack is made on node 0's peer port and on the
+    coordinator; then the third node joins and the render runs. Returns the result and one
+    row (attack, target, frame MB, growth bytes, attacker's words) per attack."""
+    port = free_port()
+    logs = Path(tempfile.mkdtemp(prefix="vastray-memory-"))
+    outcome, nodes = {}, []
+
+    def run():
+        try:
+            outcome["result"] = render_distributed(
+                store, toml, settings, 3, options=JobOptions(scheduler=scheduler),
+                listen=f"127.0.0.1:{port}", timeout=120)
+        except Exception as exc:  # noqa: BLE001 - reported by the caller
+            outcome["error"] = exc
+
+    def start_node(i: int) -> None:
+        with open(logs / f"n{i}.log", "wb") as err:
+            nodes.append(subprocess.Popen(
+                [sys.executable, "-m", "vastray.cli", "node", "--coordinator",
+                 f"tcp://127.0.0.1:{port}", "--timeout", "120"],
+                stdout=subprocess.DEVNULL, stderr=err))
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    rows = []
+    try:
+        for i in range(2):
+            start_node(i)
+        deadline = time.monotonic() + 60
+        endpoint = None
+        while endpoint is None and time.monotonic() < deadline:
+            found = re.search(r"listening for peers on (tcp://\S+)",
+                              (logs / "n0.log").read_text())
+            endpoint = found.group(1) if found else None
+            time.sleep(0.05)
+        time.sleep(2.0)  # both said hello; they wait for the job, the coordinator for node 3
+        targets = [("node", nodes[0].pid, endpoint, 900),
+                   ("coordinator", os.getpid(), f"tcp://127.0.0.1:{port}", 2000)]
+        for target, pid, where, frame_mb in targets:
+            for attack in ("zmq-frames", "zmq-wrong-secret", "raw-frame", "raw-partial"):
+                growth, said = attack_growth(pid, where, attack, frame_mb)
+                rows.append((attack, target, frame_mb, growth, said))
+        start_node(2)
+        thread.join(timeout=300)
+    finally:
+        thread.join(timeout=300)
+        for node in nodes:
+            if node.poll() is None:
+                node.kill()
+            node.wait()
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["result"], rows
+
+
+def print_memory_table(rows: list[tuple]) -> bool:
+    """The ``memory`` table; True when every attack stayed within ``MEMORY_BOUND_MB``."""
+    print("\n| attack | target | frame | peak RSS growth | bound | within |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    ok = True
+    for attack, target, frame_mb, growth, _ in rows:
+        within = growth <= MEMORY_BOUND_MB * 1_000_000
+        ok &= within
+        print(f"| {attack} | {target} | {frame_mb:,} MB | {growth / 1e6:.1f} MB | "
+              f"{MEMORY_BOUND_MB} MB | {'yes' if within else 'NO'} |", flush=True)
+    return ok
+
+
 def free_port() -> int:
     import socket
 
@@ -224,13 +334,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--only", nargs="+", metavar="FAULT",
-                        choices=["kill", "stop", "storm", "forged", "delay", "drop"],
-                        help="run only these faults (the baselines always run)")
+                        choices=["kill", "stop", "storm", "forged", "delay", "drop", "memory"],
+                        help="run only these faults (the baselines run for any but memory)")
     parser.add_argument("--scheduler", default="async",
                         choices=["image", "spec-ooc", "domain", "async", "spec-insitu"])
     args = parser.parse_args()
@@ -240,6 +350,13 @@ def main() -> None:
                               shadow_samples=4)
     render_distributed(store, toml, settings, 2, options=JobOptions(scheduler=args.scheduler),
                        timeout=60)  # warm-up
+    if args.only == ["memory"]:
+        from vastray.render.driver import render
+        from vastray.render.scene_config import load_scene_config
+
+        reference = render(Store(store), load_scene_config(toml), settings,
+                           progress=False).film.image()
+        return memory_section(store, toml, settings, args.scheduler, reference)
     # The fault-free runs each fault is compared with, started the same way as the faulty ones:
     # 4 nodes started by the coordinator (kill, stop), 2 started as `vastray node` (storm,
     # forged); the median of --runs.
@@ -290,7 +407,24 @@ def main() -> None:
         overhead = f"{np.median(overheads):.2f}x" if overheads else "-"
         print(f"| {name} | {args.runs} | {100 * completed / args.runs:.0f} % | "
               f"{100 * identical / args.runs:.0f} % | {overhead} |", flush=True)
+    if not args.only or "memory" in args.only:
+        return memory_section(store, toml, settings, args.scheduler, reference)
+    return 0
+
+
+def memory_section(store, toml, settings, scheduler: str, reference: np.ndarray) -> int:
+    """The ``memory`` attacks, their table and the render's verdict; 1 if any failed."""
+    result, rows = memory_run(store, toml, settings, scheduler)
+    ok = print_memory_table(rows)
+    identical = bool(np.allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6))
+    refused = sum(r["counters"].get("refused_connections", 0)
+                  for r in result.counters["per_node"])
+    print(f"\nmemory: the render after the attacks is {'identical' if identical else 'NOT '}"
+          f"{'' if identical else 'identical'}; refused connections: node reports {refused}, "
+          f"coordinator "
+          f"{result.counters['per_node'][0]['counters'].get('coordinator_refused_connections')}")
+    return 0 if ok and identical else 1
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,0 +1,34 @@
+"""``bench/faults.py --only memory``: an outsider's attempts to make a node or the coordinator
+hold memory (the probe's 900 MB frames, its held partial frames, a 2,000 MB frame) each stay
+within the bound, and the render after them is the reference image. Real processes, real
+sockets, raw TCP; about half a minute, so slow (CI runs it)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+
+
+@pytest.mark.slow
+def test_no_attack_makes_a_node_or_the_coordinator_hold_more_than_the_bound():
+    out = subprocess.run([sys.executable, str(BENCH / "faults.py"), "--only", "memory"],
+                         cwd=BENCH, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stdout + out.stderr[-3000:]
+    rows = re.findall(r"^\| (\S+) \| (node|coordinator) \| [\d,]+ MB \| ([\d.]+) MB \| "
+                      r"(\d+) MB \| (\w+) \|$", out.stdout, re.MULTILINE)
+    assert len(rows) == 8, out.stdout
+    assert {(attack, target) for attack, target, *_ in rows} == {
+        (a, t) for a in ("zmq-frames", "zmq-wrong-secret", "raw-frame", "raw-partial")
+        for t in ("node", "coordinator")}
+    for attack, target, growth, bound, within in rows:
+        assert float(growth) <= float(bound) and within == "yes", (attack, target, growth)
+    assert "the render after the attacks is identical" in out.stdout, out.stdout
+    refused = re.search(r"refused connections: node reports (\d+), coordinator (\d+)",
+                        out.stdout)
+    assert int(refused.group(1)) >= 4 and int(refused.group(2)) >= 4, out.stdout
