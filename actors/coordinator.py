@@ -17,7 +17,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -37,6 +36,7 @@ from vastray.actors.job_options import (
     JobOptionsError,
 )
 from vastray.actors.liveness import BUSY_GRACE, CpuWitness
+from vastray.actors.node_logs import NodeLogs
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
@@ -106,8 +106,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                        heartbeat_timeout: float | None = None,
                        survive_node_loss: bool = True, frames: list[int] | None = None,
                        on_frame: Callable[[int, RenderResult], None] | None = None,
-                       progression_of: Callable[[int | None], Progression] | None = None
-                       ) -> RenderResult:
+                       progression_of: Callable[[int | None], Progression] | None = None,
+                       log_dir: str | os.PathLike | None = None) -> RenderResult:
     """Render with ``nodes`` node processes talking ZeroMQ.
 
     Parameters
@@ -154,6 +154,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         and with a rule that may stop early (``StopRules.paced``) each pass waits for the
         verdict on the one before. A node loss re-renders only the passes not yet merged.
         None: each frame in one pass of all its samples.
+    log_dir : a folder to keep the logs of the nodes started here in (``nodeR.log``; a
+        repeat after a node loss ``nodeR.attemptK.log``), named in the result's counters
+        (``node_logs``). None: they are removed when the render ends.
     Returns
     -------
     The result of the image, or with ``frames`` of the last frame (its counters list every
@@ -198,6 +201,22 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         "domains": len(store.domains),
     }
     secret = new_secret()  # the join secret without keys: one for every attempt
+    logs = NodeLogs(log_dir if listen is None else None)
+    try:
+        return _render_attempts(job, store, config, camera, settings, nodes, options,
+                                timeout, listen, keys, launched, progress, rendezvous,
+                                heartbeat_timeout, survive_node_loss, frames, on_frame,
+                                progression_of, secret, logs)
+    finally:
+        logs.close()
+
+
+def _render_attempts(job, store, config, camera, settings, nodes, options, timeout, listen,
+                     keys, launched, progress, rendezvous, heartbeat_timeout,
+                     survive_node_loss, frames, on_frame, progression_of, secret: bytes,
+                     logs: NodeLogs) -> RenderResult:
+    """``render_distributed`` from its first attempt to the last (one per node loss)."""
+    scheduler = options.scheduler
     start = time.perf_counter()
     total = settings.width * settings.height * settings.spp * len(frames or [None])
     progressions: dict[int | None, Progression] = {}
@@ -214,6 +233,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     delivered: dict[int, RenderResult] = {}
     bound: dict[str, str] = {}  # the listen address as bound (its port, where 0 was asked)
     spare_exits = 0  # launched sessions of lost nodes still to exit (not failures)
+    attempt = 0
 
     def frame_done(frame: int, film, reports: list[dict], barriers: int, seconds: float) -> None:
         lo, hi = store.world_bounds
@@ -223,6 +243,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         result = _result(film, frame_camera, reports, barriers, scheduler, size, nodes,
                          failures, seconds, recoveries)
         result.counters["frame"] = frame
+        if logs.kept:
+            result.counters["node_logs"] = str(logs.folder)
         if progression_of is not None:
             result.progress = progression(frame).report()
         delivered[frame] = result
@@ -248,12 +270,14 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
                     regroup=survive_node_loss and size > 1, bound=bound,
-                    spare_exits=spare_exits, passes=passes, secret=secret))
+                    spare_exits=spare_exits, passes=passes, secret=secret, logs=logs,
+                    attempt=attempt))
             break
         except NodeLost as lost:
             if not survive_node_loss or size == 1:
                 raise NodeFailure(str(lost)) from None
             failures.append(str(lost))
+            attempt += 1
             recoveries.append({"node": lost.rank, "cause": lost.cause, "frames": [0] if (
                 frames is None) else [f for f in frames if f not in delivered]})
             size -= 1
@@ -272,6 +296,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if frames is None:
         result = _result(film, camera, reports, barriers, scheduler, size, nodes, failures,
                          wall, recoveries)
+        if logs.kept:
+            result.counters["node_logs"] = str(logs.folder)
         if progression_of is not None:
             result.progress = progression(None).report()
         return result
@@ -381,7 +407,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                       verbose: bool, rendezvous: str | os.PathLike | None = None,
                       heartbeat_timeout: float | None = None, frame_done=None,
                       regroup: bool = False, bound: dict | None = None, spare_exits: int = 0,
-                      *, passes: _Passes, secret: bytes):
+                      *, passes: _Passes, secret: bytes, logs: NodeLogs, attempt: int = 0):
     """One attempt at the job on ``size`` nodes (``passes``: its units, see ``_Passes``).
     With ``listen`` and ``regroup``, a node lost mid-frame makes the coordinator tell the
     others to regroup before ``NodeLost`` is raised; ``bound["listen"]`` gets the address
@@ -413,7 +439,6 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
     if bound is not None:
         bound["listen"] = f"{host}:{port}"
     linger = 0
-    logs = tempfile.TemporaryDirectory(prefix="vastray-nodes-")
     procs = []
     beating = None
     secret_file = None
@@ -422,7 +447,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         if listen is None:
             for rank in range(size):
                 procs.append(_start_local_node(rank, port, timeout, secret,
-                                               Path(logs.name) / f"node{rank}.log"))
+                                               logs.path(rank, attempt)))
         else:
             if not credentials.curve:
                 secret_file = write_join_secret(int(port), secret)
@@ -433,7 +458,8 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
                 print(f"waiting for {size} node(s) on tcp://{host}:{port}"
                       + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
         address = f"tcp://{host}:{port}"
-        watch = _Watch(size, procs, logs.name, timeout, launched, address, token=token,
+        watch = _Watch(size, procs, [logs.path(r, attempt) for r in range(len(procs))], timeout,
+                       launched, address, token=token,
                        heartbeat_timeout=heartbeat_timeout or timeout, spare_exits=spare_exits,
                        regrouping=bool(bound and bound.get("regrouping")))
         identities, endpoints, member_keys = {}, [None] * size, [b""] * size
@@ -491,7 +517,6 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
         router.close(linger=linger)
         gate.close()
         ctx.destroy(linger=0)
-        logs.cleanup()
         if secret_file is not None:
             secret_file.unlink(missing_ok=True)
         if rendezvous is not None and listen is not None:
@@ -855,12 +880,13 @@ class _Watch:
     """Receives from the coordinator socket while watching the nodes: child processes that
     exit, and any node silent for longer than the timeout (heartbeats come every second)."""
 
-    def __init__(self, size: int, procs: list[subprocess.Popen], log_dir: str, timeout: float,
+    def __init__(self, size: int, procs: list[subprocess.Popen], log_paths: list[Path],
+                 timeout: float,
                  launched: dict[str, tuple[subprocess.Popen, Path]], address: str = "",
                  token: bytes = b"",
                  heartbeat_timeout: float | None = None, spare_exits: int = 0,
                  regrouping: bool = False):
-        self.size, self.procs, self.log_dir, self.timeout = size, procs, log_dir, timeout
+        self.size, self.procs, self.log_paths, self.timeout = size, procs, log_paths, timeout
         self.regrouping = regrouping  # the survivors of a node loss are to join again
         self.heartbeat_timeout = heartbeat_timeout or timeout
         self.launched, self.address = dict(launched), address
@@ -916,8 +942,7 @@ class _Watch:
         if rank < len(self.procs):
             last = ""
             if log_tail:
-                text = (Path(self.log_dir) / f"node{rank}.log").read_text(
-                    errors="replace").strip()
+                text = self.log_paths[rank].read_text(errors="replace").strip()
                 last = f": {text.splitlines()[-1] if text else 'no output'}"
             failure = kind(f"node {rank} (pid {self.procs[rank].pid}) {why}{last}")
         else:

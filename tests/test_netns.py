@@ -16,7 +16,7 @@ from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import SceneConfig
-from vastray.transport.security import generate_keys, load_keys
+from vastray.transport.security import add_node_key, generate_keys, load_coordinator_keys
 
 from scenes import bumpy_scene, settings, write_store
 
@@ -60,16 +60,18 @@ def namespaces():
 def test_nodes_in_separate_network_namespaces(namespaces, tmp_path):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
     generate_keys(tmp_path / "keys")
+    for ns in namespaces:  # each node its own key
+        add_node_key(tmp_path / "keys", ns)
     port = 47000 + os.getpid() % 1000
     nodes = [subprocess.Popen(
         ["ip", "netns", "exec", ns, sys.executable, "-m", "vastray.cli", "node",
          "--coordinator", f"tcp://{SUBNET}.1:{port}", "--bind", "0.0.0.0",
-         "--keys", str(tmp_path / "keys"), "--timeout", "30"],
+         "--keys", str(tmp_path / "keys"), "--key-name", ns, "--timeout", "30"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for ns in namespaces]
     try:
         st = settings(width=24, height=18, spp=2, integrator="pt")
         result = render_distributed(store.path, None, st, 2, listen=f"{SUBNET}.1:{port}",
-                                    keys=load_keys(tmp_path / "keys"), timeout=30,
+                                    keys=load_coordinator_keys(tmp_path / "keys"), timeout=30,
                                     options=JobOptions(max_samples_in_flight=200))
         reference = render(store, SceneConfig(), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)

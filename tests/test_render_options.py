@@ -391,6 +391,21 @@ def check_heartbeat_timeout(r: Renders):
     r.refused("--heartbeat-timeout", "5", naming="--heartbeat-timeout")
 
 
+def check_log_dir(r: Renders):
+    logs = r.folder / "logs"
+    r.refused("--log-dir", str(logs), naming="--log-dir")
+    r.refused("--nodes", "1", "--listen", "127.0.0.1:0", "--log-dir", str(logs),
+              naming="--log-dir")
+    run = r("--nodes", "2", "--log-dir", str(logs))
+    assert run.code == 0, run.err
+    assert run.counters["node_logs"] == str(logs)  # the report says where they are
+    for rank in range(2):
+        assert "joined" in (logs / f"node{rank}.log").read_text()
+    beside = r("--nodes", "1")  # no --log-dir: kept beside --report
+    kept = Path(beside.counters["node_logs"])
+    assert kept.name == "r.json.nodes" and "joined" in (kept / "node0.log").read_text()
+
+
 def check_listen(r: Renders):
     r.refused("--listen", "127.0.0.1:0", naming="--listen")
     port = _free_port()

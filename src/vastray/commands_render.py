@@ -196,6 +196,11 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "(see --scheduler)")
     p.add_argument("--node-timeout", type=_positive_float, metavar="S",
                    help="with --nodes: fail when a node is silent this long (default: 120)")
+    p.add_argument("--log-dir", metavar="DIR",
+                   help="with --nodes (started here): keep each node's log in DIR "
+                        "(nodeR.log: its failures and the messages and connections it "
+                        "refused); default: beside --report as REPORT.nodes, else removed "
+                        "when the render ends")
     p.add_argument("--heartbeat-timeout", type=_positive_float, metavar="S",
                    help="with --nodes: a node silent this long mid-frame is lost (stalled); "
                         "it is survived by rendering the frame again on the others (with "
@@ -648,6 +653,9 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
                                "them")
     if args.keys:
         load_coordinator_keys(args.keys)  # a missing or malformed key fails before the render
+    if args.log_dir and args.listen:
+        raise InputError(None, "--log-dir keeps the logs of nodes started here; nodes started "
+                               "elsewhere (--listen) keep their own (`vastray launch --logs`)")
     if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") and not args.nodes:
         raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                "give --nodes N")
@@ -831,7 +839,8 @@ def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options:
                 keys=load_coordinator_keys(args.keys) if args.keys else None,
                 launched=launched,
                 progress=not args.quiet, config=config, rendezvous=args.rendezvous,
-                heartbeat_timeout=args.heartbeat_timeout, **frames)
+                heartbeat_timeout=args.heartbeat_timeout, log_dir=node_log_dir(args),
+                **frames)
     elif options.scheduler == "reference":
         kept = FrameCache(store, options.cache, options.load_bytes_per_second())
 
@@ -846,6 +855,16 @@ def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options:
                 store, config, settings, options, progress=not args.quiet,
                 progression=progression), progression)
     return render_one
+
+
+def node_log_dir(args: argparse.Namespace) -> Path | None:
+    """Where the logs of the nodes started here are kept: ``--log-dir``, else beside
+    ``--report`` (``REPORT.nodes``; the report names it), else nowhere (removed)."""
+    if args.log_dir:
+        return Path(args.log_dir)
+    if args.report and not args.listen:
+        return Path(f"{args.report}.nodes")
+    return None
 
 
 def _with_progress(result: RenderResult, progression: Progression | None) -> RenderResult:

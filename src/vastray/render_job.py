@@ -23,7 +23,7 @@ DEFAULT_PORTAL_INTERVAL = 10
 DEFAULT_PORTAL_THRESHOLD = 0.5
 
 #: Options that only mean something with ``--nodes``.
-NODE_OPTIONS = ("node_timeout", "heartbeat_timeout", "listen", "keys")
+NODE_OPTIONS = ("node_timeout", "heartbeat_timeout", "listen", "keys", "log_dir")
 
 
 def _flag(dest: str) -> str:
