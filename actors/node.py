@@ -823,6 +823,12 @@ def main(argv: list[str] | None = None) -> int:
             credentials = Credentials(secret=read_secret_fd(args.secret_fd))
         coordinator = coordinator_address(args.coordinator
                                           or read_address(args.rendezvous, args.timeout))
+        host = coordinator.removeprefix("tcp://").rpartition(":")[0].strip("[]")
+        if credentials is None and not (host.startswith("127.") or host in ("localhost",
+                                                                             "::1")):
+            raise InputError(None, f"joining {coordinator} needs --keys DIR: without keys a "
+                                   "node joins only a coordinator of its user on its machine "
+                                   "(on loopback)")
         asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
                              args.advertise, credentials))
     except InputError as exc:

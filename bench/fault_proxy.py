@@ -13,8 +13,8 @@ after a regroup, where the node binds a new one). On the way each message is
 
 Only peer-to-peer traffic passes here (ray batches, films up the reduce tree, all-reduce
 partials and broadcasts); the coordinator's connection to the node is untouched. Peers
-authenticate to the proxy (PLAIN, no check: it is a test tool on loopback), and the proxy to
-the node with the render's join secret, which it reads as a node of this user would.
+authenticate to the proxy, and the proxy to the node, with the render's join secret (PLAIN),
+which the proxy reads as a node of this user would.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import zmq
+from zmq.auth.thread import ThreadAuthenticator
 
 from vastray.transport.security import read_join_secret
 
@@ -61,7 +62,9 @@ class PeerProxy(threading.Thread):
         self.coordinator_port = coordinator_port
         self.front = self.ctx.socket(zmq.ROUTER)
         self.front.setsockopt(zmq.LINGER, 0)
-        self.front.plain_server = True  # no ZAP handler in this context: every peer admitted
+        self.front.plain_server = True
+        self.auth = ThreadAuthenticator(self.ctx)  # configured once the secret is known
+        self.auth.start()
         self.front.bind(f"tcp://127.0.0.1:{port}")
 
     def stop(self) -> None:
@@ -69,6 +72,8 @@ class PeerProxy(threading.Thread):
         self.join(timeout=10)
 
     def run(self) -> None:
+        secret = read_join_secret(self.coordinator_port, 60)
+        self.auth.configure_plain(domain="*", passwords={"vastray": secret.decode()})
         back, target = None, None
         held: list[tuple[float, int, list]] = []  # (due, sequence, frames)
         last_due: dict[bytes, float] = {}
@@ -86,7 +91,7 @@ class PeerProxy(threading.Thread):
                         back.setsockopt(zmq.LINGER, 0)
                         back.setsockopt(zmq.SNDHWM, 0)
                         back.plain_username = b"vastray"
-                        back.plain_password = read_join_secret(self.coordinator_port, 30)
+                        back.plain_password = secret
                         back.connect(target)
                     next_look = now + 0.1
                 while back is not None and held and held[0][0] <= now:
@@ -112,6 +117,7 @@ class PeerProxy(threading.Thread):
             if back is not None:
                 back.close(linger=0)
             self.front.close(linger=0)
+            self.auth.stop()
             self.ctx.term()
 
     def _log_text(self) -> str:

@@ -4,6 +4,7 @@ killed mid-render fails the run naming the node, and leaves no output."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import threading
 import time
@@ -195,8 +196,13 @@ def test_external_nodes_join_with_curve_keys(scene, tmp_path):
     store, toml = scene
     assert main(["keys", "-o", str(tmp_path / "keys"), "--node", "n0", "--node", "n1",
                  "--node", "n2"]) == 0
+    for i in range(3):  # what each node's host needs: the coordinator's public key, its own
+        mine = tmp_path / f"host{i}"
+        (mine / "nodes").mkdir(parents=True)
+        shutil.copy(tmp_path / "keys" / "coordinator.pub", mine)
+        shutil.copy(tmp_path / "keys" / "nodes" / f"n{i}.key", mine / "nodes")
     port = _free_port()
-    nodes = [_start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "keys",
+    nodes = [_start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / f"host{i}",
                                   tmp_path / f"n{i}.log", f"n{i}") for i in range(3)]
     try:
         st = settings(width=24, height=18, spp=2, integrator="pt")

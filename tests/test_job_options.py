@@ -92,21 +92,32 @@ def test_load_bandwidth_is_cycled_over_the_ranks_in_bytes_per_second():
 def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
     """A real node process, given a job whose options carry another version, reports the
     failure to its coordinator with the reason (and renders nothing)."""
+    import os
     import subprocess
     import sys
 
     import zmq
+    from zmq.auth.thread import ThreadAuthenticator
 
     from vastray.actors import protocol
     from vastray.transport.codec import decode, encode
 
     ctx = zmq.Context()
+    auth = ThreadAuthenticator(ctx)  # the test plays the coordinator: it admits its secret
+    auth.start()
+    auth.configure_plain(domain="*", passwords={"vastray": "0" * 32})
     router = ctx.socket(zmq.ROUTER)
     router.setsockopt(zmq.LINGER, 0)
+    router.plain_server = True
     port = router.bind_to_random_port("tcp://127.0.0.1")
+    read_end, write_end = os.pipe()  # the join secret, as a coordinator hands it over
+    os.write(write_end, b"0" * 32)
+    os.close(write_end)
     node = subprocess.Popen([sys.executable, "-m", "vastray.actors.node", "--coordinator",
-                             f"tcp://127.0.0.1:{port}", "--rank", "0", "--timeout", "30"],
+                             f"tcp://127.0.0.1:{port}", "--rank", "0", "--timeout", "30",
+                             "--secret-fd", str(read_end)], pass_fds=(read_end,),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.close(read_end)
     try:
         assert router.poll(30_000), "the node never said hello"
         identity, _, *hello = router.recv_multipart()
@@ -114,7 +125,7 @@ def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
         wire = dict(JobOptions().to_wire(), version=99)
         job = {"store": str(tmp_path), "settings": {}, "options": wire, "rank": 0, "size": 1,
                "endpoints": [decode(hello).meta["endpoint"]], "units": [[None, 0, 1]],
-               "paced": False}
+               "paced": False, "peer_tokens": [b"t" * 16], "keys": [], "domains": 1}
         router.send_multipart([identity, b"token", *encode(protocol.JOB, {}, job)])
         failed = None
         while failed is None and router.poll(30_000):
@@ -129,4 +140,5 @@ def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
             node.kill()
         node.wait()
         router.close()
+        auth.stop()
         ctx.term()

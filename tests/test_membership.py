@@ -155,3 +155,61 @@ def test_without_keys_a_hello_without_the_join_secret_never_gets_the_job(scene):
     finally:
         thread.join(timeout=30)
         ctx.destroy(linger=0)
+
+
+async def test_with_keys_a_pair_token_is_taken_only_from_the_key_of_the_rank_it_names(tmp_path):
+    # A token that leaked to another member (here: node 2's key with the token node 0 shares
+    # with node 1) is refused: with keys, the CURVE key of the connection must be that rank's.
+    from vastray.actors.node import ManagementActor
+    from vastray.transport.security import (
+        Credentials,
+        Gate,
+        add_node_key,
+        generate_keys,
+        load_coordinator_keys,
+        load_node_keys,
+        serve,
+    )
+
+    generate_keys(tmp_path)
+    names = ["a", "b", "c"]
+    for name in names:
+        add_node_key(tmp_path, name)
+    ctx = zmq.asyncio.Context()
+    gate = Gate(ctx, what="test")  # admits the job's keys once a node has its job
+    coordinator = ctx.socket(zmq.ROUTER)
+    serve(coordinator, Credentials(keys=load_coordinator_keys(tmp_path)))
+    port = coordinator.bind_to_random_port("tcp://127.0.0.1")
+    keys = [load_node_keys(tmp_path, name) for name in names]
+    nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
+                             Credentials(keys=k), gate) for k in keys]
+    tokens = _pair_tokens(3)
+    publics = [k.public for k in keys]
+    try:
+        for rank, node in enumerate(nodes):
+            node.join(b"job-token-0123456", {"rank": rank, "size": 3, "domains": 4,
+                                             "endpoints": [n.endpoint for n in nodes],
+                                             "peer_tokens": tokens[rank], "keys": publics})
+        film = film_frames(Film(4, 3), {"rank": 1, "ordinal": 0})
+        senders = []
+        for key in (keys[2], keys[1]):  # node 2's key first, then node 1's own
+            sock = ctx.socket(zmq.DEALER)
+            sock.curve_secretkey, sock.curve_publickey = key.secret, key.public
+            sock.curve_serverkey = publics[0]
+            sock.connect(nodes[0].endpoint)
+            await sock.send_multipart([tokens[0][1], *film])
+            senders.append(sock)
+        deadline = time.monotonic() + 10
+        while nodes[0].mailbox(protocol.FILM).qsize() < 1 and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        await asyncio.sleep(0.2)
+        assert nodes[0].rejections.counts == {"impersonation": 1}, nodes[0].rejections.counts
+        assert nodes[0].mailbox(protocol.FILM).qsize() == 1
+        for sock in senders:
+            sock.close(linger=0)
+    finally:
+        for node in nodes:
+            node.close()
+        coordinator.close(linger=0)
+        gate.close()
+        ctx.destroy(linger=0)
