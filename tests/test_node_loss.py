@@ -317,7 +317,8 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
     for rank in (0, 1):
         (tmp_path / f"node{rank}.log").write_text(f"node {rank}: joined\n")
     try:
-        watch = _Watch(2, [busy, idle], str(tmp_path), timeout=60, launched={},
+        watch = _Watch(2, [busy, idle], [tmp_path / f"node{r}.log" for r in (0, 1)], timeout=60,
+                       launched={},
                        heartbeat_timeout=1.0)
         for rank in (0, 1):
             watch.joined(rank, bytes([rank]))
