@@ -21,5 +21,7 @@ def film_from(message: Message, width: int, height: int) -> Film:
         if array.shape != getattr(film, name).shape:
             raise ValueError(f"film field {name} has shape {array.shape}, expected "
                              f"{getattr(film, name).shape}")
-        setattr(film, name, np.array(array))
+        # a field that came in several frames was joined into a fresh, writable array by the
+        # codec: taken as it is; one viewing a received frame (read-only) is copied
+        setattr(film, name, array if array.flags.writeable else np.array(array))
     return film

@@ -31,4 +31,6 @@ def test_no_attack_makes_a_node_or_the_coordinator_hold_more_than_the_bound():
     assert "the render after the attacks is identical" in out.stdout, out.stdout
     refused = re.search(r"refused connections: node reports (\d+), coordinator (\d+)",
                         out.stdout)
-    assert int(refused.group(1)) >= 4 and int(refused.group(2)) >= 4, out.stdout
+    # at least the ZeroMQ outsiders (no secret: a failed handshake; a wrong one: refused by
+    # the ZAP handler); the raw ones are cut off by the frame limit before any handshake
+    assert int(refused.group(1)) >= 2 and int(refused.group(2)) >= 2, out.stdout
