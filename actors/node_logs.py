@@ -14,6 +14,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from vastray.processes import running
+
 PREFIX = "vastray-nodes-"
 
 
@@ -51,20 +53,10 @@ def sweep_stale(root: str | os.PathLike | None = None) -> list[Path]:
     for folder in Path(root or tempfile.gettempdir()).glob(f"{PREFIX}*"):
         try:
             pid = int(folder.name[len(PREFIX):].split("-", 1)[0])
-            if folder.stat().st_uid != os.getuid() or _alive(pid):
+            if folder.stat().st_uid != os.getuid() or running(pid):
                 continue
         except (ValueError, OSError):
             continue
         shutil.rmtree(folder, ignore_errors=True)
         removed.append(folder)
     return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from vastray.processes import running
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
 
@@ -57,21 +58,12 @@ def _remove_orphans(path: Path) -> None:
     with contextlib.suppress(OSError):
         for entry in os.scandir(path.parent):
             match = pattern.fullmatch(entry.name)
-            if match and entry.is_file(follow_symlinks=False) and not _running(
+            if match and entry.is_file(follow_symlinks=False) and not running(
                     int(match.group(1))):
                 with contextlib.suppress(OSError):
                     os.unlink(entry.path)
 
 
-def _running(pid: int) -> bool:
-    """Whether process ``pid`` exists (ours or another user's)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from pathlib import Path
 
@@ -99,33 +100,59 @@ def terrain_scene(n: int = 48, size: float = 4.0, seed: int = 5) -> DomainArrays
     return mesh_arrays(trimesh.util.concatenate([ground, sphere, *boxes]))
 
 
-def member_actors(ctx, size: int, domains: int = 8):
-    """``size`` management actors of one job in one asyncio context (real sockets; the
-    PLAIN join secret of a job without keys), each told its job as the coordinator tells it.
+@contextlib.contextmanager
+def member_actors(size: int, domains: int = 8, keys=None):
+    """``size`` management actors of one job in a fresh asyncio context (real sockets), each
+    told its job as the coordinator tells it; all closed on exit. Without ``keys``: the PLAIN
+    join secret of a job without keys; with a key folder made by ``vastray keys`` holding
+    node keys ``n0`` ... : CURVE, node r with key ``nR``.
 
-    Returns
-    -------
-    (coordinator ROUTER, the context's Gate, actors by rank).
+    Yields
+    ------
+    (context, coordinator ROUTER, the context's Gate, actors by rank).
     """
     import zmq
+    import zmq.asyncio
 
     from vastray.actors.coordinator import _pair_tokens
     from vastray.actors.node import ManagementActor
-    from vastray.transport.security import Credentials, Gate, new_secret, serve
+    from vastray.transport.security import (
+        Credentials,
+        Gate,
+        load_coordinator_keys,
+        load_node_keys,
+        new_secret,
+        serve,
+    )
 
-    secret = new_secret()
-    gate = Gate(ctx, secret=secret, what="test")
+    ctx = zmq.asyncio.Context()
+    if keys is None:
+        secret = new_secret()
+        served = [Credentials(secret=secret)] * (size + 1)
+        gate = Gate(ctx, secret=secret, what="test")
+    else:  # the gate admits the job's keys once a node has its job
+        served = [Credentials(keys=load_coordinator_keys(keys)),
+                  *(Credentials(keys=load_node_keys(keys, f"n{r}")) for r in range(size))]
+        gate = Gate(ctx, what="test")
     coordinator = ctx.socket(zmq.ROUTER)
-    serve(coordinator, Credentials(secret=secret))
+    serve(coordinator, served[0])
     port = coordinator.bind_to_random_port("tcp://127.0.0.1")
     nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
-                             Credentials(secret=secret), gate) for _ in range(size)]
+                             served[1 + r], gate) for r in range(size)]
     tokens = _pair_tokens(size)
-    for rank, node in enumerate(nodes):
-        node.join(b"job-token-0123456", {"rank": rank, "size": size, "domains": domains,
-                                         "endpoints": [n.endpoint for n in nodes],
-                                         "peer_tokens": tokens[rank], "keys": []})
-    return coordinator, gate, nodes
+    publics = [] if keys is None else [c.keys.public for c in served[1:]]
+    try:
+        for rank, node in enumerate(nodes):
+            node.join(b"job-token-0123456", {"rank": rank, "size": size, "domains": domains,
+                                             "endpoints": [n.endpoint for n in nodes],
+                                             "peer_tokens": tokens[rank], "keys": publics})
+        yield ctx, coordinator, gate, nodes
+    finally:
+        for node in nodes:
+            node.close()
+        coordinator.close(linger=0)
+        gate.close()
+        ctx.destroy(linger=0)
 
 
 async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
@@ -138,24 +165,13 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
     """
     import asyncio
 
-    import zmq
-    import zmq.asyncio
-
     from vastray.actors.node import TreeReduceActor
 
     size = len(arrays)
-    ctx = zmq.asyncio.Context()
-    coordinator, gate, nodes = member_actors(ctx, size)
-    actors = [TreeReduceActor(nodes[r], r, size) for r in range(size)]
-    try:
+    with member_actors(size) as (_, _, _, nodes):
+        actors = [TreeReduceActor(nodes[r], r, size) for r in range(size)]
         results = await asyncio.gather(*[actors[r].allreduce(arrays[r], ops)
                                          for r in range(size)])
-    finally:
-        for n in nodes:
-            n.close()
-        coordinator.close(linger=0)
-        gate.close()
-        ctx.destroy(linger=0)
     return results, actors
 
 

@@ -345,8 +345,6 @@ async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinato
     when the coordinator is gone or idle: a coordinator that still uses CPU (its loop held up on
     a starved machine) is slow, and heartbeats already waiting unread on the socket mean the
     node itself is behind."""
-    import zmq
-    import zmq.asyncio
 
     script = "while True: pass" if coordinator == "busy" else "import time; time.sleep(60)"
     parent = subprocess.Popen([sys.executable, "-c", script])
@@ -361,30 +359,25 @@ async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinato
         raise Exited(code)
 
     monkeypatch.setattr(os, "_exit", fake_exit)
-    ctx = zmq.asyncio.Context()
-    router, gate, (node,) = member_actors(ctx, 1)
-    try:
-        if coordinator == "queued":  # a message sits unread on the node's coordinator socket
-            node._tasks[1].cancel()  # the node's reader held up (its loop starved)
-            await node.coordinator.send_multipart([b"job", b"hello"])
-            identity, *_ = await router.recv_multipart()
-            await router.send_multipart([identity, b"job", b"unread"])
-            await asyncio.sleep(0.3)
-        node.coordinator_heard = time.monotonic() - 5.0  # silent for longer than the limit
-        watch = asyncio.ensure_future(node.watch_coordinator(silence=1.0))
-        done, _ = await asyncio.wait([watch], timeout=3.0)
-        if coordinator == "idle":
-            assert exits == [4] and isinstance(watch.exception(), Exited)  # idle: lost
-        else:
-            assert not done and exits == []  # slow, not lost
-            watch.cancel()
-    finally:
-        node.close()
-        router.close(linger=0)
-        gate.close()
-        ctx.destroy(linger=0)
-        parent.kill()
-        parent.wait()
+    with member_actors(1) as (_, router, _, (node,)):
+        try:
+            if coordinator == "queued":  # a message sits unread on the node's coordinator socket
+                node._tasks[1].cancel()  # the node's reader held up (its loop starved)
+                await node.coordinator.send_multipart([b"job", b"hello"])
+                identity, *_ = await router.recv_multipart()
+                await router.send_multipart([identity, b"job", b"unread"])
+                await asyncio.sleep(0.3)
+            node.coordinator_heard = time.monotonic() - 5.0  # silent for longer than the limit
+            watch = asyncio.ensure_future(node.watch_coordinator(silence=1.0))
+            done, _ = await asyncio.wait([watch], timeout=3.0)
+            if coordinator == "idle":
+                assert exits == [4] and isinstance(watch.exception(), Exited)  # idle: lost
+            else:
+                assert not done and exits == []  # slow, not lost
+                watch.cancel()
+        finally:
+            parent.kill()
+            parent.wait()
 
 
 def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsys):

@@ -37,6 +37,7 @@ import zmq.asyncio
 from zmq.utils import z85
 from zmq.utils.monitor import parse_monitor_message
 
+from vastray.processes import running
 from vastray.scene.errors import InputError
 from vastray.transport.codec import FRAME_LIMIT
 
@@ -262,11 +263,9 @@ def write_join_secret(port: int, secret: bytes) -> Path:
 
 def _holder_alive(path: Path) -> bool:
     try:
-        pid = int(path.read_text().split()[0])
-        os.kill(pid, 0)
+        return running(int(path.read_text().split()[0]))
     except (OSError, ValueError, IndexError):
         return False
-    return True
 
 
 def read_join_secret(port: int, timeout: float) -> bytes:
@@ -284,8 +283,7 @@ def read_join_secret(port: int, timeout: float) -> bytes:
     while True:
         try:
             pid, secret = path.read_text().split()
-            os.kill(int(pid), 0)
-            if path.stat().st_uid == os.getuid():
+            if running(int(pid)) and path.stat().st_uid == os.getuid():
                 return secret.encode()
         except (OSError, ValueError):
             pass
