@@ -236,8 +236,12 @@ def join_secret_path(port: int) -> Path:
 def _private_dir() -> Path:
     """``runtime_dir()``, made owner-only; refused if another user could read or replace it."""
     folder = runtime_dir()
-    folder.mkdir(parents=True, exist_ok=True, mode=0o700)
-    info = folder.stat()
+    try:
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        info = folder.stat()
+    except OSError as exc:
+        raise InputError(folder, f"cannot keep the join secret here ({exc.strerror}); set "
+                                 "VASTRAY_RUNTIME_DIR to a folder only you can read") from None
     if info.st_uid != os.getuid() or stat.S_IMODE(info.st_mode) & 0o077:
         raise InputError(folder, "must be a folder only you can read (owner "
                                  f"{info.st_uid}, mode {stat.S_IMODE(info.st_mode):o}); fix it "
