@@ -325,7 +325,7 @@ def test_without_the_entrypoint_uid_1000_cannot_write_the_root_owned_volume(volu
                           volumes / "keys"], capture_output=True, text=True, cwd="/",
                          env={**os.environ, "HOME": str(home)})
     assert run.returncode != 0 and "Permission" in run.stderr
-    assert not (volumes / "keys" / "cluster.key").exists()
+    assert not (volumes / "keys" / "coordinator.key").exists()
 
 
 @needs_root
@@ -334,7 +334,7 @@ def test_keys_service_writes_its_keys_into_the_root_owned_volume_as_uid_1000(vol
     env = {"VASTRAY_WRITABLE": str(keys), "VASTRAY_OWNER_FROM": str(data)}
     run = entrypoint(["keys", "-o", keys, "--keep-existing"], env)
     assert run.returncode == 0, run.stderr
-    key = keys / "cluster.key"
+    key = keys / "coordinator.key"
     assert owner(key) == owner(keys) == (IMAGE_UID, IMAGE_UID)  # data is root's: the image user
     assert stat.S_IMODE(key.stat().st_mode) == 0o600
     first = key.read_text()
@@ -365,7 +365,7 @@ def test_a_folder_docker_created_as_root_is_handed_over_with_what_is_in_it(volum
     run = entrypoint(["keys", "-o", out / "old", "--keep-existing"], env)
     assert run.returncode == 0, run.stderr
     assert all(owner(p) == (IMAGE_UID, IMAGE_UID)
-               for p in [out, out / "old", out / "old" / "report.json", out / "old" / "cluster.key"])
+               for p in [out, out / "old", out / "old" / "report.json", out / "old" / "coordinator.key"])
     assert (out / "old" / "report.json").read_text() == "{}"  # handed over, not replaced
 
 
@@ -408,7 +408,7 @@ def test_started_as_uid_1000_it_runs_vastray_where_it_may_write(volumes):
     os.chown(keys, IMAGE_UID, IMAGE_UID)  # a volume made from the image's /keys
     run = entrypoint(["keys", "-o", keys], {"VASTRAY_WRITABLE": str(keys)}, as_uid=IMAGE_UID)
     assert run.returncode == 0, run.stderr
-    assert owner(keys / "cluster.key") == (IMAGE_UID, IMAGE_UID)
+    assert owner(keys / "coordinator.key") == (IMAGE_UID, IMAGE_UID)
 
 
 def _free_port() -> int:
