@@ -48,16 +48,9 @@ from vastray.scene.errors import InputError, VastrayError
 from vastray.scene.store import Store
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
-from vastray.transport.security import (
-    AllowList,
-    CoordinatorKeys,
-    Credentials,
-    Gate,
-    check_bind,
-    new_secret,
-    serve,
-    write_join_secret,
-)
+from vastray.transport.join_secret import new_secret, write_join_secret
+from vastray.transport.keys import AllowList, CoordinatorKeys
+from vastray.transport.security import Credentials, Gate, check_bind, serve
 
 log = logging.getLogger(__name__)
 

@@ -33,17 +33,9 @@ from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_a
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
 from vastray.transport.codec import CodecError, decode, encode
-from vastray.transport.security import (
-    Credentials,
-    Gate,
-    check_bind,
-    connect_as,
-    default_key_name,
-    load_node_keys,
-    read_join_secret,
-    read_secret_fd,
-    serve,
-)
+from vastray.transport.join_secret import read_join_secret, read_secret_fd
+from vastray.transport.keys import default_key_name, load_node_keys
+from vastray.transport.security import Credentials, Gate, check_bind, connect_as, serve
 from vastray.transport.tree import COMBINE, children, parent
 
 log = logging.getLogger(__name__)

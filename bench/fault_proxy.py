@@ -30,7 +30,7 @@ import numpy as np
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
 
-from vastray.transport.security import read_join_secret
+from vastray.transport.join_secret import read_join_secret
 
 ENDPOINT_LINE = re.compile(r"listening for peers on (tcp://\S+)")
 

@@ -58,7 +58,7 @@ from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 from vastray.transport.codec import encode
-from vastray.transport.security import read_join_secret
+from vastray.transport.join_secret import read_join_secret
 
 #: The share of ray batches the ``drop`` fault's proxies drop.
 DROP_FRACTION = 0.01

@@ -116,14 +116,9 @@ def member_actors(size: int, domains: int = 8, keys=None):
 
     from vastray.actors.coordinator import _pair_tokens
     from vastray.actors.node import ManagementActor
-    from vastray.transport.security import (
-        Credentials,
-        Gate,
-        load_coordinator_keys,
-        load_node_keys,
-        new_secret,
-        serve,
-    )
+    from vastray.transport.join_secret import new_secret
+    from vastray.transport.keys import load_coordinator_keys, load_node_keys
+    from vastray.transport.security import Credentials, Gate, serve
 
     ctx = zmq.asyncio.Context()
     if keys is None:

@@ -19,7 +19,7 @@ from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.scene.errors import InputError
-from vastray.transport.security import load_coordinator_keys
+from vastray.transport.keys import load_coordinator_keys
 from vastray.transport.tree import children, parent
 
 from scenes import POINT_AND_SKY_TOML, allreduce_over_sockets, bumpy_scene, settings, write_store

@@ -23,7 +23,7 @@ from vastray.actors.film_wire import film_frames
 from vastray.render.film import Film
 from vastray.schedule.paths import RADIANCE_FIELDS
 from vastray.transport.codec import encode
-from vastray.transport.security import read_join_secret
+from vastray.transport.join_secret import read_join_secret
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
 
@@ -144,7 +144,7 @@ def test_without_keys_a_hello_without_the_join_secret_never_gets_the_job(scene):
 async def test_with_keys_a_pair_token_is_taken_only_from_the_key_of_the_rank_it_names(tmp_path):
     # A token that leaked to another member (here: node 2's key with the token node 0 shares
     # with node 1) is refused: with keys, the CURVE key of the connection must be that rank's.
-    from vastray.transport.security import add_node_key, generate_keys, load_node_keys
+    from vastray.transport.keys import add_node_key, generate_keys, load_node_keys
 
     generate_keys(tmp_path)
     for rank in range(3):

@@ -16,7 +16,7 @@ from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import SceneConfig
-from vastray.transport.security import add_node_key, generate_keys, load_coordinator_keys
+from vastray.transport.keys import add_node_key, generate_keys, load_coordinator_keys
 
 from scenes import bumpy_scene, settings, write_store
 

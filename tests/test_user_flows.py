@@ -19,7 +19,7 @@ from vastray.preflight import MemoryEstimate, check_memory, estimate_memory
 from vastray.render.imageio import read_exr, read_image, write_exr
 from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
-from vastray.transport.security import COORDINATOR_KEY
+from vastray.transport.keys import COORDINATOR_KEY
 
 from scenes import bumpy_scene, write_store
 

@@ -30,7 +30,7 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
-from vastray.transport.security import read_join_secret
+from vastray.transport.join_secret import read_join_secret
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, write_store
 from scenes import settings as render_settings

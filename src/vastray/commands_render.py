@@ -59,7 +59,7 @@ from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
 from vastray.scene.store import Store
 from vastray.schedule import portals
-from vastray.transport.security import (
+from vastray.transport.keys import (
     COORDINATOR_KEY,
     NODES_DIR,
     add_node_key,
