@@ -4,7 +4,6 @@ and a preloader thread. The asyncio actor runtime will drive the same policies p
 from __future__ import annotations
 
 import logging
-import resource
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vastray.actors.job_options import JobOptions, JobOptionsError
+from vastray.processes import peak_rss_bytes
 from vastray.render.camera import Camera
 from vastray.render.colormaps import scalar_map
 from vastray.render.driver import (
@@ -206,7 +206,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,
         **stats.as_dict(),
         "untraced_loads": stats.loads - len(productive),
-        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_rss_bytes": peak_rss_bytes(),
     })
     seconds = {
         "total": round(wall, 4),

@@ -11,7 +11,6 @@ import argparse
 import asyncio
 import logging
 import os
-import resource
 import socket
 import sys
 import threading
@@ -30,6 +29,7 @@ from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
 from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
+from vastray.processes import peak_rss_bytes
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
 from vastray.transport.codec import CodecError, decode, encode
@@ -702,7 +702,7 @@ def _report_counters(counters: dict, management: ManagementActor) -> dict:
     return {**{k: v for k, v in counters.items() if isinstance(v, (int, float, str))},
             "refused_connections": management.gate.refusals + management.gate.failed_handshakes,
             "rejected_messages": rejected.total,
-            "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "peak_rss_bytes": peak_rss_bytes(),
             **{f"rejected_{k}": v for k, v in rejected.counts.items()}}
 
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import resource
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -12,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vastray.processes import peak_rss_bytes
 from vastray.render.camera import Camera
 from vastray.render.colormaps import scalar_map
 from vastray.render.film import Film
@@ -248,7 +248,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         "render_workers": workers,
         "load_bandwidth_mb_s": None if cache.load_bandwidth is None else cache.load_bandwidth / 1e6,
         **stats.as_dict(),
-        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_rss_bytes": peak_rss_bytes(),
     }
     seconds = {
         "total": round(wall, 4),

@@ -16,7 +16,7 @@ from vastray.scene.errors import InputError
 # The memory model: one process's peak resident memory is
 #   base + pixels x bytes per pixel + paths in flight x (PATH_BYTES + shadow rays per hit x
 #   SHADOW_RAY_BYTES) + the domains it holds.
-# Every constant below was measured as peak RSS (ru_maxrss) of `vastray render` processes on
+# Every constant below was measured as peak RSS (VmHWM) of `vastray render` processes on
 # the generated store `vastray generate rm --resolution 64 --grid 2x2x2` and the built-in
 # scene (2-core, 24 GiB machine, Python 3.11, numpy 2, numba); `bench/memory.py` re-measures
 # them and prints estimate / measured peak for every case (bench/README.md has the table): the
