@@ -860,13 +860,14 @@ def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
     return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
 
 
-def _is_hello(body: list) -> bool:
-    """Whether an undecoded message is a hello (a member repeats its hello, with whatever
-    token it had, until its job comes)."""
+def _hello(body: list):
+    """The message, where an undecoded one is a hello (a member repeats its hello, with
+    whatever token it had, until its job comes); else None."""
     try:
-        return decode(body).kind == protocol.HELLO
+        message = decode(body)
     except CodecError:
-        return False
+        return None
+    return message if message.kind == protocol.HELLO else None
 
 
 class _Watch:
@@ -1043,9 +1044,13 @@ class _Watch:
             raise protocol.ProtocolError("no identity, token or header frame")
         identity, token, body = frames[0].bytes, frames[1].bytes, frames[2:]
         rank = self.members.get(identity)
-        if rank is not None and token != self.token and not _is_hello(body):
-            self.rejections.add("stranger", f"node {rank} without this attempt's token")
-            return None
+        if rank is not None and token != self.token:
+            repeat = _hello(body)
+            if repeat is None:
+                self.rejections.add("stranger", f"node {rank} without this attempt's token")
+                return None
+            protocol.check(repeat, frozenset({protocol.HELLO}))
+            return identity, repeat  # a member's repeat: the caller ignores it
         message = decode(body)
         protocol.check(message, protocol.FROM_NODE if rank is not None
                        else frozenset({protocol.HELLO}))

@@ -368,7 +368,7 @@ class _Node:
         """Hand a batch to the tile's policy (True), or drop and count one whose path indices
         are not paths of the tile (False)."""
         try:
-            protocol.check_ray_paths(message, len(policy.ctx.pixel))
+            protocol.check_ray_index(message, "path", len(policy.ctx.pixel))
         except protocol.ProtocolError as exc:
             self.management.rejections.add("malformed", str(exc))
             return False

@@ -200,11 +200,8 @@ class _InSitu:
         while received < 2 * (self.size - 1):
             message = await self.management.receive(protocol.RAYS, "ray batch")
             try:  # indices into this tile's paths and shadow slots
-                protocol.check_ray_paths(message, n_paths)
-                slot = message.arrays.get("slot")
-                if slot is not None and len(slot) and not 0 <= int(slot.min()) <= int(
-                        slot.max()) < slots:
-                    raise protocol.ProtocolError(f"rays: slot outside 0..{slots - 1}")
+                protocol.check_ray_index(message, "path", n_paths)
+                protocol.check_ray_index(message, "slot", slots)
                 domain = message.arrays.get("domain")
                 if domain is not None and not self.is_local[domain].all():
                     raise protocol.ProtocolError("rays for a domain this node does not hold")

@@ -156,21 +156,22 @@ def check_ray_ids(message, n_domains: int) -> None:
                                 f"{n_domains}")
 
 
-def check_ray_paths(message, n_paths: int) -> None:
-    """Every path index in a ray batch is one of the ``n_paths`` paths of its tile.
+def check_ray_index(message, name: str, count: int) -> None:
+    """Every entry of index field ``name`` of a ray batch (``path``: the tile's paths;
+    ``slot``: a path's shadow slots) lies in ``0..count-1``; a batch without it passes.
 
     Raises
     ------
     ProtocolError
         For an index out of range.
     """
-    path = message.arrays.get("path")
-    if path is None or not len(path):
+    index = message.arrays.get(name)
+    if index is None or not len(index):
         return
-    if path.dtype.kind not in "iu" or path.ndim != 1:
-        raise ProtocolError("rays: path must be 1-D integers")
-    if int(path.min()) < 0 or int(path.max()) >= n_paths:
-        raise ProtocolError(f"rays: path outside 0..{n_paths - 1}")
+    if index.dtype.kind not in "iu" or index.ndim != 1:
+        raise ProtocolError(f"rays: {name} must be 1-D integers")
+    if int(index.min()) < 0 or int(index.max()) >= count:
+        raise ProtocolError(f"rays: {name} outside 0..{count - 1}")
 
 
 def _check_rays(message) -> None:

@@ -54,6 +54,7 @@ from fault_proxy import PeerProxy
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
+from vastray.processes import proc_bytes
 from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
@@ -235,10 +236,10 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
 
 
 def rss_bytes(pid: int) -> int:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) * 1024
-    raise RuntimeError(f"no VmRSS for pid {pid}")
+    rss = proc_bytes(f"/proc/{pid}/status", "VmRSS")
+    if rss is None:
+        raise RuntimeError(f"no VmRSS for pid {pid} (it exited?)")
+    return rss
 
 
 def attack_growth(pid: int, endpoint: str, attack: str, frame_mb: int) -> tuple[int, str]:

@@ -396,8 +396,9 @@ def check_log_dir(r: Renders):
     r.refused("--log-dir", str(logs), naming="--log-dir")
     r.refused("--nodes", "1", "--listen", "127.0.0.1:0", "--log-dir", str(logs),
               naming="--log-dir")
-    run = r("--nodes", "2", "--log-dir", str(logs))
+    run = r("--nodes", "2", "--log-dir", str(logs), quiet=False)  # as a user runs it
     assert run.code == 0, run.err
+    assert "wrote" in run.err.strip().splitlines()[-1], run.err
     assert run.counters["node_logs"] == str(logs)  # the report says where they are
     for rank in range(2):
         assert "joined" in (logs / f"node{rank}.log").read_text()

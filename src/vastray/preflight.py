@@ -9,6 +9,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from vastray.processes import proc_bytes
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.imageio import check_image_path
 from vastray.scene.errors import InputError
@@ -171,13 +172,9 @@ def reference_paths_in_flight(paths: int, batch_size: int, threads: int,
 
 def available_memory() -> int | None:
     """Bytes the kernel says can be allocated without swapping (``MemAvailable``), or None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    available = proc_bytes("/proc/meminfo", "MemAvailable")
+    if available is not None:
+        return available
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):

@@ -18,6 +18,19 @@ def running(pid: int) -> bool:
     return True
 
 
+def proc_bytes(path: str, field: str) -> int | None:
+    """A ``FIELD:  N kB`` line of a ``/proc`` file (``/proc/meminfo``,
+    ``/proc/PID/status``) in bytes; None where the file or the field is missing."""
+    try:
+        with open(path) as fh:
+            for line in fh:
+                if line.startswith(f"{field}:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
 def peak_rss_bytes() -> int:
     """This process's peak resident memory since it started its program.
 
@@ -26,13 +39,9 @@ def peak_rss_bytes() -> int:
     started by a 250 MB coordinator would report at least 250 MB. ``ru_maxrss`` where there
     is no ``/proc``.
     """
-    try:
-        with open("/proc/self/status") as status:
-            for line in status:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
+    peak = proc_bytes("/proc/self/status", "VmHWM")
+    if peak is not None:
+        return peak
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
