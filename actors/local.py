@@ -3,6 +3,7 @@ and a preloader thread. The asyncio actor runtime will drive the same policies p
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Callable
@@ -10,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
 from vastray.actors.job_options import JobOptions, JobOptionsError
+from vastray.actors.preloader import DomainPreloader
 from vastray.processes import peak_rss_bytes
 from vastray.render.camera import Camera
 from vastray.render.colormaps import scalar_map
@@ -36,11 +39,10 @@ from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
-from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.image import ImageSchedule
-from vastray.schedule.spec_ooc import SpeculativeSchedule
+from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +80,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        options: JobOptions | None = None, *, drop_page_cache: bool = False,
                        progress: bool = True, share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
-                       schedule_options: dict | None = None,
+                       ablation: SpeculationRules | None = None,
                        progression: Progression | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
@@ -98,8 +100,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     drop_page_cache : make each domain load a real read from disk.
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
-    schedule_options : more keyword arguments of the schedule's constructor (e.g. spec-ooc's
-        ``serve_before_evict=False``, for ablations).
+    ablation : spec-ooc's own rules switched off (``SpeculationRules``), for ablations;
+        None: all on.
     progression : render in the sample-major passes it asks for (``driver.render``'s);
         None: the whole of ``settings.spp`` at once (or the pass ``settings`` name).
     """
@@ -109,43 +111,38 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         raise JobOptionsError(f"the out-of-core runtime runs {' or '.join(SCHEDULERS)}, not "
                               f"{scheduler!r} (the domain schedulers need --nodes N; the "
                               "in-core reference is vastray.render.driver.render)")
+    if ablation is not None and scheduler != "spec-ooc":
+        raise JobOptionsError(f"the ablation {ablation} is of spec-ooc's rules, not {scheduler}'s")
     start = time.perf_counter()
     setup = RenderSetup.of(store, config, settings)
     capacity = options.cache or max(len(store.domains), 1)
     pool = query_pool(options.threads)
     bandwidth = options.load_bytes_per_second(share[0])
-    cache = DomainCache(store, capacity, setup.keep, drop_page_cache=drop_page_cache, pool=pool,
-                        load_bandwidth=bandwidth)
+    preloader = DomainPreloader(store, capacity, setup.keep, pool=pool, load_bandwidth=bandwidth,
+                                preload=options.preload, drop_page_cache=drop_page_cache)
+    counters: dict = {}
+    loop = DomainLoop(preloader, counters, offload=False)  # nothing else to serve meanwhile
     tile_limit = options.max_samples_in_flight
     tile = 1
-    counters: dict = {}
-    process_seconds = 0.0
-    # Loads followed by at least one traced ray (before the domain's next load), and the
-    # domains any ray was traced against (the floor: each must be loaded at least once).
-    productive: set[tuple[int, int]] = set()  # (domain, its load number)
-    traced_domains: set[int] = set()
+
+    def schedule_of(ctx: PathContext):
+        """The tile's schedule, as ``options`` (and ``ablation``) configure it."""
+        if scheduler == "image":
+            return ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                                 resident_first=options.resident_first)
+        rules = ablation or SpeculationRules()
+        return SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                                   history_depth=options.history_depth,
+                                   resident_first=options.resident_first,
+                                   serve_before_evict=rules.serve_before_evict,
+                                   rescore=rules.rescore)
 
     def trace_tile(ctx: PathContext, bar) -> PathResult:
         """Trace the paths of ``ctx`` through the domains in the schedule's order."""
-        nonlocal process_seconds
-        kwargs = {"history_depth": options.history_depth} if scheduler == "spec-ooc" else {}
-        kwargs.update(schedule_options or {})
-        victim = {"victim": cache.victim} if scheduler == "spec-ooc" else {}
-        policy = SCHEDULERS[scheduler](ctx, setup.geometry, setup.color_source,
-                                       setup.scalar_range,
-                                       resident_first=options.resident_first, **kwargs)
+        policy = schedule_of(ctx)
         policy.start(camera_rays(setup.camera, ctx))
-        while (domain := policy.next_domain(cache.resident_set(), **victim)) is not None:
-            bvh = cache.get(domain)
-            if options.preload:
-                cache.prefetch(policy.likely_next(domain))
-            t0 = time.perf_counter()
-            tests = _tests(policy.counters)
-            policy.process(domain, bvh)
-            process_seconds += time.perf_counter() - t0
-            if _tests(policy.counters) > tests:
-                traced_domains.add(domain)
-                productive.add((domain, cache.load_count(domain)))
+        runner.run(loop.run(ScheduleOrder(policy, preloader,
+                                          evicting=scheduler == "spec-ooc")))
         _merge(counters, policy.counters)
         bar.update(len(ctx.pixel))
         if on_tile is not None:
@@ -183,36 +180,38 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
 
     fused = progression is not None and not progression.rules.paced and share == (0, 1)
     try:
-        with RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
-                       disable=not progress, desc=f"render ({scheduler})", leave=False) as bar:
+        with (asyncio.Runner() as runner,
+              RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
+                        disable=not progress, desc=f"render ({scheduler})", leave=False) as bar):
             film = (trace_passes_together(bar) if fused
                     else run_passes(trace_pass, settings, progression, bar))
     finally:
-        cache.close()
+        preloader.close()
         if pool is not None:
             pool.shutdown()
     wall = time.perf_counter() - start
-    stats = cache.stats
+    stats = preloader.cache.stats
     for name in ("radiance_tests", "shadow_tests", "shade_s"):  # a share of no tiles
         counters.setdefault(name, 0)
+    render_seconds = counters.pop("trace_s")
     counters.update({
         "scheduler": scheduler,
         "domains": len(store.domains),
         "distinct_domains_loaded": len(stats.loaded_domains),
-        "domains_traced": len(traced_domains),
+        "domains_traced": len(loop.traced_domains),
         "cache_capacity": capacity,
         "max_samples_in_flight": tile,
         "threads": pool._max_workers if pool is not None else 1,
         "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,
         **stats.as_dict(),
-        "untraced_loads": stats.loads - len(productive),
+        "untraced_loads": stats.loads - len(loop.productive_loads),
         "peak_rss_bytes": peak_rss_bytes(),
     })
     seconds = {
         "total": round(wall, 4),
         "load": round(stats.load_seconds, 4),
         "load_wait": round(stats.wait_seconds, 4),
-        "render": round(process_seconds, 4),
+        "render": round(render_seconds, 4),
     }
     return RenderResult(film, setup.camera, seconds, counters)
 
@@ -270,10 +269,6 @@ class PassSpans:
             self.merged += 1
         if self.merged == len(self.windows):
             self.progression.next_pass()  # says why it stops: every pass is in
-
-
-def _tests(counters: dict) -> int:
-    return counters["radiance_tests"] + counters["shadow_tests"]
 
 
 def _merge(total: dict, part: dict) -> None:

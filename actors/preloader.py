@@ -34,12 +34,14 @@ class DomainPreloader:
     load_bandwidth : bytes per second to emulate network storage with (None: the disk's).
     preload : False turns loading ahead off (``preload`` does nothing): the ablation of the
         temporal-coherence paper's Table 2 and the benchmarks' "no preloading" rows.
+    drop_page_cache : make every load a real read from disk (out-of-core benchmarks).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
-                 preload: bool = True):
-        self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth)
+                 preload: bool = True, drop_page_cache: bool = False):
+        self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth,
+                                 drop_page_cache=drop_page_cache)
         self.enabled = preload
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
 
@@ -68,6 +70,14 @@ class DomainPreloader:
     def resident(self) -> frozenset[int]:
         """Domains resident or being loaded."""
         return self.cache.resident_set()
+
+    def victim(self) -> int | None:
+        """The domain a load now would evict (None while there is room)."""
+        return self.cache.victim()
+
+    def load_count(self, domain: int) -> int:
+        """Times ``domain`` has been loaded so far (preloads included)."""
+        return self.cache.load_count(domain)
 
     def load_bandwidth_mb_s(self) -> float | None:
         """The emulated storage bandwidth every load is held to, in MB/s (None: none)."""

@@ -54,6 +54,7 @@ from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
+from vastray.schedule.spec_ooc import SpeculationRules
 
 CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 
@@ -84,13 +85,15 @@ CONFIGS = {  # name -> render_out_of_core switches, the same for both schedules
 
 
 def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
-        history_depth: int | None = None, schedule_options: dict | None = None,
+        history_depth: int | None = None, ablation: SpeculationRules | None = None,
         **switches) -> dict:
+    """One render; ``switches`` are more ``JobOptions`` fields (``preload``,
+    ``resident_first``), the same for both schedules."""
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings,
                                 options=JobOptions(scheduler=scheduler, cache=cache,
-                                                   history_depth=history_depth), drop_page_cache=True,
-                                progress=False, schedule_options=schedule_options, **switches)
+                                                   history_depth=history_depth, **switches),
+                                drop_page_cache=True, progress=False, ablation=ablation)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
@@ -217,7 +220,7 @@ def ablation(store: Store, plan: dict) -> None:
         for rescore in (False, True):
             for preload in (False, True):
                 r = run(store, st, "spec-ooc", cache, resident_first=True, preload=preload,
-                        schedule_options={"serve_before_evict": serve, "rescore": rescore})
+                        ablation=SpeculationRules(serve, rescore))
                 print(f"| {'yes' if serve else 'no'} | {'yes' if rescore else 'no'} "
                       f"| {'yes' if preload else 'no'} | {r['loads']} | {r['floor']} "
                       f"| {r['render_s']:.2f} | {r['total_s']:.2f} |", flush=True)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -44,6 +45,15 @@ from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
 from vastray.schedule.soa import DomainQueues, SoA
+
+
+@dataclass(frozen=True)
+class SpeculationRules:
+    """Our two additions to SpRay's order, each switched off for ablations (``bench/ooc.py``):
+    ``serve_before_evict`` and ``rescore``, as ``SpeculativeSchedule`` describes them."""
+
+    serve_before_evict: bool = True
+    rescore: bool = True
 
 
 class SpeculativeSchedule:

@@ -19,7 +19,7 @@ from vastray.scene.generate import generate
 from vastray.scene.partition import partition_kd
 from vastray.scene.readers import read_mesh
 from vastray.scene.store import Store, StoreWriter
-from vastray.schedule.spec_ooc import SpeculativeSchedule, traversal_order
+from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule, traversal_order
 
 from scenes import bumpy_scene, camera_config, settings, write_store
 
@@ -189,13 +189,14 @@ def test_spec_ooc_serves_a_resident_domain_before_it_is_evicted(bumpy, config):
     np.testing.assert_allclose(lazy_radiance, eager_radiance, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("options", [{"serve_before_evict": False}, {"rescore": False},
-                                     {"serve_before_evict": False, "rescore": False}])
+@pytest.mark.parametrize("options", [SpeculationRules(serve_before_evict=False),
+                                     SpeculationRules(rescore=False),
+                                     SpeculationRules(serve_before_evict=False, rescore=False)])
 def test_spec_ooc_switches_match_reference(bumpy, config, options):
     st = settings(width=24, height=18, spp=2, integrator="pt", bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
     result = render_out_of_core(bumpy, config, st, options=JobOptions(scheduler="spec-ooc", cache=4),
-                                schedule_options=options, progress=False)
+                                ablation=options, progress=False)
     assert_same(result.film.image(), reference, str(options))
 
 

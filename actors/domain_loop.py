@@ -1,0 +1,168 @@
+"""The domain-activation loop every scheduler drives: choose a domain, get it from the
+preloader, start loading the schedule's guess at the next one, trace the rays waiting for the
+chosen one, time that, and ship what it sent on.
+
+Which domain comes next is the schedule's decision (an object of ``schedule/``, behind a
+``DomainOrder``); how a domain is fetched, traced and timed is decided here, once, so every
+runtime (one process out of core, the domain-decomposition nodes, the asynchronous and
+temporal frames, the in-situ nodes) reports the same spans under the same names:
+
+- ``load_wait_s`` (the preloader's counter): time a render worker waited for a domain's load,
+  what preloading did not hide;
+- ``trace_s`` (here): time spent tracing and shading the rays of activated domains, nothing
+  else (no load, no send).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from vastray.actors.preloader import DomainPreloader
+
+
+class DomainOrder(Protocol):
+    """What the loop needs of a schedule: its next domain, its guess at the one after, and
+    how to trace a domain's rays."""
+
+    def next_domain(self) -> int | None:
+        """The domain to activate now; None when no ray waits."""
+
+    def likely_next(self, current: int) -> int | None:
+        """The domain to load while ``current`` is traced (asked after ``current`` is in
+        memory, so that a cache-aware guess sees it resident); None: nothing."""
+
+    def trace(self, domain: int, bvh) -> int:
+        """Trace every ray waiting for ``domain`` against its loaded ``bvh``; returns how many
+        ray queries that made (0: the activation traced nothing)."""
+
+
+@dataclass(frozen=True)
+class Activation:
+    """One turn of the loop."""
+
+    domain: int
+    load_count: int  # times the domain had been loaded when it was traced (preloads included)
+    wait_s: float  # waiting for the domain (its load, or a preload in flight)
+    trace_s: float  # tracing and shading its rays
+    queries: int  # ray queries made
+
+
+class DomainLoop:
+    """Activates domains in a schedule's order through a node's preloader.
+
+    Parameters
+    ----------
+    preloader : the node's domain cache with its loading thread.
+    stats : the counters of the node's report; ``trace_s`` is added to.
+    offload : trace on a worker thread, so the event loop keeps routing messages meanwhile
+        (the nodes); False traces on the calling thread (one process, nothing else to serve).
+    """
+
+    def __init__(self, preloader: DomainPreloader, stats: dict, offload: bool = True):
+        self.preloader, self.stats, self.offload = preloader, stats, offload
+        stats.setdefault("trace_s", 0.0)
+        #: (domain, its load number) of loads followed by at least one ray query, and the
+        #: domains any ray was traced against (each must be loaded at least once: the floor).
+        self.productive_loads: set[tuple[int, int]] = set()
+        self.traced_domains: set[int] = set()
+        self.activations = 0
+
+    async def step(self, order: DomainOrder,
+                   ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:
+        """Activate ``order``'s next domain and ship what tracing it sent on; None when the
+        order has no domain left."""
+        domain = order.next_domain()
+        if domain is None:
+            return None
+        start = time.perf_counter()
+        bvh = await self.preloader.get(domain)
+        if self.preloader.enabled:
+            self.preloader.preload(order.likely_next(domain))
+        loaded = time.perf_counter()
+        if self.offload:
+            queries = await asyncio.to_thread(order.trace, domain, bvh)
+        else:
+            queries = order.trace(domain, bvh)
+        done = time.perf_counter()
+        activation = Activation(domain, self.preloader.load_count(domain), loaded - start,
+                                done - loaded, queries)
+        self.stats["trace_s"] += activation.trace_s
+        self.activations += 1
+        if queries:
+            self.traced_domains.add(domain)
+            self.productive_loads.add((domain, activation.load_count))
+        if ship is not None:
+            await ship()
+        return activation
+
+    async def run(self, order: DomainOrder,
+                  ship: Callable[[], Awaitable[None]] | None = None) -> int:
+        """Activate domains until ``order`` has none left; returns how many."""
+        count = 0
+        while await self.step(order, ship) is not None:
+            count += 1
+        return count
+
+
+class ScheduleOrder:
+    """A tile schedule of ``schedule/`` (``ImageSchedule``, ``SpeculativeSchedule``) as a
+    ``DomainOrder``.
+
+    Parameters
+    ----------
+    policy : the tile's schedule.
+    preloader : whose resident domains the schedule may serve first.
+    resident_aware : tell the schedule what is resident (its ``resident_first`` rule); False
+        hands it an empty set (the ``domain`` nodes' rounds, which own their domains).
+    evicting : hand the schedule the cache's next eviction victim (spec-ooc's
+        ``serve_before_evict``).
+    """
+
+    def __init__(self, policy, preloader: DomainPreloader, resident_aware: bool = True,
+                 evicting: bool = False):
+        self.policy, self.preloader = policy, preloader
+        self.resident_aware, self.evicting = resident_aware, evicting
+
+    def next_domain(self) -> int | None:
+        resident = self.preloader.resident() if self.resident_aware else frozenset()
+        if self.evicting:
+            return self.policy.next_domain(resident, victim=self.preloader.victim)
+        return self.policy.next_domain(resident)
+
+    def likely_next(self, current: int) -> int | None:
+        return self.policy.likely_next(current)
+
+    def trace(self, domain: int, bvh) -> int:
+        return traced_queries(self.policy, domain, bvh)
+
+
+class ListOrder:
+    """Domains in a given order (a round's assignment, a node's own domains to load), each
+    traced by ``trace(domain, bvh)`` (default: nothing, the domains are only loaded)."""
+
+    def __init__(self, domains: list[int], trace: Callable[[int, object], int] | None = None):
+        self.domains, self.position = list(domains), 0
+        self._trace = trace
+
+    def next_domain(self) -> int | None:
+        if self.position == len(self.domains):
+            return None
+        self.position += 1
+        return self.domains[self.position - 1]
+
+    def likely_next(self, current: int) -> int | None:
+        return self.domains[self.position] if self.position < len(self.domains) else None
+
+    def trace(self, domain: int, bvh) -> int:
+        return 0 if self._trace is None else self._trace(domain, bvh)
+
+
+def traced_queries(policy, domain: int, bvh) -> int:
+    """``policy.process(domain, bvh)``; returns the ray queries it made (from its counters)."""
+    before = policy.counters["radiance_tests"] + policy.counters["shadow_tests"]
+    policy.process(domain, bvh)
+    return policy.counters["radiance_tests"] + policy.counters["shadow_tests"] - before
