@@ -38,23 +38,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.actors import protocol
+from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder, traced_queries
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS, JobOptions
 from vastray.actors.local import RenderSetup
 from vastray.actors.preloader import DomainPreloader
+from vastray.actors.ray_post import RayPost, traffic_counters
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.scene.bvh import query_pool
-from vastray.schedule.image import ImageSchedule, fullest
+from vastray.schedule.galaxy import GalaxyPolicy
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
 
 MODES = ("domain", "async", "dynamic", "temporal")
-
-
-def round_robin_owners(n_domains: int, size: int) -> np.ndarray:
-    """(D,) owning rank of each domain: domain d goes to node d mod P."""
-    return np.arange(n_domains) % size
 
 
 @dataclass
@@ -194,11 +193,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     total = setup.total_paths
     tile = max(1, min(options.max_samples_in_flight or total, total))
     n_tiles = -(-total // tile)
-    stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
-             "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
-    node = _Node(management, rank, stats, options.max_batch_rays,
-                 early=state.early)
+    stats = {**traffic_counters(), "shade_s": 0.0, "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
+    node = _Node(management, rank, stats, preloader, options.max_batch_rays, early=state.early)
     base = state.tile_base  # tile labels are unique over the frames and passes of a job
     state.tile_base += n_tiles
     routing = simplified_routing(store, setup, options, state)
@@ -207,7 +203,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             frame = _AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
                                 base=base, status_label=state.ordinal, simple=routing,
                                 resident_first=options.resident_first)
-            await frame.run(preloader)
+            await frame.run()
         elif mode == "temporal":
             frame = await _temporal_frame(node, setup, settings, store, options, rank, size, tile,
                                           film, on_tile, base, state, preloader, tree, stats,
@@ -222,15 +218,15 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
                                setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                    owner=owner, rank=rank)
-            mine = np.arange(len(ctx.pixel)) % size == rank
+            mine = interleaved_paths(len(ctx.pixel), rank, size)
             if mode == "dynamic":  # rays stay where they are made until a round moves them
                 policy.owner = np.full(len(store.domains), rank)
             node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
-                await node.rounds(policy, preloader, base + index)
+                await node.rounds(policy, base + index)
             else:
-                await node.dynamic(policy, preloader, base + index)
+                await node.dynamic(policy, base + index)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)
@@ -263,7 +259,7 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
                           stats["priority"], previous, on_tile, base=base,
                           status_label=state.ordinal, simple=routing)
-    await frame.run(preloader)
+    await frame.run()
     start = time.perf_counter()
     summed = state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
     # The same on every node and for any node count, cache or priority (a lossless frame's
@@ -291,17 +287,22 @@ def frame_load_stats(before: dict, after: dict) -> dict:
 
 
 class _Node:
-    """The node side of the decomposition: trace local work, ship outboxes, take deliveries."""
+    """The node side of the decomposition: trace local work (through the domain loop), ship
+    outboxes (through the ray post), take deliveries."""
 
-    def __init__(self, management, rank: int, stats: dict, max_batch: int = DEFAULT_MAX_BATCH_RAYS,
-                 early: dict | None = None):
+    def __init__(self, management, rank: int, stats: dict, preloader: DomainPreloader,
+                 max_batch: int = DEFAULT_MAX_BATCH_RAYS, early: dict | None = None):
         self.management, self.rank, self.stats = management, rank, stats
-        self.max_batch = max(1, int(max_batch))
-        self.sent_to: dict[int, int] = {}  # batches sent per destination since last asked
+        self.post = RayPost(management, rank, stats, max_batch)
+        self.loop = DomainLoop(preloader, stats)
         self.tile = 0
         # Batches of a later tile (or frame), from nodes that finished this one first: held
         # back (and not counted) until this node starts that tile.
         self.early: dict[int, list] = {} if early is None else early
+
+    @property
+    def preloader(self) -> DomainPreloader:
+        return self.loop.preloader
 
     def begin_tile(self, tile: int, policy) -> None:
         self.tile = tile
@@ -322,7 +323,7 @@ class _Node:
                                                                     "ray batch")):
             pass
 
-    async def drain(self, policy, preloader) -> None:
+    async def drain(self, policy) -> None:
         """Send the outbox, then trace every local domain until no local ray waits, sending
         what each produced.
 
@@ -332,37 +333,14 @@ class _Node:
         those rays would never leave: no batch counted, the tile would end without them.
         """
         await self.ship(policy)
-        while (domain := policy.next_domain()) is not None:
-            start = time.perf_counter()
-            bvh = await preloader.get(domain)
-            preloader.preload(policy.likely_next(domain))
-            await asyncio.to_thread(policy.process, domain, bvh)
-            self.stats["trace_s"] += time.perf_counter() - start
-            await self.ship(policy)
+        await self.loop.run(ScheduleOrder(policy, self.preloader, resident_aware=False),
+                            ship=lambda: self.ship(policy))
 
     async def ship(self, policy, tile: int | None = None) -> None:
-        """Send the outbox as ray batches (counted per destination in ``sent_to``), labelled
-        with ``tile`` (default: the current tile).
-
-        Rays for one destination are coalesced into batches of at most ``max_batch`` rays;
-        the outbox is shipped after every domain traced, which bounds a ray's wait too.
-        """
-        tile = self.tile if tile is None else tile
-        for (queue, node), parts in policy.take_outbox().items():
-            all_domains = np.concatenate([d for d, _ in parts])
-            all_rays = SoA.concat([r for _, r in parts])
-            for first in range(0, len(all_domains), self.max_batch):
-                rows = np.arange(first, min(first + self.max_batch, len(all_domains)))
-                domains = all_domains[rows]
-                frames = encode(protocol.RAYS, {"domain": domains, **all_rays.take(rows).fields},
-                                {"queue": queue, "rank": self.rank, "tile": tile})
-                start = time.perf_counter()
-                await self.management.to_peer(node, frames)
-                self.stats["send_s"] += time.perf_counter() - start
-                self.sent_to[node] = self.sent_to.get(node, 0) + 1
-                self.stats["batches_sent"] += 1
-                self.stats["rays_sent"] += len(domains)
-                self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+        """Send the outbox as ray batches (counted per destination in ``post.sent_to``),
+        labelled with ``tile`` (default: the current tile). The outbox is shipped after
+        every domain traced, which bounds a ray's wait too."""
+        await self.post.ship(policy.take_outbox(), {"tile": self.tile if tile is None else tile})
 
     def deliver(self, policy, message) -> bool:
         """Hand a batch to the tile's policy (True), or drop and count one whose path indices
@@ -372,23 +350,21 @@ class _Node:
         except protocol.ProtocolError as exc:
             self.management.rejections.add("malformed", str(exc))
             return False
-        self.stats["batches_received"] += 1
+        self.post.received(message)
         if not message.arrays:
             return True
-        self.stats["rays_received"] += len(message.arrays["domain"])
-        self.stats["bytes_received"] += sum(a.nbytes for a in message.arrays.values())
         arrays = dict(message.arrays)
         domains = np.array(arrays.pop("domain"))
         rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
         policy.receive(message.meta["queue"], domains, rays)
         return True
 
-    async def rounds(self, policy, preloader, tile: int) -> None:
+    async def rounds(self, policy, tile: int) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes."""
         while True:
             self.stats["rounds"] += 1
-            await self.drain(policy, preloader)
-            sent, self.sent_to = self.sent_to, {}
+            await self.drain(policy)
+            sent = self.post.take_sent_to()
             await self.management.to_coordinator(encode(protocol.ROUND, {}, {
                 "rank": self.rank, "tile": tile, "sent_to": {str(k): v for k, v in sent.items()}}))
             start = time.perf_counter()
@@ -399,13 +375,13 @@ class _Node:
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
 
-    async def dynamic(self, policy, preloader, tile: int) -> None:
+    async def dynamic(self, policy, tile: int) -> None:
         """Ray-weighted rounds: report queues and resident domains, get this round's
         domains, swap rays, trace."""
         while True:
             waiting = policy.radiance.counts() + policy.shadow.counts()
             await self.management.to_coordinator(encode(protocol.QUEUES, {}, {
-                "rank": self.rank, "tile": tile, "loaded": sorted(preloader.resident()),
+                "rank": self.rank, "tile": tile, "loaded": sorted(self.preloader.resident()),
                 "queues": {str(d): int(n) for d, n in enumerate(waiting) if n}}))
             start = time.perf_counter()
             plan = await self.management.receive(protocol.SCHEDULE, "this round's schedule")
@@ -420,38 +396,26 @@ class _Node:
                 for name, queues in (("radiance", policy.radiance), ("shadow", policy.shadow)):
                     parts = [(d, queues.pop(d)) for d, p in assign.items() if p == node]
                     parts = [(np.full(len(r), d), r) for d, r in parts if r is not None]
-                    await self._send_batch(node, name, parts)
+                    await self.post.send(node, name, {"tile": self.tile},
+                                         *_joined(parts))
             for _ in range(2 * (plan.meta["size"] - 1)):
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
             self.stats["rounds"] += 1
             mine = [d for d, p in assign.items() if p == self.rank]
-            for i, domain in enumerate(mine):
-                t0 = time.perf_counter()
-                bvh = await preloader.get(domain)
-                preloader.preload(mine[i + 1] if i + 1 < len(mine) else None)
-                await asyncio.to_thread(policy.process, domain, bvh)
-                self.stats["trace_s"] += time.perf_counter() - t0
-
-    async def _send_batch(self, node: int, queue: str, parts: list) -> None:
-        if parts:
-            arrays = {"domain": np.concatenate([d for d, _ in parts]),
-                      **SoA.concat([r for _, r in parts]).fields}
-        else:
-            arrays = {}
-        frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank,
-                                                "tile": self.tile})
-        start = time.perf_counter()
-        await self.management.to_peer(node, frames)
-        self.stats["send_s"] += time.perf_counter() - start
-        self.stats["batches_sent"] += 1
-        self.stats["rays_sent"] += len(arrays.get("domain", ()))
-        self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+            await self.loop.run(ListOrder(mine, lambda d, bvh: traced_queries(policy, d, bvh)))
 
     async def _status(self, tile: int, probe: int | None) -> None:
         await self.management.to_coordinator(encode(protocol.STATUS, {}, {
             "rank": self.rank, "tile": tile, "probe": probe,
             "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
+
+
+def _joined(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | tuple[()]:
+    """(domains, rays) of ``parts`` joined, or () for none (an empty batch)."""
+    if not parts:
+        return ()
+    return np.concatenate([d for d, _ in parts]), SoA.concat([r for _, r in parts])
 
 
 class _AsyncFrame:
@@ -479,8 +443,8 @@ class _AsyncFrame:
                  tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0,
                  simple=None, resident_first: bool = True):
         self.node, self.setup, self.settings = node, setup, settings
-        self.resident_first = resident_first
-        self.preloader = None  # set by ``run``
+        self.galaxy = GalaxyPolicy(tile, resident_first)
+        self.preloader = node.preloader
         self.simple = simple
         self.owner, self.rank, self.size = owner, rank, size
         self.tile, self.film, self.on_tile = tile, film, on_tile
@@ -490,6 +454,10 @@ class _AsyncFrame:
         self.next_tile = 0
         self.shade_s = 0.0
         self.made = 0  # policies made (a tile's may be made again when late rays arrive)
+        # What the last ``next_domain`` chose: the domain to load meanwhile, and the rays
+        # waiting for the active one.
+        self._upcoming: int | None = None
+        self._rays = 0
 
     def policy(self, tile: int) -> ImageSchedule:
         """The tile's policy, made on demand (rays carry their state; the policy only the
@@ -508,7 +476,7 @@ class _AsyncFrame:
 
     def my_paths(self, policy) -> np.ndarray:
         """Rows of the tile's paths whose camera rays this node makes: every P-th."""
-        return np.nonzero(np.arange(len(policy.ctx.pixel)) % self.size == self.rank)[0]
+        return np.nonzero(interleaved_paths(len(policy.ctx.pixel), self.rank, self.size))[0]
 
     def traced(self, domain: int, rays: int, seconds: float) -> None:
         """Hears that an activation of ``domain`` processed ``rays`` rays in ``seconds``: the
@@ -548,34 +516,34 @@ class _AsyncFrame:
                 self.accept(message)
 
     def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
-        """The domain to trace now and the one to load meanwhile: the fullest queue, and the
-        second fullest (the Galaxy baseline's ray-count priority); with ``resident_first``,
-        the fullest cached domain with rays goes before any other, for both."""
-        cached = (self.preloader.resident() if self.resident_first and self.preloader
-                  else frozenset())
-        active = fullest(waiting, cached)
-        rest = waiting.copy()
-        rest[active] = 0
-        upcoming = fullest(rest, cached - {active}) if rest.any() else None
-        return active, upcoming
+        """The domain to trace now and the one to load meanwhile (``GalaxyPolicy.choose``)."""
+        return self.galaxy.choose(waiting, self.preloader.resident())
 
-    async def step(self, preloader) -> bool:
-        """Trace the chosen local domain for every tile that has rays for it, then ship;
-        False when no ray waits here."""
+    # -- the domain loop's order (``domain_loop.DomainOrder``) -------------------------------
+    def next_domain(self) -> int | None:
         waiting = self.waiting()
         if not waiting.any():
+            return None
+        domain, self._upcoming = self.choose(waiting)
+        self._rays = int(waiting[domain])
+        return domain
+
+    def likely_next(self, current: int) -> int | None:
+        return self._upcoming
+
+    def trace(self, domain: int, bvh) -> int:
+        """Trace the domain's rays of every tile that has rays for it."""
+        return sum(traced_queries(policy, domain, bvh) for policy in self.policies.values()
+                   if policy.radiance.count(domain) or policy.shadow.count(domain))
+
+    async def step(self) -> bool:
+        """Trace the chosen local domain for every tile that has rays for it, then ship;
+        False when no ray waits here."""
+        activation = await self.node.loop.step(self, ship=self.ship)
+        if activation is None:
             return False
-        domain, upcoming = self.choose(waiting)
-        start = time.perf_counter()
-        bvh = await preloader.get(domain)
-        preloader.preload(upcoming)
-        for policy in [p for p in self.policies.values()
-                       if p.radiance.count(domain) or p.shadow.count(domain)]:
-            await asyncio.to_thread(policy.process, domain, bvh)
-        done = time.perf_counter()
-        self.traced(domain, int(waiting[domain]), done - start)
-        self.node.stats["trace_s"] += done - start
-        await self.ship()
+        # S_PROC's time: the wait for the load (what preloading did not hide) and the trace.
+        self.traced(activation.domain, self._rays, activation.wait_s + activation.trace_s)
         return True
 
     async def ship(self) -> None:
@@ -592,8 +560,7 @@ class _AsyncFrame:
             self.film.add_partial(policy.ctx.pixel, policy.ctx.sample, policy.result)
             self.shade_s += policy.counters["shade_s"]
 
-    async def run(self, preloader) -> None:
-        self.preloader = preloader
+    async def run(self) -> None:
         management = self.node.management
         inbox = management.mailbox(protocol.RAYS)
         control = management.mailbox(protocol.PROBE)
@@ -601,10 +568,10 @@ class _AsyncFrame:
         while True:
             while not inbox.empty():
                 self.accept(inbox.get_nowait())
-            if self.next_tile < self.n_tiles and self.waiting().sum() < self.tile:
+            if self.next_tile < self.n_tiles and self.galaxy.admits_tile(self.waiting()):
                 self.inject()
                 await self.ship()  # camera rays bound for other nodes leave at once
-            if await self.step(preloader) or not inbox.empty():
+            if await self.step() or not inbox.empty():
                 continue
             self.retire_idle()
             if self.next_tile < self.n_tiles:

@@ -24,31 +24,17 @@ import numpy as np
 
 from vastray.actors import protocol
 from vastray.actors.decomposition import NodeState, frame_load_stats
+from vastray.actors.domain_loop import DomainLoop
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import RenderSetup
+from vastray.actors.ray_post import RayPost, traffic_counters
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
+from vastray.schedule.ownership import interleaved_paths, zorder_owners
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 from vastray.schedule.soa import SoA
-from vastray.transport.codec import encode
-
-
-def zorder_owners(lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
-    """(D,) owner of each domain: domains sorted along the Morton curve of their box centres,
-    cut into ``size`` contiguous runs (spatially compact groups per node)."""
-    center = (lo + hi) / 2.0
-    span = np.maximum(center.max(axis=0) - center.min(axis=0), 1e-300)
-    grid = np.clip(((center - center.min(axis=0)) / span * 1023).astype(np.uint64), 0, 1023)
-    code = np.zeros(len(lo), np.uint64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((grid[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    order = np.argsort(code, kind="stable")
-    owner = np.empty(len(lo), np.int64)
-    owner[order] = np.arange(len(lo)) * size // max(len(lo), 1)
-    return owner
 
 
 def hit_keys(t: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -82,23 +68,20 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     state = NodeState() if state is None else state
     preloader = state.preloader_for(store, max(len(local), 1), setup.keep, options, rank)
     before = preloader.stats()
-    bvhs = {}
-    for i, d in enumerate(local):  # in situ: the node's data stays loaded
-        bvhs[d] = await preloader.get(d)
-        preloader.preload(local[i + 1] if i + 1 < len(local) else None)
+    # In situ the node's data stays loaded: the loop only loads it (each domain's rays are
+    # traced in the iterations below, all domains at once, not activation by activation).
+    bvhs = await DomainLoop(preloader, {}).load_all(local)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(options.max_samples_in_flight or total, total))
-    stats = {"batches_sent": 0, "batches_received": 0, "rays_sent": 0, "bytes_sent": 0,
-             "rays_received": 0, "bytes_received": 0, "send_s": 0.0, "shade_s": 0.0,
-             "speculative_rays": 0, "wasted_rays": 0, "intersection_cache_hits": 0,
-             "iterations": 0}
+    stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
+             "intersection_cache_hits": 0, "iterations": 0}
     runner = _InSitu(management, tree, rank, size, owner, local, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats)
     for index, first in enumerate(range(0, total, tile)):
         ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                            setup.ao_distance)
-        mine = np.arange(len(ctx.pixel)) % size == rank
+        mine = interleaved_paths(len(ctx.pixel), rank, size)
         result = await runner.tile(ctx, setup.camera, mine, index)
         film.add_paths(ctx.pixel, ctx.sample, result, counted=mine)
         if on_tile is not None:
@@ -117,6 +100,7 @@ class _InSitu:
         self.management, self.tree, self.rank, self.size = management, tree, rank, size
         self.owner, self.local, self.bvhs, self.geometry = owner, local, bvhs, geometry
         self.color_source, self.scalar_range, self.stats = color_source, scalar_range, stats
+        self.post = RayPost(management, rank, stats)
         self.is_local = np.zeros(len(owner), bool)
         self.is_local[local] = True
 
@@ -185,17 +169,9 @@ class _InSitu:
             for node in range(self.size):
                 if node == self.rank:
                     continue
-                rows = dest == node
-                arrays = ({"domain": dom[rows], **source.take(ray[rows]).fields}
-                          if rows.any() else {})
-                frames = encode(protocol.RAYS, arrays, {"queue": name, "rank": self.rank,
-                                                        "tile": tile, "depth": depth})
-                start = time.perf_counter()
-                await self.management.to_peer(node, frames)
-                self.stats["send_s"] += time.perf_counter() - start
-                self.stats["batches_sent"] += 1
-                self.stats["rays_sent"] += int(rows.sum())
-                self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+                rows = dest == node  # one batch per peer and queue, empty or not
+                batch = (dom[rows], source.take(ray[rows])) if rows.any() else ()
+                await self.post.send(node, name, {"tile": tile, "depth": depth}, *batch)
         received = 0
         while received < 2 * (self.size - 1):
             message = await self.management.receive(protocol.RAYS, "ray batch")
@@ -209,12 +185,10 @@ class _InSitu:
                 self.management.rejections.add("malformed", str(exc))
                 continue
             received += 1
-            self.stats["batches_received"] += 1
+            self.post.received(message)
             if message.arrays:
                 arrays = {k: np.array(v) for k, v in message.arrays.items()}
                 dom = arrays.pop("domain")
-                self.stats["rays_received"] += len(dom)
-                self.stats["bytes_received"] += sum(a.nbytes for a in message.arrays.values())
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
         return _joined(incoming["radiance"]), _joined(incoming["shadow"])
 

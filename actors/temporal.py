@@ -222,10 +222,11 @@ class TemporalFrame(_AsyncFrame):
         self.stats.proc_rays[domain] += rays
         self.stats.proc_s[domain] += seconds
 
-    async def run(self, preloader) -> None:
+    async def run(self) -> None:
+        preloader = self.preloader
         self.loads_before = preloader.loads_per_domain()
         before = preloader.stats()
-        await super().run(preloader)
+        await super().run()
         after = preloader.stats()
         for d, count in preloader.loads_per_domain().items():
             self.stats.loads[d] += count - self.loads_before.get(d, 0)

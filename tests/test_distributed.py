@@ -75,7 +75,7 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
 
 
 def test_zorder_ownership_is_balanced_and_compact():
-    from vastray.actors.insitu import zorder_owners
+    from vastray.schedule.ownership import zorder_owners
 
     lo = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
     owner = zorder_owners(lo, lo + 1, 8)

@@ -927,7 +927,7 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
 
     if args.memory_limit is not None:
         if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
-            from vastray.actors.insitu import zorder_owners
+            from vastray.schedule.ownership import zorder_owners
 
             nodes = args.nodes or 1
             check_owned_fit(args.memory_limit, process(cache), footprints,
