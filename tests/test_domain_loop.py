@@ -1,0 +1,170 @@
+"""The one domain-activation loop (``actors/domain_loop.py``) and the decisions it carries out
+(``schedule/galaxy.py``, ``schedule/ownership.py``), on hand-made inputs: no sockets, no
+nodes. The runtimes that drive the loop are tested by the image tests of every scheduler."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+import numpy as np
+import pytest
+
+from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder
+from vastray.actors.preloader import DomainPreloader
+from vastray.schedule.galaxy import GalaxyPolicy
+from vastray.schedule.ownership import interleaved_paths, round_robin_owners
+
+from scenes import bumpy_scene, write_store
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return write_store(tmp_path_factory.mktemp("loop") / "s.store", bumpy_scene(), grid=(2, 2, 2))
+
+
+@pytest.fixture
+def preloader(store):
+    with contextlib.closing(DomainPreloader(store, capacity=2)) as loader:
+        yield loader
+
+
+def nonempty(store) -> list[int]:
+    return [d.id for d in store.domains if d.n_triangles]
+
+
+class Recorder:
+    """A hand-made order: the given domains, a fixed guess, and a log of what the loop did."""
+
+    def __init__(self, domains: list[int], guess: dict[int, int | None], preloader,
+                 queries: int = 3):
+        self.domains, self.guess, self.preloader, self.queries = list(domains), guess, preloader, queries
+        self.log: list[tuple] = []
+
+    def next_domain(self):
+        return self.domains.pop(0) if self.domains else None
+
+    def likely_next(self, current):
+        # asked once ``current`` is in memory, so a cache-aware guess sees it resident
+        self.log.append(("guess", current, current in self.preloader.resident()))
+        return self.guess.get(current)
+
+    def trace(self, domain, bvh):
+        self.log.append(("trace", domain, bvh.domain_id))
+        return self.queries
+
+
+def test_each_step_gets_guesses_traces_and_ships_in_that_order(store, preloader):
+    a, b, c = nonempty(store)[:3]
+    order = Recorder([a, b, c], {a: b, b: c, c: None}, preloader)
+    shipped = []
+
+    async def ship():
+        shipped.append(order.log[-1][1])
+
+    stats: dict = {}
+    loop = DomainLoop(preloader, stats, offload=False)
+    count = asyncio.run(loop.run(order, ship))
+    assert count == 3 and loop.activations == 3
+    assert order.log == [("guess", a, True), ("trace", a, a), ("guess", b, True),
+                         ("trace", b, b), ("guess", c, True), ("trace", c, c)]
+    assert shipped == [a, b, c]  # after each trace
+    assert stats["trace_s"] > 0
+    # the guesses were loaded ahead: b and c were preloaded, not loaded on demand
+    assert preloader.stats()["preloads"] == 2
+    assert loop.traced_domains == {a, b, c}
+    assert loop.productive_loads == {(a, 1), (b, 1), (c, 1)}
+
+
+def test_an_activation_that_traces_nothing_is_no_productive_load(store, preloader):
+    a, b = nonempty(store)[:2]
+    loop = DomainLoop(preloader, {}, offload=True)  # on a worker thread, as the nodes do
+    first = asyncio.run(loop.step(Recorder([a], {}, preloader, queries=0)))
+    second = asyncio.run(loop.step(Recorder([b], {}, preloader, queries=5)))
+    assert first.domain == a and first.queries == 0 and first.load_count == 1
+    assert second.queries == 5
+    assert loop.traced_domains == {b}
+    assert asyncio.run(loop.step(Recorder([], {}, preloader))) is None
+
+
+def test_without_preloading_no_guess_is_asked_for(store):
+    a, b = nonempty(store)[:2]
+    with contextlib.closing(DomainPreloader(store, 2, preload=False)) as loader:
+        order = Recorder([a, b], {a: b}, loader)
+        asyncio.run(DomainLoop(loader, {}, offload=False).run(order))
+        assert [entry[0] for entry in order.log] == ["trace", "trace"]
+        assert loader.stats()["preloads"] == 0
+
+
+def test_list_order_guesses_the_next_of_its_list_and_load_all_holds_every_domain(store,
+                                                                                  preloader):
+    ids = nonempty(store)[:2]
+    order = ListOrder(ids)
+    assert order.next_domain() == ids[0] and order.likely_next(ids[0]) == ids[1]
+    assert order.next_domain() == ids[1] and order.likely_next(ids[1]) is None
+    assert order.next_domain() is None
+    held = asyncio.run(DomainLoop(preloader, {}).load_all(ids))
+    assert sorted(held) == sorted(ids)
+    assert all(held[d].domain_id == d for d in ids)
+
+
+class FakeSchedule:
+    """The part of a tile schedule ``ScheduleOrder`` forwards to."""
+
+    def __init__(self):
+        self.asked: list = []
+        self.counters = {"radiance_tests": 0, "shadow_tests": 0}
+
+    def next_domain(self, resident, victim=None):
+        self.asked.append((resident, victim))
+        return None
+
+    def likely_next(self, current):
+        return None
+
+    def process(self, domain, bvh):
+        self.counters["radiance_tests"] += 2
+        self.counters["shadow_tests"] += 1
+
+
+def test_schedule_order_hands_the_schedule_what_its_runtime_allows(store, preloader):
+    a = nonempty(store)[0]
+    asyncio.run(preloader.get(a))
+    policy = FakeSchedule()
+    ScheduleOrder(policy, preloader).next_domain()
+    ScheduleOrder(policy, preloader, resident_aware=False).next_domain()
+    ScheduleOrder(policy, preloader, evicting=True).next_domain()
+    assert policy.asked[0] == (frozenset({a}), None)
+    assert policy.asked[1] == (frozenset(), None)  # the domain rounds: no resident rule
+    assert policy.asked[2][1] == preloader.victim  # spec-ooc's serve-before-evict
+    assert ScheduleOrder(policy, preloader).trace(a, None) == 3
+
+
+# -- Galaxy's choices ------------------------------------------------------------------------
+
+def test_galaxy_traces_the_fullest_queue_and_loads_the_second():
+    waiting = np.array([0, 5, 9, 5, 1])
+    assert GalaxyPolicy(10, resident_first=False).choose(waiting) == (2, 1)  # tie: lower id
+    assert GalaxyPolicy(10, resident_first=False).choose(waiting, {4}) == (2, 1)
+    assert GalaxyPolicy(10).choose(np.array([0, 0, 3])) == (2, None)
+
+
+def test_galaxy_serves_cached_domains_first_when_asked_to():
+    waiting = np.array([0, 5, 9, 5, 1])
+    assert GalaxyPolicy(10).choose(waiting, {4, 3}) == (3, 4)  # fullest cached, then the next
+    assert GalaxyPolicy(10).choose(waiting, {0}) == (2, 1)  # a cached domain without rays: none
+
+
+def test_galaxy_takes_a_tile_only_below_its_credit():
+    policy = GalaxyPolicy(credit=8)
+    assert policy.admits_tile(np.array([3, 4]))
+    assert not policy.admits_tile(np.array([4, 4]))
+
+
+# -- fixed ownership -------------------------------------------------------------------------
+
+def test_round_robin_and_interleaved_shares_cover_everything_once():
+    assert round_robin_owners(7, 3).tolist() == [0, 1, 2, 0, 1, 2, 0]
+    shares = np.array([interleaved_paths(10, rank, 3) for rank in range(3)])
+    assert (shares.sum(axis=0) == 1).all()
+    assert np.nonzero(shares[1])[0].tolist() == [1, 4, 7]
