@@ -207,15 +207,6 @@ def binding() -> _Api | None:
     return _api
 
 
-_live_scenes = 0
-_live_lock = threading.RLock()  # reentrant: __del__ may run anywhere
-
-
-def live_scenes() -> int:
-    """How many scenes built here are not released yet (tests: eviction releases)."""
-    return _live_scenes
-
-
 def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
     """``arr`` itself when it is C-contiguous ``dtype`` with readable bytes past its end;
     otherwise a copy into a buffer one row longer (the copy's extra row is never indexed).
@@ -250,16 +241,13 @@ class _SceneHandle:
     _api: _Api
 
     def _open(self, api: _Api, flags: int) -> None:
-        """Create the (empty) Embree scene, counted as live, with ``flags``."""
-        global _live_scenes
+        """Create the (empty) Embree scene with ``flags``."""
         self._api = api
         self._handle_lock = threading.Lock()
         self.handle = api.rtcNewScene(api.device)
         if not self.handle:
             api.check("rtcNewScene")
             raise RuntimeError("rtcNewScene failed")
-        with _live_lock:
-            _live_scenes += 1
         api.rtcSetSceneFlags(self.handle, flags)
 
     def _buffers_in_use(self) -> tuple:
@@ -267,7 +255,6 @@ class _SceneHandle:
         return ()
 
     def _release(self) -> None:
-        global _live_scenes
         lock = getattr(self, "_handle_lock", None)
         if lock is None:  # __init__ failed before the scene was created
             return
@@ -275,8 +262,6 @@ class _SceneHandle:
             handle, self.handle = self.handle, None
         if handle:
             self._api.rtcReleaseScene(handle)
-            with _live_lock:
-                _live_scenes -= 1
 
     def close(self) -> None:
         self._release()
@@ -366,13 +351,6 @@ class Scene(_SceneHandle):
 
     def _buffers_in_use(self) -> tuple:
         return self.vertices, self.indices
-
-    def buffer_pointer(self, vertex: bool = True) -> int:
-        """Address of the vertex (or index) buffer Embree uses (tests: it is the array's)."""
-        with self._lease() as handle:
-            geom = self._api.rtcGetGeometry(handle, self.geom_id)
-            return self._api.rtcGetGeometryBufferData(
-                geom, RTC_BUFFER_TYPE_VERTEX if vertex else RTC_BUFFER_TYPE_INDEX, 0) or 0
 
     def close(self) -> None:
         """Release the Embree scene (and with it the BVH); the arrays are dropped too (a query
@@ -709,10 +687,6 @@ def _intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
         _rtcIntersect1(scene, f.ctypes.data, arguments.ctypes.data)
         _store_hit(f, i32, prim, tfar, u, v, ng, i)
         inst[i] = i32[19] if prim[i] >= 0 else -1
-
-
-#: The query kernels by name (benchmarks and tests run them through ``_launch``).
-KERNELS = {"intersect": _intersect_nearest, "occluded": _occluded1}
 
 
 class TopScene(_SceneHandle):

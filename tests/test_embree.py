@@ -22,6 +22,7 @@ from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import DomainArrays
 
+from embree_hooks import buffer_pointer, compiled_functions, live_scenes
 from scenes import bumpy_scene, mesh_arrays, write_store
 
 MESHES = {
@@ -198,7 +199,7 @@ def test_zero_copy_from_memory_mapped_store(api, tmp_path):
     scene = bvh._scene
     for arr, vertex in ((arrays.vertices, True), (arrays.indices, False)):
         if (arr.ctypes.data + arr.nbytes) % embree._PAGE:  # not ending on a page boundary
-            assert scene.buffer_pointer(vertex) == arr.ctypes.data
+            assert buffer_pointer(scene, vertex) == arr.ctypes.data
     assert np.shares_memory(scene.vertices, arrays.vertices)
     assert bvh.indices is not None and np.shares_memory(bvh.indices, arrays.indices)
     origins, dirs, t_far = _rays(arrays, 2000, seed=1)
@@ -237,23 +238,23 @@ def test_arrays_ending_on_a_page_boundary_are_copied_padded(api):
 def test_eviction_and_close_release_the_scene(api, tmp_path):
     store = write_store(tmp_path / "s", bumpy_scene(), grid=(2, 1, 1))
     gc.collect()
-    before = embree.live_scenes()
+    before = live_scenes()
     cache = DomainCache(store, capacity=1)
     first = weakref.ref(cache.get(0))
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     cache.get(1)  # evicts domain 0: its scene is released with the last reference
     assert first() is None
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     bvh = cache.load(0)
-    assert embree.live_scenes() == before + 2
+    assert live_scenes() == before + 2
     bvh.close()
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     with pytest.raises(RuntimeError, match="closed"):
         bvh.intersect(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32),
                       np.ones(1, np.float32))
     del cache
     gc.collect()
-    assert embree.live_scenes() == before
+    assert live_scenes() == before
 
 
 def test_empty_domain_misses(api):
@@ -300,7 +301,9 @@ def test_no_kernel_uses_numbas_threading_layer(api):
     # at once; no kernel of the binding is parallel, so it is never entered (issue 20).
     from numba.np.ufunc import parallel
 
-    for kernel in (*embree.KERNELS.values(),):
+    compiled = compiled_functions(embree)
+    assert {embree._intersect_nearest, embree._occluded1} <= set(compiled)
+    for kernel in compiled:
         assert not kernel.targetoptions.get("parallel"), kernel
     arrays = _arrays(MESHES["icosphere"]())
     origins, dirs, t_far = _rays(arrays, 20000, seed=4)

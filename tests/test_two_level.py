@@ -17,6 +17,7 @@ from vastray.scene import embree
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 
+from embree_hooks import live_scenes
 from scenes import bumpy_config, bumpy_scene, mesh_arrays, settings, write_store
 
 pytestmark = pytest.mark.skipif(embree.binding() is None,
@@ -166,14 +167,14 @@ def test_domains_missing_from_the_top_level_are_visited_and_loaded(stores):
 
 
 def test_top_scene_close_releases(stores):
-    before = embree.live_scenes()
+    before = live_scenes()
     store = stores["grid8"]
     cache = DomainCache(store, 8)
     tracer = DomainTracer(store, cache, threads=1)
     for d in range(8):
         cache.get(d)
     tracer.intersect(np.zeros((4, 3), np.float32) + 5, -np.ones((4, 3), np.float32))
-    assert embree.live_scenes() == before + len(cache.resident()) + 1
+    assert live_scenes() == before + len(cache.resident()) + 1
     tracer.close()
-    assert embree.live_scenes() == before + len(cache.resident())
+    assert live_scenes() == before + len(cache.resident())
 
