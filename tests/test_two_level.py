@@ -13,14 +13,15 @@ import trimesh
 
 from vastray.render.driver import render
 from vastray.render.tracer import DomainTracer
-from vastray.scene import embree
 from vastray.scene.cache import DomainCache
+from vastray.scene.embree.library import binding
+from vastray.scene.embree.scenes import TopScene
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 
 from embree_hooks import live_scenes
 from scenes import bumpy_config, bumpy_scene, mesh_arrays, settings, write_store
 
-pytestmark = pytest.mark.skipif(embree.binding() is None,
+pytestmark = pytest.mark.skipif(binding() is None,
                                 reason="the compiled Embree binding is unavailable")
 
 
@@ -43,13 +44,13 @@ def stores(tmp_path_factory):
 def _count_top_queries(monkeypatch) -> dict:
     calls = {"intersect": 0, "occluded": 0}
     for name in calls:
-        original = getattr(embree.TopScene, name)
+        original = getattr(TopScene, name)
 
         def counted(self, *args, _name=name, _original=original, **kw):
             calls[_name] += 1
             return _original(self, *args, **kw)
 
-        monkeypatch.setattr(embree.TopScene, name, counted)
+        monkeypatch.setattr(TopScene, name, counted)
     return calls
 
 
