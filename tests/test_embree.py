@@ -20,6 +20,7 @@ from embreex import mesh_construction, rtcore_scene
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
 from vastray.scene.embree import kernels, library
+from vastray.scene.embree.launch import _SPLIT_MIN, launch
 from vastray.scene.embree.scenes import _PAGE, SCENE_FLAGS, Scene, TopScene, _padded
 from vastray.scene.store import DomainArrays
 
@@ -440,3 +441,26 @@ def test_mismatched_ray_arrays_are_refused(api):
         scene.intersect(o, np.ones((1, 3), np.float32), np.ones(4, np.float32))
     with pytest.raises(ValueError, match="rays must be"):
         scene.occluded(o, np.ones((4, 3), np.float32), np.ones(3, np.float32))
+
+
+def test_launch_gives_each_thread_a_contiguous_part():
+    """``launch`` slices every array argument into at most ``threads`` contiguous parts of at
+    least ``_SPLIT_MIN`` rays, passes the other arguments whole, and runs a query too small to
+    split on the calling thread (a plain Python kernel: no Embree)."""
+    seen = []
+
+    def kernel(tag, values, out):
+        seen.append((tag, int(values[0]), len(values), threading.get_ident()))
+        out[:] = values * 2
+
+    n = 3 * _SPLIT_MIN + 5
+    values, out = np.arange(n, dtype=np.float32), np.zeros(n, np.float32)
+    launch(kernel, 8, n, "whole", values, out)  # 8 threads asked, 3 parts of >= _SPLIT_MIN
+    np.testing.assert_array_equal(out, values * 2)
+    parts = sorted(seen)
+    assert [p[0] for p in parts] == ["whole"] * 3
+    assert [p[1] for p in parts] == [0, parts[0][2], parts[0][2] + parts[1][2]]  # contiguous
+    assert sum(p[2] for p in parts) == n and min(p[2] for p in parts) >= _SPLIT_MIN
+    seen.clear()
+    launch(kernel, 8, 100, "whole", values[:100], out[:100])
+    assert [(s[2], s[3]) for s in seen] == [(100, threading.get_ident())]
