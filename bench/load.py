@@ -9,7 +9,7 @@ then the scene and its BVH), with both Embree paths, interleaved domain by domai
 * ``zero-copy``: ``DomainBVH`` on the compiled binding (``vastray.scene.embree``): Embree uses
   the memory-mapped arrays in place (``rtcSetSharedGeometryBuffer``), the BVH is built at once.
 
-Both build with the robust scene flag (see ``vastray.scene.embree``) on Embree's own threads.
+Both build with the robust scene flag (see ``vastray.scene.embree.scenes``) on Embree's own threads.
 Per path it prints the best repetition (the machine may be shared: best = least disturbed)
 and the median, read (load_domain) and build separately, and finally ``load_s_per_mtri=`` for
 the zero-copy path (goal: <= 0.35). ``--cold`` drops the domain files from the page cache
@@ -30,8 +30,8 @@ import numpy as np
 from bench_scenes import cached_rm
 from embreex import mesh_construction, rtcore_scene
 
-from vastray.scene import embree
 from vastray.scene.bvh import DomainBVH
+from vastray.scene.embree.library import binding
 from vastray.scene.store import Store
 
 
@@ -78,7 +78,7 @@ def main() -> None:
     args = parser.parse_args()
     store = scene(args.resolution)
     mtri = store.n_triangles / 1e6
-    api = embree.binding()
+    api = binding()
     assert api is not None, "the compiled Embree binding is unavailable"
     print(f"scene: rm {args.resolution}^3, {store.n_triangles:,} triangles in "
           f"{len(store.domains)} domains; Embree {api.version}, {os.cpu_count()} cores, "

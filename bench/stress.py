@@ -215,9 +215,9 @@ def main(argv: list[str] | None = None) -> int:
                            if o.stalled else "ok")
                 print(f"[{k + 1}/{len(plan)}] {' '.join(o.options)}: {verdict} in "
                       f"{o.seconds:.1f} s{'  ' + o.detail if o.detail else ''}", flush=True)
-    from vastray.scene import embree
+    from vastray.scene.embree.library import binding as embree_binding
 
-    binding = "compiled" if embree.binding() is not None else "embreex-fallback"
+    binding = "compiled" if embree_binding() is not None else "embreex-fallback"
     crashes = sum(o.native for o in outcomes)
     wrong = sum(o.wrong for o in outcomes)
     stalls = sum(o.stalled and not o.native for o in outcomes)

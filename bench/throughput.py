@@ -27,7 +27,8 @@ from embreex import mesh_construction, rtcore_scene
 from vastray.render.driver import render
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
-from vastray.scene import embree
+from vastray.scene.embree.library import binding
+from vastray.scene.embree.scenes import Scene
 from vastray.scene.store import Store
 
 
@@ -49,9 +50,9 @@ def all_triangles(store: Store) -> tuple[np.ndarray, np.ndarray]:
 
 def raw_compiled(store: Store, batches: list, threads: int) -> float:
     """Seconds for the recorded queries through vastray's compiled Embree kernels
-    (``scene/embree.py``) on one scene of all triangles: the renderer's own query path,
+    (``scene/embree/``) on one scene of all triangles: the renderer's own query path,
     without anything around it."""
-    scene = embree.Scene(*all_triangles(store))
+    scene = Scene(*all_triangles(store))
     one = np.zeros((1, 3), np.float32)
     scene.intersect(one, one + 1, np.full(1, np.inf, np.float32), threads)  # load the kernels
     start = time.perf_counter()
@@ -119,7 +120,7 @@ def main() -> None:
         print(f"warm-up render (untimed): {time.perf_counter() - start:.2f} s")
     batches: list = []
     e2e_runs, builds, raw_runs, compiled_runs = [], [], [], []
-    compiled = embree.binding() is not None
+    compiled = binding() is not None
     for run in range(args.repeat):
         # Renders are deterministic: the first one's queries are every run's.
         result = render(store, SceneConfig(), settings, threads=args.threads, progress=False,

@@ -6,7 +6,7 @@ concatenations, the continuation bounce), each allocating its temporaries. Here 
 arithmetic runs in one serial ``nogil`` kernel per batch, row by row, writing the shadow rays
 and continuation rays straight into their output arrays. Serial on purpose: the render workers
 call shading side by side on their own threads while another worker's Embree launch uses all
-the cores (``scene/embree.py`` runs launches one at a time).
+the cores (``scene/embree/launch.py`` runs launches one at a time).
 
 Bit for bit the numpy path's results
 ------------------------------------

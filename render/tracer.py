@@ -8,7 +8,7 @@ LoadAnyOnce). The result does not depend on that order: the minimum over domains
 whichever domain comes first.
 
 Two levels: when every domain fits in the cache, a query first goes, one Embree query per ray,
-through a top-level scene holding an instance of every resident domain (``embree.TopScene``);
+through a top-level scene holding an instance of every resident domain (``embree.scenes.TopScene``);
 only domains not resident yet are then visited one by one (which loads them), and once all the
 domains rays enter are resident no ray-box work is left at all. Ties between domains still go
 to the lower domain id, so the hits, and the image, are the same bit for bit. A store of one
@@ -27,9 +27,9 @@ import numpy as np
 from vastray.render import kernels
 from vastray.render.boxtree import BoxTree
 from vastray.render.materials import ScalarMap, colormap
-from vastray.scene import embree
 from vastray.scene.cache import DomainCache
 from vastray.scene.cpus import available_cpus
+from vastray.scene.embree.scenes import TopScene
 from vastray.scene.store import Store
 
 
@@ -314,7 +314,7 @@ class DomainTracer:
         self.two_level = two_level
         #: (resident domain ids, their TopScene or None, the boxes of the non-empty domains
         #: not resident, in a BoxTree)
-        self._top: tuple[frozenset, embree.TopScene | None, BoxTree] | None = None
+        self._top: tuple[frozenset, TopScene | None, BoxTree] | None = None
         self._top_lock = threading.Lock()
 
     def close(self) -> None:
@@ -325,7 +325,7 @@ class DomainTracer:
         if top is not None and top[1] is not None:
             top[1].close()
 
-    def _top_level(self) -> tuple[embree.TopScene | None, BoxTree, dict] | None:
+    def _top_level(self) -> tuple[TopScene | None, BoxTree, dict] | None:
         """The top-level scene of the resident domains, a ``BoxTree`` of the non-empty
         domains not resident (the only ones still visited one by one: rays test their boxes
         only) and the resident ``DomainBVH`` by id; None where queries go domain by domain (the
@@ -347,7 +347,7 @@ class DomainTracer:
                 if any(not resident[d].compiled for d in ids):
                     return None
                 # instances in ascending domain id: the filter's ties go to the lower id
-                top = (embree.TopScene([resident[d]._scene for d in ids], ids) if ids
+                top = (TopScene([resident[d]._scene for d in ids], ids) if ids
                        else None)
                 missing = np.setdiff1d(self.tree_ids, np.asarray(ids, np.int64))
                 self._top = (key, top, BoxTree(self.lo, self.hi, missing))

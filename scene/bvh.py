@@ -14,8 +14,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from embreex import mesh_construction, rtcore, rtcore_scene
 
-from vastray.scene import embree
 from vastray.scene.cpus import available_cpus
+from vastray.scene.embree.library import binding
+from vastray.scene.embree.scenes import Scene
 from vastray.scene.store import DomainArrays
 
 #: Below this many rays a query runs on the calling thread only.
@@ -53,7 +54,7 @@ class DomainBVH:
     keep : names of the attributes (``"objects"``, ``"colors"``, ``"scalars"``) to keep for
         shading; the others are dropped at once (the scene does not use them).
     pool : the threads queries of this domain use by default: its size is the number of parts
-        a compiled query is split into (``embree._launch``; embreex fallback: the rays are
+        a compiled query is split into (``embree.launch.launch``; embreex fallback: the rays are
         split over the pool); None: the calling thread only.
 
     The Embree scene is released by ``close()``, or when the last reference goes (a cache's
@@ -66,9 +67,9 @@ class DomainBVH:
         self.domain_id = domain_id
         self.pool = pool
         self.n_triangles = arrays.n_triangles
-        self.compiled = embree.binding() is not None
+        self.compiled = binding() is not None
         if self.compiled:
-            self._scene = embree.Scene(arrays.vertices, arrays.indices)
+            self._scene = Scene(arrays.vertices, arrays.indices)
         else:
             self._scene = rtcore_scene.EmbreeScene(embree_device())
             mesh_construction.TriangleMesh(

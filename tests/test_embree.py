@@ -17,11 +17,14 @@ import pytest
 import trimesh
 from embreex import mesh_construction, rtcore_scene
 
-from vastray.scene import embree
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
+from vastray.scene.embree import kernels, library
+from vastray.scene.embree.launch import _SPLIT_MIN, launch
+from vastray.scene.embree.scenes import _PAGE, SCENE_FLAGS, Scene, TopScene, _padded
 from vastray.scene.store import DomainArrays
 
+from embree_hooks import buffer_pointer, compiled_functions, live_scenes
 from scenes import bumpy_scene, mesh_arrays, write_store
 
 MESHES = {
@@ -59,7 +62,7 @@ def _rays(arrays: DomainArrays, n: int, seed: int):
 
 @pytest.fixture(scope="module")
 def api():
-    got = embree.binding()
+    got = library.binding()
     assert got is not None, "the compiled Embree binding did not load"
     return got
 
@@ -101,7 +104,7 @@ def _edge_and_vertex_targets(mesh: trimesh.Trimesh, rng):
     return np.concatenate(on_edges), v
 
 
-def _escapes(scene: embree.Scene, origin, targets) -> int:
+def _escapes(scene: Scene, origin, targets) -> int:
     o = np.broadcast_to(origin, targets.shape).astype(np.float32)
     d = (targets - origin).astype(np.float32)
     inf = np.full(len(o), np.inf, np.float32)
@@ -113,7 +116,7 @@ def _escapes(scene: embree.Scene, origin, targets) -> int:
 def test_watertight(api):
     """Rays from inside a closed mesh aimed exactly at its shared edges never escape with the
     robust flag (the one used); with flags 0 many do. At vertices the robust test is nearly,
-    not exactly, watertight (see the module docstring): its rate is bounded here."""
+    not exactly, watertight (see ``vastray.scene.embree.scenes``): its rate is bounded here."""
     rng = np.random.default_rng(5)
     counts = {}
     for name in ("icosphere", "box", "far-icosphere"):
@@ -123,21 +126,21 @@ def test_watertight(api):
         center = np.asarray(mesh.vertices).mean(axis=0)
         inside = center + rng.normal(size=(6, 3)) * 0.05 * np.ptp(mesh.vertices, axis=0)
         inside[0] = center
-        for flags in (embree.RTC_SCENE_FLAG_ROBUST, embree.RTC_SCENE_FLAG_NONE):
-            scene = embree.Scene(arrays.vertices, arrays.indices, flags=flags)
+        for flags in (library.RTC_SCENE_FLAG_ROBUST, library.RTC_SCENE_FLAG_NONE):
+            scene = Scene(arrays.vertices, arrays.indices, flags=flags)
             for kind, targets in (("edge", on_edges), ("vertex", on_vertices)):
                 c = counts.setdefault((flags, kind), [0, 0])
                 for origin in inside:
                     c[0] += _escapes(scene, origin, targets)
                     c[1] += 2 * len(targets)
             scene.close()
-    robust, fast = embree.RTC_SCENE_FLAG_ROBUST, embree.RTC_SCENE_FLAG_NONE
+    robust, fast = library.RTC_SCENE_FLAG_ROBUST, library.RTC_SCENE_FLAG_NONE
     print({k: f"{e}/{n}" for k, (e, n) in counts.items()})
     assert counts[robust, "edge"][0] == 0
     assert counts[fast, "edge"][0] > 0  # why the robust flag is used
     assert counts[robust, "vertex"][0] <= 0.02 * counts[robust, "vertex"][1]
     assert counts[robust, "vertex"][0] < counts[fast, "vertex"][0]
-    assert embree.SCENE_FLAGS == robust
+    assert SCENE_FLAGS == robust
 
 
 def test_ties_keep_the_lowest_id_whatever_the_path(api):
@@ -156,7 +159,7 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
     origins = (rng.normal(size=(len(targets), 3)) * 3).astype(np.float32)
     dirs = (targets - origins).astype(np.float32)
     t_far = np.full(len(targets), np.inf, np.float32)
-    scene = embree.Scene(arrays.vertices, arrays.indices)
+    scene = Scene(arrays.vertices, arrays.indices)
     whole = scene.intersect(origins, dirs, t_far)
     split = scene.intersect(origins, dirs, t_far, threads=3)
     perm = rng.permutation(len(targets))
@@ -168,7 +171,7 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
     # three parts whose shared edges tie between scenes: merged one by one as the per-domain
     # path does (nearer, or as near in a lower scene), and through one top-level query
     cut = np.linspace(0, len(arrays.indices), 4).astype(int)
-    parts = [embree.Scene(arrays.vertices, arrays.indices[a:b])
+    parts = [Scene(arrays.vertices, arrays.indices[a:b])
              for a, b in zip(cut, cut[1:], strict=False)]
     merged = {"primID": np.full(len(targets), -1, np.int32), "tfar": t_far.copy(),
               "id": np.full(len(targets), -1)}
@@ -181,7 +184,7 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
         for key in ("primID", "tfar"):
             merged[key][won] = r[key][won]
         merged["id"][won] = k
-    top = embree.TopScene(parts, [0, 1, 2]).intersect(origins, dirs, t_far)
+    top = TopScene(parts, [0, 1, 2]).intersect(origins, dirs, t_far)
     assert ties_between > 10  # the case the filter is for happened
     for key in ("primID", "tfar", "id"):
         np.testing.assert_array_equal(top[key], merged[key])
@@ -197,8 +200,8 @@ def test_zero_copy_from_memory_mapped_store(api, tmp_path):
     bvh = DomainBVH(0, arrays, keep=frozenset({"scalars"}))
     scene = bvh._scene
     for arr, vertex in ((arrays.vertices, True), (arrays.indices, False)):
-        if (arr.ctypes.data + arr.nbytes) % embree._PAGE:  # not ending on a page boundary
-            assert scene.buffer_pointer(vertex) == arr.ctypes.data
+        if (arr.ctypes.data + arr.nbytes) % _PAGE:  # not ending on a page boundary
+            assert buffer_pointer(scene, vertex) == arr.ctypes.data
     assert np.shares_memory(scene.vertices, arrays.vertices)
     assert bvh.indices is not None and np.shares_memory(bvh.indices, arrays.indices)
     origins, dirs, t_far = _rays(arrays, 2000, seed=1)
@@ -209,7 +212,7 @@ def test_zero_copy_from_memory_mapped_store(api, tmp_path):
 def test_arrays_ending_on_a_page_boundary_are_copied_padded(api):
     mesh = MESHES["icosphere"]()
     v = np.asarray(mesh.vertices, np.float32)
-    page = embree._PAGE
+    page = _PAGE
     # A buffer whose vertex rows end exactly on a page boundary (Embree reads past the end).
     raw = np.zeros(len(v) * 3 + 3 * page, np.float32)
     end = raw.ctypes.data + raw.nbytes
@@ -219,13 +222,13 @@ def test_arrays_ending_on_a_page_boundary_are_copied_padded(api):
     view = raw[first:first + v.size].reshape(-1, 3)
     view[:] = v
     assert (view.ctypes.data + view.nbytes) % page == 0
-    padded = embree._padded(view, np.float32, 3)
+    padded = _padded(view, np.float32, 3)
     assert padded is not view and not np.shares_memory(padded, view)
     assert padded.base.shape == (len(v) + 1, 3)  # one readable row past the end
     np.testing.assert_array_equal(padded, v)
-    assert embree._padded(v, np.float32, 3) is v or (v.ctypes.data + v.nbytes) % page == 0
+    assert _padded(v, np.float32, 3) is v or (v.ctypes.data + v.nbytes) % page == 0
     # Other layouts and dtypes are copied too, and give the same results.
-    scene = embree.Scene(v.astype(np.float64), np.asarray(mesh.faces, np.int64))
+    scene = Scene(v.astype(np.float64), np.asarray(mesh.faces, np.int64))
     arrays = _arrays(mesh)
     origins, dirs, t_far = _rays(arrays, 2000, seed=3)
     got = scene.intersect(origins, dirs, t_far)
@@ -237,23 +240,23 @@ def test_arrays_ending_on_a_page_boundary_are_copied_padded(api):
 def test_eviction_and_close_release_the_scene(api, tmp_path):
     store = write_store(tmp_path / "s", bumpy_scene(), grid=(2, 1, 1))
     gc.collect()
-    before = embree.live_scenes()
+    before = live_scenes()
     cache = DomainCache(store, capacity=1)
     first = weakref.ref(cache.get(0))
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     cache.get(1)  # evicts domain 0: its scene is released with the last reference
     assert first() is None
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     bvh = cache.load(0)
-    assert embree.live_scenes() == before + 2
+    assert live_scenes() == before + 2
     bvh.close()
-    assert embree.live_scenes() == before + 1
+    assert live_scenes() == before + 1
     with pytest.raises(RuntimeError, match="closed"):
         bvh.intersect(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32),
                       np.ones(1, np.float32))
     del cache
     gc.collect()
-    assert embree.live_scenes() == before
+    assert live_scenes() == before
 
 
 def test_empty_domain_misses(api):
@@ -300,11 +303,13 @@ def test_no_kernel_uses_numbas_threading_layer(api):
     # at once; no kernel of the binding is parallel, so it is never entered (issue 20).
     from numba.np.ufunc import parallel
 
-    for kernel in (*embree.KERNELS.values(),):
+    compiled = compiled_functions(kernels)
+    assert {kernels.intersect_nearest, kernels.occluded1} <= set(compiled)
+    for kernel in compiled:
         assert not kernel.targetoptions.get("parallel"), kernel
     arrays = _arrays(MESHES["icosphere"]())
     origins, dirs, t_far = _rays(arrays, 20000, seed=4)
-    scene = embree.Scene(arrays.vertices, arrays.indices)
+    scene = Scene(arrays.vertices, arrays.indices)
     scene.intersect(origins, dirs, t_far, threads=2)
     scene.occluded(origins, dirs, t_far, threads=2)
     assert not parallel._is_initialized
@@ -316,10 +321,10 @@ def test_a_query_holds_its_scene_while_another_thread_closes_it(api):
     refused with a clear error, never a crash."""
     arrays = _arrays(MESHES["icosphere"]())
     origins, dirs, t_far = _rays(arrays, 20000, seed=6)
-    expect = embree.Scene(np.array(arrays.vertices), np.array(arrays.indices)).intersect(
+    expect = Scene(np.array(arrays.vertices), np.array(arrays.indices)).intersect(
         origins, dirs, t_far)["primID"]
     for _ in range(5):
-        scene = embree.Scene(np.array(arrays.vertices), np.array(arrays.indices))
+        scene = Scene(np.array(arrays.vertices), np.array(arrays.indices))
         outcomes = []
 
         def query(scene=scene, outcomes=outcomes):
@@ -343,8 +348,8 @@ def test_a_query_holds_its_scene_while_another_thread_closes_it(api):
 
 def _forget_binding() -> None:
     """Forget the loaded library, so the next ``binding()`` loads (or fails) again."""
-    with embree._api_lock:
-        embree._api, embree._api_tried = None, False
+    with library._api_lock:
+        library._api, library._api_tried = None, False
 
 
 @pytest.fixture
@@ -358,9 +363,9 @@ def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
     def fail():
         raise OSError("no such library")
 
-    monkeypatch.setattr(embree, "_load_library", fail)
+    monkeypatch.setattr(library, "_load_library", fail)
     arrays = _arrays(MESHES["box"]())
-    with pytest.warns(embree.EmbreeFallbackWarning, match="no such library"):
+    with pytest.warns(library.EmbreeFallbackWarning, match="no such library"):
         bvh = DomainBVH(0, arrays)
     assert not bvh.compiled
     origins, dirs, t_far = _rays(arrays, 3000, seed=4)
@@ -375,10 +380,10 @@ def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
 
 def test_fallback_when_major_version_is_not_4(reload_binding, monkeypatch):
     # Asking for the full version (40400) where the major one is expected: "not Embree 4".
-    monkeypatch.setattr(embree, "RTC_DEVICE_PROPERTY_VERSION_MAJOR",
-                        embree.RTC_DEVICE_PROPERTY_VERSION)
-    with pytest.warns(embree.EmbreeFallbackWarning, match="not Embree 4"):
-        assert embree.binding() is None
+    monkeypatch.setattr(library, "RTC_DEVICE_PROPERTY_VERSION_MAJOR",
+                        library.RTC_DEVICE_PROPERTY_VERSION)
+    with pytest.warns(library.EmbreeFallbackWarning, match="not Embree 4"):
+        assert library.binding() is None
     assert not DomainBVH(0, _arrays(MESHES["box"]())).compiled
 
 
@@ -386,10 +391,11 @@ WARM_START = textwrap.dedent("""
     import time
     start = time.perf_counter()
     import numpy as np
-    from vastray.scene import embree
+    from vastray.scene.embree import kernels
+    from vastray.scene.embree.scenes import Scene
     imported = time.perf_counter()
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    scene = embree.Scene(v, np.array([[0, 1, 2]], np.uint32))
+    scene = Scene(v, np.array([[0, 1, 2]], np.uint32))
     o = np.array([[0.2, 0.2, 1.0]], np.float32)
     d = np.array([[0, 0, -1.0]], np.float32)
     t = np.array([np.inf], np.float32)
@@ -397,10 +403,11 @@ WARM_START = textwrap.dedent("""
     blocked = scene.occluded(o, d, t, threads=2)[0]
     done = time.perf_counter()
     assert hit == 0 and blocked
-    kernels = [getattr(embree, name) for name in dir(embree) if name.startswith(("_intersect", "_occluded"))]
-    hits = sum(sum(k.stats.cache_hits.values()) for k in kernels if hasattr(k, "stats"))
-    misses = sum(sum(k.stats.cache_misses.values()) for k in kernels if hasattr(k, "stats"))
-    print(f"{imported - start:.3f} {done - imported:.3f} {hits} {misses}")
+    launched = [kernels.intersect_nearest, kernels.occluded1]
+    hits = sum(sum(k.stats.cache_hits.values()) for k in launched)
+    misses = sum(sum(k.stats.cache_misses.values()) for k in launched)
+    print(f"{imported - start:.3f} {done - imported:.3f} {hits} {misses} "
+          f"{kernels._filter_cfunc.cache_hits}")
 """)
 
 
@@ -413,23 +420,47 @@ def test_kernels_are_cached_warm_process_traces_at_once(api):
     run = [sys.executable, "-c", WARM_START]
     subprocess.run(run, check=True, env=env, capture_output=True, text=True)  # warms the cache
     out = subprocess.run(run, check=True, env=env, capture_output=True, text=True).stdout
-    imported, traced, hits, misses = (float(x) for x in out.split())
+    imported, traced, hits, misses, filter_hits = (float(x) for x in out.split())
     print(f"warm process: import {imported:.3f} s, build + first queries {traced:.3f} s")
     assert hits >= 2 and misses == 0
+    assert filter_hits == 1  # the tie filter (a cfunc) is loaded from the cache too
 
 
 def test_environment_chooses_embreex_without_warning(reload_binding, monkeypatch):
     monkeypatch.setenv("VASTRAY_EMBREEX", "1")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert embree.binding() is None
+        assert library.binding() is None
     assert not DomainBVH(0, _arrays(MESHES["box"]())).compiled
 
 
 def test_mismatched_ray_arrays_are_refused(api):
-    scene = embree.Scene(*(lambda a: (a.vertices, a.indices))(_arrays(MESHES["box"]())))
+    scene = Scene(*(lambda a: (a.vertices, a.indices))(_arrays(MESHES["box"]())))
     o = np.zeros((4, 3), np.float32)
     with pytest.raises(ValueError, match="rays must be"):
         scene.intersect(o, np.ones((1, 3), np.float32), np.ones(4, np.float32))
     with pytest.raises(ValueError, match="rays must be"):
         scene.occluded(o, np.ones((4, 3), np.float32), np.ones(3, np.float32))
+
+
+def test_launch_gives_each_thread_a_contiguous_part():
+    """``launch`` slices every array argument into at most ``threads`` contiguous parts of at
+    least ``_SPLIT_MIN`` rays, passes the other arguments whole, and runs a query too small to
+    split on the calling thread (a plain Python kernel: no Embree)."""
+    seen = []
+
+    def kernel(tag, values, out):
+        seen.append((tag, int(values[0]), len(values), threading.get_ident()))
+        out[:] = values * 2
+
+    n = 3 * _SPLIT_MIN + 5
+    values, out = np.arange(n, dtype=np.float32), np.zeros(n, np.float32)
+    launch(kernel, 8, n, "whole", values, out)  # 8 threads asked, 3 parts of >= _SPLIT_MIN
+    np.testing.assert_array_equal(out, values * 2)
+    parts = sorted(seen)
+    assert [p[0] for p in parts] == ["whole"] * 3
+    assert [p[1] for p in parts] == [0, parts[0][2], parts[0][2] + parts[1][2]]  # contiguous
+    assert sum(p[2] for p in parts) == n and min(p[2] for p in parts) >= _SPLIT_MIN
+    seen.clear()
+    launch(kernel, 8, 100, "whole", values[:100], out[:100])
+    assert [(s[2], s[3]) for s in seen] == [(100, threading.get_ident())]

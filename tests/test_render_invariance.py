@@ -97,7 +97,7 @@ def test_in_core_and_every_schedule_give_one_image_at_full_size(tmp_path):
     spp. The in-core render (1 or 2 threads: the top-level scene) and every out-of-core and
     distributed schedule (per-domain queries) gave images 9.93e-05 apart, one pixel whose ray
     met two triangles at the same distance and kept a different one on each path; they are
-    identical now (the tie rule of ``scene.embree._tie_filter``). About 3 minutes."""
+    identical now (the tie rule of ``scene.embree.kernels._tie_filter``). About 3 minutes."""
     import subprocess
     import sys
 

@@ -13,13 +13,15 @@ import trimesh
 
 from vastray.render.driver import render
 from vastray.render.tracer import DomainTracer
-from vastray.scene import embree
 from vastray.scene.cache import DomainCache
+from vastray.scene.embree.library import binding
+from vastray.scene.embree.scenes import TopScene
 from vastray.scene.store import DomainArrays, Store, StoreWriter
 
+from embree_hooks import live_scenes
 from scenes import bumpy_config, bumpy_scene, mesh_arrays, settings, write_store
 
-pytestmark = pytest.mark.skipif(embree.binding() is None,
+pytestmark = pytest.mark.skipif(binding() is None,
                                 reason="the compiled Embree binding is unavailable")
 
 
@@ -42,13 +44,13 @@ def stores(tmp_path_factory):
 def _count_top_queries(monkeypatch) -> dict:
     calls = {"intersect": 0, "occluded": 0}
     for name in calls:
-        original = getattr(embree.TopScene, name)
+        original = getattr(TopScene, name)
 
         def counted(self, *args, _name=name, _original=original, **kw):
             calls[_name] += 1
             return _original(self, *args, **kw)
 
-        monkeypatch.setattr(embree.TopScene, name, counted)
+        monkeypatch.setattr(TopScene, name, counted)
     return calls
 
 
@@ -166,14 +168,14 @@ def test_domains_missing_from_the_top_level_are_visited_and_loaded(stores):
 
 
 def test_top_scene_close_releases(stores):
-    before = embree.live_scenes()
+    before = live_scenes()
     store = stores["grid8"]
     cache = DomainCache(store, 8)
     tracer = DomainTracer(store, cache, threads=1)
     for d in range(8):
         cache.get(d)
     tracer.intersect(np.zeros((4, 3), np.float32) + 5, -np.ones((4, 3), np.float32))
-    assert embree.live_scenes() == before + len(cache.resident()) + 1
+    assert live_scenes() == before + len(cache.resident()) + 1
     tracer.close()
-    assert embree.live_scenes() == before + len(cache.resident())
+    assert live_scenes() == before + len(cache.resident())
 

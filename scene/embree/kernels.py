@@ -1,0 +1,240 @@
+"""The query kernels: serial ``@njit(nogil=True, cache=True)`` loops over structure-of-arrays
+batches of rays, one Embree call per ray, and the tie filter of closest hits.
+
+They run without the GIL and are loaded from numba's on-disk cache by a warm process (about
+2-3 s of compilation per process before). Every buffer a kernel hands Embree (ray, hit,
+context, arguments) is that call's own, aligned as Embree's headers declare. The kernels do
+not check bounds: ``launch.rays`` checks their inputs.
+
+Queries: one ray at a time
+--------------------------
+Closest hits use ``rtcIntersect1`` with an argument filter (``_tie_filter``) that keeps, of
+equally near hits, the lowest (instance, primitive) id: the hit of a ray does not depend on the
+order Embree meets tied candidates in, so a domain queried directly and the same domain met as
+an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
+different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``: 16-ray
+occlusion packets through a top-level scene's instances, from two threads at once, corrupted
+the heap (``bench/README.md``, session 4), the pattern of issue 20's crashes. With the robust
+flag, 1-ray and 16-ray packet queries measured the same speed (1.7 M-triangle isosurface, one
+thread: closest hit 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23 coherent; occlusion 1.76 vs
+1.80 incoherent, 3.70 vs 3.54 coherent), so neither choice gives up packet speed.
+
+Everything the kernels compile in is defined here except the Embree calls and memory access
+of ``intrinsics`` (numba's cache sees changes to this file only: see there).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numba
+import numpy as np
+from numba import njit, types
+
+from vastray.scene.embree.intrinsics import (
+    load_f32,
+    load_i32,
+    load_i64,
+    rtc_intersect1,
+    rtc_occluded1,
+    store_f32,
+    store_i32,
+)
+
+#: float32 words of RTCRayHit (the hit's instPrimID included: 96 bytes, 16-byte aligned).
+_RAYHIT1_WORDS = 24
+_INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
+#: (include/embree4/rtcore_ray.h) Defined here, not in ``library``, so that every constant the
+#: kernels compile in lives in this file (numba's cache sees changes to this file only).
+RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER = 1 << 1
+
+
+@njit(inline="always")
+def _aligned(raw, align_words, n_words):
+    """A view of ``n_words`` words of ``raw`` starting on an ``align_words`` x itemsize byte
+    boundary (``raw`` has ``align_words`` spare words)."""
+    size = raw.itemsize
+    addr = raw.ctypes.data
+    mis = (addr // size) % align_words
+    off = (align_words - mis) % align_words
+    return raw[off:off + n_words]
+
+
+@njit(inline="always")
+def _set_ray1(f, i32, org, dirs, tfar, i):
+    # RTCRay: org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time, tfar, mask, id, flags
+    f[0] = org[i, 0]
+    f[1] = org[i, 1]
+    f[2] = org[i, 2]
+    f[3] = 0.0
+    f[4] = dirs[i, 0]
+    f[5] = dirs[i, 1]
+    f[6] = dirs[i, 2]
+    f[7] = 0.0
+    f[8] = tfar[i]
+    i32[9] = -1
+    i32[10] = 0
+    i32[11] = 0
+
+
+@njit(nogil=True, cache=True)
+def occluded1(scene, org, dirs, tfar_in, out):
+    """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, one ``rtcOccluded1`` per ray;
+    ``out`` (n,) bool.
+
+    One ray at a time, not 16-ray packets: occlusion through a top-level scene's instances in
+    ``rtcOccluded16`` packets from two threads at once corrupted the heap (bench/README.md,
+    session 4: ``malloc(): unaligned tcache chunk detected`` within 12 renders), the pattern of
+    the crashes reported in issue 20 (in core, two render workers, the top-level scene); with
+    the robust flag 1-ray and packet occlusion measured the same speed. The ray buffer is a
+    whole RTCRayHit (96 bytes, 16-byte aligned), though Embree reads and writes only its
+    RTCRay part.
+    """
+    n = org.shape[0]
+    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, _RAYHIT1_WORDS)
+    i32 = f.view(np.int32)
+    for i in range(n):
+        _set_ray1(f, i32, org, dirs, tfar_in, i)
+        rtc_occluded1(scene, f.ctypes.data, 0)
+        out[i] = f[8] < 0  # Embree sets tfar to -inf on a hit
+
+
+# ---------------------------------------------------------------------------------------------
+# Closest hits: 1-ray queries whose ties an argument filter breaks by id
+# ---------------------------------------------------------------------------------------------
+
+#: Byte offset, in the ray query context, of our per-lane records (best t: float32, its
+#: instance: int32, its primitive: int32, padding): past ``RTCRayQueryContext``'s instID[1]
+#: (and instPrimID[1] where the library has instance arrays), with room to spare.
+_CTX_RECORD = 16
+_RECORD_BYTES = 16
+#: int32 words of the context buffer: Embree's 16 bytes, then one record per lane of the
+#: widest call Embree can make (16), whatever lane a call uses.
+_CTX_WORDS = (_CTX_RECORD + 16 * _RECORD_BYTES) // 4
+#: int64 words of RTCIntersectArguments: flags and feature_mask, context, filter, intersect,
+#: (minWidthDistanceFactor where built with it), spare.
+_ARGS_WORDS = 6
+_NO_ID = np.int32(0x7FFFFFFF)
+
+
+def _tie_filter(args):
+    """Embree filter (``RTCFilterFunctionN``) that makes the closest hit independent of the
+    order in which Embree meets equally near candidates.
+
+    Embree accepts a triangle hit when ``t <= tfar`` (inclusive), so of equally near hits the
+    one kept depends on the traversal: the leaf order, and, inside a leaf, whether a filter
+    runs (without one, the first of the leaf's tied lanes; with one, every tied lane is offered
+    in turn). A direct query of a domain and the same domain met as an instance of a top-level
+    scene could thus keep different triangles (issue 20: one pixel in 65,536 differed). This
+    filter accepts a candidate only if it is nearer than the best so far, or as near with a
+    lower (instance, primitive) id, so the same ray always ends with the same hit: the lowest
+    domain (instances are attached in ascending domain id; a direct query has no instance,
+    id -1) and, within it, the lowest primitive id among the nearest.
+
+    ``args`` is the address of ``RTCFilterFunctionNArguments``: valid (int*), geometryUserPtr,
+    context, ray (RTCRayN*), hit (RTCHitN*), N (unsigned int). The candidate's distance is in
+    the ray's tfar, its primitive in the hit's primID, its instance in instID[0]. The best so
+    far is kept per lane in our part of the ray query context (16 records, one per possible
+    lane: no lane indexes past it).
+    """
+    valid = load_i64(args)
+    ctx = load_i64(args + 16)
+    ray = load_i64(args + 24)
+    hit = load_i64(args + 32)
+    n = min(load_i32(args + 40), 16)
+    for lane in range(n):
+        if load_i32(valid + 4 * lane) == 0:
+            continue
+        t = load_f32(ray + 4 * (8 * n + lane))
+        prim = load_i32(hit + 4 * (5 * n + lane))
+        inst = load_i32(hit + 4 * (7 * n + lane))
+        record = ctx + _CTX_RECORD + _RECORD_BYTES * lane
+        best_t = load_f32(record)
+        best_inst = load_i32(record + 4)
+        best_prim = load_i32(record + 8)
+        if t < best_t or (t == best_t and (inst < best_inst or (
+                inst == best_inst and prim < best_prim))):
+            store_f32(record, t)
+            store_i32(record + 4, inst)
+            store_i32(record + 8, prim)
+        else:
+            store_i32(valid + 4 * lane, 0)
+
+
+_filter_cfunc = None
+_filter_lock = threading.Lock()
+
+
+def filter_address() -> int:
+    """Address of the compiled ``_tie_filter`` (compiled, or loaded from numba's cache, on
+    first use; the cfunc object is kept for the life of the process, so the address stays
+    valid)."""
+    global _filter_cfunc
+    with _filter_lock:
+        if _filter_cfunc is None:
+            _filter_cfunc = numba.cfunc(types.void(types.int64), nogil=True, cache=True)(
+                _tie_filter)
+        return _filter_cfunc.address
+
+
+@njit(inline="always")
+def _store_hit(f, i32, prim, tfar, u, v, ng, i):
+    """Copy ray ``i``'s hit out of an RTCRayHit buffer: tfar at word 8, then the hit's Ng_x,
+    Ng_y, Ng_z, u, v, primID at words 12-17. A miss reads as primID -1, zero u, v and Ng."""
+    p = i32[17]
+    tfar[i] = f[8]
+    if p == _INVALID:
+        prim[i] = -1
+        u[i] = 0.0
+        v[i] = 0.0
+        ng[i, 0] = 0.0
+        ng[i, 1] = 0.0
+        ng[i, 2] = 0.0
+    else:
+        prim[i] = p
+        ng[i, 0] = f[12]
+        ng[i, 1] = f[13]
+        ng[i, 2] = f[14]
+        u[i] = f[15]
+        v[i] = f[16]
+
+
+@njit(nogil=True, cache=True)
+def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt``: the outputs
+    are (n,) each (``ng`` (n, 3)); ``inst`` receives the instance (top-level geometry id) of
+    each hit, -1 for a miss or a scene without instances.
+
+    The ray, the context and the arguments Embree reads live in this call's own buffers,
+    aligned as Embree's headers declare them (RTCRayHit, RTCRayQueryContext and
+    RTCIntersectArguments: 16 bytes).
+    """
+    n = org.shape[0]
+    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, _RAYHIT1_WORDS)
+    i32 = f.view(np.int32)
+    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
+    context = _aligned(raw_context, 4, _CTX_WORDS)
+    cf = context.view(np.float32)
+    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
+    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
+    a32 = arguments.view(np.int32)
+    for i in range(n):
+        # (set in the loop, so the buffers Embree reads stay referenced through it)
+        a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
+        a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
+        arguments[1] = context.ctypes.data
+        arguments[2] = filt
+        _set_ray1(f, i32, org, dirs, tfar_in, i)
+        i32[17] = _INVALID  # primID
+        i32[18] = _INVALID  # geomID
+        i32[19] = _INVALID  # instID[0]
+        context[0] = _INVALID  # instID[0]
+        context[1] = _INVALID  # instPrimID[0] (where present)
+        cf[_CTX_RECORD // 4] = tfar_in[i]  # lane 0's record: a 1-ray call has one lane
+        context[_CTX_RECORD // 4 + 1] = _NO_ID
+        context[_CTX_RECORD // 4 + 2] = _NO_ID
+        rtc_intersect1(scene, f.ctypes.data, arguments.ctypes.data)
+        _store_hit(f, i32, prim, tfar, u, v, ng, i)
+        inst[i] = i32[19] if prim[i] >= 0 else -1

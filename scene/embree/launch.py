@@ -1,0 +1,75 @@
+"""Running a query kernel on a batch of rays: its inputs checked, split over threads.
+
+A query of several threads splits its rays into contiguous parts, each traced by the serial
+kernel on a thread of one process-wide pool (``launch``); render workers that trace on one
+thread each run their kernels side by side. No kernel is ``parallel=True``: numba's threading
+layer, whose default (workqueue) is not safe to enter from two Python threads at once, is never
+used (issue 20: heap corruption under load was reported only with two threads in compiled
+code; with no kernel sharing native state, that class is ruled out).
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+
+def rays(origins, directions, t_far) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernels' inputs: C-contiguous, writable float32 (n, 3), (n, 3), (n,), checked (the
+    kernels do not check bounds)."""
+    org, dirs, tf = (_writable(np.ascontiguousarray(a, dtype=np.float32))
+                     for a in (origins, directions, t_far))
+    n = len(org)
+    if org.shape != (n, 3) or dirs.shape != (n, 3) or tf.shape != (n,):
+        raise ValueError(f"rays must be (n, 3), (n, 3), (n,): got {org.shape}, {dirs.shape}, "
+                         f"{tf.shape}")
+    return org, dirs, tf
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    # One kernel signature only (numba types read-only arrays apart: another compilation).
+    return a if a.flags.writeable else a.copy()
+
+
+#: Fewest rays per part when a query is split over several threads.
+_SPLIT_MIN = 4096
+_splitter: ThreadPoolExecutor | None = None
+_splitter_lock = threading.Lock()
+
+
+def _split_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's pool that runs the parts of split queries (grown on demand)."""
+    global _splitter
+    with _splitter_lock:
+        if _splitter is None or _splitter._max_workers < threads:
+            old, _splitter = _splitter, ThreadPoolExecutor(threads,
+                                                           thread_name_prefix="embree-part")
+            if old is not None:
+                old.shutdown(wait=False)
+        return _splitter
+
+
+def launch(kernel, threads: int, n: int, *args) -> None:
+    """Run the serial ``kernel`` on ``n`` rays, split into at most ``threads`` contiguous
+    parts that run side by side on ``_split_pool`` (one part: on the calling thread).
+
+    Every kernel (``kernels``) is serial and releases the GIL: numba's threading layer (whose
+    default, workqueue, must not be entered by two Python threads at once) is never used, so any
+    number of Python threads may query at the same time. Each part writes only its own rows of the
+    outputs (array arguments are sliced along their first axis; the others, such as the scene
+    handle, are passed whole); the caller holds every array until all parts have returned.
+    """
+    parts = max(1, min(int(threads), n // _SPLIT_MIN))
+    if parts == 1:
+        kernel(*args)
+        return
+    bounds = np.linspace(0, n, parts + 1).astype(np.int64)
+
+    def run(k: int) -> None:
+        lo, hi = bounds[k], bounds[k + 1]
+        kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a for a in args))
+
+    for future in [_split_pool(parts).submit(run, k) for k in range(parts)]:
+        future.result()

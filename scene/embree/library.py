@@ -1,0 +1,132 @@
+"""Finding, loading and checking the Embree 4 library; its functions called through ctypes.
+
+The library is the one the ``embreex`` wheel ships (``embreex.libs/libembree4-*.so.4``); embreex
+stays the dependency that brings the binary, and the fallback when this binding cannot be used.
+It is loaded with global symbols, and into LLVM's process symbol table, when the binding is
+first used (``binding()``): the compiled kernels (``kernels``) call it by name.
+
+Fallback
+--------
+When the library cannot be found or loaded, or its major version is not 4 (the layouts and
+constants here are Embree 4's), ``binding()`` returns None after one ``EmbreeFallbackWarning``
+and ``DomainBVH`` uses embreex's ``run`` as before. ``VASTRAY_EMBREEX=1`` in the environment
+chooses embreex's ``run`` on purpose (no warning), e.g. to compare the two.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import importlib.util
+import os
+import threading
+import warnings
+from pathlib import Path
+
+# Embree 4 constants (include/embree4/rtcore_*.h)
+RTC_DEVICE_PROPERTY_VERSION = 0
+RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
+RTC_GEOMETRY_TYPE_TRIANGLE = 0
+RTC_BUFFER_TYPE_INDEX = 0
+RTC_BUFFER_TYPE_VERTEX = 1
+RTC_FORMAT_UINT3 = 0x5003
+RTC_FORMAT_FLOAT3 = 0x9003
+RTC_SCENE_FLAG_NONE = 0
+RTC_SCENE_FLAG_ROBUST = 4
+RTC_INVALID_GEOMETRY_ID = 0xFFFFFFFF
+RTC_GEOMETRY_TYPE_INSTANCE = 121
+RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
+
+
+class EmbreeFallbackWarning(RuntimeWarning):
+    """The compiled Embree binding is unusable; embreex's ``run`` is used instead."""
+
+
+def find_library() -> Path:
+    """The Embree 4 shared library shipped in the embreex wheel."""
+    spec = importlib.util.find_spec("embreex")
+    if spec is None or not spec.submodule_search_locations:
+        raise OSError("embreex is not installed")
+    for folder in spec.submodule_search_locations:
+        libs = Path(folder).parent / "embreex.libs"
+        found = sorted(glob.glob(str(libs / "libembree4*.so*")))
+        if found:
+            return Path(found[0])
+    raise OSError("no libembree4*.so in embreex.libs/ next to the embreex package")
+
+
+class Api:
+    """The library's functions called from Python (ctypes releases the GIL during each call)."""
+
+    def __init__(self, path: Path):
+        from llvmlite import binding as llvm
+
+        # Global symbols: numba's compiled kernels resolve rtcIntersect1 etc. by name through
+        # LLVM's process symbol table.
+        self.lib = ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
+        llvm.load_library_permanently(str(path))
+        self.path = path
+        p, u32, i32, sz = ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int, ctypes.c_size_t
+        sigs = {
+            "rtcNewDevice": (p, [ctypes.c_char_p]),
+            "rtcReleaseDevice": (None, [p]),
+            "rtcGetDeviceProperty": (ctypes.c_ssize_t, [p, i32]),
+            "rtcGetDeviceError": (i32, [p]),
+            "rtcNewScene": (p, [p]),
+            "rtcSetSceneFlags": (None, [p, i32]),
+            "rtcCommitScene": (None, [p]),
+            "rtcRetainScene": (None, [p]),
+            "rtcReleaseScene": (None, [p]),
+            "rtcNewGeometry": (p, [p, i32]),
+            "rtcSetSharedGeometryBuffer": (None, [p, i32, u32, i32, p, sz, sz, sz]),
+            "rtcCommitGeometry": (None, [p]),
+            "rtcAttachGeometry": (u32, [p, p]),
+            "rtcReleaseGeometry": (None, [p]),
+            "rtcSetGeometryInstancedScene": (None, [p, p]),
+            "rtcSetGeometryTransform": (None, [p, u32, i32, p]),
+        }
+        for name, (res, args) in sigs.items():
+            fn = getattr(self.lib, name)
+            fn.restype, fn.argtypes = res, args
+            setattr(self, name, fn)
+        self.device = self.rtcNewDevice(None)
+        if not self.device:
+            raise OSError("rtcNewDevice failed")
+        self.version = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION))
+        self.major = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MAJOR))
+        if self.major != 4:
+            self.rtcReleaseDevice(self.device)
+            raise OSError(f"{path.name} is Embree {self.version}, not Embree 4")
+
+    def check(self, what: str) -> None:
+        code = self.rtcGetDeviceError(self.device)
+        if code:
+            raise RuntimeError(f"Embree error {code} in {what}")
+
+
+def _load_library() -> Api:
+    """Find, load and check the library (tests replace this to exercise the fallback)."""
+    return Api(find_library())
+
+
+_api: Api | None = None
+_api_tried = False
+_api_lock = threading.Lock()
+
+
+def binding() -> Api | None:
+    """The loaded library, or None (after one ``EmbreeFallbackWarning``) when unusable or
+    disabled (``VASTRAY_EMBREEX``)."""
+    global _api, _api_tried
+    if _api_tried:
+        return _api
+    with _api_lock:
+        if not _api_tried:
+            try:
+                _api = None if os.environ.get("VASTRAY_EMBREEX") else _load_library()
+            except Exception as exc:  # noqa: BLE001 - any failure means: use embreex
+                _api = None
+                warnings.warn(f"vastray: compiled Embree binding unavailable ({exc}); "
+                              f"using embreex's run()", EmbreeFallbackWarning, stacklevel=3)
+            _api_tried = True
+    return _api

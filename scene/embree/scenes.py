@@ -1,0 +1,276 @@
+"""Embree scenes of the store's arrays (zero copy), one mesh or instances of several, and
+their queries.
+
+``ctypes`` calls (``library``) build the scenes: the store's arrays (memory-mapped or not)
+become the geometry's buffers in place with ``rtcSetSharedGeometryBuffer`` (no copy), the BVH
+is built on Embree's own thread pool (the GIL is released while ``rtcCommitScene`` runs).
+Ownership: every query leases its scene (``_SceneHandle._lease``: ``rtcRetainScene`` and a
+reference to each array Embree reads in place, until the kernel returns).
+
+Scene flags: robust
+-------------------
+Scenes are built with ``RTC_SCENE_FLAG_ROBUST``, as embreex builds its scenes. Embree's fast
+triangle test (flags 0) is not watertight: of rays from inside closed meshes (icosphere, box)
+aimed exactly at points of their shared edges, about 5 % slip through the cracks between
+triangles with flags 0 and none with the robust flag (``tests/test_embree.py::
+test_watertight``). Such rays leave a closed surface (light leaks), so correctness wins over the
+faster test, which measured 15-40 % more rays/s (packets, one thread; most on coherent
+occlusion). Even the robust test is not exact at *vertices*: a few in a thousand rays aimed
+exactly at a vertex (to float32 rounding) from an off-centre inside point miss every triangle
+around it (12 % with flags 0; embreex's results are the same, bit for bit); the test bounds
+that rate.
+
+With the same flag the results are bit-identical to embreex's ``run`` (primID, tfar, u, v, Ng
+and occlusion; tested) except where a ray meets several triangles at exactly the same distance:
+there the tie rule (``kernels._tie_filter``) picks the lowest primitive, where embreex keeps
+whichever Embree met under its traversal order.
+
+Two levels
+----------
+``TopScene`` holds one instance (identity transform: the instanced triangles are met exactly
+as by a query of their own scene) of each of several scenes: the in-core tracer queries every
+resident domain at once through it. Instances are attached in ascending domain id, so the
+filter's lowest instance is the lowest domain, as the per-domain queries' merge decides.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import threading
+
+import numpy as np
+
+from vastray.scene.embree.kernels import filter_address, intersect_nearest, occluded1
+from vastray.scene.embree.launch import launch, rays
+from vastray.scene.embree.library import (
+    RTC_BUFFER_TYPE_INDEX,
+    RTC_BUFFER_TYPE_VERTEX,
+    RTC_FORMAT_FLOAT3,
+    RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR,
+    RTC_FORMAT_UINT3,
+    RTC_GEOMETRY_TYPE_INSTANCE,
+    RTC_GEOMETRY_TYPE_TRIANGLE,
+    RTC_SCENE_FLAG_ROBUST,
+    Api,
+    binding,
+)
+
+#: Scene flags of every scene built here (see the module docstring).
+SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
+
+_PAGE = mmap.PAGESIZE
+
+
+def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
+    """``arr`` itself when it is C-contiguous ``dtype`` with readable bytes past its end;
+    otherwise a copy into a buffer one row longer (the copy's extra row is never indexed).
+
+    Embree loads a vertex with one 16-byte read, 4 bytes past the last one. Memory is readable
+    page by page, so any array whose data does not end exactly on a page boundary has at least
+    those 4 bytes (its ends are 4-byte aligned) in the page that holds its last element: only
+    an array ending on a page boundary (or of another layout) is copied.
+    """
+    if (isinstance(arr, np.ndarray) and arr.dtype == dtype and arr.flags.c_contiguous
+            and arr.ndim == 2 and arr.shape[1] == cols and arr.size
+            and (arr.ctypes.data + arr.nbytes) % _PAGE != 0):
+        return arr
+    out = np.empty((len(arr) + 1, cols), dtype)
+    out[:-1] = arr
+    out[-1] = 0
+    return out[:-1]
+
+
+class _SceneHandle:
+    """What each of our Embree scenes has: one owner of its handle, released once (on
+    ``close`` or when collected), and leased by every query while it runs.
+
+    A query takes a lease (``_lease``): under the scene's lock it checks the scene is open,
+    retains the Embree scene (``rtcRetainScene``) and holds the arrays Embree reads in place;
+    it gives both back when the kernel has returned. A ``close`` on another thread meanwhile
+    drops only the owner's reference: the Embree scene and its buffers outlive every query
+    that started before it, and a query that starts after it is refused.
+    """
+
+    handle = None
+    _api: Api
+
+    def _open(self, api: Api, flags: int) -> None:
+        """Create the (empty) Embree scene with ``flags``."""
+        self._api = api
+        self._handle_lock = threading.Lock()
+        self.handle = api.rtcNewScene(api.device)
+        if not self.handle:
+            api.check("rtcNewScene")
+            raise RuntimeError("rtcNewScene failed")
+        api.rtcSetSceneFlags(self.handle, flags)
+
+    def _buffers_in_use(self) -> tuple:
+        """The arrays Embree reads in place (held by a query's lease)."""
+        return ()
+
+    def _release(self) -> None:
+        lock = getattr(self, "_handle_lock", None)
+        if lock is None:  # __init__ failed before the scene was created
+            return
+        with lock:
+            handle, self.handle = self.handle, None
+        if handle:
+            self._api.rtcReleaseScene(handle)
+
+    def close(self) -> None:
+        self._release()
+
+    def __del__(self):
+        self.close()
+
+    @contextlib.contextmanager
+    def _lease(self):
+        """The scene handle, retained (with the arrays Embree reads) until the block ends."""
+        with self._handle_lock:
+            handle = self.handle
+            if not handle:
+                raise RuntimeError("the scene was closed")
+            self._api.rtcRetainScene(handle)
+            buffers = self._buffers_in_use()
+        try:
+            yield handle
+        finally:
+            self._api.rtcReleaseScene(handle)
+            del buffers
+
+    def occluded(self, origins, directions, t_far, threads: int = 1) -> np.ndarray:
+        """Whether anything lies within ``t_far`` (for a top-level scene: anything of any
+        instance; which one blocks does not matter): see ``DomainBVH.occluded``."""
+        org, dirs, tf = rays(origins, directions, t_far)
+        out = np.empty(len(org), np.bool_)
+        if len(org):
+            with self._lease() as handle:
+                launch(occluded1, threads, len(org), handle, org, dirs, tf, out)
+        return out
+
+    def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
+        """Closest hits: see ``DomainBVH.intersect``. Of equally near hits the one of the
+        lowest (instance, primitive) id wins (``_tie_filter``), whatever the order Embree
+        meets them in; for a top-level scene the output also has ``id`` (n,) int64, the
+        caller's id (``TopScene.ids``) of the scene hit, -1 for a miss."""
+        org, dirs, tf = rays(origins, directions, t_far)
+        n = len(org)
+        out = {"primID": np.empty(n, np.int32), "tfar": np.empty(n, np.float32),
+               "u": np.empty(n, np.float32), "v": np.empty(n, np.float32),
+               "Ng": np.empty((n, 3), np.float32)}
+        inst = np.empty(n, np.int32)
+        if n:
+            with self._lease() as handle:
+                launch(intersect_nearest, threads, n, handle, filter_address(), org, dirs,
+                        tf, out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
+        self._label_hits(out, inst)
+        return out
+
+    def _label_hits(self, out: dict, inst: np.ndarray) -> None:
+        """Add what a subclass tells of each hit's instance (nothing for one mesh)."""
+
+
+class Scene(_SceneHandle):
+    """One Embree scene of one triangle mesh whose buffers are the given arrays (no copy).
+
+    ``vertices`` (V, 3) float32 and ``indices`` (T, 3) uint32 are kept referenced as long as
+    the scene lives: Embree reads them in place. ``close()`` (or garbage collection) releases
+    the scene.
+    """
+
+    def __init__(self, vertices: np.ndarray, indices: np.ndarray, flags: int = SCENE_FLAGS,
+                 api: Api | None = None):
+        api = api or binding()
+        if api is None:
+            raise RuntimeError("the compiled Embree binding is unavailable")
+        self.vertices = _padded(vertices, np.float32, 3)
+        self.indices = _padded(indices, np.uint32, 3) if len(indices) else None
+        self.flags = flags
+        self._open(api, flags)
+        self.geom_id = None
+        if self.indices is not None:
+            geom = api.rtcNewGeometry(api.device, RTC_GEOMETRY_TYPE_TRIANGLE)
+            if not geom:
+                api.check("rtcNewGeometry")
+                raise RuntimeError("rtcNewGeometry failed")
+            api.rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                           self.vertices.ctypes.data, 0, 12, len(self.vertices))
+            api.rtcSetSharedGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                           self.indices.ctypes.data, 0, 12, len(self.indices))
+            api.rtcCommitGeometry(geom)
+            self.geom_id = api.rtcAttachGeometry(self.handle, geom)
+            api.rtcReleaseGeometry(geom)
+        api.rtcCommitScene(self.handle)  # builds the BVH (the GIL is released meanwhile)
+        api.check("building a scene")
+
+    def _buffers_in_use(self) -> tuple:
+        return self.vertices, self.indices
+
+    def close(self) -> None:
+        """Release the Embree scene (and with it the BVH); the arrays are dropped too (a query
+        in flight holds its own references to both)."""
+        self._release()
+        self.vertices = self.indices = None
+
+
+class TopScene(_SceneHandle):
+    """One Embree scene holding an instance of each given scene: a two-level BVH.
+
+    Every instance has the identity transform, so a ray meets each instanced scene's
+    triangles exactly as a query of that scene alone does (the transform of a point or
+    vector by the identity is exact). Closest hits are found in one query per ray; of equally
+    near hits in several instances the one of the lowest instance id wins (``_tie_filter``),
+    as when the scenes are queried one by one and ties go to the lower id.
+
+    Parameters
+    ----------
+    scenes : the instanced scenes (kept referenced: their buffers must outlive the instances).
+    ids : (k,) the caller's id of each scene (e.g. its domain), returned with each hit.
+    """
+
+    def __init__(self, scenes: list[Scene], ids, api: Api | None = None):
+        api = api or binding()
+        if api is None:
+            raise RuntimeError("the compiled Embree binding is unavailable")
+        self.scenes = list(scenes)
+        # Embree keeps each instanced scene alive (reference counted), but not the arrays it
+        # reads in place: hold them even if a scene is closed meanwhile.
+        self._buffers = [(scene.vertices, scene.indices) for scene in self.scenes]
+        self.ids = np.asarray(ids, np.int64)
+        if len(self.ids) != len(self.scenes):
+            raise ValueError("one id per scene")
+        self._open(api, SCENE_FLAGS)
+        identity = np.zeros((4, 3), np.float32)  # column major 3x4: columns x, y, z, p
+        identity[0, 0] = identity[1, 1] = identity[2, 2] = 1.0
+        for k, scene in enumerate(self.scenes):
+            geom = api.rtcNewGeometry(api.device, RTC_GEOMETRY_TYPE_INSTANCE)
+            if not geom:
+                api.check("rtcNewGeometry")
+                raise RuntimeError("rtcNewGeometry failed")
+            with scene._lease() as handle:  # Embree retains the instanced scene itself
+                api.rtcSetGeometryInstancedScene(geom, handle)
+            api.rtcSetGeometryTransform(geom, 0, RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR,
+                                        identity.ctypes.data)
+            api.rtcCommitGeometry(geom)
+            got = api.rtcAttachGeometry(self.handle, geom)
+            api.rtcReleaseGeometry(geom)
+            if got != k:
+                raise RuntimeError(f"instance {k} was attached as geometry {got}")
+        api.rtcCommitScene(self.handle)
+        api.check("building a top-level scene")
+
+    def _buffers_in_use(self) -> tuple:
+        return self.scenes, self._buffers
+
+    def close(self) -> None:
+        """Release the top-level scene and drop the instanced scenes (a query in flight holds
+        its own references to them)."""
+        self._release()
+        self.scenes = []
+        self._buffers = []
+
+    def _label_hits(self, out: dict, inst: np.ndarray) -> None:
+        """``id`` (n,) int64: the caller's id (``ids``) of the scene each ray hit, -1 for a
+        miss."""
+        out["id"] = np.where(inst >= 0, self.ids[np.maximum(inst, 0)], -1)
