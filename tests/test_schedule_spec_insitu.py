@@ -1,0 +1,92 @@
+"""SpRay's speculative in-situ decisions (``schedule/spec_insitu.py``) on one node, without
+sockets: the t-buffer keys, shadow slots, which copies a node sends, and the resolution after
+the all-reductions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vastray.actors.local import RenderSetup
+from vastray.render.driver import path_context
+from vastray.scene.bvh import DomainBVH
+from vastray.schedule.ownership import interleaved_paths, zorder_owners
+from vastray.schedule.spec_insitu import InSituSchedule, hit_keys, shadow_slots
+
+from scenes import bumpy_config, bumpy_scene, settings, write_store
+
+
+def test_hit_keys_order_by_t_then_domain():
+    t = np.array([1.0, 1.0, 0.5, np.inf], np.float32)
+    d = np.array([3, 2, 9, -1])
+    keys = hit_keys(t, d)
+    assert np.argsort(keys, kind="stable").tolist() == [2, 1, 0, 3]
+    assert keys[0] > keys[1]  # same t: the lower domain wins the MIN
+
+
+def test_shadow_slots_number_each_paths_rays_in_order():
+    assert shadow_slots(np.array([4, 2, 4, 4, 2])).tolist() == [0, 0, 1, 2, 1]
+
+
+@pytest.fixture(scope="module")
+def node(tmp_path_factory):
+    """Node 0 of 2 over a bumpy store, with its own domains loaded."""
+    store = write_store(tmp_path_factory.mktemp("insitu") / "s.store", bumpy_scene(),
+                        grid=(2, 2, 2))
+    st = settings(width=16, height=12, spp=1, integrator="pt", bounces=2)
+    setup = RenderSetup.of(store, bumpy_config(), st)
+    owner = zorder_owners(*store.domain_boxes(), 2)
+    local = [d for d in np.nonzero(owner == 0)[0] if store.domains[d].n_triangles]
+    bvhs = {int(d): DomainBVH(int(d), store.load_domain(int(d)), setup.keep) for d in local}
+    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
+    return setup, ctx, owner, bvhs
+
+
+def schedule_of(node, stats):
+    setup, ctx, owner, bvhs = node
+    mine = interleaved_paths(len(ctx.pixel), 0, 2)
+    return InSituSchedule(ctx, setup.camera, mine, owner, 0, bvhs, setup.geometry,
+                          setup.color_source, setup.scalar_range, stats)
+
+
+def test_camera_rays_are_copied_into_every_domain_they_cross(node):
+    setup = node[0]
+    schedule = schedule_of(node, {})
+    dom, copies = schedule.speculative_copies()["radiance"]
+    assert len(dom) > len(schedule.rays)  # speculation: rays go to several domains at once
+    # every copy's domain is one its ray crosses (no hit known yet: the whole ray)
+    ray, crossed, _, _ = setup.geometry.crossings(schedule.rays["origin"],
+                                                  schedule.rays["direction"],
+                                                  schedule.rays["cand_t"])
+    pairs = set(zip(schedule.rays["path"][ray].tolist(), crossed.tolist(), strict=True))
+    assert set(zip(copies["path"].tolist(), dom.tolist(), strict=True)) == pairs
+    assert schedule.speculative_copies()["shadow"][0].size == 0  # none before the first hits
+
+
+def test_a_node_that_loses_every_hit_keeps_no_child_and_counts_them_wasted(node):
+    stats = {"shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
+             "intersection_cache_hits": 0}
+    schedule = schedule_of(node, stats)
+    dom, copies = schedule.speculative_copies()["radiance"]
+    here = np.isin(dom, list(node[3]))
+    keys, obuf = schedule.trace_locally((dom[here], copies.take(np.nonzero(here)[0])), None)
+    t = (keys >> np.uint64(32)).astype(np.uint32).view(np.float32)
+    assert np.isfinite(t).any() and stats["speculative_rays"] > 0
+    assert obuf.shape == (len(keys), schedule.slots)
+    zero = hit_keys(np.zeros(len(keys), np.float32), np.zeros(len(keys)))  # beats every hit
+    schedule.resolve(zero, np.zeros_like(obuf))
+    assert len(schedule.rays) == 0 and len(schedule.shadows) == 0
+    assert stats["wasted_rays"] == stats["speculative_rays"]
+    assert schedule.depth == 1
+
+
+def test_a_node_that_wins_every_hit_it_found_keeps_their_children(node):
+    stats = {"shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
+             "intersection_cache_hits": 0}
+    schedule = schedule_of(node, stats)
+    dom, copies = schedule.speculative_copies()["radiance"]
+    here = np.isin(dom, list(node[3]))
+    keys, obuf = schedule.trace_locally((dom[here], copies.take(np.nonzero(here)[0])), None)
+    schedule.resolve(keys, np.zeros_like(obuf))  # the MIN over one node: its own keys
+    assert stats["wasted_rays"] == 0
+    assert len(schedule.rays) > 0 and bool(schedule.rays["local_done"].all())
