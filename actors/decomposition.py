@@ -109,7 +109,7 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     if policy is None:
         return None
     from vastray.scene.bvh import DomainBVH
-    from vastray.schedule.portals import CrossingLog, Portals
+    from vastray.schedule.portals import CrossingLog, Portals, records_portals
     from vastray.schedule.simplified import SimplifiedRouting
 
     memory = state.memory
@@ -118,8 +118,8 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
                                              setup.keep, state.pool)
     lo, hi = store.domain_boxes()
     interval = options.portal_interval
-    recording = policy == "portal" and (state.frame % interval == 0
-                                        or "portals" not in memory)
+    recording = policy == "portal" and records_portals(state.frame, interval,
+                                                       "portals" in memory)
     measuring = policy == "portal" and options.portal_accuracy
     portals = None
     if policy == "portal":

@@ -42,6 +42,7 @@ from vastray.scene.bvh import query_pool
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.image import ImageSchedule
+from vastray.schedule.ownership import sort_first_tiles
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 log = logging.getLogger(__name__)
@@ -156,7 +157,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         total = window.paths
         size = max(1, min(tile_limit or total, total))
         tile = max(tile, size)  # reported: the largest tile of any pass
-        for first in list(range(0, total, size))[share[0]::share[1]]:
+        for first in sort_first_tiles(total, size, *share):
             ctx = path_context(setup.shading, window, first, min(first + size, total),
                                setup.ao_distance)
             film.add_paths(ctx.pixel, ctx.sample, trace_tile(ctx, bar))

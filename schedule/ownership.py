@@ -1,5 +1,5 @@
-"""Which node owns which domain, and which node starts which paths, under domain
-decomposition: fixed assignments made once per job (the temporal scheduler's per-frame
+"""Which node owns which domain, and which node starts which paths or tiles: fixed
+assignments made once per job (the temporal scheduler's per-frame
 assignment is ``schedule.temporal``'s)."""
 
 from __future__ import annotations
@@ -28,6 +28,13 @@ def zorder_owners(lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
     owner = np.empty(len(lo), np.int64)
     owner[order] = np.arange(len(lo)) * size // max(len(lo), 1)
     return owner
+
+
+def sort_first_tiles(total: int, tile: int, rank: int, size: int) -> range:
+    """First path ids of the tiles node ``rank`` of ``size`` renders under the static
+    image-plane schedule (Navrátil et al. 2012, Fig. 3): of the tiles of ``tile`` paths that
+    cover ``total`` paths, tiles rank, rank + P, rank + 2P, ..."""
+    return range(rank * tile, total, size * tile)
 
 
 def interleaved_paths(n_paths: int, rank: int, size: int) -> np.ndarray:

@@ -60,6 +60,12 @@ LUMINANCE = (0.2126, 0.7152, 0.0722)
 MAX_PORTAL_BYTES = 512 << 20
 
 
+def records_portals(frame: int, interval: int, have_portals: bool) -> bool:
+    """Whether animation frame ``frame`` records portals (every ``interval``-th frame, and any
+    frame while none are recorded yet); the frames between predict with the last recorded."""
+    return frame % interval == 0 or not have_portals
+
+
 def portal_bytes(n_domains: int, resolution: int) -> int:
     """Bytes of a node's portals: float32 values and a bool recorded flag per cell."""
     return int(n_domains) * len(FACES) * int(resolution) ** 2 * ANGLES * 5

@@ -13,7 +13,7 @@ import pytest
 from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder
 from vastray.actors.preloader import DomainPreloader
 from vastray.schedule.galaxy import GalaxyPolicy
-from vastray.schedule.ownership import interleaved_paths, round_robin_owners
+from vastray.schedule.ownership import interleaved_paths, round_robin_owners, sort_first_tiles
 
 from scenes import bumpy_scene, write_store
 
@@ -168,3 +168,9 @@ def test_round_robin_and_interleaved_shares_cover_everything_once():
     shares = np.array([interleaved_paths(10, rank, 3) for rank in range(3)])
     assert (shares.sum(axis=0) == 1).all()
     assert np.nonzero(shares[1])[0].tolist() == [1, 4, 7]
+
+
+def test_sort_first_tiles_deal_the_image_plane_round_robin():
+    assert list(sort_first_tiles(10, 3, 0, 2)) == [0, 6]  # tiles 0 and 2 of 0, 3, 6, 9
+    assert list(sort_first_tiles(10, 3, 1, 2)) == [3, 9]
+    assert list(sort_first_tiles(4, 8, 1, 2)) == []  # one tile: the other node has none

@@ -341,3 +341,11 @@ def test_portal_size_is_checked_before_a_render_with_what_fits():
     with pytest.raises(ValueError, match="--portal-resolution 47 or less"):
         check_portal_size(1000, 64)  # 938 MiB for 1,000 domains
     assert portal_bytes(1000, 47) <= MAX_PORTAL_BYTES < portal_bytes(1000, 48)
+
+
+def test_portals_are_recorded_every_interval_and_whenever_none_exist():
+    from vastray.schedule.portals import records_portals
+
+    assert [records_portals(f, 3, True) for f in range(7)] == [True, False, False, True,
+                                                                False, False, True]
+    assert records_portals(5, 3, have_portals=False)  # a resumed job: nothing to predict with
