@@ -63,13 +63,20 @@ def test_camera_rays_are_copied_into_every_domain_they_cross(node):
     assert schedule.speculative_copies()["shadow"][0].size == 0  # none before the first hits
 
 
-def test_a_node_that_loses_every_hit_keeps_no_child_and_counts_them_wasted(node):
+def first_iteration(node):
+    """A fresh schedule after its first local trace (only this node's own copies: no peer
+    sent any), with its counters and what it hands the all-reductions."""
     stats = {"shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
              "intersection_cache_hits": 0}
     schedule = schedule_of(node, stats)
     dom, copies = schedule.speculative_copies()["radiance"]
     here = np.isin(dom, list(node[3]))
     keys, obuf = schedule.trace_locally((dom[here], copies.take(np.nonzero(here)[0])), None)
+    return schedule, stats, keys, obuf
+
+
+def test_a_node_that_loses_every_hit_keeps_no_child_and_counts_them_wasted(node):
+    schedule, stats, keys, obuf = first_iteration(node)
     t = (keys >> np.uint64(32)).astype(np.uint32).view(np.float32)
     assert np.isfinite(t).any() and stats["speculative_rays"] > 0
     assert obuf.shape == (len(keys), schedule.slots)
@@ -81,12 +88,7 @@ def test_a_node_that_loses_every_hit_keeps_no_child_and_counts_them_wasted(node)
 
 
 def test_a_node_that_wins_every_hit_it_found_keeps_their_children(node):
-    stats = {"shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
-             "intersection_cache_hits": 0}
-    schedule = schedule_of(node, stats)
-    dom, copies = schedule.speculative_copies()["radiance"]
-    here = np.isin(dom, list(node[3]))
-    keys, obuf = schedule.trace_locally((dom[here], copies.take(np.nonzero(here)[0])), None)
+    schedule, stats, keys, obuf = first_iteration(node)
     schedule.resolve(keys, np.zeros_like(obuf))  # the MIN over one node: its own keys
     assert stats["wasted_rays"] == 0
     assert len(schedule.rays) > 0 and bool(schedule.rays["local_done"].all())
