@@ -1,4 +1,4 @@
-"""Temporal-coherence scheduling (schedule/temporal.py): screen tiles, box projection,
+"""Temporal-coherence scheduling (schedule/temporal/): screen tiles, box projection,
 Algorithm 1 (note A6, A7), the frame statistics and Eq 1-4 with the Table 2 priorities (A8)."""
 
 from __future__ import annotations

@@ -1,0 +1,262 @@
+"""Domain assignment of the temporal-coherence scheduler (Xu et al., TVCG 2022, §5.1): which
+node owns which domain and renders which screen tile. ``assign_temporal`` is Algorithm 1;
+``sequential_owners`` and ``spatial_owners`` are the comparators of the paper's Table 2;
+``eye_domain`` is the box every node may load (it is replicated)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vastray.schedule.temporal.screen import screen_tiles
+
+__all__ = ["ASSIGNMENTS", "Assignment", "assign_temporal", "eye_domain", "sequential_owners",
+           "spatial_owners"]
+
+#: Domain assignments of Table 2.
+ASSIGNMENTS = ("sequential", "spatial", "temporal")
+
+
+def eye_domain(eye: np.ndarray, lo: np.ndarray, hi: np.ndarray, nonempty: np.ndarray) -> int | None:
+    """The non-empty box that contains the eye (boundaries included), lowest id; None if none.
+
+    Parameters
+    ----------
+    eye : (3,) camera position.
+    lo, hi : (D, 3) domain boxes.
+    nonempty : (D,) bool.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    inside = np.asarray(nonempty, dtype=bool) & np.all((lo <= eye) & (eye <= hi), axis=1)
+    hits = np.flatnonzero(inside)
+    return int(hits[0]) if len(hits) else None
+
+@dataclass
+class Assignment:
+    """Which node owns which domain and renders which screen tile.
+
+    Attributes
+    ----------
+    owner : (D,) int64 node of each domain, -1 for empty domains. The replicated domain has an
+        owner too (a routing default; ``assign_temporal`` gives it to the fastest-loading node).
+    tiles : (P, 4) int64 screen tile ``(x0, y0, x1, y1)`` of each node (its camera rays).
+    replicated : the domain containing the eye, which every node may load, or None.
+    """
+
+    owner: np.ndarray
+    tiles: np.ndarray
+    replicated: int | None = None
+
+    def owns(self, rank: int) -> np.ndarray:
+        """(D,) bool, the local domains of node ``rank`` (the replicated domain included)."""
+        local = np.asarray(self.owner) == rank
+        if self.replicated is not None:
+            local = local.copy()
+            local[self.replicated] = True
+        return local
+
+
+def _overlap(tiles: np.ndarray, rects: np.ndarray) -> np.ndarray:
+    """(n, D) float64 area of the intersection of tile i with rectangle d."""
+    t = np.asarray(tiles, dtype=np.float64)[:, None, :]
+    r = np.asarray(rects, dtype=np.float64)[None, :, :]
+    w = np.minimum(t[..., 2], r[..., 2]) - np.maximum(t[..., 0], r[..., 0])
+    h = np.minimum(t[..., 3], r[..., 3]) - np.maximum(t[..., 1], r[..., 1])
+    return np.maximum(w, 0.0) * np.maximum(h, 0.0)
+
+
+def _seeds(overlap: np.ndarray, sent_out: np.ndarray, eye: int | None) -> list[list[int]]:
+    """Step 1: the initial domains of each unit (indices into the candidate domains).
+
+    overlap : (n, m) tile/domain overlap areas; sent_out : (m,) s(A) of the candidates;
+    eye : index of the eye domain among the candidates, or None.
+    """
+    n, m = overlap.shape
+    if eye is not None:
+        # The eye domain seeds every unit; the n other domains with the most rays sent seed
+        # units 0..n-1 in turn.
+        others = np.delete(np.arange(m, dtype=np.int64), eye)
+        ranked = others[np.argsort(-sent_out[others], kind="stable")][:n]
+        return [[eye] + ([int(ranked[u])] if u < len(ranked) else []) for u in range(n)]
+    if m == 0:
+        return [[] for _ in range(n)]
+    best_d = np.argmax(overlap, axis=1)  # ties -> lower id
+    best_a = overlap[np.arange(n), best_d]
+    seeds: list[list[int]] = [[] for _ in range(n)]
+    taken = np.zeros(m, dtype=bool)
+    # A domain that is the best of several tiles stays with the tile that overlaps it most
+    # (ties -> lower tile index) ...
+    order = np.lexsort((np.arange(n), -best_a))
+    losers = []
+    for u in order:
+        if taken[best_d[u]]:
+            losers.append(int(u))
+        else:
+            taken[best_d[u]] = True
+            seeds[u] = [int(best_d[u])]
+    # ... and the other tiles, in decreasing order of that overlap, take their best untaken one.
+    for u in losers:
+        if taken.all():
+            break
+        d = int(np.argmax(np.where(taken, -np.inf, overlap[u])))
+        taken[d] = True
+        seeds[u] = [d]
+    return seeds
+
+
+def assign_temporal(tiles: np.ndarray, rects: np.ndarray, sent: np.ndarray,
+                    domain_bytes: np.ndarray, node_speed: np.ndarray, nonempty: np.ndarray,
+                    eye: int | None = None) -> Assignment:
+    """Algorithm 1 (§5.1): temporal-coherence domain assignment for n = P nodes.
+
+    1. **Seeds.** Unit i takes tile i. Without ``eye``, its seed is the non-empty domain whose
+       projected rectangle overlaps tile i most (ties -> lower id); a domain that is the best of
+       several tiles stays with the tile that overlaps it most (ties -> lower tile), and the
+       other tiles, in decreasing order of that overlap, take their best untaken domain
+       (note S3, reading). With ``eye``, that domain seeds *every* unit (it is replicated) and
+       the n other non-empty domains with the largest s(A) = sum_B s(A, B) seed units 0..n-1 in
+       turn (ties -> lower id).
+    2. **Grow.** While non-empty domains are unassigned, the unit U with the fewest domains
+       (ties -> lower index) takes the unassigned domain D with the LOWEST
+       trans(D, U) = sum_{A in U} [s(A, D) + s(D, A)] (ties -> lower id; the replicated domain
+       counts as a member of every unit). A (units, D) transmission matrix is updated
+       incrementally, so each step is O(D).
+    3. **Bind.** Nodes sorted by ``node_speed`` descending get the units sorted by their total
+       ``domain_bytes`` descending (stable sorts: ties -> lower id).
+
+    With ``sent`` all zero (frame 0) the growth is a round robin over the units in domain order,
+    which is still balanced.
+
+    Parameters
+    ----------
+    tiles : (P, 4) int screen tiles, e.g. ``screen_tiles(width, height, P)``.
+    rects : (D, 4) float projected rectangles, e.g. ``projected_rects(camera, lo, hi)``.
+    sent : (D, D) s(A, B) of the previous frame (``FrameStats.sent``); the diagonal is ignored.
+    domain_bytes : (D,) V(d), bytes of each domain on storage.
+    node_speed : (P,) S_LOAD(n) (``FrameStats.s_load()``).
+    nonempty : (D,) bool; empty domains are left out (owner -1).
+    eye : id of the non-empty domain containing the eye (``eye_domain``), or None.
+
+    Returns
+    -------
+    Assignment with ``owner`` (D,), ``tiles`` (P, 4) (tile of each node) and ``replicated`` =
+    ``eye``. The replicated domain's ``owner`` is the fastest-loading node.
+    """
+    tiles = np.asarray(tiles, dtype=np.int64).reshape(-1, 4)
+    n = len(tiles)
+    node_speed = np.asarray(node_speed, dtype=np.float64).reshape(-1)
+    if len(node_speed) != n:
+        raise ValueError(f"{n} tiles but {len(node_speed)} node speeds")
+    if n < 1:
+        raise ValueError("assign_temporal needs at least one node")
+    nonempty = np.asarray(nonempty, dtype=bool)
+    n_domains = len(nonempty)
+    domain_bytes = np.asarray(domain_bytes, dtype=np.float64).reshape(-1)
+    rects = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
+    sent = np.asarray(sent)
+    if sent.shape != (n_domains, n_domains) or len(rects) != n_domains or len(domain_bytes) != n_domains:
+        raise ValueError(f"sent {sent.shape}, rects ({len(rects)}) and domain_bytes "
+                         f"({len(domain_bytes)}) must match {n_domains} domains")
+    cand = np.flatnonzero(nonempty)  # candidate domain ids; work in candidate indices below
+    m = len(cand)
+    eye_c = None
+    if eye is not None:
+        if not (0 <= eye < n_domains and nonempty[eye]):
+            raise ValueError(f"eye domain {eye} is not a non-empty domain")
+        eye_c = int(np.searchsorted(cand, eye))
+
+    def sym_row(c: int) -> np.ndarray:
+        """(m,) s(A, D) + s(D, A) for the domain A = cand[c] and every candidate D."""
+        a = cand[c]
+        return (sent[a, cand] + sent[cand, a]).astype(np.float64)
+
+    sent_out = (sent.sum(axis=1) - np.diagonal(sent))[cand]  # s(A)
+    seeds = _seeds(_overlap(tiles, rects[cand]), sent_out, eye_c)
+
+    # Step 2: grow. trans[u, c] = sum over members A of u of s(A, c) + s(c, A); +inf once taken.
+    unit_of = np.full(m, -1, dtype=np.int64)
+    trans = np.zeros((n, m), dtype=np.float64)
+    sizes = np.zeros(n, dtype=np.int64)
+    eye_row = sym_row(eye_c) if eye_c is not None else None
+    for u, members in enumerate(seeds):
+        for c in members:
+            trans[u] += eye_row if c == eye_c else sym_row(c)
+            if c != eye_c:
+                unit_of[c] = u
+        sizes[u] = len(members)
+    taken = unit_of >= 0
+    if eye_c is not None:
+        taken[eye_c] = True
+    trans[:, taken] = np.inf
+    for _ in range(int(np.count_nonzero(~taken))):
+        u = int(np.argmin(sizes))
+        c = int(np.argmin(trans[u]))
+        unit_of[c] = u
+        sizes[u] += 1
+        trans[:, c] = np.inf
+        trans[u] += sym_row(c)
+
+    # Step 3: bind units (by bytes, descending) to nodes (by S_LOAD, descending).
+    unit_bytes = np.bincount(unit_of[unit_of >= 0], weights=domain_bytes[cand][unit_of >= 0],
+                             minlength=n)
+    if eye_c is not None:
+        unit_bytes = unit_bytes + domain_bytes[eye]
+    node_order = np.argsort(-node_speed, kind="stable")
+    unit_order = np.argsort(-unit_bytes, kind="stable")
+    node_of_unit = np.empty(n, dtype=np.int64)
+    node_of_unit[unit_order] = node_order
+    owner = np.full(n_domains, -1, dtype=np.int64)
+    owner[cand] = np.where(unit_of >= 0, node_of_unit[np.maximum(unit_of, 0)], -1)
+    if eye is not None:
+        owner[eye] = node_order[0]
+    node_tiles = np.empty_like(tiles)
+    node_tiles[node_of_unit] = tiles
+    return Assignment(owner, node_tiles, None if eye is None else int(eye))
+
+
+def sequential_owners(n_domains: int, n_nodes: int, nonempty: np.ndarray, width: int,
+                      height: int) -> Assignment:
+    """Table 2's *sequential* assignment: domain d goes to node d mod n (as vastray's
+    ``round_robin_owners``), empty domains to -1; node i renders tile i of
+    ``screen_tiles(width, height, n_nodes)``.
+
+    Returns
+    -------
+    Assignment with ``owner`` (D,) int64, ``tiles`` (P, 4), ``replicated`` None.
+    """
+    owner = np.arange(int(n_domains), dtype=np.int64) % int(n_nodes)
+    owner[~np.asarray(nonempty, dtype=bool)] = -1
+    return Assignment(owner, screen_tiles(width, height, n_nodes), None)
+
+
+def spatial_owners(lo: np.ndarray, hi: np.ndarray, n_nodes: int, nonempty: np.ndarray,
+                   width: int, height: int) -> Assignment:
+    """Table 2's *spatial-based* assignment: the non-empty domains sorted along the Morton
+    (z-order) curve of their box centres (10 bits per axis over the centres' bounding box, as
+    vastray's ``zorder_owners``), cut into ``n_nodes`` contiguous runs whose sizes differ by at
+    most 1; empty domains get -1. Node i renders tile i of ``screen_tiles(width, height, n)``.
+
+    Parameters
+    ----------
+    lo, hi : (D, 3) domain boxes.
+
+    Returns
+    -------
+    Assignment with ``owner`` (D,) int64, ``tiles`` (P, 4), ``replicated`` None.
+    """
+    nonempty = np.asarray(nonempty, dtype=bool)
+    owner = np.full(len(nonempty), -1, dtype=np.int64)
+    cand = np.flatnonzero(nonempty)
+    if len(cand):
+        center = (np.asarray(lo, np.float64)[cand] + np.asarray(hi, np.float64)[cand]) / 2.0
+        low = center.min(axis=0)
+        span = np.maximum(center.max(axis=0) - low, 1e-300)
+        grid = np.clip(((center - low) / span * 1023).astype(np.uint64), 0, 1023)
+        code = np.zeros(len(cand), np.uint64)
+        for bit in range(10):
+            for axis in range(3):
+                code |= ((grid[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+        order = np.argsort(code, kind="stable")
+        owner[cand[order]] = np.arange(len(cand)) * int(n_nodes) // len(cand)
+    return Assignment(owner, screen_tiles(width, height, n_nodes), None)
