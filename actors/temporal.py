@@ -25,6 +25,9 @@ termination detection. What the previous frame taught drives this one:
 
 Rays meet the same domains in the same order as on one node, so the image is the reference
 image whatever the assignment and priority.
+
+Every decision is ``schedule.temporal``'s (``assign_frame``, ``TemporalChoice``); this module
+feeds them from the queues, the messages and the preloader, and passes their answers on.
 """
 
 from __future__ import annotations
@@ -41,24 +44,18 @@ from vastray.schedule.image import ImageSchedule
 MAX_TEMPORAL_DOMAINS = 2048
 
 
-def frame_assignment(kind: str, store, camera, width: int, height: int, size: int,
-                     previous: plan.FrameStats | None) -> plan.Assignment:
-    """This frame's assignment units (the same on every node: it depends only on the store,
-    the camera and the previous frame's summed statistics)."""
+def domain_table(store) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(lo, hi, nonempty, domain_bytes) of the store's domains: what the temporal policies
+    read of a store ((D, 3), (D, 3), (D,) bool, (D,) float64)."""
     lo, hi = store.domain_boxes()
     nonempty = np.array([d.n_triangles > 0 for d in store.domains])
-    if kind == "sequential":
-        return plan.sequential_owners(len(lo), size, nonempty, width, height)
-    if kind == "spatial" or previous is None:  # frame 0: no statistics to plan from
-        return plan.spatial_owners(lo, hi, size, nonempty, width, height)
-    if kind != "temporal":
-        raise ValueError(f"unknown assignment {kind!r}; expected one of {plan.ASSIGNMENTS}")
-    tiles = plan.screen_tiles(width, height, size)
-    rects = plan.projected_rects(camera, lo, hi)
-    eye = plan.eye_domain(camera.position, lo, hi, nonempty)
-    domain_bytes = np.array([d.nbytes for d in store.domains], np.float64)
-    return plan.assign_temporal(tiles, rects, previous.sent, domain_bytes, previous.s_load(),
-                                nonempty, eye)
+    return lo, hi, nonempty, np.array([d.nbytes for d in store.domains], np.float64)
+
+
+def frame_assignment(kind: str, store, camera, width: int, height: int, size: int,
+                     previous: plan.FrameStats | None) -> plan.Assignment:
+    """This frame's assignment units (``plan.assign_frame`` over the store's domains)."""
+    return plan.assign_frame(kind, camera, *domain_table(store), width, height, size, previous)
 
 
 class TemporalFrame(_AsyncFrame):
@@ -81,35 +78,18 @@ class TemporalFrame(_AsyncFrame):
             owner[assignment.replicated] = rank
         super().__init__(node, setup, settings, owner, rank, size, tile, film, on_tile,
                          base=base, status_label=status_label, simple=simple)
-        if priority not in plan.PRIORITIES:
-            raise ValueError(f"unknown priority {priority!r}; expected one of "
-                             f"{plan.PRIORITIES}")
-        if previous is None:
-            priority = plan.bootstrap_priority(priority)
-        self.assignment, self.priority_kind, self.previous = assignment, priority, previous
-        n = len(owner)
+        self.assignment, self.previous = assignment, previous
         self.local = assignment.owns(rank)
         self.pixel_node = plan.pixel_tiles(assignment.tiles, settings.width, settings.height)
+        n = len(owner)
         self.stats = plan.FrameStats.zeros(n, size)  # this node's share, summed at frame end
         self.arrived = np.zeros(n, np.int64)  # Q_CUR_RECV: rays received from other nodes
-        lo, hi = store.domain_boxes()
-        nonempty = np.array([d.n_triangles > 0 for d in store.domains])
-        self.dep = plan.dep_prime(setup.camera.position, lo, hi, nonempty)
-        self.domain_bytes = np.array([d.nbytes for d in store.domains], np.float64)
-        self.upcoming: int | None = None  # d*, being preloaded
+        lo, hi, nonempty, domain_bytes = domain_table(store)
+        self.plan = plan.TemporalChoice(priority, previous, rank, self.local,
+                                        plan.dep_prime(setup.camera.position, lo, hi, nonempty),
+                                        domain_bytes)
         self.nonlocal_loads = 0  # loads of domains outside this node's group (none, ever)
         self.loads_before: dict[int, int] = {}
-        if previous is not None:
-            self.R = previous.transmission_ratio()
-            self.R_pair = previous.pair_ratio()
-            self.s_proc = previous.s_proc()
-            self.s_load = float(previous.s_load()[rank % len(previous.load_s)])
-            self.q_pre = previous.sent[~self.local].sum(axis=0).astype(np.float64)
-            self.n_pre = previous.loads.astype(np.float64)
-        else:
-            self.R, self.R_pair = np.zeros(n), np.zeros((n, n))
-            self.s_proc, self.s_load = np.ones(n), 1.0
-            self.q_pre, self.n_pre = np.zeros(n), np.zeros(n)
 
     # -- the async frame's hooks ------------------------------------------------------------
     def policy(self, tile: int) -> ImageSchedule:
@@ -128,79 +108,21 @@ class TemporalFrame(_AsyncFrame):
         return delivered
 
     def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
-        """Activate d* if it has rays, else the best-scored domain with rays; then score the
-        rest with the active domain's expected sends (Eq. 3), preload the best (d*) and evict
-        by the scores, never the active domain or d*."""
-        previous = self.upcoming
-        if previous is not None and waiting[previous]:
-            active = previous
-        else:
-            scores = self._scores(waiting, None, 0)
-            scores = np.where(waiting > 0, scores, -np.inf)
-            active = plan.best(scores)
-            if active is None:  # rays only in domains that are no candidates: the fullest
-                active = int(np.argmax(waiting))
-        scores = self._scores(waiting, active, int(waiting[active]), self._resident_after(
-            waiting, active))
-        upcoming = plan.best(scores)
-        self.upcoming = upcoming
-        if self.preloader is None:
-            return active, upcoming
-        protect = {active} | ({upcoming} if upcoming is not None else set())
-        self.preloader.prioritise(scores, protect)
-        return active, upcoming if self._worth_loading(upcoming, scores, protect) else None
-
-    def _worth_loading(self, domain: int | None, scores: np.ndarray, protect: set) -> bool:
-        """Whether to preload ``domain`` now: it is not resident, and the cache has room or
-        the domain it would evict (the lowest priority) ranks below it. Our render steps are
-        short (a domain's queue takes milliseconds, not the paper's seconds), so without this
-        guard a fresh d* every step would evict domains worth more than itself."""
-        if domain is None:
-            return False
-        resident = self.preloader.resident()
-        if domain in resident:
-            return False
-        if len(resident) < self.preloader.capacity:
-            return True
-        victim = plan.victim(scores, list(resident), protect)
-        return victim is not None and scores[victim] < scores[domain]
-
-    def _resident_after(self, waiting: np.ndarray, active: int) -> set[int] | None:
-        """The domains resident once ``active`` is (None: no preloader). Loading it into a
-        full cache evicts the lowest-scored other one, which must not then count as cached
-        when d* is picked: with one slot, d* would be the domain the load just evicted, and
-        the node would load two domains that trade rays in turn, one activation each."""
-        if self.preloader is None:
-            return None
-        resident = self.preloader.resident()
-        if active in resident or len(resident) < self.preloader.capacity:
-            return set(resident) | {active}  # nothing is evicted: skip scoring twice
-        return plan.resident_after_load(resident, self.preloader.capacity, active,
-                                        self._scores(waiting, active, int(waiting[active])))
-
-    def _scores(self, waiting: np.ndarray, active: int | None, q_act: int,
-                resident_set: set[int] | None = None) -> np.ndarray:
-        """Every domain's priority (``plan.priority``) for what this node has queued now,
-        with the domains of ``resident_set`` counted as cached (default: the cache's)."""
-        resident = np.zeros(len(waiting), bool)
-        if resident_set is None and self.preloader is not None:
-            resident_set = self.preloader.resident()
-        if resident_set:
-            resident[list(resident_set)] = True
-        n_cur = np.zeros(len(waiting))
+        """The policy's choice (``TemporalChoice.choose``) for what this node holds now; the
+        cache is handed the priorities and protected set it evicts by."""
+        cache = None
+        n_cur = np.zeros(len(waiting))  # N_CUR: loads since the frame began
         if self.preloader is not None:
+            cache = plan.CacheView(self.preloader.resident(), self.preloader.capacity)
             for d, count in self.preloader.loads_per_domain().items():
                 n_cur[d] = count - self.loads_before.get(d, 0)
-        inputs = plan.PriorityInputs(
-            q_cur=waiting.astype(np.float64), active=active, q_act=q_act, R=self.R,
-            R_pair=self.R_pair, q_pre=self.q_pre, q_cur_recv=self.arrived.astype(np.float64),
-            n_pre=self.n_pre, n_cur=n_cur, s_proc=self.s_proc,
-            domain_bytes=self.domain_bytes, s_load_n=self.s_load, resident=resident,
-            dep=self.dep, local=self.local,
-            spray_score=self._spray_score() if self.priority_kind == "spray" else None)
-        return plan.priority(self.priority_kind, inputs)
+        score = self._traversal_score() if self.plan.needs_traversal_score else None
+        choice = self.plan.choose(waiting, cache, n_cur, self.arrived, score)
+        if self.preloader is not None:
+            self.preloader.prioritise(choice.priorities, choice.protect)
+        return choice.active, choice.preload
 
-    def _spray_score(self) -> np.ndarray:
+    def _traversal_score(self) -> np.ndarray:
         """SpRay's front-to-back traversal score over the rays queued here: a ray waiting in
         a domain adds M - j to the j-th domain still ahead of it (j = 0 its queue's)."""
         n = len(self.owner)

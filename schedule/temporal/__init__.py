@@ -27,19 +27,22 @@ the top of the image (``Camera.generate``); tiles and pixel rectangles are ``(x0
 half-open; ties go to the lower id everywhere.
 
 Modules, one job each: ``screen`` (screen tiles, projected boxes), ``stats`` (``FrameStats``),
-``assignment`` (Algorithm 1 and the Table 2 comparators), ``priority`` (Eq 1-4 and the picks
-made from the scores). This package re-exports their public names, so callers write
-``from vastray.schedule import temporal as plan``.
+``assignment`` (Algorithm 1, the Table 2 comparators, a frame's assignment by kind),
+``priority`` (Eq 1-4 and the picks made from the scores), ``choice`` (``TemporalChoice``, a
+node's d* rule: what to trace, preload and evict). This package re-exports their public names,
+so callers write ``from vastray.schedule import temporal as plan``.
 """
 
 from vastray.schedule.temporal.assignment import (
     ASSIGNMENTS,
     Assignment,
+    assign_frame,
     assign_temporal,
     eye_domain,
     sequential_owners,
     spatial_owners,
 )
+from vastray.schedule.temporal.choice import CacheView, Choice, TemporalChoice
 from vastray.schedule.temporal.priority import (
     PRIORITIES,
     RESIDENT_COST_S,
@@ -61,8 +64,12 @@ __all__ = [
     "PRIORITIES",
     "RESIDENT_COST_S",
     "Assignment",
+    "CacheView",
+    "Choice",
     "FrameStats",
+    "assign_frame",
     "PriorityInputs",
+    "TemporalChoice",
     "assign_temporal",
     "best",
     "bootstrap_priority",

@@ -6,13 +6,18 @@ node owns which domain and renders which screen tile. ``assign_temporal`` is Alg
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vastray.schedule.temporal.screen import screen_tiles
+from vastray.schedule.temporal.screen import projected_rects, screen_tiles
+from vastray.schedule.temporal.stats import FrameStats
 
-__all__ = ["ASSIGNMENTS", "Assignment", "assign_temporal", "eye_domain", "sequential_owners",
-           "spatial_owners"]
+if TYPE_CHECKING:
+    from vastray.render.camera import Camera
+
+__all__ = ["ASSIGNMENTS", "Assignment", "assign_frame", "assign_temporal", "eye_domain",
+           "sequential_owners", "spatial_owners"]
 
 #: Domain assignments of Table 2.
 ASSIGNMENTS = ("sequential", "spatial", "temporal")
@@ -260,3 +265,29 @@ def spatial_owners(lo: np.ndarray, hi: np.ndarray, n_nodes: int, nonempty: np.nd
         order = np.argsort(code, kind="stable")
         owner[cand[order]] = np.arange(len(cand)) * int(n_nodes) // len(cand)
     return Assignment(owner, screen_tiles(width, height, n_nodes), None)
+
+
+def assign_frame(kind: str, camera: Camera, lo: np.ndarray, hi: np.ndarray, nonempty: np.ndarray,
+                 domain_bytes: np.ndarray, width: int, height: int, size: int,
+                 previous: FrameStats | None) -> Assignment:
+    """A frame's assignment units of kind ``kind`` (one of ``ASSIGNMENTS``); the same on every
+    node, since it depends only on the domains, the camera and the previous frame's summed
+    statistics. Frame 0 (``previous`` None) has no statistics to plan from: ``temporal`` falls
+    back to ``spatial`` there.
+
+    Parameters
+    ----------
+    camera : this frame's ``Camera``.
+    lo, hi : (D, 3) domain boxes; nonempty : (D,) bool; domain_bytes : (D,) V(d).
+    width, height : image size in pixels; size : P, the number of nodes.
+    previous : the previous frame's statistics summed over nodes, or None.
+    """
+    if kind == "sequential":
+        return sequential_owners(len(lo), size, nonempty, width, height)
+    if kind == "spatial" or previous is None:
+        return spatial_owners(lo, hi, size, nonempty, width, height)
+    if kind != "temporal":
+        raise ValueError(f"unknown assignment {kind!r}; expected one of {ASSIGNMENTS}")
+    return assign_temporal(screen_tiles(width, height, size), projected_rects(camera, lo, hi),
+                           previous.sent, domain_bytes, previous.s_load(), nonempty,
+                           eye_domain(camera.position, lo, hi, nonempty))

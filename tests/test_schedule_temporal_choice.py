@@ -1,0 +1,184 @@
+"""The temporal scheduler's per-node policy (schedule/temporal/choice.py) and per-frame
+assignment (``assign_frame``) on hand-made inputs: no store, no sockets, no processes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vastray.render.camera import Camera
+from vastray.schedule.temporal import (
+    CacheView,
+    FrameStats,
+    TemporalChoice,
+    assign_frame,
+    assign_temporal,
+    eye_domain,
+    projected_rects,
+    screen_tiles,
+    sequential_owners,
+    spatial_owners,
+)
+from vastray.schedule.temporal.choice import worth_loading
+
+
+def policy(kind: str = "queue+resident", n: int = 3, previous: FrameStats | None = None,
+           local: np.ndarray | None = None) -> TemporalChoice:
+    """A node's policy over ``n`` domains of 1 MB, all local and equally near by default."""
+    local = np.ones(n, bool) if local is None else local
+    return TemporalChoice(kind, previous, 0, local, np.zeros(n), np.full(n, 1e6))
+
+
+def choose(p: TemporalChoice, waiting, resident=(), capacity: int | None = 1, arrived=None):
+    """``p.choose`` with no loads yet this frame (None capacity: no cache)."""
+    n = len(waiting)
+    cache = None if capacity is None else CacheView(frozenset(resident), capacity)
+    return p.choose(np.asarray(waiting, np.int64), cache, np.zeros(n),
+                    np.zeros(n, np.int64) if arrived is None else np.asarray(arrived))
+
+
+# -- the d* rule --------------------------------------------------------------------------------
+def test_the_fullest_domain_is_active_and_the_next_fullest_is_preloaded():
+    p = policy()
+    c = choose(p, [5, 1, 3])
+    assert (c.active, c.preload) == (0, 2)
+    assert c.protect == {0, 2}
+    assert p.upcoming == 2
+    # the priorities the cache evicts by: Q_CUR, the active domain no candidate
+    assert c.priorities.tolist() == [-np.inf, 1.0, 3.0]
+
+
+def test_d_star_is_activated_when_it_has_rays():
+    p = policy()
+    choose(p, [5, 1, 3])  # d* = 2
+    assert choose(p, [9, 0, 1], resident={0}).active == 2  # though domain 0 holds more
+
+
+def test_without_rays_d_star_gives_way_to_the_best_scored_domain():
+    p = policy()
+    choose(p, [5, 1, 3])  # d* = 2
+    assert choose(p, [1, 4, 0], resident={0}).active == 0  # resident: queue+resident's first
+
+
+def test_with_one_slot_d_star_is_not_the_domain_the_load_just_evicted():
+    p = policy()
+    choose(p, [5, 1, 3])  # d* = 2
+    # Domain 2 is activated; loading it into the one slot evicts domain 0. Counted as cached,
+    # 0 would outrank 1 (queue+resident puts cached domains first) and be d*: loaded again
+    # right after its eviction.
+    c = choose(p, [2, 3, 3], resident={0}, capacity=1)
+    assert c.active == 2
+    assert p.upcoming == 1 and c.preload == 1
+    assert c.priorities.tolist() == [2.0, 3.0, -np.inf]  # 0 no longer counted as cached
+
+
+def test_the_evicted_domain_would_be_d_star_with_a_second_slot():
+    # the same queues with room for both: nothing is evicted, 0 stays cached and leads
+    p = policy()
+    choose(p, [5, 1, 3], capacity=2)
+    c = choose(p, [2, 3, 3], resident={0}, capacity=2)
+    assert (c.active, p.upcoming, c.preload) == (2, 0, None)  # 0 is resident: no load
+
+
+def test_rays_only_in_foreign_domains_activate_the_fullest():
+    p = policy(kind="queue", local=np.array([True, False, False]))
+    c = choose(p, [0, 2, 7])
+    assert c.active == 2  # no candidate has rays: the fullest queue
+    assert c.preload is None and c.protect == {2}
+
+
+def test_without_a_cache_d_star_is_preloaded_unguarded():
+    p = policy(kind="queue")
+    c = choose(p, [5, 1, 3], capacity=None)
+    assert (c.active, c.preload) == (0, 2)
+
+
+def test_frame_zero_uses_the_bootstrap_priority_and_unknown_kinds_are_refused():
+    assert policy(kind="cost-rate").kind == "queue+resident"
+    assert policy(kind="cost-benefit").kind == "queue"
+    stats = FrameStats.zeros(3, 1)
+    assert policy(kind="cost-rate", previous=stats).kind == "cost-rate"
+    assert not policy(kind="queue").needs_traversal_score
+    assert policy(kind="spray").needs_traversal_score
+    with pytest.raises(ValueError, match="unknown priority 'lru'"):
+        policy(kind="lru")
+
+
+def test_spray_scores_come_from_the_traversal_score_given():
+    p = policy(kind="spray")
+    n = 3
+    c = p.choose(np.array([5, 1, 3]), CacheView(frozenset(), 2), np.zeros(n), np.zeros(n),
+                 np.array([1.0, 7.0, 4.0]))
+    assert (c.active, c.preload) == (1, 2)  # by score, not by queue length
+
+
+def cost_rate_policy() -> TemporalChoice:
+    """Four 1 MB domains after a frame in which each processed 100 rays in 1 s and was loaded
+    once, the node loaded 1 MB/s, and domain 3 (not this node's) sent 50 rays to domain 2."""
+    sent = np.zeros((4, 4), np.int64)
+    sent[3, 2] = 50
+    stats = FrameStats(sent, np.full(4, 100), np.ones(4), np.full(4, 100), np.ones(4),
+                       np.array([1e6]), np.array([1.0]))
+    return policy("cost-rate", 4, stats, np.array([True, True, True, False]))
+
+
+def test_cost_rate_prefers_the_cached_domain_and_counts_the_rays_still_to_come():
+    c = choose(cost_rate_policy(), [9, 2, 1, 0], resident={0, 1}, capacity=2)
+    # work per second of loading: cached 1 -> 2 rays / 100 rays/s / 1 ms = 20; domain 2 must
+    # load (1 s) and expects its 1 ray plus the 50 of Q_POT: 51 / 100 / 1 = 0.51
+    assert c.active == 0 and c.preload is None  # d* = 1 is cached already
+    np.testing.assert_allclose(c.priorities, [-np.inf, 20.0, 0.51, -np.inf])
+    c = choose(cost_rate_policy(), [9, 2, 1, 0], resident={0, 1}, capacity=2,
+               arrived=[0, 0, 50, 0])
+    np.testing.assert_allclose(c.priorities[2], 0.01)  # the 50 rays came: Q_POT = 0
+
+
+# -- the preload guard --------------------------------------------------------------------------
+def test_the_guard_refuses_a_preload_that_would_evict_a_higher_scored_domain():
+    scores = np.array([5.0, 1.0, 3.0])
+    full = CacheView(frozenset({0, 2}), 2)
+    assert not worth_loading(1, scores, frozenset({0, 1}), full)  # would evict 2 (3 > 1)
+    assert worth_loading(2, np.array([5.0, 4.0, 3.0, 1.0]), frozenset({0, 2}),
+                         CacheView(frozenset({0, 3}), 2))  # evicts 3 (1 < 3)
+    assert worth_loading(1, scores, frozenset({0, 1}), CacheView(frozenset({0}), 2))  # room
+    assert not worth_loading(2, scores, frozenset({0, 2}), full)  # resident already
+    assert not worth_loading(None, scores, frozenset({0}), full)
+    # everything resident is protected: nothing can make room
+    assert not worth_loading(1, scores, frozenset({0, 1, 2}), full)
+
+
+def test_a_tie_with_the_victim_is_no_reason_to_load():
+    assert not worth_loading(1, np.array([5.0, 3.0, 3.0]), frozenset({0, 1}),
+                             CacheView(frozenset({0, 2}), 2))
+
+
+# -- the frame's assignment -----------------------------------------------------------------------
+def boxes():
+    lo = np.array([[x, 0.0, 0.0] for x in range(4)])
+    return lo, lo + 1.0, np.array([True, True, False, True]), np.array([1e6, 2e6, 0.0, 3e6])
+
+
+def test_assign_frame_picks_the_assignment_by_kind():
+    camera = Camera(np.array([2.0, 0.5, -6.0]), np.array([2.0, 0.5, 0.5]),
+                    np.array([0.0, 1.0, 0.0]), 60.0, 32, 24)
+    lo, hi, nonempty, nbytes = boxes()
+    args = (camera, lo, hi, nonempty, nbytes, 32, 24, 2)
+    stats = FrameStats.zeros(4, 2)
+    stats.sent[0, 3] = 10
+
+    def same(a, b):
+        return np.array_equal(a.owner, b.owner) and np.array_equal(a.tiles, b.tiles) \
+            and a.replicated == b.replicated
+
+    assert same(assign_frame("sequential", *args, stats),
+                sequential_owners(4, 2, nonempty, 32, 24))
+    spatial = spatial_owners(lo, hi, 2, nonempty, 32, 24)
+    assert same(assign_frame("spatial", *args, stats), spatial)
+    assert same(assign_frame("temporal", *args, None), spatial)  # frame 0: no statistics
+    temporal = assign_temporal(screen_tiles(32, 24, 2), projected_rects(camera, lo, hi),
+                               stats.sent, nbytes, stats.s_load(), nonempty,
+                               eye_domain(camera.position, lo, hi, nonempty))
+    assert same(assign_frame("temporal", *args, stats), temporal)
+    assert temporal.owner[0] != temporal.owner[3]  # the pair that trades rays is split
+    with pytest.raises(ValueError, match="unknown assignment 'random'"):
+        assign_frame("random", *args, stats)
