@@ -38,6 +38,7 @@ from vastray.actors.decomposition import _AsyncFrame
 from vastray.scene.errors import InputError
 from vastray.schedule import temporal as plan
 from vastray.schedule.image import ImageSchedule
+from vastray.schedule.traversal import count_ahead, traversal_score
 
 #: Most domains the temporal scheduler plans for: its statistics hold a (D, D) matrix of
 #: transmissions (8 MB at 1,024 domains), summed over nodes once per frame.
@@ -123,22 +124,16 @@ class TemporalFrame(_AsyncFrame):
         return choice.active, choice.preload
 
     def _traversal_score(self) -> np.ndarray:
-        """SpRay's front-to-back traversal score over the rays queued here: a ray waiting in
-        a domain adds M - j to the j-th domain still ahead of it (j = 0 its queue's)."""
+        """SpRay's front-to-back traversal score (``schedule.traversal``) over the rays queued
+        here, each counted from where it is now (a radiance ray up to its closest hit so far)."""
         n = len(self.owner)
-        score = np.zeros(n)
+        counter = np.zeros((n, n), np.int64)
         for policy in self.policies.values():
             for queues, limit in ((policy.radiance, "hit_t"), (policy.shadow, "t_max")):
                 for rays in (c for d in np.nonzero(queues.counts())[0] for c in queues.peek(d)):
-                    ray, domain, entry, _ = self.setup.geometry.crossings(
-                        rays["origin"], rays["direction"], rays[limit])
-                    ahead = entry >= rays["at_t"][ray]
-                    ray, domain = ray[ahead], domain[ahead]
-                    first = np.full(len(rays), len(ray), np.int64)
-                    np.minimum.at(first, ray, np.arange(len(ray)))
-                    rank = np.arange(len(ray)) - first[ray]
-                    np.add.at(score, domain, n - rank)
-        return score
+                    count_ahead(counter, self.setup.geometry, rays["origin"], rays["direction"],
+                                rays[limit], rays["at_t"])
+        return traversal_score(counter).astype(np.float64)
 
     def traced(self, domain: int, rays: int, seconds: float) -> None:
         self.stats.proc_rays[domain] += rays

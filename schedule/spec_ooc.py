@@ -45,6 +45,7 @@ from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
 from vastray.schedule.soa import DomainQueues, SoA
+from vastray.schedule.traversal import traversal_score
 
 
 @dataclass(frozen=True)
@@ -525,7 +526,8 @@ def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
 def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
                     domains: list[int] | None = None) -> list[int]:
     """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
-    ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M), lowest id on ties.
+    ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M) (``traversal_score``),
+    lowest id on ties.
 
     Domains in ``resident`` go first (still by score among themselves). A fixed cyclic order is
     the worst case for an LRU cache smaller than the cycle (every access misses); starting each
@@ -533,8 +535,7 @@ def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
     measures both orders). Empty ``resident`` gives the paper's order. ``domains`` (ids) ranks
     only those (the rest of a round, re-ranked by the scores of now); default: every domain.
     """
-    m = counter.shape[1]
     ids = np.arange(len(counter)) if domains is None else np.asarray(domains, np.int64)
-    score = counter[ids] @ (m - np.arange(m))
+    score = traversal_score(counter[ids])
     away = ~np.isin(ids, np.fromiter(resident, np.int64, len(resident)))
     return ids[np.lexsort((ids, -score, away))].tolist()
