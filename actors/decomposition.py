@@ -34,6 +34,7 @@ import asyncio
 import time
 import zlib
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,6 +53,11 @@ from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 from vastray.schedule.soa import SoA
 from vastray.transport.codec import encode
+
+if TYPE_CHECKING:  # loaded only by the schedulers that use them
+    from vastray.scene.bvh import DomainBVH
+    from vastray.schedule.portals import Portals
+    from vastray.schedule.temporal import FrameStats
 
 MODES = ("domain", "async", "dynamic", "temporal")
 
@@ -72,8 +78,12 @@ class NodeState:
     frame: int = 0
     #: tile label -> ray batches received for a tile this node has not reached yet.
     early: dict = field(default_factory=dict)
-    #: per-scheduler memory across frames (the temporal scheduler's statistics).
-    memory: dict = field(default_factory=dict)
+    #: the temporal scheduler's statistics of the last frame, summed over the nodes.
+    temporal_stats: FrameStats | None = None
+    #: the simplified model, loaded once and never evicted.
+    simplified_bvh: DomainBVH | None = None
+    #: the virtual portals recorded in the last recording frame.
+    portals: Portals | None = None
 
     def preloader_for(self, store, capacity: int, keep, options: JobOptions, rank: int
                       ) -> DomainPreloader:
@@ -99,7 +109,7 @@ class NodeState:
 def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     """This frame's routing to the simplified model (``options.simplified``: a policy of
     ``schedule.simplified``), or None. The model is loaded once per node and never evicted;
-    the portals recorded in the last recording frame are kept in ``state.memory``.
+    the portals recorded in the last recording frame are kept in ``state.portals``.
 
     ``options.portal_accuracy`` (portal policy) makes the run an instrumented one, for ACC:
     every frame is traced as a recording frame with a crossing log, and the crossings are
@@ -112,25 +122,24 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     from vastray.schedule.portals import CrossingLog, Portals, records_portals
     from vastray.schedule.simplified import SimplifiedRouting
 
-    memory = state.memory
-    if "simplified_bvh" not in memory and policy != "none":
-        memory["simplified_bvh"] = DomainBVH(len(store.domains), store.load_simplified(),
-                                             setup.keep, state.pool)
+    if state.simplified_bvh is None and policy != "none":
+        state.simplified_bvh = DomainBVH(len(store.domains), store.load_simplified(), setup.keep,
+                                         state.pool)
     lo, hi = store.domain_boxes()
     interval = options.portal_interval
     recording = policy == "portal" and records_portals(state.frame, interval,
-                                                       "portals" in memory)
+                                                       state.portals is not None)
     measuring = policy == "portal" and options.portal_accuracy
     portals = None
     if policy == "portal":
         portals = (Portals(len(store.domains), options.portal_resolution)
-                   if recording or measuring else memory["portals"])
-    routing = SimplifiedRouting(memory.get("simplified_bvh"), len(store.domains), policy, lo,
+                   if recording or measuring else state.portals)
+    routing = SimplifiedRouting(state.simplified_bvh, len(store.domains), policy, lo,
                                 hi, portals=portals, recording=recording or measuring,
                                 threshold=float(options.portal_threshold))
     if measuring:
         routing.log = CrossingLog(setup.total_paths)
-        routing.reference = memory.get("portals")
+        routing.reference = state.portals
         routing.keeps_portals = recording
     return routing
 
@@ -161,7 +170,7 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
         merged = await tree.allreduce(arrays, ops) if tree is not None else arrays
         recorded = Portals.from_arrays(merged)
         if routing.keeps_portals:
-            state.memory["portals"] = recorded
+            state.portals = recorded
         if routing.log is not None and rank == 0:
             cells, actual = CrossingLog.from_arrays(merged).crossings()
             stats.update(prediction_accuracy(recorded.predict(cells), actual,
@@ -251,7 +260,7 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
     frame's statistics over the nodes for the next (kept in ``state.memory``)."""
     from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
 
-    previous = state.memory.get("temporal_stats")
+    previous = state.temporal_stats
     stats["assignment"] = options.assignment or "temporal"  # the effective ones, reported
     stats["priority"] = options.priority or "cost-rate"
     assignment = frame_assignment(stats["assignment"], store, setup.camera,
@@ -261,7 +270,7 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
                           status_label=state.ordinal, simple=routing)
     await frame.run()
     start = time.perf_counter()
-    summed = state.memory["temporal_stats"] = await summed_stats(tree, frame.stats)
+    summed = state.temporal_stats = await summed_stats(tree, frame.stats)
     # The same on every node and for any node count, cache or priority (a lossless frame's
     # ray statistics depend on the scene, camera and seed only): the tests compare these.
     stats["ray_stats_digest"] = zlib.crc32(np.ascontiguousarray(summed.sent).tobytes()
