@@ -115,8 +115,10 @@ def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], c
     def total(key, rows=counters[1:]):
         return sum(c.get(key, 0) for frame in rows for c in frame)
 
-    busy = sum(c.get("trace_s", 0) + c.get("wait_s", 0) + c.get("send_s", 0)
-               for frame in counters[1:] for c in frame)
+    # a node's time: tracing, waiting for loads, for messages, and sending (trace_s is the
+    # trace alone: the domain loop counts load waits apart, as load_wait_s)
+    busy = sum(c.get("trace_s", 0) + c.get("load_wait_s", 0) + c.get("wait_s", 0)
+               + c.get("send_s", 0) for frame in counters[1:] for c in frame)
     # Simple/total over the frames that predict (recording frames predict nothing)
     predicting = [frame for frame in counters[1:]
                   if not any(c.get("portal_recording") for c in frame)]
