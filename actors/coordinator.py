@@ -46,6 +46,7 @@ from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError, VastrayError
 from vastray.scene.store import Store
+from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.join_secret import new_secret, write_join_secret
@@ -766,6 +767,7 @@ class _Termination:
         self.snapshot: dict[int, tuple[int, int]] | None = None
         self.replies: dict[int, tuple[int, int]] = {}
         self.barriers = 0
+        self.policy = RayWeightedRounds()
 
     async def _send(self, rank: int, kind: str, meta: dict) -> None:
         await self.router.send_multipart([self.identities[rank], self.token,
@@ -785,19 +787,19 @@ class _Termination:
             await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
 
     async def queues(self, meta: dict) -> None:
-        """dynamic: once every node has reported, send this round's schedule (Fig. 5)."""
+        """dynamic: once every node has reported, send this round's schedule (``policy``)."""
         reports = self.rounds.setdefault(meta["tile"], {})
         reports[int(meta["rank"])] = meta
         if len(reports) < self.size:
             return
         del self.rounds[meta["tile"]]
         self.barriers += 1
-        assign = schedule_next_round({r: m["queues"] for r, m in reports.items()},
-                                     {r: m["loaded"] for r, m in reports.items()})
+        plan = self.policy.next_round({r: m["queues"] for r, m in reports.items()},
+                                      {r: m["loaded"] for r, m in reports.items()})
         for rank in range(self.size):
             await self._send(rank, protocol.SCHEDULE, {
-                "assign": {str(d): p for d, p in assign.items()}, "size": self.size,
-                "finished": not any(m["queues"] for m in reports.values())})
+                "assign": {str(d): p for d, p in plan.assign.items()}, "size": self.size,
+                "finished": plan.finished})
 
     async def status(self, meta: dict) -> None:
         if meta["tile"] != self.tile:
@@ -822,38 +824,6 @@ class _Termination:
             self.snapshot = dict(self.latest)
             for r in range(self.size):
                 await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
-
-
-def schedule_next_round(queues: dict[int, dict[str, int]], loaded: dict[int, list[int]]
-                        ) -> dict[int, int]:
-    """Navrátil's ScheduleNextRound (Fig. 5): domain -> node for the next round.
-
-    The paper's processes hold one domain each; ours hold a cache of several, so each node
-    reports its whole resident set and "keep loaded domains where they are wanted" applies to
-    every resident domain: a wanted domain resident somewhere stays with the lowest-ranked
-    node holding it. The most-wanted of the others go, one each, to the nodes none of whose
-    resident domains is wanted (the paper's ``to_evict``), in rank order.
-
-    Parameters
-    ----------
-    queues : node -> {domain: rays waiting}.
-    loaded : node -> the domains resident in its cache.
-    """
-    wanted: dict[int, int] = {}
-    for per_node in queues.values():
-        for domain, count in per_node.items():
-            wanted[int(domain)] = wanted.get(int(domain), 0) + count
-    holder: dict[int, int] = {}
-    for node in sorted(loaded):
-        for domain in sorted(loaded[node]):
-            holder.setdefault(int(domain), node)
-    schedule = {d: holder[d] for d in wanted if d in holder}
-    to_assign = sorted((d for d in wanted if d not in holder), key=lambda d: (-wanted[d], d))
-    busy = set(schedule.values())
-    to_evict = [n for n in sorted(loaded) if n not in busy]
-    for domain, node in zip(to_assign, to_evict, strict=False):
-        schedule[domain] = node
-    return schedule
 
 
 def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
