@@ -13,7 +13,6 @@ import asyncio
 import logging
 import os
 import secrets
-import signal
 import socket
 import subprocess
 import sys
@@ -36,6 +35,7 @@ from vastray.actors.job_options import (
     JobOptionsError,
 )
 from vastray.actors.liveness import BUSY_GRACE, CpuWitness
+from vastray.actors.node_failure import NodeFailure, NodeLost, exit_cause
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.rendezvous import write_address
 from vastray.render.driver import RenderResult, store_camera
@@ -44,7 +44,7 @@ from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression, StopRules
 from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
-from vastray.scene.errors import InputError, VastrayError
+from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.portals import Accuracy
@@ -57,37 +57,6 @@ log = logging.getLogger(__name__)
 
 #: Paths each node traces at once where the job's options leave ``max_samples_in_flight`` unset.
 DEFAULT_NODE_TILE = 65536
-
-
-class NodeFailure(VastrayError, RuntimeError):
-    """A node died or went silent; the message names it."""
-
-
-class NodeLost(NodeFailure):
-    """A node that had joined died or stalled mid-frame (a frame on the others can replace
-    it, unlike a node that never joined or a protocol failure).
-
-    ``rank`` is the lost node's, or None where only its launcher (an ssh session) is known;
-    ``cause`` says how it was lost in a word or two: the signal that killed it (``"SIGSEGV"``,
-    ``"SIGKILL"``), ``"exit code N"``, ``"stalled"`` or ``"failed"``.
-    """
-
-    def __init__(self, message: str, rank: int | None = None, cause: str = "lost"):
-        super().__init__(message)
-        self.rank = rank
-        self.cause = cause
-
-
-
-def exit_cause(code: int) -> str:
-    """How a process with exit status ``code`` (``Popen.returncode``) ended, in a word or two:
-    the signal's name for a negative code (killed by it), else ``"exit code N"``."""
-    if code < 0:
-        try:
-            return signal.Signals(-code).name
-        except ValueError:
-            return f"signal {-code}"
-    return f"exit code {code}"
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
@@ -1061,4 +1030,4 @@ class _Watch:
                             proc.returncode)
 
 
-__all__ = ["render_distributed", "NodeFailure"]
+__all__ = ["render_distributed"]

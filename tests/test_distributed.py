@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
+from vastray.actors.node_failure import NodeFailure
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config

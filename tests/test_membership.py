@@ -18,8 +18,9 @@ import zmq
 import zmq.asyncio
 
 from vastray.actors import protocol
-from vastray.actors.coordinator import NodeFailure, _pair_tokens, render_distributed
+from vastray.actors.coordinator import _pair_tokens, render_distributed
 from vastray.actors.film_wire import film_frames
+from vastray.actors.node_failure import NodeFailure
 from vastray.render.film import Film
 from vastray.schedule.paths import RADIANCE_FIELDS
 from vastray.transport.codec import encode
