@@ -38,6 +38,7 @@ from vastray.actors.liveness import BUSY_GRACE, CpuWitness
 from vastray.actors.node_failure import NodeFailure, NodeLost, exit_cause
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.rendezvous import write_address
+from vastray.actors.termination import Termination
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.progress import RenderBar
@@ -46,7 +47,6 @@ from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
-from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.portals import Accuracy
 from vastray.transport.codec import CodecError, decode, encode
 from vastray.transport.join_secret import new_secret, write_join_secret
@@ -448,7 +448,7 @@ async def _coordinate(job: dict, size: int, settings: RenderSettings, timeout: f
             await router.send_multipart([identities[rank], token, *frames])
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
-        control = _Termination(size, router, identities, token)
+        control = Termination(size, router, identities, token)
         frames = _Frames(size, job.get("frames"), frame_done)
         passes.begin(lambda next_unit: _grant(router, identities, token, next_unit))
         try:
@@ -515,7 +515,7 @@ def _pair_tokens(size: int) -> list[list[bytes]]:
 
 
 async def _gather(router, watch: _Watch, settings: RenderSettings, bar: tqdm,
-                  control: _Termination, frames: _Frames, size: int, passes: _Passes):
+                  control: Termination, frames: _Frames, size: int, passes: _Passes):
     """Receive the job's messages until the film and every node's report are in: progress,
     films of passes and frame reports, termination control; a node's failure raises
     ``NodeLost``."""
@@ -712,91 +712,6 @@ async def _heartbeat(router, identities: dict[int, bytes], token: bytes) -> None
         for identity in identities.values():
             await router.send_multipart([identity, token, *frames])
         await asyncio.sleep(protocol.HEARTBEAT_S)
-
-
-class _Termination:
-    """Termination detection for domain decomposition, per tile.
-
-    ``domain``: a round ends when every node has reported; each node is told how many ray
-    batches were sent to it; a round in which no batch moved ends the tile.
-    ``async``: once every node is idle and batches sent equal batches received, a probe wave
-    asks every node again; if every answer is idle with the same counts, the frame is done
-    (nodes report only once they have injected all their tiles: one detection per frame).
-
-    ``barriers`` counts the points where every node waits for all the others: each round of
-    ``domain`` and ``dynamic``, and the end of the frame for ``async``.
-    """
-
-    def __init__(self, size: int, router, identities: dict[int, bytes], token: bytes):
-        self.size, self.router, self.identities, self.token = size, router, identities, token
-        self.rounds: dict[int, dict] = {}
-        self.tile = 0
-        self.latest: dict[int, tuple[int, int]] = {}
-        self.wave = 0
-        self.snapshot: dict[int, tuple[int, int]] | None = None
-        self.replies: dict[int, tuple[int, int]] = {}
-        self.barriers = 0
-        self.policy = RayWeightedRounds()
-
-    async def _send(self, rank: int, kind: str, meta: dict) -> None:
-        await self.router.send_multipart([self.identities[rank], self.token,
-                                          *encode(kind, {}, meta)])
-
-    async def round_done(self, meta: dict) -> None:
-        reports = self.rounds.setdefault(meta["tile"], {})
-        reports[int(meta["rank"])] = meta["sent_to"]
-        if len(reports) < self.size:
-            return
-        expect = {r: sum(sent.get(str(r), 0) for sent in reports.values())
-                  for r in range(self.size)}
-        finished = sum(expect.values()) == 0
-        del self.rounds[meta["tile"]]
-        self.barriers += 1
-        for rank in range(self.size):
-            await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
-
-    async def queues(self, meta: dict) -> None:
-        """dynamic: once every node has reported, send this round's schedule (``policy``)."""
-        reports = self.rounds.setdefault(meta["tile"], {})
-        reports[int(meta["rank"])] = meta
-        if len(reports) < self.size:
-            return
-        del self.rounds[meta["tile"]]
-        self.barriers += 1
-        plan = self.policy.next_round({r: m["queues"] for r, m in reports.items()},
-                                      {r: m["loaded"] for r, m in reports.items()})
-        for rank in range(self.size):
-            await self._send(rank, protocol.SCHEDULE, {
-                "assign": {str(d): p for d, p in plan.assign.items()}, "size": self.size,
-                "finished": plan.finished})
-
-    async def status(self, meta: dict) -> None:
-        if meta["tile"] != self.tile:
-            return
-        rank, counts = int(meta["rank"]), (int(meta["sent"]), int(meta["received"]))
-        self.latest[rank] = counts
-        if self.snapshot is not None and meta["probe"] == self.wave:
-            self.replies[rank] = counts
-            if len(self.replies) < self.size:
-                return
-            quiet = self.replies == self.snapshot and _balanced(self.replies)
-            self.snapshot, self.replies = None, {}
-            if quiet:
-                self.barriers += 1
-                self.tile += 1
-                self.latest = {}
-                for r in range(self.size):
-                    await self._send(r, protocol.PROBE, {"finished": True, "probe": self.wave})
-                return
-        if self.snapshot is None and len(self.latest) == self.size and _balanced(self.latest):
-            self.wave += 1
-            self.snapshot = dict(self.latest)
-            for r in range(self.size):
-                await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
-
-
-def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
-    return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
 
 
 def _hello(body: list):
