@@ -114,7 +114,7 @@ def member_actors(size: int, domains: int = 8, keys=None):
     import zmq
     import zmq.asyncio
 
-    from vastray.actors.coordinator import _pair_tokens
+    from vastray.actors.attempt import pair_tokens
     from vastray.actors.node import ManagementActor
     from vastray.transport.join_secret import new_secret
     from vastray.transport.keys import load_coordinator_keys, load_node_keys
@@ -134,7 +134,7 @@ def member_actors(size: int, domains: int = 8, keys=None):
     port = coordinator.bind_to_random_port("tcp://127.0.0.1")
     nodes = [ManagementActor(ctx, f"tcp://127.0.0.1:{port}", "127.0.0.1", "127.0.0.1", 10.0,
                              served[1 + r], gate) for r in range(size)]
-    tokens = _pair_tokens(size)
+    tokens = pair_tokens(size)
     publics = [] if keys is None else [c.keys.public for c in served[1:]]
     try:
         for rank, node in enumerate(nodes):

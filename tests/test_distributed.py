@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
+from vastray.actors.node_failure import NodeFailure
 from vastray.cli import main
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
@@ -98,20 +99,6 @@ def test_big_outboxes_travel_in_bounded_batches(scene):
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
         counts.append(sum(n["counters"]["batches_sent"] for n in result.counters["per_node"]))
     assert counts[1] > counts[0]
-
-
-def test_schedule_next_round_keeps_loaded_domains_and_assigns_the_most_wanted():
-    from vastray.actors.coordinator import schedule_next_round
-
-    queues = {0: {"3": 10, "5": 2}, 1: {"7": 30}, 2: {"5": 1}}
-    loaded = {0: [3], 1: [9], 2: []}
-    # Domain 3 stays on node 0; 7 (30 rays) and then 5 (3 rays) go to the nodes whose
-    # loaded domains nobody needs, in node order.
-    assert schedule_next_round(queues, loaded) == {3: 0, 7: 1, 5: 2}
-    assert schedule_next_round({0: {}, 1: {}}, {0: [1], 1: [2]}) == {}
-    # The whole resident set counts, not the last domain traced: 5 is still in node 2's
-    # cache, so it stays there and no node loads it again.
-    assert schedule_next_round(queues, {0: [3], 1: [9], 2: [4, 5]}) == {3: 0, 5: 2, 7: 1}
 
 
 def _node_pids(rank: int) -> list[int]:

@@ -18,8 +18,10 @@ import zmq
 import zmq.asyncio
 
 from vastray.actors import protocol
-from vastray.actors.coordinator import NodeFailure, _pair_tokens, render_distributed
+from vastray.actors.attempt import pair_tokens
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.film_wire import film_frames
+from vastray.actors.node_failure import NodeFailure
 from vastray.render.film import Film
 from vastray.schedule.paths import RADIANCE_FIELDS
 from vastray.transport.codec import encode
@@ -53,7 +55,7 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
             [token[1], *encode(protocol.BROADCAST, {}, {"rank": 1})],  # node 0 has no parent
             [token[2], *_rays(5, 10**6, 2)],         # a domain the job does not have
             [token[2], *_rays(5, 7, 2)],             # one it has
-            [_pair_tokens(1)[0][0], *_rays(5, 7, 2)],  # a token of no pair of this job
+            [pair_tokens(1)[0][0], *_rays(5, 7, 2)],  # a token of no pair of this job
             [node0.token, *_rays(5, 7, 2)],          # the coordinator channel's token
         ]
         for frames in sends:

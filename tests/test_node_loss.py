@@ -23,8 +23,9 @@ import pytest
 from test_distributed import _node_pids
 
 from vastray.actors import protocol
-from vastray.actors.coordinator import NodeFailure, render_distributed
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
+from vastray.actors.node_failure import NodeFailure
 from vastray.render.driver import render
 from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
@@ -310,14 +311,16 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
     """A node started here that sends nothing but keeps using the CPU (its event loop held up
     by numba compiling on a busy machine) is given time; one that uses none (stopped, hung) is
     stalled after the heartbeat timeout and half of it more."""
-    from vastray.actors.coordinator import BUSY_GRACE, NodeLost, _Watch
+    from vastray.actors.liveness import BUSY_GRACE
+    from vastray.actors.node_failure import NodeLost
+    from vastray.actors.watch import Watch
 
     busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     for rank in (0, 1):
         (tmp_path / f"node{rank}.log").write_text(f"node {rank}: joined\n")
     try:
-        watch = _Watch(2, [busy, idle], [tmp_path / f"node{r}.log" for r in (0, 1)], timeout=60,
+        watch = Watch(2, [busy, idle], [tmp_path / f"node{r}.log" for r in (0, 1)], timeout=60,
                        launched={},
                        heartbeat_timeout=1.0)
         for rank in (0, 1):

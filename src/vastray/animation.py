@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.coordinator import recovery_lines
+from vastray.actors.results import recovery_lines
 from vastray.preflight import check_output_paths
 from vastray.render.driver import RenderResult
 from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.coordinator import recovery_lines
+from vastray.actors.results import recovery_lines
 from vastray.commands_render import (
     add_render_arguments,
     check_and_default,

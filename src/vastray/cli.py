@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 
-from vastray.actors.coordinator import NodeFailure
+from vastray.actors.node_failure import NodeFailure
 from vastray.scene.errors import InputError
 
 DESCRIPTION = """\

@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.coordinator import recovery_lines, render_distributed
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
+from vastray.actors.results import recovery_lines
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
 from vastray.checkpoint import default_path as default_checkpoint
