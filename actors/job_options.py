@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, fields
 from vastray.scene.errors import InputError
 from vastray.schedule.portals import DEFAULT_RESOLUTION
 
-#: Rays per batch between two nodes unless told otherwise (``decomposition._Node``; about
+#: Rays per batch between two nodes unless told otherwise (``node_work.NodeWork``; about
 #: 6 MB of path-tracing rays).
 DEFAULT_MAX_BATCH_RAYS = 65536
 #: The schedules that choose a domain in memory before loading another (``resident_first``).
@@ -67,7 +67,7 @@ class JobOptions:
         (``render_distributed`` fills in 65536 for the nodes).
     history_depth : spec-ooc's H, bounces speculated before hits resolve; None: every bounce
         (passed to ``schedule.spec_ooc.SpeculativeSchedule``).
-    max_batch_rays : most rays in one batch between two nodes (``decomposition._Node``).
+    max_batch_rays : most rays in one batch between two nodes (``node_work.NodeWork``).
     threads : threads each process's Embree queries split their rays over; None: all cores
         (``render_distributed`` fills in this machine's cores shared among its nodes).
     preload : load the next domain in the background (the domain cache's preloading).
@@ -77,9 +77,9 @@ class JobOptions:
         over this; one number for every process or one per rank, cycled
         (``load_bytes_per_second``); None: the disk's own speed.
     simplified : the simplified-model policy of ``schedule.simplified`` (async, temporal);
-        None: off (``decomposition.simplified_routing``).
+        None: off (``simplified_frames.simplified_routing``).
     portal_interval, portal_threshold, portal_resolution, portal_accuracy : the virtual
-        portals of ``simplified="portal"`` (``decomposition.simplified_routing``).
+        portals of ``simplified="portal"`` (``simplified_frames.simplified_routing``).
     assignment : domain ownership, ``sequential`` (async's round robin, its only one so far),
         ``spatial`` or ``temporal``; None: the scheduler's default
         (``decomposition._temporal_frame`` for temporal).

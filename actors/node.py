@@ -23,11 +23,12 @@ from zmq.utils.monitor import parse_monitor_message
 
 from vastray.actors import protocol
 from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
-from vastray.actors.decomposition import NodeState, render_owned_domains
+from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
 from vastray.actors.liveness import BUSY_GRACE, CpuWitness
+from vastray.actors.node_state import NodeState
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.processes import peak_rss_bytes
 from vastray.render.scene_config import SceneConfig, parse_scene_config

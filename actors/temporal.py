@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vastray.actors.decomposition import _AsyncFrame
+from vastray.actors.async_frame import AsyncFrame
 from vastray.scene.errors import InputError
 from vastray.schedule import temporal as plan
 from vastray.schedule.image import ImageSchedule
@@ -59,7 +59,7 @@ def frame_assignment(kind: str, store, camera, width: int, height: int, size: in
     return plan.assign_frame(kind, camera, *domain_table(store), width, height, size, previous)
 
 
-class TemporalFrame(_AsyncFrame):
+class TemporalFrame(AsyncFrame):
     """One node's frame under ``temporal`` (see the module docstring).
 
     Parameters
@@ -67,7 +67,7 @@ class TemporalFrame(_AsyncFrame):
     assignment : this frame's units; node ``rank`` renders ``assignment.tiles[rank]``.
     priority : one of ``schedule.temporal.PRIORITIES``.
     previous : the previous frame's statistics summed over nodes, or None (frame 0).
-    Others as for ``_AsyncFrame``.
+    Others as for ``AsyncFrame``.
     """
 
     def __init__(self, node, setup, settings, assignment: plan.Assignment, rank: int,

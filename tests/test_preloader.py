@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from vastray.actors.decomposition import NodeState
 from vastray.actors.job_options import JobOptions
+from vastray.actors.node_state import NodeState
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.cache import DomainCache
 

@@ -1,0 +1,209 @@
+"""``async`` on one node: the whole frame without a barrier (Galaxy, as the temporal-coherence
+paper's baseline runs it). The node injects the camera rays of its share of the next tile
+whenever its credit allows (``schedule.galaxy``), activates the domain Galaxy's policy
+chooses through the domain loop, ships what that produced, takes whatever arrives, for any
+tile at once, and retires a tile into the film once none of its rays waits here. When it has
+injected every tile and is idle it reports its batch counts for the termination detection.
+The temporal frame (``actors/temporal.py``) is this frame with the temporal paper's choices.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+
+from vastray.actors import protocol
+from vastray.actors.domain_loop import traced_queries
+from vastray.actors.node_work import NodeWork
+from vastray.render.driver import path_context
+from vastray.render.film import Film
+from vastray.render.integrators import camera_rays
+from vastray.schedule.galaxy import GalaxyPolicy
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.ownership import interleaved_paths
+
+
+class AsyncFrame:
+    """``async`` on one node: the whole frame without a barrier (see the module docstring).
+
+    Parameters
+    ----------
+    node : the node's sender/receiver and counters.
+    setup, settings : what paths and policies are made from.
+    owner : (D,) owning rank of each domain.
+    tile : paths per tile; also the credit, the most rays waiting here before the next
+        tile's camera rays are injected.
+    film : this node's partial film, fed as tiles retire.
+    on_tile : hears of the paths this node injects.
+    base : label of the frame's first tile (labels are unique over the frames of a job; a
+        batch labelled outside this frame's is held for its frame).
+    status_label : this frame's number in the termination detection.
+    simple : routing to the node's simplified model (``simplified_routing``), or None.
+    resident_first : trace a cached domain with waiting rays before loading another, the
+        fullest first (as the out-of-core schedules' ``resident_first``); False is Galaxy's
+        order, the fullest queue whatever it costs to load.
+    """
+
+    def __init__(self, node: NodeWork, setup, settings, owner: np.ndarray, rank: int, size: int,
+                 tile: int, film: Film, on_tile=None, base: int = 0, status_label: int = 0,
+                 simple=None, resident_first: bool = True):
+        self.node, self.setup, self.settings = node, setup, settings
+        self.galaxy = GalaxyPolicy(tile, resident_first)
+        self.preloader = node.preloader
+        self.simple = simple
+        self.owner, self.rank, self.size = owner, rank, size
+        self.tile, self.film, self.on_tile = tile, film, on_tile
+        self.base, self.status_label = base, status_label
+        self.n_tiles = -(-setup.total_paths // tile)
+        self.policies: dict[int, ImageSchedule] = {}
+        self.next_tile = 0
+        self.shade_s = 0.0
+        self.made = 0  # policies made (a tile's may be made again when late rays arrive)
+        # What the last ``next_domain`` chose: the domain to load meanwhile, and the rays
+        # waiting for the active one.
+        self._upcoming: int | None = None
+        self._rays = 0
+
+    def policy(self, tile: int) -> ImageSchedule:
+        """The tile's policy, made on demand (rays carry their state; the policy only the
+        tile's path keys and the partial radiance gathered here)."""
+        if tile not in self.policies:
+            first = tile * self.tile
+            ctx = path_context(self.setup.shading, self.settings, first,
+                               min(first + self.tile, self.setup.total_paths),
+                               self.setup.ao_distance)
+            self.policies[tile] = ImageSchedule(ctx, self.setup.geometry,
+                                                self.setup.color_source,
+                                                self.setup.scalar_range, owner=self.owner,
+                                                rank=self.rank, simple=self.simple)
+            self.made += 1
+        return self.policies[tile]
+
+    def my_paths(self, policy) -> np.ndarray:
+        """Rows of the tile's paths whose camera rays this node makes: every P-th."""
+        return np.nonzero(interleaved_paths(len(policy.ctx.pixel), self.rank, self.size))[0]
+
+    def traced(self, domain: int, rays: int, seconds: float) -> None:
+        """Hears that an activation of ``domain`` processed ``rays`` rays in ``seconds``: the
+        wait for its load (what preloading did not hide) and the tracing and shading."""
+
+    def waiting(self) -> np.ndarray:
+        """(D,) rays waiting here per domain, over every tile."""
+        total = np.zeros(len(self.owner), np.int64)
+        for policy in self.policies.values():
+            total += policy.radiance.counts() + policy.shadow.counts()
+        return total
+
+    def inject(self) -> None:
+        """Queue the camera rays of this node's share of the next tile."""
+        tile = self.next_tile
+        self.next_tile += 1
+        policy = self.policy(tile)
+        mine = self.my_paths(policy)
+        self.film.count_samples(policy.ctx.pixel[mine])
+        policy.start(camera_rays(self.setup.camera, policy.ctx).take(mine))
+        if self.on_tile is not None:
+            self.on_tile(len(mine))
+
+    def accept(self, message) -> bool:
+        """Deliver a batch of this frame (True), or hold one of a later frame (False)."""
+        tile = int(message.meta["tile"]) - self.base
+        if 0 <= tile < self.n_tiles:
+            return self.node.deliver(self.policy(tile), message)
+        # a later frame's batch, from a node that went on first
+        self.node.early.setdefault(int(message.meta["tile"]), []).append(message)
+        return False
+
+    def take_early(self) -> None:
+        """Deliver the batches of this frame that arrived during an earlier one."""
+        for label in [t for t in self.node.early if 0 <= t - self.base < self.n_tiles]:
+            for message in self.node.early.pop(label):
+                self.accept(message)
+
+    def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
+        """The domain to trace now and the one to load meanwhile (``GalaxyPolicy.choose``)."""
+        return self.galaxy.choose(waiting, self.preloader.resident())
+
+    # -- the domain loop's order (``domain_loop.DomainOrder``) -------------------------------
+    def next_domain(self) -> int | None:
+        waiting = self.waiting()
+        if not waiting.any():
+            return None
+        domain, self._upcoming = self.choose(waiting)
+        self._rays = int(waiting[domain])
+        return domain
+
+    def likely_next(self, current: int) -> int | None:
+        return self._upcoming
+
+    def trace(self, domain: int, bvh) -> int:
+        """Trace the domain's rays of every tile that has rays for it."""
+        return sum(traced_queries(policy, domain, bvh) for policy in self.policies.values()
+                   if policy.radiance.count(domain) or policy.shadow.count(domain))
+
+    async def step(self) -> bool:
+        """Trace the chosen local domain for every tile that has rays for it, then ship;
+        False when no ray waits here."""
+        activation = await self.node.loop.step(self, ship=self.ship)
+        if activation is None:
+            return False
+        # S_PROC's time: the wait for the load (what preloading did not hide) and the trace.
+        self.traced(activation.domain, self._rays, activation.wait_s + activation.trace_s)
+        return True
+
+    async def ship(self) -> None:
+        for tile, policy in list(self.policies.items()):
+            if policy.outbox:
+                await self.node.ship(policy, self.base + tile)
+
+    def retire_idle(self) -> None:
+        """Fold every tile with nothing waiting here into the film and drop its state."""
+        for tile in [t for t, p in self.policies.items()
+                     if not p.outbox and not (p.radiance.counts().any()
+                                              or p.shadow.counts().any())]:
+            policy = self.policies.pop(tile)
+            self.film.add_partial(policy.ctx.pixel, policy.ctx.sample, policy.result)
+            self.shade_s += policy.counters["shade_s"]
+
+    async def run(self) -> None:
+        management = self.node.management
+        inbox = management.mailbox(protocol.RAYS)
+        control = management.mailbox(protocol.PROBE)
+        self.take_early()
+        while True:
+            while not inbox.empty():
+                self.accept(inbox.get_nowait())
+            if self.next_tile < self.n_tiles and self.galaxy.admits_tile(self.waiting()):
+                self.inject()
+                await self.ship()  # camera rays bound for other nodes leave at once
+            if await self.step() or not inbox.empty():
+                continue
+            self.retire_idle()
+            if self.next_tile < self.n_tiles:
+                continue
+            await self.node._status(self.status_label, probe=None)
+            start = time.perf_counter()
+            getters = {asyncio.ensure_future(inbox.get()): "rays",
+                       asyncio.ensure_future(control.get()): "control"}
+            done, pending = await asyncio.wait(getters, timeout=management.timeout,
+                                               return_when=asyncio.FIRST_COMPLETED)
+            for task in pending:
+                task.cancel()
+            self.node.stats["wait_s"] += time.perf_counter() - start
+            if not done:
+                raise TimeoutError("no ray batch or control message while idle")
+            finished = False
+            for task in sorted(done, key=lambda t: getters[t] != "rays"):
+                message = task.result()
+                if getters[task] == "rays":
+                    self.accept(message)
+                elif message.meta.get("finished"):
+                    finished = True
+                else:
+                    await self.node._status(self.status_label, probe=message.meta["probe"])
+            if finished:
+                if self.policies:
+                    raise RuntimeError("the frame ended with rays still waiting here")
+                return
