@@ -115,7 +115,7 @@ def member_actors(size: int, domains: int = 8, keys=None):
     import zmq.asyncio
 
     from vastray.actors.attempt import pair_tokens
-    from vastray.actors.node import ManagementActor
+    from vastray.actors.management import ManagementActor
     from vastray.transport.join_secret import new_secret
     from vastray.transport.keys import load_coordinator_keys, load_node_keys
     from vastray.transport.security import Credentials, Gate, serve
@@ -160,7 +160,7 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
     """
     import asyncio
 
-    from vastray.actors.node import TreeReduceActor
+    from vastray.actors.tree_reduce import TreeReduceActor
 
     size = len(arrays)
     with member_actors(size) as (_, _, _, nodes):

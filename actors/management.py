@@ -1,0 +1,334 @@
+"""A node's management actor: its ZeroMQ endpoint. It owns the node's sockets, routes what
+arrives into mailboxes by kind, checks who sent what, and sends to the coordinator and to
+peers."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import time
+
+import zmq
+import zmq.asyncio
+from zmq.utils.monitor import parse_monitor_message
+
+from vastray.actors import protocol
+from vastray.actors.liveness import BUSY_GRACE, CpuWitness
+from vastray.transport.codec import CodecError, decode
+from vastray.transport.security import Credentials, Gate, connect_as, serve
+
+log = logging.getLogger(__name__)
+
+
+#: Bytes of peer messages a node holds back before it has its job (members only get so far).
+EARLY_BUDGET = 256 << 20
+
+
+class AuthenticationFailed(RuntimeError):
+    """The coordinator refused this node's CURVE handshake."""
+
+
+class _Mailbox(asyncio.Queue):
+    """An unbounded mailbox that knows how many bytes of messages it holds."""
+
+    def _init(self, maxsize):
+        super()._init(maxsize)
+        self.nbytes = 0
+
+    def _put(self, item):
+        super()._put(item)
+        self.nbytes += item_nbytes(item)
+
+    def _get(self):
+        item = super()._get()
+        self.nbytes -= item_nbytes(item)
+        return item
+
+
+def item_nbytes(message) -> int:
+    return sum(a.nbytes for a in message.arrays.values())
+
+
+class ManagementActor:
+    """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, DEALERs to
+    peers on demand. Incoming messages go to mailboxes by kind.
+
+    The receive path never waits and never dies: a mailbox has no count limit, so a kind whose
+    reader is busy never holds back another kind, and a node sending to a peer is never
+    blocked by a peer that is itself blocked sending (the deadlock of bounded mailboxes).
+
+    Who may send is settled in layers. The handshake admits only members of the job (the join
+    secret, or with keys a key on the allow-list for the coordinator and a member's key for
+    peers); nothing else ever reaches this code. Each peer message then carries the token
+    this node shares with its sender alone (``peer_tokens``, from the job), which names the
+    sender's rank; the rank in the message must be that one (and with keys, so must the
+    sender's CURVE key), and the kind must be one that rank may send now (``protocol.
+    peer_rule``: a film only from a tree child, once per unit; a broadcast only from the
+    parent). Ray batches name only domains of the job. A message that fails any check is
+    dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
+
+    Parameters
+    ----------
+    credentials : this node's keys, or the join secret.
+    """
+
+    def __init__(self, ctx: zmq.asyncio.Context, coordinator: str, bind_host: str,
+                 advertise: str, timeout: float, credentials: Credentials, gate: Gate):
+        self.ctx = ctx
+        self.timeout = timeout
+        self.credentials = credentials
+        self.gate = gate
+        self.token: bytes | None = None  # the coordinator channel's, from the job
+        self.rejections = protocol.Rejections()
+        self.router = ctx.socket(zmq.ROUTER)
+        serve(self.router, credentials)
+        gate.watch(self.router, "this node's peer port")
+        port = self.router.bind_to_random_port(f"tcp://{bind_host}")
+        self.endpoint = f"tcp://{advertise}:{port}"
+        keys = credentials.keys
+        self.coordinator = self._dealer(coordinator, keys.coordinator_public if keys else None)
+        self.coordinator_heard = time.monotonic()
+        self.peers: dict[int, zmq.asyncio.Socket] = {}
+        self.rank, self.size = -1, 0
+        self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
+        self.peer_tokens: list[bytes] = []  # the token shared with each rank (from the job)
+        self.peer_ranks: dict[bytes, int] = {}
+        self.peer_keys: list[bytes] = []  # each rank's CURVE public key (with keys)
+        self.n_domains = 0
+        self.films_taken: set[tuple[int, int]] = set()  # (child rank, unit ordinal)
+        self.mailboxes: dict[str, _Mailbox] = {}
+        # Peer messages that came before this node had its job (a fast peer may send before
+        # the job reached this node); checked once it has. Only members get this far.
+        self._early: list[list] = []
+        self._early_bytes = 0
+        self._tasks = [asyncio.ensure_future(self._route(self.router, from_peer=True)),
+                       asyncio.ensure_future(self._route(self.coordinator, from_peer=False))]
+
+    def _dealer(self, endpoint: str, server_key: bytes | None) -> zmq.asyncio.Socket:
+        sock = self.ctx.socket(zmq.DEALER)
+        connect_as(sock, self.credentials, server_key)
+        sock.connect(endpoint)
+        return sock
+
+    def mailbox(self, kind: str) -> _Mailbox:
+        return self.mailboxes.setdefault(kind, _Mailbox())
+
+    async def _route(self, sock: zmq.asyncio.Socket, from_peer: bool) -> None:
+        while True:
+            frames = await sock.recv_multipart(copy=False)
+            try:
+                if from_peer:
+                    self._take_peer(frames[1:])
+                else:
+                    self._take_control(frames)
+            except Exception as exc:  # noqa: BLE001 - the receive path must never die
+                self.rejections.add("internal", f"{type(exc).__name__}: {exc}")
+            # A receive that finds a message waiting completes without yielding to the event
+            # loop: under a flood this loop would starve the heartbeat (the node then looked
+            # stalled to its coordinator in one CI run of the flood test). Yield each time.
+            await asyncio.sleep(0)
+
+    def _take_control(self, frames: list) -> None:
+        """Check one message from the coordinator and deliver it, or drop it."""
+        if len(frames) < 2:
+            self.rejections.add("malformed", "no token or header frame")
+            return
+        token = frames[0].bytes
+        if self.token is not None and token != self.token:
+            # once the job is known its control messages (a regroup above all) must carry
+            # the job's token: none of an earlier connection's may act on this job
+            self.rejections.add("stranger", "a control message without this job's token")
+            return
+        self.coordinator_heard = time.monotonic()
+        try:
+            message = decode(frames[1:])
+            protocol.check(message, protocol.FROM_COORDINATOR)
+        except (CodecError, protocol.ProtocolError) as exc:
+            self.rejections.add("malformed", str(exc))
+            return
+        if message.kind == protocol.HEARTBEAT:
+            return
+        if message.kind == protocol.JOB and self.token is None:
+            try:
+                self.join(token, message.meta)
+            except protocol.ProtocolError as exc:
+                self.rejections.add("malformed", f"job: {exc}")
+                return
+        self._deliver(message)
+
+    def join(self, token: bytes, job: dict) -> None:
+        """Learn the job: the coordinator channel's token, this node's rank, its peers (their
+        endpoints, the token shared with each, their keys), then check the peer messages held
+        back.
+
+        Raises
+        ------
+        ProtocolError
+            For a job whose peer lists do not match its size.
+        """
+        size, rank = int(job["size"]), int(job["rank"])
+        tokens = job.get("peer_tokens")
+        keys = job.get("keys") or []
+        if not (0 <= rank < size and len(job["endpoints"]) == size
+                and isinstance(tokens, list) and len(tokens) == size
+                and all(isinstance(t, bytes) and len(t) >= 16 for t in tokens)
+                and len(set(tokens)) == size
+                and (not self.credentials.curve or (
+                    len(keys) == size and all(isinstance(k, bytes) for k in keys)))):
+            raise protocol.ProtocolError("rank, endpoints, peer tokens or keys do not fit "
+                                         "the job's size")
+        self.token, self.rank, self.size = token, rank, size
+        self.endpoints = list(job["endpoints"])
+        self.peer_tokens = tokens
+        self.peer_ranks = {t: r for r, t in enumerate(tokens)}
+        self.peer_keys = list(keys)
+        if self.credentials.curve:
+            self.gate.open(frozenset(self.peer_keys).__contains__)
+        self.n_domains = int(job.get("domains", 0))
+        early, self._early, self._early_bytes = self._early, [], 0
+        for frames in early:
+            self._take_peer(frames)
+
+    def _take_peer(self, frames: list) -> None:
+        """Check one peer message (``[token, header, frame, ...]``) and deliver it, or drop
+        it."""
+        if len(frames) < 2:
+            self.rejections.add("malformed", "no token or header frame")
+            return
+        if self.token is None:
+            size = sum(len(f) for f in frames)
+            if len(self._early) < 4096 and self._early_bytes + size <= EARLY_BUDGET:
+                self._early.append(frames)
+                self._early_bytes += size
+            else:
+                self.rejections.add("budget", "too many messages before the job")
+            return
+        sender = self.peer_ranks.get(frames[0].bytes)
+        if sender is None:
+            self.rejections.add("stranger", "a peer message without a token of this job")
+            return
+        if self.peer_keys and frames[0].get("User-Id").encode() != self.peer_keys[sender]:
+            self.rejections.add("impersonation", f"node {sender}'s token from another key")
+            return
+        try:
+            message = decode(frames[1:])
+            protocol.check(message, protocol.FROM_PEER)
+            if message.meta["rank"] != sender:
+                raise protocol.ProtocolError(f"node {sender} spoke for rank "
+                                             f"{message.meta['rank']}")
+            protocol.check_peer_kind(message, sender, self.rank, self.size)
+            if message.kind == protocol.RAYS:
+                protocol.check_ray_ids(message, self.n_domains)
+            if message.kind == protocol.FILM:
+                once = (sender, int(message.meta.get("ordinal", 0)))
+                if once in self.films_taken:
+                    raise protocol.ProtocolError(f"a second film from node {sender} for "
+                                                 f"unit {once[1]}")
+                self.films_taken.add(once)
+        except (CodecError, protocol.ProtocolError) as exc:
+            self.rejections.add("malformed", str(exc))
+            return
+        self._deliver(message)
+
+    def _deliver(self, message) -> None:
+        held = sum(box.nbytes for box in self.mailboxes.values())
+        if held + item_nbytes(message) > protocol.UNDELIVERED_BUDGET:
+            self.rejections.add("budget", f"{held} bytes already undelivered")
+            return
+        self.mailbox(message.kind).put_nowait(message)
+
+    async def watch_coordinator(self, silence: float) -> None:
+        """Exit the process once the coordinator has been silent for ``silence`` seconds: it
+        died or was cut off, and a node must not render on for nobody. (The render worker
+        thread cannot be cancelled, so this ends the process rather than the task.)
+
+        On a starved machine silence alone is no verdict: messages already waiting on the
+        socket mean this node's own loop is behind, and a coordinator that started this node
+        (its parent) and still uses CPU is slow, not lost (for up to ``BUSY_GRACE`` times
+        ``silence``)."""
+        parent_env = os.environ.get(protocol.PARENT_PID_ENV)
+        parent = None if parent_env is None else int(parent_env)
+        witness = CpuWitness(silence / 2)
+        while True:
+            await asyncio.sleep(0.25)
+            now = time.monotonic()
+            quiet = now - self.coordinator_heard
+            if quiet <= silence:
+                if parent is not None:
+                    witness.forget(parent)
+                continue
+            if quiet < BUSY_GRACE * silence and (
+                    self.coordinator.getsockopt(zmq.EVENTS) & zmq.POLLIN
+                    or (parent is not None and witness.busy(parent, now))):
+                # Its messages wait here unread (this node is the one behind), or the
+                # coordinator that started this node still works: slow, not lost.
+                continue
+            log.error("lost the coordinator (silent for %.1f s); exiting", quiet)
+            logging.shutdown()
+            os._exit(4)
+
+    async def watch_handshake(self, endpoint: str) -> None:
+        """Raise ``AuthenticationFailed`` if the coordinator refuses this node's CURVE
+        handshake (other keys); returns never otherwise."""
+        monitor = self.coordinator.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+        unclear = 0
+        try:
+            while True:
+                event = parse_monitor_message(await monitor.recv_multipart())
+                if event["event"] & (zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+                                     | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL):
+                    # A refusal (other mechanism, other keys) repeats on every reconnect; a
+                    # single one can also be a connection to a coordinator socket that is
+                    # closing (the last job's, after a regroup): wait for the repeat.
+                    unclear += 1
+                    log.info("handshake with %s failed (event %d), %d time(s)", endpoint,
+                             event["event"], unclear)
+                if event["event"] & zmq.EVENT_HANDSHAKE_FAILED_AUTH or unclear >= 3:
+                    raise AuthenticationFailed(
+                        f"authentication with the coordinator at {endpoint} failed: this "
+                        "node's key is not on its allow-list (KEYS/public), or its key is not "
+                        "the one in this node's KEYS/coordinator.pub, or one side has no keys")
+        finally:  # the socket may be closed already when the node stops on an error
+            if not self.coordinator.closed:
+                self.coordinator.disable_monitor()
+            monitor.close(linger=0)
+
+    async def receive(self, kind: str, what: str):
+        """The next message of ``kind``; fails after the node timeout."""
+        try:
+            return await asyncio.wait_for(self.mailbox(kind).get(), self.timeout)
+        except TimeoutError:
+            raise TimeoutError(f"no {what} within {self.timeout:.0f} s") from None
+
+    async def to_coordinator(self, frames: list) -> None:
+        """Send a message to the coordinator, behind the job token frame."""
+        await asyncio.wait_for(self.coordinator.send_multipart(
+            [self.token or b"", *frames], copy=False), self.timeout)
+
+    async def repeat_to_coordinator(self, frames: list) -> None:
+        """Send a message to the coordinator again every heartbeat, never waiting: a repeat
+        that finds the queue full (no coordinator yet) is skipped."""
+        while True:
+            await asyncio.sleep(protocol.HEARTBEAT_S)
+            try:
+                await self.coordinator.send_multipart([self.token or b"", *frames],
+                                                      flags=zmq.NOBLOCK, copy=False)
+            except zmq.Again:
+                pass
+
+    async def to_peer(self, rank: int, frames: list) -> None:
+        """Send a message to node ``rank``, behind the token this node shares with it."""
+        if rank not in self.peers:
+            self.peers[rank] = self._dealer(
+                self.endpoints[rank], self.peer_keys[rank] if self.peer_keys else None)
+        await asyncio.wait_for(self.peers[rank].send_multipart(
+            [self.peer_tokens[rank], *frames], copy=False), self.timeout)
+
+    def close(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for sock in [self.router, self.coordinator, *self.peers.values()]:
+            sock.close(linger=0)
