@@ -45,6 +45,7 @@ from vastray.actors.simplified_frames import finish_simplified, simplified_routi
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
+from vastray.schedule.dynamic import image_plane_start
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 
@@ -99,8 +100,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                    owner=owner, rank=rank)
             mine = interleaved_paths(len(ctx.pixel), rank, size)
-            if mode == "dynamic":  # rays stay where they are made until a round moves them
-                policy.owner = np.full(len(store.domains), rank)
+            if mode == "dynamic":
+                policy.owner = image_plane_start(len(store.domains), rank)
             node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":

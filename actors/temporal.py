@@ -74,9 +74,7 @@ class TemporalFrame(AsyncFrame):
                  size: int, tile: int, film, store, priority: str,
                  previous: plan.FrameStats | None, on_tile=None, base: int = 0,
                  status_label: int = 0, simple=None):
-        owner = np.where(assignment.owner >= 0, assignment.owner, rank)
-        if assignment.replicated is not None:  # the eye's domain: every node may load it
-            owner[assignment.replicated] = rank
+        owner = assignment.routes_from(rank)
         super().__init__(node, setup, settings, owner, rank, size, tile, film, on_tile,
                          base=base, status_label=status_label, simple=simple)
         self.assignment, self.previous = assignment, previous

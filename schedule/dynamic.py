@@ -14,6 +14,15 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
+
+def image_plane_start(n_domains: int, rank: int) -> np.ndarray:
+    """(D,) where node ``rank`` queues the rays it makes before the first round: all of them
+    stay with it (an image-plane start), whichever domain they wait for, until a round's
+    assignment moves them."""
+    return np.full(n_domains, rank)
+
 
 @dataclass(frozen=True)
 class Round:

@@ -61,3 +61,9 @@ def test_an_empty_round_says_finished():
 def test_one_waiting_ray_anywhere_is_not_finished():
     plan = POLICY.next_round({0: {}, 1: {"0": 1}}, {0: [], 1: []})
     assert plan == Round({0: 0}, finished=False)
+
+
+def test_rays_start_on_the_node_that_made_them():
+    from vastray.schedule.dynamic import image_plane_start
+
+    assert image_plane_start(4, 2).tolist() == [2, 2, 2, 2]

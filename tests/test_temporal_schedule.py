@@ -549,3 +549,13 @@ def test_best_and_victim():
     assert victim(p, [0, 2, 3, 4], {2}) == 3
     assert victim(p, [0, 1, 4, 5], {0}) == 1  # non-candidates go first, lower id
     assert victim(p, [4], {4}) is None
+
+
+def test_a_node_keeps_the_rays_of_the_replicated_and_of_empty_domains():
+    from vastray.schedule.temporal import Assignment
+
+    a = Assignment(owner=np.array([0, 1, -1, 1]), tiles=np.zeros((2, 4), np.int64),
+                   replicated=3)
+    assert a.routes_from(0).tolist() == [0, 1, 0, 0]
+    assert a.routes_from(1).tolist() == [0, 1, 1, 1]
+    assert a.owner.tolist() == [0, 1, -1, 1]  # the assignment itself is left as it was

@@ -61,6 +61,14 @@ class Assignment:
             local[self.replicated] = True
         return local
 
+    def routes_from(self, rank: int) -> np.ndarray:
+        """(D,) the node node ``rank`` sends each domain's rays to: the owner, except that it
+        keeps the rays of the replicated domain and of empty domains (no owner)."""
+        owner = np.where(np.asarray(self.owner) >= 0, self.owner, rank)
+        if self.replicated is not None:  # the eye's domain: every node may load it
+            owner[self.replicated] = rank
+        return owner
+
 
 def _overlap(tiles: np.ndarray, rects: np.ndarray) -> np.ndarray:
     """(n, D) float64 area of the intersection of tile i with rectangle d."""
