@@ -218,7 +218,10 @@ class DomainCache:
         try:
             bvh = self.load(domain_id)
             with self._lock:
+                # resident and no longer pending at once: between two locked steps the domain
+                # was both, and counted twice against the capacity (an extra eviction)
                 self._insert(domain_id, bvh)
+                self._pending.pop(domain_id, None)
                 self.stats.preloads += 1
         finally:
             with self._lock:

@@ -129,3 +129,27 @@ def test_victim_names_the_domain_a_load_would_evict(store):
     assert cache.victim() == ids[0]  # lowest priority first
     cache.get(ids[2])
     assert set(cache.resident()) == {ids[1], ids[2]}  # what victim() named went
+
+
+def test_a_finished_preload_counts_once_against_the_capacity(store):
+    # A preloaded domain must leave the pending set in the same step that makes it resident:
+    # in between, it counted twice against the capacity and another preload's room check
+    # evicted a domain it did not need to. Observed when the preload is counted.
+    from vastray.scene.cache import CacheStats
+
+    ids = nonempty(store)[:2]
+    cache = DomainCache(store, 2)
+    seen = []
+
+    class Watched(CacheStats):
+        def __setattr__(self, name, value):
+            if name == "preloads" and value:
+                seen.append((len(cache._resident), len(cache._pending)))
+            super().__setattr__(name, value)
+
+    cache.stats = Watched()
+    cache.get(ids[0])
+    cache.prefetch(ids[1])
+    cache.get(ids[1])  # waits for the preload
+    cache.close()
+    assert seen == [(2, 0)]
