@@ -37,10 +37,10 @@ import numpy as np
 
 from vastray.actors.async_frame import AsyncFrame
 from vastray.actors.job_options import JobOptions
-from vastray.actors.local import RenderSetup
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.node_work import NodeWork
 from vastray.actors.ray_post import traffic_counters
+from vastray.actors.render_setup import RenderSetup
 from vastray.actors.simplified_frames import finish_simplified, simplified_routing
 from vastray.render.driver import path_context
 from vastray.render.film import Film

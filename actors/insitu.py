@@ -14,9 +14,9 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.domain_loop import DomainLoop
 from vastray.actors.job_options import JobOptions
-from vastray.actors.local import RenderSetup
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import RayPost, traffic_counters
+from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult

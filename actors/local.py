@@ -1,5 +1,6 @@
-"""The node-local runtime: drives a schedule policy over tiles of paths with a domain cache
-and a preloader thread. The asyncio actor runtime will drive the same policies per node."""
+"""The out-of-core runtime of one process (and of each sort-first node): tiles of paths, each
+traced by the ``image`` or ``spec-ooc`` schedule through the one domain loop over a bounded
+domain cache with its preloading thread; passes merged as the progression asks."""
 
 from __future__ import annotations
 
@@ -7,74 +8,37 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
 from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
-from vastray.actors.job_options import JobOptions, JobOptionsError
+from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions, JobOptionsError
 from vastray.actors.preloader import DomainPreloader
+from vastray.actors.render_setup import RenderSetup
 from vastray.processes import peak_rss_bytes
-from vastray.render.camera import Camera
-from vastray.render.colormaps import scalar_map
 from vastray.render.driver import (
     RenderResult,
-    default_ao_distance,
     path_context,
     run_passes,
-    shading_inputs,
-    store_camera,
-    with_camera_clip,
 )
 from vastray.render.film import Film
 from vastray.render.integrators import (
     PathContext,
     PathResult,
     RenderSettings,
-    Shading,
     camera_rays,
 )
-from vastray.render.materials import ScalarMap
 from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
 from vastray.scene.store import Store
-from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import sort_first_tiles
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 log = logging.getLogger(__name__)
 
-SCHEDULERS = {"image": ImageSchedule, "spec-ooc": SpeculativeSchedule}
-
-
-@dataclass
-class RenderSetup:
-    """What every runtime derives from a store, scene and settings before tracing."""
-
-    shading: Shading
-    keep: frozenset[str]  # attributes loaded domains keep for shading
-    color_source: str | None
-    scalar_range: ScalarMap  # the scalars' range and colour table (``colormaps.scalar_map``)
-    camera: Camera
-    geometry: DomainGeometry
-    ao_distance: float
-    total_paths: int
-
-    @staticmethod
-    def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
-        shading, keep, color_source = shading_inputs(store, config, settings.integrator)
-        camera = store_camera(config, store, settings.width, settings.height)
-        shading = with_camera_clip(shading, store, camera)
-        lo, hi = store.domain_boxes()
-        nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
-        return RenderSetup(
-            shading, keep, color_source, scalar_map(store.scalar_range, settings.colormap), camera,
-            DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
-            settings.ao_distance or default_ao_distance(store),
-            settings.paths)
 
 
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
@@ -108,8 +72,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     """
     options = JobOptions() if options is None else options
     scheduler = options.scheduler
-    if scheduler not in SCHEDULERS:
-        raise JobOptionsError(f"the out-of-core runtime runs {' or '.join(SCHEDULERS)}, not "
+    if scheduler not in TILE_SCHEDULERS:
+        raise JobOptionsError(f"the out-of-core runtime runs {' or '.join(TILE_SCHEDULERS)}, not "
                               f"{scheduler!r} (the domain schedulers need --nodes N; the "
                               "in-core reference is vastray.render.driver.render)")
     if ablation is not None and scheduler != "spec-ooc":

@@ -80,7 +80,7 @@ def test_multi_tile_frames_give_the_reference_image(two_boxes, scheduler, integr
 def test_the_scene_puts_each_node_alone_in_some_tiles(two_boxes):
     """The premise above: some tiles' camera rays enter only node 1's domain, some only node
     0's, and the whole frame's enter both."""
-    from vastray.actors.local import RenderSetup
+    from vastray.actors.render_setup import RenderSetup
     from vastray.render.driver import path_context
     from vastray.render.integrators import camera_rays
 

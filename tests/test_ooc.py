@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from vastray.actors.job_options import JobOptions
-from vastray.actors.local import RenderSetup, render_out_of_core
+from vastray.actors.local import render_out_of_core
+from vastray.actors.render_setup import RenderSetup
 from vastray.cli import main
 from vastray.render.driver import path_context, render
 from vastray.render.integrators import camera_rays

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from vastray.actors.local import RenderSetup
+from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.integrators import camera_rays
 from vastray.render.scene_config import parse_scene_config

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vastray.actors.local import RenderSetup
+from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
 from vastray.scene.bvh import DomainBVH
 from vastray.schedule.ownership import interleaved_paths, zorder_owners

@@ -1,0 +1,49 @@
+"""What every runtime derives from a store, a scene and the render settings before it traces:
+shading inputs, the camera, the domain boxes, the AO distance and the number of paths."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vastray.render.camera import Camera
+from vastray.render.colormaps import scalar_map
+from vastray.render.driver import (
+    default_ao_distance,
+    shading_inputs,
+    store_camera,
+    with_camera_clip,
+)
+from vastray.render.integrators import RenderSettings, Shading
+from vastray.render.materials import ScalarMap
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.store import Store
+from vastray.schedule.geometry import DomainGeometry
+
+
+@dataclass
+class RenderSetup:
+    """What every runtime derives from a store, scene and settings before tracing."""
+
+    shading: Shading
+    keep: frozenset[str]  # attributes loaded domains keep for shading
+    color_source: str | None
+    scalar_range: ScalarMap  # the scalars' range and colour table (``colormaps.scalar_map``)
+    camera: Camera
+    geometry: DomainGeometry
+    ao_distance: float
+    total_paths: int
+
+    @staticmethod
+    def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
+        shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+        camera = store_camera(config, store, settings.width, settings.height)
+        shading = with_camera_clip(shading, store, camera)
+        lo, hi = store.domain_boxes()
+        nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
+        return RenderSetup(
+            shading, keep, color_source, scalar_map(store.scalar_range, settings.colormap), camera,
+            DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
+            settings.ao_distance or default_ao_distance(store),
+            settings.paths)
