@@ -140,8 +140,9 @@ class AsyncFrame:
 
     def trace(self, domain: int, bvh) -> int:
         """Trace the domain's rays of every tile that has rays for it."""
-        return sum(traced_queries(policy, domain, bvh) for policy in self.policies.values()
-                   if policy.radiance.count(domain) or policy.shadow.count(domain))
+        waiting = [policy for policy in self.policies.values()
+                   if policy.radiance.count(domain) or policy.shadow.count(domain)]
+        return sum(traced_queries(policy, domain, bvh) for policy in waiting)
 
     async def step(self) -> bool:
         """Trace the chosen local domain for every tile that has rays for it, then ship;
@@ -183,7 +184,7 @@ class AsyncFrame:
             self.retire_idle()
             if self.next_tile < self.n_tiles:
                 continue
-            await self.node._status(self.status_label, probe=None)
+            await self.node.report_status(self.status_label, probe=None)
             start = time.perf_counter()
             getters = {asyncio.ensure_future(inbox.get()): "rays",
                        asyncio.ensure_future(control.get()): "control"}
@@ -202,7 +203,7 @@ class AsyncFrame:
                 elif message.meta.get("finished"):
                     finished = True
                 else:
-                    await self.node._status(self.status_label, probe=message.meta["probe"])
+                    await self.node.report_status(self.status_label, probe=message.meta["probe"])
             if finished:
                 if self.policies:
                     raise RuntimeError("the frame ended with rays still waiting here")
