@@ -7,10 +7,12 @@ Which domain comes next is the schedule's decision (an object of ``schedule/``, 
 runtime (one process out of core, the domain-decomposition nodes, the asynchronous and
 temporal frames, the in-situ nodes) reports the same spans under the same names:
 
+- ``schedule_s`` (here): time the schedule spent deciding (``next_domain``, which for
+  spec-ooc filters the domain's queues, and ``likely_next``);
 - ``load_wait_s`` (the preloader's counter): time a render worker waited for a domain's load,
   what preloading did not hide;
 - ``trace_s`` (here): time spent tracing and shading the rays of activated domains, nothing
-  else (no load, no send).
+  else (no decision, no load, no send).
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ class Activation:
 
     domain: int
     load_count: int  # times the domain had been loaded when it was traced (preloads included)
+    schedule_s: float  # the schedule choosing it and guessing the next
     wait_s: float  # waiting for the domain (its load, or a preload in flight)
     trace_s: float  # tracing and shading its rays
     queries: int  # ray queries made
@@ -57,13 +60,14 @@ class DomainLoop:
     Parameters
     ----------
     preloader : the node's domain cache with its loading thread.
-    stats : the counters of the node's report; ``trace_s`` is added to.
+    stats : the counters of the node's report; ``schedule_s`` and ``trace_s`` are added to.
     offload : trace on a worker thread, so the event loop keeps routing messages meanwhile
         (the nodes); False traces on the calling thread (one process, nothing else to serve).
     """
 
     def __init__(self, preloader: DomainPreloader, stats: dict, offload: bool = True):
         self.preloader, self.stats, self.offload = preloader, stats, offload
+        stats.setdefault("schedule_s", 0.0)
         stats.setdefault("trace_s", 0.0)
         #: (domain, its load number) of loads followed by at least one ray query, and the
         #: domains any ray was traced against (each must be loaded at least once: the floor).
@@ -75,21 +79,26 @@ class DomainLoop:
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:
         """Activate ``order``'s next domain and ship what tracing it sent on; None when the
         order has no domain left."""
-        domain = order.next_domain()
-        if domain is None:
-            return None
         start = time.perf_counter()
+        domain = order.next_domain()
+        chosen = time.perf_counter()
+        if domain is None:
+            self.stats["schedule_s"] += chosen - start
+            return None
         bvh = await self.preloader.get(domain)
+        loaded = time.perf_counter()
         if self.preloader.enabled:
             self.preloader.preload(order.likely_next(domain))
-        loaded = time.perf_counter()
+        guessed = time.perf_counter()
         if self.offload:
             queries = await asyncio.to_thread(order.trace, domain, bvh)
         else:
             queries = order.trace(domain, bvh)
         done = time.perf_counter()
-        activation = Activation(domain, self.preloader.load_count(domain), loaded - start,
-                                done - loaded, queries)
+        activation = Activation(domain, self.preloader.load_count(domain),
+                                (chosen - start) + (guessed - loaded), loaded - chosen,
+                                done - guessed, queries)
+        self.stats["schedule_s"] += activation.schedule_s
         self.stats["trace_s"] += activation.trace_s
         self.activations += 1
         if queries:

@@ -159,6 +159,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     for name in ("radiance_tests", "shadow_tests", "shade_s"):  # a share of no tiles
         counters.setdefault(name, 0)
     render_seconds = counters.pop("trace_s")
+    schedule_seconds = counters.pop("schedule_s")
     counters.update({
         "scheduler": scheduler,
         "domains": len(store.domains),
@@ -177,6 +178,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "load": round(stats.load_seconds, 4),
         "load_wait": round(stats.wait_seconds, 4),
         "render": round(render_seconds, 4),
+        "schedule": round(schedule_seconds, 4),
     }
     return RenderResult(film, setup.camera, seconds, counters)
 

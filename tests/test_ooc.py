@@ -346,3 +346,14 @@ def test_load_bandwidth_throttles_every_load_of_the_out_of_core_schedules(bumpy,
     assert c["load_throttle_s"] >= 0.5 * floor  # a 50 KB read takes far less than 10 ms
     assert slowed.seconds["total"] >= floor * 0.9
     np.testing.assert_array_equal(slowed.film.image(), free.film.image())
+
+
+def test_the_report_times_the_schedules_decisions_apart_from_tracing(bumpy, config):
+    # spec-ooc filters a domain's queues when it picks it: that work is the schedule's, timed
+    # for both schedules the same way (seconds.schedule), beside the tracing (seconds.render).
+    st = settings(width=24, height=18, spp=2, integrator="pt", bounces=3)
+    for scheduler in ("image", "spec-ooc"):
+        seconds = render_out_of_core(bumpy, config, st, options=JobOptions(
+            scheduler=scheduler, cache=4), progress=False).seconds
+        assert seconds["schedule"] > 0 and seconds["render"] > 0, scheduler
+        assert seconds["schedule"] + seconds["render"] + seconds["load_wait"] <= seconds["total"]
