@@ -21,8 +21,8 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult
 from vastray.schedule.ownership import interleaved_paths, zorder_owners
-from vastray.schedule.soa import SoA
-from vastray.schedule.spec_insitu import InSituSchedule, joined_copies
+from vastray.schedule.soa import SoA, join_bound
+from vastray.schedule.spec_insitu import InSituSchedule
 
 
 async def render_spec_insitu(management, tree, options: JobOptions, rank: int, size: int,
@@ -126,5 +126,5 @@ class _InSitu:
                 arrays = {k: np.array(v) for k, v in message.arrays.items()}
                 dom = arrays.pop("domain")
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
-        return joined_copies(incoming["radiance"]), joined_copies(incoming["shadow"])
+        return join_bound(incoming["radiance"]), join_bound(incoming["shadow"])
 

@@ -13,7 +13,7 @@ from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder, tra
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
-from vastray.schedule.soa import SoA
+from vastray.schedule.soa import SoA, join_bound
 from vastray.transport.codec import encode
 
 
@@ -127,8 +127,8 @@ class NodeWork:
                 for name, queues in (("radiance", policy.radiance), ("shadow", policy.shadow)):
                     parts = [(d, queues.pop(d)) for d, p in assign.items() if p == node]
                     parts = [(np.full(len(r), d), r) for d, r in parts if r is not None]
-                    await self.post.send(node, name, {"tile": self.tile},
-                                         *joined_parts(parts))
+                    batch = join_bound(parts)  # None: an empty batch
+                    await self.post.send(node, name, {"tile": self.tile}, *(batch or ()))
             for _ in range(2 * (plan.meta["size"] - 1)):
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
@@ -142,10 +142,3 @@ class NodeWork:
         await self.management.to_coordinator(encode(protocol.STATUS, {}, {
             "rank": self.rank, "tile": tile, "probe": probe,
             "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))
-
-
-def joined_parts(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | tuple[()]:
-    """(domains, rays) of ``parts`` joined, or () for none (an empty batch)."""
-    if not parts:
-        return ()
-    return np.concatenate([d for d, _ in parts]), SoA.concat([r for _, r in parts])

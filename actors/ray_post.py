@@ -9,7 +9,7 @@ import numpy as np
 
 from vastray.actors import protocol
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
-from vastray.schedule.soa import SoA
+from vastray.schedule.soa import SoA, join_bound
 from vastray.transport.codec import encode
 
 
@@ -59,8 +59,7 @@ class RayPost:
         """Send a schedule's outbox ((queue, node) -> [(domains, rays)]), the rays for one
         destination coalesced into batches of at most ``max_batch`` rays."""
         for (queue, node), parts in outbox.items():
-            domains = np.concatenate([d for d, _ in parts])
-            rays = SoA.concat([r for _, r in parts])
+            domains, rays = join_bound(parts)
             for first in range(0, len(domains), self.max_batch):
                 rows = np.arange(first, min(first + self.max_batch, len(domains)))
                 await self.send(node, queue, meta, domains[rows], rays.take(rows))

@@ -57,6 +57,14 @@ class SoA:
                              for k in parts[0].fields})
 
 
+def join_bound(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | None:
+    """Parts of rays bound for domains, ``(domains (m_i,), rays (m_i rows))``, joined into one
+    ``(domains (m,), rays (m rows))``; None for no parts."""
+    if not parts:
+        return None
+    return np.concatenate([d for d, _ in parts]), SoA.concat([r for _, r in parts])
+
+
 class DomainQueues:
     """One queue of rays per domain; a ray set is pushed split by destination domain.
 

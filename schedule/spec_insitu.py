@@ -290,13 +290,6 @@ def _no_radiance() -> RadianceRays:
                         np.zeros((0, 3), np.float32), np.zeros((0, 3)))
 
 
-def joined_copies(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | None:
-    """(domains, copies) of ``parts`` joined into one, or None for no parts."""
-    if not parts:
-        return None
-    return (np.concatenate([d for d, _ in parts]), SoA.concat([r for _, r in parts]))
-
-
 def _radiance_for(ray_of_path: dict, paths: np.ndarray) -> RadianceRays:
     """The radiance ray of each of ``paths`` (from this node's own rays or received copies)."""
     sources = [s for s in (ray_of_path.get("own"), ray_of_path.get("in")) if s is not None]

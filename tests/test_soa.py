@@ -55,3 +55,13 @@ def test_nbytes_counts_each_held_block_once_until_its_last_run_is_popped():
         assert queues.nbytes() == rays.nbytes()  # domain 3 still holds the block
     queues.pop(3)
     assert queues.nbytes() == 0
+
+
+def test_join_bound_joins_domains_and_rays_in_order_and_says_none_for_nothing():
+    from vastray.schedule.soa import join_bound
+
+    parts = [(np.array([3, 1]), SoA(path=np.array([10, 11]))),
+             (np.array([2]), SoA(path=np.array([12])))]
+    domains, rays = join_bound(parts)
+    assert domains.tolist() == [3, 1, 2] and rays["path"].tolist() == [10, 11, 12]
+    assert join_bound([]) is None
