@@ -73,7 +73,6 @@ class DomainLoop:
         #: domains any ray was traced against (each must be loaded at least once: the floor).
         self.productive_loads: set[tuple[int, int]] = set()
         self.traced_domains: set[int] = set()
-        self.activations = 0
 
     async def step(self, order: DomainOrder,
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:
@@ -100,7 +99,6 @@ class DomainLoop:
                                 done - guessed, queries)
         self.stats["schedule_s"] += activation.schedule_s
         self.stats["trace_s"] += activation.trace_s
-        self.activations += 1
         if queries:
             self.traced_domains.add(domain)
             self.productive_loads.add((domain, activation.load_count))

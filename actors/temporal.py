@@ -109,16 +109,13 @@ class TemporalFrame(AsyncFrame):
     def choose(self, waiting: np.ndarray) -> tuple[int, int | None]:
         """The policy's choice (``TemporalChoice.choose``) for what this node holds now; the
         cache is handed the priorities and protected set it evicts by."""
-        cache = None
+        cache = plan.CacheView(self.preloader.resident(), self.preloader.capacity)
         n_cur = np.zeros(len(waiting))  # N_CUR: loads since the frame began
-        if self.preloader is not None:
-            cache = plan.CacheView(self.preloader.resident(), self.preloader.capacity)
-            for d, count in self.preloader.loads_per_domain().items():
-                n_cur[d] = count - self.loads_before.get(d, 0)
+        for d, count in self.preloader.loads_per_domain().items():
+            n_cur[d] = count - self.loads_before.get(d, 0)
         score = self._traversal_score() if self.plan.needs_traversal_score else None
         choice = self.plan.choose(waiting, cache, n_cur, self.arrived, score)
-        if self.preloader is not None:
-            self.preloader.prioritise(choice.priorities, choice.protect)
+        self.preloader.prioritise(choice.priorities, choice.protect)
         return choice.active, choice.preload
 
     def _traversal_score(self) -> np.ndarray:
