@@ -283,7 +283,7 @@ def test_cli_cache_percentage_and_report(bumpy, tmp_path, capsys):
     assert doc["scheduler"] == "spec-ooc"  # auto picks speculation when domains do not fit
     assert doc["counters"]["cache_capacity"] == 7  # ceil(25% of 27)
     assert doc["counters"]["max_samples_in_flight"] == 24 * 18
-    for key in ("load", "render", "total"):
+    for key in ("load", "render", "schedule", "total"):
         assert doc["seconds"][key] >= 0
     image = tmp_path / "image.exr"  # the baseline schedule's summary as well
     assert main(["render", str(bumpy.path), "-o", str(image), "--cache", "25%", *small,

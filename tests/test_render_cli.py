@@ -186,3 +186,30 @@ def test_first_render_after_install_says_it_compiles(store, tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "compiling kernels (first run only)" in run.stderr
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "dynamic", "async",
+                                       "temporal", "spec-insitu"])
+def test_every_node_scheduler_from_the_cli_as_a_user_runs_it(store, tmp_path, capsys,
+                                                              scheduler):
+    # No --quiet: the progress bar and the summary line are printed (a crash there once hid
+    # behind --quiet). Each node's report carries the domain loop's spans, named the same for
+    # every scheduler that activates domains (spec-insitu traces its resident domains in its
+    # own iterations: only its loads go through the loop).
+    out, report = tmp_path / "o.exr", tmp_path / "r.json"
+    small = [a for a in SMALL if a != "--quiet"]
+    assert main(["render", str(store.path), "-o", str(out), *small, "--nodes", "2",
+                 "--scheduler", scheduler, "--report", str(report)]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"wrote {out}") and "domain loads" in last, last
+    doc = json.loads(report.read_text())
+    assert doc["scheduler"] == scheduler and doc["counters"]["nodes"] == 2
+    nodes = [node["counters"] for node in doc["counters"]["per_node"]]
+    if scheduler == "spec-insitu":
+        assert not any("trace_s" in c for c in nodes)
+        assert sum(c["bytes_sent"] for c in nodes) > 0
+    elif scheduler in ("image", "spec-ooc"):  # the one-process runtime on each node
+        assert sum(c["radiance_tests"] for c in nodes) > 0
+    else:
+        assert sum(c["trace_s"] for c in nodes) > 0 and sum(c["schedule_s"] for c in nodes) > 0
+        assert sum(c["bytes_sent"] for c in nodes) > 0  # rays moved between the nodes
