@@ -96,7 +96,8 @@ class _InSitu:
         and one shadow batch per peer, empty or not); returns the copies for this node's
         domains, its own and the peers'."""
         incoming = {"radiance": [], "shadow": []}
-        for name, (dom, copies) in schedule.speculative_copies().items():
+        for name, copies in schedule.speculative_copies().items():
+            dom = copies.domain
             dest = self.owner[dom]
             mine = dest == self.rank
             if mine.any():

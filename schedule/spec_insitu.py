@@ -21,6 +21,7 @@ In every iteration a node:
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -45,6 +46,20 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
     slot = np.empty(len(path), np.int64)
     slot[order] = np.arange(len(path)) - first
     return slot
+
+
+@dataclass(frozen=True)
+class Copies:
+    """Rays queued speculatively into domains, without copying them yet: copy i is ray
+    ``ray[i]`` of ``rays`` queued into domain ``domain[i]`` (``rays`` None: no copies)."""
+
+    domain: np.ndarray  # (m,) int
+    ray: np.ndarray  # (m,) int rows of ``rays``
+    rays: SoA | None
+
+    def take(self, rows: np.ndarray) -> SoA:
+        """The copies ``rows`` as rays (one gather from the source rays)."""
+        return self.rays.take(self.ray[rows])
 
 
 class InSituSchedule:
@@ -84,9 +99,9 @@ class InSituSchedule:
         settings = self.ctx.settings
         return settings.bounces + 2 if settings.integrator == "pt" else 2
 
-    def speculative_copies(self) -> dict[str, tuple[np.ndarray, SoA]]:
+    def speculative_copies(self) -> dict[str, Copies]:
         """Every ray queued into every domain it crosses (before its cached hit), as
-        {"radiance" | "shadow": (domains (m,), copies (m rows))}: a radiance ray already traced
+        {"radiance" | "shadow": ``Copies``}: a radiance ray already traced
         against this node's domains is not queued into them again, and a shadow ray made here
         was tested against them when it was made."""
         copies = {}
@@ -97,14 +112,14 @@ class InSituSchedule:
                                                      rays["cand_t"])
             keep = ~(rays["local_done"][ray] & self.is_local[dom])
             ray, dom = ray[keep], dom[keep]
-        copies["radiance"] = (dom, rays.take(ray))
+        copies["radiance"] = Copies(dom, ray, rays)
         ray = dom = np.zeros(0, np.int64)
         if shadows is not None and len(shadows):
             ray, dom, _, _ = self.geometry.crossings(shadows["origin"], shadows["direction"],
                                                      shadows["t_max"])
             keep = ~self.is_local[dom]
             ray, dom = ray[keep], dom[keep]
-        copies["shadow"] = (dom, shadows.take(ray) if shadows is not None else None)
+        copies["shadow"] = Copies(dom, ray, shadows)
         return copies
 
     def trace_locally(self, rad_in, shadow_in) -> tuple[np.ndarray, np.ndarray]:

@@ -52,7 +52,8 @@ def schedule_of(node, stats):
 def test_camera_rays_are_copied_into_every_domain_they_cross(node):
     setup = node[0]
     schedule = schedule_of(node, {})
-    dom, copies = schedule.speculative_copies()["radiance"]
+    radiance = schedule.speculative_copies()["radiance"]
+    dom, copies = radiance.domain, radiance.take(np.arange(len(radiance.domain)))
     assert len(dom) > len(schedule.rays)  # speculation: rays go to several domains at once
     # every copy's domain is one its ray crosses (no hit known yet: the whole ray)
     ray, crossed, _, _ = setup.geometry.crossings(schedule.rays["origin"],
@@ -60,7 +61,7 @@ def test_camera_rays_are_copied_into_every_domain_they_cross(node):
                                                   schedule.rays["cand_t"])
     pairs = set(zip(schedule.rays["path"][ray].tolist(), crossed.tolist(), strict=True))
     assert set(zip(copies["path"].tolist(), dom.tolist(), strict=True)) == pairs
-    assert schedule.speculative_copies()["shadow"][0].size == 0  # none before the first hits
+    assert schedule.speculative_copies()["shadow"].domain.size == 0  # none before first hits
 
 
 def first_iteration(node):
@@ -69,9 +70,9 @@ def first_iteration(node):
     stats = {"shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
              "intersection_cache_hits": 0}
     schedule = schedule_of(node, stats)
-    dom, copies = schedule.speculative_copies()["radiance"]
-    here = np.isin(dom, list(node[3]))
-    keys, obuf = schedule.trace_locally((dom[here], copies.take(np.nonzero(here)[0])), None)
+    copies = schedule.speculative_copies()["radiance"]
+    here = np.nonzero(np.isin(copies.domain, list(node[3])))[0]
+    keys, obuf = schedule.trace_locally((copies.domain[here], copies.take(here)), None)
     return schedule, stats, keys, obuf
 
 
