@@ -73,6 +73,9 @@ class DomainLoop:
         #: domains any ray was traced against (each must be loaded at least once: the floor).
         self.productive_loads: set[tuple[int, int]] = set()
         self.traced_domains: set[int] = set()
+        #: every activated domain in order: the access sequence whose optimal load count
+        #: (``schedule.belady``) the report gives beside the loads made.
+        self.sequence: list[int] = []
 
     async def step(self, order: DomainOrder,
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:
@@ -84,6 +87,7 @@ class DomainLoop:
         if domain is None:
             self.stats["schedule_s"] += chosen - start
             return None
+        self.sequence.append(domain)
         bvh = await self.preloader.get(domain)
         loaded = time.perf_counter()
         if self.preloader.enabled:
@@ -139,21 +143,33 @@ class ScheduleOrder:
         hands it an empty set (the ``domain`` nodes' rounds, which own their domains).
     evicting : hand the schedule the cache's next eviction victim (spec-ooc's
         ``serve_before_evict``).
+    by_demand : evict the resident domain the schedule's queued rays need least
+        (``policy.demand()``), never the chosen domain or the guessed next one; False: the
+        least recently used.
     """
 
     def __init__(self, policy, preloader: DomainPreloader, resident_aware: bool = True,
-                 evicting: bool = False):
+                 evicting: bool = False, by_demand: bool = False):
         self.policy, self.preloader = policy, preloader
-        self.resident_aware, self.evicting = resident_aware, evicting
+        self.resident_aware, self.evicting, self.by_demand = resident_aware, evicting, by_demand
 
     def next_domain(self) -> int | None:
+        if self.by_demand:  # before the choice: spec-ooc's serve_before_evict asks the victim
+            self.preloader.prioritise(self.policy.demand())
         resident = self.preloader.resident() if self.resident_aware else frozenset()
         if self.evicting:
-            return self.policy.next_domain(resident, victim=self.preloader.victim)
-        return self.policy.next_domain(resident)
+            domain = self.policy.next_domain(resident, victim=self.preloader.victim)
+        else:
+            domain = self.policy.next_domain(resident)
+        if self.by_demand and domain is not None:
+            self.preloader.prioritise(self.policy.demand(), protect=(domain,))
+        return domain
 
     def likely_next(self, current: int) -> int | None:
-        return self.policy.likely_next(current)
+        guess = self.policy.likely_next(current)
+        if self.by_demand and guess is not None:
+            self.preloader.prioritise(self.policy.demand(), protect=(current, guess))
+        return guess
 
     def trace(self, domain: int, bvh) -> int:
         return traced_queries(self.policy, domain, bvh)

@@ -24,7 +24,7 @@ RESIDENT_FIRST_SCHEDULERS = ("image", "spec-ooc", "async")
 BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 
 #: The wire layout's version: a node refuses a job whose options carry another.
-VERSION = 1
+VERSION = 2  # 2: cold_reads, eviction
 
 #: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
 #: (one process, or sort-first tiles on every node), and those that distribute domains over
@@ -36,6 +36,7 @@ SCHEDULERS = IN_CORE_SCHEDULERS + TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 ASSIGNMENTS = ("sequential", "spatial", "temporal")
+EVICTIONS = ("lru", "demand")
 PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 
 DEFAULT_PORTAL_RESOLUTION = DEFAULT_RESOLUTION  # the paper's
@@ -76,6 +77,13 @@ class JobOptions:
     load_bandwidth : MB/s of emulated network storage: a domain load takes at least its size
         over this; one number for every process or one per rank, cycled
         (``load_bytes_per_second``); None: the disk's own speed.
+    eviction : which resident domain a load evicts in the out-of-core runtime
+        (``local.render_out_of_core``): ``lru``, the least recently used, or ``demand``, the
+        one the schedule's queued rays need least (an approximation of Belady's rule; the
+        same rule for both tile schedules).
+    cold_reads : read each domain's files whole and have the kernel drop their pages
+        (``posix_fadvise(POSIX_FADV_DONTNEED)``), so every reload after an eviction is a read
+        from the disk, not from the page cache (the domain cache, ``scene.cache``).
     simplified : the simplified-model policy of ``schedule.simplified`` (async, temporal);
         None: off (``simplified_frames.simplified_routing``).
     portal_interval, portal_threshold, portal_resolution, portal_accuracy : the virtual
@@ -101,6 +109,8 @@ class JobOptions:
     preload: bool = True
     resident_first: bool = True
     load_bandwidth: tuple[float, ...] | None = None
+    cold_reads: bool = False
+    eviction: str = "lru"
     simplified: str | None = None
     portal_interval: int = 10
     portal_threshold: float = 0.5
@@ -153,9 +163,10 @@ class JobOptions:
             raise JobOptionsError(f"--load-bandwidth must be positive MB/s, got "
                                   f"{list(self.load_bandwidth)}")
         if self.scheduler == "reference" and (self.max_samples_in_flight is not None
-                                              or not self.preload):
-            raise JobOptionsError("--max-samples-in-flight and --no-preload apply to the "
-                                  "out-of-core schedulers, not to the in-core reference render")
+                                              or not self.preload or self.cold_reads):
+            raise JobOptionsError("--max-samples-in-flight, --no-preload and --cold-reads apply "
+                                  "to the out-of-core schedulers, not to the in-core reference "
+                                  "render (it loads each domain once)")
         if not self.resident_first and self.scheduler not in RESIDENT_FIRST_SCHEDULERS:
             raise JobOptionsError(f"resident_first chooses among domains in memory in the "
                                   f"{', '.join(RESIDENT_FIRST_SCHEDULERS)} schedules; "
@@ -165,6 +176,13 @@ class JobOptions:
             raise JobOptionsError(f"max_batch_rays bounds the ray batches nodes send each other "
                                   f"({', '.join(BATCHING_SCHEDULERS)}); --scheduler "
                                   f"{self.scheduler} sends none")
+        if self.eviction not in EVICTIONS:
+            raise JobOptionsError(f"unknown --eviction {self.eviction!r}; choose from "
+                                  f"{', '.join(EVICTIONS)}")
+        if self.eviction != "lru" and self.scheduler not in TILE_SCHEDULERS:
+            raise JobOptionsError(f"--eviction chooses what the {' and '.join(TILE_SCHEDULERS)} "
+                                  f"schedules evict; --scheduler {self.scheduler} has its own "
+                                  "rule (drop --eviction)")
         if self.history_depth is not None and self.scheduler != "spec-ooc":
             raise JobOptionsError(f"--history-depth bounds spec-ooc's speculation; --scheduler "
                                   f"{self.scheduler} does not speculate (drop it or use "
@@ -246,7 +264,7 @@ _INT, _FLOAT = (int,), (int, float)
 _TYPES = {
     "scheduler": str, "cache": _INT, "max_samples_in_flight": _INT, "history_depth": _INT,
     "max_batch_rays": _INT, "threads": _INT, "preload": bool, "resident_first": bool,
-    "load_bandwidth": tuple, "simplified": str, "portal_interval": _INT,
+    "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str, "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
     "assignment": str, "priority": str,
 }

@@ -15,7 +15,7 @@ from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
 from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions, JobOptionsError
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.render_setup import RenderSetup
-from vastray.processes import peak_rss_bytes
+from vastray.processes import disk_read_bytes, peak_rss_bytes
 from vastray.render.driver import (
     RenderResult,
     path_context,
@@ -33,6 +33,7 @@ from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
 from vastray.scene.store import Store
+from vastray.schedule.belady import belady_loads
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import sort_first_tiles
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
@@ -42,8 +43,8 @@ log = logging.getLogger(__name__)
 
 
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
-                       options: JobOptions | None = None, *, drop_page_cache: bool = False,
-                       progress: bool = True, share: tuple[int, int] = (0, 1),
+                       options: JobOptions | None = None, *, progress: bool = True,
+                       share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
                        ablation: SpeculationRules | None = None,
                        progression: Progression | None = None) -> RenderResult:
@@ -61,8 +62,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         serve domains in memory before loading others; False is the papers' order, SpRay
         Listings 1 and 2), ``threads`` (threads every Embree query splits its rays over) and
         ``load_bandwidth`` (emulated storage: every load takes at least its size over the
-        bandwidth of rank ``share[0]``).
-    drop_page_cache : make each domain load a real read from disk.
+        bandwidth of rank ``share[0]``) and ``cold_reads`` (every load a real disk read).
     share : (k, n): render only tiles k, k + n, k + 2n, ... (sort-first split over n nodes).
     on_tile : called with the number of paths after each finished tile (progress reports).
     ablation : spec-ooc's own rules switched off (``SpeculationRules``), for ablations;
@@ -79,12 +79,13 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     if ablation is not None and scheduler != "spec-ooc":
         raise JobOptionsError(f"the ablation {ablation} is of spec-ooc's rules, not {scheduler}'s")
     start = time.perf_counter()
+    read_before = disk_read_bytes()
     setup = RenderSetup.of(store, config, settings)
     capacity = options.cache or max(len(store.domains), 1)
     pool = query_pool(options.threads)
     bandwidth = options.load_bytes_per_second(share[0])
     preloader = DomainPreloader(store, capacity, setup.keep, pool=pool, load_bandwidth=bandwidth,
-                                preload=options.preload, drop_page_cache=drop_page_cache)
+                                preload=options.preload, drop_page_cache=options.cold_reads)
     counters: dict = {}
     loop = DomainLoop(preloader, counters, offload=False)  # nothing else to serve meanwhile
     tile_limit = options.max_samples_in_flight
@@ -106,8 +107,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         """Trace the paths of ``ctx`` through the domains in the schedule's order."""
         policy = schedule_of(ctx)
         policy.start(camera_rays(setup.camera, ctx))
-        runner.run(loop.run(ScheduleOrder(policy, preloader,
-                                          evicting=scheduler == "spec-ooc")))
+        runner.run(loop.run(ScheduleOrder(policy, preloader, evicting=scheduler == "spec-ooc",
+                                          by_demand=options.eviction == "demand")))
         _merge(counters, policy.counters)
         bar.update(len(ctx.pixel))
         if on_tile is not None:
@@ -171,7 +172,12 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,
         **stats.as_dict(),
         "untraced_loads": stats.loads - len(loop.productive_loads),
+        "activations": len(loop.sequence),
+        "belady_loads": belady_loads(loop.sequence, capacity),
         "peak_rss_bytes": peak_rss_bytes(),
+        # what storage delivered (the page cache's share not counted): with cold_reads about
+        # bytes_loaded; None where the kernel does not say
+        "disk_read_bytes": None if read_before is None else disk_read_bytes() - read_before,
     })
     seconds = {
         "total": round(wall, 4),

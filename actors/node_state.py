@@ -48,7 +48,8 @@ class NodeState:
             self.pool = query_pool(options.threads)
             self.preloader = DomainPreloader(
                 store, capacity, keep, pool=self.pool,
-                load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload)
+                load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
+                drop_page_cache=options.cold_reads)
         return self.preloader
 
     def threads(self) -> int:

@@ -92,8 +92,9 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings,
                                 options=JobOptions(scheduler=scheduler, cache=cache,
-                                                   history_depth=history_depth, **switches),
-                                drop_page_cache=True, progress=False, ablation=ablation)
+                                                   history_depth=history_depth, cold_reads=True,
+                                                   **switches),
+                                progress=False, ablation=ablation)
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],

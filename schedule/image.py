@@ -121,6 +121,11 @@ class ImageSchedule:
             return None
         return fullest(waiting, self._resident if self.resident_first else ())
 
+    def demand(self) -> np.ndarray:
+        """(D,) int64 rays waiting for each domain: what eviction by demand keeps (the
+        domain with the fewest is evicted first)."""
+        return self.radiance.counts() + self.shadow.counts()
+
     def process(self, domain: int, bvh) -> None:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""
         rays = self.radiance.pop(domain)

@@ -185,6 +185,11 @@ class SpeculativeSchedule:
                 return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
+    def demand(self) -> np.ndarray:
+        """(D,) int64 rays queued for each domain, speculative copies included (a ray counts
+        in every domain its path enters): what eviction by demand keeps."""
+        return self.radiance.counts() + self.shadow.counts()
+
     def process(self, domain: int, bvh) -> None:
         """Trace the domain's filtered rays (Listing 2, lines 20-22)."""
         if self._staged is not None and self._staged[0] != domain:

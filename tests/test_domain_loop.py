@@ -174,3 +174,30 @@ def test_sort_first_tiles_deal_the_image_plane_round_robin():
     assert list(sort_first_tiles(10, 3, 0, 2)) == [0, 6]  # tiles 0 and 2 of 0, 3, 6, 9
     assert list(sort_first_tiles(10, 3, 1, 2)) == [3, 9]
     assert list(sort_first_tiles(4, 8, 1, 2)) == []  # one tile: the other node has none
+
+
+class DemandSchedule(FakeSchedule):
+    """Picks the given domains in turn; its queued rays (``demand``) are set by the test."""
+
+    def __init__(self, order: list[int], n_domains: int):
+        super().__init__()
+        self.order, self.waiting = list(order), np.zeros(n_domains, np.int64)
+
+    def next_domain(self, resident, victim=None):
+        return self.order.pop(0) if self.order else None
+
+    def demand(self):
+        return self.waiting.copy()
+
+
+@pytest.mark.parametrize("by_demand", [False, True])
+def test_eviction_by_demand_keeps_the_domain_queued_rays_need(store, preloader, by_demand):
+    a, b, c = nonempty(store)[:3]
+    policy = DemandSchedule([a, b, c], len(store.domains))
+    policy.waiting[a] = 5  # rays still wait for a, none for b: b is the one to lose
+    loop = DomainLoop(preloader, {}, offload=False)
+    order = ScheduleOrder(policy, preloader, by_demand=by_demand)
+    asyncio.run(loop.run(order))
+    assert loop.sequence == [a, b, c]  # the access sequence, for the Belady count
+    # capacity 2: loading c evicts one of a (least recently used) and b (no rays wait)
+    assert preloader.resident() == ({a, c} if by_demand else {b, c})

@@ -28,7 +28,7 @@ def test_options_are_frozen():
 
 
 @pytest.mark.parametrize("change,message", [
-    ({"version": VERSION + 1}, "version 2 is not this node's"),
+    ({"version": VERSION + 1}, f"version {VERSION + 1} is not this node's"),
     ({"version": None}, "version None"),
     ({"cahce": 3}, r"unknown field\(s\) \['cahce'\]"),
     ({"cache": "3"}, "'cache' must be an integer or None"),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -274,6 +275,43 @@ def check_load_bandwidth(r: Renders):
     run = r("--load-bandwidth", "5")  # in core too: each domain loaded once, held back
     assert run.counters["load_throttle_s"] > 0 and run.counters["load_bandwidth_mb_s"] == 5.0
     assert r.baseline.counters["load_throttle_s"] == 0
+
+
+def check_cold_reads(r: Renders):
+    image = ["--scheduler", "image", "--cache", "2"]
+    warm = r(*image)  # leaves the domain files in the page cache
+    os.sync()  # the kernel drops clean pages only: the store was written moments ago
+    run = r(*image, "--cold-reads")
+    c = run.counters
+    assert run.report["options"]["cold_reads"] is True
+    assert c["loads"] == warm.counters["loads"] and c["loads"] > c["distinct_domains_loaded"]
+    np.testing.assert_array_equal(run.image(), warm.image())
+    if c["disk_read_bytes"] is not None and not _in_memory_filesystem(r.store.path):
+        # the reloads came from the disk (the first load of each domain may have been
+        # cached; the kernel keeps a page here and there that a mapping still holds)
+        reloads = c["bytes_loaded"] - sum(d.nbytes for d in r.store.domains if d.n_triangles)
+        assert c["disk_read_bytes"] >= 0.5 * reloads > 0, (c["disk_read_bytes"], reloads)
+        assert warm.counters["disk_read_bytes"] < 0.5 * c["disk_read_bytes"], warm.counters
+    r.refused("--cold-reads", naming="--cold-reads")  # the in-core reference
+
+
+def _in_memory_filesystem(path: Path) -> bool:
+    """Whether ``path`` is on tmpfs or ramfs, where nothing is ever read from a disk."""
+    mounts = [line.split()[1:3] for line in Path("/proc/mounts").read_text().splitlines()]
+    resolved = str(path.resolve())
+    best = max((m for m in mounts if resolved.startswith(m[0].rstrip("/") + "/")),
+               key=lambda m: len(m[0]), default=None)
+    return best is not None and best[1] in ("tmpfs", "ramfs")
+
+
+def check_eviction(r: Renders):
+    image = ["--scheduler", "image", "--cache", "2"]
+    run = r(*image, "--eviction", "demand")
+    assert run.code == 0, run.err
+    assert run.report["options"]["eviction"] == "demand"
+    assert run.counters["belady_loads"] <= run.counters["loads"]
+    np.testing.assert_allclose(run.image(), r.baseline.image(), rtol=1e-6, atol=1e-6)
+    r.refused("--eviction", "demand", naming="--eviction")  # the in-core reference
 
 
 def check_batch_size(r: Renders):

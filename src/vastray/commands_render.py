@@ -31,6 +31,7 @@ from vastray.preflight import (
     check_owned_fit,
     domain_footprints,
     estimate_memory,
+    gigabytes,
     parse_size,
     reference_paths_in_flight,
 )
@@ -268,6 +269,17 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "is cycled over the ranks); an emulation by waiting after the real "
                         "read, for benchmarks. The report gives bytes_loaded and "
                         "load_throttle_s, the time spent waiting")
+    p.add_argument("--cold-reads", action="store_true",
+                   help="out of core (image, spec-ooc and the node schedulers with a cache): "
+                        "drop each domain's files from the page cache as they are read "
+                        "(posix_fadvise DONTNEED), so every reload after an eviction is a real "
+                        "disk read; the report gives bytes_loaded, load_s and load_wait_s, the "
+                        "time the renderer waited on loads")
+    p.add_argument("--eviction", choices=["lru", "demand"], default="lru",
+                   help="image and spec-ooc: which domain a load evicts: the least recently "
+                        "used (lru, default) or the one the queued rays need least (demand: "
+                        "an approximation of Belady's rule); the report's belady_loads is the "
+                        "fewest loads the run's own domain order allows")
     p.add_argument("--batch-size", type=_positive,
                    help="in-core reference render: paths traced together (default: 65536; cut "
                         "finer when a frame has fewer than two batches per render worker)")
@@ -894,7 +906,7 @@ def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
     nodes = {"node_timeout_s": args.node_timeout, "heartbeat_timeout_s": args.heartbeat_timeout,
              "listen": args.listen} if args.nodes else {}
     return {"nodes": args.nodes, **report, **nodes, "frames": args.frames,
-            "first_frame": args.first_frame}
+            "first_frame": args.first_frame, "memory_limit": args.memory_limit}
 
 
 def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
@@ -962,6 +974,12 @@ def summary_line(args: argparse.Namespace, result, error: dict | None,
     if queries:
         line += f", {queries[1] / seconds / 1e6:.2f} M {queries[0]}/s"
     line += f", {result.counters.get('loads', 0)} domain loads"
+    if result.counters.get("bytes_loaded"):  # out of core: what loading cost
+        line += (f" ({result.counters['bytes_loaded'] / 1e9:.2f} GB read, "
+                 f"{result.counters.get('load_wait_s', 0.0):.1f} s waited)")
+    peak = result.counters.get("peak_rss_bytes") or result.counters.get("peak_rss_bytes_max")
+    if args.memory_limit is not None and peak:  # the busiest process against its limit
+        line += f", peak RSS {gigabytes(peak)} of --memory-limit {gigabytes(args.memory_limit)}"
     if error is not None:
         psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
         line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"

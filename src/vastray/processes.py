@@ -45,3 +45,17 @@ def peak_rss_bytes() -> int:
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def disk_read_bytes() -> int | None:
+    """Bytes this process has had read from storage so far (``read_bytes`` of
+    ``/proc/self/io``: reads the page cache served are not counted); None where the kernel
+    does not say."""
+    try:
+        with open("/proc/self/io") as fh:
+            for line in fh:
+                if line.startswith("read_bytes:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None

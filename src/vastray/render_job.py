@@ -102,6 +102,11 @@ def refuse_for_scheduler(args: argparse.Namespace, scheduler: str) -> None:
             raise InputError(None, "--no-preload applies to the out-of-core schedulers; the "
                                    "in-core reference render loads each domain once and never "
                                    "preloads")
+        if args.cold_reads:
+            raise InputError(None, "--cold-reads applies to the out-of-core schedulers; the "
+                                   "in-core reference render loads each domain once (give "
+                                   "--scheduler image or spec-ooc with --cache or "
+                                   "--memory-limit)")
     if args.cache is not None and scheduler == "spec-insitu":
         raise InputError(None, "--cache does not apply to --scheduler spec-insitu: in situ, "
                                "every node keeps all the domains it owns loaded")
@@ -119,6 +124,7 @@ def job_options(args: argparse.Namespace, scheduler: str, cache: int | None) -> 
         max_samples_in_flight=in_flight,
         history_depth=args.history_depth, threads=args.threads,
         preload=not args.no_preload, load_bandwidth=args.load_bandwidth,
+        cold_reads=args.cold_reads, eviction=args.eviction,
         simplified=args.simplified,
         portal_interval=args.portal_interval or DEFAULT_PORTAL_INTERVAL,
         portal_threshold=(DEFAULT_PORTAL_THRESHOLD if args.portal_threshold is None
