@@ -1,49 +1,55 @@
 """Out-of-core scheduling: SpRay's speculative schedule against the baseline (SpRay Figs. 6, 8).
 
-Generates (or reuses, in .bench_cache/) a Richtmyer-Meshkov-like scene split into many domains
-and a second one with fewer, larger domains, then renders PT and AO with domain caches of 25,
-50, 75 and 100 % of the domains, with both schedules, in one run. Every load is a real read
-(the kernel is told to drop a domain's pages after reading it) plus the BVH build, which the
-papers count in load time.
+Generates (or reuses, in .bench_cache/) Richtmyer-Meshkov-like scenes split into domains and
+renders them with domain caches of a fraction of the domains and with every domain cached,
+with both schedules, in one run. Every load is a real disk read (``cold_reads``: the kernel
+drops a domain's pages as it is read) plus the BVH build, which the papers count in load time;
+the ``200MB/s`` storage also holds every load to a parallel file system's share of bandwidth
+(``load_bandwidth``).
 
-Both schedules run in two configurations, and each is compared only with the other in the same
-one:
+Both schedules run in each configuration, and each is compared only with the other in the
+same one (the switches are ``JobOptions`` fields, the same for both):
 
 * ``paper-faithful``: as the papers describe them: domains loaded sequentially (SpRay 5.1.1,
-  "data loading is run sequentially"), the baseline's fullest queue first (Listing 1) and
-  spec-ooc's pure traversal-score order (Listing 2);
-* ``strongest``: both with every improvement this project has: the preloader thread (each
-  schedule's ``likely_next``) and the resident-first rule (domains in memory are served before
-  anything is loaded); with it, spec-ooc also serves a resident domain's new rays when the
-  cache is about to evict it rather than on each arrival (``serve_before_evict``) and re-ranks
-  the rest of a round before each pick (``rescore``). The baseline has no counterpart to
-  either: it serves a resident domain's rays as soon as they arrive (before anything is
-  loaded, so never evicts one with rays waiting) and picks its fullest queue afresh each time.
+  "data loading is run sequentially"), the baseline's fullest queue first (Listing 1),
+  spec-ooc's pure traversal-score order (Listing 2), least-recently-used eviction;
+* ``strongest``: both with the preloader thread (each schedule's ``likely_next``) and the
+  resident-first rule (domains in memory are served before anything is loaded); with it,
+  spec-ooc also serves a resident domain's new rays when the cache is about to evict it
+  (``serve_before_evict``) and re-ranks the rest of a round before each pick (``rescore``);
+  the baseline serves a resident domain's rays as soon as they arrive (so never evicts one
+  with rays waiting) and picks its fullest queue afresh each time;
+* ``strongest+demand``: ``strongest`` with eviction by demand for both (the resident domain
+  with the fewest queued rays goes first, ``eviction="demand"``).
 
-Before anything is timed, each schedule renders once untimed (``warm_up``).
+Each cell runs both schedules ``--repeats`` times (default 3), interleaved and alternating
+which goes first, after one untimed render per schedule (``warm_up``); the tables give the
+per-field medians. Per schedule: loads; "Belady", the fewest loads its own access sequence
+allows with that cache (``schedule.belady``); "floor", the domains any ray was traced against
+(each loaded at least once); untraced loads (wrong preloads); GB read; load and load-wait
+seconds and the wait's share of the total; "render s", the render thread outside loads (the
+schedule deciding, spec-ooc's filtering included, and tracing); and O(c), the out-of-core
+overhead: total time over the same schedule's with every domain cached on the same storage.
+Each comparison line gives ``time_ratio=``, ``loads_ratio=``, ``load_time_ratio=`` and
+``render_ratio=`` (baseline / spec-ooc) and, for both schedules, ``overhead=``,
+``loads_over_floor=`` and ``loads_over_belady=``; a ``HEADLINE`` line per cache and storage
+sets spec-ooc's fastest configuration against the baseline's fastest (both with preloading
+and resident-first: every switch spec-ooc gets, the baseline gets) beside the goals of
+issue 25 (1.3x, O(25 %) <= 1.5). Then the history-depth sweep of Fig. 8 (H = 1..B for B = 3,
+strongest). ``--ablation`` adds every switch combination for both schedules, and spec-ooc's
+own switches (PT, 25 % cache, first scene). ``--ray-sweep`` adds the strongest PT comparison
+at a 25 % cache with 4x and 16x the paths (first scene).
 
-"load wait s" is the part of the load time the render thread actually waited: the rest was
-hidden by the preloader. "floor" is the number of domains any ray was traced against (each must
-be loaded at least once); "untraced loads" are loads after which no ray was traced against the
-domain (with the preloader: wrong guesses). Per cache size, integrator and configuration it
-prints ``loads_ratio=``, ``time_ratio=``, ``load_time_ratio=`` and ``render_ratio=`` (baseline
-/ speculative; render = the render thread's tracing time, without loads) and
-``loads_over_floor=`` (spec-ooc loads / floor), paper-faithful lines beside SpRay's figures;
-the first line printed is the strongest comparison at a 25 % cache with PT. Then the
-history-depth sweep of Fig. 8 (H = 1..B for B = 3, strongest configuration).
-``--ablation`` adds every switch combination for both schedules, and spec-ooc's own switches
-in every combination (PT, 25 % cache, first scene). ``--ray-sweep`` adds the strongest PT
-comparison at a 25 % cache with 4x and 16x the paths (first scene): speculation saves more
-loads the more rays each domain gathers, and the papers render 1024x1024 at 32 spp.
-
-    python bench/ooc.py            # full run (well over an hour on 2 cores)
-    python bench/ooc.py --quick    # a few-minute subset (1.2 M triangles)
+    python bench/ooc.py            # full run (hours on 2 cores)
+    python bench/ooc.py --quick    # a few minutes (1.2 M triangles, cold reads only)
+    python bench/ooc.py --large    # the large-domain regime (see LARGE; about half an hour)
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -61,12 +67,19 @@ CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 FULL = {
     "scenes": [("rm", 1400, (5, 5, 4)), ("rm", 1400, (2, 2, 2))],
     "image": (64, 48), "spp": 32, "shadow_samples": 16, "bounces": 3,
-    "caches": (0.25, 0.5, 0.75, 1.0),
+    "caches": (0.25, 0.5, 0.75), "integrators": ("pt", "ao"), "storage": ("cold", "200MB/s"),
 }
 QUICK = {
     "scenes": [("rm", 320, (5, 5, 4)), ("rm", 320, (2, 2, 2))],
     "image": (32, 24), "spp": 8, "shadow_samples": 4, "bounces": 3,
-    "caches": (0.25, 1.0),
+    "caches": (0.25,), "integrators": ("pt", "ao"), "storage": ("cold",),
+}
+#: SpRay's regime at this machine's scale: domains of ~LARGE_DOMAIN triangles whose loads
+#: (cold reads, BVH builds) cost more than the rendering they enable; PT only.
+LARGE = {
+    "scenes": [("rm", 1600, (6, 6, 2))],
+    "image": (128, 96), "spp": 8, "shadow_samples": 1, "bounces": 3,
+    "caches": (0.25, 0.5), "integrators": ("pt",), "storage": ("cold", "200MB/s"),
 }
 
 
@@ -78,106 +91,196 @@ def scene(name: str, resolution: int, grid: tuple[int, int, int]) -> Store:
     return Store(path)
 
 
-CONFIGS = {  # name -> render_out_of_core switches, the same for both schedules
-    "strongest": {"preload": True, "resident_first": True},
+CONFIGS = {  # name -> JobOptions switches, the same for both schedules
     "paper-faithful": {"preload": False, "resident_first": False},
+    "strongest": {"preload": True, "resident_first": True},
+    "strongest+demand": {"preload": True, "resident_first": True, "eviction": "demand"},
 }
+#: How domains reach memory: every load a real disk read (cold page cache), and the same with
+#: a parallel file system's share of bandwidth per node emulated on top.
+STORAGE = {
+    "cold": {"cold_reads": True},
+    "200MB/s": {"cold_reads": True, "load_bandwidth": 200.0},
+}
+SCHEDULERS = ("image", "spec-ooc")
 
 
 def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
         history_depth: int | None = None, ablation: SpeculationRules | None = None,
         **switches) -> dict:
     """One render; ``switches`` are more ``JobOptions`` fields (``preload``,
-    ``resident_first``), the same for both schedules."""
+    ``resident_first``, ``eviction``, ``load_bandwidth``), the same for both schedules. Every
+    load is a cold read unless ``cold_reads=False`` is given."""
+    switches = {"cold_reads": True, **switches}
     start = time.perf_counter()
     result = render_out_of_core(store, SceneConfig(), settings,
                                 options=JobOptions(scheduler=scheduler, cache=cache,
-                                                   history_depth=history_depth, cold_reads=True,
-                                                   **switches),
+                                                   history_depth=history_depth, **switches),
                                 progress=False, ablation=ablation)
+    total = time.perf_counter() - start
     c = result.counters
     return {
         "scheduler": scheduler, "cache": cache, "loads": c["loads"],
         "floor": c["domains_traced"], "untraced": c["untraced_loads"],
+        "belady": c["belady_loads"], "bytes": c["bytes_loaded"],
         "load_s": c["load_s"], "wait_s": c["load_wait_s"],
         "render_s": result.seconds["render"] + result.seconds["schedule"],  # deciding + tracing
-        "total_s": time.perf_counter() - start, "wasted": c.get("wasted_rays", 0),
-        "speculative": c.get("speculative_rays", 0),
+        "total_s": total, "wait_share": c["load_wait_s"] / max(total, 1e-9),
+        "wasted": c.get("wasted_rays", 0), "speculative": c.get("speculative_rays", 0),
     }
 
 
-HEADER = ("| integrator | config | scheduler | cache | loads | floor | untraced loads | load s "
-          "| load wait s | render s | total s | wasted speculative rays |\n"
-          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+def median_run(runs: list[dict]) -> dict:
+    """The per-field median of repeated runs of one schedule in one cell (loads can differ
+    between runs where a preload races the render thread)."""
+    out = dict(runs[0])
+    for key, value in runs[0].items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[key] = statistics.median(r[key] for r in runs)
+    out["runs"] = len(runs)
+    return out
 
 
-def row(integrator: str, config: str, r: dict, n_domains: int) -> str:
+def cell(store: Store, st: RenderSettings, cache: int, switches: dict,
+         repeats: int) -> dict[str, dict]:
+    """Both schedules in one cell, ``repeats`` runs each, interleaved and alternating which
+    goes first (a drifting machine shifts both alike); returns each schedule's median run."""
+    runs: dict[str, list[dict]] = {name: [] for name in SCHEDULERS}
+    for i in range(repeats):
+        for scheduler in SCHEDULERS if i % 2 == 0 else SCHEDULERS[::-1]:
+            runs[scheduler].append(run(store, st, scheduler, cache, **switches))
+    return {name: median_run(r) for name, r in runs.items()}
+
+
+HEADER = ("| integrator | storage | config | scheduler | cache | loads | Belady | floor "
+          "| untraced loads | GB read | load s | load wait s | wait share | render s | total s "
+          "| O(c) | wasted speculative rays |\n"
+          "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
+          "| --- | --- | --- | --- |")
+
+
+def row(integrator: str, storage: str, config: str, r: dict, n_domains: int,
+        overhead: float | None) -> str:
     pct = round(100 * r["cache"] / n_domains)
-    return (f"| {integrator} | {config} | {r['scheduler']:8} | {r['cache']:3d} ({pct:3d}%) "
-            f"| {r['loads']:5d} | {r['floor']} | {r['untraced']} | {r['load_s']:7.2f} "
-            f"| {r['wait_s']:7.2f} | {r['render_s']:7.2f} | {r['total_s']:7.2f} "
-            f"| {r['wasted']:,} of {r['speculative']:,} |")
+    o = "" if overhead is None else f"{overhead:.2f}"
+    return (f"| {integrator} | {storage} | {config} | {r['scheduler']:8} "
+            f"| {r['cache']:3.0f} ({pct:3d}%) | {r['loads']:5.0f} | {r['belady']:5.0f} "
+            f"| {r['floor']:.0f} | {r['untraced']:.0f} | {r['bytes'] / 1e9:.2f} "
+            f"| {r['load_s']:7.2f} | {r['wait_s']:7.2f} | {r['wait_share']:.2f} "
+            f"| {r['render_s']:7.2f} | {r['total_s']:7.2f} | {o} "
+            f"| {r['wasted']:,.0f} of {r['speculative']:,.0f} |")
 
 
 SPRAY = "SpRay Fig. 6 (RM/Enzo, paper-faithful): 1.7-2.3x total, 2.7-3.2x load time"
 
 
-def comparison(integrator: str, fraction: float, config: str, base: dict, spec: dict) -> str:
-    """One line of ratios, baseline / speculative: loads, total time, load time and the
-    render thread's time outside loads (the schedule deciding, spec-ooc's filtering included,
-    and tracing: per-batch work the two schedules do differently), and spec-ooc's loads over
-    its floor."""
+def comparison(integrator: str, fraction: float, storage: str, config: str,
+               cells: dict[str, dict], overheads: dict[str, float | None]) -> str:
+    """One line of ratios, baseline / speculative (loads, total time, load time, and the
+    render thread's time outside loads: the schedule deciding, spec-ooc's filtering included,
+    and tracing), then per schedule its out-of-core overhead O(c) = T(c) / T(every domain
+    cached, same schedule and storage) and its loads over its floor and over the Belady count
+    of its own access sequence."""
+    base, spec = cells["image"], cells["spec-ooc"]
     loads = base["loads"] / max(spec["loads"], 1)
     time_ratio = base["total_s"] / spec["total_s"]
     load_time = base["load_s"] / max(spec["load_s"], 1e-9)
     render = base["render_s"] / max(spec["render_s"], 1e-9)
-    line = (f"{integrator} cache={round(100 * fraction)}% {config}: loads_ratio={loads:.2f} "
-            f"time_ratio={time_ratio:.2f} load_time_ratio={load_time:.2f} "
-            f"render_ratio={render:.2f} "
-            f"loads_over_floor={spec['loads'] / max(spec['floor'], 1):.2f}")
+
+    def each(values: dict[str, float | None]) -> str:
+        return ",".join(f"{name}:{'-' if v is None else f'{v:.2f}'}" for name, v in values.items())
+
+    line = (f"{integrator} cache={round(100 * fraction)}% {storage} {config}: "
+            f"time_ratio={time_ratio:.2f} loads_ratio={loads:.2f} "
+            f"load_time_ratio={load_time:.2f} render_ratio={render:.2f} "
+            f"overhead={each(overheads)} "
+            f"loads_over_floor={each({n: c['loads'] / max(c['floor'], 1) for n, c in cells.items()})} "
+            f"loads_over_belady={each({n: c['loads'] / max(c['belady'], 1) for n, c in cells.items()})}")
     if config == "paper-faithful":
         line += f"  [{SPRAY}]"
     wins = [what for what, ratio in (("loads", loads), ("time", time_ratio)) if ratio < 1]
     return line + (f"  <- the baseline wins on {' and '.join(wins)}" if wins else "")
 
 
+def headline(fraction: float, storage: str, results: dict) -> str | None:
+    """Our best out-of-core schedule against the strongest baseline at ``fraction``: each the
+    fastest of its configurations with preloading and the resident-first rule (the baseline
+    gets every switch spec-ooc gets), and spec-ooc's overhead O(c)."""
+    best = {}
+    for scheduler in SCHEDULERS:
+        options = [(results[(fraction, storage, config)][scheduler]["total_s"], config)
+                   for config in CONFIGS if config != "paper-faithful"
+                   and (fraction, storage, config) in results]
+        if not options:
+            return None
+        best[scheduler] = min(options)
+    (base_t, base_c), (spec_t, spec_c) = best["image"], best["spec-ooc"]
+    full = results.get((1.0, storage, spec_c))
+    overhead = "-" if full is None else f"{spec_t / full['spec-ooc']['total_s']:.2f}"
+    verdict = "spec-ooc" if spec_t < base_t else "the baseline"
+    return (f"HEADLINE cache={round(100 * fraction)}% {storage}: best spec-ooc ({spec_c}) "
+            f"{spec_t:.2f} s vs strongest baseline ({base_c}) {base_t:.2f} s: "
+            f"time_ratio={base_t / spec_t:.2f} (goal 1.30), spec-ooc overhead={overhead} "
+            f"(goal 1.50); {verdict} wins")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="a few-minute subset")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="a few-minute subset")
+    size.add_argument("--large", action="store_true",
+                      help="the large-domain regime (PT; cold reads and 200 MB/s; 25, 50 and "
+                           "100%% caches; see LARGE)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="interleaved runs per schedule and cell; the tables give medians")
     parser.add_argument("--ablation", action="store_true",
                         help="also every switch combination (PT, 25%% cache, first scene)")
     parser.add_argument("--ray-sweep", action="store_true",
                         help="also the strongest PT 25%% comparison with 4x and 16x the paths "
                              "(first scene)")
     args = parser.parse_args()
-    plan = QUICK if args.quick else FULL
+    plan = LARGE if args.large else QUICK if args.quick else FULL
     width, height = plan["image"]
+    started = time.perf_counter()
     for spec in plan["scenes"]:
         store = scene(*spec)
         n = len(store.domains)
         if spec is plan["scenes"][0]:
             warm_up(store, plan)
-        print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains, "
-              f"{width}x{height}, {plan['spp']} spp, {plan['shadow_samples']} shadow rays, "
-              f"{plan['bounces']} bounces\n", flush=True)
+        print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains "
+              f"({sum(d.nbytes for d in store.domains) / 1e9:.2f} GB), {width}x{height}, "
+              f"{plan['spp']} spp, {plan['shadow_samples']} shadow rays, {plan['bounces']} "
+              f"bounces; medians of {args.repeats} interleaved runs per schedule\n", flush=True)
         print(HEADER, flush=True)
-        for fraction in plan["caches"]:
-            cache = max(1, math.ceil(fraction * n))
-            for integrator in ("pt", "ao"):
+        fractions = sorted(set(plan["caches"]) | {1.0}, reverse=True)  # 100 % first: O(c)
+        results: dict = {}
+        for storage in plan["storage"]:
+            for integrator in plan["integrators"]:
                 st = settings(plan, integrator)
-                for config, switches in CONFIGS.items():
-                    base = run(store, st, "image", cache, **switches)
-                    spec_run = run(store, st, "spec-ooc", cache, **switches)
-                    print(row(integrator, config, base, n))
-                    print(row(integrator, config, spec_run, n))
-                    print(comparison(integrator, fraction, config, base, spec_run), flush=True)
+                for fraction in fractions:
+                    cache = max(1, math.ceil(fraction * n))
+                    for config, switches in CONFIGS.items():
+                        cells = cell(store, st, cache, {**switches, **STORAGE[storage]},
+                                     args.repeats)
+                        results[(fraction, storage, config)] = cells
+                        full = results[(1.0, storage, config)]
+                        overheads = {name: cells[name]["total_s"] / full[name]["total_s"]
+                                     for name in SCHEDULERS}
+                        for name in SCHEDULERS:
+                            print(row(integrator, storage, config, cells[name], n,
+                                      overheads[name]))
+                        print(comparison(integrator, fraction, storage, config, cells,
+                                         overheads), flush=True)
+                    if integrator == "pt" and fraction < 1.0:
+                        print(headline(fraction, storage, results), flush=True)
         if spec is plan["scenes"][0]:
             sweep(store, plan)
             if args.ray_sweep:
                 ray_sweep(store, plan)
             if args.ablation:
                 ablation(store, plan)
+    print(f"\nbench/ooc.py: {time.perf_counter() - started:.0f} s", flush=True)
 
 
 def warm_up(store: Store, plan: dict) -> None:
