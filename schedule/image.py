@@ -122,8 +122,8 @@ class ImageSchedule:
         return fullest(waiting, self._resident if self.resident_first else ())
 
     def demand(self) -> np.ndarray:
-        """(D,) int64 rays waiting for each domain: what eviction by demand keeps (the
-        domain with the fewest is evicted first)."""
+        """(D,) int64 rays waiting for each domain, what eviction by demand keeps: the fullest
+        queue goes next, so the domain with the fewest is needed last (Belady's victim)."""
         return self.radiance.counts() + self.shadow.counts()
 
     def process(self, domain: int, bvh) -> None:

@@ -186,9 +186,17 @@ class SpeculativeSchedule:
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
     def demand(self) -> np.ndarray:
-        """(D,) int64 rays queued for each domain, speculative copies included (a ray counts
-        in every domain its path enters): what eviction by demand keeps."""
-        return self.radiance.counts() + self.shadow.counts()
+        """(D,) float64, how soon each domain is needed (higher: sooner), what eviction by
+        demand keeps: the domains left in this round's schedule by their place in it (the
+        schedule is the future Belady's rule looks at), then those with queued rays (the next
+        round's), then the rest (0). Queued-ray counts would not do: speculative copies sit
+        in every domain a path may enter."""
+        queued = self.radiance.counts() + self.shadow.counts()
+        soon = (queued > 0).astype(np.float64)
+        if self._schedule:
+            left = len(self._schedule)
+            soon[self._schedule] = 2.0 + (left - np.arange(left)) / left
+        return soon
 
     def process(self, domain: int, bvh) -> None:
         """Trace the domain's filtered rays (Listing 2, lines 20-22)."""

@@ -49,11 +49,14 @@ def assert_same(image, reference, what):
 def test_schedules_match_reference_for_any_cache_and_tile(bumpy, config, integrator, scheduler):
     st = settings(width=40, height=30, spp=2, integrator=integrator, bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
-    for cache, in_flight in [(None, None), (7, None), (1, 700)]:
+    for cache, in_flight, eviction in [(None, None, "lru"), (7, None, "lru"), (1, 700, "lru"),
+                                       (4, None, "demand")]:
         result = render_out_of_core(bumpy, config, st,
                                     options=JobOptions(scheduler=scheduler, cache=cache,
-                                                       max_samples_in_flight=in_flight), progress=False)
-        assert_same(result.film.image(), reference, f"{scheduler} cache={cache} tile={in_flight}")
+                                                       max_samples_in_flight=in_flight,
+                                                       eviction=eviction), progress=False)
+        assert_same(result.film.image(), reference,
+                    f"{scheduler} cache={cache} tile={in_flight} eviction={eviction}")
         assert result.film.depth.tolist() == render(bumpy, config, st, progress=False
                                                     ).film.depth.tolist()
 
@@ -218,6 +221,24 @@ def test_spec_ooc_first_round_follows_the_score(bumpy, config):
         policy.process(domain, cache.get(domain))
     assert len(visited) > 3 and visited[0] == expected[0]
     assert visited == sorted(visited, key=expected.index)
+
+
+def test_spec_ooc_demand_ranks_domains_by_their_place_in_the_round(bumpy, config):
+    # eviction by demand: the round's schedule is the future Belady's rule looks at, so the
+    # domains left in it rank above the rest, the sooner the higher; no rays, no demand
+    st = settings(width=24, height=18, spp=1, integrator="pt", bounces=2)
+    setup = RenderSetup.of(bumpy, config, st)
+    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
+    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
+    policy.start(camera_rays(setup.camera, ctx))
+    assert policy.next_domain() is not None
+    demand, left = policy.demand(), list(policy._schedule)
+    assert len(left) >= 2
+    assert (np.diff(demand[left]) < 0).all()  # sooner, higher
+    queued = policy.radiance.counts() + policy.shadow.counts()
+    rest = [d for d in range(len(demand)) if d not in left]
+    assert all(demand[d] == (1.0 if queued[d] else 0.0) for d in rest)
+    assert min(demand[left]) > 1.0
 
 
 def test_samples_in_flight_bound_peak_rays(bumpy, config):
