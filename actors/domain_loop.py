@@ -143,9 +143,9 @@ class ScheduleOrder:
         hands it an empty set (the ``domain`` nodes' rounds, which own their domains).
     evicting : hand the schedule the cache's next eviction victim (spec-ooc's
         ``serve_before_evict``).
-    by_demand : evict the resident domain the schedule's queued rays need least
-        (``policy.demand()``), never the chosen domain or the guessed next one; False: the
-        least recently used.
+    by_demand : evict the resident domain the schedule will need last (the lowest of
+        ``policy.demand()``, asked afresh before each choice and each guess), never the
+        chosen domain or the guessed next one; False: the least recently used.
     """
 
     def __init__(self, policy, preloader: DomainPreloader, resident_aware: bool = True,

@@ -79,8 +79,8 @@ class JobOptions:
         (``load_bytes_per_second``); None: the disk's own speed.
     eviction : which resident domain a load evicts in the out-of-core runtime
         (``local.render_out_of_core``): ``lru``, the least recently used, or ``demand``, the
-        one the schedule's queued rays need least (an approximation of Belady's rule; the
-        same rule for both tile schedules).
+        one the tile schedule will need last by its own order (its ``demand()``: an
+        approximation of Belady's rule, the same rule for both tile schedules).
     cold_reads : read each domain's files whole and have the kernel drop their pages
         (``posix_fadvise(POSIX_FADV_DONTNEED)``), so every reload after an eviction is a read
         from the disk, not from the page cache (the domain cache, ``scene.cache``).
@@ -264,7 +264,8 @@ _INT, _FLOAT = (int,), (int, float)
 _TYPES = {
     "scheduler": str, "cache": _INT, "max_samples_in_flight": _INT, "history_depth": _INT,
     "max_batch_rays": _INT, "threads": _INT, "preload": bool, "resident_first": bool,
-    "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str, "portal_interval": _INT,
+    "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str,
+    "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
     "assignment": str, "priority": str,
 }

@@ -29,6 +29,8 @@ def render_result(film, camera, reports: list[dict], barriers: int, scheduler: s
                 "bytes_loaded": sum(r["counters"].get("bytes_loaded", 0) for r in reports),
                 "load_throttle_s": round(sum(r["counters"].get("load_throttle_s", 0.0)
                                              for r in reports), 4),
+                "load_wait_s": round(sum(r["counters"].get("load_wait_s", 0.0)
+                                         for r in reports), 4),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
                                           for r in reports)}
     counters.update(portal_shares([r["counters"] for r in reports]))

@@ -217,11 +217,13 @@ def headline(fraction: float, storage: str, results: dict) -> str | None:
     (base_t, base_c), (spec_t, spec_c) = best["image"], best["spec-ooc"]
     full = results.get((1.0, storage, spec_c))
     overhead = "-" if full is None else f"{spec_t / full['spec-ooc']['total_s']:.2f}"
-    verdict = "spec-ooc" if spec_t < base_t else "the baseline"
+    ratio = base_t / spec_t
+    verdict = ("neither wins by more than 5 %" if 1 / 1.05 < ratio < 1.05
+               else "spec-ooc wins" if ratio > 1 else "the baseline wins")
     return (f"HEADLINE cache={round(100 * fraction)}% {storage}: best spec-ooc ({spec_c}) "
             f"{spec_t:.2f} s vs strongest baseline ({base_c}) {base_t:.2f} s: "
-            f"time_ratio={base_t / spec_t:.2f} (goal 1.30), spec-ooc overhead={overhead} "
-            f"(goal 1.50); {verdict} wins")
+            f"time_ratio={ratio:.2f} (goal 1.30), spec-ooc overhead={overhead} "
+            f"(goal 1.50); {verdict}")
 
 
 def main() -> None:

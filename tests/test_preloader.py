@@ -110,6 +110,14 @@ def test_node_state_keeps_one_preloader_across_frames(store):
     state = NodeState()
     first = state.preloader_for(store, 2, frozenset(), JobOptions(threads=1), rank=0)
     assert state.preloader_for(store, 3, frozenset(), JobOptions(threads=1), rank=0) is first
+    assert not first.cache.drop_page_cache
+    state.close()
+
+
+def test_a_node_reads_cold_when_the_job_says_so(store):
+    state = NodeState()
+    preloader = state.preloader_for(store, 2, frozenset(), JobOptions(cold_reads=True), rank=0)
+    assert preloader.cache.drop_page_cache
     state.close()
 
 

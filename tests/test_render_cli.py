@@ -199,11 +199,12 @@ def test_every_node_scheduler_from_the_cli_as_a_user_runs_it(store, tmp_path, ca
     out, report = tmp_path / "o.exr", tmp_path / "r.json"
     small = [a for a in SMALL if a != "--quiet"]
     assert main(["render", str(store.path), "-o", str(out), *small, "--nodes", "2",
-                 "--scheduler", scheduler, "--report", str(report)]) == 0
+                 "--scheduler", scheduler, "--report", str(report), "--cold-reads"]) == 0
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith(f"wrote {out}") and "domain loads" in last, last
     doc = json.loads(report.read_text())
     assert doc["scheduler"] == scheduler and doc["counters"]["nodes"] == 2
+    assert doc["options"]["cold_reads"] is True  # handed to every node's domain cache
     nodes = [node["counters"] for node in doc["counters"]["per_node"]]
     if scheduler == "spec-insitu":
         assert not any("trace_s" in c for c in nodes)

@@ -277,9 +277,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "time the renderer waited on loads")
     p.add_argument("--eviction", choices=["lru", "demand"], default="lru",
                    help="image and spec-ooc: which domain a load evicts: the least recently "
-                        "used (lru, default) or the one the queued rays need least (demand: "
-                        "an approximation of Belady's rule); the report's belady_loads is the "
-                        "fewest loads the run's own domain order allows")
+                        "used (lru, default) or the one the schedule will need last by its "
+                        "own order (demand: the emptiest queue for image, the latest in the "
+                        "round for spec-ooc; an approximation of Belady's rule); the report's "
+                        "belady_loads is the fewest loads the run's own domain order allows")
     p.add_argument("--batch-size", type=_positive,
                    help="in-core reference render: paths traced together (default: 65536; cut "
                         "finer when a frame has fewer than two batches per render worker)")
