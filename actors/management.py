@@ -83,7 +83,7 @@ class ManagementActor:
         self.rejections = protocol.Rejections()
         self.router = ctx.socket(zmq.ROUTER)
         serve(self.router, credentials)
-        gate.watch(self.router, "this node's peer port")
+        self._watcher = gate.watch(self.router, "this node's peer port")
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
         keys = credentials.keys
@@ -328,7 +328,7 @@ class ManagementActor:
             [self.peer_tokens[rank], *frames], copy=False), self.timeout)
 
     def close(self) -> None:
-        for task in self._tasks:
+        for task in [*self._tasks, self._watcher]:
             task.cancel()
         for sock in [self.router, self.coordinator, *self.peers.values()]:
             sock.close(linger=0)

@@ -22,6 +22,7 @@ socket hold at most ``FRAME_LIMIT`` bytes per connection (``MAXMSGSIZE``), for a
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import secrets
 from collections.abc import Callable
@@ -102,6 +103,9 @@ def check_bind(host: str, credentials: Credentials | None) -> None:
                                "-o DIR --node NAME`); without them only nodes of your user on "
                                "this machine may join, and vastray binds loopback only")
 
+
+#: Numbers the monitor endpoints of watched sockets (``Gate.watch``).
+_MONITORS = itertools.count()
 
 class Gate:
     """The ZAP handler of one ZeroMQ context: admits a connection or refuses it at the
@@ -191,11 +195,17 @@ class Gate:
                                          b"200" if ok else b"400",
                                          b"OK" if ok else reason.encode()[:200], user, b""])
 
-    def watch(self, sock: zmq.asyncio.Socket, where: str) -> None:
+    def watch(self, sock: zmq.asyncio.Socket, where: str) -> asyncio.Task:
         """Also count and log handshakes on ``sock`` that fail before any ZAP request (a
-        CURVE client with no key or the wrong server key; a stranger's protocol)."""
+        CURVE client with no key or the wrong server key; a stranger's protocol). Returns
+        the task reading its events: cancel it when ``sock`` closes (``close`` cancels every
+        one left)."""
+        # A fresh endpoint each time: pyzmq's default is named after the socket's descriptor,
+        # which the next socket reuses while the closed one's monitor may still be bound (a
+        # node joining again after a regroup died on "Address already in use").
         monitor = sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-                                          | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+                                          | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
+                                          addr=f"inproc://vastray-monitor-{next(_MONITORS)}")
 
         async def read() -> None:
             try:
@@ -212,7 +222,9 @@ class Gate:
             finally:
                 monitor.close(linger=0)
 
-        self._tasks.append(asyncio.ensure_future(read()))
+        task = asyncio.ensure_future(read())
+        self._tasks = [t for t in self._tasks if not t.done()] + [task]
+        return task
 
     def close(self) -> None:
         for task in self._tasks:
