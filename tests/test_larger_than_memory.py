@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from vastray.preflight import domain_footprints, estimate_memory
+from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
 from vastray.render.imageio import read_image
 from vastray.scene.store import Store
 
@@ -41,8 +41,9 @@ def store(tmp_path_factory) -> Store:
 
 def quarter_limit(store: Store) -> int:
     """A --memory-limit whose cache holds at most a quarter of the domains: the process's
-    fixed part (film, outputs, every path of the frame in flight) and the largest quarter."""
-    fixed = estimate_memory(WIDTH, HEIGHT, WIDTH * HEIGHT * SPP, 1).total
+    fixed part (film, outputs, every path of the frame in flight), the margin a limit keeps
+    back, and the largest quarter."""
+    fixed = estimate_memory(WIDTH, HEIGHT, WIDTH * HEIGHT * SPP, 1).total + LIMIT_BASE_MARGIN
     largest = sorted(domain_footprints(store.domains), reverse=True)
     return fixed + sum(largest[:len(largest) // 4])
 

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from vastray.cli import build_parser, main
-from vastray.preflight import domain_footprints, estimate_memory
+from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
 from vastray.render.imageio import read_image
 from vastray.scene.simplify import build_simplified
 
@@ -230,7 +230,7 @@ def check_scheduler(r: Renders):
 def check_memory_limit(r: Renders):
     # image, 64 paths in flight and one light: the film and paths need `fixed`; the limit
     # leaves room for the two largest domains exactly
-    fixed = estimate_memory(16, 12, 64, 1).total
+    fixed = estimate_memory(16, 12, 64, 1).total + LIMIT_BASE_MARGIN
     largest = sorted(domain_footprints(r.store.domains), reverse=True)
     args = ["--scheduler", "image", "--max-samples-in-flight", "64", "--memory-limit"]
     run = r(*args, str(fixed + largest[0] + largest[1] + 1))

@@ -354,7 +354,7 @@ def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged
 
 
 def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
-    from vastray.preflight import domain_footprints, estimate_memory
+    from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
 
     out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--memory-limit", "64K",
                   cwd=tmp_path)
@@ -366,7 +366,8 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     # the run reads --reference, which the estimate counts. One thread: the reference
     # renderer then holds the same 1536 paths at once as spec-ooc (with two it would hold half
     # of them, which leaves room for every domain of this tiny store)
-    limit = estimate_memory(32, 24, 32 * 24 * 2, 1 + 2, reference=True).total + two + 1
+    limit = (estimate_memory(32, 24, 32 * 24 * 2, 1 + 2, reference=True).total
+             + LIMIT_BASE_MARGIN + two + 1)
     ref = vastray("render", store.path, "-o", "ref.exr", *SMALL, cwd=tmp_path)
     assert ref.returncode == 0
     out = vastray("render", store.path, "-o", "x.exr", "--report", "x.json", *SMALL,

@@ -181,7 +181,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G: bounds its "
                         "domain cache after the rest of the process (interpreter and "
-                        "libraries, film, paths in flight); a render that cannot fit is "
+                        "libraries, film, paths in flight, and a 75 MB margin for the "
+                        "libraries' measured spread); the report's peak_rss_bytes is the "
+                        "measured peak; a render that cannot fit is "
                         "refused before it starts (default: a render is refused only when it "
                         "needs more than 85%% of the available memory)")
     p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",

@@ -32,6 +32,13 @@ from vastray.scene.errors import InputError
 #: so that both stay within 0.8-1.5.
 BASE_BYTES = 205_000_000
 
+#: What a ``--memory-limit`` plan keeps back beyond the estimate's base (``cache_within``,
+#: ``check_owned_fit``), so that the limit bounds the measured peak and is not only its central
+#: estimate: the base measured 255 MB at the end of a CI run against ``BASE_BYTES`` (a render
+#: under a limit that left it out peaked at 253 MB against 212 MB there), plus a margin. A few
+#: tens of MB, nothing beside the gigabytes of domains a limit is for.
+LIMIT_BASE_MARGIN = 75_000_000
+
 #: Resident bytes of the coordinator of a ``--nodes`` render before its image (it loads no
 #: Embree scene and traces nothing). Measured: 141-147 MB peak at 256x256 with 2 nodes, less
 #: its 65,536 pixels, on its own; 220 MB at the end of a CI run (as above).
@@ -243,18 +250,21 @@ def domain_footprints(domains) -> list[int]:
 def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
                  height: int) -> int:
     """The most domains a process can hold under ``limit`` besides its film, paths and
-    outputs (``fixed``): counted with the largest domains, so any choice of that many fits.
+    outputs (``fixed``) and ``LIMIT_BASE_MARGIN``: counted with the largest domains, so any
+    choice of that many fits.
 
     Raises
     ------
     InputError
         When even the film and paths, or those plus the largest domain, exceed the limit.
     """
-    room = limit - fixed.total
+    planned = fixed.total + LIMIT_BASE_MARGIN
+    room = limit - planned
     if room <= 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
-                               f"{width}x{height} render needs {gigabytes(fixed.total)} per process "
-                               f"before any domain ({fixed.breakdown()}); raise it, or lower "
+                               f"{width}x{height} render needs {gigabytes(planned)} per process "
+                               f"before any domain ({fixed.breakdown()}, margin "
+                               f"{gigabytes(LIMIT_BASE_MARGIN)}); raise it, or lower "
                                "--width/--height, --threads or --max-samples-in-flight")
     held, count = 0, 0
     for size in sorted(footprints, reverse=True):
@@ -287,11 +297,12 @@ def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], ow
     for size, node in zip(footprints, owner, strict=True):
         held[int(node)] += size
     worst = max(range(nodes), key=held.__getitem__)
-    if fixed.total + held[worst] > limit:
+    planned = fixed.total + LIMIT_BASE_MARGIN
+    if planned + held[worst] > limit:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small for "
                                f"--scheduler spec-insitu: node {worst} keeps its domains "
                                f"loaded, {gigabytes(held[worst])}, besides "
-                               f"{gigabytes(fixed.total)} for the rest of the process; raise it, "
+                               f"{gigabytes(planned)} for the rest of the process; raise it, "
                                "give more --nodes, or use --scheduler async (whose caches "
                                "evict)")
 
