@@ -107,6 +107,7 @@ def check_bind(host: str, credentials: Credentials | None) -> None:
 #: Numbers the monitor endpoints of watched sockets (``Gate.watch``).
 _MONITORS = itertools.count()
 
+
 class Gate:
     """The ZAP handler of one ZeroMQ context: admits a connection or refuses it at the
     handshake, and counts and logs refusals at a bounded rate (the first few, then every
