@@ -102,7 +102,7 @@ class ImageSchedule:
         goes before any other, the fullest first: its rays cost no load now and might cost one
         later. Without it, ``resident`` is ignored (SpRay Listing 1).
         """
-        waiting = self.radiance.counts() + self.shadow.counts()
+        waiting = self.demand()
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"],
                                                    int(waiting.sum()))
         self._resident = resident
@@ -115,15 +115,16 @@ class ImageSchedule:
         if ``current`` sent no rays on (the second-fullest queue, or with ``resident_first``
         the fullest resident one). The real choice depends on the rays ``current`` sends on,
         so the guess can be wrong; a wrong guess costs a load and evicts a domain."""
-        waiting = self.radiance.counts() + self.shadow.counts()
+        waiting = self.demand()
         waiting[current] = 0
         if not waiting.any():
             return None
         return fullest(waiting, self._resident if self.resident_first else ())
 
     def demand(self) -> np.ndarray:
-        """(D,) int64 rays waiting for each domain, what eviction by demand keeps: the fullest
-        queue goes next, so the domain with the fewest is needed last (Belady's victim)."""
+        """(D,) int64 rays waiting for each domain (a fresh array): what ``next_domain`` picks
+        the fullest of, and what eviction by demand keeps (the domain with the fewest is
+        needed last: Belady's victim)."""
         return self.radiance.counts() + self.shadow.counts()
 
     def process(self, domain: int, bvh) -> None:

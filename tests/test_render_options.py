@@ -312,8 +312,10 @@ def _in_memory_filesystem(path: Path) -> bool:
 
 def check_eviction(r: Renders):
     image = ["--scheduler", "image", "--cache", "2"]
-    run = r(*image, "--eviction", "demand")
+    run = r(*image, "--eviction", "demand", quiet=False)  # the summary line, as users see it
     assert run.code == 0, run.err
+    last = run.err.strip().splitlines()[-1]
+    assert last.startswith("wrote ") and "domain loads" in last and "GB read" in last, last
     assert run.report["options"]["eviction"] == "demand"
     assert run.counters["belady_loads"] <= run.counters["loads"]
     np.testing.assert_allclose(run.image(), r.baseline.image(), rtol=1e-6, atol=1e-6)

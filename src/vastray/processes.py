@@ -1,6 +1,6 @@
 """Facts about processes: whether one still runs (what files and folders named after their
 owner's pid, such as stale temporary images, node logs and join secrets, are judged by), and
-this process's peak resident memory."""
+this process's peak resident memory and bytes read from storage."""
 
 from __future__ import annotations
 
@@ -18,14 +18,15 @@ def running(pid: int) -> bool:
     return True
 
 
-def proc_bytes(path: str, field: str) -> int | None:
-    """A ``FIELD:  N kB`` line of a ``/proc`` file (``/proc/meminfo``,
-    ``/proc/PID/status``) in bytes; None where the file or the field is missing."""
+def proc_bytes(path: str, field: str, unit: int = 1024) -> int | None:
+    """A ``FIELD:  N`` line of a ``/proc`` file in bytes: N times ``unit`` (1024 for the kB
+    of ``/proc/meminfo`` and ``/proc/PID/status``, 1 for the bytes of ``/proc/PID/io``);
+    None where the file or the field is missing."""
     try:
         with open(path) as fh:
             for line in fh:
                 if line.startswith(f"{field}:"):
-                    return int(line.split()[1]) * 1024
+                    return int(line.split()[1]) * unit
     except OSError:
         pass
     return None
@@ -51,11 +52,4 @@ def disk_read_bytes() -> int | None:
     """Bytes this process has had read from storage so far (``read_bytes`` of
     ``/proc/self/io``: reads the page cache served are not counted); None where the kernel
     does not say."""
-    try:
-        with open("/proc/self/io") as fh:
-            for line in fh:
-                if line.startswith("read_bytes:"):
-                    return int(line.split()[1])
-    except OSError:
-        pass
-    return None
+    return proc_bytes("/proc/self/io", "read_bytes", unit=1)
