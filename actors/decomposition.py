@@ -92,7 +92,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
         if mode in ("async", "temporal"):
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
-            await finish_simplified(routing, tree, state, stats, rank)
+            await finish_simplified(routing, tree, state, stats, rank, options.portal_memory)
         for index, first in enumerate(range(0, total, tile) if mode in ("domain", "dynamic")
                                       else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
@@ -133,7 +133,7 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
     from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
 
     previous = state.temporal_stats
-    stats["assignment"] = options.assignment or "temporal"  # the effective ones, reported
+    stats["assignment"] = options.assignment or "affinity"  # the effective ones, reported
     stats["priority"] = options.priority or "cost-rate"
     assignment = frame_assignment(stats["assignment"], store, setup.camera,
                                   settings.width, settings.height, size, previous)

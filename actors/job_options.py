@@ -24,7 +24,7 @@ RESIDENT_FIRST_SCHEDULERS = ("image", "spec-ooc", "async")
 BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 
 #: The wire layout's version: a node refuses a job whose options carry another.
-VERSION = 2  # 2: cold_reads, eviction
+VERSION = 3  # 2: cold_reads, eviction; 3: portal_memory, assignment paper|affinity
 
 #: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
 #: (one process, or sort-first tiles on every node), and those that distribute domains over
@@ -35,7 +35,7 @@ NODE_ONLY_SCHEDULERS = ("domain", "async", "dynamic", "spec-insitu", "temporal")
 SCHEDULERS = IN_CORE_SCHEDULERS + TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
-ASSIGNMENTS = ("sequential", "spatial", "temporal")
+ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity")
 EVICTIONS = ("lru", "demand")
 PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 
@@ -88,9 +88,13 @@ class JobOptions:
         None: off (``simplified_frames.simplified_routing``).
     portal_interval, portal_threshold, portal_resolution, portal_accuracy : the virtual
         portals of ``simplified="portal"`` (``simplified_frames.simplified_routing``).
+    portal_memory : 0 (the paper's): only recording frames record; N >= 1: predicting
+        frames also record the depth-1 rays they trace fine, and a cell no frame has
+        recorded for N frames is forgotten (``Portals.refresh``).
     assignment : domain ownership, ``sequential`` (async's round robin, its only one so far),
-        ``spatial`` or ``temporal``; None: the scheduler's default
-        (``decomposition._temporal_frame`` for temporal).
+        ``spatial``, ``paper`` (Algorithm 1) or ``affinity`` (Algorithm 1 with cache
+        affinity); None: the scheduler's default (``decomposition._temporal_frame`` for
+        temporal: ``affinity``).
     priority : temporal's domain priority; None: ``cost-rate`` (``decomposition._temporal_frame``).
 
     Raises
@@ -116,6 +120,7 @@ class JobOptions:
     portal_threshold: float = 0.5
     portal_resolution: int = DEFAULT_PORTAL_RESOLUTION
     portal_accuracy: bool = False
+    portal_memory: int = 0
     assignment: str | None = None
     priority: str | None = None
 
@@ -193,6 +198,12 @@ class JobOptions:
                                       f"choose from {', '.join(SIMPLIFIED_POLICIES)}")
             if self.scheduler not in ("async", "temporal"):
                 raise JobOptionsError("--simplified works with --scheduler async or temporal")
+        if self.portal_memory < 0:
+            raise JobOptionsError(f"--portal-memory must not be negative, got "
+                                  f"{self.portal_memory}")
+        if self.portal_memory and self.simplified != "portal":
+            raise JobOptionsError("--portal-memory accumulates the virtual portals of "
+                                  "--simplified portal: give --simplified portal, or drop it")
         if self.portal_accuracy and self.simplified != "portal":
             raise JobOptionsError("--portal-accuracy measures the portals' predictions: use it "
                                   "with --simplified portal (and --frames 2 or more)")
@@ -267,7 +278,7 @@ _TYPES = {
     "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str,
     "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
-    "assignment": str, "priority": str,
+    "portal_memory": _INT, "assignment": str, "priority": str,
 }
 _OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads",
                        "load_bandwidth", "simplified", "assignment", "priority"})

@@ -16,7 +16,10 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     ``options.portal_accuracy`` (portal policy) makes the run an instrumented one, for ACC:
     every frame is traced as a recording frame with a crossing log, and the crossings are
     classified with the portals a timed run would predict the frame with; only the frames a
-    timed run records replace those portals (``finish_simplified``)."""
+    timed run records replace those portals (``finish_simplified``).
+
+    With ``options.portal_memory`` a predicting frame records, into fresh portals, the
+    depth-1 rays it traces fine; ``finish_simplified`` folds them into the kept ones."""
     policy = options.simplified
     if policy is None:
         return None
@@ -39,6 +42,8 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     routing = SimplifiedRouting(state.simplified_bvh, len(store.domains), policy, lo,
                                 hi, portals=portals, recording=recording or measuring,
                                 threshold=float(options.portal_threshold))
+    if policy == "portal" and options.portal_memory and not (recording or measuring):
+        routing.fresh = Portals(len(store.domains), options.portal_resolution)
     if measuring:
         routing.log = CrossingLog(setup.total_paths)
         routing.reference = state.portals
@@ -46,8 +51,8 @@ def simplified_routing(store, setup, options: JobOptions, state: NodeState):
     return routing
 
 
-async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: int = 0
-                            ) -> None:
+async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: int = 0,
+                            memory: int = 0) -> None:
     """After a frame: merge a recording frame's portals over the nodes (MAX, by the
     tree-reduce actor) for the frames that follow, and report the routing's counters.
 
@@ -55,13 +60,24 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
     and node 0 reports, for every node (the counts are global), the crossings classified
     with the portals a timed run would predict the frame with (``acc_*``, on the frames a
     timed run predicts, not on its recording frames) and with the portals recorded in this
-    very frame (``replay_*``: no false lows, since cells keep maxima)."""
+    very frame (``replay_*``: no false lows, since cells keep maxima).
+
+    With ``memory`` (``--portal-memory``) an accumulating frame's fresh portals are merged
+    over the nodes and folded into ``state.portals`` (``Portals.refresh``); an instrumented
+    run folds into its reference the crossings that reference predicts high (those the timed
+    run traces fine and records), so it predicts each frame with the timed run's portals."""
     if routing is None:
         return
     stats.update(routing.counters)
     stats["portal_recording"] = int(routing.recording and routing.keeps_portals)
     if routing.portals is not None:
         stats["portal_resolution"] = routing.portals.resolution
+    if routing.fresh is not None:  # an accumulating frame: fold its records in
+        from vastray.schedule.portals import Portals
+
+        arrays = routing.fresh.to_arrays()
+        merged = await tree.allreduce(arrays, dict(Portals.REDUCE)) if tree is not None else arrays
+        state.portals.refresh(Portals.from_arrays(merged), memory)
     if routing.recording:
         from vastray.schedule.portals import CrossingLog, Portals, prediction_accuracy
 
@@ -80,3 +96,11 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
             if routing.reference is not None and not routing.keeps_portals:
                 stats.update(prediction_accuracy(routing.reference.predict(cells), actual,
                                                  routing.threshold).counters("acc_"))
+        if (routing.log is not None and routing.reference is not None and memory
+                and not routing.keeps_portals):
+            # what the timed run's frame records: the crossings it traces fine
+            cells, actual = CrossingLog.from_arrays(merged).crossings()
+            fine = routing.reference.predict(cells) > routing.threshold
+            fresh = Portals(routing.reference.n_domains, routing.reference.resolution)
+            fresh.record(cells[fine], actual[fine])
+            routing.reference.refresh(fresh, memory)

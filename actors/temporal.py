@@ -6,9 +6,11 @@ those pixels) and a group of domains (the only ones it may load). Rays for anoth
 domain travel there without global rounds, as in ``async``; the frame ends with one
 termination detection. What the previous frame taught drives this one:
 
-- **assignment** (``--assignment``): ``temporal`` is Algorithm 1 over the previous frame's ray
-  transmissions s(A, B) and the nodes' loading speeds (frame 0, with no statistics yet, uses
-  ``spatial``); ``spatial`` gives each node a contiguous z-order run of domains; ``sequential``
+- **assignment** (``--assignment``): ``paper`` is Algorithm 1 over the previous frame's ray
+  transmissions s(A, B) and the nodes' loading speeds; ``affinity`` (the default) is
+  Algorithm 1 where the domains a node held at the last frame's end stay its own unless
+  moving one is predicted to save more than its load (frame 0, with no statistics yet, uses
+  ``spatial`` for both); ``spatial`` gives each node a contiguous z-order run of domains; ``sequential``
   deals domains round robin.
 - **priority** (``--priority``): which local domain to trace next and which to load meanwhile,
   scored by Q_CUR (``queue``), SpRay's traversal score (``spray``), Q_CUR plus the rays the
@@ -145,6 +147,7 @@ class TemporalFrame(AsyncFrame):
         self.nonlocal_loads = int(self.stats.loads[~self.local].sum())
         self.stats.load_bytes[self.rank] += after["bytes_loaded"] - before["bytes_loaded"]
         self.stats.load_s[self.rank] += after["load_s"] - before["load_s"]
+        self.stats.held[self.rank, sorted(preloader.resident())] = 1
 
 
 async def summed_stats(tree, stats: plan.FrameStats) -> plan.FrameStats:

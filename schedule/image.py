@@ -213,8 +213,7 @@ class ImageSchedule:
         if camera.any():
             rows = np.nonzero(camera)[0]
             self.result.record_camera_hits(self.ctx, radiance.take(rows), hits.take(rows))
-        recording = (self.simple is not None and self.simple.recording
-                     and self.simple.uses_portals)
+        recording = self.simple is not None and self.simple.records
         if recording:  # crossed portals start dark: a miss or a shadowed hit records 0
             self._record_crossings(rays)
         hit = np.nonzero(hits.hit)[0]
@@ -287,6 +286,8 @@ class ImageSchedule:
             rays["portal_cell"][crossing] = cells
             return rays, spawned_in
         low = simple.portals.predict(cells) <= simple.threshold
+        if simple.fresh is not None:  # accumulating: the rays traced fine record
+            rays["portal_cell"][crossing[~low]] = cells[~low]
         if not low.any():
             return rays, spawned_in
         simple.counters["predicted_low"] += int(low.sum())
@@ -307,12 +308,14 @@ class ImageSchedule:
         self._finalize(rays)
 
     def _record_crossings(self, rays: SoA) -> None:
-        """Recording frame: every final ray that crossed its portal records 0 in its cell
-        (dark until the light its hit receives says otherwise)."""
+        """Recording (or accumulating) frame: every final ray that crossed its portal (and, if
+        accumulating, was traced fine) records 0 in its cell (dark until the light its hit
+        receives says otherwise)."""
         cells = rays["portal_cell"]
         crossed = cells >= 0
         if crossed.any():
-            self.simple.portals.record(cells[crossed], np.zeros(int(crossed.sum()), np.float32))
+            self.simple.record_into.record(cells[crossed],
+                                           np.zeros(int(crossed.sum()), np.float32))
             self.simple.counters["portal_records"] += int(crossed.sum())
             if self.simple.log is not None:  # an instrumented frame: which path crossed where
                 self.simple.log.crossed(self._path_ids(rays["path"][crossed]), cells[crossed])
@@ -373,11 +376,11 @@ class ImageSchedule:
         if not lit.any():
             return
         add_unoccluded(self.result.radiance, as_shadow(rays), lit)
-        if self.simple is not None and self.simple.recording:
+        if self.simple is not None and self.simple.records:
             cells = rays["portal_cell"]
             record = lit & (cells >= 0)
             if record.any():
-                self.simple.portals.record(cells[record], rays["portal_value"][record])
+                self.simple.record_into.record(cells[record], rays["portal_value"][record])
                 if self.simple.log is not None:
                     self.simple.log.lit(self._path_ids(rays["path"][record]),
                                         rays["portal_value"][record])

@@ -112,6 +112,8 @@ class Portals:
     ----------
     values : (D, 6, R, R, 8) float32, the largest radiance recorded per cell (0 where none).
     recorded : (D, 6, R, R, 8) bool, whether anything was recorded in the cell.
+    age : (D, 6, R, R, 8) uint16, frames since the cell was last recorded (``refresh``; local
+        to a node, not all-reduced: every node folds in the same merged frames).
     """
 
     #: Names and combiners (``transport.tree.COMBINE``) of :meth:`to_arrays`' arrays, for an
@@ -125,6 +127,7 @@ class Portals:
         self.resolution = int(resolution)
         self.values = np.zeros(self.shape_for(int(n_domains), self.resolution), np.float32)
         self.recorded = np.zeros(self.values.shape, bool)
+        self.age = np.zeros(self.values.shape, np.uint16)
 
     @staticmethod
     def shape_for(n_domains: int, resolution: int = DEFAULT_RESOLUTION) -> tuple[int, ...]:
@@ -224,6 +227,38 @@ class Portals:
         return np.where(self.recorded.reshape(-1)[cells], self.values.reshape(-1)[cells],
                         np.float32(np.inf)).astype(np.float32)
 
+    def refresh(self, fresh: Portals, memory: int) -> Portals:
+        """Fold in the cells one later frame recorded (``fresh``), and forget the cells no
+        frame has recorded for ``memory`` frames; returns self.
+
+        A cell ``fresh`` recorded keeps the larger of its two values (as within a frame:
+        "we only keep the maximum radiance") and its age goes to 0; every other recorded cell
+        ages by one frame, and at age ``memory`` it is forgotten (unrecorded again: predicted
+        high, traced fine, and so recorded afresh the next time a ray crosses it). The paper
+        records every ``--portal-interval`` frames only; accumulating lets a frame of few
+        paths predict from the crossings of its recent predecessors too.
+
+        Parameters
+        ----------
+        fresh : portals of the same shape, recorded in one frame (merged over the nodes).
+        memory : frames a cell is kept without being recorded again (>= 1).
+        """
+        if fresh.shape != self.shape:
+            raise ValueError(f"cannot refresh portals of shape {self.shape} with {fresh.shape}")
+        if int(memory) < 1:
+            raise ValueError(f"portal memory must be at least 1 frame, got {memory}")
+        np.add(self.age, 1, out=self.age, where=self.recorded & (self.age < np.iinfo(np.uint16).max))
+        both = self.recorded & fresh.recorded
+        self.values[:] = np.where(both, np.maximum(self.values, fresh.values),
+                                  np.where(fresh.recorded, fresh.values, self.values))
+        self.age[fresh.recorded] = 0
+        self.recorded |= fresh.recorded
+        expired = self.recorded & (self.age >= int(memory))
+        self.recorded[expired] = False
+        self.values[expired] = 0
+        self.age[expired] = 0
+        return self
+
     def merge(self, other: Portals) -> Portals:
         """Fold ``other`` in (element-wise MAX of values, OR of the masks); returns self."""
         if other.shape != self.shape:
@@ -235,12 +270,14 @@ class Portals:
     def copy(self) -> Portals:
         out = Portals(0, self.resolution)
         out.values, out.recorded = self.values.copy(), self.recorded.copy()
+        out.age = self.age.copy()
         return out
 
     def clear(self) -> None:
         """Forget everything (the start of a recording frame)."""
         self.values.fill(0)
         self.recorded.fill(False)
+        self.age.fill(0)
 
     def __eq__(self, other) -> bool:
         return (isinstance(other, Portals) and self.shape == other.shape

@@ -76,6 +76,10 @@ class SimplifiedRouting:
         of the last recording frame), to classify the logged crossings with (ACC), or None.
     keeps_portals : whether the portals recorded this frame replace the ones predicted with
         (False on an instrumented run's frames that a timed run would not record).
+    fresh : in a predicting frame that accumulates (``--portal-memory``), empty portals that
+        record the depth-1 rays traced fine (predicted high or never recorded), folded into
+        the portals at the frame's end (``Portals.refresh``); None: predicting frames record
+        nothing (the paper).
     """
 
     bvh: object
@@ -89,6 +93,7 @@ class SimplifiedRouting:
     log: object = None
     reference: object = None
     keeps_portals: bool = True
+    fresh: object = None
     counters: dict = field(default_factory=lambda: {
         "simplified_rays": 0, "simplified_shadow_rays": 0, "portal_crossings": 0,
         "predicted_low": 0, "portal_records": 0})
@@ -104,6 +109,17 @@ class SimplifiedRouting:
     @property
     def uses_portals(self) -> bool:
         return self.policy == "portal"
+
+    @property
+    def records(self) -> bool:
+        """Whether this frame records the radiance of depth-1 rays that cross a portal: a
+        recording frame every one of them, an accumulating one those it traces fine."""
+        return self.uses_portals and (self.recording or self.fresh is not None)
+
+    @property
+    def record_into(self):
+        """The portals this frame's records go into."""
+        return self.portals if self.recording else self.fresh
 
     def simplified_at_start(self, depth: np.ndarray, spawned_in: np.ndarray | None
                             ) -> np.ndarray:

@@ -174,11 +174,11 @@ def test_assign_frame_picks_the_assignment_by_kind():
                 sequential_owners(4, 2, nonempty, 32, 24))
     spatial = spatial_owners(lo, hi, 2, nonempty, 32, 24)
     assert same(assign_frame("spatial", *args, stats), spatial)
-    assert same(assign_frame("temporal", *args, None), spatial)  # frame 0: no statistics
+    assert same(assign_frame("paper", *args, None), spatial)  # frame 0: no statistics
     temporal = assign_temporal(screen_tiles(32, 24, 2), projected_rects(camera, lo, hi),
                                stats.sent, nbytes, stats.s_load(), nonempty,
                                eye_domain(camera.position, lo, hi, nonempty))
-    assert same(assign_frame("temporal", *args, stats), temporal)
+    assert same(assign_frame("paper", *args, stats), temporal)
     assert temporal.owner[0] != temporal.owner[3]  # the pair that trades rays is split
     with pytest.raises(ValueError, match="unknown assignment 'random'"):
         assign_frame("random", *args, stats)

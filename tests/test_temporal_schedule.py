@@ -353,7 +353,7 @@ def test_spatial_owners_balance_the_non_empty_domains():
 def test_names():
     assert PRIORITIES == ("queue", "spray", "queue+act", "cost-benefit", "cost-rate",
                           "queue+resident")
-    assert ASSIGNMENTS == ("sequential", "spatial", "temporal")
+    assert ASSIGNMENTS == ("sequential", "spatial", "paper", "affinity")
 
 
 # -- frame statistics --------------------------------------------------------------------------
@@ -367,6 +367,7 @@ def node_stats(rng, d=5, p=3) -> FrameStats:
     s.proc_s[:] = rng.uniform(0, 1, d)
     s.load_bytes[:] = rng.uniform(0, 1e6, p)
     s.load_s[:] = rng.uniform(0, 1, p)
+    s.held[rng.integers(0, p), rng.integers(0, d)] = 1
     return s
 
 
@@ -378,7 +379,7 @@ def test_frame_stats_round_trip_and_sum_over_nodes():
     a, b = node_stats(rng), node_stats(rng)
     arrays = a.to_arrays()
     assert set(arrays) == {"sent", "received", "loads", "proc_rays", "proc_s", "load_bytes",
-                           "load_s"}
+                           "load_s", "held"}
     back = FrameStats.from_arrays({k: v.tolist() for k, v in arrays.items()})  # e.g. off the wire
     for k, v in back.to_arrays().items():
         assert v.dtype == arrays[k].dtype and np.array_equal(v, arrays[k])
@@ -386,6 +387,7 @@ def test_frame_stats_round_trip_and_sum_over_nodes():
     assert np.array_equal(total.sent, a.sent + b.sent)
     assert np.array_equal(total.received, a.received + b.received)
     assert np.allclose(total.load_s, a.load_s + b.load_s)
+    assert np.array_equal(total.held, a.held + b.held) and total.held.shape == (3, 5)
     with pytest.raises(ValueError):
         FrameStats.from_arrays({**arrays, "sent": np.zeros((5, 4), np.int64)})
 

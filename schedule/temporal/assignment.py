@@ -16,11 +16,12 @@ from vastray.schedule.temporal.stats import FrameStats
 if TYPE_CHECKING:
     from vastray.render.camera import Camera
 
-__all__ = ["ASSIGNMENTS", "Assignment", "assign_frame", "assign_temporal", "eye_domain",
-           "sequential_owners", "spatial_owners"]
+__all__ = ["ASSIGNMENTS", "Assignment", "assign_affinity", "assign_frame", "assign_temporal",
+           "eye_domain", "sequential_owners", "spatial_owners"]
 
-#: Domain assignments of Table 2.
-ASSIGNMENTS = ("sequential", "spatial", "temporal")
+#: Domain assignments: Table 2's three (``paper`` is Algorithm 1) and Algorithm 1 with cache
+#: affinity.
+ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity")
 
 
 def eye_domain(eye: np.ndarray, lo: np.ndarray, hi: np.ndarray, nonempty: np.ndarray) -> int | None:
@@ -228,6 +229,103 @@ def assign_temporal(tiles: np.ndarray, rects: np.ndarray, sent: np.ndarray,
     return Assignment(owner, node_tiles, None if eye is None else int(eye))
 
 
+def _bind_to_holders(owner: np.ndarray, tiles: np.ndarray, held: np.ndarray,
+                     domain_bytes: np.ndarray, node_speed: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Re-bind Algorithm 1's units to the nodes that already hold most of them.
+
+    Unit u is the group ``owner == u``. Binding it to node n saves the loads of the domains
+    of u that n holds, sum V(d) / S_LOAD(n) seconds. The pairs are taken greedily, the largest
+    saving first (ties -> lower unit, then lower node); units that no free node holds anything
+    of keep Algorithm 1's node if it is free, else take the free nodes in rank order.
+
+    Returns
+    -------
+    owner : (D,) int64 with units renamed to their nodes (-1 kept); tiles : (P, 4) per node.
+    """
+    p = len(tiles)
+    member = owner >= 0
+    saving = np.zeros((p, p))  # saving[unit, node]
+    np.add.at(saving, (np.repeat(owner[member], p), np.tile(np.arange(p), int(member.sum()))),
+              (held[:, member].T * (domain_bytes[member, None] / node_speed[None, :])).ravel())
+    node_of = np.full(p, -1, np.int64)
+    taken = np.zeros(p, bool)
+    units, nodes = np.nonzero(saving > 0)
+    for k in np.lexsort((nodes, units, -saving[units, nodes])):
+        u, n = units[k], nodes[k]
+        if node_of[u] < 0 and not taken[n]:
+            node_of[u], taken[n] = n, True
+    for u in np.flatnonzero(node_of < 0):  # the rest: Algorithm 1's node, else the first free
+        n = u if not taken[u] else int(np.flatnonzero(~taken)[0])
+        node_of[u], taken[n] = n, True
+    bound = np.where(member, node_of[np.maximum(owner, 0)], -1)
+    node_tiles = np.empty_like(tiles)
+    node_tiles[node_of] = tiles
+    return bound, node_tiles
+
+
+def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
+                    domain_bytes: np.ndarray, node_speed: np.ndarray, rays_per_load: float
+                    ) -> Assignment:
+    """Algorithm 1 with the cost of moving a domain counted: what a node holds stays its own
+    unless Algorithm 1's placement is predicted to save more than the load it costs.
+
+    1. **Bind by holding.** Algorithm 1's units (tile and group) go to the nodes that hold
+       most of them (``_bind_to_holders``), in place of its step 3 (bytes to load speed).
+    2. **Hysteresis.** A domain d held by node h at the last frame's end but placed on node
+       o != h moves to o only if Algorithm 1's reason for moving it outweighs the load the move
+       costs. Algorithm 1 places d where it trades the fewest rays inside its group;
+       keeping d in h's group instead adds trans(d, h) - trans(d, o) rays traded inside a
+       group (``trans`` as in Algorithm 1, over the groups after step 1), which last frame
+       cost a load per ``rays_per_load`` rays: the predicted gain of the move is
+       (trans(d, h) - trans(d, o)) / rays_per_load loads of d on h,
+       x V(d) / S_LOAD(h) seconds, and its cost one load of d on o, V(d) / S_LOAD(o). A
+       domain several nodes hold (none, in a temporal run, but the replicated eye domain) is
+       counted for the fastest-loading of them; the replicated domain itself never moves.
+
+    A greedy with hysteresis rather than a min-cost assignment: the gain is an estimate from
+    one frame, the only exact part is the load a move costs, and the greedy keeps Algorithm
+    1's grouping everywhere the caches hold nothing (DESIGN.md, "Temporal assignment with
+    cache affinity"). Unit sizes may differ by up to a cache's worth of domains.
+
+    Parameters
+    ----------
+    paper : Algorithm 1's assignment (``assign_temporal``) for this frame.
+    held : (P, D) the domains each node held at the last frame's end (``FrameStats.held``).
+    sent : (D, D) s(A, B) of the last frame.
+    domain_bytes : (D,) V(d); node_speed : (P,) S_LOAD(n).
+    rays_per_load : rays processed per domain load in the last frame (inf: no loads, so no
+        move pays).
+
+    Returns
+    -------
+    Assignment with the same tiles as ``paper`` (re-bound) and ``replicated``.
+    """
+    held = np.asarray(held) > 0
+    speed = np.asarray(node_speed, dtype=np.float64)
+    volume = np.asarray(domain_bytes, dtype=np.float64)
+    owner, tiles = _bind_to_holders(np.asarray(paper.owner, np.int64), paper.tiles, held,
+                                    volume, speed)
+    sym = (np.asarray(sent) + np.asarray(sent).T).astype(np.float64)
+    np.fill_diagonal(sym, 0.0)
+    member = owner >= 0
+    trans = np.zeros((len(tiles), len(owner)))  # trans[n, d]: rays d trades with n's group
+    np.add.at(trans, owner[member], sym[member])
+    holder = np.argmax(np.where(held, speed[:, None], -np.inf), axis=0)  # fastest holder
+    moved = member & held.any(axis=0) & ~held[np.maximum(owner, 0), np.arange(len(owner))]
+    if paper.replicated is not None:
+        moved[paper.replicated] = False
+    d = np.flatnonzero(moved)
+    h, o = holder[d], owner[d]
+    extra = np.maximum(trans[h, d] - trans[o, d], 0.0)
+    gain = extra / max(float(rays_per_load), 1e-300) * volume[d] / speed[h]
+    cost = volume[d] / speed[o]
+    keep = d[gain <= cost]
+    owner = owner.copy()
+    owner[keep] = holder[keep]
+    return Assignment(owner, tiles, paper.replicated)
+
+
 def sequential_owners(n_domains: int, n_nodes: int, nonempty: np.ndarray, width: int,
                       height: int) -> Assignment:
     """Table 2's *sequential* assignment: domain d goes to node d mod n (as vastray's
@@ -280,8 +378,8 @@ def assign_frame(kind: str, camera: Camera, lo: np.ndarray, hi: np.ndarray, none
                  previous: FrameStats | None) -> Assignment:
     """A frame's assignment units of kind ``kind`` (one of ``ASSIGNMENTS``); the same on every
     node, since it depends only on the domains, the camera and the previous frame's summed
-    statistics. Frame 0 (``previous`` None) has no statistics to plan from: ``temporal`` falls
-    back to ``spatial`` there.
+    statistics. Frame 0 (``previous`` None) has no statistics to plan from: ``paper`` and
+    ``affinity`` fall back to ``spatial`` there.
 
     Parameters
     ----------
@@ -294,8 +392,14 @@ def assign_frame(kind: str, camera: Camera, lo: np.ndarray, hi: np.ndarray, none
         return sequential_owners(len(lo), size, nonempty, width, height)
     if kind == "spatial" or previous is None:
         return spatial_owners(lo, hi, size, nonempty, width, height)
-    if kind != "temporal":
+    if kind not in ("paper", "affinity"):
         raise ValueError(f"unknown assignment {kind!r}; expected one of {ASSIGNMENTS}")
-    return assign_temporal(screen_tiles(width, height, size), projected_rects(camera, lo, hi),
-                           previous.sent, domain_bytes, previous.s_load(), nonempty,
-                           eye_domain(camera.position, lo, hi, nonempty))
+    paper = assign_temporal(screen_tiles(width, height, size), projected_rects(camera, lo, hi),
+                            previous.sent, domain_bytes, previous.s_load(), nonempty,
+                            eye_domain(camera.position, lo, hi, nonempty))
+    if kind == "paper":
+        return paper
+    loads = int(previous.loads.sum())
+    rays_per_load = previous.proc_rays.sum() / loads if loads else np.inf
+    return assign_affinity(paper, previous.held, previous.sent, domain_bytes,
+                           previous.s_load(), rays_per_load)

@@ -41,6 +41,8 @@ class FrameStats:
         holding few rays (bench/README.md, temporal.py: 1,152 loads per frame against 546).
     load_bytes : (P,) float64 and load_s : (P,) float64: bytes loaded by node n and seconds
         spent loading them (for S_LOAD).
+    held : (P, D) int64, 1 where node n held domain d in its cache at the frame's end (each
+        node fills its own row), for the cache-affinity assignment (``assign_affinity``).
 
     Every field is a sum over nodes, so a SUM all-reduce of ``to_arrays()`` merges nodes.
     """
@@ -52,19 +54,23 @@ class FrameStats:
     proc_s: np.ndarray
     load_bytes: np.ndarray
     load_s: np.ndarray
+    held: np.ndarray | None = None
 
     DTYPES: ClassVar[dict[str, type]] = {
         "sent": np.int64, "received": np.int64, "loads": np.int64, "proc_rays": np.int64,
         "proc_s": np.float64, "load_bytes": np.float64, "load_s": np.float64,
+        "held": np.int64,
     }
 
     def __post_init__(self):
+        if self.held is None:
+            self.held = np.zeros((len(self.load_bytes), len(self.received)), np.int64)
         for name, dtype in self.DTYPES.items():
             setattr(self, name, np.asarray(getattr(self, name), dtype=dtype))
         d = len(self.received)
         p = len(self.load_bytes)
         shapes = {"sent": (d, d), "received": (d,), "loads": (d,), "proc_rays": (d,),
-                  "proc_s": (d,), "load_bytes": (p,), "load_s": (p,)}
+                  "proc_s": (d,), "load_bytes": (p,), "load_s": (p,), "held": (p, d)}
         for name, shape in shapes.items():
             if getattr(self, name).shape != shape:
                 raise ValueError(f"FrameStats.{name} has shape {getattr(self, name).shape}, "
@@ -75,7 +81,8 @@ class FrameStats:
         """All counters 0 for D = ``n_domains`` domains and P = ``n_nodes`` nodes."""
         d, p = int(n_domains), int(n_nodes)
         return cls(np.zeros((d, d), np.int64), np.zeros(d, np.int64), np.zeros(d, np.int64),
-                   np.zeros(d, np.int64), np.zeros(d), np.zeros(p), np.zeros(p))
+                   np.zeros(d, np.int64), np.zeros(d), np.zeros(p), np.zeros(p),
+                   np.zeros((p, d), np.int64))
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """The fields by name (the arrays themselves, not copies), for a SUM all-reduce."""

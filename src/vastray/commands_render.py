@@ -225,11 +225,13 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-preload", action="store_true",
                    help="do not load the next domain in the background (every scheduler with "
                         "a cache; the 'no preloading' rows of the benchmarks)")
-    p.add_argument("--assignment", choices=["sequential", "spatial", "temporal"],
+    p.add_argument("--assignment", choices=["sequential", "spatial", "paper", "affinity"],
                    help="async/temporal: which node owns which domain: round robin "
-                        "(sequential; async's default), contiguous z-order runs (spatial), or "
+                        "(sequential; async's default), contiguous z-order runs (spatial), "
                         "the temporal-coherence paper's Algorithm 1 from the last frame's ray "
-                        "transmissions (temporal's default; frame 0 uses spatial)")
+                        "transmissions (paper), or Algorithm 1 where a domain a node holds "
+                        "stays there unless moving it saves more than its load (affinity; "
+                        "temporal's default). Frame 0 uses spatial for both")
     p.add_argument("--priority", choices=["queue", "spray", "queue+act", "cost-benefit",
                                           "cost-rate", "queue+resident"],
                    help="temporal: how a node picks the next domain and what it preloads: "
@@ -249,6 +251,12 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "with --reference")
     p.add_argument("--portal-interval", type=_positive, metavar="N",
                    help="--simplified portal: record the portals every N frames (default 10)")
+    p.add_argument("--portal-memory", type=_positive, metavar="N",
+                   help="--simplified portal: frames between recording frames record too, "
+                        "from the depth-1 rays they trace fine, and a cell no frame has "
+                        "recorded for N frames is forgotten (default: off, the paper's: only "
+                        "every --portal-interval-th frame records). Fills the portals of "
+                        "small frames, whose few paths leave most cells unrecorded")
     p.add_argument("--portal-resolution", type=_portal_resolution, metavar="R",
                    help="--simplified portal: cells per portal edge, R x R x 8 directions on "
                         "each domain face (default 32, the paper's; its Table 4 sweeps "

@@ -51,7 +51,8 @@ def refuse_inapplicable(args: argparse.Namespace) -> None:
     if args.integrator == "ao" and args.bounces is not None:
         raise InputError(None, "--bounces counts path-tracing bounces: --integrator ao traces "
                                "one hit per path (use --integrator pt, or drop --bounces)")
-    portal = [dest for dest in ("portal_interval", "portal_resolution", "portal_threshold")
+    portal = [dest for dest in ("portal_interval", "portal_resolution", "portal_threshold",
+                                "portal_memory")
               if getattr(args, dest) is not None]
     if portal and args.simplified != "portal":
         raise InputError(None, f"{_flag(portal[0])} tunes the virtual portals of --simplified "
@@ -131,6 +132,7 @@ def job_options(args: argparse.Namespace, scheduler: str, cache: int | None) -> 
                           else args.portal_threshold),
         portal_resolution=args.portal_resolution or DEFAULT_PORTAL_RESOLUTION,
         portal_accuracy=args.portal_accuracy,
-        assignment=args.assignment or ("temporal" if scheduler == "temporal" else None),
+        portal_memory=args.portal_memory or 0,
+        assignment=args.assignment or ("affinity" if scheduler == "temporal" else None),
         priority=args.priority or ("cost-rate" if scheduler == "temporal" else None),
     )

@@ -102,7 +102,8 @@ def run_label(report: dict) -> str:
             from vastray.actors.job_options import JobOptions
 
             defaults = JobOptions(scheduler="temporal")
-            for name in ("portal_threshold", "portal_resolution", "portal_interval"):
+            for name in ("portal_threshold", "portal_resolution", "portal_interval",
+                         "portal_memory"):
                 if options.get(name) not in (None, getattr(defaults, name)):
                     parts.append(f"--{name.replace('_', '-')} {options[name]}")
     return " ".join(parts)
