@@ -158,6 +158,30 @@ def test_unrecorded_cells_predict_inf():
     assert portals.predict([7])[0] == np.inf
 
 
+def test_refresh_keeps_the_maximum_and_forgets_cells_not_recorded_for_memory_frames():
+    kept = Portals(1, 2)
+    kept.record([1, 2], [0.4, 0.9])
+    frame = Portals(1, 2)
+    frame.record([2, 3], [0.1, 0.3])  # cell 2 again (lower), cell 3 new
+    kept.refresh(frame, memory=2)
+    np.testing.assert_array_equal(kept.predict([1, 2, 3, 4]),
+                                  np.float32([0.4, 0.9, 0.3, np.inf]))
+    assert kept.age.reshape(-1)[[1, 2, 3]].tolist() == [1, 0, 0]
+    kept.refresh(Portals(1, 2), memory=2)  # a frame that recorded nothing
+    np.testing.assert_array_equal(kept.predict([1, 2, 3]),
+                                  np.float32([np.inf, 0.9, 0.3]))  # 1: 2 frames
+    assert kept.values.reshape(-1)[1] == 0 and not kept.recorded.reshape(-1)[1]
+    again = Portals(1, 2)
+    again.record([1], [0.05])  # a forgotten cell is recorded afresh, not maxed with its past
+    kept.refresh(again, memory=2)
+    np.testing.assert_array_equal(kept.predict([1]), [np.float32(0.05)])
+    assert kept.copy().age.tolist() == kept.age.tolist()
+    with pytest.raises(ValueError, match="at least 1 frame"):
+        kept.refresh(again, memory=0)
+    with pytest.raises(ValueError, match="shape"):
+        kept.refresh(Portals(2, 2), memory=2)
+
+
 def random_portals(rng, n_domains=2, resolution=4, fill=0.3) -> Portals:
     p = Portals(n_domains, resolution)
     cells = rng.choice(p.values.size, int(fill * p.values.size), replace=False)

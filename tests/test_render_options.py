@@ -563,13 +563,22 @@ def test_temporal_and_simplified_options_reach_the_nodes(renders):
     per_node = run.counters["per_node"]
     assert {(n["counters"]["assignment"], n["counters"]["priority"]) for n in per_node} == {
         ("spatial", "queue")}
+    for assignment in ("paper", "affinity", None):  # None: temporal's default, affinity
+        chosen = ["--assignment", assignment] if assignment else []
+        run = renders("--nodes", "2", "--scheduler", "temporal", "--frames", "2", *chosen,
+                      base=tiny, quiet=False)
+        assert run.code == 0, run.err
+        frame1 = json.loads(run.output.with_name("r_0001.json").read_text())["counters"]
+        assert {n["counters"]["assignment"] for n in frame1["per_node"]} == {
+            assignment or "affinity"}
     portal = ["--nodes", "2", "--scheduler", "async", "--simplified", "portal", "--frames", "2",
               "--portal-resolution", "8"]
     frames = {}
     for name, extra in {"every": ["--portal-interval", "1"], "low": ["--portal-threshold", "-1"],
                         "high": ["--portal-threshold", "1e9"],
-                        "acc": ["--portal-accuracy"]}.items():
-        run = renders(*portal, *extra, base=tiny)
+                        "acc": ["--portal-accuracy"],
+                        "memory": ["--portal-memory", "3"]}.items():
+        run = renders(*portal, *extra, base=tiny, quiet=name == "memory")
         assert run.code == 0, run.err
         frames[name] = json.loads(run.output.with_name("r_0001.json").read_text())["counters"]
     assert frames["low"]["portal_resolution"] == 8
@@ -579,6 +588,9 @@ def test_temporal_and_simplified_options_reach_the_nodes(renders):
     # nothing is predicted at or below -1; everything at or below 1e9
     assert frames["low"]["simplified_share"] == 0 < frames["high"]["simplified_share"]
     assert frames["acc"]["acc"] is not None and "acc" not in frames["low"]
+    # with --portal-memory the predicting frame 1 records what it traces fine
+    assert sum(n["counters"]["portal_records"] for n in frames["memory"]["per_node"]) > 0
+    assert sum(n["counters"]["portal_records"] for n in frames["low"]["per_node"]) == 0
 
 
 def test_launch_shares_the_render_options():

@@ -8,9 +8,11 @@ import pytest
 
 from vastray.render.camera import Camera
 from vastray.schedule.temporal import (
+    Assignment,
     CacheView,
     FrameStats,
     TemporalChoice,
+    assign_affinity,
     assign_frame,
     assign_temporal,
     eye_domain,
@@ -182,3 +184,68 @@ def test_assign_frame_picks_the_assignment_by_kind():
     assert temporal.owner[0] != temporal.owner[3]  # the pair that trades rays is split
     with pytest.raises(ValueError, match="unknown assignment 'random'"):
         assign_frame("random", *args, stats)
+
+
+# -- cache affinity -------------------------------------------------------------------------------
+def paper_split() -> Assignment:
+    """Algorithm 1's answer for 2 nodes and 4 one-megabyte domains: node 0 gets {0, 1} and
+    tile 0, node 1 gets {2, 3} and tile 1."""
+    return Assignment(np.array([0, 0, 1, 1]), np.array([[0, 0, 16, 24], [16, 0, 32, 24]]))
+
+
+MB4 = np.full(4, 1e6)
+
+
+def test_affinity_binds_each_unit_to_the_node_that_holds_it():
+    held = np.array([[0, 0, 1, 1], [1, 1, 0, 0]])  # the nodes hold each other's units
+    a = assign_affinity(paper_split(), held, np.zeros((4, 4)), MB4, np.ones(2), 100.0)
+    assert a.owner.tolist() == [1, 1, 0, 0]
+    assert a.tiles.tolist() == [[16, 0, 32, 24], [0, 0, 16, 24]]  # tiles go with their units
+
+
+def test_affinity_keeps_a_held_domain_unless_moving_it_saves_more_than_its_load():
+    held = np.array([[1, 1, 1, 0], [0, 0, 0, 0]])  # node 0 still holds domain 2
+    sent = np.zeros((4, 4))
+    sent[2, 1] = 50  # keeping 2 with {0, 1} trades 50 rays inside node 0's group
+    kept = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_load=100.0)
+    assert kept.owner.tolist() == [0, 0, 0, 1]  # half a load's worth of rays: not worth a load
+    moved = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_load=20.0)
+    assert moved.owner.tolist() == [0, 0, 1, 1]  # 2.5 loads' worth: Algorithm 1's placement
+    slow = assign_affinity(paper_split(), held, sent, MB4, np.array([1.0, 4.0]), 20.0)
+    # the new owner loads 4x faster: a move costs a quarter of the 2.5 loads it saves on node 0
+    assert slow.owner.tolist() == [0, 0, 1, 1]
+    never = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), np.inf)
+    assert never.owner.tolist() == [0, 0, 0, 1]  # no loads last frame: nothing pays a move
+
+
+def test_affinity_without_held_domains_is_algorithm_1():
+    paper = paper_split()
+    a = assign_affinity(paper, np.zeros((2, 4)), np.ones((4, 4)), MB4, np.ones(2), 1.0)
+    assert np.array_equal(a.owner, paper.owner) and np.array_equal(a.tiles, paper.tiles)
+
+
+def test_affinity_never_moves_the_replicated_domain_or_empty_ones():
+    paper = Assignment(np.array([0, -1, 1, 1]), np.array([[0, 0, 16, 24], [16, 0, 32, 24]]),
+                       replicated=2)
+    held = np.array([[0, 0, 1, 0], [0, 0, 0, 0]])
+    a = assign_affinity(paper, held, np.zeros((4, 4)), MB4, np.ones(2), 100.0)
+    assert a.owner.tolist() == [0, -1, 1, 1] and a.replicated == 2
+
+
+def test_assign_frame_affinity_follows_what_the_nodes_held():
+    camera = Camera(np.array([2.0, 0.5, -6.0]), np.array([2.0, 0.5, 0.5]),
+                    np.array([0.0, 1.0, 0.0]), 60.0, 32, 24)
+    lo, hi, nonempty, nbytes = boxes()
+    args = (camera, lo, hi, nonempty, nbytes, 32, 24, 2)
+    stats = FrameStats.zeros(4, 2)
+    stats.sent[0, 3] = 10
+    stats.loads[:] = 1
+    stats.proc_rays[:] = 1000  # 1,000 rays per load: 10 rays traded are not worth a move
+    paper = assign_frame("paper", *args, stats)
+    holder = paper.owner[3]
+    stats.held[holder, 0] = 1  # domain 0 is held where Algorithm 1 put domain 3
+    affinity = assign_frame("affinity", *args, stats)
+    assert affinity.owner[0] == holder  # its unit (and tile) went to the node holding it
+    assert affinity.owner[3] != holder  # and the pair that trades rays is still split
+    assert np.array_equal(assign_frame("affinity", *args, None).owner,
+                          assign_frame("spatial", *args, None).owner)  # frame 0

@@ -167,16 +167,16 @@ def simple_store(tmp_path_factory):
 
 
 def portal_frames(store, nodes: int, scheduler: str = "temporal", cache: int | None = None,
-                  **options) -> dict:
-    """Frames 0 (recording the portals) and 1 (predicting with them; the camera has moved)
-    of an orbit under the portal policy: {frame: result}."""
+                  frames: tuple[int, ...] = (0, 1), **options) -> dict:
+    """Frames 0 (recording the portals) and 1 (predicting with them; the camera has moved),
+    and any later ``frames``, of an orbit under the portal policy: {frame: result}."""
     from vastray.render.scene_config import parse_scene_config
 
     delivered = {}
     render_distributed(store.path, None, settings(width=32, height=24, spp=2), nodes,
                        options=JobOptions(scheduler=scheduler, cache=cache, max_samples_in_flight=400,
                                           simplified="portal", **options), timeout=60,
-                       config=parse_scene_config(ORBIT_TOML, "orbit.toml"), frames=[0, 1],
+                       config=parse_scene_config(ORBIT_TOML, "orbit.toml"), frames=list(frames),
                        on_frame=lambda f, r: delivered.setdefault(f, r))
     return delivered
 
@@ -331,6 +331,30 @@ def test_cli_temporal_simplified_animation_without_quiet(tmp_path, capsys):
     low = sum(n["counters"]["predicted_low"] for n in per_node)
     assert frame1["counters"]["simplified_share"] == pytest.approx(low / crossings)
     assert low > 0
+
+
+def test_portal_memory_accumulates_and_the_instrumented_run_follows_it(simple_store):
+    # --portal-memory: frames 1 and 2 record the depth-1 rays they trace fine, so frame 2
+    # predicts from frames 0 and 1. The instrumented run folds in the same crossings (those
+    # its portals predict high), so it classifies frame 2 with the timed run's portals.
+    frames = (0, 1, 2)
+    timed = portal_frames(simple_store, 2, cache=2, frames=frames, portal_memory=4)
+    paper = portal_frames(simple_store, 2, cache=2, frames=frames)
+    assert summed(timed[1], "portal_records") > 0  # a predicting frame records
+    assert summed(paper[1], "portal_records") == 0  # the paper's: only frame 0 records
+    assert summed(timed[1], "predicted_low") == summed(paper[1], "predicted_low")
+    assert summed(timed[2], "predicted_low") > summed(paper[2], "predicted_low")  # it filled
+    one_node = portal_frames(simple_store, 1, frames=frames, portal_memory=4)
+    assert summed(one_node[2], "predicted_low") == summed(timed[2], "predicted_low")
+    measured = portal_frames(simple_store, 3, cache=2, frames=frames, portal_memory=4,
+                             portal_accuracy=True)
+    for frame in (1, 2):
+        assert (summed(measured[frame], "acc_predicted_low")
+                == summed(timed[frame], "predicted_low")), frame
+        assert summed(measured[frame], "acc_crossings") == summed(timed[frame],
+                                                                  "portal_crossings")
+    assert (measured[2].counters["acc_unrecorded_share"]
+            < measured[1].counters["acc_unrecorded_share"])
 
 
 def test_cli_measures_portal_accuracy_without_quiet(tmp_path, capsys):

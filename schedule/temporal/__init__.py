@@ -2,7 +2,8 @@
 
 Frame t uses the counters of frame t-1 (``FrameStats``, SUM-reduced over nodes) twice:
 
-* **Domain assignment** (Algorithm 1, ``assign_temporal``): the image is cut into one screen
+* **Domain assignment** (Algorithm 1, ``assign_temporal``; with cache affinity,
+  ``assign_affinity``, the default): the image is cut into one screen
   tile per node (``screen_tiles``); each tile's *AssignmentUnit* is seeded with the domain whose
   projected box overlaps the tile most (``projected_rects``); the units then grow, the unit with
   the fewest domains taking the unassigned domain that exchanged the *fewest* rays with it (rays
@@ -36,6 +37,7 @@ so callers write ``from vastray.schedule import temporal as plan``.
 from vastray.schedule.temporal.assignment import (
     ASSIGNMENTS,
     Assignment,
+    assign_affinity,
     assign_frame,
     assign_temporal,
     eye_domain,
@@ -67,6 +69,7 @@ __all__ = [
     "CacheView",
     "Choice",
     "FrameStats",
+    "assign_affinity",
     "assign_frame",
     "PriorityInputs",
     "TemporalChoice",

@@ -302,6 +302,9 @@ def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
     Assignment with the same tiles as ``paper`` (re-bound) and ``replicated``.
     """
     held = np.asarray(held) > 0
+    if paper.replicated is not None:  # any node may load it: holding it binds nothing
+        held = held.copy()
+        held[:, paper.replicated] = False
     speed = np.asarray(node_speed, dtype=np.float64)
     volume = np.asarray(domain_bytes, dtype=np.float64)
     owner, tiles = _bind_to_holders(np.asarray(paper.owner, np.int64), paper.tiles, held,
@@ -313,8 +316,6 @@ def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
     np.add.at(trans, owner[member], sym[member])
     holder = np.argmax(np.where(held, speed[:, None], -np.inf), axis=0)  # fastest holder
     moved = member & held.any(axis=0) & ~held[np.maximum(owner, 0), np.arange(len(owner))]
-    if paper.replicated is not None:
-        moved[paper.replicated] = False
     d = np.flatnonzero(moved)
     h, o = holder[d], owner[d]
     extra = np.maximum(trans[h, d] - trans[o, d], 0.0)
