@@ -149,6 +149,17 @@ def test_the_guard_refuses_a_preload_that_would_evict_a_higher_scored_domain():
     assert not worth_loading(1, scores, frozenset({0, 1, 2}), full)
 
 
+def test_cost_rate_activates_by_the_rays_queued_now_and_preloads_by_the_prediction():
+    # Domain 2 holds 1 ray and expects 50 (Q_POT); domain 1 holds 2. Both are cached. The
+    # active domain is picked for the rays it holds; Q_POT still ranks d*, what comes next.
+    p = cost_rate_policy()
+    c = choose(p, [0, 2, 1, 0], resident={1, 2}, capacity=2)
+    assert c.active == 1
+    assert p.upcoming == 2  # d*: 51 predicted rays
+    again = choose(p, [0, 3, 1, 0], resident={1, 2}, capacity=2)
+    assert again.active == 1  # d* holds a ray, but not the most: no carry-over for cost-rate
+
+
 def test_a_tie_with_the_victim_is_no_reason_to_load():
     assert not worth_loading(1, np.array([5.0, 3.0, 3.0]), frozenset({0, 1}),
                              CacheView(frozenset({0, 2}), 2))

@@ -65,6 +65,14 @@ class TemporalChoice:
     then score the rest with the active domain's expected sends (Eq 3), name the best one d*
     and load it meanwhile if that is worth a load.
 
+    ``cost-rate`` picks the active domain by the rays queued now (its score with Q_POT and the
+    act term left out) and keeps the predicted rays for d* (the preload) and eviction. The
+    paper's rule activates d* whenever it has a ray: with our short render steps, a domain
+    ranked first for the rays it is predicted to receive was activated for the few it held,
+    again and again, and the render time of a frame with every domain cached grew frame by
+    frame as the statistics fed on those activations (bench/README.md, issue 26: 0.55 s of
+    tracing per node, then 0.75, then 1.05; 0.55 each frame with this rule).
+
     Parameters
     ----------
     kind : one of ``PRIORITIES``; frame 0 (``previous`` None) uses ``bootstrap_priority``.
@@ -119,11 +127,12 @@ class TemporalChoice:
         preload is d* only when ``worth_loading``.
         """
         now = _Now(waiting, cache, n_cur, arrived, traversal_score)
-        previous = self.upcoming
+        previous = None if self.kind == "cost-rate" else self.upcoming
         if previous is not None and waiting[previous]:
             active = previous
         else:
-            scores = np.where(waiting > 0, self._scores(now, None, 0), -np.inf)
+            present = self.kind == "cost-rate"
+            scores = np.where(waiting > 0, self._scores(now, None, 0, present=present), -np.inf)
             active = best(scores)
             if active is None:  # rays only in domains that are no candidates: the fullest
                 active = int(np.argmax(waiting))
@@ -150,9 +159,10 @@ class TemporalChoice:
                                    self._scores(now, active, int(now.waiting[active])))
 
     def _scores(self, now: _Now, active: int | None, q_act: int,
-                resident_set: set[int] | None = None) -> np.ndarray:
+                resident_set: set[int] | None = None, present: bool = False) -> np.ndarray:
         """Every domain's priority (``priority``) for what is queued now, with the domains of
-        ``resident_set`` counted as cached (default: the cache's)."""
+        ``resident_set`` counted as cached (default: the cache's); ``present``: for the rays
+        queued now alone (no Q_POT)."""
         resident = np.zeros(len(now.waiting), bool)
         if resident_set is None and now.cache is not None:
             resident_set = now.cache.resident
@@ -160,7 +170,8 @@ class TemporalChoice:
             resident[list(resident_set)] = True
         inputs = PriorityInputs(
             q_cur=now.waiting.astype(np.float64), active=active, q_act=q_act, R=self.R,
-            R_pair=self.R_pair, q_pre=self.q_pre, q_cur_recv=now.arrived.astype(np.float64),
+            R_pair=self.R_pair, q_pre=np.zeros_like(self.q_pre) if present else self.q_pre,
+            q_cur_recv=now.arrived.astype(np.float64),
             n_pre=self.n_pre, n_cur=now.n_cur, s_proc=self.s_proc,
             domain_bytes=self.domain_bytes, s_load_n=self.s_load, resident=resident,
             dep=self.dep, local=self.local, spray_score=now.traversal_score)
