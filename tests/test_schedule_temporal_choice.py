@@ -218,9 +218,9 @@ def test_affinity_keeps_a_held_domain_unless_moving_it_saves_more_than_its_load(
     held = np.array([[1, 1, 1, 0], [0, 0, 0, 0]])  # node 0 still holds domain 2
     sent = np.zeros((4, 4))
     sent[2, 1] = 50  # keeping 2 with {0, 1} trades 50 rays inside node 0's group
-    kept = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_load=100.0)
+    kept = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_reload=100.0)
     assert kept.owner.tolist() == [0, 0, 0, 1]  # half a load's worth of rays: not worth a load
-    moved = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_load=20.0)
+    moved = assign_affinity(paper_split(), held, sent, MB4, np.ones(2), rays_per_reload=20.0)
     assert moved.owner.tolist() == [0, 0, 1, 1]  # 2.5 loads' worth: Algorithm 1's placement
     slow = assign_affinity(paper_split(), held, sent, MB4, np.array([1.0, 4.0]), 20.0)
     # the new owner loads 4x faster: a move costs a quarter of the 2.5 loads it saves on node 0
@@ -250,13 +250,19 @@ def test_assign_frame_affinity_follows_what_the_nodes_held():
     args = (camera, lo, hi, nonempty, nbytes, 32, 24, 2)
     stats = FrameStats.zeros(4, 2)
     stats.sent[0, 3] = 10
-    stats.loads[:] = 1
-    stats.proc_rays[:] = 1000  # 1,000 rays per load: 10 rays traded are not worth a move
+    stats.loads[:] = 2
+    stats.proc_rays[:] = 1000  # 1,000 rays per reload: 10 rays traded are not worth a move
     paper = assign_frame("paper", *args, stats)
     holder = paper.owner[3]
     stats.held[holder, 0] = 1  # domain 0 is held where Algorithm 1 put domain 3
     affinity = assign_frame("affinity", *args, stats)
     assert affinity.owner[0] == holder  # its unit (and tile) went to the node holding it
     assert affinity.owner[3] != holder  # and the pair that trades rays is still split
+    stats.held[holder, 3] = 1  # now the holder holds both: it keeps them unless that costs
+    stats.sent[0, 3] = 10_000  # 10 reloads' worth of rays traded: the pair is split
+    split = assign_frame("affinity", *args, stats)
+    assert split.owner[0] != split.owner[3] and holder in split.owner[[0, 3]]
+    stats.loads[:] = 1  # every domain loaded once: no reloads, so trading costs nothing
+    assert assign_frame("affinity", *args, stats).owner[[0, 3]].tolist() == [holder, holder]
     assert np.array_equal(assign_frame("affinity", *args, None).owner,
                           assign_frame("spatial", *args, None).owner)  # frame 0

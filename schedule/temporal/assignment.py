@@ -265,7 +265,7 @@ def _bind_to_holders(owner: np.ndarray, tiles: np.ndarray, held: np.ndarray,
 
 
 def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
-                    domain_bytes: np.ndarray, node_speed: np.ndarray, rays_per_load: float
+                    domain_bytes: np.ndarray, node_speed: np.ndarray, rays_per_reload: float
                     ) -> Assignment:
     """Algorithm 1 with the cost of moving a domain counted: what a node holds stays its own
     unless Algorithm 1's placement is predicted to save more than the load it costs.
@@ -277,8 +277,8 @@ def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
        costs. Algorithm 1 places d where it trades the fewest rays inside its group;
        keeping d in h's group instead adds trans(d, h) - trans(d, o) rays traded inside a
        group (``trans`` as in Algorithm 1, over the groups after step 1), which last frame
-       cost a load per ``rays_per_load`` rays: the predicted gain of the move is
-       (trans(d, h) - trans(d, o)) / rays_per_load loads of d on h,
+       cost a reload per ``rays_per_reload`` rays: the predicted gain of the move is
+       (trans(d, h) - trans(d, o)) / rays_per_reload loads of d on h,
        x V(d) / S_LOAD(h) seconds, and its cost one load of d on o, V(d) / S_LOAD(o). A
        domain several nodes hold (none, in a temporal run, but the replicated eye domain) is
        counted for the fastest-loading of them; the replicated domain itself never moves.
@@ -294,8 +294,8 @@ def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
     held : (P, D) the domains each node held at the last frame's end (``FrameStats.held``).
     sent : (D, D) s(A, B) of the last frame.
     domain_bytes : (D,) V(d); node_speed : (P,) S_LOAD(n).
-    rays_per_load : rays processed per domain load in the last frame (inf: no loads, so no
-        move pays).
+    rays_per_reload : rays processed per reload in the last frame (loads of a domain beyond
+        its first; inf: no reloads, so no move pays).
 
     Returns
     -------
@@ -319,7 +319,7 @@ def assign_affinity(paper: Assignment, held: np.ndarray, sent: np.ndarray,
     d = np.flatnonzero(moved)
     h, o = holder[d], owner[d]
     extra = np.maximum(trans[h, d] - trans[o, d], 0.0)
-    gain = extra / max(float(rays_per_load), 1e-300) * volume[d] / speed[h]
+    gain = extra / max(float(rays_per_reload), 1e-300) * volume[d] / speed[h]
     cost = volume[d] / speed[o]
     keep = d[gain <= cost]
     owner = owner.copy()
@@ -400,7 +400,9 @@ def assign_frame(kind: str, camera: Camera, lo: np.ndarray, hi: np.ndarray, none
                             eye_domain(camera.position, lo, hi, nonempty))
     if kind == "paper":
         return paper
-    loads = int(previous.loads.sum())
-    rays_per_load = previous.proc_rays.sum() / loads if loads else np.inf
+    # a domain's first load in a frame is needed wherever it goes; the reloads are what
+    # rays traded inside a group cost (none when the caches hold every group)
+    reloads = int(np.maximum(previous.loads - 1, 0).sum())
+    rays_per_reload = previous.proc_rays.sum() / reloads if reloads else np.inf
     return assign_affinity(paper, previous.held, previous.sent, domain_bytes,
-                           previous.s_load(), rays_per_load)
+                           previous.s_load(), rays_per_reload)
