@@ -1,0 +1,60 @@
+"""``bench/temporal.py``'s error split and its runs, on hand-made images (the script renders
+animations on 4 nodes for minutes, so it is not run here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "bench"
+
+
+def load(name: str, path: Path):
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+if "bench_scenes" not in sys.modules:  # the script imports it from beside itself
+    load("bench_scenes", BENCH / "bench_scenes.py")
+temporal = load("bench_temporal", BENCH / "temporal.py")
+
+
+def test_converged_split_takes_the_variances_out_of_the_error():
+    reference = np.ones((4, 6, 3))
+    run = {"images": {3: reference + 0.1}, "variances": {3: np.full((4, 6, 3), 0.002)}}
+    split = temporal.converged_split(run, {3: (reference, np.full((4, 6, 3), 0.001))})
+    assert split["rel_mse"] == pytest.approx(0.01)  # 0.1^2 over a mean square of 1
+    assert split["variance"] == pytest.approx(0.002)
+    assert split["reference_variance"] == pytest.approx(0.001)
+    assert split["bias2"] == pytest.approx(0.01 - 0.002 - 0.001)
+    unbiased = {"images": {3: reference}, "variances": {3: np.zeros((4, 6, 3))}}
+    assert temporal.converged_split(unbiased, {3: (reference, np.zeros((4, 6, 3)))}) == {
+        "rel_mse": 0.0, "variance": 0.0, "bias2": 0.0, "reference_variance": 0.0}
+
+
+def test_baselines_get_what_the_method_gets():
+    head = temporal.HEADLINE
+    # the cache-aware baseline and temporal differ in assignment and priority only, and
+    # --simplified adds the same portal policy to both
+    for lossless, lossy in ((temporal.AWARE_BASELINE, temporal.AWARE_SIMPLIFIED),
+                            (temporal.TEMPORAL, temporal.TEMPORAL_SIMPLIFIED)):
+        assert {k: v for k, v in head[lossy].items() if k != "simplified"} == head[lossless]
+        assert head[lossy]["simplified"] is True
+    assert head[temporal.AWARE_BASELINE]["assignment"] == "spatial"
+    assert head[temporal.TEMPORAL] == {"assignment": "affinity", "priority": "cost-rate"}
+
+
+def test_ablations_cover_assignment_by_priority_once():
+    quick, full = temporal.ablations(False), temporal.ablations(True)
+    pairs = {(c["assignment"], c["priority"]) for c in full.values()}
+    assert len(pairs) == len(full) == 7  # 2 assignments x 4 priorities, less the headline
+    assert ("affinity", "cost-rate") not in pairs
+    assert {(c["assignment"], c["priority"]) for c in quick.values()} == {
+        ("paper", "cost-rate"), ("paper", "queue+resident"), ("affinity", "queue+resident")}
