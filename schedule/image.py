@@ -45,6 +45,13 @@ def fullest(waiting: np.ndarray, first: Iterable[int] = ()) -> int:
     return int(np.argmax(waiting))
 
 
+def rows_of(keys: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """(m,) int64 position in ``keys`` ((n,) distinct ints) of each of ``wanted`` ((m,),
+    every one among ``keys``)."""
+    order = np.argsort(keys, kind="stable")
+    return order[np.searchsorted(keys[order], wanted)]
+
+
 class ImageSchedule:
     """Out-of-core baseline scheduling of one tile of paths.
 
@@ -222,16 +229,20 @@ class ImageSchedule:
         start = time.perf_counter()
         shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
         self.counters["shade_s"] += time.perf_counter() - start
-        hit_domain = None
+        shadow_rows = continuation_rows = None
         if self.tally is not None or self.simple is not None:
-            # each path has one final hit here: its domain by path
-            hit_domain = np.full(len(self.ctx.pixel), -1, np.int64)
-            hit_domain[radiance.path[hit]] = rays["hit_domain"][hit]
-        portal = self._portal_fields(rays, hit, shadow) if recording else None
-        self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow.path],
+            # each path has one final hit here: the hit row of every spawned ray, by its path
+            # (a search over the hits, not a lookup table over every path of the tile: this
+            # runs once per activation)
+            paths = radiance.path[hit]
+            shadow_rows = rows_of(paths, shadow.path)
+            continuation_rows = rows_of(paths, continuation.path)
+        hit_domain = None if shadow_rows is None else rays["hit_domain"][hit]
+        portal = self._portal_fields(rays, hit, shadow, shadow_rows) if recording else None
+        self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow_rows],
                             portal)
-        self._launch_radiance(continuation,
-                              None if hit_domain is None else hit_domain[continuation.path])
+        self._launch_radiance(continuation, None if hit_domain is None
+                              else hit_domain[continuation_rows])
 
     def _launch_radiance(self, rays: RadianceRays, spawned_in: np.ndarray | None = None) -> None:
         if not len(rays):
@@ -328,24 +339,18 @@ class ImageSchedule:
         return (ctx.pixel[path].astype(np.int64) * (s1 - s0)
                 + ctx.sample[path].astype(np.int64) - s0)
 
-    def _portal_fields(self, rays: SoA, hit: np.ndarray, shadow: ShadowRays
-                       ) -> dict[str, np.ndarray]:
+    def _portal_fields(self, rays: SoA, hit: np.ndarray, shadow: ShadowRays,
+                       rows: np.ndarray) -> dict[str, np.ndarray]:
         """Recording frame: the shadow rays of a hit whose ray crossed a portal carry the cell
         and the light each would bring back, ``k * contribution / beta`` in luminance for the
-        ``k`` shadow rays of the hit (the per-cell maximum keeps the brightest estimate)."""
-        cells = rays["portal_cell"]
-        n = len(self.ctx.pixel)
-        cell_of = np.full(n, -1, np.int64)
-        beta_of = np.ones((n, 3))
-        path = rays["path"][hit]
-        cell_of[path] = cells[hit]
-        beta_of[path] = rays["beta"][hit]
-        k = np.bincount(shadow.path, minlength=n)[shadow.path]
+        ``k`` shadow rays of the hit (the per-cell maximum keeps the brightest estimate);
+        ``rows`` ((s,)) is each shadow ray's row in ``hit``."""
+        beta = rays["beta"][hit][rows]
+        _, per_path, counts = np.unique(shadow.path, return_inverse=True, return_counts=True)
         with np.errstate(divide="ignore", invalid="ignore"):
-            per_beta = np.where(beta_of[shadow.path] > 0,
-                                shadow.contribution / beta_of[shadow.path], 0.0)
-        value = (luminance(per_beta) * k).astype(np.float32)
-        return {"portal_cell": cell_of[shadow.path], "portal_value": value}
+            per_beta = np.where(beta > 0, shadow.contribution / beta, 0.0)
+        value = (luminance(per_beta) * counts[per_path]).astype(np.float32)
+        return {"portal_cell": rays["portal_cell"][hit][rows], "portal_value": value}
 
     # -- shadow rays --------------------------------------------------------------------------
     def _launch_shadow(self, rays: ShadowRays, spawned_in: np.ndarray | None = None,

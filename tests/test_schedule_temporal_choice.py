@@ -171,13 +171,20 @@ def boxes():
     return lo, lo + 1.0, np.array([True, True, False, True]), np.array([1e6, 2e6, 0.0, 3e6])
 
 
-def test_assign_frame_picks_the_assignment_by_kind():
+def frame_inputs() -> tuple[tuple, FrameStats]:
+    """``assign_frame``'s arguments before the statistics (2 nodes, a 32x24 image of the
+    ``boxes``), and statistics in which domains 0 and 3 traded 10 rays."""
     camera = Camera(np.array([2.0, 0.5, -6.0]), np.array([2.0, 0.5, 0.5]),
                     np.array([0.0, 1.0, 0.0]), 60.0, 32, 24)
     lo, hi, nonempty, nbytes = boxes()
-    args = (camera, lo, hi, nonempty, nbytes, 32, 24, 2)
     stats = FrameStats.zeros(4, 2)
     stats.sent[0, 3] = 10
+    return (camera, lo, hi, nonempty, nbytes, 32, 24, 2), stats
+
+
+def test_assign_frame_picks_the_assignment_by_kind():
+    args, stats = frame_inputs()
+    camera, lo, hi, nonempty, nbytes = args[:5]
 
     def same(a, b):
         return np.array_equal(a.owner, b.owner) and np.array_equal(a.tiles, b.tiles) \
@@ -244,12 +251,7 @@ def test_affinity_never_moves_the_replicated_domain_or_empty_ones():
 
 
 def test_assign_frame_affinity_follows_what_the_nodes_held():
-    camera = Camera(np.array([2.0, 0.5, -6.0]), np.array([2.0, 0.5, 0.5]),
-                    np.array([0.0, 1.0, 0.0]), 60.0, 32, 24)
-    lo, hi, nonempty, nbytes = boxes()
-    args = (camera, lo, hi, nonempty, nbytes, 32, 24, 2)
-    stats = FrameStats.zeros(4, 2)
-    stats.sent[0, 3] = 10
+    args, stats = frame_inputs()
     stats.loads[:] = 2
     stats.proc_rays[:] = 1000  # 1,000 rays per reload: 10 rays traded are not worth a move
     paper = assign_frame("paper", *args, stats)

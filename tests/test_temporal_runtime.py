@@ -63,8 +63,8 @@ def test_temporal_gives_the_reference_image(scene, reference, nodes, cache):
 
 @pytest.mark.parametrize("assignment,priority", [("sequential", "spray"),
                                                  ("spatial", "queue"),
-                                                 ("temporal", "queue+act"),
-                                                 ("temporal", "cost-benefit"),
+                                                 ("paper", "queue+act"),
+                                                 ("affinity", "cost-benefit"),
                                                  ("spatial", "queue+resident")])
 def test_every_assignment_and_priority_is_lossless(scene, assignment, priority):
     # Two frames: frame 0 bootstraps (spatial groups, queue order); frame 1 plans from its
