@@ -76,8 +76,9 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
         from vastray.schedule.portals import Portals
 
         arrays = routing.fresh.to_arrays()
-        merged = await tree.allreduce(arrays, dict(Portals.REDUCE)) if tree is not None else arrays
-        state.portals.refresh(Portals.from_arrays(merged), memory)
+        if tree is not None:
+            arrays = await tree.allreduce(arrays, dict(Portals.REDUCE))
+        state.portals.refresh(Portals.from_arrays(arrays), memory)
     if routing.recording:
         from vastray.schedule.portals import CrossingLog, Portals, prediction_accuracy
 
@@ -89,18 +90,19 @@ async def finish_simplified(routing, tree, state: NodeState, stats: dict, rank: 
         recorded = Portals.from_arrays(merged)
         if routing.keeps_portals:
             state.portals = recorded
-        if routing.log is not None and rank == 0:
-            cells, actual = CrossingLog.from_arrays(merged).crossings()
+        if routing.log is None:
+            return
+        cells, actual = CrossingLog.from_arrays(merged).crossings()
+        reference = routing.reference if not routing.keeps_portals else None
+        if rank == 0:
             stats.update(prediction_accuracy(recorded.predict(cells), actual,
                                              routing.threshold).counters("replay_"))
-            if routing.reference is not None and not routing.keeps_portals:
-                stats.update(prediction_accuracy(routing.reference.predict(cells), actual,
+            if reference is not None:
+                stats.update(prediction_accuracy(reference.predict(cells), actual,
                                                  routing.threshold).counters("acc_"))
-        if (routing.log is not None and routing.reference is not None and memory
-                and not routing.keeps_portals):
+        if reference is not None and memory:
             # what the timed run's frame records: the crossings it traces fine
-            cells, actual = CrossingLog.from_arrays(merged).crossings()
-            fine = routing.reference.predict(cells) > routing.threshold
-            fresh = Portals(routing.reference.n_domains, routing.reference.resolution)
+            fine = reference.predict(cells) > routing.threshold
+            fresh = Portals(reference.n_domains, reference.resolution)
             fresh.record(cells[fine], actual[fine])
-            routing.reference.refresh(fresh, memory)
+            reference.refresh(fresh, memory)

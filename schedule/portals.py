@@ -247,12 +247,10 @@ class Portals:
             raise ValueError(f"cannot refresh portals of shape {self.shape} with {fresh.shape}")
         if int(memory) < 1:
             raise ValueError(f"portal memory must be at least 1 frame, got {memory}")
-        np.add(self.age, 1, out=self.age, where=self.recorded & (self.age < np.iinfo(np.uint16).max))
-        both = self.recorded & fresh.recorded
-        self.values[:] = np.where(both, np.maximum(self.values, fresh.values),
-                                  np.where(fresh.recorded, fresh.values, self.values))
+        aging = self.recorded & (self.age < np.iinfo(np.uint16).max)
+        np.add(self.age, 1, out=self.age, where=aging)
+        self.merge(fresh)  # an unrecorded cell holds 0, and radiances are >= 0
         self.age[fresh.recorded] = 0
-        self.recorded |= fresh.recorded
         expired = self.recorded & (self.age >= int(memory))
         self.recorded[expired] = False
         self.values[expired] = 0

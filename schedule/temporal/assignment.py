@@ -245,9 +245,10 @@ def _bind_to_holders(owner: np.ndarray, tiles: np.ndarray, held: np.ndarray,
     """
     p = len(tiles)
     member = owner >= 0
-    saving = np.zeros((p, p))  # saving[unit, node]
-    np.add.at(saving, (np.repeat(owner[member], p), np.tile(np.arange(p), int(member.sum()))),
-              (held[:, member].T * (domain_bytes[member, None] / node_speed[None, :])).ravel())
+    # saving[unit, node]: the load time of the unit's domains that the node holds
+    load_s = domain_bytes[member, None] / node_speed[None, :]  # (m, P)
+    saving = np.zeros((p, p))
+    np.add.at(saving, owner[member], held[:, member].T * load_s)
     node_of = np.full(p, -1, np.int64)
     taken = np.zeros(p, bool)
     units, nodes = np.nonzero(saving > 0)
