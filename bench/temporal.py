@@ -10,8 +10,7 @@ speed by rank, as the paper's nodes load at different speeds. Loads must dominat
 method to matter, so the script prints the share of node time spent waiting for loads.
 
 Headline rows (each run ``--repeats`` times, default 3, interleaved, reported by the median
-time per frame; with ``--quick`` the paper's baseline, which no floor divides by, runs once;
-every run renders the same frames with the same seeds):
+time per frame; every run renders the same frames with the same seeds):
 
 - ``baseline (paper's)``: "async (spatial assignment, queue priority)" on the same runtime
   as ``temporal``: contiguous z-order groups, screen tiles, fullest queue first, the same
@@ -322,8 +321,6 @@ def main() -> None:
     names = list(HEADLINE)
     for repeat in range(args.repeats):  # interleaved, each repeat starting one further on
         for name in names[repeat % len(names):] + names[:repeat % len(names)]:
-            if name == PAPER_BASELINE and repeat and args.quick:
-                continue  # no floor divides by it: one run with --quick
             timed[name].append(run(scheduler="temporal", **options(HEADLINE[name]), **common))
             print(f"  {name}: {timed[name][-1]['mean_s']:.2f} s per frame", flush=True)
     runs = {}
