@@ -507,6 +507,11 @@ def check_portal_accuracy(r: Renders):
     r.refused("--portal-accuracy", naming="--portal-accuracy")
 
 
+def check_portal_memory(r: Renders):
+    # what it changes (a predicting frame records): test_temporal_and_simplified_options_...
+    r.refused("--portal-memory", "3", naming="--portal-memory")
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
