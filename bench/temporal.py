@@ -102,9 +102,10 @@ REFERENCE_SEED = 7919
 
 
 def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], cache: int,
-        bandwidth: float, scheduler: str, **options) -> dict:
+        bandwidth: float | None, scheduler: str, **options) -> dict:
     """One animation; per-frame seconds, images, the films' variance estimates and summed
-    counters."""
+    counters (``bandwidth``: MB/s of the fastest node's emulated storage, None: no
+    emulation)."""
     images, variances, seconds, counters = {}, {}, {}, []
 
     def on_frame(frame, result):
@@ -148,8 +149,6 @@ def run(store: Store, settings: RenderSettings, nodes: int, frames: list[int], c
             "simplified_share": (total("predicted_low", predicting) / crossings if crossings
                                  else None),
             "acc": total("acc_agree") / acc_crossings if acc_crossings else None,
-            "acc_simplified_share": (total("acc_predicted_low") / acc_crossings
-                                     if acc_crossings else None),
             "acc_unrecorded_share": (total("acc_unrecorded") / acc_crossings
                                      if acc_crossings else None),
             "acc_per_frame": per_frame("acc_agree"),
