@@ -33,7 +33,7 @@ from vastray.schedule.paths import (
     start_cursor,
 )
 from vastray.schedule.portals import luminance
-from vastray.schedule.soa import DomainQueues, SoA
+from vastray.schedule.soa import DomainQueues, SoA, index_of
 
 
 def fullest(waiting: np.ndarray, first: Iterable[int] = ()) -> int:
@@ -43,13 +43,6 @@ def fullest(waiting: np.ndarray, first: Iterable[int] = ()) -> int:
     if here:
         return max(here, key=lambda d: (waiting[d], -d))
     return int(np.argmax(waiting))
-
-
-def rows_of(keys: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """(m,) int64 position in ``keys`` ((n,) distinct ints) of each of ``wanted`` ((m,),
-    every one among ``keys``)."""
-    order = np.argsort(keys, kind="stable")
-    return order[np.searchsorted(keys[order], wanted)]
 
 
 class ImageSchedule:
@@ -234,9 +227,9 @@ class ImageSchedule:
             # each path has one final hit here: the hit row of every spawned ray, by its path
             # (a search over the hits, not a lookup table over every path of the tile: this
             # runs once per activation)
-            paths = radiance.path[hit]
-            shadow_rows = rows_of(paths, shadow.path)
-            continuation_rows = rows_of(paths, continuation.path)
+            rows = index_of(radiance.path[hit], np.concatenate([shadow.path,
+                                                                continuation.path]))
+            shadow_rows, continuation_rows = rows[:len(shadow)], rows[len(shadow):]
         hit_domain = None if shadow_rows is None else rays["hit_domain"][hit]
         portal = self._portal_fields(rays, hit, shadow, shadow_rows) if recording else None
         self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow_rows],

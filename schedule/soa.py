@@ -57,6 +57,13 @@ class SoA:
                              for k in parts[0].fields})
 
 
+def index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(m,) int64 position in ``keys`` ((n,) distinct ints, e.g. path ids) of each of
+    ``values`` ((m,), every one among ``keys``): a sort and a search, O((n + m) log n)."""
+    order = np.argsort(keys, kind="stable")
+    return order[np.searchsorted(keys[order], values)]
+
+
 def join_bound(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | None:
     """Parts of rays bound for domains, ``(domains (m_i,), rays (m_i rows))``, joined into one
     ``(domains (m,), rays (m rows))``; None for no parts."""

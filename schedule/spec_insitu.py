@@ -28,7 +28,7 @@ import numpy as np
 from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
-from vastray.schedule.soa import SoA
+from vastray.schedule.soa import SoA, index_of
 
 
 def hit_keys(t: np.ndarray, domain: np.ndarray) -> np.ndarray:
@@ -309,6 +309,5 @@ def _radiance_for(ray_of_path: dict, paths: np.ndarray) -> RadianceRays:
     """The radiance ray of each of ``paths`` (from this node's own rays or received copies)."""
     sources = [s for s in (ray_of_path.get("own"), ray_of_path.get("in")) if s is not None]
     table = SoA.concat([SoA(**{f: s[f] for f in RADIANCE_FIELDS}) for s in sources])
-    order = np.argsort(table["path"], kind="stable")
-    index = order[np.searchsorted(table["path"][order], paths)]
+    index = index_of(table["path"], paths)
     return RadianceRays(*(table[f][index] for f in RADIANCE_FIELDS))

@@ -44,7 +44,7 @@ from vastray.render.integrators import (
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
-from vastray.schedule.soa import DomainQueues, SoA
+from vastray.schedule.soa import DomainQueues, SoA, index_of
 from vastray.schedule.traversal import traversal_score
 
 
@@ -406,7 +406,7 @@ class SpeculativeSchedule:
         # Shade every winner speculatively (Listing 4).
         won = np.concatenate(winners)
         won_path, won_level = path[won], level[won]
-        if len(np.unique(won_path)) != len(won):  # _index_of names parents by path
+        if len(np.unique(won_path)) != len(won):  # index_of names parents by path
             raise RuntimeError("spec-ooc: two winners of one path in one batch")
         hist_t, hist_d = rays["hist_t"][won], rays["hist_d"][won]
         hist_t[np.arange(len(won)), won_level] = hits.t[won]
@@ -426,7 +426,7 @@ class SpeculativeSchedule:
     def _spawn_radiance(self, rays: RadianceRays, hist_t, hist_d, parent_path) -> None:
         if len(rays) == 0:
             return
-        parent = _index_of(parent_path, rays.path)
+        parent = index_of(parent_path, rays.path)
         soa = _radiance(rays, hist_t[parent], hist_d[parent])
         self.counters["speculative_rays"] += len(soa)
         beyond = (rays.depth.astype(np.int64) - self.window_start) >= self.window
@@ -445,7 +445,7 @@ class SpeculativeSchedule:
         if len(rows) == 0:
             return
         rays = rays.take(rows)
-        parent = _index_of(parent_path, rays.path)
+        parent = index_of(parent_path, rays.path)
         sid = np.arange(len(self.shadow_pending), len(self.shadow_pending) + len(rays))
         soa = shadow_soa(rays, hist_t=hist_t[parent], hist_d=hist_d[parent], sid=sid)
         ray, dom, entry, rank = self.geometry.crossings(rays.origin, rays.direction, rays.t_max)
@@ -528,12 +528,6 @@ def _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto, out):
                 same = False
                 break
         out[i] = same
-
-
-def _index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Position of each of ``values`` in ``keys`` (unique keys, every value present)."""
-    order = np.argsort(keys, kind="stable")
-    return order[np.searchsorted(keys[order], values)]
 
 
 def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),

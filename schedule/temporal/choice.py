@@ -127,11 +127,11 @@ class TemporalChoice:
         preload is d* only when ``worth_loading``.
         """
         now = _Now(waiting, cache, n_cur, arrived, traversal_score)
-        previous = None if self.kind == "cost-rate" else self.upcoming
+        present = self.kind == "cost-rate"  # pick by the rays queued now, no d* carry-over
+        previous = None if present else self.upcoming
         if previous is not None and waiting[previous]:
             active = previous
         else:
-            present = self.kind == "cost-rate"
             scores = np.where(waiting > 0, self._scores(now, None, 0, present=present), -np.inf)
             active = best(scores)
             if active is None:  # rays only in domains that are no candidates: the fullest
