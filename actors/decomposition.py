@@ -38,7 +38,6 @@ import numpy as np
 from vastray.actors.async_frame import AsyncFrame
 from vastray.actors.job_options import JobOptions
 from vastray.actors.node_state import NodeState, frame_load_stats
-from vastray.actors.node_work import NodeWork
 from vastray.actors.ray_post import traffic_counters
 from vastray.actors.render_setup import RenderSetup
 from vastray.actors.simplified_frames import finish_simplified, simplified_routing
@@ -75,7 +74,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     tile = max(1, min(options.max_samples_in_flight or total, total))
     n_tiles = -(-total // tile)
     stats = {**traffic_counters(), "shade_s": 0.0, "trace_s": 0.0, "wait_s": 0.0, "rounds": 0}
-    node = NodeWork(management, rank, stats, preloader, options.max_batch_rays, early=state.early)
+    node = state.node_work(management, rank, stats, preloader, options.max_batch_rays)
     base = state.tile_base  # tile labels are unique over the frames and passes of a job
     state.tile_base += n_tiles
     routing = simplified_routing(store, setup, options, state)

@@ -67,6 +67,8 @@ class DomainLoop:
 
     def __init__(self, preloader: DomainPreloader, stats: dict, offload: bool = True):
         self.preloader, self.stats, self.offload = preloader, stats, offload
+        #: the clock spans are measured by (the simulator's loop reads virtual time)
+        self.clock = time.perf_counter
         stats.setdefault("schedule_s", 0.0)
         stats.setdefault("trace_s", 0.0)
         #: (domain, its load number) of loads followed by at least one ray query, and the
@@ -81,23 +83,21 @@ class DomainLoop:
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:
         """Activate ``order``'s next domain and ship what tracing it sent on; None when the
         order has no domain left."""
-        start = time.perf_counter()
+        clock = self.clock
+        start = clock()
         domain = order.next_domain()
-        chosen = time.perf_counter()
+        chosen = clock()
         if domain is None:
             self.stats["schedule_s"] += chosen - start
             return None
         self.sequence.append(domain)
         bvh = await self.preloader.get(domain)
-        loaded = time.perf_counter()
+        loaded = clock()
         if self.preloader.enabled:
             self.preloader.preload(order.likely_next(domain))
-        guessed = time.perf_counter()
-        if self.offload:
-            queries = await asyncio.to_thread(order.trace, domain, bvh)
-        else:
-            queries = order.trace(domain, bvh)
-        done = time.perf_counter()
+        guessed = clock()
+        queries = await self.trace(order, domain, bvh)
+        done = clock()
         activation = Activation(domain, self.preloader.load_count(domain),
                                 (chosen - start) + (guessed - loaded), loaded - chosen,
                                 done - guessed, queries)
@@ -109,6 +109,13 @@ class DomainLoop:
         if ship is not None:
             await ship()
         return activation
+
+    async def trace(self, order: DomainOrder, domain: int, bvh) -> int:
+        """``order.trace(domain, bvh)``, on a worker thread with ``offload``; returns the ray
+        queries made."""
+        if self.offload:
+            return await asyncio.to_thread(order.trace, domain, bvh)
+        return order.trace(domain, bvh)
 
     async def run(self, order: DomainOrder,
                   ship: Callable[[], Awaitable[None]] | None = None) -> int:

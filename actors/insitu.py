@@ -12,7 +12,6 @@ from __future__ import annotations
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import DomainLoop
 from vastray.actors.job_options import JobOptions
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import RayPost, traffic_counters
@@ -41,14 +40,14 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     before = preloader.stats()
     # In situ the node's data stays loaded: the loop only loads it (each domain's rays are
     # traced in the iterations below, all domains at once, not activation by activation).
-    bvhs = await DomainLoop(preloader, {}).load_all(local)
+    bvhs = await state.domain_loop(preloader, {}).load_all(local)
     film = Film(settings.width, settings.height)
     total = setup.total_paths
     tile = max(1, min(options.max_samples_in_flight or total, total))
     stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
              "intersection_cache_hits": 0, "iterations": 0}
     runner = _InSitu(management, tree, rank, size, owner, bvhs, setup.geometry,
-                     setup.color_source, setup.scalar_range, stats)
+                     setup.color_source, setup.scalar_range, stats, state.traced)
     for index, first in enumerate(range(0, total, tile)):
         ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                            setup.ao_distance)
@@ -70,11 +69,12 @@ class _InSitu:
     takes the copies for its domains, joins the all-reductions."""
 
     def __init__(self, management, tree, rank, size, owner, bvhs, geometry, color_source,
-                 scalar_range, stats):
+                 scalar_range, stats, traced):
         self.management, self.tree, self.rank, self.size = management, tree, rank, size
         self.owner, self.bvhs, self.geometry = owner, bvhs, geometry
         self.color_source, self.scalar_range, self.stats = color_source, scalar_range, stats
         self.post = RayPost(management, rank, stats)
+        self.traced = traced  # hears of the queries each iteration traced (``NodeState``)
 
     async def tile(self, ctx, camera, mine: np.ndarray, tile: int) -> PathResult:
         schedule = InSituSchedule(ctx, camera, mine, self.owner, self.rank, self.bvhs,
@@ -84,6 +84,7 @@ class _InSitu:
             self.stats["iterations"] += 1
             rad_in, shadow_in = await self._exchange(schedule, tile, depth)
             keys, obuf = schedule.trace_locally(rad_in, shadow_in)
+            await self.traced(*_work(rad_in, shadow_in))
             # All-reduce: t-buffer MIN, o-buffer OR.
             reduced = await self.tree.allreduce(
                 {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})
@@ -129,3 +130,10 @@ class _InSitu:
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
         return join_bound(incoming["radiance"]), join_bound(incoming["shadow"])
 
+
+def _work(rad_in, shadow_in) -> tuple[int, int]:
+    """(domains, ray queries) of an iteration's local trace: every copy received is one
+    query against its domain."""
+    parts = [p for p in (rad_in, shadow_in) if p is not None]
+    domains = np.unique(np.concatenate([d for d, _ in parts])) if parts else ()
+    return len(domains), sum(len(d) for d, _ in parts)

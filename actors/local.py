@@ -42,6 +42,21 @@ log = logging.getLogger(__name__)
 
 
 
+def tile_schedule(options: JobOptions, setup: RenderSetup, ctx: PathContext,
+                  ablation: SpeculationRules | None = None):
+    """A tile's schedule (``ImageSchedule`` or ``SpeculativeSchedule``), as ``options`` (and
+    ``ablation``) configure it."""
+    if options.scheduler == "image":
+        return ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                             resident_first=options.resident_first)
+    rules = ablation or SpeculationRules()
+    return SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                               history_depth=options.history_depth,
+                               resident_first=options.resident_first,
+                               serve_before_evict=rules.serve_before_evict,
+                               rescore=rules.rescore)
+
+
 def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettings,
                        options: JobOptions | None = None, *, progress: bool = True,
                        share: tuple[int, int] = (0, 1),
@@ -91,21 +106,9 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     tile_limit = options.max_samples_in_flight
     tile = 1
 
-    def schedule_of(ctx: PathContext):
-        """The tile's schedule, as ``options`` (and ``ablation``) configure it."""
-        if scheduler == "image":
-            return ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
-                                 resident_first=options.resident_first)
-        rules = ablation or SpeculationRules()
-        return SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
-                                   history_depth=options.history_depth,
-                                   resident_first=options.resident_first,
-                                   serve_before_evict=rules.serve_before_evict,
-                                   rescore=rules.rescore)
-
     def trace_tile(ctx: PathContext, bar) -> PathResult:
         """Trace the paths of ``ctx`` through the domains in the schedule's order."""
-        policy = schedule_of(ctx)
+        policy = tile_schedule(options, setup, ctx, ablation)
         policy.start(camera_rays(setup.camera, ctx))
         runner.run(loop.run(ScheduleOrder(policy, preloader, evicting=scheduler == "spec-ooc",
                                           by_demand=options.eviction == "demand")))

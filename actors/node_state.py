@@ -7,7 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from vastray.actors.domain_loop import DomainLoop
 from vastray.actors.job_options import JobOptions
+from vastray.actors.node_work import NodeWork
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.bvh import query_pool
 
@@ -51,6 +53,21 @@ class NodeState:
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
                 drop_page_cache=options.cold_reads)
         return self.preloader
+
+    def domain_loop(self, preloader: DomainPreloader, stats: dict) -> DomainLoop:
+        """The loop the node activates domains through (the simulator's runs on virtual
+        time)."""
+        return DomainLoop(preloader, stats)
+
+    def node_work(self, management, rank: int, stats: dict, preloader: DomainPreloader,
+                  max_batch: int) -> NodeWork:
+        """The node's side of domain decomposition, keeping this state's early batches."""
+        return NodeWork(management, rank, stats, preloader, max_batch, early=self.early)
+
+    async def traced(self, domains: int, queries: int) -> None:
+        """Hears that ``queries`` ray queries were traced against ``domains`` domains
+        outside the domain loop (the in-situ iterations): a real node has spent that time
+        already; the simulator charges it."""
 
     def threads(self) -> int:
         return self.pool._max_workers if self.pool is not None else 1

@@ -233,6 +233,13 @@ class DomainCache:
             self._preloader.shutdown(wait=True)
             self._preloader = None
 
+    def count_load(self, domain_id: int, size: int) -> None:
+        """Count one load of ``domain_id`` (``size`` bytes) in the stats."""
+        self.stats.loads += 1
+        self.stats.loaded_domains.add(domain_id)
+        self.stats.loads_per_domain[domain_id] = self.stats.loads_per_domain.get(domain_id, 0) + 1
+        self.stats.bytes_loaded += size
+
     def load(self, domain_id: int) -> DomainBVH:
         """Read and build one domain without caching it (counted as a load)."""
         start = time.perf_counter()
@@ -247,11 +254,8 @@ class DomainCache:
         bvh = DomainBVH(domain_id, arrays, self.keep, self.pool)
         done = time.perf_counter()
         with self._lock:
-            self.stats.loads += 1
-            self.stats.loaded_domains.add(domain_id)
-            self.stats.loads_per_domain[domain_id] = self.stats.loads_per_domain.get(domain_id, 0) + 1
+            self.count_load(domain_id, size)
             self.stats.read_seconds += read_done - start
-            self.stats.bytes_loaded += size
             self.stats.throttle_seconds += throttle
             self.stats.build_seconds += done - read_done
             self.stats.load_seconds += done - start

@@ -1,0 +1,149 @@
+"""A node's domain cache and preloader in virtual time.
+
+The cache's rules are ``scene.cache.DomainCache``'s own (capacity, LRU or the scheduler's
+priorities, protected domains, preloads counted against the capacity); only a load differs:
+it hands back the domain already built in memory (``Domains``) and charges the load's cost
+(bytes read, triangles built) to the node's core in virtual time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from vastray.scene.bvh import DomainBVH
+from vastray.scene.cache import DomainCache
+from vastray.scene.store import Store
+
+
+class Domains:
+    """Every domain of a store built once, in memory, shared by all virtual nodes (the
+    simulator traces real rays against them; which node holds which is the virtual caches'
+    business).
+
+    Parameters
+    ----------
+    store : the store.
+    keep : attributes the domains keep for shading.
+    """
+
+    def __init__(self, store: Store, keep: frozenset[str]):
+        self.store = store
+        self._real = DomainCache(store, max(len(store.domains), 1), keep)
+        #: (D,) bytes and triangles of each domain: what a load costs.
+        self.nbytes = np.array([d.nbytes for d in store.domains], np.int64)
+        self.triangles = np.array([d.n_triangles for d in store.domains], np.int64)
+
+    def get(self, domain: int) -> DomainBVH:
+        return self._real.get(domain)
+
+    def close(self) -> None:
+        self._real.close()
+
+
+class _VirtualCache(DomainCache):
+    """``DomainCache`` whose ``load`` takes the built domain from ``Domains`` (the cost is
+    charged by ``VirtualPreloader``)."""
+
+    def __init__(self, domains: Domains, capacity: int):
+        super().__init__(domains.store, capacity)
+        self.domains = domains
+
+    def load(self, domain_id: int) -> DomainBVH:
+        self.count_load(domain_id, int(self.domains.nbytes[domain_id]))
+        return self.domains.get(domain_id)
+
+
+class VirtualPreloader:
+    """A node's preloader in virtual time, with ``actors.preloader.DomainPreloader``'s
+    interface (what schedules and frames call).
+
+    Parameters
+    ----------
+    cluster : the virtual nodes (for cores and the clock).
+    rank : this node.
+    domains : the built domains.
+    capacity : most domains resident at once.
+    preload : load the schedule's guess ahead (False: every load is waited for).
+    bandwidth : emulated storage, bytes per second (``--load-bandwidth``): a load lasts at
+        least its size over this, the rest of it a wait that needs no core; None: no floor.
+    """
+
+    def __init__(self, cluster, rank: int, domains: Domains, capacity: int,
+                 preload: bool = True, bandwidth: float | None = None):
+        self.cluster, self.rank, self.domains = cluster, rank, domains
+        self.cache = _VirtualCache(domains, capacity)
+        self.enabled, self.bandwidth = preload, bandwidth
+        self.load_wait_s = 0.0
+
+    @property
+    def capacity(self) -> int:
+        return self.cache.capacity
+
+    async def _load(self, domain: int) -> None:
+        """Charge one load of ``domain`` (read and BVH build on a core, then what the
+        emulated storage bandwidth adds) and make it resident."""
+        cache, nbytes = self.cache, int(self.domains.nbytes[domain])
+        cost = self.cluster.costs.load_s(nbytes, int(self.domains.triangles[domain]))
+        await self.cluster.compute(self.rank, cost)
+        throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - cost)
+        await asyncio.sleep(throttle)
+        cache.stats.load_seconds += cost + throttle
+        cache.stats.throttle_seconds += throttle
+        cache._insert(domain, cache.load(domain))
+
+    async def get(self, domain: int) -> DomainBVH:
+        """The domain, after its load's cost if it is not resident (joining a preload in
+        flight)."""
+        cache = self.cache
+        start = self.cluster.now()
+        pending = cache._pending.get(domain)
+        if pending is not None:
+            await pending
+        elif domain not in cache:
+            cache._make_room(1)
+            await self._load(domain)
+        self.load_wait_s += self.cluster.now() - start
+        return cache._get(domain)
+
+    def preload(self, domain: int | None) -> None:
+        """Start loading ``domain`` ahead (as ``DomainCache.prefetch``: not when resident,
+        loading, disabled, or when only protected domains could make room)."""
+        cache = self.cache
+        if (not self.enabled or domain is None or cache.capacity < 2 or domain in cache
+                or domain in cache._pending or not cache._make_room(1, for_preload=True)):
+            return
+        cache._pending[domain] = asyncio.ensure_future(self._preload(int(domain)))
+
+    async def _preload(self, domain: int) -> None:
+        cache = self.cache
+        try:
+            await self._load(domain)
+            cache.stats.preloads += 1
+        finally:
+            cache._pending.pop(domain, None)
+
+    def prioritise(self, priority, protect=()) -> None:
+        self.cache.prioritise(priority, protect)
+
+    def resident(self) -> frozenset[int]:
+        return self.cache.resident_set()
+
+    def victim(self) -> int | None:
+        return self.cache.victim()
+
+    def load_count(self, domain: int) -> int:
+        return self.cache.load_count(domain)
+
+    def loads_per_domain(self) -> dict[int, int]:
+        return dict(self.cache.stats.loads_per_domain)
+
+    def load_bandwidth_mb_s(self) -> float | None:
+        return None if self.bandwidth is None else self.bandwidth / 1e6
+
+    def stats(self) -> dict:
+        return {**self.cache.stats.as_dict(), "load_wait_s": round(self.load_wait_s, 4)}
+
+    def close(self) -> None:
+        """Nothing to stop (no thread)."""

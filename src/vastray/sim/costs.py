@@ -1,0 +1,116 @@
+"""The simulator's cost model: what each kind of work costs in virtual seconds.
+
+``vastray calibrate`` measures these constants on the machine it runs on and writes them to a
+JSON file; ``vastray simulate`` reads it and records it in its report, so a simulated figure
+always says which machine's costs it stands for.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from vastray.scene.errors import InputError
+
+#: The format of a calibration file; a file of another version is refused.
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class CostModel:
+    """Seconds charged per unit of work.
+
+    Attributes
+    ----------
+    trace_ray_s : one ray query against a loaded domain (Embree closest hit or occlusion).
+    shade_ray_s : the shading and bookkeeping of one ray query's result (integrator, queues).
+    activation_s : one activation of a domain, whatever its rays (scheduling, queue
+        handling, kernel launches).
+    camera_ray_s : making one camera ray (path context included).
+    load_byte_s : reading one byte of a domain's files.
+    build_triangle_s : building the BVH over one triangle.
+    latency_s : one message between two nodes, end to end (encode, send, receive, decode).
+    byte_s : one byte on the wire (the inverse of the bandwidth).
+    reduce_step_s : one level of a tree reduction (log2 P levels reduce over P nodes).
+    cores : cores of the calibrated machine: node processes run on this many at once when
+        the simulator reproduces a run on it (None: every node has a core of its own).
+    machine : what machine the constants were measured on (free text for reports).
+    """
+
+    trace_ray_s: float = 1.5e-6
+    shade_ray_s: float = 1.5e-6
+    activation_s: float = 2e-4
+    camera_ray_s: float = 2e-7
+    load_byte_s: float = 1e-9
+    build_triangle_s: float = 2e-7
+    latency_s: float = 2e-4
+    byte_s: float = 1e-9
+    reduce_step_s: float = 5e-4
+    cores: int | None = None
+    machine: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in ("machine", "cores"):
+                continue
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"cost {f.name} must be a finite number >= 0, got {value!r}")
+        if self.cores is not None and (not isinstance(self.cores, int) or self.cores < 1):
+            raise ValueError(f"cores must be a positive integer or None, got {self.cores!r}")
+
+    def query_s(self, queries: int) -> float:
+        """Seconds for ``queries`` ray queries traced and shaded."""
+        return queries * (self.trace_ray_s + self.shade_ray_s)
+
+    def load_s(self, nbytes: int, triangles: int) -> float:
+        """Seconds to load a domain of ``nbytes`` bytes and build its BVH over ``triangles``."""
+        return nbytes * self.load_byte_s + triangles * self.build_triangle_s
+
+    def message_s(self, nbytes: int) -> float:
+        """Seconds from a message's send to its delivery."""
+        return self.latency_s + nbytes * self.byte_s
+
+    def reduce_s(self, nodes: int) -> float:
+        """Seconds of a tree reduction (or broadcast) over ``nodes`` nodes."""
+        return self.reduce_step_s * math.ceil(math.log2(nodes)) if nodes > 1 else 0.0
+
+    def with_cores(self, cores: int | None) -> CostModel:
+        """The same costs with ``cores`` cores shared by the nodes (None: one each)."""
+        return CostModel(**{**asdict(self), "cores": cores})
+
+    def as_dict(self) -> dict:
+        return {"version": VERSION, **asdict(self)}
+
+    def save(self, path: str | Path) -> None:
+        """Write the model as JSON (written whole to a temporary name, then renamed)."""
+        path = Path(path)
+        partial = path.with_name(path.name + ".partial")
+        partial.write_text(json.dumps(self.as_dict(), indent=2) + "\n")
+        partial.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> CostModel:
+        """Read a calibration file; a clear ``InputError`` names the file and the problem."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(f"{path}: no such calibration file "
+                             "(write one with `vastray calibrate -o FILE`)") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{path}: not a calibration file: {exc}") from None
+        if not isinstance(data, dict) or data.get("version") != VERSION:
+            raise InputError(f"{path}: calibration format version {data.get('version')!r} "
+                             f"is not {VERSION}; run `vastray calibrate` again"
+                             if isinstance(data, dict) else f"{path}: not a JSON object")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known - {"version"})
+        if unknown:
+            raise InputError(f"{path}: unknown cost fields {unknown}")
+        try:
+            return cls(**{k: v for k, v in data.items() if k in known})
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{path}: {exc}") from None

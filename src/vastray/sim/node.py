@@ -1,0 +1,167 @@
+"""A virtual node: the actors' own node code (``render_owned_domains``, ``render_spec_insitu``,
+``NodeWork``, the asynchronous and temporal frames, the ray post, the tree-reduce actor) run
+over a management actor whose sockets are the simulated network, a domain loop whose trace is
+charged in virtual time and a preloader whose loads are.
+
+Ray batches are encoded and decoded by the real codec, so their size on the wire is the real
+one; what tracing costs is the cost model's (``CostModel.activation_s`` per activation and
+``query_s`` per ray query), not the real time the simulator spends tracing.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from dataclasses import dataclass
+
+from vastray.actors import protocol
+from vastray.actors.domain_loop import DomainLoop, DomainOrder
+from vastray.actors.node_state import NodeState
+from vastray.actors.node_work import NodeWork
+from vastray.actors.termination import Termination
+from vastray.sim.cache import Domains, VirtualPreloader
+from vastray.sim.cluster import Cluster
+from vastray.transport.codec import decode
+
+
+class SimManagement:
+    """The management actor's interface over the simulated network: mailboxes by kind, sends
+    to peers and to the coordinator.
+
+    Parameters
+    ----------
+    cluster : the virtual nodes.
+    rank : this node.
+    timeout : virtual seconds a receive waits before it fails.
+    """
+
+    def __init__(self, cluster: Cluster, rank: int, timeout: float = 1e6):
+        self.cluster, self.rank, self.timeout = cluster, rank, timeout
+        self.rejections = protocol.Rejections()
+
+    def mailbox(self, kind: str) -> asyncio.Queue:
+        return self.cluster.mailboxes[self.rank][kind]
+
+    async def receive(self, kind: str, what: str):
+        try:
+            return await asyncio.wait_for(self.mailbox(kind).get(), self.timeout)
+        except TimeoutError:
+            raise TimeoutError(f"node {self.rank}: no {what} within {self.timeout:.0f} "
+                               "virtual seconds") from None
+
+    async def to_peer(self, rank: int, frames: list) -> None:
+        self.cluster.send(self.rank, rank, decode(frames), _nbytes(frames))
+
+    async def to_coordinator(self, frames: list) -> None:
+        self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), _nbytes(frames))
+
+
+def _nbytes(frames: list) -> int:
+    return sum(memoryview(f).nbytes for f in frames)
+
+
+class SimCoordinator:
+    """The coordinator's part in a render: the real ``Termination`` (round barriers,
+    ``dynamic``'s schedule, the asynchronous frames' termination detection), fed the nodes'
+    reports one at a time, each costing a message's handling (``latency_s``) on its core."""
+
+    KINDS = (protocol.ROUND, protocol.QUEUES, protocol.STATUS)
+
+    def __init__(self, cluster: Cluster):
+        self.cluster = cluster
+        self.control = Termination(cluster.size, _Router(cluster), {r: r for r in
+                                                                    range(cluster.size)}, b"")
+        self.handlers = {protocol.ROUND: self.control.round_done,
+                         protocol.QUEUES: self.control.queues,
+                         protocol.STATUS: self.control.status}
+
+    async def run(self) -> None:
+        """Serve the nodes' reports until cancelled."""
+        cluster = self.cluster
+        inbox = asyncio.Queue()
+        for kind in self.KINDS:  # one queue, in arrival order, whatever the kind
+            cluster.mailboxes[cluster.coordinator][kind] = _Forward(inbox)
+        while True:
+            message = await inbox.get()
+            await cluster.compute(cluster.coordinator, cluster.costs.latency_s)
+            await self.handlers[message.kind](message.meta)
+
+
+class _Forward:
+    """A mailbox that puts what it gets into another queue."""
+
+    def __init__(self, queue: asyncio.Queue):
+        self.put_nowait = queue.put_nowait
+
+
+class _Router:
+    """The coordinator's router socket over the simulated network."""
+
+    def __init__(self, cluster: Cluster):
+        self.cluster = cluster
+
+    async def send_multipart(self, frames: list) -> None:
+        identity, _token, *message = frames
+        self.cluster.send(self.cluster.coordinator, identity, decode(message),
+                          _nbytes(message))
+
+
+class VirtualDomainLoop(DomainLoop):
+    """The domain loop on the virtual clock: a domain's rays are traced for real, and the
+    activation costs ``activation_s`` plus ``query_s`` per query on the node's core."""
+
+    def __init__(self, cluster: Cluster, rank: int, preloader: VirtualPreloader, stats: dict):
+        super().__init__(preloader, stats, offload=False)
+        self.cluster, self.rank = cluster, rank
+        self.clock = cluster.now
+
+    async def trace(self, order: DomainOrder, domain: int, bvh) -> int:
+        queries = order.trace(domain, bvh)
+        costs = self.cluster.costs
+        await self.cluster.compute(self.rank, costs.activation_s + costs.query_s(queries))
+        return queries
+
+
+class SimNode(NodeWork):
+    """``NodeWork`` on a virtual node: its domain loop is ``VirtualDomainLoop``."""
+
+    def __init__(self, management: SimManagement, rank: int, stats: dict,
+                 preloader: VirtualPreloader, max_batch: int, early: dict):
+        super().__init__(management, rank, stats, preloader, max_batch, early)
+        self.loop = VirtualDomainLoop(management.cluster, rank, preloader, stats)
+
+
+@dataclass
+class SimNodeState(NodeState):
+    """A virtual node's ``NodeState``: its preloader, domain loop and node work are the
+    simulator's, and work traced outside the domain loop is charged.
+
+    Parameters
+    ----------
+    cluster, rank : the virtual nodes and this one.
+    domains : the built domains every virtual node traces against.
+    """
+
+    cluster: Cluster | None = None
+    rank: int = 0
+    domains: Domains | None = None
+
+    def preloader_for(self, store, capacity: int, keep, options, rank: int):
+        if self.preloader is None:
+            self.preloader = VirtualPreloader(self.cluster, self.rank, self.domains, capacity,
+                                              preload=options.preload,
+                                              bandwidth=options.load_bytes_per_second(rank))
+        return self.preloader
+
+    def domain_loop(self, preloader, stats: dict) -> DomainLoop:
+        return VirtualDomainLoop(self.cluster, self.rank, preloader, stats)
+
+    def node_work(self, management, rank: int, stats: dict, preloader, max_batch: int):
+        return SimNode(management, rank, stats, preloader, max_batch, self.early)
+
+    async def traced(self, domains: int, queries: int) -> None:
+        costs = self.cluster.costs
+        await self.cluster.compute(self.rank,
+                                   domains * costs.activation_s + costs.query_s(queries))
+
+    def close(self) -> None:
+        """Nothing to stop: a virtual preloader has no thread."""

@@ -1,0 +1,236 @@
+"""``simulate``: one render of a store on P virtual nodes in virtual time.
+
+Each virtual node runs the nodes' own code for its scheduler (``actors.decomposition``,
+``actors.insitu``, and for the sort-first ``image`` and ``spec-ooc`` the out-of-core tile loop
+of ``actors.local`` on virtual time), unit by unit (the passes of each frame, as a job's units),
+with its film summed up the tree after each unit by the real tree-reduce actor. Rays are
+traced for real, so the image is the render's own and the traffic between domains the true
+one; only time is the cost model's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from vastray.actors.coordinator import DEFAULT_NODE_TILE
+from vastray.actors.decomposition import render_owned_domains
+from vastray.actors.domain_loop import ScheduleOrder
+from vastray.actors.insitu import render_spec_insitu
+from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions
+from vastray.actors.local import tile_schedule
+from vastray.actors.node import frame_inputs
+from vastray.actors.ray_post import traffic_counters
+from vastray.actors.render_setup import RenderSetup
+from vastray.actors.tree_reduce import TreeReduceActor
+from vastray.render.driver import path_context, shading_inputs
+from vastray.render.film import Film
+from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, pass_bounds
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.store import Store
+from vastray.schedule.ownership import sort_first_tiles
+from vastray.sim.cache import Domains, VirtualPreloader
+from vastray.sim.clock import run_virtual
+from vastray.sim.cluster import Cluster
+from vastray.sim.costs import CostModel
+from vastray.sim.node import SimCoordinator, SimManagement, SimNodeState
+
+#: The schedulers the simulator runs (every distributed one).
+SIM_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu", "temporal")
+
+
+@dataclass
+class SimResult:
+    """What a simulated render reports.
+
+    Attributes
+    ----------
+    scheduler, nodes : what was simulated.
+    seconds : virtual seconds of the render (the busiest node's rendering, as a real run's
+        ``busy_max``; the film reductions after each unit are not in it, as they are not in
+        ``busy_max``).
+    unit_seconds : (units,) virtual seconds of each unit (pass or frame pass).
+    reduce_seconds : virtual seconds of the film reductions.
+    compute_seconds : (P + 1,) virtual seconds each node (and the coordinator, last) computed.
+    counters : the nodes' counters summed (loads, rays sent, batches, ...).
+    messages, bytes : messages and bytes on the simulated network.
+    film : the image's film (rank 0's after the last reduction).
+    wall_s : real seconds the simulation took.
+    """
+
+    scheduler: str
+    nodes: int
+    seconds: float
+    unit_seconds: list
+    reduce_seconds: float
+    compute_seconds: np.ndarray
+    counters: dict
+    messages: int
+    bytes: int
+    film: Film
+    wall_s: float
+    costs: CostModel = field(repr=False, default=None)
+
+    def as_dict(self) -> dict:
+        """The result for a JSON report (the film left out)."""
+        return {"scheduler": self.scheduler, "nodes": self.nodes,
+                "seconds": round(self.seconds, 6),
+                "unit_seconds": [round(s, 6) for s in self.unit_seconds],
+                "reduce_seconds": round(self.reduce_seconds, 6),
+                "busy_fraction": round(float(self.compute_seconds[:-1].sum())
+                                       / max(self.nodes * self.seconds, 1e-300), 4),
+                "messages": self.messages, "bytes": self.bytes,
+                "counters": self.counters, "wall_s": round(self.wall_s, 3),
+                "costs": None if self.costs is None else self.costs.as_dict()}
+
+
+def node_options(options: JobOptions) -> JobOptions:
+    """The options a node runs with, as the coordinator completes them: a tile of
+    ``DEFAULT_NODE_TILE`` paths where none is set, one query thread."""
+    return replace(options, max_samples_in_flight=options.max_samples_in_flight
+                   or DEFAULT_NODE_TILE, threads=1)
+
+
+def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
+             settings: RenderSettings, config: SceneConfig | None = None,
+             frames: int | None = None, max_pass_spp: int = DEFAULT_MAX_PASS_SPP,
+             domains: Domains | None = None) -> SimResult:
+    """Simulate one render (or animation of ``frames`` frames) on ``nodes`` virtual nodes.
+
+    Parameters
+    ----------
+    store : the domains.
+    options : the job's options; ``options.scheduler`` is one of ``SIM_SCHEDULERS``.
+    nodes : P.
+    costs : the cost model (its ``cores``: the nodes share that many cores; None: one each).
+    settings, config : the render's settings and scene.
+    frames : an animation's frame count (None: one image).
+    max_pass_spp : the passes' largest size (as ``--max-pass-spp``).
+    domains : the store's domains built in memory (made here if None; pass one to reuse it
+        over several simulations).
+    """
+    if options.scheduler not in SIM_SCHEDULERS:
+        raise ValueError(f"the simulator runs {', '.join(SIM_SCHEDULERS)}, not "
+                         f"{options.scheduler!r}")
+    if nodes < 1:
+        raise ValueError("the simulator needs at least 1 node")
+    config = SceneConfig() if config is None else config
+    options = node_options(options)
+    own = domains is None
+    if own:
+        domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
+    units = [(frame, first, stop) for frame in (range(frames) if frames else [None])
+             for first, stop in pass_bounds(settings.spp, max_pass_spp)]
+    start = time.perf_counter()
+    try:
+        outcome, _ = run_virtual(_render(store, options, nodes, costs, settings, config,
+                                         units, domains))
+    finally:
+        if own:
+            domains.close()
+    per_node, unit_seconds, cluster, film = outcome
+    return SimResult(options.scheduler, nodes, max(busy for busy, _, _ in per_node),
+                     unit_seconds, max(r for _, r, _ in per_node), cluster.compute_s,
+                     _summed([c for _, _, c in per_node]), cluster.messages, cluster.bytes,
+                     film, time.perf_counter() - start, costs)
+
+
+async def _render(store, options, size, costs, settings, config, units, domains):
+    cluster = Cluster(size, costs)
+    coordinator = asyncio.ensure_future(SimCoordinator(cluster).run())
+    unit_ends: list[list[float]] = [[] for _ in units]
+    try:
+        per_node = await asyncio.gather(*(
+            _node(cluster, rank, store, options, settings, config, units, domains, unit_ends)
+            for rank in range(size)))
+    finally:
+        coordinator.cancel()
+    marks = [0.0] + [max(ends) for ends in unit_ends]
+    film = per_node[0][3]
+    return ([p[:3] for p in per_node], list(np.diff(marks)), cluster, film)
+
+
+async def _node(cluster: Cluster, rank: int, store, options, settings, config, units, domains,
+                unit_ends):
+    """One virtual node's job (``actors.node``'s unit loop): each unit rendered, then its
+    film summed up the tree."""
+    size = cluster.size
+    management = SimManagement(cluster, rank)
+    tree = TreeReduceActor(management, rank, size)
+    state = SimNodeState(cluster=cluster, rank=rank, domains=domains)
+    busy = reduce = 0.0
+    totals: dict = {}
+    film = Film(settings.width, settings.height)  # the units' films merged (rank 0's whole)
+    for ordinal, (frame, first, stop) in enumerate(units):
+        frame_settings, frame_config = frame_inputs(settings, config, store, frame)
+        window = frame_settings.window(first, stop)
+        state.ordinal, state.frame = ordinal, frame or 0
+        start = cluster.now()
+        part, counters = await _share(cluster, management, tree, options, rank, size, store,
+                                      frame_config, window, state)
+        busy += cluster.now() - start
+        unit_ends[ordinal].append(cluster.now())
+        reduced = cluster.now()
+        film.merge(await tree.reduce_film(part, settings.width, settings.height, ordinal))
+        reduce += cluster.now() - reduced
+        _add(totals, counters)
+    return busy, reduce, totals, film
+
+
+async def _share(cluster, management, tree, options, rank, size, store, config, settings,
+                 state):
+    """This node's partial film of one unit and its counters (``actors.node.render_share``
+    with the sort-first schedulers on virtual time)."""
+    if options.scheduler == "spec-insitu":
+        return await render_spec_insitu(management, tree, options, rank, size, store, config,
+                                        settings, state=state)
+    if options.scheduler in TILE_SCHEDULERS:
+        return await _sort_first(cluster, options, rank, size, store, config, settings,
+                                 state.domains)
+    return await render_owned_domains(management, options, rank, size, store, config,
+                                      settings, state=state, tree=tree)
+
+
+async def _sort_first(cluster, options, rank, size, store, config, settings, domains):
+    """``actors.local.render_out_of_core`` with ``share=(rank, size)`` on virtual time: this
+    node's tiles, each traced through its schedule with a cache made for the unit."""
+    setup = RenderSetup.of(store, config, settings)
+    preloader = VirtualPreloader(cluster, rank, domains,
+                                 options.cache or max(len(store.domains), 1),
+                                 preload=options.preload,
+                                 bandwidth=options.load_bytes_per_second(rank))
+    stats = {**traffic_counters(), "shade_s": 0.0}
+    state = SimNodeState(cluster=cluster, rank=rank, domains=domains)
+    loop = state.domain_loop(preloader, stats)
+    film = Film(settings.width, settings.height)
+    total = settings.paths
+    tile = max(1, min(options.max_samples_in_flight or total, total))
+    for first in sort_first_tiles(total, tile, rank, size):
+        ctx = path_context(setup.shading, settings, first, min(first + tile, total),
+                           setup.ao_distance)
+        policy = tile_schedule(options, setup, ctx)
+        policy.start(camera_rays(setup.camera, ctx))
+        await loop.run(ScheduleOrder(policy, preloader,
+                                     evicting=options.scheduler == "spec-ooc",
+                                     by_demand=options.eviction == "demand"))
+        film.add_paths(ctx.pixel, ctx.sample, policy.result)
+    stats.update({k: v for k, v in preloader.stats().items() if k in ("loads", "preloads",
+                                                                      "bytes_loaded")})
+    return film, stats
+
+
+def _add(total: dict, part: dict) -> None:
+    for key, value in part.items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            total[key] = total.get(key, 0) + value
+
+
+def _summed(parts: list[dict]) -> dict:
+    total: dict = {}
+    for part in parts:
+        _add(total, part)
+    return {k: round(v, 6) if isinstance(v, float) else v for k, v in total.items()}
