@@ -93,25 +93,33 @@ class _InSitu:
         return schedule.result
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
-        """Send the schedule's speculative copies to the owners of their domains (one radiance
-        and one shadow batch per peer, empty or not); returns the copies for this node's
-        domains, its own and the peers'."""
+        """Send the schedule's speculative copies to the owners of their domains (a radiance
+        and a shadow batch to each peer that has copies of either); returns the copies for
+        this node's domains, its own and the peers'.
+
+        How many batches come here is summed over the nodes by the tree (one (P,) SUM):
+        a batch per peer and queue, empty or not, made P^2 messages an iteration.
+        """
         incoming = {"radiance": [], "shadow": []}
+        outgoing = np.zeros(self.size, np.int64)  # batches sent to each node
         for name, copies in schedule.speculative_copies().items():
             dom = copies.domain
+            if not len(dom):
+                continue
             dest = self.owner[dom]
-            mine = dest == self.rank
-            if mine.any():
-                incoming[name].append((dom[mine], copies.take(np.nonzero(mine)[0])))
-            for node in range(self.size):
+            order = np.argsort(dest, kind="stable")
+            nodes, first = np.unique(dest[order], return_index=True)
+            for node, rows in zip(nodes, np.split(order, first[1:]), strict=True):
                 if node == self.rank:
+                    incoming[name].append((dom[rows], copies.take(rows)))
                     continue
-                rows = np.nonzero(dest == node)[0]
-                batch = (dom[rows], copies.take(rows)) if len(rows) else ()
-                await self.post.send(node, name, {"tile": tile, "depth": depth}, *batch)
+                outgoing[node] += 1
+                await self.post.send(int(node), name, {"tile": tile, "depth": depth},
+                                     dom[rows], copies.take(rows))
+        expect = (await self.tree.allreduce({"n": outgoing}, {"n": "sum"}))["n"][self.rank]
         n_paths, slots, is_local = schedule.n_paths, schedule.slots, schedule.is_local
         received = 0
-        while received < 2 * (self.size - 1):
+        while received < expect:
             message = await self.management.receive(protocol.RAYS, "ray batch")
             try:  # indices into this tile's paths and shadow slots
                 protocol.check_ray_index(message, "path", n_paths)

@@ -52,19 +52,25 @@ class Termination:
             await self._send(rank, protocol.GO, {"expect": expect[rank], "finished": finished})
 
     async def queues(self, meta: dict) -> None:
-        """dynamic: once every node has reported, send this round's schedule (``policy``)."""
+        """dynamic: once every node has reported, send this round's schedule (``policy``),
+        with how many ray batches each node will receive."""
         reports = self.rounds.setdefault(meta["tile"], {})
         reports[int(meta["rank"])] = meta
         if len(reports) < self.size:
             return
         del self.rounds[meta["tile"]]
         self.barriers += 1
-        plan = self.policy.next_round({r: m["queues"] for r, m in reports.items()},
-                                      {r: m["loaded"] for r, m in reports.items()})
+        waiting = {r: _summed(m["radiance"], m["shadow"]) for r, m in reports.items()}
+        plan = self.policy.next_round(waiting, {r: m["loaded"] for r, m in reports.items()})
+        expect = dict.fromkeys(range(self.size), 0)
+        for rank, report in reports.items():
+            for name in ("radiance", "shadow"):  # one batch per queue and destination
+                for node in {plan.assign.get(int(d), rank) for d in report[name]} - {rank}:
+                    expect[node] += 1
         for rank in range(self.size):
             await self._send(rank, protocol.SCHEDULE, {
                 "assign": {str(d): p for d, p in plan.assign.items()}, "size": self.size,
-                "finished": plan.finished})
+                "finished": plan.finished, "expect": expect[rank]})
 
     async def status(self, meta: dict) -> None:
         if meta["tile"] != self.tile:
@@ -93,3 +99,11 @@ class Termination:
 
 def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
     return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
+
+
+def _summed(radiance: dict, shadow: dict) -> dict[str, int]:
+    """Rays waiting per domain on a node, both queues together (as ``next_round`` takes)."""
+    total = dict(radiance)
+    for domain, count in shadow.items():
+        total[domain] = total.get(domain, 0) + count
+    return total
