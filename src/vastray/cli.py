@@ -75,7 +75,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vastray import commands_data, commands_render, commands_scene, plot
+    from vastray import commands_data, commands_render, commands_scene, commands_sim, plot
 
     parser = Parser(
         prog="vastray", description=DESCRIPTION,
@@ -89,6 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands_render.register(sub)
     commands_data.register(sub)
     plot.register(sub)
+    commands_sim.register(sub)
     node = sub.add_parser("node", help="run one render node (started by a coordinator)",
                           add_help=False)
     node.set_defaults(func=None)

@@ -98,19 +98,19 @@ class CostModel:
         try:
             data = json.loads(path.read_text())
         except FileNotFoundError:
-            raise InputError(f"{path}: no such calibration file "
-                             "(write one with `vastray calibrate -o FILE`)") from None
+            raise InputError(path, "no such calibration file "
+                                   "(write one with `vastray calibrate -o FILE`)") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"{path}: not a calibration file: {exc}") from None
+            raise InputError(path, f"not a calibration file: {exc}") from None
         if not isinstance(data, dict) or data.get("version") != VERSION:
-            raise InputError(f"{path}: calibration format version {data.get('version')!r} "
-                             f"is not {VERSION}; run `vastray calibrate` again"
-                             if isinstance(data, dict) else f"{path}: not a JSON object")
+            raise InputError(path, f"calibration format version {data.get('version')!r} "
+                                   f"is not {VERSION}; run `vastray calibrate` again"
+                                   if isinstance(data, dict) else "not a JSON object")
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(data) - known - {"version"})
         if unknown:
-            raise InputError(f"{path}: unknown cost fields {unknown}")
+            raise InputError(path, f"unknown cost fields {unknown}")
         try:
             return cls(**{k: v for k, v in data.items() if k in known})
         except (TypeError, ValueError) as exc:
-            raise InputError(f"{path}: {exc}") from None
+            raise InputError(path, str(exc)) from None

@@ -1,0 +1,172 @@
+"""The simulator (``vastray.sim``) against real runs, and the papers' scaling figures in it.
+
+    python bench/simulate.py --quick   # <= 5 min: validation at P = 1, 2, 4 and the
+                                       # speed-ups at 64 and 1024 virtual nodes
+    python bench/simulate.py           # also the figures (docs/sim_*.png) and their tables
+
+Validation: every scheduler renders the same small scene on P = 1, 2, 4 real node processes
+(this machine; ``--threads 1``, as the cost model is per core) and in the simulator with the
+constants ``vastray calibrate`` measures here first, the virtual nodes sharing this machine's
+cores as the real processes do. Measured is the real run's ``busy_max`` (the busiest node's
+rendering, start-up and film gathering left out); simulated the same span in virtual time.
+``sim_error_max=`` is the worst |simulated - measured| / measured.
+
+Scaling: the same schedulers on 1 to 1024 virtual nodes with a core each, the constants of
+this machine, on a store of 1,024 domains; speed-up = T(1 node) / T(P nodes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from bench_scenes import CACHE, cached_rm
+
+from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
+from vastray.render.driver import render, shading_inputs
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.sim.cache import Domains
+from vastray.sim.calibrate import calibrate
+from vastray.sim.costs import CostModel
+from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+
+DOCS = Path(__file__).resolve().parent.parent / "docs"
+VALIDATION_NODES = (1, 2, 4)
+#: validation scene and settings: rm at 64^3 in 3x3x2 domains, 96x72 px, 4 spp (3 passes)
+VALIDATION = RenderSettings(width=96, height=72, spp=4, integrator="pt", bounces=1)
+#: scaling scene and settings: rm at 128^3 in 16x8x8 = 1,024 domains
+SCALING = RenderSettings(width=64, height=64, spp=2, integrator="pt", bounces=1)
+
+
+def scaling_options(scheduler: str, nodes: int, paths: int) -> JobOptions:
+    """The options of a scaling run: the sort-first schedules cut the image into a tile per
+    node (their default tile, 65,536 paths, would leave every node but one idle); the others
+    run with the nodes' defaults."""
+    if scheduler in ("image", "spec-ooc"):
+        return JobOptions(scheduler=scheduler, max_samples_in_flight=max(1, -(-paths // nodes)))
+    return JobOptions(scheduler=scheduler)
+
+
+def costs_here(quick: bool, store) -> CostModel:
+    """This machine's constants, measured now (and kept in ``.bench_cache/costs.json``)."""
+    print(f"+ calibrate {'--quick ' if quick else ''}on {store.path.name}", flush=True)
+    costs = calibrate(store.path, quick=quick)
+    costs.save(CACHE / "costs.json")
+    print("  " + ", ".join(f"{k}={v:.3g}" for k, v in costs.as_dict().items()
+                           if isinstance(v, float)) + f", cores={costs.cores}", flush=True)
+    return costs
+
+
+def measured(store, scheduler: str, nodes: int, settings: RenderSettings,
+             repeats: int) -> tuple[float, object]:
+    """The real run's busiest node's rendering seconds (median of ``repeats``) and its film."""
+    times, film = [], None
+    for _ in range(repeats):
+        result = render_distributed(store.path, None, settings, nodes,
+                                    options=JobOptions(scheduler=scheduler, threads=1),
+                                    timeout=300)
+        times.append(result.seconds["busy_max"])
+        film = result.film
+    return sorted(times)[len(times) // 2], film
+
+
+def validate(store, costs: CostModel, repeats: int) -> list[dict]:
+    """Every scheduler at ``VALIDATION_NODES``, real and simulated (cores shared as here)."""
+    shared = costs.with_cores(costs.cores)
+    config = SceneConfig()
+    reference = render(store, config, VALIDATION, progress=False).film.image()
+    domains = Domains(store, shading_inputs(store, config, VALIDATION.integrator)[1])
+    rows = []
+    print("\n| scheduler | nodes | measured s | simulated s | error | sim image = reference |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for scheduler in SIM_SCHEDULERS:
+        for nodes in VALIDATION_NODES:
+            real_s, _ = measured(store, scheduler, nodes, VALIDATION, repeats)
+            sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared, VALIDATION,
+                           config, domains=domains)
+            same = bool((sim.film.image() == reference).all())
+            error = (sim.seconds - real_s) / real_s
+            rows.append({"scheduler": scheduler, "nodes": nodes, "measured_s": real_s,
+                         "simulated_s": sim.seconds, "error": error, "same_image": same})
+            print(f"| {scheduler} | {nodes} | {real_s:.3f} | {sim.seconds:.3f} | "
+                  f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
+    domains.close()
+    return rows
+
+
+def scaling(store, costs: CostModel, schedulers, node_counts, settings=SCALING) -> dict:
+    """{scheduler: {P: simulated seconds}} on nodes with a core each."""
+    own = costs.with_cores(None)
+    domains = Domains(store, shading_inputs(store, SceneConfig(), settings.integrator)[1])
+    out: dict = {}
+    for scheduler in schedulers:
+        for nodes in node_counts:
+            start = time.perf_counter()
+            sim = simulate(store, scaling_options(scheduler, nodes, settings.paths), nodes,
+                           own, settings, domains=domains)
+            out.setdefault(scheduler, {})[nodes] = sim.seconds
+            print(f"  {scheduler:11s} P={nodes:5d}: {sim.seconds:8.4f} s virtual "
+                  f"({time.perf_counter() - start:.1f} s to simulate)", flush=True)
+    domains.close()
+    return out
+
+
+def speedup_table(times: dict, node_counts) -> None:
+    shown = [p for p in node_counts if p != 1]
+    print("\n| scheduler | T(1) s | " + " | ".join(f"speed-up {p}" for p in shown) + " |")
+    print("| --- | --- |" + " --- |" * len(shown))
+    for scheduler, by_nodes in times.items():
+        base = by_nodes[1]
+        print(f"| {scheduler} | {base:.3f} | "
+              + " | ".join(f"{base / by_nodes[p]:.1f}" for p in shown) + " |")
+    for p in shown:
+        print(f"speedup_{p}=" + ",".join(f"{s}:{by[1] / by[p]:.2f}" for s, by in times.items()))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true",
+                        help="validation and the speed-ups at 64 and 1024 nodes only")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="real runs per validation point (median; default 1 quick, 3 full)")
+    parser.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    args = parser.parse_args()
+    start = time.perf_counter()
+    print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
+          "scaling with this machine's calibrated costs")
+    small = cached_rm(64, (3, 3, 2))
+    costs = costs_here(args.quick, small)
+    rows = validate(small, costs, args.repeats or (1 if args.quick else 3))
+    worst = max(abs(r["error"]) for r in rows)
+    print(f"\nsim_error_max={worst:.3f}")
+    print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
+    big = cached_rm(128, (16, 8, 8))
+    counts = (1, 64, 1024)
+    if not args.quick:
+        counts = tuple(2 ** k for k in range(11))
+    print(f"\nscaling on {big.path.name} ({len(big.domains)} domains), "
+          f"{SCALING.width}x{SCALING.height} px, {SCALING.spp} spp, one core per node:")
+    times = scaling(big, costs, SIM_SCHEDULERS, counts)
+    speedup_table(times, counts)
+    figures = {}
+    if not args.quick:
+        from sim_figures import paper_figures
+
+        figures = paper_figures(costs, times)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"costs": costs.as_dict(), "validation": rows,
+                                               "scaling": times, "figures": figures},
+                                              indent=1, default=str))
+    print(f"\n{time.perf_counter() - start:.0f} s in all")
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    sys.exit(main())

@@ -1,0 +1,169 @@
+"""Simulator commands: ``calibrate`` (measure the simulator's cost model on this machine and
+write it as JSON, for ``vastray.sim``)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from vastray.scene.errors import InputError
+from vastray.sim.costs import CostModel
+
+CALIBRATE_EPILOG = """\
+examples:
+  vastray calibrate                         # the built-in scene -> costs.json (~30 s)
+  vastray calibrate rm.store -o rm-costs.json
+  vastray calibrate rm.store --quick        # smaller budgets (~6 s), rougher constants
+
+what is measured, with the real components (nothing is mocked):
+  loads       every domain of STORE loaded cold (its pages dropped from the page cache),
+              the read of its files timed apart from the build of its BVH
+  tracing     a 64x48 path-traced tile with the `image` schedule, every domain resident:
+              each activation of a domain timed and fitted as a fixed cost plus a cost
+              per ray query (shading apart, from the schedule's own clock)
+  the wire    ray batches of 0 to 100,000 rays between two processes over ZeroMQ in the
+              wire format nodes use, fitted as a latency plus a cost per byte
+  reductions  one small message plus combining two small arrays
+The file also records the cores this process may use and what machine it ran on; run it
+on an otherwise idle machine, as another process's load is measured too.
+"""
+
+#: What each constant is, for the table ``vastray calibrate`` prints.
+COST_LABELS = {
+    "trace_ray_s": "per ray query (Embree, one domain)",
+    "shade_ray_s": "per ray query shaded",
+    "activation_s": "per activation of a domain",
+    "camera_ray_s": "per camera ray",
+    "load_byte_s": "per byte read from the store",
+    "build_triangle_s": "per triangle of a BVH build",
+    "latency_s": "per message between processes",
+    "byte_s": "per byte on the wire",
+    "reduce_step_s": "per level of a tree reduction",
+}
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the simulator's sub-commands (``calibrate``)."""
+    fmt = argparse.RawDescriptionHelpFormatter
+    _add_calibrate(sub, fmt)
+
+
+def _add_calibrate(sub: argparse._SubParsersAction, fmt) -> None:
+    c = sub.add_parser(
+        "calibrate", help="measure the simulator's costs on this machine (costs.json)",
+        description="Measure what tracing, shading, loading domains and sending ray batches "
+                    "cost on this machine, with vastray's own components, and write the "
+                    "constants of the simulator's cost model as JSON.",
+        epilog=CALIBRATE_EPILOG, formatter_class=fmt)
+    c.add_argument("store", nargs="?", metavar="STORE",
+                   help="domain store to measure with (default: the built-in scene, "
+                        "generated on first use)")
+    c.add_argument("-o", "--output", default="costs.json", metavar="FILE",
+                   help="calibration file to write (default: costs.json)")
+    c.add_argument("--quick", action="store_true",
+                   help="smaller time budgets: about a fifth of the time, rougher constants")
+    c.add_argument("--quiet", action="store_true", help="no progress bar and no table")
+    c.set_defaults(func=cmd_calibrate)
+
+
+def cmd_calibrate(args) -> int:
+    from vastray.sim.calibrate import CalibrationError, calibrate
+
+    output = check_output_file(args.output)
+    store, config, settings = _calibration_inputs(args)
+    start = time.perf_counter()
+    try:
+        with _ProgressBar(enabled=not args.quiet and sys.stderr.isatty()) as bar:
+            model = calibrate(store, quick=args.quick, progress=bar.update, config=config,
+                              settings=settings)
+    except CalibrationError as exc:
+        print(f"vastray calibrate: error: {exc}", file=sys.stderr)
+        return 1
+    save_costs(model, output)
+    if not args.quiet:
+        print(costs_table(model, output, time.perf_counter() - start))
+    return 0
+
+
+def _calibration_inputs(args):
+    """(store path, scene config, render settings): the built-in scene's when no STORE is
+    given (its camera, lights and render defaults), else STORE's with a store's defaults."""
+    from vastray.sim.calibrate import calibration_settings
+
+    if args.store is not None:
+        return Path(args.store), None, calibration_settings(args.quick)
+    from vastray.commands_render import BUILTIN_DEFAULTS
+    from vastray.default_scene import default_scene_config, default_store
+
+    settings = calibration_settings(args.quick, bounces=BUILTIN_DEFAULTS["bounces"],
+                                    shadow_samples=BUILTIN_DEFAULTS["shadow_samples"])
+    return default_store(quiet=args.quiet), default_scene_config(), settings
+
+
+def check_output_file(name: str) -> Path:
+    """The calibration file to write, checked before any measuring.
+
+    Raises
+    ------
+    InputError
+        Naming the file: it is a folder, its folder does not exist, or cannot be written.
+    """
+    path = Path(name)
+    if path.is_dir():
+        raise InputError(path, f"is a folder; give a file name such as {path / 'costs.json'}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError(path, f"cannot be written: the folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(path, f"cannot be written: no permission to write in {folder}")
+    return path
+
+
+def save_costs(model: CostModel, path: Path) -> None:
+    """``model.save(path)`` (written whole, then renamed); an ``InputError`` naming the file
+    if it cannot be written."""
+    try:
+        model.save(path)
+    except OSError as exc:
+        raise InputError(path, f"cannot be written ({exc.strerror or exc})") from None
+
+
+def costs_table(model: CostModel, path: Path, seconds: float) -> str:
+    """The measured constants, one a line, and where they were written."""
+    machine = model.machine
+    where = ", ".join(str(x) for x in (machine.get("hostname"), machine.get("cpu"),
+                                       f"{model.cores} cores") if x)
+    lines = [f"calibrated in {seconds:.1f} s on {where}:"]
+    for name, label in COST_LABELS.items():
+        lines.append(f"  {name:<17} {getattr(model, name):10.3e} s  {label}")
+    lines.append(f"written to {path}")
+    return "\n".join(lines)
+
+
+class _ProgressBar:
+    """A tqdm bar on stderr fed by ``calibrate``'s ``progress(fraction, text)``; nothing
+    when not ``enabled``."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self.bar = None
+
+    def __enter__(self) -> _ProgressBar:
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=100, desc="calibrate", leave=False,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}{postfix}")
+        return self
+
+    def update(self, fraction: float, text: str) -> None:
+        if self.bar is not None:
+            self.bar.n = round(100 * fraction)
+            self.bar.set_postfix_str(text)  # refreshes the bar
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()

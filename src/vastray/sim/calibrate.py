@@ -1,0 +1,614 @@
+"""``vastray calibrate``: measure the simulator's cost constants (``costs.CostModel``) on the
+machine it runs on, with the project's own components, never mocks.
+
+- loads: ``DomainCache.load`` of every domain, cold (``drop_page_cache``: each read is a read
+  of the disk, its pages dropped after), its read timed apart from its BVH build;
+- tracing: the ``image`` schedule (``ImageSchedule``) over one tile of path-tracing paths with
+  every domain resident, each ``process`` call timed, and the camera rays it starts from;
+- the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
+  ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
+- reductions: a small message one way plus the combine of two small arrays.
+
+Each measurement has a time budget (``Effort``), so a run takes about as long on a large store
+as on a small one; ``quick`` has smaller budgets (a test, a first look).
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import multiprocessing
+import os
+import platform
+import socket
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import zmq
+
+from vastray.actors import protocol
+from vastray.actors.render_setup import RenderSetup
+from vastray.render.driver import path_context
+from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.scene_config import SceneConfig
+from vastray.report import package_version
+from vastray.scene.cache import DomainCache
+from vastray.scene.store import Store
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.paths import radiance_soa, start_cursor
+from vastray.sim.costs import CostModel
+from vastray.transport.codec import Message, decode, encode
+from vastray.transport.tree import COMBINE
+
+#: ``progress(fraction, text)``: fraction in [0, 1] of the calibration done, and what runs now.
+Progress = Callable[[float, str], None]
+
+#: Rays in the batches the wire is measured with (0: the empty batch some protocols send).
+WIRE_RAYS = (0, 1_000, 10_000, 100_000)
+#: Shape of the arrays one reduction step combines (a small t-buffer or counter block).
+REDUCE_SHAPE = (16, 16)
+#: What a peer that died before its hello most likely means.
+SPAWN_HINT = (" (it is started with multiprocessing's spawn method: a script calling "
+              "calibrate() needs its main code under `if __name__ == \"__main__\":`)")
+#: Seconds the peer process has to start and say hello, and to answer one batch.
+PEER_START_TIMEOUT_S = 60.0
+PEER_REPLY_TIMEOUT_S = 20.0
+
+
+class CalibrationError(RuntimeError):
+    """A measurement could not be made (the peer process did not start or answer)."""
+
+
+@dataclass(frozen=True)
+class Effort:
+    """How much each measurement may take.
+
+    Attributes
+    ----------
+    load_s : seconds of cold domain loads (at least ``min_loads`` are made).
+    trace_s : seconds of repeated tiles (at least ``min_tiles``).
+    spp : samples per pixel of the tile (64 x 48 pixels).
+    wire_s : seconds of ping-pong per batch size (at least ``min_pings`` each).
+    combine_repeats : combines timed for the reduction step.
+    """
+
+    load_s: float
+    min_loads: int
+    trace_s: float
+    min_tiles: int
+    spp: int
+    wire_s: float
+    min_pings: int
+    combine_repeats: int
+
+
+FULL = Effort(load_s=5.0, min_loads=8, trace_s=12.0, min_tiles=3, spp=4, wire_s=2.5,
+              min_pings=10, combine_repeats=20_000)
+QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=0.4,
+               min_pings=4, combine_repeats=2_000)
+
+#: Share of the run each stage takes (for ``progress``), in the order they run.
+STAGES = {"setup": 0.03, "loads": 0.17, "tracing": 0.4, "wire": 0.37, "reduce": 0.03}
+
+
+def calibration_settings(quick: bool = False, **overrides) -> RenderSettings:
+    """The render settings of the calibration tile: 64 x 48 path-traced pixels at ``spp``
+    (``Effort.spp``), the other settings the render defaults for a store (``overrides``
+    replace them, e.g. the built-in scene's ``bounces`` and ``shadow_samples``)."""
+    effort = QUICK if quick else FULL
+    return replace(RenderSettings(width=64, height=48, spp=effort.spp, integrator="pt"),
+                   **overrides)
+
+
+def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
+              progress: Progress | None = None, config: SceneConfig | None = None,
+              settings: RenderSettings | None = None) -> CostModel:
+    """Measure every constant of the cost model on this machine.
+
+    Parameters
+    ----------
+    store_path : a domain store; its domains are loaded and traced.
+    quick : smaller time budgets (``QUICK``, about a fifth of the default ``FULL``'s time).
+    progress : called as ``progress(fraction, text)`` as the stages run.
+    config : camera, lights and materials (default: those a render of a store has without a
+        scene file).
+    settings : the tile's render settings (default: ``calibration_settings(quick)``).
+
+    Returns
+    -------
+    CostModel
+        The measured constants, ``cores`` (CPUs this process may run on) and ``machine``.
+
+    Raises
+    ------
+    InputError
+        The store is missing or damaged (naming the file).
+    CalibrationError
+        The peer process of the wire measurement did not start or answer.
+
+    Notes
+    -----
+    The peer process is started with multiprocessing's spawn method, which imports the
+    caller's main module again: a script calling ``calibrate`` needs its main code under
+    ``if __name__ == "__main__":`` (the ``vastray`` command has it).
+    """
+    start = time.perf_counter()
+    effort = QUICK if quick else FULL
+    report = _Stages(progress)
+    report("setup", 0.0, "opening the store")
+    store = Store(store_path)
+    settings = settings or calibration_settings(quick)
+    setup = RenderSetup.of(store, config or SceneConfig(text=""), settings)
+    report("loads", 0.0, "loading domains cold")
+    load_byte_s, build_triangle_s = load_costs(time_loads(store, setup.keep, effort,
+                                                          report.within("loads")))
+    report("tracing", 0.0, "tracing tiles")
+    tracing = trace_costs(time_tiles(store, setup, settings, effort, report.within("tracing")))
+    report("wire", 0.0, "ray batches between two processes")
+    latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
+    report("reduce", 0.0, "combining small arrays")
+    reduce_step_s = reduce_step_cost(latency_s, byte_s, combine_seconds(effort.combine_repeats))
+    report("reduce", 1.0, "done")
+    return CostModel(
+        **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
+        latency_s=latency_s, byte_s=byte_s, reduce_step_s=reduce_step_s,
+        cores=usable_cores(),
+        machine=machine_info(calibration={"store": str(Path(store_path)), "quick": quick,
+                                          "seconds": round(time.perf_counter() - start, 2)}))
+
+
+class _Stages:
+    """``progress`` in terms of ``STAGES``: (stage, fraction of that stage, text)."""
+
+    def __init__(self, progress: Progress | None):
+        self.progress = progress
+
+    def __call__(self, stage: str, fraction: float, text: str) -> None:
+        if self.progress is None:
+            return
+        names = list(STAGES)
+        done = sum(STAGES[n] for n in names[:names.index(stage)])
+        self.progress(min(1.0, round(done + STAGES[stage] * min(max(fraction, 0.0), 1.0), 6)),
+                      text)
+
+    def within(self, stage: str) -> Callable[[float, str], None]:
+        """``progress`` of one stage: (fraction of the stage, text)."""
+        return lambda fraction, text: self(stage, fraction, text)
+
+
+# -- loads ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class LoadSample:
+    """One cold load of a domain: its manifest bytes and triangles, and the seconds of the
+    read of its files and of its BVH build."""
+
+    nbytes: int
+    triangles: int
+    read_s: float
+    build_s: float
+
+
+def drop_store_pages(store: Store) -> None:
+    """Write back and drop the page cache of every domain file, so that the first load of
+    each is a read of the disk too (the kernel drops clean pages only; a store written
+    moments before may still have dirty ones)."""
+    if not hasattr(os, "posix_fadvise"):
+        return
+    for info in store.domains:
+        for kind in info.files:
+            fd = os.open(store.domain_path(info, kind), os.O_RDONLY)
+            try:
+                os.fdatasync(fd)
+                os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+            finally:
+                os.close(fd)
+
+
+def time_loads(store: Store, keep: frozenset[str], effort: Effort,
+               progress: Callable[[float, str], None]) -> list[LoadSample]:
+    """Cold loads of the non-empty domains, round after round, for ``effort.load_s`` seconds
+    (and at least ``effort.min_loads``), after one untimed load (first-use costs).
+
+    Returns
+    -------
+    list of LoadSample, one per timed load (the read and build as ``DomainCache.load``
+    times them: ``CacheStats.read_seconds`` and ``build_seconds``).
+    """
+    domains = [d.id for d in store.domains if d.n_triangles > 0]
+    if not domains:
+        raise CalibrationError(f"{store.path}: the store has no triangles to load")
+    drop_store_pages(store)
+    cache = DomainCache(store, 1, keep, drop_page_cache=True)
+    cache.load(domains[0]).close()  # the Embree device, first reads of the code paths
+    samples: list[LoadSample] = []
+    start = time.perf_counter()
+    while (elapsed := time.perf_counter() - start) < effort.load_s or len(samples) < effort.min_loads:
+        progress(elapsed / effort.load_s, f"loading domains cold ({len(samples)} loads)")
+        samples.append(_timed_load(cache, domains[len(samples) % len(domains)]))
+    return samples
+
+
+def _timed_load(cache: DomainCache, domain: int) -> LoadSample:
+    """One ``cache.load(domain)`` (not kept), its read and build seconds from the stats."""
+    stats = cache.stats
+    read, build = stats.read_seconds, stats.build_seconds
+    bvh = cache.load(domain)
+    bvh.close()
+    info = cache.store.domains[domain]
+    return LoadSample(info.nbytes, info.n_triangles, stats.read_seconds - read,
+                      stats.build_seconds - build)
+
+
+def load_costs(samples: list[LoadSample]) -> tuple[float, float]:
+    """(load_byte_s, build_triangle_s): total read seconds over total bytes, total build
+    seconds over total triangles.
+
+    Ratios of totals, not a fit with an intercept: the cost model has no per-load constant,
+    so what a load costs besides its bytes (opening files, headers, checks) and besides its
+    triangles (making the Embree scene) is folded into the per-unit costs at this store's
+    domain sizes, and the model then gives exactly the measured total load time for them.
+    (The domains of one store are of similar sizes, so an intercept would be ill-determined.)
+    """
+    nbytes = sum(s.nbytes for s in samples)
+    triangles = sum(s.triangles for s in samples)
+    return (sum(s.read_s for s in samples) / max(nbytes, 1),
+            sum(s.build_s for s in samples) / max(triangles, 1))
+
+
+# -- tracing --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TileTiming:
+    """One traced tile.
+
+    Attributes
+    ----------
+    camera_s : seconds to make its camera rays (``path_context`` and ``camera_rays``).
+    rays : its camera rays (paths).
+    calls : ((domain, queries, seconds), ...) of each ``process`` call, in order.
+    shade_s : the schedule's ``shade_s`` counter at the end.
+    """
+
+    camera_s: float
+    rays: int
+    calls: tuple[tuple[int, int, float], ...]
+    shade_s: float
+
+
+def resident_cache(store: Store, keep: frozenset[str]) -> DomainCache:
+    """A cache with room for every domain, the non-empty ones loaded now (none is evicted
+    while tracing; the schedule never sends rays to an empty one)."""
+    cache = DomainCache(store, max(len(store.domains), 1), keep)
+    for info in store.domains:
+        if info.n_triangles > 0:
+            cache.get(info.id)
+    return cache
+
+
+def time_tile(setup: RenderSetup, settings: RenderSettings, cache: DomainCache) -> TileTiming:
+    """Trace one tile of every path of ``settings`` with the ``image`` schedule, as the
+    one-process runtime does (every domain resident, so the schedule serves them in its own
+    order), timing each ``process`` call."""
+    start = time.perf_counter()
+    ctx = path_context(setup.shading, settings, 0, settings.paths, setup.ao_distance)
+    rays = camera_rays(setup.camera, ctx)
+    camera_s = time.perf_counter() - start
+    policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
+    policy.start(rays)
+    resident = cache.resident_set()
+    calls = []
+    while (domain := policy.next_domain(resident)) is not None:
+        bvh = cache.get(domain)
+        before = policy.counters["radiance_tests"] + policy.counters["shadow_tests"]
+        t0 = time.perf_counter()
+        policy.process(domain, bvh)
+        seconds = time.perf_counter() - t0
+        queries = policy.counters["radiance_tests"] + policy.counters["shadow_tests"] - before
+        calls.append((domain, queries, seconds))
+    return TileTiming(camera_s, len(rays), tuple(calls), policy.counters["shade_s"])
+
+
+def time_tiles(store: Store, setup: RenderSetup, settings: RenderSettings, effort: Effort,
+               progress: Callable[[float, str], None]) -> list[TileTiming]:
+    """The same tile traced again and again for ``effort.trace_s`` seconds (at least
+    ``effort.min_tiles`` times), after one untimed tile (kernels loaded, first-use costs).
+
+    Returns
+    -------
+    list of TileTiming, one per timed tile.
+    """
+    cache = resident_cache(store, setup.keep)
+    try:
+        time_tile(setup, settings, cache)
+        tiles: list[TileTiming] = []
+        start = time.perf_counter()
+        while (elapsed := time.perf_counter() - start) < effort.trace_s or len(tiles) < effort.min_tiles:
+            progress(elapsed / effort.trace_s, f"tracing tiles ({len(tiles)} done)")
+            tiles.append(time_tile(setup, settings, cache))
+    finally:
+        cache.close()
+    return tiles
+
+
+def median_calls(tiles: list[TileTiming]) -> tuple[np.ndarray, np.ndarray]:
+    """(queries (m,), seconds (m,)) of each distinct call, its seconds the median over the
+    tiles that made it.
+
+    The tiles are the same paths, and the schedule's order and ray counts do not depend on
+    timing (the project's invariant), so call k of every tile is the same work: its median
+    is robust to another process taking the CPU for a while on a shared machine. Calls are
+    keyed by (position, domain, queries), so a tile that differed would only add keys.
+    """
+    groups: dict[tuple[int, int, int], list[float]] = {}
+    for tile in tiles:
+        for k, (domain, queries, seconds) in enumerate(tile.calls):
+            groups.setdefault((k, domain, queries), []).append(seconds)
+    keys = sorted(groups)
+    return (np.array([q for _, _, q in keys], np.float64),
+            np.array([np.median(groups[k]) for k in keys], np.float64))
+
+
+def fit_line(x: np.ndarray, y: np.ndarray,
+             weights: np.ndarray | None = None) -> tuple[float, float]:
+    """Least-squares (intercept, slope) of ``y ~ intercept + slope * x``.
+
+    Parameters
+    ----------
+    x, y : (m,) float64, m >= 1.
+    weights : (m,) float64 > 0, each squared residual's weight (None: all 1).
+    """
+    w = np.sqrt(np.ones_like(y) if weights is None else weights)
+    design = np.stack([np.ones_like(x), x], axis=1) * w[:, None]
+    (intercept, slope), *_ = np.linalg.lstsq(design, y * w, rcond=None)
+    return float(intercept), float(slope)
+
+
+def trace_costs(tiles: list[TileTiming]) -> dict[str, float]:
+    """trace_ray_s, shade_ray_s, activation_s and camera_ray_s from timed tiles.
+
+    The seconds of a ``process`` call are fitted as ``activation_s + queries * per_query``
+    (least squares over the calls; each clipped to >= 0). ``shade_ray_s`` is the
+    schedule's shading time (``shade_s``) per query and ``trace_ray_s`` the rest of
+    ``per_query``; if noise leaves no rest, ``per_query`` is split in the proportion of
+    shading time to all ``process`` time instead. ``camera_ray_s`` is the median over the
+    tiles of making their camera rays, per ray.
+    """
+    queries, seconds = median_calls(tiles)
+    activation_s, per_query = fit_line(queries, seconds)
+    activation_s, per_query = max(activation_s, 0.0), max(per_query, 0.0)
+    if per_query == 0.0:  # no spread in the calls' sizes: the mean cost of a query
+        per_query = float(seconds.sum() / max(queries.sum(), 1.0))
+    all_queries = sum(q for tile in tiles for _, q, _ in tile.calls)
+    all_shade = sum(tile.shade_s for tile in tiles)
+    shade_ray_s = all_shade / max(all_queries, 1)
+    trace_ray_s = per_query - shade_ray_s
+    if trace_ray_s <= 0.0:
+        share = all_shade / max(sum(s for tile in tiles for *_, s in tile.calls), 1e-12)
+        shade_ray_s, trace_ray_s = per_query * share, per_query * (1.0 - share)
+    camera_ray_s = float(np.median([t.camera_s / max(t.rays, 1) for t in tiles]))
+    return {"trace_ray_s": trace_ray_s, "shade_ray_s": shade_ray_s,
+            "activation_s": activation_s, "camera_ray_s": camera_ray_s}
+
+
+# -- the wire -------------------------------------------------------------------------------
+def ray_batch(setup: RenderSetup, n: int) -> dict[str, np.ndarray]:
+    """The arrays of a batch of ``n`` radiance rays as ``RayPost.send`` sends them: the camera
+    rays of the first ``n`` paths (of as many samples per pixel as it takes), each with its
+    empty hit record and its cursor at the first domain it enters, and that domain; ``{}``
+    for ``n == 0`` (the empty batch). Colour hit fields as the store has them."""
+    if n == 0:
+        return {}
+    pixels = setup.camera.width * setup.camera.height
+    settings = RenderSettings(width=setup.camera.width, height=setup.camera.height,
+                              spp=math.ceil(n / pixels))
+    ctx = path_context(setup.shading, settings, 0, n, setup.ao_distance)
+    rays = radiance_soa(camera_rays(setup.camera, ctx), setup.color_source is not None,
+                        **start_cursor(n))
+    domain, entry = setup.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
+                                               rays["at_d"], np.full(n, np.inf, np.float32))
+    rays["at_t"], rays["at_d"] = entry, domain
+    return {"domain": domain, **rays.fields}
+
+
+def _close(*sockets: zmq.Socket) -> None:
+    for sock in sockets:
+        sock.close(linger=0)
+
+
+def echo_peer(endpoint: str, idle_timeout_s: float) -> None:
+    """The peer process: say hello to ``endpoint`` (the caller's ROUTER) with its own
+    ROUTER's endpoint, then decode each message that comes, and send it back re-encoded,
+    until a ``"stop"`` message or ``idle_timeout_s`` seconds without one (the caller gone)."""
+    ctx = zmq.Context()
+    router, dealer = ctx.socket(zmq.ROUTER), ctx.socket(zmq.DEALER)
+    try:
+        port = router.bind_to_random_port("tcp://127.0.0.1")
+        dealer.connect(endpoint)
+        dealer.send_multipart(encode("hello", {}, {"endpoint": f"tcp://127.0.0.1:{port}"}))
+        while router.poll(int(idle_timeout_s * 1000)):
+            message = decode(router.recv_multipart(copy=False)[1:])
+            if message.kind == "stop":
+                return
+            dealer.send_multipart(encode(message.kind, message.arrays, message.meta),
+                                  copy=False)
+    finally:
+        _close(router, dealer)
+        ctx.term()
+
+
+class Peer:
+    """A peer process (``echo_peer``, started with the spawn method) and this side's sockets:
+    a ROUTER it sends to and a DEALER to its ROUTER, as two nodes are connected. A context
+    manager: leaving it stops the peer (terminated if it does not stop at once)."""
+
+    def __init__(self):
+        self.ctx = zmq.Context()
+        self.router = self.ctx.socket(zmq.ROUTER)
+        self.dealer = self.ctx.socket(zmq.DEALER)
+        self.process = None
+
+    def __enter__(self) -> Peer:
+        try:
+            port = self.router.bind_to_random_port("tcp://127.0.0.1")
+            spawn = multiprocessing.get_context("spawn")
+            self.process = spawn.Process(target=echo_peer, daemon=True, name="vastray-calibrate-peer",
+                                         args=(f"tcp://127.0.0.1:{port}", PEER_REPLY_TIMEOUT_S * 3))
+            self.process.start()
+            hello = self.receive(PEER_START_TIMEOUT_S, "say hello", SPAWN_HINT)
+            self.dealer.connect(hello.meta["endpoint"])
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def receive(self, timeout_s: float, what: str, hint: str = "") -> Message:
+        """The next message to this side's ROUTER, decoded; ``CalibrationError`` (saying
+        the peer did not ``what``, then ``hint``) if none comes within ``timeout_s`` seconds
+        or the peer process has died."""
+        deadline = time.monotonic() + timeout_s
+        while not self.router.poll(100):
+            if not self.process.is_alive():
+                raise CalibrationError(f"the calibration peer process exited (status "
+                                       f"{self.process.exitcode}) before it could {what}{hint}")
+            if time.monotonic() > deadline:
+                raise CalibrationError(f"the calibration peer process did not {what} within "
+                                       f"{timeout_s:g} s")
+        return decode(self.router.recv_multipart(copy=False)[1:])
+
+    def round_trip(self, frames: list) -> float:
+        """Seconds from sending ``frames`` to having decoded their echo."""
+        start = time.perf_counter()
+        self.dealer.send_multipart(frames, copy=False)
+        self.receive(PEER_REPLY_TIMEOUT_S, "answer a ray batch")
+        return time.perf_counter() - start
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self.process is not None and self.process.is_alive():
+                self.dealer.send_multipart(encode("stop", {}), flags=zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass
+        finally:
+            self.router.close(linger=0)
+            self.dealer.close(linger=1000)  # time for the stop to leave
+            self.ctx.term()
+            self._stop_process()
+
+    def _stop_process(self) -> None:
+        if self.process is None or self.process.pid is None:
+            return
+        self.process.join(2.0)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(2.0)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(2.0)
+        self.process.close()
+
+
+def time_wire(setup: RenderSetup, effort: Effort,
+              progress: Callable[[float, str], None]) -> list[tuple[int, float]]:
+    """Ping-pong of ray batches of ``WIRE_RAYS`` rays with a peer process: for each size,
+    ``effort.wire_s`` seconds (at least ``effort.min_pings`` round trips) after two untimed.
+
+    Returns
+    -------
+    [(bytes, one-way seconds), ...]: per size the message's bytes (header and frames) and the
+    median round trip halved (each way: encode, send, receive, decode).
+    """
+    progress(0.0, "starting the peer process")
+    out = []
+    with Peer() as peer:
+        for i, n in enumerate(WIRE_RAYS):
+            progress((i + 0.5) / len(WIRE_RAYS), f"ray batches of {n} rays")
+            frames = encode(protocol.RAYS, ray_batch(setup, n),
+                            {"queue": "radiance", "rank": 0, "tile": 0})
+            nbytes = sum(memoryview(f).nbytes for f in frames)
+            for _ in range(2):  # connections made, buffers allocated
+                peer.round_trip(frames)
+            trips = []
+            start = time.perf_counter()
+            while time.perf_counter() - start < effort.wire_s or len(trips) < effort.min_pings:
+                trips.append(peer.round_trip(frames))
+            out.append((nbytes, float(np.median(trips)) / 2))
+    progress(1.0, "ray batches done")
+    return out
+
+
+def wire_costs(samples: list[tuple[int, float]]) -> tuple[float, float]:
+    """(latency_s, byte_s) of ``one_way = latency_s + bytes * byte_s``.
+
+    Least squares weighted by 1 / one_way**2 (relative residuals): the sizes span five
+    orders of magnitude, and unweighted the largest batch alone would set the intercept.
+    If noise leaves the intercept <= 0, latency_s is the smallest message's time; a slope
+    <= 0, the difference of the largest and smallest over their bytes.
+    """
+    nbytes = np.array([b for b, _ in samples], np.float64)
+    seconds = np.array([s for _, s in samples], np.float64)
+    latency_s, byte_s = fit_line(nbytes, seconds, 1.0 / seconds ** 2)
+    small, large = int(np.argmin(nbytes)), int(np.argmax(nbytes))
+    if latency_s <= 0.0:
+        latency_s = float(seconds[small])
+    if byte_s <= 0.0:
+        byte_s = max(float((seconds[large] - seconds[small]) / max(nbytes[large] - nbytes[small], 1)),
+                     1e-15)
+    return latency_s, byte_s
+
+
+# -- reductions -----------------------------------------------------------------------------
+def combine_seconds(repeats: int) -> float:
+    """Median seconds of one element-wise SUM (``transport.tree.COMBINE``) of two
+    ``REDUCE_SHAPE`` float64 arrays into a third, over ``repeats`` combines in 10 blocks."""
+    a, b = np.random.default_rng(0).random((2, *REDUCE_SHAPE))
+    out = np.empty(REDUCE_SHAPE)
+    combine = COMBINE["sum"]
+    block = max(repeats // 10, 1)
+    times = []
+    for _ in range(10):
+        start = time.perf_counter()
+        for _ in range(block):
+            out[...] = combine(a, b)
+        times.append((time.perf_counter() - start) / block)
+    return float(np.median(times))
+
+
+def reduce_step_cost(latency_s: float, byte_s: float, combine_s: float) -> float:
+    """One level of a tree reduction: the measured one-way time of a message holding one
+    ``REDUCE_SHAPE`` float64 array (its encoded bytes, as the wire fit prices them) plus the
+    measured time to combine two such arrays."""
+    frames = encode("reduce", {"value": np.zeros(REDUCE_SHAPE)}, {"op": "sum"})
+    return latency_s + sum(memoryview(f).nbytes for f in frames) * byte_s + combine_s
+
+
+# -- the machine ----------------------------------------------------------------------------
+def cpu_model() -> str | None:
+    """The first ``model name`` of /proc/cpuinfo, else ``platform.processor()`` (None if
+    neither says)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and ":" in line:
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
+def usable_cores() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def machine_info(**extra) -> dict:
+    """What the constants were measured on: host name, CPU model, platform, Python, the
+    vastray version and the date (UTC, ISO 8601), plus ``extra``."""
+    return {"hostname": socket.gethostname(), "cpu": cpu_model(),
+            "platform": platform.platform(), "python": sys.version.split()[0],
+            "vastray": package_version(),
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            **extra}

@@ -1,0 +1,203 @@
+"""``vastray calibrate`` (``vastray.sim.calibrate``): the cost model measured with the real
+components on this machine, its fits, its peer process and its calibration file."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict
+
+import numpy as np
+import pytest
+
+from vastray.commands_sim import check_output_file
+from vastray.scene.errors import InputError
+from vastray.scene.generate import generate
+from vastray.sim import calibrate as cal
+from vastray.sim.costs import VERSION, CostModel
+
+CONSTANTS = ("trace_ray_s", "shade_ray_s", "activation_s", "camera_ray_s", "load_byte_s",
+             "build_triangle_s", "latency_s", "byte_s", "reduce_step_s")
+VASTRAY = [sys.executable, "-m", "vastray"]  # __main__ without a main guard: spawn must cope
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    path = tmp_path_factory.mktemp("calibrate") / "rm.store"
+    generate("rm", path, 32, grid=(2, 2, 1))
+    return path
+
+
+@pytest.fixture(scope="module")
+def quick(store):
+    """One quick calibration of ``store``: (model, [(fraction, text), ...], seconds)."""
+    steps = []
+    start = time.perf_counter()
+    model = cal.calibrate(store, quick=True, progress=lambda f, t: steps.append((f, t)))
+    return model, steps, time.perf_counter() - start
+
+
+# -- a real calibration ---------------------------------------------------------------------
+def test_quick_calibration_measures_every_constant_plausibly(quick):
+    model, _, seconds = quick
+    values = {name: getattr(model, name) for name in CONSTANTS}
+    assert all(math.isfinite(v) and v > 0 for v in values.values()), values
+    assert 1e-6 < model.latency_s < 0.1
+    assert 1e-12 < model.byte_s < 1e-6  # between 1 MB/s and 1 TB/s
+    assert model.load_byte_s < 1e-6 and model.build_triangle_s < 1e-4
+    assert model.trace_ray_s < 1e-3 and model.shade_ray_s < 1e-3
+    # a domain's activation costs more than one of its queries; a camera ray is made in
+    # vectorised numpy, far cheaper than tracing and shading one
+    assert model.activation_s > model.trace_ray_s + model.shade_ray_s
+    assert model.camera_ray_s < model.trace_ray_s + model.shade_ray_s
+    assert model.reduce_step_s > model.latency_s
+    assert seconds < 30  # quick: about 6 s here
+
+
+def test_quick_calibration_records_the_machine_and_reports_progress(quick, store):
+    model, steps, _ = quick
+    assert model.cores == len(os.sched_getaffinity(0))
+    machine = model.machine
+    assert {"hostname", "cpu", "platform", "python", "vastray", "date"} <= set(machine)
+    assert machine["python"] == sys.version.split()[0]
+    assert machine["calibration"]["store"] == str(store) and machine["calibration"]["quick"]
+    fractions = [f for f, _ in steps]
+    assert fractions == sorted(fractions) and 0 <= fractions[0] and fractions[-1] == 1.0
+    assert any("ray batches" in text for _, text in steps)
+
+
+def test_calibration_file_round_trips(quick, tmp_path):
+    model, _, _ = quick
+    model.save(tmp_path / "costs.json")
+    assert asdict(CostModel.load(tmp_path / "costs.json")) == asdict(model)
+    assert not list(tmp_path.glob("*.partial"))
+
+
+# -- the command ----------------------------------------------------------------------------
+def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
+    out = tmp_path / "costs.json"
+    proc = subprocess.run([*VASTRAY, "calibrate", str(store), "-o", str(out), "--quick"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    for name in CONSTANTS:
+        assert name in proc.stdout
+    assert f"written to {out}" in proc.stdout
+    model = CostModel.load(out)
+    assert model.latency_s > 0 and model.machine["calibration"]["quick"]
+    assert json.loads(out.read_text())["version"] == VERSION
+
+
+def test_cli_names_a_missing_store_and_writes_nothing(tmp_path):
+    missing, out = tmp_path / "nowhere.store", tmp_path / "costs.json"
+    proc = subprocess.run([*VASTRAY, "calibrate", str(missing), "-o", str(out), "--quick"],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode != 0
+    assert str(missing) in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists()
+
+
+def test_an_output_that_cannot_be_written_is_named_before_any_measuring(tmp_path):
+    with pytest.raises(InputError, match="does not exist") as err:
+        check_output_file(str(tmp_path / "no" / "costs.json"))
+    assert str(tmp_path / "no" / "costs.json") in str(err.value)
+    with pytest.raises(InputError, match="is a folder"):
+        check_output_file(str(tmp_path))
+    assert check_output_file(str(tmp_path / "costs.json")) == tmp_path / "costs.json"
+
+
+# -- bad calibration files ------------------------------------------------------------------
+@pytest.mark.parametrize("text, problem", [
+    ("{not json", "not a calibration file"),
+    (json.dumps({**CostModel().as_dict(), "version": VERSION + 1}), "version"),
+    (json.dumps({**CostModel().as_dict(), "latency_s": -1.0}), "latency_s"),
+    (json.dumps({**CostModel().as_dict(), "trace_ray_s": "fast"}), "trace_ray_s"),
+    (json.dumps([1, 2]), "not a JSON object"),
+], ids=["not-json", "version", "negative", "not-a-number", "not-an-object"])
+def test_a_bad_calibration_file_is_refused_naming_it(tmp_path, text, problem):
+    path = tmp_path / "costs.json"
+    path.write_text(text)
+    with pytest.raises(InputError, match=problem) as err:
+        CostModel.load(path)
+    assert str(path) in str(err.value)
+
+
+def test_a_missing_calibration_file_is_named(tmp_path):
+    with pytest.raises(InputError, match="no such calibration file") as err:
+        CostModel.load(tmp_path / "absent.json")
+    assert str(tmp_path / "absent.json") in str(err.value)
+
+
+# -- the peer process -----------------------------------------------------------------------
+def test_a_silent_or_dead_peer_is_an_error_not_a_hang(monkeypatch):
+    monkeypatch.setattr(cal, "PEER_REPLY_TIMEOUT_S", 0.5)
+    frames = cal.encode("rays", {"x": np.arange(10.0)})
+    with cal.Peer() as peer:
+        assert peer.round_trip(frames) > 0
+        os.kill(peer.process.pid, signal.SIGSTOP)  # alive, but answers nothing
+        try:
+            start = time.perf_counter()
+            with pytest.raises(cal.CalibrationError, match="did not answer a ray batch"):
+                peer.round_trip(frames)
+            assert time.perf_counter() - start < 5
+        finally:
+            os.kill(peer.process.pid, signal.SIGCONT)
+        peer.receive(5.0, "answer the delayed batch")
+        peer.dealer.send_multipart(cal.encode("stop", {}))
+        peer.process.join(10)
+        with pytest.raises(cal.CalibrationError, match="exited"):
+            peer.round_trip(frames)
+
+
+# -- the fits -------------------------------------------------------------------------------
+def test_fit_line_recovers_a_line_and_weights_pull_it_to_small_values():
+    x = np.array([0.0, 1e3, 1e4, 1e5])
+    assert np.allclose(cal.fit_line(x, 5e-5 + 2e-9 * x), (5e-5, 2e-9))
+    y = 5e-5 + 2e-9 * x
+    y[2] *= 3  # a mid-sized point off: unweighted, the intercept (latency) almost doubles
+    plain, weighted = cal.fit_line(x, y), cal.fit_line(x, y, 1 / y ** 2)
+    assert abs(plain[0] - 5e-5) > 2.5e-5 and abs(weighted[0] - 5e-5) < 5e-6
+
+
+def test_wire_costs_fall_back_when_noise_leaves_a_negative_intercept():
+    samples = [(50, 5e-5), (150_000, 3e-4), (1_500_000, 3e-3), (15_000_000, 3e-2)]
+    latency_s, byte_s = cal.wire_costs(samples)
+    assert 0 < latency_s <= 5e-5 and byte_s == pytest.approx(2e-9, rel=0.1)
+
+
+def test_load_costs_are_ratios_of_totals():
+    samples = [cal.LoadSample(1000, 10, 1e-3, 2e-3), cal.LoadSample(3000, 30, 2e-3, 6e-3)]
+    assert cal.load_costs(samples) == pytest.approx((3e-3 / 4000, 8e-3 / 40))
+
+
+def test_trace_costs_fit_calls_take_medians_and_split_shading():
+    def tile(noise: float) -> cal.TileTiming:
+        calls = tuple((d, q, 2e-4 + q * 1e-6 + noise * (d == 1)) for d, q in
+                      ((0, 100), (1, 1000), (2, 5000), (0, 2000)))
+        return cal.TileTiming(camera_s=1e-4, rays=1000, calls=calls, shade_s=8100 * 2e-7)
+
+    costs = cal.trace_costs([tile(0.0), tile(0.5), tile(0.0)])  # one stall, out-voted
+    assert costs["activation_s"] == pytest.approx(2e-4, rel=1e-6)
+    assert costs["shade_ray_s"] == pytest.approx(2e-7)
+    assert costs["trace_ray_s"] == pytest.approx(8e-7, rel=1e-6)
+    assert costs["camera_ray_s"] == pytest.approx(1e-7)
+
+
+def test_one_reduction_step_is_a_small_message_plus_a_combine():
+    combine_s = cal.combine_seconds(100)
+    assert 0 < combine_s < 1e-3
+    step = cal.reduce_step_cost(1e-4, 1e-9, combine_s)
+    assert 1e-4 + 16 * 16 * 8 * 1e-9 + combine_s <= step < 1e-4 + 1e-5 + combine_s
+
+
+@pytest.mark.slow
+def test_the_default_calibration_fits_its_time_budget(store):
+    start = time.perf_counter()
+    model = cal.calibrate(store)
+    assert time.perf_counter() - start < 60
+    assert all(getattr(model, name) > 0 for name in CONSTANTS)
+    assert not model.machine["calibration"]["quick"]
