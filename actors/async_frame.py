@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import traced_queries
+from vastray.actors.domain_loop import Queries, traced_queries
 from vastray.actors.node_work import NodeWork
 from vastray.render.driver import path_context
 from vastray.render.film import Film
@@ -138,11 +138,11 @@ class AsyncFrame:
     def likely_next(self, current: int) -> int | None:
         return self._upcoming
 
-    def trace(self, domain: int, bvh) -> int:
+    def trace(self, domain: int, bvh) -> Queries:
         """Trace the domain's rays of every tile that has rays for it."""
         waiting = [policy for policy in self.policies.values()
                    if policy.radiance.count(domain) or policy.shadow.count(domain)]
-        return sum(traced_queries(policy, domain, bvh) for policy in waiting)
+        return sum((traced_queries(policy, domain, bvh) for policy in waiting), Queries())
 
     async def step(self) -> bool:
         """Trace the chosen local domain for every tile that has rays for it, then ship;

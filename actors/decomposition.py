@@ -117,6 +117,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
         if own_state:
             state.close()
     stats["threads"] = state.threads()
+    stats["activations"] = len(node.loop.sequence)
     stats.update(frame_load_stats(before, preloader.stats()))
     stats["load_bandwidth_mb_s"] = preloader.load_bandwidth_mb_s()
     stats["cache_capacity"] = preloader.capacity

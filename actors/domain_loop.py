@@ -26,6 +26,26 @@ from typing import Protocol
 from vastray.actors.preloader import DomainPreloader
 
 
+@dataclass(frozen=True)
+class Queries:
+    """The ray queries a trace made: closest-hit queries of radiance rays and occlusion
+    queries of shadow rays (they cost differently: the simulator charges each its own).
+    Adds up with ``+``; ``int()`` is the total."""
+
+    radiance: int = 0
+    shadow: int = 0
+
+    def __int__(self) -> int:
+        return self.radiance + self.shadow
+
+    def __bool__(self) -> bool:
+        return bool(self.radiance or self.shadow)
+
+    def __add__(self, other: Queries) -> Queries:
+        return Queries(self.radiance + other.radiance, self.shadow + other.shadow)
+
+
+
 class DomainOrder(Protocol):
     """What the loop needs of a schedule: its next domain, its guess at the one after, and
     how to trace a domain's rays."""
@@ -37,9 +57,9 @@ class DomainOrder(Protocol):
         """The domain to load while ``current`` is traced (asked after ``current`` is in
         memory, so that a cache-aware guess sees it resident); None: nothing."""
 
-    def trace(self, domain: int, bvh) -> int:
-        """Trace every ray waiting for ``domain`` against its loaded ``bvh``; returns how many
-        ray queries that made (0: the activation traced nothing)."""
+    def trace(self, domain: int, bvh) -> Queries:
+        """Trace every ray waiting for ``domain`` against its loaded ``bvh``; returns the ray
+        queries that made (none: the activation traced nothing)."""
 
 
 @dataclass(frozen=True)
@@ -100,7 +120,7 @@ class DomainLoop:
         done = clock()
         activation = Activation(domain, self.preloader.load_count(domain),
                                 (chosen - start) + (guessed - loaded), loaded - chosen,
-                                done - guessed, queries)
+                                done - guessed, int(queries))
         self.stats["schedule_s"] += activation.schedule_s
         self.stats["trace_s"] += activation.trace_s
         if queries:
@@ -110,7 +130,7 @@ class DomainLoop:
             await ship()
         return activation
 
-    async def trace(self, order: DomainOrder, domain: int, bvh) -> int:
+    async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         """``order.trace(domain, bvh)``, on a worker thread with ``offload``; returns the ray
         queries made."""
         if self.offload:
@@ -130,9 +150,9 @@ class DomainLoop:
         a node's data stays loaded); returns them by id."""
         held: dict[int, object] = {}
 
-        def keep(domain: int, bvh) -> int:
+        def keep(domain: int, bvh) -> Queries:
             held[domain] = bvh
-            return 0
+            return Queries()
 
         await self.run(ListOrder(domains, keep))
         return held
@@ -178,7 +198,7 @@ class ScheduleOrder:
             self.preloader.prioritise(self.policy.demand(), protect=(current, guess))
         return guess
 
-    def trace(self, domain: int, bvh) -> int:
+    def trace(self, domain: int, bvh) -> Queries:
         return traced_queries(self.policy, domain, bvh)
 
 
@@ -199,12 +219,13 @@ class ListOrder:
     def likely_next(self, current: int) -> int | None:
         return self.domains[self.position] if self.position < len(self.domains) else None
 
-    def trace(self, domain: int, bvh) -> int:
-        return 0 if self._trace is None else self._trace(domain, bvh)
+    def trace(self, domain: int, bvh) -> Queries:
+        return Queries() if self._trace is None else self._trace(domain, bvh)
 
 
-def traced_queries(policy, domain: int, bvh) -> int:
+def traced_queries(policy, domain: int, bvh) -> Queries:
     """``policy.process(domain, bvh)``; returns the ray queries it made (from its counters)."""
-    before = policy.counters["radiance_tests"] + policy.counters["shadow_tests"]
+    counters = policy.counters
+    radiance, shadow = counters["radiance_tests"], counters["shadow_tests"]
     policy.process(domain, bvh)
-    return policy.counters["radiance_tests"] + policy.counters["shadow_tests"] - before
+    return Queries(counters["radiance_tests"] - radiance, counters["shadow_tests"] - shadow)

@@ -139,9 +139,13 @@ class _InSitu:
         return join_bound(incoming["radiance"]), join_bound(incoming["shadow"])
 
 
-def _work(rad_in, shadow_in) -> tuple[int, int]:
-    """(domains, ray queries) of an iteration's local trace: every copy received is one
-    query against its domain."""
-    parts = [p for p in (rad_in, shadow_in) if p is not None]
-    domains = np.unique(np.concatenate([d for d, _ in parts])) if parts else ()
-    return len(domains), sum(len(d) for d, _ in parts)
+def _work(rad_in, shadow_in) -> tuple[dict[int, int], dict[int, int]]:
+    """Ray queries of an iteration's local trace, per domain (every copy received is one
+    query against its domain): (radiance, shadow)."""
+    def per_domain(part) -> dict[int, int]:
+        if part is None:
+            return {}
+        domains, counts = np.unique(part[0], return_counts=True)
+        return dict(zip(domains.tolist(), counts.tolist(), strict=True))
+
+    return per_domain(rad_in), per_domain(shadow_in)

@@ -64,10 +64,10 @@ class NodeState:
         """The node's side of domain decomposition, keeping this state's early batches."""
         return NodeWork(management, rank, stats, preloader, max_batch, early=self.early)
 
-    async def traced(self, domains: int, queries: int) -> None:
-        """Hears that ``queries`` ray queries were traced against ``domains`` domains
-        outside the domain loop (the in-situ iterations): a real node has spent that time
-        already; the simulator charges it."""
+    async def traced(self, radiance: dict[int, int], shadow: dict[int, int]) -> None:
+        """Hears of ray queries traced outside the domain loop (the in-situ iterations):
+        domain -> radiance queries, domain -> shadow queries. A real node has spent that
+        time already; the simulator charges it."""
 
     def threads(self) -> int:
         return self.pool._max_workers if self.pool is not None else 1

@@ -176,12 +176,15 @@ def test_load_costs_are_ratios_of_totals():
 
 def test_trace_costs_fit_calls_take_medians_and_split_shading():
     def tile(noise: float) -> cal.TileTiming:
-        calls = tuple((d, q, 2e-4 + q * 1e-6 + noise * (d == 1)) for d, q in
-                      ((0, 100), (1, 1000), (2, 5000), (0, 2000)))
-        return cal.TileTiming(camera_s=1e-4, rays=1000, calls=calls, shade_s=8100 * 2e-7)
+        calls = tuple((d, r, s, (3e-4 + r * 1e-6 if r else 5e-5) + s * 4e-7 + noise * (d == 1))
+                      for d, r, s in ((0, 100, 0), (1, 1000, 500), (2, 0, 5000), (0, 2000, 100),
+                                      (3, 0, 300), (4, 400, 4000)))
+        return cal.TileTiming(camera_s=1e-4, rays=1000, calls=calls, shade_s=3500 * 2e-7)
 
     costs = cal.trace_costs([tile(0.0), tile(0.5), tile(0.0)])  # one stall, out-voted
-    assert costs["activation_s"] == pytest.approx(2e-4, rel=1e-6)
+    assert costs["activation_s"] == pytest.approx(3e-4, rel=1e-6)
+    assert costs["shadow_activation_s"] == pytest.approx(5e-5, rel=1e-6)
+    assert costs["shadow_ray_s"] == pytest.approx(4e-7, rel=1e-6)
     assert costs["shade_ray_s"] == pytest.approx(2e-7)
     assert costs["trace_ray_s"] == pytest.approx(8e-7, rel=1e-6)
     assert costs["camera_ray_s"] == pytest.approx(1e-7)

@@ -137,7 +137,8 @@ def test_schedule_order_hands_the_schedule_what_its_runtime_allows(store, preloa
     assert policy.asked[0] == (frozenset({a}), None)
     assert policy.asked[1] == (frozenset(), None)  # the domain rounds: no resident rule
     assert policy.asked[2][1] == preloader.victim  # spec-ooc's serve-before-evict
-    assert ScheduleOrder(policy, preloader).trace(a, None) == 3
+    queries = ScheduleOrder(policy, preloader).trace(a, None)
+    assert (queries.radiance, queries.shadow, int(queries)) == (2, 1, 3)
 
 
 # -- Galaxy's choices ------------------------------------------------------------------------

@@ -19,29 +19,39 @@ examples:
   vastray calibrate rm.store --quick        # smaller budgets (~6 s), rougher constants
 
 what is measured, with the real components (nothing is mocked):
-  loads       every domain of STORE loaded cold (its pages dropped from the page cache),
-              the read of its files timed apart from the build of its BVH
+  loads       every domain of STORE loaded from the page cache (--cold-reads: from the
+              disk, its pages dropped), the read of its files timed apart from its BVH build
   tracing     a 64x48 path-traced tile with the `image` schedule, every domain resident:
-              each activation of a domain timed and fitted as a fixed cost plus a cost
-              per ray query (shading apart, from the schedule's own clock)
+              each activation of a domain timed and fitted as a fixed cost (one for
+              activations that shade, one for shadow-only ones) plus a cost per radiance
+              query and per shadow query (shading apart, from the schedule's own clock)
   the wire    ray batches of 0 to 100,000 rays between two processes over ZeroMQ in the
               wire format nodes use, fitted as a latency plus a cost per byte
   reductions  one small message plus combining two small arrays
+  first use   what a fresh process's first render costs beyond its second (compiled
+              kernels loaded from numba's cache): what each node pays once
+  a node      real 1-node `async` and `image` renders against the simulator's predictions:
+              what a node pays once beyond that (node runtimes; sort-first nodes)
 The file also records the cores this process may use and what machine it ran on; run it
 on an otherwise idle machine, as another process's load is measured too.
 """
 
 #: What each constant is, for the table ``vastray calibrate`` prints.
 COST_LABELS = {
-    "trace_ray_s": "per ray query (Embree, one domain)",
-    "shade_ray_s": "per ray query shaded",
-    "activation_s": "per activation of a domain",
+    "trace_ray_s": "per radiance ray's closest-hit query",
+    "shade_ray_s": "per radiance query shaded",
+    "shadow_ray_s": "per shadow ray's occlusion query",
+    "activation_s": "per activation tracing radiance rays",
+    "shadow_activation_s": "per activation tracing shadow rays only",
     "camera_ray_s": "per camera ray",
     "load_byte_s": "per byte read from the store",
     "build_triangle_s": "per triangle of a BVH build",
     "latency_s": "per message between processes",
     "byte_s": "per byte on the wire",
     "reduce_step_s": "per level of a tree reduction",
+    "warmup_s": "once per fresh process (first use)",
+    "node_setup_s": "once per node of a node runtime",
+    "tile_setup_s": "once per sort-first node",
 }
 
 
@@ -65,6 +75,8 @@ def _add_calibrate(sub: argparse._SubParsersAction, fmt) -> None:
                    help="calibration file to write (default: costs.json)")
     c.add_argument("--quick", action="store_true",
                    help="smaller time budgets: about a fifth of the time, rougher constants")
+    c.add_argument("--cold-reads", action="store_true",
+                   help="time loads as reads of the disk (for `vastray render --cold-reads`)")
     c.add_argument("--quiet", action="store_true", help="no progress bar and no table")
     c.set_defaults(func=cmd_calibrate)
 
@@ -78,7 +90,7 @@ def cmd_calibrate(args) -> int:
     try:
         with _ProgressBar(enabled=not args.quiet and sys.stderr.isatty()) as bar:
             model = calibrate(store, quick=args.quick, progress=bar.update, config=config,
-                              settings=settings)
+                              settings=settings, cold_reads=args.cold_reads)
     except CalibrationError as exc:
         print(f"vastray calibrate: error: {exc}", file=sys.stderr)
         return 1

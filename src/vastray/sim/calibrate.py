@@ -1,13 +1,17 @@
 """``vastray calibrate``: measure the simulator's cost constants (``costs.CostModel``) on the
 machine it runs on, with the project's own components, never mocks.
 
-- loads: ``DomainCache.load`` of every domain, cold (``drop_page_cache``: each read is a read
-  of the disk, its pages dropped after), its read timed apart from its BVH build;
+- loads: ``DomainCache.load`` of every domain, from the page cache (or, ``cold_reads``, each
+  read a read of the disk, its pages dropped after), its read timed apart from its BVH build;
 - tracing: the ``image`` schedule (``ImageSchedule``) over one tile of path-tracing paths with
-  every domain resident, each ``process`` call timed, and the camera rays it starts from;
+  every domain resident, each ``process`` call timed with its radiance and shadow queries,
+  and the camera rays it starts from;
 - the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
-- reductions: a small message one way plus the combine of two small arrays.
+- reductions: a small message one way plus the combine of two small arrays;
+- first use: a fresh process's first render beyond its second (``vastray.sim.warmup``);
+- a node's own set-up: real 1-node ``async`` and ``image`` renders against the simulator's
+  predictions of them (``vastray.sim.node_cost``).
 
 Each measurement has a time budget (``Effort``), so a run takes about as long on a large store
 as on a small one; ``quick`` has smaller budgets (a test, a first look).
@@ -31,6 +35,7 @@ import numpy as np
 import zmq
 
 from vastray.actors import protocol
+from vastray.actors.domain_loop import traced_queries
 from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.integrators import RenderSettings, camera_rays
@@ -41,6 +46,8 @@ from vastray.scene.store import Store
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
+from vastray.sim.node_cost import setup_cost
+from vastray.sim.warmup import measure_warmup
 from vastray.transport.codec import Message, decode, encode
 from vastray.transport.tree import COMBINE
 
@@ -92,7 +99,14 @@ QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=
                min_pings=4, combine_repeats=2_000)
 
 #: Share of the run each stage takes (for ``progress``), in the order they run.
-STAGES = {"setup": 0.03, "loads": 0.17, "tracing": 0.4, "wire": 0.37, "reduce": 0.03}
+STAGES = {"setup": 0.03, "loads": 0.14, "tracing": 0.33, "wire": 0.3, "reduce": 0.03,
+          "warmup": 0.08, "node": 0.09}
+
+
+def node_settings(settings: RenderSettings) -> RenderSettings:
+    """The real node's render in the calibration: the tile's settings at twice the width and
+    height (a render of its own, not the traced tile again)."""
+    return replace(settings, width=2 * settings.width, height=2 * settings.height)
 
 
 def calibration_settings(quick: bool = False, **overrides) -> RenderSettings:
@@ -106,7 +120,7 @@ def calibration_settings(quick: bool = False, **overrides) -> RenderSettings:
 
 def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
               progress: Progress | None = None, config: SceneConfig | None = None,
-              settings: RenderSettings | None = None) -> CostModel:
+              settings: RenderSettings | None = None, cold_reads: bool = False) -> CostModel:
     """Measure every constant of the cost model on this machine.
 
     Parameters
@@ -117,6 +131,8 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     config : camera, lights and materials (default: those a render of a store has without a
         scene file).
     settings : the tile's render settings (default: ``calibration_settings(quick)``).
+    cold_reads : time loads as reads of the disk (``--cold-reads`` renders); default: from
+        the page cache, as renders of a store already read load.
 
     Returns
     -------
@@ -143,21 +159,31 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     store = Store(store_path)
     settings = settings or calibration_settings(quick)
     setup = RenderSetup.of(store, config or SceneConfig(text=""), settings)
-    report("loads", 0.0, "loading domains cold")
+    report("loads", 0.0, "loading domains")
     load_byte_s, build_triangle_s = load_costs(time_loads(store, setup.keep, effort,
-                                                          report.within("loads")))
+                                                          report.within("loads"), cold_reads))
     report("tracing", 0.0, "tracing tiles")
     tracing = trace_costs(time_tiles(store, setup, settings, effort, report.within("tracing")))
     report("wire", 0.0, "ray batches between two processes")
     latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
     report("reduce", 0.0, "combining small arrays")
     reduce_step_s = reduce_step_cost(latency_s, byte_s, combine_seconds(effort.combine_repeats))
-    report("reduce", 1.0, "done")
-    return CostModel(
+    report("warmup", 0.0, "a fresh process's first render")
+    warmup_s = measure_warmup(store_path, quick, repeats=1 if quick else 3)
+    model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
-        latency_s=latency_s, byte_s=byte_s, reduce_step_s=reduce_step_s,
-        cores=usable_cores(),
+        latency_s=latency_s, byte_s=byte_s, reduce_step_s=reduce_step_s, warmup_s=warmup_s,
+        cores=usable_cores())
+    report("node", 0.0, "renders on a real node")
+    config, node_render = config or SceneConfig(text=""), node_settings(settings)
+    node_setup_s = setup_cost(store_path, model, config, node_render, "async")
+    report("node", 0.5, "renders on a real node")
+    tile_setup_s = setup_cost(store_path, model, config, node_render, "image")
+    report("node", 1.0, "done")
+    return replace(
+        model, node_setup_s=node_setup_s, tile_setup_s=tile_setup_s,
         machine=machine_info(calibration={"store": str(Path(store_path)), "quick": quick,
+                                          "cold_reads": cold_reads,
                                           "seconds": round(time.perf_counter() - start, 2)}))
 
 
@@ -209,9 +235,11 @@ def drop_store_pages(store: Store) -> None:
 
 
 def time_loads(store: Store, keep: frozenset[str], effort: Effort,
-               progress: Callable[[float, str], None]) -> list[LoadSample]:
-    """Cold loads of the non-empty domains, round after round, for ``effort.load_s`` seconds
-    (and at least ``effort.min_loads``), after one untimed load (first-use costs).
+               progress: Callable[[float, str], None], cold: bool = False) -> list[LoadSample]:
+    """Loads of the non-empty domains, round after round, for ``effort.load_s`` seconds
+    (and at least ``effort.min_loads``), after one untimed load (first-use costs). ``cold``:
+    every read is a read of the disk (as ``vastray render --cold-reads``); otherwise the
+    files come from the page cache, as a render's loads do once a store has been read.
 
     Returns
     -------
@@ -221,13 +249,17 @@ def time_loads(store: Store, keep: frozenset[str], effort: Effort,
     domains = [d.id for d in store.domains if d.n_triangles > 0]
     if not domains:
         raise CalibrationError(f"{store.path}: the store has no triangles to load")
-    drop_store_pages(store)
-    cache = DomainCache(store, 1, keep, drop_page_cache=True)
+    if cold:
+        drop_store_pages(store)
+    else:  # every file read once, untimed: in the page cache from now on
+        for domain in domains:
+            store.load_domain(domain)
+    cache = DomainCache(store, 1, keep, drop_page_cache=cold)
     cache.load(domains[0]).close()  # the Embree device, first reads of the code paths
     samples: list[LoadSample] = []
     start = time.perf_counter()
     while (elapsed := time.perf_counter() - start) < effort.load_s or len(samples) < effort.min_loads:
-        progress(elapsed / effort.load_s, f"loading domains cold ({len(samples)} loads)")
+        progress(elapsed / effort.load_s, f"loading domains ({len(samples)} loads)")
         samples.append(_timed_load(cache, domains[len(samples) % len(domains)]))
     return samples
 
@@ -268,13 +300,14 @@ class TileTiming:
     ----------
     camera_s : seconds to make its camera rays (``path_context`` and ``camera_rays``).
     rays : its camera rays (paths).
-    calls : ((domain, queries, seconds), ...) of each ``process`` call, in order.
+    calls : ((domain, radiance queries, shadow queries, seconds), ...) of each ``process``
+        call, in order.
     shade_s : the schedule's ``shade_s`` counter at the end.
     """
 
     camera_s: float
     rays: int
-    calls: tuple[tuple[int, int, float], ...]
+    calls: tuple[tuple[int, int, int, float], ...]
     shade_s: float
 
 
@@ -302,12 +335,10 @@ def time_tile(setup: RenderSetup, settings: RenderSettings, cache: DomainCache) 
     calls = []
     while (domain := policy.next_domain(resident)) is not None:
         bvh = cache.get(domain)
-        before = policy.counters["radiance_tests"] + policy.counters["shadow_tests"]
         t0 = time.perf_counter()
-        policy.process(domain, bvh)
+        queries = traced_queries(policy, domain, bvh)
         seconds = time.perf_counter() - t0
-        queries = policy.counters["radiance_tests"] + policy.counters["shadow_tests"] - before
-        calls.append((domain, queries, seconds))
+        calls.append((domain, queries.radiance, queries.shadow, seconds))
     return TileTiming(camera_s, len(rays), tuple(calls), policy.counters["shade_s"])
 
 
@@ -333,21 +364,22 @@ def time_tiles(store: Store, setup: RenderSetup, settings: RenderSettings, effor
     return tiles
 
 
-def median_calls(tiles: list[TileTiming]) -> tuple[np.ndarray, np.ndarray]:
-    """(queries (m,), seconds (m,)) of each distinct call, its seconds the median over the
-    tiles that made it.
+def median_calls(tiles: list[TileTiming]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(radiance (m,), shadow (m,), seconds (m,)) queries and seconds of each distinct call,
+    its seconds the median over the tiles that made it.
 
     The tiles are the same paths, and the schedule's order and ray counts do not depend on
     timing (the project's invariant), so call k of every tile is the same work: its median
     is robust to another process taking the CPU for a while on a shared machine. Calls are
     keyed by (position, domain, queries), so a tile that differed would only add keys.
     """
-    groups: dict[tuple[int, int, int], list[float]] = {}
+    groups: dict[tuple[int, int, int, int], list[float]] = {}
     for tile in tiles:
-        for k, (domain, queries, seconds) in enumerate(tile.calls):
-            groups.setdefault((k, domain, queries), []).append(seconds)
+        for k, (domain, radiance, shadow, seconds) in enumerate(tile.calls):
+            groups.setdefault((k, domain, radiance, shadow), []).append(seconds)
     keys = sorted(groups)
-    return (np.array([q for _, _, q in keys], np.float64),
+    return (np.array([k[2] for k in keys], np.float64), np.array([k[3] for k in keys],
+                                                                 np.float64),
             np.array([np.median(groups[k]) for k in keys], np.float64))
 
 
@@ -367,30 +399,36 @@ def fit_line(x: np.ndarray, y: np.ndarray,
 
 
 def trace_costs(tiles: list[TileTiming]) -> dict[str, float]:
-    """trace_ray_s, shade_ray_s, activation_s and camera_ray_s from timed tiles.
+    """trace_ray_s, shade_ray_s, shadow_ray_s, activation_s, shadow_activation_s and
+    camera_ray_s from timed tiles.
 
-    The seconds of a ``process`` call are fitted as ``activation_s + queries * per_query``
-    (least squares over the calls; each clipped to >= 0). ``shade_ray_s`` is the
-    schedule's shading time (``shade_s``) per query and ``trace_ray_s`` the rest of
-    ``per_query``; if noise leaves no rest, ``per_query`` is split in the proportion of
-    shading time to all ``process`` time instead. ``camera_ray_s`` is the median over the
-    tiles of making their camera rays, per ray.
+    The seconds of a ``process`` call with r radiance and s shadow queries are fitted as
+    ``activation_s [r > 0] + shadow_activation_s [r = 0] + r (trace + shade) + s shadow_ray_s``
+    (least squares over the calls, each constant clipped to >= 0): an activation that shades
+    costs several times one that only tests shadow rays, and one constant for both
+    overcharged a schedule that activates many shadow-only domains. ``shade_ray_s`` is the
+    schedule's shading time (``shade_s``) per radiance query and ``trace_ray_s`` the rest;
+    if noise leaves no rest, the radiance cost is split in the proportion of shading time to
+    all ``process`` time instead. ``camera_ray_s`` is the median over the tiles of making
+    their camera rays, per ray.
     """
-    queries, seconds = median_calls(tiles)
-    activation_s, per_query = fit_line(queries, seconds)
-    activation_s, per_query = max(activation_s, 0.0), max(per_query, 0.0)
-    if per_query == 0.0:  # no spread in the calls' sizes: the mean cost of a query
-        per_query = float(seconds.sum() / max(queries.sum(), 1.0))
-    all_queries = sum(q for tile in tiles for _, q, _ in tile.calls)
+    radiance, shadow, seconds = median_calls(tiles)
+    design = np.stack([radiance > 0, radiance == 0, radiance, shadow], axis=1).astype(np.float64)
+    fit, *_ = np.linalg.lstsq(design, seconds, rcond=None)
+    activation_s, shadow_activation_s, per_radiance, shadow_ray_s = np.maximum(fit, 0.0)
+    if per_radiance == 0.0:  # no spread in the calls' sizes: the mean cost of a query
+        per_radiance = float(seconds.sum() / max(radiance.sum() + shadow.sum(), 1.0))
+    all_radiance = sum(r for tile in tiles for _, r, _, _ in tile.calls)
     all_shade = sum(tile.shade_s for tile in tiles)
-    shade_ray_s = all_shade / max(all_queries, 1)
-    trace_ray_s = per_query - shade_ray_s
+    shade_ray_s = all_shade / max(all_radiance, 1)
+    trace_ray_s = per_radiance - shade_ray_s
     if trace_ray_s <= 0.0:
-        share = all_shade / max(sum(s for tile in tiles for *_, s in tile.calls), 1e-12)
-        shade_ray_s, trace_ray_s = per_query * share, per_query * (1.0 - share)
+        share = all_shade / max(sum(t for tile in tiles for *_, t in tile.calls), 1e-12)
+        shade_ray_s, trace_ray_s = per_radiance * share, per_radiance * (1.0 - share)
     camera_ray_s = float(np.median([t.camera_s / max(t.rays, 1) for t in tiles]))
-    return {"trace_ray_s": trace_ray_s, "shade_ray_s": shade_ray_s,
-            "activation_s": activation_s, "camera_ray_s": camera_ray_s}
+    return {"trace_ray_s": float(trace_ray_s), "shade_ray_s": float(shade_ray_s),
+            "shadow_ray_s": float(shadow_ray_s), "activation_s": float(activation_s),
+            "shadow_activation_s": float(shadow_activation_s), "camera_ray_s": camera_ray_s}
 
 
 # -- the wire -------------------------------------------------------------------------------

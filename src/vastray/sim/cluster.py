@@ -2,9 +2,10 @@
 
 Costs come from a ``CostModel``. Compute holds a core for its cost: with ``cores`` set, every
 node and the coordinator share that many (node processes sharing one machine); otherwise each
-has its own. A message leaves when its sender's link is free, occupies the link for its
-bytes, and arrives a latency later, in order between any two endpoints (as ZeroMQ's). A
-tree reduction costs what its messages cost: the actors' own tree-reduce sends them.
+has its own. A message costs its sender's core the one-way time measured between two processes
+(encoding, copies, decoding; ``CostModel.message_s``) and is then delivered, in order
+between any two endpoints (as ZeroMQ's). A tree reduction costs what its messages cost: the
+actors' own tree-reduce sends them.
 """
 
 from __future__ import annotations
@@ -35,10 +36,9 @@ class Cluster:
         #: each endpoint's mailboxes by message kind (as a management actor's)
         self.mailboxes = [defaultdict(asyncio.Queue) for _ in range(size + 1)]
         self.compute_s = np.zeros(size + 1)  # (P + 1,) seconds each endpoint computed
+        self._warm = np.zeros(size + 1, bool)  # (P + 1,) whether each has traced yet
         self.messages = 0
         self.bytes = 0
-        self._link_free = np.zeros(size + 1)  # (P + 1,) when each outgoing link is free
-        self._last_arrival: dict[tuple[int, int], float] = {}
 
     @staticmethod
     def now() -> float:
@@ -56,17 +56,24 @@ class Cluster:
         async with self._cores:
             await asyncio.sleep(seconds)
 
-    def send(self, source: int, destination: int, message: Message, nbytes: int) -> None:
+    async def trace(self, rank: int, seconds: float, node_runtime: bool) -> None:
+        """Node ``rank`` traces for ``seconds`` (``CostModel.trace_s`` of its activations).
+        Its first trace also pays a fresh process's first use (``warmup_s``) and its
+        runtime's set-up (``node_setup_s`` on a node runtime, else ``tile_setup_s``): a node
+        that never traces never loads the kernels."""
+        if not self._warm[rank]:
+            self._warm[rank] = True
+            costs = self.costs
+            seconds += costs.warmup_s + (costs.node_setup_s if node_runtime
+                                         else costs.tile_setup_s)
+        await self.compute(rank, seconds)
+
+    async def send(self, source: int, destination: int, message: Message, nbytes: int) -> None:
         """Post ``message`` (decoded, ``nbytes`` on the wire) from ``source`` to
-        ``destination``'s mailbox of its kind."""
-        now = self.now()
-        leaves = max(now, self._link_free[source])
-        self._link_free[source] = leaves + nbytes * self.costs.byte_s
-        arrives = self._link_free[source] + self.costs.latency_s
-        pair = (source, destination)
-        arrives = max(arrives, self._last_arrival.get(pair, 0.0))
-        self._last_arrival[pair] = arrives
+        ``destination``'s mailbox of its kind: the sender's core spends the message's cost
+        (``CostModel.message_s``: measured one way between two processes, encoding, copies
+        and decoding lumped on the sender), then it is delivered."""
+        await self.compute(source, self.costs.message_s(nbytes))
         self.messages += 1
         self.bytes += nbytes
-        asyncio.get_running_loop().call_at(
-            arrives, self.mailboxes[destination][message.kind].put_nowait, message)
+        self.mailboxes[destination][message.kind].put_nowait(message)

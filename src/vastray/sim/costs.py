@@ -24,16 +24,28 @@ class CostModel:
 
     Attributes
     ----------
-    trace_ray_s : one ray query against a loaded domain (Embree closest hit or occlusion).
-    shade_ray_s : the shading and bookkeeping of one ray query's result (integrator, queues).
-    activation_s : one activation of a domain, whatever its rays (scheduling, queue
-        handling, kernel launches).
+    trace_ray_s : one radiance ray's closest-hit query against a loaded domain.
+    shade_ray_s : the shading and bookkeeping of one radiance query's result (integrator,
+        spawned rays, queues).
+    shadow_ray_s : one shadow ray's occlusion query and what follows it (light brought
+        home, queues).
+    activation_s : one activation of a domain that traces radiance rays (its fixed cost:
+        queue handling, kernel launches, shading set-up).
+    shadow_activation_s : one activation that traces shadow rays only.
+
     camera_ray_s : making one camera ray (path context included).
     load_byte_s : reading one byte of a domain's files.
     build_triangle_s : building the BVH over one triangle.
     latency_s : one message between two nodes, end to end (encode, send, receive, decode).
     byte_s : one byte on the wire (the inverse of the bandwidth).
     reduce_step_s : one level of a tree reduction (log2 P levels reduce over P nodes).
+    warmup_s : what a fresh process pays once, at its first trace: compiled kernels loaded
+        from numba's cache, Embree's device, modules imported on first use.
+    node_setup_s : what a node of the asynchronous and domain runtimes pays once beyond
+        ``warmup_s`` (worker and loader threads, first sockets to peers, first turns of its
+        event loop).
+    tile_setup_s : the same for a sort-first node (``image``, ``spec-ooc``), which runs the
+        one-process runtime on a thread of its own.
     cores : cores of the calibrated machine: node processes run on this many at once when
         the simulator reproduces a run on it (None: every node has a core of its own).
     machine : what machine the constants were measured on (free text for reports).
@@ -41,13 +53,18 @@ class CostModel:
 
     trace_ray_s: float = 1.5e-6
     shade_ray_s: float = 1.5e-6
+    shadow_ray_s: float = 5e-7
     activation_s: float = 2e-4
+    shadow_activation_s: float = 1e-4
     camera_ray_s: float = 2e-7
     load_byte_s: float = 1e-9
     build_triangle_s: float = 2e-7
     latency_s: float = 2e-4
     byte_s: float = 1e-9
     reduce_step_s: float = 5e-4
+    warmup_s: float = 0.0
+    node_setup_s: float = 0.0
+    tile_setup_s: float = 0.0
     cores: int | None = None
     machine: dict = field(default_factory=dict)
 
@@ -61,9 +78,12 @@ class CostModel:
         if self.cores is not None and (not isinstance(self.cores, int) or self.cores < 1):
             raise ValueError(f"cores must be a positive integer or None, got {self.cores!r}")
 
-    def query_s(self, queries: int) -> float:
-        """Seconds for ``queries`` ray queries traced and shaded."""
-        return queries * (self.trace_ray_s + self.shade_ray_s)
+    def trace_s(self, radiance: int, shadow: int) -> float:
+        """Seconds of one activation that makes ``radiance`` closest-hit and ``shadow``
+        occlusion queries (and what follows them)."""
+        fixed = self.activation_s if radiance else self.shadow_activation_s
+        return (fixed + radiance * (self.trace_ray_s + self.shade_ray_s)
+                + shadow * self.shadow_ray_s)
 
     def load_s(self, nbytes: int, triangles: int) -> float:
         """Seconds to load a domain of ``nbytes`` bytes and build its BVH over ``triangles``."""
@@ -80,6 +100,12 @@ class CostModel:
     def with_cores(self, cores: int | None) -> CostModel:
         """The same costs with ``cores`` cores shared by the nodes (None: one each)."""
         return CostModel(**{**asdict(self), "cores": cores})
+
+    def warm(self) -> CostModel:
+        """The same costs for nodes already started and warm (``warmup_s`` and
+        the set-ups 0: a long job's later frames, a running service)."""
+        return CostModel(**{**asdict(self), "warmup_s": 0.0, "node_setup_s": 0.0,
+                            "tile_setup_s": 0.0})
 
     def as_dict(self) -> dict:
         return {"version": VERSION, **asdict(self)}

@@ -4,8 +4,8 @@ over a management actor whose sockets are the simulated network, a domain loop w
 charged in virtual time and a preloader whose loads are.
 
 Ray batches are encoded and decoded by the real codec, so their size on the wire is the real
-one; what tracing costs is the cost model's (``CostModel.activation_s`` per activation and
-``query_s`` per ray query), not the real time the simulator spends tracing.
+one; what tracing costs is the cost model's (``CostModel.trace_s`` of each activation's
+radiance and shadow queries), not the real time the simulator spends tracing.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import asyncio
 from dataclasses import dataclass
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import DomainLoop, DomainOrder
+from vastray.actors.domain_loop import DomainLoop, DomainOrder, Queries
 from vastray.actors.node_state import NodeState
 from vastray.actors.node_work import NodeWork
 from vastray.actors.termination import Termination
@@ -49,10 +49,10 @@ class SimManagement:
                                "virtual seconds") from None
 
     async def to_peer(self, rank: int, frames: list) -> None:
-        self.cluster.send(self.rank, rank, decode(frames), _nbytes(frames))
+        await self.cluster.send(self.rank, rank, decode(frames), _nbytes(frames))
 
     async def to_coordinator(self, frames: list) -> None:
-        self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), _nbytes(frames))
+        await self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), _nbytes(frames))
 
 
 def _nbytes(frames: list) -> int:
@@ -62,7 +62,7 @@ def _nbytes(frames: list) -> int:
 class SimCoordinator:
     """The coordinator's part in a render: the real ``Termination`` (round barriers,
     ``dynamic``'s schedule, the asynchronous frames' termination detection), fed the nodes'
-    reports one at a time, each costing a message's handling (``latency_s``) on its core."""
+    reports one at a time (each message's cost is its sender's)."""
 
     KINDS = (protocol.ROUND, protocol.QUEUES, protocol.STATUS)
 
@@ -82,7 +82,6 @@ class SimCoordinator:
             cluster.mailboxes[cluster.coordinator][kind] = _Forward(inbox)
         while True:
             message = await inbox.get()
-            await cluster.compute(cluster.coordinator, cluster.costs.latency_s)
             await self.handlers[message.kind](message.meta)
 
 
@@ -101,23 +100,28 @@ class _Router:
 
     async def send_multipart(self, frames: list) -> None:
         identity, _token, *message = frames
-        self.cluster.send(self.cluster.coordinator, identity, decode(message),
+        await self.cluster.send(self.cluster.coordinator, identity, decode(message),
                           _nbytes(message))
 
 
 class VirtualDomainLoop(DomainLoop):
     """The domain loop on the virtual clock: a domain's rays are traced for real, and the
-    activation costs ``activation_s`` plus ``query_s`` per query on the node's core."""
+    activation costs ``CostModel.trace_s`` of its queries on the node's core. ``offload``:
+    the loop of a node runtime (whose set-up, ``node_setup_s``, its first trace pays), not
+    the one-process runtime's that the sort-first nodes run."""
 
-    def __init__(self, cluster: Cluster, rank: int, preloader: VirtualPreloader, stats: dict):
+    def __init__(self, cluster: Cluster, rank: int, preloader: VirtualPreloader, stats: dict,
+                 offload: bool = True):
         super().__init__(preloader, stats, offload=False)
         self.cluster, self.rank = cluster, rank
         self.clock = cluster.now
+        self.node_runtime = offload
 
-    async def trace(self, order: DomainOrder, domain: int, bvh) -> int:
+    async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         queries = order.trace(domain, bvh)
-        costs = self.cluster.costs
-        await self.cluster.compute(self.rank, costs.activation_s + costs.query_s(queries))
+        await self.cluster.trace(self.rank, self.cluster.costs.trace_s(queries.radiance,
+                                                                        queries.shadow),
+                                 node_runtime=self.node_runtime)
         return queries
 
 
@@ -158,10 +162,11 @@ class SimNodeState(NodeState):
     def node_work(self, management, rank: int, stats: dict, preloader, max_batch: int):
         return SimNode(management, rank, stats, preloader, max_batch, self.early)
 
-    async def traced(self, domains: int, queries: int) -> None:
+    async def traced(self, radiance: dict[int, int], shadow: dict[int, int]) -> None:
         costs = self.cluster.costs
-        await self.cluster.compute(self.rank,
-                                   domains * costs.activation_s + costs.query_s(queries))
+        await self.cluster.trace(self.rank, sum(
+            costs.trace_s(radiance.get(d, 0), shadow.get(d, 0)) for d in radiance | shadow),
+            node_runtime=True)
 
     def close(self) -> None:
         """Nothing to stop: a virtual preloader has no thread."""

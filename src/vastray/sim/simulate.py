@@ -37,7 +37,7 @@ from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.costs import CostModel
-from vastray.sim.node import SimCoordinator, SimManagement, SimNodeState
+from vastray.sim.node import SimCoordinator, SimManagement, SimNodeState, VirtualDomainLoop
 
 #: The schedulers the simulator runs (every distributed one).
 SIM_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu", "temporal")
@@ -97,7 +97,7 @@ def node_options(options: JobOptions) -> JobOptions:
 
 def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
              settings: RenderSettings, config: SceneConfig | None = None,
-             frames: int | None = None, max_pass_spp: int = DEFAULT_MAX_PASS_SPP,
+             frames: int | None = None, max_pass_spp: int | None = DEFAULT_MAX_PASS_SPP,
              domains: Domains | None = None) -> SimResult:
     """Simulate one render (or animation of ``frames`` frames) on ``nodes`` virtual nodes.
 
@@ -109,7 +109,8 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
     costs : the cost model (its ``cores``: the nodes share that many cores; None: one each).
     settings, config : the render's settings and scene.
     frames : an animation's frame count (None: one image).
-    max_pass_spp : the passes' largest size (as ``--max-pass-spp``).
+    max_pass_spp : the passes' largest size (as ``vastray render --max-pass-spp``); None:
+        each frame in one pass (as ``render_distributed`` without a progression).
     domains : the store's domains built in memory (made here if None; pass one to reuse it
         over several simulations).
     """
@@ -124,7 +125,8 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
     if own:
         domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
     units = [(frame, first, stop) for frame in (range(frames) if frames else [None])
-             for first, stop in pass_bounds(settings.spp, max_pass_spp)]
+             for first, stop in ([(0, settings.spp)] if max_pass_spp is None
+                                 else pass_bounds(settings.spp, max_pass_spp))]
     start = time.perf_counter()
     try:
         outcome, _ = run_virtual(_render(store, options, nodes, costs, settings, config,
@@ -170,6 +172,7 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
         window = frame_settings.window(first, stop)
         state.ordinal, state.frame = ordinal, frame or 0
         start = cluster.now()
+        await cluster.compute(rank, cluster.costs.camera_ray_s * window.paths / size)
         part, counters = await _share(cluster, management, tree, options, rank, size, store,
                                       frame_config, window, state)
         busy += cluster.now() - start
@@ -204,8 +207,7 @@ async def _sort_first(cluster, options, rank, size, store, config, settings, dom
                                  preload=options.preload,
                                  bandwidth=options.load_bytes_per_second(rank))
     stats = {**traffic_counters(), "shade_s": 0.0}
-    state = SimNodeState(cluster=cluster, rank=rank, domains=domains)
-    loop = state.domain_loop(preloader, stats)
+    loop = VirtualDomainLoop(cluster, rank, preloader, stats, offload=False)  # as local.py's
     film = Film(settings.width, settings.height)
     total = settings.paths
     tile = max(1, min(options.max_samples_in_flight or total, total))

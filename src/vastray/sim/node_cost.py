@@ -1,0 +1,44 @@
+"""What a node costs once beyond the model's traces, loads, messages and a fresh process's
+first use (``warmup_s``): its worker and loader threads, first sockets, the first turns of its
+event loop. Measured with a real 1-node render (a fresh node process over real sockets)
+against the simulator's prediction of the same render without it: an ``async`` render for
+the node runtimes (``node_setup_s``), an ``image`` render for the sort-first nodes, which run
+the one-process runtime (``tile_setup_s``)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+
+from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.store import Store
+from vastray.sim.costs import CostModel
+
+#: Seconds the real 1-node render may take before the calibration gives up on it.
+NODE_RENDER_TIMEOUT_S = 300.0
+
+
+def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneConfig,
+               settings: RenderSettings, scheduler: str) -> float:
+    """A real 1-node ``scheduler`` render's busy seconds minus the simulated ones (with no
+    set-up cost), >= 0.
+
+    Parameters
+    ----------
+    store_path : the store rendered.
+    costs : every other constant, measured already.
+    config, settings : the render (one pass, one thread, as the nodes of a job run it).
+    scheduler : ``async`` (``node_setup_s``) or ``image`` (``tile_setup_s``).
+    """
+    from vastray.sim.simulate import simulate
+
+    options = JobOptions(scheduler=scheduler, threads=1)
+    real = render_distributed(store_path, None, settings, 1, options=options, config=config,
+                              timeout=NODE_RENDER_TIMEOUT_S)
+    simulated = simulate(Store(store_path), options, 1,
+                         replace(costs, node_setup_s=0.0, tile_setup_s=0.0), settings, config,
+                         max_pass_spp=None)
+    return max(0.0, real.seconds["busy_max"] - simulated.seconds)
