@@ -84,7 +84,7 @@ class _InSitu:
             self.stats["iterations"] += 1
             rad_in, shadow_in = await self._exchange(schedule, tile, depth)
             keys, obuf = schedule.trace_locally(rad_in, shadow_in)
-            await self.traced(*_work(rad_in, shadow_in))
+            await self.traced(*schedule.take_queries())
             # All-reduce: t-buffer MIN, o-buffer OR.
             reduced = await self.tree.allreduce(
                 {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})
@@ -138,14 +138,3 @@ class _InSitu:
                 incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
         return join_bound(incoming["radiance"]), join_bound(incoming["shadow"])
 
-
-def _work(rad_in, shadow_in) -> tuple[dict[int, int], dict[int, int]]:
-    """Ray queries of an iteration's local trace, per domain (every copy received is one
-    query against its domain): (radiance, shadow)."""
-    def per_domain(part) -> dict[int, int]:
-        if part is None:
-            return {}
-        domains, counts = np.unique(part[0], return_counts=True)
-        return dict(zip(domains.tolist(), counts.tolist(), strict=True))
-
-    return per_domain(rad_in), per_domain(shadow_in)

@@ -93,6 +93,24 @@ class InSituSchedule:
         self.shadows: SoA | None = None  # valid shadow rays to test remotely, then retire
         self.depth = 0
         self._local = None  # this iteration's (best, ray_of_path, obuf, children)
+        #: ray queries made since ``take_queries``, per domain: closest hits, occlusions
+        self._queries: tuple[dict[int, int], dict[int, int]] = ({}, {})
+
+    def take_queries(self) -> tuple[dict[int, int], dict[int, int]]:
+        """(domain -> closest-hit queries, domain -> occlusion queries) made since the last
+        call (what the simulator charges an iteration's trace)."""
+        queries, self._queries = self._queries, ({}, {})
+        return queries
+
+    def _intersect(self, domain: int, origin, direction, t_max):
+        tally = self._queries[0]
+        tally[domain] = tally.get(domain, 0) + len(origin)
+        return self.bvhs[domain].intersect(origin, direction, t_max)
+
+    def _occluded(self, domain: int, origin, direction, t_max) -> np.ndarray:
+        tally = self._queries[1]
+        tally[domain] = tally.get(domain, 0) + len(origin)
+        return self.bvhs[domain].occluded(origin, direction, t_max)
 
     def iterations(self) -> int:
         """Iterations of the tile: one per bounce, and one more for the last shadow rays."""
@@ -174,8 +192,8 @@ class InSituSchedule:
             ray_of_path["in"] = copies
             for d, rows in by_domain(dom):
                 path = copies["path"][rows]
-                r = self.bvhs[int(d)].intersect(copies["origin"][rows], copies["direction"][rows],
-                                               best.t[path])
+                r = self._intersect(int(d), copies["origin"][rows], copies["direction"][rows],
+                                    best.t[path])
                 best.offer(path, int(d), self.bvhs[int(d)], r, self.color_source,
                            self.scalar_range)
         return best, ray_of_path
@@ -185,8 +203,8 @@ class InSituSchedule:
             return
         dom, copies = shadow_in
         for d, rows in by_domain(dom):
-            blocked = self.bvhs[int(d)].occluded(copies["origin"][rows], copies["direction"][rows],
-                                                 copies["t_max"][rows])
+            blocked = self._occluded(int(d), copies["origin"][rows], copies["direction"][rows],
+                                     copies["t_max"][rows])
             obuf[copies["path"][rows][blocked], copies["slot"][rows][blocked]] = True
 
     def _shade_locally(self, ctx, best: ClosestHits, ray_of_path: dict, hit_paths: np.ndarray):
@@ -213,9 +231,8 @@ class InSituSchedule:
             rows = np.unique(ray[pairs])
             rows = rows[~blocked[rows]]
             if len(rows):
-                blocked[rows] |= self.bvhs[int(d)].occluded(shadow.origin[rows],
-                                                            shadow.direction[rows],
-                                                            shadow.t_max[rows])
+                blocked[rows] |= self._occluded(int(d), shadow.origin[rows],
+                                                shadow.direction[rows], shadow.t_max[rows])
         return blocked
 
     def _closest_locally(self, cont: RadianceRays) -> ClosestHits:
@@ -228,7 +245,7 @@ class InSituSchedule:
         ray = ray[here]
         for d, pairs in by_domain(dom[here]):
             rows = ray[pairs]
-            r = self.bvhs[int(d)].intersect(cont.origin[rows], cont.direction[rows], cand.t[rows])
+            r = self._intersect(int(d), cont.origin[rows], cont.direction[rows], cand.t[rows])
             cand.offer(rows, int(d), self.bvhs[int(d)], r, self.color_source, self.scalar_range)
         return cand
 

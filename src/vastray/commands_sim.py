@@ -1,5 +1,5 @@
 """Simulator commands: ``calibrate`` (measure the simulator's cost model on this machine and
-write it as JSON, for ``vastray.sim``)."""
+write it as JSON, for ``vastray.sim``) and ``simulate`` (``commands_simulate``)."""
 
 from __future__ import annotations
 
@@ -56,9 +56,12 @@ COST_LABELS = {
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add the simulator's sub-commands (``calibrate``)."""
+    """Add the simulator's sub-commands (``calibrate``, ``simulate``)."""
+    from vastray.commands_simulate import add_simulate
+
     fmt = argparse.RawDescriptionHelpFormatter
     _add_calibrate(sub, fmt)
+    add_simulate(sub, fmt)
 
 
 def _add_calibrate(sub: argparse._SubParsersAction, fmt) -> None:
