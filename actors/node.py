@@ -243,8 +243,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
                 frame_busy, frame_reduce = frame_busy + busy, frame_reduce + reduce_s
                 counters = _report_counters(counters, management)
-                _accumulate(totals, counters)
-                _accumulate(frame_totals, counters)
+                accumulate_counters(totals, counters)
+                accumulate_counters(frame_totals, counters)
                 if rank == 0:
                     meta = {"rank": rank, "unit": unit}
                     await management.to_coordinator(film_frames(
@@ -333,15 +333,15 @@ def _report_counters(counters: dict, management: ManagementActor) -> dict:
 
 
 #: Counters that are settings, not counts: a job's total keeps the latest frame's (pass's).
-_SETTINGS = frozenset({"threads", "cache_capacity", "portal_resolution",
+SETTING_COUNTERS = frozenset({"threads", "cache_capacity", "portal_resolution",
                        "load_bandwidth_mb_s", "max_samples_in_flight", "domains"})
 
 
-def _accumulate(totals: dict, counters: dict) -> None:
+def accumulate_counters(totals: dict, counters: dict) -> None:
     """Sum numeric counters over frames (names, peaks and settings: the latest)."""
     for key, value in counters.items():
         if isinstance(value, (int, float)) and not isinstance(value, bool) \
-                and not key.startswith("peak") and key not in _SETTINGS:
+                and not key.startswith("peak") and key not in SETTING_COUNTERS:
             totals[key] = totals.get(key, 0) + value
         else:
             totals[key] = value

@@ -139,16 +139,23 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=None,
                         help="real runs per validation point (median; default 1 quick, 3 full)")
     parser.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    parser.add_argument("--costs", metavar="FILE",
+                        help="use this calibration file instead of calibrating now (the "
+                             "scaling and figures only depend on it, not on the machine's load)")
+    parser.add_argument("--skip-validation", action="store_true",
+                        help="no real runs: the scaling and figures only")
     args = parser.parse_args()
     start = time.perf_counter()
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
           "scaling with this machine's calibrated costs")
     small = cached_rm(64, (3, 3, 2))
-    costs = costs_here(args.quick, small)
-    rows = validate(small, costs, args.repeats or (1 if args.quick else 3))
-    worst = max(abs(r["error"]) for r in rows)
-    print(f"\nsim_error_max={worst:.3f}")
-    print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
+    costs = CostModel.load(args.costs) if args.costs else costs_here(args.quick, small)
+    rows = [] if args.skip_validation else validate(small, costs,
+                                                    args.repeats or (1 if args.quick else 3))
+    if rows:
+        worst = max(abs(r["error"]) for r in rows)
+        print(f"\nsim_error_max={worst:.3f}")
+        print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
     big = cached_rm(128, (16, 8, 8))
     counts = (1, 64, 1024)
     if not args.quick:

@@ -87,8 +87,10 @@ class DomainQueues:
     """
 
     def __init__(self, n_domains: int):
-        # per domain: (sorted block, start, stop) runs, oldest first
-        self._chunks: list[list[tuple[SoA, int, int]]] = [[] for _ in range(n_domains)]
+        # domain -> its (sorted block, start, stop) runs, oldest first; only domains with
+        # rays have an entry (a list per domain made every queue O(D): 1.6 ms at 871 domains,
+        # and a node makes queues for every tile it hears of)
+        self._chunks: dict[int, list[tuple[SoA, int, int]]] = {}
         self._counts = np.zeros(n_domains, dtype=np.int64)
 
     def push(self, domain: np.ndarray, rays: SoA) -> None:
@@ -104,16 +106,16 @@ class DomainQueues:
             block = rays.take(np.argsort(domain, kind="stable"))
         stops = np.cumsum(counts)[present]
         starts = stops - counts[present]
+        chunks = self._chunks
         for d, start, stop in zip(present.tolist(), starts.tolist(), stops.tolist(), strict=True):
-            self._chunks[d].append((block, start, stop))
+            chunks.setdefault(d, []).append((block, start, stop))
         self._counts += counts
 
     def pop(self, domain: int) -> SoA | None:
         """All rays queued in ``domain`` (None when empty); the queue is emptied."""
-        chunks = self._chunks[domain]
+        chunks = self._chunks.pop(domain, None)
         if not chunks:
             return None
-        self._chunks[domain] = []
         self._counts[domain] = 0
         if len(chunks) == 1:
             block, start, stop = chunks[0]
@@ -135,9 +137,9 @@ class DomainQueues:
 
     def nbytes(self) -> int:
         """Bytes held: every block some queue still has a run in, counted once."""
-        held = {id(block): block for chunks in self._chunks for block, _, _ in chunks}
+        held = {id(block): block for chunks in self._chunks.values() for block, _, _ in chunks}
         return sum(block.nbytes() for block in held.values())
 
     def peek(self, domain: int) -> list[SoA]:
         """The chunks queued in ``domain``, left queued (views: do not modify them)."""
-        return [block.rows(start, stop) for block, start, stop in self._chunks[domain]]
+        return [block.rows(start, stop) for block, start, stop in self._chunks.get(domain, ())]

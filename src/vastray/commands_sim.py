@@ -27,7 +27,6 @@ what is measured, with the real components (nothing is mocked):
               query and per shadow query (shading apart, from the schedule's own clock)
   the wire    ray batches of 0 to 100,000 rays between two processes over ZeroMQ in the
               wire format nodes use, fitted as a latency plus a cost per byte
-  reductions  one small message plus combining two small arrays
   first use   what a fresh process's first render costs beyond its second (compiled
               kernels loaded from numba's cache): what each node pays once
   a node      real 1-node `async` and `image` renders against the simulator's predictions:
@@ -48,7 +47,6 @@ COST_LABELS = {
     "build_triangle_s": "per triangle of a BVH build",
     "latency_s": "per message between processes",
     "byte_s": "per byte on the wire",
-    "reduce_step_s": "per level of a tree reduction",
     "warmup_s": "once per fresh process (first use)",
     "node_setup_s": "once per node of a node runtime",
     "tile_setup_s": "once per sort-first node",

@@ -18,8 +18,8 @@ Every virtual node runs the nodes' own code (the schedulers' policies of vastray
 the runtimes of vastray.actors, the tree reduce, the termination detection) over a simulated
 network: rays are traced for real, so the image is the render's own and the traffic between
 domains the true one, while time is the cost model's (per ray query and activation, per byte
-loaded and triangle built, per message and byte sent, per tree level, and what a fresh node
-pays once). The simulated seconds are a node's busy time, as a real run's busy_max.
+loaded and triangle built, per message and byte sent: a tree reduction costs its messages,
+and what a fresh node pays once). The simulated seconds are a node's busy time, as a real run's busy_max.
 By default each node has a core of its own (a cluster); --cores N shares N cores between
 them (node processes on one machine, as `vastray render --nodes` runs them).
 """
@@ -152,7 +152,8 @@ def cmd_simulate(args) -> int:
                 runs.append(result.as_dict())
                 film = result.film
                 say(f"  {scheduler:11s} {nodes:5d} nodes: {result.seconds:9.4f} s simulated, "
-                    f"speed-up {first.seconds / result.seconds:6.2f} vs {first.nodes} node(s); "
+                    f"speed-up {first.seconds / max(result.seconds, 1e-300):6.2f} vs "
+                    f"{first.nodes} node(s); "
                     f"{result.messages:,} messages, {result.counters.get('loads', 0):,} loads "
                     f"({result.wall_s:.1f} s to simulate)")
     finally:

@@ -76,6 +76,7 @@ class VirtualPreloader:
         self.cache = _VirtualCache(domains, capacity)
         self.enabled, self.bandwidth = preload, bandwidth
         self.load_wait_s = 0.0
+        self._preloading = asyncio.Lock()
 
     @property
     def capacity(self) -> int:
@@ -95,15 +96,23 @@ class VirtualPreloader:
 
     async def get(self, domain: int) -> DomainBVH:
         """The domain, after its load's cost if it is not resident (joining a preload in
-        flight)."""
+        flight; a resident domain or a joined preload counts as a hit, as in the real
+        cache)."""
         cache = self.cache
         start = self.cluster.now()
         pending = cache._pending.get(domain)
+        if pending is None and domain not in cache:
+            cache._make_room(1)
+            # in flight like a preload, so room-making and other requests count it
+            cache._pending[domain] = load = asyncio.ensure_future(self._load(domain))
+            try:
+                await load
+            finally:
+                cache._pending.pop(domain, None)
+            self.load_wait_s += self.cluster.now() - start
+            return cache._resident[domain]
         if pending is not None:
             await pending
-        elif domain not in cache:
-            cache._make_room(1)
-            await self._load(domain)
         self.load_wait_s += self.cluster.now() - start
         return cache._get(domain)
 
@@ -119,7 +128,8 @@ class VirtualPreloader:
     async def _preload(self, domain: int) -> None:
         cache = self.cache
         try:
-            await self._load(domain)
+            async with self._preloading:  # one preloading thread: preloads queue
+                await self._load(domain)
             cache.stats.preloads += 1
         finally:
             cache._pending.pop(domain, None)

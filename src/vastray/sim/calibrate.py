@@ -8,7 +8,6 @@ machine it runs on, with the project's own components, never mocks.
   and the camera rays it starts from;
 - the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
-- reductions: a small message one way plus the combine of two small arrays;
 - first use: a fresh process's first render beyond its second (``vastray.sim.warmup``);
 - a node's own set-up: real 1-node ``async`` and ``image`` renders against the simulator's
   predictions of them (``vastray.sim.node_cost``).
@@ -49,15 +48,12 @@ from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import setup_cost
 from vastray.sim.warmup import measure_warmup
 from vastray.transport.codec import Message, decode, encode
-from vastray.transport.tree import COMBINE
 
 #: ``progress(fraction, text)``: fraction in [0, 1] of the calibration done, and what runs now.
 Progress = Callable[[float, str], None]
 
 #: Rays in the batches the wire is measured with (0: the empty batch some protocols send).
 WIRE_RAYS = (0, 1_000, 10_000, 100_000)
-#: Shape of the arrays one reduction step combines (a small t-buffer or counter block).
-REDUCE_SHAPE = (16, 16)
 #: What a peer that died before its hello most likely means.
 SPAWN_HINT = (" (it is started with multiprocessing's spawn method: a script calling "
               "calibrate() needs its main code under `if __name__ == \"__main__\":`)")
@@ -80,7 +76,6 @@ class Effort:
     trace_s : seconds of repeated tiles (at least ``min_tiles``).
     spp : samples per pixel of the tile (64 x 48 pixels).
     wire_s : seconds of ping-pong per batch size (at least ``min_pings`` each).
-    combine_repeats : combines timed for the reduction step.
     """
 
     load_s: float
@@ -90,17 +85,16 @@ class Effort:
     spp: int
     wire_s: float
     min_pings: int
-    combine_repeats: int
 
 
 FULL = Effort(load_s=5.0, min_loads=8, trace_s=12.0, min_tiles=3, spp=4, wire_s=2.5,
-              min_pings=10, combine_repeats=20_000)
+              min_pings=10)
 QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=0.4,
-               min_pings=4, combine_repeats=2_000)
+               min_pings=4)
 
 #: Share of the run each stage takes (for ``progress``), in the order they run.
-STAGES = {"setup": 0.03, "loads": 0.14, "tracing": 0.33, "wire": 0.3, "reduce": 0.03,
-          "warmup": 0.08, "node": 0.09}
+STAGES = {"setup": 0.03, "loads": 0.14, "tracing": 0.34, "wire": 0.32, "warmup": 0.08,
+          "node": 0.09}
 
 
 def node_settings(settings: RenderSettings) -> RenderSettings:
@@ -166,13 +160,11 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     tracing = trace_costs(time_tiles(store, setup, settings, effort, report.within("tracing")))
     report("wire", 0.0, "ray batches between two processes")
     latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
-    report("reduce", 0.0, "combining small arrays")
-    reduce_step_s = reduce_step_cost(latency_s, byte_s, combine_seconds(effort.combine_repeats))
     report("warmup", 0.0, "a fresh process's first render")
     warmup_s = measure_warmup(store_path, quick, repeats=1 if quick else 3)
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
-        latency_s=latency_s, byte_s=byte_s, reduce_step_s=reduce_step_s, warmup_s=warmup_s,
+        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s,
         cores=usable_cores())
     report("node", 0.0, "renders on a real node")
     config, node_render = config or SceneConfig(text=""), node_settings(settings)
@@ -598,31 +590,6 @@ def wire_costs(samples: list[tuple[int, float]]) -> tuple[float, float]:
 
 
 # -- reductions -----------------------------------------------------------------------------
-def combine_seconds(repeats: int) -> float:
-    """Median seconds of one element-wise SUM (``transport.tree.COMBINE``) of two
-    ``REDUCE_SHAPE`` float64 arrays into a third, over ``repeats`` combines in 10 blocks."""
-    a, b = np.random.default_rng(0).random((2, *REDUCE_SHAPE))
-    out = np.empty(REDUCE_SHAPE)
-    combine = COMBINE["sum"]
-    block = max(repeats // 10, 1)
-    times = []
-    for _ in range(10):
-        start = time.perf_counter()
-        for _ in range(block):
-            out[...] = combine(a, b)
-        times.append((time.perf_counter() - start) / block)
-    return float(np.median(times))
-
-
-def reduce_step_cost(latency_s: float, byte_s: float, combine_s: float) -> float:
-    """One level of a tree reduction: the measured one-way time of a message holding one
-    ``REDUCE_SHAPE`` float64 array (its encoded bytes, as the wire fit prices them) plus the
-    measured time to combine two such arrays."""
-    frames = encode("reduce", {"value": np.zeros(REDUCE_SHAPE)}, {"op": "sum"})
-    return latency_s + sum(memoryview(f).nbytes for f in frames) * byte_s + combine_s
-
-
-# -- the machine ----------------------------------------------------------------------------
 def cpu_model() -> str | None:
     """The first ``model name`` of /proc/cpuinfo, else ``platform.processor()`` (None if
     neither says)."""

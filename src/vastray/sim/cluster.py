@@ -37,6 +37,7 @@ class Cluster:
         self.mailboxes = [defaultdict(asyncio.Queue) for _ in range(size + 1)]
         self.compute_s = np.zeros(size + 1)  # (P + 1,) seconds each endpoint computed
         self._warm = np.zeros(size + 1, bool)  # (P + 1,) whether each has traced yet
+        self._sending = defaultdict(asyncio.Lock)  # endpoint -> its sends, in order
         self.messages = 0
         self.bytes = 0
 
@@ -73,7 +74,8 @@ class Cluster:
         ``destination``'s mailbox of its kind: the sender's core spends the message's cost
         (``CostModel.message_s``: measured one way between two processes, encoding, copies
         and decoding lumped on the sender), then it is delivered."""
-        await self.compute(source, self.costs.message_s(nbytes))
+        async with self._sending[source]:  # a sender's messages leave one after another
+            await self.compute(source, self.costs.message_s(nbytes))
         self.messages += 1
         self.bytes += nbytes
         self.mailboxes[destination][message.kind].put_nowait(message)

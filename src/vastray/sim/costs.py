@@ -38,7 +38,6 @@ class CostModel:
     build_triangle_s : building the BVH over one triangle.
     latency_s : one message between two nodes, end to end (encode, send, receive, decode).
     byte_s : one byte on the wire (the inverse of the bandwidth).
-    reduce_step_s : one level of a tree reduction (log2 P levels reduce over P nodes).
     warmup_s : what a fresh process pays once, at its first trace: compiled kernels loaded
         from numba's cache, Embree's device, modules imported on first use.
     node_setup_s : what a node of the asynchronous and domain runtimes pays once beyond
@@ -61,7 +60,6 @@ class CostModel:
     build_triangle_s: float = 2e-7
     latency_s: float = 2e-4
     byte_s: float = 1e-9
-    reduce_step_s: float = 5e-4
     warmup_s: float = 0.0
     node_setup_s: float = 0.0
     tile_setup_s: float = 0.0
@@ -92,10 +90,6 @@ class CostModel:
     def message_s(self, nbytes: int) -> float:
         """Seconds from a message's send to its delivery."""
         return self.latency_s + nbytes * self.byte_s
-
-    def reduce_s(self, nodes: int) -> float:
-        """Seconds of a tree reduction (or broadcast) over ``nodes`` nodes."""
-        return self.reduce_step_s * math.ceil(math.log2(nodes)) if nodes > 1 else 0.0
 
     def with_cores(self, cores: int | None) -> CostModel:
         """The same costs with ``cores`` cores shared by the nodes (None: one each)."""

@@ -119,6 +119,8 @@ class VirtualDomainLoop(DomainLoop):
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         queries = order.trace(domain, bvh)
+        if not queries:  # a domain only loaded (in situ), or nothing left for it
+            return queries
         await self.cluster.trace(self.rank, self.cluster.costs.trace_s(queries.radiance,
                                                                         queries.shadow),
                                  node_runtime=self.node_runtime)
@@ -163,6 +165,8 @@ class SimNodeState(NodeState):
         return SimNode(management, rank, stats, preloader, max_batch, self.early)
 
     async def traced(self, radiance: dict[int, int], shadow: dict[int, int]) -> None:
+        if not (radiance or shadow):
+            return
         costs = self.cluster.costs
         await self.cluster.trace(self.rank, sum(
             costs.trace_s(radiance.get(d, 0), shadow.get(d, 0)) for d in radiance | shadow),

@@ -22,7 +22,7 @@ from vastray.actors.domain_loop import ScheduleOrder
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions
 from vastray.actors.local import tile_schedule
-from vastray.actors.node import frame_inputs
+from vastray.actors.node import SETTING_COUNTERS, accumulate_counters, frame_inputs
 from vastray.actors.ray_post import traffic_counters
 from vastray.actors.render_setup import RenderSetup
 from vastray.actors.tree_reduce import TreeReduceActor
@@ -58,7 +58,7 @@ class SimResult:
     compute_seconds : (P + 1,) virtual seconds each node (and the coordinator, last) computed.
     counters : the nodes' counters summed (loads, rays sent, batches, ...).
     messages, bytes : messages and bytes on the simulated network.
-    film : the image's film (rank 0's after the last reduction).
+    film : the image's film (rank 0's after the last reduction; an animation's last frame's).
     wall_s : real seconds the simulation took.
     """
 
@@ -81,8 +81,6 @@ class SimResult:
                 "seconds": round(self.seconds, 6),
                 "unit_seconds": [round(s, 6) for s in self.unit_seconds],
                 "reduce_seconds": round(self.reduce_seconds, 6),
-                "busy_fraction": round(float(self.compute_seconds[:-1].sum())
-                                       / max(self.nodes * self.seconds, 1e-300), 4),
                 "messages": self.messages, "bytes": self.bytes,
                 "counters": self.counters, "wall_s": round(self.wall_s, 3),
                 "costs": None if self.costs is None else self.costs.as_dict()}
@@ -166,8 +164,10 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
     state = SimNodeState(cluster=cluster, rank=rank, domains=domains)
     busy = reduce = 0.0
     totals: dict = {}
-    film = Film(settings.width, settings.height)  # the units' films merged (rank 0's whole)
+    film = None  # the frame's passes merged (rank 0's the whole image)
     for ordinal, (frame, first, stop) in enumerate(units):
+        if ordinal == 0 or frame != units[ordinal - 1][0]:
+            film = Film(settings.width, settings.height)
         frame_settings, frame_config = frame_inputs(settings, config, store, frame)
         window = frame_settings.window(first, stop)
         state.ordinal, state.frame = ordinal, frame or 0
@@ -180,7 +180,7 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
         reduced = cluster.now()
         film.merge(await tree.reduce_film(part, settings.width, settings.height, ordinal))
         reduce += cluster.now() - reduced
-        _add(totals, counters)
+        accumulate_counters(totals, counters)
     return busy, reduce, totals, film
 
 
@@ -225,14 +225,18 @@ async def _sort_first(cluster, options, rank, size, store, config, settings, dom
     return film, stats
 
 
-def _add(total: dict, part: dict) -> None:
-    for key, value in part.items():
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            total[key] = total.get(key, 0) + value
-
-
 def _summed(parts: list[dict]) -> dict:
+    """The nodes' counters over the job: counts summed, peaks the largest, settings one
+    node's."""
     total: dict = {}
     for part in parts:
-        _add(total, part)
+        for key, value in part.items():
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                continue
+            if key.startswith("peak"):
+                total[key] = max(total.get(key, value), value)
+            elif key in SETTING_COUNTERS:
+                total.setdefault(key, value)
+            else:
+                total[key] = total.get(key, 0) + value
     return {k: round(v, 6) if isinstance(v, float) else v for k, v in total.items()}

@@ -1,0 +1,624 @@
+"""``vastray simulate`` (``vastray.sim``): the virtual clock, the virtual cluster and domain
+cache, the cost model, simulated renders of every scheduler (their images bit for bit the
+reference's, their time the cost model's), the command, and one check against real runs."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import gc
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions
+from vastray.actors.node import frame_inputs
+from vastray.render.driver import render, shading_inputs
+from vastray.render.imageio import read_image
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.errors import InputError
+from vastray.scene.generate import generate
+from vastray.scene.store import Store
+from vastray.sim.cache import Domains, VirtualPreloader
+from vastray.sim.clock import Deadlock, run_virtual
+from vastray.sim.cluster import Cluster
+from vastray.sim.costs import CostModel
+from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+from vastray.transport.codec import Message
+
+#: A tiny render: two samples in one pass (the default passes are of 16 spp).
+SETTINGS = RenderSettings(width=32, height=24, spp=2, bounces=1, shadow_samples=2, seed=3)
+COSTS = CostModel()
+#: Every cost 0: a test sets the ones it looks at.
+ZERO = CostModel(**{f.name: 0.0 for f in dataclasses.fields(CostModel)
+                    if f.name not in ("cores", "machine")})
+#: The trace costs (per query and per activation).
+TRACE_COSTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
+               "shadow_activation_s")
+#: The schedulers whose nodes run the node runtimes (the others run sort-first tiles).
+NODE_SCHEDULERS = tuple(s for s in SIM_SCHEDULERS if s not in TILE_SCHEDULERS)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Store:
+    path = tmp_path_factory.mktemp("simulate") / "rm.store"
+    generate("rm", path, 32, grid=(3, 2, 2))
+    return Store(path)
+
+
+@pytest.fixture(scope="module")
+def domains(store):
+    """The store's domains built once for every simulation of ``SETTINGS`` here."""
+    built = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
+    yield built
+    built.close()
+
+
+@pytest.fixture(scope="module")
+def reference(store) -> np.ndarray:
+    return render(store, SceneConfig(), SETTINGS, progress=False).film.image()
+
+
+def sim(store, domains, scheduler: str, nodes: int, costs: CostModel = COSTS,
+        settings: RenderSettings = SETTINGS, max_pass_spp: int | None = 16, **options):
+    return simulate(store, JobOptions(scheduler=scheduler, **options), nodes, costs, settings,
+                    max_pass_spp=max_pass_spp, domains=domains)
+
+
+# -- the virtual clock ----------------------------------------------------------------------
+def test_run_virtual_returns_the_result_and_the_virtual_seconds_at_once():
+    async def main():
+        await asyncio.gather(*(asyncio.sleep(100.0) for _ in range(5)))
+        middle = asyncio.get_running_loop().time()
+        await asyncio.sleep(2.5)
+        return "done", middle
+
+    start = time.perf_counter()
+    (result, middle), seconds = run_virtual(main())
+    assert result == "done" and middle == 100.0 and seconds == 102.5
+    assert time.perf_counter() - start < 5  # no real sleeping
+
+
+def test_a_timeout_fires_in_virtual_time_not_as_a_deadlock():
+    async def main():
+        await asyncio.wait_for(asyncio.Queue().get(), 30.0)
+
+    start = time.perf_counter()
+    with pytest.raises(TimeoutError):
+        run_virtual(main())
+    assert time.perf_counter() - start < 5
+
+
+def test_waiting_forever_is_a_deadlock_and_leaves_no_task_behind(caplog, recwarn):
+    waiting = []
+
+    async def main():
+        waiting.append(asyncio.ensure_future(asyncio.Queue().get()))  # a second waiter
+        await asyncio.sleep(5.0)
+        await asyncio.Queue().get()
+
+    with pytest.raises(Deadlock):
+        run_virtual(main())
+    assert waiting[0].cancelled()
+    waiting.clear()
+    gc.collect()
+    assert not [r for r in caplog.records if "destroyed but it is pending" in r.getMessage()]
+    assert not [w for w in recwarn if "never awaited" in str(w.message)]
+    # the loop is closed and a fresh one works
+    assert run_virtual(asyncio.sleep(1.0, result=7)) == (7, 1.0)
+
+
+# -- the cost model -------------------------------------------------------------------------
+def test_trace_seconds_are_the_activation_plus_the_queries():
+    c = CostModel(trace_ray_s=1.0, shade_ray_s=2.0, shadow_ray_s=4.0, activation_s=100.0,
+                  shadow_activation_s=1000.0)
+    assert c.trace_s(3, 5) == 100 + 3 * 3 + 5 * 4
+    assert c.trace_s(0, 5) == 1000 + 5 * 4  # a shadow-only activation's fixed cost
+    assert c.trace_s(1, 0) == 100 + 3
+    assert c.load_s(10, 3) == 10 * c.load_byte_s + 3 * c.build_triangle_s
+    assert c.message_s(1000) == c.latency_s + 1000 * c.byte_s
+
+
+@pytest.mark.parametrize("bad", [{"latency_s": -1e-6}, {"trace_ray_s": math.nan},
+                                 {"byte_s": math.inf}, {"warmup_s": "1"}, {"cores": 0},
+                                 {"cores": 1.5}])
+def test_a_cost_model_refuses_negative_or_non_finite_values(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        CostModel(**bad)
+
+
+def test_with_cores_and_warm_change_only_their_fields():
+    c = CostModel(warmup_s=1.0, node_setup_s=2.0, tile_setup_s=3.0, latency_s=7e-4, cores=2,
+                  machine={"hostname": "h", "calibration": {"quick": True}})
+    assert c.with_cores(None).cores is None and c.with_cores(8).cores == 8
+    assert dataclasses.replace(c.with_cores(8), cores=2) == c
+    warm = c.warm()
+    assert (warm.warmup_s, warm.node_setup_s, warm.tile_setup_s) == (0.0, 0.0, 0.0)
+    assert dataclasses.replace(warm, warmup_s=1.0, node_setup_s=2.0, tile_setup_s=3.0) == c
+    assert c.warmup_s == 1.0  # frozen: the original is untouched
+
+
+def test_a_hand_made_model_round_trips_and_unknown_or_bad_fields_are_refused(tmp_path):
+    path = tmp_path / "costs.json"
+    model = CostModel(latency_s=3e-5, warmup_s=0.25, cores=None,
+                      machine={"hostname": "x", "calibration": {"quick": False}})
+    model.save(path)
+    assert CostModel.load(path) == model
+    data = json.loads(path.read_text())
+    path.write_text(json.dumps({**data, "latency": 1e-4}))
+    with pytest.raises(InputError, match="unknown cost fields") as err:
+        CostModel.load(path)
+    assert str(path) in str(err.value)
+    for field, value in (("cores", 0), ("load_byte_s", float("nan"))):
+        path.write_text(json.dumps({**data, field: value}))
+        with pytest.raises(InputError, match=field):
+            CostModel.load(path)
+
+
+# -- the virtual cluster --------------------------------------------------------------------
+def test_compute_overlaps_on_own_cores_and_queues_on_shared_ones():
+    async def work(costs):
+        cluster = Cluster(3, costs)
+        await asyncio.gather(*(cluster.compute(rank, 1.0) for rank in range(3)))
+        return cluster.compute_s
+
+    compute_s, seconds = run_virtual(work(COSTS))
+    assert seconds == 1.0 and list(compute_s) == [1.0, 1.0, 1.0, 0.0]
+    assert run_virtual(work(COSTS.with_cores(2)))[1] == 2.0
+    assert run_virtual(work(COSTS.with_cores(1)))[1] == 3.0
+
+
+def test_a_message_costs_its_sender_and_lands_in_the_mailbox_of_its_kind():
+    costs = CostModel(latency_s=0.5, byte_s=1e-3)
+
+    async def main():
+        cluster = Cluster(2, costs)
+        await cluster.send(0, 1, Message("rays", {}, {"n": 1}), 1000)
+        await cluster.send(1, cluster.coordinator, Message("status", {}, {"n": 2}), 10)
+        box = cluster.mailboxes[1]["rays"]
+        return cluster, box.get_nowait(), cluster.mailboxes[2]["status"].get_nowait()
+
+    (cluster, rays, status), seconds = run_virtual(main())
+    assert rays.meta == {"n": 1} and status.meta == {"n": 2}
+    assert seconds == pytest.approx(costs.message_s(1000) + costs.message_s(10))
+    assert cluster.compute_s[0] == pytest.approx(costs.message_s(1000))
+    assert cluster.compute_s[1] == pytest.approx(costs.message_s(10))
+    assert cluster.compute_s[2] == 0.0
+    assert (cluster.messages, cluster.bytes) == (2, 1010)
+
+
+def test_only_the_first_trace_of_a_node_pays_its_warm_up_and_set_up():
+    costs = CostModel(warmup_s=10.0, node_setup_s=1.0, tile_setup_s=100.0)
+
+    async def main():
+        cluster = Cluster(2, costs)
+        await cluster.trace(0, 0.5, node_runtime=True)
+        await cluster.trace(0, 0.5, node_runtime=True)
+        await cluster.trace(1, 0.5, node_runtime=False)
+        return cluster.compute_s
+
+    compute_s, _ = run_virtual(main())
+    assert list(compute_s) == [11.0 + 1.0, 110.5, 0.0]
+
+
+# -- the virtual domain cache ---------------------------------------------------------------
+def _preloader(domains, capacity: int, costs: CostModel, **kw):
+    cluster = Cluster(1, costs)
+    return cluster, VirtualPreloader(cluster, 0, domains, capacity, **kw)
+
+
+LOADS = CostModel(load_byte_s=1e-6, build_triangle_s=1e-4)
+
+
+def test_a_load_charges_its_cost_and_a_resident_domain_costs_nothing(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 2, LOADS)
+        start = cluster.now()
+        bvh = await preloader.get(3)
+        loaded = cluster.now()
+        again = await preloader.get(3)
+        return preloader, bvh, again, loaded - start, cluster.now() - loaded
+
+    preloader, bvh, again, load_s, hit_s = run_virtual(main())[0]
+    expected = LOADS.load_s(int(domains.nbytes[3]), int(domains.triangles[3]))
+    assert expected > 0 and load_s == pytest.approx(expected, rel=1e-12)
+    assert hit_s == 0.0 and again is bvh is domains.get(3)
+    stats = preloader.stats()
+    assert stats["loads"] == 1 and stats["bytes_loaded"] == domains.nbytes[3]
+    assert stats["load_wait_s"] == pytest.approx(expected, abs=1e-4)
+    assert preloader.load_count(3) == 1 and preloader.resident() == {3}
+
+
+def test_a_full_cache_evicts_the_least_recently_used_domain(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 2, LOADS, preload=False)
+        for d in (0, 1, 0, 2):  # 1 is the least recently used when 2 comes
+            await preloader.get(d)
+        resident = preloader.resident()
+        start = cluster.now()
+        await preloader.get(1)  # loaded again
+        return resident, cluster.now() - start, preloader
+
+    resident, reload_s, preloader = run_virtual(main())[0]
+    assert resident == {0, 2}
+    assert reload_s == pytest.approx(LOADS.load_s(int(domains.nbytes[1]),
+                                                  int(domains.triangles[1])))
+    assert preloader.load_count(1) == 2 and preloader.resident() == {2, 1}
+
+
+def test_a_cache_of_one_reloads_every_switch_and_never_preloads(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 1, LOADS)
+        for d in (0, 1, 0):
+            await preloader.get(d)
+            preloader.preload(5)  # no room for a preload beside the domain in use
+        return cluster.now(), preloader
+
+    seconds, preloader = run_virtual(main())[0]
+    cost = [LOADS.load_s(int(domains.nbytes[d]), int(domains.triangles[d])) for d in (0, 1)]
+    assert seconds == pytest.approx(2 * cost[0] + cost[1])
+    assert preloader.loads_per_domain() == {0: 2, 1: 1} and preloader.resident() == {0}
+    assert preloader.stats()["preloads"] == 0
+
+
+@pytest.mark.parametrize("cores, overlapped", [(None, True), (1, False)])
+def test_a_preload_overlaps_compute_on_a_core_of_its_own(domains, cores, overlapped):
+    costs = dataclasses.replace(LOADS, cores=cores)
+    load_s = costs.load_s(int(domains.nbytes[4]), int(domains.triangles[4]))
+    work_s = 2 * load_s
+
+    async def main():
+        cluster, preloader = _preloader(domains, 3, costs)
+        preloader.preload(4)
+        await cluster.compute(0, work_s)  # the node traces while domain 4 loads
+        await preloader.get(4)
+        return cluster.now(), preloader
+
+    seconds, preloader = run_virtual(main())[0]
+    assert seconds == pytest.approx(work_s if overlapped else work_s + load_s)
+    assert preloader.stats()["preloads"] == 1 and preloader.load_count(4) == 1
+
+
+def test_a_get_joins_a_preload_in_flight(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 3, LOADS)
+        preloader.preload(6)
+        preloader.preload(6)  # already loading: nothing more
+        await preloader.get(6)
+        return cluster.now(), preloader
+
+    seconds, preloader = run_virtual(main())[0]
+    assert seconds == pytest.approx(LOADS.load_s(int(domains.nbytes[6]),
+                                                 int(domains.triangles[6])))
+    assert preloader.load_count(6) == 1
+
+
+def test_an_emulated_storage_bandwidth_lengthens_a_load_without_holding_the_core(domains):
+    load_s = LOADS.load_s(int(domains.nbytes[2]), int(domains.triangles[2]))
+    bandwidth = domains.nbytes[2] / (10 * load_s)  # the read lasts ten times the load's cost
+
+    async def main():
+        cluster, preloader = _preloader(domains, 2, LOADS, bandwidth=float(bandwidth))
+        await preloader.get(2)
+        return cluster.now(), cluster.compute_s[0], preloader
+
+    seconds, core_s, preloader = run_virtual(main())[0]
+    assert seconds == pytest.approx(10 * load_s) and core_s == pytest.approx(load_s)
+    assert preloader.stats()["load_throttle_s"] == pytest.approx(9 * load_s, abs=1e-4)
+
+
+# -- simulated renders: the image is the reference's whatever the schedule ------------------
+@pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
+def test_every_schedule_on_any_node_count_renders_the_reference_image(store, domains,
+                                                                       reference, scheduler):
+    for nodes in (1, 2, 3):
+        result = sim(store, domains, scheduler, nodes)
+        assert np.array_equal(result.film.image(), reference), (scheduler, nodes)
+        assert result.nodes == nodes and result.scheduler == scheduler
+        assert result.compute_seconds.shape == (nodes + 1,) and result.seconds > 0
+    # in passes of one sample, and (sort-first) in tiles small enough for every node
+    tile = 200 if scheduler in TILE_SCHEDULERS else None
+    result = sim(store, domains, scheduler, 3, max_pass_spp=1, max_samples_in_flight=tile)
+    assert np.array_equal(result.film.image(), reference), scheduler
+    assert len(result.unit_seconds) == SETTINGS.spp
+    # out of core on every node: two domains in memory, four nodes
+    result = sim(store, domains, scheduler, 4, cache=2, max_samples_in_flight=tile)
+    assert np.array_equal(result.film.image(), reference), scheduler
+
+
+@pytest.mark.parametrize("scheduler", ["async", "domain", "spec-insitu", "image"])
+def test_ambient_occlusion_is_the_reference_image_too(store, scheduler):
+    settings = dataclasses.replace(SETTINGS, integrator="ao", spp=1)
+    ao_domains = Domains(store, shading_inputs(store, SceneConfig(), "ao")[1])
+    try:
+        result = sim(store, ao_domains, scheduler, 2, settings=settings)
+    finally:
+        ao_domains.close()
+    expected = render(store, SceneConfig(), settings, progress=False).film.image()
+    assert np.array_equal(result.film.image(), expected)
+
+
+def test_simulate_refuses_an_unknown_scheduler_or_no_node(store, domains):
+    with pytest.raises(ValueError, match="bogus"):
+        sim(store, domains, "bogus", 2)
+    with pytest.raises(ValueError, match="at least 1 node"):
+        sim(store, domains, "async", 0)
+
+
+# -- what the schedulers do in the simulator ------------------------------------------------
+def test_domain_decomposition_runs_rounds_ended_by_the_coordinator(store, domains):
+    result = sim(store, domains, "domain", 2)
+    assert result.counters["rounds"] > 0
+    assert result.counters["batches_sent"] > 0 and result.counters["rays_sent"] > 0
+    assert result.counters["batches_sent"] == result.counters["batches_received"]
+    assert result.compute_seconds[-1] > 0  # the coordinator answered round barriers
+
+
+def test_spec_insitu_speculates_and_counts_its_iterations(store, domains):
+    result = sim(store, domains, "spec-insitu", 2)
+    assert result.counters["speculative_rays"] > 0
+    assert result.counters["iterations"] > 0
+    assert result.counters["wasted_rays"] <= result.counters["speculative_rays"]
+
+
+def test_async_sends_ray_batches_only_between_nodes(store, domains):
+    one, two = sim(store, domains, "async", 1), sim(store, domains, "async", 2)
+    assert one.counters.get("batches_sent", 0) == 0 and one.counters.get("rays_sent", 0) == 0
+    assert two.counters["batches_sent"] > 0 and two.counters["rays_sent"] > 0
+    assert two.counters["rays_sent"] == two.counters["rays_received"]
+    assert two.messages > one.messages and two.bytes > one.bytes
+    assert all(two.compute_seconds[:-1] > 0)
+
+
+def test_sort_first_tiles_give_every_node_work_and_a_speed_up(store, domains):
+    paths = SETTINGS.width * SETTINGS.height * SETTINGS.spp
+    whole = sim(store, domains, "image", 2, max_pass_spp=None)
+    assert whole.compute_seconds[1] < 0.1 * whole.compute_seconds[0]  # one tile: node 0's
+    split = sim(store, domains, "image", 2, max_pass_spp=None,
+                max_samples_in_flight=paths // 2)
+    alone = sim(store, domains, "image", 1, max_pass_spp=None,
+                max_samples_in_flight=paths // 2)
+    assert all(split.compute_seconds[:-1] > 0)
+    assert split.seconds < alone.seconds
+
+
+@pytest.mark.parametrize("scheduler", ["image", "async", "domain"])
+def test_unit_reduction_and_busy_seconds_fit_together(store, domains, scheduler):
+    one = sim(store, domains, scheduler, 1, max_pass_spp=None)
+    assert one.seconds == pytest.approx(one.unit_seconds[0]) and one.reduce_seconds == 0.0
+    two = sim(store, domains, scheduler, 2, max_pass_spp=1)
+    assert len(two.unit_seconds) == SETTINGS.spp and all(s > 0 for s in two.unit_seconds)
+    assert two.seconds <= sum(two.unit_seconds) + 1e-12
+    assert two.reduce_seconds > 0  # the film went up the tree
+    report = two.as_dict()
+    assert report["nodes"] == 2 and report["scheduler"] == scheduler
+    json.dumps(report, allow_nan=False)
+
+
+# -- the cost model drives the simulated time -----------------------------------------------
+@pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
+def test_dearer_traces_make_a_slower_render(store, domains, scheduler):
+    base1, base2 = sim(store, domains, scheduler, 1), sim(store, domains, scheduler, 2)
+    for name in TRACE_COSTS:
+        dearer = dataclasses.replace(COSTS, **{name: 2 * getattr(COSTS, name)})
+        assert sim(store, domains, scheduler, 1, dearer).seconds > base1.seconds, name
+        # on 2 nodes a dynamic schedule may reorder its work; the work itself grows
+        assert (sim(store, domains, scheduler, 2, dearer).compute_seconds.sum()
+                > base2.compute_seconds.sum()), name
+
+
+@pytest.mark.parametrize("scheduler", [s for s in NODE_SCHEDULERS if s != "spec-insitu"])
+def test_with_only_activations_costing_one_node_takes_one_second_per_activation(
+        store, domains, scheduler):
+    costs = dataclasses.replace(ZERO, activation_s=1.0, shadow_activation_s=1.0)
+    result = sim(store, domains, scheduler, 1, costs)
+    assert result.seconds == result.counters["activations"] > 0
+
+
+@pytest.mark.parametrize("scheduler", ["async", "domain", "image", "spec-insitu"])
+def test_sharing_one_core_among_four_nodes_is_slower(store, domains, scheduler):
+    options = {"max_samples_in_flight": 200} if scheduler in TILE_SCHEDULERS else {}
+    own = sim(store, domains, scheduler, 4, COSTS.with_cores(None), **options)
+    shared = sim(store, domains, scheduler, 4, COSTS.with_cores(1), **options)
+    assert shared.seconds > own.seconds
+
+
+@pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
+def test_a_fresh_node_pays_its_warm_up_once_and_a_warm_one_not(store, domains, scheduler):
+    cold_costs = dataclasses.replace(COSTS, warmup_s=1.0)
+    cold = sim(store, domains, scheduler, 1, cold_costs, max_pass_spp=1)  # two passes
+    warm = sim(store, domains, scheduler, 1, cold_costs.warm(), max_pass_spp=1)
+    assert 0.9 * cold_costs.warmup_s <= cold.seconds - warm.seconds < 1.5 * cold_costs.warmup_s
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "async", "domain", "spec-insitu"])
+def test_each_runtime_pays_its_own_set_up(store, domains, scheduler):
+    base = sim(store, domains, scheduler, 1).seconds
+    node = sim(store, domains, scheduler, 1, dataclasses.replace(COSTS, node_setup_s=1.0))
+    tile = sim(store, domains, scheduler, 1, dataclasses.replace(COSTS, tile_setup_s=1.0))
+    sort_first = scheduler in TILE_SCHEDULERS
+    assert tile.seconds - base == pytest.approx(1.0 if sort_first else 0.0, abs=0.1)
+    assert node.seconds - base == pytest.approx(0.0 if sort_first else 1.0, abs=0.1)
+
+
+@pytest.mark.parametrize("scheduler", ["image", "async", "domain"])
+def test_slow_loads_make_a_small_cache_slower(store, domains, scheduler):
+    costs = dataclasses.replace(COSTS, load_byte_s=1e-5)
+    small = sim(store, domains, scheduler, 2, costs, cache=1)
+    default = sim(store, domains, scheduler, 2, costs)
+    assert small.counters["loads"] > default.counters["loads"]
+    assert small.seconds > default.seconds
+
+
+def test_latency_slows_what_sends_messages_only(store, domains):
+    slow = dataclasses.replace(COSTS, latency_s=0.05)
+    delta = slow.latency_s - COSTS.latency_s
+    # one node: async's only messages are its reports to the coordinator
+    fast1, slow1 = sim(store, domains, "async", 1), sim(store, domains, "async", 1, slow)
+    assert fast1.counters.get("batches_sent", 0) == 0
+    assert 0 <= slow1.seconds - fast1.seconds <= fast1.messages * delta + 1e-9
+    # two nodes exchange ray batches: every hop pays
+    fast2, slow2 = sim(store, domains, "async", 2), sim(store, domains, "async", 2, slow)
+    assert slow2.seconds - fast2.seconds > slow1.seconds - fast1.seconds
+    assert slow2.seconds - fast2.seconds > 10 * delta
+    # one node that sends nothing does not notice
+    for scheduler in ("image", "spec-insitu"):
+        fast, late = (sim(store, domains, scheduler, 1, c) for c in (COSTS, slow))
+        assert fast.messages == 0 and late.seconds == fast.seconds, scheduler
+    # sort-first nodes send only their films, after the busy time
+    fast, late = (sim(store, domains, "image", 2, c) for c in (COSTS, slow))
+    assert late.seconds == pytest.approx(fast.seconds)
+    assert late.reduce_seconds >= fast.reduce_seconds + delta
+
+
+# -- the command ----------------------------------------------------------------------------
+def vastray(*args, cwd: Path, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Run the installed CLI as a user would: ``python -m vastray.cli`` in ``cwd``."""
+    return subprocess.run([sys.executable, "-m", "vastray.cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _reject(name):
+    raise AssertionError(f"report holds {name}: not strict JSON")
+
+
+SMALL = ["--width", "32", "--height", "24", "--spp", "1", "--bounces", "1",
+         "--shadow-samples", "2"]
+
+
+def test_cli_prints_a_line_per_run_and_writes_the_image_and_the_report(store, tmp_path):
+    COSTS.save(tmp_path / "costs.json")
+    out = vastray("simulate", store.path, "--nodes", "1,2", "--scheduler", "async,domain",
+                  *SMALL, "--costs", "costs.json", "-o", "sim.exr", "--report", "sim.json",
+                  cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = [line for line in out.stdout.splitlines() if "simulated" in line]
+    assert len(lines) == 4, out.stdout
+    for line, (scheduler, nodes) in zip(lines, [("async", 1), ("async", 2), ("domain", 1),
+                                                ("domain", 2)], strict=True):
+        assert "speed-up" in line and scheduler in line and f"{nodes} nodes" in line, line
+    settings = RenderSettings(width=32, height=24, spp=1, bounces=1, shadow_samples=2)
+    expected = render(store, SceneConfig(), settings, progress=False).film.image()
+    np.testing.assert_allclose(read_image(tmp_path / "sim.exr"), expected, rtol=0, atol=1e-6)
+    report = json.loads((tmp_path / "sim.json").read_text(), parse_constant=_reject)
+    runs = report["runs"]
+    assert [(r["scheduler"], r["nodes"]) for r in runs] == [("async", 1), ("async", 2),
+                                                            ("domain", 1), ("domain", 2)]
+    assert all(r["seconds"] > 0 for r in runs)
+    assert report["costs"]["latency_s"] == COSTS.latency_s
+
+
+def test_cli_warm_and_cores_options_reach_the_costs(store, tmp_path):
+    dataclasses.replace(COSTS, warmup_s=1.0).save(tmp_path / "costs.json")
+    runs = {}
+    for name, extra in (("cold", []), ("warm", ["--warm"]), ("shared", ["--cores", "1"])):
+        out = vastray("simulate", store.path, "--nodes", "2", "--scheduler", "async", *SMALL,
+                      "--report", f"{name}.json", "--quiet", *extra, cwd=tmp_path)
+        assert out.returncode == 0 and not out.stdout, out.stderr
+        runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    seconds = {name: run["runs"][0]["seconds"] for name, run in runs.items()}
+    assert seconds["cold"] - seconds["warm"] >= 0.9
+    assert runs["warm"]["costs"]["warmup_s"] == 0.0 and runs["cold"]["costs"]["cores"] is None
+    assert runs["shared"]["costs"]["cores"] == 1 and seconds["shared"] > seconds["cold"]
+
+
+def test_cli_names_a_missing_costs_file_and_how_to_make_one(store, tmp_path):
+    out = vastray("simulate", store.path, "--nodes", "1", *SMALL, "--costs", "absent.json",
+                  cwd=tmp_path)
+    assert out.returncode != 0
+    assert "absent.json" in out.stderr and "vastray calibrate" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("args, problem", [(["--nodes", "0"], "--nodes"),
+                                           (["--nodes", "two"], "--nodes"),
+                                           (["--scheduler", "bogus"], "bogus")])
+def test_cli_bad_arguments_are_usage_errors(store, tmp_path, args, problem):
+    out = vastray("simulate", store.path, *args, cwd=tmp_path)
+    assert out.returncode == 2
+    assert problem in out.stderr and "Traceback" not in out.stderr
+
+
+def test_cli_help_says_to_calibrate_first(tmp_path):
+    out = vastray("simulate", "--help", cwd=tmp_path)
+    assert out.returncode == 0 and "vastray calibrate" in out.stdout
+
+
+# -- defects found once, fixed: animations, cache capacity and hits, message order --------
+def test_an_animation_s_image_is_its_last_frame(store, domains):
+    settings = dataclasses.replace(SETTINGS, spp=1)
+    result = simulate(store, JobOptions(scheduler="async"), 2, COSTS, settings, frames=2,
+                      domains=domains)
+    frame_settings, frame_config = frame_inputs(settings, SceneConfig(), store, 1)
+    last = render(store, frame_config, frame_settings, progress=False).film.image()
+    assert np.array_equal(result.film.image(), last)
+
+
+def test_a_preload_during_a_load_never_overfills_the_cache(domains):
+    async def main():
+        _, preloader = _preloader(domains, 2, LOADS)
+        loading = asyncio.ensure_future(preloader.get(0))
+        await asyncio.sleep(0)  # the load of 0 is under way
+        preloader.preload(1)
+        preloader.preload(2)
+        await loading
+        await asyncio.sleep(10.0)
+        return preloader.cache.resident()
+
+    assert len(run_virtual(main())[0]) <= 2
+
+
+def test_a_load_is_not_a_cache_hit(domains):
+    async def main():
+        _, preloader = _preloader(domains, 2, LOADS)
+        await preloader.get(0)
+        return preloader.stats()
+
+    assert run_virtual(main())[0]["cache_hits"] == 0
+
+
+def test_messages_between_two_endpoints_arrive_in_order():
+    async def main():
+        cluster = Cluster(2, COSTS)
+        await asyncio.gather(cluster.send(0, 1, Message("rays", {}, {"n": 1}), 10_000_000),
+                             cluster.send(0, 1, Message("rays", {}, {"n": 2}), 10))
+        box = cluster.mailboxes[1]["rays"]
+        return [box.get_nowait().meta["n"] for _ in range(box.qsize())]
+
+    assert run_virtual(main())[0] == [1, 2]
+
+
+# -- against real runs ----------------------------------------------------------------------
+@pytest.mark.slow
+def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path):
+    from vastray.actors.coordinator import render_distributed
+    from vastray.sim.calibrate import calibrate
+
+    path = tmp_path / "rm.store"
+    generate("rm", path, 64, grid=(3, 3, 2))
+    store = Store(path)
+    costs = calibrate(path, quick=True)
+    settings = RenderSettings(width=96, height=72, spp=4, bounces=1)
+    errors = {}
+    for scheduler in ("async", "domain"):
+        real = statistics.median(
+            render_distributed(path, None, settings, 2,
+                               options=JobOptions(scheduler=scheduler, threads=1),
+                               timeout=300).seconds["busy_max"] for _ in range(3))
+        simulated = simulate(store, JobOptions(scheduler=scheduler), 2,
+                             costs.with_cores(costs.cores), settings,
+                             max_pass_spp=None).seconds
+        errors[scheduler] = (f"real {real:.3f} s, simulated {simulated:.3f} s, error "
+                             f"{(simulated - real) / real:+.1%}", (simulated - real) / real)
+        print(scheduler, errors[scheduler][0])
+    # a real run shares this machine's cores with whatever else runs (os.getloadavg)
+    assert all(abs(e) <= 0.25 for _, e in errors.values()), (errors, os.getloadavg())
