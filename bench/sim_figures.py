@@ -2,7 +2,7 @@
 
 - Navrátil et al. 2012, Fig. 12: strong scaling of the ``image``, ``domain`` and ``dynamic``
   schedules, 1 to 1,024 nodes;
-- Park et al. 2018 (SpRay), Fig. 7: in situ rendering of DNS-like stores of 720 and 1,440
+- Park et al. 2018 (SpRay), Fig. 7: in situ rendering of DNS-like stores of 723 and 1,439
   domains (the paper's DNS1 and DNS2 have 720 and 1,427) on 8 and 16 nodes, ``spec-insitu``
   against the non-speculative baselines, AO and PT;
 - Xu et al. 2022, Fig. 5: an animation on 4, 8 and 16 nodes, ``temporal`` against Galaxy's
@@ -17,13 +17,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bench_scenes import CACHE, cached_rm
+from bench_scenes import cached_cosmo
 
 from vastray.actors.job_options import JobOptions
 from vastray.render.driver import shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig, parse_scene_config
-from vastray.scene.generate import generate
 from vastray.scene.store import Store
 from vastray.sim.cache import Domains
 from vastray.sim.costs import CostModel
@@ -85,8 +84,9 @@ def navratil(times: dict) -> dict:
 
 
 def dns_like(grid: tuple[int, int, int]) -> Store:
-    """The ``rm`` scene at 128^3 in ``grid`` domains (a DNS-like domain count)."""
-    return cached_rm(128, grid)
+    """The ``cosmo`` scene at 160^3 in ``grid`` cells (a DNS-like domain count: 10x10x8 gives
+    723 domains, 16x16x8 1,439; DNS1 and DNS2 have 720 and 1,427)."""
+    return cached_cosmo(160, grid)
 
 
 def spray_insitu(costs: CostModel) -> dict:
@@ -100,7 +100,7 @@ def spray_insitu(costs: CostModel) -> dict:
     print("| store | domains | integrator | nodes | spec-insitu | domain | async | "
           "domain / spec-insitu | async / spec-insitu |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for name, grid in (("DNS1-like", (12, 10, 6)), ("DNS2-like", (16, 10, 9))):
+    for name, grid in (("DNS1-like", (10, 10, 8)), ("DNS2-like", (16, 16, 8))):
         store = dns_like(grid)
         for integrator, st in settings.items():
             domains = Domains(store, shading_inputs(store, SceneConfig(), integrator)[1])
@@ -132,11 +132,8 @@ def spray_insitu(costs: CostModel) -> dict:
 
 
 def xu_store() -> Store:
-    """The ``cosmo`` scene at 128^3 in 4x4x4 domains (the temporal bench's, smaller)."""
-    path = CACHE / "cosmo-128-4x4x4.store"
-    if not (path / "manifest.json").is_file():
-        generate("cosmo", path, 128, grid=(4, 4, 4), seed=0, overwrite=True, progress=True)
-    return Store(path)
+    """The ``cosmo`` scene at 160^3 in 4x4x4 domains (the temporal bench's)."""
+    return cached_cosmo(160, (4, 4, 4))
 
 
 def xu_fig5(costs: CostModel) -> dict:

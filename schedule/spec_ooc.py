@@ -45,7 +45,6 @@ from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
 from vastray.schedule.soa import DomainQueues, SoA, index_of
-from vastray.schedule.traversal import traversal_score
 
 
 @dataclass(frozen=True)
@@ -104,7 +103,11 @@ class SpeculativeSchedule:
         self.window_start = 0
         self.radiance = DomainQueues(n_domains)
         self.shadow = DomainQueues(n_domains)
-        self.counter = np.zeros((n_domains, max(n_domains, 1)), np.int64)  # Counter[i][j]
+        # SpRay's traversal score, Score[i] = sum_j (M - j) Counter[i][j] (M = D), kept up to
+        # date as rays are queued and taken: Counter itself, (D, D), was 16 MB a tile at
+        # 1,439 domains and every rescore multiplied all of it
+        self.score = np.zeros(n_domains, np.int64)
+        self._depth_weight = max(n_domains, 1)
         self.spill: list[SoA] = []
         self.commit: list[SoA] = []
         self.retire: list[SoA] = []
@@ -160,7 +163,7 @@ class SpeculativeSchedule:
                         return domain
             while self._schedule:
                 if self.resident_first and self.rescore and len(self._schedule) > 1:
-                    self._schedule = traversal_order(self.counter, resident, self._schedule)
+                    self._schedule = traversal_order(self.score, resident, self._schedule)
                 domain = self._schedule[0]
                 if lazy and domain not in resident:
                     going = victim()
@@ -227,6 +230,10 @@ class SpeculativeSchedule:
         in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
 
+    def _weights(self, rank: np.ndarray) -> int:
+        """Sum of the score weights (M - j) of rays at positions ``rank`` along their paths."""
+        return int(len(rank) * self._depth_weight - rank.astype(np.int64).sum())
+
     # -- filtering (Listing 3) ----------------------------------------------------------------
     def _filter(self, domain: int) -> bool:
         """Take the domain's queues, update the statistics, drop the rays that need no test
@@ -234,7 +241,7 @@ class SpeculativeSchedule:
         radiance = self.radiance.pop(domain)
         if radiance is not None:
             level = radiance["depth"].astype(np.int64) - self.window_start
-            np.add.at(self.counter, (np.full(len(radiance), domain), radiance["rank"]), -1)
+            self.score[domain] -= self._weights(radiance["rank"])
             np.subtract.at(self.pending, (radiance["path"], level), 1)
             live, keep = self._radiance_predicate(radiance, level)
             self.counters["wasted_rays"] += int(np.count_nonzero(~live))
@@ -243,7 +250,7 @@ class SpeculativeSchedule:
         shadow = self.shadow.pop(domain)
         if shadow is not None:
             sid = shadow["sid"]
-            np.add.at(self.counter, (np.full(len(shadow), domain), shadow["rank"]), -1)
+            self.score[domain] -= self._weights(shadow["rank"])
             self.shadow_pending[sid] -= 1
             live, keep = self._shadow_predicate(shadow)
             self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
@@ -278,7 +285,7 @@ class SpeculativeSchedule:
     # -- rounds and windows -------------------------------------------------------------------
     def _new_round(self) -> None:
         """Schedule the round (Listing 2, line 12; see ``traversal_order``)."""
-        self._schedule = traversal_order(self.counter,
+        self._schedule = traversal_order(self.score,
                                          self._resident if self.resident_first else frozenset())
         self.counters["rounds"] += 1
 
@@ -345,7 +352,7 @@ class SpeculativeSchedule:
         copies["rank"] = rank
         level = copies["depth"].astype(np.int64) - self.window_start
         np.add.at(self.pending, (copies["path"], level), 1)
-        np.add.at(self.counter, (domain, rank), 1)
+        np.add.at(self.score, domain, self._depth_weight - rank.astype(np.int64))
         self.radiance.push(domain, copies)
 
     def _process_radiance(self, domain: int, bvh, rays: SoA
@@ -460,7 +467,7 @@ class SpeculativeSchedule:
         if len(ray):
             copies = soa.take(ray)
             copies["entry"], copies["rank"] = entry, rank
-            np.add.at(self.counter, (dom, rank), 1)
+            np.add.at(self.score, dom, self._depth_weight - rank.astype(np.int64))
             self.shadow.push(dom, copies)
 
     def _refilter_shadow(self, rays: SoA) -> np.ndarray:
@@ -530,11 +537,11 @@ def _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto, out):
         out[i] = same
 
 
-def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
+def traversal_order(score: np.ndarray, resident: frozenset[int] = frozenset(),
                     domains: list[int] | None = None) -> list[int]:
     """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
-    ``Score[i] = sum_j (M - j) * Counter[i][j]`` for ``Counter`` (N, M) (``traversal_score``),
-    lowest id on ties.
+    ``score`` (N,): ``Score[i] = sum_j (M - j) * Counter[i][j]`` (``traversal_score``), lowest
+    id on ties.
 
     Domains in ``resident`` go first (still by score among themselves). A fixed cyclic order is
     the worst case for an LRU cache smaller than the cycle (every access misses); starting each
@@ -542,7 +549,7 @@ def traversal_order(counter: np.ndarray, resident: frozenset[int] = frozenset(),
     measures both orders). Empty ``resident`` gives the paper's order. ``domains`` (ids) ranks
     only those (the rest of a round, re-ranked by the scores of now); default: every domain.
     """
-    ids = np.arange(len(counter)) if domains is None else np.asarray(domains, np.int64)
-    score = traversal_score(counter[ids])
+    ids = np.arange(len(score)) if domains is None else np.asarray(domains, np.int64)
+    score = score[ids]
     away = ~np.isin(ids, np.fromiter(resident, np.int64, len(resident)))
     return ids[np.lexsort((ids, -score, away))].tolist()

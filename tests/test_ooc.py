@@ -21,6 +21,7 @@ from vastray.scene.partition import partition_kd
 from vastray.scene.readers import read_mesh
 from vastray.scene.store import Store, StoreWriter
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule, traversal_order
+from vastray.schedule.traversal import traversal_score
 
 from scenes import bumpy_scene, camera_config, settings, write_store
 
@@ -137,9 +138,11 @@ def test_traversal_order_follows_the_score():
                         [1, 0, 0],
                         [0, 2, 0],
                         [2, 1, 0]])
-    assert traversal_order(counter) == [3, 2, 0, 1]
-    assert traversal_order(counter, frozenset({1, 2})) == [2, 1, 3, 0]
-    assert traversal_order(np.zeros((3, 3), np.int64)) == [0, 1, 2]
+    score = traversal_score(counter)
+    assert score.tolist() == [3, 3, 4, 8]
+    assert traversal_order(score) == [3, 2, 0, 1]
+    assert traversal_order(score, frozenset({1, 2})) == [2, 1, 3, 0]
+    assert traversal_order(np.zeros(3, np.int64)) == [0, 1, 2]
 
 
 def test_traversal_order_ranks_the_rest_of_a_round():
@@ -148,10 +151,10 @@ def test_traversal_order_ranks_the_rest_of_a_round():
                         [1, 0, 0],
                         [0, 2, 0],
                         [2, 1, 0]])
-    assert traversal_order(counter, domains=[0, 1, 2]) == [2, 0, 1]
+    assert traversal_order(traversal_score(counter), domains=[0, 1, 2]) == [2, 0, 1]
     counter[1, 0] = 5  # rays queued for domain 1 during the round
-    assert traversal_order(counter, domains=[0, 1, 2]) == [1, 2, 0]
-    assert traversal_order(counter, frozenset({0}), [0, 1, 2]) == [0, 1, 2]
+    assert traversal_order(traversal_score(counter), domains=[0, 1, 2]) == [1, 2, 0]
+    assert traversal_order(traversal_score(counter), frozenset({0}), [0, 1, 2]) == [0, 1, 2]
 
 
 def _drive(store, config, st, cache_capacity, **options):
@@ -213,7 +216,7 @@ def test_spec_ooc_first_round_follows_the_score(bumpy, config):
     policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                  resident_first=False)
     policy.start(camera_rays(setup.camera, ctx))
-    expected = traversal_order(policy.counter.copy())
+    expected = traversal_order(policy.score.copy())
     cache = DomainCache(bumpy, len(bumpy.domains), setup.keep)
     visited = []
     while (domain := policy.next_domain()) is not None and policy.counters["rounds"] == 1:
