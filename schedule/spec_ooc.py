@@ -108,6 +108,7 @@ class SpeculativeSchedule:
         # 1,439 domains and every rescore multiplied all of it
         self.score = np.zeros(n_domains, np.int64)
         self._depth_weight = max(n_domains, 1)
+        self._ranked_for: frozenset[int] | None = None  # resident set the schedule is ranked for
         self.spill: list[SoA] = []
         self.commit: list[SoA] = []
         self.retire: list[SoA] = []
@@ -162,8 +163,13 @@ class SpeculativeSchedule:
                     if self._filter(domain):
                         return domain
             while self._schedule:
-                if self.resident_first and self.rescore and len(self._schedule) > 1:
+                if (self.resident_first and self.rescore and len(self._schedule) > 1
+                        and self._ranked_for != resident):
+                    # ranked again only if a score or the resident set changed: ranking the
+                    # same scores again gives the same order (a D^2 loop at thousands of
+                    # domains, most of the schedule being domains with nothing queued)
                     self._schedule = traversal_order(self.score, resident, self._schedule)
+                    self._ranked_for = resident
                 domain = self._schedule[0]
                 if lazy and domain not in resident:
                     going = victim()
@@ -230,6 +236,11 @@ class SpeculativeSchedule:
         in_flight = self.radiance.total() + self.shadow.total() + sum(map(len, self.spill))
         self.counters["rays_in_flight_peak"] = max(self.counters["rays_in_flight_peak"], in_flight)
 
+    def _add_score(self, domain, weight) -> None:
+        """Add ``weight`` to the score of ``domain`` (an id, or ids with a weight each)."""
+        np.add.at(self.score, domain, weight)
+        self._ranked_for = None  # the remaining schedule must be ranked again
+
     def _weights(self, rank: np.ndarray) -> int:
         """Sum of the score weights (M - j) of rays at positions ``rank`` along their paths."""
         return int(len(rank) * self._depth_weight - rank.astype(np.int64).sum())
@@ -241,7 +252,7 @@ class SpeculativeSchedule:
         radiance = self.radiance.pop(domain)
         if radiance is not None:
             level = radiance["depth"].astype(np.int64) - self.window_start
-            self.score[domain] -= self._weights(radiance["rank"])
+            self._add_score(domain, -self._weights(radiance["rank"]))
             np.subtract.at(self.pending, (radiance["path"], level), 1)
             live, keep = self._radiance_predicate(radiance, level)
             self.counters["wasted_rays"] += int(np.count_nonzero(~live))
@@ -250,7 +261,7 @@ class SpeculativeSchedule:
         shadow = self.shadow.pop(domain)
         if shadow is not None:
             sid = shadow["sid"]
-            self.score[domain] -= self._weights(shadow["rank"])
+            self._add_score(domain, -self._weights(shadow["rank"]))
             self.shadow_pending[sid] -= 1
             live, keep = self._shadow_predicate(shadow)
             self.counters["wasted_rays"] += int(np.count_nonzero(~live & ~self.shadow_blocked[sid]))
@@ -287,6 +298,7 @@ class SpeculativeSchedule:
         """Schedule the round (Listing 2, line 12; see ``traversal_order``)."""
         self._schedule = traversal_order(self.score,
                                          self._resident if self.resident_first else frozenset())
+        self._ranked_for = None
         self.counters["rounds"] += 1
 
     def _end_round(self) -> bool:
@@ -352,7 +364,7 @@ class SpeculativeSchedule:
         copies["rank"] = rank
         level = copies["depth"].astype(np.int64) - self.window_start
         np.add.at(self.pending, (copies["path"], level), 1)
-        np.add.at(self.score, domain, self._depth_weight - rank.astype(np.int64))
+        self._add_score(domain, self._depth_weight - rank.astype(np.int64))
         self.radiance.push(domain, copies)
 
     def _process_radiance(self, domain: int, bvh, rays: SoA
@@ -467,7 +479,7 @@ class SpeculativeSchedule:
         if len(ray):
             copies = soa.take(ray)
             copies["entry"], copies["rank"] = entry, rank
-            np.add.at(self.score, dom, self._depth_weight - rank.astype(np.int64))
+            self._add_score(dom, self._depth_weight - rank.astype(np.int64))
             self.shadow.push(dom, copies)
 
     def _refilter_shadow(self, rays: SoA) -> np.ndarray:

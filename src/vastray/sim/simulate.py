@@ -11,6 +11,7 @@ one; only time is the cost model's.
 from __future__ import annotations
 
 import asyncio
+import os
 import time
 from dataclasses import dataclass, field, replace
 
@@ -117,6 +118,7 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
                          f"{options.scheduler!r}")
     if nodes < 1:
         raise ValueError("the simulator needs at least 1 node")
+    _check_memory(options.scheduler, nodes, len(store.domains))
     config = SceneConfig() if config is None else config
     options = node_options(options)
     own = domains is None
@@ -137,6 +139,21 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
                      unit_seconds, max(r for _, r, _ in per_node), cluster.compute_s,
                      _summed([c for _, _, c in per_node]), cluster.messages, cluster.bytes,
                      film, time.perf_counter() - start, costs)
+
+
+def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
+    """Refuse a simulation whose nodes' state cannot fit in this machine's memory: every
+    virtual node lives in this process, and a ``temporal`` node's frame statistics hold
+    (D, D) transmission counts, about four copies of them during the tree reduce."""
+    if scheduler != "temporal":
+        return
+    need = 4 * 8 * n_domains ** 2 * nodes
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > memory / 2:
+        raise ValueError(f"temporal on {nodes} virtual nodes of {n_domains} domains needs "
+                         f"about {need / 2 ** 30:.0f} GiB for the nodes' frame statistics "
+                         f"((D, D) per node) and this machine has {memory / 2 ** 30:.0f} GiB: "
+                         "simulate fewer nodes or a store of fewer domains")
 
 
 async def _render(store, options, size, costs, settings, config, units, domains):
