@@ -518,9 +518,10 @@ def test_cli_prints_a_line_per_run_and_writes_the_image_and_the_report(store, tm
 
 
 def test_cli_warm_and_cores_options_reach_the_costs(store, tmp_path):
-    dataclasses.replace(COSTS, warmup_s=1.0).save(tmp_path / "costs.json")
+    dataclasses.replace(COSTS, warmup_s=1.0, cores=3).save(tmp_path / "costs.json")
     runs = {}
-    for name, extra in (("cold", []), ("warm", ["--warm"]), ("shared", ["--cores", "1"])):
+    for name, extra in (("cold", []), ("warm", ["--warm"]), ("shared", ["--cores", "1"]),
+                        ("calibrated", ["--cores", "calibrated"])):
         out = vastray("simulate", store.path, "--nodes", "2", "--scheduler", "async", *SMALL,
                       "--report", f"{name}.json", "--quiet", *extra, cwd=tmp_path)
         assert out.returncode == 0 and not out.stdout, out.stderr
@@ -529,6 +530,9 @@ def test_cli_warm_and_cores_options_reach_the_costs(store, tmp_path):
     assert seconds["cold"] - seconds["warm"] >= 0.9
     assert runs["warm"]["costs"]["warmup_s"] == 0.0 and runs["cold"]["costs"]["cores"] is None
     assert runs["shared"]["costs"]["cores"] == 1 and seconds["shared"] > seconds["cold"]
+    assert runs["calibrated"]["costs"]["cores"] == 3  # the calibrated machine's
+    bad = vastray("simulate", store.path, "--cores", "0", cwd=tmp_path)
+    assert bad.returncode == 2 and "'calibrated'" in bad.stderr
 
 
 def test_cli_names_a_missing_costs_file_and_how_to_make_one(store, tmp_path):

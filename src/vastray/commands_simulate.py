@@ -13,6 +13,7 @@ examples:
   vastray simulate rm.store --nodes 64 --scheduler spec-insitu --costs costs.json -o sim.exr
   vastray simulate rm.store --nodes 4 --scheduler temporal,async --frames 4 --scene orbit.toml
   vastray simulate rm.store --nodes 4 --cores 2 --scheduler async   # 4 nodes on 2 cores
+  vastray simulate rm.store --nodes 4 --cores calibrated          # ... on the calibrated machine's
 
 Every virtual node runs the nodes' own code (the schedulers' policies of vastray.schedule,
 the runtimes of vastray.actors, the tree reduce, the termination detection) over a simulated
@@ -21,7 +22,8 @@ domains the true one, while time is the cost model's (per ray query and activati
 loaded and triangle built, per message and byte sent: a tree reduction costs its messages,
 and what a fresh node pays once). The simulated seconds are a node's busy time, as a real run's busy_max.
 By default each node has a core of its own (a cluster); --cores N shares N cores between
-them (node processes on one machine, as `vastray render --nodes` runs them).
+them (node processes on one machine, as `vastray render --nodes` runs them), and --cores
+calibrated the calibrated machine's cores.
 """
 
 
@@ -48,8 +50,10 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
                    help=f"schedulers, among {', '.join(SIM_SCHEDULERS)} (default: async)")
     s.add_argument("--costs", default="costs.json", metavar="FILE",
                    help="calibration file of `vastray calibrate` (default: costs.json)")
-    s.add_argument("--cores", type=_positive, metavar="N",
-                   help="cores the nodes share (default: one per node, a cluster)")
+    s.add_argument("--cores", type=_cores, metavar="N|calibrated",
+                   help="cores the nodes share: N, or 'calibrated' for the calibrated "
+                        "machine's (to reproduce `vastray render --nodes` there; default: "
+                        "one per node, a cluster)")
     s.add_argument("--warm", action="store_true",
                    help="nodes already started and warm: no first-use or set-up cost (a "
                         "long job's later frames, a running service)")
@@ -76,6 +80,19 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
     s.add_argument("--report", metavar="FILE", help="write every run's figures as JSON")
     s.add_argument("--quiet", action="store_true", help="print nothing but errors")
     s.set_defaults(func=cmd_simulate)
+
+
+def _cores(text: str) -> int | str:
+    if text == "calibrated":
+        return text
+    try:
+        cores = int(text)
+    except ValueError:
+        cores = 0
+    if cores < 1:
+        raise argparse.ArgumentTypeError(f"give a number of cores (at least 1) or "
+                                         f"'calibrated', not {text!r}")
+    return cores
 
 
 def _counts(text: str) -> list[int]:
@@ -114,7 +131,7 @@ def cmd_simulate(args) -> int:
     from vastray.sim.simulate import simulate
 
     costs = CostModel.load(args.costs)
-    costs = costs.with_cores(args.cores)
+    costs = costs.with_cores(costs.cores if args.cores == "calibrated" else args.cores)
     costs = costs.warm() if args.warm else costs
     if args.output:
         check_image_path(args.output)
@@ -135,7 +152,7 @@ def cmd_simulate(args) -> int:
         f"{settings.height}, {settings.spp} spp {settings.integrator}"
         f"{f', {args.frames} frames' if args.frames else ''}; costs of "
         f"{costs.machine.get('hostname', '?')} ({args.costs}), "
-        f"{'one core per node' if args.cores is None else f'{args.cores} shared cores'}"
+        f"{'one core per node' if costs.cores is None else f'{costs.cores} shared cores'}"
         f"{', warm nodes' if args.warm else ''}")
     domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
     runs, film = [], None
