@@ -186,7 +186,7 @@ def main() -> None:
     if not args.quick:
         from sim_figures import paper_figures
 
-        figures = paper_figures(costs, times)
+        figures = paper_figures(costs, times, len(big.domains))
     if args.json:
         Path(args.json).write_text(json.dumps({"costs": costs.as_dict(), "validation": rows,
                                                "scaling": times, "figures": figures},
