@@ -22,7 +22,34 @@ from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 
 
-class DomainPreloader:
+class CacheFront:
+    """What a schedule reads of a node's domain cache and sets on it (``self.cache``, a
+    ``DomainCache``): shared by the real preloader and the simulator's."""
+
+    cache: DomainCache
+
+    def prioritise(self, priority: np.ndarray | None, protect: Iterable[int] = ()) -> None:
+        """Evict the lowest of ``priority`` ((D,), None: least recently used) first, and never
+        ``protect`` (the active domain and the one preloaded next) for a preload."""
+        self.cache.prioritise(priority, protect)
+
+    def resident(self) -> frozenset[int]:
+        """Domains resident or being loaded."""
+        return self.cache.resident_set()
+
+    def victim(self) -> int | None:
+        """The domain a load now would evict (None while there is room)."""
+        return self.cache.victim()
+
+    def load_count(self, domain: int) -> int:
+        """Times ``domain`` has been loaded so far (preloads included)."""
+        return self.cache.load_count(domain)
+
+    def loads_per_domain(self) -> dict[int, int]:
+        return dict(self.cache.stats.loads_per_domain)
+
+
+class DomainPreloader(CacheFront):
     """A node's domain cache with a loading thread.
 
     Parameters
@@ -62,30 +89,10 @@ class DomainPreloader:
         if self.enabled and domain is not None:
             self.cache.prefetch(int(domain))
 
-    def prioritise(self, priority: np.ndarray | None, protect: Iterable[int] = ()) -> None:
-        """Evict the lowest of ``priority`` ((D,), None: least recently used) first, and never
-        ``protect`` (the active domain and the one preloaded next) for a preload."""
-        self.cache.prioritise(priority, protect)
-
-    def resident(self) -> frozenset[int]:
-        """Domains resident or being loaded."""
-        return self.cache.resident_set()
-
-    def victim(self) -> int | None:
-        """The domain a load now would evict (None while there is room)."""
-        return self.cache.victim()
-
-    def load_count(self, domain: int) -> int:
-        """Times ``domain`` has been loaded so far (preloads included)."""
-        return self.cache.load_count(domain)
-
     def load_bandwidth_mb_s(self) -> float | None:
         """The emulated storage bandwidth every load is held to, in MB/s (None: none)."""
         bandwidth = self.cache.load_bandwidth
         return None if bandwidth is None else bandwidth / 1e6
-
-    def loads_per_domain(self) -> dict[int, int]:
-        return dict(self.cache.stats.loads_per_domain)
 
     def stats(self) -> dict:
         """Counters for the node's report: loads, preloads, load_s, load_wait_s,

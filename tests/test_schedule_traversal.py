@@ -71,5 +71,5 @@ def test_spec_ooc_orders_domains_as_before(n, seed, subset):
     counter = rng.integers(0, 4, (n, n)).astype(np.int64) * (rng.random((n, n)) < 0.5)
     resident = frozenset(int(d) for d in np.flatnonzero(rng.random(n) < 0.3))
     domains = [int(d) for d in rng.permutation(n)[:rng.integers(1, n + 1)]] if subset else None
-    assert traversal_order(counter, resident, domains) == old_traversal_order(counter, resident,
-                                                                              domains)
+    assert traversal_order(traversal_score(counter), resident, domains) == \
+        old_traversal_order(counter, resident, domains)

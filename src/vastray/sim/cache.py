@@ -12,6 +12,7 @@ import asyncio
 
 import numpy as np
 
+from vastray.actors.preloader import CacheFront
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
@@ -55,9 +56,9 @@ class _VirtualCache(DomainCache):
         return self.domains.get(domain_id)
 
 
-class VirtualPreloader:
+class VirtualPreloader(CacheFront):
     """A node's preloader in virtual time, with ``actors.preloader.DomainPreloader``'s
-    interface (what schedules and frames call).
+    interface (what schedules and frames call; what reads and sets the cache is theirs).
 
     Parameters
     ----------
@@ -133,21 +134,6 @@ class VirtualPreloader:
             cache.stats.preloads += 1
         finally:
             cache._pending.pop(domain, None)
-
-    def prioritise(self, priority, protect=()) -> None:
-        self.cache.prioritise(priority, protect)
-
-    def resident(self) -> frozenset[int]:
-        return self.cache.resident_set()
-
-    def victim(self) -> int | None:
-        return self.cache.victim()
-
-    def load_count(self, domain: int) -> int:
-        return self.cache.load_count(domain)
-
-    def loads_per_domain(self) -> dict[int, int]:
-        return dict(self.cache.stats.loads_per_domain)
 
     def load_bandwidth_mb_s(self) -> float | None:
         return None if self.bandwidth is None else self.bandwidth / 1e6
