@@ -181,6 +181,14 @@ def main() -> None:
     print(f"\nscaling on {big.path.name} ({len(big.domains)} domains), "
           f"{settings.width}x{settings.height} px, {settings.spp} spp, one core per node, warm:")
     times = scaling(big, costs, SIM_SCHEDULERS, counts, settings)
+    refused = {s: [p for p in counts if p not in by] for s, by in times.items()}
+    fallback = cached_rm(128, (16, 8, 8))  # fewer domains: what one process can hold
+    for scheduler, missing in refused.items():
+        if missing:
+            print(f"  {scheduler} at {missing} nodes on {fallback.path.name} "
+                  f"({len(fallback.domains)} domains) instead:")
+            times[f"{scheduler}@{len(fallback.domains)}-domains"] = scaling(
+                fallback, costs, [scheduler], (1, *missing), settings)[scheduler]
     speedup_table(times, counts)
     figures = {}
     if not args.quick:
