@@ -66,7 +66,8 @@ def costs_here(quick: bool, store) -> CostModel:
     costs = calibrate(store.path, quick=quick)
     costs.save(CACHE / "costs.json")
     print("  " + ", ".join(f"{k}={v:.3g}" for k, v in costs.as_dict().items()
-                           if isinstance(v, float)) + f", cores={costs.cores}", flush=True)
+                           if isinstance(v, float)) + f", cores={costs.cores}, throughput="
+          + "/".join(f"{t:.2f}" for t in costs.throughput), flush=True)
     return costs
 
 
@@ -161,6 +162,8 @@ def main() -> None:
                              "scaling and figures only depend on it, not on the machine's load)")
     parser.add_argument("--skip-validation", action="store_true",
                         help="no real runs: the scaling and figures only")
+    parser.add_argument("--validation-only", action="store_true",
+                        help="the validation only (no scaling, no figures)")
     args = parser.parse_args()
     start = time.perf_counter()
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
@@ -175,6 +178,12 @@ def main() -> None:
         worst = max(abs(r["error"]) for r in rows)
         print(f"\nsim_error_max={worst:.3f}")
         print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
+    if args.validation_only:
+        if args.json:
+            Path(args.json).write_text(json.dumps({"costs": costs.as_dict(),
+                                                   "validation": rows}, indent=1))
+        print(f"\n{time.perf_counter() - start:.0f} s in all")
+        return
     big = cached_cosmo(160, SCALING_GRID)
     counts = (1, 64, 1024) if args.quick else tuple(2 ** k for k in range(11))
     settings = SCALING_QUICK if args.quick else SCALING

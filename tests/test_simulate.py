@@ -31,6 +31,7 @@ from vastray.scene.store import Store
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.clock import Deadlock, run_virtual
 from vastray.sim.cluster import Cluster
+from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
 from vastray.transport.codec import Message
@@ -40,7 +41,7 @@ SETTINGS = RenderSettings(width=32, height=24, spp=2, bounces=1, shadow_samples=
 COSTS = CostModel()
 #: Every cost 0: a test sets the ones it looks at.
 ZERO = CostModel(**{f.name: 0.0 for f in dataclasses.fields(CostModel)
-                    if f.name not in ("cores", "machine")})
+                    if f.name not in ("cores", "machine", "throughput")})
 #: The trace costs (per query and per activation).
 TRACE_COSTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
                "shadow_activation_s")
@@ -165,7 +166,7 @@ def test_a_hand_made_model_round_trips_and_unknown_or_bad_fields_are_refused(tmp
 
 
 # -- the virtual cluster --------------------------------------------------------------------
-def test_compute_overlaps_on_own_cores_and_queues_on_shared_ones():
+def test_compute_overlaps_on_own_cores_and_shares_shared_ones():
     async def work(costs):
         cluster = Cluster(3, costs)
         await asyncio.gather(*(cluster.compute(rank, 1.0) for rank in range(3)))
@@ -173,8 +174,29 @@ def test_compute_overlaps_on_own_cores_and_queues_on_shared_ones():
 
     compute_s, seconds = run_virtual(work(COSTS))
     assert seconds == 1.0 and list(compute_s) == [1.0, 1.0, 1.0, 0.0]
-    assert run_virtual(work(COSTS.with_cores(2)))[1] == 2.0
-    assert run_virtual(work(COSTS.with_cores(1)))[1] == 3.0
+    # processor sharing: three jobs on two cores all run at 2/3 speed
+    assert run_virtual(work(COSTS.with_cores(2)))[1] == pytest.approx(1.5)
+    assert run_virtual(work(COSTS.with_cores(1)))[1] == pytest.approx(3.0)
+    # a machine whose 2 cores give 1.5 cores' work with 2 or more busy processes
+    slow = dataclasses.replace(COSTS, cores=2, throughput=(1.0, 1.5))
+    assert run_virtual(work(slow))[1] == pytest.approx(2.0)
+
+
+def test_shared_cores_speed_jobs_up_as_others_finish():
+    async def work():
+        cores = SharedCores(1)
+        short = asyncio.ensure_future(cores.run(1.0))
+        long = asyncio.ensure_future(cores.run(3.0))
+        await short
+        at_short = asyncio.get_running_loop().time()
+        await long
+        return at_short
+
+    at_short, seconds = run_virtual(work())
+    # both at half speed until the short one is done (2 s), then the long one alone
+    assert at_short == pytest.approx(2.0) and seconds == pytest.approx(4.0)
+    with pytest.raises(ValueError, match="throughput"):
+        CostModel(throughput=(1.0, -1.0))
 
 
 def test_a_message_costs_its_sender_and_lands_in_the_mailbox_of_its_kind():

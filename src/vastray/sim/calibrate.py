@@ -8,7 +8,8 @@ machine it runs on, with the project's own components, never mocks.
   and the camera rays it starts from;
 - the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
-- first use: a fresh process's first render beyond its second (``vastray.sim.warmup``);
+- fresh processes (``vastray.sim.warmup``): the first render's cost beyond the later ones,
+  and the machine's throughput with 1 to 2 x cores processes rendering side by side;
 - a node's own set-up: real 1-node ``async`` and ``image`` renders against the simulator's
   predictions of them (``vastray.sim.node_cost``).
 
@@ -46,7 +47,7 @@ from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import setup_cost
-from vastray.sim.warmup import measure_warmup
+from vastray.sim.warmup import process_costs
 from vastray.transport.codec import Message, decode, encode
 
 #: ``progress(fraction, text)``: fraction in [0, 1] of the calibration done, and what runs now.
@@ -93,8 +94,8 @@ QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=
                min_pings=4)
 
 #: Share of the run each stage takes (for ``progress``), in the order they run.
-STAGES = {"setup": 0.03, "loads": 0.14, "tracing": 0.34, "wire": 0.32, "warmup": 0.08,
-          "node": 0.09}
+STAGES = {"setup": 0.03, "loads": 0.1, "tracing": 0.25, "wire": 0.24, "warmup": 0.3,
+          "node": 0.08}
 
 
 def node_settings(settings: RenderSettings) -> RenderSettings:
@@ -160,17 +161,19 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     tracing = trace_costs(time_tiles(store, setup, settings, effort, report.within("tracing")))
     report("wire", 0.0, "ray batches between two processes")
     latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
-    report("warmup", 0.0, "a fresh process's first render")
-    warmup_s = measure_warmup(store_path, quick, repeats=1 if quick else 3)
+    report("warmup", 0.0, "fresh processes, one and several at a time")
+    cores = usable_cores()
+    warmup_s, throughput = process_costs(str(store_path), quick, cores)
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
-        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s,
-        cores=usable_cores())
+        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s, cores=cores,
+        throughput=throughput)
     report("node", 0.0, "renders on a real node")
     config, node_render = config or SceneConfig(text=""), node_settings(settings)
-    node_setup_s = setup_cost(store_path, model, config, node_render, "async")
+    repeats = 1 if quick else 3
+    node_setup_s = setup_cost(store_path, model, config, node_render, "async", repeats)
     report("node", 0.5, "renders on a real node")
-    tile_setup_s = setup_cost(store_path, model, config, node_render, "image")
+    tile_setup_s = setup_cost(store_path, model, config, node_render, "image", repeats)
     report("node", 1.0, "done")
     return replace(
         model, node_setup_s=node_setup_s, tile_setup_s=tile_setup_s,

@@ -1,10 +1,11 @@
 """P virtual nodes and their coordinator in virtual time: cores and the network.
 
-Costs come from a ``CostModel``. Compute holds a core for its cost: with ``cores`` set, every
-node and the coordinator share that many (node processes sharing one machine); otherwise each
-has its own. A message costs its sender's core the one-way time measured between two processes
-(encoding, copies, decoding; ``CostModel.message_s``) and is then delivered, in order
-between any two endpoints (as ZeroMQ's). A tree reduction costs what its messages cost: the
+Costs come from a ``CostModel``. With ``cores`` set, every node and the coordinator share
+that many cores, as the operating system shares them among node processes on one machine
+(``SharedCores``); otherwise each has a core of its own. A message costs its sender's core
+the one-way time measured between two processes (encoding, copies, decoding;
+``CostModel.message_s``) and is then delivered, in order between any two endpoints (as
+ZeroMQ's). A tree reduction costs what its messages cost: the
 actors' own tree-reduce sends them.
 """
 
@@ -15,6 +16,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 from vastray.transport.codec import Message
 
@@ -32,7 +34,7 @@ class Cluster:
     def __init__(self, size: int, costs: CostModel):
         self.size, self.costs = size, costs
         self.coordinator = size  # the coordinator's endpoint
-        self._cores = asyncio.Semaphore(costs.cores) if costs.cores else None
+        self._cores = SharedCores(costs.cores, costs.throughput) if costs.cores else None
         #: each endpoint's mailboxes by message kind (as a management actor's)
         self.mailboxes = [defaultdict(asyncio.Queue) for _ in range(size + 1)]
         self.compute_s = np.zeros(size + 1)  # (P + 1,) seconds each endpoint computed
@@ -46,16 +48,15 @@ class Cluster:
         return asyncio.get_running_loop().time()
 
     async def compute(self, rank: int, seconds: float) -> None:
-        """Endpoint ``rank`` works ``seconds`` on a core (waiting for one if the cores are
-        shared)."""
+        """Endpoint ``rank`` works ``seconds`` on a core of its own, or sharing the cores
+        (``SharedCores``: as fast as the machine's measured throughput lets)."""
         if seconds <= 0:
             return
         self.compute_s[rank] += seconds
         if self._cores is None:
             await asyncio.sleep(seconds)
-            return
-        async with self._cores:
-            await asyncio.sleep(seconds)
+        else:
+            await self._cores.run(seconds)
 
     async def trace(self, rank: int, seconds: float, node_runtime: bool) -> None:
         """Node ``rank`` traces for ``seconds`` (``CostModel.trace_s`` of its activations).

@@ -45,8 +45,10 @@ class CostModel:
         event loop).
     tile_setup_s : the same for a sort-first node (``image``, ``spec-ooc``), which runs the
         one-process runtime on a thread of its own.
-    cores : cores of the calibrated machine: node processes run on this many at once when
-        the simulator reproduces a run on it (None: every node has a core of its own).
+    cores : cores of the calibrated machine: node processes share this many when the
+        simulator reproduces a run on it (None: every node has a core of its own).
+    throughput : the calibrated machine's aggregate throughput with 1, 2, ... busy processes,
+        in single-process speeds (empty: ideal, one core's worth per core).
     machine : what machine the constants were measured on (free text for reports).
     """
 
@@ -64,17 +66,24 @@ class CostModel:
     node_setup_s: float = 0.0
     tile_setup_s: float = 0.0
     cores: int | None = None
+    throughput: tuple = ()
     machine: dict = field(default_factory=dict)
 
     def __post_init__(self):
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("machine", "cores"):
+            if f.name in ("machine", "cores", "throughput"):
                 continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"cost {f.name} must be a finite number >= 0, got {value!r}")
         if self.cores is not None and (not isinstance(self.cores, int) or self.cores < 1):
             raise ValueError(f"cores must be a positive integer or None, got {self.cores!r}")
+        throughput = tuple(self.throughput) if isinstance(self.throughput, (list, tuple)) \
+            else (None,)
+        if not all(isinstance(t, (int, float)) and math.isfinite(t) and t > 0
+                   for t in throughput):
+            raise ValueError(f"throughput must be positive numbers, got {self.throughput!r}")
+        object.__setattr__(self, "throughput", throughput)
 
     def trace_s(self, radiance: int, shadow: int) -> float:
         """Seconds of one activation that makes ``radiance`` closest-hit and ``shadow``

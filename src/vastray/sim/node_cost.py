@@ -22,9 +22,9 @@ NODE_RENDER_TIMEOUT_S = 300.0
 
 
 def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneConfig,
-               settings: RenderSettings, scheduler: str) -> float:
-    """A real 1-node ``scheduler`` render's busy seconds minus the simulated ones (with no
-    set-up cost), >= 0.
+               settings: RenderSettings, scheduler: str, repeats: int = 1) -> float:
+    """A real 1-node ``scheduler`` render's busy seconds (the median of ``repeats`` renders)
+    minus the simulated ones (with no set-up cost), >= 0.
 
     Parameters
     ----------
@@ -32,13 +32,15 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     costs : every other constant, measured already.
     config, settings : the render (one pass, one thread, as the nodes of a job run it).
     scheduler : ``async`` (``node_setup_s``) or ``image`` (``tile_setup_s``).
+    repeats : real renders (each a fresh node process).
     """
     from vastray.sim.simulate import simulate
 
     options = JobOptions(scheduler=scheduler, threads=1)
-    real = render_distributed(store_path, None, settings, 1, options=options, config=config,
-                              timeout=NODE_RENDER_TIMEOUT_S)
+    busy = sorted(render_distributed(store_path, None, settings, 1, options=options,
+                                     config=config, timeout=NODE_RENDER_TIMEOUT_S
+                                     ).seconds["busy_max"] for _ in range(repeats))
     simulated = simulate(Store(store_path), options, 1,
                          replace(costs, node_setup_s=0.0, tile_setup_s=0.0), settings, config,
                          max_pass_spp=None)
-    return max(0.0, real.seconds["busy_max"] - simulated.seconds)
+    return max(0.0, busy[len(busy) // 2] - simulated.seconds)

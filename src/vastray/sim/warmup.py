@@ -1,9 +1,11 @@
-"""The first-use cost of a fresh process, measured in one: ``python -m vastray.sim.warmup
-STORE`` renders the calibration image out of core twice (the ``image`` schedule: scene set-up,
-every domain loaded and its BVH built, the tile traced, the film filled) and prints the
-seconds the first took beyond the second, as JSON. What every rendering node pays once:
-compiled kernels loaded from numba's cache, Embree's device made, modules imported on first
-use, first touches of memory."""
+"""What fresh processes measure: ``python -m vastray.sim.warmup STORE --start-at T`` renders
+the calibration's node image out of core (the ``image`` schedule: scene set-up, every domain loaded
+and its BVH built, the tile traced, the film filled), waits until the wall clock reaches T,
+renders it ``--repeat`` times more and prints, as JSON, the first render's extra seconds
+(``warmup_s``: compiled kernels loaded from numba's cache, Embree's device made, modules
+imported on first use) and the later renders' mean seconds. Started k at a time, with the
+same T, the later renders run side by side: the machine's throughput with k busy processes.
+"""
 
 from __future__ import annotations
 
@@ -14,46 +16,93 @@ import time
 
 from vastray.scene.errors import InputError
 
-#: Seconds the measuring process may take (it starts Python, imports, renders twice).
-WARMUP_TIMEOUT_S = 300.0
+#: Seconds a measuring process may take (it starts Python, imports, renders a few times).
+PROCESS_TIMEOUT_S = 300.0
+#: Seconds from starting the processes to their side-by-side renders (imports, first render).
+START_IN_S = 6.0
 
 
-def measure_warmup(store_path: str, quick: bool, repeats: int = 1) -> float:
-    """Seconds of first-use cost in a fresh process (``python -m vastray.sim.warmup``), the
-    median of ``repeats`` processes."""
-    command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path)]
-    seconds = []
-    for _ in range(repeats):
-        try:
-            done = subprocess.run(command + (["--quick"] if quick else []),
-                                  capture_output=True, text=True, timeout=WARMUP_TIMEOUT_S,
-                                  check=False)
-        except subprocess.TimeoutExpired:
-            raise RuntimeError(f"measuring a fresh process's first-use cost took over "
-                               f"{WARMUP_TIMEOUT_S:.0f} s") from None
-        if done.returncode != 0:
-            raise RuntimeError(f"measuring a fresh process's first-use cost failed: "
-                               f"{done.stderr.strip().splitlines()[-1:] or done.returncode}")
-        seconds.append(float(json.loads(done.stdout)["warmup_s"]))
-    return sorted(seconds)[len(seconds) // 2]
+def measure_processes(store_path: str, quick: bool, count: int) -> list[dict]:
+    """``count`` fresh processes side by side; each one's ``{"warmup_s", "render_s"}``."""
+    start_at = time.time() + START_IN_S
+    command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path), "--start-at",
+               str(start_at), "--repeat", "2" if quick else "3"] + (["--quick"] if quick else [])
+    processes = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                  text=True) for _ in range(count)]
+    results = []
+    try:
+        for process in processes:
+            out, err = process.communicate(timeout=PROCESS_TIMEOUT_S)
+            if process.returncode != 0:
+                raise RuntimeError(f"a calibration process failed: "
+                                   f"{err.strip().splitlines()[-1:] or process.returncode}")
+            results.append(json.loads(out))
+    except subprocess.TimeoutExpired:
+        raise RuntimeError(f"a calibration process took over {PROCESS_TIMEOUT_S:.0f} s") from None
+    finally:
+        for process in processes:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    return results
+
+
+def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, tuple[float, ...]]:
+    """(warmup_s, throughput): a fresh process's first-use cost (the median over the
+    processes of one at a time) and the aggregate throughput with k = 1 .. 2 x ``cores``
+    processes side by side, in single-process speeds (quick: k = 1, cores, 2 x cores, the
+    rest interpolated)."""
+    counts = sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
+    alone = measure_processes(store_path, quick, 1)[0]
+    measured = {1: 1.0}
+    for k in counts[1:]:
+        runs = measure_processes(store_path, quick, k)
+        measured[k] = k * alone["render_s"] / (sum(r["render_s"] for r in runs) / k)
+    known = sorted(measured)
+    throughput = tuple(float(_interpolate(known, measured, k)) for k in range(1, known[-1] + 1))
+    return alone["warmup_s"], throughput
+
+
+def _interpolate(known: list[int], values: dict[int, float], k: int) -> float:
+    if k in values:
+        return values[k]
+    below = max(x for x in known if x < k)
+    above = min(x for x in known if x > k)
+    share = (k - below) / (above - below)
+    return values[below] + share * (values[above] - values[below])
 
 
 def main(argv: list[str]) -> int:
+    import argparse
+
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
     from vastray.render.scene_config import SceneConfig
     from vastray.scene.store import Store
-    from vastray.sim.calibrate import calibration_settings
+    from vastray.sim.calibrate import calibration_settings, node_settings
 
-    store = Store(argv[0])
-    settings = calibration_settings("--quick" in argv)
-    seconds = []
-    for _ in range(2):
+    parser = argparse.ArgumentParser(prog="python -m vastray.sim.warmup")
+    parser.add_argument("store")
+    parser.add_argument("--start-at", type=float, default=0.0)
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    store = Store(args.store)
+    # the real node's render of the calibration (about 0.4 s here): long enough for the
+    # processes' renders to run side by side
+    settings = node_settings(calibration_settings(args.quick))
+
+    def render() -> float:
         start = time.perf_counter()
         render_out_of_core(store, SceneConfig(text=""), settings, JobOptions(scheduler="image"),
                            progress=False)
-        seconds.append(time.perf_counter() - start)
-    print(json.dumps({"warmup_s": max(0.0, seconds[0] - seconds[1])}))
+        return time.perf_counter() - start
+
+    first = render()
+    time.sleep(max(0.0, args.start_at - time.time()))
+    later = [render() for _ in range(args.repeat)]
+    mean = sum(later) / len(later)
+    print(json.dumps({"warmup_s": max(0.0, first - mean), "render_s": mean}))
     return 0
 
 
