@@ -56,7 +56,7 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # vectorised numpy, far cheaper than tracing and shading one
     assert model.activation_s > model.trace_ray_s + model.shade_ray_s
     assert model.camera_ray_s < model.trace_ray_s + model.shade_ray_s
-    assert seconds < 30  # quick: about 6 s here
+    assert seconds < 45  # quick: about 20 s here
 
 
 def test_quick_calibration_records_the_machine_and_reports_progress(quick, store):
@@ -194,6 +194,6 @@ def test_trace_costs_fit_calls_take_medians_and_split_shading():
 def test_the_default_calibration_fits_its_time_budget(store):
     start = time.perf_counter()
     model = cal.calibrate(store)
-    assert time.perf_counter() - start < 60
+    assert time.perf_counter() - start < 90  # about a minute here
     assert all(getattr(model, name) > 0 for name in CONSTANTS)
     assert not model.machine["calibration"]["quick"]

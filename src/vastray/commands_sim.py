@@ -14,9 +14,9 @@ from vastray.sim.costs import CostModel
 
 CALIBRATE_EPILOG = """\
 examples:
-  vastray calibrate                         # the built-in scene -> costs.json (~30 s)
+  vastray calibrate                         # the built-in scene -> costs.json (~1 min)
   vastray calibrate rm.store -o rm-costs.json
-  vastray calibrate rm.store --quick        # smaller budgets (~6 s), rougher constants
+  vastray calibrate rm.store --quick        # smaller budgets (~20 s), rougher constants
 
 what is measured, with the real components (nothing is mocked):
   loads       every domain of STORE loaded from the page cache (--cold-reads: from the
@@ -75,7 +75,7 @@ def _add_calibrate(sub: argparse._SubParsersAction, fmt) -> None:
     c.add_argument("-o", "--output", default="costs.json", metavar="FILE",
                    help="calibration file to write (default: costs.json)")
     c.add_argument("--quick", action="store_true",
-                   help="smaller time budgets: about a fifth of the time, rougher constants")
+                   help="smaller time budgets: about a third of the time, rougher constants")
     c.add_argument("--cold-reads", action="store_true",
                    help="time loads as reads of the disk (for `vastray render --cold-reads`)")
     c.add_argument("--quiet", action="store_true", help="no progress bar and no table")

@@ -121,7 +121,7 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     Parameters
     ----------
     store_path : a domain store; its domains are loaded and traced.
-    quick : smaller time budgets (``QUICK``, about a fifth of the default ``FULL``'s time).
+    quick : smaller time budgets (``QUICK``: about a third of the default ``FULL``'s time).
     progress : called as ``progress(fraction, text)`` as the stages run.
     config : camera, lights and materials (default: those a render of a store has without a
         scene file).

@@ -1,15 +1,17 @@
-"""What fresh processes measure: ``python -m vastray.sim.warmup STORE --start-at T`` renders
-the calibration's node image out of core (the ``image`` schedule: scene set-up, every domain loaded
-and its BVH built, the tile traced, the film filled), waits until the wall clock reaches T,
-renders it ``--repeat`` times more and prints, as JSON, the first render's extra seconds
-(``warmup_s``: compiled kernels loaded from numba's cache, Embree's device made, modules
-imported on first use) and the later renders' mean seconds. Started k at a time, with the
-same T, the later renders run side by side: the machine's throughput with k busy processes.
+"""What fresh processes measure: ``python -m vastray.sim.warmup STORE`` renders the
+calibration's node image out of core (the ``image`` schedule: scene set-up, every domain
+loaded and its BVH built, the tile traced, the film filled), prints "ready", waits for a line
+on its input, renders it ``--repeat`` times more and prints, as JSON, the first render's extra
+seconds (``warmup_s``: compiled kernels loaded from numba's cache, Embree's device made,
+modules imported on first use) and the later renders' mean seconds. Started k at a time and
+told to go together, the later renders run side by side: the machine's throughput with k
+busy processes.
 """
 
 from __future__ import annotations
 
 import json
+import select
 import subprocess
 import sys
 import time
@@ -18,25 +20,33 @@ from vastray.scene.errors import InputError
 
 #: Seconds a measuring process may take (it starts Python, imports, renders a few times).
 PROCESS_TIMEOUT_S = 300.0
-#: Seconds from starting the processes to their side-by-side renders (imports, first render).
-START_IN_S = 6.0
 
 
 def measure_processes(store_path: str, quick: bool, count: int) -> list[dict]:
-    """``count`` fresh processes side by side; each one's ``{"warmup_s", "render_s"}``."""
-    start_at = time.time() + START_IN_S
-    command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path), "--start-at",
-               str(start_at), "--repeat", "2" if quick else "3"] + (["--quick"] if quick else [])
-    processes = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True) for _ in range(count)]
-    results = []
+    """``count`` fresh processes whose later renders run side by side (each says "ready"
+    after its first render, and all are told to go together); each one's ``{"warmup_s",
+    "render_s"}``."""
+    command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path), "--repeat",
+               "2" if quick else "3"] + (["--quick"] if quick else [])
+    processes = [subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for _ in range(count)]
     try:
+        deadline = time.monotonic() + PROCESS_TIMEOUT_S
         for process in processes:
-            out, err = process.communicate(timeout=PROCESS_TIMEOUT_S)
+            ready, _, _ = select.select([process.stdout], [], [],
+                                        max(0.0, deadline - time.monotonic()))
+            if not ready or process.stdout.readline().strip() != "ready":
+                raise RuntimeError(_failure(process, "did not get ready"))
+        for process in processes:
+            process.stdin.write("go\n")
+            process.stdin.flush()
+        results = []
+        for process in processes:
+            out, _ = process.communicate(timeout=max(1.0, deadline - time.monotonic()))
             if process.returncode != 0:
-                raise RuntimeError(f"a calibration process failed: "
-                                   f"{err.strip().splitlines()[-1:] or process.returncode}")
+                raise RuntimeError(_failure(process, "failed"))
             results.append(json.loads(out))
+        return results
     except subprocess.TimeoutExpired:
         raise RuntimeError(f"a calibration process took over {PROCESS_TIMEOUT_S:.0f} s") from None
     finally:
@@ -44,7 +54,13 @@ def measure_processes(store_path: str, quick: bool, count: int) -> list[dict]:
             if process.poll() is None:
                 process.kill()
                 process.wait()
-    return results
+
+
+def _failure(process: subprocess.Popen, what: str) -> str:
+    if process.poll() is None:
+        process.kill()
+    _, err = process.communicate()
+    return f"a calibration process {what}: {err.strip().splitlines()[-1:] or process.returncode}"
 
 
 def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, tuple[float, ...]]:
@@ -83,7 +99,6 @@ def main(argv: list[str]) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m vastray.sim.warmup")
     parser.add_argument("store")
-    parser.add_argument("--start-at", type=float, default=0.0)
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
@@ -99,7 +114,8 @@ def main(argv: list[str]) -> int:
         return time.perf_counter() - start
 
     first = render()
-    time.sleep(max(0.0, args.start_at - time.time()))
+    print("ready", flush=True)
+    sys.stdin.readline()  # "go": every process renders from here, side by side
     later = [render() for _ in range(args.repeat)]
     mean = sum(later) / len(later)
     print(json.dumps({"warmup_s": max(0.0, first - mean), "render_s": mean}))
