@@ -32,6 +32,7 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render, shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.errors import InputError
 from vastray.sim.cache import Domains
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
@@ -125,7 +126,7 @@ def scaling(store, costs: CostModel, schedulers, node_counts,
             try:
                 sim = simulate(store, scaling_options(scheduler, nodes, settings.paths), nodes,
                                own, settings, max_pass_spp=None, domains=domains)
-            except ValueError as exc:  # what this machine cannot hold, said as it is
+            except InputError as exc:  # what this machine cannot hold, said as it is
                 print(f"  {scheduler:11s} P={nodes:5d}: not simulated: {exc}", flush=True)
                 continue
             out.setdefault(scheduler, {})[nodes] = sim.seconds

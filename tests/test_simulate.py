@@ -182,6 +182,16 @@ def test_compute_overlaps_on_own_cores_and_shares_shared_ones():
     assert run_virtual(work(slow))[1] == pytest.approx(2.0)
 
 
+def test_a_temporal_run_too_large_for_this_machine_is_refused_saying_why():
+    from vastray.scene.errors import InputError
+    from vastray.sim.simulate import _check_memory
+
+    with pytest.raises(InputError, match=r"temporal on 1024 virtual nodes .* GiB"):
+        _check_memory("temporal", 1024, 1439)
+    _check_memory("temporal", 16, 1439)  # fits
+    _check_memory("async", 1024, 1439)  # no (D, D) state
+
+
 def test_shared_cores_speed_jobs_up_as_others_finish():
     async def work():
         cores = SharedCores(1)

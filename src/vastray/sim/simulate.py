@@ -32,6 +32,7 @@ from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, camera_rays
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, pass_bounds
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule.ownership import sort_first_tiles
 from vastray.sim.cache import Domains, VirtualPreloader
@@ -142,18 +143,20 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
 
 
 def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
-    """Refuse a simulation whose nodes' state cannot fit in this machine's memory: every
-    virtual node lives in this process, and a ``temporal`` node's frame statistics hold
-    (D, D) transmission counts, about four copies of them during the tree reduce."""
+    """Refuse (``InputError``) a simulation whose nodes' state cannot fit in this machine's
+    memory: every virtual node lives in this process, and a ``temporal`` node's frame
+    statistics hold (D, D) transmission counts, about four copies of them during the tree
+    reduce."""
     if scheduler != "temporal":
         return
     need = 4 * 8 * n_domains ** 2 * nodes
     memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     if need > memory / 2:
-        raise ValueError(f"temporal on {nodes} virtual nodes of {n_domains} domains needs "
-                         f"about {need / 2 ** 30:.0f} GiB for the nodes' frame statistics "
-                         f"((D, D) per node) and this machine has {memory / 2 ** 30:.0f} GiB: "
-                         "simulate fewer nodes or a store of fewer domains")
+        raise InputError(None, f"temporal on {nodes} virtual nodes of {n_domains} domains needs "
+                               f"about {need / 2 ** 30:.0f} GiB for the nodes' frame statistics "
+                               f"((D, D) per node) and this machine has "
+                               f"{memory / 2 ** 30:.0f} GiB: simulate fewer nodes or a store of "
+                               "fewer domains")
 
 
 async def _render(store, options, size, costs, settings, config, units, domains):
