@@ -93,9 +93,9 @@ class _InSitu:
         return schedule.result
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
-        """Send the schedule's speculative copies to the owners of their domains (a radiance
-        and a shadow batch to each peer that has copies of either); returns the copies for
-        this node's domains, its own and the peers'.
+        """Send the schedule's speculative copies to the owners of their domains (to each peer,
+        one batch per queue it has copies in); returns the copies for this node's domains,
+        its own and the peers'.
 
         How many batches come here is summed over the nodes by the tree (one (P,) SUM):
         a batch per peer and queue, empty or not, made P^2 messages an iteration.
