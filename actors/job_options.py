@@ -23,8 +23,11 @@ RESIDENT_FIRST_SCHEDULERS = ("image", "spec-ooc", "async")
 #: The schedules whose nodes send each other ray batches (``max_batch_rays``).
 BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 
-#: The wire layout's version: a node refuses a job whose options carry another.
-VERSION = 3  # 2: cold_reads, eviction; 3: portal_memory, assignment paper|affinity
+#: The wire layout's version: a node refuses a job whose options carry another. 2: cold_reads,
+#: eviction; 3: portal_memory, assignment paper|affinity; 4: the same options, but dynamic's
+#: and spec-insitu's batches go only where rays go (their counts in the schedule, or summed
+#: over the tree), so nodes of version 3 would wait for batches that never come.
+VERSION = 4
 
 #: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
 #: (one process, or sort-first tiles on every node), and those that distribute domains over
