@@ -185,12 +185,8 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
             frames.report(message.meta, control.barriers)
         elif message.kind == protocol.DONE:
             reports[int(message.meta["rank"])] = message.meta
-        elif message.kind == protocol.ROUND:
-            await control.round_done(message.meta)
-        elif message.kind == protocol.STATUS:
-            await control.status(message.meta)
-        elif message.kind == protocol.QUEUES:
-            await control.queues(message.meta)
+        elif message.kind in control.KINDS:
+            await control.handle(message.kind, message.meta)
         elif message.kind == protocol.FAILED:
             raise watch.failed(int(message.meta["rank"]), message.meta["error"])
     return film, reports

@@ -10,7 +10,7 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.schedule.soa import SoA, join_bound
-from vastray.transport.codec import encode
+from vastray.transport.codec import encode, frames_nbytes
 
 
 def traffic_counters() -> dict:
@@ -52,7 +52,7 @@ class RayPost:
         self.sent_to[node] = self.sent_to.get(node, 0) + 1
         self.stats["batches_sent"] += 1
         self.stats["rays_sent"] += 0 if domains is None else len(domains)
-        self.stats["bytes_sent"] += sum(memoryview(f).nbytes for f in frames)
+        self.stats["bytes_sent"] += frames_nbytes(frames)
 
     async def ship(self, outbox: dict[tuple[str, int], list[tuple[np.ndarray, SoA]]],
                    meta: dict) -> None:

@@ -34,6 +34,16 @@ class Termination:
         self.barriers = 0
         self.policy = RayWeightedRounds()
 
+    #: The node reports it answers (``handle``).
+    KINDS = (protocol.ROUND, protocol.QUEUES, protocol.STATUS)
+
+    async def handle(self, kind: str, meta: dict) -> None:
+        """Take a node's report of one of ``KINDS``: a round's end, ``dynamic``'s queues, an
+        idle status."""
+        handler = {protocol.ROUND: self.round_done, protocol.QUEUES: self.queues,
+                   protocol.STATUS: self.status}[kind]
+        await handler(meta)
+
     async def _send(self, rank: int, kind: str, meta: dict) -> None:
         await self.router.send_multipart([self.identities[rank], self.token,
                                           *encode(kind, {}, meta)])

@@ -52,6 +52,11 @@ class Message:
         return len(next(iter(self.arrays.values()))) if self.arrays else 0
 
 
+def frames_nbytes(frames: list) -> int:
+    """Bytes of a message's frames on the wire (``encode``'s output)."""
+    return sum(memoryview(f).nbytes for f in frames)
+
+
 def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -> list:
     """Frames of a message: ``[header, frame, ...]`` (frames are zero-copy buffers).
 

@@ -48,7 +48,7 @@ from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import setup_cost
 from vastray.sim.warmup import process_costs
-from vastray.transport.codec import Message, decode, encode
+from vastray.transport.codec import Message, decode, encode, frames_nbytes
 
 #: ``progress(fraction, text)``: fraction in [0, 1] of the calibration done, and what runs now.
 Progress = Callable[[float, str], None]
@@ -560,7 +560,7 @@ def time_wire(setup: RenderSetup, effort: Effort,
             progress((i + 0.5) / len(WIRE_RAYS), f"ray batches of {n} rays")
             frames = encode(protocol.RAYS, ray_batch(setup, n),
                             {"queue": "radiance", "rank": 0, "tile": 0})
-            nbytes = sum(memoryview(f).nbytes for f in frames)
+            nbytes = frames_nbytes(frames)
             for _ in range(2):  # connections made, buffers allocated
                 peer.round_trip(frames)
             trips = []

@@ -20,7 +20,7 @@ from vastray.actors.node_work import NodeWork
 from vastray.actors.termination import Termination
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.cluster import Cluster
-from vastray.transport.codec import decode
+from vastray.transport.codec import decode, frames_nbytes
 
 
 class SimManagement:
@@ -49,14 +49,10 @@ class SimManagement:
                                "virtual seconds") from None
 
     async def to_peer(self, rank: int, frames: list) -> None:
-        await self.cluster.send(self.rank, rank, decode(frames), _nbytes(frames))
+        await self.cluster.send(self.rank, rank, decode(frames), frames_nbytes(frames))
 
     async def to_coordinator(self, frames: list) -> None:
-        await self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), _nbytes(frames))
-
-
-def _nbytes(frames: list) -> int:
-    return sum(memoryview(f).nbytes for f in frames)
+        await self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), frames_nbytes(frames))
 
 
 class SimCoordinator:
@@ -64,25 +60,20 @@ class SimCoordinator:
     ``dynamic``'s schedule, the asynchronous frames' termination detection), fed the nodes'
     reports one at a time (each message's cost is its sender's)."""
 
-    KINDS = (protocol.ROUND, protocol.QUEUES, protocol.STATUS)
-
     def __init__(self, cluster: Cluster):
         self.cluster = cluster
         self.control = Termination(cluster.size, _Router(cluster), {r: r for r in
                                                                     range(cluster.size)}, b"")
-        self.handlers = {protocol.ROUND: self.control.round_done,
-                         protocol.QUEUES: self.control.queues,
-                         protocol.STATUS: self.control.status}
 
     async def run(self) -> None:
         """Serve the nodes' reports until cancelled."""
         cluster = self.cluster
         inbox = asyncio.Queue()
-        for kind in self.KINDS:  # one queue, in arrival order, whatever the kind
+        for kind in Termination.KINDS:  # one queue, in arrival order, whatever the kind
             cluster.mailboxes[cluster.coordinator][kind] = _Forward(inbox)
         while True:
             message = await inbox.get()
-            await self.handlers[message.kind](message.meta)
+            await self.control.handle(message.kind, message.meta)
 
 
 class _Forward:
@@ -101,21 +92,21 @@ class _Router:
     async def send_multipart(self, frames: list) -> None:
         identity, _token, *message = frames
         await self.cluster.send(self.cluster.coordinator, identity, decode(message),
-                          _nbytes(message))
+                                frames_nbytes(message))
 
 
 class VirtualDomainLoop(DomainLoop):
     """The domain loop on the virtual clock: a domain's rays are traced for real, and the
-    activation costs ``CostModel.trace_s`` of its queries on the node's core. ``offload``:
-    the loop of a node runtime (whose set-up, ``node_setup_s``, its first trace pays), not
-    the one-process runtime's that the sort-first nodes run."""
+    activation costs ``CostModel.trace_s`` of its queries on the node's core.
+    ``node_runtime``: the loop of a node runtime (whose set-up, ``node_setup_s``, its first
+    trace pays), not the one-process runtime's that the sort-first nodes run."""
 
     def __init__(self, cluster: Cluster, rank: int, preloader: VirtualPreloader, stats: dict,
-                 offload: bool = True):
+                 node_runtime: bool = True):
         super().__init__(preloader, stats, offload=False)
         self.cluster, self.rank = cluster, rank
         self.clock = cluster.now
-        self.node_runtime = offload
+        self.node_runtime = node_runtime
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         queries = order.trace(domain, bvh)

@@ -227,7 +227,7 @@ async def _sort_first(cluster, options, rank, size, store, config, settings, dom
                                  preload=options.preload,
                                  bandwidth=options.load_bytes_per_second(rank))
     stats = {**traffic_counters(), "shade_s": 0.0}
-    loop = VirtualDomainLoop(cluster, rank, preloader, stats, offload=False)  # as local.py's
+    loop = VirtualDomainLoop(cluster, rank, preloader, stats, node_runtime=False)
     film = Film(settings.width, settings.height)
     total = settings.paths
     tile = max(1, min(options.max_samples_in_flight or total, total))

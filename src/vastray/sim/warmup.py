@@ -16,6 +16,8 @@ import subprocess
 import sys
 import time
 
+import numpy as np
+
 from vastray.scene.errors import InputError
 
 #: Seconds a measuring process may take (it starts Python, imports, renders a few times).
@@ -75,17 +77,8 @@ def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, tupl
         runs = measure_processes(store_path, quick, k)
         measured[k] = k * alone["render_s"] / (sum(r["render_s"] for r in runs) / k)
     known = sorted(measured)
-    throughput = tuple(float(_interpolate(known, measured, k)) for k in range(1, known[-1] + 1))
-    return alone["warmup_s"], throughput
-
-
-def _interpolate(known: list[int], values: dict[int, float], k: int) -> float:
-    if k in values:
-        return values[k]
-    below = max(x for x in known if x < k)
-    above = min(x for x in known if x > k)
-    share = (k - below) / (above - below)
-    return values[below] + share * (values[above] - values[below])
+    throughput = np.interp(np.arange(1, known[-1] + 1), known, [measured[k] for k in known])
+    return alone["warmup_s"], tuple(float(t) for t in throughput)
 
 
 def main(argv: list[str]) -> int:
