@@ -7,11 +7,12 @@ HOSTFILE, one node per line (``#`` starts a comment)::
     gpu03 python=/usr/bin/python3.11 slots=2   # two nodes on gpu03
 
 Each node is started as ``ssh HOST PYTHON -m vastray.cli node --coordinator tcp://ME:PORT
---bind 0.0.0.0 --keys KEYS --key-name HOST``: the key folder holds one key per host, named as
-in the HOSTFILE (``vastray keys -o KEYS --node HOST``); its output is collected in
-``--logs``. The key folder and the STORE must be at the same path on every host (a shared
-file system). When the render ends, fails or is interrupted (Ctrl-C), every ssh session is
-closed.
+--bind 0.0.0.0 --keys BUNDLE --key-name HOST``: BUNDLE is the host's own bundle (``vastray
+keys -o KEYS --node HOST`` writes it to KEYS/bundles/HOST), at ``--node-keys`` on every host
+where each was given its own, else at KEYS/bundles/HOST on a shared file system (where every
+host can read every bundle). Its output is collected in ``--logs``. The STORE must be at the
+same path on every host. When the render ends, fails or is interrupted (Ctrl-C), every ssh
+session is closed.
 """
 
 from __future__ import annotations
@@ -61,15 +62,16 @@ def read_hostfile(path: str | Path) -> list[Host]:
     return hosts
 
 
-def start_nodes(hosts: list[Host], coordinator: str, keys: str, logs: Path,
+def start_nodes(hosts: list[Host], coordinator: str, bundles: dict[str, str], logs: Path,
                 ssh: str = "ssh -o BatchMode=yes -tt", timeout: float = 120.0
                 ) -> dict[str, tuple[subprocess.Popen, Path]]:
-    """Start one node per host entry over ssh; returns name -> (process, log file)."""
+    """Start one node per host entry over ssh, with ``bundles[HOST]``, the path of that host's
+    key bundle on it; returns name -> (process, log file)."""
     logs.mkdir(parents=True, exist_ok=True)
     started = {}
     for i, host in enumerate(hosts):
         remote = shlex.join([host.python, "-m", "vastray.cli", "node", "--coordinator",
-                             coordinator, "--bind", "0.0.0.0", "--keys", keys,
+                             coordinator, "--bind", "0.0.0.0", "--keys", bundles[host.name],
                              "--key-name", host_key_name(host.name), "--timeout", str(timeout)])
         log = logs / f"node{i}-{host.name}.log"
         with open(log, "wb") as out:

@@ -34,7 +34,7 @@ from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
 from vastray.transport.codec import encode
 from vastray.transport.join_secret import read_join_secret, read_secret_fd
-from vastray.transport.keys import default_key_name, load_node_keys
+from vastray.transport.keys import load_node_keys
 from vastray.transport.security import Credentials, Gate, check_bind
 
 log = logging.getLogger(__name__)
@@ -357,7 +357,8 @@ def _outbound_address(coordinator: str) -> str:
 
 NODE_EPILOG = """\
 examples:
-  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 --keys /shared/keys
+  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 --keys vastray-keys
+      (vastray-keys: this host's bundle, a copy of the coordinator's KEYS/bundles/NAME)
   srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
   mpirun -n 8 vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
 
@@ -393,12 +394,15 @@ def build_parser() -> argparse.ArgumentParser:
                                             "--bind, or for 0.0.0.0 this host's address on "
                                             "the route to the coordinator)")
     parser.add_argument("--keys", metavar="DIR",
-                        help="key folder from `vastray keys` (CURVE): this node's own key "
-                             "pair and the coordinator's public key; without it, the node "
-                             "joins only a coordinator of this user on this machine")
+                        help="this node's bundle from `vastray keys` (KEYS/bundles/NAME, "
+                             "copied to this host: its own key pair and the coordinator's "
+                             "public key; CURVE), or a key folder with --key-name; without "
+                             "it, the node joins only a coordinator of this user on this "
+                             "machine")
     parser.add_argument("--key-name", metavar="NAME",
                         help="which node key in DIR/nodes is this node's (`vastray keys "
-                             "--node NAME`; default: this host's short name)")
+                             "--node NAME`; default: a bundle's one key, else this host's "
+                             "short name)")
     parser.add_argument("--secret-fd", type=int, metavar="FD", help=argparse.SUPPRESS)
     return parser
 
@@ -435,8 +439,7 @@ def main(argv: list[str] | None = None) -> int:
             raise InputError(None, "--key-name needs --keys DIR")
         credentials = None  # without keys: the join secret the coordinator left for its user
         if args.keys:
-            credentials = Credentials(keys=load_node_keys(
-                args.keys, args.key_name or default_key_name()))
+            credentials = Credentials(keys=load_node_keys(args.keys, args.key_name))
         elif args.secret_fd is not None:  # started by the coordinator: a pipe from it
             credentials = Credentials(secret=read_secret_fd(args.secret_fd))
         coordinator = coordinator_address(args.coordinator

@@ -1,5 +1,5 @@
 """Key folders made by ``vastray keys``: the coordinator's key pair, one key pair per node,
-and the allow-list of node public keys.
+the allow-list of node public keys, and one bundle per node (what that node's host is given).
 
 Layout::
 
@@ -7,6 +7,11 @@ Layout::
     coordinator.pub    its public half: what a node needs to check the coordinator
     nodes/NAME.key     node NAME's pair (owner-only): all a node needs besides coordinator.pub
     public/NAME.key    node NAME's public key on the allow-list; delete it to shut NAME out
+    bundles/NAME/      what host NAME is given, and nothing more: coordinator.pub and
+                       nodes/NAME.key (the same layout, so a bundle is a key folder too)
+
+The full folder stays with the coordinator. A host given only its bundle holds no other
+node's secret, so once its public key is off the allow-list no key it has lets it in.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ COORDINATOR_KEY = "coordinator.key"
 COORDINATOR_PUBLIC = "coordinator.pub"
 PUBLIC_DIR = "public"
 NODES_DIR = "nodes"
+BUNDLES_DIR = "bundles"
 #: The key file of vastray before per-node membership: a pair every node held.
 LEGACY_KEY_FILE = "cluster.key"
 NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}"
@@ -95,6 +101,43 @@ def add_node_key(folder: str | os.PathLike, name: str, force: bool = False) -> P
     return key_file
 
 
+def write_bundle(folder: str | os.PathLike, name: str) -> Path:
+    """Write node ``name``'s bundle, ``bundles/NAME``: the coordinator's public key and the
+    node's own key pair (owner-only), nothing else. Written again on every call, so it follows
+    a replaced coordinator or node key.
+
+    Raises
+    ------
+    InputError
+        When the folder lacks the coordinator's public key or the node's key.
+    """
+    folder = _existing_folder(folder)
+    node = load_node_keys(folder, name)
+    bundle = folder / BUNDLES_DIR / name
+    (bundle / NODES_DIR).mkdir(mode=0o700, parents=True, exist_ok=True)
+    for part in (folder / BUNDLES_DIR, bundle, bundle / NODES_DIR):
+        part.chmod(0o700)  # the folders of secrets, as the files: owner-only
+    _write_pair(bundle / NODES_DIR / f"{name}.key", node.public, node.secret)
+    (bundle / COORDINATOR_PUBLIC).write_text(f"public = {node.coordinator_public.decode()}\n")
+    return bundle
+
+
+def node_bundle(folder: str | os.PathLike, name: str) -> Path:
+    """The bundle of node ``name`` in the key folder ``folder``, checked to hold its key.
+
+    Raises
+    ------
+    InputError
+        When there is none (a folder made before bundles existed, or a node never named).
+    """
+    bundle = Path(folder) / BUNDLES_DIR / name
+    if not (bundle / NODES_DIR / f"{name}.key").is_file():
+        raise InputError(bundle, f"no bundle for node {name!r}; make it with `vastray keys "
+                                 f"-o {folder} --keep-existing --node {name}`")
+    load_node_keys(bundle, name)  # refuses a malformed one
+    return bundle
+
+
 def _key_folder(folder: str | os.PathLike) -> Path:
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
@@ -117,13 +160,22 @@ def load_coordinator_keys(folder: str | os.PathLike) -> CoordinatorKeys:
     return CoordinatorKeys(public, secret, folder / PUBLIC_DIR)
 
 
-def load_node_keys(folder: str | os.PathLike, name: str) -> NodeKeys:
-    """Node ``name``'s key pair and the coordinator's public key."""
+def load_node_keys(folder: str | os.PathLike, name: str | None = None) -> NodeKeys:
+    """Node ``name``'s key pair and the coordinator's public key, from a node's bundle or the
+    full key folder. Without ``name``: the one node key of a bundle, or else this host's short
+    name's."""
     folder = _existing_folder(folder)
-    public, secret = _read_key(folder / NODES_DIR / f"{name}.key",
-                               f"no key for node {name!r}; make one with `vastray keys -o "
-                               f"{folder} --node {name}` (or name this node's key with "
-                               "--key-name)", True)
+    found = sorted(p.stem for p in (folder / NODES_DIR).glob("*.key"))
+    if name is None:
+        name = found[0] if len(found) == 1 else default_key_name()
+    if (folder / COORDINATOR_KEY).exists():
+        missing = (f"no key for node {name!r}; make one with `vastray keys -o {folder} --node "
+                   f"{name}` (or name this node's key with --key-name)")
+    else:  # a bundle: its host has its own key and no other
+        missing = (f"no key for node {name!r}; this host holds the key of "
+                   f"{' and '.join(map(repr, found)) or 'no node'} only (its bundle, "
+                   "`vastray keys` writes KEYS/bundles/NAME)")
+    public, secret = _read_key(folder / NODES_DIR / f"{name}.key", missing, True)
     coordinator, _ = _read_key(folder / COORDINATOR_PUBLIC, "no coordinator public key "
                                "here; copy coordinator.pub from the coordinator's key folder",
                                False)

@@ -68,6 +68,8 @@ from vastray.transport.keys import (
     generate_keys,
     load_coordinator_keys,
     load_node_keys,
+    node_bundle,
+    write_bundle,
 )
 
 log = logging.getLogger(__name__)
@@ -121,6 +123,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     launch.add_argument("--port", type=_positive, help="coordinator port (default: a free one)")
     launch.add_argument("--ssh", default="ssh -o BatchMode=yes -tt",
                         help="command that runs a command on a host (default: %(default)s)")
+    launch.add_argument("--node-keys", metavar="PATH",
+                        help="where each host holds its own bundle, a copy of "
+                             "KEYS/bundles/HOST (default: KEYS/bundles/HOST itself, on a "
+                             "disk the hosts share)")
     launch.add_argument("--logs", default="vastray-logs",
                         help="folder for the node logs, created if absent (default: "
                              "%(default)s)")
@@ -363,21 +369,23 @@ def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
         "keys", help="make the coordinator's and the nodes' key pairs (ZeroMQ CURVE) for --keys",
         description="Write the coordinator's key pair into a folder (once), and a key pair "
                     "for each node named with --node, whose public key goes on the folder's "
-                    "allow-list (DIR/public). The coordinator needs DIR/coordinator.key and "
-                    "DIR/public; a node needs only DIR/coordinator.pub and its own "
-                    "DIR/nodes/NAME.key. Delete DIR/public/NAME.key to shut NAME out.",
+                    "allow-list (DIR/public), and each node's bundle, DIR/bundles/NAME: its "
+                    "own key pair and the coordinator's public key, nothing else. DIR stays "
+                    "with the coordinator; host NAME is given only DIR/bundles/NAME, so that "
+                    "once `rm DIR/public/NAME.key` shuts it out, no key it holds lets it in.",
         epilog="examples:\n  vastray keys -o cluster-keys --node gpu01 --node gpu02\n"
+               "  scp -r cluster-keys/bundles/gpu01 gpu01:vastray-keys   # gpu02's to gpu02\n"
                "  vastray render s.store -o o.exr --nodes 2 --listen 0.0.0.0:5555 "
                "--keys cluster-keys\n"
                "  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 "
-               "--keys cluster-keys   # on gpu01 (its host name picks its key)\n"
+               "--keys vastray-keys   # on gpu01\n"
                "  rm cluster-keys/public/gpu02.key   # gpu02 may join no more",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
     k.add_argument("--node", action="append", metavar="NAME", default=[],
-                   help="give node NAME its own key pair and allow it in (repeatable); a node "
-                        "uses the key of its host's short name, or the one --key-name names")
+                   help="give node NAME its own key pair and bundle and allow it in "
+                        "(repeatable)")
     replace = k.add_mutually_exclusive_group()
     replace.add_argument("--force", action="store_true",
                          help="replace key pairs already in the folder (nodes holding the old "
@@ -412,6 +420,11 @@ def run_keys(args: argparse.Namespace) -> int:
             print(node_file)
         else:
             print(add_node_key(args.output, name, args.force))
+    # every node's bundle, so that all follow a replaced coordinator key
+    for node_file in sorted((Path(args.output) / NODES_DIR).glob("*.key")):
+        bundle = write_bundle(args.output, node_file.stem)
+        if node_file.stem in args.node:
+            print(bundle)
     return 0
 
 
@@ -493,14 +506,15 @@ def _positive_float(text: str) -> float:
 LAUNCH_DESCRIPTION = """\
 Render on a cluster of SSH hosts: starts one `vastray node` per HOSTFILE entry with plain ssh,
 coordinates them from here, collects their logs, and closes every session when the render
-ends, fails or is interrupted. The STORE and the --keys folder must be at the same path on
-every host (a shared file system); traffic is CURVE-encrypted."""
+ends, fails or is interrupted. The STORE must be at the same path on every host; each node
+uses its host's own key bundle (--node-keys); traffic is CURVE-encrypted."""
 
 LAUNCH_EPILOG = """\
-example (one key per host, named as in hosts.txt):
-  vastray keys -o /shared/keys --node gpu01 --node gpu02
-  vastray launch --hosts hosts.txt /shared/rm.store -o rm.exr --keys /shared/keys \\
-      --scheduler spec-ooc --cache 25%
+example (one key per host, named as in hosts.txt; keys/ stays here, each host gets its bundle):
+  vastray keys -o keys --node gpu01 --node gpu02
+  scp -r keys/bundles/gpu01 gpu01:vastray-keys   # and gpu02's to gpu02
+  vastray launch --hosts hosts.txt /shared/rm.store -o rm.exr --keys keys \\
+      --node-keys vastray-keys --scheduler spec-ooc --cache 25%
 """
 
 
@@ -523,11 +537,14 @@ def run_launch(args: argparse.Namespace) -> int:
                                    f"more) and listens on --port; {flag} is for `vastray "
                                    "render`")
     hosts = read_hostfile(args.hosts)
+    bundles = {}
     for host in {h.name for h in hosts}:  # each host's own key, before any ssh session
         load_node_keys(args.keys, host_key_name(host))
+        bundles[host] = args.node_keys or str(
+            node_bundle(Path(args.keys).resolve(), host_key_name(host)))
     port = args.port or _free_port()
     coordinator = f"tcp://{args.advertise or this_host()}:{port}"
-    started = start_nodes(hosts, coordinator, str(Path(args.keys).resolve()), Path(args.logs),
+    started = start_nodes(hosts, coordinator, bundles, Path(args.logs),
                           ssh=args.ssh, timeout=args.node_timeout or DEFAULT_NODE_TIMEOUT_S)
     if not args.quiet:
         print(f"{len(hosts)} node(s) started; their logs are in {args.logs}", file=sys.stderr)
