@@ -62,8 +62,9 @@ class DomainCache:
     store : the store to load from.
     capacity : most domains resident at once (>= 1).
     keep : attributes each loaded domain keeps for shading (see ``DomainBVH``).
-    drop_page_cache : read domain files fully and advise the kernel to drop their pages, so a
-        reload after eviction is a real disk read (out-of-core benchmarks).
+    drop_page_cache : advise the kernel to drop the domain files' pages once read, so a reload
+        after eviction is a real disk read (out-of-core benchmarks). Either way a load reads
+        the files into memory and checks their checksums (``Store.load_domain``).
     pool : threads each loaded domain's queries split their rays over (``query_pool``).
     load_bandwidth : bytes per second, to emulate network storage (the temporal-coherence
         paper's cluster): after the real read of a domain, the load waits until its size
@@ -243,8 +244,9 @@ class DomainCache:
     def load(self, domain_id: int) -> DomainBVH:
         """Read and build one domain without caching it (counted as a load)."""
         start = time.perf_counter()
-        arrays = self.store.load_domain(domain_id, mmap=not self.drop_page_cache,
-                                        drop_cache=self.drop_page_cache)
+        # read, not mapped: a domain file truncated or rewritten under a running render
+        # changes nothing it has loaded (mapped, it would be a SIGBUS or a changed picture)
+        arrays = self.store.load_domain(domain_id, drop_cache=self.drop_page_cache)
         size = self.store.domains[domain_id].nbytes
         throttle = 0.0
         if self.load_bandwidth is not None:  # emulated network storage: wait out the rest

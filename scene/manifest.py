@@ -11,7 +11,8 @@ A manifest is a file anyone can edit, so every value in it is checked before it 
   the counts promise (:func:`read_npy_header`).
 
 The checks that need the data itself (index ranges, checksums) run when a domain is loaded
-(``Store.load_domain``) and in ``vastray verify``.
+(``Store.load_domain``: the CRC-32, or the SHA-256 of older stores) and in ``vastray verify``
+(every checksum; see :mod:`vastray.scene.checksums`).
 
 The optional ``"simplified"`` entry (the simplified whole-scene model) gets the same checks as
 a domain entry (:func:`simplified_entry`); a manifest without it is as valid as before.
@@ -33,15 +34,18 @@ from pathlib import Path
 
 import numpy as np
 
+from vastray.scene.checksums import CRC32, DIGITS, PATTERNS, SHA256
 from vastray.scene.errors import InputError
 
 FORMAT = "vastray-store"
 #: Version written. 2 added a SHA-256 checksum of every array file (``"sha256"`` in each
 #: domain entry); 3 added ``"origin"``, the world position of the store's frame: vertices and
 #: every box of the manifest are relative to it, so float32 vertices keep their precision
-#: wherever the data sits. Version 1 and 2 stores (frame at the world origin) still open.
-VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+#: wherever the data sits; 4 added a CRC-32 of every array file (``"crc32"``), which every
+#: load checks (SHA-256 costs 3 to 10 times as much). Version 1 and 2 stores (frame at the world
+#: origin) and 3 (loads check the SHA-256) still open.
+VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 MANIFEST = "manifest.json"
 #: The manifest key, and the store folder, of the simplified whole-scene model (optional).
 SIMPLIFIED = "simplified"
@@ -57,7 +61,6 @@ MAX_MANIFEST_BYTES = 256 * 2**20
 REWRITE = "rewrite the store with `vastray partition` or `vastray generate`"
 RESIMPLIFY = "rebuild it with `vastray simplify STORE --ratio R --force`"
 
-_SHA256 = re.compile(r"[0-9a-f]{64}")
 _DRIVE = re.compile(r"[A-Za-z]:")  # C:... is absolute on Windows
 
 
@@ -70,6 +73,7 @@ class DomainInfo:
     files : kind (``"vertices"``, ``"indices"``, ...) -> path relative to the store, as written
         in the manifest (already checked to stay inside the store).
     sha256 : kind -> hex SHA-256 of the file; empty for version 1 stores.
+    crc32 : kind -> hex CRC-32 of the file; empty before version 4.
     """
 
     id: int
@@ -80,6 +84,7 @@ class DomainInfo:
     nbytes: int
     files: dict = field(hash=False)
     sha256: dict = field(default_factory=dict, hash=False)
+    crc32: dict = field(default_factory=dict, hash=False)
 
     @property
     def label(self) -> str:
@@ -352,9 +357,10 @@ class DomainParser:
         lo, hi = box(entry.get("bounds"), where, f"{label} bounds")
         files = self._files(entry.get("files"), label, n_tri)
         sha = self._checksums(entry.get("sha256"), files, label)
+        crc = self._crc32(entry.get(CRC32), files, label)
         if self.check_headers:
             check_headers(self.root, files, n_tri, n_vert, nbytes, label)
-        return DomainInfo(position, lo, hi, n_tri, n_vert, nbytes, files, sha)
+        return DomainInfo(position, lo, hi, n_tri, n_vert, nbytes, files, sha, crc)
 
     def _check_id(self, value, position: int) -> None:
         where = self.root.manifest
@@ -396,18 +402,28 @@ class DomainParser:
             return {}
         return checked_checksums(sha, files, label, self.root.manifest)
 
+    def _crc32(self, crc, files: dict, label: str) -> dict:
+        if self.manifest["version"] < 4:
+            return {}
+        return checked_checksums(crc, files, label, self.root.manifest, CRC32)
 
-def checked_checksums(sha, files: dict, label: str, where) -> dict:
-    """``sha`` ({kind: hex SHA-256} for each of ``files``) if well formed, else InputError
-    naming the manifest ``where``."""
-    if not isinstance(sha, dict) or set(sha) != set(files):
-        raise InputError(where, f"{label} 'sha256' must give a checksum for each of its files "
-                                f"({', '.join(files)}), found {one_line(repr(sha), 80)}")
-    for kind, digest in sha.items():
-        if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
-            raise InputError(where, f"{label} 'sha256' of {kind} is not 64 lowercase hex "
-                                    f"digits: {one_line(repr(digest), 80)}")
-    return dict(sha)
+
+def checked_checksums(sums, files: dict, label: str, where, algorithm: str = SHA256) -> dict:
+    """``sums`` ({kind: hex digest} for each of ``files``) if well formed, else InputError
+    naming the manifest ``where``.
+
+    Parameters
+    ----------
+    algorithm : the manifest key, ``"sha256"`` (64 hex digits) or ``"crc32"`` (8).
+    """
+    if not isinstance(sums, dict) or set(sums) != set(files):
+        raise InputError(where, f"{label} '{algorithm}' must give a checksum for each of its "
+                                f"files ({', '.join(files)}), found {one_line(repr(sums), 80)}")
+    for kind, digest in sums.items():
+        if not isinstance(digest, str) or not PATTERNS[algorithm].fullmatch(digest):
+            raise InputError(where, f"{label} '{algorithm}' of {kind} is not {DIGITS[algorithm]} "
+                                    f"lowercase hex digits: {one_line(repr(digest), 80)}")
+    return dict(sums)
 
 
 def simplified_entry(root: StoreRoot, manifest: dict, bounds: np.ndarray | None,
@@ -456,9 +472,12 @@ def simplified_entry(root: StoreRoot, manifest: dict, bounds: np.ndarray | None,
     parser = DomainParser(root, manifest, check_headers=False)
     files = parser._files(entry.get("files"), label, n_tri)
     sha = checked_checksums(entry.get("sha256"), files, label, where)
+    # written since version 4, by any vastray that writes CRC-32s (also into older stores)
+    crc = ({} if manifest["version"] < 4 and CRC32 not in entry
+           else checked_checksums(entry.get(CRC32), files, label, where, CRC32))
     if read_headers:
         check_headers(root, files, n_tri, n_vert, nbytes, label)
-    return SimplifiedInfo(-1, lo, hi, n_tri, n_vert, nbytes, dict(files), dict(sha),
+    return SimplifiedInfo(-1, lo, hi, n_tri, n_vert, nbytes, dict(files), dict(sha), dict(crc),
                           ratio=float(ratio), rate=rate, memory_rate=memory_rate,
                           min_faces=min_faces)
 
@@ -603,6 +622,44 @@ def parse_npy_header(fh) -> NpyHeader:
     if dtype.hasobject:
         raise ValueError("holds Python objects, not numbers")
     return NpyHeader(tuple(shape), dtype, bool(fortran), fh.tell())
+
+
+def array_from_bytes(data) -> np.ndarray:
+    """The array a ``.npy`` file's bytes hold (``data``: bytes, or a bytearray for a writable
+    array), without copying them.
+
+    Raises
+    ------
+    ValueError
+        Not a ``.npy`` file, or more or fewer data bytes than the header promises.
+    """
+    header = parse_npy_header(_BufferReader(data))
+    have = len(data) - header.offset
+    if have != header.nbytes:
+        raise ValueError(f"{have:,} bytes of data where the header promises {header.nbytes:,}")
+    count = math.prod(header.shape)
+    if count == 0:
+        return np.empty(header.shape, header.dtype)
+    flat = np.frombuffer(data, header.dtype, count=count, offset=header.offset)
+    return flat.reshape(header.shape, order="F" if header.fortran_order else "C")
+
+
+class _BufferReader:
+    """``read`` and ``tell`` over a buffer, copying only what is read (``io.BytesIO`` copies a
+    whole bytearray)."""
+
+    def __init__(self, data):
+        self._view = memoryview(data).cast("B")
+        self._at = 0
+
+    def read(self, size: int = -1) -> bytes:
+        end = len(self._view) if size is None or size < 0 else self._at + size
+        out = bytes(self._view[self._at:end])
+        self._at += len(out)
+        return out
+
+    def tell(self) -> int:
+        return self._at
 
 
 # --- values ------------------------------------------------------------------------------------

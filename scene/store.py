@@ -11,13 +11,18 @@ Layout of a STORE folder::
     STORE/simplified/vertices.npy      the simplified whole-scene model, the same files as a
     STORE/simplified/indices.npy ...   domain's                                        [optional]
 
-Every file loads with ``np.load(path, mmap_mode="r")``. A store is written into a temporary
-folder and renamed into place when complete, so a failed run never leaves a partial store.
-Since format version 2 each domain entry records the SHA-256 of each of its files
-(``"sha256": {"vertices": ..., ...}``), which ``vastray verify`` checks; version 1 stores (no
-checksums) still open. Since version 3 the manifest's ``"origin"`` places the store's frame in
-the world: vertices and boxes are stored relative to it (float32 vertices of data far from
-the world origin keep their precision; the renderer moves camera and lights into that frame).
+Every file is a ``.npy`` file. A store is written into a temporary folder and renamed into
+place when complete, so a failed run never leaves a partial store. Since format version 2 each
+domain entry records the SHA-256 of each of its files (``"sha256": {"vertices": ..., ...}``),
+which ``vastray verify`` checks; version 1 stores (no checksums) still open. Since version 4 it
+also records their CRC-32 (``"crc32"``), which every load checks (the SHA-256 where a store has
+no CRC-32): a domain whose files changed since they were written is refused, naming the file,
+never rendered (:mod:`vastray.scene.checksums`). Loads read the files into memory by default
+rather than mapping them: a mapped file truncated or rewritten while a render uses it would
+kill the process with SIGBUS or change the picture halfway. Since version 3 the manifest's
+``"origin"`` places the store's frame in the world: vertices and boxes are stored relative to
+it (float32 vertices of data far from the world origin keep their precision; the renderer
+moves camera and lights into that frame).
 How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
 
 The optional ``"simplified"`` manifest entry describes a decimated copy of the whole scene
@@ -29,16 +34,18 @@ replaces it in an existing store; stores without it open as before.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
 import tempfile
 from dataclasses import dataclass, replace
+from mmap import ACCESS_READ
+from mmap import mmap as MemoryMap
 from pathlib import Path
 
 import numpy as np
 
+from vastray.scene.checksums import CRC32, SHA256, HashingWriter, checksum_mismatch, load_check
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
 from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInfo: re-exported)
@@ -55,6 +62,7 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     DomainParser,
     SimplifiedInfo,
     StoreRoot,
+    array_from_bytes,
     domain_file,
     frame_origin,
     manifest_size_ok,
@@ -139,8 +147,9 @@ class Store:
 
     Opening checks the whole manifest and the ``.npy`` header of every file it names (see
     :mod:`vastray.scene.manifest`); loading a domain checks its data (shapes, dtypes, index
-    ranges). Nothing the manifest says is used unchecked, so a damaged or hand-edited store
-    fails with an :class:`InputError` naming the file, never a silently missing domain.
+    ranges) and its files' checksums (:mod:`vastray.scene.checksums`). Nothing the manifest
+    says is used unchecked, so a damaged or hand-edited store fails with an
+    :class:`InputError` naming the file, never a silently missing domain.
 
     Parameters
     ----------
@@ -217,13 +226,16 @@ class Store:
         may have changed since the store was opened)."""
         return domain_file(self.root, info.files[kind], kind, info.label)
 
-    def load_domain(self, domain_id: int, mmap: bool = True, drop_cache: bool = False) -> DomainArrays:
+    def load_domain(self, domain_id: int, mmap: bool = False,
+                    drop_cache: bool = False) -> DomainArrays:
         """Read one domain's arrays and check them against the manifest.
 
         Parameters
         ----------
         domain_id : index into ``self.domains``.
-        mmap : memory-map the files instead of reading them.
+        mmap : memory-map the files instead of reading them into memory (no copy, but the
+            arrays change with the files: one truncated while they are in use kills the
+            process with SIGBUS; the renderer never maps).
         drop_cache : after reading (``mmap=False`` only), advise the kernel to drop the files'
             pages so a later load is a real read from disk.
 
@@ -231,11 +243,12 @@ class Store:
         ------
         InputError
             A file missing, truncated, or whose data does not match the manifest (shape, dtype,
-            an index beyond the domain's vertices, an object beyond the manifest's objects).
+            an index beyond the domain's vertices, an object beyond the manifest's objects), or
+            whose checksum is not the manifest's (the file changed since it was written).
         """
         return self._load(self.domains[domain_id], mmap, drop_cache)
 
-    def load_simplified(self, mmap: bool = True, drop_cache: bool = False) -> DomainArrays:
+    def load_simplified(self, mmap: bool = False, drop_cache: bool = False) -> DomainArrays:
         """Read the simplified whole-scene model and check it against its manifest entry.
 
         Parameters
@@ -255,13 +268,20 @@ class Store:
 
     def _load(self, info: DomainInfo, mmap: bool, drop_cache: bool) -> DomainArrays:
         arrays = dict.fromkeys(ARRAYS)
+        changed = None
         for kind in info.files:
-            arrays[kind] = _read_array(self.domain_path(info, kind), mmap=mmap,
-                                       drop_cache=drop_cache)
+            path = self.domain_path(info, kind)
+            arrays[kind], why = _read_array(path, mmap, drop_cache,
+                                            load_check(info.crc32, info.sha256, kind))
+            if why and changed is None:
+                changed = InputError(path, _changed(info, why, self.path))
         dom = DomainArrays(**arrays, origin=self.origin)
+        # what the data says first (an index out of range names the problem better)
         problems = domain_problems(dom, info, self.path, len(self.objects))
         if problems:
             raise problems[0]
+        if changed is not None:
+            raise changed
         return dom
 
 
@@ -271,19 +291,65 @@ def _raise_if_error(item: DomainInfo | InputError) -> DomainInfo:
     return item
 
 
-def _read_array(path: Path, mmap: bool, drop_cache: bool) -> np.ndarray:
+def _changed(info: DomainInfo, why: str, store: Path) -> str:
+    return (f"{info.label} of the store changed since it was written ({why}): run `vastray "
+            f"verify {store}` to list every changed file, then restore them or {REWRITE}")
+
+
+def _read_array(path: Path, mmap: bool, drop_cache: bool,
+                check: tuple[str, str] | None) -> tuple[np.ndarray, str | None]:
+    """The array in the ``.npy`` file ``path`` and how its bytes differ from the checksum
+    ``check`` (None: they match, or there is none): read whole into memory and checked as
+    read, or (``mmap``) mapped, the file checked through a second mapping.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable, not a ``.npy`` file, or holds more or fewer bytes
+        than its header promises.
+    """
     if not path.is_file():
         raise InputError(path, "domain file missing (store is incomplete; re-run partition)")
     try:
         if mmap:
-            return np.load(path, mmap_mode="r", allow_pickle=False)
-        with open(path, "rb") as fh:
-            arr = np.load(fh, allow_pickle=False)
-            if drop_cache and hasattr(os, "posix_fadvise"):
-                os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
-        return arr
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            return arr, None if check is None else checksum_mismatch(_mapped(path), check)
+        data = _read_whole(path, drop_cache)
+        return array_from_bytes(data), checksum_mismatch(data, check)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(path, f"unreadable or truncated domain file ({one_line(exc)})") from None
+
+
+def _read_whole(path: Path, drop_cache: bool) -> bytearray:
+    """The bytes of ``path``, read into one writable buffer (the arrays are views of it).
+
+    Raises
+    ------
+    ValueError
+        The file changed size while it was read.
+    """
+    with open(path, "rb", buffering=0) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        data = bytearray(size)
+        view, done = memoryview(data), 0
+        while done < size:
+            n = fh.readinto(view[done:])
+            if not n:
+                raise ValueError(f"the file shrank to {done:,} bytes while it was read")
+            done += n
+        if fh.read(1):
+            raise ValueError("the file grew while it was read")
+        if drop_cache and hasattr(os, "posix_fadvise"):
+            os.posix_fadvise(fh.fileno(), 0, 0, os.POSIX_FADV_DONTNEED)
+    return data
+
+
+def _mapped(path: Path) -> MemoryMap | bytes:
+    """``path`` mapped read-only whole (closed when collected; an empty file: b"")."""
+    with open(path, "rb") as fh:
+        if os.fstat(fh.fileno()).st_size == 0:
+            return b""
+        return MemoryMap(fh.fileno(), 0, access=ACCESS_READ)
 
 
 def domain_problems(dom: DomainArrays, info: DomainInfo, root: Path,
@@ -365,7 +431,8 @@ class StoreWriter:
     def add_domain(self, dom: DomainArrays, bounds: np.ndarray | None = None) -> int:
         """Write one domain; returns its id.
 
-        Each file is hashed (SHA-256) as it is written; the digests go into the manifest.
+        Each file is hashed (SHA-256 and CRC-32) as it is written; the digests go into the
+        manifest.
 
         Parameters
         ----------
@@ -399,12 +466,12 @@ class StoreWriter:
                                    "finite box with lo <= hi (NaN or infinite vertices?)")
         rel_dir = Path("domains") / f"{did:05d}"
         (self._tmp / rel_dir).mkdir(parents=True)
-        files, sha256, nbytes = {}, {}, 0
+        files, sha256, crc32, nbytes = {}, {}, {}, 0
         for name, arr in arrays.items():
             if arr is None:
                 continue
             rel = rel_dir / f"{name}.npy"
-            sha256[name] = _save_hashed(self._tmp / rel, arr)
+            sha256[name], crc32[name] = _save_hashed(self._tmp / rel, arr)
             files[name] = rel.as_posix()
             nbytes += arr.nbytes
             if name in self._has:
@@ -419,7 +486,8 @@ class StoreWriter:
             "vertices": int(arrays["vertices"].shape[0]),
             "bytes": nbytes,
             "files": files,
-            "sha256": sha256,
+            SHA256: sha256,
+            CRC32: crc32,
         })
         return did
 
@@ -505,29 +573,18 @@ def _store_dtypes(dom: DomainArrays) -> dict:
     }
 
 
-class _HashingWriter:
-    """A write-only file object that feeds everything written to a hash as well."""
-
-    def __init__(self, fh, digest):
-        self._fh = fh
-        self._digest = digest
-
-    def write(self, data) -> int:
-        self._digest.update(data)
-        return self._fh.write(data)
-
-
-def _save_hashed(path: Path, arr: np.ndarray) -> str:
-    """``np.save`` ``arr`` to ``path`` and return the file's SHA-256 (hashed as written).
+def _save_hashed(path: Path, arr: np.ndarray) -> tuple[str, str]:
+    """``np.save`` ``arr`` to ``path`` and return the file's checksums (hashed as written).
 
     Returns
     -------
-    The hex digest, the same as ``hashlib.sha256(path.read_bytes()).hexdigest()``.
+    sha256, crc32 : the hex digests, as ``checksums.digest`` gives them of the file's bytes.
     """
-    digest = hashlib.sha256()
     with open(path, "wb") as fh:
-        np.save(_HashingWriter(fh, digest), arr, allow_pickle=False)
-    return digest.hexdigest()
+        writer = HashingWriter(fh)
+        np.save(writer, arr, allow_pickle=False)
+    sums = writer.digests()
+    return sums[SHA256], sums[CRC32]
 
 
 def check_simplified_replaceable(store: Store, force: bool) -> None:
@@ -585,11 +642,11 @@ def write_simplified(store: Store, model: DomainArrays, ratio: float, min_faces:
     old: Path | None = None
     try:
         publish_mode(tmp, directory=True)
-        files, sha256, nbytes = {}, {}, 0
+        files, sha256, crc32, nbytes = {}, {}, {}, 0
         for name, arr in arrays.items():
             if arr is None:
                 continue
-            sha256[name] = _save_hashed(tmp / f"{name}.npy", arr)
+            sha256[name], crc32[name] = _save_hashed(tmp / f"{name}.npy", arr)
             files[name] = f"{SIMPLIFIED}/{name}.npy"
             nbytes += arr.nbytes
         entry = {
@@ -602,7 +659,8 @@ def write_simplified(store: Store, model: DomainArrays, ratio: float, min_faces:
             "bytes": nbytes,
             "memory_rate": nbytes / domain_bytes if domain_bytes else 0.0,
             "files": files,
-            "sha256": sha256,
+            SHA256: sha256,
+            CRC32: crc32,
         }
         without = {k: v for k, v in store.manifest.items() if k != SIMPLIFIED}
         text = _manifest_json({**without, SIMPLIFIED: entry})

@@ -4,7 +4,8 @@ Opening a :class:`~vastray.scene.store.Store` stops at the first problem and rea
 manifest and the ``.npy`` headers. :func:`verify_store` goes on past each problem and reads
 every file once, so it also checks what needs the data:
 
-* each file's SHA-256 against the manifest (stores of format version 2 and later);
+* each file's SHA-256 against the manifest (stores of format version 2 and later), and its
+  CRC-32, the checksum every load checks (version 4 and later);
 * the file holds exactly the bytes its header promises (not truncated, nothing appended);
 * every triangle index is below the domain's vertex count, every object index names an object;
 * vertices, scalars and colours are finite, and the vertices the triangles use lie inside the
@@ -16,9 +17,6 @@ The simplified whole-scene model, when the manifest has one, gets the same check
 
 from __future__ import annotations
 
-import hashlib
-import io
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from vastray.scene.checksums import CRC32, SHA256, checksum_mismatch
 from vastray.scene.errors import InputError
 from vastray.scene.manifest import (
     ARRAYS,
@@ -34,8 +33,8 @@ from vastray.scene.manifest import (
     DomainInfo,
     DomainParser,
     StoreRoot,
+    array_from_bytes,
     domain_file,
-    parse_npy_header,
     read_manifest,
     scene_fields,
     simplified_entry,
@@ -197,7 +196,7 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
             problems.append(InputError(root.path / rel, f"cannot be read ({exc.strerror})"))
             unreadable = True
             continue
-        problems += _checksum_problems(path, data, info.sha256.get(kind))
+        problems += _checksum_problems(path, data, info, kind)
         try:
             arrays[kind] = array_from_bytes(data)
         except ValueError as exc:
@@ -213,34 +212,14 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     return problems + value_problems(dom, info, root.path)
 
 
-def _checksum_problems(path: Path, data: bytes, expected: str | None) -> list[InputError]:
-    if expected is None:
-        return []
-    got = hashlib.sha256(data).hexdigest()
-    if got == expected:
-        return []
-    return [InputError(path, f"checksum mismatch: SHA-256 {got[:16]}..., the manifest recorded "
-                             f"{expected[:16]}...; the file changed after the store was "
-                             f"written: restore it or {REWRITE}")]
-
-
-def array_from_bytes(data: bytes) -> np.ndarray:
-    """The array a ``.npy`` file's bytes hold, without copying them.
-
-    Raises
-    ------
-    ValueError
-        Not a ``.npy`` file, or more or fewer data bytes than the header promises.
-    """
-    header = parse_npy_header(io.BytesIO(data))
-    have = len(data) - header.offset
-    if have != header.nbytes:
-        raise ValueError(f"{have:,} bytes of data where the header promises {header.nbytes:,}")
-    count = math.prod(header.shape)
-    if count == 0:
-        return np.empty(header.shape, header.dtype)
-    flat = np.frombuffer(data, header.dtype, count=count, offset=header.offset)
-    return flat.reshape(header.shape, order="F" if header.fortran_order else "C")
+def _checksum_problems(path: Path, data: bytes, info: DomainInfo, kind: str) -> list[InputError]:
+    """The SHA-256 mismatch of the ``kind`` file, else its CRC-32's (one problem at most)."""
+    for algorithm, sums in ((SHA256, info.sha256), (CRC32, info.crc32)):
+        why = checksum_mismatch(data, (algorithm, sums[kind]) if kind in sums else None)
+        if why:
+            return [InputError(path, f"checksum mismatch: {why}; the file changed after the "
+                                     f"store was written: restore it or {REWRITE}")]
+    return []
 
 
 def value_problems(dom: DomainArrays, info: DomainInfo, root: Path) -> list[InputError]:
