@@ -72,6 +72,11 @@ def join_bound(parts: list[tuple[np.ndarray, SoA]]) -> tuple[np.ndarray, SoA] | 
     return np.concatenate([d for d, _ in parts]), SoA.concat([r for _, r in parts])
 
 
+#: Bytes of popped rows ``DomainQueues`` may keep alive in partly popped blocks before it
+#: copies the queued runs out of them, whatever the queued bytes: small queues never copy.
+WASTE_FLOOR = 4 << 20
+
+
 class DomainQueues:
     """One queue of rays per domain; a ray set is pushed split by destination domain.
 
@@ -79,7 +84,11 @@ class DomainQueues:
     the bounds of that domain's run in the sorted block: the per-domain rays are sliced out
     (views) only when the queue is popped or peeked, instead of one gather per field and
     domain on every push. A block stays in memory until its last run is popped (``nbytes``
-    counts what is held); a tile's rays bound that.
+    counts what is held), unless more than ``WASTE_FLOOR`` bytes and more than the queued
+    rows themselves are popped rows kept alive that way: then the runs left in blocks less
+    than half queued are copied out and those blocks freed (``_compact``). Without that, a
+    speculative schedule's copies of one push, spread over dozens of domains, held the whole
+    push until its last domain was served: 455 MB held for 17 MB queued (issue 37).
 
     Parameters
     ----------
@@ -92,6 +101,11 @@ class DomainQueues:
         # and a node makes queues for every tile it hears of)
         self._chunks: dict[int, list[tuple[SoA, int, int]]] = {}
         self._counts = np.zeros(n_domains, dtype=np.int64)
+        # id(block) -> [block, rows of it still queued, bytes per row]; bytes of the blocks
+        # held and of the rows queued, kept as running totals
+        self._blocks: dict[int, list] = {}
+        self._held = 0
+        self._live = 0
 
     def push(self, domain: np.ndarray, rays: SoA) -> None:
         """Queue row i of ``rays`` into ``domain[i]`` ((n,) ints). The queue may keep
@@ -106,6 +120,7 @@ class DomainQueues:
             block = rays.take(np.argsort(domain, kind="stable"))
         stops = np.cumsum(counts)[present]
         starts = stops - counts[present]
+        self._hold(block)
         chunks = self._chunks
         for d, start, stop in zip(present.tolist(), starts.tolist(), stops.tolist(), strict=True):
             chunks.setdefault(d, []).append((block, start, stop))
@@ -117,12 +132,52 @@ class DomainQueues:
         if not chunks:
             return None
         self._counts[domain] = 0
+        for block, start, stop in chunks:
+            self._release(block, stop - start)
         if len(chunks) == 1:
             block, start, stop = chunks[0]
-            return block.rows(start, stop)
-        return SoA._trusted({
-            k: np.concatenate([block.fields[k][start:stop] for block, start, stop in chunks])
-            for k in chunks[0][0].fields})
+            rays = block.rows(start, stop)
+        else:
+            rays = SoA._trusted({
+                k: np.concatenate([block.fields[k][start:stop] for block, start, stop in chunks])
+                for k in chunks[0][0].fields})
+        self._compact()
+        return rays
+
+    def _hold(self, block: SoA) -> None:
+        nbytes = block.nbytes()
+        self._blocks[id(block)] = [block, len(block), nbytes // len(block)]
+        self._held += nbytes
+        self._live += nbytes
+
+    def _release(self, block: SoA, rows: int) -> None:
+        """``rows`` of ``block`` left the queues; the block is dropped with its last row."""
+        entry = self._blocks[id(block)]
+        entry[1] -= rows
+        self._live -= rows * entry[2]
+        if entry[1] == 0:
+            del self._blocks[id(block)]
+            self._held -= len(block) * entry[2]
+
+    def _compact(self) -> None:
+        """Copy the runs out of blocks less than half queued once the popped rows they keep
+        alive exceed ``WASTE_FLOOR`` and the queued bytes: afterwards every block held is at
+        least half queued. Each byte copied frees more than a byte, so the copies cost no
+        more than the pushes did."""
+        waste = self._held - self._live
+        if waste <= max(WASTE_FLOOR, self._live):
+            return
+        sparse = {key for key, (block, rows, _) in self._blocks.items() if 2 * rows < len(block)}
+        for chunks in self._chunks.values():
+            for i, (block, start, stop) in enumerate(chunks):
+                if id(block) in sparse:
+                    copy = SoA._trusted({k: a[start:stop].copy() for k, a in block.fields.items()})
+                    self._hold(copy)
+                    chunks[i] = (copy, 0, stop - start)
+        for key in sparse:
+            block, rows, row_bytes = self._blocks.pop(key)
+            self._held -= len(block) * row_bytes
+            self._live -= rows * row_bytes
 
     def counts(self) -> np.ndarray:
         """(D,) rays waiting per domain."""
@@ -137,8 +192,7 @@ class DomainQueues:
 
     def nbytes(self) -> int:
         """Bytes held: every block some queue still has a run in, counted once."""
-        held = {id(block): block for chunks in self._chunks.values() for block, _, _ in chunks}
-        return sum(block.nbytes() for block in held.values())
+        return self._held
 
     def peek(self, domain: int) -> list[SoA]:
         """The chunks queued in ``domain``, left queued (views: do not modify them)."""

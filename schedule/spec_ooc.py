@@ -38,7 +38,6 @@ from vastray.render.integrators import (
     PathResult,
     RadianceRays,
     ShadowRays,
-    add_unoccluded,
     shade,
 )
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
@@ -475,7 +474,7 @@ class SpeculativeSchedule:
         self.shadow_blocked = np.concatenate([self.shadow_blocked, np.zeros(len(rays), bool)])
         done = visits == 0
         if done.any():
-            self.commit.append(soa.take(done))
+            self.commit.append(_committed(soa.take(done)))
         if len(ray):
             copies = soa.take(ray)
             copies["entry"], copies["rank"] = entry, rank
@@ -499,27 +498,55 @@ class SpeculativeSchedule:
         sid = rays["sid"]
         ready = (self.shadow_pending[sid] == 0) & ~self.shadow_blocked[sid]
         if ready.any():
-            self.commit.append(rays.take(ready).without("entry", "rank"))
+            self.commit.append(_committed(rays.take(ready)))
 
     def _retire(self) -> None:
-        """Resolve the retire queue: final and matching histories bring their light."""
+        """Resolve the retire queue: final and matching histories bring their light.
+
+        Chunk by chunk, as committed: joined, the queue was copied twice more at once (the
+        peak of a fine store's render, issue 37). The light is summed per path in the rows'
+        order over every chunk, then added, as one ``add_unoccluded`` of the joined queue."""
         if not self.retire:
             return
-        rays = SoA.concat(self.retire)
-        self.retire = []
-        level = rays["depth"].astype(np.int64) - self.window_start
-        final = self._final(rays["path"], level)
-        if not final.all():
-            if not (self.radiance.total() or self.shadow.total()):
-                # With nothing queued every hit is final; waiting would loop forever.
-                raise RuntimeError("spec-ooc: shadow rays wait on hits no queued ray can change")
-            self.commit.append(rays.take(~final))  # wait for another round
-        rays, level = rays.take(final), level[final]
-        if len(rays) == 0:
-            return
-        valid = self._history_matches(rays, level + 1)
-        self.counters["wasted_rays"] += int(np.count_nonzero(~valid))
-        add_unoccluded(self.result.radiance, as_shadow(rays), valid)
+        retire, self.retire = self.retire, []
+        light = np.zeros_like(self.result.radiance)
+        waiting = False
+        for i, rays in enumerate(retire):
+            retire[i] = None  # freed once resolved
+            level = rays["depth"].astype(np.int64) - self.window_start
+            final = self._final(rays["path"], level)
+            if not final.all():
+                waiting = True
+                self.commit.append(rays.take(~final))  # wait for another round
+                rays, level = rays.take(final), level[final]
+            if len(rays) == 0:
+                continue
+            valid = self._history_matches(rays, level + 1)
+            self.counters["wasted_rays"] += int(np.count_nonzero(~valid))
+            _sum_lit(light, rays["path"], rays["contribution"], valid)
+        # With nothing queued every hit is final; waiting would loop forever.
+        if waiting and not (self.radiance.total() or self.shadow.total()):
+            raise RuntimeError("spec-ooc: shadow rays wait on hits no queued ray can change")
+        self.result.radiance += light
+
+
+def _committed(rays: SoA) -> SoA:
+    """A committed shadow ray as the retire queue keeps it: what ``_retire`` reads (its path,
+    depth, history and light), not its geometry, which no test needs any more."""
+    return SoA._trusted({k: rays[k] for k in ("path", "depth", "contribution", "hist_t",
+                                              "hist_d")})
+
+
+@njit(nogil=True, cache=True)
+def _sum_lit(light, path, contribution, lit):
+    """``light[path[r]] += contribution[r]`` for the rows ``r`` with ``lit[r]``, in row order
+    (``kernels.add_unoccluded``'s sums, kept over several calls)."""
+    for r in range(path.shape[0]):
+        if lit[r]:
+            p = path[r]
+            light[p, 0] += contribution[r, 0]
+            light[p, 1] += contribution[r, 1]
+            light[p, 2] += contribution[r, 2]
 
 
 def _radiance(rays: RadianceRays, hist_t: np.ndarray, hist_d: np.ndarray) -> SoA:
