@@ -4,6 +4,7 @@ sRGB PNG), written atomically with the umask's mode; EXR/PFM/NPY input."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import re
 import tempfile
@@ -33,11 +34,11 @@ def atomic_path(path: str | os.PathLike):
     The temporary name carries the writer's process id (``.NAME.PID.RANDOM.EXT``): a writer
     killed before it could clean up (SIGKILL, a native crash) leaves its file behind, and the
     next write of the same ``path`` removes it once that process is gone (issue 20: crashed
-    renders left hidden partial images).
+    renders left hidden partial images), as does ``remove_orphans``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _remove_orphans(path)
+    remove_orphans(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.{os.getpid()}.", suffix=path.suffix,
                                dir=path.parent)
     os.close(fd)
@@ -50,20 +51,33 @@ def atomic_path(path: str | os.PathLike):
             os.unlink(tmp)
 
 
-def _remove_orphans(path: Path) -> None:
-    """Delete the temporary files of ``path`` (``atomic_path``'s names) whose writer is no
-    longer running; another process's live temporary file is left alone."""
-    pattern = re.compile(rf"\.{re.escape(path.name)}\.(\d+)\.[A-Za-z0-9_]{{8}}"
-                         rf"{re.escape(path.suffix)}")
+def remove_orphans(path: str | os.PathLike) -> None:
+    """Delete the temporary files of ``path`` (``atomic_path``'s names, also nested: the
+    temporary of a temporary, ``..NAME.PID.RANDOM.EXT.PID.RANDOM.EXT``) whose writers are all
+    gone; a running process's temporary file is left alone."""
+    path = Path(path)
+    suffix = re.escape(path.suffix)
+    whole = re.compile(rf"(\.+){re.escape(path.name)}((?:\.\d+\.[a-z0-9_]{{8}}{suffix})+)")
+    level = re.compile(rf"\.(\d+)\.[a-z0-9_]{{8}}{suffix}")
     with contextlib.suppress(OSError):
         for entry in os.scandir(path.parent):
-            match = pattern.fullmatch(entry.name)
-            if match and entry.is_file(follow_symlinks=False) and not running(
-                    int(match.group(1))):
+            match = whole.fullmatch(entry.name)
+            if not match or not entry.is_file(follow_symlinks=False):
+                continue
+            pids = [int(pid) for pid in level.findall(match.group(2))]
+            if len(pids) == len(match.group(1)) and not any(map(running, pids)):
                 with contextlib.suppress(OSError):
                     os.unlink(entry.path)
 
 
+def os_error(exc: Exception, path: str | os.PathLike) -> OSError:
+    """``exc``, a library's failure to write ``path``, as an ``OSError`` with the errno its
+    message names (OpenEXR raises a plain RuntimeError ending in the C library's strerror)."""
+    if isinstance(exc, OSError):
+        return exc
+    text = str(exc)
+    code = next((code for code in sorted(errno.errorcode) if os.strerror(code) in text), None)
+    return OSError(code, os.strerror(code) if code else text, os.fspath(path))
 
 
 def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,
@@ -82,7 +96,10 @@ def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,
             channels[f"normal.{axis}"] = np.ascontiguousarray(normal[..., i], dtype=np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp, OpenEXR.File(header, channels) as f:
-        f.write(tmp)
+        try:
+            f.write(tmp)
+        except RuntimeError as exc:  # a full disk is an OSError, as for every other format
+            raise os_error(exc, path) from None
 
 
 def write_pfm(path, rgb: np.ndarray) -> None:

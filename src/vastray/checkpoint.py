@@ -7,6 +7,12 @@ the error series, and ``identity``, everything that decides the image besides ``
 store's manifest digest, the scene, the resolved camera, the sampling settings, the pass
 size). A resume must match it: then the passes it adds are those an uninterrupted run adds,
 and, every sample being a pure function of (seed, pixel, sample), so is the image.
+
+The zip's comment, its last bytes, is a seal: ``SEAL`` and the SHA-256 of every byte before
+the digest. A truncated, emptied or bit-flipped file (any byte) fails the seal and is refused
+in one line before anything is read from it. A checkpoint that cannot be written where asked
+(a full or read-only disk) goes to the rescue folder (``vastray.outputs``) and the render goes
+on; the temporary files of writes killed midway are removed when a render next uses the file.
 """
 
 from __future__ import annotations
@@ -14,23 +20,30 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 import signal
+import sys
 import threading
 import time
+import zipfile
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
+from vastray.outputs import STORAGE_ERRNOS, OutputError, rescue_folders
 from vastray.render.film import Film
-from vastray.render.imageio import atomic_path
+from vastray.render.imageio import atomic_path, remove_orphans
 from vastray.render.progressive import Progression, Snapshot
 from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 1
+CHECKPOINT_FORMAT = 2
+#: The zip comment's start; the hexadecimal SHA-256 of every byte before it follows.
+SEAL = b"vastray checkpoint sha256 "
+_DIGEST = 64  # hexadecimal characters
 FILM_ARRAYS = ("sum", "sum_odd", "count", "depth", "normal")
 
 #: Settings that do not change the image: the spp bound (a resume may go further), the
@@ -55,17 +68,77 @@ def render_identity(store, config, camera, settings, max_pass_spp: int) -> dict:
 
 
 def write_checkpoint(path: str | Path, progression: Progression, identity: dict) -> Snapshot:
-    """Write the progression's last finished pass to ``path`` atomically; returns the
-    snapshot written (taken once, so the arrays and meta agree)."""
+    """Write the progression's last finished pass to ``path`` atomically, sealed and synced
+    to the disk; returns the snapshot written (taken once, so the arrays and meta agree)."""
     snap = progression.snapshot
     meta = {"format": CHECKPOINT_FORMAT, "identity": identity,
             "passes_done": snap.passes_done, "spp": int(snap.film.count.max()),
             "seconds": snap.seconds, "series": list(snap.series),
             "width": snap.film.width, "height": snap.film.height}
-    arrays = {name: getattr(snap.film, name) for name in FILM_ARRAYS}
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, meta=np.array(json.dumps(meta)), **arrays)
+    arrays = {"meta": np.array(json.dumps(meta))}
+    arrays.update((name, getattr(snap.film, name)) for name in FILM_ARRAYS)
+    with atomic_path(path) as tmp, open(tmp, "w+b") as fh:
+        with zipfile.ZipFile(fh, "w", zipfile.ZIP_STORED, allowZip64=True) as archive:
+            for name, array in arrays.items():  # as np.savez writes them
+                with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+            archive.comment = SEAL + b"0" * _DIGEST
+        fh.flush()
+        digest = _digest(fh, fh.tell() - _DIGEST)
+        fh.seek(-_DIGEST, os.SEEK_END)
+        fh.write(digest)
+        fh.flush()
+        os.fsync(fh.fileno())  # a checkpoint outlives a crash of the machine too
     return snap
+
+
+def _digest(fh, size: int) -> bytes:
+    """The hexadecimal SHA-256 of the first ``size`` bytes of ``fh``."""
+    fh.seek(0)
+    sha = hashlib.sha256()
+    while size > 0:
+        chunk = fh.read(min(size, 1 << 22))
+        if not chunk:
+            break
+        sha.update(chunk)
+        size -= len(chunk)
+    return sha.hexdigest().encode()
+
+
+_NO_SEAL = ("has no intact checkpoint seal at its end: not a vastray checkpoint, or truncated "
+            "(its write cut short, its copy incomplete) or damaged")
+
+
+def _check_seal(path: Path) -> bool:
+    """Whether the file at ``path`` ends in a seal (False: it has none, so it is no
+    checkpoint of this format, or a truncated one).
+
+    Raises
+    ------
+    InputError
+        The file is missing, empty, unreadable, or sealed but damaged.
+    """
+    try:
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if size == 0:
+                raise InputError(path, "is empty (0 bytes), not a checkpoint (a write cut "
+                                       "short?); resume from another checkpoint or render anew")
+            fh.seek(max(size - len(SEAL) - _DIGEST, 0))
+            tail = fh.read()
+            if not tail.startswith(SEAL) or len(tail) != len(SEAL) + _DIGEST:
+                return False
+            if _digest(fh, size - _DIGEST) != tail[len(SEAL):]:
+                raise InputError(path, "is damaged: its contents do not match its SHA-256 seal "
+                                       "(a byte changed on the disk or in a copy); resume from "
+                                       "another checkpoint or render anew")
+    except FileNotFoundError:
+        raise InputError(path, "checkpoint not found") from None
+    except IsADirectoryError:
+        raise InputError(path, "is a folder, not a checkpoint file") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read the checkpoint ({exc.strerror or exc})") from None
+    return True
 
 
 def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
@@ -74,21 +147,25 @@ def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
     Raises
     ------
     InputError
-        Naming the file and what is wrong: missing, not a checkpoint, or made for another
-        render (naming the first setting that differs).
+        Naming the file and what is wrong: missing, empty, truncated, damaged, not a
+        checkpoint, or made for another render (naming the first setting that differs).
     """
     path = Path(path)
+    remove_orphans(path)  # temporaries of writes to this file that were killed midway
+    sealed = _check_seal(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             arrays = {name: np.array(data[name]) for name in FILM_ARRAYS}
-    except FileNotFoundError:
-        raise InputError(path, "checkpoint not found") from None
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"not a vastray checkpoint ({exc})") from None
-    if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
-        raise InputError(path, f"checkpoint format {meta.get('format')!r}; this vastray reads "
+    except Exception as exc:  # zipfile, numpy and json raise many kinds on foreign bytes
+        raise InputError(path, _NO_SEAL if not sealed else f"not a vastray checkpoint "
+                                                             f"({exc})") from None
+    found = meta.get("format") if isinstance(meta, dict) else None
+    if found != CHECKPOINT_FORMAT:
+        raise InputError(path, f"checkpoint format {found!r}; this vastray reads "
                                f"format {CHECKPOINT_FORMAT}")
+    if not sealed:
+        raise InputError(path, _NO_SEAL)
     _check_identity(path, meta.get("identity") or {}, identity)
     film = Film(int(meta["width"]), int(meta["height"]))
     for name, array in arrays.items():
@@ -139,6 +216,8 @@ class Checkpointer:
         self._lock = threading.Lock()
         self._writer: ThreadPoolExecutor | None = None
         self._pending: Future | None = None
+        self._warned = False  # the partial image could not be written (said once)
+        remove_orphans(self.path)  # temporaries of earlier writes that were killed midway
 
     def after_pass(self, progression: Progression) -> None:
         """``Progression.on_pass``: a checkpoint when one is due, written on a thread of its
@@ -176,15 +255,42 @@ class Checkpointer:
         if not self._lock.acquire(blocking=False):
             return False
         try:
-            snap = write_checkpoint(self.path, progression, self.identity)
+            snap = self._write_checkpoint(progression)
             if self.write_image is not None:
-                self.write_image(progression)
+                try:
+                    self.write_image(progression)
+                except OutputError as exc:  # the checkpoint holds the render: it goes on
+                    if not self._warned:
+                        print(f"warning: {exc}; the render goes on, and the checkpoint "
+                              f"{self.path} holds it", file=sys.stderr)
+                    self._warned = True
             self.written = snap.passes_done
             self._last = time.monotonic()
             log.info("checkpoint: %s (%d spp)", self.path, int(snap.film.count.max()))
             return True
         finally:
             self._lock.release()
+
+    def _write_checkpoint(self, progression: Progression) -> Snapshot:
+        """``write_checkpoint`` to ``path``, or, where its disk cannot take it (full,
+        read-only, refused), to the rescue folder, which takes the checkpoints from then on
+        (``path`` names it)."""
+        try:
+            return write_checkpoint(self.path, progression, self.identity)
+        except OSError as exc:
+            if exc.errno not in STORAGE_ERRNOS:
+                raise
+            for folder in rescue_folders():
+                try:
+                    snap = write_checkpoint(folder / self.path.name, progression,
+                                            self.identity)
+                except OSError:
+                    continue
+                print(f"warning: {self.path}: cannot be written ({exc.strerror}); the "
+                      f"checkpoints go to {folder / self.path.name} instead", file=sys.stderr)
+                self.path = folder / self.path.name
+                return snap
+            raise
 
     def install_signal(self) -> object:
         """SIGUSR1 writes a checkpoint now (main thread only); returns the handler it

@@ -9,7 +9,6 @@ import os
 import signal
 import sys
 from collections.abc import Callable
-from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from vastray.actors.results import recovery_lines
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
 from vastray.checkpoint import default_path as default_checkpoint
+from vastray.outputs import StagedOutputs
 from vastray.preflight import (
     MemoryEstimate,
     RenderMemory,
@@ -37,7 +37,7 @@ from vastray.preflight import (
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render, store_camera
-from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
+from vastray.render.imageio import image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.lights import shadow_rays
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression, StopRules
@@ -802,15 +802,19 @@ def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
 
 def write_outputs(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path], film,
                   image: np.ndarray, report: dict) -> None:
-    """Write the image (-o, --png) and the report, all or none: renamed into place together."""
-    with ExitStack() as written:
-        write_image(written.enter_context(atomic_path(outputs[0])), image,
-                    film.depth_image(), film.normal_image(), args.exposure, legend=plan.legend)
-        if args.png:
-            write_png(written.enter_context(atomic_path(args.png)), image, args.exposure,
-                      legend=plan.legend)
-        if args.report:
-            write_report(written.enter_context(atomic_path(args.report)), report)
+    """Write the image (-o, --png) and the report, all or none: renamed into place together;
+    where one cannot be written (a full disk...), all go to a rescue folder and the
+    ``OutputError`` raised names it (``vastray.outputs``)."""
+    depth, normal = film.depth_image(), film.normal_image()
+    files = {outputs[0]: lambda path: write_image(path, image, depth, normal, args.exposure,
+                                                  legend=plan.legend)}
+    if args.png:
+        files[Path(args.png)] = lambda path: write_png(path, image, args.exposure,
+                                                       legend=plan.legend)
+    if args.report:
+        files[Path(args.report)] = lambda path: write_report(path, report)
+    with StagedOutputs() as staged:
+        staged.add(files)
 
 
 def start_progression(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path]
