@@ -17,6 +17,7 @@ on; the temporary files of writes killed midway are removed when a render next u
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -217,6 +218,7 @@ class Checkpointer:
         self._writer: ThreadPoolExecutor | None = None
         self._pending: Future | None = None
         self._warned = False  # the partial image could not be written (said once)
+        self._rescued = False  # ``path`` is in a rescue folder
         remove_orphans(self.path)  # temporaries of earlier writes that were killed midway
 
     def after_pass(self, progression: Progression) -> None:
@@ -288,7 +290,7 @@ class Checkpointer:
                     continue
                 print(f"warning: {self.path}: cannot be written ({exc.strerror}); the "
                       f"checkpoints go to {folder / self.path.name} instead", file=sys.stderr)
-                self.path = folder / self.path.name
+                self.path, self._rescued = folder / self.path.name, True
                 return snap
             raise
 
@@ -305,3 +307,6 @@ class Checkpointer:
         self.drain()
         if self.written is not None:
             self.path.unlink(missing_ok=True)
+            if self._rescued:  # the rescue folder, unless something else is kept there
+                with contextlib.suppress(OSError):
+                    self.path.parent.rmdir()
