@@ -71,11 +71,11 @@ def load_check(crc32: dict, sha256: dict, kind: str) -> tuple[str, str] | None:
 def checksum_mismatch(data, check: tuple[str, str] | None) -> str | None:
     """What differs when ``data`` (a file's bytes as read; any buffer) does not have the checksum
     ``check`` (``(algorithm, expected)``, from :func:`load_check`), e.g. ``"CRC-32 0badf00d,
-    the manifest recorded 1234abcd"``; None when it has, or when there is nothing to check."""
+    manifest 1234abcd"``; None when it has, or when there is nothing to check."""
     if check is None:
         return None
     algorithm, expected = check
     got = digest(algorithm, data)
     if got == expected:
         return None
-    return f"{NAMES[algorithm]} {got}, the manifest recorded {expected}"
+    return f"{NAMES[algorithm]} {got}, manifest {expected}"

@@ -292,8 +292,9 @@ def _raise_if_error(item: DomainInfo | InputError) -> DomainInfo:
 
 
 def _changed(info: DomainInfo, why: str, store: Path) -> str:
-    return (f"{info.label} of the store changed since it was written ({why}): run `vastray "
-            f"verify {store}` to list every changed file, then restore them or {REWRITE}")
+    # short: a node's report of it is cut at 300 characters
+    return (f"{info.label} changed since the store was written ({why}); `vastray verify "
+            f"{store}` lists every changed file")
 
 
 def _read_array(path: Path, mmap: bool, drop_cache: bool,
