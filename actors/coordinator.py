@@ -209,18 +209,26 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
 
     while True:
         remaining = None if frames is None else [f for f in frames if f not in delivered]
+        for frame in [None] if frames is None else remaining:
+            # the frame under way rules on its next pass anew: the pass granted was lost with
+            # a node (time went by since), or it goes on from a checkpoint
+            progression(frame).retake()
         for frame in remaining or ():  # merged whole before a loss, its reports lost with it
             if progression(frame).stopped_by is not None:
                 frame_done(frame, progression(frame).film, [], 0, 0.0)
         remaining = None if frames is None else [f for f in frames if f not in delivered]
-        units = [(frame, first, stop) for frame in (remaining or [None])
+        todo = [None] if frames is None else remaining
+        units = [(frame, first, stop) for frame in todo
                  for first, stop in progression(frame).remaining()]
-        paced = any(progression(frame).rules.paced for frame in (remaining or [None]))
+        if not units and listen is None:  # every frame is whole: no node to start for it
+            film, reports, barriers = progression(None).film if frames is None else None, [], 0
+            break
+        paced = any(progression(frame).rules.paced for frame in todo)
         try:
             with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0,
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                           leave=False) as bar:
-                passes = Passes(units, progression, paced)
+                passes = Passes(units, progression, paced, image=frames is None)
                 film, reports, barriers = asyncio.run(coordinate(
                     dict(job, frames=remaining, units=units, paced=paced), size, settings,
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,

@@ -32,10 +32,13 @@ class Passes:
     units : the units of this attempt.
     progression : ``progression(frame)``, the frame's ``Progression``.
     paced : whether nodes wait for a grant after each unit.
+    image : whether the job is one image (frame None), not an animation's frames.
     """
 
-    def __init__(self, units: list[tuple], progression: Callable, paced: bool):
+    def __init__(self, units: list[tuple], progression: Callable, paced: bool,
+                 image: bool = True):
         self.units, self.progression, self.paced = units, progression, paced
+        self.image = image
         self.expected = 0  # the unit whose film comes next
         self.send_grant = None
 
@@ -44,7 +47,8 @@ class Passes:
         return not self.units
 
     def image_film(self):
-        return self.progression(None).film
+        """The image's film (None for an animation's frames, each handed on by itself)."""
+        return self.progression(None).film if self.image else None
 
     def begin(self, send_grant) -> None:
         """Start the first unit's frame (its clock, its first pass)."""
@@ -161,9 +165,10 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
     ``NodeLost``."""
     film, reports = None, {}
     done_paths: dict[int, int] = {}
-    if passes.done:  # nothing left to render (every pass merged before a node loss)
+    whole = passes.done  # nothing left to render (every pass merged before a node loss)
+    if whole:
         film = passes.image_film()
-    while film is None or len(reports) < size:
+    while not whole or len(reports) < size:
         _, message = await watch.receive(router)
         if message.kind == protocol.PROGRESS:
             rank = int(message.meta["rank"])
@@ -178,7 +183,7 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
                                   f"{exc}") from None
             finished = await passes.film(int(message.meta.get("unit", 0)), pass_film)
             if finished is not None:  # a frame is whole (for an animation, the latest)
-                frame, film = finished
+                (frame, film), whole = finished, True
                 if frame is not None:
                     frames.film(frame, film, control.barriers)
         elif message.kind == protocol.FRAME:

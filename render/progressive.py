@@ -146,6 +146,7 @@ class Progression:
                              f"--spp {self.rules.spp}")
         self._started = None  # the first next_pass starts the clock
         self._pass_started = None
+        self._granted = None  # the pass next_pass gave, until its film is merged
 
     @property
     def film(self) -> Film:
@@ -174,11 +175,14 @@ class Progression:
 
     def next_pass(self) -> tuple[int, int, int] | None:
         """The next pass to render as (index, first sample, stop sample), or None once a
-        rule says stop (``stopped_by`` names it)."""
+        rule says stop (``stopped_by`` names it). The rules rule once per pass: asked again
+        before that pass's film is merged, it gives the same pass (``retake`` asks anew)."""
         done = self.snapshot.passes_done
         self.start()
         if self.stopped_by is not None:
             return None
+        if self._granted is not None:
+            return self._granted
         if done == len(self.passes):
             return self._stop("spp")
         last = self.snapshot.series[-1] if self.snapshot.series else None
@@ -193,7 +197,18 @@ class Progression:
             if self.elapsed() + per_sample * (stop - first) > self.rules.time_limit:
                 return self._stop("time-limit")
         self._pass_started = time.perf_counter()
-        return (done, *self.passes[done])
+        self._granted = (done, *self.passes[done])
+        return self._granted
+
+    def retake(self) -> None:
+        """Before a runtime (re)starts mid-way: after a node loss, the pass granted and lost
+        with it unmerged, or a checkpoint's passes done. The rules rule on the next pass
+        anew (time went by meanwhile): it is granted, or ``stopped_by`` says which rule
+        stopped, and the image is that of the passes done. A progression with no pass done
+        or granted is left as it is (its first ``next_pass`` starts the clock)."""
+        if self.stopped_by is None and (self._granted or self.snapshot.passes_done):
+            self._granted = None
+            self.next_pass()
 
     def _stop(self, reason: str) -> None:
         self.stopped_by = reason
@@ -205,6 +220,7 @@ class Progression:
         done = self.snapshot.passes_done
         if index != done:
             raise ValueError(f"pass {index} arrived where pass {done} was due")
+        self._granted = None
         film = Film(self.width, self.height)
         film.merge(self.snapshot.film)
         film.merge(pass_film)
