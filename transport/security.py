@@ -15,8 +15,10 @@ Two ways to be a member of a job:
   (``transport.join_secret``). Other users of the machine cannot join.
 
 The handshake is also where memory is bounded: a peer that has not authenticated can make a
-socket hold at most ``FRAME_LIMIT`` bytes per connection (``MAXMSGSIZE``), for at most
-``HANDSHAKE_S`` (``HANDSHAKE_IVL``); larger messages are sent as several frames by the codec.
+socket hold at most ``FRAME_LIMIT`` bytes per connection (``MAXMSGSIZE``; 128 KiB, larger
+messages are sent as several frames by the codec), for at most ``HANDSHAKE_S``
+(``HANDSHAKE_IVL``), on at most ``PENDING_LIMIT`` connections at once (``Gate.watch``'s
+``Doorkeeper``): about 39 MB in all, however many connections an outsider opens.
 """
 
 from __future__ import annotations
@@ -31,10 +33,10 @@ from dataclasses import dataclass
 import zmq
 import zmq.asyncio
 from zmq.utils import z85
-from zmq.utils.monitor import parse_monitor_message
 
 from vastray.scene.errors import InputError
 from vastray.transport.codec import FRAME_LIMIT
+from vastray.transport.doorkeeper import Doorkeeper
 from vastray.transport.keys import CoordinatorKeys, NodeKeys
 
 #: Seconds a connection may take to authenticate before ZeroMQ drops it.
@@ -136,6 +138,7 @@ class Gate:
         self._sock.linger = 0
         self._sock.bind("inproc://zeromq.zap.01")
         self._tasks = [asyncio.ensure_future(self._serve())]
+        self._watchers: list[Doorkeeper] = []
 
     def close_until_known(self) -> None:
         """Admit no key until the next ``open`` (a node's next job)."""
@@ -196,38 +199,34 @@ class Gate:
                                          b"200" if ok else b"400",
                                          b"OK" if ok else reason.encode()[:200], user, b""])
 
-    def watch(self, sock: zmq.asyncio.Socket, where: str) -> asyncio.Task:
-        """Also count and log handshakes on ``sock`` that fail before any ZAP request (a
-        CURVE client with no key or the wrong server key; a stranger's protocol). Returns
-        the task reading its events: cancel it when ``sock`` closes (``close`` cancels every
-        one left)."""
+    def watch(self, sock: zmq.asyncio.Socket, where: str) -> Doorkeeper:
+        """Bound and watch the connections of listening socket ``sock`` (call before it
+        accepts any): at most ``PENDING_LIMIT`` of them in their first ``HANDSHAKE_S``
+        (``transport.doorkeeper``), and count and log handshakes that fail before any ZAP
+        request (a CURVE client with no key or the wrong server key; a stranger's protocol).
+        Returns the watcher: cancel it when ``sock`` closes (``close`` cancels every one
+        left)."""
         # A fresh endpoint each time: pyzmq's default is named after the socket's descriptor,
         # which the next socket reuses while the closed one's monitor may still be bound (a
         # node joining again after a regroup died on "Address already in use").
-        monitor = sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-                                          | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
-                                          addr=f"inproc://vastray-monitor-{next(_MONITORS)}")
+        watcher = Doorkeeper(sock, f"inproc://vastray-monitor-{next(_MONITORS)}", where,
+                             HANDSHAKE_S, on_failed=lambda event: self._failed(event, where))
+        self._watchers = [w for w in self._watchers if not w.done()] + [watcher]
+        return watcher
 
-        async def read() -> None:
-            try:
-                while True:
-                    event = parse_monitor_message(await monitor.recv_multipart())
-                    self.failed_handshakes += 1
-                    n = self.failed_handshakes
-                    if n <= 5 or n % 100 == 0:
-                        log.warning("a handshake on %s failed before authentication (%s; %d "
-                                    "so far): a client without keys, with another coordinator "
-                                    "key, or not speaking ZeroMQ", where,
-                                    "protocol error" if event["event"]
-                                    & zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL else "no detail", n)
-            finally:
-                monitor.close(linger=0)
-
-        task = asyncio.ensure_future(read())
-        self._tasks = [t for t in self._tasks if not t.done()] + [task]
-        return task
+    def _failed(self, event: dict, where: str) -> None:
+        self.failed_handshakes += 1
+        n = self.failed_handshakes
+        if n <= 5 or n % 100 == 0:
+            log.warning("a handshake on %s failed before authentication (%s; %d so far): a "
+                        "client without keys, with another coordinator key, not speaking "
+                        "ZeroMQ, or turned away", where,
+                        "protocol error" if event["event"] & zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+                        else "no detail", n)
 
     def close(self) -> None:
         for task in self._tasks:
             task.cancel()
+        for watcher in self._watchers:
+            watcher.cancel()
         self._sock.close(linger=0)
