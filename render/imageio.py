@@ -95,9 +95,11 @@ def write_exr(path, rgb: np.ndarray, depth: np.ndarray | None = None,
         for i, axis in enumerate("XYZ"):
             channels[f"normal.{axis}"] = np.ascontiguousarray(normal[..., i], dtype=np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp, OpenEXR.File(header, channels) as f:
+    # written through a Python file: OpenEXR's own file output loses the error of a small
+    # image's last write on a full disk (an empty file, "written"); Python's raises it
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh, OpenEXR.File(header, channels) as f:
         try:
-            f.write(tmp)
+            f.write(fh)
         except RuntimeError as exc:  # a full disk is an OSError, as for every other format
             raise os_error(exc, path) from None
 

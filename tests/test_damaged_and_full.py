@@ -267,3 +267,26 @@ def test_a_checkpoint_writer_killed_midway_leaves_nothing_after_the_next_render(
                "--checkpoint", str(ckpt))
     assert run.returncode == 0, run.stderr
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_an_animation_on_a_full_disk_keeps_the_frames_done_in_a_rescue_folder(
+        scene, full_disk, tmp_path):
+    # room for two frames' small images (a tmpfs page each): the third fails, and the frames
+    # written so far (staged beside their targets, all or none) go to the rescue folder
+    root, common = scene
+    small = [*common, "--width", "8", "--height", "8", "--spp", "4", "--frames", "3"]
+    normal = _cli("render", *small, "-o", str(tmp_path / "normal" / "an.exr"))
+    assert normal.returncode == 0, normal.stderr
+    os.truncate(full_disk / "filler", (full_disk / "filler").stat().st_size - 2 * 4096)
+    run = _cli("render", *small, "-o", str(full_disk / "an.exr"), "--report",
+               str(tmp_path / "an.json"), tmpdir=tmp_path / "tmp")
+    assert run.returncode != 0 and "Traceback" not in run.stderr, run.stderr
+    line = run.stderr.strip().splitlines()[-1]
+    assert str(full_disk / "an_0002.exr") in line and "No space left" in line, run.stderr
+    kept = Path(re.search(r"written to (\S+) instead", line).group(1))
+    for frame in range(3):
+        np.testing.assert_array_equal(read_image(kept / f"an_{frame:04d}.exr"),
+                                      read_image(tmp_path / "normal" / f"an_{frame:04d}.exr"))
+        assert json.loads((kept / f"an_{frame:04d}.json").read_text())["frame"] == frame
+    assert sorted(p.name for p in full_disk.iterdir()) == ["filler"]
+    assert not list(tmp_path.glob("an*.json"))

@@ -20,16 +20,16 @@ import logging
 import sys
 import time
 from collections.abc import Callable
-from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from vastray.actors.results import recovery_lines
+from vastray.outputs import StagedOutputs
 from vastray.preflight import check_output_paths
 from vastray.render.driver import RenderResult
-from vastray.render.imageio import atomic_path, image_error, read_image, write_image, write_png
+from vastray.render.imageio import image_error, read_image, write_image, write_png
 from vastray.render.integrators import RenderSettings
 from vastray.render.progressive import Progression, StopRules
 from vastray.render.rng import frame_seed
@@ -231,7 +231,9 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             loaded[frame] = read_image(references[frame])
         return loaded[frame]
 
-    with ExitStack() as written:  # every frame's files, or none: renamed into place together
+    # every frame's files, or none: renamed into place together (a frame that cannot be
+    # written sends the frames so far to a rescue folder, vastray.outputs)
+    with StagedOutputs() as written:
         def on_frame(frame: int, result: RenderResult) -> None:
             files = outputs.of(frame)
             image = result.film.image()
@@ -240,19 +242,21 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
             error = image_error(image, reference_image(frame)) if reference else None
             loaded.pop(frame, None)
             seed = frame_seed(settings.seed, frame)
-            write_image(written.enter_context(atomic_path(files[0])), image,
-                        result.film.depth_image(), result.film.normal_image(), args.exposure,
-                        legend=legend)
+            depth, normal = result.film.depth_image(), result.film.normal_image()
+            writers = {files[0]: lambda path: write_image(path, image, depth, normal,
+                                                          args.exposure, legend=legend)}
             if outputs.png is not None:
-                write_png(written.enter_context(atomic_path(files[1])), image, args.exposure,
-                          legend=legend)
+                writers[files[1]] = lambda path: write_png(path, image, args.exposure,
+                                                           legend=legend)
             if outputs.report is not None:
-                write_report(written.enter_context(atomic_path(files[-1])), build_report(
+                report = build_report(
                     store=store_path, settings=dict(asdict(settings), seed=seed),
                     seconds=result.seconds, counters=result.counters, error=error,
                     reference=None if reference is None else str(reference),
                     scheduler=scheduler, options=options, frame=frame,
-                    progress=result.progress))
+                    progress=result.progress)
+                writers[files[-1]] = lambda path: write_report(path, report)
+            written.add(writers)
             entry = summary.add(frame, seed, files, result, error, reference)
             recoveries[:] = result.counters.get("recoveries", recoveries)
             if not args.quiet:
@@ -280,7 +284,7 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
                 report["error_vs_time"] = [{"frame": e["frame"],
                                             "seconds": e["seconds"].get("total"), **e["error"]}
                                            for e in summary.entries]
-            write_report(written.enter_context(atomic_path(outputs.report)), report)
+            written.add({Path(outputs.report): lambda path: write_report(path, report)})
     if not args.quiet:
         print(_summary_line(args, outputs, frames, totals, means), file=sys.stderr)
         for line in recovery_lines({"recoveries": recoveries}):
