@@ -84,9 +84,9 @@ class DomainQueues:
     the bounds of that domain's run in the sorted block: the per-domain rays are sliced out
     (views) only when the queue is popped or peeked, instead of one gather per field and
     domain on every push. A block stays in memory until its last run is popped (``nbytes``
-    counts what is held), unless more than ``WASTE_FLOOR`` bytes and more than the queued
-    rows themselves are popped rows kept alive that way: then the runs left in blocks less
-    than half queued are copied out and those blocks freed (``_compact``). Without that, a
+    counts what is held), unless more than ``WASTE_FLOOR`` bytes and more than half the queued
+    bytes are popped rows kept alive that way: then the runs left in blocks less than two
+    thirds queued are copied out and those blocks freed (``_compact``). Without that, a
     speculative schedule's copies of one push, spread over dozens of domains, held the whole
     push until its last domain was served: 455 MB held for 17 MB queued (issue 37).
 
@@ -160,14 +160,15 @@ class DomainQueues:
             self._held -= len(block) * entry[2]
 
     def _compact(self) -> None:
-        """Copy the runs out of blocks less than half queued once the popped rows they keep
-        alive exceed ``WASTE_FLOOR`` and the queued bytes: afterwards every block held is at
-        least half queued. Each byte copied frees more than a byte, so the copies cost no
-        more than the pushes did."""
+        """Copy the runs out of blocks less than two thirds queued once the popped rows they
+        keep alive exceed ``WASTE_FLOOR`` and half the queued bytes: afterwards every block
+        held is at least two thirds queued (the queues hold at most 1.5x their rays). Each
+        byte copied frees at least half a byte, so the copies cost at most twice the pushes."""
         waste = self._held - self._live
-        if waste <= max(WASTE_FLOOR, self._live):
+        if waste <= max(WASTE_FLOOR, self._live // 2):
             return
-        sparse = {key for key, (block, rows, _) in self._blocks.items() if 2 * rows < len(block)}
+        sparse = {key for key, (block, rows, _) in self._blocks.items()
+                  if 3 * rows < 2 * len(block)}
         for chunks in self._chunks.values():
             for i, (block, start, stop) in enumerate(chunks):
                 if id(block) in sparse:
