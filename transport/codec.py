@@ -130,6 +130,7 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         raise CodecError(f"header lists {sum(p for *_, p in specs)} frames but "
                          f"{len(buffers) - 1} frames came")
     arrays, total, at = {}, header_bytes, 1
+    split = []  # (name, dtype, shape, views) of fields sent as several frames
     for name, dtype, shape, parts in specs:
         expected = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
         total += expected
@@ -142,19 +143,34 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
                                                  for v in views[:-1])):
             raise CodecError(f"field {name!r}: frames have {got} bytes, header says "
                              f"{expected}")
-        if name in arrays:
+        if name in arrays or any(name == other for other, *_ in split):
             raise CodecError(f"field {name!r} appears twice")
         if not expected:
             arrays[name] = np.zeros(shape, dtype)
         elif parts == 1:
             arrays[name] = np.frombuffer(views[0], dtype=dtype).reshape(shape)
-        else:  # joined: one copy
-            joined = np.empty(expected, np.uint8)
-            offsets = np.cumsum([0] + [v.nbytes for v in views])
-            for view, lo, hi in zip(views, offsets[:-1], offsets[1:], strict=True):
-                joined[lo:hi] = np.frombuffer(view, np.uint8)
-            arrays[name] = joined.view(dtype).reshape(shape)
+        else:
+            split.append((name, dtype, shape, views))
+    if split:
+        arrays.update(_join(split))
     return Message(kind, arrays, meta)
+
+
+def _join(split: list) -> dict[str, np.ndarray]:
+    """Fields sent as several frames, copied once into one buffer (one allocation a message:
+    a fresh allocation per field costs more in page faults than the copy), each field at a
+    64-byte aligned offset."""
+    sizes = [sum(v.nbytes for v in views) for *_, views in split]
+    starts = np.cumsum([0] + [-(-n // 64) * 64 for n in sizes])
+    arena = np.empty(int(starts[-1]), np.uint8)
+    joined = {}
+    for (name, dtype, shape, views), start, size in zip(split, starts, sizes, strict=False):
+        at = int(start)
+        for view in views:
+            arena[at:at + view.nbytes] = np.frombuffer(view, np.uint8)
+            at += view.nbytes
+        joined[name] = arena[int(start):int(start) + size].view(dtype).reshape(shape)
+    return joined
 
 
 def _field(spec) -> tuple[str, np.dtype, tuple[int, ...], int]:
