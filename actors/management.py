@@ -97,6 +97,7 @@ class ManagementActor:
         self.peer_keys: list[bytes] = []  # each rank's CURVE public key (with keys)
         self.n_domains = 0
         self.films_taken: set[tuple[int, int]] = set()  # (child rank, unit ordinal)
+        self.n_units = 0  # the job's units (passes of frames): a film's ordinal is below it
         self.mailboxes: dict[str, _Mailbox] = {}
         # Peer messages that came before this node had its job (a fast peer may send before
         # the job reached this node); checked once it has. Only members get this far.
@@ -186,6 +187,7 @@ class ManagementActor:
         if self.credentials.curve:
             self.gate.open(frozenset(self.peer_keys).__contains__)
         self.n_domains = int(job.get("domains", 0))
+        self.n_units = len(job["units"])
         early, self._early, self._early_bytes = self._early, [], 0
         for frames in early:
             self._take_peer(frames)
@@ -222,6 +224,11 @@ class ManagementActor:
                 protocol.check_ray_ids(message, self.n_domains)
             if message.kind == protocol.FILM:
                 once = (sender, int(message.meta.get("ordinal", 0)))
+                if not 0 <= once[1] < self.n_units:
+                    # a child may run ahead, so later units' films are kept until reduced:
+                    # but only those of units the job has
+                    raise protocol.ProtocolError(f"a film from node {sender} for unit "
+                                                 f"{once[1]} of a job of {self.n_units}")
                 if once in self.films_taken:
                     raise protocol.ProtocolError(f"a second film from node {sender} for "
                                                  f"unit {once[1]}")

@@ -139,6 +139,7 @@ def member_actors(size: int, domains: int = 8, keys=None):
     try:
         for rank, node in enumerate(nodes):
             node.join(b"job-token-0123456", {"rank": rank, "size": size, "domains": domains,
+                                             "units": [[None, 0, 1], [None, 1, 2]],
                                              "endpoints": [n.endpoint for n in nodes],
                                              "peer_tokens": tokens[rank], "keys": publics})
         yield ctx, coordinator, gate, nodes

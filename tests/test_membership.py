@@ -52,6 +52,9 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
             [token[2], *film],                       # node 2 speaking for node 1
             [token[1], *film],                       # node 1's film: taken
             [token[1], *film],                       # ... once
+            [token[1], *film_frames(Film(4, 3), {"rank": 1, "ordinal": 2})],  # no unit 2
+            [token[2], *film_frames(Film(4, 3), {"rank": 2, "ordinal": -1})],  # nor unit -1
+            [token[2], *film_frames(Film(4, 3), {"rank": 2, "ordinal": 1})],  # a later unit's
             [token[1], *encode(protocol.BROADCAST, {}, {"rank": 1})],  # node 0 has no parent
             [token[2], *_rays(5, 10**6, 2)],         # a domain the job does not have
             [token[2], *_rays(5, 7, 2)],             # one it has
@@ -60,13 +63,15 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
         ]
         for frames in sends:
             await member.send_multipart(frames)
-        await _until(lambda: node0.rejections.total >= 7)
-        assert node0.mailbox(protocol.FILM).qsize() == 1
-        assert node0.mailbox(protocol.FILM).get_nowait().meta["rank"] == 1
+        await _until(lambda: node0.rejections.total >= 9)
+        films = node0.mailbox(protocol.FILM)
+        assert films.qsize() == 2
+        assert [(m.meta["rank"], m.meta["ordinal"]) for m in (
+            films.get_nowait(), films.get_nowait())] == [(1, 0), (2, 1)]
         assert node0.mailbox(protocol.BROADCAST).qsize() == 0
         rays = node0.mailbox(protocol.RAYS)
         assert rays.qsize() == 1 and int(rays.get_nowait().arrays["domain"][0]) == 7
-        assert node0.rejections.counts == {"malformed": 5, "stranger": 2}, \
+        assert node0.rejections.counts == {"malformed": 7, "stranger": 2}, \
             node0.rejections.counts
         member.close(linger=0)
 
