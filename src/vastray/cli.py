@@ -3,16 +3,26 @@
 Configuration lives here only; library modules log through ``logging.getLogger(__name__)``.
 """
 
+# The imports below come after SIGUSR1 is ignored, on purpose:
+# ruff: noqa: E402
 from __future__ import annotations
+
+import signal
+import threading
+
+if threading.current_thread() is threading.main_thread():
+    # SIGUSR1 asks a render for a checkpoint (``vastray.checkpoint``); its default action
+    # kills the process, so it is ignored first thing, before any other module loads: one
+    # sent in a render's first moments, before the checkpoints' handler takes over, must
+    # change nothing (the console script imports this module first).
+    signal.signal(signal.SIGUSR1, signal.SIG_IGN)
 
 import argparse
 import difflib
 import logging
 import os
 import select
-import signal
 import sys
-import threading
 
 from vastray.actors.node_failure import NodeFailure
 from vastray.scene.errors import InputError
@@ -117,13 +127,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_terminated)
-        # SIGUSR1 asks a render for a checkpoint (``vastray.checkpoint``); one that comes
-        # before the render is under way must not kill the process (its default action).
-        signal.signal(signal.SIGUSR1, signal.SIG_IGN)
-        # SIGPIPE stays ignored (Python's default), so a closed pipe is a BrokenPipeError
-        # that ``_closed_output`` below tells apart, rather than SIG_DFL's silent death at
-        # any write to any pipe or socket: a render would die without a word, its nodes left
-        # running and its checkpoint unwritten, if a node's pipe broke.
+        # SIGUSR1 is ignored since this module's import (above). SIGPIPE stays ignored
+        # (Python's default), so a closed pipe is a BrokenPipeError that ``_closed_output``
+        # below tells apart, rather than SIG_DFL's silent death at any write to any pipe or
+        # socket: a render would die without a word, its nodes left running and its
+        # checkpoint unwritten, if a node's pipe broke.
     if argv[:1] == ["node"]:
         from vastray.actors.node import main as node_main
 
