@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import math
 import os
@@ -29,11 +30,13 @@ from vastray.preflight import (
     check_memory,
     check_output_paths,
     check_owned_fit,
+    crossings_from_surface,
     domain_footprints,
     estimate_memory,
     gigabytes,
     parse_size,
     reference_paths_in_flight,
+    speculative_copies,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
 from vastray.render.driver import FrameCache, RenderResult, render, store_camera
@@ -955,18 +958,30 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
     footprints = domain_footprints(store.domains)
     reference = args.reference is not None  # a file name, or an array (the Python API)
 
+    @functools.cache
+    def copies() -> float:
+        """spec-ooc's speculative copies of each shadow ray, beyond the model's own."""
+        lo, hi = store.domain_boxes()
+        return speculative_copies(
+            crossings_from_surface(lo, hi, [d.n_triangles for d in store.domains]),
+            args.bounces + 1 if args.integrator == "pt" else 1)
+
     def process(cache: int | None) -> MemoryEstimate:
         """One rendering process (a node with --nodes), its domains left out."""
         if args.nodes:
             tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
             return estimate_memory(args.width, args.height, min(tile, total), rays_per_hit,
-                                   role="node")
+                                   role="node",
+                                   copies=copies() if scheduler == "spec-ooc" else 0.0)
         all_fit = cache is None or cache >= len(footprints)
         if scheduler == "reference" and (all_fit or args.scheduler != "auto"):
             in_flight = reference_paths_in_flight(total, args.batch_size or DEFAULT_BATCH_SIZE,
                                                   threads, all_fit)
         else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
             in_flight = min(args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
+            if args.scheduler in ("spec-ooc", "auto"):
+                return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
+                                       reference=reference, copies=copies())
         return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
                                reference=reference)
 

@@ -5,9 +5,12 @@ has free (less a margin for the rest of the machine)."""
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from vastray.processes import proc_bytes
 from vastray.render.film import FILM_BYTES_PER_PIXEL
@@ -80,6 +83,19 @@ PATH_BYTES = 600
 #: would otherwise be over-estimated 1.5x on rm).
 SHADOW_RAY_BYTES = 45
 
+#: spec-ooc's speculative copies: every shadow ray is queued into each domain it enters, and
+#: one that enters more than ``SPECULATION_FREE_CROSSINGS`` domains costs this much more per
+#: copy held (``speculative_copies``). Measured on `rm --resolution 256` at 256x256 x 4 spp
+#: (17 shadow rays per hit, 3 bounces; `bench/memory.py`'s fine stores): the peak's bytes per
+#: path were about 950-1,270 on grids 2x2x2-5x4x2 (a ray leaving the surface enters 1.7-2.6
+#: domains), 1,780 at 6x6x4 (2.9) and 2,010 at 8x8x4 (3.3), against 1,365 in the model
+#: without this term; with it the model is 1.1x the last two, 1.3-1.5x the others.
+SPECULATIVE_COPY_BYTES = 16
+
+#: Domains a ray leaving the surface may enter before spec-ooc's copies of it outgrow what
+#: ``PATH_BYTES`` and ``SHADOW_RAY_BYTES`` already hold.
+SPECULATION_FREE_CROSSINGS = 2.2
+
 #: Share of ``MemAvailable`` a render may plan to use: the rest is left to the rest of the
 #: machine (other processes, the page cache the domains are read through) and to the
 #: estimate's own error (bench/memory.py: estimate / measured within 0.8-1.5).
@@ -135,7 +151,7 @@ class RenderMemory:
 
 def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_per_hit: int,
                     role: str = "render", reference: bool = False,
-                    domains: int = 0) -> MemoryEstimate:
+                    domains: int = 0, copies: float = 0.0) -> MemoryEstimate:
     """The peak memory of one process of a render.
 
     Parameters
@@ -147,6 +163,7 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
         ``"node"`` (a node of ``--nodes``) or ``"coordinator"`` (traces nothing).
     reference : ``--reference`` is read and compared against (where the outputs are made).
     domains : bytes of the domains this process holds at once (``domain_footprints``).
+    copies : spec-ooc's extra copies of each shadow ray per path (``speculative_copies``).
     """
     pixels = int(width) * int(height)
     if role == "coordinator":
@@ -159,10 +176,44 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
         raise ValueError(f"unknown role {role!r}")
     per_pixel = (NODE_BYTES_PER_PIXEL if role == "node"
                  else OUTPUT_BYTES_PER_PIXEL + REFERENCE_BYTES_PER_PIXEL * reference)
-    per_path = PATH_BYTES + int(shadow_rays_per_hit) * SHADOW_RAY_BYTES
+    per_path = int(PATH_BYTES + shadow_rays_per_hit * (SHADOW_RAY_BYTES
+                                                       + copies * SPECULATIVE_COPY_BYTES))
     return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL,
                           paths=int(paths_in_flight) * per_path,
                           outputs=pixels * per_pixel, base=BASE_BYTES, domains=int(domains))
+
+
+def crossings_from_surface(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray,
+                           rays: int = 4096) -> float:
+    """Mean number of domains a ray leaving the surface enters: rays from random points of
+    the boxes (chosen by ``weight``, their triangles), in random directions, to infinity.
+    A fixed seed: the same store always gives the same number.
+
+    Parameters
+    ----------
+    lo, hi : (D, 3) domain boxes; weight : (D,) triangles per domain.
+    """
+    from vastray.schedule.geometry import DomainGeometry
+
+    weight = np.asarray(weight, np.float64)
+    if len(lo) < 2 or not weight.sum() > 0:
+        return 1.0
+    rng = np.random.default_rng(0)
+    box = rng.choice(len(lo), rays, p=weight / weight.sum())
+    origin = lo[box] + rng.random((rays, 3)) * (hi[box] - lo[box])
+    direction = rng.normal(size=(rays, 3))
+    direction /= np.linalg.norm(direction, axis=1)[:, None]
+    geometry = DomainGeometry(lo, hi, weight > 0, float(np.abs(origin).max()) + 1.0)
+    ray = geometry.crossings(origin.astype(np.float32), direction.astype(np.float32),
+                             np.full(rays, np.inf, np.float32))[0]
+    return max(1.0, len(ray) / rays)
+
+
+def speculative_copies(crossings: float, vertices: int) -> float:
+    """spec-ooc's copies of a path's shadow rays beyond what the per-path constants hold:
+    ``vertices`` (path vertices that cast shadow rays) times the domains a ray enters
+    (``crossings_from_surface``) beyond ``SPECULATION_FREE_CROSSINGS``."""
+    return max(0.0, crossings - SPECULATION_FREE_CROSSINGS) * vertices
 
 
 def reference_paths_in_flight(paths: int, batch_size: int, threads: int,
@@ -260,12 +311,14 @@ def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width
     """
     planned = fixed.total + LIMIT_BASE_MARGIN
     room = limit - planned
+    smallest = limit_option(planned + max(footprints, default=0))
     if room <= 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
                                f"{width}x{height} render needs {gigabytes(planned)} per process "
                                f"before any domain ({fixed.breakdown()}, margin "
-                               f"{gigabytes(LIMIT_BASE_MARGIN)}); raise it, or lower "
-                               "--width/--height, --threads or --max-samples-in-flight")
+                               f"{gigabytes(LIMIT_BASE_MARGIN)}); the smallest that fits is "
+                               f"{smallest}; or lower --width/--height, --threads or "
+                               "--max-samples-in-flight")
     held, count = 0, 0
     for size in sorted(footprints, reverse=True):
         if held + size > room:
@@ -274,8 +327,14 @@ def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width
     if count == 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} leaves {gigabytes(room)} "
                                f"for domains, but the largest needs "
-                               f"{gigabytes(max(footprints))}; raise it or partition finer")
+                               f"{gigabytes(max(footprints))}; the smallest that fits is "
+                               f"{smallest}, or partition finer")
     return count
+
+
+def limit_option(nbytes: int) -> str:
+    """``--memory-limit 735M``: the option that allows ``nbytes``, rounded up to a MiB."""
+    return f"--memory-limit {math.ceil(nbytes / 2**20)}M"
 
 
 def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], owner,
