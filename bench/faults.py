@@ -22,9 +22,12 @@ fault-free render of the same frame:
   tries to make a node and the coordinator hold memory while they wait for the job: 3 ZeroMQ
   messages of one 900 MB frame (no secret, then a wrong one), one 900 MB frame over raw TCP
   after a greeting, and 3 TCP connections each holding half of a declared 900 MB frame
-  (2,000 MB against the coordinator). Prints the peak growth of the target's resident memory
-  during each attack (sampled every 10 ms) against ``MEMORY_BOUND_MB``; then the render goes on
-  and must give the fault-free image.
+  (2,000 MB against the coordinator); and a flood of ``FLOOD_CONNECTIONS`` raw connections that
+  each send the largest handshake frame a socket takes, all but its last byte, and hold on.
+  Prints the peak growth of the target's resident memory during each attack (sampled every
+  10 ms) against ``MEMORY_BOUND_MB`` (``FLOOD_BOUND_MB`` for the flood; the flood's figures
+  again as ``preauth_flood_mb=node:X,coordinator:Y``); then the render goes on and must give
+  the fault-free image.
 
 Floors: 100 % completed and identical for ``kill``, ``storm`` and ``delay``; every ``memory``
 attack within its bound.
@@ -58,7 +61,7 @@ from vastray.processes import proc_bytes
 from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
-from vastray.transport.codec import encode
+from vastray.transport.codec import FRAME_LIMIT, encode
 from vastray.transport.join_secret import read_join_secret
 
 #: The share of ray batches the ``drop`` fault's proxies drop.
@@ -67,6 +70,10 @@ DROP_FRACTION = 0.01
 #: Most megabytes an outsider may make a node or the coordinator hold (``memory``): the
 #: largest frame a socket takes before the handshake, 4 MiB, with room for ZeroMQ's buffers.
 MEMORY_BOUND_MB = 16
+#: Raw connections of the ``raw-flood`` attack, and the most they may make a target hold (each
+#: may hold a frame until its handshake times out: ``transport.doorkeeper`` bounds how many).
+FLOOD_CONNECTIONS = 1000
+FLOOD_BOUND_MB = 64
 
 ATTACKER = Path(__file__).with_name("fault_attacker.py")
 
@@ -247,7 +254,9 @@ def attack_growth(pid: int, endpoint: str, attack: str, frame_mb: int) -> tuple[
     growth of that process's resident memory while it lasted, and what the attacker said."""
     base = rss_bytes(pid)
     attacker = subprocess.Popen([sys.executable, str(ATTACKER), endpoint, attack,
-                                 "--frame-mb", str(frame_mb), "--hold", "2"],
+                                 "--frame-mb", str(frame_mb), "--hold", "2",
+                                 "--connections", str(FLOOD_CONNECTIONS if attack == "raw-flood"
+                                                      else 3)],
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     peak = base
     while attacker.poll() is None:
@@ -298,7 +307,8 @@ def memory_run(store, toml, settings, scheduler: str) -> tuple[object, list[tupl
         targets = [("node", nodes[0].pid, endpoint, 900),
                    ("coordinator", os.getpid(), f"tcp://127.0.0.1:{port}", 2000)]
         for target, pid, where, frame_mb in targets:
-            for attack in ("zmq-frames", "zmq-wrong-secret", "raw-frame", "raw-partial"):
+            for attack in ("zmq-frames", "zmq-wrong-secret", "raw-frame", "raw-partial",
+                           "raw-flood"):
                 growth, said = attack_growth(pid, where, attack, frame_mb)
                 rows.append((attack, target, frame_mb, growth, said))
         start_node(2)
@@ -315,15 +325,21 @@ def memory_run(store, toml, settings, scheduler: str) -> tuple[object, list[tupl
 
 
 def print_memory_table(rows: list[tuple]) -> bool:
-    """The ``memory`` table; True when every attack stayed within ``MEMORY_BOUND_MB``."""
+    """The ``memory`` table; True when every attack stayed within its bound."""
     print("\n| attack | target | frame | peak RSS growth | bound | within |")
     print("| --- | --- | --- | --- | --- | --- |")
     ok = True
     for attack, target, frame_mb, growth, _ in rows:
-        within = growth <= MEMORY_BOUND_MB * 1_000_000
+        flood = attack == "raw-flood"
+        bound = FLOOD_BOUND_MB if flood else MEMORY_BOUND_MB
+        within = growth <= bound * 1_000_000
         ok &= within
-        print(f"| {attack} | {target} | {frame_mb:,} MB | {growth / 1e6:.1f} MB | "
-              f"{MEMORY_BOUND_MB} MB | {'yes' if within else 'NO'} |", flush=True)
+        frame = (f"{FLOOD_CONNECTIONS:,} x {FRAME_LIMIT >> 10} KiB" if flood
+                 else f"{frame_mb:,} MB")
+        print(f"| {attack} | {target} | {frame} | {growth / 1e6:.1f} MB | "
+              f"{bound} MB | {'yes' if within else 'NO'} |", flush=True)
+    flood = {target: growth for attack, target, _, growth, _ in rows if attack == "raw-flood"}
+    print("preauth_flood_mb=" + ",".join(f"{t}:{g / 1e6:.1f}" for t, g in flood.items()))
     return ok
 
 

@@ -18,7 +18,7 @@ The handshake is also where memory is bounded: a peer that has not authenticated
 socket hold at most ``FRAME_LIMIT`` bytes per connection (``MAXMSGSIZE``; 128 KiB, larger
 messages are sent as several frames by the codec), for at most ``HANDSHAKE_S``
 (``HANDSHAKE_IVL``), on at most ``PENDING_LIMIT`` connections at once (``Gate.watch``'s
-``Doorkeeper``): about 39 MB in all, however many connections an outsider opens.
+``Doorkeeper``): about 37 MB in all, however many connections an outsider opens.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ class Gate:
 
     def watch(self, sock: zmq.asyncio.Socket, where: str) -> Doorkeeper:
         """Bound and watch the connections of listening socket ``sock`` (call before it
-        accepts any): at most ``PENDING_LIMIT`` of them in their first ``HANDSHAKE_S``
+        accepts any): at most ``PENDING_LIMIT`` of them in their handshake
         (``transport.doorkeeper``), and count and log handshakes that fail before any ZAP
         request (a CURVE client with no key or the wrong server key; a stranger's protocol).
         Returns the watcher: cancel it when ``sock`` closes (``close`` cancels every one
