@@ -4,7 +4,7 @@ passes (issue 37: under --time-limit, a loss late in a pass made the coordinator
 rule again and raise ``frame None: pass 4:8 is not its next`` when it said stop).
 
 The fast tests drive the coordinator's own objects (``Progression``, ``Passes``) through a
-loss as ``actors.coordinator`` does, on a clock of their own; the slow ones stall or kill a
+loss as ``actors.coordinator`` does, on a clock of their own; the others stall or kill a
 real node of ``vastray render --nodes 3`` as soon as a pass is merged (its checkpoint is the
 event) and compare the image with a one-process render of the spp the report says."""
 
