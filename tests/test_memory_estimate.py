@@ -8,15 +8,21 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from vastray.preflight import (
     BASE_BYTES,
+    LIMIT_BASE_MARGIN,
     MEMORY_HEADROOM,
     MemoryEstimate,
+    cache_within,
     check_memory,
+    crossings_from_surface,
     estimate_memory,
+    parse_size,
     reference_paths_in_flight,
+    speculative_copies,
 )
 from vastray.scene.errors import InputError
 
@@ -97,3 +103,33 @@ def test_a_limit_the_old_model_refused_renders_and_its_peak_fits(tmp_path):
     assert report["scheduler"] == "reference"  # every domain fitted: no out-of-core fallback
     assert 0 < report["counters"]["peak_rss_bytes"] < limit
     assert (tmp_path / "x.exr").stat().st_size > 0
+
+
+def _grid(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The boxes of an n x n x n grid over the unit cube."""
+    cells = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return cells / n, (cells + 1) / n
+
+
+def test_a_finer_store_makes_spec_ooc_hold_more_copies_of_each_shadow_ray():
+    assert crossings_from_surface(*_grid(1), [10]) == 1.0
+    coarse, fine = (crossings_from_surface(*_grid(n), np.ones(n**3)) for n in (2, 8))
+    assert 1.0 < coarse < fine
+    assert crossings_from_surface(*_grid(8), np.ones(512)) == fine  # a fixed sample
+    assert speculative_copies(coarse, 4) == 0.0  # up to 2.2 domains: in the per-path model
+    assert speculative_copies(3.2, 4) == 4.0
+    plain = estimate_memory(256, 256, 262144, 17)
+    assert estimate_memory(256, 256, 262144, 17, copies=4.0).paths > 1.5 * plain.paths
+
+
+def test_a_refused_limit_names_the_smallest_that_fits_and_that_one_is_accepted():
+    fixed = estimate_memory(64, 64, 1000, 1)
+    footprints = [30_000_000, 20_000_000]
+    for too_small in (fixed.total, fixed.total + LIMIT_BASE_MARGIN + 29_000_000):
+        with pytest.raises(InputError) as refused:
+            cache_within(too_small, fixed, footprints, 64, 64)
+        named = str(refused.value).split("smallest that fits is --memory-limit ")[1].split()[0]
+        assert "\n" not in str(refused.value)
+        smallest = parse_size(named.rstrip(";,"))
+        assert cache_within(smallest, fixed, footprints, 64, 64) == 1
+        assert smallest - 2**20 < fixed.total + LIMIT_BASE_MARGIN + 30_000_000 <= smallest
