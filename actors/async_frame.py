@@ -2,8 +2,9 @@
 paper's baseline runs it). The node injects the camera rays of its share of the next tile
 whenever its credit allows (``schedule.galaxy``), activates the domain Galaxy's policy
 chooses through the domain loop, ships what that produced, takes whatever arrives, for any
-tile at once, and retires a tile into the film once none of its rays waits here. When it has
-injected every tile and is idle it reports its batch counts for the termination detection.
+tile at once, and retires a tile into the film once none of its rays waits here. The frame
+ends by the termination detection over the tree of ranks (``actors.tree_termination``), in
+which a node takes part once it has injected every tile and is idle.
 The temporal frame (``actors/temporal.py``) is this frame with the temporal paper's choices.
 """
 
@@ -17,12 +18,14 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.domain_loop import Queries, traced_queries
 from vastray.actors.node_work import NodeWork
+from vastray.actors.tree_termination import TreeTermination
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.schedule.galaxy import GalaxyPolicy
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths
+from vastray.transport.codec import encode
 
 
 class AsyncFrame:
@@ -169,13 +172,22 @@ class AsyncFrame:
             self.shade_s += policy.counters["shade_s"]
 
     async def run(self) -> None:
+        """Render the frame until the tree's termination detection ends it
+        (``actors.tree_termination``: no message to the coordinator)."""
         management = self.node.management
         inbox = management.mailbox(protocol.RAYS)
-        control = management.mailbox(protocol.PROBE)
+        boxes = {protocol.WAVE: management.mailbox(protocol.WAVE),
+                 protocol.WAVE_REPLY: management.mailbox(protocol.WAVE_REPLY)}
+        ending = TreeTermination(self.rank, self.size, self.status_label)
         self.take_early()
         while True:
             while not inbox.empty():
                 self.accept(inbox.get_nowait())
+            for box in boxes.values():  # waves pass on down the tree even while busy
+                while not box.empty() and not ending.finished:
+                    await self._hear(ending, box.get_nowait())
+            if ending.finished:
+                break
             if self.next_tile < self.n_tiles and self.galaxy.admits_tile(self.waiting()):
                 self.inject()
                 await self.ship()  # camera rays bound for other nodes leave at once
@@ -184,27 +196,48 @@ class AsyncFrame:
             self.retire_idle()
             if self.next_tile < self.n_tiles:
                 continue
-            await self.node.report_status(self.status_label, probe=None)
-            start = time.perf_counter()
-            getters = {asyncio.ensure_future(inbox.get()): "rays",
-                       asyncio.ensure_future(control.get()): "control"}
-            done, pending = await asyncio.wait(getters, timeout=management.timeout,
-                                               return_when=asyncio.FIRST_COMPLETED)
-            for task in pending:
-                task.cancel()
-            self.node.stats["wait_s"] += time.perf_counter() - start
-            if not done:
-                raise TimeoutError("no ray batch or control message while idle")
-            finished = False
-            for task in sorted(done, key=lambda t: getters[t] != "rays"):
-                message = task.result()
-                if getters[task] == "rays":
-                    self.accept(message)
-                elif message.meta.get("finished"):
-                    finished = True
-                else:
-                    await self.node.report_status(self.status_label, probe=message.meta["probe"])
-            if finished:
-                if self.policies:
-                    raise RuntimeError("the frame ended with rays still waiting here")
-                return
+            await self._send(ending.passive(self.node.stats["batches_sent"],
+                                            self.node.stats["batches_received"]))
+            if ending.finished:
+                break
+            await self._wait(inbox, boxes, ending)
+        if self.policies or self.next_tile < self.n_tiles:
+            raise RuntimeError("the frame ended with rays still waiting here")
+        self.node.stats["termination_waves"] = ending.waves
+        # the frame's end is the one point where every node waits for all the others
+        self.node.stats["global_barriers"] = self.node.stats.get("global_barriers", 0) + 1
+
+    async def _wait(self, inbox, boxes: dict, ending: TreeTermination) -> None:
+        """Wait, passive, for a ray batch or a termination message, and take it."""
+        management = self.node.management
+        start = time.perf_counter()
+        getters = {asyncio.ensure_future(box.get()): kind
+                   for kind, box in [(protocol.RAYS, inbox), *boxes.items()]}
+        done, pending = await asyncio.wait(getters, timeout=management.timeout,
+                                           return_when=asyncio.FIRST_COMPLETED)
+        for task in pending:
+            task.cancel()
+        self.node.stats["wait_s"] += time.perf_counter() - start
+        if not done:
+            raise TimeoutError("no ray batch or termination message while idle")
+        for task in sorted(done, key=lambda t: getters[t] != protocol.RAYS):
+            if getters[task] == protocol.RAYS:
+                self.accept(task.result())
+            else:
+                await self._hear(ending, task.result())
+
+    async def _hear(self, ending: TreeTermination, message) -> None:
+        """Take a wave (from the parent) or a reply (from a child) of this frame's detection;
+        one of another frame's is dropped and counted."""
+        if int(message.meta["label"]) != self.status_label:
+            self.node.management.rejections.add(
+                "stale", f"{message.kind} of frame {message.meta['label']} in frame "
+                         f"{self.status_label}")
+        elif message.kind == protocol.WAVE:
+            await self._send(ending.on_wave(message.meta))
+        else:
+            ending.on_reply(message.meta)
+
+    async def _send(self, sends: list) -> None:
+        for rank, kind, meta in sends:
+            await self.node.management.to_peer(rank, encode(kind, {}, meta))

@@ -140,10 +140,3 @@ class NodeWork:
             self.stats["rounds"] += 1
             mine = [d for d, p in assign.items() if p == self.rank]
             await self.loop.run(ListOrder(mine, lambda d, bvh: traced_queries(policy, d, bvh)))
-
-    async def report_status(self, tile: int, probe: int | None) -> None:
-        """Tell the coordinator this node is idle with its batch counts (the termination
-        detection's status; ``probe``: the probe wave it answers, None unasked)."""
-        await self.management.to_coordinator(encode(protocol.STATUS, {}, {
-            "rank": self.rank, "tile": tile, "probe": probe,
-            "sent": self.stats["batches_sent"], "received": self.stats["batches_received"]}))

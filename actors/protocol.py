@@ -30,20 +30,19 @@ REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, 
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
 ROUND = "round"          # node -> coordinator (domain): round done, batches sent per node
 GO = "go"                # coordinator -> node (domain): batches to expect, or finished
-STATUS = "status"        # node -> coordinator (async): idle, batches sent and received
-PROBE = "probe"          # coordinator -> node (async): confirm counts, or finished
 QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domain, loaded domain
 SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 GRANT = "grant"          # coordinator -> node (paced passes): the next unit to render, or -1
+WAVE = "wave"            # node -> child node (async, temporal): a termination wave, or finished
+WAVE_REPLY = "wave_reply"  # node -> parent node: its subtree's batches sent and received
 
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
-FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, PROBE, SCHEDULE, HEARTBEAT, GRANT})
-FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST})
-FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED, ROUND, STATUS,
-                       QUEUES})
+FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, SCHEDULE, HEARTBEAT, GRANT})
+FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST, WAVE, WAVE_REPLY})
+FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED, ROUND, QUEUES})
 
 _NUMBER = (int, float)
 
@@ -63,13 +62,13 @@ META = {
     RAYS: {"rank": int, "tile": int, "queue": str},
     ROUND: {"rank": int, "tile": int, "sent_to": dict},
     GO: {"expect": int, "finished": bool},
-    STATUS: {"rank": int, "tile": int, "sent": int, "received": int},
-    PROBE: {"finished": bool, "probe": int},
     QUEUES: {"rank": int, "tile": int, "loaded": list, "radiance": dict, "shadow": dict},
     SCHEDULE: {"assign": dict, "size": int, "finished": bool, "expect": int},
     REDUCE: {"rank": int},
     BROADCAST: {"rank": int},
     GRANT: {"next": int},
+    WAVE: {"rank": int, "label": int, "wave": int, "finished": bool},
+    WAVE_REPLY: {"rank": int, "label": int, "wave": int, "sent": int, "received": int},
 }
 
 #: Arrays a film carries, all with one row per pixel.
@@ -108,9 +107,10 @@ def check(message, allowed: frozenset[str]) -> None:
 
 
 def check_peer_kind(message, sender: int, rank: int, size: int) -> None:
-    """Whether node ``sender`` may send ``message`` to node ``rank`` of ``size``: films and
-    all-reduce partials go up the tree (only from a child), broadcasts down it (only from the
-    parent); ray batches between any two nodes.
+    """Whether node ``sender`` may send ``message`` to node ``rank`` of ``size``: films,
+    all-reduce partials and termination replies go up the tree (only from a child),
+    broadcasts and termination waves down it (only from the parent); ray batches between any
+    two nodes.
 
     Raises
     ------
@@ -120,10 +120,11 @@ def check_peer_kind(message, sender: int, rank: int, size: int) -> None:
     from vastray.transport.tree import children, parent
 
     kind = message.kind
-    if kind in (FILM, REDUCE) and sender not in children(rank, size):
+    if kind in (FILM, REDUCE, WAVE_REPLY) and sender not in children(rank, size):
         raise ProtocolError(f"{kind} from node {sender}, which is not a child of node {rank}")
-    if kind == BROADCAST and sender != parent(rank):
-        raise ProtocolError(f"broadcast from node {sender}, which is not node {rank}'s parent")
+    if kind in (BROADCAST, WAVE) and sender != parent(rank):
+        what = "broadcast" if kind == BROADCAST else kind
+        raise ProtocolError(f"{what} from node {sender}, which is not node {rank}'s parent")
     if kind == RAYS and sender == rank:
         raise ProtocolError("ray batch from this node's own rank")
 

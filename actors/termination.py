@@ -1,7 +1,8 @@
-"""Termination detection for the schedulers that move rays between nodes (``domain``,
-``async``, ``dynamic``): when every node is done with a tile (Mattern's four-counter method
-for ``async``, a round barrier for the others), and for ``dynamic`` the round's schedule sent
-to every node (the decision itself is ``schedule.dynamic``'s)."""
+"""Termination detection at the coordinator for the round-based schedulers (``domain``,
+``dynamic``): when every node is done with a tile (a round barrier), and for ``dynamic`` the
+round's schedule sent to every node (the decision itself is ``schedule.dynamic``'s). The
+asynchronous frames (``async``, ``temporal``) detect their end over the tree of ranks
+without the coordinator (``actors.tree_termination``)."""
 
 from __future__ import annotations
 
@@ -15,33 +16,23 @@ class Termination:
 
     ``domain``: a round ends when every node has reported; each node is told how many ray
     batches were sent to it; a round in which no batch moved ends the tile.
-    ``async``: once every node is idle and batches sent equal batches received, a probe wave
-    asks every node again; if every answer is idle with the same counts, the frame is done
-    (nodes report only once they have injected all their tiles: one detection per frame).
 
     ``barriers`` counts the points where every node waits for all the others: each round of
-    ``domain`` and ``dynamic``, and the end of the frame for ``async``.
+    ``domain`` and ``dynamic``.
     """
 
     def __init__(self, size: int, router, identities: dict[int, bytes], token: bytes):
         self.size, self.router, self.identities, self.token = size, router, identities, token
         self.rounds: dict[int, dict] = {}
-        self.tile = 0
-        self.latest: dict[int, tuple[int, int]] = {}
-        self.wave = 0
-        self.snapshot: dict[int, tuple[int, int]] | None = None
-        self.replies: dict[int, tuple[int, int]] = {}
         self.barriers = 0
         self.policy = RayWeightedRounds()
 
     #: The node reports it answers (``handle``).
-    KINDS = (protocol.ROUND, protocol.QUEUES, protocol.STATUS)
+    KINDS = (protocol.ROUND, protocol.QUEUES)
 
     async def handle(self, kind: str, meta: dict) -> None:
-        """Take a node's report of one of ``KINDS``: a round's end, ``dynamic``'s queues, an
-        idle status."""
-        handler = {protocol.ROUND: self.round_done, protocol.QUEUES: self.queues,
-                   protocol.STATUS: self.status}[kind]
+        """Take a node's report of one of ``KINDS``: a round's end, ``dynamic``'s queues."""
+        handler = {protocol.ROUND: self.round_done, protocol.QUEUES: self.queues}[kind]
         await handler(meta)
 
     async def _send(self, rank: int, kind: str, meta: dict) -> None:
@@ -81,34 +72,6 @@ class Termination:
             await self._send(rank, protocol.SCHEDULE, {
                 "assign": {str(d): p for d, p in plan.assign.items()}, "size": self.size,
                 "finished": plan.finished, "expect": expect[rank]})
-
-    async def status(self, meta: dict) -> None:
-        if meta["tile"] != self.tile:
-            return
-        rank, counts = int(meta["rank"]), (int(meta["sent"]), int(meta["received"]))
-        self.latest[rank] = counts
-        if self.snapshot is not None and meta["probe"] == self.wave:
-            self.replies[rank] = counts
-            if len(self.replies) < self.size:
-                return
-            quiet = self.replies == self.snapshot and _balanced(self.replies)
-            self.snapshot, self.replies = None, {}
-            if quiet:
-                self.barriers += 1
-                self.tile += 1
-                self.latest = {}
-                for r in range(self.size):
-                    await self._send(r, protocol.PROBE, {"finished": True, "probe": self.wave})
-                return
-        if self.snapshot is None and len(self.latest) == self.size and _balanced(self.latest):
-            self.wave += 1
-            self.snapshot = dict(self.latest)
-            for r in range(self.size):
-                await self._send(r, protocol.PROBE, {"finished": False, "probe": self.wave})
-
-
-def _balanced(counts: dict[int, tuple[int, int]]) -> bool:
-    return sum(s for s, _ in counts.values()) == sum(r for _, r in counts.values())
 
 
 def _summed(radiance: dict, shadow: dict) -> dict[str, int]:
