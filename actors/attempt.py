@@ -136,6 +136,7 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
             report["counters"]["coordinator_rejected_messages"] = watch.rejections.total
             report["counters"]["coordinator_refused_connections"] = (
                 gate.refusals + gate.failed_handshakes)
+            report["counters"]["coordinator_messages"] = dict(sorted(watch.kinds.items()))
         return film, [reports[r] for r in range(size)], control.barriers
     finally:
         if beating is not None:

@@ -5,9 +5,8 @@ Two schedulers share this runtime (Navrátil's static domain schedule and the Ga
 asynchronous baseline of the temporal-coherence paper):
 
 - ``domain``: bulk-synchronous rounds. Every node drains its queues, sends what it produced,
-  and tells the coordinator how many batches it sent to whom; the coordinator answers each
-  node with how many batches to expect before the next round; a round in which nobody sent
-  anything ends the tile.
+  and all-reduces over the tree of ranks how many batches it sent to whom; each node then
+  waits for the batches sent to it; a round in which nobody sent anything ends the tile.
 - ``async``: no global rounds and no barrier inside a frame (Galaxy). Each node injects the
   camera rays of its share of the next tile whenever fewer than ``tile`` rays wait in its
   queues (credit-based flow control), traces the fullest local domain, ships what it
@@ -18,11 +17,12 @@ asynchronous baseline of the temporal-coherence paper):
   every node is idle, the sums match, and a second probe wave returns the very same counts
   (Mattern's four-counter termination): one termination detection per frame.
 
-- ``dynamic``: Navrátil's ray-weighted rounds (Figs. 5-6). Each round every node reports which
-  domains it holds rays for and which domain it has loaded; the coordinator keeps loaded
-  domains where they are wanted and hands the most-wanted unloaded domains to nodes whose
-  domain is no longer needed; rays for a scheduled domain then move to its node, which traces
-  them. Rays start where their camera rays were made (an image-plane start).
+- ``dynamic``: Navrátil's ray-weighted rounds (Figs. 5-6). Each round the nodes all-reduce
+  over the tree the rays waiting per domain and which node holds each domain, and each
+  computes the same schedule: keep loaded domains where they are wanted, hand the most-wanted
+  unloaded domains to nodes whose domains are no longer needed; rays for a scheduled domain
+  then move to its node, which traces them. Rays start where their camera rays were made (an
+  image-plane start). Neither round involves the coordinator.
 
 Within a node the rays follow the ``image`` schedule (``schedule.image``), so every ray visits
 the same domains in the same order as on one node: the image is the reference image.
@@ -104,9 +104,9 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
-                await node.rounds(policy, base + index)
+                await node.rounds(policy, base + index, tree)
             else:
-                await node.dynamic(policy, base + index)
+                await node.dynamic(policy, base + index, tree)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)

@@ -1,6 +1,7 @@
 """A node's side of domain decomposition: the rays of its domains traced through the domain
 loop, its outboxes shipped through the ray post, batches from its peers delivered to their
-tile (or held for a later one), and the round protocols of ``domain`` and ``dynamic``."""
+tile (or held for a later one), and the round protocols of ``domain`` and ``dynamic`` (each
+round ends with all-reductions over the tree of ranks, not through the coordinator)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder, tra
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
+from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.soa import SoA, join_bound
-from vastray.transport.codec import encode
 
 
 class NodeWork:
@@ -90,41 +91,54 @@ class NodeWork:
         policy.receive(message.meta["queue"], domains, rays)
         return True
 
-    async def rounds(self, policy, tile: int) -> None:
-        """Bulk-synchronous rounds until a round moves no ray between nodes."""
+    async def rounds(self, policy, tile: int, tree) -> None:
+        """Bulk-synchronous rounds until a round moves no ray between nodes. A round ends with
+        one all-reduction over the tree of ranks (``tree``, the tree-reduce actor): the sum
+        of every node's batches sent per destination, from which each node takes how many to
+        expect; a round in which nothing moved ends the tile on every node at once. No
+        coordinator message: log2(P) steps up and down the tree, not 2P through one process.
+        """
+        size = tree.size
         while True:
             self.stats["rounds"] += 1
             await self.drain(policy)
-            sent = self.post.take_sent_to()
-            await self.management.to_coordinator(encode(protocol.ROUND, {}, {
-                "rank": self.rank, "tile": tile, "sent_to": {str(k): v for k, v in sent.items()}}))
+            sent = np.zeros(size, np.int64)
+            for node, batches in self.post.take_sent_to().items():
+                sent[int(node)] = batches
             start = time.perf_counter()
-            go = await self.management.receive(protocol.GO, "go-ahead for the next round")
-            if go.meta["finished"]:
+            total = (await tree.allreduce({"sent": sent}, {"sent": "sum"}))["sent"]
+            self.stats["global_barriers"] = self.stats.get("global_barriers", 0) + 1
+            if not total.any():
                 return
-            for _ in range(go.meta["expect"]):
+            for _ in range(int(total[self.rank])):
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
 
-    async def dynamic(self, policy, tile: int) -> None:
-        """Ray-weighted rounds: report queues and resident domains, get this round's
-        domains, swap rays, trace."""
+    async def dynamic(self, policy, tile: int, tree) -> None:
+        """Ray-weighted rounds: every node computes the same round's schedule from two
+        vectors all-reduced over the tree (rays waiting per domain, summed; the lowest rank
+        holding each domain, ``schedule.dynamic.RayWeightedRounds.from_totals``), swaps rays,
+        and traces. A second all-reduction sums the batches each node will receive (a batch
+        goes only where rays go: one per peer and queue, empty or not, made P^2 messages a
+        round). No coordinator message."""
+        size = tree.size
         queues = {"radiance": policy.radiance, "shadow": policy.shadow}
+        n_domains = len(policy.radiance.counts())
+        policy_of_rounds = RayWeightedRounds()
         while True:
-            await self.management.to_coordinator(encode(protocol.QUEUES, {}, {
-                "rank": self.rank, "tile": tile, "loaded": sorted(self.preloader.resident()),
-                **{name: {str(d): int(n) for d, n in enumerate(q.counts()) if n}
-                   for name, q in queues.items()}}))
+            wanted = sum(q.counts().astype(np.int64) for q in queues.values())
+            holder = np.full(n_domains, size, np.int64)
+            resident = sorted(self.preloader.resident())
+            holder[resident] = self.rank
             start = time.perf_counter()
-            plan = await self.management.receive(protocol.SCHEDULE, "this round's schedule")
-            if plan.meta["finished"]:
+            totals = await tree.allreduce({"wanted": wanted, "holder": holder},
+                                          {"wanted": "sum", "holder": "min"})
+            self.stats["global_barriers"] = self.stats.get("global_barriers", 0) + 1
+            plan = policy_of_rounds.from_totals(totals["wanted"], totals["holder"], size)
+            if plan.finished:
                 return
-            assign = {int(d): int(p) for d, p in plan.meta["assign"].items()}
-            # A batch goes only where rays go; the coordinator, which saw every node's
-            # queues, says how many batches to expect. (One batch per peer and queue, empty
-            # or not, made P^2 messages a round: 2 million at 1,024 nodes.)
             outgoing: dict[tuple[int, str], list] = {}
-            for domain, node in assign.items():
+            for domain, node in plan.assign.items():
                 if node == self.rank:
                     continue
                 for name, q in queues.items():
@@ -132,11 +146,15 @@ class NodeWork:
                     if rays is not None:
                         outgoing.setdefault((node, name), []).append(
                             (np.full(len(rays), domain), rays))
+            batches = np.zeros(size, np.int64)
             for (node, name), parts in sorted(outgoing.items()):
                 await self.post.send(node, name, {"tile": self.tile}, *join_bound(parts))
-            for _ in range(plan.meta["expect"]):
+                batches[node] += 1
+            expect = (await tree.allreduce({"batches": batches}, {"batches": "sum"}))["batches"]
+            self.stats["global_barriers"] += 1
+            for _ in range(int(expect[self.rank])):
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
             self.stats["rounds"] += 1
-            mine = [d for d, p in assign.items() if p == self.rank]
+            mine = [d for d, p in plan.assign.items() if p == self.rank]
             await self.loop.run(ListOrder(mine, lambda d, bvh: traced_queries(policy, d, bvh)))

@@ -24,7 +24,9 @@ def render_result(film, camera, reports: list[dict], barriers: int, scheduler: s
     counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": asked,
                 "node_failures": list(failures), "node_deaths": deaths,
                 "recoveries": [dict(entry) for entry in recoveries], "per_node": reports,
-                "global_barriers": barriers,
+                # the coordinator's (async's frame ends) and the nodes' tree rounds
+                "global_barriers": barriers + max(r["counters"].get("global_barriers", 0)
+                                                  for r in reports),
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "bytes_loaded": sum(r["counters"].get("bytes_loaded", 0) for r in reports),
                 "load_throttle_s": round(sum(r["counters"].get("load_throttle_s", 0.0)

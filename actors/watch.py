@@ -52,6 +52,9 @@ class Watch:
         self.members: dict[bytes, int] = {}  # socket identity -> rank
         self.once: set[tuple[str, int]] = set()
         self.rejections = protocol.Rejections()
+        #: members' messages taken, by kind: what the coordinator still does per round shows
+        #: here (the report's ``coordinator_messages``)
+        self.kinds: dict[str, int] = {}
         self.spare_exits = spare_exits  # launched sessions of earlier lost nodes may exit
         self.hellos: dict[int, dict] = {}
         self.last_check = self.started
@@ -228,6 +231,7 @@ class Watch:
                                              f"node {rank}")
             self.once.add(once)
         self.heard(rank)
+        self.kinds[message.kind] = self.kinds.get(message.kind, 0) + 1
         return identity, message
 
     async def wait_exit(self, grace: float = 15.0) -> None:

@@ -3,10 +3,11 @@ Large-Scale Distributed-Memory Ray Tracing", Figs. 5-6): the round-by-round deci
 domain each node processes, from the rays waiting for each domain and the domains each node
 has loaded.
 
-A pure policy: it sees numbers, never sockets. The coordinator gathers every node's report
-of a round, asks ``RayWeightedRounds.next_round`` for the round's assignment and sends it out
-(``actors.termination``); each node then swaps rays so that every domain's rays are on the
-node it was assigned to, and traces them there.
+A pure policy: it sees numbers, never sockets. Every node all-reduces two vectors over the
+tree of ranks (rays waiting per domain, summed; the lowest rank holding each domain) and asks
+``RayWeightedRounds.from_totals`` for the round's assignment, so every node computes the same
+one with no coordinator (``actors.node_work.NodeWork.dynamic``); each node then swaps rays so
+that every domain's rays are on the node it was assigned to, and traces them there.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ class Round:
     Parameters
     ----------
     assign : domain -> the node that processes it this round (its rays go there). Its order
-        is the order each node processes its domains in: the kept domains first (in the order
-        the reports named them), then the newly assigned ones, most-wanted first.
+        is the order each node processes its domains in: the kept domains first (ascending
+        ids), then the newly assigned ones, most-wanted first.
     finished : no node has a ray waiting for any domain: the tile is done, nothing moves.
     """
 
@@ -73,19 +74,35 @@ class RayWeightedRounds:
         -------
         The round: domain -> node, and whether the tile is finished.
         """
-        wanted: dict[int, int] = {}
+        n_domains = 1 + max([int(d) for q in queues.values() for d in q]
+                            + [int(d) for held in loaded.values() for d in held], default=-1)
+        size = 1 + max(loaded, default=-1)
+        wanted = np.zeros(n_domains, np.int64)
         for per_node in queues.values():
             for domain, count in per_node.items():
-                wanted[int(domain)] = wanted.get(int(domain), 0) + count
-        holder: dict[int, int] = {}
-        for node in sorted(loaded):
-            for domain in sorted(loaded[node]):
-                holder.setdefault(int(domain), node)
-        assign = {d: holder[d] for d in wanted if d in holder}
-        to_assign = sorted((d for d in wanted if d not in holder),
-                           key=lambda d: (-wanted[d], d))
+                wanted[int(domain)] += count
+        holder = np.full(n_domains, size, np.int64)
+        for node, held in loaded.items():
+            for domain in held:
+                holder[int(domain)] = min(holder[int(domain)], node)
+        return self.from_totals(wanted, holder, size)
+
+    def from_totals(self, wanted: np.ndarray, holder: np.ndarray, size: int) -> Round:
+        """The round's assignment from vectors every node can all-reduce.
+
+        Parameters
+        ----------
+        wanted : (D,) rays waiting for each domain, summed over the nodes.
+        holder : (D,) the lowest rank holding each domain in its cache (``size``: none).
+        size : the number of nodes.
+        """
+        wanted_ids = np.flatnonzero(wanted)
+        held = wanted_ids[holder[wanted_ids] < size]
+        assign = {int(d): int(holder[d]) for d in held}
+        unheld = wanted_ids[holder[wanted_ids] >= size]
+        to_assign = unheld[np.lexsort((unheld, -wanted[unheld]))]
         busy = set(assign.values())
-        to_evict = [n for n in sorted(loaded) if n not in busy]
+        to_evict = [n for n in range(size) if n not in busy]
         for domain, node in zip(to_assign, to_evict, strict=False):
-            assign[domain] = node
-        return Round(assign, finished=not any(queues.values()))
+            assign[int(domain)] = node
+        return Round(assign, finished=not wanted.any())

@@ -1,0 +1,93 @@
+"""``domain`` and ``dynamic`` rounds end with all-reductions over the tree of ranks (issue 38):
+the coordinator takes no message per round, whatever the number of rounds, every node computes
+the same round, and the image is the single-process one. Real node processes, real sockets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
+from vastray.render.driver import render
+from vastray.render.scene_config import load_scene_config
+from vastray.schedule.dynamic import RayWeightedRounds
+
+from scenes import bumpy_scene, settings, write_store
+
+SCENE_TOML = """
+[camera]
+position = [0.0, 0.4, 3.2]
+look_at = [0.0, 0.0, 0.0]
+[[light]]
+type = "point"
+position = [1.5, 2.0, 2.0]
+intensity = 10.0
+"""
+
+#: What a node tells the coordinator: joining, liveness, progress, its film and report.
+#: Nothing per round (``round`` and ``queues`` were one message per node and round).
+PER_JOB_KINDS = {"hello", "heartbeat", "progress", "film", "done", "frame"}
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tree-rounds")
+    (root / "scene.toml").write_text(SCENE_TOML)
+    return write_store(root / "s.store", bumpy_scene(), grid=(3, 2, 3)), root / "scene.toml"
+
+
+@pytest.mark.parametrize("scheduler", ["domain", "dynamic"])
+def test_rounds_send_the_coordinator_nothing_and_give_the_reference(scene, scheduler):
+    store, toml = scene
+    st = settings(width=32, height=24, spp=2, integrator="pt")
+    results = {}
+    for tile in (400, 150):  # more tiles, more rounds: the coordinator's load must not grow
+        results[tile] = render_distributed(
+            store.path, toml, st, 3, options=JobOptions(scheduler=scheduler, cache=3,
+                                                        max_samples_in_flight=tile),
+            timeout=120)
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    for result in results.values():
+        np.testing.assert_array_equal(result.film.count, reference.count)
+        np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+        per_node = [r["counters"] for r in result.counters["per_node"]]
+        taken = per_node[0]["coordinator_messages"]
+        assert set(taken) <= PER_JOB_KINDS, taken
+        # every node went through the same rounds (the same all-reductions)
+        assert len({c["global_barriers"] for c in per_node}) == 1
+        assert result.counters["global_barriers"] == per_node[0]["global_barriers"] > 1
+    few, many = (results[t].counters["per_node"][0]["counters"] for t in (400, 150))
+    assert many["rounds"] > few["rounds"]
+    assert many["coordinator_messages"]["film"] == few["coordinator_messages"]["film"] == 1
+    assert many["coordinator_messages"]["done"] == few["coordinator_messages"]["done"] == 3
+
+
+def test_every_node_computes_the_round_the_coordinator_computed():
+    # the vectors each node all-reduces give the schedule the reports gave
+    rng = np.random.default_rng(3)
+    policy = RayWeightedRounds()
+    for _ in range(200):
+        size, n_domains = int(rng.integers(1, 6)), int(rng.integers(1, 12))
+        queues = {r: {d: int(rng.integers(1, 50)) for d in range(n_domains)
+                      if rng.random() < 0.3} for r in range(size)}
+        loaded = {r: sorted(int(d) for d in rng.choice(n_domains, min(n_domains, int(rng.integers(0, 3))),
+                                                        replace=False)) for r in range(size)}
+        wanted = np.zeros(n_domains, np.int64)
+        holder = np.full(n_domains, size, np.int64)
+        for rank in range(size):
+            for domain, count in queues[rank].items():
+                wanted[domain] += count
+            for domain in loaded[rank]:
+                holder[domain] = min(holder[domain], rank)
+        by_reports = policy.next_round(queues, loaded)
+        by_vectors = policy.from_totals(wanted, holder, size)
+        assert by_vectors.assign == by_reports.assign and by_vectors.finished == by_reports.finished
+        # the paper's rules: a held wanted domain stays with its lowest holder; a node gets
+        # at most one new domain, and only if none of its own is wanted
+        for domain, node in by_vectors.assign.items():
+            if holder[domain] < size:
+                assert node == holder[domain]
+        new = [n for d, n in by_vectors.assign.items() if holder[d] >= size]
+        assert len(new) == len(set(new))
+        assert not set(new) & {n for d, n in by_vectors.assign.items() if holder[d] < size}
