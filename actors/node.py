@@ -403,6 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="which node key in DIR/nodes is this node's (`vastray keys "
                              "--node NAME`; default: a bundle's one key, else this host's "
                              "short name)")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="debug log output (the node logs at info level without it)")
     parser.add_argument("--secret-fd", type=int, metavar="FD", help=argparse.SUPPRESS)
     return parser
 
@@ -423,12 +425,14 @@ def die_with_parent() -> None:
         os._exit(4)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, verbose: int = 0) -> int:
+    """``vastray node``; ``verbose``: the ``-v`` flags given before ``node``."""
     args = build_parser().parse_args(argv)
     die_with_parent()
     rank = args.rank if args.rank is not None else launcher_rank()
     label = "?" if rank is None else rank
-    logging.basicConfig(level=logging.INFO, format=f"node {label}: %(message)s")
+    logging.basicConfig(level=logging.DEBUG if verbose + args.verbose else logging.INFO,
+                        format=f"node {label}: %(message)s")
     try:
         import uvloop
         uvloop.install()

@@ -10,6 +10,8 @@ import sys
 
 import pytest
 
+from vastray.render.imageio import read_exr
+
 from scenes import bumpy_scene, write_store
 
 VASTRAY = [sys.executable, "-m", "vastray.cli"]
@@ -54,6 +56,20 @@ def test_a_render_whose_stdout_and_stderr_close_writes_its_image_and_exits_141(s
     proc.stdout.close()
     assert proc.wait(timeout=120) == 141
     assert (tmp_path / "a.exr").stat().st_size > 0
+
+
+def test_a_render_whose_output_closes_mid_render_writes_its_image(store, tmp_path):
+    # issue 42: `vastray render ... --nodes 4 2>&1 | head -1` died at the progress bar's first
+    # write (141, no image): the bar shows after 2 s, so this render lasts longer than that
+    # (the earlier test's render did only on a loaded machine, where it failed now and then).
+    proc = subprocess.Popen([*VASTRAY, "-v", "render", str(store.path), "-o", "a.exr",
+                             "--png", "a.png", "--width", "128", "--height", "96", "--spp", "64",
+                             "--nodes", "2"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT)
+    proc.stdout.close()
+    assert proc.wait(timeout=300) == 141  # what a shell reports: the output's reader left
+    assert read_exr(tmp_path / "a.exr").shape == (96, 128, 3)
+    assert (tmp_path / "a.png").stat().st_size > 0
 
 
 def test_an_error_said_to_a_closed_stderr_keeps_its_exit_status(tmp_path):

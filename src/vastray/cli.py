@@ -112,6 +112,44 @@ def _version() -> str:
     return package_version()
 
 
+class KeptStream:
+    """A text stream (stderr) whose writes never fail on a reader that has gone: from the
+    first ``BrokenPipeError`` on, what is written is dropped (its descriptor then points to
+    the null device, for the interpreter's exit and any child process) and ``broken`` is
+    True. Everything else is the stream's own."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.broken = False
+
+    def write(self, text: str) -> int:
+        if not self.broken:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._drop()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.broken:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop()
+
+    def _drop(self) -> None:
+        self.broken = True
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+        except (AttributeError, OSError, ValueError):
+            pass
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``timeout``, Slurm, systemd): cleaned up exactly like Ctrl-C."""
 
@@ -132,12 +170,17 @@ def main(argv: list[str] | None = None) -> int:
         # below tells apart, rather than SIG_DFL's silent death at any write to any pipe or
         # socket: a render would die without a word, its nodes left running and its
         # checkpoint unwritten, if a node's pipe broke.
-    if argv[:1] == ["node"]:
+    verbose, rest = _leading_verbosity(argv)
+    if rest[:1] == ["node"]:  # `vastray -v node ...`: the node parses its own options
         from vastray.actors.node import main as node_main
 
-        return node_main(argv[1:])
+        return node_main(rest[1:], verbose=verbose)
     parser = build_parser()
     args = parser.parse_args(argv)  # --help and --version: argparse ignores a closed stdout
+    # Progress bars, log lines and summaries go to stderr: one whose reader has gone
+    # (`2>&1 | head -1`, a closed terminal) must never cost the result, so they are dropped
+    # from then on and the command goes on to write its outputs.
+    stderr = sys.stderr = KeptStream(sys.stderr)
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(levelname)s %(name)s: %(message)s",
@@ -145,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         status = int(args.func(args) or 0)
         sys.stdout.flush()  # a closed pipe fails here, not in the interpreter's exit
-        return status
+        return 141 if status == 0 and stderr.broken else status
     except BrokenPipeError:  # `vastray info STORE | head`: the reader has all it wanted
         if not _closed_output():
             raise  # a pipe of the command's own broke: a failure, not the reader leaving
@@ -170,6 +213,20 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _say(f"vastray {args.command}: interrupted")
         return 130
+
+
+def _leading_verbosity(argv: list[str]) -> tuple[int, list[str]]:
+    """The verbosity of the global flags before the sub-command (``-v``, ``-vv``,
+    ``--verbose``) and the arguments after them."""
+    verbose = 0
+    for index, arg in enumerate(argv):
+        if arg == "--verbose":
+            verbose += 1
+        elif len(arg) > 1 and arg.strip("v") == "-":
+            verbose += len(arg) - 1
+        else:
+            return verbose, argv[index:]
+    return verbose, []
 
 
 def _say(line: str) -> None:
