@@ -304,11 +304,25 @@ class ManagementActor:
             monitor.close(linger=0)
 
     async def receive(self, kind: str, what: str):
-        """The next message of ``kind``; fails after the node timeout."""
+        """The next message of ``kind``. The wait lasts as long as the coordinator speaks (its
+        heartbeats): a node done with its share, waiting for the stop, a grant or a slower
+        peer's film or rays, is idle, not lost, and never gives up while its job goes on
+        (issue 42: nodes done early quit after the node timeout, and the frame was rendered
+        again). It fails once the coordinator has been silent for the node timeout (at least
+        that long after the wait began)."""
+        start = time.monotonic()
+        getter = asyncio.ensure_future(self.mailbox(kind).get())
         try:
-            return await asyncio.wait_for(self.mailbox(kind).get(), self.timeout)
-        except TimeoutError:
-            raise TimeoutError(f"no {what} within {self.timeout:.0f} s") from None
+            while True:
+                left = max(self.coordinator_heard, start) + self.timeout - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"no {what} within {self.timeout:.0f} s, the coordinator "
+                                       "silent that long")
+                done, _ = await asyncio.wait([getter], timeout=left)
+                if done:
+                    return getter.result()
+        finally:
+            getter.cancel()
 
     async def to_coordinator(self, frames: list) -> None:
         """Send a message to the coordinator, behind the job token frame."""

@@ -4,15 +4,23 @@ sockets and signals."""
 
 from __future__ import annotations
 
+import contextlib
+import json
+import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from vastray.render.imageio import read_exr
 
-from scenes import bumpy_scene, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, write_store
 
 VASTRAY = [sys.executable, "-m", "vastray.cli"]
 SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2"]
@@ -63,3 +71,87 @@ def test_node_verbosity_after_node_is_accepted_too(tmp_path):
                          timeout=60, cwd=tmp_path)
     assert out.returncode == 0 and "--verbose" in out.stdout, out.stderr
 
+
+
+@pytest.fixture(scope="module")
+def lit_store(tmp_path_factory):
+    root = tmp_path_factory.mktemp("uneven")
+    (root / "scene.toml").write_text(POINT_AND_SKY_TOML)
+    return write_store(root / "s.store", bumpy_scene(), kd=8), root / "scene.toml"
+
+
+def _throttle(parent: int, rank: int, log: Path, seconds: float, hit: list) -> None:
+    """Slow node ``rank`` (a child of ``parent``) down for ``seconds`` once it has its job
+    (its ``log`` says it joined): stopped 0.9 s of every second (it still heartbeats every
+    second or so), then let it run."""
+    deadline = time.monotonic() + 120
+    while not hit and time.monotonic() < deadline:
+        if log.exists() and "joined" in log.read_text(errors="replace"):
+            hit.extend(_node_pids(parent, rank))
+        time.sleep(0.05)
+    end = time.monotonic() + seconds
+    try:
+        while hit and time.monotonic() < end:
+            for pid in hit:
+                os.kill(pid, signal.SIGSTOP)
+            time.sleep(0.9)
+            for pid in hit:
+                os.kill(pid, signal.SIGCONT)
+            time.sleep(0.1)
+    except ProcessLookupError:
+        pass
+    finally:
+        for pid in hit:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+
+
+def _node_pids(parent: int, rank: int) -> list[int]:
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+            ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        if ppid == parent and b"vastray.actors.node" in cmd and b"--rank" in cmd \
+                and cmd[cmd.index(b"--rank") + 1] == str(rank).encode():
+            pids.append(int(proc.name))
+    return pids
+
+
+def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp_path):
+    # issue 42: a node done with its share waited for the stop with the node timeout, quit,
+    # and the frame was rendered again (--node-timeout 20: 4 nodes cascaded down to 1). Here
+    # node 0 has the image's one tile and is slowed for 8 s besides: nodes 1 and 2 idle
+    # for far longer than --node-timeout 5, still heartbeating, and stay members.
+    store, toml = lit_store
+    common = [str(store.path), "--scene", str(toml), "--width", "64", "--height", "48",
+              "--spp", "24", "--scheduler", "image"]
+    proc = subprocess.Popen(
+        [*VASTRAY, "render", *common, "-o", "a.exr", "--report", "a.json", "--nodes", "3",
+         "--node-timeout", "5", "--heartbeat-timeout", "30"], cwd=tmp_path,
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    hit: list[int] = []
+    log = tmp_path / "a.json.nodes" / "node0.log"
+    slow = threading.Thread(target=_throttle, args=(proc.pid, 0, log, 8.0, hit))
+    slow.start()
+    try:
+        _, err = proc.communicate(timeout=600)
+    finally:
+        slow.join()
+        _reap(proc)
+    assert hit, "the test found no node 0 to slow down"
+    assert proc.returncode == 0, err
+    assert "re-rendered" not in err and "failed" not in err, err
+    counters = json.loads((tmp_path / "a.json").read_text())["counters"]
+    assert counters["nodes"] == 3 and counters["node_failures"] == [], counters
+    assert counters["recoveries"] == [], counters
+    busy = [node["busy_s"] for node in counters["per_node"]]
+    assert busy[0] > max(busy[1:]) + 5, busy  # the premise: the others idled past the timeout
+    single = subprocess.run([*VASTRAY, "render", *common, "-o", "ref.exr", "--quiet"],
+                            cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert single.returncode == 0, single.stderr
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "ref.exr"))
