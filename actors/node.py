@@ -40,6 +40,15 @@ from vastray.transport.security import Credentials, Gate, check_bind
 log = logging.getLogger(__name__)
 
 
+class RankFormatter(logging.Formatter):
+    """``node RANK: message``: ``?`` until the rank is known (given, or assigned in the job)."""
+
+    rank: int | str = "?"
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"node {RankFormatter.rank}: {super().format(record)}"
+
+
 class JobAborted(RuntimeError):
     """The coordinator called a regroup: the work of the current job is dropped."""
 
@@ -107,6 +116,7 @@ async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: floa
             waiting.cancel()
             handshake.result()  # raises AuthenticationFailed
         job = waiting.result().meta
+        RankFormatter.rank = int(job["rank"])  # assigned (compose, SSH), or new after a regroup
         log.info("joined %s as node %d of %d", coordinator, int(job["rank"]), int(job["size"]))
         management.coordinator_heard = time.monotonic()
         watchers.append(asyncio.ensure_future(
@@ -430,9 +440,10 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
     args = build_parser().parse_args(argv)
     die_with_parent()
     rank = args.rank if args.rank is not None else launcher_rank()
-    label = "?" if rank is None else rank
-    logging.basicConfig(level=logging.DEBUG if verbose + args.verbose else logging.INFO,
-                        format=f"node {label}: %(message)s")
+    RankFormatter.rank = "?" if rank is None else rank
+    logging.basicConfig(level=logging.DEBUG if verbose + args.verbose else logging.INFO)
+    for handler in logging.getLogger().handlers:
+        handler.setFormatter(RankFormatter("%(message)s"))
     try:
         import uvloop
         uvloop.install()
@@ -457,10 +468,10 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
         asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
                              args.advertise, credentials))
     except InputError as exc:
-        print(f"node {label}: error: {exc}", file=sys.stderr)
+        print(f"node {RankFormatter.rank}: error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:  # report, then fail: the coordinator names this node
-        print(f"node {label}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(f"node {RankFormatter.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
     return 0
 
