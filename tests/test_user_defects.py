@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -155,3 +156,50 @@ def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp
                             cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert single.returncode == 0, single.stderr
     np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "ref.exr"))
+
+
+@pytest.mark.parametrize("sig, status, said, nodes", [
+    (signal.SIGINT, 130, "interrupted; ", []),
+    (signal.SIGTERM, 143, "terminated; nodes stopped, ", []),
+    (signal.SIGTERM, 143, "terminated; nodes stopped, ", ["--nodes", "2"])])
+def test_an_interrupted_animation_keeps_its_finished_frames_and_names_them(
+        lit_store, tmp_path, sig, status, said, nodes):
+    # issue 42: Ctrl-C or SIGTERM during --frames threw every finished frame away, silently
+    store, toml = lit_store
+    common = [str(store.path), "--scene", str(toml), "--width", "32", "--height", "24",
+              "--spp", "16", "--png", "an.png", "--report", "an.json", *nodes]
+    proc = subprocess.Popen([*VASTRAY, "render", *common, "-o", "an.exr", "--frames", "40"],
+                            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        said_before = []
+        for line in proc.stderr:  # the bar and a frame's line may share one (a \r between)
+            said_before.append(line)
+            if "(1/40)" in line:
+                proc.send_signal(sig)
+                break
+        err = "".join(said_before) + proc.stderr.read()
+        assert proc.wait(timeout=300) == status, err
+    finally:
+        _reap(proc)
+    assert "Traceback" not in err, err
+    last = err.strip().splitlines()[-1]
+    match = re.fullmatch(rf"vastray render: {said}(\d+) of 40 frames written: (.*)", last)
+    assert match, last
+    count = int(match.group(1))
+    numbers = "0000" if count == 1 else f"{{0000..{count - 1:04d}}}"
+    assert 1 <= count < 40 and match.group(2) == ", ".join(
+        f"an_{numbers}.{ext}" for ext in ("exr", "png", "json")), last
+    names = sorted(p.name for p in tmp_path.iterdir() if p.suffix != ".nodes")  # node logs
+    assert names == sorted(f"an_{f:04d}.{ext}" for f in range(count)
+                           for ext in ("exr", "png", "json")), names  # no temporaries
+    for frame in range(count):
+        assert read_exr(tmp_path / f"an_{frame:04d}.exr").shape == (24, 32, 3)
+        assert json.loads((tmp_path / f"an_{frame:04d}.json").read_text())["frame"] == frame
+    whole = tmp_path / "whole"
+    whole.mkdir()
+    once = subprocess.run([*VASTRAY, "render", *common, "-o", "an.exr", "--frames", "1",
+                           "--quiet"], cwd=whole, capture_output=True, text=True, timeout=300)
+    assert once.returncode == 0, once.stderr
+    np.testing.assert_array_equal(read_exr(tmp_path / "an_0000.exr"),
+                                  read_exr(whole / "an_0000.exr"))

@@ -10,13 +10,16 @@ single-process frames, and a frame renders the same alone or in a sequence.
 Outputs are numbered: ``-o anim.exr`` writes ``anim_0000.exr``, ``anim_0001.exr`` ...; so do
 ``--png`` and ``--report``, and the ``--report`` path itself receives a summary of every frame.
 Every output of every frame is checked before the first frame starts; all are written to
-temporary names beside their final ones and renamed together when the last frame is done, so
-a failed or interrupted animation leaves no file.
+temporary names beside their final ones as the frames finish and renamed together when the
+last frame is done, so a failed animation leaves no file. An interrupted one (Ctrl-C, SIGTERM)
+keeps the frames it finished: their files are renamed into place, each frame whole, and the
+last line names them.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from collections.abc import Callable
@@ -36,6 +39,7 @@ from vastray.render.rng import frame_seed
 from vastray.render.scene_config import SceneConfig
 from vastray.report import build_report, count_overflow, run_header, write_report
 from vastray.scene.errors import InputError
+from vastray.scene.filemode import publish_mode
 
 log = logging.getLogger(__name__)
 
@@ -268,8 +272,12 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
                                rules or StopRules(settings.spp),
                                None if reference is None else reference_image(frame))
 
-        render_frames(frames, configs, settings, render_one, on_frame, render_many,
-                      progression_of)
+        try:
+            render_frames(frames, configs, settings, render_one, on_frame, render_many,
+                          progression_of)
+        except KeyboardInterrupt as stop:  # Ctrl-C or SIGTERM: the frames done are kept
+            stop.kept = _keep_frames_done(written, summary.entries, outputs, len(frames))
+            raise
         done = {e["frame"] for e in summary.entries}
         if done != set(frames):
             raise RuntimeError(f"the renderer returned frames {sorted(done)}, not {frames}")
@@ -290,6 +298,28 @@ def run_animation(args, *, store_path: str, config: SceneConfig, settings: Rende
         for line in recovery_lines({"recoveries": recoveries}):
             print(line, file=sys.stderr)
     return 0
+
+
+def _keep_frames_done(written: StagedOutputs, entries: list[dict], outputs: FrameOutputs,
+                      count: int) -> str:
+    """Rename the staged files of the frames finished (``entries``) into place, each frame's
+    together, before an interruption removes the rest; what was kept, for the last line."""
+    done = []
+    for entry in entries:
+        try:
+            for path in entry["files"]:
+                tmp = written.staged[Path(path)]
+                publish_mode(tmp)
+                os.replace(tmp, path)
+        except (KeyError, OSError) as exc:
+            log.warning("frame %d could not be kept: %s", entry["frame"], exc)
+            continue
+        done.append(entry["frame"])
+    if not done:
+        return "no frame finished, none written"
+    files = [_pattern(p, done) for p in (outputs.image, outputs.png, outputs.report)
+             if p is not None]
+    return (f"{len(done)} of {count} frame{'s' * (count > 1)} written: {', '.join(files)}")
 
 
 def _check_references(pattern: str, frames: list[int], settings: RenderSettings
@@ -319,11 +349,16 @@ def _frame_line(entry: dict, done: int, count: int) -> str:
 
 
 def _pattern(path: str, frames: list[int]) -> str:
-    """The files of ``path`` over ``frames`` as a shell brace pattern: ``a_{0000..0009}.exr``."""
+    """The files of ``path`` over ``frames`` as a shell brace pattern: ``a_{0000..0009}.exr``
+    (frames not in one run: ``a_{0000,0002}.exr``)."""
     if len(frames) == 1:
         return str(frame_path(path, frames[0]))
     path = Path(path)
-    return str(path.with_name(f"{path.stem}_{{{frames[0]:04d}..{frames[-1]:04d}}}{path.suffix}"))
+    if list(frames) == list(range(frames[0], frames[-1] + 1)):
+        numbers = f"{frames[0]:04d}..{frames[-1]:04d}"
+    else:
+        numbers = ",".join(f"{f:04d}" for f in frames)
+    return str(path.with_name(f"{path.stem}_{{{numbers}}}{path.suffix}"))
 
 
 def _summary_line(args, outputs: FrameOutputs, frames: list[int], totals: dict,

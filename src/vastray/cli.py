@@ -206,12 +206,14 @@ def main(argv: list[str] | None = None) -> int:
              "--batch-size or --max-samples-in-flight")
         return 2
     except Terminated as exc:
-        kept = ("the passes done kept" if getattr(exc, "checkpointed", False)
-                else "no output written")
+        kept = getattr(exc, "kept", None) or (  # an animation's frames done, or the passes
+            "the passes done kept" if getattr(exc, "checkpointed", False)
+            else "no output written")
         _say(f"vastray {args.command}: terminated; nodes stopped, {kept}")
         return 143
-    except KeyboardInterrupt:
-        _say(f"vastray {args.command}: interrupted")
+    except KeyboardInterrupt as exc:
+        kept = getattr(exc, "kept", None)
+        _say(f"vastray {args.command}: interrupted" + (f"; {kept}" if kept else ""))
         return 130
 
 
