@@ -396,8 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "PMI_RANK, PMIX_RANK or OMPI_COMM_WORLD_RANK; else assigned by "
                              "the coordinator)")
     parser.add_argument("--timeout", type=float, default=120.0,
-                        help="seconds any wait may last before the node gives up "
-                             "(default: %(default)s)")
+                        help="seconds a wait may last without a word from the coordinator "
+                             "before the node gives up; a node done with its share waits as "
+                             "long as the coordinator speaks (default: %(default)s)")
     parser.add_argument("--bind", default="127.0.0.1",
                         help="address to listen on for peers (beyond loopback needs --keys)")
     parser.add_argument("--advertise", help="address peers reach this node at (default: "
