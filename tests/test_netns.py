@@ -66,19 +66,19 @@ def test_nodes_in_separate_network_namespaces(namespaces, tmp_path):
     nodes = [subprocess.Popen(
         ["ip", "netns", "exec", ns, sys.executable, "-m", "vastray.cli", "node",
          "--coordinator", f"tcp://{SUBNET}.1:{port}", "--bind", "0.0.0.0",
-         "--keys", str(tmp_path / "keys"), "--key-name", ns, "--timeout", "30"],
+         "--keys", str(tmp_path / "keys"), "--key-name", ns, "--timeout", "120"],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for ns in namespaces]
     try:
         st = settings(width=24, height=18, spp=2, integrator="pt")
         result = render_distributed(store.path, None, st, 2, listen=f"{SUBNET}.1:{port}",
-                                    keys=load_coordinator_keys(tmp_path / "keys"), timeout=30,
+                                    keys=load_coordinator_keys(tmp_path / "keys"), timeout=120,
                                     options=JobOptions(max_samples_in_flight=200))
         reference = render(store, SceneConfig(), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
     finally:
         for node in nodes:
             try:
-                node.wait(timeout=30)
+                node.wait(timeout=120)
             except subprocess.TimeoutExpired:
                 node.kill()
                 node.wait()
