@@ -107,7 +107,8 @@ Mitsuba's max_depth = bounces + 2). Images are identical whatever --cache and --
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "render", help="render a store (or the built-in scene) to OpenEXR",
+        "render", help="render a store (or the built-in scene) to an image (.exr, .pfm, .hdr or "
+                       ".png), and on request a PNG preview and a JSON report",
         description="Render a domain store with ambient occlusion or path tracing.",
         epilog=RENDER_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -340,7 +341,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
         "(1, 1, 2, 4, 8, ... per pixel, then at most --max-pass-spp), so the image after any "
         "pass is the whole image at fewer samples, the same whatever the scheduler or node "
         "count. The report's 'passes' gives each pass's time, spp, error against "
-        "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95%% "
+        "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95% "
         "confidence interval; `vastray plot` draws them. --spp is the upper bound.")
     passes.add_argument("--time-limit", type=_positive_float, metavar="SECONDS",
                         help="stop before a pass that would end after SECONDS of rendering "
