@@ -35,8 +35,8 @@ def test_an_estimate_near_all_the_available_memory_is_refused_naming_the_margin(
         check_memory(MemoryEstimate(21_900_000_000, 0, 0), 12000, 12000,
                      available=24_100_000_000)
     message = str(refused.value)
-    assert "12000x12000" in message and "21.9 GB" in message
-    assert "20.5 GB of the 24.1 GB available" in message and "15% is kept" in message
+    assert "12000x12000" in message and "20.4 GiB" in message
+    assert "19.1 GiB of the 22.4 GiB available" in message and "15% is kept" in message
     assert "--width/--height" in message and "--threads" in message
     assert "--memory-limit" in message and "\n" not in message
 
@@ -45,7 +45,7 @@ def test_the_margin_is_a_share_of_the_available_memory():
     available = 10 * GB
     check_memory(MemoryEstimate(int(available * MEMORY_HEADROOM), 0, 0), 10, 10,
                  available=available)  # exactly the share: accepted
-    with pytest.raises(InputError, match="8.5 GB of the 10.0 GB available"):
+    with pytest.raises(InputError, match="7.9 GiB of the 9.3 GiB available"):
         check_memory(MemoryEstimate(int(available * MEMORY_HEADROOM) + 1, 0, 0), 10, 10,
                      available=available)
 

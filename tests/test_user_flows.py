@@ -110,7 +110,7 @@ def test_refused_before_any_work_with_one_line_and_no_file(store, tmp_path, case
 def test_memory_estimate_refuses_what_does_not_fit():
     estimate = estimate_memory(20000, 20000, 65536, 16)
     assert estimate.film == 20000 * 20000 * 72
-    with pytest.raises(InputError, match=r"needs about .* GB .* only 6\.8 GB of the 8\.0 GB "
+    with pytest.raises(InputError, match=r"needs about .* GiB .* only 6\.3 GiB of the 7\.5 GiB "
                                          r"available may be used"):
         check_memory(estimate, 20000, 20000, available=8_000_000_000)
     check_memory(MemoryEstimate(1000, 1000, 1000), 10, 10, available=10_000)

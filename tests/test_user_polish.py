@@ -5,12 +5,18 @@ the point is what a user sees."""
 from __future__ import annotations
 
 import argparse
+import re
 import subprocess
 import sys
 
+import pytest
+
 from vastray.cli import build_parser
+from vastray.preflight import check_limit_fits_machine, gigabytes, parse_size, physical_memory
+from vastray.scene.errors import InputError
 
 VASTRAY = [sys.executable, "-m", "vastray.cli"]
+SMALL = ["--width", "32", "--height", "24", "--spp", "2"]
 
 
 def _cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
@@ -48,3 +54,40 @@ def test_the_top_help_names_every_output_of_render():
     assert "OpenEXR" not in line
     for word in (".exr", ".png", "PNG preview", "JSON report"):
         assert word in line, line
+
+
+def test_sizes_are_read_and_printed_in_the_same_binary_units():
+    # limits were read in GiB (powers of 1024) but printed in GB
+    for text, shown in [("700M", "700 MiB"), ("6G", "6 GiB"), ("1.5GiB", "1.5 GiB"),
+                        ("64K", "64 KiB"), ("1T", "1 TiB"), ("2TB", "2 TiB")]:
+        assert gigabytes(parse_size(text)) == shown
+    for bad in ("inf", "nan", "-1G", "0", "1X", ""):
+        with pytest.raises(ValueError, match="size"):
+            parse_size(bad)
+
+
+def test_a_render_prints_its_memory_limit_as_given(tmp_path):
+    run = _cli("render", "-o", str(tmp_path / "a.exr"), *SMALL, "--memory-limit", "700M")
+    assert run.returncode == 0, run.stderr
+    line = run.stderr.strip().splitlines()[-1]
+    assert re.search(r"peak RSS [\d.]+ [MG]iB of --memory-limit 700 MiB", line), line
+
+
+def test_a_memory_limit_beyond_this_machine_is_refused_in_one_line(tmp_path):
+    # `--memory-limit 1T` (a typo for 1G) was accepted silently
+    physical = physical_memory()
+    if physical is None:
+        pytest.skip("this machine's memory cannot be read")
+    too_big = f"{physical // 2**30 + 2}G"
+    limits = [too_big] + (["1T"] if physical < 2**40 else [])
+    for limit in limits:
+        run = _cli("render", "-o", str(tmp_path / "a.exr"), *SMALL, "--memory-limit", limit)
+        assert run.returncode == 2, run.stderr
+        lines = run.stderr.strip().splitlines()
+        assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+        assert f"--memory-limit {gigabytes(parse_size(limit))} is more than this machine's" \
+               in lines[0], lines[0]
+        assert not (tmp_path / "a.exr").exists()
+    with pytest.raises(InputError, match="more than this machine's 8 GiB"):
+        check_limit_fits_machine(9 * 2**30, physical=8 * 2**30)
+    check_limit_fits_machine(8 * 2**30, physical=8 * 2**30)

@@ -27,6 +27,7 @@ from vastray.preflight import (
     MemoryEstimate,
     RenderMemory,
     cache_within,
+    check_limit_fits_machine,
     check_memory,
     check_output_paths,
     check_owned_fit,
@@ -189,7 +190,8 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "preloading: Xu et al. 2022). All give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", type=_size, metavar="SIZE",
-                   help="most memory each process (each node) may use, e.g. 8G: bounds its "
+                   help="most memory each process (each node) may use, e.g. 8G or 700M (K, M, G, "
+                        "T: KiB, MiB, GiB, TiB): bounds its "
                         "domain cache after the rest of the process (interpreter and "
                         "libraries, film, paths in flight, and a 75 MB margin for the "
                         "libraries' measured spread); the report's peak_rss_bytes is the "
@@ -987,6 +989,8 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
                                reference=reference)
 
     if args.memory_limit is not None:
+        if not args.listen:  # the processes it bounds run here
+            check_limit_fits_machine(args.memory_limit)
         if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
             from vastray.schedule.ownership import zorder_owners
 

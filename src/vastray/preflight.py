@@ -239,8 +239,46 @@ def available_memory() -> int | None:
         return None
 
 
+#: The binary units sizes are read in (``parse_size``) and printed in (``gigabytes``).
+BINARY_UNITS = {"K": ("KiB", 1 << 10), "M": ("MiB", 1 << 20), "G": ("GiB", 1 << 30),
+                "T": ("TiB", 1 << 40)}
+
+
 def gigabytes(n: int) -> str:
-    return f"{n / 1e9:.1f} GB" if n >= 1e8 else f"{n / 1e6:.0f} MB"
+    """``700 MiB``, ``1.5 GiB``: bytes in the binary units ``--memory-limit`` is read in (its
+    K, M, G and T are KiB, MiB, GiB and TiB), so that a limit is printed as it was given."""
+    for name, factor in reversed(BINARY_UNITS.values()):
+        if n >= factor:
+            value = n / factor
+            text = f"{value:.1f}".removesuffix(".0") if factor >= 1 << 30 else f"{value:.0f}"
+            return f"{text} {name}"
+    return f"{int(n)} B"
+
+
+def physical_memory() -> int | None:
+    """Bytes of memory this machine has (``MemTotal``), or None where it cannot be read."""
+    total = proc_bytes("/proc/meminfo", "MemTotal")
+    if total is not None:
+        return total
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_limit_fits_machine(limit: int, physical: int | None = None) -> None:
+    """Refuse a ``--memory-limit`` larger than this machine's memory (a typo such as ``1T``
+    for ``1G``): the processes it bounds run here, so it could never bind.
+
+    Parameters
+    ----------
+    physical : bytes of memory (default: ``physical_memory()``; None there: no check).
+    """
+    physical = physical_memory() if physical is None else physical
+    if physical is not None and limit > physical:
+        raise InputError(None, f"--memory-limit {gigabytes(limit)} is more than this "
+                               f"machine's {gigabytes(physical)} of memory; give a smaller "
+                               "one (K, M, G, T are KiB, MiB, GiB, TiB)")
 
 
 def check_memory(estimate: MemoryEstimate, width: int, height: int,
@@ -280,16 +318,18 @@ BVH_BYTES_PER_TRIANGLE = 36 + 12 + 64
 
 
 def parse_size(text: str) -> int:
-    """``"8G"``, ``"512M"``, ``"1.5G"``, ``"100000"`` -> bytes (powers of 1024)."""
-    units = {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30, "T": 1 << 40}
-    text = text.strip().upper().removesuffix("B").removesuffix("I")
-    number, unit = (text[:-1], text[-1]) if text[-1:] in units and text[-1:] else (text, "")
+    """``"8G"``, ``"512M"``, ``"1.5GiB"``, ``"100000"`` -> bytes: K, M, G and T (with or without
+    ``iB`` or ``B``) are KiB, MiB, GiB and TiB, powers of 1024, as ``gigabytes`` prints them."""
+    units = {"": 1, **{unit: factor for unit, (_, factor) in BINARY_UNITS.items()}}
+    upper = text.strip().upper().removesuffix("B").removesuffix("I")
+    number, unit = (upper[:-1], upper[-1]) if upper[-1:] in units and upper[-1:] else (upper, "")
     try:
         value = float(number) * units[unit]
     except (ValueError, KeyError):
-        raise ValueError(f"expected a size such as 8G, 512M or 100000, got {text!r}") from None
-    if not value > 0:
-        raise ValueError(f"a size must be positive, got {text!r}")
+        raise ValueError(f"expected a size such as 8G, 512M or 100000 (K, M, G, T: KiB, MiB, "
+                         f"GiB, TiB), got {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise ValueError(f"a size must be positive and finite, got {text!r}")
     return int(value)
 
 
