@@ -275,6 +275,7 @@ def test_an_animation_on_a_full_disk_keeps_the_frames_done_in_a_rescue_folder(
     # written so far (staged beside their targets, all or none) go to the rescue folder
     root, common = scene
     small = [*common, "--width", "8", "--height", "8", "--spp", "4", "--frames", "3"]
+    (tmp_path / "normal").mkdir()  # an output's folder is never created (it must exist)
     normal = _cli("render", *small, "-o", str(tmp_path / "normal" / "an.exr"))
     assert normal.returncode == 0, normal.stderr
     os.truncate(full_disk / "filler", (full_disk / "filler").stat().st_size - 2 * 4096)

@@ -91,3 +91,24 @@ def test_a_memory_limit_beyond_this_machine_is_refused_in_one_line(tmp_path):
     with pytest.raises(InputError, match="more than this machine's 8 GiB"):
         check_limit_fits_machine(9 * 2**30, physical=8 * 2**30)
     check_limit_fits_machine(8 * 2**30, physical=8 * 2**30)
+
+
+@pytest.mark.parametrize("option", ["-o", "--png", "--report"])
+def test_a_missing_output_folder_is_refused_naming_it_not_created(tmp_path, option):
+    # `-o new/dir/out.exr` created new/dir silently: a typo in a folder name went unseen
+    missing = tmp_path / "new" / "dir"
+    name = {"-o": "out.exr", "--png": "out.png", "--report": "out.json"}[option]
+    outputs = {"-o": str(tmp_path / "a.exr"), option: str(missing / name)}
+    run = _cli("render", *SMALL, *[word for pair in outputs.items() for word in pair],
+               timeout=300)
+    assert run.returncode == 2, run.stderr
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert f"{option}'s folder {missing} does not exist" in lines[0], lines[0]
+    assert f"mkdir -p {missing}" in lines[0], lines[0]
+    assert not (tmp_path / "new").exists() and not (tmp_path / "a.exr").exists()
+    missing.mkdir(parents=True)  # once it exists, the same command renders
+    run = _cli("render", *SMALL, *[word for pair in outputs.items() for word in pair], "--quiet",
+               timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert (missing / name).is_file()

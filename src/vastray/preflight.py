@@ -414,8 +414,9 @@ def _nearest_existing(path: Path) -> Path:
 
 
 def check_output_paths(image: str, png: str | None, report: str | None) -> list[Path]:
-    """Check every output before any work: formats, folders in the way, writable places,
-    and no two outputs on one path. Returns the paths in the order they will be written.
+    """Check every output before any work: formats, folders in the way or missing (they are
+    not created), writable places, and no two outputs on one path. Returns the paths in the
+    order they will be written.
 
     Raises
     ------
@@ -435,10 +436,14 @@ def check_output_paths(image: str, png: str | None, report: str | None) -> list[
     resolved = [p.resolve() for p in paths]
     if len(set(resolved)) != len(resolved):
         raise InputError(None, "-o, --png and --report must name different files")
-    for path in paths:
+    options = ["-o", *["--png"] * (png is not None), *["--report"] * (report is not None)]
+    for path, option in zip(paths, options, strict=True):
         parent = _nearest_existing(path.parent)
         if not parent.is_dir():
             raise InputError(path, f"cannot be written: {parent} is not a folder")
+        if parent != path.parent.absolute():  # never created silently: a typo would be
+            raise InputError(path, f"{option}'s folder {path.parent} does not exist (create "
+                                   f"it first, e.g. mkdir -p {path.parent})")
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(path, f"cannot be written: no permission to write in {parent}")
     return paths
