@@ -112,3 +112,43 @@ def test_a_missing_output_folder_is_refused_naming_it_not_created(tmp_path, opti
                timeout=300)
     assert run.returncode == 0, run.stderr
     assert (missing / name).is_file()
+
+
+def _frames_plot_boxes(monkeypatch, tmp_path, plot_module, series):
+    """The window extents of the frames plot's legend and of its axis labels, taken from
+    the figure as it is saved."""
+    boxes = {}
+
+    def save(fig, output):
+        fig.canvas.draw()
+        renderer = fig.canvas.get_renderer()
+        (ax,) = fig.axes
+        boxes["legend"] = ax.get_legend().get_window_extent(renderer)
+        boxes["xlabel"] = ax.xaxis.label.get_window_extent(renderer)
+        boxes["ylabel"] = ax.yaxis.label.get_window_extent(renderer)
+        boxes["axes"] = ax.get_window_extent(renderer)
+        boxes["figure"] = fig.bbox
+
+    monkeypatch.setattr(plot_module, "_save", save)
+    plot_module.plot_error_vs_time(series, tmp_path / "frames.png")
+    return boxes
+
+
+@pytest.mark.parametrize("runs", [1, 3, 6])
+def test_the_frames_plot_legend_covers_no_axis_label(monkeypatch, tmp_path, runs):
+    # the legend of `vastray plot --mode frames` sat inside the axes: with a few runs' long
+    # labels (scheduler and options) it ran over the axis label
+    pytest.importorskip("matplotlib")
+    from vastray import plot
+
+    label = ("async, --nodes 2, --cache 25%, --eviction demand, --max-samples-in-flight "
+             "65536, --batch-size 4096")
+    series = [plot.Series(f"{label} ({k})", [0.5 + 0.1 * k, 0.6 + 0.1 * k, 0.7],
+                          [1e-3 * (k + 1), 2e-3, 0.0]) for k in range(runs)]
+    boxes = _frames_plot_boxes(monkeypatch, tmp_path, plot, series)
+    legend = boxes["legend"]
+    for name in ("xlabel", "ylabel"):
+        assert not legend.overlaps(boxes[name]), f"the legend covers the {name}"
+    assert not legend.overlaps(boxes["axes"]), "the legend covers the points"
+    figure = boxes["figure"]
+    assert figure.x0 <= legend.x0 and legend.x1 <= figure.x1 + 1, "the legend is cut off"

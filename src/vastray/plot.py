@@ -168,11 +168,30 @@ def _save(fig, output: str | Path) -> None:
 
 def plot_error_vs_time(series: list[Series], output: str | Path,
                        title: str = "error vs time per frame") -> None:
-    """Write the plot of ``series`` as a PNG: seconds per frame on x, MSE (log) on y."""
+    """Write the plot of ``series`` as a PNG (see ``error_vs_time_figure``)."""
+    plt = _pyplot()
+    fig = error_vs_time_figure(series, title)
+    try:
+        _save(fig, output)
+    finally:
+        plt.close(fig)
+
+
+def error_vs_time_figure(series: list[Series], title: str = "error vs time per frame"):
+    """The frames plot of ``series``: seconds per frame on x, MSE (log) on y, each run's
+    frames and a larger marker at its mean; the legend right of the axes, its labels wrapped,
+    so that it covers neither the points nor the axis labels (inside the axes, long run labels
+    ran over the y label).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The caller closes it.
+    """
     plt = _pyplot()
     positive = [m for s in series for m in s.mse if m > 0]
     floor = min(positive) / 10.0 if positive else 1e-12
-    fig, ax = plt.subplots(figsize=(7, 4.5), dpi=120)
+    fig, ax = plt.subplots(figsize=(10, 4.5), dpi=120, layout="constrained")
     try:
         for s in series:
             lossless = all(m == 0 for m in s.mse)
@@ -181,17 +200,19 @@ def plot_error_vs_time(series: list[Series], output: str | Path,
             (points,) = ax.plot(s.seconds, mse, "o", alpha=0.5, markersize=4)
             mean_t, mean_mse = sum(s.seconds) / len(s.seconds), max(sum(s.mse) / len(s.mse), floor)
             ax.plot([mean_t], [mean_mse], "v" if lossless else "D", markersize=9,
-                    color=points.get_color(), markeredgecolor="black", label=label)
+                    color=points.get_color(), markeredgecolor="black",
+                    label=textwrap.fill(label, LEGEND_WRAP))
         ax.set_yscale("log")
         ax.set_xlabel("seconds per frame (s)")
         ax.set_ylabel("MSE against the lossless render")
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize="small")
-        fig.tight_layout()
-        _save(fig, output)
-    finally:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0,
+                  fontsize="small")
+    except BaseException:
         plt.close(fig)
+        raise
+    return fig
 
 
 LEGEND_WRAP = 34  # characters per legend line: long run labels wrap instead of widening it
