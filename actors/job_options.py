@@ -26,8 +26,10 @@ BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 #: The wire layout's version: a node refuses a job whose options carry another. 2: cold_reads,
 #: eviction; 3: portal_memory, assignment paper|affinity; 4: the same options, but dynamic's
 #: and spec-insitu's batches go only where rays go (their counts in the schedule, or summed
-#: over the tree), so nodes of version 3 would wait for batches that never come.
-VERSION = 4
+#: over the tree), so nodes of version 3 would wait for batches that never come; 5: the job's
+#: settings beside these options carry color_min and color_max (``--color-range``), which a
+#: node of version 4 cannot read.
+VERSION = 5
 
 #: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
 #: (one process, or sort-first tiles on every node), and those that distribute domains over

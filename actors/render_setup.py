@@ -43,7 +43,8 @@ class RenderSetup:
         lo, hi = store.domain_boxes()
         nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         return RenderSetup(
-            shading, keep, color_source, scalar_map(store.scalar_range, settings.colormap), camera,
+            shading, keep, color_source,
+            scalar_map(store.scalar_range, settings.colormap, settings.color_range), camera,
             DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
             settings.ao_distance or default_ao_distance(store),
             settings.paths)

@@ -57,9 +57,11 @@ def colormap_lut(name: str) -> np.ndarray:
     return lut
 
 
-def scalar_map(scalar_range: tuple[float, float] | None, name: str | None) -> ScalarMap:
-    """The store's scalar range with the colour table of ``name`` (None: the built-in one)."""
-    lo, hi = scalar_range or (0.0, 1.0)
+def scalar_map(scalar_range: tuple[float, float] | None, name: str | None,
+               fixed: tuple[float, float] | None = None) -> ScalarMap:
+    """The store's scalar range, or the ``fixed`` one (``--color-range``) when given, with the
+    colour table of ``name`` (None: the built-in one)."""
+    lo, hi = fixed or scalar_range or (0.0, 1.0)
     return ScalarMap(float(lo), float(hi), None if name is None else colormap_lut(name))
 
 
@@ -77,11 +79,14 @@ def coloured_by_scalars(store) -> bool:
     return store.has_scalars and not store.has_colors
 
 
-def legend_for(store, colormap_name: str | None) -> Legend | None:
-    """The colour bar of a render of ``store``: None unless ``coloured_by_scalars``."""
+def legend_for(store, colormap_name: str | None,
+               fixed: tuple[float, float] | None = None) -> Legend | None:
+    """The colour bar of a render of ``store`` (over the ``fixed`` range when given): None
+    unless ``coloured_by_scalars``."""
     if not coloured_by_scalars(store):
         return None
-    return Legend(scalar_map(store.scalar_range, colormap_name), store.scalar_name or "scalar")
+    return Legend(scalar_map(store.scalar_range, colormap_name, fixed),
+                  store.scalar_name or "scalar")
 
 
 def draw_legend(image: np.ndarray, legend: Legend) -> np.ndarray:

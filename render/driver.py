@@ -206,7 +206,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     workers = threads if all_fit and threads > 1 else 1
     tracer = DomainTracer(store, cache, color_source, threads=1 if workers > 1 else threads,
                           two_level=two_level,
-                          scalars=scalar_map(store.scalar_range, settings.colormap))
+                          scalars=scalar_map(store.scalar_range, settings.colormap,
+                                             settings.color_range))
     tracer.record = record_rays
     camera = store_camera(config, store, settings.width, settings.height)
     shading = with_camera_clip(shading, store, camera)

@@ -53,10 +53,21 @@ class RenderSettings:
     seed: int = 0
     batch_size: int = 65536
     colormap: str | None = None  # matplotlib colour map for scalars; None: built-in viridis
+    #: The scalar range mapped to the colour map's ends (``--color-range LO HI``), the same
+    #: for every frame and node; None: the store's own range.
+    color_min: float | None = None
+    color_max: float | None = None
     #: The pass: samples ``sample_start <= s < sample_stop`` of every pixel (None: up to
     #: ``spp``); its paths are numbered pixel-major within it (``driver.path_context``).
     sample_start: int = 0
     sample_stop: int | None = None
+
+    @property
+    def color_range(self) -> tuple[float, float] | None:
+        """The fixed scalar range of ``--color-range`` (None: the store's)."""
+        if self.color_min is None or self.color_max is None:
+            return None
+        return float(self.color_min), float(self.color_max)
 
     @property
     def samples(self) -> tuple[int, int]:

@@ -379,6 +379,13 @@ def check_legend(r: Renders):
     r.refused("--legend", naming="--legend")  # no PNG written
 
 
+def check_color_range(r: Renders):
+    # its effect on stores with scalars: test_user_polish (one scale for two data ranges, and
+    # on the nodes)
+    r.refused("--color-range", "0", "1", naming="--color-range")  # the tiny store has no scalars
+    r.refused("--color-range", "1", "0", naming="--color-range")
+
+
 def check_time_limit(r: Renders):
     # the rule that stops a long render: tests/test_progressive.py (stops near the limit)
     run = r("--time-limit", "600", "--spp", "4")

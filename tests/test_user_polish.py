@@ -9,10 +9,12 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from vastray.cli import build_parser
 from vastray.preflight import check_limit_fits_machine, gigabytes, parse_size, physical_memory
+from vastray.render.imageio import read_image
 from vastray.scene.errors import InputError
 
 VASTRAY = [sys.executable, "-m", "vastray.cli"]
@@ -152,3 +154,78 @@ def test_the_frames_plot_legend_covers_no_axis_label(monkeypatch, tmp_path, runs
     assert not legend.overlaps(boxes["axes"]), "the legend covers the points"
     figure = boxes["figure"]
     assert figure.x0 <= legend.x0 and legend.x1 <= figure.x1 + 1, "the legend is cut off"
+
+
+@pytest.fixture(scope="module")
+def scalar_stores(tmp_path_factory):
+    """Two stores of one geometry and one scalar field, but for a single vertex of the second
+    set to 5: their ranges differ (0.2..0.8 against 0.2..5), their other vertices do not."""
+    from vastray.scene.store import DomainArrays
+
+    from scenes import bumpy_scene, write_store
+
+    folder = tmp_path_factory.mktemp("scalars")
+    mesh = bumpy_scene()
+    x = mesh.vertices[:, 0].astype(np.float64)
+    scalars = (0.2 + 0.6 * (x - x.min()) / np.ptp(x)).astype(np.float32)
+    outlier = scalars.copy()
+    outlier[0] = 5.0
+    stores = []
+    for name, values in (("a", scalars), ("b", outlier)):
+        arrays = DomainArrays(mesh.vertices, mesh.indices, scalars=values)
+        stores.append(str(write_store(folder / f"{name}.store", arrays, grid=(2, 1, 1)).path))
+    return stores
+
+
+def _render(store: str, out, *extra: str) -> np.ndarray:
+    run = _cli("render", store, "-o", str(out), *COLOR_SMALL, *extra, timeout=600)
+    assert run.returncode == 0, run.stderr
+    return read_image(out)
+
+
+#: Ambient occlusion: a surface's colour is its own scalar's, no light bounced off another.
+COLOR_SMALL = ["--width", "48", "--height", "32", "--spp", "2", "--integrator", "ao",
+               "--shadow-samples", "2"]
+
+
+def test_a_fixed_color_range_colours_a_scalar_alike_whatever_the_data_range(
+        scalar_stores, tmp_path):
+    a, b = scalar_stores
+    own_a, own_b = _render(a, tmp_path / "a.exr"), _render(b, tmp_path / "b.exr")
+    fixed_a = _render(a, tmp_path / "fa.exr", "--color-range", "0", "1")
+    fixed_b = _render(b, tmp_path / "fb.exr", "--color-range", "0", "1")
+    surface = np.abs(own_a - own_a[0, 0]).sum(axis=2) > 1e-6  # not the background
+    assert surface.mean() > 0.05
+
+    def differing(x, y):
+        return float((np.abs(x - y).sum(axis=2) > 1e-6)[surface].mean())
+
+    # each store's own range: the outlier rescales the whole second image
+    assert differing(own_a, own_b) > 0.5
+    # one range for both: only pixels that see the outlier's triangles differ
+    assert differing(fixed_a, fixed_b) < 0.05
+    assert differing(own_a, fixed_a) > 0.5  # the range changed the colours
+
+
+def test_a_fixed_color_range_reaches_the_nodes(scalar_stores, tmp_path):
+    _, b = scalar_stores
+    one = _render(b, tmp_path / "one.exr", "--color-range", "0", "1")
+    for scheduler in ("image", "async"):
+        nodes = _render(b, tmp_path / f"{scheduler}.exr", "--color-range", "0", "1",
+                        "--nodes", "2", "--scheduler", scheduler)
+        np.testing.assert_allclose(nodes, one, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(("words", "named"), [
+    (["2", "1"], "--color-range LO HI needs LO < HI, got 2 1"),
+    (["1", "1"], "--color-range LO HI needs LO < HI, got 1 1"),
+    (["0", "nan"], "must be a finite number"),
+    (["-1", "inf"], "must be a finite number"),
+    (["0", "x"], "expected a number"),
+])
+def test_a_bad_color_range_is_refused_in_one_line(scalar_stores, tmp_path, words, named):
+    run = _cli("render", scalar_stores[0], "-o", str(tmp_path / "x.exr"), *COLOR_SMALL,
+               "--color-range", *words, timeout=120)
+    assert run.returncode == 2 and named in run.stderr, run.stderr
+    assert "Traceback" not in run.stderr and not (tmp_path / "x.exr").exists()
+    assert run.stderr.strip().splitlines()[0].count("--color-range") >= 1

@@ -333,6 +333,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="matplotlib colour map for a store coloured by its scalar field, e.g. "
                         "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
                         "'vastray[plot]'; default: a built-in viridis)")
+    p.add_argument("--color-range", type=_finite_float, nargs=2, metavar=("LO", "HI"),
+                   help="map scalars LO..HI to the colour map's ends, whatever the store's "
+                        "range (ParaView's custom range), so renders of different data, every "
+                        "frame and every node share one scale (default: the store's range)")
     p.add_argument("--legend", action=argparse.BooleanOptionalAction, default=None,
                    help="draw a colour bar (the scalar's name and range) along the bottom of "
                         "the PNG of a store coloured by scalars (default: with --colormap)")
@@ -496,6 +500,16 @@ def _non_negative(text: str) -> int:
     value = _integer(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"must not be negative, got {value}")
+    return value
+
+
+def _finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
     return value
 
 
@@ -679,6 +693,8 @@ def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
         bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
         seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
         colormap=args.colormap,
+        color_min=args.color_range[0] if args.color_range else None,
+        color_max=args.color_range[1] if args.color_range else None,
     )
     if reference is not None and reference.shape != (args.height, args.width, 3):
         where = args.reference if isinstance(args.reference, str) else "reference"
@@ -862,7 +878,8 @@ def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
     if args.colormap is not None:
         colormap_lut(args.colormap)
     by_scalars = coloured_by_scalars(store)
-    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend)):
+    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend),
+                          ("--color-range", args.color_range is not None)):
         if given and not by_scalars:
             raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
                                          " this one has " + ("per-vertex colours" if
@@ -870,8 +887,12 @@ def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
     if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
         raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
                                "-o")
+    if args.color_range is not None and not args.color_range[0] < args.color_range[1]:
+        raise InputError(None, f"--color-range LO HI needs LO < HI, got "
+                               f"{args.color_range[0]:g} {args.color_range[1]:g}")
     wanted = args.legend if args.legend is not None else args.colormap is not None
-    return legend_for(store, args.colormap) if wanted else None
+    return legend_for(store, args.colormap, args.color_range and tuple(args.color_range)) \
+        if wanted else None
 
 
 def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
