@@ -229,3 +229,16 @@ def test_a_bad_color_range_is_refused_in_one_line(scalar_stores, tmp_path, words
     assert run.returncode == 2 and named in run.stderr, run.stderr
     assert "Traceback" not in run.stderr and not (tmp_path / "x.exr").exists()
     assert run.stderr.strip().splitlines()[0].count("--color-range") >= 1
+
+
+def test_the_python_api_takes_a_color_range_as_a_pair(scalar_stores, tmp_path):
+    import vastray
+    from vastray.scene.errors import InputError
+
+    _, b = scalar_stores
+    cli = _render(b, tmp_path / "cli.exr", "--color-range", "0", "1")
+    out = vastray.render(b, width=48, height=32, spp=2, integrator="ao", shadow_samples=2,
+                         color_range=(0.0, 1.0), progress=False)
+    np.testing.assert_array_equal(out.image, cli)
+    with pytest.raises(InputError, match="color_range takes 2 values"):
+        vastray.render(b, width=48, height=32, spp=2, color_range=1.0, progress=False)

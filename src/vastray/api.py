@@ -273,6 +273,15 @@ def _converted(action: argparse.Action, key: str, value):
         if not isinstance(value, bool):
             raise InputError(None, f"{key} must be True or False, got {value!r}")
         return value
+    if isinstance(action.nargs, int) and action.nargs > 1:  # e.g. --color-range LO HI
+        if not isinstance(value, (list, tuple)) or len(value) != action.nargs:
+            raise InputError(None, f"{key} takes {action.nargs} values, got {value!r}")
+        return [_converted_one(action, key, flag, v) for v in value]
+    return _converted_one(action, key, flag, value)
+
+
+def _converted_one(action: argparse.Action, key: str, flag: str, value):
+    """One value as ``action``'s converter gives it (see ``_converted``)."""
     if isinstance(value, bool) or not isinstance(value, (str, os.PathLike, int, float,
                                                          np.number, list, tuple)):
         raise InputError(None, f"{key}={value!r} is not a valid value of {flag} (see "
