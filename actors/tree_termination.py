@@ -139,4 +139,6 @@ class TreeTermination:
                 self.finished = True
                 out += self._down(True)
             self.previous = total
+            if not self.kids and total[0] != total[1]:
+                return out  # alone, and a batch to itself in flight: wait for it
         return out
