@@ -12,10 +12,11 @@ asynchronous baseline of the temporal-coherence paper):
   queues (credit-based flow control), traces the fullest local domain, ships what it
   produced, and takes whatever arrives, for any tile at once. A tile's path state is made on
   demand and retired into the film once none of its rays waits here (partial path radiance
-  adds up in the float64 film). Only when a node has injected all its tiles and is idle does
-  it report (batches sent, batches received); the coordinator declares the frame done when
-  every node is idle, the sums match, and a second probe wave returns the very same counts
-  (Mattern's four-counter termination): one termination detection per frame.
+  adds up in the float64 film). The frame ends by Mattern's four-counter termination
+  detection over the tree of ranks (``actors.tree_termination``): waves go down the tree and
+  the batches sent and received come back up, summed, from nodes that have injected all
+  their tiles and are idle; two waves with the same balanced sums end the frame. One
+  detection per frame, none of it through the coordinator.
 
 - ``dynamic``: Navrátil's ray-weighted rounds (Figs. 5-6). Each round the nodes all-reduce
   over the tree the rays waiting per domain and which node holds each domain, and each

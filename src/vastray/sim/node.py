@@ -57,8 +57,9 @@ class SimManagement:
 
 class SimCoordinator:
     """The coordinator's part in a render: the real ``Termination`` (round barriers,
-    ``dynamic``'s schedule, the asynchronous frames' termination detection), fed the nodes'
-    reports one at a time (each message's cost is its sender's)."""
+    ``dynamic``'s schedule), fed the nodes' reports one at a time (each message's cost is its
+    sender's). The asynchronous frames end without it, over the tree of virtual nodes
+    (``actors.tree_termination``, run by the nodes' own code)."""
 
     def __init__(self, cluster: Cluster):
         self.cluster = cluster
