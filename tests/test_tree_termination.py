@@ -1,8 +1,9 @@
 """Termination detection of the asynchronous frames over the tree of ranks
 (``actors.tree_termination``): a model of P nodes exchanging ray batches, with every message
 delivered in a random order, never sees a frame end while a batch is in flight, and always
-sees it end; real node processes render ``async`` and ``temporal`` frames to the reference
-image while their coordinator hears no message about termination."""
+sees it end; real node processes, and virtual ones in the simulator, render ``async`` and
+``temporal`` frames to the reference image while their coordinator hears no message about
+termination."""
 
 from __future__ import annotations
 
@@ -16,8 +17,14 @@ from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.tree_termination import TreeTermination
-from vastray.render.driver import render
-from vastray.render.scene_config import load_scene_config
+from vastray.render.driver import render, shading_inputs
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig, load_scene_config
+from vastray.scene.generate import generate
+from vastray.scene.store import Store
+from vastray.sim.cache import Domains
+from vastray.sim.costs import CostModel
+from vastray.sim.simulate import simulate
 from vastray.transport.codec import Message
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
@@ -223,3 +230,30 @@ def test_real_nodes_end_frames_over_the_tree_and_the_coordinator_hears_nothing_o
     # nothing per wave or per round: only the job's start, liveness, progress and the result
     assert set(heard) <= {protocol.HELLO, protocol.HEARTBEAT, protocol.PROGRESS, protocol.FILM,
                           protocol.DONE, protocol.FRAME}, heard
+
+
+# -- virtual nodes (the simulator runs the frames' own code) ----------------------------------
+SIM_SETTINGS = RenderSettings(width=32, height=24, spp=2, bounces=1, shadow_samples=2, seed=3)
+
+
+@pytest.fixture(scope="module")
+def sim_store(tmp_path_factory) -> Store:
+    path = tmp_path_factory.mktemp("tree_termination_sim") / "rm.store"
+    generate("rm", path, 32, grid=(3, 2, 2))
+    return Store(path)
+
+
+@pytest.mark.parametrize("scheduler", ["async", "temporal"])
+def test_virtual_nodes_end_frames_without_the_simulated_coordinator(sim_store, scheduler):
+    built = Domains(sim_store, shading_inputs(sim_store, SceneConfig(),
+                                              SIM_SETTINGS.integrator)[1])
+    try:
+        result = simulate(sim_store, JobOptions(scheduler=scheduler, max_samples_in_flight=200),
+                          5, CostModel(), SIM_SETTINGS, max_pass_spp=1, domains=built)
+    finally:
+        built.close()
+    reference = render(sim_store, SceneConfig(), SIM_SETTINGS, progress=False).film
+    np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
+    assert result.counters["batches_sent"] == result.counters["batches_received"] > 0
+    assert result.counters["termination_waves"] >= 2 * 5  # every node, both passes
+    assert result.compute_seconds[-1] == 0  # the coordinator sent nothing: no probe waves
