@@ -22,7 +22,6 @@ from vastray.actors.gather import Frames, Passes, gather, grant
 from vastray.actors.node_failure import NodeFailure, NodeLost
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.rendezvous import write_address
-from vastray.actors.termination import Termination
 from vastray.actors.watch import Watch
 from vastray.render.integrators import RenderSettings
 from vastray.transport.codec import encode
@@ -115,12 +114,10 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
             await router.send_multipart([identities[rank], token, *frames])
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
-        control = Termination(size, router, identities, token)
         frames = Frames(size, job.get("frames"), frame_done)
         passes.begin(lambda next_unit: grant(router, identities, token, next_unit))
         try:
-            film, reports = await gather(router, watch, settings, bar, control, frames, size,
-                                          passes)
+            film, reports = await gather(router, watch, settings, bar, frames, size, passes)
         except NodeLost as lost:
             if regroup and listen is not None:
                 await _call_regroup(router, identities, token, lost)
@@ -137,7 +134,7 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
             report["counters"]["coordinator_refused_connections"] = (
                 gate.refusals + gate.failed_handshakes)
             report["counters"]["coordinator_messages"] = dict(sorted(watch.kinds.items()))
-        return film, [reports[r] for r in range(size)], control.barriers
+        return film, [reports[r] for r in range(size)]
     finally:
         if beating is not None:
             beating.cancel()

@@ -191,12 +191,12 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
     spare_exits = 0  # launched sessions of lost nodes still to exit (not failures)
     attempt = 0
 
-    def frame_done(frame: int, film, reports: list[dict], barriers: int, seconds: float) -> None:
+    def frame_done(frame: int, film, reports: list[dict], seconds: float) -> None:
         lo, hi = store.world_bounds
         frame_camera = store_camera(config.at_frame(frame, lo, hi, settings.width,
                                                     settings.height),
                                     store, settings.width, settings.height)
-        result = render_result(film, frame_camera, reports, barriers, scheduler, size, nodes,
+        result = render_result(film, frame_camera, reports, scheduler, size, nodes,
                                failures, seconds, recoveries)
         result.counters["frame"] = frame
         if logs.kept:
@@ -215,13 +215,13 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
             progression(frame).retake()
         for frame in remaining or ():  # merged whole before a loss, its reports lost with it
             if progression(frame).stopped_by is not None:
-                frame_done(frame, progression(frame).film, [], 0, 0.0)
+                frame_done(frame, progression(frame).film, [], 0.0)
         remaining = None if frames is None else [f for f in frames if f not in delivered]
         todo = [None] if frames is None else remaining
         units = [(frame, first, stop) for frame in todo
                  for first, stop in progression(frame).remaining()]
         if not units and listen is None:  # every frame is whole: no node to start for it
-            film, reports, barriers = progression(None).film if frames is None else None, [], 0
+            film, reports = progression(None).film if frames is None else None, []
             break
         paced = any(progression(frame).rules.paced for frame in todo)
         try:
@@ -229,7 +229,7 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                           leave=False) as bar:
                 passes = Passes(units, progression, paced, image=frames is None)
-                film, reports, barriers = asyncio.run(coordinate(
+                film, reports = asyncio.run(coordinate(
                     dict(job, frames=remaining, units=units, paced=paced), size, settings,
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
@@ -258,7 +258,7 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
                 log.warning("%s", message)
     wall = time.perf_counter() - start
     if frames is None:
-        result = render_result(film, camera, reports, barriers, scheduler, size, nodes,
+        result = render_result(film, camera, reports, scheduler, size, nodes,
                                failures, wall, recoveries)
         if logs.kept:
             result.counters["node_logs"] = str(logs.folder)

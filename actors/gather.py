@@ -15,7 +15,6 @@ from tqdm import tqdm
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_from
 from vastray.actors.node_failure import NodeFailure
-from vastray.actors.termination import Termination
 from vastray.actors.watch import Watch
 from vastray.render.integrators import RenderSettings
 from vastray.transport.codec import encode
@@ -86,7 +85,7 @@ class Passes:
 
 class Frames:
     """An animation's frames as they arrive: a frame is done when node 0's film and every
-    node's report of it are in; then ``frame_done(frame, film, reports, barriers, seconds)``
+    node's report of it are in; then ``frame_done(frame, film, reports, seconds)``
     runs on a writer thread, frame after frame in order, while the event loop goes on (the
     heartbeats above all: writing a 4K frame's EXR and PNG takes seconds, and nodes that hear
     nothing for ``protocol.COORDINATOR_SILENCE_S`` exit). ``drain`` waits for the writes; a
@@ -101,7 +100,6 @@ class Frames:
         self.films: dict[int, object] = {}
         self.reports: dict[int, dict[int, dict]] = {}
         self.started = time.perf_counter()
-        self.barriers_before = 0
         self.writer = None if frames is None else ThreadPoolExecutor(
             1, thread_name_prefix="frame-done")
         self.writing: list[asyncio.Future] = []
@@ -123,24 +121,24 @@ class Frames:
             self.writing = []
             self.writer.shutdown(wait=True)
 
-    def film(self, frame: int | None, film, barriers: int) -> None:
+    def film(self, frame: int | None, film) -> None:
         if self.expected is None:
             return
         if frame not in self.expected or frame in self.films:
             raise NodeFailure(f"node 0 sent a film for frame {frame}, which it did not "
                               "have to render or had sent already")
         self.films[frame] = film
-        self._finish(frame, barriers)
+        self._finish(frame)
 
-    def report(self, meta: dict, barriers: int) -> None:
+    def report(self, meta: dict) -> None:
         frame = int(meta["frame"])
         if self.expected is None or frame not in self.expected:
             raise NodeFailure(f"node {meta['rank']} reported frame {frame}, which is not "
                               "one of this job's")
         self.reports.setdefault(frame, {})[int(meta["rank"])] = meta
-        self._finish(frame, barriers)
+        self._finish(frame)
 
-    def _finish(self, frame: int, barriers: int) -> None:
+    def _finish(self, frame: int) -> None:
         if frame not in self.films or len(self.reports.get(frame, {})) < self.size:
             return
         self._raise_failed_write()
@@ -148,9 +146,8 @@ class Frames:
         reports = self.reports.pop(frame)
         self.writing.append(asyncio.get_running_loop().run_in_executor(
             self.writer, self.frame_done, frame, self.films.pop(frame),
-            [reports[r] for r in range(self.size)], barriers - self.barriers_before,
-            now - self.started))
-        self.started, self.barriers_before = now, barriers
+            [reports[r] for r in range(self.size)], now - self.started))
+        self.started = now
 
     def check_complete(self) -> None:
         if self.expected is not None and (self.films or self.reports):
@@ -159,10 +156,10 @@ class Frames:
 
 
 async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
-                  control: Termination, frames: Frames, size: int, passes: Passes):
+                  frames: Frames, size: int, passes: Passes):
     """Receive the job's messages until the film and every node's report are in: progress,
-    films of passes and frame reports, termination control; a node's failure raises
-    ``NodeLost``."""
+    films of passes and frame reports (nothing per round: rounds and termination are the
+    nodes', over the tree of ranks); a node's failure raises ``NodeLost``."""
     film, reports = None, {}
     done_paths: dict[int, int] = {}
     whole = passes.done  # nothing left to render (every pass merged before a node loss)
@@ -185,13 +182,11 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
             if finished is not None:  # a frame is whole (for an animation, the latest)
                 (frame, film), whole = finished, True
                 if frame is not None:
-                    frames.film(frame, film, control.barriers)
+                    frames.film(frame, film)
         elif message.kind == protocol.FRAME:
-            frames.report(message.meta, control.barriers)
+            frames.report(message.meta)
         elif message.kind == protocol.DONE:
             reports[int(message.meta["rank"])] = message.meta
-        elif message.kind in control.KINDS:
-            await control.handle(message.kind, message.meta)
         elif message.kind == protocol.FAILED:
             raise watch.failed(int(message.meta["rank"]), message.meta["error"])
     return film, reports

@@ -28,10 +28,6 @@ FAILED = "failed"        # node -> coordinator: this node's job failed (the erro
 STOP = "stop"            # coordinator -> node: shut down
 REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, join again
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
-ROUND = "round"          # node -> coordinator (domain): round done, batches sent per node
-GO = "go"                # coordinator -> node (domain): batches to expect, or finished
-QUEUES = "queues"        # node -> coordinator (dynamic): rays waiting per domain, loaded domain
-SCHEDULE = "schedule"    # coordinator -> node (dynamic): domain -> node for this round
 REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
 BROADCAST = "bcast"      # node -> child node: result of an all-reduce
 GRANT = "grant"          # coordinator -> node (paced passes): the next unit to render, or -1
@@ -40,9 +36,9 @@ WAVE_REPLY = "wave_reply"  # node -> parent node: its subtree's batches sent and
 
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
-FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, GO, SCHEDULE, HEARTBEAT, GRANT})
+FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, HEARTBEAT, GRANT})
 FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST, WAVE, WAVE_REPLY})
-FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED, ROUND, QUEUES})
+FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED})
 
 _NUMBER = (int, float)
 
@@ -60,10 +56,6 @@ META = {
     STOP: {},
     REGROUP: {"lost": str},
     RAYS: {"rank": int, "tile": int, "queue": str},
-    ROUND: {"rank": int, "tile": int, "sent_to": dict},
-    GO: {"expect": int, "finished": bool},
-    QUEUES: {"rank": int, "tile": int, "loaded": list, "radiance": dict, "shadow": dict},
-    SCHEDULE: {"assign": dict, "size": int, "finished": bool, "expect": int},
     REDUCE: {"rank": int},
     BROADCAST: {"rank": int},
     GRANT: {"next": int},

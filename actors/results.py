@@ -8,7 +8,7 @@ from vastray.render.driver import RenderResult
 from vastray.schedule.portals import Accuracy
 
 
-def render_result(film, camera, reports: list[dict], barriers: int, scheduler: str,
+def render_result(film, camera, reports: list[dict], scheduler: str,
                   size: int, asked: int, failures: list[str], wall: float,
                   recoveries: list[dict] = ()) -> RenderResult:
     """A render's result from the nodes' reports (of the job, or of one frame).
@@ -24,9 +24,10 @@ def render_result(film, camera, reports: list[dict], barriers: int, scheduler: s
     counters = {"scheduler": scheduler, "nodes": size, "nodes_asked": asked,
                 "node_failures": list(failures), "node_deaths": deaths,
                 "recoveries": [dict(entry) for entry in recoveries], "per_node": reports,
-                # the coordinator's (async's frame ends) and the nodes' tree rounds
-                "global_barriers": barriers + max(r["counters"].get("global_barriers", 0)
-                                                  for r in reports),
+                # what every node waits for all the others at (the nodes' tree rounds and
+                # frame ends: the same count on every node)
+                "global_barriers": max(r["counters"].get("global_barriers", 0)
+                                       for r in reports),
                 "loads": sum(r["counters"].get("loads", 0) for r in reports),
                 "bytes_loaded": sum(r["counters"].get("bytes_loaded", 0) for r in reports),
                 "load_throttle_s": round(sum(r["counters"].get("load_throttle_s", 0.0)

@@ -17,7 +17,6 @@ from vastray.actors import protocol
 from vastray.actors.domain_loop import DomainLoop, DomainOrder, Queries
 from vastray.actors.node_state import NodeState
 from vastray.actors.node_work import NodeWork
-from vastray.actors.termination import Termination
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.cluster import Cluster
 from vastray.transport.codec import decode, frames_nbytes
@@ -53,47 +52,6 @@ class SimManagement:
 
     async def to_coordinator(self, frames: list) -> None:
         await self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), frames_nbytes(frames))
-
-
-class SimCoordinator:
-    """The coordinator's part in a render: the real ``Termination`` (round barriers,
-    ``dynamic``'s schedule), fed the nodes' reports one at a time (each message's cost is its
-    sender's). The asynchronous frames end without it, over the tree of virtual nodes
-    (``actors.tree_termination``, run by the nodes' own code)."""
-
-    def __init__(self, cluster: Cluster):
-        self.cluster = cluster
-        self.control = Termination(cluster.size, _Router(cluster), {r: r for r in
-                                                                    range(cluster.size)}, b"")
-
-    async def run(self) -> None:
-        """Serve the nodes' reports until cancelled."""
-        cluster = self.cluster
-        inbox = asyncio.Queue()
-        for kind in Termination.KINDS:  # one queue, in arrival order, whatever the kind
-            cluster.mailboxes[cluster.coordinator][kind] = _Forward(inbox)
-        while True:
-            message = await inbox.get()
-            await self.control.handle(message.kind, message.meta)
-
-
-class _Forward:
-    """A mailbox that puts what it gets into another queue."""
-
-    def __init__(self, queue: asyncio.Queue):
-        self.put_nowait = queue.put_nowait
-
-
-class _Router:
-    """The coordinator's router socket over the simulated network."""
-
-    def __init__(self, cluster: Cluster):
-        self.cluster = cluster
-
-    async def send_multipart(self, frames: list) -> None:
-        identity, _token, *message = frames
-        await self.cluster.send(self.cluster.coordinator, identity, decode(message),
-                                frames_nbytes(message))
 
 
 class VirtualDomainLoop(DomainLoop):

@@ -39,7 +39,7 @@ from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.costs import CostModel
-from vastray.sim.node import SimCoordinator, SimManagement, SimNodeState, VirtualDomainLoop
+from vastray.sim.node import SimManagement, SimNodeState, VirtualDomainLoop
 
 #: The schedulers the simulator runs (every distributed one).
 SIM_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu", "temporal")
@@ -161,14 +161,12 @@ def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
 
 async def _render(store, options, size, costs, settings, config, units, domains):
     cluster = Cluster(size, costs)
-    coordinator = asyncio.ensure_future(SimCoordinator(cluster).run())
     unit_ends: list[list[float]] = [[] for _ in units]
-    try:
-        per_node = await asyncio.gather(*(
-            _node(cluster, rank, store, options, settings, config, units, domains, unit_ends)
-            for rank in range(size)))
-    finally:
-        coordinator.cancel()
+    # No coordinator runs: it takes part in no round and no termination (the nodes' tree
+    # does both); what it does once per job (start, films) is outside the simulated span.
+    per_node = await asyncio.gather(*(
+        _node(cluster, rank, store, options, settings, config, units, domains, unit_ends)
+        for rank in range(size)))
     marks = [0.0] + [max(ends) for ends in unit_ends]
     film = per_node[0][3]
     return ([p[:3] for p in per_node], list(np.diff(marks)), cluster, film)
