@@ -49,6 +49,10 @@ class Watch:
         self.ranks_joined: set[int] = set()
         self.last_join = self.started
         self.job_sent = False
+        #: when a node last reported work done (paths, a film, a frame, its end): nodes wait
+        #: for one another as long as the coordinator speaks, so a job whose nodes all live
+        #: but none moves (peers cut off from each other, a hung render) ends here
+        self.last_progress = self.started
         self.members: dict[bytes, int] = {}  # socket identity -> rank
         self.once: set[tuple[str, int]] = set()
         self.rejections = protocol.Rejections()
@@ -72,6 +76,7 @@ class Watch:
         """Every node has its job: from now on each must heartbeat."""
         self.job_sent = True
         self.last_heard = [time.monotonic()] * self.size
+        self.last_progress = time.monotonic()
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
@@ -173,6 +178,12 @@ class Watch:
             how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
                                       f"({how})", NodeLost, cause="stalled")
+        if judge_silence and self.job_sent and now - self.last_progress > self.timeout:
+            raise NodeFailure(
+                f"no node reported any work done for {self.timeout:.0f} s, though all "
+                "heartbeat: they wait for one another (nodes that cannot reach each other's "
+                "peer ports, a firewall between them, or a hung render); see the node logs, "
+                "or raise --node-timeout for tiles that take longer")
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped
@@ -232,6 +243,8 @@ class Watch:
             self.once.add(once)
         self.heard(rank)
         self.kinds[message.kind] = self.kinds.get(message.kind, 0) + 1
+        if message.kind in (protocol.PROGRESS, protocol.FILM, protocol.FRAME, protocol.DONE):
+            self.last_progress = time.monotonic()
         return identity, message
 
     async def wait_exit(self, grace: float = 15.0) -> None:

@@ -33,6 +33,7 @@ def namespaces():
         pytest.skip("needs root and iproute2 to create network namespaces")
     tag = uuid.uuid4().hex[:6]
     bridge, names = f"vtb{tag}", [f"vtn{tag}{i}" for i in range(2)]
+    forward = None
     try:
         _ip("link", "add", bridge, "type", "bridge")
     except subprocess.CalledProcessError as exc:
@@ -50,8 +51,19 @@ def namespaces():
             _ip("-n", ns, "addr", "add", f"{SUBNET}.{11 + i}/24", "dev", ns_end)
             _ip("-n", ns, "link", "set", ns_end, "up")
             _ip("-n", ns, "link", "set", "lo", "up")
+        # Traffic between the namespaces crosses the bridge, and where bridged frames go
+        # through iptables (br_netfilter, loaded by docker, which also sets FORWARD's policy
+        # to DROP) it is dropped: the nodes reached the coordinator but not each other. Let
+        # this bridge's own traffic through, as a cluster's network would.
+        forward = ["FORWARD", "-i", bridge, "-o", bridge, "-j", "ACCEPT"]
+        if shutil.which("iptables") is not None:
+            opened = subprocess.run(["iptables", "-I", *forward], capture_output=True)
+            if opened.returncode != 0:
+                forward = None
         yield names
     finally:
+        if forward is not None and shutil.which("iptables") is not None:
+            subprocess.run(["iptables", "-D", *forward], capture_output=True)
         for ns in names:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         subprocess.run(["ip", "link", "del", bridge], capture_output=True)
