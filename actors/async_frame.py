@@ -213,13 +213,13 @@ class AsyncFrame:
         start = time.perf_counter()
         getters = {asyncio.ensure_future(box.get()): kind
                    for kind, box in [(protocol.RAYS, inbox), *boxes.items()]}
-        done, pending = await asyncio.wait(getters, timeout=management.timeout,
-                                           return_when=asyncio.FIRST_COMPLETED)
-        for task in pending:
-            task.cancel()
+        try:
+            done = await management.wait_any(list(getters), "ray batch or termination message")
+        finally:
+            for task in getters:
+                if not task.done():
+                    task.cancel()
         self.node.stats["wait_s"] += time.perf_counter() - start
-        if not done:
-            raise TimeoutError("no ray batch or termination message while idle")
         for task in sorted(done, key=lambda t: getters[t] != protocol.RAYS):
             if getters[task] == protocol.RAYS:
                 self.accept(task.result())

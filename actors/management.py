@@ -98,6 +98,8 @@ class ManagementActor:
         self.n_domains = 0
         self.films_taken: set[tuple[int, int]] = set()  # (child rank, unit ordinal)
         self.n_units = 0  # the job's units (passes of frames): a film's ordinal is below it
+        self._waits = 0  # waits for other processes under way (``wait_any``)
+        self.waiting_since: float | None = None
         self.mailboxes: dict[str, _Mailbox] = {}
         # Peer messages that came before this node had its job (a fast peer may send before
         # the job reached this node); checked once it has. Only members get this far.
@@ -310,19 +312,42 @@ class ManagementActor:
         (issue 42: nodes done early quit after the node timeout, and the frame was rendered
         again). It fails once the coordinator has been silent for the node timeout (at least
         that long after the wait began)."""
-        start = time.monotonic()
         getter = asyncio.ensure_future(self.mailbox(kind).get())
+        try:
+            await self.wait_any([getter], what)
+            return getter.result()
+        finally:
+            getter.cancel()
+
+    async def wait_any(self, futures: list, what: str) -> set:
+        """Wait until one of ``futures`` is done (returns those done), as ``receive`` waits:
+        while the coordinator speaks, however long. Meanwhile the node's heartbeats say how
+        long it has been waiting (``waiting_s``), so that the coordinator can tell a job in
+        which every node waits for another (peers cut off from each other) from one in which
+        some node still works, and end the first."""
+        start = time.monotonic()
+        self._waits += 1
+        if self._waits == 1:
+            self.waiting_since = start
         try:
             while True:
                 left = max(self.coordinator_heard, start) + self.timeout - time.monotonic()
                 if left <= 0:
                     raise TimeoutError(f"no {what} within {self.timeout:.0f} s, the coordinator "
                                        "silent that long")
-                done, _ = await asyncio.wait([getter], timeout=left)
+                done, _ = await asyncio.wait(futures, timeout=left,
+                                             return_when=asyncio.FIRST_COMPLETED)
                 if done:
-                    return getter.result()
+                    return done
         finally:
-            getter.cancel()
+            self._waits -= 1
+            if self._waits == 0:
+                self.waiting_since = None
+
+    def waiting_s(self) -> float:
+        """Seconds this node has been waiting for others without a break (0: working)."""
+        since = self.waiting_since
+        return 0.0 if since is None else round(time.monotonic() - since, 2)
 
     async def to_coordinator(self, frames: list) -> None:
         """Send a message to the coordinator, behind the job token frame."""

@@ -217,7 +217,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     async def heartbeat() -> None:
         while True:
             await asyncio.sleep(protocol.HEARTBEAT_S)
-            await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {"rank": rank}))
+            await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {
+                "rank": rank, "waiting_s": management.waiting_s()}))
 
     beating = asyncio.ensure_future(heartbeat())
     tree = TreeReduceActor(management, rank, size)

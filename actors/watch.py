@@ -49,10 +49,10 @@ class Watch:
         self.ranks_joined: set[int] = set()
         self.last_join = self.started
         self.job_sent = False
-        #: when a node last reported work done (paths, a film, a frame, its end): nodes wait
-        #: for one another as long as the coordinator speaks, so a job whose nodes all live
-        #: but none moves (peers cut off from each other, a hung render) ends here
-        self.last_progress = self.started
+        #: rank -> (seconds it had been waiting for others, when it said so), from its
+        #: heartbeats: nodes wait for one another as long as the coordinator speaks, so a job
+        #: in which every node waits (peers cut off from each other) ends here
+        self.waiting: dict[int, tuple[float, float]] = {}
         self.members: dict[bytes, int] = {}  # socket identity -> rank
         self.once: set[tuple[str, int]] = set()
         self.rejections = protocol.Rejections()
@@ -76,7 +76,6 @@ class Watch:
         """Every node has its job: from now on each must heartbeat."""
         self.job_sent = True
         self.last_heard = [time.monotonic()] * self.size
-        self.last_progress = time.monotonic()
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
@@ -178,12 +177,18 @@ class Watch:
             how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
                                       f"({how})", NodeLost, cause="stalled")
-        if judge_silence and self.job_sent and now - self.last_progress > self.timeout:
+        if judge_silence and self.job_sent and self.ranks_joined and all(
+                self._waited(r, now) > self.timeout for r in range(self.size)):
             raise NodeFailure(
-                f"no node reported any work done for {self.timeout:.0f} s, though all "
-                "heartbeat: they wait for one another (nodes that cannot reach each other's "
-                "peer ports, a firewall between them, or a hung render); see the node logs, "
-                "or raise --node-timeout for tiles that take longer")
+                f"every node has waited for another for over {self.timeout:.0f} s, though "
+                "all heartbeat: nodes that cannot reach each other's peer ports (a firewall "
+                "between them, a wrong --advertise address); see the node logs")
+
+    def _waited(self, rank: int, now: float) -> float:
+        """How long node ``rank`` has been waiting for others without a break, by its
+        last heartbeat (0 while it works)."""
+        waiting, heard = self.waiting.get(rank, (0.0, now))
+        return waiting + (now - heard) if waiting > 0 else 0.0
 
     async def receive(self, router):
         """The next message that passes ``_admit`` (as identity, message); others are dropped
@@ -243,8 +248,10 @@ class Watch:
             self.once.add(once)
         self.heard(rank)
         self.kinds[message.kind] = self.kinds.get(message.kind, 0) + 1
-        if message.kind in (protocol.PROGRESS, protocol.FILM, protocol.FRAME, protocol.DONE):
-            self.last_progress = time.monotonic()
+        if message.kind == protocol.HEARTBEAT:
+            waiting = message.meta.get("waiting_s", 0.0)
+            if isinstance(waiting, (int, float)) and not isinstance(waiting, bool):
+                self.waiting[rank] = (max(0.0, float(waiting)), time.monotonic())
         return identity, message
 
     async def wait_exit(self, grace: float = 15.0) -> None:

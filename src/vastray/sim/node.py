@@ -47,6 +47,16 @@ class SimManagement:
             raise TimeoutError(f"node {self.rank}: no {what} within {self.timeout:.0f} "
                                "virtual seconds") from None
 
+    async def wait_any(self, futures: list, what: str) -> set:
+        """Wait until one of ``futures`` is done (returns those done), at most ``timeout``
+        virtual seconds."""
+        done, _ = await asyncio.wait(futures, timeout=self.timeout,
+                                     return_when=asyncio.FIRST_COMPLETED)
+        if not done:
+            raise TimeoutError(f"node {self.rank}: no {what} within {self.timeout:.0f} "
+                               "virtual seconds")
+        return done
+
     async def to_peer(self, rank: int, frames: list) -> None:
         await self.cluster.send(self.rank, rank, decode(frames), frames_nbytes(frames))
 
