@@ -2,7 +2,9 @@
 
 1. Ray batches through the codec and ZeroMQ (msgpack header + raw frames, zero-copy) against
    raw ZeroMQ multipart messages of the same bytes, over loopback TCP between two processes:
-   ``transport_ratio=`` (floor 0.8). The clock starts after a warm-up round trip (the
+   ``transport_ratio=`` (floor 0.8) against one raw frame per array, and
+   ``transport_ratio_same_frames=`` against raw frames cut at ``FRAME_LIMIT`` as every vastray
+   socket requires (the codec's own cost). The clock starts after a warm-up round trip (the
    receiver process is up and connected) and stops when the receiver has taken the last
    message, so process start-up and teardown are in neither timing.
 2. N = 1, 2, 4 local node processes with every distributed scheduler at an equal memory
@@ -29,7 +31,7 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
-from vastray.transport.codec import decode, encode
+from vastray.transport.codec import FRAME_LIMIT, decode, encode
 
 CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 
@@ -62,11 +64,17 @@ def _receiver(endpoint: str, reply: str, messages: int, codec: bool) -> None:
     ctx.destroy(linger=1000)
 
 
-def transport(n_rays: int, messages: int) -> tuple[float, float]:
+def transport(n_rays: int, messages: int, split: bool = False) -> tuple[float, float]:
     """Rays per second through raw multipart frames and through the codec, timed from after
-    a warm-up round trip to the receiver's acknowledgement of the last message."""
+    a warm-up round trip to the receiver's acknowledgement of the last message. ``split``:
+    the raw frames cut at ``FRAME_LIMIT`` too, as every vastray socket requires (the codec's
+    own overhead alone); else one raw frame per array (what ZeroMQ does with no limit)."""
     batch = ray_batch(n_rays)
     raw_frames = [np.ascontiguousarray(a).data for a in batch.values()]
+    if split:
+        raw_frames = [view[i:i + FRAME_LIMIT] for view in (memoryview(f).cast("B")
+                                                          for f in raw_frames)
+                      for i in range(0, len(view), FRAME_LIMIT)]
     rates = []
     for codec in (False, True):
         ctx = zmq.Context()
@@ -103,7 +111,13 @@ def main() -> None:
     args = parser.parse_args()
     raw, codec = transport(65536, 100 if args.quick else 400)
     print(f"raw_zmq_rays_per_s={raw:,.0f} codec_zmq_rays_per_s={codec:,.0f}")
-    print(f"transport_ratio={codec / raw:.3f}", flush=True)
+    print(f"transport_ratio={codec / raw:.3f}  (raw: one frame per array, no frame limit)",
+          flush=True)
+    raw, codec = transport(65536, 100 if args.quick else 400, split=True)
+    print(f"raw_split_zmq_rays_per_s={raw:,.0f} codec_zmq_rays_per_s={codec:,.0f}")
+    print(f"transport_ratio_same_frames={codec / raw:.3f}  (raw frames cut at the "
+          f"{FRAME_LIMIT >> 10} KiB every vastray socket takes: the codec's own cost)",
+          flush=True)
 
     resolution = 160 if args.quick else 320
     path = CACHE / f"rm-{resolution}-4x4x2.store"
