@@ -101,10 +101,13 @@ def test_s_proc_times_activations_with_their_load_waits(scene):
     # included: with slow loads (one domain cached, 2 MB/s) nearly all of a node's activation
     # time is that wait, which tracing time alone would leave out.
     result = run(scene, 2, cache=1, load_bandwidth=2.0, priority="cost-benefit")
-    for report in result.counters["per_node"]:
-        counters = report["counters"]
-        assert counters["load_wait_s"] > 0.05
+    per_node = [report["counters"] for report in result.counters["per_node"]]
+    for counters in per_node:
+        assert counters["load_wait_s"] > 0
         assert counters["proc_s"] >= 0.99 * counters["load_wait_s"]
+    # (one node's domains are a few kB: its waits are some 0.05 s, too near a bound to hold
+    # on a busy machine; the other's, 1.3 MB at 2 MB/s, some 0.7 s)
+    assert max(c["load_wait_s"] for c in per_node) > 0.25
 
 
 def test_simplified_none_is_the_reference_and_identity_model_is_close(scene, reference,
