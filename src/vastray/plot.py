@@ -166,15 +166,18 @@ def _save(fig, output: str | Path) -> None:
         fig.savefig(tmp, format="png")
 
 
-def plot_error_vs_time(series: list[Series], output: str | Path,
-                       title: str = "error vs time per frame") -> None:
-    """Write the plot of ``series`` as a PNG (see ``error_vs_time_figure``)."""
-    plt = _pyplot()
-    fig = error_vs_time_figure(series, title)
+def _write(fig, output: str | Path) -> None:
+    """Save ``fig`` as a PNG at ``output`` and close it."""
     try:
         _save(fig, output)
     finally:
-        plt.close(fig)
+        _pyplot().close(fig)
+
+
+def plot_error_vs_time(series: list[Series], output: str | Path,
+                       title: str = "error vs time per frame") -> None:
+    """Write the plot of ``series`` as a PNG (see ``error_vs_time_figure``)."""
+    _write(error_vs_time_figure(series, title), output)
 
 
 def error_vs_time_figure(series: list[Series], title: str = "error vs time per frame"):
@@ -238,12 +241,7 @@ def slope_anchor(curves: list[Curve]) -> float | None:
 def plot_convergence(curves: list[Curve], output: str | Path,
                      title: str = "convergence: relMSE against time") -> None:
     """Write the convergence plot of ``curves`` as a PNG (see ``convergence_figure``)."""
-    plt = _pyplot()
-    fig = convergence_figure(curves, title)
-    try:
-        _save(fig, output)
-    finally:
-        plt.close(fig)
+    _write(convergence_figure(curves, title), output)
 
 
 def convergence_figure(curves: list[Curve], title: str = "convergence: relMSE against time"):
