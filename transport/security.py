@@ -59,12 +59,20 @@ class Credentials:
         return self.keys is not None
 
 
+#: Bytes CURVE adds to a frame on the wire (a MESSAGE command: its name, a nonce, the box's
+#: MAC and flags: 33 bytes in libzmq 4.3), with room to spare. ZeroMQ checks ``MAXMSGSIZE``
+#: against the encrypted frame, so a socket that took only ``FRAME_LIMIT`` dropped every
+#: connection a full-size frame came over (a keyed render's film: the node reconnected, and
+#: the coordinator took it for a stranger).
+FRAME_OVERHEAD = 1024
+
+
 def bound(sock: zmq.Socket, hwm: int = 64) -> None:
     """Bounds every vastray socket keeps: frames of at most ``FRAME_LIMIT`` bytes (a larger
     one ends the connection before it is held), a handshake of at most ``HANDSHAKE_S``, and
     ``hwm`` messages queued each way per connection."""
     sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.MAXMSGSIZE, FRAME_LIMIT)
+    sock.setsockopt(zmq.MAXMSGSIZE, FRAME_LIMIT + FRAME_OVERHEAD)
     sock.setsockopt(zmq.HANDSHAKE_IVL, int(HANDSHAKE_S * 1000))
     sock.setsockopt(zmq.RCVHWM, hwm)
     sock.setsockopt(zmq.SNDHWM, hwm)
