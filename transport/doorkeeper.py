@@ -103,7 +103,10 @@ class Doorkeeper:
                 event = parse_monitor_message(pair.recv_multipart())
                 if event["event"] == zmq.EVENT_MONITOR_STOPPED:
                     break
-                self._take(event)
+                try:
+                    self._take(event)
+                except Exception:  # noqa: BLE001 - keep reading: unread events pile up
+                    log.exception("%s: a monitor event could not be taken", self.where)
         except zmq.ZMQError:
             pass  # the context was terminated: the process is closing its sockets
         finally:
@@ -129,7 +132,10 @@ class Doorkeeper:
             self._on_failed(event)
 
     def _turn_away(self, fd: int, endpoint: bytes) -> None:
-        port = int(endpoint.decode("ascii", "replace").rpartition(":")[2] or -1)
+        try:
+            port = int(endpoint.decode("ascii", "replace").rpartition(":")[2])
+        except ValueError:
+            return  # not a TCP endpoint
         try:
             dup = os.dup(fd)
         except OSError:
