@@ -243,3 +243,15 @@ def compare(image: np.ndarray, reference: np.ndarray) -> dict:
     return {"mean": float(clean.mean() / reference.mean() - 1.0),
             "rel_mse": float(np.mean((clean - reference) ** 2) / np.mean(reference ** 2)),
             "nonfinite": int(np.count_nonzero(~finite))}
+
+
+def reap(procs, timeout: float = 120) -> None:
+    """Wait for each process of ``procs`` up to ``timeout`` seconds, then kill what is left."""
+    import subprocess
+
+    for proc in procs:
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -28,6 +28,8 @@ import yaml
 
 from vastray.render.imageio import read_exr
 
+from scenes import reap
+
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = REPO / "docker" / "docker-compose.yml"
 IMAGE = "vastray:latest"  # the compose file's `image:`
@@ -213,12 +215,7 @@ def test_hand_started_nodes_log_their_rank_once_assigned(scene, tmp_path):
                            tmp_path / "keys", "--width", "16", "--height", "12", "--spp", "1",
                            "--quiet"], timeout=600)
     finally:
-        for node in nodes:
-            try:
-                node.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                node.kill()
-                node.wait()
+        reap(nodes)
     texts = [log.read_text().splitlines() for log in logs]
     assert coordinator.returncode == 0, coordinator.stderr + "\n".join(map(str, texts))
     ranks = set()

@@ -18,7 +18,7 @@ from vastray.render.driver import render
 from vastray.render.scene_config import SceneConfig
 from vastray.transport.keys import add_node_key, generate_keys, load_coordinator_keys
 
-from scenes import bumpy_scene, settings, write_store
+from scenes import bumpy_scene, reap, settings, write_store
 
 SUBNET = "10.231.77"
 
@@ -88,12 +88,7 @@ def test_nodes_in_separate_network_namespaces(namespaces, tmp_path):
         reference = render(store, SceneConfig(), st, progress=False).film.image()
         np.testing.assert_allclose(result.film.image(), reference, rtol=1e-6, atol=1e-6)
     finally:
-        for node in nodes:
-            try:
-                node.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                node.kill()
-                node.wait()
+        reap(nodes)
     errors = []
     for node in nodes:
         errors.append(node.stderr.read().decode())

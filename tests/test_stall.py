@@ -18,7 +18,7 @@ from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.node_failure import NodeFailure
 
-from scenes import bumpy_scene, settings, write_store
+from scenes import bumpy_scene, reap, settings, write_store
 
 
 def test_nodes_cut_off_from_a_peer_end_the_job_instead_of_waiting_for_ever(tmp_path):
@@ -41,12 +41,7 @@ def test_nodes_cut_off_from_a_peer_end_the_job_instead_of_waiting_for_ever(tmp_p
                                listen=f"127.0.0.1:{port}", timeout=15, survive_node_loss=False,
                                options=JobOptions(scheduler="async", max_samples_in_flight=200))
     finally:
-        for node in nodes:
-            try:
-                node.wait(timeout=120)
-            except subprocess.TimeoutExpired:
-                node.kill()
-                node.wait()
+        reap(nodes)
         for err in errs:
             err.close()
     assert "every node has waited for another for over 15 s" in str(failure.value), failure.value
