@@ -105,9 +105,9 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode == "domain":
-                await node.rounds(policy, base + index, tree)
+                await node.rounds(policy, tree)
             else:
-                await node.dynamic(policy, base + index, tree)
+                await node.dynamic(policy, tree)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)

@@ -91,7 +91,7 @@ class NodeWork:
         policy.receive(message.meta["queue"], domains, rays)
         return True
 
-    async def rounds(self, policy, tile: int, tree) -> None:
+    async def rounds(self, policy, tree) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes. A round ends with
         one all-reduction over the tree of ranks (``tree``, the tree-reduce actor): the sum
         of every node's batches sent per destination, from which each node takes how many to
@@ -114,7 +114,7 @@ class NodeWork:
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
 
-    async def dynamic(self, policy, tile: int, tree) -> None:
+    async def dynamic(self, policy, tree) -> None:
         """Ray-weighted rounds: every node computes the same round's schedule from two
         vectors all-reduced over the tree (rays waiting per domain, summed; the lowest rank
         holding each domain, ``schedule.dynamic.RayWeightedRounds.from_totals``), swaps rays,
