@@ -6,11 +6,12 @@ import numpy as np
 
 from vastray.actors.protocol import FILM_FIELDS
 from vastray.render.film import Film
-from vastray.transport.codec import Message, encode
+from vastray.transport.codec import FRAME_LIMIT, Message, encode
 
 
-def film_frames(film: Film, meta: dict | None = None) -> list:
-    return encode("film", {f: getattr(film, f) for f in FILM_FIELDS}, meta)
+def film_frames(film: Film, meta: dict | None = None, frame_limit: int = FRAME_LIMIT) -> list:
+    """A film's message (``frame_limit``: ``PEER_FRAME_LIMIT`` for a film to a peer)."""
+    return encode("film", {f: getattr(film, f) for f in FILM_FIELDS}, meta, frame_limit)
 
 
 def film_from(message: Message, width: int, height: int) -> Film:

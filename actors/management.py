@@ -5,6 +5,7 @@ peers."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import time
@@ -15,14 +16,10 @@ from zmq.utils.monitor import parse_monitor_message
 
 from vastray.actors import protocol
 from vastray.actors.liveness import BUSY_GRACE, CpuWitness
-from vastray.transport.codec import CodecError, decode
-from vastray.transport.security import Credentials, Gate, connect_as, serve
+from vastray.transport.codec import PEER_FRAME_LIMIT, CodecError, decode
+from vastray.transport.security import FRAME_OVERHEAD, Credentials, Gate, connect_as, serve
 
 log = logging.getLogger(__name__)
-
-
-#: Bytes of peer messages a node holds back before it has its job (members only get so far).
-EARLY_BUDGET = 256 << 20
 
 
 class AuthenticationFailed(RuntimeError):
@@ -51,8 +48,17 @@ def item_nbytes(message) -> int:
 
 
 class ManagementActor:
-    """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, DEALERs to
-    peers on demand. Incoming messages go to mailboxes by kind.
+    """Owns the node's sockets: a ROUTER for peers, a DEALER to the coordinator, and a DEALER
+    connected to each peer's ROUTER. Incoming messages go to mailboxes by kind.
+
+    Data flows from a ROUTER to the DEALERs connected to it: a node sends to peer r on its own
+    ROUTER, to the connection r made (its routing id names the pair's token), and receives
+    from peer r on the DEALER it connected to r. So the only listening socket, the one a
+    stranger can reach, takes small frames (``FRAME_LIMIT``: what an unauthenticated
+    connection can make it hold), while ray batches and films arrive in large frames
+    (``PEER_FRAME_LIMIT``) on connecting sockets, which admit no stranger: a field cut into
+    128 KiB frames had to be copied back together on arrival, and ray batches between nodes
+    moved at 0.6 of raw ZeroMQ's speed (issue 37).
 
     The receive path never waits and never dies: a mailbox has no count limit, so a kind whose
     reader is busy never holds back another kind, and a node sending to a peer is never
@@ -62,8 +68,9 @@ class ManagementActor:
     secret, or with keys a key on the allow-list for the coordinator and a member's key for
     peers); nothing else ever reaches this code. Each peer message then carries the token
     this node shares with its sender alone (``peer_tokens``, from the job), which names the
-    sender's rank; the rank in the message must be that one (and with keys, so must the
-    sender's CURVE key), and the kind must be one that rank may send now (``protocol.
+    sender's rank; the rank in the message must be that one, and so must the rank the
+    connection it came over was made to (with keys, whose CURVE key the handshake checked),
+    and the kind must be one that rank may send now (``protocol.
     peer_rule``: a film only from a tree child, once per unit; a broadcast only from the
     parent). Ray batches name only domains of the job. A message that fails any check is
     dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
@@ -83,13 +90,17 @@ class ManagementActor:
         self.rejections = protocol.Rejections()
         self.router = ctx.socket(zmq.ROUTER)
         serve(self.router, credentials)
+        # a send to a peer not (yet) connected, or whose queue is full, fails rather than
+        # dropping the message; a peer's reconnection takes its routing id over
+        self.router.setsockopt(zmq.ROUTER_MANDATORY, 1)
+        self.router.setsockopt(zmq.ROUTER_HANDOVER, 1)
         self._watcher = gate.watch(self.router, "this node's peer port")
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
         keys = credentials.keys
         self.coordinator = self._dealer(coordinator, keys.coordinator_public if keys else None)
         self.coordinator_heard = time.monotonic()
-        self.peers: dict[int, zmq.asyncio.Socket] = {}
+        self.inbound: dict[int, zmq.asyncio.Socket] = {}  # connected to each peer, by rank
         self.rank, self.size = -1, 0
         self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
         self.peer_tokens: list[bytes] = []  # the token shared with each rank (from the job)
@@ -101,12 +112,9 @@ class ManagementActor:
         self._waits = 0  # waits for other processes under way (``wait_any``)
         self.waiting_since: float | None = None
         self.mailboxes: dict[str, _Mailbox] = {}
-        # Peer messages that came before this node had its job (a fast peer may send before
-        # the job reached this node); checked once it has. Only members get this far.
-        self._early: list[list] = []
-        self._early_bytes = 0
-        self._tasks = [asyncio.ensure_future(self._route(self.router, from_peer=True)),
-                       asyncio.ensure_future(self._route(self.coordinator, from_peer=False))]
+        self._tasks = [asyncio.ensure_future(self._route(self.router, self._take_on_port)),
+                       asyncio.ensure_future(self._route(self.coordinator,
+                                                         self._take_control))]
 
     def _dealer(self, endpoint: str, server_key: bytes | None) -> zmq.asyncio.Socket:
         sock = self.ctx.socket(zmq.DEALER)
@@ -117,14 +125,11 @@ class ManagementActor:
     def mailbox(self, kind: str) -> _Mailbox:
         return self.mailboxes.setdefault(kind, _Mailbox())
 
-    async def _route(self, sock: zmq.asyncio.Socket, from_peer: bool) -> None:
+    async def _route(self, sock: zmq.asyncio.Socket, take) -> None:
         while True:
             frames = await sock.recv_multipart(copy=False)
             try:
-                if from_peer:
-                    self._take_peer(frames[1:])
-                else:
-                    self._take_control(frames)
+                take(frames)
             except Exception as exc:  # noqa: BLE001 - the receive path must never die
                 self.rejections.add("internal", f"{type(exc).__name__}: {exc}")
             # A receive that finds a message waiting completes without yielding to the event
@@ -190,30 +195,40 @@ class ManagementActor:
             self.gate.open(frozenset(self.peer_keys).__contains__)
         self.n_domains = int(job.get("domains", 0))
         self.n_units = len(job["units"])
-        early, self._early, self._early_bytes = self._early, [], 0
-        for frames in early:
-            self._take_peer(frames)
+        for peer, endpoint in enumerate(self.endpoints):
+            if peer != rank:
+                self._connect_to_peer(peer, endpoint)
 
-    def _take_peer(self, frames: list) -> None:
-        """Check one peer message (``[token, header, frame, ...]``) and deliver it, or drop
-        it."""
+    def _connect_to_peer(self, peer: int, endpoint: str) -> None:
+        """Connect the socket this node receives from ``peer`` on: large frames (only ``peer``
+        speaks on it; with keys the handshake checks that its key is ``peer``'s), and the
+        routing id ``peer`` sends to this node by (the pair's token)."""
+        sock = self.ctx.socket(zmq.DEALER)
+        connect_as(sock, self.credentials, self.peer_keys[peer] if self.peer_keys else None)
+        sock.setsockopt(zmq.MAXMSGSIZE, PEER_FRAME_LIMIT + FRAME_OVERHEAD)
+        sock.setsockopt(zmq.ROUTING_ID, routing_id(self.peer_tokens[peer]))
+        sock.connect(endpoint)
+        self.inbound[peer] = sock
+        self._tasks.append(asyncio.ensure_future(self._route(
+            sock, lambda frames: self._take_peer(frames, peer))))
+
+    def _take_on_port(self, frames: list) -> None:
+        """A message on the peer port: none is expected (peers send on the connections this
+        node accepts, never on them), so it is dropped and counted."""
+        self.rejections.add("malformed", "a message on the peer port, which only sends")
+
+    def _take_peer(self, frames: list, peer: int) -> None:
+        """Check one message (``[token, header, frame, ...]``) that came over the connection
+        to ``peer`` and deliver it, or drop it."""
         if len(frames) < 2:
             self.rejections.add("malformed", "no token or header frame")
-            return
-        if self.token is None:
-            size = sum(len(f) for f in frames)
-            if len(self._early) < 4096 and self._early_bytes + size <= EARLY_BUDGET:
-                self._early.append(frames)
-                self._early_bytes += size
-            else:
-                self.rejections.add("budget", "too many messages before the job")
             return
         sender = self.peer_ranks.get(frames[0].bytes)
         if sender is None:
             self.rejections.add("stranger", "a peer message without a token of this job")
             return
-        if self.peer_keys and frames[0].get("User-Id").encode() != self.peer_keys[sender]:
-            self.rejections.add("impersonation", f"node {sender}'s token from another key")
+        if sender != peer:
+            self.rejections.add("impersonation", f"node {sender}'s token from node {peer}")
             return
         try:
             message = decode(frames[1:])
@@ -326,10 +341,7 @@ class ManagementActor:
         which every node waits for another (peers cut off from each other) from one in which
         some node still works, and end the first."""
         start = time.monotonic()
-        self._waits += 1
-        if self._waits == 1:
-            self.waiting_since = start
-        try:
+        with self._waiting():
             while True:
                 left = max(self.coordinator_heard, start) + self.timeout - time.monotonic()
                 if left <= 0:
@@ -339,6 +351,15 @@ class ManagementActor:
                                              return_when=asyncio.FIRST_COMPLETED)
                 if done:
                     return done
+
+    @contextlib.contextmanager
+    def _waiting(self):
+        """While inside, this node waits for another (``waiting_s`` counts)."""
+        self._waits += 1
+        if self._waits == 1:
+            self.waiting_since = time.monotonic()
+        try:
+            yield
         finally:
             self._waits -= 1
             if self._waits == 0:
@@ -366,15 +387,52 @@ class ManagementActor:
                 pass
 
     async def to_peer(self, rank: int, frames: list) -> None:
-        """Send a message to node ``rank``, behind the token this node shares with it."""
-        if rank not in self.peers:
-            self.peers[rank] = self._dealer(
-                self.endpoints[rank], self.peer_keys[rank] if self.peer_keys else None)
-        await asyncio.wait_for(self.peers[rank].send_multipart(
-            [self.peer_tokens[rank], *frames], copy=False), self.timeout)
+        """Send a message to node ``rank``, behind the token this node shares with it, on the
+        connection ``rank`` made to this node. Until it has connected, or while its queue is
+        full, the send is tried again (every 1 to 50 ms) for up to the node timeout.
+
+        Raises
+        ------
+        TimeoutError
+            If ``rank`` took no message for the node timeout.
+        """
+        token = self.peer_tokens[rank]
+        message = [routing_id(token), token, *frames]
+        if await self._send_now(message):
+            return
+        deadline = time.monotonic() + self.timeout
+        pause = 0.001
+        with self._waiting():  # on another node: a job whose nodes all wait is ended
+            while not await self._send_now(message):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"node {rank} took no message within "
+                                       f"{self.timeout:.0f} s (not connected to this node, or "
+                                       "not reading)")
+                await asyncio.sleep(min(pause, left))
+                pause = min(2 * pause, 0.05)
+
+    async def _send_now(self, message: list) -> bool:
+        """Send on the peer port if the peer can take it now (False: not connected yet, or
+        its queue is full)."""
+        try:
+            await self.router.send_multipart(message, flags=zmq.NOBLOCK, copy=False)
+            return True
+        except zmq.Again:
+            return False
+        except zmq.ZMQError as exc:
+            if exc.errno != zmq.EHOSTUNREACH:
+                raise
+            return False
 
     def close(self) -> None:
         for task in [*self._tasks, self._watcher]:
             task.cancel()
-        for sock in [self.router, self.coordinator, *self.peers.values()]:
+        for sock in [self.router, self.coordinator, *self.inbound.values()]:
             sock.close(linger=0)
+
+
+def routing_id(token: bytes) -> bytes:
+    """The routing id of a pair's connection (ZeroMQ reserves ids that begin with a zero
+    byte, which a random token may)."""
+    return b"p" + token

@@ -370,13 +370,14 @@ NODE_EPILOG = """\
 examples:
   vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 --keys vastray-keys
       (vastray-keys: this host's bundle, a copy of the coordinator's KEYS/bundles/NAME)
-  srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
-  mpirun -n 8 vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
+  srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /local/vastray-keys
+      (/local/vastray-keys: each host's own bundle, copied to its own disk beforehand)
 
 in a Slurm batch script, the coordinator in the background, then one node per task:
-  vastray render /shared/s.store -o o.exr --nodes "$SLURM_NTASKS" --listen 0.0.0.0:0 \
-      --rendezvous /shared/job.addr --keys /shared/keys &
-  srun vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 --keys /shared/keys
+  vastray render /shared/s.store -o o.exr --nodes "$SLURM_NTASKS" --listen 0.0.0.0:0 \\
+      --rendezvous /shared/job.addr --keys ~/.vastray/keys &
+  srun sh -c 'vastray node --rendezvous /shared/job.addr --bind 0.0.0.0 \\
+      --keys ~/.vastray/keys/bundles/$(hostname -s)'
 (the source repository's examples/slurm.sbatch is a complete script)
 """
 

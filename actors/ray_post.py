@@ -10,7 +10,7 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.schedule.soa import SoA, join_bound
-from vastray.transport.codec import encode, frames_nbytes
+from vastray.transport.codec import PEER_FRAME_LIMIT, encode, frames_nbytes
 
 
 def traffic_counters() -> dict:
@@ -45,7 +45,8 @@ class RayPost:
         ``queue`` ("radiance" or "shadow"), or an empty batch (None: protocols that expect
         one batch per peer). ``meta`` labels it (its tile, and so on)."""
         arrays = {} if domains is None else {"domain": domains, **rays.fields}
-        frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank, **meta})
+        frames = encode(protocol.RAYS, arrays, {"queue": queue, "rank": self.rank, **meta},
+                        PEER_FRAME_LIMIT)
         start = time.perf_counter()
         await self.management.to_peer(node, frames)
         self.stats["send_s"] += time.perf_counter() - start

@@ -8,7 +8,7 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.management import ManagementActor
-from vastray.transport.codec import encode
+from vastray.transport.codec import PEER_FRAME_LIMIT, encode
 from vastray.transport.tree import COMBINE, children, parent
 
 
@@ -38,7 +38,7 @@ class TreeReduceActor:
         up = parent(self.rank)
         if up is not None:
             await self.management.to_peer(up, film_frames(
-                film, {"rank": self.rank, "ordinal": ordinal}))
+                film, {"rank": self.rank, "ordinal": ordinal}, PEER_FRAME_LIMIT))
         return film
 
     async def _child_film(self, child: int, ordinal: int):
@@ -63,10 +63,11 @@ class TreeReduceActor:
         up = parent(self.rank)
         if up is not None:
             await self.management.to_peer(up, encode(
-                protocol.REDUCE, total, {"rank": self.rank, "levels": self.levels}))
+                protocol.REDUCE, total, {"rank": self.rank, "levels": self.levels},
+                PEER_FRAME_LIMIT))
             message = await self.management.receive(protocol.BROADCAST, "reduced result")
             total = {k: np.array(v) for k, v in message.arrays.items()}
         for child in children(self.rank, self.size):
-            await self.management.to_peer(child,
-                                          encode(protocol.BROADCAST, total, {"rank": self.rank}))
+            await self.management.to_peer(child, encode(
+                protocol.BROADCAST, total, {"rank": self.rank}, PEER_FRAME_LIMIT))
         return total

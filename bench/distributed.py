@@ -2,9 +2,10 @@
 
 1. Ray batches through the codec and ZeroMQ (msgpack header + raw frames, zero-copy) against
    raw ZeroMQ multipart messages of the same bytes, over loopback TCP between two processes:
-   ``transport_ratio=`` (floor 0.8) against one raw frame per array, and
-   ``transport_ratio_same_frames=`` against raw frames cut at ``FRAME_LIMIT`` as every vastray
-   socket requires (the codec's own cost). The clock starts after a warm-up round trip (the
+   ``transport_ratio=`` (floor 0.8) against one raw frame per array. The codec side is the
+   member path as nodes run it: frames up to ``PEER_FRAME_LIMIT``, sent on a ROUTER with a
+   node's peer-port options to a DEALER that connected to it. The clock starts after a
+   warm-up round trip (the
    receiver process is up and connected) and stops when the receiver has taken the last
    message, so process start-up and teardown are in neither timing.
 2. N = 1, 2, 4 local node processes with every distributed scheduler at an equal memory
@@ -31,7 +32,9 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.integrators import RenderSettings
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
-from vastray.transport.codec import FRAME_LIMIT, decode, encode
+from vastray.actors.management import routing_id
+from vastray.transport.codec import PEER_FRAME_LIMIT, decode, encode
+from vastray.transport.security import FRAME_OVERHEAD, bound
 
 CACHE = Path(__file__).resolve().parent.parent / ".bench_cache"
 
@@ -50,7 +53,13 @@ def ray_batch(n: int) -> dict[str, np.ndarray]:
 
 def _receiver(endpoint: str, reply: str, messages: int, codec: bool) -> None:
     ctx = zmq.Context()
-    sock = ctx.socket(zmq.PULL)
+    if codec:  # a node's socket for one peer: connects to the peer, takes large frames
+        sock = ctx.socket(zmq.DEALER)
+        bound(sock)
+        sock.setsockopt(zmq.MAXMSGSIZE, PEER_FRAME_LIMIT + FRAME_OVERHEAD)
+        sock.setsockopt(zmq.ROUTING_ID, routing_id(TOKEN))
+    else:
+        sock = ctx.socket(zmq.PULL)
     sock.connect(endpoint)
     back = ctx.socket(zmq.PUSH)
     back.connect(reply)
@@ -59,27 +68,33 @@ def _receiver(endpoint: str, reply: str, messages: int, codec: bool) -> None:
     for _ in range(messages):
         frames = sock.recv_multipart(copy=False)
         if codec:
-            decode(frames)
+            decode(frames[1:])  # behind the pair's token, as a node takes it
     back.send(b"done")
     ctx.destroy(linger=1000)
 
 
-def transport(n_rays: int, messages: int, split: bool = False) -> tuple[float, float]:
-    """Rays per second through raw multipart frames and through the codec, timed from after
-    a warm-up round trip to the receiver's acknowledgement of the last message. ``split``:
-    the raw frames cut at ``FRAME_LIMIT`` too, as every vastray socket requires (the codec's
-    own overhead alone); else one raw frame per array (what ZeroMQ does with no limit)."""
+#: The pair token of the codec side's two "nodes".
+TOKEN = b"t" * 16
+
+
+def transport(n_rays: int, messages: int) -> tuple[float, float]:
+    """Rays per second through raw multipart frames (PUSH to PULL, one frame per array, no
+    frame limit) and through the member path (the codec with ``PEER_FRAME_LIMIT``, from a
+    ROUTER with a node's peer-port options to a DEALER that connected to it, behind the
+    pair's token), timed from after a warm-up round trip to the receiver's acknowledgement of
+    the last message."""
     batch = ray_batch(n_rays)
     raw_frames = [np.ascontiguousarray(a).data for a in batch.values()]
-    if split:
-        raw_frames = [view[i:i + FRAME_LIMIT] for view in (memoryview(f).cast("B")
-                                                          for f in raw_frames)
-                      for i in range(0, len(view), FRAME_LIMIT)]
     rates = []
     for codec in (False, True):
         ctx = zmq.Context()
-        sock = ctx.socket(zmq.PUSH)
-        sock.setsockopt(zmq.SNDHWM, 16)
+        if codec:
+            sock = ctx.socket(zmq.ROUTER)
+            bound(sock)
+            sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+        else:
+            sock = ctx.socket(zmq.PUSH)
+            sock.setsockopt(zmq.SNDHWM, 64)
         port = sock.bind_to_random_port("tcp://127.0.0.1")
         replies = ctx.socket(zmq.PULL)
         reply_port = replies.bind_to_random_port("tcp://127.0.0.1")
@@ -87,14 +102,28 @@ def transport(n_rays: int, messages: int, split: bool = False) -> tuple[float, f
             target=_receiver, args=(f"tcp://127.0.0.1:{port}", f"tcp://127.0.0.1:{reply_port}",
                                     messages, codec))
         proc.start()
-        sock.send_multipart(encode("rays", batch) if codec else raw_frames, copy=False)
+
+        def frames():
+            if not codec:
+                return raw_frames
+            return [routing_id(TOKEN), TOKEN, *encode("rays", batch, {"rank": 1},
+                                                      PEER_FRAME_LIMIT)]
+
+        deadline = time.monotonic() + 60
+        while True:  # the ROUTER refuses until the receiver has connected
+            try:
+                sock.send_multipart(frames(), copy=False)
+                break
+            except zmq.ZMQError as exc:
+                if exc.errno != zmq.EHOSTUNREACH or time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
         if not replies.poll(60_000):
             raise TimeoutError("the receiver process did not start within 60 s")
         assert replies.recv() == b"ready"
         start = time.perf_counter()
         for _ in range(messages):
-            frames = encode("rays", batch) if codec else raw_frames
-            sock.send_multipart(frames, copy=False)
+            sock.send_multipart(frames(), copy=False)
         if not replies.poll(120_000):
             raise TimeoutError("the receiver did not take every message within 120 s")
         assert replies.recv() == b"done"
@@ -111,13 +140,8 @@ def main() -> None:
     args = parser.parse_args()
     raw, codec = transport(65536, 100 if args.quick else 400)
     print(f"raw_zmq_rays_per_s={raw:,.0f} codec_zmq_rays_per_s={codec:,.0f}")
-    print(f"transport_ratio={codec / raw:.3f}  (raw: one frame per array, no frame limit)",
-          flush=True)
-    raw, codec = transport(65536, 100 if args.quick else 400, split=True)
-    print(f"raw_split_zmq_rays_per_s={raw:,.0f} codec_zmq_rays_per_s={codec:,.0f}")
-    print(f"transport_ratio_same_frames={codec / raw:.3f}  (raw frames cut at the "
-          f"{FRAME_LIMIT >> 10} KiB every vastray socket takes: the codec's own cost)",
-          flush=True)
+    print(f"transport_ratio={codec / raw:.3f}  (raw: one frame per array, no frame limit; "
+          "codec: the member path, ROUTER to a connected DEALER)", flush=True)
 
     resolution = 160 if args.quick else 320
     path = CACHE / f"rm-{resolution}-4x4x2.store"

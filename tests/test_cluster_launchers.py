@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -108,11 +109,17 @@ def test_the_slurm_batch_script_renders_with_srun_ranks(tmp_path):
     srun.write_text(FAKE_SRUN)
     srun.chmod(0o755)
     (tmp_path / "logs").mkdir()
+    shim = tmp_path / "bin"  # a `vastray` that writes down how it was called
+    shim.mkdir()
+    (shim / "vastray").write_text(f'#!/bin/sh\necho "$*" >> {tmp_path}/calls\n'
+                                  f'exec {Path(sys.executable).parent}/vastray "$@"\n')
+    (shim / "vastray").chmod(0o755)
     env = dict(os.environ, STORE=str(store.path), OUT=str(tmp_path / "o.exr"),
                KEYS=str(tmp_path / "keys"), RDV=str(tmp_path / "job.addr"), SRUN=str(srun),
                LISTEN="127.0.0.1:0", BIND="127.0.0.1", SLURM_NTASKS="3", SLURM_JOB_ID="42",
                NODE_LOGS=str(tmp_path / "logs"),
-               PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
+               PATH=f"{shim}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}"
+                    f"{os.environ.get('PATH', '')}")
     out = subprocess.run(["bash", str(ROOT / "examples" / "slurm.sbatch"), "--width", "24",
                           "--height", "18", "--spp", "2", "--scheduler", "async",
                           "--node-timeout", "30"],
@@ -125,3 +132,9 @@ def test_the_slurm_batch_script_renders_with_srun_ranks(tmp_path):
         log = (tmp_path / "logs" / f"node{i}.log").read_text()
         assert re.search(rf"as node {i} of 3", log), log
     assert not (tmp_path / "job.addr").exists()  # the coordinator removed its rendezvous
+    # each node was given its host's bundle, never the key folder (issue 37: revocation)
+    nodes = [c.split() for c in (tmp_path / "calls").read_text().splitlines()
+             if c.startswith("node ")]
+    host = socket.gethostname().split(".")[0]
+    assert len(nodes) == 3 and all(
+        c[c.index("--keys") + 1] == str(tmp_path / "keys" / "bundles" / host) for c in nodes), nodes

@@ -24,7 +24,8 @@ from vastray.actors.film_wire import film_frames
 from vastray.actors.node_failure import NodeFailure
 from vastray.render.film import Film
 from vastray.schedule.paths import RADIANCE_FIELDS
-from vastray.transport.codec import encode
+from vastray.actors.management import routing_id
+from vastray.transport.codec import FRAME_LIMIT, PEER_FRAME_LIMIT, encode
 from vastray.transport.join_secret import read_join_secret
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
@@ -38,32 +39,44 @@ def _rays(n: int, domain: int, rank: int) -> list:
     return encode(protocol.RAYS, arrays, {"rank": rank, "tile": 0, "queue": "radiance"})
 
 
+async def _send_as(node, to: int, token: bytes, frames: list) -> None:
+    """Send ``frames`` from ``node``'s peer port to node ``to`` behind ``token`` (any token:
+    an attacking member's), once ``to`` has connected."""
+    identity = routing_id(node.peer_tokens[to])
+    deadline = time.monotonic() + 10
+    while True:
+        try:
+            await node.router.send_multipart([identity, token, *frames], flags=zmq.NOBLOCK)
+            return
+        except zmq.ZMQError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.01)
+
+
 async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
     film = film_frames(Film(4, 3), {"rank": 1, "ordinal": 0})
-    with member_actors(4, domains=8) as (ctx, _, gate, nodes):
+    with member_actors(4, domains=8) as (_, _, _, nodes):
         node0 = nodes[0]  # children 1 and 2; node 3 is node 1's child
-        # a member's own connection (holds the join secret): its messages meet every check
-        member = ctx.socket(zmq.DEALER)
-        member.plain_username, member.plain_password = b"vastray", gate.secret
-        member.connect(node0.endpoint)
         token = {r: node0.peer_tokens[r] for r in range(4)}
-        sends = [
-            [token[3], *film_frames(Film(4, 3), {"rank": 3, "ordinal": 0})],  # not a child
-            [token[2], *film],                       # node 2 speaking for node 1
-            [token[1], *film],                       # node 1's film: taken
-            [token[1], *film],                       # ... once
-            [token[1], *film_frames(Film(4, 3), {"rank": 1, "ordinal": 2})],  # no unit 2
-            [token[2], *film_frames(Film(4, 3), {"rank": 2, "ordinal": -1})],  # nor unit -1
-            [token[2], *film_frames(Film(4, 3), {"rank": 2, "ordinal": 1})],  # a later unit's
-            [token[1], *encode(protocol.BROADCAST, {}, {"rank": 1})],  # node 0 has no parent
-            [token[2], *_rays(5, 10**6, 2)],         # a domain the job does not have
-            [token[2], *_rays(5, 7, 2)],             # one it has
-            [pair_tokens(1)[0][0], *_rays(5, 7, 2)],  # a token of no pair of this job
-            [node0.token, *_rays(5, 7, 2)],          # the coordinator channel's token
+        sends = [  # (sending node, token, message): members, so every message meets checks
+            (3, token[3], film_frames(Film(4, 3), {"rank": 3, "ordinal": 0})),  # not a child
+            (2, token[2], film),                       # node 2 speaking for node 1
+            (1, token[1], film),                       # node 1's film: taken
+            (1, token[1], film),                       # ... once
+            (1, token[1], film_frames(Film(4, 3), {"rank": 1, "ordinal": 2})),  # no unit 2
+            (2, token[2], film_frames(Film(4, 3), {"rank": 2, "ordinal": -1})),  # nor unit -1
+            (2, token[2], film_frames(Film(4, 3), {"rank": 2, "ordinal": 1})),  # a later unit's
+            (1, token[1], encode(protocol.BROADCAST, {}, {"rank": 1})),  # node 0: no parent
+            (2, token[2], _rays(5, 10**6, 2)),         # a domain the job does not have
+            (2, token[2], _rays(5, 7, 2)),             # one it has
+            (2, pair_tokens(1)[0][0], _rays(5, 7, 2)),  # a token of no pair of this job
+            (2, node0.token, _rays(5, 7, 2)),          # the coordinator channel's token
+            (2, token[1], _rays(5, 7, 1)),             # node 1's token over node 2's connection
         ]
-        for frames in sends:
-            await member.send_multipart(frames)
-        await _until(lambda: node0.rejections.total >= 9)
+        for sender, sent_token, frames in sends:
+            await _send_as(nodes[sender], 0, sent_token, frames)
+        await _until(lambda: node0.rejections.total >= 10)
         films = node0.mailbox(protocol.FILM)
         assert films.qsize() == 2
         assert [(m.meta["rank"], m.meta["ordinal"]) for m in (
@@ -71,25 +84,29 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
         assert node0.mailbox(protocol.BROADCAST).qsize() == 0
         rays = node0.mailbox(protocol.RAYS)
         assert rays.qsize() == 1 and int(rays.get_nowait().arrays["domain"][0]) == 7
-        assert node0.rejections.counts == {"malformed": 7, "stranger": 2}, \
-            node0.rejections.counts
-        member.close(linger=0)
+        assert node0.rejections.counts == {"malformed": 7, "stranger": 2,
+                                           "impersonation": 1}, node0.rejections.counts
 
 
-async def test_a_connection_without_the_join_secret_is_refused_at_the_handshake():
-    with member_actors(2) as (ctx, _, gate, nodes):
-        strangers = [ctx.socket(zmq.DEALER) for _ in range(2)]
-        strangers[1].plain_username, strangers[1].plain_password = b"vastray", b"f" * 32
-        for stranger in strangers:
-            stranger.connect(nodes[0].endpoint)
-            await stranger.send_multipart([nodes[0].peer_tokens[1], *_rays(2, 1, 1)])
-        await _until(lambda: gate.refusals + gate.failed_handshakes >= 2)
-        assert gate.refusals == 1 and gate.failed_handshakes >= 1  # wrong secret; no secret
-        await asyncio.sleep(0.3)
-        assert nodes[0].mailbox(protocol.RAYS).qsize() == 0  # even with a pair's token
-        assert nodes[0].rejections.total == 0  # nothing got as far as the checks
-        for stranger in strangers:
-            stranger.close(linger=0)
+async def test_ray_batches_arrive_in_large_frames_on_the_connections_a_node_made():
+    # The member path: a node receives from a peer on the socket it connected to that peer,
+    # which takes frames of PEER_FRAME_LIMIT; its listening port takes FRAME_LIMIT only.
+    with member_actors(2, domains=8) as (_, _, _, nodes):
+        n = 3 * FRAME_LIMIT // 12 + 7  # origin: 12 bytes a ray, three small frames' worth
+        frames = encode(protocol.RAYS, {"domain": np.full(n, 3, np.int64),
+                                        "path": np.arange(n, dtype=np.int64),
+                                        "depth": np.zeros(n, np.uint8),
+                                        "origin": np.zeros((n, 3), np.float32),
+                                        "direction": np.ones((n, 3), np.float32),
+                                        "beta": np.ones((n, 3))},
+                        {"rank": 1, "tile": 0, "queue": "radiance"}, PEER_FRAME_LIMIT)
+        assert max(memoryview(f).nbytes for f in frames) > FRAME_LIMIT
+        await nodes[1].to_peer(0, frames)
+        message = await nodes[0].receive(protocol.RAYS, "rays")
+        assert message.n == n and float(message.arrays["direction"].sum()) == 3 * n
+        assert nodes[0].inbound[1].getsockopt(zmq.MAXMSGSIZE) > PEER_FRAME_LIMIT
+        assert nodes[0].router.getsockopt(zmq.MAXMSGSIZE) <= FRAME_LIMIT + 1024
+        assert nodes[0].rejections.total == 0
 
 
 async def _until(condition, seconds: float = 10.0) -> None:
@@ -148,27 +165,33 @@ def test_without_keys_a_hello_without_the_join_secret_never_gets_the_job(scene):
         ctx.destroy(linger=0)
 
 
-async def test_with_keys_a_pair_token_is_taken_only_from_the_key_of_the_rank_it_names(tmp_path):
-    # A token that leaked to another member (here: node 2's key with the token node 0 shares
-    # with node 1) is refused: with keys, the CURVE key of the connection must be that rank's.
+async def test_with_keys_only_the_rank_a_token_names_can_speak_or_listen_with_it(tmp_path):
+    # With keys a node receives from peer r only on the connection it made to r, whose key the
+    # handshake checked: node 2 with the token node 0 shares with node 1 is refused, and a
+    # process with a key not in the job cannot connect to take node 1's traffic.
     from vastray.transport.keys import add_node_key, generate_keys, load_node_keys
 
     generate_keys(tmp_path)
-    for rank in range(3):
-        add_node_key(tmp_path, f"n{rank}")
+    for name in ("n0", "n1", "n2", "outsider"):
+        add_node_key(tmp_path, name)
     film = film_frames(Film(4, 3), {"rank": 1, "ordinal": 0})
-    with member_actors(3, domains=4, keys=tmp_path) as (ctx, _, _, nodes):
-        token, senders = nodes[0].peer_tokens[1], []
-        for name in ("n2", "n1"):  # node 2's key first, then node 1's own
-            key = load_node_keys(tmp_path, name)
-            senders.append(ctx.socket(zmq.DEALER))
-            senders[-1].curve_secretkey, senders[-1].curve_publickey = key.secret, key.public
-            senders[-1].curve_serverkey = nodes[0].peer_keys[0]
-            senders[-1].connect(nodes[0].endpoint)
-            await senders[-1].send_multipart([token, *film])
+    with member_actors(3, domains=4, keys=tmp_path) as (ctx, _, gate, nodes):
+        token = nodes[0].peer_tokens[1]
+        await _send_as(nodes[2], 0, token, film)  # node 2's connection, node 1's token
+        await _send_as(nodes[1], 0, token, film)  # node 1's own
         await _until(lambda: nodes[0].rejections.total >= 1
                      and nodes[0].mailbox(protocol.FILM).qsize() >= 1)
         assert nodes[0].rejections.counts == {"impersonation": 1}, nodes[0].rejections.counts
         assert nodes[0].mailbox(protocol.FILM).qsize() == 1
-        for sock in senders:
-            sock.close(linger=0)
+        outsider = ctx.socket(zmq.DEALER)  # in the key folder, not in the job
+        key = load_node_keys(tmp_path, "outsider")
+        outsider.curve_secretkey, outsider.curve_publickey = key.secret, key.public
+        outsider.curve_serverkey = nodes[0].peer_keys[0]
+        outsider.setsockopt(zmq.ROUTING_ID, routing_id(token))
+        outsider.connect(nodes[0].endpoint)
+        await _until(lambda: gate.refusals >= 1)
+        # goes to node 1 (node 0 is its parent in the tree), never to the outsider
+        await nodes[0].to_peer(1, encode(protocol.BROADCAST, {}, {"rank": 0}))
+        assert not await outsider.poll(300)
+        assert (await nodes[1].receive(protocol.BROADCAST, "broadcast")).meta["rank"] == 0
+        outsider.close(linger=0)

@@ -10,7 +10,15 @@ Header (msgpack map)::
 followed by one frame per field, in order, each exactly ``prod(shape) * itemsize`` bytes. A
 field larger than ``FRAME_LIMIT`` goes as several frames in a row (its entry then has a fourth
 element, the frame count), so that every socket can refuse frames larger than that before it
-holds them (``ZMQ_MAXMSGSIZE``, which ZeroMQ checks per frame).
+holds them (``ZMQ_MAXMSGSIZE``, which ZeroMQ checks per frame). Every part but the last of a
+split field has the same size.
+
+Two limits: ``FRAME_LIMIT`` on every socket a stranger can reach (a listening socket reads a
+handshake frame whole before it checks anything), and ``PEER_FRAME_LIMIT`` on the sockets
+ray batches and films between nodes arrive on: a node *connects* to each peer to receive from
+it (``actors.management``), and a connecting socket admits no stranger, so its frames may be
+large. Fewer, larger frames are what keep the member path at raw ZeroMQ's speed: a field cut
+into 128 KiB frames must be copied back into one buffer on arrival.
 """
 
 from __future__ import annotations
@@ -30,6 +38,8 @@ MAX_FIELDS = 64
 #: a handshake frame whole before it checks it), so it is small; 128 KiB frames move ray
 #: batches as fast as 4 MiB ones (``bench/distributed.py``'s ``transport_ratio``).
 FRAME_LIMIT = 128 << 10
+#: Largest frame between members, on a socket that connected to its sender (see above).
+PEER_FRAME_LIMIT = 64 << 20
 #: Most frames one field may be split into (a 1 GiB message at most).
 MAX_PARTS = MAX_MESSAGE_BYTES // FRAME_LIMIT
 #: The header is one frame.
@@ -61,7 +71,8 @@ def frames_nbytes(frames: list) -> int:
     return sum(memoryview(f).nbytes for f in frames)
 
 
-def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -> list:
+def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None,
+           frame_limit: int = FRAME_LIMIT) -> list:
     """Frames of a message: ``[header, frame, ...]`` (frames are zero-copy buffers).
 
     Parameters
@@ -69,7 +80,12 @@ def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -
     kind : what the message is ("rays", "film", "reduce", ...).
     arrays : name -> array; arrays are made C-contiguous little-endian if they are not.
     meta : small msgpack-able dictionary.
+    frame_limit : largest frame; larger fields are split. ``PEER_FRAME_LIMIT`` only for a
+        message to a peer (``ManagementActor.to_peer``): every other socket refuses frames over
+        ``FRAME_LIMIT``.
     """
+    if not FRAME_LIMIT <= frame_limit <= PEER_FRAME_LIMIT:
+        raise CodecError(f"frame limit {frame_limit} outside {FRAME_LIMIT}..{PEER_FRAME_LIMIT}")
     if len(arrays) > MAX_FIELDS:
         raise CodecError(f"{len(arrays)} fields; at most {MAX_FIELDS}")
     fields, frames = [], []
@@ -80,8 +96,8 @@ def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None) -
         if a.dtype.str not in ALLOWED_DTYPES:
             raise CodecError(f"field {name!r}: dtype {a.dtype} cannot be sent")
         view = memoryview(a).cast("B") if a.size else b""
-        if len(view) > FRAME_LIMIT:
-            parts = [view[i:i + FRAME_LIMIT] for i in range(0, len(view), FRAME_LIMIT)]
+        if len(view) > frame_limit:
+            parts = [view[i:i + frame_limit] for i in range(0, len(view), frame_limit)]
             fields.append([name, a.dtype.str, list(a.shape), len(parts)])
             frames.extend(parts)
         else:
@@ -139,7 +155,7 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         views = [memoryview(b) for b in buffers[at:at + parts]]
         at += parts
         got = sum(v.nbytes for v in views)
-        if got != expected or (parts > 1 and any(v.nbytes != FRAME_LIMIT
+        if got != expected or (parts > 1 and any(v.nbytes != views[0].nbytes
                                                  for v in views[:-1])):
             raise CodecError(f"field {name!r}: frames have {got} bytes, header says "
                              f"{expected}")
