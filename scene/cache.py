@@ -127,13 +127,40 @@ class DomainCache:
             return self.stats.loads_per_domain.get(domain_id, 0)
 
     def get(self, domain_id: int) -> DomainBVH:
-        """The built domain, loading it (and evicting the LRU one) if needed."""
+        """The built domain, loading it (and evicting the LRU one) if needed.
+
+        The lock is held only to look up, make room and insert, never through a read or a
+        BVH build: a load in flight is registered in ``_pending`` (so a second caller for the
+        same domain waits for it rather than loading it again, and room-making counts it),
+        and callers for resident domains are served meanwhile (issue 42: one thread's load
+        held up every other thread's hits for the whole load).
+        """
         start = time.perf_counter()
-        pending = self._pending.get(domain_id)
-        if pending is not None:
-            pending.result()  # the preloader is building it: wait for that, not a second load
-        with self._lock:
-            bvh = self._get(domain_id)
+        while True:
+            with self._lock:
+                if domain_id in self._resident:
+                    bvh = self._get(domain_id)
+                    break
+                pending = self._pending.get(domain_id)
+                if pending is None:
+                    self._make_room(1)
+                    mine: Future = Future()
+                    self._pending[domain_id] = mine
+            if pending is not None:
+                pending.result()  # being built (a preload, another thread): wait for that
+                continue  # resident now, unless evicted meanwhile
+            try:
+                bvh = self.load(domain_id)
+            except BaseException as exc:
+                with self._lock:
+                    self._pending.pop(domain_id, None)
+                mine.set_exception(exc)
+                raise
+            with self._lock:
+                self._insert(domain_id, bvh)  # resident and no longer pending at once
+                self._pending.pop(domain_id, None)
+            mine.set_result(None)
+            break
         self.stats.wait_seconds += time.perf_counter() - start
         return bvh
 

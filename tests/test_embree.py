@@ -464,3 +464,36 @@ def test_launch_gives_each_thread_a_contiguous_part():
     seen.clear()
     launch(kernel, 8, 100, "whole", values[:100], out[:100])
     assert [(s[2], s[3]) for s in seen] == [(100, threading.get_ident())]
+
+
+def test_split_queries_from_many_threads_never_meet_a_shut_pool():
+    # Issue 42: the split pool was replaced by a larger one on demand and the old one shut
+    # down, racing another thread's submit to it ("cannot schedule new futures after
+    # shutdown"). Threads asking for ever more parts while others split into two.
+    import threading
+
+    from vastray.scene.embree.launch import _SPLIT_MIN, launch
+
+    n = _SPLIT_MIN * 32
+    errors, rows_written = [], []
+
+    def kernel(out):
+        out[:] += 1  # each part writes only its own rows
+
+    def work(parts_seq):
+        try:
+            for parts in parts_seq:
+                out = np.zeros(n, np.int64)
+                launch(kernel, parts, n, out)
+                rows_written.append(bool((out == 1).all()))
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(range(2, 33),)),
+               *(threading.Thread(target=work, args=([2] * 60,)) for _ in range(3))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=120)
+    assert not errors, errors
+    assert len(rows_written) == 31 + 3 * 60 and all(rows_written)

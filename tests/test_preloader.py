@@ -161,3 +161,30 @@ def test_a_finished_preload_counts_once_against_the_capacity(store):
     cache.get(ids[1])  # waits for the preload
     cache.close()
     assert seen == [(2, 0)]
+
+
+def test_a_load_holds_up_no_other_threads_hit_and_a_domain_loads_once(store):
+    # Issue 42: DomainCache.get held its lock through the read, the bandwidth wait and the BVH
+    # build, so a thread asking for a resident domain waited for another thread's whole load.
+    import threading
+
+    ids = nonempty(store)[:2]
+    size = store.domains[ids[1]].nbytes
+    cache = DomainCache(store, 4, load_bandwidth=size / 3.0)  # a load lasts at least 3 s
+    cache.load_bandwidth = None
+    cache.get(ids[0])  # resident, loaded at disk speed
+    cache.load_bandwidth = size / 3.0
+    loading = [threading.Thread(target=cache.get, args=(ids[1],)) for _ in range(2)]
+    for thread in loading:
+        thread.start()
+    deadline = time.monotonic() + 30
+    while ids[1] not in cache.resident_set() and time.monotonic() < deadline:
+        time.sleep(0.01)  # the slow load is under way
+    assert ids[1] in cache.resident_set() and ids[1] not in cache
+    assert cache.get(ids[0]) is not None  # a hit, served while the load goes on
+    assert ids[1] not in cache and any(t.is_alive() for t in loading)
+    for thread in loading:
+        thread.join(timeout=60)
+    assert ids[1] in cache
+    assert cache.load_count(ids[1]) == 1  # the second thread waited for the first's load
+    cache.close()

@@ -10,6 +10,7 @@ code; with no kernel sharing native state, that class is ruled out).
 
 from __future__ import annotations
 
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -35,19 +36,22 @@ def _writable(a: np.ndarray) -> np.ndarray:
 
 #: Fewest rays per part when a query is split over several threads.
 _SPLIT_MIN = 4096
+#: Threads of the split pool at most (a thread is started only when a part finds none idle,
+#: so a process that splits into two parts has two).
+_SPLIT_THREADS = max(64, os.cpu_count() or 1)
 _splitter: ThreadPoolExecutor | None = None
 _splitter_lock = threading.Lock()
 
 
-def _split_pool(threads: int) -> ThreadPoolExecutor:
-    """The process's pool that runs the parts of split queries (grown on demand)."""
+def _split_pool() -> ThreadPoolExecutor:
+    """The process's pool that runs the parts of split queries: made once and never shut
+    down. (It used to be replaced by a larger one on demand, and the old one shut down, which
+    could race another thread's submit to it: "cannot schedule new futures after
+    shutdown".)"""
     global _splitter
     with _splitter_lock:
-        if _splitter is None or _splitter._max_workers < threads:
-            old, _splitter = _splitter, ThreadPoolExecutor(threads,
-                                                           thread_name_prefix="embree-part")
-            if old is not None:
-                old.shutdown(wait=False)
+        if _splitter is None:
+            _splitter = ThreadPoolExecutor(_SPLIT_THREADS, thread_name_prefix="embree-part")
         return _splitter
 
 
@@ -71,5 +75,6 @@ def launch(kernel, threads: int, n: int, *args) -> None:
         lo, hi = bounds[k], bounds[k + 1]
         kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a for a in args))
 
-    for future in [_split_pool(parts).submit(run, k) for k in range(parts)]:
+    pool = _split_pool()
+    for future in [pool.submit(run, k) for k in range(parts)]:
         future.result()
