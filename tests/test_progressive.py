@@ -417,3 +417,48 @@ def test_without_quiet_the_last_line_says_which_rule_stopped_the_render(scene, t
                  "--width", "32", "--height", "24", "--spp", "4"]) == 0
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("wrote ") and "stopped by" not in last, last  # --spp: said by spp
+
+
+def test_resume_alone_runs_the_interrupted_command_again_from_anywhere(scene, tmp_path,
+                                                                          capsys):
+    # Issue 42: `--resume` needed the whole command retyped, and a resume typed with fewer
+    # outputs left the interrupted run's partial PNG and report beside the finished image.
+    # The checkpoint keeps the command (paths made absolute); `--resume FILE` alone runs it.
+    store, toml = scene
+    run = tmp_path / "run"
+    run.mkdir()
+    common = ["--width", "16", "--height", "12", "--spp", "1024", "--max-pass-spp", "16"]
+    assert main(["render", str(store.path), "--scene", str(toml), *common, "-o",
+                 str(tmp_path / "whole.exr"), "--quiet"]) == 0
+    # relative paths, typed in run/: the resume below is typed elsewhere
+    proc = _cli("render", str(store.path), "--scene", str(toml), *common, "-o", "run.exr",
+                "--png", "run.png", "--report", "run.json", cwd=run)
+    ckpt = run / "run.exr.checkpoint.npz"
+    try:
+        deadline = time.monotonic() + 120
+        while not _catches(proc.pid, signal.SIGUSR1):
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        while not ckpt.exists():
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.monotonic() < deadline
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert json.loads((run / "run.json").read_text())["stopped_by"] == "interrupted"
+    capsys.readouterr()
+    assert main(["render", "--resume", str(ckpt)]) == 0  # from the test's folder, not run/
+    err = capsys.readouterr().err
+    assert f"resuming {ckpt}: vastray render {store.path}" in err, err
+    np.testing.assert_array_equal(read_image(run / "run.exr"), read_image(tmp_path / "whole.exr"))
+    report = json.loads((run / "run.json").read_text())  # rewritten, not left behind
+    assert report["stopped_by"] == "spp" and report["passes"][-1]["spp"] == 1024
+    assert (run / "run.png").stat().st_mtime >= (run / "run.exr").stat().st_mtime - 5
+    # typed options go on top: a larger --spp goes further from the same checkpoint
+    assert main(["render", "--resume", str(ckpt), "--spp", "2048", "--quiet"]) == 0
+    assert json.loads((run / "run.json").read_text())["passes"][-1]["spp"] == 2048

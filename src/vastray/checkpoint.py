@@ -179,6 +179,53 @@ def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
                     float(meta.get("seconds") or 0.0))
 
 
+#: ``vastray render`` options whose values are paths: a checkpoint's command keeps them
+#: absolute, so that ``--resume`` alone works from any folder.
+PATH_OPTIONS = frozenset({"-o", "--output", "--png", "--scene", "--log-dir", "--rendezvous",
+                          "--keys", "--report", "--reference", "--checkpoint"})
+
+
+def saved_command(argv: list[str], store: str | None) -> list[str]:
+    """The ``vastray render`` arguments ``argv`` as a checkpoint keeps them: paths made
+    absolute (the positional ``store`` and the values of ``PATH_OPTIONS``), ``--resume``
+    left out (a resume names its own)."""
+    out, i, store_seen = [], 0, False
+    while i < len(argv):
+        token = argv[i]
+        option, eq, value = token.partition("=")
+        if option == "--resume":
+            i += 1 if eq else 2
+            continue
+        if token.startswith("-") and eq and option in PATH_OPTIONS:
+            out.append(f"{option}={os.path.abspath(value)}")
+        elif token in PATH_OPTIONS and i + 1 < len(argv):
+            out += [token, os.path.abspath(argv[i + 1])]
+            i += 1
+        elif store is not None and not store_seen and token == store:
+            out.append(os.path.abspath(token))
+            store_seen = True
+        else:
+            out.append(token)
+        i += 1
+    return out
+
+
+def checkpoint_command(path: str | Path) -> list[str] | None:
+    """The ``vastray render`` arguments of the run that wrote the checkpoint at ``path``
+    (``saved_command``), or None: none kept, or a file that is not a sound checkpoint (which
+    ``read_checkpoint`` then names)."""
+    try:
+        if not _check_seal(Path(path)):
+            return None
+        with np.load(path, allow_pickle=False) as data:
+            command = json.loads(str(data["meta"]))["identity"].get("command")
+    except Exception:  # noqa: BLE001 - read_checkpoint says what is wrong, in one line
+        return None
+    if isinstance(command, list) and all(isinstance(a, str) for a in command):
+        return command
+    return None
+
+
 def _check_identity(path: Path, saved: dict, current: dict) -> None:
     names = {"store_manifest_sha256": "the store", "scene_sha256": "the scene file",
              "camera_sha256": "the camera", "max_pass_spp": "--max-pass-spp"}

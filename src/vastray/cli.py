@@ -95,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="more log output (-vv for debug)")
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser.subcommands = sub
     commands_scene.register(sub)
     commands_render.register(sub)
     commands_data.register(sub)
@@ -176,7 +177,20 @@ def main(argv: list[str] | None = None) -> int:
 
         return node_main(rest[1:], verbose=verbose)
     parser = build_parser()
+    resumed = None
+    if rest[:1] == ["render"]:
+        resumed = _resumed_command(parser.subcommands.choices["render"], rest[1:])
+        if resumed is not None:  # the interrupted run's command, then what was typed now
+            rest = ["render", *resumed[1], *rest[1:]]
+            argv = [*argv[:len(argv) - len(rest) + len(resumed[1])], *rest]
     args = parser.parse_args(argv)  # --help and --version: argparse ignores a closed stdout
+    if args.command == "render":
+        args.argv = rest[1:]  # kept in its checkpoints, for a resume without retyping
+        if resumed is not None and not args.quiet:
+            import shlex
+
+            print(f"resuming {resumed[0]}: vastray render {shlex.join(resumed[1])}",
+                  file=sys.stderr)
     # Progress bars, log lines and summaries go to stderr: one whose reader has gone
     # (`2>&1 | head -1`, a closed terminal) must never cost the result, so they are dropped
     # from then on and the command goes on to write its outputs.
@@ -215,6 +229,42 @@ def main(argv: list[str] | None = None) -> int:
         kept = getattr(exc, "kept", None)
         _say(f"vastray {args.command}: interrupted" + (f"; {kept}" if kept else ""))
         return 130
+
+
+def _resumed_command(render: argparse.ArgumentParser, typed: list[str]
+                     ) -> tuple[str, list[str]] | None:
+    """For ``vastray render --resume CHECKPOINT`` typed without a STORE: (the checkpoint, the
+    command of the run that wrote it, as kept in it), so that what was typed now applies on
+    top of that command (``--spp 4096`` goes further) and nothing needs retyping. None
+    otherwise: no ``--resume``, a STORE typed (then the options typed are the render's), or
+    a checkpoint without a command (an older one, or not a sound one, which the render then
+    names)."""
+    takes = {option: action.nargs for action in render._actions
+             for option in action.option_strings}
+    checkpoint, i = None, 0
+    while i < len(typed):
+        token = typed[i]
+        option, eq, value = token.partition("=")
+        if token == "--":
+            return None  # a STORE follows
+        if token.startswith("-") and option in takes:
+            nargs = takes[option]
+            count = 0 if eq else (1 if nargs is None else nargs if isinstance(nargs, int)
+                                  else int(nargs == "?" and i + 1 < len(typed)
+                                           and not typed[i + 1].startswith("-")))
+            if option == "--resume":
+                checkpoint = value if eq else (typed[i + 1] if i + 1 < len(typed) else None)
+            i += 1 + count
+            continue
+        if not token.startswith("-"):
+            return None  # a STORE
+        i += 1  # an unknown option: argparse names it
+    if checkpoint is None:
+        return None
+    from vastray.checkpoint import checkpoint_command
+
+    command = checkpoint_command(checkpoint)
+    return None if command is None else (checkpoint, command)
 
 
 def _leading_verbosity(argv: list[str]) -> tuple[int, list[str]]:

@@ -20,7 +20,7 @@ from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.actors.results import recovery_lines
 from vastray.animation import check_frame_outputs, run_animation
-from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity
+from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.outputs import StagedOutputs
 from vastray.preflight import (
@@ -368,10 +368,11 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     passes.add_argument("--checkpoint", metavar="FILE",
                         help="where checkpoints go (default: -o's name + .checkpoint.npz)")
     passes.add_argument("--resume", metavar="CHECKPOINT",
-                        help="go on from a checkpoint, with the store, scene and options of "
-                             "the run that wrote it (--spp may be larger; any --nodes and "
-                             "lossless scheduler): the image is the one an uninterrupted run "
-                             "gives")
+                        help="go on from a checkpoint: `vastray render --resume FILE` alone "
+                             "runs the command that wrote it again (kept in it), with what "
+                             "else you type on top (--spp may be larger; any --nodes and "
+                             "lossless scheduler); given a STORE, it takes the options typed "
+                             "now. The image is the one an uninterrupted run gives")
 
 
 def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
@@ -864,6 +865,9 @@ def start_progression(args: argparse.Namespace, plan: RenderPlan, outputs: list[
         report["checkpoint"] = str(checkpoints.path)
         write_outputs(args, plan, outputs, snap.film, image, report)
 
+    argv = getattr(args, "argv", None)  # the CLI's arguments (the Python API has none)
+    if argv is not None:  # so that `--resume CHECKPOINT` alone goes on with them
+        identity = {**identity, "command": saved_command(argv, args.store)}
     checkpoints = Checkpointer(args.checkpoint or default_checkpoint(outputs[0]), identity,
                                args.checkpoint_every, write_partial)
     checkpoints.progression = progression
