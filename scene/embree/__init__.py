@@ -5,6 +5,9 @@ Modules
 - ``library``: finding and loading the library (the one the embreex wheel ships), its
   functions called through ctypes, Embree's constants, ``binding()`` and the fallback to
   embreex's ``run``.
+- ``probe``: the layouts the kernels hard-code (RTCRayHit, the ray query context, the filter's
+  arguments) checked against the library loaded, by tracing known rays into sentinel-padded
+  buffers, before the binding is used.
 - ``intrinsics``: Embree's query functions called by name, and raw memory access, from
   numba-compiled code (so the kernels are cached on disk).
 - ``kernels``: the serial ``nogil`` query kernels, one ray per Embree call, and the tie filter

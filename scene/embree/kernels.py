@@ -14,7 +14,8 @@ order Embree meets tied candidates in, so a domain queried directly and the same
 an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
 different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``: 16-ray
 occlusion packets through a top-level scene's instances, from two threads at once, corrupted
-the heap (``bench/README.md``, session 4), the pattern of issue 20's crashes. With the robust
+the heap (``bench/README.md``, session 4; its cause is not established: ``docs/DESIGN.md``,
+render workers), the pattern of issue 20's crashes. With the robust
 flag, 1-ray and 16-ray packet queries measured the same speed (1.7 M-triangle isosurface, one
 thread: closest hit 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23 coherent; occlusion 1.76 vs
 1.80 incoherent, 3.70 vs 3.54 coherent), so neither choice gives up packet speed.
@@ -41,11 +42,44 @@ from vastray.scene.embree.intrinsics import (
     store_i32,
 )
 
-#: float32 words of RTCRayHit (the hit's instPrimID included: 96 bytes, 16-byte aligned).
-_RAYHIT1_WORDS = 24
+# The layouts the kernels hard-code: Embree 4.3 and 4.4's public headers
+# (include/embree4/rtcore_ray.h, rtcore_common.h, rtcore_scene.h) for a library built with
+# RTC_MAX_INSTANCE_LEVEL_COUNT 1 (with or without instance arrays), as the embreex wheels are.
+# ``probe.check_layouts`` verifies every one of them against the library loaded before the
+# binding is used. Defined here, not in ``library``, so that every constant the kernels compile
+# in lives in this file (numba's cache sees changes to this file only).
+
+#: RTCRayHit as 32-bit words: RTCRay (org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time,
+#: tfar, mask, id, flags: 48 bytes), then RTCHit (Ng_x, Ng_y, Ng_z, u, v, primID, geomID,
+#: instID[1], instPrimID[1] with instance arrays).
+RAYHIT_TFAR = 8
+RAYHIT_NG = 12  # Ng_x, Ng_y, Ng_z at 12, 13, 14
+RAYHIT_U = 15
+RAYHIT_V = 16
+RAYHIT_PRIM = 17
+RAYHIT_GEOM = 18
+RAYHIT_INST = 19  # instID[0]; instPrimID[0] at 20 where the library has instance arrays
+#: float32 words of our RTCRayHit buffer (96 bytes, 16-byte aligned: rtcIntersect1's rule).
+RAYHIT_WORDS = 24
+#: Byte offsets of RTCFilterFunctionNArguments' fields: valid (int*), geometryUserPtr,
+#: context (RTCRayQueryContext*), ray (RTCRayN*), hit (RTCHitN*), N (unsigned int).
+ARG_VALID = 0
+ARG_CONTEXT = 16
+ARG_RAY = 24
+ARG_HIT = 32
+ARG_N = 40
+#: RTCRayN / RTCHitN (structures of arrays of N lanes): field k of lane i is 32-bit word
+#: k * N + i (rtcore_ray.h's RTCRayN_tfar, RTCHitN_primID, RTCHitN_instID at level 0).
+RAYN_TFAR = 8
+HITN_PRIM = 5
+HITN_INST = 7
+#: Byte offset, in the ray query context, of our per-lane records (best t: float32, its
+#: instance: int32, its primitive: int32, padding): past ``RTCRayQueryContext``'s instID[1]
+#: and instPrimID[1] (8 bytes with one instance level), with room to spare.
+CTX_RECORD = 16
+
 _INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
-#: (include/embree4/rtcore_ray.h) Defined here, not in ``library``, so that every constant the
-#: kernels compile in lives in this file (numba's cache sees changes to this file only).
+#: (include/embree4/rtcore_common.h)
 RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER = 1 << 1
 
 
@@ -71,7 +105,7 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
     f[5] = dirs[i, 1]
     f[6] = dirs[i, 2]
     f[7] = 0.0
-    f[8] = tfar[i]
+    f[RAYHIT_TFAR] = tfar[i]
     i32[9] = -1
     i32[10] = 0
     i32[11] = 0
@@ -91,27 +125,23 @@ def occluded1(scene, org, dirs, tfar_in, out):
     RTCRay part.
     """
     n = org.shape[0]
-    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
-    f = _aligned(raw, 4, _RAYHIT1_WORDS)
+    raw = np.empty(RAYHIT_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, RAYHIT_WORDS)
     i32 = f.view(np.int32)
     for i in range(n):
         _set_ray1(f, i32, org, dirs, tfar_in, i)
         rtc_occluded1(scene, f.ctypes.data, 0)
-        out[i] = f[8] < 0  # Embree sets tfar to -inf on a hit
+        out[i] = f[RAYHIT_TFAR] < 0  # Embree sets tfar to -inf on a hit
 
 
 # ---------------------------------------------------------------------------------------------
 # Closest hits: 1-ray queries whose ties an argument filter breaks by id
 # ---------------------------------------------------------------------------------------------
 
-#: Byte offset, in the ray query context, of our per-lane records (best t: float32, its
-#: instance: int32, its primitive: int32, padding): past ``RTCRayQueryContext``'s instID[1]
-#: (and instPrimID[1] where the library has instance arrays), with room to spare.
-_CTX_RECORD = 16
 _RECORD_BYTES = 16
 #: int32 words of the context buffer: Embree's 16 bytes, then one record per lane of the
 #: widest call Embree can make (16), whatever lane a call uses.
-_CTX_WORDS = (_CTX_RECORD + 16 * _RECORD_BYTES) // 4
+_CTX_WORDS = (CTX_RECORD + 16 * _RECORD_BYTES) // 4
 #: int64 words of RTCIntersectArguments: flags and feature_mask, context, filter, intersect,
 #: (minWidthDistanceFactor where built with it), spare.
 _ARGS_WORDS = 6
@@ -138,18 +168,18 @@ def _tie_filter(args):
     far is kept per lane in our part of the ray query context (16 records, one per possible
     lane: no lane indexes past it).
     """
-    valid = load_i64(args)
-    ctx = load_i64(args + 16)
-    ray = load_i64(args + 24)
-    hit = load_i64(args + 32)
-    n = min(load_i32(args + 40), 16)
+    valid = load_i64(args + ARG_VALID)
+    ctx = load_i64(args + ARG_CONTEXT)
+    ray = load_i64(args + ARG_RAY)
+    hit = load_i64(args + ARG_HIT)
+    n = min(load_i32(args + ARG_N), 16)
     for lane in range(n):
         if load_i32(valid + 4 * lane) == 0:
             continue
-        t = load_f32(ray + 4 * (8 * n + lane))
-        prim = load_i32(hit + 4 * (5 * n + lane))
-        inst = load_i32(hit + 4 * (7 * n + lane))
-        record = ctx + _CTX_RECORD + _RECORD_BYTES * lane
+        t = load_f32(ray + 4 * (RAYN_TFAR * n + lane))
+        prim = load_i32(hit + 4 * (HITN_PRIM * n + lane))
+        inst = load_i32(hit + 4 * (HITN_INST * n + lane))
+        record = ctx + CTX_RECORD + _RECORD_BYTES * lane
         best_t = load_f32(record)
         best_inst = load_i32(record + 4)
         best_prim = load_i32(record + 8)
@@ -182,8 +212,8 @@ def filter_address() -> int:
 def _store_hit(f, i32, prim, tfar, u, v, ng, i):
     """Copy ray ``i``'s hit out of an RTCRayHit buffer: tfar at word 8, then the hit's Ng_x,
     Ng_y, Ng_z, u, v, primID at words 12-17. A miss reads as primID -1, zero u, v and Ng."""
-    p = i32[17]
-    tfar[i] = f[8]
+    p = i32[RAYHIT_PRIM]
+    tfar[i] = f[RAYHIT_TFAR]
     if p == _INVALID:
         prim[i] = -1
         u[i] = 0.0
@@ -193,11 +223,11 @@ def _store_hit(f, i32, prim, tfar, u, v, ng, i):
         ng[i, 2] = 0.0
     else:
         prim[i] = p
-        ng[i, 0] = f[12]
-        ng[i, 1] = f[13]
-        ng[i, 2] = f[14]
-        u[i] = f[15]
-        v[i] = f[16]
+        ng[i, 0] = f[RAYHIT_NG]
+        ng[i, 1] = f[RAYHIT_NG + 1]
+        ng[i, 2] = f[RAYHIT_NG + 2]
+        u[i] = f[RAYHIT_U]
+        v[i] = f[RAYHIT_V]
 
 
 @njit(nogil=True, cache=True)
@@ -206,13 +236,15 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
     are (n,) each (``ng`` (n, 3)); ``inst`` receives the instance (top-level geometry id) of
     each hit, -1 for a miss or a scene without instances.
 
-    The ray, the context and the arguments Embree reads live in this call's own buffers,
-    aligned as Embree's headers declare them (RTCRayHit, RTCRayQueryContext and
-    RTCIntersectArguments: 16 bytes).
+    The ray, the context and the arguments Embree reads live in this call's own buffers, all
+    16-byte aligned: RTCRayHit must be (rtcIntersect1's manual; RTCRay is ``RTC_ALIGN(16)``),
+    RTCRayQueryContext and RTCIntersectArguments are plain structures (4- and 8-byte alignment
+    suffice). The context's first 8 bytes are Embree's (instID[0], instPrimID[0]), initialised
+    as ``rtcInitRayQueryContext`` does with one instance level.
     """
     n = org.shape[0]
-    raw = np.empty(_RAYHIT1_WORDS + 4, np.float32)
-    f = _aligned(raw, 4, _RAYHIT1_WORDS)
+    raw = np.empty(RAYHIT_WORDS + 4, np.float32)
+    f = _aligned(raw, 4, RAYHIT_WORDS)
     i32 = f.view(np.int32)
     raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
     context = _aligned(raw_context, 4, _CTX_WORDS)
@@ -227,14 +259,14 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
         arguments[1] = context.ctypes.data
         arguments[2] = filt
         _set_ray1(f, i32, org, dirs, tfar_in, i)
-        i32[17] = _INVALID  # primID
-        i32[18] = _INVALID  # geomID
-        i32[19] = _INVALID  # instID[0]
+        i32[RAYHIT_PRIM] = _INVALID
+        i32[RAYHIT_GEOM] = _INVALID
+        i32[RAYHIT_INST] = _INVALID  # instID[0]
         context[0] = _INVALID  # instID[0]
         context[1] = _INVALID  # instPrimID[0] (where present)
-        cf[_CTX_RECORD // 4] = tfar_in[i]  # lane 0's record: a 1-ray call has one lane
-        context[_CTX_RECORD // 4 + 1] = _NO_ID
-        context[_CTX_RECORD // 4 + 2] = _NO_ID
+        cf[CTX_RECORD // 4] = tfar_in[i]  # lane 0's record: a 1-ray call has one lane
+        context[CTX_RECORD // 4 + 1] = _NO_ID
+        context[CTX_RECORD // 4 + 2] = _NO_ID
         rtc_intersect1(scene, f.ctypes.data, arguments.ctypes.data)
         _store_hit(f, i32, prim, tfar, u, v, ng, i)
-        inst[i] = i32[19] if prim[i] >= 0 else -1
+        inst[i] = i32[RAYHIT_INST] if prim[i] >= 0 else -1

@@ -7,10 +7,13 @@ first used (``binding()``): the compiled kernels (``kernels``) call it by name.
 
 Fallback
 --------
-When the library cannot be found or loaded, or its major version is not 4 (the layouts and
-constants here are Embree 4's), ``binding()`` returns None after one ``EmbreeFallbackWarning``
-and ``DomainBVH`` uses embreex's ``run`` as before. ``VASTRAY_EMBREEX=1`` in the environment
-chooses embreex's ``run`` on purpose (no warning), e.g. to compare the two.
+When the library cannot be found or loaded, its version is not a tested one (Embree 4.3 or 4.4:
+the layouts and constants here are checked against their headers), or the layouts the kernels
+hard-code do not match what the library actually reads and writes (``probe.check_layouts``,
+run once at load: e.g. a build with ``RTC_MAX_INSTANCE_LEVEL_COUNT > 1``, which no device
+property reports), ``binding()`` returns None after one ``EmbreeFallbackWarning`` (one line
+naming the problem) and ``DomainBVH`` uses embreex's ``run`` as before. ``VASTRAY_EMBREEX=1``
+in the environment chooses embreex's ``run`` on purpose (no warning), e.g. to compare the two.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ from pathlib import Path
 # Embree 4 constants (include/embree4/rtcore_*.h)
 RTC_DEVICE_PROPERTY_VERSION = 0
 RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
+RTC_DEVICE_PROPERTY_VERSION_MINOR = 2
+RTC_DEVICE_PROPERTY_VERSION_PATCH = 3
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
 RTC_BUFFER_TYPE_INDEX = 0
 RTC_BUFFER_TYPE_VERTEX = 1
@@ -33,9 +38,16 @@ RTC_FORMAT_UINT3 = 0x5003
 RTC_FORMAT_FLOAT3 = 0x9003
 RTC_SCENE_FLAG_NONE = 0
 RTC_SCENE_FLAG_ROBUST = 4
+#: Required on every scene a query with an argument filter traverses, instanced ones included
+#: (rtcInitIntersectArguments' manual).
+RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS = 8
 RTC_INVALID_GEOMETRY_ID = 0xFFFFFFFF
 RTC_GEOMETRY_TYPE_INSTANCE = 121
 RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
+
+#: (major, minor) versions of Embree whose headers the layouts and constants here were checked
+#: against (``pyproject.toml`` pins embreex to the same: ``>=4.3,<4.5``).
+TESTED_VERSIONS = ((4, 3), (4, 4))
 
 
 class EmbreeFallbackWarning(RuntimeWarning):
@@ -74,6 +86,7 @@ class Api:
             "rtcGetDeviceError": (i32, [p]),
             "rtcNewScene": (p, [p]),
             "rtcSetSceneFlags": (None, [p, i32]),
+            "rtcGetSceneFlags": (i32, [p]),
             "rtcCommitScene": (None, [p]),
             "rtcRetainScene": (None, [p]),
             "rtcReleaseScene": (None, [p]),
@@ -84,6 +97,9 @@ class Api:
             "rtcReleaseGeometry": (None, [p]),
             "rtcSetGeometryInstancedScene": (None, [p, p]),
             "rtcSetGeometryTransform": (None, [p, u32, i32, p]),
+            # (the layout probe's queries; the kernels call these by name)
+            "rtcIntersect1": (None, [p, p, p]),
+            "rtcOccluded1": (None, [p, p, p]),
         }
         for name, (res, args) in sigs.items():
             fn = getattr(self.lib, name)
@@ -94,9 +110,21 @@ class Api:
             raise OSError("rtcNewDevice failed")
         self.version = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION))
         self.major = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MAJOR))
+        self.minor = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MINOR))
         if self.major != 4:
-            self.rtcReleaseDevice(self.device)
+            self.close()
             raise OSError(f"{path.name} is Embree {self.version}, not Embree 4")
+        if (self.major, self.minor) not in TESTED_VERSIONS:
+            self.close()
+            tested = ", ".join(f"{a}.{b}" for a, b in TESTED_VERSIONS)
+            raise OSError(f"{path.name} is Embree {self.version}, not a tested version "
+                          f"({tested}) whose layouts the kernels use")
+
+    def close(self) -> None:
+        """Release the device (only when the library is refused: no scene of it is left)."""
+        device, self.device = self.device, None
+        if device:
+            self.rtcReleaseDevice(device)
 
     def check(self, what: str) -> None:
         code = self.rtcGetDeviceError(self.device)
@@ -105,8 +133,18 @@ class Api:
 
 
 def _load_library() -> Api:
-    """Find, load and check the library (tests replace this to exercise the fallback)."""
-    return Api(find_library())
+    """Find, load and check the library: its version, then the layouts the kernels use,
+    against what it reads and writes (``probe.check_layouts``). Tests replace this, or the
+    probe's expectations, to exercise the fallback."""
+    from vastray.scene.embree.probe import check_layouts
+
+    api = Api(find_library())
+    try:
+        check_layouts(api)
+    except BaseException:
+        api.close()
+        raise
+    return api
 
 
 _api: Api | None = None

@@ -25,6 +25,15 @@ and occlusion; tested) except where a ray meets several triangles at exactly the
 there the tie rule (``kernels._tie_filter``) picks the lowest primitive, where embreex keeps
 whichever Embree met under its traversal order.
 
+Every Embree scene made here also has ``RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS``
+(``FILTER_FLAG``, whatever ``flags`` a ``Scene`` is given): closest hits pass the tie filter
+in their query arguments, and Embree 4's manual (``rtcInitIntersectArguments``) requires the
+flag on the scene queried and on every instanced scene. Embree 4.3/4.4's CPU 1-ray queries run
+an argument filter whenever ``RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER`` is set, flag or not;
+the flag decides which packet (4/8/16-wide) traversal a committed scene selects, the filtering
+one or the one that never calls a filter (``Scene::accels_select``). So the 1-ray results are
+the same with it, bit for bit, and a packet query with the filter would run it.
+
 Two levels
 ----------
 ``TopScene`` holds one instance (identity transform: the instanced triangles are met exactly
@@ -51,6 +60,7 @@ from vastray.scene.embree.library import (
     RTC_FORMAT_UINT3,
     RTC_GEOMETRY_TYPE_INSTANCE,
     RTC_GEOMETRY_TYPE_TRIANGLE,
+    RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS,
     RTC_SCENE_FLAG_ROBUST,
     Api,
     binding,
@@ -58,6 +68,8 @@ from vastray.scene.embree.library import (
 
 #: Scene flags of every scene built here (see the module docstring).
 SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
+#: Added to every scene's flags: the tie filter is passed in the query arguments.
+FILTER_FLAG = RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
 
 _PAGE = mmap.PAGESIZE
 
@@ -96,14 +108,14 @@ class _SceneHandle:
     _api: Api
 
     def _open(self, api: Api, flags: int) -> None:
-        """Create the (empty) Embree scene with ``flags``."""
+        """Create the (empty) Embree scene with ``flags`` and ``FILTER_FLAG``."""
         self._api = api
         self._handle_lock = threading.Lock()
         self.handle = api.rtcNewScene(api.device)
         if not self.handle:
             api.check("rtcNewScene")
             raise RuntimeError("rtcNewScene failed")
-        api.rtcSetSceneFlags(self.handle, flags)
+        api.rtcSetSceneFlags(self.handle, flags | FILTER_FLAG)
 
     def _buffers_in_use(self) -> tuple:
         """The arrays Embree reads in place (held by a query's lease)."""

@@ -1,0 +1,137 @@
+"""The layouts the compiled Embree binding hard-codes, checked against the library at load
+(``vastray.scene.embree.probe``), the refusal of a library that differs, and the scene flag
+the argument filter needs."""
+
+from __future__ import annotations
+
+import ctypes
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+from vastray.scene.bvh import DomainBVH
+from vastray.scene.embree import kernels, library, probe
+from vastray.scene.embree.scenes import FILTER_FLAG, SCENE_FLAGS, Scene, TopScene
+
+from scenes import mesh_arrays
+
+
+def _forget_binding() -> None:
+    """Forget the loaded library, so the next ``binding()`` loads (and checks) it again."""
+    with library._api_lock:
+        library._api, library._api_tried = None, False
+
+
+@pytest.fixture
+def reload_binding():
+    _forget_binding()
+    yield
+    _forget_binding()
+
+
+def _box():
+    return mesh_arrays(trimesh.creation.box(extents=[2.0, 1.0, 0.5]))
+
+
+def _refused(match: str) -> str:
+    """Load the library again: it must be refused with one warning of one line matching
+    ``match``, and a domain must fall back to embreex (and still trace)."""
+    with pytest.warns(library.EmbreeFallbackWarning, match=match) as caught:
+        assert library.binding() is None
+    messages = [str(w.message) for w in caught
+                if issubclass(w.category, library.EmbreeFallbackWarning)]
+    assert len(messages) == 1 and "\n" not in messages[0]
+    bvh = DomainBVH(0, _box())
+    assert not bvh.compiled
+    hit = bvh.intersect(np.array([[0.0, 0.0, 5.0]], np.float32),
+                        np.array([[0.0, 0.0, -1.0]], np.float32),
+                        np.array([np.inf], np.float32))
+    assert hit["primID"][0] >= 0 and np.isclose(hit["tfar"][0], 4.75)
+    return messages[0]
+
+
+def test_installed_library_passes_the_layout_check(reload_binding):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        api = library.binding()  # loads the library and runs the probe
+    assert api is not None
+    assert (api.major, api.minor) in library.TESTED_VERSIONS
+    probe.check_layouts(api)  # again, explicitly: no LayoutMismatch
+    assert DomainBVH(0, _box()).compiled
+
+
+def test_untested_version_is_refused(reload_binding, monkeypatch):
+    monkeypatch.setattr(library, "TESTED_VERSIONS", ((4, 3),))
+    message = _refused("not a tested version")
+    print(message)
+    assert "(4.3)" in message
+
+
+@pytest.mark.parametrize("name, value, problem", [
+    ("RAYHIT_PRIM", kernels.RAYHIT_PRIM + 1, "RTCRayHit word"),  # primID elsewhere
+    ("RAYHIT_TFAR", kernels.RAYHIT_TFAR + 1, "no hit"),  # Embree reads a garbage tfar
+    ("HITN_INST", kernels.HITN_INST + 1, "the filter read"),  # RTCHitN's instID elsewhere
+    ("ARG_CONTEXT", kernels.ARG_CONTEXT - 8, "RTCFilterFunctionNArguments"),
+    ("CTX_RECORD", 4, "RTCRayQueryContext"),  # our record over Embree's instance stack
+])
+def test_mismatching_layout_is_refused(reload_binding, monkeypatch, name, value, problem):
+    """The probe's expectations changed one at a time (as a library laid out otherwise would
+    differ from them): refused in one line naming the structure, then embreex."""
+    monkeypatch.setattr(kernels, name, value)
+    message = _refused("does not match the layouts the kernels use")
+    print(message)
+    assert problem in message
+
+
+class _TwoInstanceLevels(library.Api):
+    """The library, but every hit written as a build with ``RTC_MAX_INSTANCE_LEVEL_COUNT`` 2
+    (and instance arrays) writes it: instID[0], instID[1], instPrimID[0], instPrimID[1] at
+    words 19-22 of RTCRayHit, where the kernels keep their 96-byte buffer's end."""
+
+    def __init__(self, path):
+        super().__init__(path)
+        real = self.rtcIntersect1
+
+        def intersect(scene, rayhit, args):
+            real(scene, rayhit, args)
+            words = (ctypes.c_uint32 * 24).from_address(rayhit)
+            if words[kernels.RAYHIT_PRIM] != 0xFFFFFFFF:
+                words[20], words[21], words[22] = 0xFFFFFFFF, 0, 0xFFFFFFFF
+
+        self.rtcIntersect1 = intersect
+
+
+def test_wider_instance_stack_is_refused(reload_binding, monkeypatch):
+    monkeypatch.setattr(library, "Api", _TwoInstanceLevels)
+    message = _refused("RTC_MAX_INSTANCE_LEVEL_COUNT")
+    print(message)
+    assert "RTCRayHit word 20" in message
+    monkeypatch.undo()
+    _forget_binding()
+    assert library.binding() is not None  # the real one passes again
+
+
+def test_filter_flag_is_set_on_every_scene_the_filter_traverses():
+    api = library.binding()
+    assert api is not None
+    arrays = _box()
+    robust = Scene(arrays.vertices, arrays.indices)
+    fast = Scene(arrays.vertices, arrays.indices, flags=library.RTC_SCENE_FLAG_NONE)
+    top = TopScene([robust, fast], [0, 1])
+    try:
+        flags = {name: api.rtcGetSceneFlags(scene.handle)
+                 for name, scene in (("robust", robust), ("fast", fast), ("top", top))}
+        assert FILTER_FLAG == library.RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS == 1 << 3
+        assert flags == {"robust": SCENE_FLAGS | FILTER_FLAG, "fast": FILTER_FLAG,
+                         "top": SCENE_FLAGS | FILTER_FLAG}
+        # and the tie filter runs through them: closest hits as before
+        o = np.array([[0.0, 0.0, 5.0]], np.float32)
+        d = np.array([[0.0, 0.0, -1.0]], np.float32)
+        t = np.array([np.inf], np.float32)
+        assert robust.intersect(o, d, t)["primID"][0] >= 0
+        assert top.intersect(o, d, t)["id"][0] == 0
+    finally:
+        for scene in (top, robust, fast):
+            scene.close()
