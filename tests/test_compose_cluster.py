@@ -176,6 +176,9 @@ def test_the_compose_cluster_renders_the_single_process_image(engine, scene, tmp
             ranks.add(rank)
             assert all(line.startswith(f"node {rank}: ") for line in log[joined[0]:]), log
         assert ranks == set(range(NODES)), logs
+        # the coordinator is not --quiet: its log's last line says where the image went
+        said = run([client, "logs", by_service["coordinator"][0]["Id"]]).stderr
+        assert "wrote /data/out/image.exr" in said, said
     finally:
         down = run([*base, "down", "-v", "--remove-orphans", "--timeout", "5"], env=env)
     assert down.returncode == 0, down.stderr

@@ -140,6 +140,9 @@ def test_coordinator_and_nodes_share_store_keys_and_port():
     port = listen.rsplit(":", 1)[1]
     assert node[node.index("--coordinator") + 1] == f"tcp://coordinator:{port}"
     assert coordinator[coordinator.index("--keys") + 1] == node[node.index("--keys") + 1]
+    # its log (`docker-compose logs coordinator`) says where the image went and whether a
+    # frame was rendered again after a node loss: never --quiet (issue 42)
+    assert "--quiet" not in coordinator
     store = coordinator[1]
     data_mount = next(v for v in svc["node"]["volumes"] if v.endswith(":ro") and "/data" in v)
     assert store.startswith(data_mount.split(":")[1])
