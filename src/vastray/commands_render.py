@@ -755,6 +755,11 @@ def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
     if args.resume is not None and args.simplified not in (None, "none"):
         raise InputError(args.resume, "--resume is for lossless renders: --simplified keeps "
                                       "a radiance cache that is not in the checkpoint")
+    if (getattr(args, "target_error", None) is not None and not args.reference
+            and args.simplified not in (None, "none")):
+        raise InputError(None, "--target-error without --reference is for lossless renders: "
+                               "--simplified is biased, and the film's error estimate sees "
+                               "its noise, not its bias (give --reference IMAGE)")
     if args.checkpoint is not None and args.checkpoint_every is None:
         log.info("--checkpoint without --checkpoint-every: written on SIGUSR1 and Ctrl-C")
 
