@@ -64,7 +64,7 @@ META = {
 }
 
 #: Arrays a film carries, all with one row per pixel.
-FILM_FIELDS = ("sum", "sum_odd", "count", "depth", "normal")
+FILM_FIELDS = ("sum", "batch", "count", "depth", "normal")
 
 
 class ProtocolError(ValueError):

@@ -200,7 +200,7 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
             sock.plain_username, sock.plain_password = b"vastray", read_join_secret(port, 10)
             sock.connect(f"tcp://127.0.0.1:{port}")
             n = settings.width * settings.height
-            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "sum_odd": np.zeros((n, 3)),
+            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "batch": np.zeros((n, 8)),
                                           "count": np.ones(n, np.int64),
                                           "depth": np.zeros(n, np.float32),
                                           "normal": np.zeros((n, 3), np.float32)}, {"rank": 0})

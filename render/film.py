@@ -6,18 +6,29 @@ import numpy as np
 
 from vastray.render import kernels
 
-#: Bytes of film state per pixel: sum and sum_odd (3 float64 each), count, depth, normal.
-FILM_BYTES_PER_PIXEL = 24 + 24 + 8 + 4 + 12
+#: Batches of the error estimate: sample ``s`` of a pixel adds its grey radiance (the mean
+#: of its channels) to batch ``s mod BATCHES``. 8 batches give each pixel's variance 7
+#: degrees of freedom (a t quantile 2.36, not 12.7 as with 2 halves), at 64 bytes a pixel;
+#: 16 would cost 128 for 15 (2.13). Even, so the even and odd batches are the even and odd
+#: samples (the two independent halves of the relMSE denominator). DESIGN.md: "Error
+#: estimates".
+BATCHES = 8
+
+#: Bytes of film state per pixel: sum (3 float64), the batches' grey sums (BATCHES float64),
+#: count, depth, normal.
+FILM_BYTES_PER_PIXEL = 24 + 8 * BATCHES + 8 + 4 + 12
 
 
 class Film:
     """Accumulates path radiance per pixel.
 
-    Besides the sum of every sample, the film keeps the sum of the odd-numbered samples
-    (``sum_odd``): the means of the two halves (even and odd samples) differ by noise alone,
-    which estimates each pixel's variance (``variance_of_mean``). Both sums are linear in the
-    radiance, so they stay exact when the parts of one path are added on different nodes
-    (a sum of squares would square the parts, not the path).
+    Besides the sum of every sample, the film keeps per pixel ``BATCHES`` sums of grey
+    radiance (the channel mean), batch ``b`` over the samples numbered ``s`` with ``s mod
+    BATCHES == b`` (``batch``): the batch means differ by noise alone, which estimates each
+    pixel's variance (``variance_of_mean``) with ``BATCHES - 1`` degrees of freedom, and the
+    even and odd batches are two independent halves (``rel_mse_terms``). The sums are linear
+    in the radiance, so they stay exact when the parts of one path are added on different
+    nodes (a sum of squares would square the parts, not the path).
 
     Parameters
     ----------
@@ -28,7 +39,7 @@ class Film:
         self.width, self.height = width, height
         n = width * height
         self.sum = np.zeros((n, 3))  # (P, 3) float64, sum of sample radiance
-        self.sum_odd = np.zeros((n, 3))  # (P, 3) float64, sum over odd-numbered samples
+        self.batch = np.zeros((n, BATCHES))  # (P, B) float64, grey sums by sample mod B
         self.count = np.zeros(n, dtype=np.int64)  # (P,) samples added
         self.depth = np.full(n, np.inf, dtype=np.float32)  # (P,) first-hit distance, sample 0
         self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
@@ -44,8 +55,8 @@ class Film:
         radiance : (n, 3) float64 radiance of each sample's whole path.
         counted : (n,) bool, the rows that count as samples (default: all). Under domain
             decomposition several nodes add parts of one path; exactly one counts it.
-        sample : (n,) sample number of each row; the odd ones also add to ``sum_odd``
-            (default: none are odd).
+        sample : (n,) sample number of each row: its grey radiance adds to batch ``sample
+            mod BATCHES`` (default: batch 0).
         """
         if len(pixel) == 0:
             return
@@ -53,13 +64,13 @@ class Film:
         # follows the batch, not the film. Adding the zeros of other pixels changed nothing.
         lo = int(pixel.min())
         local = pixel - lo
-        kernels.film_add(self.sum, self.sum_odd, self.count, lo,
+        kernels.film_add(self.sum, self.batch, self.count, lo,
                          np.ascontiguousarray(local, np.int64),
                          np.ascontiguousarray(radiance, np.float64),
                          np.ones(len(local), np.bool_) if counted is None
                          else np.ascontiguousarray(counted, np.bool_),
-                         np.zeros(len(local), np.bool_) if sample is None
-                         else np.ascontiguousarray(sample % 2 == 1, np.bool_))
+                         np.zeros(len(local), np.int64) if sample is None
+                         else np.ascontiguousarray(np.asarray(sample) % BATCHES, np.int64))
 
     def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths,
                   counted: np.ndarray | None = None) -> None:
@@ -92,7 +103,7 @@ class Film:
         come from the one film that traced its sample 0 (the others hold inf and zeros), so
         MIN and SUM merge them exactly."""
         self.sum += other.sum
-        self.sum_odd += other.sum_odd
+        self.batch += other.batch
         self.count += other.count
         np.minimum(self.depth, other.depth, out=self.depth)
         self.normal += other.normal
@@ -108,27 +119,32 @@ class Film:
             return self._grid(mean).astype(np.float32)
 
     def variance_of_mean(self) -> np.ndarray:
-        """(H, W, 3) float64 estimated variance of each pixel's mean, from its two halves.
+        """(H, W) float64 estimated variance of each pixel's grey mean (the channel mean),
+        from its batch means.
 
-        With ``n`` samples, ``n_odd = n // 2`` of them odd-numbered: the mean of the odd
-        samples ``b`` and of the even ones ``a`` differ by noise with variance
-        ``s2 (1/n_even + 1/n_odd)``, so ``(a - b)**2 n_even n_odd / n**2`` is an unbiased
-        estimate of ``s2 / n``, the variance of the pixel's mean. It has one degree of
-        freedom per pixel: sound summed or averaged over many pixels (the image's estimated
-        relative MSE, the confidence interval of its mean), not for one pixel or a small
-        block that a few bright samples dominate (two of them, one in each half, make the
-        halves agree). NaN where a pixel has fewer than 2 samples. Samples must be numbered
-        from 0 without gaps (every render's are).
+        With ``n`` samples in ``k = min(n, BATCHES)`` non-empty batches of ``n_b`` samples
+        and means ``m_b``, ``sum_b n_b (m_b - m)**2 / ((k - 1) n)`` is an unbiased estimate
+        of ``s2 / n``, the variance of the pixel's mean (one-way ANOVA's between-batch
+        square sum has expectation ``(k - 1) s2``), with ``k - 1`` degrees of freedom. NaN
+        where a pixel has fewer than 2 samples. Samples must be numbered from 0 without gaps
+        (every render's are): the batch sizes follow from ``count``.
         """
-        return self._grid(_half_variance(self.sum, self.sum_odd, self.count[:, None]))
+        return self._grid(batch_estimates(self.batch, self.count)[1])
 
     def variance_of_mean_radiance(self) -> float:
         """Estimated variance of the image's mean radiance (over pixels and channels): the
-        per-pixel estimate of ``variance_of_mean`` on each pixel's channel mean (channels of
-        one path are correlated), summed over independent pixels / P**2. NaN below 2 spp."""
-        per_pixel = _half_variance(self.sum.mean(axis=1), self.sum_odd.mean(axis=1),
-                                   self.count)
+        per-pixel ``variance_of_mean`` (of each pixel's channel mean: channels of one path
+        are correlated) summed over independent pixels / P**2. NaN below 2 spp."""
+        per_pixel = batch_estimates(self.batch, self.count)[1]
         return float(np.sum(per_pixel) / max(len(per_pixel), 1) ** 2)
+
+    def rel_mse_terms(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per pixel (P,): ``var / (a * b + epsilon)`` (``var``: ``variance_of_mean``; ``a``,
+        ``b``: the grey means of the even and of the odd samples, independent, so ``a * b``
+        is an unbiased estimate of the squared true mean, not correlated with the noise as
+        the squared mean is), and the degrees of freedom of ``var``; NaN below 2 samples."""
+        _, var, even, odd, k = batch_estimates(self.batch, self.count, halves=True)
+        return var / (even * odd + epsilon), k - 1.0
 
     def depth_image(self) -> np.ndarray:
         return self._grid(self.depth)
@@ -137,12 +153,27 @@ class Film:
         return self._grid(self.normal)
 
 
-def _half_variance(total: np.ndarray, odd: np.ndarray, count: np.ndarray) -> np.ndarray:
-    """Variance of the mean from the sums of all and of the odd-numbered samples (``count``
-    broadcast against them); NaN below 2 samples. See ``Film.variance_of_mean``."""
+def batch_sizes(count: np.ndarray, batches: int = BATCHES) -> np.ndarray:
+    """(P, B) samples in each batch of pixels with ``count`` (P,) samples numbered from 0."""
+    b = np.arange(batches)
+    return np.maximum((count[:, None] + batches - 1 - b) // batches, 0)
+
+
+def batch_estimates(batch: np.ndarray, count: np.ndarray, halves: bool = False) -> tuple:
+    """From the batch sums (P, B) and sample counts (P,): per pixel the grey mean, the
+    estimated variance of the mean (``Film.variance_of_mean``; NaN below 2 samples) and,
+    with ``halves``, the means of the even and of the odd batches and the number of
+    non-empty batches."""
     n = count.astype(np.float64)
-    n_odd = np.floor(n / 2)
-    n_even = n - n_odd
+    sizes = batch_sizes(count, batch.shape[1]).astype(np.float64)
+    k = np.minimum(n, batch.shape[1])
     with np.errstate(invalid="ignore", divide="ignore"):
-        var = ((total - odd) / n_even - odd / n_odd) ** 2 * n_even * n_odd / n ** 2
-    return np.where(n >= 2, var, np.nan)
+        mean = batch.sum(axis=1) / n
+        means = np.where(sizes > 0, batch / np.maximum(sizes, 1), 0.0)
+        square = np.sum(sizes * (means - mean[:, None]) ** 2, axis=1)
+        var = np.where(n >= 2, square / ((k - 1) * n), np.nan)
+        if not halves:
+            return mean, var
+        even = batch[:, 0::2].sum(axis=1) / sizes[:, 0::2].sum(axis=1)
+        odd = batch[:, 1::2].sum(axis=1) / sizes[:, 1::2].sum(axis=1)
+    return mean, var, np.where(n >= 2, even, np.nan), np.where(n >= 2, odd, np.nan), k

@@ -29,6 +29,10 @@ DEFAULT_MAX_PASS_SPP = 16
 #: Two-sided 95 % quantile of the normal distribution.
 Z95 = 1.959963984540054
 
+#: One-sided risk of ``--target-error`` without a reference stopping above its target, over
+#: all the looks of one render (split evenly over its passes: Bonferroni).
+STOP_ALPHA = 0.05
+
 #: Why a render stopped (the report's ``stopped_by``).
 STOP_REASONS = ("spp", "time-limit", "target-error", "interrupted")
 
@@ -68,6 +72,53 @@ class StopRules:
         return self.time_limit is not None or self.target_error is not None
 
 
+def normal_quantile(p: float) -> float:
+    """The standard normal's ``p`` quantile (``statistics.NormalDist``)."""
+    from statistics import NormalDist
+    return NormalDist().inv_cdf(p)
+
+
+def rel_mse_estimate(film: Film, epsilon: float = REL_MSE_EPSILON) -> dict | None:
+    """The film's estimate of its own per-pixel relative MSE, without a reference (None
+    below 2 spp). DESIGN.md, "Error estimates", derives it.
+
+    Per pixel, ``t = var / (a b + ε)`` (``Film.rel_mse_terms``: the batch variance of the
+    grey mean over the product of the even and odd halves' means, independent estimates of
+    r**2). ``1/(a b)`` overestimates ``1/r**2`` by about ``4 m`` relative (``m``: the pixel's
+    relMSE; each half's mean has relative variance ``2 m``), so ``t`` is pessimistic;
+    ``c = (sqrt(1 + 16 t) - 1) / 8`` inverts ``t = m (1 + 4 m)`` (the delta method's
+    correction, optimistic where ``m`` is not small). Keys: ``estimate`` (mean of ``t``: not
+    optimistic), ``se`` (its standard error against the realised error: per pixel ``(2 + 2 /
+    dof) t**2``, the chi-square spread of the realised error and of the batch variance, over
+    independent pixels), ``ci95`` = [mean c - z se_c, mean t + z se] (the denominator's
+    second-order bias lies between the two means).
+    """
+    terms, dof = film.rel_mse_terms(epsilon)
+    ok = np.isfinite(terms)
+    if not ok.any():
+        return None
+    t = np.where(ok, terms, 0.0)
+    d = np.where(ok, dof, 1.0)
+    corrected = (np.sqrt(1.0 + 16.0 * t) - 1.0) / 8.0
+    pixels = len(t)
+    se = float(np.sqrt(np.sum((2.0 + 2.0 / d) * t ** 2)) / pixels)
+    se_c = float(np.sqrt(np.sum((2.0 + 2.0 / d) * corrected ** 2)) / pixels)
+    raw, estimate = float(np.mean(t)), float(np.mean(corrected))
+    return {"estimate": raw, "se": se,
+            "ci95": [max(estimate - Z95 * se_c, 0.0), raw + Z95 * se]}
+
+
+def stop_bound(point: dict, looks: int, alpha: float = STOP_ALPHA) -> float | None:
+    """The upper confidence bound the target-error rule compares with (no reference): the
+    raw estimate plus ``z(1 - alpha / looks)`` standard errors, one-sided, ``looks`` the
+    render's passes (Bonferroni: the chance that any look's bound is below the truth is at
+    most ``alpha``)."""
+    raw, se = point.get("estimated_rel_mse"), point.get("estimated_rel_mse_se")
+    if raw is None or se is None:
+        return None
+    return raw + normal_quantile(1.0 - alpha / max(looks, 1)) * se
+
+
 def pass_point(film: Film, index: int, seconds: float,
                reference: np.ndarray | None = None) -> dict:
     """One entry of the report's ``passes``: the film after pass ``index`` at ``seconds``.
@@ -75,10 +126,11 @@ def pass_point(film: Film, index: int, seconds: float,
     Keys: ``pass``, ``seconds``, ``spp`` (samples per pixel so far); against ``reference``
     ((H, W, 3), else None) ``mse``, ``rel_mse`` (per pixel, ``imageio.relative_mse``),
     ``rel_mse_global`` (``mse / mean(r**2)``), ``psnr_db``; from the film alone
-    ``variance_of_mean`` (the image's mean of each pixel's estimated variance of its mean),
-    ``estimated_rel_mse`` (``mean(var / (x**2 + ε))``: the relative MSE the noise alone
-    gives) and ``mean_radiance`` with ``ci95``, its 95 % confidence interval. Estimates need
-    2 samples per pixel (None before).
+    ``variance_of_mean`` (the image's mean of each pixel's estimated variance of its grey
+    mean), ``estimated_rel_mse`` (``rel_mse_estimate``: the per-pixel relative MSE, ε as
+    ``rel_mse``, the noise alone gives) with ``estimated_rel_mse_ci95`` and
+    ``estimated_rel_mse_se``, and ``mean_radiance`` with
+    ``ci95``, its 95 % confidence interval. Estimates need 2 samples per pixel (None before).
     """
     image = film.image()
     spp = int(film.count.max()) if film.count.size else 0
@@ -89,9 +141,11 @@ def pass_point(film: Film, index: int, seconds: float,
     x = image.astype(np.float64)
     mean = float(np.mean(x)) if x.size else 0.0
     var = film.variance_of_mean() if spp >= 2 else None
-    point["variance_of_mean"] = None if var is None else float(np.mean(var))
-    point["estimated_rel_mse"] = (None if var is None
-                                  else float(np.mean(var / (x ** 2 + REL_MSE_EPSILON))))
+    point["variance_of_mean"] = None if var is None else float(np.nanmean(var))
+    estimate = rel_mse_estimate(film) if spp >= 2 else None
+    point["estimated_rel_mse"] = None if estimate is None else estimate["estimate"]
+    point["estimated_rel_mse_ci95"] = None if estimate is None else estimate["ci95"]
+    point["estimated_rel_mse_se"] = None if estimate is None else estimate["se"]
     point["mean_radiance"] = mean
     spread = film.variance_of_mean_radiance() if spp >= 2 else None
     point["ci95"] = (None if spread is None else
@@ -132,6 +186,9 @@ class Progression:
     on_pass: Callable[[Progression], None] | None = None
     snapshot: Snapshot = field(init=False)
     stopped_by: str | None = field(init=False, default=None)
+    #: what the target-error rule compared with ``target_error`` when it stopped the render
+    #: (the relMSE against the reference, or the estimate's upper bound ``stop_bound``)
+    stopped_at: float | None = field(init=False, default=None)
     passes: list = field(init=False)
 
     def __post_init__(self):
@@ -187,8 +244,9 @@ class Progression:
             return self._stop("spp")
         last = self.snapshot.series[-1] if self.snapshot.series else None
         if self.rules.target_error is not None and last is not None:
-            error = last["rel_mse"] if self.reference is not None else last["estimated_rel_mse"]
+            error = last.get("stop_bound")
             if error is not None and error <= self.rules.target_error:
+                self.stopped_at = error
                 return self._stop("target-error")
         if self.rules.time_limit is not None and last is not None:
             first, stop = self.passes[done]
@@ -228,6 +286,8 @@ class Progression:
         point = pass_point(film, index, seconds, self.reference)
         first, stop = self.passes[index]
         point["pass_spp"] = stop - first
+        point["stop_bound"] = (point["rel_mse"] if self.reference is not None
+                               else stop_bound(point, len(self.passes)))
         point["pass_seconds"] = round(time.perf_counter() - (self._pass_started or 0.0), 4)
         self.snapshot = Snapshot(film, done + 1, self.snapshot.series + (point,), seconds)
         if self.on_pass is not None:
@@ -245,4 +305,16 @@ class Progression:
                 "target_error_against": (None if self.rules.target_error is None else
                                          "reference" if self.reference is not None
                                          else "estimate"),
+                "stop_rule": self.stop_rule(), "stop_bound": self.stopped_at,
                 "rel_mse_epsilon": REL_MSE_EPSILON, "passes": self.series}
+
+    def stop_rule(self) -> str | None:
+        """The target-error rule in words (None without a target)."""
+        if self.rules.target_error is None:
+            return None
+        if self.reference is not None:
+            return "rel_mse against the reference <= target_error"
+        return (f"upper {100 * (1 - STOP_ALPHA):g} % bound of the estimated relMSE "
+                f"(estimated_rel_mse + z(1 - {STOP_ALPHA:g}/{len(self.passes)}) x "
+                f"estimated_rel_mse_se: Bonferroni over the {len(self.passes)} passes) "
+                f"<= target_error")

@@ -225,11 +225,12 @@ def film_add_by_bincount(film: Film, pixel, radiance, counted, sample) -> None:
     """``Film.add`` with ``np.bincount`` over the batch's pixel run (its former numpy path)."""
     lo, hi = int(pixel.min()), int(pixel.max()) + 1
     local = pixel - lo
-    odd = sample % 2 == 1
     for c in range(3):
         film.sum[lo:hi, c] += np.bincount(local, weights=radiance[:, c], minlength=hi - lo)
-        film.sum_odd[lo:hi, c] += np.bincount(local[odd], weights=radiance[odd, c],
-                                              minlength=hi - lo)
+    grey = (radiance[:, 0] + radiance[:, 1] + radiance[:, 2]) / 3.0
+    for b in range(film.batch.shape[1]):
+        mine = sample % film.batch.shape[1] == b
+        film.batch[lo:hi, b] += np.bincount(local[mine], weights=grey[mine], minlength=hi - lo)
     film.count[lo:hi] += np.bincount(local if counted is None else local[counted],
                                      minlength=hi - lo)
 
@@ -245,10 +246,10 @@ def test_fused_film_add_equals_bincount(counting):
         pixel = rng.integers(first, min(first + 120, 37 * 11), 500)
         radiance = rng.lognormal(0.0, 4.0, (500, 3)) * rng.choice([0.0, 1.0], (500, 1))
         counted = None if counting == "all" else rng.random(500) < 0.6
-        sample = rng.integers(0, 8, 500)
+        sample = rng.integers(0, 20, 500)
         films[0].add(pixel, radiance, counted, sample)
         film_add_by_bincount(films[1], pixel, radiance, counted, sample)
-    for name in ("sum", "sum_odd", "count"):
+    for name in ("sum", "batch", "count"):
         got, want = getattr(films[0], name), getattr(films[1], name)
         assert got.any()
         np.testing.assert_array_equal(got, want)

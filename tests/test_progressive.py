@@ -112,14 +112,15 @@ def test_passes_end_with_the_image_of_one_pass(scene):
 
 
 def test_the_variance_estimate_is_unbiased_on_known_noise():
-    # Samples of known variance: the two-halves estimate averages to s2 / n over pixels,
-    # and the confidence interval of the mean covers the truth.
+    # Samples of known variance: the batch estimate of the grey mean's variance averages to
+    # s2 / 3 / n over pixels (three independent channels), and the confidence interval of
+    # the mean covers the truth.
     rng = np.random.default_rng(1)
     film = Film(100, 50)
     pixels = np.arange(100 * 50)
     for s in range(10):
         film.add(pixels, rng.normal(2.0, 3.0, (len(pixels), 3)), sample=np.full(len(pixels), s))
-    assert np.nanmean(film.variance_of_mean()) == pytest.approx(9.0 / 10, rel=0.05)
+    assert np.nanmean(film.variance_of_mean()) == pytest.approx(3.0 / 10, rel=0.05)
     assert film.variance_of_mean_radiance() == pytest.approx(3.0 / 10 / len(pixels), rel=0.1)
     one = Film(2, 1)
     one.add(np.arange(2), np.ones((2, 3)), sample=np.zeros(2, int))
@@ -174,9 +175,11 @@ def test_target_error_stops_at_the_first_pass_that_meets_it(scene, tmp_path):
     # Without a reference the film's own estimate decides.
     alone = _render(tmp_path, store, toml, "--spp", "256", "--target-error", "0.02",
                     name="alone")
-    est = [p["estimated_rel_mse"] for p in alone["passes"]]
+    bound = [p.get("stop_bound") for p in alone["passes"]]
     assert alone["stopped_by"] == "target-error" and alone["target_error_against"] == "estimate"
-    assert est[-1] <= 0.02 and all(e is None or e > 0.02 for e in est[:-1])
+    assert bound[-1] <= 0.02 and all(b is None or b > 0.02 for b in bound[:-1])
+    assert alone["stop_bound"] == bound[-1] and "Bonferroni" in alone["stop_rule"]
+    assert alone["passes"][-1]["estimated_rel_mse"] < bound[-1]
 
 
 def test_time_limit_stops_before_the_pass_that_would_overrun(scene, tmp_path):
@@ -352,9 +355,9 @@ def test_animation_frames_have_their_own_passes_and_rules(scene, tmp_path):
             frame_report = json.loads((tmp_path / "s_0001.json").read_text())
             assert frame_report["counters"]["node_failures"] == []
         for frame in frames:
-            est = [p["estimated_rel_mse"] for p in frame["passes"]]
+            bound = [p.get("stop_bound") for p in frame["passes"]]
             assert frame["stopped_by"] == "target-error", where
-            assert est[-1] <= 0.05 and all(e is None or e > 0.05 for e in est[:-1])
+            assert bound[-1] <= 0.05 and all(b is None or b > 0.05 for b in bound[:-1])
 
 
 def test_the_python_api_takes_the_stopping_rules(scene):

@@ -86,7 +86,7 @@ def test_draw_bad_messages(batch):
 
 
 def _forged_film_and_done(n: int) -> list[list]:
-    forged = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "sum_odd": np.zeros((n, 3)),
+    forged = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "batch": np.zeros((n, 8)),
                                     "count": np.ones(n, np.int64),
                                     "depth": np.zeros(n, np.float32),
                                     "normal": np.zeros((n, 3), np.float32)}, {"rank": 0})

@@ -41,11 +41,11 @@ from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3
 #: The zip comment's start; the hexadecimal SHA-256 of every byte before it follows.
 SEAL = b"vastray checkpoint sha256 "
 _DIGEST = 64  # hexadecimal characters
-FILM_ARRAYS = ("sum", "sum_odd", "count", "depth", "normal")
+FILM_ARRAYS = ("sum", "batch", "count", "depth", "normal")
 
 #: Settings that do not change the image: the spp bound (a resume may go further), the
 #: pass window and the in-core batch size.

@@ -47,20 +47,25 @@ LIMIT_BASE_MARGIN = 75_000_000
 #: its 65,536 pixels, on its own; 220 MB at the end of a CI run (as above).
 COORDINATOR_BASE_BYTES = 160_000_000
 
+#: Film bytes per pixel when the figures below were measured (before issue 41's batches): a
+#: larger film adds its growth once per copy each process holds.
+_MEASURED_FILM_BYTES = 72
+_FILM_GROWTH = FILM_BYTES_PER_PIXEL - _MEASURED_FILM_BYTES
+
 #: Bytes per pixel of the process that makes the outputs, besides the film
 #: (``FILM_BYTES_PER_PIXEL``): the image so far and its merged copy between passes, the mean
 #: and variance temporaries (float64), the float32 image, depth and normal layers and the
 #: encoder's copy. Measured: the peak grows by 179 B per pixel from 1024x1024 to 2048x2048
 #: (1 spp, 1 thread: the paths in flight stay one batch), film included.
-OUTPUT_BYTES_PER_PIXEL = 180 - FILM_BYTES_PER_PIXEL
+OUTPUT_BYTES_PER_PIXEL = 180 - _MEASURED_FILM_BYTES + 2 * _FILM_GROWTH
 
 #: Bytes per pixel of a node besides its film: the film's encoded copy sent to the
 #: coordinator. Measured: 207 B per pixel from 256x256 to 1024x1024 (2 nodes, image).
-NODE_BYTES_PER_PIXEL = 210 - FILM_BYTES_PER_PIXEL
+NODE_BYTES_PER_PIXEL = 210 - _MEASURED_FILM_BYTES + _FILM_GROWTH
 
 #: Bytes per pixel of the coordinator: the films it receives, their merge and the outputs.
 #: Measured: 240 B per pixel from 256x256 to 1024x1024 (2 nodes).
-COORDINATOR_BYTES_PER_PIXEL = 240
+COORDINATOR_BYTES_PER_PIXEL = 240 + 3 * _FILM_GROWTH
 
 #: Bytes per pixel of ``--reference``: the image read and the error computed against it.
 #: Measured: +126 B per pixel at 2048x2048 against the same render without it.
