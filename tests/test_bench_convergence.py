@@ -78,3 +78,61 @@ def test_plan_runs_the_reference_first_and_one_lossy_run():
         assert len({r.name for r in runs}) == len(runs)
     assert {r.nodes for r in quick if r.scheduler == "async"} == {1, 2, 4}
     assert len(full) == 2 + 7 * 3 + 1
+
+
+def cal_report(points, noise_free=True):
+    """A report with passes (spp, rel_mse, ci95)."""
+    return {"passes": [{"pass": -1, "spp": 0, "rel_mse": None}]
+            + [{"pass": k, "spp": spp, "rel_mse": e, "estimated_rel_mse_ci95": ci,
+                "estimated_rel_mse": None if ci is None else sum(ci) / 2}
+               for k, (spp, e, ci) in enumerate(points)]}
+
+
+def test_coverage_counts_passes_from_4_spp_against_the_true_error():
+    noise = 1e-3  # the reference's own relMSE, subtracted from every relMSE
+    rep = cal_report([(2, 0.5, [0.0, 0.1]),  # below 4 spp: not counted
+                      (4, 0.051, [0.04, 0.06]),  # true 0.05: inside
+                      (8, 0.031, [0.01, 0.02]),  # true 0.03: above (optimistic)
+                      (16, 0.006, [0.01, 0.02])])  # true 0.005: below (pessimistic)
+    assert convergence.coverage([rep], noise) == {"passes": 3, "inside": 1, "below": 1,
+                                                  "above": 1}
+    assert convergence.reference_noise(cal_report([(1, None, [1, 3]), (2, None, [2, 4])])) == 3
+
+
+def test_target_and_oracle_use_the_true_error_of_the_same_seed():
+    a = cal_report([(8, 0.02, None), (16, 0.011, None), (24, 0.007, None)])
+    b = cal_report([(8, 0.03, None), (16, 0.009, None), (24, 0.005, None)])
+    c = cal_report([(8, 0.03, None), (16, 0.013, None), (24, 0.005, None)])
+    target = convergence.choose_target([a, b, c], 0.0, at_spp=16)
+    assert target == pytest.approx(0.011)  # the median at 16 spp
+    assert convergence.oracle_spp(a, 0.0, target) == 16
+    assert convergence.oracle_spp(c, 0.0, target) == 24
+    assert convergence.oracle_spp(a, 0.0, 1e-4) is None
+    with pytest.raises(ValueError):
+        convergence.choose_target([a], 0.0, at_spp=32)
+
+
+def test_calibration_figures_and_table():
+    runs = [convergence.TargetRun(seed=s, stop_spp=stop, stopped_by="target-error",
+                                  stop_bound=0.01, true_error=e, target=0.01, oracle=o,
+                                  grey_error=g, ci95=[0.005, 0.012])
+            for s, (stop, e, o, g) in enumerate([(24, 0.008, 16, 0.007), (32, 0.009, 16, 0.02),
+                                                 (24, 0.012, 24, 0.009), (64, 0.02, None, 0.02)])]
+    cov = [{"passes": 10, "inside": 9, "below": 1, "above": 0},
+           {"passes": 10, "inside": 8, "below": 0, "above": 2}]
+    f = convergence.calibration_figures(cov, runs)
+    assert f["ci_coverage"] == pytest.approx(0.85) and f["passes"] == 20
+    assert f["target_met_share"] == pytest.approx(0.5) and f["runs"] == 4
+    assert f["spp_over_oracle"] == pytest.approx(1.5) and f["spp_over_oracle_max"] == 2.0
+    assert f["target_met_share_grey"] == pytest.approx(0.5)
+    assert f["ci_coverage_grey_at_stop"] == pytest.approx(0.5)
+    scene = convergence.CalScene("rm", None, "pt", nodes=2)
+    assert scene.args(48, 36)[:6] == ["--integrator", "pt", "--width", "48", "--height", "36"]
+    assert scene.args(48, 36)[-4:] == ["--nodes", "2", "--scheduler", "async"]
+    lines = convergence.calibration_table([(scene, cov[0], 1e-5, 0.01, runs)]).splitlines()
+    assert len(lines) == 3 and all(x.count("|") == lines[0].count("|") for x in lines)
+    assert "| 24,32,24,64 | 16,16,24,— | 1.50 (2.00) |" in lines[2]
+    f["scenes"], f["seconds"] = 1, 3.0
+    line = convergence.calibration_line(f)
+    assert "ci_coverage=0.850" in line and "target_met_share=0.500" in line
+    assert "spp_over_oracle=1.50 (max 2.00)" in line
