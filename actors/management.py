@@ -101,6 +101,7 @@ class ManagementActor:
         self.coordinator = self._dealer(coordinator, keys.coordinator_public if keys else None)
         self.coordinator_heard = time.monotonic()
         self.inbound: dict[int, zmq.asyncio.Socket] = {}  # connected to each peer, by rank
+        self._send_locks: dict[int, asyncio.Lock] = {}  # one send at a time to each peer
         self.rank, self.size = -1, 0
         self.endpoints: list[str] = []  # every node's endpoint, by rank (from the job)
         self.peer_tokens: list[bytes] = []  # the token shared with each rank (from the job)
@@ -398,19 +399,23 @@ class ManagementActor:
         """
         token = self.peer_tokens[rank]
         message = [routing_id(token), token, *frames]
-        if await self._send_now(message):
-            return
-        deadline = time.monotonic() + self.timeout
-        pause = 0.001
-        with self._waiting():  # on another node: a job whose nodes all wait is ended
-            while not await self._send_now(message):
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError(f"node {rank} took no message within "
-                                       f"{self.timeout:.0f} s (not connected to this node, or "
-                                       "not reading)")
-                await asyncio.sleep(min(pause, left))
-                pause = min(2 * pause, 0.05)
+        # one send to a peer at a time: a message retried while the peer's queue is full must
+        # not be overtaken by a later one to the same peer (each pair's messages stay in
+        # order, as on the one socket a pair had before)
+        async with self._send_locks.setdefault(rank, asyncio.Lock()):
+            if await self._send_now(message):
+                return
+            deadline = time.monotonic() + self.timeout
+            pause = 0.001
+            with self._waiting():  # on another node: a job whose nodes all wait is ended
+                while not await self._send_now(message):
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        raise TimeoutError(f"node {rank} took no message within "
+                                           f"{self.timeout:.0f} s (not connected to this "
+                                           "node, or not reading)")
+                    await asyncio.sleep(min(pause, left))
+                    pause = min(2 * pause, 0.05)
 
     async def _send_now(self, message: list) -> bool:
         """Send on the peer port if the peer can take it now (False: not connected yet, or

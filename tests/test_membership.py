@@ -195,3 +195,32 @@ async def test_with_keys_only_the_rank_a_token_names_can_speak_or_listen_with_it
         assert not await outsider.poll(300)
         assert (await nodes[1].receive(protocol.BROADCAST, "broadcast")).meta["rank"] == 0
         outsider.close(linger=0)
+
+
+async def test_a_message_retried_is_not_overtaken_by_a_later_one_to_the_same_peer():
+    # A send to a peer whose queue is full is retried; a later message to the same peer must
+    # wait for it (each pair's messages stay in order, as on the one socket a pair had before
+    # the peer sockets were reversed).
+    def partial(i):
+        return encode(protocol.REDUCE, {"x": np.zeros(1)}, {"rank": 1, "levels": i})
+
+    with member_actors(2, domains=4) as (_, _, _, nodes):
+        sender = nodes[1]
+        await sender.to_peer(0, partial(0))  # node 0 has connected
+        assert (await nodes[0].receive(protocol.REDUCE, "partial")).meta["levels"] == 0
+        first, real = partial(1), sender._send_now
+        refusals = [3]
+
+        async def full_at_first(message):  # node 0's queue is full for the first message
+            if message[2] == first[0] and refusals[0] > 0:
+                refusals[0] -= 1
+                return False
+            return await real(message)
+
+        sender._send_now = full_at_first
+        retried = asyncio.ensure_future(sender.to_peer(0, first))
+        await asyncio.sleep(0)  # it was refused and waits to try again
+        await asyncio.gather(sender.to_peer(0, partial(2)), retried)
+        got = [(await nodes[0].receive(protocol.REDUCE, "partial")).meta["levels"]
+               for _ in range(2)]
+        assert refusals == [0] and got == [1, 2]
