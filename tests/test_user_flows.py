@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from vastray.preflight import MemoryEstimate, check_memory, estimate_memory
+from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.imageio import read_exr, read_image, write_exr
 from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
@@ -109,7 +110,7 @@ def test_refused_before_any_work_with_one_line_and_no_file(store, tmp_path, case
 
 def test_memory_estimate_refuses_what_does_not_fit():
     estimate = estimate_memory(20000, 20000, 65536, 16)
-    assert estimate.film == 20000 * 20000 * 72
+    assert estimate.film == 20000 * 20000 * FILM_BYTES_PER_PIXEL  # the film's own state
     with pytest.raises(InputError, match=r"needs about .* GiB .* only 6\.3 GiB of the 7\.5 GiB "
                                          r"available may be used"):
         check_memory(estimate, 20000, 20000, available=8_000_000_000)
