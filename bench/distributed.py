@@ -29,10 +29,10 @@ import zmq
 
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
+from vastray.actors.management import routing_id
 from vastray.render.integrators import RenderSettings
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
-from vastray.actors.management import routing_id
 from vastray.transport.codec import PEER_FRAME_LIMIT, decode, encode
 from vastray.transport.security import FRAME_OVERHEAD, bound
 
@@ -103,7 +103,7 @@ def transport(n_rays: int, messages: int) -> tuple[float, float]:
                                     messages, codec))
         proc.start()
 
-        def frames():
+        def frames(codec: bool = codec) -> list:
             if not codec:
                 return raw_frames
             return [routing_id(TOKEN), TOKEN, *encode("rays", batch, {"rank": 1},

@@ -105,12 +105,14 @@ def test_the_estimate_is_the_same_however_the_film_is_split_over_nodes():
 def test_target_error_without_reference_stops_below_the_target_in_real_renders():
     # A small path-traced scene, 20 seeds: the true relMSE at the stop (against a reference
     # of 16x the cap, another seed) is at most the target in at least 95 % of runs.
-    from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
     import tempfile
     from pathlib import Path
+
     from vastray.render.driver import render
     from vastray.render.imageio import relative_mse
     from vastray.render.scene_config import parse_scene_config
+
+    from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
     target, cap = 0.05, 64
     with tempfile.TemporaryDirectory() as tmp:
         store = write_store(Path(tmp) / "kd8", bumpy_scene(), kd=8)

@@ -21,10 +21,10 @@ from vastray.actors import protocol
 from vastray.actors.attempt import pair_tokens
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.film_wire import film_frames
+from vastray.actors.management import routing_id
 from vastray.actors.node_failure import NodeFailure
 from vastray.render.film import Film
 from vastray.schedule.paths import RADIANCE_FIELDS
-from vastray.actors.management import routing_id
 from vastray.transport.codec import FRAME_LIMIT, PEER_FRAME_LIMIT, encode
 from vastray.transport.join_secret import read_join_secret
 

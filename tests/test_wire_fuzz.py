@@ -27,8 +27,8 @@ from hypothesis import strategies as st
 
 from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
-from vastray.actors.management import routing_id
 from vastray.actors.job_options import JobOptions
+from vastray.actors.management import routing_id
 from vastray.render.driver import render
 from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
