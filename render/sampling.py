@@ -50,9 +50,3 @@ def cosine_hemisphere(n: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray
     t, b = orthonormal_basis(n)
     # Unit length already (x^2 + y^2 + z^2 = 1 in an orthonormal frame): no renormalising.
     return t * x[:, None] + b * y[:, None] + n * z[:, None]
-
-
-def normalize(v: np.ndarray) -> np.ndarray:
-    """Unit vectors of the rows of ``v`` ((k, 3)); zero rows stay zero."""
-    length = np.linalg.norm(v, axis=1, keepdims=True)
-    return v / np.where(length > 0, length, 1.0)
