@@ -83,18 +83,20 @@ def test_a_doorkeeper_turns_away_connections_beyond_its_limit_and_lets_members_i
     # once they are gone, members are admitted and served: more of them at once than the
     # limit (one a member's handshake succeeded makes room for the next)
     members = []
-    for i in range(20):
-        member = ctx.socket(zmq.DEALER)
-        member.linger = 0
-        member.connect(f"tcp://127.0.0.1:{port}")
-        member.send(b"hello %d" % i)
-        members.append(member)
-    got = set()
-    while len(got) < 20 and router.poll(60_000):
-        got.add(router.recv_multipart()[1])
-    assert got == {b"hello %d" % i for i in range(20)}
-    for sock in members:
-        sock.close()
+    try:
+        for i in range(20):
+            member = ctx.socket(zmq.DEALER)
+            member.linger = 0
+            member.connect(f"tcp://127.0.0.1:{port}")
+            member.send(b"hello %d" % i)
+            members.append(member)
+        got = set()
+        while len(got) < 20 and router.poll(60_000):
+            got.add(router.recv_multipart()[1])
+        assert got == {b"hello %d" % i for i in range(20)}
+    finally:  # closed even when it fails: an unclosed socket fails the next test's set-up
+        for sock in members:
+            sock.close()
     keeper.cancel()
     router.close(linger=0)
     ctx.term()

@@ -100,13 +100,22 @@ class Doorkeeper:
             while not self._stop.is_set():
                 if not pair.poll(200):
                     continue
-                event = parse_monitor_message(pair.recv_multipart())
-                if event["event"] == zmq.EVENT_MONITOR_STOPPED:
+                # Every event queued so far, its successes counted first: a connection whose
+                # ACCEPTED is read late may have authenticated meanwhile (its success is
+                # queued behind), and turning it away then would lose what it already sent.
+                # Counting successes early never admits more than the limit of connections
+                # that have not authenticated: each one counted is a real success.
+                events = [parse_monitor_message(pair.recv_multipart())]
+                while len(events) < 1024 and pair.poll(0):
+                    events.append(parse_monitor_message(pair.recv_multipart()))
+                events.sort(key=lambda e: e["event"] != zmq.EVENT_HANDSHAKE_SUCCEEDED)
+                if any(e["event"] == zmq.EVENT_MONITOR_STOPPED for e in events):
                     break
-                try:
-                    self._take(event)
-                except Exception:  # noqa: BLE001 - keep reading: unread events pile up
-                    log.exception("%s: a monitor event could not be taken", self.where)
+                for event in events:
+                    try:
+                        self._take(event)
+                    except Exception:  # noqa: BLE001 - keep reading: unread events pile up
+                        log.exception("%s: a monitor event could not be taken", self.where)
         except zmq.ZMQError:
             pass  # the context was terminated: the process is closing its sockets
         finally:
