@@ -28,3 +28,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip)
+
+
+@pytest.fixture
+def reload_binding():
+    """The Embree binding loaded afresh for the test, and forgotten after it."""
+    from scenes import forget_binding
+
+    forget_binding()
+    yield
+    forget_binding()

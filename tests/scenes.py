@@ -255,3 +255,12 @@ def reap(procs, timeout: float = 120) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def forget_binding() -> None:
+    """Forget the loaded Embree library, so the next ``binding()`` loads (and checks, or
+    fails) again."""
+    from vastray.scene.embree import library
+
+    with library._api_lock:
+        library._api, library._api_tried = None, False

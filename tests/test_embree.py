@@ -25,7 +25,7 @@ from vastray.scene.embree.scenes import _PAGE, SCENE_FLAGS, Scene, TopScene, _pa
 from vastray.scene.store import DomainArrays
 
 from embree_hooks import buffer_pointer, compiled_functions, live_scenes
-from scenes import bumpy_scene, mesh_arrays, write_store
+from scenes import bumpy_scene, forget_binding, mesh_arrays, write_store
 
 MESHES = {
     "icosphere": lambda: trimesh.creation.icosphere(subdivisions=4),
@@ -346,19 +346,6 @@ def test_a_query_holds_its_scene_while_another_thread_closes_it(api):
                 np.testing.assert_array_equal(got, expect)
 
 
-def _forget_binding() -> None:
-    """Forget the loaded library, so the next ``binding()`` loads (or fails) again."""
-    with library._api_lock:
-        library._api, library._api_tried = None, False
-
-
-@pytest.fixture
-def reload_binding():
-    _forget_binding()
-    yield
-    _forget_binding()
-
-
 def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
     def fail():
         raise OSError("no such library")
@@ -374,7 +361,7 @@ def test_fallback_when_library_fails_to_load(reload_binding, monkeypatch):
     np.testing.assert_array_equal(got["primID"], ref["primID"])
     np.testing.assert_array_equal(bvh.occluded(origins, dirs, t_far), ref["primID"] >= 0)
     monkeypatch.undo()
-    _forget_binding()
+    forget_binding()
     assert DomainBVH(0, arrays).compiled
 
 

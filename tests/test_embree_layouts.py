@@ -15,20 +15,7 @@ from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree import kernels, library, probe
 from vastray.scene.embree.scenes import FILTER_FLAG, SCENE_FLAGS, Scene, TopScene
 
-from scenes import mesh_arrays
-
-
-def _forget_binding() -> None:
-    """Forget the loaded library, so the next ``binding()`` loads (and checks) it again."""
-    with library._api_lock:
-        library._api, library._api_tried = None, False
-
-
-@pytest.fixture
-def reload_binding():
-    _forget_binding()
-    yield
-    _forget_binding()
+from scenes import forget_binding, mesh_arrays
 
 
 def _box():
@@ -109,7 +96,7 @@ def test_wider_instance_stack_is_refused(reload_binding, monkeypatch):
     print(message)
     assert "RTCRayHit word 20" in message
     monkeypatch.undo()
-    _forget_binding()
+    forget_binding()
     assert library.binding() is not None  # the real one passes again
 
 
