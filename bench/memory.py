@@ -188,7 +188,7 @@ class Row:
 def estimate(argv: list[str]):
     """``plan_render``'s ``RenderMemory`` for ``vastray render ARGV`` (what the CLI checks)."""
     from vastray.cli import build_parser
-    from vastray.commands_render import check_and_default, plan_render
+    from vastray.planning import check_and_default, plan_render
 
     args = build_parser().parse_args(["render", *argv])
     return plan_render(args, check_and_default(args)).memory

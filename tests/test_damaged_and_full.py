@@ -64,7 +64,8 @@ def checkpoint(scene) -> bytes:
     """The bytes of a checkpoint of the 4-spp render (from which 8 spp resumes), written by
     the render command's own pieces."""
     from vastray.cli import build_parser
-    from vastray.commands_render import check_and_default, plan_render, start_progression
+    from vastray.commands_render import start_progression
+    from vastray.planning import check_and_default, plan_render
 
     root, common = scene
     args = build_parser().parse_args(["render", *common, "--spp", "4", "--quiet", "-o",

@@ -139,7 +139,7 @@ def test_compare_refuses_a_png_naming_what_it_reads(store, tmp_path, capsys):
 
 def test_more_local_nodes_than_cores_is_warned_of(store, tmp_path, monkeypatch, caplog):
     # this machine, as one whose process may use a single core
-    monkeypatch.setattr("vastray.commands_render.available_cpus", lambda: 1)
+    monkeypatch.setattr("vastray.planning.available_cpus", lambda: 1)
     assert main(["render", str(store.path), "-o", str(tmp_path / "o.exr"), *SMALL, "--nodes",
                  "2", "--quiet"]) == 0
     assert "--nodes 2 on 1 core(s): the nodes share them" in caplog.text

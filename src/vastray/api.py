@@ -23,12 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from vastray.actors.results import recovery_lines
-from vastray.commands_render import (
-    add_render_arguments,
-    check_and_default,
-    finish_render,
-    plan_render,
-)
+from vastray.commands_render import add_render_arguments
+from vastray.planning import check_and_default, finish_render, plan_render
 from vastray.render.camera import Camera
 from vastray.render.imageio import atomic_path, check_image_path, to_srgb8, write_image
 from vastray.scene.errors import InputError

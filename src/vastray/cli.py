@@ -85,7 +85,16 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from vastray import commands_data, commands_render, commands_scene, commands_sim, plot
+    from vastray import (
+        commands_compare,
+        commands_data,
+        commands_keys,
+        commands_launch,
+        commands_render,
+        commands_scene,
+        commands_sim,
+        plot,
+    )
 
     parser = Parser(
         prog="vastray", description=DESCRIPTION,
@@ -98,6 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.subcommands = sub
     commands_scene.register(sub)
     commands_render.register(sub)
+    commands_launch.register(sub)
+    commands_keys.register(sub)
+    commands_compare.register(sub)
     commands_data.register(sub)
     plot.register(sub)
     commands_sim.register(sub)

@@ -1,87 +1,48 @@
-"""``vastray render`` and ``vastray compare``."""
+"""``vastray render``: its options, and the render of a command line to files."""
 
 from __future__ import annotations
 
 import argparse
-import functools
 import logging
-import math
-import os
 import signal
 import sys
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.coordinator import render_distributed
-from vastray.actors.job_options import JobOptions
-from vastray.actors.local import render_out_of_core
 from vastray.actors.results import recovery_lines
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.outputs import StagedOutputs
+from vastray.planning import RenderPlan, check_and_default, finish_render, plan_render
 from vastray.preflight import (
-    MemoryEstimate,
-    RenderMemory,
-    cache_within,
-    check_limit_fits_machine,
-    check_memory,
     check_output_paths,
-    check_owned_fit,
-    crossings_from_surface,
-    domain_footprints,
-    estimate_memory,
     gigabytes,
-    parse_size,
-    reference_paths_in_flight,
-    speculative_copies,
 )
-from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
-from vastray.render.driver import FrameCache, RenderResult, render, store_camera
-from vastray.render.imageio import image_error, read_image, write_image, write_png
+from vastray.render.driver import RenderResult, store_camera
+from vastray.render.imageio import image_error, write_image, write_png
 from vastray.render.integrators import RenderSettings
-from vastray.render.lights import shadow_rays
-from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression, StopRules
-from vastray.render.scene_camera import with_camera
-from vastray.render.scene_config import SceneConfig, load_scene_config
-from vastray.render_job import (
-    DEFAULT_BATCH_SIZE,
-    DEFAULT_EXPOSURE,
-    DEFAULT_HEARTBEAT_TIMEOUT_S,
-    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
-    DEFAULT_NODE_TIMEOUT_S,
-    DEFAULT_SAMPLES_IN_FLIGHT,
-    job_options,
-    refuse_for_lights,
-    refuse_for_scheduler,
-    refuse_inapplicable,
+from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression
+from vastray.report import build_report, write_report
+from vastray.request import (  # noqa: F401 (BUILTIN_DEFAULTS, STORE_DEFAULTS, resolve_cache: commands_simulate's)
+    BUILTIN_DEFAULTS,
+    STORE_DEFAULTS,
+    _bandwidths,
+    _cache_size,
+    _finite_float,
+    _non_negative,
+    _portal_resolution,
+    _positive,
+    _positive_float,
+    _size,
+    resolve_cache,
 )
-from vastray.report import build_report, count_overflow, write_report
-from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
-from vastray.scene.extent import check_extent
-from vastray.scene.store import Store
-from vastray.schedule import portals
-from vastray.transport.keys import (
-    COORDINATOR_KEY,
-    NODES_DIR,
-    add_node_key,
-    generate_keys,
-    load_coordinator_keys,
-    load_node_keys,
-    node_bundle,
-    write_bundle,
-)
 
 log = logging.getLogger(__name__)
-
-#: Defaults for a user's store, and for the built-in scene (a first picture in a few seconds:
-#: larger, smoother, one bounce and two shadow rays toward the sky).
-STORE_DEFAULTS = {"width": 320, "height": 240, "spp": 4, "bounces": 3, "shadow_samples": 16}
-BUILTIN_DEFAULTS = {"width": 640, "height": 480, "spp": 8, "bounces": 1, "shadow_samples": 2}
 
 RENDER_EPILOG = """\
 examples:
@@ -115,29 +76,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     add_render_arguments(p)
     p.set_defaults(func=run_render)
-
-    launch = sub.add_parser(
-        "launch", help="render with nodes started on SSH hosts",
-        description=LAUNCH_DESCRIPTION, epilog=LAUNCH_EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    launch.add_argument("--hosts", required=True, metavar="HOSTFILE",
-                        help="one node per line: HOST [python=PATH] [slots=N]")
-    launch.add_argument("--advertise", help="address the hosts reach this machine at "
-                                            "(default: its fully qualified host name)")
-    launch.add_argument("--port", type=_positive, help="coordinator port (default: a free one)")
-    launch.add_argument("--ssh", default="ssh -o BatchMode=yes -tt",
-                        help="command that runs a command on a host (default: %(default)s)")
-    launch.add_argument("--node-keys", metavar="PATH",
-                        help="where each host holds its own bundle, a copy of "
-                             "KEYS/bundles/HOST (default: KEYS/bundles/HOST itself, on a "
-                             "disk the hosts share)")
-    launch.add_argument("--logs", default="vastray-logs",
-                        help="folder for the node logs, created if absent (default: "
-                             "%(default)s)")
-    add_render_arguments(launch)
-    launch.set_defaults(func=run_launch)
-    _register_keys_and_compare(sub)
 
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
@@ -375,411 +313,6 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                              "now. The image is the one an uninterrupted run gives")
 
 
-def _register_keys_and_compare(sub: argparse._SubParsersAction) -> None:
-    k = sub.add_parser(
-        "keys", help="make the coordinator's and the nodes' key pairs (ZeroMQ CURVE) for --keys",
-        description="Write the coordinator's key pair into a folder (once), and a key pair "
-                    "for each node named with --node, whose public key goes on the folder's "
-                    "allow-list (DIR/public), and each node's bundle, DIR/bundles/NAME: its "
-                    "own key pair and the coordinator's public key, nothing else. DIR stays "
-                    "with the coordinator; host NAME is given only DIR/bundles/NAME, so that "
-                    "once `rm DIR/public/NAME.key` shuts it out, no key it holds lets it in.",
-        epilog="examples:\n  vastray keys -o cluster-keys --node gpu01 --node gpu02\n"
-               "  scp -r cluster-keys/bundles/gpu01 gpu01:vastray-keys   # gpu02's to gpu02\n"
-               "  vastray render s.store -o o.exr --nodes 2 --listen 0.0.0.0:5555 "
-               "--keys cluster-keys\n"
-               "  vastray node --coordinator tcp://head:5555 --bind 0.0.0.0 "
-               "--keys vastray-keys   # on gpu01\n"
-               "  rm cluster-keys/public/gpu02.key   # gpu02 may join no more",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    k.add_argument("-o", "--output", required=True, help="folder to write the keys into")
-    k.add_argument("--node", action="append", metavar="NAME", default=[],
-                   help="give node NAME its own key pair and bundle and allow it in "
-                        "(repeatable)")
-    replace = k.add_mutually_exclusive_group()
-    replace.add_argument("--force", action="store_true",
-                         help="replace key pairs already in the folder (nodes holding the old "
-                              "ones can no longer join)")
-    replace.add_argument("--keep-existing", action="store_true",
-                         help="keep key pairs already in the folder and succeed (for scripts "
-                              "and docker compose that run this on every start)")
-    k.set_defaults(func=run_keys)
-
-    c = sub.add_parser(
-        "compare", help="print MSE, PSNR and max difference of two images",
-        description="Compare two images (.exr or .npy, same size).",
-        epilog="example:\n  vastray compare render.exr reference.exr",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    c.add_argument("image")
-    c.add_argument("reference")
-    c.set_defaults(func=run_compare)
-
-
-def run_keys(args: argparse.Namespace) -> int:
-    key_file = Path(args.output) / COORDINATOR_KEY
-    if key_file.exists() and (args.keep_existing or (args.node and not args.force)):
-        load_coordinator_keys(args.output)  # refuses a malformed one
-        print(key_file)
-    else:
-        print(generate_keys(args.output, args.force))
-    for name in args.node:
-        node_file = Path(args.output) / NODES_DIR / f"{name}.key"
-        if args.keep_existing and node_file.exists():
-            load_node_keys(args.output, name)
-            print(node_file)
-        else:
-            print(add_node_key(args.output, name, args.force))
-    # every node's bundle, so that all follow a replaced coordinator key
-    for node_file in sorted((Path(args.output) / NODES_DIR).glob("*.key")):
-        bundle = write_bundle(args.output, node_file.stem)
-        if node_file.stem in args.node:
-            print(bundle)
-    return 0
-
-
-def _size(text: str) -> int:
-    try:
-        return parse_size(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive(text: str) -> int:
-    value = _integer(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _portal_resolution(text: str) -> int:
-    value = _positive(text)
-    if value > portals.MAX_RESOLUTION:
-        raise argparse.ArgumentTypeError(f"at most {portals.MAX_RESOLUTION} (the paper's "
-                                         f"largest), got {value}")
-    return value
-
-
-def _cache_size(text: str) -> int | str:
-    """``N`` domains or ``P%`` of the domains (resolved once the store is open)."""
-    if text.endswith("%"):
-        value = float(text[:-1])
-        if not 0 < value <= 100:
-            raise argparse.ArgumentTypeError(f"percentage must be in (0, 100], got {text}")
-        return text
-    return _positive(text)
-
-
-def resolve_cache(cache: int | str | None, n_domains: int) -> int | None:
-    """The cache size in domains: ``P%`` of ``n_domains`` rounded up (at least 1)."""
-    if isinstance(cache, str):
-        return max(1, math.ceil(float(cache[:-1]) / 100.0 * n_domains))
-    return cache
-
-
-def _bandwidths(text: str) -> float | list[float]:
-    """``MB/s`` or a comma-separated list of them (one per rank, cycled)."""
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected MB/s numbers like 200 or 200,100; got "
-                                         f"{text!r}") from None
-    if not all(0 < v < float("inf") for v in values):
-        raise argparse.ArgumentTypeError(f"bandwidths must be positive, got {text!r}")
-    return values[0] if len(values) == 1 else values
-
-
-def _integer(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-
-
-def _non_negative(text: str) -> int:
-    value = _integer(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must not be negative, got {value}")
-    return value
-
-
-def _finite_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
-    return value
-
-
-LAUNCH_DESCRIPTION = """\
-Render on a cluster of SSH hosts: starts one `vastray node` per HOSTFILE entry with plain ssh,
-coordinates them from here, collects their logs, and closes every session when the render
-ends, fails or is interrupted. The STORE must be at the same path on every host; each node
-uses its host's own key bundle (--node-keys); traffic is CURVE-encrypted."""
-
-LAUNCH_EPILOG = """\
-example (one key per host, named as in hosts.txt; keys/ stays here, each host gets its bundle):
-  vastray keys -o keys --node gpu01 --node gpu02
-  scp -r keys/bundles/gpu01 gpu01:vastray-keys   # and gpu02's to gpu02
-  vastray launch --hosts hosts.txt /shared/rm.store -o rm.exr --keys keys \\
-      --node-keys vastray-keys --scheduler spec-ooc --cache 25%
-"""
-
-
-def run_launch(args: argparse.Namespace) -> int:
-    from vastray.actors.launch import (
-        host_key_name,
-        read_hostfile,
-        start_nodes,
-        stop_nodes,
-        this_host,
-    )
-
-    if not args.keys:
-        raise InputError(None, "launch needs --keys DIR (make them with `vastray keys -o DIR "
-                               "--node HOST ...`, one per host)")
-    for flag, given in (("--nodes", args.nodes), ("--listen", args.listen),
-                        ("--rendezvous", args.rendezvous)):
-        if given:  # launch sets them itself
-            raise InputError(None, f"launch starts one node per HOSTFILE line (slots=N for "
-                                   f"more) and listens on --port; {flag} is for `vastray "
-                                   "render`")
-    hosts = read_hostfile(args.hosts)
-    bundles = {}
-    for host in {h.name for h in hosts}:  # each host's own key, before any ssh session
-        load_node_keys(args.keys, host_key_name(host))
-        bundles[host] = args.node_keys or str(
-            node_bundle(Path(args.keys).resolve(), host_key_name(host)))
-    port = args.port or _free_port()
-    coordinator = f"tcp://{args.advertise or this_host()}:{port}"
-    started = start_nodes(hosts, coordinator, bundles, Path(args.logs),
-                          ssh=args.ssh, timeout=args.node_timeout or DEFAULT_NODE_TIMEOUT_S)
-    if not args.quiet:
-        print(f"{len(hosts)} node(s) started; their logs are in {args.logs}", file=sys.stderr)
-    args.nodes, args.listen = len(hosts), f"0.0.0.0:{port}"
-    try:
-        return run_render(args, launched=started)
-    finally:
-        stop_nodes(started)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("", 0))
-        return probe.getsockname()[1]
-
-
-def resolve_defaults(args: argparse.Namespace) -> None:
-    """Fill the options left unset with the defaults of the built-in scene or of a store (and
-    the defaults of the options ``refuse_inapplicable`` checks for presence)."""
-    defaults = BUILTIN_DEFAULTS if args.store is None else STORE_DEFAULTS
-    defaults = dict(defaults, exposure=DEFAULT_EXPOSURE,
-                    node_timeout=DEFAULT_NODE_TIMEOUT_S,
-                    heartbeat_timeout=DEFAULT_HEARTBEAT_TIMEOUT_S)
-    for key, value in defaults.items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
-
-
-@dataclass
-class RenderPlan:
-    """A render checked and ready to run, as ``vastray render`` and ``vastray.render`` (the
-    Python API) both prepare it with ``plan_render``.
-
-    Attributes
-    ----------
-    store_path : the store's folder (the built-in scene's, without a store).
-    store : the opened store.
-    config : camera, lights and materials.
-    settings : image size, integrator and sampling (defaults filled in).
-    scheduler : as resolved from ``auto``.
-    options : the job's options, as the schedulers receive them.
-    report_options : the run's switches, as its report records them (``run_options``).
-    reference : (H, W, 3) image to measure the error against, or None.
-    render_one : ``render_one(config, settings) -> RenderResult`` (``_renderer``).
-    legend : the colour bar PNGs get, or None (``png_legend``).
-    memory : the peak memory the preflight expects (``preflight.RenderMemory``).
-    """
-
-    store_path: Path
-    store: Store
-    config: SceneConfig
-    settings: RenderSettings
-    scheduler: str
-    options: JobOptions
-    report_options: dict
-    reference: np.ndarray | None
-    render_one: Callable[..., RenderResult]
-    legend: Legend | None = None
-    rules: StopRules | None = None
-    memory: RenderMemory | None = None
-
-    def progression(self, reference: np.ndarray | None = None,
-                    resumed=None) -> Progression:
-        """A fresh ``Progression`` of one image with the plan's stopping rules, measured
-        against ``reference`` (default: the plan's)."""
-        return Progression(self.settings.width, self.settings.height,
-                           self.rules or StopRules(self.settings.spp),
-                           self.reference if reference is None else reference,
-                           resumed=resumed)
-
-
-def check_and_default(args: argparse.Namespace) -> bool:
-    """Refuse the options given where they change nothing, then fill in the defaults.
-    Returns whether ``--shadow-samples`` was given (``plan_render`` needs to know)."""
-    refuse_inapplicable(args)  # before the defaults fill in what was not given
-    shadow_samples_given = args.shadow_samples is not None
-    resolve_defaults(args)
-    return shadow_samples_given
-
-
-def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
-                animating: bool = False, launched: dict | None = None,
-                store: Store | None = None, camera: dict | None = None) -> RenderPlan:
-    """Open the store and scene, refuse what cannot work, and pick the scheduler and the
-    job's options: everything before the first ray, for ``args`` as ``check_and_default``
-    left them.
-
-    Parameters
-    ----------
-    animating : an animation checks the camera (and reference) of each of its frames.
-    launched : node processes started elsewhere (``vastray launch``).
-    store : ``args.store`` already opened.
-    camera : ``[camera]`` keys replacing the scene's camera (``scene_config.with_camera``).
-
-    Raises
-    ------
-    InputError
-        Naming the file or option and the problem.
-    """
-    if args.store is None:
-        from vastray.default_scene import default_scene_config, default_store
-
-        store_path = default_store(quiet=args.quiet)
-        config = load_scene_config(args.scene) if args.scene else default_scene_config()
-    else:
-        store_path = Path(args.store)
-        config = load_scene_config(args.scene)
-    store = Store(store_path) if store is None else store
-    check_extent(store.bounds, store.path, "partition it again")
-    if camera is not None:
-        config = with_camera(config, camera)
-    config.check_objects(store.objects)
-    legend = png_legend(args, store)
-    refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
-    if not animating:  # an animation checks the camera of each of its frames
-        config.resolve_camera(*store.world_bounds, args.width, args.height)
-    reference = None
-    if isinstance(args.reference, np.ndarray):
-        reference = args.reference
-    elif args.reference and not animating:
-        reference = read_image(args.reference)
-    settings = RenderSettings(
-        width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
-        bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
-        seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
-        colormap=args.colormap,
-        color_min=args.color_range[0] if args.color_range else None,
-        color_max=args.color_range[1] if args.color_range else None,
-    )
-    if reference is not None and reference.shape != (args.height, args.width, 3):
-        where = args.reference if isinstance(args.reference, str) else "reference"
-        raise InputError(where, f"reference is {reference.shape[1]}x{reference.shape[0]}"
-                                f", the render is {args.width}x{args.height}")
-    cache = resolve_cache(args.cache, len(store.domains))
-    scheduler = args.scheduler
-    cache, memory = _check_render_memory(args, config,
-                                         "reference" if scheduler == "auto" else scheduler,
-                                         store, cache)
-    if scheduler == "auto":
-        scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
-    if args.rendezvous and not args.listen:
-        raise InputError(None, "--rendezvous FILE needs --listen HOST:PORT (the nodes it "
-                               "guides are started elsewhere)")
-    if args.keys and not args.listen:
-        raise InputError(None, "--keys is for nodes started elsewhere (--listen HOST:PORT); "
-                               "the nodes --nodes starts here join with a secret handed to "
-                               "them")
-    if args.keys:
-        load_coordinator_keys(args.keys)  # a missing or malformed key fails before the render
-    if args.log_dir and args.listen:
-        raise InputError(None, "--log-dir keeps the logs of nodes started here; nodes started "
-                               "elsewhere (--listen) keep their own (`vastray launch --logs`)")
-    if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") and not args.nodes:
-        raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
-                               "give --nodes N")
-    if args.nodes:
-        scheduler = "image" if scheduler == "reference" else scheduler
-        cores = available_cpus()
-        if not args.listen and args.nodes > cores:
-            log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
-                        "nodes render no faster here", args.nodes, cores, cores)
-    refuse_for_scheduler(args, scheduler)
-    refuse_for_passes(args, animating)
-    options = job_options(args, scheduler, cache)
-    rules = StopRules(args.spp, args.time_limit, args.target_error,
-                      args.max_pass_spp or DEFAULT_MAX_PASS_SPP)
-    return RenderPlan(store_path, store, config, settings, scheduler, options,
-                      run_options(args, options), reference,
-                      _renderer(args, store, store_path, options, launched), legend, rules,
-                      memory)
-
-
-def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
-    """Refuse checkpoint options where they cannot work.
-
-    Raises
-    ------
-    InputError
-        Naming the option and what to do instead.
-    """
-    for dest in ("checkpoint_every", "checkpoint", "resume"):
-        if getattr(args, dest, None) is not None and animating:
-            raise InputError(None, f"--{dest.replace('_', '-')} is for one image; an animation goes on "
-                                   "from a frame with --first-frame F")
-    if args.resume is not None and args.simplified not in (None, "none"):
-        raise InputError(args.resume, "--resume is for lossless renders: --simplified keeps "
-                                      "a radiance cache that is not in the checkpoint")
-    if (getattr(args, "target_error", None) is not None and not args.reference
-            and args.simplified not in (None, "none")):
-        raise InputError(None, "--target-error without --reference is for lossless renders: "
-                               "--simplified is biased, and the film's error estimate sees "
-                               "its noise, not its bias (give --reference IMAGE)")
-    if args.checkpoint is not None and args.checkpoint_every is None:
-        log.info("--checkpoint without --checkpoint-every: written on SIGUSR1 and Ctrl-C")
-
-
-def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
-                  reference_name: str | None) -> tuple[np.ndarray, dict | None, dict]:
-    """A finished render's image ((H, W, 3) as the film holds it), its error against the
-    plan's reference (or None) and its report (the dict ``--report`` writes); non-finite
-    pixels are counted (and said on stderr, naming ``where``)."""
-    image = result.film.image()
-    count_overflow(image, result.counters, where)
-    error = image_error(image, plan.reference) if plan.reference is not None else None
-    report = build_report(
-        store=str(plan.store_path), settings=asdict(plan.settings), seconds=result.seconds,
-        counters=result.counters, error=error, reference=reference_name,
-        scheduler=plan.scheduler, options=plan.report_options, progress=result.progress,
-    )
-    return image, error, report
-
-
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
     shadow_samples_given = check_and_default(args)
     animating = args.frames is not None or args.first_frame is not None
@@ -880,80 +413,6 @@ def start_progression(args: argparse.Namespace, plan: RenderPlan, outputs: list[
     return progression, checkpoints
 
 
-def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
-    """The colour bar PNGs get (None: not coloured by scalars, or not asked for: ``--legend``,
-    by default on with ``--colormap``); checks
-    the ``--colormap`` name first, so a wrong one is refused before any rendering."""
-    if args.colormap is not None:
-        colormap_lut(args.colormap)
-    by_scalars = coloured_by_scalars(store)
-    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend),
-                          ("--color-range", args.color_range is not None)):
-        if given and not by_scalars:
-            raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
-                                         " this one has " + ("per-vertex colours" if
-                                                             store.has_colors else "no scalars"))
-    if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
-        raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
-                               "-o")
-    if args.color_range is not None and not args.color_range[0] < args.color_range[1]:
-        raise InputError(None, f"--color-range LO HI needs LO < HI, got "
-                               f"{args.color_range[0]:g} {args.color_range[1]:g}")
-    wanted = args.legend if args.legend is not None else args.colormap is not None
-    return legend_for(store, args.colormap, args.color_range and tuple(args.color_range)) \
-        if wanted else None
-
-
-def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
-              launched: dict | None) -> Callable[..., RenderResult]:
-    """The job's scheduler as ``render_one(config, settings, progression=None) ->
-    RenderResult``: the image in the passes ``progression`` asks for (None: in one pass),
-    the result's ``progress`` its report. The distributed one also takes
-    ``render_distributed``'s ``frames``, ``on_frame`` and ``progression_of``."""
-    if args.nodes:
-        def render_one(config, settings, progression=None, **frames):
-            if progression is not None:
-                frames["progression_of"] = lambda frame: progression
-            return render_distributed(
-                store_path, args.scene, settings, args.nodes, options,
-                timeout=args.node_timeout, listen=args.listen,
-                keys=load_coordinator_keys(args.keys) if args.keys else None,
-                launched=launched,
-                progress=not args.quiet, config=config, rendezvous=args.rendezvous,
-                heartbeat_timeout=args.heartbeat_timeout, log_dir=node_log_dir(args),
-                **frames)
-    elif options.scheduler == "reference":
-        kept = FrameCache(store, options.cache, options.load_bytes_per_second())
-
-        def render_one(config, settings, progression=None):
-            return _with_progress(render(
-                store, config, settings, threads=options.threads, progress=not args.quiet,
-                cache=kept.for_frame(config, settings.integrator), progression=progression),
-                progression)
-    else:
-        def render_one(config, settings, progression=None):
-            return _with_progress(render_out_of_core(
-                store, config, settings, options, progress=not args.quiet,
-                progression=progression), progression)
-    return render_one
-
-
-def node_log_dir(args: argparse.Namespace) -> Path | None:
-    """Where the logs of the nodes started here are kept: ``--log-dir``, else beside
-    ``--report`` (``REPORT.nodes``; the report names it), else nowhere (removed)."""
-    if args.log_dir:
-        return Path(args.log_dir)
-    if args.report and not args.listen:
-        return Path(f"{args.report}.nodes")
-    return None
-
-
-def _with_progress(result: RenderResult, progression: Progression | None) -> RenderResult:
-    if progression is not None:
-        result.progress = progression.report()
-    return result
-
-
 def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
                  render_one: Callable[..., RenderResult]) -> Callable | None:
     """With ``--nodes``, where the distributed runtime renders several frames in one job:
@@ -963,87 +422,6 @@ def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
         return None
     return lambda frames, on_frame, progression_of=None: render_one(
         config, settings, frames=frames, on_frame=on_frame, progression_of=progression_of)
-
-
-def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
-    """The run's switches besides the scheduler, for its report (and ``vastray plot``'s
-    labels): the job's options as the schedulers receive them (defaults filled in), the node
-    count, timeouts and address, and the frames."""
-    report = options.for_report()
-    del report["scheduler"]  # the report's own "scheduler"
-    nodes = {"node_timeout_s": args.node_timeout, "heartbeat_timeout_s": args.heartbeat_timeout,
-             "listen": args.listen} if args.nodes else {}
-    return {"nodes": args.nodes, **report, **nodes, "frames": args.frames,
-            "first_frame": args.first_frame, "memory_limit": args.memory_limit}
-
-
-def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
-                         cache: int | None) -> tuple[int | None, RenderMemory]:
-    """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
-    process it starts here, less a margin for the rest of the machine); with
-    ``--memory-limit``, first bound each process's domain cache by what its base, film and
-    paths in flight leave. Returns the cache and the estimates."""
-    # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
-    rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
-        shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
-    threads = args.threads or available_cpus()
-    total = args.width * args.height * args.spp
-    footprints = domain_footprints(store.domains)
-    reference = args.reference is not None  # a file name, or an array (the Python API)
-
-    @functools.cache
-    def copies() -> float:
-        """spec-ooc's speculative copies of each shadow ray, beyond the model's own."""
-        lo, hi = store.domain_boxes()
-        return speculative_copies(
-            crossings_from_surface(lo, hi, [d.n_triangles for d in store.domains]),
-            args.bounces + 1 if args.integrator == "pt" else 1)
-
-    def process(cache: int | None) -> MemoryEstimate:
-        """One rendering process (a node with --nodes), its domains left out."""
-        if args.nodes:
-            tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
-            return estimate_memory(args.width, args.height, min(tile, total), rays_per_hit,
-                                   role="node",
-                                   copies=copies() if scheduler == "spec-ooc" else 0.0)
-        all_fit = cache is None or cache >= len(footprints)
-        if scheduler == "reference" and (all_fit or args.scheduler != "auto"):
-            in_flight = reference_paths_in_flight(total, args.batch_size or DEFAULT_BATCH_SIZE,
-                                                  threads, all_fit)
-        else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
-            in_flight = min(args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
-            if args.scheduler in ("spec-ooc", "auto"):
-                return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
-                                       reference=reference, copies=copies())
-        return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
-                               reference=reference)
-
-    if args.memory_limit is not None:
-        if not args.listen:  # the processes it bounds run here
-            check_limit_fits_machine(args.memory_limit)
-        if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
-            from vastray.schedule.ownership import zorder_owners
-
-            nodes = args.nodes or 1
-            check_owned_fit(args.memory_limit, process(cache), footprints,
-                            zorder_owners(*store.domain_boxes(), nodes), nodes)
-        else:
-            fitting = cache_within(args.memory_limit, process(cache), footprints,
-                                   args.width, args.height)
-            if fitting < len(footprints) and args.scheduler == "auto":  # becomes spec-ooc
-                fitting = cache_within(args.memory_limit, process(fitting), footprints,
-                                       args.width, args.height)
-            log.info("--memory-limit leaves room for %d domains per process", fitting)
-            cache = fitting if cache is None else min(cache, fitting)
-    held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
-    one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
-    coordinator, machine = None, one
-    if args.nodes:  # the coordinator, and every node unless they run elsewhere
-        coordinator = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
-                                      reference=reference)
-        machine = coordinator if args.listen else coordinator + one.times(args.nodes)
-    check_memory(machine, args.width, args.height)
-    return cache, RenderMemory(one, coordinator, machine)
 
 
 def summary_line(args: argparse.Namespace, result, error: dict | None,
@@ -1086,14 +464,3 @@ def ray_queries(counters: dict) -> tuple[str, int] | None:
     total = sum(int(part.get("radiance_tests", 0)) + int(part.get("shadow_tests", 0))
                 for part in parts)
     return ("ray-domain queries", total) if total else None
-
-
-def run_compare(args: argparse.Namespace) -> int:
-    image, reference = read_image(args.image), read_image(args.reference)
-    if image.shape != reference.shape:
-        raise InputError(args.image, f"size {image.shape} differs from the reference's "
-                                     f"{reference.shape}")
-    err = image_error(image, reference)
-    psnr = "inf" if err["psnr_db"] is None else f"{err['psnr_db']:.3f}"
-    print(f"mse={err['mse']:.6g} psnr_db={psnr} max_abs_diff={err['max_abs_diff']:.6g}")
-    return 0
