@@ -45,6 +45,7 @@ class RenderSetup:
         return RenderSetup(
             shading, keep, color_source,
             scalar_map(store.scalar_range, settings.colormap, settings.color_range), camera,
-            DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max())),
+            DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()),
+                           store.occupancy()),
             settings.ao_distance or default_ao_distance(store),
             settings.paths)

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vastray.scene import occupancy
 from vastray.scene.checksums import CRC32, DIGITS, PATTERNS, SHA256
 from vastray.scene.errors import InputError
 
@@ -42,10 +43,14 @@ FORMAT = "vastray-store"
 #: domain entry); 3 added ``"origin"``, the world position of the store's frame: vertices and
 #: every box of the manifest are relative to it, so float32 vertices keep their precision
 #: wherever the data sits; 4 added a CRC-32 of every array file (``"crc32"``), which every
-#: load checks (SHA-256 costs 3 to 10 times as much). Version 1 and 2 stores (frame at the world
-#: origin) and 3 (loads check the SHA-256) still open.
-VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+#: load checks (SHA-256 costs 3 to 10 times as much); 5 added each domain's occupancy mask
+#: (``"occupancy"``, :mod:`vastray.scene.occupancy`), so rays skip a domain's empty cells.
+#: Version 1 and 2 stores (frame at the world origin), 3 (loads check the SHA-256) and 4 (no
+#: masks: every cell counts as occupied) still open.
+VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
+#: The first version whose domain entries carry an occupancy mask.
+OCCUPANCY_VERSION = 5
 MANIFEST = "manifest.json"
 #: The manifest key, and the store folder, of the simplified whole-scene model (optional).
 SIMPLIFIED = "simplified"
@@ -74,6 +79,8 @@ class DomainInfo:
         in the manifest (already checked to stay inside the store).
     sha256 : kind -> hex SHA-256 of the file; empty for version 1 stores.
     crc32 : kind -> hex CRC-32 of the file; empty before version 4.
+    occupancy : (a, b, c) bool occupancy mask over the box (:mod:`vastray.scene.occupancy`);
+        None before version 5 (every cell occupied).
     """
 
     id: int
@@ -85,6 +92,7 @@ class DomainInfo:
     files: dict = field(hash=False)
     sha256: dict = field(default_factory=dict, hash=False)
     crc32: dict = field(default_factory=dict, hash=False)
+    occupancy: np.ndarray | None = field(default=None, hash=False, compare=False)
 
     @property
     def label(self) -> str:
@@ -358,9 +366,10 @@ class DomainParser:
         files = self._files(entry.get("files"), label, n_tri)
         sha = self._checksums(entry.get("sha256"), files, label)
         crc = self._crc32(entry.get(CRC32), files, label)
+        mask = self._occupancy(entry.get("occupancy"), label)
         if self.check_headers:
             check_headers(self.root, files, n_tri, n_vert, nbytes, label)
-        return DomainInfo(position, lo, hi, n_tri, n_vert, nbytes, files, sha, crc)
+        return DomainInfo(position, lo, hi, n_tri, n_vert, nbytes, files, sha, crc, mask)
 
     def _check_id(self, value, position: int) -> None:
         where = self.root.manifest
@@ -401,6 +410,16 @@ class DomainParser:
         if self.manifest["version"] < 2:
             return {}
         return checked_checksums(sha, files, label, self.root.manifest)
+
+    def _occupancy(self, value, label: str) -> np.ndarray | None:
+        """The entry's occupancy mask (version 5 on), None before."""
+        if self.manifest["version"] < OCCUPANCY_VERSION:
+            return None
+        try:
+            return occupancy.decode(value)
+        except ValueError as exc:
+            raise InputError(self.root.manifest, f"{label} 'occupancy' {exc}, found "
+                                                 f"{one_line(repr(value), 60)}; {REWRITE}") from None
 
     def _crc32(self, crc, files: dict, label: str) -> dict:
         if self.manifest["version"] < 4:

@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vastray.scene import occupancy
 from vastray.scene.checksums import CRC32, SHA256, HashingWriter, checksum_mismatch, load_check
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
@@ -73,6 +74,7 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     simplified_entry,
     totals,
 )
+from vastray.scene.occupancy import Occupancy
 
 
 @dataclass
@@ -220,6 +222,15 @@ class Store:
         if not self.domains:
             return np.zeros((0, 3)), np.zeros((0, 3))
         return np.stack([d.lo for d in self.domains]), np.stack([d.hi for d in self.domains])
+
+    def occupancy(self) -> Occupancy | None:
+        """The domains' occupancy masks for the ray-domain queries, or None: a store older
+        than format version 5 (every cell occupied), or masks turned off (``VASTRAY_OCCUPANCY``
+        set to 0, for measurements)."""
+        if not occupancy.enabled() or all(d.occupancy is None for d in self.domains):
+            return None
+        lo, hi = self.domain_boxes()
+        return Occupancy(lo, hi, [d.occupancy for d in self.domains])
 
     def domain_path(self, info: DomainInfo, kind: str) -> Path:
         """Path of a domain's ``kind`` file, checked again to stay inside the store (a symlink
@@ -489,6 +500,8 @@ class StoreWriter:
             "files": files,
             SHA256: sha256,
             CRC32: crc32,
+            "occupancy": occupancy.encode(occupancy.of_domain(
+                arrays["vertices"], arrays["indices"], box[0], box[1], nbytes)),
         })
         return did
 

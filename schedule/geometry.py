@@ -1,4 +1,10 @@
-"""Where rays meet domain boxes: the next domain along a ray, or every domain it crosses."""
+"""Where rays meet domain boxes: the next domain along a ray, or every domain it crosses.
+
+With occupancy masks (:mod:`vastray.scene.occupancy`), a domain whose box a ray enters but
+whose occupied cells it does not cross is left out of both answers: no triangle of it can be
+hit, so a schedule never queues the ray there (nor loads the domain for it). Entry distances,
+orders and ties stay those of the boxes: the masks only remove pairs.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +13,7 @@ import numpy as np
 from vastray.render import boxwalk
 from vastray.render.boxtree import BoxTree
 from vastray.render.tracer import RaySlabs, box_pad
+from vastray.scene.occupancy import Occupancy
 
 
 class DomainGeometry:
@@ -23,11 +30,15 @@ class DomainGeometry:
     lo, hi : (D, 3) domain boxes.
     nonempty : (D,) bool, domains with triangles (the others are never visited).
     origin_bound : largest |coordinate| of ray origins (scene and camera), for the box padding.
+    occupancy : the domains' occupancy masks (``Store.occupancy``), or None: every cell of
+        every box occupied.
     """
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, nonempty: np.ndarray,
-                 origin_bound: float):
+                 origin_bound: float, occupancy: Occupancy | None = None):
         self.lo, self.hi = lo, hi
+        #: The masks queries apply (None: none, or none with an empty cell).
+        self.occupancy = occupancy if occupancy is not None and occupancy.any_useful else None
         self.ids = np.nonzero(nonempty)[0]
         self.n_domains = len(lo)
         self.box_magnitude = float(max(np.abs(lo).max(initial=0), np.abs(hi).max(initial=0)))
@@ -40,30 +51,59 @@ class DomainGeometry:
                         box_pad(self.box_magnitude, self.origin_bound, origins))
 
     def next_domain(self, origins: np.ndarray, directions: np.ndarray, after_t: np.ndarray,
-                    after_d: np.ndarray, limit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The first domain after (after_t, after_d) along each ray that starts before ``limit``.
+                    after_d: np.ndarray, limit: np.ndarray, masks: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """The first domain after (after_t, after_d) along each ray that starts before ``limit``
+        (and, with ``masks``, whose occupied cells the ray crosses before ``limit``).
 
         Parameters
         ----------
         origins, directions : (n, 3) float32
         after_t, after_d : (n,) the last domain visited (-inf, -1 for none yet)
         limit : (n,) float32, the closest hit so far or the shadow ray's length
+        masks : apply the occupancy masks (False: the boxes alone).
 
         Returns
         -------
         domain : (n,) int32, -1 where there is none
-        entry : (n,) float32 its entry distance
+        entry : (n,) float32 its entry distance (the box's)
         """
-        return self.tree.first_after(self.slabs(origins, directions), after_t, after_d, limit)
+        slabs = self.slabs(origins, directions)
+        domain, entry = self.tree.first_after(slabs, after_t, after_d, limit)
+        if masks and self.occupancy is not None:
+            self._skip_empty(slabs, origins, directions, limit, domain, entry)
+        return domain, entry
 
-    def crossings(self, origins: np.ndarray, directions: np.ndarray, limit: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every (ray, domain) pair whose box the ray enters before ``limit``.
+    def _skip_empty(self, slabs: RaySlabs, origins, directions, limit, domain, entry) -> None:
+        """Replace, in place, each ray's ``domain`` (and ``entry``) whose occupied cells it does
+        not cross by the next along it that it does: the box after it in (entry, id) order,
+        tested again, until one passes or none is left. One compiled walk per round over the
+        rays still looking (a ray skips one more empty box per round)."""
+        n = len(origins)
+        limit = np.broadcast_to(np.asarray(limit), (n,))
+        rows = np.nonzero(domain >= 0)[0]
+        while len(rows):
+            passed = self.occupancy.crosses(origins, directions, rows, domain[rows], limit,
+                                            slabs.pad)
+            rows = rows[~passed]
+            if not len(rows):
+                return
+            # the same pad as the whole batch's, so the boxes' distances are the same
+            sub = RaySlabs(origins[rows], directions[rows], slabs.pad)
+            domain[rows], entry[rows] = self.tree.first_after(
+                sub, entry[rows], domain[rows], np.ascontiguousarray(limit[rows]))
+            rows = rows[domain[rows] >= 0]
+
+    def crossings(self, origins: np.ndarray, directions: np.ndarray, limit: np.ndarray,
+                  masks: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every (ray, domain) pair whose box the ray enters before ``limit`` (and, with
+        ``masks``, whose occupied cells it crosses before ``limit``).
 
         Parameters
         ----------
         origins, directions : (n, 3) float32
         limit : (n,) float32
+        masks : apply the occupancy masks (False: the boxes alone).
 
         Returns
         -------
@@ -74,6 +114,21 @@ class DomainGeometry:
         """
         n = len(origins)
         limit = np.broadcast_to(np.asarray(limit), (n,))
+        found = self._box_crossings(origins, directions, limit)
+        if not masks or self.occupancy is None:
+            return found
+        ray, domain, entry, _ = found
+        keep = self.occupancy.crosses(origins, directions, ray, domain, limit,
+                                      box_pad(self.box_magnitude, self.origin_bound, origins))
+        if keep.all():
+            return found
+        ray, domain, entry = ray[keep], domain[keep], entry[keep]
+        # ranks along each ray among the domains kept (rows stay sorted by ray)
+        rank = (np.arange(len(ray)) - np.searchsorted(ray, ray, side="left")).astype(np.int32)
+        return ray, domain, entry, rank
+
+    def _box_crossings(self, origins, directions, limit):
+        """``crossings`` of the boxes alone (``limit``: (n,))."""
         # The compiled walk compares in float32: a float64 limit takes the numpy walk.
         if self.tree.compiled and limit.dtype == np.float32:
             return self._crossings_compiled(origins, directions, limit)

@@ -90,6 +90,10 @@ class ImageSchedule:
         self.counters = {"radiance_tests": 0, "shadow_tests": 0, "rays_in_flight_peak": 0,
                          "shade_s": 0.0}
 
+    @property
+    def _portals(self) -> bool:
+        return self.simple is not None and self.simple.uses_portals
+
     # -- the driver's interface ---------------------------------------------------------------
     def start(self, rays: RadianceRays) -> None:
         """Queue the tile's camera rays."""
@@ -157,8 +161,10 @@ class ImageSchedule:
         -------
         (n,) bool, the rays with no such domain left.
         """
+        # Occupancy masks skip domains a ray cannot hit, except with portals: a ray's portal
+        # is decided between the domains it visits (``_cross_portals``), boxes included
         nxt, entry = self.geometry.next_domain(rays["origin"], rays["direction"], rays["at_t"],
-                                               rays["at_d"], limit)
+                                               rays["at_d"], limit, masks=not self._portals)
         moving = nxt >= 0
         if self.tally is not None:
             self._count_sent(rays["at_d"] if spawned_in is None else spawned_in, nxt)
@@ -275,7 +281,7 @@ class ImageSchedule:
             return rays, spawned_in
         nxt, entry = self.geometry.next_domain(
             rays["origin"][pending], rays["direction"][pending], rays["at_t"][pending],
-            rays["at_d"][pending], rays["hit_t"][pending])
+            rays["at_d"][pending], rays["hit_t"][pending], masks=False)
         crossing = pending[(nxt < 0) | (entry >= rays["portal_t"][pending])]
         if len(crossing) == 0:
             return rays, spawned_in
