@@ -9,7 +9,10 @@ every file once, so it also checks what needs the data:
 * the file holds exactly the bytes its header promises (not truncated, nothing appended);
 * every triangle index is below the domain's vertex count, every object index names an object;
 * vertices, scalars and colours are finite, and the vertices the triangles use lie inside the
-  domain's box (a ray skips a domain whose box misses its triangles).
+  domain's box (a ray skips a domain whose box misses its triangles);
+* each domain's occupancy mask (format version 5 and later) is the one its triangles give:
+  recomputed and compared, a cell holding a triangle but marked empty (rays would skip it: the
+  mask is not conservative) and a cell marked occupied that holds none are both reported.
 
 The simplified whole-scene model, when the manifest has one, gets the same checks as a domain
 (its box must also lie inside the scene bounds).
@@ -24,10 +27,12 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from vastray.scene import occupancy
 from vastray.scene.checksums import CRC32, SHA256, checksum_mismatch
 from vastray.scene.errors import InputError
 from vastray.scene.manifest import (
     ARRAYS,
+    MANIFEST,
     MAX_DOMAINS,
     REWRITE,
     DomainInfo,
@@ -209,7 +214,41 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     shape_problems = domain_problems(dom, info, root.path, n_objects)
     if shape_problems:
         return problems + shape_problems
-    return problems + value_problems(dom, info, root.path)
+    values = value_problems(dom, info, root.path)
+    if values:
+        return problems + values
+    return problems + occupancy_problems(dom, info, root.path)
+
+
+def occupancy_problems(dom: DomainArrays, info: DomainInfo, root: Path) -> list[InputError]:
+    """How a domain's occupancy mask differs from the one its triangles give (nothing for a
+    store without masks).
+
+    Parameters
+    ----------
+    dom : the domain's arrays (checked: finite, inside the box).
+    info : its manifest entry.
+    root : the store folder, to name the manifest.
+    """
+    if info.occupancy is None:
+        return []
+    stored = info.occupancy
+    truth = occupancy.compute(dom.vertices, dom.indices, info.lo, info.hi, stored.shape)
+    missing = int(np.count_nonzero(truth & ~stored))
+    extra = int(np.count_nonzero(stored & ~truth))
+    problems = []
+    grid = "x".join(map(str, stored.shape))
+    if missing:
+        problems.append(InputError(
+            root / MANIFEST,
+            f"{info.label} occupancy mask is not conservative: {missing:,} of its {grid} cells "
+            f"hold triangles but are marked empty (rays would skip them); {REWRITE}"))
+    if extra:
+        problems.append(InputError(
+            root / MANIFEST,
+            f"{info.label} occupancy mask does not match its triangles: {extra:,} of its {grid} "
+            f"cells are marked occupied but hold none; {REWRITE}"))
+    return problems
 
 
 def _checksum_problems(path: Path, data: bytes, info: DomainInfo, kind: str) -> list[InputError]:
