@@ -26,12 +26,7 @@ from pathlib import Path
 
 from vastray.actors.attempt import coordinate
 from vastray.actors.gather import Passes
-from vastray.actors.job_options import (
-    NODE_ONLY_SCHEDULERS,
-    TILE_SCHEDULERS,
-    JobOptions,
-    JobOptionsError,
-)
+from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.node_failure import NodeFailure, NodeLost
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.results import render_result
@@ -43,6 +38,7 @@ from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
+from vastray.schedule import registry
 from vastray.transport.join_secret import new_secret
 from vastray.transport.keys import CoordinatorKeys
 
@@ -120,9 +116,10 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     """
     options = JobOptions() if options is None else options
     scheduler = options.scheduler
-    if scheduler not in TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS:
+    sched = registry.find(scheduler)
+    if sched is None or not sched.runtime.on_nodes:
         raise JobOptionsError(f"--nodes runs the schedulers "
-                              f"{', '.join(TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS)}; got "
+                              f"{', '.join(registry.names(lambda s: s.runtime.on_nodes))}; got "
                               f"{scheduler!r}")
     if nodes < 1:
         raise ValueError("--nodes must be at least 1")
@@ -130,7 +127,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         options, max_samples_in_flight=options.max_samples_in_flight or DEFAULT_NODE_TILE,
         threads=options.threads or (None if listen else max(1, available_cpus() // nodes)))
     store = Store(store_path)
-    if scheduler == "temporal":
+    if sched.frame_statistics:
         from vastray.actors.temporal import check_temporal_domains
 
         check_temporal_domains(store)

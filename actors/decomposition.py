@@ -45,11 +45,11 @@ from vastray.actors.simplified_frames import finish_simplified, simplified_routi
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
+from vastray.schedule import registry
 from vastray.schedule.dynamic import image_plane_start
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
-
-MODES = ("domain", "async", "dynamic", "temporal")
+from vastray.schedule.registry import Decomposition
 
 
 async def render_owned_domains(management, options: JobOptions, rank: int, size: int, store,
@@ -59,13 +59,16 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     partial film (to be summed over nodes) and its counters. ``on_tile(paths)`` hears of the
     paths this node started, after each tile. ``state`` carries the preloader and held
     messages from one frame to the next (default: a fresh one, closed at the end)."""
-    mode = options.scheduler
+    sched = registry.spec(options.scheduler)
+    mode = sched.decomposition  # how this scheduler's frames move rays between nodes
+    if mode is None:
+        raise ValueError(f"--scheduler {sched.name} is not a domain-decomposition scheduler")
     own_state = state is None
     state = NodeState() if state is None else state
     setup = RenderSetup.of(store, config, settings)
     owner = round_robin_owners(len(store.domains), size)
     owned = int(np.count_nonzero(owner == rank))
-    if mode == "temporal":  # groups change from frame to frame: room for the largest
+    if mode is Decomposition.PLANNED:  # groups change from frame to frame: room for the largest
         owned = -(-len(store.domains) // size) + 1
     preloader = state.preloader_for(store, options.cache or max(owned, 1), setup.keep, options,
                                     rank)
@@ -80,31 +83,30 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     state.tile_base += n_tiles
     routing = simplified_routing(store, setup, options, state)
     try:
-        if mode == "async":
+        if mode is Decomposition.ASYNC:
             frame = AsyncFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
                                 base=base, status_label=state.ordinal, simple=routing,
                                 resident_first=options.resident_first)
             await frame.run()
-        elif mode == "temporal":
+        elif mode is Decomposition.PLANNED:
             frame = await _temporal_frame(node, setup, settings, store, options, rank, size, tile,
                                           film, on_tile, base, state, preloader, tree, stats,
                                           routing)
-        if mode in ("async", "temporal"):
+        if not mode.rounds:
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
             await finish_simplified(routing, tree, state, stats, rank, options.portal_memory)
-        for index, first in enumerate(range(0, total, tile) if mode in ("domain", "dynamic")
-                                      else ()):
+        for index, first in enumerate(range(0, total, tile) if mode.rounds else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                    owner=owner, rank=rank)
             mine = interleaved_paths(len(ctx.pixel), rank, size)
-            if mode == "dynamic":
+            if mode is Decomposition.RAY_WEIGHTED:
                 policy.owner = image_plane_start(len(store.domains), rank)
             node.begin_tile(base + index, policy)
             policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
-            if mode == "domain":
+            if mode is Decomposition.ROUNDS:
                 await node.rounds(policy, tree)
             else:
                 await node.dynamic(policy, tree)
@@ -134,8 +136,10 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
     from vastray.actors.temporal import TemporalFrame, frame_assignment, summed_stats
 
     previous = state.temporal_stats
-    stats["assignment"] = options.assignment or "affinity"  # the effective ones, reported
-    stats["priority"] = options.priority or "cost-rate"
+    sched = registry.spec(options.scheduler)
+    # the effective ones, reported
+    stats["assignment"] = options.assignment or sched.default_assignment
+    stats["priority"] = options.priority or sched.default_priority
     assignment = frame_assignment(stats["assignment"], store, setup.camera,
                                   settings.width, settings.height, size, previous)
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,

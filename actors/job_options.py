@@ -13,15 +13,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 
 from vastray.scene.errors import InputError
+from vastray.schedule import registry
 from vastray.schedule.portals import DEFAULT_RESOLUTION
+from vastray.schedule.registry import Option
 
 #: Rays per batch between two nodes unless told otherwise (``node_work.NodeWork``; about
 #: 6 MB of path-tracing rays).
 DEFAULT_MAX_BATCH_RAYS = 65536
-#: The schedules that choose a domain in memory before loading another (``resident_first``).
-RESIDENT_FIRST_SCHEDULERS = ("image", "spec-ooc", "async")
-#: The schedules whose nodes send each other ray batches (``max_batch_rays``).
-BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 
 #: The wire layout's version: a node refuses a job whose options carry another. 2: cold_reads,
 #: eviction; 3: portal_memory, assignment paper|affinity; 4: the same options, but dynamic's
@@ -30,14 +28,6 @@ BATCHING_SCHEDULERS = ("domain", "async", "dynamic", "temporal")
 #: settings beside these options carry color_min and color_max (``--color-range``), which a
 #: node of version 4 cannot read.
 VERSION = 5
-
-#: Schedulers a job may name: the in-core reference (one process only), the out-of-core ones
-#: (one process, or sort-first tiles on every node), and those that distribute domains over
-#: nodes (``--nodes`` only).
-IN_CORE_SCHEDULERS = ("reference",)
-TILE_SCHEDULERS = ("image", "spec-ooc")
-NODE_ONLY_SCHEDULERS = ("domain", "async", "dynamic", "spec-insitu", "temporal")
-SCHEDULERS = IN_CORE_SCHEDULERS + TILE_SCHEDULERS + NODE_ONLY_SCHEDULERS
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity")
@@ -157,9 +147,11 @@ class JobOptions:
                                   f"{self.load_bandwidth!r}")
 
     def _check_values(self) -> None:
-        if self.scheduler not in SCHEDULERS:
+        # What each scheduler accepts is declared once, in ``schedule.registry``.
+        sched = registry.find(self.scheduler)
+        if sched is None or sched.runtime is registry.Runtime.RESOLVED:
             raise JobOptionsError(f"unknown scheduler {self.scheduler!r}; choose from "
-                                  f"{', '.join(SCHEDULERS)}")
+                                  f"{', '.join(registry.JOB_SCHEDULERS)}")
         for name in ("cache", "max_samples_in_flight", "max_batch_rays", "threads",
                      "portal_interval", "portal_resolution"):
             value = getattr(self, name)
@@ -172,28 +164,31 @@ class JobOptions:
                 self.load_bandwidth and all(0 < v < float("inf") for v in self.load_bandwidth)):
             raise JobOptionsError(f"--load-bandwidth must be positive MB/s, got "
                                   f"{list(self.load_bandwidth)}")
-        if self.scheduler == "reference" and (self.max_samples_in_flight is not None
-                                              or not self.preload or self.cold_reads):
+        if ((self.max_samples_in_flight is not None
+             and not sched.accepts(Option.SAMPLES_IN_FLIGHT))
+                or (not self.preload and not sched.accepts(Option.NO_PRELOAD))
+                or (self.cold_reads and not sched.accepts(Option.COLD_READS))):
             raise JobOptionsError("--max-samples-in-flight, --no-preload and --cold-reads apply "
                                   "to the out-of-core schedulers, not to the in-core reference "
                                   "render (it loads each domain once)")
-        if not self.resident_first and self.scheduler not in RESIDENT_FIRST_SCHEDULERS:
+        if not self.resident_first and not sched.accepts(Option.RESIDENT_FIRST):
             raise JobOptionsError(f"resident_first chooses among domains in memory in the "
-                                  f"{', '.join(RESIDENT_FIRST_SCHEDULERS)} schedules; "
-                                  f"--scheduler {self.scheduler} has no such choice")
+                                  f"{', '.join(registry.accepting(Option.RESIDENT_FIRST))} "
+                                  f"schedules; --scheduler {self.scheduler} has no such choice")
         if (self.max_batch_rays != DEFAULT_MAX_BATCH_RAYS
-                and self.scheduler not in BATCHING_SCHEDULERS):
+                and not sched.accepts(Option.MAX_BATCH_RAYS)):
             raise JobOptionsError(f"max_batch_rays bounds the ray batches nodes send each other "
-                                  f"({', '.join(BATCHING_SCHEDULERS)}); --scheduler "
-                                  f"{self.scheduler} sends none")
+                                  f"({', '.join(registry.accepting(Option.MAX_BATCH_RAYS))}); "
+                                  f"--scheduler {self.scheduler} sends none")
         if self.eviction not in EVICTIONS:
             raise JobOptionsError(f"unknown --eviction {self.eviction!r}; choose from "
                                   f"{', '.join(EVICTIONS)}")
-        if self.eviction != "lru" and self.scheduler not in TILE_SCHEDULERS:
-            raise JobOptionsError(f"--eviction chooses what the {' and '.join(TILE_SCHEDULERS)} "
+        if self.eviction != "lru" and not sched.accepts(Option.EVICTION):
+            raise JobOptionsError(f"--eviction chooses what the "
+                                  f"{' and '.join(registry.accepting(Option.EVICTION))} "
                                   f"schedules evict; --scheduler {self.scheduler} has its own "
                                   "rule (drop --eviction)")
-        if self.history_depth is not None and self.scheduler != "spec-ooc":
+        if self.history_depth is not None and not sched.accepts(Option.HISTORY_DEPTH):
             raise JobOptionsError(f"--history-depth bounds spec-ooc's speculation; --scheduler "
                                   f"{self.scheduler} does not speculate (drop it or use "
                                   "--scheduler spec-ooc)")
@@ -201,8 +196,9 @@ class JobOptions:
             if self.simplified not in SIMPLIFIED_POLICIES:
                 raise JobOptionsError(f"unknown --simplified policy {self.simplified!r}; "
                                       f"choose from {', '.join(SIMPLIFIED_POLICIES)}")
-            if self.scheduler not in ("async", "temporal"):
-                raise JobOptionsError("--simplified works with --scheduler async or temporal")
+            if not sched.accepts(Option.SIMPLIFIED):
+                raise JobOptionsError("--simplified works with --scheduler "
+                                      f"{' or '.join(registry.accepting(Option.SIMPLIFIED))}")
         if self.portal_memory < 0:
             raise JobOptionsError(f"--portal-memory must not be negative, got "
                                   f"{self.portal_memory}")
@@ -218,9 +214,8 @@ class JobOptions:
         if self.priority is not None and self.priority not in PRIORITIES:
             raise JobOptionsError(f"unknown --priority {self.priority!r}; choose from "
                                   f"{', '.join(PRIORITIES)}")
-        if self.scheduler != "temporal" and (
-                self.assignment not in (None, "sequential") or self.priority is not None
-                or (self.assignment is not None and self.scheduler != "async")):
+        if ((self.assignment is not None and self.assignment not in sched.assignments)
+                or (self.priority is not None and self.priority not in sched.priorities)):
             raise JobOptionsError("--assignment and --priority choose how --scheduler temporal "
                                   "plans (async takes only --assignment sequential so far)")
 

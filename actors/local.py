@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
-from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions, JobOptionsError
+from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.render_setup import RenderSetup
 from vastray.processes import disk_read_bytes, peak_rss_bytes
@@ -33,9 +33,11 @@ from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
 from vastray.scene.store import Store
+from vastray.schedule import registry
 from vastray.schedule.belady import belady_loads
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import sort_first_tiles
+from vastray.schedule.registry import Runtime
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 log = logging.getLogger(__name__)
@@ -44,9 +46,9 @@ log = logging.getLogger(__name__)
 
 def tile_schedule(options: JobOptions, setup: RenderSetup, ctx: PathContext,
                   ablation: SpeculationRules | None = None):
-    """A tile's schedule (``ImageSchedule`` or ``SpeculativeSchedule``), as ``options`` (and
-    ``ablation``) configure it."""
-    if options.scheduler == "image":
+    """A tile's schedule (``ImageSchedule``, or ``SpeculativeSchedule`` for a scheduler that
+    speculates), as ``options`` (and ``ablation``) configure it."""
+    if not registry.spec(options.scheduler).speculates:
         return ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                              resident_first=options.resident_first)
     rules = ablation or SpeculationRules()
@@ -87,11 +89,13 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     """
     options = JobOptions() if options is None else options
     scheduler = options.scheduler
-    if scheduler not in TILE_SCHEDULERS:
-        raise JobOptionsError(f"the out-of-core runtime runs {' or '.join(TILE_SCHEDULERS)}, not "
+    sched = registry.find(scheduler)
+    if sched is None or sched.runtime is not Runtime.TILES:
+        raise JobOptionsError(f"the out-of-core runtime runs "
+                              f"{' or '.join(registry.running(Runtime.TILES))}, not "
                               f"{scheduler!r} (the domain schedulers need --nodes N; the "
                               "in-core reference is vastray.render.driver.render)")
-    if ablation is not None and scheduler != "spec-ooc":
+    if ablation is not None and not sched.speculates:
         raise JobOptionsError(f"the ablation {ablation} is of spec-ooc's rules, not {scheduler}'s")
     start = time.perf_counter()
     read_before = disk_read_bytes()
@@ -110,7 +114,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         """Trace the paths of ``ctx`` through the domains in the schedule's order."""
         policy = tile_schedule(options, setup, ctx, ablation)
         policy.start(camera_rays(setup.camera, ctx))
-        runner.run(loop.run(ScheduleOrder(policy, preloader, evicting=scheduler == "spec-ooc",
+        runner.run(loop.run(ScheduleOrder(policy, preloader, evicting=sched.evicts,
                                           by_demand=options.eviction == "demand")))
         _merge(counters, policy.counters)
         bar.update(len(ctx.pixel))

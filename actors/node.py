@@ -20,7 +20,6 @@ import zmq
 import zmq.asyncio
 
 from vastray.actors import protocol
-from vastray.actors.decomposition import MODES as DECOMPOSITION_MODES
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.film_wire import film_frames
 from vastray.actors.insitu import render_spec_insitu
@@ -32,6 +31,8 @@ from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import peak_rss_bytes
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
+from vastray.schedule import registry
+from vastray.schedule.registry import Runtime
 from vastray.transport.codec import encode
 from vastray.transport.join_secret import read_join_secret, read_secret_fd
 from vastray.transport.keys import load_node_keys
@@ -304,19 +305,39 @@ async def _granted(management, unit: int, count: int) -> int:
 
 async def render_share(management, tree, options: JobOptions, rank: int, size: int, store,
                        config, settings, report, state: NodeState):
-    """This node's partial film of one frame and its counters, by the job's scheduler."""
+    """This node's partial film of one frame and its counters, by the runtime of the job's
+    scheduler (``schedule.registry``)."""
+    # (the tile runtime refuses the others, naming the schedulers it runs)
+    runner = NODE_RUNTIMES.get(registry.spec(options.scheduler).runtime, _tiles_share)
+    return await runner(management, tree, options, rank, size, store, config, settings,
+                        report, state)
+
+
+async def _in_situ_share(management, tree, options, rank, size, store, config, settings,
+                         report, state):
+    return await render_spec_insitu(management, tree, options, rank, size, store, config,
+                                    settings, on_tile=report, state=state)
+
+
+async def _domains_share(management, tree, options, rank, size, store, config, settings,
+                         report, state):
+    return await render_owned_domains(management, options, rank, size, store, config,
+                                      settings, on_tile=report, state=state, tree=tree)
+
+
+async def _tiles_share(management, tree, options, rank, size, store, config, settings,
+                       report, state):
     from vastray.actors.local import render_out_of_core
 
-    if options.scheduler == "spec-insitu":
-        return await render_spec_insitu(management, tree, options, rank, size, store, config,
-                                        settings, on_tile=report, state=state)
-    if options.scheduler in DECOMPOSITION_MODES:
-        return await render_owned_domains(management, options, rank, size, store, config,
-                                          settings, on_tile=report, state=state, tree=tree)
     result = await asyncio.to_thread(
         render_out_of_core, store, config, settings, options, progress=False,
         share=(rank, size), on_tile=report)
     return result.film, result.counters
+
+
+#: The runner of each runtime that runs on nodes (``Runtime.on_nodes``).
+NODE_RUNTIMES = {Runtime.IN_SITU: _in_situ_share, Runtime.DOMAINS: _domains_share,
+                 Runtime.TILES: _tiles_share}
 
 
 def frame_inputs(settings, config: SceneConfig, store, frame: int | None):

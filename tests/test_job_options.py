@@ -74,11 +74,11 @@ def test_options_that_do_not_fit_the_scheduler_are_refused(options, message):
 
 
 def test_every_scheduler_that_consumes_an_option_accepts_it():
-    from vastray.actors.job_options import BATCHING_SCHEDULERS, RESIDENT_FIRST_SCHEDULERS
+    from vastray.schedule.registry import Option, accepting
 
-    for scheduler in RESIDENT_FIRST_SCHEDULERS:
+    for scheduler in accepting(Option.RESIDENT_FIRST):
         assert not JobOptions(scheduler=scheduler, resident_first=False).resident_first
-    for scheduler in BATCHING_SCHEDULERS:
+    for scheduler in accepting(Option.MAX_BATCH_RAYS):
         assert JobOptions(scheduler=scheduler, max_batch_rays=100).max_batch_rays == 100
 
 

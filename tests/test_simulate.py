@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions
+from vastray.actors.job_options import JobOptions
 from vastray.actors.node import frame_inputs
 from vastray.render.driver import render, shading_inputs
 from vastray.render.imageio import read_image
@@ -28,6 +28,7 @@ from vastray.render.scene_config import SceneConfig
 from vastray.scene.errors import InputError
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
+from vastray.schedule.registry import Runtime, running
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.clock import Deadlock, run_virtual
 from vastray.sim.cluster import Cluster
@@ -45,6 +46,8 @@ ZERO = CostModel(**{f.name: 0.0 for f in dataclasses.fields(CostModel)
 #: The trace costs (per query and per activation).
 TRACE_COSTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
                "shadow_activation_s")
+#: The schedulers that run sort-first tiles.
+TILE_SCHEDULERS = running(Runtime.TILES)
 #: The schedulers whose nodes run the node runtimes (the others run sort-first tiles).
 NODE_SCHEDULERS = tuple(s for s in SIM_SCHEDULERS if s not in TILE_SCHEDULERS)
 

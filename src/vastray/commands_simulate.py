@@ -35,7 +35,7 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
         _non_negative,
         _positive,
     )
-    from vastray.sim.simulate import SIM_SCHEDULERS
+    from vastray.schedule.registry import SIMULATE_CHOICES as SIM_SCHEDULERS
 
     s = sub.add_parser(
         "simulate", help="simulate a render on many virtual nodes (speed-ups to 1024 nodes)",

@@ -21,7 +21,7 @@ from vastray.actors.coordinator import DEFAULT_NODE_TILE
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.domain_loop import ScheduleOrder
 from vastray.actors.insitu import render_spec_insitu
-from vastray.actors.job_options import TILE_SCHEDULERS, JobOptions
+from vastray.actors.job_options import JobOptions
 from vastray.actors.local import tile_schedule
 from vastray.actors.node import SETTING_COUNTERS, accumulate_counters, frame_inputs
 from vastray.actors.ray_post import traffic_counters
@@ -34,15 +34,18 @@ from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, pass_bounds
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
+from vastray.schedule import registry
 from vastray.schedule.ownership import sort_first_tiles
+from vastray.schedule.registry import SIMULATE_CHOICES, Simulation
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.costs import CostModel
 from vastray.sim.node import SimManagement, SimNodeState, VirtualDomainLoop
 
-#: The schedulers the simulator runs (every distributed one).
-SIM_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu", "temporal")
+#: The schedulers the simulator runs (every distributed one; ``schedule.registry``'s, each
+#: with its ``simulation``).
+SIM_SCHEDULERS = SIMULATE_CHOICES
 
 
 @dataclass
@@ -114,7 +117,8 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
     domains : the store's domains built in memory (made here if None; pass one to reuse it
         over several simulations).
     """
-    if options.scheduler not in SIM_SCHEDULERS:
+    sched = registry.find(options.scheduler)
+    if sched is None or sched.simulation is None:
         raise ValueError(f"the simulator runs {', '.join(SIM_SCHEDULERS)}, not "
                          f"{options.scheduler!r}")
     if nodes < 1:
@@ -144,17 +148,18 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
 
 def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
     """Refuse (``InputError``) a simulation whose nodes' state cannot fit in this machine's
-    memory: every virtual node lives in this process, and a ``temporal`` node's frame
-    statistics hold (D, D) transmission counts, about four copies of them during the tree
-    reduce."""
-    if scheduler != "temporal":
+    memory: every virtual node lives in this process, and the frame statistics of a scheduler
+    that keeps them (``temporal``) hold (D, D) transmission counts, about four copies of them
+    during the tree reduce."""
+    sched = registry.spec(scheduler)
+    if not sched.frame_statistics:
         return
     need = 4 * 8 * n_domains ** 2 * nodes
     memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     if need > memory / 2:
-        raise InputError(None, f"temporal on {nodes} virtual nodes of {n_domains} domains needs "
-                               f"about {need / 2 ** 30:.0f} GiB for the nodes' frame statistics "
-                               f"((D, D) per node) and this machine has "
+        raise InputError(None, f"{sched.name} on {nodes} virtual nodes of {n_domains} domains "
+                               f"needs about {need / 2 ** 30:.0f} GiB for the nodes' frame "
+                               "statistics ((D, D) per node) and this machine has "
                                f"{memory / 2 ** 30:.0f} GiB: simulate fewer nodes or a store of "
                                "fewer domains")
 
@@ -205,15 +210,28 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
 async def _share(cluster, management, tree, options, rank, size, store, config, settings,
                  state):
     """This node's partial film of one unit and its counters (``actors.node.render_share``
-    with the sort-first schedulers on virtual time)."""
-    if options.scheduler == "spec-insitu":
-        return await render_spec_insitu(management, tree, options, rank, size, store, config,
-                                        settings, state=state)
-    if options.scheduler in TILE_SCHEDULERS:
-        return await _sort_first(cluster, options, rank, size, store, config, settings,
-                                 state.domains)
+    with the sort-first schedulers on virtual time), as the scheduler's ``simulation`` says."""
+    runner = SIMULATION_RUNNERS[registry.spec(options.scheduler).simulation]
+    return await runner(cluster, management, tree, options, rank, size, store, config,
+                        settings, state)
+
+
+async def _in_situ_share(cluster, management, tree, options, rank, size, store, config,
+                         settings, state):
+    return await render_spec_insitu(management, tree, options, rank, size, store, config,
+                                    settings, state=state)
+
+
+async def _domains_share(cluster, management, tree, options, rank, size, store, config,
+                         settings, state):
     return await render_owned_domains(management, options, rank, size, store, config,
                                       settings, state=state, tree=tree)
+
+
+async def _sort_first_share(cluster, management, tree, options, rank, size, store, config,
+                            settings, state):
+    return await _sort_first(cluster, options, rank, size, store, config, settings,
+                             state.domains)
 
 
 async def _sort_first(cluster, options, rank, size, store, config, settings, domains):
@@ -235,12 +253,17 @@ async def _sort_first(cluster, options, rank, size, store, config, settings, dom
         policy = tile_schedule(options, setup, ctx)
         policy.start(camera_rays(setup.camera, ctx))
         await loop.run(ScheduleOrder(policy, preloader,
-                                     evicting=options.scheduler == "spec-ooc",
+                                     evicting=registry.spec(options.scheduler).evicts,
                                      by_demand=options.eviction == "demand"))
         film.add_paths(ctx.pixel, ctx.sample, policy.result)
     stats.update({k: v for k, v in preloader.stats().items() if k in ("loads", "preloads",
                                                                       "bytes_loaded")})
     return film, stats
+
+
+#: The runner of each ``Simulation`` (``_share`` dispatches on the scheduler's).
+SIMULATION_RUNNERS = {Simulation.SORT_FIRST: _sort_first_share, Simulation.DOMAINS: _domains_share,
+                      Simulation.IN_SITU: _in_situ_share}
 
 
 def _summed(parts: list[dict]) -> dict:
