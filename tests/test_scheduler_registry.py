@@ -268,8 +268,3 @@ def test_no_scheduler_name_is_compared_outside_the_registry():
             found += [f"{relative}: {line}" for line in offences(path.read_text())]
     assert not found, ("scheduler names compared outside schedule/registry.py (read the "
                        "scheduler's attributes instead):\n" + "\n".join(found))
-
-
-def test_the_allowed_files_exist():
-    for relative in ALLOWED:
-        assert (ROOT / relative).exists(), f"{relative} is gone: drop it from ALLOWED"
