@@ -215,9 +215,9 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     if shape_problems:
         return problems + shape_problems
     values = value_problems(dom, info, root.path)
-    if values:
+    if problems or values:  # (a changed file's mask differs as a consequence: not reported)
         return problems + values
-    return problems + occupancy_problems(dom, info, root.path)
+    return occupancy_problems(dom, info, root.path)
 
 
 def occupancy_problems(dom: DomainArrays, info: DomainInfo, root: Path) -> list[InputError]:
