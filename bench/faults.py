@@ -58,6 +58,7 @@ from vastray.actors import protocol
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.processes import proc_bytes
+from vastray.render.film import BATCHES, CHANNELS
 from vastray.render.integrators import RenderSettings
 from vastray.scene.partition import partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter
@@ -200,7 +201,8 @@ def storm_run(store, toml, settings, scheduler, fault: str | None,
             sock.plain_username, sock.plain_password = b"vastray", read_join_secret(port, 10)
             sock.connect(f"tcp://127.0.0.1:{port}")
             n = settings.width * settings.height
-            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "batch": np.zeros((n, 8)),
+            film = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6),
+                                          "batch": np.zeros((n, BATCHES, CHANNELS)),
                                           "count": np.ones(n, np.int64),
                                           "depth": np.zeros(n, np.float32),
                                           "normal": np.zeros((n, 3), np.float32)}, {"rank": 0})

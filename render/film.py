@@ -6,26 +6,30 @@ import numpy as np
 
 from vastray.render import kernels
 
-#: Batches of the error estimate: sample ``s`` of a pixel adds its grey radiance (the mean
-#: of its channels) to batch ``s mod BATCHES``. 8 batches give each pixel's variance 7
-#: degrees of freedom (a t quantile 2.36, not 12.7 as with 2 halves), at 64 bytes a pixel;
-#: 16 would cost 128 for 15 (2.13). Even, so the even and odd batches are the even and odd
-#: samples (the two independent halves of the relMSE denominator). DESIGN.md: "Error
-#: estimates".
+#: Batches of the error estimate: sample ``s`` of a pixel adds its radiance (each colour
+#: channel apart) to batch ``s mod BATCHES``. 8 batches give each pixel's variance 7
+#: degrees of freedom (a t quantile 2.36, not 12.7 as with 2 halves), at 192 bytes a pixel
+#: (8 batches x 3 channels, float64); 16 would cost 384 for 15 (2.13). Even, so the even and
+#: odd batches are the even and odd samples (the two independent halves of the relMSE
+#: denominator). DESIGN.md: "Error estimates".
 BATCHES = 8
 
-#: Bytes of film state per pixel: sum (3 float64), the batches' grey sums (BATCHES float64),
-#: count, depth, normal.
-FILM_BYTES_PER_PIXEL = 24 + 8 * BATCHES + 8 + 4 + 12
+#: Colour channels of each batch sum: the estimate is of the per-channel relMSE, the metric
+#: ``imageio.relative_mse`` measures (a grey estimate is optimistic on coloured pixels).
+CHANNELS = 3
+
+#: Bytes of film state per pixel: sum (3 float64), the batches' colour sums (BATCHES x
+#: CHANNELS float64), count, depth, normal.
+FILM_BYTES_PER_PIXEL = 24 + 8 * BATCHES * CHANNELS + 8 + 4 + 12
 
 
 class Film:
     """Accumulates path radiance per pixel.
 
-    Besides the sum of every sample, the film keeps per pixel ``BATCHES`` sums of grey
-    radiance (the channel mean), batch ``b`` over the samples numbered ``s`` with ``s mod
-    BATCHES == b`` (``batch``): the batch means differ by noise alone, which estimates each
-    pixel's variance (``variance_of_mean``) with ``BATCHES - 1`` degrees of freedom, and the
+    Besides the sum of every sample, the film keeps per pixel ``BATCHES`` sums of radiance
+    per colour channel, batch ``b`` over the samples numbered ``s`` with ``s mod BATCHES ==
+    b`` (``batch``): the batch means differ by noise alone, which estimates each pixel's and
+    channel's variance (``variance_of_mean``) with ``BATCHES - 1`` degrees of freedom, and the
     even and odd batches are two independent halves (``rel_mse_terms``). The sums are linear
     in the radiance, so they stay exact when the parts of one path are added on different
     nodes (a sum of squares would square the parts, not the path).
@@ -39,7 +43,8 @@ class Film:
         self.width, self.height = width, height
         n = width * height
         self.sum = np.zeros((n, 3))  # (P, 3) float64, sum of sample radiance
-        self.batch = np.zeros((n, BATCHES))  # (P, B) float64, grey sums by sample mod B
+        # (P, B, 3) float64, colour sums by sample mod B
+        self.batch = np.zeros((n, BATCHES, CHANNELS))
         self.count = np.zeros(n, dtype=np.int64)  # (P,) samples added
         self.depth = np.full(n, np.inf, dtype=np.float32)  # (P,) first-hit distance, sample 0
         self.normal = np.zeros((n, 3), dtype=np.float32)  # (P, 3) first-hit facing normal
@@ -55,8 +60,8 @@ class Film:
         radiance : (n, 3) float64 radiance of each sample's whole path.
         counted : (n,) bool, the rows that count as samples (default: all). Under domain
             decomposition several nodes add parts of one path; exactly one counts it.
-        sample : (n,) sample number of each row: its grey radiance adds to batch ``sample
-            mod BATCHES`` (default: batch 0).
+        sample : (n,) sample number of each row: its radiance adds to batch ``sample mod
+            BATCHES`` (default: batch 0).
         """
         if len(pixel) == 0:
             return
@@ -119,8 +124,8 @@ class Film:
             return self._grid(mean).astype(np.float32)
 
     def variance_of_mean(self) -> np.ndarray:
-        """(H, W) float64 estimated variance of each pixel's grey mean (the channel mean),
-        from its batch means.
+        """(H, W, 3) float64 estimated variance of each pixel's mean per colour channel, from
+        its batch means.
 
         With ``n`` samples in ``k = min(n, BATCHES)`` non-empty batches of ``n_b`` samples
         and means ``m_b``, ``sum_b n_b (m_b - m)**2 / ((k - 1) n)`` is an unbiased estimate
@@ -133,16 +138,19 @@ class Film:
 
     def variance_of_mean_radiance(self) -> float:
         """Estimated variance of the image's mean radiance (over pixels and channels): the
-        per-pixel ``variance_of_mean`` (of each pixel's channel mean: channels of one path
-        are correlated) summed over independent pixels / P**2. NaN below 2 spp."""
-        per_pixel = batch_estimates(self.batch, self.count)[1]
+        variance of each pixel's channel mean (channels of one path are correlated: from the
+        batches' channel means) summed over independent pixels / P**2. NaN below 2 spp."""
+        grey = self.batch.sum(axis=2) / CHANNELS
+        per_pixel = batch_estimates(grey, self.count)[1]
         return float(np.sum(per_pixel) / max(len(per_pixel), 1) ** 2)
 
     def rel_mse_terms(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
-        """Per pixel (P,): ``var / (a * b + epsilon)`` (``var``: ``variance_of_mean``; ``a``,
-        ``b``: the grey means of the even and of the odd samples, independent, so ``a * b``
-        is an unbiased estimate of the squared true mean, not correlated with the noise as
-        the squared mean is), and the degrees of freedom of ``var``; NaN below 2 samples."""
+        """Per pixel and channel (P, 3): ``var / (a * b + epsilon)`` (``var``:
+        ``variance_of_mean``; ``a``, ``b``: the channel's means of the even and of the odd
+        samples, independent, so ``a * b`` is an unbiased estimate of the squared true mean,
+        not correlated with the noise as the squared mean is), and per pixel (P,) the
+        degrees of freedom of ``var``; NaN below 2 samples. Their mean over pixels and
+        channels estimates ``imageio.relative_mse``, term for term."""
         _, var, even, odd, k = batch_estimates(self.batch, self.count, halves=True)
         return var / (even * odd + epsilon), k - 1.0
 
@@ -160,20 +168,27 @@ def batch_sizes(count: np.ndarray, batches: int = BATCHES) -> np.ndarray:
 
 
 def batch_estimates(batch: np.ndarray, count: np.ndarray, halves: bool = False) -> tuple:
-    """From the batch sums (P, B) and sample counts (P,): per pixel the grey mean, the
-    estimated variance of the mean (``Film.variance_of_mean``; NaN below 2 samples) and,
-    with ``halves``, the means of the even and of the odd batches and the number of
-    non-empty batches."""
+    """From the batch sums (P, B) or (P, B, C) (C channels) and sample counts (P,): per
+    pixel (and channel) the mean, the estimated variance of the mean
+    (``Film.variance_of_mean``; NaN below 2 samples) and, with ``halves``, the means of the
+    even and of the odd batches and per pixel (P,) the number of non-empty batches."""
     n = count.astype(np.float64)
     sizes = batch_sizes(count, batch.shape[1]).astype(np.float64)
     k = np.minimum(n, batch.shape[1])
+    # per-pixel figures broadcast over the channels, if any; one batch at a time, so the
+    # temporaries are of one batch's size, not of all of them (preflight counts film copies)
+    extra = (None,) * (batch.ndim - 2)
+    n_, k_ = n[(slice(None), *extra)], k[(slice(None), *extra)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean = batch.sum(axis=1) / n
-        means = np.where(sizes > 0, batch / np.maximum(sizes, 1), 0.0)
-        square = np.sum(sizes * (means - mean[:, None]) ** 2, axis=1)
-        var = np.where(n >= 2, square / ((k - 1) * n), np.nan)
+        mean = batch.sum(axis=1) / n_
+        square = np.zeros_like(mean)
+        for b in range(batch.shape[1]):
+            size = sizes[(slice(None), b, *extra)]
+            square += size * (np.where(size > 0, batch[:, b] / np.maximum(size, 1), 0.0)
+                              - mean) ** 2
+        var = np.where(n_ >= 2, square / ((k_ - 1) * n_), np.nan)
         if not halves:
             return mean, var
-        even = batch[:, 0::2].sum(axis=1) / sizes[:, 0::2].sum(axis=1)
-        odd = batch[:, 1::2].sum(axis=1) / sizes[:, 1::2].sum(axis=1)
-    return mean, var, np.where(n >= 2, even, np.nan), np.where(n >= 2, odd, np.nan), k
+        even = batch[:, 0::2].sum(axis=1) / sizes[:, 0::2].sum(axis=1)[(slice(None), *extra)]
+        odd = batch[:, 1::2].sum(axis=1) / sizes[:, 1::2].sum(axis=1)[(slice(None), *extra)]
+    return mean, var, np.where(n_ >= 2, even, np.nan), np.where(n_ >= 2, odd, np.nan), k

@@ -484,12 +484,12 @@ def add_unoccluded(radiance, path, contribution, lit):
 @njit(nogil=True, cache=True)
 def film_add(total, batch, count, lo, local, radiance, counted, which):
     """``Film.add``'s sums over the pixel run ``lo:lo + m``: per pixel, the rows' radiance,
-    and per batch the rows' grey radiance (the channel mean), summed in row order from zero
-    (as ``np.bincount`` sums its weights), then added to the film's.
+    and per batch the rows' radiance again (per channel), summed in row order from zero (as
+    ``np.bincount`` sums its weights), then added to the film's.
 
     Parameters
     ----------
-    total : (P, 3) float64, updated; batch : (P, B) float64, updated; count : (P,) int64,
+    total : (P, 3) float64, updated; batch : (P, B, 3) float64, updated; count : (P,) int64,
         updated.
     local : (n,) int64 pixel - lo, in 0..m; radiance : (n, 3) float64.
     counted : (n,) bool, the rows that count as samples.
@@ -500,20 +500,21 @@ def film_add(total, batch, count, lo, local, radiance, counted, which):
         m = max(m, local[r] + 1)
     nb = batch.shape[1]
     acc = np.zeros((m, 3))
-    acc_batch = np.zeros((m, nb))
+    acc_batch = np.zeros((m, nb, 3))
     hits = np.zeros(m, np.int64)
     for r in range(local.shape[0]):
         p = local[r]
         for c in range(3):
             acc[p, c] += radiance[r, c]
-        acc_batch[p, which[r]] += (radiance[r, 0] + radiance[r, 1] + radiance[r, 2]) / 3.0
+            acc_batch[p, which[r], c] += radiance[r, c]
         if counted[r]:
             hits[p] += 1
     for p in range(m):
         for c in range(3):
             total[lo + p, c] += acc[p, c]
         for b in range(nb):
-            batch[lo + p, b] += acc_batch[p, b]
+            for c in range(3):
+                batch[lo + p, b, c] += acc_batch[p, b, c]
         count[lo + p] += hits[p]
 
 

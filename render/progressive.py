@@ -80,30 +80,36 @@ def normal_quantile(p: float) -> float:
 
 def rel_mse_estimate(film: Film, epsilon: float = REL_MSE_EPSILON) -> dict | None:
     """The film's estimate of its own per-pixel relative MSE, without a reference (None
-    below 2 spp). DESIGN.md, "Error estimates", derives it.
+    below 2 spp): of ``imageio.relative_mse``, the mean over pixels and colour channels of
+    ``(x - r)**2 / (r**2 + ε)``, ε = ``REL_MSE_EPSILON``. DESIGN.md, "Error estimates",
+    derives it.
 
-    Per pixel, ``t = var / (a b + ε)`` (``Film.rel_mse_terms``: the batch variance of the
-    grey mean over the product of the even and odd halves' means, independent estimates of
-    r**2). ``1/(a b)`` overestimates ``1/r**2`` by about ``4 m`` relative (``m``: the pixel's
-    relMSE; each half's mean has relative variance ``2 m``), so ``t`` is pessimistic;
-    ``c = (sqrt(1 + 16 t) - 1) / 8`` inverts ``t = m (1 + 4 m)`` (the delta method's
-    correction, optimistic where ``m`` is not small). Keys: ``estimate`` (mean of ``t``: not
-    optimistic), ``se`` (its standard error against the realised error: per pixel ``(2 + 2 /
-    dof) t**2``, the chi-square spread of the realised error and of the batch variance, over
-    independent pixels), ``ci95`` = [mean c - z se_c, mean t + z se] (the denominator's
-    second-order bias lies between the two means).
+    Per pixel and channel, ``t = var / (a b + ε)`` (``Film.rel_mse_terms``: the batch
+    variance of the channel's mean over the product of the even and odd halves' means,
+    independent estimates of r**2). ``1/(a b)`` overestimates ``1/r**2`` by about ``4 m``
+    relative (``m``: the term's relMSE; each half's mean has relative variance ``2 m``), so
+    ``t`` is pessimistic; ``c = (sqrt(1 + 16 t) - 1) / 8`` inverts ``t = m (1 + 4 m)`` (the
+    delta method's correction, optimistic where ``m`` is not small). Keys: ``estimate``
+    (mean of ``t`` over pixels and channels: not optimistic), ``se`` (its standard error
+    against the realised error: per pixel ``(2 + 2 / dof) T**2``, ``T`` the pixel's mean of
+    ``t`` over its channels, the chi-square spread of the realised error and of the batch
+    variance with the channels' noise taken as fully correlated (an upper bound: one path
+    carries every channel), over independent pixels), ``ci95`` = [mean c - z se_c, mean t +
+    z se] (the denominator's second-order bias lies between the two means).
     """
-    terms, dof = film.rel_mse_terms(epsilon)
+    terms, dof = film.rel_mse_terms(epsilon)  # (P, 3), (P,)
     ok = np.isfinite(terms)
     if not ok.any():
         return None
     t = np.where(ok, terms, 0.0)
-    d = np.where(ok, dof, 1.0)
+    d = np.where(ok.all(axis=1), dof, 1.0)
     corrected = (np.sqrt(1.0 + 16.0 * t) - 1.0) / 8.0
     pixels = len(t)
-    se = float(np.sqrt(np.sum((2.0 + 2.0 / d) * t ** 2)) / pixels)
-    se_c = float(np.sqrt(np.sum((2.0 + 2.0 / d) * corrected ** 2)) / pixels)
-    raw, estimate = float(np.mean(t)), float(np.mean(corrected))
+    # per pixel, the channels' mean: their noise comes from the same paths
+    pixel_t, pixel_c = t.mean(axis=1), corrected.mean(axis=1)
+    se = float(np.sqrt(np.sum((2.0 + 2.0 / d) * pixel_t ** 2)) / pixels)
+    se_c = float(np.sqrt(np.sum((2.0 + 2.0 / d) * pixel_c ** 2)) / pixels)
+    raw, estimate = float(np.mean(pixel_t)), float(np.mean(pixel_c))
     return {"estimate": raw, "se": se,
             "ci95": [max(estimate - Z95 * se_c, 0.0), raw + Z95 * se]}
 
@@ -125,10 +131,11 @@ def pass_point(film: Film, index: int, seconds: float,
 
     Keys: ``pass``, ``seconds``, ``spp`` (samples per pixel so far); against ``reference``
     ((H, W, 3), else None) ``mse``, ``rel_mse`` (per pixel, ``imageio.relative_mse``),
-    ``rel_mse_global`` (``mse / mean(r**2)``), ``psnr_db``; from the film alone
-    ``variance_of_mean`` (the image's mean of each pixel's estimated variance of its grey
-    mean), ``estimated_rel_mse`` (``rel_mse_estimate``: the per-pixel relative MSE, ε as
-    ``rel_mse``, the noise alone gives) with ``estimated_rel_mse_ci95`` and
+    ``rel_mse_global`` (``mse / mean(r**2)``, energy-normalised: another metric),
+    ``psnr_db``; from the film alone ``variance_of_mean`` (the image's mean over pixels and
+    channels of the estimated variance of each pixel's mean), ``estimated_rel_mse``
+    (``rel_mse_estimate``: the per-pixel relative MSE ``rel_mse`` is, same ε and channels,
+    that the noise alone gives) with ``estimated_rel_mse_ci95`` and
     ``estimated_rel_mse_se``, and ``mean_radiance`` with
     ``ci95``, its 95 % confidence interval. Estimates need 2 samples per pixel (None before).
     """

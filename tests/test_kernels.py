@@ -227,10 +227,11 @@ def film_add_by_bincount(film: Film, pixel, radiance, counted, sample) -> None:
     local = pixel - lo
     for c in range(3):
         film.sum[lo:hi, c] += np.bincount(local, weights=radiance[:, c], minlength=hi - lo)
-    grey = (radiance[:, 0] + radiance[:, 1] + radiance[:, 2]) / 3.0
     for b in range(film.batch.shape[1]):
         mine = sample % film.batch.shape[1] == b
-        film.batch[lo:hi, b] += np.bincount(local[mine], weights=grey[mine], minlength=hi - lo)
+        for c in range(3):
+            film.batch[lo:hi, b, c] += np.bincount(local[mine], weights=radiance[mine, c],
+                                                   minlength=hi - lo)
     film.count[lo:hi] += np.bincount(local if counted is None else local[counted],
                                      minlength=hi - lo)
 
@@ -238,7 +239,7 @@ def film_add_by_bincount(film: Film, pixel, radiance, counted, sample) -> None:
 @pytest.mark.parametrize("counting", ["all", "some"])
 def test_fused_film_add_equals_bincount(counting):
     # Several batches over overlapping pixel runs, repeated pixels, values of every scale:
-    # the sums, odd-sample sums and counts are numpy's bit for bit.
+    # the sums, batch sums (per channel) and counts are numpy's bit for bit.
     rng = np.random.default_rng(5)
     films = [Film(37, 11), Film(37, 11)]
     for _ in range(6):

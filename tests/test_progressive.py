@@ -112,15 +112,17 @@ def test_passes_end_with_the_image_of_one_pass(scene):
 
 
 def test_the_variance_estimate_is_unbiased_on_known_noise():
-    # Samples of known variance: the batch estimate of the grey mean's variance averages to
-    # s2 / 3 / n over pixels (three independent channels), and the confidence interval of
-    # the mean covers the truth.
+    # Samples of known variance: the batch estimate of each channel's mean's variance
+    # averages to s2 / n over pixels, that of the image mean (over pixels and three
+    # independent channels) to s2 / 3 / n / P, and the confidence interval of the mean
+    # covers the truth.
     rng = np.random.default_rng(1)
     film = Film(100, 50)
     pixels = np.arange(100 * 50)
     for s in range(10):
         film.add(pixels, rng.normal(2.0, 3.0, (len(pixels), 3)), sample=np.full(len(pixels), s))
-    assert np.nanmean(film.variance_of_mean()) == pytest.approx(3.0 / 10, rel=0.05)
+    assert film.variance_of_mean().shape == (50, 100, 3)
+    assert np.nanmean(film.variance_of_mean()) == pytest.approx(9.0 / 10, rel=0.05)
     assert film.variance_of_mean_radiance() == pytest.approx(3.0 / 10 / len(pixels), rel=0.1)
     one = Film(2, 1)
     one.add(np.arange(2), np.ones((2, 3)), sample=np.zeros(2, int))

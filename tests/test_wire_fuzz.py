@@ -30,6 +30,7 @@ from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.management import routing_id
 from vastray.render.driver import render
+from vastray.render.film import BATCHES, CHANNELS
 from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
 from vastray.transport.join_secret import read_join_secret
@@ -86,7 +87,8 @@ def test_draw_bad_messages(batch):
 
 
 def _forged_film_and_done(n: int) -> list[list]:
-    forged = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6), "batch": np.zeros((n, 8)),
+    forged = encode(protocol.FILM, {"sum": np.full((n, 3), 1e6),
+                                    "batch": np.zeros((n, BATCHES, CHANNELS)),
                                     "count": np.ones(n, np.int64),
                                     "depth": np.zeros(n, np.float32),
                                     "normal": np.zeros((n, 3), np.float32)}, {"rank": 0})

@@ -41,7 +41,11 @@ from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT_FORMAT = 3
+CHECKPOINT_FORMAT = 4
+#: Why a checkpoint of an older format cannot be resumed, by format.
+_OLD_FORMATS = {3: "its film keeps the error estimate's batch sums in grey, format 4 per "
+                   "colour channel",
+                2: "its film keeps odd-sample sums, format 4 batch sums per colour channel"}
 #: The zip comment's start; the hexadecimal SHA-256 of every byte before it follows.
 SEAL = b"vastray checkpoint sha256 "
 _DIGEST = 64  # hexadecimal characters
@@ -163,8 +167,10 @@ def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
                                                              f"({exc})") from None
     found = meta.get("format") if isinstance(meta, dict) else None
     if found != CHECKPOINT_FORMAT:
-        raise InputError(path, f"checkpoint format {found!r}; this vastray reads "
-                               f"format {CHECKPOINT_FORMAT}")
+        why = _OLD_FORMATS.get(found) if isinstance(found, int) else None
+        why = f" ({why})" if why else ""
+        raise InputError(path, f"checkpoint format {found!r}{why}; this vastray reads "
+                               f"format {CHECKPOINT_FORMAT} only: render anew without --resume")
     if not sealed:
         raise InputError(path, _NO_SEAL)
     _check_identity(path, meta.get("identity") or {}, identity)
