@@ -60,26 +60,26 @@ def main() -> None:
         base = far_store(Path(tmp) / "base.store", 0.0)
         reference = image(base, far_config(), s)
         noise = compare(image(base, far_config(), dataclasses.replace(s, seed=2)), reference)
-        print(f"noise (seed 2 vs 1): mean {noise['mean']:+.4%}  rel_mse {noise['rel_mse']:.4g}")
+        print(f"noise (seed 2 vs 1): mean {noise['mean']:+.4%}  rel_mse_global {noise['rel_mse_global']:.4g}")
         if args.scales is not None:
             for scale in args.scales or [10.0 ** e for e in (*range(-12, -5), *range(6, 15), 18)]:
                 store = far_store(Path(tmp) / f"x{scale:g}.store", 0.0, scale=scale)
                 extent = float(np.max(store.bounds[1] - store.bounds[0]))
                 c = compare(image(store, far_config(scale=scale), s), reference)
                 print(f"scaled {scale:.0e} (extent {extent:.2g}): mean {c['mean']:+.4%}  "
-                      f"rel_mse {c['rel_mse']:.4g}  nonfinite {c['nonfinite']}")
+                      f"rel_mse_global {c['rel_mse_global']:.4g}  nonfinite {c['nonfinite']}")
             return
         for shift in args.shifts:
             start = time.perf_counter()
             store = far_store(Path(tmp) / f"s{shift:g}.store", shift)
             c = compare(image(store, far_config(shift), s), reference)
-            print(f"translated {shift:.0e}: mean {c['mean']:+.4%}  rel_mse {c['rel_mse']:.4g}  "
+            print(f"translated {shift:.0e}: mean {c['mean']:+.4%}  rel_mse_global {c['rel_mse_global']:.4g}  "
                   f"nonfinite {c['nonfinite']}  ({time.perf_counter() - start:.1f} s)")
         near = unclipped(base, far_config(distance=2e3), s)
         for distance in args.distances:
             c = compare(image(base, far_config(distance=distance), s), near)
             print(f"camera {distance:.0e} away (vs 2e3): mean {c['mean']:+.4%}  "
-                  f"rel_mse {c['rel_mse']:.4g}")
+                  f"rel_mse_global {c['rel_mse_global']:.4g}")
 
 
 if __name__ == "__main__":

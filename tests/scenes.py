@@ -236,12 +236,14 @@ def far_settings(spp: int = 8, seed: int = 1) -> RenderSettings:
 
 
 def compare(image: np.ndarray, reference: np.ndarray) -> dict:
-    """Relative change of the mean and relative MSE (MSE / mean(reference^2)) of ``image``
-    against ``reference`` (non-finite pixels counted apart, as 0)."""
+    """Relative change of the mean and energy-normalised relative MSE (``rel_mse_global``:
+    MSE / mean(reference^2), as the render reports name it; not the per-pixel ``rel_mse``) of
+    ``image`` against ``reference`` (non-finite pixels counted apart, as 0)."""
     finite = np.isfinite(image)
     clean = np.where(finite, image, 0.0)
     return {"mean": float(clean.mean() / reference.mean() - 1.0),
-            "rel_mse": float(np.mean((clean - reference) ** 2) / np.mean(reference ** 2)),
+            "rel_mse_global": float(np.mean((clean - reference) ** 2)
+                                    / np.mean(reference ** 2)),
             "nonfinite": int(np.count_nonzero(~finite))}
 
 

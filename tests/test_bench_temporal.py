@@ -30,13 +30,13 @@ def test_converged_split_takes_the_variances_out_of_the_error():
     reference = np.ones((4, 6, 3))
     run = {"images": {3: reference + 0.1}, "variances": {3: np.full((4, 6, 3), 0.002)}}
     split = temporal.converged_split(run, {3: (reference, np.full((4, 6, 3), 0.001))})
-    assert split["rel_mse"] == pytest.approx(0.01)  # 0.1^2 over a mean square of 1
+    assert split["rel_mse_global"] == pytest.approx(0.01)  # 0.1^2 over a mean square of 1
     assert split["variance"] == pytest.approx(0.002)
     assert split["reference_variance"] == pytest.approx(0.001)
     assert split["bias2"] == pytest.approx(0.01 - 0.002 - 0.001)
     unbiased = {"images": {3: reference}, "variances": {3: np.zeros((4, 6, 3))}}
     assert temporal.converged_split(unbiased, {3: (reference, np.zeros((4, 6, 3)))}) == {
-        "rel_mse": 0.0, "variance": 0.0, "bias2": 0.0, "reference_variance": 0.0}
+        "rel_mse_global": 0.0, "variance": 0.0, "bias2": 0.0, "reference_variance": 0.0}
 
 
 def test_baselines_get_what_the_method_gets():
