@@ -188,10 +188,11 @@ class Row:
 def estimate(argv: list[str]):
     """``plan_render``'s ``RenderMemory`` for ``vastray render ARGV`` (what the CLI checks)."""
     from vastray.cli import build_parser
-    from vastray.planning import check_and_default, plan_render
+    from vastray.planning import plan_render
+    from vastray.request import RenderRequest
 
     args = build_parser().parse_args(["render", *argv])
-    return plan_render(args, check_and_default(args)).memory
+    return plan_render(RenderRequest.from_namespace(args)).memory
 
 
 def measure(argv: list[str], workdir: Path) -> tuple[int, dict]:

@@ -64,14 +64,15 @@ def checkpoint(scene) -> bytes:
     """The bytes of a checkpoint of the 4-spp render (from which 8 spp resumes), written by
     the render command's own pieces."""
     from vastray.cli import build_parser
-    from vastray.commands_render import start_progression
-    from vastray.planning import check_and_default, plan_render
+    from vastray.execute import start_progression
+    from vastray.planning import plan_render
+    from vastray.request import RenderRequest
 
     root, common = scene
     args = build_parser().parse_args(["render", *common, "--spp", "4", "--quiet", "-o",
                                       str(root / "part.exr")])
-    plan = plan_render(args, check_and_default(args))
-    progression, checkpoints = start_progression(args, plan, [root / "part.exr"])
+    plan = plan_render(RenderRequest.from_namespace(args))
+    progression, checkpoints = start_progression(plan.request, plan, [root / "part.exr"])
     plan.render_one(plan.config, plan.settings, progression=progression)
     assert checkpoints.write()
     return checkpoints.path.read_bytes()

@@ -1,15 +1,15 @@
 """The Python API: ``vastray.render`` for scripts and notebooks.
 
-It runs ``vastray render``'s own code path: the keyword arguments become the command line's
-options (checked by the same converters), then ``commands_render.check_and_default``,
-``plan_render`` and ``finish_render`` refuse, plan and report exactly as the CLI does. A
+It runs ``vastray render``'s own code path without its command line: the keyword arguments
+become a ``RenderRequest`` (each value checked by the option's own converter, the others at
+their defaults: the request's), then ``planning.plan_render`` and ``finish_render`` refuse,
+plan and report exactly as the CLI does. A
 refusal is raised as ``VastrayError`` (an ``InputError``, or a ``NodeFailure`` with
 ``nodes``) with the message the CLI prints.
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import dataclasses
 import inspect
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from vastray.actors.results import recovery_lines
-from vastray.commands_render import add_render_arguments
-from vastray.planning import check_and_default, finish_render, plan_render
+from vastray.planning import finish_render, plan_render
 from vastray.render.camera import Camera
 from vastray.render.imageio import atomic_path, check_image_path, to_srgb8, write_image
+from vastray.request import OPTIONS, RenderRequest, converted
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.worker import run_in_thread, run_in_thread_async
@@ -213,6 +213,21 @@ def _loop_running() -> bool:
 def _job(store, kwargs: dict):
     """The render as a call without arguments, its arguments checked now (in the caller's
     thread, so a refusal needs no thread)."""
+    request, opened, call = render_request(store, kwargs)
+    return partial(_run, request, opened, call)
+
+
+def render_request(store, kwargs: dict) -> tuple[RenderRequest, Store | None, str]:
+    """``vastray.render``'s arguments as the ``RenderRequest`` they ask for (its values
+    checked and converted as the command line's), the ``Store`` given opened (or None), and
+    the call as the report's ``command``.
+
+    Raises
+    ------
+    VastrayError
+        Naming the argument: unknown, not for the API, or a bad value; or an option given
+        where it changes nothing (``RenderRequest.refuse_inapplicable``).
+    """
     kwargs = dict(kwargs)
     camera = kwargs.pop("camera", None)
     progress = kwargs.pop("progress", True)
@@ -229,77 +244,17 @@ def _job(store, kwargs: dict):
     reference = kwargs.get("reference")
     if reference is not None and not isinstance(reference, (str, os.PathLike)):
         kwargs["reference"] = _reference_array(reference)
-    args = cli_args(kwargs)
-    args.quiet = not progress
-    call = _call_text(store, kwargs)
-    return partial(_run, args, opened, camera, call)
-
-
-def cli_args(given: dict) -> argparse.Namespace:
-    """``vastray render``'s parsed command line for keyword arguments named as its options
-    (``history_depth`` for ``--history-depth``): each value checked and converted by the
-    option's own converter, the others at their defaults.
-
-    Raises
-    ------
-    VastrayError
-        Naming the argument: unknown, not for the API, or a bad value.
-    """
-    parser = argparse.ArgumentParser(prog="vastray.render", add_help=False)
-    add_render_arguments(parser)
-    actions = {action.dest: action for action in parser._actions}  # argparse has no public list
-    args = argparse.Namespace(**{dest: action.default for dest, action in actions.items()})
-    for key, value in given.items():
+    values = {}
+    for key, value in kwargs.items():
         if key in NOT_IN_API:
             raise InputError(None, f"vastray.render takes no {key}=: {NOT_IN_API[key]}")
-        if key not in actions:
+        if key not in OPTIONS:
             raise InputError(None, f"vastray.render got an unknown argument {key}=; it takes "
                                    "the options of `vastray render --help` by their long "
                                    "names with underscores")
-        setattr(args, key, _converted(actions[key], key, value))
-    return args
-
-
-def _converted(action: argparse.Action, key: str, value):
-    """``value`` as the command line's converter for ``action`` would give it."""
-    if value is None or isinstance(value, np.ndarray):
-        return action.default if value is None else value
-    flag = action.option_strings[-1] if action.option_strings else key
-    if action.nargs == 0:  # a switch
-        if not isinstance(value, bool):
-            raise InputError(None, f"{key} must be True or False, got {value!r}")
-        return value
-    if isinstance(action.nargs, int) and action.nargs > 1:  # e.g. --color-range LO HI
-        if not isinstance(value, (list, tuple)) or len(value) != action.nargs:
-            raise InputError(None, f"{key} takes {action.nargs} values, got {value!r}")
-        return [_converted_one(action, key, flag, v) for v in value]
-    return _converted_one(action, key, flag, value)
-
-
-def _converted_one(action: argparse.Action, key: str, flag: str, value):
-    """One value as ``action``'s converter gives it (see ``_converted``)."""
-    if isinstance(value, bool) or not isinstance(value, (str, os.PathLike, int, float,
-                                                         np.number, list, tuple)):
-        raise InputError(None, f"{key}={value!r} is not a valid value of {flag} (see "
-                               "`vastray render --help`)")
-    if isinstance(value, (list, tuple)):  # --load-bandwidth's per-rank list
-        text = ",".join(str(v) for v in value)
-    else:
-        text = os.fspath(value) if isinstance(value, os.PathLike) else str(value)
-    if action.type is not None:
-        try:
-            value = action.type(text)
-        except argparse.ArgumentTypeError as exc:
-            raise InputError(None, f"{key}={value!r}: {exc}") from None
-        except (TypeError, ValueError):
-            raise InputError(None, f"{key}={value!r} is not a valid value of {flag} (see "
-                                   "`vastray render --help`)") from None
-    else:
-        value = text
-    if action.choices is not None and value not in action.choices:
-        raise InputError(None, f"{key}={value!r}: choose from "
-                               f"{', '.join(map(str, action.choices))}")
-    return value
+        values[key] = converted(key, value)
+    request = RenderRequest(**values, quiet=not progress, camera=camera)
+    return request, opened, _call_text(store, kwargs)
 
 
 def _reference_array(reference) -> np.ndarray:
@@ -323,20 +278,21 @@ def _call_text(store, kwargs: dict) -> str:
     return f"vastray.render({', '.join(shown)})"
 
 
-def _run(args: argparse.Namespace, store: Store | None, camera, call: str) -> RenderOutput:
-    """The render itself, as ``commands_render.run_render`` does it, to memory."""
-    shadow_samples_given = check_and_default(args)
-    plan = plan_render(args, shadow_samples_given, store=store, camera=camera)
+def _run(request: RenderRequest, store: Store | None, call: str) -> RenderOutput:
+    """The render itself, as ``vastray.execute.run`` does it, to memory."""
+    plan = plan_render(request, store=store)
+    request = plan.request  # its defaults filled in
     result = plan.render_one(plan.config, plan.settings, progression=plan.progression())
     reference = None
     if plan.reference is not None:
-        reference = args.reference if isinstance(args.reference, str) else "<array>"
+        reference = request.reference if isinstance(request.reference, str) else "<array>"
     image, _, report = finish_render(plan, result, "vastray.render", reference)
     report["command"] = call
-    if not args.quiet:
+    if not request.quiet:
         for line in recovery_lines(result.counters):  # a recovery is never silent
             print(line, file=sys.stderr)
-    world_camera = plan.config.resolve_camera(*plan.store.world_bounds, args.width, args.height)
+    world_camera = plan.config.resolve_camera(*plan.store.world_bounds, request.width,
+                                              request.height)
     return RenderOutput(image=np.asarray(image, np.float32),
                         depth=np.asarray(result.film.depth_image(), np.float32),
                         normal=np.asarray(result.film.normal_image(), np.float32),

@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from vastray.commands_render import add_render_arguments, run_render
-from vastray.render_job import DEFAULT_NODE_TIMEOUT_S
-from vastray.request import _positive
+from vastray.commands_render import add_render_arguments
+from vastray.execute import run
+from vastray.request import DEFAULT_NODE_TIMEOUT_S, RenderRequest, _positive
 from vastray.scene.errors import InputError
 from vastray.transport.keys import (
     load_node_keys,
@@ -80,13 +80,14 @@ def run_launch(args: argparse.Namespace) -> int:
             node_bundle(Path(args.keys).resolve(), host_key_name(host)))
     port = args.port or _free_port()
     coordinator = f"tcp://{args.advertise or this_host()}:{port}"
+    # checked before any node starts: the render of len(hosts) nodes that join on --port
+    request = RenderRequest.from_namespace(args, nodes=len(hosts), listen=f"0.0.0.0:{port}")
     started = start_nodes(hosts, coordinator, bundles, Path(args.logs),
                           ssh=args.ssh, timeout=args.node_timeout or DEFAULT_NODE_TIMEOUT_S)
     if not args.quiet:
         print(f"{len(hosts)} node(s) started; their logs are in {args.logs}", file=sys.stderr)
-    args.nodes, args.listen = len(hosts), f"0.0.0.0:{port}"
     try:
-        return run_render(args, launched=started)
+        return run(request, launched=started)
     finally:
         stop_nodes(started)
 

@@ -4,43 +4,27 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
-import sys
-from collections.abc import Callable
-from dataclasses import asdict
-from pathlib import Path
 
-import numpy as np
-
-from vastray.actors.results import recovery_lines
-from vastray.animation import check_frame_outputs, run_animation
-from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
-from vastray.checkpoint import default_path as default_checkpoint
-from vastray.outputs import StagedOutputs
-from vastray.planning import RenderPlan, check_and_default, finish_render, plan_render
-from vastray.preflight import (
-    check_output_paths,
-    gigabytes,
-)
-from vastray.render.driver import RenderResult, store_camera
-from vastray.render.imageio import image_error, write_image, write_png
-from vastray.render.integrators import RenderSettings
-from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression
-from vastray.report import build_report, write_report
-from vastray.request import (  # noqa: F401 (BUILTIN_DEFAULTS, STORE_DEFAULTS, resolve_cache: commands_simulate's)
+from vastray.execute import run
+from vastray.render.progressive import DEFAULT_MAX_PASS_SPP
+from vastray.request import (  # the converters and resolve_cache: commands_simulate's
     BUILTIN_DEFAULTS,
+    DEFAULT_BATCH_SIZE,
+    DEFAULT_EXPOSURE,
+    DEFAULT_HEARTBEAT_TIMEOUT_S,
+    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
+    DEFAULT_NODE_TIMEOUT_S,
+    DEFAULT_PORTAL_INTERVAL,
+    DEFAULT_PORTAL_THRESHOLD,
+    DEFAULT_SAMPLES_IN_FLIGHT,
     STORE_DEFAULTS,
-    _bandwidths,
-    _cache_size,
-    _finite_float,
-    _non_negative,
-    _portal_resolution,
-    _positive,
-    _positive_float,
-    _size,
-    resolve_cache,
+    RenderRequest,
+    _cache_size,  # noqa: F401
+    _non_negative,  # noqa: F401
+    _positive,  # noqa: F401
+    argument,
+    resolve_cache,  # noqa: F401
 )
-from vastray.scene.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -80,41 +64,40 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def add_render_arguments(p: argparse.ArgumentParser) -> None:
     """The options shared by ``render`` and ``launch``."""
-    p.add_argument("store", nargs="?", help="STORE folder (default: the built-in scene)")
-    p.add_argument("-o", "--output", required=True,
+    p.add_argument("store", **argument("store"),
+                   help="STORE folder (default: the built-in scene)")
+    p.add_argument("-o", "--output", **argument("output"), required=True,
                    help="output image; the extension picks the format: .exr (float RGB plus "
                         "depth and normal layers), .pfm, .hdr or .png. Like --png and "
                         "--report, an existing file is replaced (the last line says so)")
-    p.add_argument("--png", help="also write a tone-mapped PNG preview")
-    p.add_argument("--scene", help="SCENE.toml with camera, lights and materials")
-    p.add_argument("--integrator", choices=["ao", "pt"], default="pt",
+    p.add_argument("--png", **argument("png"), help="also write a tone-mapped PNG preview")
+    p.add_argument("--scene", **argument("scene"), help="SCENE.toml with camera, lights and materials")
+    p.add_argument("--integrator", **argument("integrator"),
                    help="ambient occlusion or path tracing (default: pt)")
-    p.add_argument("--spp", type=_positive,
+    p.add_argument("--spp", **argument("spp"),
                    help=f"samples per pixel (default: {STORE_DEFAULTS['spp']}; "
                         f"{BUILTIN_DEFAULTS['spp']} for the built-in scene)")
-    p.add_argument("--bounces", type=_non_negative,
+    p.add_argument("--bounces", **argument("bounces"),
                    help=f"diffuse bounces for pt (default: {STORE_DEFAULTS['bounces']}, as in "
                         f"the SpRay paper; {BUILTIN_DEFAULTS['bounces']} for the built-in scene)")
-    p.add_argument("--shadow-samples", type=_non_negative,
+    p.add_argument("--shadow-samples", **argument("shadow_samples"),
                    help="shadow rays per hit toward each area/ambient light, and AO rays per "
                         f"hit (default: {STORE_DEFAULTS['shadow_samples']}; "
                         f"{BUILTIN_DEFAULTS['shadow_samples']} for the built-in scene)")
-    p.add_argument("--ao-distance", type=_positive_float,
+    p.add_argument("--ao-distance", **argument("ao_distance"),
                    help="AO ray length (default: a tenth of the scene diagonal)")
-    p.add_argument("--width", type=_positive,
+    p.add_argument("--width", **argument("width"),
                    help=f"image width (default: {STORE_DEFAULTS['width']}; "
                         f"{BUILTIN_DEFAULTS['width']} for the built-in scene)")
-    p.add_argument("--height", type=_positive,
+    p.add_argument("--height", **argument("height"),
                    help=f"image height (default: {STORE_DEFAULTS['height']}; "
                         f"{BUILTIN_DEFAULTS['height']} for the built-in scene)")
-    p.add_argument("--seed", type=_non_negative, default=0, help="random seed (default: 0)")
-    p.add_argument("--cache", type=_cache_size, metavar="N|P%",
+    p.add_argument("--seed", **argument("seed"),
+                   help="random seed (default: 0)")
+    p.add_argument("--cache", **argument("cache"), metavar="N|P%",
                    help="most domains in memory at once, as a count or a percentage of the "
                         "domains (default: all)")
-    p.add_argument("--scheduler",
-                   choices=["auto", "reference", "image", "spec-ooc", "domain", "async",
-                            "dynamic", "spec-insitu", "temporal"],
-                   default="auto",
+    p.add_argument("--scheduler", **argument("scheduler"),
                    help="how rays meet domains: 'reference' traces each wavefront through all "
                         "domains it enters; 'image' queues rays per domain and processes the "
                         "fullest (SpRay's baseline); 'spec-ooc' is SpRay's speculative "
@@ -127,7 +110,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "planned from the last frame's ray statistics, and cost-based "
                         "preloading: Xu et al. 2022). All give the same image. 'auto' (default): "
                         "reference when every domain fits in the cache, else spec-ooc")
-    p.add_argument("--memory-limit", type=_size, metavar="SIZE",
+    p.add_argument("--memory-limit", **argument("memory_limit"), metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G or 700M (K, M, G, "
                         "T: KiB, MiB, GiB, TiB): bounds its "
                         "domain cache after the rest of the process (interpreter and "
@@ -136,54 +119,55 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "measured peak; a render that cannot fit is "
                         "refused before it starts (default: a render is refused only when it "
                         "needs more than 85%% of the available memory)")
-    p.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
+    p.add_argument("--max-samples-in-flight", **argument("max_samples_in_flight"), metavar="N",
                    help="out-of-core (image, spec-ooc) and every --nodes scheduler: paths "
-                        "traced at once; bounds the rays held in memory (default: 262144; "
-                        "with --nodes, 65536 per node)")
-    p.add_argument("--history-depth", type=_non_negative, metavar="H",
+                        "traced at once; bounds the rays held in memory (default: "
+                        f"{DEFAULT_SAMPLES_IN_FLIGHT}; with --nodes, "
+                        f"{DEFAULT_NODE_SAMPLES_IN_FLIGHT} per node)")
+    p.add_argument("--history-depth", **argument("history_depth"), metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")
-    p.add_argument("--nodes", type=_positive, metavar="N",
+    p.add_argument("--nodes", **argument("nodes"), metavar="N",
                    help="render with N node processes on this machine, talking ZeroMQ over "
                         "loopback: image and spec-ooc split the image into tiles (sort-first); "
                         "domain, async, dynamic, spec-insitu and temporal split the domains "
                         "(see --scheduler)")
-    p.add_argument("--node-timeout", type=_positive_float, metavar="S",
-                   help="with --nodes: fail when a node is silent this long (default: 120)")
-    p.add_argument("--log-dir", metavar="DIR",
+    p.add_argument("--node-timeout", **argument("node_timeout"), metavar="S",
+                   help=f"with --nodes: fail when a node is silent this long (default: "
+                        f"{DEFAULT_NODE_TIMEOUT_S:g})")
+    p.add_argument("--log-dir", **argument("log_dir"), metavar="DIR",
                    help="with --nodes (started here): keep each node's log in DIR "
                         "(nodeR.log: its failures and the messages and connections it "
                         "refused); default: beside --report as REPORT.nodes, else removed "
                         "when the render ends")
-    p.add_argument("--heartbeat-timeout", type=_positive_float, metavar="S",
+    p.add_argument("--heartbeat-timeout", **argument("heartbeat_timeout"), metavar="S",
                    help="with --nodes: a node silent this long mid-frame is lost (stalled); "
                         "it is survived by rendering the frame again on the others (with "
-                        "--listen, once they have joined again) (default: 10)")
-    p.add_argument("--listen", metavar="HOST:PORT",
+                        f"--listen, once they have joined again) (default: {DEFAULT_HEARTBEAT_TIMEOUT_S:g})")
+    p.add_argument("--listen", **argument("listen"), metavar="HOST:PORT",
                    help="with --nodes N: wait for N nodes started elsewhere (`vastray node "
                         "--coordinator tcp://HOST:PORT`, docker compose, SSH) instead of "
                         "starting them here")
-    p.add_argument("--rendezvous", metavar="FILE",
+    p.add_argument("--rendezvous", **argument("rendezvous"), metavar="FILE",
                    help="with --listen: write this coordinator's address into FILE on a file "
                         "system the nodes share, for `vastray node --rendezvous FILE` under "
                         "srun or mpirun (`vastray node --help` shows a Slurm job)")
-    p.add_argument("--keys", metavar="DIR",
+    p.add_argument("--keys", **argument("keys"), metavar="DIR",
                    help="with --listen: the key folder from `vastray keys` (ZeroMQ CURVE: "
                         "encrypted; a node joins only with its own key on DIR/public's "
                         "allow-list); needed to listen beyond loopback. Without it only nodes "
                         "of your user on this machine may join")
-    p.add_argument("--no-preload", action="store_true",
+    p.add_argument("--no-preload", **argument("no_preload"),
                    help="do not load the next domain in the background (every scheduler with "
                         "a cache; the 'no preloading' rows of the benchmarks)")
-    p.add_argument("--assignment", choices=["sequential", "spatial", "paper", "affinity"],
+    p.add_argument("--assignment", **argument("assignment"),
                    help="async/temporal: which node owns which domain: round robin "
                         "(sequential; async's default), contiguous z-order runs (spatial), "
                         "the temporal-coherence paper's Algorithm 1 from the last frame's ray "
                         "transmissions (paper), or Algorithm 1 where a domain a node holds "
                         "stays there unless moving it saves more than its load (affinity; "
                         "temporal's default). Frame 0 uses spatial for both")
-    p.add_argument("--priority", choices=["queue", "spray", "queue+act", "cost-benefit",
-                                          "cost-rate", "queue+resident"],
+    p.add_argument("--priority", **argument("priority"),
                    help="temporal: how a node picks the next domain and what it preloads: "
                         "most queued rays (queue), SpRay's traversal score, queued plus "
                         "expected rays from the active domain (queue+act), the paper's "
@@ -191,94 +175,96 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "cost-rate (default: Eq. 1's predicted work per second of loading, so "
                         "cached domains go first), or queue+resident (most queued rays, cached "
                         "domains first: the queue baseline made cache-aware)")
-    p.add_argument("--simplified", nargs="?", const="portal", metavar="POLICY",
-                   choices=["portal", "depth>0", "depth>1", "depth>2", "none"],
+    p.add_argument("--simplified", **argument("simplified"), metavar="POLICY",
                    help="async/temporal: trace some rays on the store's simplified model "
                         "(`vastray simplify STORE --ratio 0.01`) held by every node, never "
                         "sending them between nodes: 'portal' (default) sends depth-1 rays "
                         "whose virtual portal predicts little light, and every deeper ray; "
                         "'depth>K' every ray deeper than K; 'none' nothing. Lossy: compare "
                         "with --reference")
-    p.add_argument("--portal-interval", type=_positive, metavar="N",
-                   help="--simplified portal: record the portals every N frames (default 10)")
-    p.add_argument("--portal-memory", type=_positive, metavar="N",
+    p.add_argument("--portal-interval", **argument("portal_interval"), metavar="N",
+                   help=f"--simplified portal: record the portals every N frames (default "
+                        f"{DEFAULT_PORTAL_INTERVAL})")
+    p.add_argument("--portal-memory", **argument("portal_memory"), metavar="N",
                    help="--simplified portal: frames between recording frames record too, "
                         "from the depth-1 rays they trace fine, and a cell no frame has "
                         "recorded for N frames is forgotten (default: off, the paper's: only "
                         "every --portal-interval-th frame records). Fills the portals of "
                         "small frames, whose few paths leave most cells unrecorded")
-    p.add_argument("--portal-resolution", type=_portal_resolution, metavar="R",
+    p.add_argument("--portal-resolution", **argument("portal_resolution"), metavar="R",
                    help="--simplified portal: cells per portal edge, R x R x 8 directions on "
                         "each domain face (default 32, the paper's; its Table 4 sweeps "
                         "8-128). Coarser portals fill with fewer paths: at small images most "
                         "crossings of a 32 x 32 portal land in cells no path has recorded, "
                         "which are traced fine")
-    p.add_argument("--portal-threshold", type=float, metavar="L",
+    p.add_argument("--portal-threshold", **argument("portal_threshold"), metavar="L",
                    help="--simplified portal: predicted radiance at or below which a depth-1 "
-                        "ray goes to the simplified model (default 0.5)")
-    p.add_argument("--portal-accuracy", action="store_true",
+                        f"ray goes to the simplified model (default {DEFAULT_PORTAL_THRESHOLD})")
+    p.add_argument("--portal-accuracy", **argument("portal_accuracy"),
                    help="--simplified portal: an instrumented run for evaluation, not for "
                         "timing: every frame is traced as a recording frame (every depth-1 "
                         "ray on the full model) and each depth-1 portal crossing is "
                         "classified with the portals a timed run would predict it with; each "
                         "frame's report gets acc (the paper's prediction accuracy), "
                         "acc_simplified_share, acc_unrecorded_share and replay_false_low")
-    p.add_argument("--load-bandwidth", type=_bandwidths, metavar="MB/s[,MB/s...]",
+    p.add_argument("--load-bandwidth", **argument("load_bandwidth"), metavar="MB/s[,MB/s...]",
                    help="emulate network storage, for every scheduler: a domain load takes at "
                         "least its size over this bandwidth (per process; with --nodes a list "
                         "is cycled over the ranks); an emulation by waiting after the real "
                         "read, for benchmarks. The report gives bytes_loaded and "
                         "load_throttle_s, the time spent waiting")
-    p.add_argument("--cold-reads", action="store_true",
+    p.add_argument("--cold-reads", **argument("cold_reads"),
                    help="out of core (image, spec-ooc and the node schedulers with a cache): "
                         "drop each domain's files from the page cache as they are read "
                         "(posix_fadvise DONTNEED), so every reload after an eviction is a real "
                         "disk read; the report gives bytes_loaded, load_s and load_wait_s, the "
                         "time the renderer waited on loads")
-    p.add_argument("--eviction", choices=["lru", "demand"], default="lru",
+    p.add_argument("--eviction", **argument("eviction"),
                    help="image and spec-ooc: which domain a load evicts: the least recently "
                         "used (lru, default) or the one the schedule will need last by its "
                         "own order (demand: the emptiest queue for image, the latest in the "
                         "round for spec-ooc; an approximation of Belady's rule); the report's "
                         "belady_loads is the fewest loads the run's own domain order allows")
-    p.add_argument("--batch-size", type=_positive,
-                   help="in-core reference render: paths traced together (default: 65536; cut "
-                        "finer when a frame has fewer than two batches per render worker)")
-    p.add_argument("--threads", type=_positive,
+    p.add_argument("--batch-size", **argument("batch_size"),
+                   help="in-core reference render: paths traced together (default: "
+                        f"{DEFAULT_BATCH_SIZE}; cut finer when a frame has fewer than two "
+                        "batches per render worker)")
+    p.add_argument("--threads", **argument("threads"),
                    help="threads per process (default: the cores it may use, its CPU affinity "
                         "and cgroup CPU quota (docker --cpus); with --nodes N on this machine, "
                         "those / N per node; with --listen, each node's own). In "
                         "core, one render worker per thread traces batches side by side; out of "
                         "core, each Embree query splits its rays over the threads")
-    p.add_argument("--report", help="write a JSON report (timings, counts, error)")
-    p.add_argument("--reference",
+    p.add_argument("--report", **argument("report"), help="write a JSON report (timings, counts, error)")
+    p.add_argument("--reference", **argument("reference"),
                    help="reference image (.exr/.pfm/.npy) to report MSE, PSNR and relative MSE "
                         "against; with --frames, a pattern such as ref_{frame:04d}.exr or a "
                         "plain name ref.exr meaning ref_0000.exr, ref_0001.exr ...")
-    p.add_argument("--frames", type=_positive, metavar="N",
+    p.add_argument("--frames", **argument("frames"), metavar="N",
                    help="render an animation of N frames (moved by the scene's "
                         "[[camera.key]], [camera.orbit], [[light.key]] or light move); -o "
                         "a.exr writes "
                         "a_0000.exr, a_0001.exr ..., as do --png and --report, and the "
                         "--report path gets a summary of every frame. Frame f uses the seed "
                         "hash(--seed, f) (default: one image, no numbering, the seed as given)")
-    p.add_argument("--first-frame", type=_non_negative, metavar="F",
+    p.add_argument("--first-frame", **argument("first_frame"), metavar="F",
                    help="the first frame's number (default: 0); without --frames, "
                         "renders that one frame (numbered outputs, its own seed)")
-    p.add_argument("--exposure", type=_positive_float,
-                   help="PNG exposure multiplier, for --png or a .png -o (default: 1)")
-    p.add_argument("--colormap", metavar="NAME",
+    p.add_argument("--exposure", **argument("exposure"),
+                   help=f"PNG exposure multiplier, for --png or a .png -o (default: {DEFAULT_EXPOSURE:g})")
+    p.add_argument("--colormap", **argument("colormap"), metavar="NAME",
                    help="matplotlib colour map for a store coloured by its scalar field, e.g. "
                         "viridis, plasma, coolwarm, turbo (needs matplotlib: pip install "
                         "'vastray[plot]'; default: a built-in viridis)")
-    p.add_argument("--color-range", type=_finite_float, nargs=2, metavar=("LO", "HI"),
+    p.add_argument("--color-range", **argument("color_range"), metavar=("LO", "HI"),
                    help="map scalars LO..HI to the colour map's ends, whatever the store's "
                         "range (ParaView's custom range), so renders of different data, every "
                         "frame and every node share one scale (default: the store's range)")
-    p.add_argument("--legend", action=argparse.BooleanOptionalAction, default=None,
+    p.add_argument("--legend", **argument("legend"),
                    help="draw a colour bar (the scalar's name and range) along the bottom of "
                         "the PNG of a store coloured by scalars (default: with --colormap)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", **argument("quiet"),
+                   help="no progress bar")
     passes = p.add_argument_group(
         "progressive passes, stopping rules and checkpoints",
         "Every render runs in sample-major passes: pass k adds samples to every pixel "
@@ -287,25 +273,25 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
         "count. The report's 'passes' gives each pass's time, spp, error against "
         "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95% "
         "confidence interval; `vastray plot` draws them. --spp is the upper bound.")
-    passes.add_argument("--time-limit", type=_positive_float, metavar="SECONDS",
+    passes.add_argument("--time-limit", **argument("time_limit"), metavar="SECONDS",
                         help="stop before a pass that would end after SECONDS of rendering "
                              "(predicted from the pass before; the first pass always runs)")
-    passes.add_argument("--target-error", type=_positive_float, metavar="E",
+    passes.add_argument("--target-error", **argument("target_error"), metavar="E",
                         help="stop after the pass whose relative MSE is at most E: against "
                              "--reference, or without one as the film estimates it from its "
                              "own variance (from 2 spp on), e.g. 0.01")
-    passes.add_argument("--max-pass-spp", type=_positive, metavar="N",
+    passes.add_argument("--max-pass-spp", **argument("max_pass_spp"), metavar="N",
                         help=f"most samples per pixel one pass adds (default: "
                              f"{DEFAULT_MAX_PASS_SPP}): smaller gives more points and "
                              "checkpoints, larger less overhead per pass")
-    passes.add_argument("--checkpoint-every", type=_positive_float, metavar="SECONDS",
+    passes.add_argument("--checkpoint-every", **argument("checkpoint_every"), metavar="SECONDS",
                         help="every SECONDS (at the end of a pass), write the image so far to "
                              "-o (and --png) and the film to --checkpoint. SIGUSR1 writes one "
                              "at once; Ctrl-C writes one before exiting. A run that completes "
                              "removes the checkpoint it wrote")
-    passes.add_argument("--checkpoint", metavar="FILE",
+    passes.add_argument("--checkpoint", **argument("checkpoint"), metavar="FILE",
                         help="where checkpoints go (default: -o's name + .checkpoint.npz)")
-    passes.add_argument("--resume", metavar="CHECKPOINT",
+    passes.add_argument("--resume", **argument("resume"), metavar="CHECKPOINT",
                         help="go on from a checkpoint: `vastray render --resume FILE` alone "
                              "runs the command that wrote it again (kept in it), with what "
                              "else you type on top (--spp may be larger; any --nodes and "
@@ -314,153 +300,5 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_render(args: argparse.Namespace, launched: dict | None = None) -> int:
-    shadow_samples_given = check_and_default(args)
-    animating = args.frames is not None or args.first_frame is not None
-    if animating:
-        first = args.first_frame or 0
-        frame_outputs = check_frame_outputs(args.output, args.png, args.report,
-                                            list(range(first, first + (args.frames or 1))))
-    else:
-        outputs = check_output_paths(args.output, args.png, args.report)
-    plan = plan_render(args, shadow_samples_given, animating=animating, launched=launched)
-    if animating:
-        return run_animation(args, store_path=str(plan.store_path), config=plan.config,
-                             settings=plan.settings, bounds=plan.store.world_bounds,
-                             scheduler=plan.scheduler, options=plan.report_options,
-                             outputs=frame_outputs, render_one=plan.render_one,
-                             render_many=_render_many(args, plan.config, plan.settings,
-                                                      plan.render_one),
-                             legend=plan.legend, rules=plan.rules)
-    progression, checkpoints = start_progression(args, plan, outputs)
-    replaced = [str(p) for p in outputs if p.exists()]  # before any checkpoint writes them
-    previous = checkpoints.install_signal()
-    try:
-        result = plan.render_one(plan.config, plan.settings, progression=progression)
-    except KeyboardInterrupt as stop:  # Ctrl-C and SIGTERM: the passes done are kept
-        progression.interrupted()
-        checkpoints.drain()  # a checkpoint under way first: then the latest
-        stop.checkpointed = checkpoints.write()
-        if stop.checkpointed and not args.quiet:
-            print(f"interrupted after {progression.snapshot.passes_done} pass(es), "
-                  f"{int(progression.film.count.max())} spp: wrote {', '.join(map(str, outputs))}"
-                  f" and the checkpoint {checkpoints.path}; go on with --resume "
-                  f"{checkpoints.path}", file=sys.stderr)
-        raise
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGUSR1, previous)
-    checkpoints.drain()  # no checkpoint is written after (or over) the final outputs
-    image, error, report = finish_render(plan, result, outputs[0], args.reference)
-    summary = summary_line(args, result, error, outputs, replaced)
-    write_outputs(args, plan, outputs, result.film, image, report)
-    checkpoints.finished()
-    if not args.quiet:
-        print(summary, file=sys.stderr)
-        for line in recovery_lines(result.counters):  # a recovery is never silent
-            print(line, file=sys.stderr)
-    return 0
-
-
-def write_outputs(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path], film,
-                  image: np.ndarray, report: dict) -> None:
-    """Write the image (-o, --png) and the report, all or none: renamed into place together;
-    where one cannot be written (a full disk...), all go to a rescue folder and the
-    ``OutputError`` raised names it (``vastray.outputs``)."""
-    depth, normal = film.depth_image(), film.normal_image()
-    files = {outputs[0]: lambda path: write_image(path, image, depth, normal, args.exposure,
-                                                  legend=plan.legend)}
-    if args.png:
-        files[Path(args.png)] = lambda path: write_png(path, image, args.exposure,
-                                                       legend=plan.legend)
-    if args.report:
-        files[Path(args.report)] = lambda path: write_report(path, report)
-    with StagedOutputs() as staged:
-        staged.add(files)
-
-
-def start_progression(args: argparse.Namespace, plan: RenderPlan, outputs: list[Path]
-                      ) -> tuple[Progression, Checkpointer]:
-    """The image's progression (from ``--resume`` where given) and its checkpoints, which
-    write the film and the image so far (with a report that says where it stopped)."""
-    camera = store_camera(plan.config, plan.store, plan.settings.width, plan.settings.height)
-    identity = render_identity(plan.store, plan.config, camera, plan.settings,
-                               plan.rules.max_pass_spp)
-    resumed = read_checkpoint(args.resume, identity) if args.resume else None
-    try:
-        progression = plan.progression(resumed=resumed)
-    except ValueError as exc:
-        raise InputError(args.resume, str(exc)) from None
-
-    def write_partial(progression: Progression) -> None:
-        snap = progression.snapshot
-        image = snap.film.image()
-        report = build_report(
-            store=str(plan.store_path), settings=asdict(plan.settings),
-            seconds={"total": round(snap.seconds, 4)}, counters={}, scheduler=plan.scheduler,
-            options=plan.report_options, progress=progression.report(),
-            error=None if plan.reference is None else image_error(image, plan.reference),
-            reference=args.reference if isinstance(args.reference, str) else None)
-        report["checkpoint"] = str(checkpoints.path)
-        write_outputs(args, plan, outputs, snap.film, image, report)
-
-    argv = getattr(args, "argv", None)  # the CLI's arguments (the Python API has none)
-    if argv is not None:  # so that `--resume CHECKPOINT` alone goes on with them
-        identity = {**identity, "command": saved_command(argv, args.store)}
-    checkpoints = Checkpointer(args.checkpoint or default_checkpoint(outputs[0]), identity,
-                               args.checkpoint_every, write_partial)
-    checkpoints.progression = progression
-    progression.on_pass = checkpoints.after_pass
-    return progression, checkpoints
-
-
-def _render_many(args: argparse.Namespace, config, settings: RenderSettings,
-                 render_one: Callable[..., RenderResult]) -> Callable | None:
-    """With ``--nodes``, where the distributed runtime renders several frames in one job:
-    ``render_many(frames, on_frame, progression_of)`` (nodes started once, each frame's config and seed
-    resolved on the nodes); else None, and each frame is a job of its own."""
-    if not args.nodes:
-        return None
-    return lambda frames, on_frame, progression_of=None: render_one(
-        config, settings, frames=frames, on_frame=on_frame, progression_of=progression_of)
-
-
-def summary_line(args: argparse.Namespace, result, error: dict | None,
-                 outputs: list[Path], replaced: list[str] | None = None) -> str:
-    """The last line of a render: every file written, the work, the time and the error."""
-    seconds = max(result.seconds["total"], 1e-9)
-    queries = ray_queries(result.counters)
-    line = (f"wrote {', '.join(map(str, outputs))} ({args.width}x{args.height}, {args.spp} spp, "
-            f"{args.integrator}) in {seconds:.2f} s")
-    if queries:
-        line += f", {queries[1] / seconds / 1e6:.2f} M {queries[0]}/s"
-    line += f", {result.counters.get('loads', 0)} domain loads"
-    if result.counters.get("bytes_loaded"):  # out of core: what loading cost
-        line += (f" ({result.counters['bytes_loaded'] / 1e9:.2f} GB read, "
-                 f"{result.counters.get('load_wait_s', 0.0):.1f} s waited)")
-    peak = result.counters.get("peak_rss_bytes") or result.counters.get("peak_rss_bytes_max")
-    if args.memory_limit is not None and peak:  # the busiest process against its limit
-        line += f", peak RSS {gigabytes(peak)} of --memory-limit {gigabytes(args.memory_limit)}"
-    if error is not None:
-        psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
-        line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"
-    if replaced is None:  # made before the outputs are written
-        replaced = [str(p) for p in outputs if p.exists()]
-    progress = result.progress or {}
-    if progress.get("stopped_by") not in (None, "spp"):
-        line += (f"; stopped by --{progress['stopped_by']} at "
-                 f"{progress['passes'][-1]['spp']} spp")
-    if replaced:  # the files a user names are replaced, as renderers do, but never silently
-        line += f"; replaced the existing {', '.join(replaced)}"
-    return line
-
-
-def ray_queries(counters: dict) -> tuple[str, int] | None:
-    """What the run counted of its Embree work: ("rays", n) for the reference renderer, which
-    traces each ray once through all its domains, ("ray-domain queries", n) for schedules
-    that query domain by domain (summed over nodes); None when nothing was counted."""
-    if "rays" in counters:
-        return "rays", int(counters["rays"]["total"])
-    parts = [counters] + [node.get("counters", {}) for node in counters.get("per_node", [])]
-    total = sum(int(part.get("radiance_tests", 0)) + int(part.get("shadow_tests", 0))
-                for part in parts)
-    return ("ray-domain queries", total) if total else None
+    """``vastray render``: its command line as a ``RenderRequest``, rendered to its files."""
+    return run(RenderRequest.from_namespace(args), launched)

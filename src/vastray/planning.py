@@ -4,10 +4,8 @@ scheduler resolved, the memory checked and the job's runtime picked (``plan_rend
 
 from __future__ import annotations
 
-import argparse
 import functools
 import logging
-import math
 import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -16,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from vastray.actors.coordinator import render_distributed
-from vastray.actors.job_options import JobOptions
+from vastray.actors.job_options import DEFAULT_PORTAL_RESOLUTION, JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.preflight import (
     MemoryEstimate,
@@ -39,20 +37,16 @@ from vastray.render.lights import shadow_rays
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, Progression, StopRules
 from vastray.render.scene_camera import with_camera
 from vastray.render.scene_config import SceneConfig, load_scene_config
-from vastray.render_job import (
-    DEFAULT_BATCH_SIZE,
-    DEFAULT_EXPOSURE,
-    DEFAULT_HEARTBEAT_TIMEOUT_S,
-    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
-    DEFAULT_NODE_TIMEOUT_S,
-    DEFAULT_SAMPLES_IN_FLIGHT,
-    job_options,
-    refuse_for_lights,
-    refuse_for_scheduler,
-    refuse_inapplicable,
-)
 from vastray.report import build_report, count_overflow
-from vastray.request import BUILTIN_DEFAULTS, STORE_DEFAULTS
+from vastray.request import (
+    DEFAULT_BATCH_SIZE,
+    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
+    DEFAULT_PORTAL_INTERVAL,
+    DEFAULT_PORTAL_THRESHOLD,
+    DEFAULT_SAMPLES_IN_FLIGHT,
+    RenderRequest,
+    resolve_cache,
+)
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
@@ -60,18 +54,6 @@ from vastray.scene.store import Store
 from vastray.transport.keys import load_coordinator_keys
 
 log = logging.getLogger(__name__)
-
-
-def resolve_defaults(args: argparse.Namespace) -> None:
-    """Fill the options left unset with the defaults of the built-in scene or of a store (and
-    the defaults of the options ``refuse_inapplicable`` checks for presence)."""
-    defaults = BUILTIN_DEFAULTS if args.store is None else STORE_DEFAULTS
-    defaults = dict(defaults, exposure=DEFAULT_EXPOSURE,
-                    node_timeout=DEFAULT_NODE_TIMEOUT_S,
-                    heartbeat_timeout=DEFAULT_HEARTBEAT_TIMEOUT_S)
-    for key, value in defaults.items():
-        if getattr(args, key) is None:
-            setattr(args, key, value)
 
 
 @dataclass
@@ -87,11 +69,13 @@ class RenderPlan:
     settings : image size, integrator and sampling (defaults filled in).
     scheduler : as resolved from ``auto``.
     options : the job's options, as the schedulers receive them.
-    report_options : the run's switches, as its report records them (``run_options``).
+    report_options : the run's switches, as its report records them
+        (``RenderRequest.report_options``).
     reference : (H, W, 3) image to measure the error against, or None.
     render_one : ``render_one(config, settings) -> RenderResult`` (``_renderer``).
     legend : the colour bar PNGs get, or None (``png_legend``).
     memory : the peak memory the preflight expects (``preflight.RenderMemory``).
+    request : the request planned, its defaults filled in (``RenderRequest.resolved``).
     """
 
     store_path: Path
@@ -106,6 +90,7 @@ class RenderPlan:
     legend: Legend | None = None
     rules: StopRules | None = None
     memory: RenderMemory | None = None
+    request: RenderRequest | None = None
 
     def progression(self, reference: np.ndarray | None = None,
                     resumed=None) -> Progression:
@@ -117,129 +102,103 @@ class RenderPlan:
                            resumed=resumed)
 
 
-def check_and_default(args: argparse.Namespace) -> bool:
-    """Refuse the options given where they change nothing, then fill in the defaults.
-    Returns whether ``--shadow-samples`` was given (``plan_render`` needs to know)."""
-    refuse_inapplicable(args)  # before the defaults fill in what was not given
-    shadow_samples_given = args.shadow_samples is not None
-    resolve_defaults(args)
-    return shadow_samples_given
-
-
-def plan_render(args: argparse.Namespace, shadow_samples_given: bool, *,
-                animating: bool = False, launched: dict | None = None,
-                store: Store | None = None, camera: dict | None = None) -> RenderPlan:
+def plan_render(request: RenderRequest, *, animating: bool = False,
+                launched: dict | None = None, store: Store | None = None) -> RenderPlan:
     """Open the store and scene, refuse what cannot work, and pick the scheduler and the
-    job's options: everything before the first ray, for ``args`` as ``check_and_default``
-    left them.
+    job's options: everything before the first ray, for ``request`` with its defaults filled
+    in (``RenderRequest.resolved``).
 
     Parameters
     ----------
     animating : an animation checks the camera (and reference) of each of its frames.
     launched : node processes started elsewhere (``vastray launch``).
-    store : ``args.store`` already opened.
-    camera : ``[camera]`` keys replacing the scene's camera (``scene_config.with_camera``).
+    store : ``request.store`` already opened.
 
     Raises
     ------
     InputError
         Naming the file or option and the problem.
     """
-    if args.store is None:
+    request = request.resolved()
+    if request.store is None:
         from vastray.default_scene import default_scene_config, default_store
 
-        store_path = default_store(quiet=args.quiet)
-        config = load_scene_config(args.scene) if args.scene else default_scene_config()
+        store_path = default_store(quiet=request.quiet)
+        config = load_scene_config(request.scene) if request.scene else default_scene_config()
     else:
-        store_path = Path(args.store)
-        config = load_scene_config(args.scene)
+        store_path = Path(request.store)
+        config = load_scene_config(request.scene)
     store = Store(store_path) if store is None else store
     check_extent(store.bounds, store.path, "partition it again")
-    if camera is not None:
-        config = with_camera(config, camera)
+    if request.camera is not None:
+        config = with_camera(config, request.camera)
     config.check_objects(store.objects)
-    legend = png_legend(args, store)
-    refuse_for_lights(args, shadow_samples_given, config.resolve_lights())
+    legend = png_legend(request, store)
+    request.refuse_for_lights(config.resolve_lights())
     if not animating:  # an animation checks the camera of each of its frames
-        config.resolve_camera(*store.world_bounds, args.width, args.height)
+        config.resolve_camera(*store.world_bounds, request.width, request.height)
     reference = None
-    if isinstance(args.reference, np.ndarray):
-        reference = args.reference
-    elif args.reference and not animating:
-        reference = read_image(args.reference)
+    if isinstance(request.reference, np.ndarray):
+        reference = request.reference
+    elif request.reference and not animating:
+        reference = read_image(request.reference)
     settings = RenderSettings(
-        width=args.width, height=args.height, spp=args.spp, integrator=args.integrator,
-        bounces=args.bounces, shadow_samples=args.shadow_samples, ao_distance=args.ao_distance,
-        seed=args.seed, batch_size=args.batch_size or DEFAULT_BATCH_SIZE,
-        colormap=args.colormap,
-        color_min=args.color_range[0] if args.color_range else None,
-        color_max=args.color_range[1] if args.color_range else None,
+        width=request.width, height=request.height, spp=request.spp, integrator=request.integrator,
+        bounces=request.bounces, shadow_samples=request.shadow_samples, ao_distance=request.ao_distance,
+        seed=request.seed, batch_size=request.batch_size or DEFAULT_BATCH_SIZE,
+        colormap=request.colormap,
+        color_min=request.color_range[0] if request.color_range else None,
+        color_max=request.color_range[1] if request.color_range else None,
     )
-    if reference is not None and reference.shape != (args.height, args.width, 3):
-        where = args.reference if isinstance(args.reference, str) else "reference"
+    if reference is not None and reference.shape != (request.height, request.width, 3):
+        where = request.reference if isinstance(request.reference, str) else "reference"
         raise InputError(where, f"reference is {reference.shape[1]}x{reference.shape[0]}"
-                                f", the render is {args.width}x{args.height}")
-    cache = resolve_cache(args.cache, len(store.domains))
-    scheduler = args.scheduler
-    cache, memory = _check_render_memory(args, config,
+                                f", the render is {request.width}x{request.height}")
+    cache = resolve_cache(request.cache, len(store.domains))
+    scheduler = request.scheduler
+    cache, memory = _check_render_memory(request, config,
                                          "reference" if scheduler == "auto" else scheduler,
                                          store, cache)
     if scheduler == "auto":
         scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
-    if args.rendezvous and not args.listen:
-        raise InputError(None, "--rendezvous FILE needs --listen HOST:PORT (the nodes it "
-                               "guides are started elsewhere)")
-    if args.keys and not args.listen:
-        raise InputError(None, "--keys is for nodes started elsewhere (--listen HOST:PORT); "
-                               "the nodes --nodes starts here join with a secret handed to "
-                               "them")
-    if args.keys:
-        load_coordinator_keys(args.keys)  # a missing or malformed key fails before the render
-    if args.log_dir and args.listen:
-        raise InputError(None, "--log-dir keeps the logs of nodes started here; nodes started "
-                               "elsewhere (--listen) keep their own (`vastray launch --logs`)")
-    if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") and not args.nodes:
-        raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
-                               "give --nodes N")
-    if args.nodes:
+    request.refuse_for_nodes(scheduler)
+    if request.keys:
+        load_coordinator_keys(request.keys)  # a missing or malformed key fails before the render
+    if request.nodes:
         scheduler = "image" if scheduler == "reference" else scheduler
         cores = available_cpus()
-        if not args.listen and args.nodes > cores:
+        if not request.listen and request.nodes > cores:
             log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
-                        "nodes render no faster here", args.nodes, cores, cores)
-    refuse_for_scheduler(args, scheduler)
-    refuse_for_passes(args, animating)
-    options = job_options(args, scheduler, cache)
-    rules = StopRules(args.spp, args.time_limit, args.target_error,
-                      args.max_pass_spp or DEFAULT_MAX_PASS_SPP)
+                        "nodes render no faster here", request.nodes, cores, cores)
+    request.refuse_for_scheduler(scheduler)
+    request.refuse_for_passes(animating)
+    options = job_options(request, scheduler, cache)
+    rules = StopRules(request.spp, request.time_limit, request.target_error,
+                      request.max_pass_spp or DEFAULT_MAX_PASS_SPP,
+                      one_pass=renders_in_one_pass(request, options, len(store.domains), reference))
     return RenderPlan(store_path, store, config, settings, scheduler, options,
-                      run_options(args, options), reference,
-                      _renderer(args, store, store_path, options, launched), legend, rules,
-                      memory)
+                      request.report_options(options), reference,
+                      _renderer(request, store, store_path, options, launched), legend, rules,
+                      memory, request)
 
 
-def refuse_for_passes(args: argparse.Namespace, animating: bool) -> None:
-    """Refuse checkpoint options where they cannot work.
+def renders_in_one_pass(request: RenderRequest, options: JobOptions, domains: int,
+                        reference: np.ndarray | None) -> bool:
+    """Whether the render runs as one pass instead of the progressive series (issue 40).
 
-    Raises
-    ------
-    InputError
-        Naming the option and what to do instead.
-    """
-    for dest in ("checkpoint_every", "checkpoint", "resume"):
-        if getattr(args, dest, None) is not None and animating:
-            raise InputError(None, f"--{dest.replace('_', '-')} is for one image; an animation goes on "
-                                   "from a frame with --first-frame F")
-    if args.resume is not None and args.simplified not in (None, "none"):
-        raise InputError(args.resume, "--resume is for lossless renders: --simplified keeps "
-                                      "a radiance cache that is not in the checkpoint")
-    if (getattr(args, "target_error", None) is not None and not args.reference
-            and args.simplified not in (None, "none")):
-        raise InputError(None, "--target-error without --reference is for lossless renders: "
-                               "--simplified is biased, and the film's error estimate sees "
-                               "its noise, not its bias (give --reference IMAGE)")
-    if args.checkpoint is not None and args.checkpoint_every is None:
-        log.info("--checkpoint without --checkpoint-every: written on SIGUSR1 and Ctrl-C")
+    Out of core (a domain cache smaller than the store), every pass sweeps the domains again
+    and reloads what the cache lost since the last: 1.4-4x the loads of one pass on a store
+    at a quarter cached. Where nothing reads the image between passes (no reference to
+    measure against, no stopping rule, no checkpoint due, no ``--max-pass-spp`` asked for),
+    the passes buy nothing, so the render is one pass: its tiles and domain loads are the
+    one-pass render's, and its report's series has one point (the final image's error
+    estimate). In core, passes cost no loads and stay."""
+    out_of_core = options.cache is not None and options.cache < domains
+    watched = (reference is not None or request.time_limit is not None
+               or request.target_error is not None or request.checkpoint_every is not None
+               or request.checkpoint is not None or request.max_pass_spp is not None
+               or request.resume is not None)
+    return out_of_core and not watched
 
 
 def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
@@ -258,71 +217,71 @@ def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLi
     return image, error, report
 
 
-def png_legend(args: argparse.Namespace, store: Store) -> Legend | None:
+def png_legend(request: RenderRequest, store: Store) -> Legend | None:
     """The colour bar PNGs get (None: not coloured by scalars, or not asked for: ``--legend``,
     by default on with ``--colormap``); checks
     the ``--colormap`` name first, so a wrong one is refused before any rendering."""
-    if args.colormap is not None:
-        colormap_lut(args.colormap)
+    if request.colormap is not None:
+        colormap_lut(request.colormap)
     by_scalars = coloured_by_scalars(store)
-    for option, given in (("--colormap", args.colormap is not None), ("--legend", args.legend),
-                          ("--color-range", args.color_range is not None)):
+    for option, given in (("--colormap", request.colormap is not None), ("--legend", request.legend),
+                          ("--color-range", request.color_range is not None)):
         if given and not by_scalars:
             raise InputError(store.path, f"{option} is for a store coloured by its scalar field;"
                                          " this one has " + ("per-vertex colours" if
                                                              store.has_colors else "no scalars"))
-    if args.legend and not (args.png or str(args.output).lower().endswith(".png")):
+    if request.legend and not request.png_output:
         raise InputError(None, "--legend draws into PNG output only: give --png FILE or a .png "
                                "-o")
-    if args.color_range is not None and not args.color_range[0] < args.color_range[1]:
+    if request.color_range is not None and not request.color_range[0] < request.color_range[1]:
         raise InputError(None, f"--color-range LO HI needs LO < HI, got "
-                               f"{args.color_range[0]:g} {args.color_range[1]:g}")
-    wanted = args.legend if args.legend is not None else args.colormap is not None
-    return legend_for(store, args.colormap, args.color_range and tuple(args.color_range)) \
+                               f"{request.color_range[0]:g} {request.color_range[1]:g}")
+    wanted = request.legend if request.legend is not None else request.colormap is not None
+    return legend_for(store, request.colormap, request.color_range and tuple(request.color_range)) \
         if wanted else None
 
 
-def _renderer(args: argparse.Namespace, store: Store, store_path: Path, options: JobOptions,
+def _renderer(request: RenderRequest, store: Store, store_path: Path, options: JobOptions,
               launched: dict | None) -> Callable[..., RenderResult]:
     """The job's scheduler as ``render_one(config, settings, progression=None) ->
     RenderResult``: the image in the passes ``progression`` asks for (None: in one pass),
     the result's ``progress`` its report. The distributed one also takes
     ``render_distributed``'s ``frames``, ``on_frame`` and ``progression_of``."""
-    if args.nodes:
+    if request.nodes:
         def render_one(config, settings, progression=None, **frames):
             if progression is not None:
                 frames["progression_of"] = lambda frame: progression
             return render_distributed(
-                store_path, args.scene, settings, args.nodes, options,
-                timeout=args.node_timeout, listen=args.listen,
-                keys=load_coordinator_keys(args.keys) if args.keys else None,
+                store_path, request.scene, settings, request.nodes, options,
+                timeout=request.node_timeout, listen=request.listen,
+                keys=load_coordinator_keys(request.keys) if request.keys else None,
                 launched=launched,
-                progress=not args.quiet, config=config, rendezvous=args.rendezvous,
-                heartbeat_timeout=args.heartbeat_timeout, log_dir=node_log_dir(args),
+                progress=not request.quiet, config=config, rendezvous=request.rendezvous,
+                heartbeat_timeout=request.heartbeat_timeout, log_dir=node_log_dir(request),
                 **frames)
     elif options.scheduler == "reference":
         kept = FrameCache(store, options.cache, options.load_bytes_per_second())
 
         def render_one(config, settings, progression=None):
             return _with_progress(render(
-                store, config, settings, threads=options.threads, progress=not args.quiet,
+                store, config, settings, threads=options.threads, progress=not request.quiet,
                 cache=kept.for_frame(config, settings.integrator), progression=progression),
                 progression)
     else:
         def render_one(config, settings, progression=None):
             return _with_progress(render_out_of_core(
-                store, config, settings, options, progress=not args.quiet,
+                store, config, settings, options, progress=not request.quiet,
                 progression=progression), progression)
     return render_one
 
 
-def node_log_dir(args: argparse.Namespace) -> Path | None:
+def node_log_dir(request: RenderRequest) -> Path | None:
     """Where the logs of the nodes started here are kept: ``--log-dir``, else beside
     ``--report`` (``REPORT.nodes``; the report names it), else nowhere (removed)."""
-    if args.log_dir:
-        return Path(args.log_dir)
-    if args.report and not args.listen:
-        return Path(f"{args.report}.nodes")
+    if request.log_dir:
+        return Path(request.log_dir)
+    if request.report and not request.listen:
+        return Path(f"{request.report}.nodes")
     return None
 
 
@@ -332,31 +291,19 @@ def _with_progress(result: RenderResult, progression: Progression | None) -> Ren
     return result
 
 
-def run_options(args: argparse.Namespace, options: JobOptions) -> dict:
-    """The run's switches besides the scheduler, for its report (and ``vastray plot``'s
-    labels): the job's options as the schedulers receive them (defaults filled in), the node
-    count, timeouts and address, and the frames."""
-    report = options.for_report()
-    del report["scheduler"]  # the report's own "scheduler"
-    nodes = {"node_timeout_s": args.node_timeout, "heartbeat_timeout_s": args.heartbeat_timeout,
-             "listen": args.listen} if args.nodes else {}
-    return {"nodes": args.nodes, **report, **nodes, "frames": args.frames,
-            "first_frame": args.first_frame, "memory_limit": args.memory_limit}
-
-
-def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store: Store,
+def _check_render_memory(request: RenderRequest, config, scheduler: str, store: Store,
                          cache: int | None) -> tuple[int | None, RenderMemory]:
     """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
     process it starts here, less a margin for the rest of the machine); with
     ``--memory-limit``, first bound each process's domain cache by what its base, film and
     paths in flight leave. Returns the cache and the estimates."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
-    rays_per_hit = args.shadow_samples if args.integrator == "ao" else max(sum(
-        shadow_rays(light, args.shadow_samples) for light in config.resolve_lights()), 1)
-    threads = args.threads or available_cpus()
-    total = args.width * args.height * args.spp
+    rays_per_hit = request.shadow_samples if request.integrator == "ao" else max(sum(
+        shadow_rays(light, request.shadow_samples) for light in config.resolve_lights()), 1)
+    threads = request.threads or available_cpus()
+    total = request.width * request.height * request.spp
     footprints = domain_footprints(store.domains)
-    reference = args.reference is not None  # a file name, or an array (the Python API)
+    reference = request.reference is not None  # a file name, or an array (the Python API)
 
     @functools.cache
     def copies() -> float:
@@ -364,57 +311,75 @@ def _check_render_memory(args: argparse.Namespace, config, scheduler: str, store
         lo, hi = store.domain_boxes()
         return speculative_copies(
             crossings_from_surface(lo, hi, [d.n_triangles for d in store.domains]),
-            args.bounces + 1 if args.integrator == "pt" else 1)
+            request.bounces + 1 if request.integrator == "pt" else 1)
 
     def process(cache: int | None) -> MemoryEstimate:
         """One rendering process (a node with --nodes), its domains left out."""
-        if args.nodes:
-            tile = args.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
-            return estimate_memory(args.width, args.height, min(tile, total), rays_per_hit,
+        if request.nodes:
+            tile = request.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
+            return estimate_memory(request.width, request.height, min(tile, total), rays_per_hit,
                                    role="node",
                                    copies=copies() if scheduler == "spec-ooc" else 0.0)
         all_fit = cache is None or cache >= len(footprints)
-        if scheduler == "reference" and (all_fit or args.scheduler != "auto"):
-            in_flight = reference_paths_in_flight(total, args.batch_size or DEFAULT_BATCH_SIZE,
+        if scheduler == "reference" and (all_fit or request.scheduler != "auto"):
+            in_flight = reference_paths_in_flight(total, request.batch_size or DEFAULT_BATCH_SIZE,
                                                   threads, all_fit)
         else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
-            in_flight = min(args.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
-            if args.scheduler in ("spec-ooc", "auto"):
-                return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
+            in_flight = min(request.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
+            if request.scheduler in ("spec-ooc", "auto"):
+                return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
                                        reference=reference, copies=copies())
-        return estimate_memory(args.width, args.height, in_flight, rays_per_hit,
+        return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
                                reference=reference)
 
-    if args.memory_limit is not None:
-        if not args.listen:  # the processes it bounds run here
-            check_limit_fits_machine(args.memory_limit)
+    if request.memory_limit is not None:
+        if not request.listen:  # the processes it bounds run here
+            check_limit_fits_machine(request.memory_limit)
         if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
             from vastray.schedule.ownership import zorder_owners
 
-            nodes = args.nodes or 1
-            check_owned_fit(args.memory_limit, process(cache), footprints,
+            nodes = request.nodes or 1
+            check_owned_fit(request.memory_limit, process(cache), footprints,
                             zorder_owners(*store.domain_boxes(), nodes), nodes)
         else:
-            fitting = cache_within(args.memory_limit, process(cache), footprints,
-                                   args.width, args.height)
-            if fitting < len(footprints) and args.scheduler == "auto":  # becomes spec-ooc
-                fitting = cache_within(args.memory_limit, process(fitting), footprints,
-                                       args.width, args.height)
+            fitting = cache_within(request.memory_limit, process(cache), footprints,
+                                   request.width, request.height)
+            if fitting < len(footprints) and request.scheduler == "auto":  # becomes spec-ooc
+                fitting = cache_within(request.memory_limit, process(fitting), footprints,
+                                       request.width, request.height)
             log.info("--memory-limit leaves room for %d domains per process", fitting)
             cache = fitting if cache is None else min(cache, fitting)
     held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
     one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
     coordinator, machine = None, one
-    if args.nodes:  # the coordinator, and every node unless they run elsewhere
-        coordinator = estimate_memory(args.width, args.height, 0, 0, role="coordinator",
+    if request.nodes:  # the coordinator, and every node unless they run elsewhere
+        coordinator = estimate_memory(request.width, request.height, 0, 0, role="coordinator",
                                       reference=reference)
-        machine = coordinator if args.listen else coordinator + one.times(args.nodes)
-    check_memory(machine, args.width, args.height)
+        machine = coordinator if request.listen else coordinator + one.times(request.nodes)
+    check_memory(machine, request.width, request.height)
     return cache, RenderMemory(one, coordinator, machine)
 
 
-def resolve_cache(cache: int | str | None, n_domains: int) -> int | None:
-    """The cache size in domains: ``P%`` of ``n_domains`` rounded up (at least 1)."""
-    if isinstance(cache, str):
-        return max(1, math.ceil(float(cache[:-1]) / 100.0 * n_domains))
-    return cache
+def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> JobOptions:
+    """The job's options from the command line (defaults filled in where the scheduler uses
+    them), for ``scheduler`` as resolved from ``auto``, with ``cache`` in domains."""
+    tiles = scheduler != "reference"
+    in_flight = request.max_samples_in_flight
+    if in_flight is None and tiles:
+        in_flight = DEFAULT_NODE_SAMPLES_IN_FLIGHT if request.nodes else DEFAULT_SAMPLES_IN_FLIGHT
+    return JobOptions(
+        scheduler=scheduler, cache=None if scheduler == "spec-insitu" else cache,
+        max_samples_in_flight=in_flight,
+        history_depth=request.history_depth, threads=request.threads,
+        preload=not request.no_preload, load_bandwidth=request.load_bandwidth,
+        cold_reads=request.cold_reads, eviction=request.eviction,
+        simplified=request.simplified,
+        portal_interval=request.portal_interval or DEFAULT_PORTAL_INTERVAL,
+        portal_threshold=(DEFAULT_PORTAL_THRESHOLD if request.portal_threshold is None
+                          else request.portal_threshold),
+        portal_resolution=request.portal_resolution or DEFAULT_PORTAL_RESOLUTION,
+        portal_accuracy=request.portal_accuracy,
+        portal_memory=request.portal_memory or 0,
+        assignment=request.assignment or ("affinity" if scheduler == "temporal" else None),
+        priority=request.priority or ("cost-rate" if scheduler == "temporal" else None),
+    )
