@@ -22,7 +22,10 @@ rather than mapping them: a mapped file truncated or rewritten while a render us
 kill the process with SIGBUS or change the picture halfway. Since version 3 the manifest's
 ``"origin"`` places the store's frame in the world: vertices and boxes are stored relative to
 it (float32 vertices of data far from the world origin keep their precision; the renderer
-moves camera and lights into that frame).
+moves camera and lights into that frame). Since version 5 each domain entry also carries its
+occupancy mask (``"occupancy"``: a coarse grid of bits over its box, set where triangles are;
+:mod:`vastray.scene.occupancy`), which the ray-domain queries use to skip a domain's empty
+space; older stores open without (every cell occupied).
 How a manifest is checked on opening: :mod:`vastray.scene.manifest`.
 
 The optional ``"simplified"`` manifest entry describes a decimated copy of the whole scene
