@@ -180,6 +180,7 @@ class Store:
         #: The checked ``"simplified"`` entry, or None when the store has no simplified model.
         self.simplified: SimplifiedInfo | None = simplified_entry(self.root, self.manifest,
                                                                   self.bounds)
+        self._occupancy: Occupancy | None = None
 
     @property
     def objects(self) -> list[dict]:
@@ -232,8 +233,10 @@ class Store:
         set to 0, for measurements)."""
         if not occupancy.enabled() or all(d.occupancy is None for d in self.domains):
             return None
-        lo, hi = self.domain_boxes()
-        return Occupancy(lo, hi, [d.occupancy for d in self.domains])
+        if self._occupancy is None:  # built once per store (every render setup asks)
+            lo, hi = self.domain_boxes()
+            self._occupancy = Occupancy(lo, hi, [d.occupancy for d in self.domains])
+        return self._occupancy
 
     def domain_path(self, info: DomainInfo, kind: str) -> Path:
         """Path of a domain's ``kind`` file, checked again to stay inside the store (a symlink
