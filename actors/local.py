@@ -13,6 +13,7 @@ import numpy as np
 
 from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
 from vastray.actors.job_options import JobOptions, JobOptionsError
+from vastray.actors.node_state import NodeState
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.render_setup import RenderSetup
 from vastray.processes import disk_read_bytes, peak_rss_bytes
@@ -32,6 +33,7 @@ from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh import query_pool
+from vastray.scene.cache import CacheStats
 from vastray.scene.store import Store
 from vastray.schedule import registry
 from vastray.schedule.belady import belady_loads
@@ -64,7 +66,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                        share: tuple[int, int] = (0, 1),
                        on_tile: Callable[[int], None] | None = None,
                        ablation: SpeculationRules | None = None,
-                       progression: Progression | None = None) -> RenderResult:
+                       progression: Progression | None = None,
+                       state: NodeState | None = None) -> RenderResult:
     """Render one node's image out of core with the ``image`` or ``spec-ooc`` schedule.
 
     Parameters
@@ -86,6 +89,9 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         None: all on.
     progression : render in the sample-major passes it asks for (``driver.render``'s);
         None: the whole of ``settings.spp`` at once (or the pass ``settings`` name).
+    state : a node's state kept from pass to pass and frame to frame: its domain preloader
+        (the domains it holds stay resident for the next pass, issue 40) and query threads;
+        None: this call's own, closed at its end. The counters are this call's either way.
     """
     options = JobOptions() if options is None else options
     scheduler = options.scheduler
@@ -101,10 +107,16 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     read_before = disk_read_bytes()
     setup = RenderSetup.of(store, config, settings)
     capacity = options.cache or max(len(store.domains), 1)
-    pool = query_pool(options.threads)
     bandwidth = options.load_bytes_per_second(share[0])
-    preloader = DomainPreloader(store, capacity, setup.keep, pool=pool, load_bandwidth=bandwidth,
-                                preload=options.preload, drop_page_cache=options.cold_reads)
+    if state is None:  # this call's own cache and threads
+        pool = query_pool(options.threads)
+        preloader = DomainPreloader(store, capacity, setup.keep, pool=pool,
+                                    load_bandwidth=bandwidth, preload=options.preload,
+                                    drop_page_cache=options.cold_reads)
+    else:  # the node's, kept from pass to pass (what it holds is not loaded again)
+        preloader = state.preloader_for(store, capacity, setup.keep, options, share[0])
+        pool = state.pool
+    before = _cache_counts(preloader.cache.stats)
     counters: dict = {}
     loop = DomainLoop(preloader, counters, offload=False)  # nothing else to serve meanwhile
     tile_limit = options.max_samples_in_flight
@@ -143,15 +155,14 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         spans = PassSpans(progression, settings)
         size = max(1, min(tile_limit or spans.total, spans.total))
         tile = max(tile, size)
-        for first in range(0, spans.total, size):
+        for first in sort_first_tiles(spans.total, size, *share):
             stop = min(first + size, spans.total)
             ctx, passes = spans.context(setup.shading, first, stop, setup.ao_distance)
             spans.add(ctx, passes, trace_tile(ctx, bar), stop)
-        if spans.total == 0:
-            progression.next_pass()  # resumed with nothing left: says why it stops
+        spans.add_rest()  # passes in other nodes' tiles only, and those after this node's last
         return progression.film
 
-    fused = progression is not None and not progression.rules.paced and share == (0, 1)
+    fused = progression is not None and not progression.rules.paced
     try:
         with (asyncio.Runner() as runner,
               RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,
@@ -159,11 +170,12 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
             film = (trace_passes_together(bar) if fused
                     else run_passes(trace_pass, settings, progression, bar))
     finally:
-        preloader.close()
-        if pool is not None:
-            pool.shutdown()
+        if state is None:
+            preloader.close()
+            if pool is not None:
+                pool.shutdown()
     wall = time.perf_counter() - start
-    stats = preloader.cache.stats
+    stats = _CallStats(preloader.cache.stats, before)
     for name in ("radiance_tests", "shadow_tests", "shade_s"):  # a share of no tiles
         counters.setdefault(name, 0)
     render_seconds = counters.pop("trace_s")
@@ -242,13 +254,52 @@ class PassSpans:
             self.films[int(k)].add_paths(ctx.pixel[rows], ctx.sample[rows], PathResult(
                 result.radiance[rows], result.first_t[rows], result.first_normal[rows]))
         while self.merged < len(self.windows) and self.offsets[self.merged + 1] <= stop:
-            step = self.progression.next_pass()
-            if step is None or step[0] != self.index[self.merged]:
-                raise RuntimeError(f"pass {self.index[self.merged]} is not the next one")
-            self.progression.add_pass(step[0], self.films.pop(self.merged))
-            self.merged += 1
+            self._merge_next()
         if self.merged == len(self.windows):
             self.progression.next_pass()  # says why it stops: every pass is in
+
+    def add_rest(self) -> None:
+        """Merge the passes not merged yet, once this process traced its last tile: a node's
+        share of the tiles (every ``size``-th) may end before the last pass does, or miss a
+        pass whole (its film then holds no path). Ends as ``add`` does."""
+        if self.merged == len(self.windows) and self.total:
+            return  # the last tile merged every pass and said why it stops
+        while self.merged < len(self.windows):
+            self._merge_next()
+        self.progression.next_pass()  # says why it stops (also when resumed with none left)
+
+    def _merge_next(self) -> None:
+        step = self.progression.next_pass()
+        if step is None or step[0] != self.index[self.merged]:
+            raise RuntimeError(f"pass {self.index[self.merged]} is not the next one")
+        film = self.films.pop(self.merged, None)
+        if film is None:  # no path of this pass among this process's tiles
+            film = Film(self.settings.width, self.settings.height)
+        self.progression.add_pass(step[0], film)
+        self.merged += 1
+
+
+#: The cache counters that are totals over a cache's life (a call reports its own share).
+_CACHE_TOTALS = ("loads", "hits", "evictions", "load_seconds", "read_seconds", "build_seconds",
+                 "preloads", "wait_seconds", "bytes_loaded", "throttle_seconds")
+
+
+def _cache_counts(stats: CacheStats) -> dict:
+    """What ``_CallStats`` subtracts: the totals so far and the domains loaded so far."""
+    return {**{name: getattr(stats, name) for name in _CACHE_TOTALS},
+            "loaded_domains": set(stats.loaded_domains)}
+
+
+class _CallStats(CacheStats):
+    """A cache's counters over one call: ``stats`` less the totals ``before`` it
+    (``_cache_counts``); peaks are the cache's own."""
+
+    def __init__(self, stats: CacheStats, before: dict):
+        super().__init__(**{name: getattr(stats, name) - before[name]
+                            for name in _CACHE_TOTALS},
+                         loaded_domains=stats.loaded_domains - before["loaded_domains"],
+                         peak_resident_bytes=stats.peak_resident_bytes,
+                         peak_resident_domains=stats.peak_resident_domains)
 
 
 def _merge(total: dict, part: dict) -> None:

@@ -15,6 +15,7 @@ import socket
 import sys
 import threading
 import time
+from types import SimpleNamespace
 
 import zmq
 import zmq.asyncio
@@ -29,6 +30,7 @@ from vastray.actors.node_state import NodeState
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import peak_rss_bytes
+from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
 from vastray.schedule import registry
@@ -239,28 +241,38 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs.clear()
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
-                # the ordinal counts the units rendered, not their number: a rule that stops
-                # a frame early skips its other passes, and labels must follow one another
-                state.ordinal, state.frame = rendered, frame or 0
-                rendered += 1
+                group = units_together(units, unit, options, job["paced"])
                 start = time.perf_counter()
-                film, counters = await render_share(
-                    management, tree, options, rank, size, store, frame_config,
-                    frame_settings.window(first, stop), report, state)
+                if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
+                    films, counters = await render_passes_together(
+                        options, rank, size, store, frame_config, frame_settings,
+                        [units[u][1:] for u in group], report, state)
+                else:
+                    # the ordinal counts the units rendered, not their number: a rule that
+                    # stops a frame early skips its other passes, and labels follow one another
+                    state.ordinal, state.frame = rendered, frame or 0
+                    film, counters = await render_share(
+                        management, tree, options, rank, size, store, frame_config,
+                        frame_settings.window(first, stop), report, state)
+                    films = [film]
                 busy = time.perf_counter() - start
-                reduce_start = time.perf_counter()
-                film = await tree.reduce_film(film, settings.width, settings.height,
-                                              state.ordinal)
-                reduce_s = time.perf_counter() - reduce_start
-                busy_total, reduce_total = busy_total + busy, reduce_total + reduce_s
-                frame_busy, frame_reduce = frame_busy + busy, frame_reduce + reduce_s
-                counters = _report_counters(counters, management)
-                accumulate_counters(totals, counters)
-                accumulate_counters(frame_totals, counters)
-                if rank == 0:
-                    meta = {"rank": rank, "unit": unit}
-                    await management.to_coordinator(film_frames(
-                        film, meta if frame is None else dict(meta, frame=frame)))
+                busy_total, frame_busy = busy_total + busy, frame_busy + busy
+                for unit, film in zip(group, films, strict=True):
+                    state.ordinal, state.frame = rendered, frame or 0
+                    rendered += 1
+                    reduce_start = time.perf_counter()
+                    film = await tree.reduce_film(film, settings.width, settings.height,
+                                                  state.ordinal)
+                    reduce_s = time.perf_counter() - reduce_start
+                    reduce_total, frame_reduce = reduce_total + reduce_s, frame_reduce + reduce_s
+                    counters = _report_counters(counters, management)
+                    accumulate_counters(totals, counters)
+                    accumulate_counters(frame_totals, counters)
+                    counters = {}  # a sweep's counters go with its first pass
+                    if rank == 0:
+                        meta = {"rank": rank, "unit": unit}
+                        await management.to_coordinator(film_frames(
+                            film, meta if frame is None else dict(meta, frame=frame)))
                 if job["paced"]:  # the coordinator rules on this pass before the next
                     unit = await _granted(management, unit, len(units))
                 else:
@@ -331,13 +343,71 @@ async def _tiles_share(management, tree, options, rank, size, store, config, set
 
     result = await asyncio.to_thread(
         render_out_of_core, store, config, settings, options, progress=False,
-        share=(rank, size), on_tile=report)
+        share=(rank, size), on_tile=report, state=state)
     return result.film, result.counters
 
 
 #: The runner of each runtime that runs on nodes (``Runtime.on_nodes``).
 NODE_RUNTIMES = {Runtime.IN_SITU: _in_situ_share, Runtime.DOMAINS: _domains_share,
                  Runtime.TILES: _tiles_share}
+
+
+def units_together(units: list, unit: int, options: JobOptions, paced: bool) -> list[int]:
+    """The units from ``unit`` on that a node renders in one sweep: without pacing (no rule
+    may stop the render between passes), the passes of one frame in a tile schedule
+    (``image``, ``spec-ooc``) run on from one into the next, so a domain is loaded once per
+    tile, not once per pass (as one process does, ``local.PassSpans``); else ``unit`` alone.
+    Every node groups alike (the job and options are the same), so their reductions pair."""
+    if paced or registry.spec(options.scheduler).runtime is not Runtime.TILES:
+        return [unit]
+    frame = units[unit][0]
+    group = [unit]
+    while group[-1] + 1 < len(units) and units[group[-1] + 1][0] == frame:
+        group.append(group[-1] + 1)
+    return group
+
+
+class UnitPasses:
+    """The passes of a node's units of one frame, as ``local.render_out_of_core`` asks a
+    progression for them (``PassSpans``): the windows, and each pass's film kept as it is
+    merged. Nothing is ruled on: the coordinator's progression rules on the films."""
+
+    def __init__(self, windows: list[tuple[int, int]]):
+        self.windows = list(windows)
+        self.films: list = []
+        self.rules = StopRules(int(self.windows[-1][1]))  # unpaced
+        self.snapshot = SimpleNamespace(passes_done=0)
+
+    def remaining(self) -> list[tuple[int, int]]:
+        return self.windows
+
+    def start(self) -> None:
+        pass
+
+    def next_pass(self) -> tuple[int, int, int] | None:
+        k = len(self.films)
+        return (k, *self.windows[k]) if k < len(self.windows) else None
+
+    def add_pass(self, index: int, film) -> None:
+        self.films.append(film)
+
+    @property
+    def film(self):
+        return self.films[-1] if self.films else None
+
+
+async def render_passes_together(options: JobOptions, rank: int, size: int, store, config,
+                                 settings, windows: list[tuple[int, int]], report,
+                                 state: NodeState) -> tuple[list, dict]:
+    """This node's partial film of each pass in ``windows`` (sample ranges of one frame),
+    traced in one sweep of sort-first tiles, and the sweep's counters."""
+    from vastray.actors.local import render_out_of_core
+
+    passes = UnitPasses(windows)
+    result = await asyncio.to_thread(
+        render_out_of_core, store, config, settings, options, progress=False,
+        share=(rank, size), on_tile=report, progression=passes, state=state)
+    return passes.films, result.counters
 
 
 def frame_inputs(settings, config: SceneConfig, store, frame: int | None):

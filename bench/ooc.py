@@ -55,10 +55,13 @@ import sys
 import time
 from pathlib import Path
 
+import vastray
+from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
+from vastray.request import DEFAULT_NODE_SAMPLES_IN_FLIGHT
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
 from vastray.schedule.spec_ooc import SpeculationRules
@@ -278,12 +281,73 @@ def main() -> None:
                     if integrator == "pt" and fraction < 1.0:
                         print(headline(fraction, storage, results), flush=True)
         if spec is plan["scenes"][0]:
+            passes(store, plan)
             sweep(store, plan)
             if args.ray_sweep:
                 ray_sweep(store, plan)
             if args.ablation:
                 ablation(store, plan)
     print(f"\nbench/ooc.py: {time.perf_counter() - started:.0f} s", flush=True)
+
+
+def cli_run(store: Store, plan: dict, scheduler: str, cache: int, nodes: int | None,
+            **passes) -> dict:
+    """One render as ``vastray render`` runs it (``vastray.render``: the CLI's own plan,
+    defaults and passes), every load a cold read; ``passes`` are more render options
+    (``max_pass_spp=16`` keeps the passes a reference or checkpoint would see)."""
+    width, height = plan["image"]
+    start = time.perf_counter()
+    out = vastray.render(store, width=width, height=height, spp=plan["spp"], integrator="pt",
+                         bounces=plan["bounces"], shadow_samples=plan["shadow_samples"],
+                         scheduler=scheduler, cache=cache, nodes=nodes, cold_reads=True,
+                         progress=False, **passes)
+    total = time.perf_counter() - start
+    return {"loads": out.report["counters"]["loads"], "total_s": total,
+            "passes": len(out.report["passes"])}
+
+
+def passes(store: Store, plan: dict) -> None:
+    """What ``vastray render``'s passes cost out of core (issue 40): domain loads and seconds
+    of the CLI's default render (one pass out of core when nothing reads the image between
+    passes), of the CLI keeping its passes (``--max-pass-spp 16``: what a reference, a
+    stopping rule or checkpoints get) and of one pass through ``render_out_of_core`` (the
+    tables above), PT at a 25 % cache, cold reads, one process and 2 nodes."""
+    n = len(store.domains)
+    cache = max(1, math.ceil(0.25 * n))
+    st = settings(plan, "pt")
+    print(f"\n### passes as the CLI renders them (pt, cache {cache} of {n} domains, cold reads)\n")
+    print("| nodes | scheduler | one-pass loads | CLI default loads (passes) | CLI passes kept "
+          "loads (passes) | one-pass s | CLI default s | CLI passes kept s |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    ratios: dict = {}
+    for nodes in (None, 2):
+        for scheduler in SCHEDULERS:
+            if nodes is None:
+                one = run(store, st, scheduler, cache, **CONFIGS["strongest"])
+            else:  # the distributed runtime's own one-pass render, the CLI's tile per node
+                start = time.perf_counter()
+                result = render_distributed(store.path, None, st, nodes, JobOptions(
+                    scheduler=scheduler, cache=cache, cold_reads=True,
+                    max_samples_in_flight=DEFAULT_NODE_SAMPLES_IN_FLIGHT))
+                one = {"loads": result.counters["loads"],
+                       "total_s": time.perf_counter() - start}
+            default = cli_run(store, plan, scheduler, cache, nodes)
+            kept = cli_run(store, plan, scheduler, cache, nodes, max_pass_spp=16)
+            where = "1 process" if nodes is None else f"{nodes} nodes"
+            print(f"| {where} | {scheduler} | {one['loads']} | {default['loads']} "
+                  f"({default['passes']}) | {kept['loads']} ({kept['passes']}) | "
+                  f"{one['total_s']:.2f} | {default['total_s']:.2f} | {kept['total_s']:.2f} |",
+                  flush=True)
+            ratios.setdefault(where, {})[scheduler] = (default["loads"] / one["loads"],
+                                                       kept["loads"] / one["loads"])
+    for where, by in ratios.items():
+        tag = "" if where == "1 process" else "_nodes"
+        print(f"passes_loads_ratio{tag}="
+              + ",".join(f"{s}:{r[0]:.2f}" for s, r in by.items())
+              + f" (CLI default / one pass, {where}; goal <= 1.1) "
+              f"passes_kept_loads_ratio{tag}="
+              + ",".join(f"{s}:{r[1]:.2f}" for s, r in by.items())
+              + " (CLI with --max-pass-spp 16 / one pass)", flush=True)
 
 
 def warm_up(store: Store, plan: dict) -> None:

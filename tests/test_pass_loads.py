@@ -1,0 +1,106 @@
+"""Progressive passes out of core cost no extra domain loads (issue 40).
+
+Out of core, each pass that sweeps the domains again reloads what the cache lost: the CLI
+renders in one pass where nothing reads the image between passes, nodes keep their cache
+from pass to pass, and unpaced passes on nodes run on from one into the next in one sweep
+of tiles (as one process does)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import vastray
+from vastray.actors.coordinator import render_distributed
+from vastray.actors.job_options import JobOptions
+from vastray.actors.local import render_out_of_core
+from vastray.render.progressive import Progression, StopRules
+from vastray.render.scene_config import load_scene_config
+
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+
+W, H, SPP = 48, 32, 8
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return write_store(tmp_path_factory.mktemp("passes") / "kd16", bumpy_scene(), kd=16)
+
+
+@pytest.fixture(scope="module")
+def toml(tmp_path_factory):
+    path = tmp_path_factory.mktemp("passes-scene") / "scene.toml"
+    path.write_text(POINT_AND_SKY_TOML)
+    return path
+
+
+@pytest.fixture(scope="module")
+def config(toml):
+    return load_scene_config(toml)
+
+
+def quarter(store) -> int:
+    return max(1, len(store.domains) // 4)
+
+
+def one_pass(store, config, scheduler: str, tile: int | None):
+    st = settings(width=W, height=H, spp=SPP, integrator="pt", bounces=3)
+    return render_out_of_core(store, config, st, JobOptions(
+        scheduler=scheduler, cache=quarter(store), max_samples_in_flight=tile), progress=False)
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_the_cli_renders_out_of_core_in_one_pass_with_the_loads_of_one(store, config, toml,
+                                                                        scheduler):
+    tile = W * H * SPP // 3  # several tiles: a pass sweeping the whole image costs more
+    one = one_pass(store, config, scheduler, tile)
+    out = vastray.render(store, scene=toml, width=W, height=H, spp=SPP, seed=7,
+                         integrator="pt", bounces=3, shadow_samples=4, scheduler=scheduler,
+                         cache=quarter(store), max_samples_in_flight=tile, progress=False)
+    assert len(out.report["passes"]) == 1
+    assert out.report["counters"]["loads"] <= 1.1 * one.counters["loads"]
+    np.testing.assert_allclose(out.image, one.film.image(), rtol=1e-6, atol=1e-7)
+    # asked for its passes, the same render keeps them and pays for them
+    kept = vastray.render(store, scene=toml, width=W, height=H, spp=SPP, seed=7,
+                          integrator="pt", bounces=3, shadow_samples=4, scheduler=scheduler,
+                          cache=quarter(store), max_samples_in_flight=tile, max_pass_spp=16,
+                          progress=False)
+    assert len(kept.report["passes"]) == 4  # 1, 1, 2, 4 spp
+    assert kept.report["counters"]["loads"] > out.report["counters"]["loads"]
+    # the same samples, summed in one pass instead of four
+    np.testing.assert_allclose(out.image, kept.image, rtol=1e-6, atol=1e-7)
+
+
+def test_in_core_renders_keep_their_passes(store, toml):
+    out = vastray.render(store, scene=toml, width=W, height=H, spp=SPP, seed=7,
+                         integrator="pt", bounces=3, shadow_samples=4, scheduler="spec-ooc", progress=False)
+    assert len(out.report["passes"]) == 4
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_unpaced_passes_on_two_nodes_cost_the_loads_of_one_pass(store, config, toml,
+                                                                 scheduler):
+    st = settings(width=W, height=H, spp=SPP, integrator="pt", bounces=3)
+    options = JobOptions(scheduler=scheduler, cache=quarter(store),
+                         max_samples_in_flight=W * H * SPP // 2, threads=1)
+    one = render_distributed(store.path, toml, st, 2, options)
+    passes = render_distributed(store.path, toml, st, 2, options,
+                                progression_of=lambda frame: Progression(W, H, StopRules(SPP)))
+    assert len(passes.progress["passes"]) == 4
+    assert passes.counters["loads"] <= 1.1 * one.counters["loads"]
+    reference = render_out_of_core(store, config, st, options, progress=False,
+                                   progression=Progression(W, H, StopRules(SPP)))
+    np.testing.assert_array_equal(passes.film.image(), reference.film.image())
+
+
+def test_a_node_keeps_its_cache_from_pass_to_pass(store, toml):
+    """Paced passes (a rule may stop between them) are rendered one by one, but what a node
+    holds stays: with every domain cached, each is loaded once for all the passes (a cache
+    rebuilt per pass loaded them again in each)."""
+    st = settings(width=W, height=H, spp=SPP, integrator="pt", bounces=3)
+    options = JobOptions(scheduler="spec-ooc", threads=1)  # every domain fits
+    result = render_distributed(
+        store.path, toml, st, 2, options,
+        progression_of=lambda frame: Progression(W, H, StopRules(SPP, time_limit=3600.0)))
+    assert len(result.progress["passes"]) == 4
+    assert result.counters["loads"] <= 2 * len(store.domains)  # at most once per node
