@@ -56,6 +56,9 @@ class DomainBVH:
     pool : the threads queries of this domain use by default: its size is the number of parts
         a compiled query is split into (``embree.launch.launch``; embreex fallback: the rays are
         split over the pool); None: the calling thread only.
+    build_quality : Embree's ``RTCBuildQuality`` for the BVH (``RTC_BUILD_QUALITY_LOW``:
+        faster to build, the same hits); None: Embree's default (MEDIUM). The embreex
+        fallback ignores it.
 
     The Embree scene is released by ``close()``, or when the last reference goes (a cache's
     eviction drops its reference; a query in flight on another thread keeps the domain alive
@@ -63,13 +66,13 @@ class DomainBVH:
     """
 
     def __init__(self, domain_id: int, arrays: DomainArrays, keep: frozenset[str] = frozenset(),
-                 pool: ThreadPoolExecutor | None = None):
+                 pool: ThreadPoolExecutor | None = None, build_quality: int | None = None):
         self.domain_id = domain_id
         self.pool = pool
         self.n_triangles = arrays.n_triangles
         self.compiled = binding() is not None
         if self.compiled:
-            self._scene = Scene(arrays.vertices, arrays.indices)
+            self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality)
         else:
             self._scene = rtcore_scene.EmbreeScene(embree_device())
             mesh_construction.TriangleMesh(

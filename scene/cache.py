@@ -12,6 +12,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 from vastray.scene.bvh import DomainBVH
+from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
 from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
@@ -88,6 +89,11 @@ class DomainCache:
         self.keep = keep
         self.drop_page_cache = drop_page_cache
         self.pool = pool  # the threads every loaded domain's queries split their rays over
+        # A cache smaller than the store reloads what it evicts: its builds are Embree's
+        # fastest (RTC_BUILD_QUALITY_LOW: the same hits bit for bit, tests/test_embree.py),
+        # since a load's build is paid again at every reload.
+        self.build_quality = (RTC_BUILD_QUALITY_LOW if capacity < len(store.domains)
+                              else None)
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
         self._resident_bytes = 0  # sum of the resident domains' nbytes()
@@ -280,7 +286,7 @@ class DomainCache:
             throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))
             time.sleep(throttle)
         read_done = time.perf_counter()
-        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool)
+        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality)
         done = time.perf_counter()
         with self._lock:
             self.count_load(domain_id, size)

@@ -36,6 +36,9 @@ RTC_BUFFER_TYPE_INDEX = 0
 RTC_BUFFER_TYPE_VERTEX = 1
 RTC_FORMAT_UINT3 = 0x5003
 RTC_FORMAT_FLOAT3 = 0x9003
+#: ``RTCBuildQuality`` (rtcore_common.h): LOW builds faster, a worse tree for tracing.
+RTC_BUILD_QUALITY_LOW = 0
+RTC_BUILD_QUALITY_MEDIUM = 1
 RTC_SCENE_FLAG_NONE = 0
 RTC_SCENE_FLAG_ROBUST = 4
 #: Required on every scene a query with an argument filter traverses, instanced ones included
@@ -87,6 +90,7 @@ class Api:
             "rtcNewScene": (p, [p]),
             "rtcSetSceneFlags": (None, [p, i32]),
             "rtcGetSceneFlags": (i32, [p]),
+            "rtcSetSceneBuildQuality": (None, [p, i32]),
             "rtcCommitScene": (None, [p]),
             "rtcRetainScene": (None, [p]),
             "rtcReleaseScene": (None, [p]),

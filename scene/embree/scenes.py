@@ -192,7 +192,7 @@ class Scene(_SceneHandle):
     """
 
     def __init__(self, vertices: np.ndarray, indices: np.ndarray, flags: int = SCENE_FLAGS,
-                 api: Api | None = None):
+                 api: Api | None = None, build_quality: int | None = None):
         api = api or binding()
         if api is None:
             raise RuntimeError("the compiled Embree binding is unavailable")
@@ -213,6 +213,8 @@ class Scene(_SceneHandle):
             api.rtcCommitGeometry(geom)
             self.geom_id = api.rtcAttachGeometry(self.handle, geom)
             api.rtcReleaseGeometry(geom)
+        if build_quality is not None:  # Embree's default: RTC_BUILD_QUALITY_MEDIUM
+            api.rtcSetSceneBuildQuality(self.handle, build_quality)
         api.rtcCommitScene(self.handle)  # builds the BVH (the GIL is released meanwhile)
         api.check("building a scene")
 
