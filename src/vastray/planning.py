@@ -51,6 +51,7 @@ from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
 from vastray.scene.store import Store
+from vastray.schedule.registry import Option, Runtime, resolve, spec
 from vastray.transport.keys import load_coordinator_keys
 
 log = logging.getLogger(__name__)
@@ -156,16 +157,15 @@ def plan_render(request: RenderRequest, *, animating: bool = False,
                                 f", the render is {request.width}x{request.height}")
     cache = resolve_cache(request.cache, len(store.domains))
     scheduler = request.scheduler
-    cache, memory = _check_render_memory(request, config,
-                                         "reference" if scheduler == "auto" else scheduler,
+    # auto is checked as the in-core reference, then resolved by the cache it leaves
+    cache, memory = _check_render_memory(request, config, resolve(scheduler, fits=True),
                                          store, cache)
-    if scheduler == "auto":
-        scheduler = "reference" if cache is None or cache >= len(store.domains) else "spec-ooc"
+    scheduler = resolve(scheduler, fits=cache is None or cache >= len(store.domains))
     request.refuse_for_nodes(scheduler)
     if request.keys:
         load_coordinator_keys(request.keys)  # a missing or malformed key fails before the render
     if request.nodes:
-        scheduler = "image" if scheduler == "reference" else scheduler
+        scheduler = spec(scheduler).on_nodes  # the in-core reference runs as image
         cores = available_cpus()
         if not request.listen and request.nodes > cores:
             log.warning("--nodes %d on %d core(s): the nodes share them, so more than %d "
@@ -259,7 +259,7 @@ def _renderer(request: RenderRequest, store: Store, store_path: Path, options: J
                 progress=not request.quiet, config=config, rendezvous=request.rendezvous,
                 heartbeat_timeout=request.heartbeat_timeout, log_dir=node_log_dir(request),
                 **frames)
-    elif options.scheduler == "reference":
+    elif spec(options.scheduler).runtime is Runtime.IN_CORE:
         kept = FrameCache(store, options.cache, options.load_bytes_per_second())
 
         def render_one(config, settings, progression=None):
@@ -304,6 +304,8 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
     total = request.width * request.height * request.spp
     footprints = domain_footprints(store.domains)
     reference = request.reference is not None  # a file name, or an array (the Python API)
+    # auto: resolved once the cache is known (spec-ooc when the domains do not all fit)
+    resolved_later = spec(request.scheduler).runtime is Runtime.RESOLVED
 
     @functools.cache
     def copies() -> float:
@@ -319,14 +321,14 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             tile = request.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
             return estimate_memory(request.width, request.height, min(tile, total), rays_per_hit,
                                    role="node",
-                                   copies=copies() if scheduler == "spec-ooc" else 0.0)
+                                   copies=copies() if spec(scheduler).tile_copies else 0.0)
         all_fit = cache is None or cache >= len(footprints)
-        if scheduler == "reference" and (all_fit or request.scheduler != "auto"):
+        if spec(scheduler).runtime is Runtime.IN_CORE and (all_fit or not resolved_later):
             in_flight = reference_paths_in_flight(total, request.batch_size or DEFAULT_BATCH_SIZE,
                                                   threads, all_fit)
         else:  # out of core (auto becomes spec-ooc when the domains do not all fit)
             in_flight = min(request.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
-            if request.scheduler in ("spec-ooc", "auto"):
+            if spec(resolve(request.scheduler, fits=False)).tile_copies:
                 return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
                                        reference=reference, copies=copies())
         return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
@@ -335,7 +337,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
     if request.memory_limit is not None:
         if not request.listen:  # the processes it bounds run here
             check_limit_fits_machine(request.memory_limit)
-        if scheduler == "spec-insitu":  # no cache to bound: every node's own domains must fit
+        if spec(scheduler).runtime is Runtime.IN_SITU:  # no cache to bound: every node's own domains must fit
             from vastray.schedule.ownership import zorder_owners
 
             nodes = request.nodes or 1
@@ -344,7 +346,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
         else:
             fitting = cache_within(request.memory_limit, process(cache), footprints,
                                    request.width, request.height)
-            if fitting < len(footprints) and request.scheduler == "auto":  # becomes spec-ooc
+            if fitting < len(footprints) and resolved_later:  # auto becomes spec-ooc
                 fitting = cache_within(request.memory_limit, process(fitting), footprints,
                                        request.width, request.height)
             log.info("--memory-limit leaves room for %d domains per process", fitting)
@@ -363,12 +365,13 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
 def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> JobOptions:
     """The job's options from the command line (defaults filled in where the scheduler uses
     them), for ``scheduler`` as resolved from ``auto``, with ``cache`` in domains."""
-    tiles = scheduler != "reference"
+    job = spec(scheduler)
+    tiles = job.runtime is not Runtime.IN_CORE
     in_flight = request.max_samples_in_flight
     if in_flight is None and tiles:
         in_flight = DEFAULT_NODE_SAMPLES_IN_FLIGHT if request.nodes else DEFAULT_SAMPLES_IN_FLIGHT
     return JobOptions(
-        scheduler=scheduler, cache=None if scheduler == "spec-insitu" else cache,
+        scheduler=scheduler, cache=cache if job.accepts(Option.CACHE) else None,
         max_samples_in_flight=in_flight,
         history_depth=request.history_depth, threads=request.threads,
         preload=not request.no_preload, load_bandwidth=request.load_bandwidth,
@@ -380,6 +383,6 @@ def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> Jo
         portal_resolution=request.portal_resolution or DEFAULT_PORTAL_RESOLUTION,
         portal_accuracy=request.portal_accuracy,
         portal_memory=request.portal_memory or 0,
-        assignment=request.assignment or ("affinity" if scheduler == "temporal" else None),
-        priority=request.priority or ("cost-rate" if scheduler == "temporal" else None),
+        assignment=request.assignment or job.default_assignment,
+        priority=request.priority or job.default_priority,
     )

@@ -26,6 +26,7 @@ import numpy as np
 from vastray.preflight import parse_size
 from vastray.scene.errors import InputError
 from vastray.schedule import portals
+from vastray.schedule.registry import RENDER_CHOICES, Option, Runtime, spec
 
 #: Defaults for a user's store, and for the built-in scene (a first picture in a few seconds:
 #: larger, smoother, one bounce and two shadow rays toward the sky).
@@ -48,9 +49,6 @@ DEFAULT_PORTAL_THRESHOLD = 0.5
 #: Options that only mean something with ``--nodes``.
 NODE_OPTIONS = ("node_timeout", "heartbeat_timeout", "listen", "keys", "log_dir")
 
-#: ``--scheduler``'s choices.
-SCHEDULERS = ("auto", "reference", "image", "spec-ooc", "domain", "async", "dynamic",
-              "spec-insitu", "temporal")
 
 
 def _size(text: str) -> int:
@@ -174,7 +172,7 @@ class RenderRequest:
     seed: int = _option(0, type=_non_negative)
     # how it is run
     cache: int | str | None = _option(type=_cache_size)
-    scheduler: str = _option("auto", choices=SCHEDULERS)
+    scheduler: str = _option("auto", choices=RENDER_CHOICES)
     memory_limit: int | None = _option(type=_size)
     max_samples_in_flight: int | None = _option(type=_positive)
     history_depth: int | None = _option(type=_non_negative)
@@ -325,11 +323,12 @@ class RenderRequest:
         InputError
             Naming the option, why it does not apply, and what would make it apply.
         """
-        if self.batch_size is not None and scheduler != "reference":
+        job = spec(scheduler)
+        if self.batch_size is not None and not job.accepts(Option.BATCH_SIZE):
             raise InputError(None, f"--batch-size sets the in-core reference render's batches; "
                                    f"--scheduler {scheduler} traces --max-samples-in-flight "
                                    "paths at a time (use that instead)")
-        if scheduler == "reference":
+        if job.runtime is Runtime.IN_CORE:
             for dest in ("max_samples_in_flight", "history_depth"):
                 if getattr(self, dest) is not None:
                     raise InputError(None, f"{_flag(dest)} applies to the out-of-core "
@@ -346,8 +345,8 @@ class RenderRequest:
                                        "the in-core reference render loads each domain once "
                                        "(give --scheduler image or spec-ooc with --cache or "
                                        "--memory-limit)")
-        if self.cache is not None and scheduler == "spec-insitu":
-            raise InputError(None, "--cache does not apply to --scheduler spec-insitu: in "
+        if self.cache is not None and not job.accepts(Option.CACHE):
+            raise InputError(None, f"--cache does not apply to --scheduler {scheduler}: in "
                                    "situ, every node keeps all the domains it owns loaded")
 
     def refuse_for_nodes(self, scheduler: str) -> None:
@@ -371,8 +370,7 @@ class RenderRequest:
             raise InputError(None, "--log-dir keeps the logs of nodes started here; nodes "
                                    "started elsewhere (--listen) keep their own (`vastray "
                                    "launch --logs`)")
-        if scheduler in ("domain", "async", "dynamic", "spec-insitu", "temporal") \
-                and not self.nodes:
+        if spec(scheduler).runtime.nodes_only and not self.nodes:
             raise InputError(None, f"--scheduler {scheduler} distributes domains over nodes; "
                                    "give --nodes N")
 
