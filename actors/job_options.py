@@ -48,7 +48,7 @@ class JobOptionsError(InputError):
 @dataclass(frozen=True)
 class JobOptions:
     """How one render job runs. Each runtime reads each field in one place, named beside
-    it: the in-core reference (``commands_render._renderer``), the out-of-core runtime of
+    it: the in-core reference (``planning._renderer``), the out-of-core runtime of
     one process or of a node's sort-first tiles (``local.render_out_of_core``), and the
     domain-decomposition runtimes of the nodes (``decomposition.render_owned_domains`` and
     ``insitu.render_spec_insitu``, through ``NodeState.preloader_for`` for the cache, threads,

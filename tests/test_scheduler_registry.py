@@ -32,16 +32,8 @@ ROOT = Path(__file__).resolve().parent.parent
 PRODUCTION = ("actors", "render", "schedule", "scene", "transport", "src/vastray")
 #: Where the names are declared (the one place they may be compared).
 REGISTRY = "schedule/registry.py"
-#: Files still allowed to compare names: being restructured (issue 42). planning.py and
-#: request.py are commands_render.py's planning layer and option converters, split off it in
-#: that restructuring.
-ALLOWED = {
-    "src/vastray/commands_render.py",
-    "src/vastray/render_job.py",
-    "src/vastray/api.py",
-    "src/vastray/planning.py",
-    "src/vastray/request.py",
-}
+#: Files still allowed to compare names: none (every file reads the registry, issue 42).
+ALLOWED: set[str] = set()
 
 _NAMES = "|".join(re.escape(s.name) for s in SPECS)
 #: A scheduler variable compared with a name or a tuple of names: ``options.scheduler ==

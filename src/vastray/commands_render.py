@@ -7,7 +7,7 @@ import logging
 
 from vastray.execute import run
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP
-from vastray.request import (  # the converters and resolve_cache: commands_simulate's
+from vastray.request import (
     BUILTIN_DEFAULTS,
     DEFAULT_BATCH_SIZE,
     DEFAULT_EXPOSURE,
@@ -19,11 +19,7 @@ from vastray.request import (  # the converters and resolve_cache: commands_simu
     DEFAULT_SAMPLES_IN_FLIGHT,
     STORE_DEFAULTS,
     RenderRequest,
-    _cache_size,  # noqa: F401
-    _non_negative,  # noqa: F401
-    _positive,  # noqa: F401
     argument,
-    resolve_cache,  # noqa: F401
 )
 
 log = logging.getLogger(__name__)

@@ -108,8 +108,8 @@ def _calibration_inputs(args):
 
     if args.store is not None:
         return Path(args.store), None, calibration_settings(args.quick)
-    from vastray.commands_render import BUILTIN_DEFAULTS
     from vastray.default_scene import default_scene_config, default_store
+    from vastray.request import BUILTIN_DEFAULTS
 
     settings = calibration_settings(args.quick, bounces=BUILTIN_DEFAULTS["bounces"],
                                     shadow_samples=BUILTIN_DEFAULTS["shadow_samples"])

@@ -28,7 +28,7 @@ calibrated the calibrated machine's cores.
 
 
 def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
-    from vastray.commands_render import (
+    from vastray.request import (
         BUILTIN_DEFAULTS,
         STORE_DEFAULTS,
         _cache_size,
@@ -119,12 +119,12 @@ def _schedulers(known: tuple[str, ...]):
 
 def cmd_simulate(args) -> int:
     from vastray.actors.job_options import JobOptions
-    from vastray.commands_render import BUILTIN_DEFAULTS, STORE_DEFAULTS, resolve_cache
     from vastray.render.driver import shading_inputs
     from vastray.render.imageio import check_image_path, write_image
     from vastray.render.integrators import RenderSettings
     from vastray.render.scene_config import load_scene_config
     from vastray.report import write_report
+    from vastray.request import BUILTIN_DEFAULTS, STORE_DEFAULTS, resolve_cache
     from vastray.scene.store import Store
     from vastray.sim.cache import Domains
     from vastray.sim.costs import CostModel
