@@ -45,9 +45,9 @@ process and on 2 nodes, and prints ``passes_loads_ratio=`` (CLI default / one pa
 ``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a reference or
 checkpoint gets). Then (not with ``--large``) the history-depth sweep of Fig. 8 (H = 1..B for
 B = 3, strongest). With every domain cached nothing is evicted, so ``strongest+demand``'s
-100 % cells are ``strongest``'s. ``--ablation`` adds every switch combination for both schedules, and spec-ooc's
-own switches (PT, 25 % cache, first scene). ``--ray-sweep`` adds the strongest PT comparison
-at a 25 % cache with 4x and 16x the paths (first scene).
+100 % cells are ``strongest``'s. ``--ablation`` adds every switch combination for both
+schedules, and spec-ooc's own switches (PT, 25 % cache, first scene). ``--ray-sweep`` adds
+the strongest PT comparison at a 25 % cache with 4x and 16x the paths (first scene).
 
     python bench/ooc.py            # full run (hours on 2 cores)
     python bench/ooc.py --quick    # a few minutes (1.2 M triangles, cold reads only)
@@ -71,6 +71,7 @@ from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.request import DEFAULT_NODE_SAMPLES_IN_FLIGHT
 from vastray.scene.generate import generate
+from vastray.scene.manifest import VERSION
 from vastray.scene.store import Store
 from vastray.schedule.spec_ooc import SpeculationRules
 
@@ -97,7 +98,9 @@ LARGE = {
 
 def scene(name: str, resolution: int, grid: tuple[int, int, int]) -> Store:
     path = CACHE / f"{name}-{resolution}-{'x'.join(map(str, grid))}.store"
-    if not (path / "manifest.json").is_file():
+    if not (path / "manifest.json").is_file() or Store(path).manifest["version"] < VERSION:
+        # (again where an older vastray wrote it: a store before version 5 has no occupancy
+        # masks, so both schedules would queue rays into every domain their boxes cross)
         print(f"generating {path.name} ...", file=sys.stderr, flush=True)
         generate(name, path, resolution, grid=grid, seed=0, overwrite=True, progress=True)
     return Store(path)
