@@ -220,6 +220,21 @@ def _catches(pid: int, signum: int) -> bool:
     return False
 
 
+def _checkpoint_with_sigusr1(proc: subprocess.Popen, checkpoint: Path,
+                             timeout: float = 120.0) -> None:
+    """Wait until the render ``proc`` listens for SIGUSR1, then send it until a pass has
+    finished and ``checkpoint`` is written (the render must go on meanwhile)."""
+    deadline = time.monotonic() + timeout
+    while not _catches(proc.pid, signal.SIGUSR1):  # until the render listens for it
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    while not checkpoint.exists():
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.monotonic() < deadline
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(0.2)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("nodes", [None, 2])
 def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp_path, nodes,
@@ -235,15 +250,7 @@ def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp
     proc = _cli("render", *common, *where, "-o", str(tmp_path / "run.exr"), "--report",
                 str(tmp_path / "run.json"), cwd=tmp_path)
     try:
-        deadline = time.monotonic() + 120
-        while not _catches(proc.pid, signal.SIGUSR1):  # until the render listens for it
-            assert proc.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
-        while not ckpt.exists():  # SIGUSR1 until a pass has finished and one is written
-            assert proc.poll() is None, proc.stderr.read()
-            assert time.monotonic() < deadline
-            proc.send_signal(signal.SIGUSR1)
-            time.sleep(0.3)
+        _checkpoint_with_sigusr1(proc, ckpt)
         assert proc.poll() is None  # the render goes on after a checkpoint
         first = np.load(ckpt)["count"].max()
         proc.send_signal(signal.SIGINT)
@@ -440,15 +447,7 @@ def test_resume_alone_runs_the_interrupted_command_again_from_anywhere(scene, tm
                 "--png", "run.png", "--report", "run.json", cwd=run)
     ckpt = run / "run.exr.checkpoint.npz"
     try:
-        deadline = time.monotonic() + 120
-        while not _catches(proc.pid, signal.SIGUSR1):
-            assert proc.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
-        while not ckpt.exists():
-            assert proc.poll() is None, proc.stderr.read()
-            assert time.monotonic() < deadline
-            proc.send_signal(signal.SIGUSR1)
-            time.sleep(0.2)
+        _checkpoint_with_sigusr1(proc, ckpt)
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
     finally:
