@@ -8,9 +8,9 @@ out-of-core and distributed schedulers run the very same steps in their own orde
 their images are identical. All randomness comes from ``render.rng`` keyed by (seed, pixel,
 sample, bounce, purpose, index), never from processing order.
 
-``shade`` and ``add_unoccluded`` run as fused numba kernels (``render.kernels``) over the batch;
-the numpy chain beside them gives the same rays bit for bit (tested) and takes over for light
-kinds the kernels do not know.
+``shade`` and ``add_unoccluded`` run as fused numba kernels (``render.kernels``) over the batch.
+The numpy chain they replaced is the tests' oracle (``tests/oracles.py``, the same rays and
+sums bit for bit); it is not part of the package.
 """
 
 from __future__ import annotations
@@ -27,12 +27,10 @@ from vastray.render.lights import (
     Light,
     PointLight,
     QuadLight,
-    SampleKeys,
     shadow_rays,
 )
-from vastray.render.materials import MaterialTable, blinn_phong_lobe, blinn_phong_lobe_of_cos
-from vastray.render.rng import Purpose, uniform2
-from vastray.render.sampling import cosine_hemisphere
+from vastray.render.materials import MaterialTable, blinn_phong_lobe_of_cos
+from vastray.render.rng import Purpose
 from vastray.render.tracer import DomainTracer, Hits, facing
 
 #: Shadow rays stop this fraction short of their light (see ``render.kernels.SPAWN_EPSILON``).
@@ -173,23 +171,6 @@ class PathContext:
     ao_distance: float
 
 
-def spawn(points: np.ndarray, normals: np.ndarray, error: np.ndarray) -> np.ndarray:
-    """Ray origins just off a surface, on the side of ``normals`` (pbrt-v4's
-    ``OffsetRayOrigin``).
-
-    Parameters
-    ----------
-    points : (k, 3) float64 hit points; normals : (k, 3) unit normals of the side to leave by;
-    error : (k,) bound on how far a float32 query may misplace the surface near each point
-        (``kernels.hit_points``): the origin moves that far, whatever the ray's length.
-
-    Returns
-    -------
-    (k, 3) float64
-    """
-    return points + normals * error[:, None]
-
-
 def hit_points(rays: RadianceRays, hits: Hits) -> tuple[np.ndarray, np.ndarray]:
     """The hits' points and error bounds ((k, 3) and (k,) float64): those the tracer rebuilt
     from barycentrics, or ``o + t d`` where the hit record has none."""
@@ -239,9 +220,8 @@ def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> 
 
 def shade(ctx: PathContext, rays: RadianceRays, hits: Hits
           ) -> tuple[ShadowRays, RadianceRays]:
-    """Turn final closest hits into shadow rays and continuation rays: through the compiled
-    kernels (``render.kernels``) where every light is of a kind they know, else through the
-    numpy chain (``shade_numpy``, the same rays bit for bit).
+    """Turn final closest hits into shadow rays and continuation rays, through the compiled
+    kernels (``render.kernels``).
 
     Parameters
     ----------
@@ -252,57 +232,39 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits
     shadow : AO rays (contribution = surface colour / samples) or next-event rays to every
         light (contribution = throughput x BRDF x cos x incident radiance / samples)
     continuation : cosine-weighted diffuse bounces (path tracing, below ``bounces``)
+
+    Raises
+    ------
+    TypeError
+        Path tracing with a light of a kind the kernels do not know (not one of
+        ``render.lights``' point, directional, quad and ambient lights).
     """
-    if ctx.settings.integrator == "ao" or _light_table(ctx.shading.lights) is not None:
-        return _shade_fused(ctx, rays, hits)
-    return shade_numpy(ctx, rays, hits)
-
-
-def shade_numpy(ctx: PathContext, rays: RadianceRays, hits: Hits
-                ) -> tuple[ShadowRays, RadianceRays]:
-    """``shade`` as a chain of numpy operations: for lights of kinds the kernels do not know,
-    and the kernels' reference (they must give the same rays, bit for bit)."""
-    settings = ctx.settings
-    d = rays.direction.astype(np.float64)
-    p, error = hit_points(rays, hits)
-    nf = facing(hits.normal, d)
-    origin = spawn(p, nf, error)
-    if settings.integrator == "ao":
-        return _ambient_occlusion_rays(ctx, rays, hits, origin, nf), _no_rays()
-    albedo = ctx.shading.materials.diffuse[hits.material]
-    if hits.color is not None:
-        albedo = albedo * hits.color
-    shadow = _next_event_rays(ctx, rays, p, origin, nf, -d, albedo, hits.material)
-    more = rays.depth < settings.bounces
-    if not more.any():
-        return shadow, _no_rays()
-    # Continue the path: one cosine-weighted diffuse bounce (weight = albedo).
-    path, depth = rays.path[more], rays.depth[more]
-    u, v = uniform2(settings.seed, ctx.pixel[path], ctx.sample[path], depth,
-                    Purpose.BOUNCE_DIRECTION)
-    beta = rays.beta[more] * albedo[more]
-    keep = np.any(beta > 0, axis=1)
-    direction = cosine_hemisphere(nf[more], u, v)
-    continuation = RadianceRays(path[keep], depth[keep] + 1,
-                                origin[more][keep].astype(np.float32),
-                                direction[keep].astype(np.float32), beta[keep])
-    return shadow, continuation
+    return _shade_fused(ctx, rays, hits)
 
 
 _LIGHT_KINDS = {PointLight: kernels.POINT, DirectionalLight: kernels.DIRECTIONAL,
                 QuadLight: kernels.QUAD, AmbientLight: kernels.AMBIENT}
 
 
-def _light_table(lights: list[Light]) -> tuple[np.ndarray, np.ndarray] | None:
+def _light_table(lights: list[Light]) -> tuple[np.ndarray, np.ndarray]:
     """The lights as the kernels read them: (L,) int64 kinds and (L, ``LIGHT_PARAMS``)
-    float64 parameters, with what each light's numpy ``sample`` derives from its fields
-    computed here by the same numpy expressions; None if a light is of another kind."""
+    float64 parameters, with what the kernels derive from a light's fields (a directional
+    light's unit direction, a quad's area normal and area) computed here in numpy, as the
+    tests' oracle (``tests/oracles.py: sample_light``) computes them.
+
+    Raises
+    ------
+    TypeError
+        A light of another kind, naming it and the kinds supported.
+    """
     kinds = np.zeros(len(lights), np.int64)
     params = np.zeros((len(lights), kernels.LIGHT_PARAMS))
     for i, light in enumerate(lights):
         kind = _LIGHT_KINDS.get(type(light))
         if kind is None:
-            return None
+            supported = ", ".join(k.__name__ for k in _LIGHT_KINDS)
+            raise TypeError(f"light #{i + 1} is a {type(light).__name__}: the shading kernels "
+                            f"know the lights {supported} only")
         kinds[i] = kind
         if kind == kernels.POINT:
             params[i, :6] = np.concatenate([light.position, light.intensity])
@@ -330,7 +292,8 @@ def _hemisphere_samples(ctx: PathContext, path: np.ndarray, bounce: np.ndarray, 
 
 def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
                  ) -> tuple[ShadowRays, RadianceRays]:
-    """``shade`` through ``render.kernels``: the same rays as the numpy chain, bit for bit."""
+    """``shade`` through ``render.kernels`` (the same rays as ``tests/oracles.py``'s numpy
+    chain, bit for bit)."""
     settings, mats = ctx.settings, ctx.shading.materials
     k = len(rays)
     has_color = hits.color is not None
@@ -412,96 +375,23 @@ def _no_rays() -> RadianceRays:
                         np.zeros((0, 3), np.float32), np.zeros((0, 3)))
 
 
-def _ambient_occlusion_rays(ctx, rays, hits, origin, nf) -> ShadowRays:
-    """``shadow_samples`` cosine-weighted rays of length ``ao_distance`` per hit."""
-    m = ctx.settings.shadow_samples
-    k = len(rays)
-    j = np.tile(np.arange(m, dtype=np.uint64), k)
-    path = np.repeat(rays.path, m)
-    u, v = uniform2(ctx.settings.seed, ctx.pixel[path], ctx.sample[path], 1,
-                    Purpose.AO_DIRECTION, j)
-    direction = cosine_hemisphere(np.repeat(nf, m, axis=0), u, v)
-    color = hits.color if hits.color is not None else np.ones((k, 3))
-    return ShadowRays(path, np.zeros(k * m, np.uint8), np.repeat(origin, m, axis=0).astype(np.float32),
-                      direction.astype(np.float32), np.full(k * m, ctx.ao_distance, np.float32),
-                      np.repeat(color / max(m, 1), m, axis=0))
-
-
-def _next_event_rays(ctx, rays, point, origin, nf, wo, albedo, material) -> ShadowRays:
-    """Shadow rays from ``k`` path vertices to every light, with the light they would bring.
-
-    Lights are sampled from the hit point (distance, direction and cosines); the rays leave
-    from the spawned origin.
-
-    Parameters
-    ----------
-    rays : the k radiance rays whose hits these are (path, depth, beta).
-    point, origin, nf, wo : (k, 3) hit point, spawned origin, facing normal, direction to the
-        viewer.
-    albedo : (k, 3); material : (k,) slots.
-    """
-    settings, mats = ctx.settings, ctx.shading.materials
-    throughput_diffuse = rays.beta * albedo / np.pi  # (k, 3) throughput times Lambertian BRDF
-    pixel, sample = ctx.pixel[rays.path], ctx.sample[rays.path]
-    parts = []
-    for index, light in enumerate(ctx.shading.lights):
-        m = shadow_rays(light, settings.shadow_samples)
-        if m == 0:
-            continue
-        # One row per (vertex, shadow sample j), vertex-major.
-        if m == 1:
-            p_rep, o_rep, n_rep, j = point, origin, nf, 0
-            keys = SampleKeys(settings.seed, pixel, sample, rays.depth)
-        else:
-            p_rep, o_rep = np.repeat(point, m, axis=0), np.repeat(origin, m, axis=0)
-            n_rep = np.repeat(nf, m, axis=0)
-            keys = SampleKeys(settings.seed, np.repeat(pixel, m), np.repeat(sample, m),
-                              np.repeat(rays.depth, m))
-            j = np.tile(np.arange(m, dtype=np.uint64), len(rays))
-        wi, dist, incident = light.sample(p_rep, n_rep, keys, index, j)
-        cos_i = np.einsum("ij,ij->i", n_rep, wi)
-        lit = incident[:, 0] + incident[:, 1] + incident[:, 2] > 0
-        useful = np.nonzero((cos_i > 0) & lit)[0]
-        if len(useful) == 0:
-            continue
-        vertex = useful // m
-        weight = (cos_i[useful] / m)[:, None] * incident[useful]
-        contribution = throughput_diffuse[vertex] * weight
-        if mats.has_specular:
-            lobe = blinn_phong_lobe(mats.shininess[material[vertex]], nf[vertex], wo[vertex],
-                                    wi[useful])
-            contribution += (rays.beta[vertex] * mats.specular[material[vertex]]
-                             * lobe[:, None] * weight)
-        parts.append(ShadowRays(rays.path[vertex], rays.depth[vertex],
-                                o_rep[useful].astype(np.float32),
-                                wi[useful].astype(np.float32),
-                                (dist[useful] * (1.0 - SPAWN_EPSILON)).astype(np.float32),
-                                contribution))
-    if not parts:
-        return _no_shadow()
-    return ShadowRays.concat(parts)
-
-
 def add_unoccluded(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
     """Add the contribution of the shadow rays ``lit`` (bool (n,)) to ``radiance`` (P, 3).
 
-    Per path, the contributions are summed in row order, then added: ``kernels.add_unoccluded``
-    in one pass for a C-contiguous float64 ``radiance``, else ``add_unoccluded_numpy`` (the
-    same rounding).
+    Per path, the contributions are summed in row order, then added, by
+    ``kernels.add_unoccluded`` in one pass (``PathResult.radiance`` is always such an array).
+
+    Raises
+    ------
+    TypeError
+        ``radiance`` is not a C-contiguous float64 array: the kernel adds in place.
     """
-    if radiance.dtype == np.float64 and radiance.flags.c_contiguous:
-        kernels.add_unoccluded(radiance, _c(shadow.path, np.int64),
-                               _c(shadow.contribution, np.float64), _c(lit, np.bool_))
-        return
-    add_unoccluded_numpy(radiance, shadow, lit)
-
-
-def add_unoccluded_numpy(radiance: np.ndarray, shadow: ShadowRays, lit: np.ndarray) -> None:
-    """``add_unoccluded`` with ``np.bincount`` (its rounding is the kernel's reference)."""
-    path = shadow.path[lit]
-    contribution = shadow.contribution[lit]
-    for c in range(3):
-        radiance[:, c] += np.bincount(path, weights=contribution[:, c], minlength=len(radiance))
+    if radiance.dtype != np.float64 or not radiance.flags.c_contiguous:
+        raise TypeError(f"add_unoccluded adds into a C-contiguous float64 (P, 3) array, not a "
+                        f"{'' if radiance.flags.c_contiguous else 'non-contiguous '}"
+                        f"{radiance.dtype} one")
+    kernels.add_unoccluded(radiance, _c(shadow.path, np.int64),
+                           _c(shadow.contribution, np.float64), _c(lit, np.bool_))
 
 
 @dataclass

@@ -1,9 +1,11 @@
-"""Lights and their sampling for next-event estimation.
+"""The lights of a scene: point, directional, quad (area) and ambient (environment).
 
-Each light answers ``sample(points, normals, keys, j)``: a direction toward the light, the
-distance a shadow ray must stay clear, and the incident radiance divided by the sampling pdf.
-Lights with one fixed direction (point, directional) need one shadow ray; area and environment
-lights need ``--shadow-samples`` of them.
+They are data: the fused shading kernels (``render.kernels``, through
+``integrators._light_table``) sample them for next-event estimation: a direction toward the
+light, the distance a shadow ray must stay clear, and the incident radiance divided by the
+sampling pdf. Lights with one fixed direction (point, directional) need one shadow ray; area
+and environment lights need ``--shadow-samples`` of them. The same sampling in numpy is the
+tests' oracle (``tests/oracles.py: sample_light``).
 """
 
 from __future__ import annotations
@@ -12,19 +14,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-
-from vastray.render.rng import Purpose, uniform2
-from vastray.render.sampling import cosine_hemisphere
-
-
-@dataclass(frozen=True)
-class SampleKeys:
-    """Random-number keys of a set of path vertices: (n,) pixel, sample and bounce; seed."""
-
-    seed: int
-    pixel: np.ndarray
-    sample: np.ndarray
-    bounce: np.ndarray
 
 
 def shadow_rays(light, samples: int) -> int:
@@ -41,12 +30,6 @@ class PointLight:
     intensity: np.ndarray
     stochastic = False
 
-    def sample(self, p, n, keys, light_index, j):
-        to_light = self.position[None, :] - p
-        dist = np.linalg.norm(to_light, axis=1)
-        wi = to_light / np.maximum(dist, 1e-300)[:, None]
-        return wi, dist, self.intensity[None, :] / np.maximum(dist * dist, 1e-300)[:, None]
-
 
 @dataclass(frozen=True)
 class DirectionalLight:
@@ -55,10 +38,6 @@ class DirectionalLight:
     direction: np.ndarray
     irradiance: np.ndarray
     stochastic = False
-
-    def sample(self, p, n, keys, light_index, j):
-        wi = np.broadcast_to(-self.direction / np.linalg.norm(self.direction), p.shape)
-        return wi, np.full(len(p), np.inf), np.broadcast_to(self.irradiance, p.shape)
 
 
 @dataclass(frozen=True)
@@ -78,26 +57,6 @@ class QuadLight:
     @property
     def area_normal(self) -> np.ndarray:
         return np.cross(self.edge1, self.edge2)
-
-    def sample(self, p, n, keys, light_index, j):
-        s, t = uniform2(keys.seed, keys.pixel, keys.sample, keys.bounce,
-                        Purpose.LIGHT_SAMPLE + 16 * light_index, j)
-        q = self.corner + s[:, None] * self.edge1 + t[:, None] * self.edge2
-        to_light = q - p
-        dist2 = np.einsum("ij,ij->i", to_light, to_light)
-        dist = np.sqrt(dist2)
-        wi = to_light / np.maximum(dist, 1e-300)[:, None]
-        area_normal = self.area_normal
-        area = np.linalg.norm(area_normal)
-        cos_light = np.maximum(0.0, -self._facing(wi, area_normal) / area)
-        weight = self.radiance[None, :] * (cos_light * area / np.maximum(dist2, 1e-300))[:, None]
-        return wi, dist, weight
-
-    @staticmethod
-    def _facing(wi: np.ndarray, area_normal: np.ndarray) -> np.ndarray:
-        """``wi @ area_normal`` summed in a fixed order (BLAS's order varies by machine and
-        uses FMA; ``render.kernels`` sums the same way)."""
-        return (wi[:, 0] * area_normal[0] + wi[:, 1] * area_normal[1]) + wi[:, 2] * area_normal[2]
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Distance along each ray to the emitting side of the quad, ``inf`` where missed.
@@ -131,14 +90,6 @@ class AmbientLight:
 
     radiance: np.ndarray
     stochastic = True
-
-    def sample(self, p, n, keys, light_index, j):
-        u, v = uniform2(keys.seed, keys.pixel, keys.sample, keys.bounce,
-                        Purpose.LIGHT_SAMPLE + 16 * light_index, j)
-        wi = cosine_hemisphere(n, u, v)
-        cos = np.maximum(np.einsum("ij,ij->i", wi, n), 1e-12)
-        # radiance / pdf with pdf = cos / pi; the integrator multiplies by cos again.
-        return wi, np.full(len(p), np.inf), self.radiance[None, :] * (np.pi / cos)[:, None]
 
 
 Light = PointLight | DirectionalLight | QuadLight | AmbientLight

@@ -78,27 +78,11 @@ def colormap(values: np.ndarray, lo: float, hi: float, lut: np.ndarray | None = 
     return table[i] * (1.0 - f) + table[i + 1] * f
 
 
-def blinn_phong_lobe(shininess: np.ndarray, n: np.ndarray, wo: np.ndarray, wi: np.ndarray
-                     ) -> np.ndarray:
-    """Energy-normalised Blinn-Phong lobe ``(s + 2) / (2 pi) * cos(theta_h)^s``.
+def blinn_phong_lobe_of_cos(shininess: np.ndarray, cos_h: np.ndarray) -> np.ndarray:
+    """Energy-normalised Blinn-Phong lobe ``(s + 2) / (2 pi) * cos(theta_h)^s`` from the
+    half vector's ``cos(theta_h)`` ((k,) each; numpy's ``pow``, which the fused kernels leave
+    to numpy: see ``render.kernels``).
 
     The BRDF is ``diffuse / pi + specular * lobe``; bounces sample the diffuse part only.
-
-    Parameters
-    ----------
-    shininess : (k,); n, wo, wi : (k, 3) unit facing normal, directions to viewer and light.
-
-    Returns
-    -------
-    (k,)
     """
-    h = wo + wi
-    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-300)
-    cos_h = np.maximum(0.0, np.einsum("ij,ij->i", n, h))
-    return blinn_phong_lobe_of_cos(shininess, cos_h)
-
-
-def blinn_phong_lobe_of_cos(shininess: np.ndarray, cos_h: np.ndarray) -> np.ndarray:
-    """``blinn_phong_lobe`` from ``cos(theta_h)`` ((k,) each; numpy's ``pow``, which the
-    fused kernels leave to numpy: see ``render.kernels``)."""
     return (shininess + 2.0) / (2.0 * np.pi) * cos_h ** shininess

@@ -16,14 +16,14 @@ from vastray.render.integrators import (
     RenderSettings,
     Shading,
     add_unoccluded,
-    add_unoccluded_numpy,
     shade,
-    shade_numpy,
 )
 from vastray.render.lights import AmbientLight, DirectionalLight, PointLight, QuadLight
 from vastray.render.materials import Material, MaterialTable
 from vastray.render.rng import Purpose, uniform2
 from vastray.render.tracer import Hits
+
+from oracles import add_unoccluded_numpy, shade_numpy
 
 
 def test_numba_rng_equals_numpy_rng_on_many_keys():
@@ -131,15 +131,44 @@ def test_fused_ao_shading_equals_numpy_chain(with_color):
     _assert_same(cont, cont_np)
 
 
-def test_light_of_another_kind_takes_the_numpy_chain():
+def test_shade_refuses_a_light_of_another_kind():
     class Dim(PointLight):  # not one of the kinds the kernels know
         pass
 
-    lights = [Dim(np.array([1.0, 4.0, -2.0]), np.array([30.0, 20.0, 10.0])), LIGHTS[1]]
-    rays, hits, pixel, sample = _batch(500, 2, 1, False)
+    lights = [LIGHTS[1], Dim(np.array([1.0, 4.0, -2.0]), np.array([30.0, 20.0, 10.0]))]
+    rays, hits, pixel, sample = _batch(50, 2, 1, False)
     ctx = PathContext(Shading(lights, MaterialTable([Material.default()]), False),
                       RenderSettings(shadow_samples=3), pixel, sample, 1.0)
-    _assert_same(shade(ctx, rays, hits)[0], shade_numpy(ctx, rays, hits)[0])
+    with pytest.raises(TypeError, match=r"light #2 is a Dim: .*PointLight, DirectionalLight, "
+                                        r"QuadLight, AmbientLight"):
+        shade(ctx, rays, hits)
+
+
+def test_the_oracles_are_not_in_the_package():
+    import importlib.util
+
+    from vastray.render import integrators, lights, materials
+
+    for name in ("shade_numpy", "add_unoccluded_numpy", "spawn", "_next_event_rays",
+                 "_ambient_occlusion_rays"):
+        assert not hasattr(integrators, name), name
+    for kind in (PointLight, DirectionalLight, QuadLight, AmbientLight):
+        assert not hasattr(kind, "sample"), kind.__name__
+    assert not hasattr(lights, "SampleKeys")
+    assert not hasattr(materials, "blinn_phong_lobe")
+    assert importlib.util.find_spec("vastray.render.sampling") is None
+
+
+def test_add_unoccluded_refuses_what_the_kernel_cannot_add_into():
+    rays, hits, pixel, sample = _batch(200, 4, 1, False)
+    ctx = PathContext(Shading(LIGHTS, MaterialTable([Material.default()]), False),
+                      RenderSettings(shadow_samples=2), pixel, sample, 1.0)
+    shadow, _ = shade(ctx, rays, hits)
+    lit = np.ones(len(shadow), bool)
+    with pytest.raises(TypeError, match="C-contiguous float64"):
+        add_unoccluded(np.zeros((len(pixel), 3), np.float32), shadow, lit)
+    with pytest.raises(TypeError, match="non-contiguous float64"):
+        add_unoccluded(np.zeros((3, len(pixel))).T, shadow, lit)
 
 
 def test_fused_radiance_sum_equals_bincount():

@@ -10,11 +10,10 @@ import pytest
 import trimesh
 
 from vastray.render.driver import render
-from vastray.render.integrators import spawn
-from vastray.render.sampling import cosine_hemisphere
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
 
+from oracles import cosine_hemisphere, spawn
 from scenes import camera_config, mesh_arrays, settings, write_store
 
 
