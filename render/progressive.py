@@ -84,34 +84,39 @@ def rel_mse_estimate(film: Film, epsilon: float = REL_MSE_EPSILON) -> dict | Non
     ``(x - r)**2 / (r**2 + ε)``, ε = ``REL_MSE_EPSILON``. DESIGN.md, "Error estimates",
     derives it.
 
-    Per pixel and channel, ``t = var / (a b + ε)`` (``Film.rel_mse_terms``: the batch
-    variance of the channel's mean over the product of the even and odd halves' means,
-    independent estimates of r**2). ``1/(a b)`` overestimates ``1/r**2`` by about ``4 m``
+    Per pixel and channel two estimates bracket the term (``Film.rel_mse_terms``): ``t``
+    (``exclusive``: each batch's share of the variance of the mean over a product of even and
+    odd batches' means without that batch; right with fireflies, pessimistic where rare
+    bright paths carry the mean) and ``u`` (``inclusive``: the variance over the product of
+    the whole halves' means; right where rare paths carry the mean, optimistic with
+    fireflies). The denominators' inverses overestimate ``1/r**2`` by about ``4 m``
     relative (``m``: the term's relMSE; each half's mean has relative variance ``2 m``), so
-    ``t`` is pessimistic; ``c = (sqrt(1 + 16 t) - 1) / 8`` inverts ``t = m (1 + 4 m)`` (the
-    delta method's correction, optimistic where ``m`` is not small). Keys: ``estimate``
-    (mean of ``t`` over pixels and channels: not optimistic), ``se`` (its standard error
-    against the realised error: per pixel ``(2 + 2 / dof) T**2``, ``T`` the pixel's mean of
-    ``t`` over its channels, the chi-square spread of the realised error and of the batch
-    variance with the channels' noise taken as fully correlated (an upper bound: one path
-    carries every channel), over independent pixels), ``ci95`` = [mean c - z se_c, mean t +
-    z se] (the denominator's second-order bias lies between the two means).
+    both lean pessimistic; ``c = (sqrt(1 + 16 u) - 1) / 8`` inverts ``u = m (1 + 4 m)``
+    (the delta method's correction, optimistic where ``m`` is not small). Keys:
+    ``estimate`` (mean of ``t`` over pixels and channels: not optimistic; the stop rule's),
+    ``se`` (its standard error against the realised error: per pixel ``(2 + 2 / dof)
+    T**2``, ``T`` the pixel's mean of ``t`` over its channels, the chi-square spread of the
+    realised error and of the batch variance with the channels' noise taken as fully
+    correlated (an upper bound: one path carries every channel), over independent pixels),
+    ``ci95`` = [mean c - z se_c, mean t + z se] (from the optimistic end of the one to the
+    pessimistic end of the other) and ``inclusive`` (mean of ``u``).
     """
-    terms, dof = film.rel_mse_terms(epsilon)  # (P, 3), (P,)
-    ok = np.isfinite(terms)
+    inclusive, exclusive, dof = film.rel_mse_terms(epsilon)  # (P, 3), (P, 3), (P,)
+    ok = np.isfinite(exclusive) & np.isfinite(inclusive)
     if not ok.any():
         return None
-    t = np.where(ok, terms, 0.0)
+    t = np.where(ok, exclusive, 0.0)
+    u = np.where(ok, inclusive, 0.0)
     d = np.where(ok.all(axis=1), dof, 1.0)
-    corrected = (np.sqrt(1.0 + 16.0 * t) - 1.0) / 8.0
+    corrected = (np.sqrt(1.0 + 16.0 * u) - 1.0) / 8.0
     pixels = len(t)
     # per pixel, the channels' mean: their noise comes from the same paths
     pixel_t, pixel_c = t.mean(axis=1), corrected.mean(axis=1)
     se = float(np.sqrt(np.sum((2.0 + 2.0 / d) * pixel_t ** 2)) / pixels)
     se_c = float(np.sqrt(np.sum((2.0 + 2.0 / d) * pixel_c ** 2)) / pixels)
-    raw, estimate = float(np.mean(pixel_t)), float(np.mean(pixel_c))
-    return {"estimate": raw, "se": se,
-            "ci95": [max(estimate - Z95 * se_c, 0.0), raw + Z95 * se]}
+    raw, low = float(np.mean(pixel_t)), float(np.mean(pixel_c))
+    return {"estimate": raw, "se": se, "inclusive": float(np.mean(u)),
+            "ci95": [max(min(low, raw) - Z95 * se_c, 0.0), raw + Z95 * se]}
 
 
 def stop_bound(point: dict, looks: int, alpha: float = STOP_ALPHA) -> float | None:

@@ -35,14 +35,19 @@ from vastray.render.imageio import REL_MSE_EPSILON  # noqa: E402
 from vastray.render.progressive import Progression, StopRules  # noqa: E402
 
 #: Rare bright paths: radiance L with probability P_BRIGHT (a small light seen through a
-#: diffuser), else a dim exponential background; the true pixel value is known exactly.
+#: diffuser), else a dim exponential background; the true pixel value is known exactly. The
+#: rare paths carry most of the mean.
 P_BRIGHT, BRIGHT, DIM = 0.02, 25.0, 0.05
-TRUTH = DIM + P_BRIGHT * BRIGHT
 
 
-def heavy_tailed_series(seed: int, spp: int = 128, size: int = 32) -> list[tuple]:
+def heavy_tailed_series(seed: int, spp: int = 128, size: int = 32, p_bright: float = P_BRIGHT,
+                        bright: float = BRIGHT, dim: float = DIM, old: list | None = None
+                        ) -> list[tuple]:
     """(spp, true relMSE, pass point) after each pass of a progression fed synthetic samples
-    pass by pass (each pass's film split over two 'nodes' by pixel halves and merged)."""
+    pass by pass (each pass's film split over two 'nodes' by pixel halves and merged);
+    ``old``: gets the estimator of the whole halves' product (``GreyFilm``) after each."""
+    from vastray.render.progressive import rel_mse_estimate
+    truth = dim + p_bright * bright
     rng = np.random.default_rng(seed)
     progression = Progression(size, size, StopRules(spp))
     pixels = np.arange(size * size)
@@ -53,14 +58,16 @@ def heavy_tailed_series(seed: int, spp: int = 128, size: int = 32) -> list[tuple
         for part in np.array_split(pixels, 2):
             node = Film(size, size)
             for s in range(first, stop):
-                value = (np.where(rng.random(len(part)) < P_BRIGHT, BRIGHT, 0.0)
-                         + DIM * rng.exponential(1.0, len(part)))
+                value = (np.where(rng.random(len(part)) < p_bright, bright, 0.0)
+                         + dim * rng.exponential(1.0, len(part)))
                 node.add(part, np.repeat(value[:, None], 3, 1), sample=np.full(len(part), s))
             pass_film.merge(node)
         point = progression.add_pass(index, pass_film)
         x = progression.film.image().astype(np.float64)
-        true = float(np.mean((x - TRUTH) ** 2 / (TRUTH ** 2 + REL_MSE_EPSILON)))
+        true = float(np.mean((x - truth) ** 2 / (truth ** 2 + REL_MSE_EPSILON)))
         out.append((stop, true, point))
+        if old is not None:
+            old.append(rel_mse_estimate(GreyFilm(progression.film)))
     return out
 
 
@@ -74,6 +81,25 @@ def test_heavy_tailed_estimate_is_not_optimistic_and_its_ci_covers_the_truth():
     covered = np.mean([p["estimated_rel_mse_ci95"][0] <= true <= p["estimated_rel_mse_ci95"][1]
                        for true, p in points])
     assert covered >= 0.9, covered
+
+
+def test_fireflies_are_not_optimistic_and_the_ci_covers_the_truth():
+    # Fireflies: the mean carried by the body (exponential, 0.5), the variance by rare
+    # bright samples (0.5 % at 20). One lands in one batch: the whole halves' product in the
+    # denominator (the estimator before this test) grows with it, so that pixel's term grows
+    # as the firefly, not as its square: optimistic, its CI below the truth in every pass
+    # here; each batch's term over the halves without it is not.
+    points = []
+    for seed in range(4):
+        before = []
+        series = heavy_tailed_series(seed, p_bright=0.005, bright=20.0, dim=0.5, old=before)
+        points += [(true, p, o) for (spp, true, p), o in zip(series, before, strict=True)
+                   if spp >= 16]
+    covered = np.mean([p["estimated_rel_mse_ci95"][0] <= true <= p["estimated_rel_mse_ci95"][1]
+                       for true, p, _ in points])
+    assert covered >= 0.9, covered
+    assert np.mean([p["estimated_rel_mse"] >= true / 1.5 for true, p, _ in points]) >= 0.9
+    assert np.mean([o["ci95"][1] < true for true, _, o in points]) >= 0.75
 
 
 def test_the_estimate_is_the_same_however_the_film_is_split_over_nodes():
@@ -150,7 +176,8 @@ radiance = {radiance}
 
 class GreyFilm:
     """A film's batches seen as the estimator before per-channel batches saw them: the grey
-    (channel-mean) sums, one channel (``rel_mse_estimate`` of it is that estimator)."""
+    (channel-mean) sums, one channel, the whole halves' product in the denominator
+    (``rel_mse_estimate`` of it is that estimator)."""
 
     def __init__(self, film: Film):
         self.film = film
@@ -159,7 +186,8 @@ class GreyFilm:
         from vastray.render.film import batch_estimates
         grey = self.film.batch.sum(axis=2, keepdims=True) / 3
         _, var, even, odd, k = batch_estimates(grey, self.film.count, halves=True)
-        return var / (even * odd + epsilon), k - 1.0
+        terms = var / (even * odd + epsilon)
+        return terms, terms, k - 1.0
 
 
 def test_the_estimate_tracks_the_per_channel_relmse_on_a_coloured_scene():
