@@ -22,44 +22,54 @@ does: starting the node processes and opening the store come before it and are n
 (the table's ``process s`` is the whole command's wall time); loading domains (out of core) and
 compiling kernels on a cold numba cache fall in the first pass.
 
+Every error here is the per-pixel relMSE ``rel_mse`` = mean over pixels and channels of
+``(x - r)**2 / (r**2 + ε)``, ε = 0.01 (``imageio.REL_MSE_EPSILON``); the film's
+``estimated_rel_mse`` estimates that same quantity (per channel, same ε), so the two subtract.
 The lossy run's error is split: variance = the film's own estimate (``estimated_rel_mse`` of
-its last pass) and bias^2 = its relMSE against the converged reference minus that variance;
-and, paired, bias^2 = its relMSE minus the relMSE of the lossless ``temporal`` run of the same
-nodes and seed (the same paths wherever the model was not swapped). Both are estimates: the
-reference has its own noise (1/16 of a run's variance, counted in every relMSE), and the film's
-variance estimate is itself noisy, so a bias below the noise can come out negative. The same
-split of the lossless ``temporal`` run (whose true bias is 0) is printed beside it as a control:
-what "no bias" looks like at this spp.
+its last pass), the reference's variance = the reference render's own ``estimated_rel_mse``
+(its noise, 1/16 of a run's, is inside every relMSE against it) and bias^2 = its relMSE
+against the converged reference minus both; and, paired, bias^2 = its relMSE minus the relMSE
+of the lossless ``temporal`` run of the same nodes and seed (the same paths wherever the model
+was not swapped; the reference's noise cancels). Both are estimates: the film's variance
+estimate is itself noisy, so a bias below the noise can come out negative. The same split of
+the lossless ``temporal`` run (whose true bias is 0) is printed beside it as a control: what
+"no bias" looks like at this spp.
 
 Invariance: every lossless run's final image must equal the single-process ``reference``
 run's bit for bit (``mismatches=0``).
 
-Calibration of the error estimates without a reference (issue 41; ``calibrate``): on five
-scenes (``--quick``: generated ``rm`` (PT and AO) and ``cosmo`` (PT, on ``--nodes 2``,
-``async``) at ``--resolution 32``, the built-in scene (PT) and a real scan from
-``../shared/data/meshes`` partitioned with ``vastray partition`` (bunny, PT; the full run adds
-the turbine blade, AO, and the built-in scene with AO; skipped with a printed reason when the
-folder is absent)), 48x36 (full: 64x48), each against a reference of 16x64 spp with seed 7919
-in one process. Per scene, 6 seeds (full: 10) render ``--spp 64 --max-pass-spp 8 --reference
-ref.exr`` (passes at 1, 2, 4, 8, 16, 24, ..., 64 spp) and the same seeds ``--target-error E``
-without a reference. True relMSE = the relMSE against the reference minus the reference's own
-estimated relMSE (its variance, about 1/16 of a run's at equal spp). Printed:
-``ci_coverage`` (share of the passes at >= 4 spp whose true relMSE lies inside
-``estimated_rel_mse_ci95``), ``target_met_share`` (share of the target runs whose true relMSE
-at the stop, from their image, is <= E; E per scene = the median true relMSE at 16 spp over
-the seeds) and ``spp_over_oracle`` (median and max over the target runs of the stop's spp over
-the oracle's: the first pass of the same seed's run whose true relMSE is <= E), with a row
-per scene, and as a diagnostic the same at the stop for the grey image (the metric the film
-estimates).
+Calibration of the error estimates without a reference (issue 41; ``calibrate``): on seven
+scenes (``calibration_scenes``: generated ``rm`` (PT and AO) and ``cosmo`` (PT, on ``--nodes
+2``, ``async``) at ``--resolution 32`` (full: 64), the built-in scene (PT), the heavy-tailed
+hidden lamp (``bench_scenes.hidden_lamp_scene``: a point light in a cup under the ceiling,
+every visible pixel lit through a bounce off a small bright spot; PT; the full run adds it on
+2 nodes), and two real scans from ``../shared/data/meshes`` partitioned with ``vastray
+partition``: the bunny (PT, one process) and the turbine blade (a CT isosurface; AO on 2
+nodes), skipped with a printed reason when absent; the full run adds the built-in scene with
+AO), 48x36 (full: 64x48), each against a reference of 16x64 spp with seed 7919 in one process.
+Per scene, 6 seeds (full: 10) render ``--spp 64 --max-pass-spp 8 --reference ref.exr``
+(passes at 1, 2, 4, 8, 16, 24, ..., 64 spp) and the same seeds ``--target-error E`` without a
+reference. Every error is the per-pixel relMSE the reports call ``rel_mse``: the mean over
+pixels and channels of ``(x - r)**2 / (r**2 + ε)``, ε = 0.01; the film's
+``estimated_rel_mse`` estimates the same (per channel, same ε). True relMSE = the relMSE
+against the reference minus the reference's own estimated relMSE (its variance, about 1/16 of
+a run's at equal spp). Printed: ``ci_coverage`` (share of the passes at >= 4 spp whose true
+relMSE lies inside ``estimated_rel_mse_ci95``), ``target_met_share`` (share of the target runs
+whose true relMSE at the stop, from their image, is <= E; E per scene = the median true relMSE
+at 16 spp over the seeds) and ``spp_over_oracle`` (median and max over the target runs of the
+stop's spp over the oracle's: the first pass of the same seed's run whose true relMSE is <=
+E), with a row per scene, and as a diagnostic the same at the stop for the grey
+(channel-mean) image, the metric the film estimated before it kept its batches per channel.
+``--only TEXT`` calibrates the scenes whose "name integrator" holds TEXT.
 
 Prints a Markdown table (a row per run), the bias/variance split and a summary line
 ``key=value ...``; writes every report, the table and ``vastray plot``'s relMSE-against-time
 PNG to ``--out`` (default: a new temporary folder) and prints its path.
 
-    python bench/convergence.py --quick   # 64x48, 64 spp, 12 runs, then 5 scenes x 6 seeds x 2
-                                          # calibration runs at 48x36: about 2.5 minutes on 2 cores
+    python bench/convergence.py --quick   # 64x48, 64 spp, 12 runs, then 7 scenes x 6 seeds x 2
+                                          # calibration runs at 48x36 (timing: see below)
     python bench/convergence.py           # 128x96, 128 spp, 24 runs: about 8 minutes on 2 cores,
-                                          # then 7 scenes x 10 seeds x 2 at 64x48 (not yet timed)
+                                          # then 9 scenes x 10 seeds x 2 at 64x48 (not yet timed)
     python bench/convergence.py --part calibration   # the calibration alone
 """
 
@@ -154,17 +164,24 @@ def summarize(report: dict, lossy: bool = False) -> Summary:
                    first_pass_s=seconds[0], lossy=lossy)
 
 
-def bias_variance(report: dict, lossless: dict | None = None) -> dict:
-    """The final image's error split: ``variance`` (the film's own relMSE estimate at the
-    last pass), ``bias2`` (relMSE against the converged reference minus that variance) and,
-    given the ``lossless`` run of the same options and seed, ``bias2_paired`` (the relMSE
-    minus the lossless run's). Each bias may come out negative when it is below the noise."""
+def bias_variance(report: dict, lossless: dict | None = None,
+                  reference_noise: float = 0.0) -> dict:
+    """The final image's error split, every term a per-pixel relMSE over pixels and channels
+    (``(x - r)**2 / (r**2 + ε)``, ε = ``REL_MSE_EPSILON``): ``variance`` (the film's own
+    estimate at the last pass, ``estimated_rel_mse``: the same metric, with the film's
+    independent halves' product estimating r**2 in the denominator), ``reference_variance``
+    (``reference_noise``: the converged reference's own estimated relMSE, which every relMSE
+    against it contains) and ``bias2`` = relMSE against the reference - variance - the
+    reference's variance; given the ``lossless`` run of the same options and seed,
+    ``bias2_paired`` (the relMSE minus the lossless run's: the same reference noise in
+    both). Each bias may come out negative when it is below the noise."""
     last = [p for p in report["passes"] if p.get("rel_mse") is not None][-1]
     variance = last.get("estimated_rel_mse")
     if variance is None:
         raise ValueError("the last pass has no estimated_rel_mse (a 1-spp render)")
     split = {"rel_mse": last["rel_mse"], "variance": variance,
-             "bias2": last["rel_mse"] - variance}
+             "reference_variance": reference_noise,
+             "bias2": last["rel_mse"] - variance - reference_noise}
     if lossless is not None:
         split["bias2_paired"] = last["rel_mse"] - lossless["passes"][-1]["rel_mse"]
     return split
@@ -357,46 +374,75 @@ def calibration_table(rows: list[tuple[CalScene, dict, float, float, list[Target
     return "\n".join(lines)
 
 
-def calibration_scenes(quick: bool, work: Path, meshes: Path, timeout: float
-                       ) -> tuple[list[CalScene], list[str]]:
-    """Build the stores and list the scenes; the second list says what was skipped and why."""
+def calibration_scenes(quick: bool, work: Path, meshes: Path, timeout: float,
+                       only: str | None = None) -> tuple[list[CalScene], list[str]]:
+    """Build the stores and list the scenes (``only``: those whose "name integrator" holds
+    that text); the second list says what was skipped and why.
+
+    Both runs: generated ``rm`` (PT, AO) and ``cosmo`` (PT on 2 nodes), the built-in scene
+    (PT), the heavy-tailed hidden lamp (``bench_scenes.hidden_lamp_scene``: a point light in
+    a cup under the ceiling, every visible pixel lit through a bounce off a small bright spot;
+    PT, one process; the full run adds it on 2 nodes) and the real scans of ``meshes``: the
+    bunny (PT, one process) and the turbine blade (a CT isosurface; AO on 2 nodes). The full
+    run adds the built-in scene with AO."""
+    from bench_scenes import hidden_lamp_scene
+
     res, grid = ("32", "2x2x2") if quick else ("64", "2x2x2")
     skipped: list[str] = []
+
+    def wanted(name: str, *integrators: str) -> bool:
+        return not only or any(only in f"{name} {i}" for i in integrators)
+
+    scenes = []
     for kind in ("rm", "cosmo"):
-        vastray("generate", kind, "-o", str(work / f"{kind}.store"), "--resolution", res,
-                "--grid", grid, "--force", "--quiet", cwd=work, timeout=timeout)
-    scenes = [CalScene("rm", work / "rm.store", "pt"),
-              CalScene("rm", work / "rm.store", "ao"),
-              CalScene("cosmo", work / "cosmo.store", "pt", nodes=2),
-              CalScene("built-in", None, "pt")]
-    scans = [("bunny", "stanford_bunny.ply", "pt"), ("turbine blade", "turbine_blade_199k.ply",
-                                                     "ao")]
+        if wanted(kind, "pt", "ao"):
+            vastray("generate", kind, "-o", str(work / f"{kind}.store"), "--resolution", res,
+                    "--grid", grid, "--force", "--quiet", cwd=work, timeout=timeout)
+    scenes += [CalScene("rm", work / "rm.store", "pt"),
+               CalScene("rm", work / "rm.store", "ao"),
+               CalScene("cosmo", work / "cosmo.store", "pt", nodes=2),
+               CalScene("built-in", None, "pt")]
+    if wanted("hidden lamp", "pt"):
+        ply, toml = hidden_lamp_scene(work / "lamp")
+        vastray("partition", str(ply), "-o", str(work / "lamp.store"), "--grid", "2x2x2",
+                "--force", "--quiet", cwd=work, timeout=timeout)
+        lamp = ["--scene", str(toml)]
+        scenes.append(CalScene("hidden lamp", work / "lamp.store", "pt", options=lamp))
+        if not quick:
+            scenes.append(CalScene("hidden lamp", work / "lamp.store", "pt", nodes=2,
+                                   options=lamp))
+    scans = [("bunny", "stanford_bunny.ply", "pt", None),
+             ("turbine blade", "turbine_blade_199k.ply", "ao", 2)]
     if not meshes.is_dir():
         skipped.append(f"real scans: {meshes} does not exist")
     else:
-        for name, file, integrator in scans[:1] if quick else scans:
+        for name, file, integrator, nodes in scans:
+            if not wanted(name, integrator):
+                continue
             if not (meshes / file).is_file():
                 skipped.append(f"{name}: {meshes / file} not found")
                 continue
             store = work / f"{file.split('.')[0]}.store"
             vastray("partition", str(meshes / file), "-o", str(store), "--grid", "2x2x2",
                     "--force", "--quiet", cwd=work, timeout=timeout)
-            scenes.append(CalScene(name, store, integrator))
+            scenes.append(CalScene(name, store, integrator, nodes=nodes))
     if not quick:
         scenes.append(CalScene("built-in", None, "ao"))
-    return scenes, skipped
+    return [c for c in scenes if wanted(c.name, c.integrator)], skipped
 
 
-def calibrate(quick: bool, out: Path, meshes: Path, timeout: float) -> dict:
+def calibrate(quick: bool, out: Path, meshes: Path, timeout: float,
+              only: str | None = None) -> dict:
     """Issue 41's calibration on real renders; prints the per-scene table and returns the
-    figures (``calibration_figures``)."""
+    figures (``calibration_figures``); ``only``: the scenes whose "name integrator" holds
+    that text."""
     start = time.perf_counter()
     width, height = (48, 36) if quick else (64, 48)
     seeds = range(CAL_SEED_BASE, CAL_SEED_BASE + (6 if quick else 10))
     ref_spp = REFERENCE_FACTOR * CAL_SPP
     work = out / "calibration"
     work.mkdir(parents=True, exist_ok=True)
-    scenes, skipped = calibration_scenes(quick, work, meshes, timeout)
+    scenes, skipped = calibration_scenes(quick, work, meshes, timeout, only)
     print(f"\nCalibration of the error estimates without a reference (issue 41): "
           f"{len(scenes)} scenes, {width}x{height}, runs of {CAL_SPP} spp at most "
           f"(--max-pass-spp {CAL_MAX_PASS_SPP}), seeds {seeds[0]}-{seeds[-1]}; each scene's "
@@ -410,7 +456,8 @@ def calibrate(quick: bool, out: Path, meshes: Path, timeout: float) -> dict:
         ref = work / f"{tag}-ref.exr"
         base = scene.args(width, height)
         if scene.nodes:  # the reference in one process: the image is the same on any nodes
-            base_ref = CalScene(scene.name, scene.store, scene.integrator).args(width, height)
+            base_ref = CalScene(scene.name, scene.store, scene.integrator,
+                                options=scene.options).args(width, height)
         else:
             base_ref = base
         vastray("render", *base_ref, "--spp", str(ref_spp), "--seed", REFERENCE_SEED,
@@ -458,9 +505,9 @@ def calibrate(quick: bool, out: Path, meshes: Path, timeout: float) -> dict:
     print(table)
     (out / "calibration.md").write_text(table + "\n")
     figures = calibration_figures(all_cov, all_runs)
-    print(f"\nDiagnostic: the film's batches estimate the grey (channel-mean) image's relMSE, "
-          f"the reports' rel_mse is over the 3 channels; at the {len(all_runs)} target runs' "
-          f"stops, the grey image's true relMSE is <= E in "
+    print(f"\nDiagnostic: the film's batches estimate the per-channel relMSE (the reports' "
+          f"rel_mse; before, the grey image's); at the {len(all_runs)} target runs' stops, the "
+          f"grey (channel-mean) image's true relMSE is <= E in "
           f"{figures['target_met_share_grey']:.3f} and inside the stop pass's 95 % CI in "
           f"{figures['ci_coverage_grey_at_stop']:.3f} of them (ci_coverage above: the "
           f"channels' relMSE, the one users compare with).")
@@ -496,6 +543,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--meshes", type=Path, default=MESHES,
                         help=f"folder of real scans for the calibration (default: {MESHES}; "
                              "skipped with a printed reason when absent)")
+    parser.add_argument("--only", metavar="TEXT",
+                        help="calibrate only the scenes whose 'name integrator' holds TEXT "
+                             "(e.g. 'lamp', 'blade ao'); the figures are then of those alone")
     args = parser.parse_args(argv)
     start = time.perf_counter()
     if args.quick:
@@ -511,7 +561,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.part != "calibration":
         status = schedulers(args, out, cores, start, resolution, grid, width, height, spp)
     if args.part != "schedulers":
-        figures = calibrate(args.quick, out, args.meshes, args.timeout)
+        figures = calibrate(args.quick, out, args.meshes, args.timeout, args.only)
         print("\n" + calibration_line(figures) + f" cores={cores} "
               f"seconds={time.perf_counter() - start:.0f}")
     return status
@@ -535,9 +585,10 @@ def schedulers(args, out: Path, cores: int, start: float, resolution: str, grid:
         t0 = time.perf_counter()
         vastray("render", "rm.store", "-o", "ref.exr", *size, "--spp",
                 str(REFERENCE_FACTOR * spp), "--seed", REFERENCE_SEED, "--scheduler",
-                "reference", cwd=work, timeout=args.timeout)
-        print(f"reference: {REFERENCE_FACTOR * spp} spp in {time.perf_counter() - t0:.1f} s",
-              flush=True)
+                "reference", "--report", "ref.json", cwd=work, timeout=args.timeout)
+        noise = reference_noise(json.loads((work / "ref.json").read_text()))
+        print(f"reference: {REFERENCE_FACTOR * spp} spp in {time.perf_counter() - t0:.1f} s, "
+              f"its own estimated relMSE {noise:.3g}", flush=True)
         reports, rows, mismatches = {}, [], []
         for run in runs:
             t0 = time.perf_counter()
@@ -565,18 +616,19 @@ def schedulers(args, out: Path, cores: int, start: float, resolution: str, grid:
           "lossy run is labelled as such and compared with the same converged reference.")
     lossy = next(r for r in runs if r.lossy)
     twin = reports.get(f"temporal-n{lossy.nodes}")
-    split = bias_variance(reports[lossy.name], twin)
-    control = bias_variance(twin)
-    print(f"\nLossy {lossy.name}: relMSE {split['rel_mse']:.3g} = bias^2 {split['bias2']:.3g} "
-          f"+ variance {split['variance']:.3g} (the film's own estimate); paired with the "
-          f"lossless temporal run of the same seed: bias^2 {split['bias2_paired']:.3g}. "
-          f"Caveat: the reference has its own noise (about 1/{REFERENCE_FACTOR} of a run's "
-          f"variance, {split['variance'] / REFERENCE_FACTOR:.2g} here) inside every relMSE, "
-          "and the film's estimate is noisy too, so a bias below the noise can come out "
-          "negative.")
+    split = bias_variance(reports[lossy.name], twin, noise)
+    control = bias_variance(twin, reference_noise=noise)
+    print(f"\nLossy {lossy.name} (per-pixel relMSE over pixels and channels, ε = "
+          f"{REL_MSE_EPSILON:g}, every term): relMSE {split['rel_mse']:.3g} = bias^2 "
+          f"{split['bias2']:.3g} + variance {split['variance']:.3g} (the film's own estimate) "
+          f"+ the reference's variance {noise:.3g} (its film's own estimate, at "
+          f"{REFERENCE_FACTOR}x the spp); paired with the lossless temporal run of the same "
+          f"seed: bias^2 {split['bias2_paired']:.3g}. Caveat: the estimates are noisy, so a "
+          "bias below the noise can come out negative.")
     print(f"Control, lossless temporal-n{lossy.nodes} (true bias 0): relMSE "
           f"{control['rel_mse']:.3g} = bias^2 {control['bias2']:.3g} + variance "
-          f"{control['variance']:.3g}: a bias^2 of this size is noise.")
+          f"{control['variance']:.3g} + the reference's {noise:.3g}: a bias^2 of this size "
+          "is noise.")
     (out / "table.md").write_text(table + "\n")
     plot = subprocess.run([sys.executable, "-m", "vastray", "plot",
                            *[str(out / f"{r.name}.json") for r in runs], "-o",
@@ -592,7 +644,8 @@ def schedulers(args, out: Path, cores: int, start: float, resolution: str, grid:
           f"best_efficiency={best.scheduler}@{best.nodes or 1}:{best.efficiency:.3g} "
           f"lossy_rel_mse={split['rel_mse']:.3g} lossy_bias2={split['bias2']:.3g} "
           f"lossy_bias2_paired={split['bias2_paired']:.3g} "
-          f"lossy_variance={split['variance']:.3g} control_bias2={control['bias2']:.3g} "
+          f"lossy_variance={split['variance']:.3g} reference_variance={noise:.3g} "
+          f"control_bias2={control['bias2']:.3g} "
           f"cores={cores} "
           f"seconds={time.perf_counter() - start:.0f}"
           + (f" mismatched={','.join(mismatches)}" if mismatches else ""))

@@ -57,6 +57,12 @@ def test_bias_variance_split_against_the_estimate_and_the_lossless_twin():
     assert split["bias2"] == pytest.approx(1e-3)
     assert split["bias2_paired"] == pytest.approx(0.5e-3)
     assert "bias2_paired" not in convergence.bias_variance(lossy)
+    # the reference's own noise (inside every relMSE against it) comes out of bias^2 too,
+    # not out of the paired one (both runs hold it)
+    noisy = convergence.bias_variance(lossy, twin, reference_noise=0.4e-3)
+    assert noisy["reference_variance"] == 0.4e-3
+    assert noisy["bias2"] == pytest.approx(0.6e-3)
+    assert noisy["bias2_paired"] == pytest.approx(0.5e-3)
 
 
 def test_markdown_table_has_a_row_per_run_and_labels_the_lossy_one():
@@ -136,3 +142,22 @@ def test_calibration_figures_and_table():
     line = convergence.calibration_line(f)
     assert "ci_coverage=0.850" in line and "target_met_share=0.500" in line
     assert "spp_over_oracle=1.50 (max 2.00)" in line
+
+
+def test_the_hidden_lamp_scene_hides_its_light_in_a_cup_under_the_ceiling(tmp_path):
+    # The heavy-tailed calibration scene: a mesh and a SCENE.toml vastray reads, the point
+    # light inside the cup (below its rim, above its floor), the rim below the ceiling.
+    import numpy as np
+    import trimesh
+
+    sys.path.insert(0, str(SCRIPT.parent))
+    from bench_scenes import hidden_lamp_scene
+
+    from vastray.render.scene_config import load_scene_config
+    ply, toml = hidden_lamp_scene(tmp_path, cup=0.5, depth=0.2, gap=0.1)
+    mesh = trimesh.load(ply, force="mesh", process=False)
+    assert mesh.bounds[1][1] == pytest.approx(2.02)  # the ceiling's top
+    light = load_scene_config(toml).lights[0]
+    y = float(light.position[1])
+    assert 2.0 - 0.1 - 0.2 - 0.05 < y < 2.0 - 0.1  # between the cup's floor and its rim
+    assert np.ptp(np.asarray(light.intensity)) > 0  # coloured
