@@ -22,8 +22,9 @@ Every float operation is the one numpy performs, in the same order and precision
   by numpy before the shading kernel runs, and the Blinn-Phong power is applied afterwards
   (``integrators._shade_fused`` through ``materials.blinn_phong_lobe_of_cos``).
 
-The light kinds are the four of ``render.lights``; a batch with any other light uses the numpy
-path (chosen per batch, never per ray).
+The light kinds are the four of ``render.lights``; ``integrators.shade`` refuses any other.
+The numpy chain itself is the tests' oracle (``tests/oracles.py``: ``oracles.*`` below), not
+part of the package.
 
 Compilation: ``cache=True``, so a process loads them from ``__pycache__``; the very first use
 compiles them (measured: a fresh numba cache made the first tiny render take 13.9 s instead of
@@ -158,7 +159,7 @@ def hemisphere_uniforms(seed, purpose, pixel, sample, path, bounce, m):
 
 def hemisphere_angles(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """cos and sin of the azimuths ``2 pi v`` ((n,) float32 each), with numpy's float32
-    routines, exactly as ``sampling.cosine_hemisphere`` takes them."""
+    routines, exactly as ``oracles.cosine_hemisphere`` takes them."""
     phi = 2.0 * np.pi * v
     return np.cos(phi), np.sin(phi)
 
@@ -181,7 +182,7 @@ def _dot(a0, a1, a2, b0, b1, b2):
 
 @njit(inline="always")
 def _hemisphere(n0, n1, n2, u, c, s):
-    """``sampling.cosine_hemisphere`` of one normal, uniform ``u`` and azimuth cos/sin."""
+    """``oracles.cosine_hemisphere`` of one normal, uniform ``u`` and azimuth cos/sin."""
     r = np.sqrt(u)
     x = r * c
     y = r * s
@@ -201,7 +202,7 @@ def _hemisphere(n0, n1, n2, u, c, s):
 @njit(inline="always")
 def _frame(dirs, point, error, normal, i):
     """Direction, facing normal, hit point and spawned origin of row ``i`` (``integrators.shade``'s
-    first lines and ``spawn``): returns (d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, o0, o1, o2).
+    first lines and ``oracles.spawn``): returns (d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, o0, o1, o2).
 
     The origin is the hit point moved ``error[i]`` along the facing normal (pbrt-v4's
     ``OffsetRayOrigin``): far enough that Embree cannot find the surface again, and
@@ -287,7 +288,7 @@ def ray_points(org, dirs, t, point, error):
 @njit(nogil=True, cache=True)
 def shade_ao(dirs, point, error, normal, color, has_color, m, hu, hc, hs, s_org, s_dir,
              s_contrib):
-    """``integrators._ambient_occlusion_rays``: ``m`` cosine-weighted rays per hit.
+    """``oracles._ambient_occlusion_rays``: ``m`` cosine-weighted rays per hit.
 
     Parameters
     ----------
@@ -318,7 +319,7 @@ def shade_ao(dirs, point, error, normal, color, has_color, m, hu, hc, hs, s_org,
 
 @njit(inline="always")
 def _sample_light(kind, prm, o0, o1, o2, nf0, nf1, nf2, su, sv, hu, hc, hs):
-    """``Light.sample`` for one row: (wi0, wi1, wi2, dist, inc0, inc1, inc2).
+    """``oracles.sample_light`` for one row: (wi0, wi1, wi2, dist, inc0, inc1, inc2).
 
     ``su, sv``: the row's quad-light uniforms; ``hu, hc, hs``: its ambient hemisphere sample.
     """
