@@ -67,7 +67,8 @@ Prints a Markdown table (a row per run), the bias/variance split and a summary l
 PNG to ``--out`` (default: a new temporary folder) and prints its path.
 
     python bench/convergence.py --quick   # 64x48, 64 spp, 12 runs, then 7 scenes x 6 seeds x 2
-                                          # calibration runs at 48x36 (timing: see below)
+                                          # calibration runs at 48x36: 5 minutes on 2 cores
+                                          # (2026-11-29, load average 3.4-5.5 meanwhile)
     python bench/convergence.py           # 128x96, 128 spp, 24 runs: about 8 minutes on 2 cores,
                                           # then 9 scenes x 10 seeds x 2 at 64x48 (not yet timed)
     python bench/convergence.py --part calibration   # the calibration alone
