@@ -230,7 +230,10 @@ def rel_mse_terms(batch: np.ndarray, count: np.ndarray, epsilon: float
             total, rest = halves[b % 2]
             # batch b's half without it (the whole half where b is all of it: below 3 spp)
             own = np.where(rest > size, (total - batch[:, b]) / (rest - size), full[b % 2])
-            exclusive += np.where(size > 0, v / (own * full[1 - b % 2] + epsilon), 0.0)
-        inclusive = var / (full[0] * full[1] + epsilon)
+            # a product of two independent means estimates r**2 without bias but may be
+            # negative where r is near 0 and the samples signed: taken as 0 there
+            exclusive += np.where(size > 0, v / (np.maximum(own * full[1 - b % 2], 0.0)
+                                                 + epsilon), 0.0)
+        inclusive = var / (np.maximum(full[0] * full[1], 0.0) + epsilon)
     ok = n_ >= 2
     return np.where(ok, inclusive, np.nan), np.where(ok, exclusive, np.nan), k - 1.0
