@@ -221,13 +221,17 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
             film, reports = progression(None).film if frames is None else None, []
             break
         paced = any(progression(frame).rules.paced for frame in todo)
+        # measured against a reference, each pass's error is wanted as it ends (a curve of
+        # error against time): nodes then render the passes apart, not in one sweep of tiles
+        apart = any(progression(frame).reference is not None for frame in todo)
         try:
             with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0,
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                           leave=False) as bar:
                 passes = Passes(units, progression, paced, image=frames is None)
                 film, reports = asyncio.run(coordinate(
-                    dict(job, frames=remaining, units=units, paced=paced), size, settings,
+                    dict(job, frames=remaining, units=units, paced=paced,
+                         passes_apart=apart), size, settings,
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
                     regroup=survive_node_loss and size > 1, bound=bound,

@@ -162,7 +162,10 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         spans.add_rest()  # passes in other nodes' tiles only, and those after this node's last
         return progression.film
 
-    fused = progression is not None and not progression.rules.paced
+    # passes measured against a reference are rendered apart, so each pass's error comes
+    # with the time it ended (a curve, not one point); the others run on across passes
+    fused = (progression is not None and not progression.rules.paced
+             and getattr(progression, "reference", None) is None)
     try:
         with (asyncio.Runner() as runner,
               RenderBar(total=settings.paths, unit="path", unit_scale=True, delay=2.0,

@@ -241,7 +241,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs.clear()
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
-                group = units_together(units, unit, options, job["paced"])
+                group = units_together(units, unit, options,
+                                       job["paced"] or job.get("passes_apart", False))
                 start = time.perf_counter()
                 if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
                     films, counters = await render_passes_together(
@@ -352,13 +353,14 @@ NODE_RUNTIMES = {Runtime.IN_SITU: _in_situ_share, Runtime.DOMAINS: _domains_shar
                  Runtime.TILES: _tiles_share}
 
 
-def units_together(units: list, unit: int, options: JobOptions, paced: bool) -> list[int]:
-    """The units from ``unit`` on that a node renders in one sweep: without pacing (no rule
-    may stop the render between passes), the passes of one frame in a tile schedule
-    (``image``, ``spec-ooc``) run on from one into the next, so a domain is loaded once per
-    tile, not once per pass (as one process does, ``local.PassSpans``); else ``unit`` alone.
-    Every node groups alike (the job and options are the same), so their reductions pair."""
-    if paced or registry.spec(options.scheduler).runtime is not Runtime.TILES:
+def units_together(units: list, unit: int, options: JobOptions, apart: bool) -> list[int]:
+    """The units from ``unit`` on that a node renders in one sweep: unless the passes are
+    wanted ``apart`` (a rule may stop the render between them, or each pass's error against a
+    reference is wanted as it ends), the passes of one frame in a tile schedule (``image``,
+    ``spec-ooc``) run on from one into the next, so a domain is loaded once per tile, not once
+    per pass (as one process does, ``local.PassSpans``); else ``unit`` alone. Every node
+    groups alike (the job and options are the same), so their reductions pair."""
+    if apart or registry.spec(options.scheduler).runtime is not Runtime.TILES:
         return [unit]
     frame = units[unit][0]
     group = [unit]

@@ -126,11 +126,14 @@ def test_spec_insitu_speculates(scene):
 
 def test_dynamic_keeps_resident_domains_where_they_are(scene):
     # Nodes report every resident domain (not the last one traced), so with room for all of
-    # them each domain is loaded once in the whole cluster, and the work is spread.
+    # them each domain is loaded once in the whole cluster, and the work is spread. (Room for
+    # all: every node may hold every domain. The default, a node's initial share, fits only
+    # while the ray-weighted schedule hands each node no more than that share.)
     store, toml = scene
     st = settings(width=32, height=24, spp=2, integrator="pt")
     result = render_distributed(store.path, toml, st, 2,
-                                options=JobOptions(scheduler="dynamic", max_samples_in_flight=800),
+                                options=JobOptions(scheduler="dynamic", max_samples_in_flight=800,
+                                                   cache=len(store.domains)),
                                 timeout=60)
     loads = [r["counters"]["loads"] for r in result.counters["per_node"]]
     assert sum(loads) <= sum(d.n_triangles > 0 for d in store.domains)

@@ -104,3 +104,24 @@ def test_a_node_keeps_its_cache_from_pass_to_pass(store, toml):
         progression_of=lambda frame: Progression(W, H, StopRules(SPP, time_limit=3600.0)))
     assert len(result.progress["passes"]) == 4
     assert result.counters["loads"] <= 2 * len(store.domains)  # at most once per node
+
+
+@pytest.mark.parametrize("nodes", [None, 2])
+def test_passes_measured_against_a_reference_end_apart(store, toml, nodes):
+    """Issue 41: with a reference the error of each pass is wanted as it ends, so passes are
+    rendered apart (a curve of error against time, not one point at the end of one sweep)."""
+    st = settings(width=W, height=H, spp=SPP, integrator="pt", bounces=3)
+    reference = np.full((H, W, 3), 0.2, np.float32)
+    options = JobOptions(scheduler="spec-ooc", cache=quarter(store), threads=1)
+    progression = Progression(W, H, StopRules(SPP), reference)
+    if nodes is None:
+        render_out_of_core(store, load_scene_config(toml), st, options, progress=False,
+                           progression=progression)
+    else:
+        render_distributed(store.path, toml, st, nodes, options,
+                           progression_of=lambda frame: progression)
+    seconds = [p["seconds"] for p in progression.series]
+    assert len(seconds) == 4, seconds
+    # the last pass holds half the samples: it takes a real share of the time (passes merged
+    # together at the end of one sweep end within a millisecond of each other)
+    assert seconds[3] - seconds[2] > 0.1 * seconds[3], seconds
