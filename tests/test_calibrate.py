@@ -79,6 +79,7 @@ def test_calibration_file_round_trips(quick, tmp_path):
 
 
 # -- the command ----------------------------------------------------------------------------
+@pytest.mark.slow  # a second whole calibration (45 s); .ci/run runs it
 def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
     out = tmp_path / "costs.json"
     proc = subprocess.run([*VASTRAY, "calibrate", str(store), "-o", str(out), "--quick"],

@@ -135,7 +135,8 @@ def _reap(nodes: list[subprocess.Popen]) -> None:
 
 
 @pytest.mark.parametrize("scheduler, slow", [
-    pytest.param("async", False, marks=pytest.mark.slow), ("image", False), ("async", True)])
+    pytest.param("async", False, marks=pytest.mark.slow), ("image", False),
+    pytest.param("async", True, marks=pytest.mark.slow)])
 def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, slow):
     # slow: the survivors take longer to drop the job than the coordinator's silence allows
     # mid-job; the coordinator is silent after its regroup, and that must not make them exit
@@ -201,6 +202,8 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
         assert nodes[i].returncode == 4 and "lost the coordinator" in text, text
         assert "regroups" not in text, text
 
+
+@pytest.mark.slow  # 25 s; the same recovery through the API runs by default; .ci/run runs it
 def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
     # As a user runs it, without --quiet: `vastray render --listen` and three `vastray node`.
     store, toml = scene

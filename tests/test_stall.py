@@ -21,6 +21,7 @@ from vastray.actors.node_failure import NodeFailure
 from scenes import bumpy_scene, reap, settings, write_store
 
 
+@pytest.mark.slow  # 22 s of waiting for the stall; .ci/run runs it
 def test_nodes_cut_off_from_a_peer_end_the_job_instead_of_waiting_for_ever(tmp_path):
     store = write_store(tmp_path / "s", bumpy_scene(), kd=6)
     port = 46000 + os.getpid() % 1000
