@@ -266,3 +266,15 @@ def forget_binding() -> None:
 
     with library._api_lock:
         library._api, library._api_tried = None, False
+
+
+def child_pids(pid: int) -> list[int]:
+    """The pids of ``pid``'s children (Linux ``/proc``), over every thread of it; a thread that
+    ends while it is read is skipped (its children are re-parented to the process)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except FileNotFoundError:
+            continue
+    return found

@@ -22,7 +22,7 @@ import vastray
 from vastray.cli import main
 from vastray.render.imageio import read_image
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, child_pids, write_store
 
 SMALL = {"width": 32, "height": 24, "spp": 2}
 SMALL_ARGS = ["--width", "32", "--height", "24", "--spp", "2"]
@@ -218,15 +218,14 @@ async def test_render_async_leaves_the_loop_running(store):
 def _node_children(pid: int) -> list[int]:
     """Live (not zombie) node processes whose parent is ``pid``."""
     found = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        for child in (task / "children").read_text().split():
-            try:
-                cmd = Path(f"/proc/{child}/cmdline").read_bytes()
-                state = Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[0]
-            except (FileNotFoundError, ProcessLookupError):
-                continue
-            if b"vastray.actors.node" in cmd and state != "Z":
-                found.append(int(child))
+    for child in child_pids(pid):
+        try:
+            cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+            state = Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        if b"vastray.actors.node" in cmd and state != "Z":
+            found.append(child)
     return found
 
 
@@ -257,7 +256,11 @@ import vastray
 def live_nodes():
     found = []
     for task in Path(f"/proc/{os.getpid()}/task").iterdir():
-        for child in (task / "children").read_text().split():
+        try:  # a thread may end while it is read
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue
+        for child in children:
             try:
                 state = Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[0]
             except FileNotFoundError:

@@ -22,7 +22,7 @@ from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
 from vastray.transport.keys import COORDINATOR_KEY
 
-from scenes import bumpy_scene, write_store
+from scenes import bumpy_scene, child_pids, write_store
 
 SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2"]
 
@@ -162,11 +162,7 @@ def test_version_and_help_teach(tmp_path):
 
 
 def _children(pid: int) -> list[int]:
-    found = []
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        text = (task / "children").read_text().split()
-        found += [int(c) for c in text]
-    return found
+    return child_pids(pid)
 
 
 def _alive(pid: int) -> bool:
