@@ -30,6 +30,7 @@ from vastray.actors.node_state import NodeState
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import peak_rss_bytes
+from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -242,7 +243,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
                 group = units_together(units, unit, options,
-                                       job["paced"] or job.get("passes_apart", False))
+                                       job["paced"] or job.get("passes_apart", False),
+                                       len(store.domains), settings.width * settings.height)
                 start = time.perf_counter()
                 if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
                     films, counters = await render_passes_together(
@@ -353,18 +355,31 @@ NODE_RUNTIMES = {Runtime.IN_SITU: _in_situ_share, Runtime.DOMAINS: _domains_shar
                  Runtime.TILES: _tiles_share}
 
 
-def units_together(units: list, unit: int, options: JobOptions, apart: bool) -> list[int]:
-    """The units from ``unit`` on that a node renders in one sweep: unless the passes are
-    wanted ``apart`` (a rule may stop the render between them, or each pass's error against a
-    reference is wanted as it ends), the passes of one frame in a tile schedule (``image``,
-    ``spec-ooc``) run on from one into the next, so a domain is loaded once per tile, not once
-    per pass (as one process does, ``local.PassSpans``); else ``unit`` alone. Every node
-    groups alike (the job and options are the same), so their reductions pair."""
-    if apart or registry.spec(options.scheduler).runtime is not Runtime.TILES:
+#: Most bytes of pass films a node's sweep over several passes holds (each pass's film waits
+#: for the sweep's end before it is reduced): past it, fewer passes go together.
+SWEEP_FILM_BYTES = 256 << 20
+
+
+def units_together(units: list, unit: int, options: JobOptions, apart: bool, domains: int,
+                   pixels: int) -> list[int]:
+    """The units from ``unit`` on that a node renders in one sweep: out of core (a cache
+    smaller than the store's ``domains``) and unless the passes are wanted ``apart`` (a rule
+    may stop the render between them, or each pass's error against a reference is wanted as
+    it ends), the passes of one frame in a tile schedule (``image``, ``spec-ooc``) run on from
+    one into the next, so a domain is loaded once per tile, not once per pass (as one process
+    does, ``local.PassSpans``); as many as keep their films (of ``pixels`` pixels each) within
+    ``SWEEP_FILM_BYTES``. Else ``unit`` alone. In core the node's cache keeps every domain
+    from pass to pass, so passes apart cost no loads. Every node groups alike (the job and
+    options are the same), so their reductions pair."""
+    out_of_core = options.cache is not None and options.cache < domains
+    if (apart or not out_of_core
+            or registry.spec(options.scheduler).runtime is not Runtime.TILES):
         return [unit]
+    most = max(1, SWEEP_FILM_BYTES // max(1, pixels * FILM_BYTES_PER_PIXEL))
     frame = units[unit][0]
     group = [unit]
-    while group[-1] + 1 < len(units) and units[group[-1] + 1][0] == frame:
+    while (len(group) < most and group[-1] + 1 < len(units)
+           and units[group[-1] + 1][0] == frame):
         group.append(group[-1] + 1)
     return group
 

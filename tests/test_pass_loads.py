@@ -125,3 +125,23 @@ def test_passes_measured_against_a_reference_end_apart(store, toml, nodes):
     # the last pass holds half the samples: it takes a real share of the time (passes merged
     # together at the end of one sweep end within a millisecond of each other)
     assert seconds[3] - seconds[2] > 0.1 * seconds[3], seconds
+
+
+def test_a_node_sweeps_passes_together_only_out_of_core_and_within_the_film_budget():
+    from vastray.actors.node import SWEEP_FILM_BYTES, units_together
+    from vastray.render.film import FILM_BYTES_PER_PIXEL
+
+    units = [(None, 0, 1), (None, 1, 2), (None, 2, 4), (None, 4, 8)]
+    out = JobOptions(scheduler="spec-ooc", cache=4)
+    assert units_together(units, 0, out, False, 16, 100) == [0, 1, 2, 3]
+    assert units_together(units, 1, out, False, 16, 100) == [1, 2, 3]
+    assert units_together(units, 0, out, True, 16, 100) == [0]  # paced, or a reference
+    assert units_together(units, 0, out, False, 4, 100) == [0]  # in core: the cache keeps all
+    assert units_together(units, 0, JobOptions(scheduler="spec-ooc"), False, 16, 100) == [0]
+    assert units_together(units, 0, JobOptions(scheduler="async", cache=4), False, 16,
+                          100) == [0]  # rays move between nodes: pass by pass
+    two = SWEEP_FILM_BYTES // (2 * FILM_BYTES_PER_PIXEL)  # pixels of which two films fit
+    assert units_together(units, 0, out, False, 16, two) == [0, 1]
+    assert units_together(units, 0, out, False, 16, 10 * two) == [0]
+    frames = [(0, 0, 1), (0, 1, 2), (1, 0, 1), (1, 1, 2)]
+    assert units_together(frames, 0, out, False, 16, 100) == [0, 1]  # one frame at a time
