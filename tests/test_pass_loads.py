@@ -145,3 +145,18 @@ def test_a_node_sweeps_passes_together_only_out_of_core_and_within_the_film_budg
     assert units_together(units, 0, out, False, 16, 10 * two) == [0]
     frames = [(0, 0, 1), (0, 1, 2), (1, 0, 1), (1, 1, 2)]
     assert units_together(frames, 0, out, False, 16, 100) == [0, 1]  # one frame at a time
+
+
+def test_the_cli_says_it_renders_out_of_core_in_one_pass(store, toml, tmp_path, capsys):
+    """As a user runs it, without --quiet: the plan's line and the summary line."""
+    from vastray.cli import main
+
+    out = tmp_path / "one.exr"
+    assert main(["render", str(store.path), "--scene", str(toml), "--width", str(W),
+                 "--height", str(H), "--spp", str(SPP), "--cache", str(quarter(store)),
+                 "--scheduler", "spec-ooc", "-o", str(out), "--report",
+                 str(tmp_path / "one.json")]) == 0
+    err = capsys.readouterr().err
+    assert f"passes: one of {SPP} spp (out of core" in err, err
+    assert err.strip().splitlines()[-1].startswith(f"wrote {out}"), err
+    assert out.is_file()
