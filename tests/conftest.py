@@ -20,6 +20,15 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def pytest_xdist_auto_num_workers(config):
+    """``-n auto`` (pyproject's addopts): one worker per CPU this process may use, at most 4.
+    The suite's renders start node processes of their own, so more workers buy little and
+    cost memory."""
+    from vastray.scene.cpus import available_cpus
+
+    return max(1, min(available_cpus(), 4))
+
+
 def pytest_collection_modifyitems(config, items):
     """Skip ``@pytest.mark.slow`` tests unless a ``-m`` expression selects by marker."""
     if config.option.markexpr:

@@ -44,6 +44,7 @@ def quick(store):
 
 
 # -- a real calibration ---------------------------------------------------------------------
+@pytest.mark.slow  # the quick calibration takes 20 s; .ci/run runs it
 def test_quick_calibration_measures_every_constant_plausibly(quick):
     model, _, _seconds = quick
     values = {name: getattr(model, name) for name in CONSTANTS}
@@ -59,6 +60,7 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # (its time, about 20 s on a quiet machine, is no test's business: 120 s on a busy one)
 
 
+@pytest.mark.slow  # the quick calibration takes 20 s; .ci/run runs it
 def test_quick_calibration_records_the_machine_and_reports_progress(quick, store):
     model, steps, _ = quick
     assert model.cores == len(os.sched_getaffinity(0))
@@ -71,6 +73,7 @@ def test_quick_calibration_records_the_machine_and_reports_progress(quick, store
     assert any("ray batches" in text for _, text in steps)
 
 
+@pytest.mark.slow  # the quick calibration takes 20 s; .ci/run runs it
 def test_calibration_file_round_trips(quick, tmp_path):
     model, _, _ = quick
     model.save(tmp_path / "costs.json")

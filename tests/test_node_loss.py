@@ -40,10 +40,11 @@ def scene(tmp_path_factory):
     return write_store(root / "s", bumpy_scene(), kd=8), root / "scene.toml"
 
 
-# Every scheduler and every signal by default; the other pairs with -m slow (CI runs them).
+# Three schedulers and three signals by default; the other pairs with -m slow (CI runs them).
 @pytest.mark.parametrize("scheduler, sig", [
     ("domain", signal.SIGKILL), pytest.param("async", signal.SIGKILL, marks=pytest.mark.slow),
-    ("spec-insitu", signal.SIGKILL), pytest.param("image", signal.SIGKILL, marks=pytest.mark.slow),
+    pytest.param("spec-insitu", signal.SIGKILL, marks=pytest.mark.slow),
+    pytest.param("image", signal.SIGKILL, marks=pytest.mark.slow),
     pytest.param("async", signal.SIGSTOP, marks=pytest.mark.slow), ("image", signal.SIGSTOP),
     ("async", signal.SIGSEGV), pytest.param("domain", signal.SIGABRT, marks=pytest.mark.slow)])
 def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig):
@@ -250,7 +251,7 @@ def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
     # fell silent once done was declared lost after heartbeat_timeout (and, with a real loss
     # elsewhere, blamed in its place, since it had been silent longest).
     store, toml = scene
-    st = settings(width=64, height=48, spp=256, integrator="pt")
+    st = settings(width=64, height=48, spp=128, integrator="pt")
     paths = st.width * st.height * st.spp
     start = time.monotonic()
     result = render_distributed(store.path, toml, st, 2,
@@ -262,7 +263,8 @@ def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
 
 
 @pytest.mark.parametrize("scheduler, sig, seed", [
-    ("temporal", signal.SIGSEGV, 1), ("async", signal.SIGABRT, 2), ("image", signal.SIGKILL, 3)])
+    ("temporal", signal.SIGSEGV, 1), pytest.param("async", signal.SIGABRT, 2, marks=pytest.mark.slow),
+    ("image", signal.SIGKILL, 3)])
 def test_frames_recovered_after_a_node_dies_equal_the_fault_free_frames(scene, scheduler, sig,
                                                                         seed):
     """A node dies (SIGSEGV, SIGABRT, SIGKILL) at a random point of a 20-frame animation: every

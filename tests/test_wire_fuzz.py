@@ -75,15 +75,31 @@ messages = st.one_of(
 )
 
 
-#: Messages drawn by hypothesis, sent once the render runs.
-FLOOD: list[list[bytes]] = []
+def draw_flood() -> list[list[bytes]]:
+    """The flood: ``PER_EXAMPLE * EXAMPLES`` messages drawn by hypothesis (derandomized, so
+    the same messages every run), each a list of frames."""
+    flood: list[list[bytes]] = []
+
+    @settings(max_examples=EXAMPLES, deadline=None, derandomize=True, database=None,
+              suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+    @given(batch=st.lists(messages, min_size=PER_EXAMPLE, max_size=PER_EXAMPLE))
+    def draw(batch):
+        flood.extend(batch)
+
+    draw()
+    return flood
 
 
-@settings(max_examples=EXAMPLES, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-@given(batch=st.lists(messages, min_size=PER_EXAMPLE, max_size=PER_EXAMPLE))
-def test_draw_bad_messages(batch):
-    FLOOD.extend(batch)
+@pytest.fixture(scope="module")
+def flood() -> list[list[bytes]]:
+    """Messages drawn once per module (and per test worker), whichever test asks first."""
+    return draw_flood()
+
+
+def test_the_flood_is_drawn_whole_and_holds_every_shape(flood):
+    assert len(flood) == PER_EXAMPLE * EXAMPLES
+    assert any(frames == [] for frames in flood)  # an empty message
+    assert any(len(frames) >= 5 for frames in flood)  # more frames than any kind has
 
 
 def _forged_film_and_done(n: int) -> list[list]:
@@ -98,10 +114,9 @@ def _forged_film_and_done(n: int) -> list[list]:
 
 
 @pytest.fixture(scope="module")
-def flooded_render(tmp_path_factory):
+def flooded_render(tmp_path_factory, flood):
     """A 2-node render with nodes started as a user starts them elsewhere (`vastray node`);
     while it runs, node 0 gets the whole flood and the coordinator forged films and dones."""
-    assert len(FLOOD) == PER_EXAMPLE * EXAMPLES, "test_draw_bad_messages runs first"
     root = tmp_path_factory.mktemp("fuzz")
     store = write_store(root / "s", bumpy_scene(), kd=8)
     toml = root / "scene.toml"
@@ -152,9 +167,9 @@ def flooded_render(tmp_path_factory):
         strangers[1].plain_username, strangers[1].plain_password = b"vastray", b"0" * 32
         for stranger in strangers:
             stranger.connect(endpoint)
-            stranger.send_multipart([b"", *FLOOD[0]] if FLOOD[0] else [b""])
+            stranger.send_multipart([b"", *flood[0]] if flood[0] else [b""])
         sent = 0
-        for i, frames in enumerate(FLOOD):
+        for i, frames in enumerate(flood):
             tokens = [b"", b"forged-token", np.random.default_rng(i).bytes(16)]
             for token in tokens[:1] if frames else tokens:
                 to_node.send_multipart([token, *frames] if frames else [token])
@@ -198,15 +213,14 @@ def test_the_render_survives_the_flood_with_the_reference_image(flooded_render):
     assert node0["coordinator_rejected_messages"] == 4
 
 
-async def test_every_message_over_a_peers_connection_meets_the_checks():
+async def test_every_message_over_a_peers_connection_meets_the_checks(flood):
     # The flood again, now from a member's ROUTER over the connection node 0 made to it, behind
     # no token, a forged one, a random one and the pair's own: each message is delivered or
     # dropped by a rule, none crashes the receive path.
-    assert len(FLOOD) == PER_EXAMPLE * EXAMPLES, "test_draw_bad_messages runs first"
     with member_actors(2, domains=4) as (_, _, _, nodes):
         sent = 0
         identity = routing_id(nodes[1].peer_tokens[0])
-        for i, frames in enumerate(FLOOD):
+        for i, frames in enumerate(flood):
             tokens = [b"", b"forged-token", np.random.default_rng(i).bytes(16),
                       nodes[1].peer_tokens[0]]
             for token in tokens:
@@ -229,7 +243,7 @@ async def test_every_message_over_a_peers_connection_meets_the_checks():
         assert nodes[0].rejections.total + delivered() == sent, (counts, delivered())
         assert "internal" not in counts, counts
         # foreign tokens are strangers; behind the pair's token the schemas refuse
-        assert counts.get("stranger", 0) > len(FLOOD) and counts.get("malformed", 0) > 0, counts
+        assert counts.get("stranger", 0) > len(flood) and counts.get("malformed", 0) > 0, counts
 
 
 def _free_port() -> int:
