@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 
-from tqdm import tqdm
+from vastray.scene.progressbar import Bar
 
 #: What the bar says in place of the ETA until the compiled kernels have done their first work.
 COMPILING = "compiling kernels (first run only)"
@@ -34,7 +34,7 @@ def kernels_compiled() -> bool:
     return True
 
 
-class RenderBar(tqdm):
+class RenderBar(Bar):
     """``tqdm`` over a render's paths which, while the kernels compile (``compiled`` False),
     shows at once that it is compiling instead of an ETA, and restarts its rate at the first
     paths done, so that the ETA it then shows counts no compile time.

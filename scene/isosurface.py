@@ -149,11 +149,11 @@ def iter_brick_triangles(volume, level: float, brick: int = DEFAULT_BRICK,
     repeatable (a sum whose order depends on the brick) still gives identical vertices on both
     sides of a brick face. At most one plane of brick faces is held for this.
     """
-    from tqdm import tqdm
+    from vastray.scene.progressbar import Bar
 
     shape = tuple(int(n) for n in volume.shape)
     stitcher = _Stitcher(shape)
-    for index, (start, stop) in tqdm(brick_grid(shape, brick, cuts), desc="isosurface",
+    for index, (start, stop) in Bar(brick_grid(shape, brick, cuts), desc="isosurface",
                                      unit="brick", disable=not progress, leave=False):
         raw = volume[start[0]:stop[0], start[1]:stop[1], start[2]:stop[2]]
         if raw is None:

@@ -31,10 +31,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from vastray.scene.errors import InputError
 from vastray.scene.manifest import SimplifiedInfo
+from vastray.scene.progressbar import Bar
 from vastray.scene.store import DomainArrays, Store, check_simplified_replaceable, write_simplified
 
 log = logging.getLogger(__name__)
@@ -194,7 +194,7 @@ def simplify_domains(store: Store, ratio: float, min_faces: int = DEFAULT_MIN_FA
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("vertices", "indices", "objects",
                                                            "scalars", "colors")}
     offset = 0
-    for info in tqdm(store.domains, desc="simplify", unit="domain", delay=1.0,
+    for info in Bar(store.domains, desc="simplify", unit="domain", delay=1.0,
                      disable=not progress, leave=False):
         if not info.n_triangles:
             continue

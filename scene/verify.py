@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from vastray.scene import occupancy
 from vastray.scene.checksums import CRC32, SHA256, checksum_mismatch
@@ -45,6 +44,7 @@ from vastray.scene.manifest import (
     simplified_entry,
     totals,
 )
+from vastray.scene.progressbar import Bar
 from vastray.scene.store import DomainArrays, domain_problems
 
 
@@ -132,7 +132,7 @@ def verify_store(path: str | Path, progress: bool = False,
     n_objects = len(objects) if isinstance(objects, list) else 0
     infos = []
     entries = DomainParser(root, manifest)
-    for item in tqdm(entries, total=result.domains, desc="verify", unit="domain", delay=1.0,
+    for item in Bar(entries, total=result.domains, desc="verify", unit="domain", delay=1.0,
                      disable=not progress, leave=False):
         if isinstance(item, InputError):
             found(item)

@@ -166,9 +166,9 @@ class _ProgressBar:
 
     def __enter__(self) -> _ProgressBar:
         if self.enabled:
-            from tqdm import tqdm
+            from vastray.scene.progressbar import Bar
 
-            self.bar = tqdm(total=100, desc="calibrate", leave=False,
+            self.bar = Bar(total=100, desc="calibrate", leave=False,
                             bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}{postfix}")
         return self
 
