@@ -367,7 +367,7 @@ def units_together(units: list, unit: int, options: JobOptions, apart: bool, dom
     may stop the render between them, or each pass's error against a reference is wanted as
     it ends), the passes of one frame in a tile schedule (``image``, ``spec-ooc``) run on from
     one into the next, so a domain is loaded once per tile, not once per pass (as one process
-    does, ``local.PassSpans``); as many as keep their films (of ``pixels`` pixels each) within
+    does, ``sort_first.PassSpans``); as many as keep their films (of ``pixels`` pixels each) within
     ``SWEEP_FILM_BYTES``. Else ``unit`` alone. In core the node's cache keeps every domain
     from pass to pass, so passes apart cost no loads. Every node groups alike (the job and
     options are the same), so their reductions pair."""
@@ -386,7 +386,7 @@ def units_together(units: list, unit: int, options: JobOptions, apart: bool, dom
 
 class UnitPasses:
     """The passes of a node's units of one frame, as ``local.render_out_of_core`` asks a
-    progression for them (``PassSpans``): the windows, and each pass's film kept as it is
+    progression for them (``sort_first.PassSpans``): the windows, and each pass's film kept as it is
     merged. Nothing is ruled on: the coordinator's progression rules on the films."""
 
     def __init__(self, windows: list[tuple[int, int]]):

@@ -59,6 +59,11 @@ class NodeState:
         time)."""
         return DomainLoop(preloader, stats)
 
+    def tile_loop(self, preloader: DomainPreloader, stats: dict) -> DomainLoop:
+        """The loop the node's sort-first tiles run through (``sort_first.SortFirstTiles``):
+        on the calling thread, the tile loop's own (the simulator's runs on virtual time)."""
+        return DomainLoop(preloader, stats, offload=False)
+
     def node_work(self, management, rank: int, stats: dict, preloader: DomainPreloader,
                   max_batch: int) -> NodeWork:
         """The node's side of domain decomposition, keeping this state's early batches."""

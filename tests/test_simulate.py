@@ -428,6 +428,16 @@ def test_sort_first_tiles_give_every_node_work_and_a_speed_up(store, domains):
     assert split.seconds < alone.seconds
 
 
+def test_a_sort_first_node_keeps_its_cache_and_sweeps_passes_out_of_core(store, domains):
+    # in core, as a node's NodeState: what the first pass loaded the second finds resident
+    passes = sim(store, domains, "image", 1, max_pass_spp=1)
+    assert 0 < passes.counters["loads"] <= len(store.domains)
+    assert all(s > 0 for s in passes.unit_seconds)  # each pass rendered apart
+    # out of core, as actors.node.units_together: the frame's passes in one sweep of tiles
+    swept = sim(store, domains, "image", 3, max_pass_spp=1, cache=2, max_samples_in_flight=200)
+    assert swept.unit_seconds[0] > 0 and swept.unit_seconds[1:] == [0.0] * (SETTINGS.spp - 1)
+
+
 @pytest.mark.parametrize("scheduler", ["image", "async", "domain"])
 def test_unit_reduction_and_busy_seconds_fit_together(store, domains, scheduler):
     one = sim(store, domains, scheduler, 1, max_pass_spp=None)

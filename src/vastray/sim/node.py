@@ -121,6 +121,9 @@ class SimNodeState(NodeState):
     def domain_loop(self, preloader, stats: dict) -> DomainLoop:
         return VirtualDomainLoop(self.cluster, self.rank, preloader, stats)
 
+    def tile_loop(self, preloader, stats: dict) -> DomainLoop:
+        return VirtualDomainLoop(self.cluster, self.rank, preloader, stats, node_runtime=False)
+
     def node_work(self, management, rank: int, stats: dict, preloader, max_batch: int):
         return SimNode(management, rank, stats, preloader, max_batch, self.early)
 

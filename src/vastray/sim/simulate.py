@@ -1,11 +1,12 @@
 """``simulate``: one render of a store on P virtual nodes in virtual time.
 
 Each virtual node runs the nodes' own code for its scheduler (``actors.decomposition``,
-``actors.insitu``, and for the sort-first ``image`` and ``spec-ooc`` the out-of-core tile loop
-of ``actors.local`` on virtual time), unit by unit (the passes of each frame, as a job's units),
-with its film summed up the tree after each unit by the real tree-reduce actor. Rays are
-traced for real, so the image is the render's own and the traffic between domains the true
-one; only time is the cost model's.
+``actors.insitu``, and for the sort-first ``image`` and ``spec-ooc`` the tile loop of
+``actors.sort_first`` that ``actors.local`` runs, on virtual time), unit by unit (the passes of
+each frame, as a job's units; out of core a sort-first node sweeps a frame's passes together,
+as ``actors.node.units_together`` groups them), with its film summed up the tree after each
+unit by the real tree-reduce actor. Rays are traced for real, so the image is the render's own
+and the traffic between domains the true one; only time is the cost model's.
 """
 
 from __future__ import annotations
@@ -19,29 +20,33 @@ import numpy as np
 
 from vastray.actors.coordinator import DEFAULT_NODE_TILE
 from vastray.actors.decomposition import render_owned_domains
-from vastray.actors.domain_loop import ScheduleOrder
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
-from vastray.actors.local import tile_schedule
-from vastray.actors.node import SETTING_COUNTERS, accumulate_counters, frame_inputs
+from vastray.actors.node import (
+    SETTING_COUNTERS,
+    UnitPasses,
+    accumulate_counters,
+    frame_inputs,
+    units_together,
+)
 from vastray.actors.ray_post import traffic_counters
 from vastray.actors.render_setup import RenderSetup
+from vastray.actors.sort_first import PassSpans, SortFirstTiles, tile_cache_capacity
 from vastray.actors.tree_reduce import TreeReduceActor
-from vastray.render.driver import path_context, shading_inputs
+from vastray.render.driver import shading_inputs
 from vastray.render.film import Film
-from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.integrators import RenderSettings
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP, pass_bounds
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule import registry
-from vastray.schedule.ownership import sort_first_tiles
 from vastray.schedule.registry import SIMULATE_CHOICES, Simulation
-from vastray.sim.cache import Domains, VirtualPreloader
+from vastray.sim.cache import Domains
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.costs import CostModel
-from vastray.sim.node import SimManagement, SimNodeState, VirtualDomainLoop
+from vastray.sim.node import SimManagement, SimNodeState
 
 #: The schedulers the simulator runs (every distributed one; ``schedule.registry``'s, each
 #: with its ``simulation``).
@@ -58,7 +63,8 @@ class SimResult:
     seconds : virtual seconds of the render (the busiest node's rendering, as a real run's
         ``busy_max``; the film reductions after each unit are not in it, as they are not in
         ``busy_max``).
-    unit_seconds : (units,) virtual seconds of each unit (pass or frame pass).
+    unit_seconds : (units,) virtual seconds of each unit (pass or frame pass; passes swept
+        together: the sweep's in its first pass, none in the others).
     reduce_seconds : virtual seconds of the film reductions.
     compute_seconds : (P + 1,) virtual seconds each node (and the coordinator, last) computed.
     counters : the nodes' counters summed (loads, rays sent, batches, ...).
@@ -179,8 +185,9 @@ async def _render(store, options, size, costs, settings, config, units, domains)
 
 async def _node(cluster: Cluster, rank: int, store, options, settings, config, units, domains,
                 unit_ends):
-    """One virtual node's job (``actors.node``'s unit loop): each unit rendered, then its
-    film summed up the tree."""
+    """One virtual node's job (``actors.node``'s unit loop): each unit rendered (or, as
+    ``units_together`` groups them, several passes in one sweep), then each unit's film summed
+    up the tree."""
     size = cluster.size
     management = SimManagement(cluster, rank)
     tree = TreeReduceActor(management, rank, size)
@@ -188,22 +195,38 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
     busy = reduce = 0.0
     totals: dict = {}
     film = None  # the frame's passes merged (rank 0's the whole image)
-    for ordinal, (frame, first, stop) in enumerate(units):
+    ordinal = 0
+    while ordinal < len(units):
+        frame = units[ordinal][0]
         if ordinal == 0 or frame != units[ordinal - 1][0]:
             film = Film(settings.width, settings.height)
         frame_settings, frame_config = frame_inputs(settings, config, store, frame)
-        window = frame_settings.window(first, stop)
+        # no stopping rule and no reference in a simulation: passes apart only in core
+        group = units_together(units, ordinal, options, False, len(store.domains),
+                               settings.width * settings.height)
+        windows = [units[unit][1:] for unit in group]
         state.ordinal, state.frame = ordinal, frame or 0
         start = cluster.now()
-        await cluster.compute(rank, cluster.costs.camera_ray_s * window.paths / size)
-        part, counters = await _share(cluster, management, tree, options, rank, size, store,
-                                      frame_config, window, state)
+        paths = sum(frame_settings.window(*window).paths for window in windows)
+        await cluster.compute(rank, cluster.costs.camera_ray_s * paths / size)
+        if len(group) > 1:
+            parts, counters = await _sort_first_passes(options, rank, size, store,
+                                                       frame_config, frame_settings, windows,
+                                                       state)
+        else:
+            part, counters = await _share(cluster, management, tree, options, rank, size,
+                                          store, frame_config,
+                                          frame_settings.window(*windows[0]), state)
+            parts = [part]
         busy += cluster.now() - start
-        unit_ends[ordinal].append(cluster.now())
-        reduced = cluster.now()
-        film.merge(await tree.reduce_film(part, settings.width, settings.height, ordinal))
-        reduce += cluster.now() - reduced
+        for unit in group:  # a sweep's time is its first pass's
+            unit_ends[unit].append(cluster.now())
+        for unit, part in zip(group, parts, strict=True):
+            reduced = cluster.now()
+            film.merge(await tree.reduce_film(part, settings.width, settings.height, unit))
+            reduce += cluster.now() - reduced
         accumulate_counters(totals, counters)
+        ordinal = group[-1] + 1
     return busy, reduce, totals, film
 
 
@@ -230,35 +253,37 @@ async def _domains_share(cluster, management, tree, options, rank, size, store, 
 
 async def _sort_first_share(cluster, management, tree, options, rank, size, store, config,
                             settings, state):
-    return await _sort_first(cluster, options, rank, size, store, config, settings,
-                             state.domains)
-
-
-async def _sort_first(cluster, options, rank, size, store, config, settings, domains):
     """``actors.local.render_out_of_core`` with ``share=(rank, size)`` on virtual time: this
-    node's tiles, each traced through its schedule with a cache made for the unit."""
+    node's tiles of one pass, by the same ``SortFirstTiles``."""
+    tiles, stats = _sort_first_tiles(options, rank, size, store, config, settings, state)
+    film = await tiles.render_pass(settings)
+    return film, _with_loads(stats, tiles)
+
+
+async def _sort_first_passes(options, rank, size, store, config, settings, windows, state):
+    """``actors.node.render_passes_together`` on virtual time: this node's partial film of each
+    pass in ``windows`` (sample ranges of one frame), in one sweep of tiles."""
+    tiles, stats = _sort_first_tiles(options, rank, size, store, config, settings, state)
+    passes = UnitPasses(windows)
+    await tiles.render_passes(PassSpans(passes, settings))
+    return passes.films, _with_loads(stats, tiles)
+
+
+def _sort_first_tiles(options, rank, size, store, config, settings, state):
+    """The node's ``SortFirstTiles`` through its cache (kept from unit to unit, as a node's
+    ``NodeState`` keeps it) on a ``VirtualDomainLoop``, and the counters it adds to."""
     setup = RenderSetup.of(store, config, settings)
-    preloader = VirtualPreloader(cluster, rank, domains,
-                                 options.cache or max(len(store.domains), 1),
-                                 preload=options.preload,
-                                 bandwidth=options.load_bytes_per_second(rank))
+    preloader = state.preloader_for(store, tile_cache_capacity(options, store), setup.keep,
+                                    options, rank)
     stats = {**traffic_counters(), "shade_s": 0.0}
-    loop = VirtualDomainLoop(cluster, rank, preloader, stats, node_runtime=False)
-    film = Film(settings.width, settings.height)
-    total = settings.paths
-    tile = max(1, min(options.max_samples_in_flight or total, total))
-    for first in sort_first_tiles(total, tile, rank, size):
-        ctx = path_context(setup.shading, settings, first, min(first + tile, total),
-                           setup.ao_distance)
-        policy = tile_schedule(options, setup, ctx)
-        policy.start(camera_rays(setup.camera, ctx))
-        await loop.run(ScheduleOrder(policy, preloader,
-                                     evicting=registry.spec(options.scheduler).evicts,
-                                     by_demand=options.eviction == "demand"))
-        film.add_paths(ctx.pixel, ctx.sample, policy.result)
-    stats.update({k: v for k, v in preloader.stats().items() if k in ("loads", "preloads",
-                                                                      "bytes_loaded")})
-    return film, stats
+    return SortFirstTiles(options, setup, state.tile_loop(preloader, stats), (rank, size)), stats
+
+
+def _with_loads(stats: dict, tiles: SortFirstTiles) -> dict:
+    """``stats`` with the loads the node's cache made since ``tiles`` was made."""
+    cache = tiles.cache_stats()
+    stats.update(loads=cache.loads, preloads=cache.preloads, bytes_loaded=cache.bytes_loaded)
+    return stats
 
 
 #: The runner of each ``Simulation`` (``_share`` dispatches on the scheduler's).

@@ -1,0 +1,220 @@
+"""The sort-first tile loop, one implementation for one process (``local.render_out_of_core``),
+the sort-first nodes (which run it) and the simulator (``vastray.sim``): which tiles of which
+passes a node traces (every ``size``-th of its ``sort_first_tiles`` share), how each tile's
+schedule is made and started, and how its paths enter the films. How a schedule's activations
+run is the caller's: the domain loop it hands in (a ``DomainLoop`` over a real cache and its
+preloading thread, or the simulator's ``VirtualDomainLoop`` on virtual time)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
+from vastray.actors.job_options import JobOptions
+from vastray.actors.render_setup import RenderSetup
+from vastray.render.driver import path_context
+from vastray.render.film import Film
+from vastray.render.integrators import PathContext, PathResult, RenderSettings, camera_rays
+from vastray.render.progressive import Progression
+from vastray.scene.cache import CacheStats
+from vastray.scene.store import Store
+from vastray.schedule import registry
+from vastray.schedule.image import ImageSchedule
+from vastray.schedule.ownership import sort_first_tiles
+from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
+
+
+def tile_schedule(options: JobOptions, setup: RenderSetup, ctx: PathContext,
+                  ablation: SpeculationRules | None = None):
+    """A tile's schedule (``ImageSchedule``, or ``SpeculativeSchedule`` for a scheduler that
+    speculates), as ``options`` (and ``ablation``) configure it."""
+    if not registry.spec(options.scheduler).speculates:
+        return ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                             resident_first=options.resident_first)
+    rules = ablation or SpeculationRules()
+    return SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
+                               history_depth=options.history_depth,
+                               resident_first=options.resident_first,
+                               serve_before_evict=rules.serve_before_evict,
+                               rescore=rules.rescore)
+
+
+def tile_cache_capacity(options: JobOptions, store: Store) -> int:
+    """Most domains a sort-first node holds: ``options.cache``, or all of the store's."""
+    return options.cache or max(len(store.domains), 1)
+
+
+class SortFirstTiles:
+    """A node's share of the sort-first tiles of a pass, or of several passes swept together.
+
+    Parameters
+    ----------
+    options : the job's options (``scheduler``, ``max_samples_in_flight``: the tile,
+        ``eviction``, and what ``tile_schedule`` reads).
+    setup : the render's set-up.
+    loop : the domain loop every tile's schedule runs through (its ``preloader``: the node's
+        cache, whose counters from now on ``cache_stats`` gives).
+    share : (k, n): the tiles k, k + n, k + 2n, ... of every sweep.
+    ablation : spec-ooc's rules switched off (None: all on).
+    on_tile : called with the number of paths after each finished tile.
+    counters : where each tile's schedule counters are summed (default: a dict of its own).
+    """
+
+    def __init__(self, options: JobOptions, setup: RenderSetup, loop: DomainLoop,
+                 share: tuple[int, int] = (0, 1), ablation: SpeculationRules | None = None,
+                 on_tile: Callable[[int], None] | None = None, counters: dict | None = None):
+        self.options, self.setup, self.loop, self.share = options, setup, loop, share
+        self.ablation, self.on_tile = ablation, on_tile
+        self.counters = {} if counters is None else counters
+        self.preloader = loop.preloader
+        #: the largest tile of any sweep (paths)
+        self.tile = 1
+        self._before = _cache_counts(self.preloader.cache.stats)
+
+    async def trace(self, ctx: PathContext) -> PathResult:
+        """Trace the paths of ``ctx`` through the domains in their schedule's order."""
+        policy = tile_schedule(self.options, self.setup, ctx, self.ablation)
+        policy.start(camera_rays(self.setup.camera, ctx))
+        await self.loop.run(ScheduleOrder(
+            policy, self.preloader, evicting=registry.spec(self.options.scheduler).evicts,
+            by_demand=self.options.eviction == "demand"))
+        _merge(self.counters, policy.counters)
+        if self.on_tile is not None:
+            self.on_tile(len(ctx.pixel))
+        return policy.result
+
+    async def render_pass(self, window: RenderSettings) -> Film:
+        """The film of one pass (``window.samples``): this node's share of its tiles."""
+        film = Film(window.width, window.height)
+        total = window.paths
+        size = self._tile_size(total)
+        for first in sort_first_tiles(total, size, *self.share):
+            ctx = path_context(self.setup.shading, window, first, min(first + size, total),
+                               self.setup.ao_distance)
+            film.add_paths(ctx.pixel, ctx.sample, await self.trace(ctx))
+        return film
+
+    async def render_passes(self, spans: PassSpans) -> Film:
+        """Every pass of ``spans``, in tiles that run on from one pass into the next (a domain
+        is loaded once per tile, not once per pass); each pass is merged into the
+        progression once its last tile is done. Returns the progression's film."""
+        size = self._tile_size(spans.total)
+        for first in sort_first_tiles(spans.total, size, *self.share):
+            stop = min(first + size, spans.total)
+            ctx, passes = spans.context(self.setup.shading, first, stop, self.setup.ao_distance)
+            spans.add(ctx, passes, await self.trace(ctx), stop)
+        spans.add_rest()  # passes in other nodes' tiles only, and those after this node's last
+        return spans.progression.film
+
+    def cache_stats(self) -> CacheStats:
+        """The cache's counters since this object was made (peaks: the cache's own)."""
+        return _CallStats(self.preloader.cache.stats, self._before)
+
+    def _tile_size(self, total: int) -> int:
+        size = max(1, min(self.options.max_samples_in_flight or total, total))
+        self.tile = max(self.tile, size)
+        return size
+
+
+class PassSpans:
+    """The passes a progression has left, as one run of path ids: pass after pass, each
+    pixel-major within (as ``path_context`` numbers them), so that a tile may run on from the
+    end of one pass into the next.
+
+    Parameters
+    ----------
+    progression : the passes (none of which may stop early: ``StopRules.paced`` False).
+    settings : the render's settings.
+    """
+
+    def __init__(self, progression: Progression, settings: RenderSettings):
+        self.progression, self.settings = progression, settings
+        done = progression.snapshot.passes_done
+        self.windows = progression.remaining()
+        self.index = np.arange(done, done + len(self.windows))  # (K,) pass numbers
+        self.first = np.array([w[0] for w in self.windows], np.int64)  # (K,) first sample
+        self.per_pixel = np.array([w[1] - w[0] for w in self.windows], np.int64)  # (K,)
+        paths = settings.width * settings.height * self.per_pixel
+        self.offsets = np.concatenate([[0], np.cumsum(paths)])  # (K + 1,) first path id
+        self.total = int(self.offsets[-1])
+        self.films: dict[int, Film] = {}
+        self.merged = 0  # passes of ``windows`` merged so far
+        progression.start()
+
+    def context(self, shading, first: int, stop: int, ao_distance: float
+                ) -> tuple[PathContext, np.ndarray]:
+        """The paths ``first <= id < stop`` and (n,) the position in ``windows`` of each's
+        pass."""
+        ids = np.arange(first, stop, dtype=np.int64)
+        k = np.searchsorted(self.offsets, ids, side="right") - 1
+        local = ids - self.offsets[k]
+        pixel = (local // self.per_pixel[k]).astype(np.uint32)
+        sample = (self.first[k] + local % self.per_pixel[k]).astype(np.uint32)
+        return PathContext(shading, self.settings, pixel, sample, ao_distance), k
+
+    def add(self, ctx: PathContext, passes: np.ndarray, result: PathResult, stop: int) -> None:
+        """Add the traced tile of the paths up to id ``stop`` to its passes' films, and merge
+        every pass it completes (tiles come in order)."""
+        for k in np.unique(passes):
+            rows = np.nonzero(passes == k)[0]
+            if int(k) not in self.films:
+                self.films[int(k)] = Film(self.settings.width, self.settings.height)
+            self.films[int(k)].add_paths(ctx.pixel[rows], ctx.sample[rows], PathResult(
+                result.radiance[rows], result.first_t[rows], result.first_normal[rows]))
+        while self.merged < len(self.windows) and self.offsets[self.merged + 1] <= stop:
+            self._merge_next()
+        if self.merged == len(self.windows):
+            self.progression.next_pass()  # says why it stops: every pass is in
+
+    def add_rest(self) -> None:
+        """Merge the passes not merged yet, once this process traced its last tile: a node's
+        share of the tiles (every ``size``-th) may end before the last pass does, or miss a
+        pass whole (its film then holds no path). Ends as ``add`` does."""
+        if self.merged == len(self.windows) and self.total:
+            return  # the last tile merged every pass and said why it stops
+        while self.merged < len(self.windows):
+            self._merge_next()
+        self.progression.next_pass()  # says why it stops (also when resumed with none left)
+
+    def _merge_next(self) -> None:
+        step = self.progression.next_pass()
+        if step is None or step[0] != self.index[self.merged]:
+            raise RuntimeError(f"pass {self.index[self.merged]} is not the next one")
+        film = self.films.pop(self.merged, None)
+        if film is None:  # no path of this pass among this process's tiles
+            film = Film(self.settings.width, self.settings.height)
+        self.progression.add_pass(step[0], film)
+        self.merged += 1
+
+
+#: The cache counters that are totals over a cache's life (a call reports its own share).
+_CACHE_TOTALS = ("loads", "hits", "evictions", "load_seconds", "read_seconds", "build_seconds",
+                 "preloads", "wait_seconds", "bytes_loaded", "throttle_seconds")
+
+
+def _cache_counts(stats: CacheStats) -> dict:
+    """What ``_CallStats`` subtracts: the totals so far and the domains loaded so far."""
+    return {**{name: getattr(stats, name) for name in _CACHE_TOTALS},
+            "loaded_domains": set(stats.loaded_domains)}
+
+
+class _CallStats(CacheStats):
+    """A cache's counters over one call: ``stats`` less the totals ``before`` it
+    (``_cache_counts``); peaks are the cache's own."""
+
+    def __init__(self, stats: CacheStats, before: dict):
+        super().__init__(**{name: getattr(stats, name) - before[name]
+                            for name in _CACHE_TOTALS},
+                         loaded_domains=stats.loaded_domains - before["loaded_domains"],
+                         peak_resident_bytes=stats.peak_resident_bytes,
+                         peak_resident_domains=stats.peak_resident_domains)
+
+
+def _merge(total: dict, part: dict) -> None:
+    for key, value in part.items():
+        if key.endswith("_peak"):
+            total[key] = max(total.get(key, 0), value)
+        else:
+            total[key] = total.get(key, 0) + value
