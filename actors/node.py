@@ -29,7 +29,7 @@ from vastray.actors.management import ManagementActor
 from vastray.actors.node_state import NodeState
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.actors.tree_reduce import TreeReduceActor
-from vastray.processes import peak_rss_bytes
+from vastray.processes import Terminated, peak_rss_bytes
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
@@ -37,7 +37,7 @@ from vastray.scene.errors import InputError
 from vastray.schedule import registry
 from vastray.schedule.registry import Runtime
 from vastray.transport.codec import encode
-from vastray.transport.join_secret import read_join_secret, read_secret_fd
+from vastray.transport.join_secret import read_secret_fd, wait_for_join_secret
 from vastray.transport.keys import load_node_keys
 from vastray.transport.security import Credentials, Gate, check_bind
 
@@ -74,8 +74,9 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     """
     if credentials is None:
         port = int(coordinator.rpartition(":")[2])
-        credentials = Credentials(secret=await asyncio.to_thread(read_join_secret, port,
-                                                                 timeout))
+        log.info("waiting up to %.0f s for a coordinator of this user on port %d", timeout,
+                 port)
+        credentials = Credentials(secret=await wait_for_join_secret(port, timeout))
     check_bind(bind_host, credentials)
     ctx = zmq.asyncio.Context()
     gate = Gate(ctx, secret=credentials.secret, what="this node")
@@ -581,6 +582,11 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
     except InputError as exc:
         print(f"node {RankFormatter.rank}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM through the CLI: nothing to keep
+        said, status = (("terminated", 143) if isinstance(stop, Terminated)
+                        else ("interrupted", 130))
+        print(f"node {RankFormatter.rank}: {said}", file=sys.stderr)
+        return status
     except Exception as exc:  # report, then fail: the coordinator names this node
         print(f"node {RankFormatter.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

@@ -278,3 +278,12 @@ def child_pids(pid: int) -> list[int]:
         except FileNotFoundError:
             continue
     return found
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nothing listens on now."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]

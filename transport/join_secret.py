@@ -83,21 +83,45 @@ def read_join_secret(port: int, timeout: float) -> bytes:
         When none appears: no coordinator of this user listens there (without keys, only the
         coordinator's own user on its own machine may join).
     """
-    path = join_secret_path(port)
     deadline = time.monotonic() + timeout
-    while True:
-        try:
-            pid, secret = path.read_text().split()
-            if running(int(pid)) and path.stat().st_uid == os.getuid():
-                return secret.encode()
-        except (OSError, ValueError):
-            pass
-        if time.monotonic() > deadline:
-            raise InputError(path, f"no join secret of a running coordinator appeared within "
-                                   f"{timeout:.0f} s: without --keys, a node joins only a "
-                                   "coordinator of its own user on its own machine (give both "
-                                   "--keys to join from elsewhere)")
+    while (secret := _current_secret(port)) is None:
+        _check_deadline(port, deadline, timeout)
         time.sleep(0.1)
+    return secret
+
+
+async def wait_for_join_secret(port: int, timeout: float) -> bytes:
+    """``read_join_secret`` for a node's event loop: it waits there, not on a thread, so a
+    Ctrl-C or SIGTERM ends the wait at once (a thread blocked the loop's shutdown until the
+    timeout: a node waiting for its coordinator ignored both for minutes)."""
+    import asyncio
+
+    deadline = time.monotonic() + timeout
+    while (secret := _current_secret(port)) is None:
+        _check_deadline(port, deadline, timeout)
+        await asyncio.sleep(0.1)
+    return secret
+
+
+def _current_secret(port: int) -> bytes | None:
+    """The secret in ``port``'s file if a running process of this user left it, else None."""
+    path = join_secret_path(port)
+    try:
+        pid, secret = path.read_text().split()
+        if running(int(pid)) and path.stat().st_uid == os.getuid():
+            return secret.encode()
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _check_deadline(port: int, deadline: float, timeout: float) -> None:
+    if time.monotonic() > deadline:
+        raise InputError(join_secret_path(port),
+                         f"no join secret of a running coordinator appeared within "
+                         f"{timeout:.0f} s: without --keys, a node joins only a coordinator of "
+                         "its own user on its own machine (give both --keys to join from "
+                         "elsewhere)")
 
 
 def read_secret_fd(fd: int) -> bytes:

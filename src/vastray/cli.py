@@ -25,6 +25,7 @@ import select
 import sys
 
 from vastray.actors.node_failure import NodeFailure
+from vastray.processes import Terminated, raise_terminated
 from vastray.scene.errors import InputError
 
 DESCRIPTION = """\
@@ -163,21 +164,10 @@ class KeptStream:
         return getattr(self._stream, name)
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (``timeout``, Slurm, systemd): cleaned up exactly like Ctrl-C."""
-
-
-def _raise_terminated(signum, frame) -> None:
-    # `timeout` signals the command and then its whole process group, so the same stop
-    # arrives twice: a second Terminated would break into the clean-up the first started
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    raise Terminated()
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _raise_terminated)
+        signal.signal(signal.SIGTERM, raise_terminated)
         # SIGUSR1 is ignored since this module's import (above). SIGPIPE stays ignored
         # (Python's default), so a closed pipe is a BrokenPipeError that ``_closed_output``
         # below tells apart, rather than SIG_DFL's silent death at any write to any pipe or

@@ -1,10 +1,24 @@
 """Facts about processes: whether one still runs (what files and folders named after their
 owner's pid, such as stale temporary images, node logs and join secrets, are judged by), and
-this process's peak resident memory and bytes read from storage."""
+this process's peak resident memory and bytes read from storage; and how a SIGTERM stops one
+(``Terminated``, raised by the handler the CLI installs)."""
 
 from __future__ import annotations
 
 import os
+import signal
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, Slurm, systemd): cleaned up exactly like Ctrl-C."""
+
+
+def raise_terminated(signum, frame) -> None:
+    """The SIGTERM handler: raise ``Terminated`` in the main thread, once."""
+    # `timeout` signals the command and then its whole process group, so the same stop
+    # arrives twice: a second Terminated would break into the clean-up the first started
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise Terminated()
 
 
 def running(pid: int) -> bool:

@@ -1,0 +1,41 @@
+"""A node stops at once, in one line, on Ctrl-C or SIGTERM, even while it is still waiting for
+its coordinator: the wait for the join secret ran on a thread that the event loop's shutdown
+joined, so a waiting node ignored both signals until its timeout (120 s), then printed a
+traceback."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from scenes import free_port
+
+
+@pytest.mark.parametrize("sig, status, said", [(signal.SIGTERM, 143, "terminated"),
+                                               (signal.SIGINT, 130, "interrupted")])
+def test_a_node_waiting_for_its_coordinator_stops_at_once_in_one_line(tmp_path, sig, status,
+                                                                      said):
+    env = {**os.environ, "VASTRAY_RUNTIME_DIR": str(tmp_path)}  # no coordinator's secret there
+    node = subprocess.Popen(
+        [sys.executable, "-m", "vastray", "-v", "node", "--coordinator",
+         f"tcp://127.0.0.1:{free_port()}", "--timeout", "600"],
+        stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        first = node.stderr.readline()  # logged once its signal handlers are in place
+        assert "waiting up to 600 s for a coordinator" in first, first
+        stopped = time.monotonic()
+        node.send_signal(sig)
+        rest = node.stderr.read()
+        node.wait(timeout=60)
+    finally:
+        node.kill()
+        node.wait()
+        node.stderr.close()
+    assert time.monotonic() - stopped < 30  # not the 600 s timeout
+    assert node.returncode == status, rest
+    assert rest.strip() == f"node ?: {said}", rest  # one line, no traceback
