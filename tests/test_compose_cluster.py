@@ -15,7 +15,6 @@ import json
 import os
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import time
@@ -28,7 +27,7 @@ import yaml
 
 from vastray.render.imageio import read_exr
 
-from scenes import reap
+from scenes import free_port, reap
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = REPO / "docker" / "docker-compose.yml"
@@ -194,16 +193,11 @@ def test_the_compose_cluster_renders_the_single_process_image(engine, scene, tmp
 
 # ----------------------------------------------------- node log prefixes, without an engine
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def test_hand_started_nodes_log_their_rank_once_assigned(scene, tmp_path):
     vastray = [sys.executable, "-m", "vastray.cli"]
     assert run([*vastray, "keys", "-o", tmp_path / "keys", "--node", "node"]).returncode == 0
-    port = _free_port()
+    port = free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(2)]
     nodes = []
     for log in logs:  # as compose starts them: no --rank, one shared key folder

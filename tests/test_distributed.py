@@ -23,7 +23,7 @@ from vastray.scene.errors import InputError
 from vastray.transport.keys import load_coordinator_keys
 from vastray.transport.tree import children, parent
 
-from scenes import POINT_AND_SKY_TOML, allreduce_over_sockets, bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, allreduce_over_sockets, bumpy_scene, free_port, settings, write_store
 
 SCENE_TOML = POINT_AND_SKY_TOML
 
@@ -169,14 +169,6 @@ def _start_external_node(coordinator: str, keys: Path | None, log: Path,
         return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_external_nodes_join_with_curve_keys(scene, tmp_path):
     # The multi-host path (docker compose, SSH): nodes started separately find the
     # coordinator, get ranks assigned, and all traffic is CURVE-encrypted and authenticated.
@@ -188,7 +180,7 @@ def test_external_nodes_join_with_curve_keys(scene, tmp_path):
         (mine / "nodes").mkdir(parents=True)
         shutil.copy(tmp_path / "keys" / "coordinator.pub", mine)
         shutil.copy(tmp_path / "keys" / "nodes" / f"n{i}.key", mine / "nodes")
-    port = _free_port()
+    port = free_port()
     nodes = [_start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / f"host{i}",
                                   tmp_path / f"n{i}.log", f"n{i}") for i in range(3)]
     try:
@@ -208,7 +200,7 @@ def test_node_without_the_key_is_not_admitted(scene, tmp_path):
     store, toml = scene
     main(["keys", "-o", str(tmp_path / "keys"), "--node", "n0"])
     main(["keys", "-o", str(tmp_path / "other"), "--node", "n0"])
-    port = _free_port()
+    port = free_port()
     intruder = _start_external_node(f"tcp://127.0.0.1:{port}", tmp_path / "other",
                                     tmp_path / "intruder.log")
     try:

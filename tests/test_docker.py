@@ -11,7 +11,6 @@ import json
 import os
 import re
 import shutil
-import socket
 import stat
 import subprocess
 import sys
@@ -25,6 +24,8 @@ from dockerignore import DockerIgnore, build_context, read_patterns
 
 from vastray.actors.node import build_parser as build_node_parser
 from vastray.cli import build_parser
+
+from scenes import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 DOCKER = REPO / "docker"
@@ -424,12 +425,6 @@ def test_started_as_uid_1000_it_runs_vastray_where_it_may_write(volumes):
     assert owner(keys / "coordinator.key") == (IMAGE_UID, IMAGE_UID)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @needs_root
 @pytest.mark.slow
 def test_the_compose_cluster_renders_through_the_entrypoint_on_root_owned_volumes(volumes):
@@ -442,7 +437,7 @@ def test_the_compose_cluster_renders_through_the_entrypoint_on_root_owned_volume
                            "--resolution", "16", "--grid", "2x1x1"], capture_output=True, text=True,
                           env={k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"})
     assert made.returncode == 0, made.stderr  # root-owned, as a root host user leaves it
-    svc, port = services({"NODES": "1"}), _free_port()
+    svc, port = services({"NODES": "1"}), free_port()
 
     def command(name: str) -> list[str]:
         args = [a.replace("/data", str(data)).replace("/keys", str(keys))

@@ -18,7 +18,7 @@ import pytest
 from vastray.cli import main
 from vastray.render.imageio import read_exr
 
-from scenes import bumpy_scene, write_store
+from scenes import bumpy_scene, free_port, write_store
 
 SMALL = ["--width", "24", "--height", "18", "--spp", "2"]
 LOCAL_SSH = "#!/bin/sh\n# stand-in for `ssh HOST CMD`: drop HOST, run CMD here\nshift\nexec sh -c \"$1\"\n"
@@ -79,14 +79,6 @@ def test_bundles_follow_a_replaced_coordinator_key_and_are_made_for_an_older_fol
         assert _values(keys / "bundles" / name / "coordinator.pub")["public"] == new
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _node(port: int, keys: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
                              f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys", str(keys),
@@ -107,7 +99,7 @@ def test_a_revoked_host_holding_only_its_bundle_cannot_join(store, tmp_path):
     for name in ("n1", "n2"):  # each host is given its own bundle, and nothing else
         shutil.copytree(keys / "bundles" / name, tmp_path / f"host-{name}" / "vastray-keys")
     (keys / "public" / "n2.key").unlink()  # n2 is revoked
-    port, out = _free_port(), tmp_path / "x.exr"
+    port, out = free_port(), tmp_path / "x.exr"
     started = []
     coordinator = subprocess.Popen(
         [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", str(out), *SMALL,

@@ -28,7 +28,7 @@ from vastray.schedule.paths import RADIANCE_FIELDS
 from vastray.transport.codec import FRAME_LIMIT, PEER_FRAME_LIMIT, encode
 from vastray.transport.join_secret import read_join_secret
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, free_port, member_actors, settings, write_store
 
 
 def _rays(n: int, domain: int, rank: int) -> list:
@@ -123,19 +123,11 @@ def scene(tmp_path_factory):
     return store, root / "scene.toml"
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_without_keys_a_hello_without_the_join_secret_never_gets_the_job(scene):
     # The probe's first attack: on loopback, without keys, a process sent a hello with an
     # empty token and received the job 0.05 s later. Now its handshake fails: no job.
     store, toml = scene
-    port = _free_port()
+    port = free_port()
     outcome = {}
 
     def run():

@@ -11,7 +11,6 @@ import asyncio
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -30,7 +29,7 @@ from vastray.render.driver import render
 from vastray.render.imageio import read_exr
 from vastray.render.scene_config import load_scene_config
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, free_port, member_actors, settings, write_store
 
 
 @pytest.fixture(scope="module")
@@ -120,12 +119,6 @@ def _kill_rank_2_once_joined(nodes: list[subprocess.Popen], logs: list[Path], hi
         time.sleep(0.05)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _reap(nodes: list[subprocess.Popen]) -> None:
     for node in nodes:
         try:
@@ -145,7 +138,7 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
     slow_drop = protocol.COORDINATOR_SILENCE_S + 1.0 if slow else 0.0
     store, toml = scene
     st = settings(width=32, height=24, spp=128, integrator="pt")
-    port = _free_port()
+    port = free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
     nodes = _start_nodes(port, logs, slow_drop)
     hit: list[int] = []
@@ -180,7 +173,7 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
     # survive_node_loss=False: no regroup is called; the run fails naming the node, and the
     # others, hearing nothing more from the coordinator, exit on their own.
     store, toml = scene
-    port = _free_port()
+    port = free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
     nodes = _start_nodes(port, logs)
     hit: list[int] = []
@@ -208,7 +201,7 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
 def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
     # As a user runs it, without --quiet: `vastray render --listen` and three `vastray node`.
     store, toml = scene
-    port = _free_port()
+    port = free_port()
     logs = [tmp_path / f"n{i}.log" for i in range(3)]
     common = ["--scene", str(toml), "--width", "32", "--height", "24", "--spp", "128",
               "--integrator", "pt", "--bounces", "2", "--shadow-samples", "4", "--seed", "7"]

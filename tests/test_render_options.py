@@ -26,7 +26,7 @@ from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_mem
 from vastray.render.imageio import read_image
 from vastray.scene.simplify import build_simplified
 
-from scenes import bumpy_scene, write_store
+from scenes import bumpy_scene, free_port, write_store
 
 #: One point light: the memory estimate's light count is then known (--memory-limit's check).
 SCENE_TOML = """\
@@ -125,14 +125,6 @@ def tiny_store(tmp_path_factory):
 @pytest.fixture
 def renders(tiny_store, tmp_path, capsys):
     return Renders(tiny_store, tmp_path, capsys)
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 # -- the checks: one per option; each asserts the option's effect or its refusal -------------
@@ -436,7 +428,7 @@ def check_nodes(r: Renders):
 
 def check_node_timeout(r: Renders):
     r.refused("--node-timeout", "5", naming="--node-timeout")
-    run = r("--nodes", "1", "--listen", f"127.0.0.1:{_free_port()}", "--node-timeout", "1")
+    run = r("--nodes", "1", "--listen", f"127.0.0.1:{free_port()}", "--node-timeout", "1")
     assert run.code == 3 and "within 1 s" in run.err, run.err  # nobody came: 1 s, not 120
 
 
@@ -462,7 +454,7 @@ def check_log_dir(r: Renders):
 
 def check_listen(r: Renders):
     r.refused("--listen", "127.0.0.1:0", naming="--listen")
-    port = _free_port()
+    port = free_port()
     run = r("--nodes", "1", "--listen", f"127.0.0.1:{port}", "--node-timeout", "1")
     assert run.code == 3 and f"tcp://127.0.0.1:{port}" in run.err, run.err  # waited there
 

@@ -9,7 +9,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -21,7 +20,7 @@ import pytest
 
 from vastray.render.imageio import read_exr
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, free_port, write_store
 
 VASTRAY = [sys.executable, "-m", "vastray.cli"]
 SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2"]
@@ -33,12 +32,6 @@ def store(tmp_path_factory):
                        grid=(2, 1, 1))
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def _reap(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         proc.kill()
@@ -48,7 +41,7 @@ def _reap(proc: subprocess.Popen) -> None:
 @pytest.mark.parametrize("flags", [["-v"], ["-vv"], ["--verbose", "-v"]])
 def test_a_verbose_node_joins_and_renders(store, tmp_path, flags):
     # `vastray -v node --coordinator ...` was refused ('unrecognized arguments')
-    port = _free_port()
+    port = free_port()
     coordinator = subprocess.Popen(
         [*VASTRAY, "render", str(store.path), "-o", "x.exr", *SMALL, "--nodes", "1",
          "--listen", f"127.0.0.1:{port}", "--node-timeout", "60"], cwd=tmp_path,
@@ -71,7 +64,6 @@ def test_node_verbosity_after_node_is_accepted_too(tmp_path):
     out = subprocess.run([*VASTRAY, "node", "-v", "--help"], capture_output=True, text=True,
                          timeout=60, cwd=tmp_path)
     assert out.returncode == 0 and "--verbose" in out.stdout, out.stderr
-
 
 
 @pytest.fixture(scope="module")

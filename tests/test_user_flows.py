@@ -22,7 +22,7 @@ from vastray.scene.errors import InputError
 from vastray.scene.store import is_store
 from vastray.transport.keys import COORDINATOR_KEY
 
-from scenes import bumpy_scene, child_pids, write_store
+from scenes import bumpy_scene, child_pids, free_port, write_store
 
 SMALL = ["--width", "32", "--height", "24", "--spp", "2", "--shadow-samples", "2"]
 
@@ -221,7 +221,7 @@ def test_a_stopped_coordinator_leaves_no_node_behind(store, tmp_path, sig, repea
 
 def test_a_remote_node_exits_when_its_coordinator_goes_silent(store, tmp_path):
     # A node started elsewhere (no parent-death signal) notices the heartbeat stop.
-    port = _free_port()
+    port = free_port()
     coordinator = subprocess.Popen(
         [sys.executable, "-m", "vastray.cli", "render", str(store.path), "-o", "x.exr",
          "--nodes", "1", "--listen", f"127.0.0.1:{port}", "--width", "400", "--height", "300",
@@ -247,7 +247,7 @@ def test_node_with_other_keys_hears_authentication_failed(store, tmp_path):
     # coordinator logs the failed handshake (no ZAP request is ever made for it)
     assert vastray("keys", "-o", "keys", "--node", "n", cwd=tmp_path).returncode == 0
     assert vastray("keys", "-o", "other", "--node", "n", cwd=tmp_path).returncode == 0
-    port = _free_port()
+    port = free_port()
     node = subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
                              f"tcp://127.0.0.1:{port}", "--timeout", "30", "--keys",
                              str(tmp_path / "other"), "--key-name", "n"],
@@ -271,14 +271,6 @@ def _reap(proc: subprocess.Popen) -> None:
     proc.wait()
     if proc.stderr is not None and not proc.stderr.closed:
         proc.stderr.close()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_compare_of_identical_images_says_inf(store, tmp_path):
@@ -312,7 +304,7 @@ def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged
                                                                                  tmp_path):
     assert vastray("keys", "-o", "keys", "--node", "alpha", "--node", "beta",
                    cwd=tmp_path).returncode == 0
-    port = _free_port()
+    port = free_port()
 
     def node(*key_name):
         return subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",

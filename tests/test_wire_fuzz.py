@@ -35,7 +35,7 @@ from vastray.render.scene_config import load_scene_config
 from vastray.transport.codec import encode
 from vastray.transport.join_secret import read_join_secret
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, member_actors, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, free_port, member_actors, write_store
 from scenes import settings as render_settings
 
 #: Messages per hypothesis example, and examples: 10,000 messages in all.
@@ -121,7 +121,7 @@ def flooded_render(tmp_path_factory, flood):
     store = write_store(root / "s", bumpy_scene(), kd=8)
     toml = root / "scene.toml"
     toml.write_text(POINT_AND_SKY_TOML)
-    port = _free_port()
+    port = free_port()
     logs = [root / f"node{i}.log" for i in range(2)]
     nodes = []
     for log in logs:
@@ -244,11 +244,3 @@ async def test_every_message_over_a_peers_connection_meets_the_checks(flood):
         assert "internal" not in counts, counts
         # foreign tokens are strangers; behind the pair's token the schemas refuse
         assert counts.get("stranger", 0) > len(flood) and counts.get("malformed", 0) > 0, counts
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
