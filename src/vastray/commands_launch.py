@@ -8,7 +8,7 @@ from pathlib import Path
 
 from vastray.commands_render import add_render_arguments
 from vastray.execute import run
-from vastray.request import DEFAULT_NODE_TIMEOUT_S, RenderRequest, _positive
+from vastray.request import DEFAULT_NODE_TIMEOUT_S, RenderRequest, positive_int
 from vastray.scene.errors import InputError
 from vastray.transport.keys import (
     load_node_keys,
@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         help="one node per line: HOST [python=PATH] [slots=N]")
     launch.add_argument("--advertise", help="address the hosts reach this machine at "
                                             "(default: its fully qualified host name)")
-    launch.add_argument("--port", type=_positive, help="coordinator port (default: a free one)")
+    launch.add_argument("--port", type=positive_int, help="coordinator port (default: a free one)")
     launch.add_argument("--ssh", default="ssh -o BatchMode=yes -tt",
                         help="command that runs a command on a host (default: %(default)s)")
     launch.add_argument("--node-keys", metavar="PATH",

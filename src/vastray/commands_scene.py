@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vastray.request import positive_int
 from vastray.scene import meshops
 from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
@@ -102,16 +103,6 @@ def parse_grid(text: str) -> tuple[int, int, int]:
     return dims
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
 def _ratio(text: str) -> float:
     try:
         return check_ratio(float(text))
@@ -169,7 +160,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     how = p.add_mutually_exclusive_group()
     how.add_argument("--grid", type=parse_grid, metavar="AxBxC",
                      help="uniform grid of domains (default: 2x2x2)")
-    how.add_argument("--domains", type=_positive, metavar="N",
+    how.add_argument("--domains", type=positive_int, metavar="N",
                      help="number of domains of a balanced k-d split")
     p.add_argument("--split", choices=("grid", "kd"),
                    help="grid (default) or kd; --domains implies kd")
@@ -180,7 +171,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--color-by", metavar="NAME",
                    help="VTK XML grids: the array sampled on the isosurface as its colouring "
                         "scalar (default: none)")
-    p.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
+    p.add_argument("--brick", type=positive_int, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"marching-cubes brick edge in cells (default {DEFAULT_BRICK})")
     _add_simplify_option(p)
     _add_store_output_options(p)
@@ -193,13 +184,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "whole volume.", epilog=GENERATE_EPILOG, formatter_class=fmt)
     g.add_argument("scene", choices=sorted(SCENES))
     g.add_argument("-o", "--output", required=True, metavar="STORE", help="STORE folder to write")
-    g.add_argument("--resolution", type=_positive, required=True, metavar="N",
+    g.add_argument("--resolution", type=positive_int, required=True, metavar="N",
                    help="voxels per axis of the unit cube (64: ~tens of thousands of "
                         "triangles; 512: millions)")
     g.add_argument("--grid", type=parse_grid, default=DEFAULT_GRID, metavar="AxBxC",
                    help="domain grid (default 2x2x2)")
     g.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    g.add_argument("--brick", type=_positive, default=DEFAULT_BRICK, metavar="CELLS",
+    g.add_argument("--brick", type=positive_int, default=DEFAULT_BRICK, metavar="CELLS",
                    help=f"brick edge in cells (default {DEFAULT_BRICK})")
     _add_simplify_option(g)
     _add_store_output_options(g)

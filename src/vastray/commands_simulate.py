@@ -33,7 +33,7 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
         STORE_DEFAULTS,
         _cache_size,
         _non_negative,
-        _positive,
+        positive_int,
     )
     from vastray.schedule.registry import SIMULATE_CHOICES as SIM_SCHEDULERS
 
@@ -60,19 +60,19 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
     s.add_argument("--scene", help="SCENE.toml with camera, lights and materials")
     s.add_argument("--integrator", choices=["ao", "pt"], default="pt",
                    help="ambient occlusion or path tracing (default: pt)")
-    for name, kind in (("width", _positive), ("height", _positive), ("spp", _positive),
+    for name, kind in (("width", positive_int), ("height", positive_int), ("spp", positive_int),
                        ("bounces", _non_negative), ("shadow-samples", _non_negative)):
         key = name.replace("-", "_")
         s.add_argument(f"--{name}", type=kind,
                        help=f"as `vastray render` (default: {STORE_DEFAULTS[key]}; "
                             f"{BUILTIN_DEFAULTS[key]} for the built-in scene)")
-    s.add_argument("--frames", type=_positive, metavar="N",
+    s.add_argument("--frames", type=positive_int, metavar="N",
                    help="an animation of N frames (the scene's camera keys or orbit)")
     s.add_argument("--cache", type=_cache_size, metavar="N|P%",
                    help="most domains in each node's memory (default: the scheduler's)")
-    s.add_argument("--max-samples-in-flight", type=_positive, metavar="N",
+    s.add_argument("--max-samples-in-flight", type=positive_int, metavar="N",
                    help="paths per tile (default: 65536, as the nodes')")
-    s.add_argument("--max-pass-spp", type=_positive, metavar="N",
+    s.add_argument("--max-pass-spp", type=positive_int, metavar="N",
                    help="render in sample-major passes of at most N spp, as `vastray render` "
                         "(default: one pass)")
     s.add_argument("-o", "--output", metavar="IMAGE",

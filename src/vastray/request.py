@@ -58,7 +58,8 @@ def _size(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def _positive(text: str) -> int:
+def positive_int(text: str) -> int:
+    """An option's whole number of at least 1 (argparse type: the refusal says which it is not)."""
     value = _integer(text)
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
@@ -66,7 +67,7 @@ def _positive(text: str) -> int:
 
 
 def _portal_resolution(text: str) -> int:
-    value = _positive(text)
+    value = positive_int(text)
     if value > portals.MAX_RESOLUTION:
         raise argparse.ArgumentTypeError(f"at most {portals.MAX_RESOLUTION} (the paper's "
                                          f"largest), got {value}")
@@ -80,7 +81,7 @@ def _cache_size(text: str) -> int | str:
         if not 0 < value <= 100:
             raise argparse.ArgumentTypeError(f"percentage must be in (0, 100], got {text}")
         return text
-    return _positive(text)
+    return positive_int(text)
 
 
 def resolve_cache(cache: int | str | None, n_domains: int) -> int | None:
@@ -163,20 +164,20 @@ class RenderRequest:
     scene: str | None = _option()
     # the image
     integrator: str = _option("pt", choices=("ao", "pt"))
-    spp: int | None = _option(type=_positive)
+    spp: int | None = _option(type=positive_int)
     bounces: int | None = _option(type=_non_negative)
     shadow_samples: int | None = _option(type=_non_negative)
     ao_distance: float | None = _option(type=_positive_float)
-    width: int | None = _option(type=_positive)
-    height: int | None = _option(type=_positive)
+    width: int | None = _option(type=positive_int)
+    height: int | None = _option(type=positive_int)
     seed: int = _option(0, type=_non_negative)
     # how it is run
     cache: int | str | None = _option(type=_cache_size)
     scheduler: str = _option("auto", choices=RENDER_CHOICES)
     memory_limit: int | None = _option(type=_size)
-    max_samples_in_flight: int | None = _option(type=_positive)
+    max_samples_in_flight: int | None = _option(type=positive_int)
     history_depth: int | None = _option(type=_non_negative)
-    nodes: int | None = _option(type=_positive)
+    nodes: int | None = _option(type=positive_int)
     node_timeout: float | None = _option(type=_positive_float)
     log_dir: str | None = _option()
     heartbeat_timeout: float | None = _option(type=_positive_float)
@@ -190,20 +191,20 @@ class RenderRequest:
     simplified: str | None = _option(nargs="?", const="portal",
                                      choices=("portal", "depth>0", "depth>1", "depth>2",
                                               "none"))
-    portal_interval: int | None = _option(type=_positive)
-    portal_memory: int | None = _option(type=_positive)
+    portal_interval: int | None = _option(type=positive_int)
+    portal_memory: int | None = _option(type=positive_int)
     portal_resolution: int | None = _option(type=_portal_resolution)
     portal_threshold: float | None = _option(type=float)
     portal_accuracy: bool = _option(False, switch=True)
     load_bandwidth: float | list[float] | None = _option(type=_bandwidths)
     cold_reads: bool = _option(False, switch=True)
     eviction: str = _option("lru", choices=("lru", "demand"))
-    batch_size: int | None = _option(type=_positive)
-    threads: int | None = _option(type=_positive)
+    batch_size: int | None = _option(type=positive_int)
+    threads: int | None = _option(type=positive_int)
     # outputs
     report: str | None = _option()
     reference: str | np.ndarray | None = _option()
-    frames: int | None = _option(type=_positive)
+    frames: int | None = _option(type=positive_int)
     first_frame: int | None = _option(type=_non_negative)
     exposure: float | None = _option(type=_positive_float)
     colormap: str | None = _option()
@@ -213,7 +214,7 @@ class RenderRequest:
     # progressive passes, stopping rules and checkpoints
     time_limit: float | None = _option(type=_positive_float)
     target_error: float | None = _option(type=_positive_float)
-    max_pass_spp: int | None = _option(type=_positive)
+    max_pass_spp: int | None = _option(type=positive_int)
     checkpoint_every: float | None = _option(type=_positive_float)
     checkpoint: str | None = _option()
     resume: str | None = _option()
