@@ -30,6 +30,7 @@ from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.node_failure import NodeFailure, NodeLost
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.results import render_result
+from vastray.processes import stoppable
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.integrators import RenderSettings
 from vastray.render.progress import RenderBar
@@ -229,14 +230,14 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
                           leave=False) as bar:
                 passes = Passes(units, progression, paced, image=frames is None)
-                film, reports = asyncio.run(coordinate(
+                film, reports = asyncio.run(stoppable(coordinate(
                     dict(job, frames=remaining, units=units, paced=paced,
                          passes_apart=apart), size, settings,
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
                     regroup=survive_node_loss and size > 1, bound=bound,
                     spare_exits=spare_exits, passes=passes, secret=secret, logs=logs,
-                    attempt=attempt))
+                    attempt=attempt)))
             break
         except NodeLost as lost:
             if not survive_node_loss or size == 1:

@@ -14,7 +14,7 @@ from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.node_state import NodeState
 from vastray.actors.render_setup import RenderSetup
 from vastray.actors.sort_first import PassSpans, SortFirstTiles, tile_cache_capacity
-from vastray.processes import disk_read_bytes, peak_rss_bytes
+from vastray.processes import disk_read_bytes, peak_rss_bytes, stoppable
 from vastray.render.driver import RenderResult, run_passes
 from vastray.render.integrators import RenderSettings
 from vastray.render.progress import RenderBar
@@ -92,9 +92,11 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
             tiles = SortFirstTiles(options, setup, loop, share, ablation,
                                    on_tile=_tile_reports(bar, on_tile), counters=counters)
             if fused:
-                film = runner.run(tiles.render_passes(PassSpans(progression, settings)))
+                film = runner.run(stoppable(tiles.render_passes(PassSpans(progression,
+                                                                          settings))))
             else:
-                film = run_passes(lambda window, _: runner.run(tiles.render_pass(window)),
+                film = run_passes(lambda window, _: runner.run(stoppable(
+                    tiles.render_pass(window))),
                                   settings, progression, bar)
     finally:
         if own:

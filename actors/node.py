@@ -29,7 +29,7 @@ from vastray.actors.management import ManagementActor
 from vastray.actors.node_state import NodeState
 from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
 from vastray.actors.tree_reduce import TreeReduceActor
-from vastray.processes import Terminated, peak_rss_bytes
+from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
@@ -577,8 +577,8 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
             raise InputError(None, f"joining {coordinator} needs --keys DIR: without keys a "
                                    "node joins only a coordinator of its user on its machine "
                                    "(on loopback)")
-        asyncio.run(run_node(coordinator, -1 if rank is None else rank, args.timeout, args.bind,
-                             args.advertise, credentials))
+        asyncio.run(stoppable(run_node(coordinator, -1 if rank is None else rank,
+                                       args.timeout, args.bind, args.advertise, credentials)))
     except InputError as exc:
         print(f"node {RankFormatter.rank}: error: {exc}", file=sys.stderr)
         return 2

@@ -39,3 +39,46 @@ def test_a_node_waiting_for_its_coordinator_stops_at_once_in_one_line(tmp_path, 
     assert time.monotonic() - stopped < 30  # not the 600 s timeout
     assert node.returncode == status, rest
     assert rest.strip() == f"node ?: {said}", rest  # one line, no traceback
+
+
+def test_sigterm_inside_an_event_loop_cancels_it_cleanly_then_raises_terminated():
+    # A SIGTERM raised by the handler inside a running loop can land in the loop's own
+    # callbacks and leave a future never completed (a coordinator stopped mid-animation hung
+    # in Runner.close); under `stoppable` it cancels the main task instead, whose clean-up
+    # still awaits (here: an executor job), and Terminated comes out after it.
+    import asyncio
+
+    from vastray.processes import Terminated, raise_terminated, stoppable
+
+    cleaned = []
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.2, os.kill, os.getpid(), signal.SIGTERM)
+        try:
+            await asyncio.sleep(60)
+        finally:
+            cleaned.append(await loop.run_in_executor(None, sum, [1, 2]))
+
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        started = time.monotonic()
+        with pytest.raises(Terminated):
+            asyncio.run(stoppable(main()))
+        assert time.monotonic() - started < 30
+        assert cleaned == [3]  # the clean-up ran whole, its await included
+        # a second SIGTERM (`timeout` signals the group too) is ignored, not fatal
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_without_the_cli_handler_stoppable_only_awaits():
+    import asyncio
+
+    from vastray.processes import stoppable
+
+    async def main():
+        return 7
+
+    assert asyncio.run(stoppable(main())) == 7

@@ -5,8 +5,10 @@ this process's peak resident memory and bytes read from storage; and how a SIGTE
 
 from __future__ import annotations
 
+import asyncio
 import os
 import signal
+import threading
 
 
 class Terminated(KeyboardInterrupt):
@@ -19,6 +21,41 @@ def raise_terminated(signum, frame) -> None:
     # arrives twice: a second Terminated would break into the clean-up the first started
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise Terminated()
+
+
+async def stoppable(main):
+    """Await ``main`` so that a SIGTERM arriving meanwhile cancels it, as ``asyncio.Runner``
+    does for Ctrl-C, and raise ``Terminated`` once its clean-up has run.
+
+    Raised by ``raise_terminated`` while an event loop runs, ``Terminated`` can land inside
+    one of the loop's own callbacks, such as the one that hands a finished executor job's
+    result to its future; that future then never completes, and the loop's shutdown waits for
+    it forever (seen: a coordinator stopped mid-animation hung in ``Runner.close``). Outside
+    the main thread, or where the CLI's SIGTERM handler is not installed, ``main`` is simply
+    awaited.
+    """
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGTERM) is not raise_terminated):
+        return await main
+    loop, task = asyncio.get_running_loop(), asyncio.current_task()
+    stopped = False
+
+    def stop() -> None:
+        nonlocal stopped
+        if not stopped:  # `timeout` signals twice: the second must not cut the clean-up short
+            stopped = True
+            task.cancel()
+
+    loop.add_signal_handler(signal.SIGTERM, stop)
+    try:
+        return await main
+    except asyncio.CancelledError:
+        if stopped:
+            raise Terminated() from None
+        raise
+    finally:
+        loop.remove_signal_handler(signal.SIGTERM)  # (which leaves SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN if stopped else raise_terminated)
 
 
 def running(pid: int) -> bool:
