@@ -170,7 +170,12 @@ def test_an_interrupted_animation_keeps_its_finished_frames_and_names_them(
             if "(1/40)" in line:
                 proc.send_signal(sig)
                 break
-        err = "".join(said_before) + proc.stderr.read()
+        rest: list[str] = []  # read with a deadline: a render hung after the signal fails
+        reader = threading.Thread(target=lambda: rest.append(proc.stderr.read()), daemon=True)
+        reader.start()
+        reader.join(300)
+        err = "".join(said_before) + "".join(rest)
+        assert not reader.is_alive(), f"still running 300 s after the signal: {err}"
         assert proc.wait(timeout=300) == status, err
     finally:
         _reap(proc)
