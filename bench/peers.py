@@ -50,7 +50,6 @@ at a ``libLLVM-*.so``.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import subprocess
 import sys
@@ -60,6 +59,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_scenes import CACHE, cached_rm
+from hogs import busy_processes
 
 from vastray.render.camera import Camera
 from vastray.render.driver import render
@@ -183,27 +183,6 @@ def try_llvm() -> str | None:
         return None
     lines = [ln for ln in (done.stderr or "").splitlines() if ln and not ln.startswith(" ")]
     return f"exit status {done.returncode}: {(lines or ['?'])[-1][:300]}"
-
-
-#: A busy process: spins until killed or until its parent (this script) is gone.
-SPINNER = ("import os\nparent = os.getppid()\nwhile os.getppid() == parent:\n"
-           "    for _ in range(1000000):\n        pass\n")
-
-
-@contextlib.contextmanager
-def busy_processes(count: int):
-    """``count`` CPU spinners beside the block's renders, killed when it ends (Ctrl-C too)."""
-    hogs = []
-    try:
-        for _ in range(count):
-            hogs.append(subprocess.Popen([sys.executable, "-c", SPINNER]))
-        time.sleep(0.5)  # every spinner started and spinning
-        yield hogs
-    finally:
-        for hog in hogs:
-            hog.kill()
-        for hog in hogs:
-            hog.wait()
 
 
 def interleaved(store, camera, light_pos, intensity, spp, threads, peer, repeat, seed0):

@@ -47,7 +47,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from stress import NATIVE, cpu_hog  # noqa: E402
+from hogs import cpu_hog  # noqa: E402
+from stress import NATIVE  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_MIRROR = ROOT.parent / "shared" / "data" / "meshes"

@@ -26,7 +26,6 @@ exits 1 unless the first two are 0 and every run finished.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 import os
 import re
@@ -39,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from hogs import cpu_hog
 
 from vastray.render.imageio import read_image
 
@@ -152,21 +152,6 @@ def run_one(k: int, options: list[str], work: Path, timeout: float) -> Outcome:
     if code != 0 or outcome.native or outcome.stalled:
         outcome.detail += " | ".join(line for line in text.strip().splitlines()[-6:])
     return outcome
-
-
-@contextlib.contextmanager
-def cpu_hog(per_core: int):
-    """``per_core`` busy processes per core, for the duration of the block."""
-    count = per_core * (os.cpu_count() or 1)
-    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
-            for _ in range(count)]
-    try:
-        yield count
-    finally:
-        for hog in hogs:
-            hog.kill()
-        for hog in hogs:
-            hog.wait()
 
 
 def prepare(work: Path, timeout: float) -> None:
