@@ -484,3 +484,38 @@ def test_split_queries_from_many_threads_never_meet_a_shut_pool():
         thread.join(timeout=120)
     assert not errors, errors
     assert len(rows_written) == 31 + 3 * 60 and all(rows_written)
+
+
+def test_the_triangle_test_is_watertight_unless_a_measurement_asks_for_the_fast_one(
+        monkeypatch):
+    """``VASTRAY_TRIANGLE_TEST=fast`` (bench/peers.py's same-work ratio against Mitsuba 3,
+    which builds its scenes with flags 0) drops the robust flag from every scene built,
+    top-level ones included; unset or ``watertight`` keeps it; anything else is refused."""
+    from vastray.scene.embree.scenes import FILTER_FLAG, TRIANGLE_TEST_ENV
+
+    api = library.binding()
+    if api is None:
+        pytest.skip("the compiled Embree binding is unavailable")
+    box = trimesh.creation.box()
+    vertices = np.asarray(box.vertices, np.float32)
+    indices = np.asarray(box.faces, np.uint32)
+
+    def flags_built() -> tuple[int, int]:
+        scene = Scene(vertices, indices)
+        top = TopScene([scene], [0])
+        try:
+            return api.rtcGetSceneFlags(scene.handle), api.rtcGetSceneFlags(top.handle)
+        finally:
+            top.close()
+            scene.close()
+
+    robust = library.RTC_SCENE_FLAG_ROBUST | FILTER_FLAG
+    monkeypatch.delenv(TRIANGLE_TEST_ENV, raising=False)
+    assert flags_built() == (robust, robust)
+    monkeypatch.setenv(TRIANGLE_TEST_ENV, "watertight")
+    assert flags_built() == (robust, robust)
+    monkeypatch.setenv(TRIANGLE_TEST_ENV, "fast")
+    assert flags_built() == (FILTER_FLAG, FILTER_FLAG)
+    monkeypatch.setenv(TRIANGLE_TEST_ENV, "quick")
+    with pytest.raises(ValueError, match="VASTRAY_TRIANGLE_TEST='quick'.*'fast'"):
+        Scene(vertices, indices)

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import mmap
+import os
 import threading
 
 import numpy as np
@@ -61,6 +62,7 @@ from vastray.scene.embree.library import (
     RTC_GEOMETRY_TYPE_INSTANCE,
     RTC_GEOMETRY_TYPE_TRIANGLE,
     RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS,
+    RTC_SCENE_FLAG_NONE,
     RTC_SCENE_FLAG_ROBUST,
     Api,
     binding,
@@ -68,10 +70,27 @@ from vastray.scene.embree.library import (
 
 #: Scene flags of every scene built here (see the module docstring).
 SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
+#: ``VASTRAY_TRIANGLE_TEST=fast`` builds scenes with Embree's fast triangle test (flags 0,
+#: ``RTC_SCENE_FLAG_NONE``, as Mitsuba 3 builds its scenes) instead of the watertight one. For
+#: measurements only (``bench/peers.py``'s same-work ratio): rays through shared edges can
+#: slip through the surface.
+TRIANGLE_TEST_ENV = "VASTRAY_TRIANGLE_TEST"
 #: Added to every scene's flags: the tie filter is passed in the query arguments.
 FILTER_FLAG = RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
 
 _PAGE = mmap.PAGESIZE
+
+
+def scene_flags() -> int:
+    """The flags scenes are built with: ``SCENE_FLAGS`` (watertight), or none where
+    ``VASTRAY_TRIANGLE_TEST`` says ``fast`` (measurements); any other value is refused."""
+    test = os.environ.get(TRIANGLE_TEST_ENV, "").strip().lower()
+    if test in ("", "watertight"):
+        return SCENE_FLAGS
+    if test == "fast":
+        return RTC_SCENE_FLAG_NONE
+    raise ValueError(f"{TRIANGLE_TEST_ENV}={test!r}: expected 'watertight' (the default) or "
+                     f"'fast' (Embree's non-watertight test, for measurements)")
 
 
 def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
@@ -188,16 +207,17 @@ class Scene(_SceneHandle):
 
     ``vertices`` (V, 3) float32 and ``indices`` (T, 3) uint32 are kept referenced as long as
     the scene lives: Embree reads them in place. ``close()`` (or garbage collection) releases
-    the scene.
+    the scene. ``flags``: Embree's scene flags, by default ``scene_flags()`` (watertight).
     """
 
-    def __init__(self, vertices: np.ndarray, indices: np.ndarray, flags: int = SCENE_FLAGS,
+    def __init__(self, vertices: np.ndarray, indices: np.ndarray, flags: int | None = None,
                  api: Api | None = None, build_quality: int | None = None):
         api = api or binding()
         if api is None:
             raise RuntimeError("the compiled Embree binding is unavailable")
         self.vertices = _padded(vertices, np.float32, 3)
         self.indices = _padded(indices, np.uint32, 3) if len(indices) else None
+        flags = scene_flags() if flags is None else flags
         self.flags = flags
         self._open(api, flags)
         self.geom_id = None
@@ -254,7 +274,7 @@ class TopScene(_SceneHandle):
         self.ids = np.asarray(ids, np.int64)
         if len(self.ids) != len(self.scenes):
             raise ValueError("one id per scene")
-        self._open(api, SCENE_FLAGS)
+        self._open(api, scene_flags())
         identity = np.zeros((4, 3), np.float32)  # column major 3x4: columns x, y, z, p
         identity[0, 0] = identity[1, 1] = identity[2, 2] = 1.0
         for k, scene in enumerate(self.scenes):
