@@ -8,7 +8,8 @@ runtime (one process out of core, the domain-decomposition nodes, the asynchrono
 temporal frames, the in-situ nodes) reports the same spans under the same names:
 
 - ``schedule_s`` (here): time the schedule spent deciding (``next_domain``, which for
-  spec-ooc filters the domain's queues, and ``likely_next``);
+  spec-ooc filters the domain's queues, and ``likely_next``); the simulator charges the CPU
+  time those calls take as it runs them (``decided``, ``CostModel.decision_scale``);
 - ``load_wait_s`` (the preloader's counter): time a render worker waited for a domain's load,
   what preloading did not hide;
 - ``trace_s`` (here): time spent tracing and shading the rays of activated domains, nothing
@@ -105,7 +106,9 @@ class DomainLoop:
         order has no domain left."""
         clock = self.clock
         start = clock()
+        cpu = time.thread_time()
         domain = order.next_domain()
+        await self.decided(time.thread_time() - cpu)
         chosen = clock()
         if domain is None:
             self.stats["schedule_s"] += chosen - start
@@ -114,7 +117,10 @@ class DomainLoop:
         bvh = await self.preloader.get(domain)
         loaded = clock()
         if self.preloader.enabled:
-            self.preloader.preload(order.likely_next(domain))
+            cpu = time.thread_time()
+            guess = order.likely_next(domain)
+            await self.decided(time.thread_time() - cpu)
+            self.preloader.preload(guess)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
         done = clock()
@@ -129,6 +135,11 @@ class DomainLoop:
         if ship is not None:
             await ship()
         return activation
+
+    async def decided(self, cpu_seconds: float) -> None:
+        """The schedule spent ``cpu_seconds`` of this thread's CPU deciding (``next_domain``,
+        ``likely_next``, a round's plan). Nothing to do here: real time has passed; the
+        simulator's loop charges it to the virtual node."""
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         """``order.trace(domain, bvh)``, on a worker thread with ``offload``; returns the ray

@@ -9,6 +9,8 @@ iteration.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from vastray.actors import protocol
@@ -47,7 +49,8 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
              "intersection_cache_hits": 0, "iterations": 0}
     runner = _InSitu(management, tree, rank, size, owner, bvhs, setup.geometry,
-                     setup.color_source, setup.scalar_range, stats, state.traced)
+                     setup.color_source, setup.scalar_range, stats, state.traced,
+                     state.decided)
     for index, first in enumerate(range(0, total, tile)):
         ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                            setup.ao_distance)
@@ -69,12 +72,13 @@ class _InSitu:
     takes the copies for its domains, joins the all-reductions."""
 
     def __init__(self, management, tree, rank, size, owner, bvhs, geometry, color_source,
-                 scalar_range, stats, traced):
+                 scalar_range, stats, traced, decided):
         self.management, self.tree, self.rank, self.size = management, tree, rank, size
         self.owner, self.bvhs, self.geometry = owner, bvhs, geometry
         self.color_source, self.scalar_range, self.stats = color_source, scalar_range, stats
         self.post = RayPost(management, rank, stats)
         self.traced = traced  # hears of the queries each iteration traced (``NodeState``)
+        self.decided = decided  # hears of the CPU time spent deciding (``NodeState``)
 
     async def tile(self, ctx, camera, mine: np.ndarray, tile: int) -> PathResult:
         schedule = InSituSchedule(ctx, camera, mine, self.owner, self.rank, self.bvhs,
@@ -88,8 +92,10 @@ class _InSitu:
             # All-reduce: t-buffer MIN, o-buffer OR.
             reduced = await self.tree.allreduce(
                 {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})
+            cpu = time.thread_time()
             occluded = np.unpackbits(reduced["o"], count=obuf.size).reshape(obuf.shape) > 0
             schedule.resolve(reduced["t"], occluded)
+            await self.decided(time.thread_time() - cpu)
         return schedule.result
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
@@ -102,7 +108,10 @@ class _InSitu:
         """
         incoming = {"radiance": [], "shadow": []}
         outgoing = np.zeros(self.size, np.int64)  # batches sent to each node
-        for name, copies in schedule.speculative_copies().items():
+        cpu = time.thread_time()
+        speculative = schedule.speculative_copies()
+        await self.decided(time.thread_time() - cpu)
+        for name, copies in speculative.items():
             dom = copies.domain
             if not len(dom):
                 continue

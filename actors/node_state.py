@@ -74,6 +74,11 @@ class NodeState:
         domain -> radiance queries, domain -> shadow queries. A real node has spent that
         time already; the simulator charges it."""
 
+    async def decided(self, cpu_seconds: float) -> None:
+        """Hears of CPU time spent deciding outside the domain loop (the in-situ iterations'
+        speculative copies and their resolution). Real time has passed; the simulator
+        charges it (``CostModel.decision_scale``)."""
+
     def threads(self) -> int:
         return self.pool._max_workers if self.pool is not None else 1
 

@@ -134,7 +134,9 @@ class NodeWork:
             totals = await tree.allreduce({"wanted": wanted, "holder": holder},
                                           {"wanted": "sum", "holder": "min"})
             self.stats["global_barriers"] = self.stats.get("global_barriers", 0) + 1
+            cpu = time.thread_time()
             plan = policy_of_rounds.from_totals(totals["wanted"], totals["holder"], size)
+            await self.loop.decided(time.thread_time() - cpu)
             if plan.finished:
                 return
             outgoing: dict[tuple[int, str], list] = {}

@@ -673,3 +673,15 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
         print(scheduler, errors[scheduler][0])
     # a real run shares this machine's cores with whatever else runs (os.getloadavg)
     assert all(abs(e) <= 0.25 for _, e in errors.values()), (errors, os.getloadavg())
+
+
+@pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
+def test_the_schedules_decisions_cost_the_cpu_time_they_take(store, domains, scheduler):
+    """``CostModel.decision_scale`` charges what the real schedule code takes to decide
+    (``next_domain`` and spec-ooc's filtering, ``likely_next``, the dynamic rounds' plans,
+    spec-insitu's speculative copies and their resolution) to the virtual node: with every
+    other cost 0, a render costs nothing without it and something with it."""
+    free = sim(store, domains, scheduler, 2, ZERO)
+    charged = sim(store, domains, scheduler, 2, dataclasses.replace(ZERO, decision_scale=1e3))
+    assert free.compute_seconds.sum() == 0
+    assert charged.compute_seconds[:-1].sum() > 0 and charged.seconds > 0

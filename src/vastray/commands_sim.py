@@ -50,6 +50,7 @@ COST_LABELS = {
     "warmup_s": "once per fresh process (first use)",
     "node_setup_s": "once per node of a node runtime",
     "tile_setup_s": "once per sort-first node",
+    "decision_scale": "per CPU second a schedule decides (measured as it simulates)",
 }
 
 
@@ -151,7 +152,8 @@ def costs_table(model: CostModel, path: Path, seconds: float) -> str:
                                        f"{model.cores} cores") if x)
     lines = [f"calibrated in {seconds:.1f} s on {where}:"]
     for name, label in COST_LABELS.items():
-        lines.append(f"  {name:<17} {getattr(model, name):10.3e} s  {label}")
+        unit = "x" if name == "decision_scale" else "s"  # a factor, not seconds
+        lines.append(f"  {name:<17} {getattr(model, name):10.3e} {unit}  {label}")
     lines.append(f"written to {path}")
     return "\n".join(lines)
 

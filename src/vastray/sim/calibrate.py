@@ -164,10 +164,11 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     report("warmup", 0.0, "fresh processes, one and several at a time")
     cores = usable_cores()
     warmup_s, throughput = process_costs(str(store_path), quick, cores)
+    # decisions are charged at the CPU time the real schedule code takes where it simulates
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
-        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s, cores=cores,
-        throughput=throughput)
+        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s, decision_scale=1.0,
+        cores=cores, throughput=throughput)
     report("node", 0.0, "renders on a real node")
     config, node_render = config or SceneConfig(text=""), node_settings(settings)
     repeats = 1 if quick else 3

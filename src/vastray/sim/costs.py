@@ -45,6 +45,12 @@ class CostModel:
         event loop).
     tile_setup_s : the same for a sort-first node (``image``, ``spec-ooc``), which runs the
         one-process runtime on a thread of its own.
+    decision_scale : virtual seconds charged per CPU second a schedule spends deciding
+        (``next_domain`` with spec-ooc's filtering, ``likely_next``, the dynamic schedule's
+        rounds), measured as the simulator runs the real schedule code (``time.thread_time``,
+        so another process on the cores does not inflate it): 1.0 where the simulator runs on
+        the calibrated machine (``vastray calibrate`` writes 1.0), 0 charges nothing (the
+        default, and what calibration files written before it mean).
     cores : cores of the calibrated machine: node processes share this many when the
         simulator reproduces a run on it (None: every node has a core of its own).
     throughput : the calibrated machine's aggregate throughput with 1, 2, ... busy processes,
@@ -65,6 +71,7 @@ class CostModel:
     warmup_s: float = 0.0
     node_setup_s: float = 0.0
     tile_setup_s: float = 0.0
+    decision_scale: float = 0.0
     cores: int | None = None
     throughput: tuple = ()
     machine: dict = field(default_factory=dict)

@@ -66,7 +66,8 @@ class SimManagement:
 
 class VirtualDomainLoop(DomainLoop):
     """The domain loop on the virtual clock: a domain's rays are traced for real, and the
-    activation costs ``CostModel.trace_s`` of its queries on the node's core.
+    activation costs ``CostModel.trace_s`` of its queries on the node's core; the schedule's
+    decisions cost the CPU time they take here (``decided``).
     ``node_runtime``: the loop of a node runtime (whose set-up, ``node_setup_s``, its first
     trace pays), not the one-process runtime's that the sort-first nodes run."""
 
@@ -76,6 +77,13 @@ class VirtualDomainLoop(DomainLoop):
         self.cluster, self.rank = cluster, rank
         self.clock = cluster.now
         self.node_runtime = node_runtime
+
+    async def decided(self, cpu_seconds: float) -> None:
+        """Charge the schedule's decision (the CPU time the real code took, times
+        ``CostModel.decision_scale``) to this node's core."""
+        charge = cpu_seconds * self.cluster.costs.decision_scale
+        if charge > 0:
+            await self.cluster.compute(self.rank, charge)
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         queries = order.trace(domain, bvh)
@@ -134,6 +142,11 @@ class SimNodeState(NodeState):
         await self.cluster.trace(self.rank, sum(
             costs.trace_s(radiance.get(d, 0), shadow.get(d, 0)) for d in radiance | shadow),
             node_runtime=True)
+
+    async def decided(self, cpu_seconds: float) -> None:
+        charge = cpu_seconds * self.cluster.costs.decision_scale
+        if charge > 0:
+            await self.cluster.compute(self.rank, charge)
 
     def close(self) -> None:
         """Nothing to stop: a virtual preloader has no thread."""
