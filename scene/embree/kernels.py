@@ -12,13 +12,14 @@ Closest hits use ``rtcIntersect1`` with an argument filter (``_tie_filter``) tha
 equally near hits, the lowest (instance, primitive) id: the hit of a ray does not depend on the
 order Embree meets tied candidates in, so a domain queried directly and the same domain met as
 an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
-different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``: 16-ray
-occlusion packets through a top-level scene's instances, from two threads at once, corrupted
-the heap (``bench/README.md``, session 4; its cause is not established: ``docs/DESIGN.md``,
-render workers), the pattern of issue 20's crashes. With the robust
-flag, 1-ray and 16-ray packet queries measured the same speed (1.7 M-triangle isosurface, one
+different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``. 16-ray
+packets were dropped after a heap corruption seen with them in session 4 (``bench/README.md``)
+that no later attempt reproduced, neither the packet path as committed nor a rebuild of that
+experiment (``docs/DESIGN.md``, render workers): they stay out because, with the robust flag and
+the tie filter, 1-ray and 16-ray queries measure the same speed (1.7 M-triangle isosurface, one
 thread: closest hit 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23 coherent; occlusion 1.76 vs
-1.80 incoherent, 3.70 vs 3.54 coherent), so neither choice gives up packet speed.
+1.80 incoherent, 3.70 vs 3.54 coherent; again in session 22 on ``bench/peers.py``'s recorded
+queries, ``bench/README.md#peerspy``).
 
 Everything the kernels compile in is defined here except the Embree calls and memory access
 of ``intrinsics`` (numba's cache sees changes to this file only: see there).
@@ -116,13 +117,11 @@ def occluded1(scene, org, dirs, tfar_in, out):
     """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, one ``rtcOccluded1`` per ray;
     ``out`` (n,) bool.
 
-    One ray at a time, not 16-ray packets: occlusion through a top-level scene's instances in
-    ``rtcOccluded16`` packets from two threads at once corrupted the heap (bench/README.md,
-    session 4: ``malloc(): unaligned tcache chunk detected`` within 12 renders), the pattern of
-    the crashes reported in issue 20 (in core, two render workers, the top-level scene); with
-    the robust flag 1-ray and packet occlusion measured the same speed. The ray buffer is a
-    whole RTCRayHit (96 bytes, 16-byte aligned), though Embree reads and writes only its
-    RTCRay part.
+    One ray at a time, not 16-ray packets: with the robust flag 1-ray and packet occlusion
+    measure the same speed (the heap corruption once blamed on ``rtcOccluded16`` packets from
+    two threads, bench/README.md session 4, did not reproduce: docs/DESIGN.md, render
+    workers). The ray buffer is a whole RTCRayHit (96 bytes, 16-byte aligned), though Embree
+    reads and writes only its RTCRay part.
     """
     n = org.shape[0]
     raw = np.empty(RAYHIT_WORDS + 4, np.float32)
