@@ -17,6 +17,7 @@ import OpenEXR
 from vastray.processes import running
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
+from vastray.scene.manifest import NPY_HEADERS
 
 #: Output formats by extension: what ``write_image`` writes for ``-o``.
 IMAGE_FORMATS = {
@@ -205,7 +206,8 @@ def read_image(path) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         if not path.is_file():
             raise InputError(path, "image not found")
-        arr = np.load(path, allow_pickle=False)
+        with NPY_HEADERS:
+            arr = np.load(path, allow_pickle=False)
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise InputError(path, f"expected an (H, W, 3) array, found {arr.shape}")
         return arr.astype(np.float32)

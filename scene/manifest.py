@@ -28,6 +28,7 @@ import math
 import os
 import re
 import stat
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -623,6 +624,14 @@ def read_npy_header(path: Path) -> NpyHeader:
         raise InputError(path, f"not a readable .npy file ({one_line(exc)})") from None
 
 
+#: Every ``.npy`` header is parsed under this lock (``with NPY_HEADERS:`` around ``np.load`` as
+#: well). numpy parses a header with ``ast.literal_eval``, and CPython 3.11 keeps the AST
+#: constructor's recursion depth in state shared by threads (python/cpython#106905): a render
+#: worker and the preloader parsing headers at once failed a domain load with "SystemError: AST
+#: constructor recursion depth mismatch" (CI, 2026-11-29, Python 3.11.7).
+NPY_HEADERS = threading.Lock()
+
+
 def parse_npy_header(fh) -> NpyHeader:
     """Read a ``.npy`` header from the binary file object ``fh`` (left at the data).
 
@@ -633,9 +642,11 @@ def parse_npy_header(fh) -> NpyHeader:
     """
     version = np.lib.format.read_magic(fh)
     if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+        with NPY_HEADERS:
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
     elif version == (2, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+        with NPY_HEADERS:
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
     else:
         raise ValueError(f".npy format version {version} (vastray writes 1.0)")
     if dtype.hasobject:

@@ -59,6 +59,7 @@ from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInf
     MANIFEST,
     MAX_DOMAINS,
     MAX_MANIFEST_BYTES,
+    NPY_HEADERS,
     REWRITE,
     SIMPLIFIED,
     VERSION,
@@ -330,7 +331,8 @@ def _read_array(path: Path, mmap: bool, drop_cache: bool,
         raise InputError(path, "domain file missing (store is incomplete; re-run partition)")
     try:
         if mmap:
-            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+            with NPY_HEADERS:  # (a mapped load reads only the header)
+                arr = np.load(path, mmap_mode="r", allow_pickle=False)
             return arr, None if check is None else checksum_mismatch(_mapped(path), check)
         data = _read_whole(path, drop_cache)
         return array_from_bytes(data), checksum_mismatch(data, check)

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from vastray.scene.errors import InputError
+from vastray.scene.manifest import NPY_HEADERS
 
 VOLUME_SUFFIXES = (".npy", ".raw", ".json", ".nii", ".nii.gz", ".vtk")
 
@@ -114,7 +115,8 @@ def _unit() -> tuple[np.ndarray, np.ndarray]:
 
 def _read_npy(path: Path) -> Volume:
     try:
-        data = np.load(path, mmap_mode="r", allow_pickle=False)
+        with NPY_HEADERS:
+            data = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(path, f"unreadable or truncated .npy file ({exc})") from None
     return Volume(data, *_unit(), path)

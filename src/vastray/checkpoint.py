@@ -38,6 +38,7 @@ from vastray.render.film import Film
 from vastray.render.imageio import atomic_path, remove_orphans
 from vastray.render.progressive import Progression, Snapshot
 from vastray.scene.errors import InputError
+from vastray.scene.manifest import NPY_HEADERS
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +160,7 @@ def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
     remove_orphans(path)  # temporaries of writes to this file that were killed midway
     sealed = _check_seal(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with NPY_HEADERS, np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
             arrays = {name: np.array(data[name]) for name in FILM_ARRAYS}
     except Exception as exc:  # zipfile, numpy and json raise many kinds on foreign bytes
@@ -223,7 +224,7 @@ def checkpoint_command(path: str | Path) -> list[str] | None:
     try:
         if not _check_seal(Path(path)):
             return None
-        with np.load(path, allow_pickle=False) as data:
+        with NPY_HEADERS, np.load(path, allow_pickle=False) as data:
             command = json.loads(str(data["meta"]))["identity"].get("command")
     except Exception:  # noqa: BLE001 - read_checkpoint says what is wrong, in one line
         return None
