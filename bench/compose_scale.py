@@ -45,7 +45,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from bench_scenes import CACHE, cached_rm
+from bench_scenes import cached_rm
+from real_scale import FULL, QUICK, machine_costs  # the same job and constants
 
 from vastray.actors.job_options import JobOptions
 from vastray.render.driver import shading_inputs
@@ -53,7 +54,6 @@ from vastray.render.imageio import read_exr
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.sim.cache import Domains
-from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import simulate
 
@@ -70,8 +70,6 @@ from test_compose_cluster import (  # noqa: E402
 )
 
 SCHEDULERS = ["image", "spec-ooc", "domain", "async", "dynamic", "spec-insitu", "temporal"]
-FULL = RenderSettings(width=320, height=240, spp=4, integrator="pt", bounces=1)
-QUICK = RenderSettings(width=160, height=120, spp=4, integrator="pt", bounces=1)
 CACHE_PERCENT = 25  # the compose file's --cache 25%
 #: in situ, a node keeps every domain it owns loaded: ``--cache`` is refused
 NO_CACHE = ("spec-insitu",)
@@ -200,12 +198,7 @@ def main() -> None:
         sys.exit(1)
     settings = QUICK if args.quick else FULL
     store = cached_rm(64, (4, 4, 2))
-    if args.costs:
-        costs = CostModel.load(args.costs)
-    else:
-        print(f"+ calibrate --quick on {store.path.name}", flush=True)
-        costs = calibrate(store.path, quick=True)
-        costs.save(CACHE / "costs-compose-scale.json")
+    costs = machine_costs(store, args.costs, "costs-compose-scale.json")
     shared = costs.with_cores(costs.cores)  # the containers share the cores: so do the nodes
     quota = quota_costs(costs, float(args.node_cpus))
     config = SceneConfig()

@@ -43,6 +43,17 @@ FULL = RenderSettings(width=320, height=240, spp=4, integrator="pt", bounces=1)
 QUICK = RenderSettings(width=160, height=120, spp=4, integrator="pt", bounces=1)
 
 
+def machine_costs(store, costs_file: str | None, saved_as: str) -> CostModel:
+    """This machine's constants: read from ``costs_file``, else calibrated now (quick) on
+    ``store`` and kept in ``.bench_cache/saved_as``."""
+    if costs_file:
+        return CostModel.load(costs_file)
+    print(f"+ calibrate --quick on {store.path.name}", flush=True)
+    costs = calibrate(store.path, quick=True)
+    costs.save(CACHE / saved_as)
+    return costs
+
+
 def options(scheduler: str, nodes: int, paths: int) -> JobOptions:
     """One thread a node; the sort-first schedules with a tile per node."""
     if scheduler in ("image", "spec-ooc"):
@@ -64,12 +75,7 @@ def main() -> None:
     start = time.perf_counter()
     settings = QUICK if args.quick else FULL
     store = cached_rm(64, (4, 4, 2))
-    if args.costs:
-        costs = CostModel.load(args.costs)
-    else:
-        print(f"+ calibrate --quick on {store.path.name}", flush=True)
-        costs = calibrate(store.path, quick=True)
-        costs.save(CACHE / "costs-real-scale.json")
+    costs = machine_costs(store, args.costs, "costs-real-scale.json")
     shared = costs.with_cores(costs.cores)
     config = SceneConfig()
     reference = render(store, config, settings, progress=False).film.image()
