@@ -70,6 +70,11 @@ class Cluster:
                                          else costs.tile_setup_s)
         await self.compute(rank, seconds)
 
+    async def decided(self, rank: int, cpu_seconds: float) -> None:
+        """Node ``rank``'s schedule decided for ``cpu_seconds`` of CPU (measured as the real
+        schedule code ran here): charged to its core times ``CostModel.decision_scale``."""
+        await self.compute(rank, cpu_seconds * self.costs.decision_scale)
+
     async def send(self, source: int, destination: int, message: Message, nbytes: int) -> None:
         """Post ``message`` (decoded, ``nbytes`` on the wire) from ``source`` to
         ``destination``'s mailbox of its kind: the sender's core spends the message's cost

@@ -79,11 +79,7 @@ class VirtualDomainLoop(DomainLoop):
         self.node_runtime = node_runtime
 
     async def decided(self, cpu_seconds: float) -> None:
-        """Charge the schedule's decision (the CPU time the real code took, times
-        ``CostModel.decision_scale``) to this node's core."""
-        charge = cpu_seconds * self.cluster.costs.decision_scale
-        if charge > 0:
-            await self.cluster.compute(self.rank, charge)
+        await self.cluster.decided(self.rank, cpu_seconds)
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
         queries = order.trace(domain, bvh)
@@ -144,9 +140,7 @@ class SimNodeState(NodeState):
             node_runtime=True)
 
     async def decided(self, cpu_seconds: float) -> None:
-        charge = cpu_seconds * self.cluster.costs.decision_scale
-        if charge > 0:
-            await self.cluster.compute(self.rank, charge)
+        await self.cluster.decided(self.rank, cpu_seconds)
 
     def close(self) -> None:
         """Nothing to stop: a virtual preloader has no thread."""
