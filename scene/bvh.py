@@ -17,6 +17,7 @@ from embreex import mesh_construction, rtcore, rtcore_scene
 from vastray.scene.cpus import available_cpus
 from vastray.scene.embree.library import binding
 from vastray.scene.embree.scenes import Scene
+from vastray.scene.footprint import resident_bytes
 from vastray.scene.store import DomainArrays
 
 #: Below this many rays a query runs on the calling thread only.
@@ -70,6 +71,7 @@ class DomainBVH:
         self.domain_id = domain_id
         self.pool = pool
         self.n_triangles = arrays.n_triangles
+        self._array_bytes = arrays.nbytes()
         self.compiled = binding() is not None
         if self.compiled:
             self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality)
@@ -86,9 +88,6 @@ class DomainBVH:
         # Vertices and indices stay reachable for rebuilding hit points
         # (``ClosestHits.rebuild_points``): the compiled scene's own (shared) arrays, or the
         # store's (no copy where they are contiguous).
-        # nbytes counts them apart only where colours need them, as before: the mesh term of
-        # ``nbytes`` covers the arrays Embree reads in place
-        self._indices_counted = bool(keep & {"colors", "scalars"})
         if self.compiled and self._scene.indices is not None:
             self.vertices = np.asarray(self._scene.vertices)
             self.indices = np.asarray(self._scene.indices)
@@ -102,11 +101,9 @@ class DomainBVH:
                         else None)
 
     def nbytes(self) -> int:
-        """Approximate resident bytes: the mesh (Embree's buffers, or with the compiled binding
-        the store's arrays it uses in place), the BVH, plus kept attributes."""
-        kept = [self.indices if self._indices_counted else None, self.objects, self.colors,
-                self.scalars]
-        return self.n_triangles * (36 + 12 + 64) + sum(a.nbytes for a in kept if a is not None)
+        """Resident bytes (``scene.footprint``): the domain's arrays as read and Embree's scene;
+        the attributes kept for shading are among the arrays."""
+        return resident_bytes(self.n_triangles, self._array_bytes, self.compiled)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray,
                   pool: ThreadPoolExecutor | None = None) -> dict[str, np.ndarray]:

@@ -13,7 +13,12 @@ import sys
 import numpy as np
 import pytest
 
-from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
+from vastray.preflight import (
+    LIMIT_BASE_MARGIN,
+    domain_build_bytes,
+    domain_footprints,
+    estimate_memory,
+)
 from vastray.render.imageio import read_image
 from vastray.scene.store import Store
 
@@ -43,7 +48,8 @@ def quarter_limit(store: Store) -> int:
     """A --memory-limit whose cache holds at most a quarter of the domains: the process's
     fixed part (film, outputs, every path of the frame in flight), the margin a limit keeps
     back, and the largest quarter."""
-    fixed = estimate_memory(WIDTH, HEIGHT, WIDTH * HEIGHT * SPP, 1).total + LIMIT_BASE_MARGIN
+    fixed = (estimate_memory(WIDTH, HEIGHT, WIDTH * HEIGHT * SPP, 1).total + LIMIT_BASE_MARGIN
+             + domain_build_bytes(store.domains))
     largest = sorted(domain_footprints(store.domains), reverse=True)
     return fixed + sum(largest[:len(largest) // 4])
 

@@ -133,3 +133,55 @@ def test_a_refused_limit_names_the_smallest_that_fits_and_that_one_is_accepted()
         smallest = parse_size(named.rstrip(";,"))
         assert cache_within(smallest, fixed, footprints, 64, 64) == 1
         assert smallest - 2**20 < fixed.total + LIMIT_BASE_MARGIN + 30_000_000 <= smallest
+
+
+_BUILD_PROBE = """
+import json, sys
+import numpy as np
+from vastray.scene.bvh import DomainBVH
+from vastray.scene.store import DomainArrays
+
+def status(key):
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(key))
+
+# a connected height-field surface: n x n vertices, 2 (n - 1)^2 triangles
+n = 450
+x, y = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+z = 0.1 * np.sin(9 * x) * np.cos(7 * y)
+vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3).astype(np.float32)
+i = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
+quads = np.stack([i, i + 1, i + n, i + 1, i + n + 1, i + n], axis=1).reshape(-1, 3)
+arrays = DomainArrays(vertices, quads.astype(np.uint32))
+quality = json.loads(sys.argv[1])
+before = status("VmRSS")
+with open("/proc/self/clear_refs", "w") as f:
+    f.write("5")  # VmHWM := VmRSS
+bvh = DomainBVH(0, arrays, build_quality=quality)
+print(json.dumps({"resident": status("VmRSS") - before, "peak": status("VmHWM") - before,
+                  "model": bvh.nbytes() - arrays.nbytes(), "triangles": bvh.n_triangles}))
+"""
+
+
+@pytest.mark.parametrize("quality", [0, None], ids=["low", "default"])
+def test_a_domain_build_stays_within_the_footprint_model(quality):
+    """scene.footprint's figures bound what a real build takes: the resident growth, and the
+    build's peak with one build's share of ``build_bytes``. Measured in a fresh process (RSS,
+    and VmHWM reset before the build; a second build there would reuse the first's freed
+    memory), at LOW quality (out of core) and Embree's default."""
+    from vastray.scene.embree.library import binding
+    from vastray.scene.footprint import CONCURRENT_BUILDS, build_bytes
+
+    if binding() is None:
+        pytest.skip("the compiled Embree binding is not available (the model is for it)")
+    out = subprocess.run([sys.executable, "-c", _BUILD_PROBE, json.dumps(quality)],
+                         capture_output=True, text=True, timeout=300)
+    if out.returncode != 0 and "clear_refs" in out.stderr:
+        pytest.skip("this kernel does not let a process reset its VmHWM")
+    assert out.returncode == 0, out.stderr
+    build = json.loads(out.stdout)
+    share = build_bytes(build["triangles"]) // CONCURRENT_BUILDS
+    assert 0 < build["resident"] <= build["model"], build
+    assert build["peak"] <= build["model"] + share, build
+    # and the model is not loose: within 1.5x of what the build really holds
+    assert build["model"] <= 1.5 * build["resident"], build

@@ -22,7 +22,12 @@ import numpy as np
 import pytest
 
 from vastray.cli import build_parser, main
-from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
+from vastray.preflight import (
+    LIMIT_BASE_MARGIN,
+    domain_build_bytes,
+    domain_footprints,
+    estimate_memory,
+)
 from vastray.render.imageio import read_image
 from vastray.scene.simplify import build_simplified
 
@@ -221,8 +226,9 @@ def check_scheduler(r: Renders):
 
 def check_memory_limit(r: Renders):
     # image, 64 paths in flight and one light: the film and paths need `fixed`; the limit
-    # leaves room for the two largest domains exactly
-    fixed = estimate_memory(16, 12, 64, 1).total + LIMIT_BASE_MARGIN
+    # leaves room for the two largest domains exactly (and for building them)
+    fixed = (estimate_memory(16, 12, 64, 1).total + LIMIT_BASE_MARGIN
+             + domain_build_bytes(r.store.domains))
     largest = sorted(domain_footprints(r.store.domains), reverse=True)
     args = ["--scheduler", "image", "--max-samples-in-flight", "64", "--memory-limit"]
     run = r(*args, str(fixed + largest[0] + largest[1] + 1))

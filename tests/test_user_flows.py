@@ -343,7 +343,12 @@ def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged
 
 
 def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
-    from vastray.preflight import LIMIT_BASE_MARGIN, domain_footprints, estimate_memory
+    from vastray.preflight import (
+        LIMIT_BASE_MARGIN,
+        domain_build_bytes,
+        domain_footprints,
+        estimate_memory,
+    )
 
     out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--memory-limit", "64K",
                   cwd=tmp_path)
@@ -356,7 +361,7 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     # renderer then holds the same 1536 paths at once as spec-ooc (with two it would hold half
     # of them, which leaves room for every domain of this tiny store)
     limit = (estimate_memory(32, 24, 32 * 24 * 2, 1 + 2, reference=True).total
-             + LIMIT_BASE_MARGIN + two + 1)
+             + LIMIT_BASE_MARGIN + domain_build_bytes(store.domains) + two + 1)
     ref = vastray("render", store.path, "-o", "ref.exr", *SMALL, cwd=tmp_path)
     assert ref.returncode == 0
     out = vastray("render", store.path, "-o", "x.exr", "--report", "x.json", *SMALL,

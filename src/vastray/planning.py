@@ -24,6 +24,7 @@ from vastray.preflight import (
     check_memory,
     check_owned_fit,
     crossings_from_surface,
+    domain_build_bytes,
     domain_footprints,
     estimate_memory,
     reference_paths_in_flight,
@@ -303,6 +304,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
     threads = request.threads or available_cpus()
     total = request.width * request.height * request.spp
     footprints = domain_footprints(store.domains)
+    building = domain_build_bytes(store.domains)
     reference = request.reference is not None  # a file name, or an array (the Python API)
     # auto: resolved once the cache is known (spec-ooc when the domains do not all fit)
     resolved_later = spec(request.scheduler).runtime is Runtime.RESOLVED
@@ -342,17 +344,17 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
 
             nodes = request.nodes or 1
             check_owned_fit(request.memory_limit, process(cache), footprints,
-                            zorder_owners(*store.domain_boxes(), nodes), nodes)
+                            zorder_owners(*store.domain_boxes(), nodes), nodes, building)
         else:
             fitting = cache_within(request.memory_limit, process(cache), footprints,
-                                   request.width, request.height)
+                                   request.width, request.height, building)
             if fitting < len(footprints) and resolved_later:  # auto becomes spec-ooc
                 fitting = cache_within(request.memory_limit, process(fitting), footprints,
-                                       request.width, request.height)
+                                       request.width, request.height, building)
             log.info("--memory-limit leaves room for %d domains per process", fitting)
             cache = fitting if cache is None else min(cache, fitting)
     held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
-    one = process(cache) + MemoryEstimate(0, 0, 0, domains=held)
+    one = process(cache) + MemoryEstimate(0, 0, 0, domains=held + building)
     coordinator, machine = None, one
     if request.nodes:  # the coordinator, and every node unless they run elsewhere
         coordinator = estimate_memory(request.width, request.height, 0, 0, role="coordinator",

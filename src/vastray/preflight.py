@@ -15,7 +15,9 @@ import numpy as np
 from vastray.processes import proc_bytes
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.imageio import check_image_path
+from vastray.scene.embree.library import binding
 from vastray.scene.errors import InputError
+from vastray.scene.footprint import build_bytes, resident_bytes
 
 # The memory model: one process's peak resident memory is
 #   base + pixels x bytes per pixel + paths in flight x (PATH_BYTES + shadow rays per hit x
@@ -317,11 +319,6 @@ def check_memory(estimate: MemoryEstimate, width: int, height: int,
                            "the domains held with --memory-limit or --cache")
 
 
-#: Bytes a loaded domain holds per triangle besides its arrays: Embree's copy of the mesh and
-#: its BVH (the estimate ``DomainBVH.nbytes`` reports).
-BVH_BYTES_PER_TRIANGLE = 36 + 12 + 64
-
-
 def parse_size(text: str) -> int:
     """``"8G"``, ``"512M"``, ``"1.5GiB"``, ``"100000"`` -> bytes: K, M, G and T (with or without
     ``iB`` or ``B``) are KiB, MiB, GiB and TiB, powers of 1024, as ``gigabytes`` prints them."""
@@ -339,28 +336,37 @@ def parse_size(text: str) -> int:
 
 
 def domain_footprints(domains) -> list[int]:
-    """Bytes each domain holds once loaded: its arrays plus Embree's mesh and BVH."""
-    return [int(d.nbytes) + int(d.n_triangles) * BVH_BYTES_PER_TRIANGLE for d in domains]
+    """Bytes each domain holds once loaded: its arrays plus Embree's scene
+    (``scene.footprint.resident_bytes``)."""
+    compiled = binding() is not None
+    return [resident_bytes(d.n_triangles, d.nbytes, compiled) for d in domains]
+
+
+def domain_build_bytes(domains) -> int:
+    """Bytes a process's domain builds add at their peak (``scene.footprint.build_bytes``: two
+    builds of the largest domain at once), on top of the domains it holds."""
+    return build_bytes(max((int(d.n_triangles) for d in domains), default=0))
 
 
 def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
-                 height: int) -> int:
+                 height: int, building: int = 0) -> int:
     """The most domains a process can hold under ``limit`` besides its film, paths and
-    outputs (``fixed``) and ``LIMIT_BASE_MARGIN``: counted with the largest domains, so any
-    choice of that many fits.
+    outputs (``fixed``), the builds in progress (``building``, ``domain_build_bytes``) and
+    ``LIMIT_BASE_MARGIN``: counted with the largest domains, so any choice of that many fits.
 
     Raises
     ------
     InputError
         When even the film and paths, or those plus the largest domain, exceed the limit.
     """
-    planned = fixed.total + LIMIT_BASE_MARGIN
+    planned = fixed.total + LIMIT_BASE_MARGIN + building
     room = limit - planned
     smallest = limit_option(planned + max(footprints, default=0))
     if room <= 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
                                f"{width}x{height} render needs {gigabytes(planned)} per process "
-                               f"before any domain ({fixed.breakdown()}, margin "
+                               f"before any domain ({fixed.breakdown()}, domain builds "
+                               f"{gigabytes(building)}, margin "
                                f"{gigabytes(LIMIT_BASE_MARGIN)}); the smallest that fits is "
                                f"{smallest}; or lower --width/--height, --threads or "
                                "--max-samples-in-flight")
@@ -383,7 +389,7 @@ def limit_option(nbytes: int) -> str:
 
 
 def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], owner,
-                    nodes: int) -> None:
+                    nodes: int, building: int = 0) -> None:
     """Check that every node can hold all the domains it owns under ``limit`` besides its film
     and paths (``fixed``): in situ (``spec-insitu``) a node keeps its domains loaded, so the
     limit cannot be met by evicting.
@@ -391,6 +397,7 @@ def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], ow
     Parameters
     ----------
     footprints : (D,) bytes of each domain; owner : (D,) owning node of each domain.
+    building : bytes the domain builds add at their peak (``domain_build_bytes``).
 
     Raises
     ------
@@ -401,7 +408,7 @@ def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], ow
     for size, node in zip(footprints, owner, strict=True):
         held[int(node)] += size
     worst = max(range(nodes), key=held.__getitem__)
-    planned = fixed.total + LIMIT_BASE_MARGIN
+    planned = fixed.total + LIMIT_BASE_MARGIN + building
     if planned + held[worst] > limit:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small for "
                                f"--scheduler spec-insitu: node {worst} keeps its domains "
