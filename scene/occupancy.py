@@ -154,6 +154,29 @@ def decode(value) -> np.ndarray:
 # --- querying ----------------------------------------------------------------------------------
 
 
+#: Fewest (ray, domain) pairs per thread when a query is split.
+_SPLIT_MIN_PAIRS = 8192
+
+
+def split_pairs(part, n: int) -> None:
+    """Run ``part(lo, hi)`` over ``0..n`` in contiguous pieces, side by side on the threads
+    this process may use (``embree.launch``'s pool; the kernel is serial and releases the
+    GIL, and each piece writes only its own rows), or on the calling thread when ``n`` is
+    small. The result does not depend on the split."""
+    from vastray.scene.cpus import available_cpus
+    from vastray.scene.embree.launch import _split_pool
+
+    pieces = max(1, min(available_cpus(), n // _SPLIT_MIN_PAIRS))
+    if pieces == 1:
+        part(0, n)
+        return
+    bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
+    futures = [_split_pool().submit(part, int(bounds[k]), int(bounds[k + 1]))
+               for k in range(pieces)]
+    for future in futures:
+        future.result()
+
+
 class Occupancy:
     """Every domain's mask, packed for the compiled query.
 
@@ -210,10 +233,15 @@ class Occupancy:
             from vastray.scene.occupancy_kernels import crosses
 
             n = len(origins)
-            crosses(np.ascontiguousarray(origins, np.float32),
-                    np.ascontiguousarray(directions, np.float32),
-                    np.ascontiguousarray(ray, np.int64), np.ascontiguousarray(domain, np.int64),
-                    np.ascontiguousarray(np.broadcast_to(limit, (n,)), np.float32),
-                    float(RADIUS_PADS * pad), self.lo, self.hi, self.cell, self.dims,
-                    self.useful, self.base, self.bits, out)
+            whole = (np.ascontiguousarray(origins, np.float32),
+                     np.ascontiguousarray(directions, np.float32))
+            ends = np.ascontiguousarray(np.broadcast_to(limit, (n,)), np.float32)
+            pairs = (np.ascontiguousarray(ray, np.int64), np.ascontiguousarray(domain, np.int64))
+            grids = (float(RADIUS_PADS * pad), self.lo, self.hi, self.cell, self.dims,
+                     self.useful, self.base, self.bits)
+
+            def part(lo: int, hi: int) -> None:  # pairs lo..hi; each writes its own rows of out
+                crosses(*whole, pairs[0][lo:hi], pairs[1][lo:hi], ends, *grids, out[lo:hi])
+
+            split_pairs(part, len(ray))
         return out

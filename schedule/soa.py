@@ -57,6 +57,37 @@ class SoA:
                              for k in parts[0].fields})
 
 
+class GrowingArray:
+    """A 1-D array appended to in blocks, in amortised constant time per element (its buffer
+    doubles when full): ``np.concatenate`` on every append copies all that came before, which
+    over a render's millions of rows and thousands of appends is quadratic.
+
+    ``values`` is the live part, (n,), a view: index and assign through it; take it afresh
+    after an ``append`` (the buffer may have moved).
+    """
+
+    def __init__(self, dtype, capacity: int = 1024):
+        self._buffer = np.zeros(max(int(capacity), 1), dtype)
+        self._n = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def values(self) -> np.ndarray:
+        return self._buffer[:self._n]
+
+    def append(self, block: np.ndarray) -> None:
+        """Add ``block`` (k,) at the end."""
+        need = self._n + len(block)
+        if need > len(self._buffer):
+            grown = np.zeros(max(need, 2 * len(self._buffer)), self._buffer.dtype)
+            grown[:self._n] = self._buffer[:self._n]
+            self._buffer = grown
+        self._buffer[self._n:need] = block
+        self._n = need
+
+
 def index_of(keys: np.ndarray, values: np.ndarray) -> np.ndarray:
     """(m,) int64 position in ``keys`` ((n,) distinct ints, e.g. path ids) of each of
     ``values`` ((m,), every one among ``keys``): a sort and a search, O((n + m) log n)."""

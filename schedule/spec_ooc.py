@@ -43,7 +43,7 @@ from vastray.render.integrators import (
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
-from vastray.schedule.soa import DomainQueues, SoA, index_of
+from vastray.schedule.soa import DomainQueues, GrowingArray, SoA, index_of
 
 
 @dataclass(frozen=True)
@@ -112,8 +112,8 @@ class SpeculativeSchedule:
         self.commit: list[SoA] = []
         self.retire: list[SoA] = []
         # Per shadow ray (by id): domain visits outstanding, and whether it is blocked.
-        self.shadow_pending = np.zeros(0, np.int32)
-        self.shadow_blocked = np.zeros(0, bool)
+        self._shadow_pending = GrowingArray(np.int32)
+        self._shadow_blocked = GrowingArray(np.bool_)
         self._schedule: list[int] = []
         self._resident: frozenset[int] = frozenset()
         # The domain chosen by next_domain, with its filtered rays: (domain, radiance, shadow).
@@ -126,6 +126,16 @@ class SpeculativeSchedule:
         }
 
     # -- the driver's interface ---------------------------------------------------------------
+    @property
+    def shadow_pending(self) -> np.ndarray:
+        """(shadow rays so far,) int32: each one's domain visits outstanding (a view)."""
+        return self._shadow_pending.values
+
+    @property
+    def shadow_blocked(self) -> np.ndarray:
+        """(shadow rays so far,) bool: whether each one is blocked (a view)."""
+        return self._shadow_blocked.values
+
     def start(self, rays: RadianceRays) -> None:
         """Queue the tile's camera rays into every domain they enter."""
         self._camera = rays
@@ -464,14 +474,14 @@ class SpeculativeSchedule:
             return
         rays = rays.take(rows)
         parent = index_of(parent_path, rays.path)
-        sid = np.arange(len(self.shadow_pending), len(self.shadow_pending) + len(rays))
+        sid = np.arange(len(self._shadow_pending), len(self._shadow_pending) + len(rays))
         soa = shadow_soa(rays, hist_t=hist_t[parent], hist_d=hist_d[parent], sid=sid)
         ray, dom, entry, rank = self.geometry.crossings(rays.origin, rays.direction, rays.t_max)
         other = dom != domain
         ray, dom, entry, rank = ray[other], dom[other], entry[other], rank[other]
         visits = np.bincount(ray, minlength=len(rays)).astype(np.int32)
-        self.shadow_pending = np.concatenate([self.shadow_pending, visits])
-        self.shadow_blocked = np.concatenate([self.shadow_blocked, np.zeros(len(rays), bool)])
+        self._shadow_pending.append(visits)
+        self._shadow_blocked.append(np.zeros(len(rays), bool))
         done = visits == 0
         if done.any():
             self.commit.append(_committed(soa.take(done)))

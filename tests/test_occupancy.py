@@ -350,3 +350,19 @@ def test_a_malformed_mask_is_refused_on_opening(rm_store, tmp_path):
     with pytest.raises(InputError, match="domain 1 'occupancy' must be"):
         Store(store)
     assert not verify_store(store).ok
+
+
+def test_a_query_split_over_threads_answers_as_one_thread(monkeypatch):
+    from vastray.scene import cpus
+
+    rng = np.random.default_rng(5)
+    _, occ = occupancy_of(sparse_domain(5))
+    n = 5 * occupancy._SPLIT_MIN_PAIRS + 17  # several pieces, uneven
+    origins = rng.uniform(-1.0, 2.0, (n, 3)).astype(np.float32)
+    directions = rng.normal(size=(n, 3)).astype(np.float32)
+    monkeypatch.setattr(cpus, "available_cpus", lambda: 4)
+    split = crosses(occ, origins, directions, 3.0)
+    monkeypatch.setattr(cpus, "available_cpus", lambda: 1)
+    whole = crosses(occ, origins, directions, 3.0)
+    assert 0.05 < whole.mean() < 0.95  # both answers occur: the comparison can fail
+    assert np.array_equal(split, whole)

@@ -84,3 +84,16 @@ def test_a_mostly_popped_push_is_not_held_whole_by_the_rays_left_of_it():
     assert queues.nbytes() <= 1.5 * left  # the last domain's rays, not the whole push
     assert queues.pop(domains - 1)["id"].tolist() == list(range(domains - 1, n, domains))
     assert queues.nbytes() == 0 and queues.total() == 0
+
+
+def test_a_growing_array_keeps_every_block_in_order_across_reallocations():
+    from vastray.schedule.soa import GrowingArray
+
+    grown = GrowingArray(np.int32, capacity=3)
+    blocks = [np.arange(k, dtype=np.int32) + 10 * k for k in (2, 0, 5, 1, 9)]
+    for block in blocks:
+        grown.append(block)
+    assert len(grown) == sum(len(b) for b in blocks)
+    assert np.array_equal(grown.values, np.concatenate(blocks))
+    grown.values[[0, -1]] -= 1  # a view: assignments stay
+    assert grown.values[0] == blocks[0][0] - 1 and grown.values[-1] == blocks[-1][-1] - 1
