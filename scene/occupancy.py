@@ -163,6 +163,9 @@ def split_pairs(part, n: int) -> None:
     this process may use (``embree.launch``'s pool; the kernel is serial and releases the
     GIL, and each piece writes only its own rows), or on the calling thread when ``n`` is
     small. The result does not depend on the split."""
+    if n < 2 * _SPLIT_MIN_PAIRS:  # (before available_cpus, which reads cgroup files)
+        part(0, n)
+        return
     from vastray.scene.cpus import available_cpus
     from vastray.scene.embree.launch import _split_pool
 
