@@ -27,7 +27,12 @@ from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
 from vastray.actors.management import ManagementActor
 from vastray.actors.node_state import NodeState
-from vastray.actors.rendezvous import coordinator_address, launcher_rank, read_address
+from vastray.actors.rendezvous import (
+    RESOLVE_WAIT_S,
+    coordinator_address,
+    launcher_rank,
+    read_address,
+)
 from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
@@ -570,7 +575,8 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
         elif args.secret_fd is not None:  # started by the coordinator: a pipe from it
             credentials = Credentials(secret=read_secret_fd(args.secret_fd))
         coordinator = coordinator_address(args.coordinator
-                                          or read_address(args.rendezvous, args.timeout))
+                                          or read_address(args.rendezvous, args.timeout),
+                                          wait=min(args.timeout, RESOLVE_WAIT_S))
         host = coordinator.removeprefix("tcp://").rpartition(":")[0].strip("[]")
         if credentials is None and not (host.startswith("127.") or host in ("localhost",
                                                                              "::1")):

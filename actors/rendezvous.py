@@ -69,10 +69,16 @@ def read_address(path: str | os.PathLike, timeout: float) -> str:
     return address
 
 
-def coordinator_address(address: str) -> str:
+#: Seconds a node retries resolving the coordinator's host name before it gives up: a name
+#: service (a compose cluster's) may register the coordinator's container a moment late.
+RESOLVE_WAIT_S = 10.0
+
+
+def coordinator_address(address: str, wait: float = 0.0) -> str:
     """``tcp://HOST:PORT`` from what a user gave (``HOST:PORT`` too), checked before any
     socket is made: a bad form or a host name that does not resolve is named, where ZeroMQ
-    would say "Invalid argument" or the node would wait out its timeout.
+    would say "Invalid argument" or the node would wait out its timeout. A name that does not
+    resolve is tried again for ``wait`` seconds.
 
     Raises
     ------
@@ -88,9 +94,18 @@ def coordinator_address(address: str) -> str:
             or not 0 < int(port) < 65536:
         raise InputError(None, f"--coordinator {address!r} is not tcp://HOST:PORT "
                                "(the address the coordinator prints)")
-    try:
-        socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
-    except (socket.gaierror, UnicodeError) as exc:
-        raise InputError(None, f"--coordinator {address!r}: host {host!r} not found "
-                               f"({exc.args[-1]})") from None
-    return full
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+            return full
+        except (socket.gaierror, UnicodeError) as exc:
+            if time.monotonic() >= deadline:
+                waited = f" after {wait:.0f} s" if wait > 0 else ""
+                raise InputError(None, f"--coordinator {address!r}: host {host!r} not found "
+                                       f"({exc.args[-1]}){waited}: check the name, and that "
+                                       "the coordinator is running (in a compose cluster a "
+                                       "coordinator that has exited, for example refusing its "
+                                       "options, has no host name left: see its output)"
+                                 ) from None
+            time.sleep(0.5)

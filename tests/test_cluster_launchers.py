@@ -76,8 +76,35 @@ def test_coordinator_address_is_checked_before_any_socket():
     for bad in ("udp://head:5555", "tcp://head", "head:port", "tcp://head:70000"):
         with pytest.raises(InputError, match="is not tcp://HOST:PORT"):
             coordinator_address(bad)
-    with pytest.raises(InputError, match="host 'nosuch.invalid' not found"):
+    with pytest.raises(InputError, match="host 'nosuch.invalid' not found") as refused:
         coordinator_address("tcp://nosuch.invalid:5555")
+    assert "the coordinator is running" in str(refused.value)
+
+
+def test_a_name_that_does_not_resolve_is_tried_again_for_the_wait_given(monkeypatch):
+    import socket
+    import time
+
+    calls = []
+
+    def resolve(host, *args, **kwargs):
+        calls.append(time.monotonic())
+        if len(calls) < 3:  # the name service knows the host from the third try on
+            raise socket.gaierror(-2, "Name or service not known")
+        return []
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolve)
+    assert coordinator_address("tcp://coordinator:5555", wait=5) == "tcp://coordinator:5555"
+    assert len(calls) == 3
+
+    def never(*args, **kwargs):
+        raise socket.gaierror(-2, "Name or service not known")
+
+    monkeypatch.setattr(socket, "getaddrinfo", never)
+    start = time.monotonic()
+    with pytest.raises(InputError, match="after 1 s"):
+        coordinator_address("tcp://coordinator:5555", wait=1)
+    assert time.monotonic() - start >= 1
 
 
 @pytest.mark.parametrize("address, says", [
