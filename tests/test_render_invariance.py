@@ -8,6 +8,7 @@ import pytest
 from vastray.render.driver import render
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
+from vastray.scene.footprint import SCENE_FIXED_BYTES
 from vastray.scene.partition import partition_grid
 
 from scenes import bumpy_config, bumpy_scene, settings, write_store
@@ -50,8 +51,9 @@ def test_cache_of_one_domain_reloads_and_still_completes(stores):
                     cache_capacity=1, progress=False)
     counters = result.counters
     assert counters["loads"] > counters["distinct_domains_loaded"]  # evictions forced reloads
+    # one domain resident at a time: the largest's triangles, and one Embree scene's fixed part
     assert counters["peak_resident_bytes"] <= max(
-        d.n_triangles for d in stores[64].domains) * 200
+        d.n_triangles for d in stores[64].domains) * 200 + SCENE_FIXED_BYTES
 
 
 def _tracer(store):
