@@ -167,14 +167,14 @@ def split_pairs(part, n: int) -> None:
         part(0, n)
         return
     from vastray.scene.cpus import available_cpus
-    from vastray.scene.embree.launch import _split_pool
+    from vastray.scene.embree.launch import split_pool
 
     pieces = max(1, min(available_cpus(), n // _SPLIT_MIN_PAIRS))
     if pieces == 1:
         part(0, n)
         return
     bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
-    futures = [_split_pool().submit(part, int(bounds[k]), int(bounds[k + 1]))
+    futures = [split_pool().submit(part, int(bounds[k]), int(bounds[k + 1]))
                for k in range(pieces)]
     for future in futures:
         future.result()

@@ -43,7 +43,7 @@ _splitter: ThreadPoolExecutor | None = None
 _splitter_lock = threading.Lock()
 
 
-def _split_pool() -> ThreadPoolExecutor:
+def split_pool() -> ThreadPoolExecutor:
     """The process's pool that runs the parts of split queries: made once and never shut
     down. (It used to be replaced by a larger one on demand, and the old one shut down, which
     could race another thread's submit to it: "cannot schedule new futures after
@@ -57,7 +57,7 @@ def _split_pool() -> ThreadPoolExecutor:
 
 def launch(kernel, threads: int, n: int, *args) -> None:
     """Run the serial ``kernel`` on ``n`` rays, split into at most ``threads`` contiguous
-    parts that run side by side on ``_split_pool`` (one part: on the calling thread).
+    parts that run side by side on ``split_pool`` (one part: on the calling thread).
 
     Every kernel (``kernels``) is serial and releases the GIL: numba's threading layer (whose
     default, workqueue, must not be entered by two Python threads at once) is never used, so any
@@ -75,6 +75,6 @@ def launch(kernel, threads: int, n: int, *args) -> None:
         lo, hi = bounds[k], bounds[k + 1]
         kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a for a in args))
 
-    pool = _split_pool()
+    pool = split_pool()
     for future in [pool.submit(run, k) for k in range(parts)]:
         future.result()
