@@ -159,25 +159,16 @@ _SPLIT_MIN_PAIRS = 8192
 
 
 def split_pairs(part, n: int) -> None:
-    """Run ``part(lo, hi)`` over ``0..n`` in contiguous pieces, side by side on the threads
-    this process may use (``embree.launch``'s pool; the kernel is serial and releases the
-    GIL, and each piece writes only its own rows), or on the calling thread when ``n`` is
-    small. The result does not depend on the split."""
+    """Run ``part(lo, hi)`` over the pairs ``0..n`` on the threads this process may use
+    (``embree.launch.run_in_parts``; the kernel is serial and releases the GIL, and each
+    piece writes only its own rows), or on the calling thread when ``n`` is small."""
     if n < 2 * _SPLIT_MIN_PAIRS:  # (before available_cpus, which reads cgroup files)
         part(0, n)
         return
     from vastray.scene.cpus import available_cpus
-    from vastray.scene.embree.launch import split_pool
+    from vastray.scene.embree.launch import run_in_parts
 
-    pieces = max(1, min(available_cpus(), n // _SPLIT_MIN_PAIRS))
-    if pieces == 1:
-        part(0, n)
-        return
-    bounds = np.linspace(0, n, pieces + 1).astype(np.int64)
-    futures = [split_pool().submit(part, int(bounds[k]), int(bounds[k + 1]))
-               for k in range(pieces)]
-    for future in futures:
-        future.result()
+    run_in_parts(part, n, min(available_cpus(), n // _SPLIT_MIN_PAIRS))
 
 
 class Occupancy:

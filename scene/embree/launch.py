@@ -69,12 +69,19 @@ def launch(kernel, threads: int, n: int, *args) -> None:
     if parts == 1:
         kernel(*args)
         return
+    run_in_parts(lambda lo, hi: kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a
+                                         for a in args)), n, parts)
+
+
+def run_in_parts(part, n: int, parts: int) -> None:
+    """Run ``part(lo, hi)`` over ``0..n`` in ``parts`` contiguous pieces, side by side on
+    ``split_pool`` (one piece: on the calling thread), and wait for all of them. Each piece
+    must write only its own rows, so the result does not depend on ``parts``."""
+    if parts <= 1:
+        part(0, n)
+        return
     bounds = np.linspace(0, n, parts + 1).astype(np.int64)
-
-    def run(k: int) -> None:
-        lo, hi = bounds[k], bounds[k + 1]
-        kernel(*(a[lo:hi] if isinstance(a, np.ndarray) else a for a in args))
-
     pool = split_pool()
-    for future in [pool.submit(run, k) for k in range(parts)]:
+    for future in [pool.submit(part, int(bounds[k]), int(bounds[k + 1]))
+                   for k in range(parts)]:
         future.result()
