@@ -71,7 +71,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     if mode is Decomposition.PLANNED:  # groups change from frame to frame: room for the largest
         owned = -(-len(store.domains) // size) + 1
     preloader = state.preloader_for(store, options.cache or max(owned, 1), setup.keep, options,
-                                    rank)
+                                    rank, setup.fast_builds)
     before = preloader.stats()
     film = Film(settings.width, settings.height)
     total = setup.total_paths

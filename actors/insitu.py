@@ -38,7 +38,8 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
     own_state = state is None
     state = NodeState() if state is None else state
-    preloader = state.preloader_for(store, max(len(local), 1), setup.keep, options, rank)
+    preloader = state.preloader_for(store, max(len(local), 1), setup.keep, options, rank,
+                                    setup.fast_builds)
     before = preloader.stats()
     # In situ the node's data stays loaded: the loop only loads it (each domain's rays are
     # traced in the iterations below, all domains at once, not activation by activation).

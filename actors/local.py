@@ -77,7 +77,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
     capacity = tile_cache_capacity(options, store)
     own = state is None  # else the node's, kept from pass to pass (what it holds stays)
     state = NodeState() if own else state
-    preloader = state.preloader_for(store, capacity, setup.keep, options, share[0])
+    preloader = state.preloader_for(store, capacity, setup.keep, options, share[0],
+                                    setup.fast_builds)
     bandwidth = options.load_bytes_per_second(share[0])
     counters: dict = {}
     loop = state.tile_loop(preloader, counters)

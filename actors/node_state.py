@@ -42,16 +42,17 @@ class NodeState:
     #: the virtual portals recorded in the last recording frame.
     portals: Portals | None = None
 
-    def preloader_for(self, store, capacity: int, keep, options: JobOptions, rank: int
-                      ) -> DomainPreloader:
+    def preloader_for(self, store, capacity: int, keep, options: JobOptions, rank: int,
+                      fast_builds: bool = False) -> DomainPreloader:
         """The node's preloader, made on the first frame (its threads, preloading switch and
-        emulated storage bandwidth from ``options``, the bandwidth of ``rank``)."""
+        emulated storage bandwidth from ``options``, the bandwidth of ``rank``; its BVH builds
+        the render's, ``RenderSetup.fast_builds``)."""
         if self.preloader is None:
             self.pool = query_pool(options.threads)
             self.preloader = DomainPreloader(
                 store, capacity, keep, pool=self.pool,
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
-                drop_page_cache=options.cold_reads)
+                drop_page_cache=options.cold_reads, fast_builds=fast_builds)
         return self.preloader
 
     def domain_loop(self, preloader: DomainPreloader, stats: dict) -> DomainLoop:

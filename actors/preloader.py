@@ -62,13 +62,14 @@ class DomainPreloader(CacheFront):
     preload : False turns loading ahead off (``preload`` does nothing): the ablation of the
         temporal-coherence paper's Table 2 and the benchmarks' "no preloading" rows.
     drop_page_cache : make every load a real read from disk (out-of-core benchmarks).
+    fast_builds : build Embree's fast BVH (the render's ``RenderSetup.fast_builds``).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
-                 preload: bool = True, drop_page_cache: bool = False):
+                 preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False):
         self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth,
-                                 drop_page_cache=drop_page_cache)
+                                 drop_page_cache=drop_page_cache, fast_builds=fast_builds)
         self.enabled = preload
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
 

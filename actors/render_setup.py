@@ -18,6 +18,7 @@ from vastray.render.driver import (
 from vastray.render.integrators import RenderSettings, Shading
 from vastray.render.materials import ScalarMap
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
 
@@ -34,6 +35,7 @@ class RenderSetup:
     geometry: DomainGeometry
     ao_distance: float
     total_paths: int
+    fast_builds: bool  # Embree's fast (Morton) BVH for every domain (``scene.bvh_choice``)
 
     @staticmethod
     def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
@@ -48,4 +50,4 @@ class RenderSetup:
             DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()),
                            store.occupancy()),
             settings.ao_distance or default_ao_distance(store),
-            settings.paths)
+            settings.paths, fast_builds(settings.bvh, store.n_triangles))

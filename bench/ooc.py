@@ -71,6 +71,8 @@ from vastray.actors.local import render_out_of_core
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.request import DEFAULT_NODE_SAMPLES_IN_FLIGHT
+from vastray.scene.bvh_choice import CHOICES as BVH_CHOICES
+from vastray.scene.bvh_choice import describe as describe_bvh
 from vastray.scene.generate import generate
 from vastray.scene.manifest import VERSION
 from vastray.scene.store import Store
@@ -261,8 +263,12 @@ def main() -> None:
     parser.add_argument("--ray-sweep", action="store_true",
                         help="also the strongest PT 25%% comparison with 4x and 16x the paths "
                              "(first scene)")
+    parser.add_argument("--bvh", choices=BVH_CHOICES, default="auto",
+                        help="the BVH every render builds, as vastray render's --bvh (default: "
+                             "auto, the CLI's: the fast BVH for stores of 8 M triangles or "
+                             "more, such as --large's)")
     args = parser.parse_args()
-    plan = LARGE if args.large else QUICK if args.quick else FULL
+    plan = dict(LARGE if args.large else QUICK if args.quick else FULL, bvh=args.bvh)
     width, height = plan["image"]
     started = time.perf_counter()
     for spec in plan["scenes"]:
@@ -273,7 +279,8 @@ def main() -> None:
         print(f"\n## scene {spec[0]} {spec[1]}^3: {store.n_triangles:,} triangles in {n} domains "
               f"({sum(d.nbytes for d in store.domains) / 1e9:.2f} GB), {width}x{height}, "
               f"{plan['spp']} spp, {plan['shadow_samples']} shadow rays, {plan['bounces']} "
-              f"bounces; medians of {args.repeats} interleaved runs per schedule\n", flush=True)
+              f"bounces, BVH {describe_bvh(plan['bvh'], store.n_triangles)}; medians of "
+              f"{args.repeats} interleaved runs per schedule\n", flush=True)
         print(HEADER, flush=True)
         fractions = sorted(set(plan["caches"]) | {1.0}, reverse=True)  # 100 % first: O(c)
         results: dict = {}
@@ -327,7 +334,7 @@ def cli_run(store: Store, plan: dict, scheduler: str, cache: int, nodes: int | N
     out = vastray.render(store, width=width, height=height, spp=plan["spp"], integrator="pt",
                          bounces=plan["bounces"], shadow_samples=plan["shadow_samples"],
                          scheduler=scheduler, cache=cache, nodes=nodes, cold_reads=True,
-                         progress=False, **passes)
+                         bvh=plan["bvh"], progress=False, **passes)
     total = time.perf_counter() - start
     return {"loads": out.report["counters"]["loads"], "total_s": total,
             "passes": len(out.report["passes"])}
@@ -394,7 +401,8 @@ def warm_up(store: Store, plan: dict) -> None:
 def settings(plan: dict, integrator: str) -> RenderSettings:
     width, height = plan["image"]
     return RenderSettings(width=width, height=height, spp=plan["spp"], integrator=integrator,
-                          bounces=plan["bounces"], shadow_samples=plan["shadow_samples"])
+                          bounces=plan["bounces"], shadow_samples=plan["shadow_samples"],
+                          bvh=plan.get("bvh", "auto"))
 
 
 def ablation(store: Store, plan: dict) -> None:

@@ -21,6 +21,7 @@ from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
 from vastray.render.tracer import DomainTracer
+from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.cache import DomainCache
 from vastray.scene.cpus import available_cpus
 from vastray.scene.store import Store
@@ -143,13 +144,15 @@ class FrameCache:
         self.capacity = capacity or max(len(store.domains), 1)
         self.cache: DomainCache | None = None
 
-    def for_frame(self, config: SceneConfig, integrator: str) -> DomainCache:
+    def for_frame(self, config: SceneConfig, settings: RenderSettings) -> DomainCache:
         """The cache for the next frame, its counters at zero (a new cache where this
-        frame's shading needs attributes the kept domains dropped)."""
-        keep = shading_inputs(self.store, config, integrator)[1]
-        if self.cache is None or not keep <= self.cache.keep:
+        frame's shading needs attributes the kept domains dropped, or another BVH)."""
+        keep = shading_inputs(self.store, config, settings.integrator)[1]
+        fast = fast_builds(settings.bvh, self.store.n_triangles)
+        if (self.cache is None or not keep <= self.cache.keep
+                or self.cache.fast_builds != fast):
             self.cache = DomainCache(self.store, self.capacity, keep,
-                                     load_bandwidth=self.load_bandwidth)
+                                     load_bandwidth=self.load_bandwidth, fast_builds=fast)
         self.cache.count_afresh()
         return self.cache
 
@@ -177,7 +180,8 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     two_level : with every domain resident, trace through one top-level Embree scene of
         instances (``DomainTracer``); False: domain by domain (the same image, bit for bit).
     cache : a domain cache of ``store`` to use (e.g. with every domain already loaded, so
-        benchmarks time no loads); its capacity replaces ``cache_capacity``, and the
+        benchmarks time no loads), building the BVH ``settings.bvh`` asks for; its capacity
+        replaces ``cache_capacity``, and the
         ``load`` seconds and cache counters reported are its totals so far.
     load_bandwidth : bytes per second to emulate network storage with: every domain load
         takes at least its size over this (None: the disk's own speed; ignored with
@@ -192,7 +196,11 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     if cache is None:
         capacity = cache_capacity or max(len(store.domains), 1)
         cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache,
-                            load_bandwidth=load_bandwidth)
+                            load_bandwidth=load_bandwidth,
+                            fast_builds=fast_builds(settings.bvh, store.n_triangles))
+    elif cache.fast_builds != fast_builds(settings.bvh, store.n_triangles):
+        raise ValueError(f"the cache builds the {'fast' if cache.fast_builds else 'quality'} "
+                         f"BVH; these settings ask for --bvh {settings.bvh}")
     capacity = cache.capacity
     threads = threads or available_cpus()
     # With every domain resident, whole batches run on one worker per thread, each tracing its

@@ -59,6 +59,9 @@ class RenderSettings:
     #: ``spp``); its paths are numbered pixel-major within it (``driver.path_context``).
     sample_start: int = 0
     sample_stop: int | None = None
+    #: The BVH Embree builds for every domain (``--bvh``, ``scene.bvh_choice``): auto, fast
+    #: or quality; part of what the image is (the fast BVH finds other hits at a few rays).
+    bvh: str = "auto"
 
     @property
     def color_range(self) -> tuple[float, float] | None:

@@ -60,6 +60,9 @@ class DomainBVH:
     build_quality : Embree's ``RTCBuildQuality`` for the BVH (``RTC_BUILD_QUALITY_LOW``:
         faster to build, the same hits); None: Embree's default (MEDIUM). The embreex
         fallback ignores it.
+    mesh_quality : the mesh's ``RTCBuildQuality`` (``RTC_BUILD_QUALITY_LOW``: Embree's Morton
+        builder, ``scene.bvh_choice``'s fast BVH); None: Embree's default. The embreex
+        fallback ignores it.
 
     The Embree scene is released by ``close()``, or when the last reference goes (a cache's
     eviction drops its reference; a query in flight on another thread keeps the domain alive
@@ -67,14 +70,17 @@ class DomainBVH:
     """
 
     def __init__(self, domain_id: int, arrays: DomainArrays, keep: frozenset[str] = frozenset(),
-                 pool: ThreadPoolExecutor | None = None, build_quality: int | None = None):
+                 pool: ThreadPoolExecutor | None = None, build_quality: int | None = None,
+                 mesh_quality: int | None = None):
         self.domain_id = domain_id
         self.pool = pool
         self.n_triangles = arrays.n_triangles
         self._array_bytes = arrays.nbytes()
+        self._fast = mesh_quality is not None  # Embree's Morton builder: more bytes
         self.compiled = binding() is not None
         if self.compiled:
-            self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality)
+            self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality,
+                                mesh_quality=mesh_quality)
         else:
             self._scene = rtcore_scene.EmbreeScene(embree_device())
             mesh_construction.TriangleMesh(
@@ -103,7 +109,8 @@ class DomainBVH:
     def nbytes(self) -> int:
         """Resident bytes (``scene.footprint``): the domain's arrays as read and Embree's scene;
         the attributes kept for shading are among the arrays."""
-        return resident_bytes(self.n_triangles, self._array_bytes, self.compiled)
+        return resident_bytes(self.n_triangles, self._array_bytes, self.compiled,
+                              self._fast)
 
     def intersect(self, origins: np.ndarray, directions: np.ndarray, t_far: np.ndarray,
                   pool: ThreadPoolExecutor | None = None) -> dict[str, np.ndarray]:

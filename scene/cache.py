@@ -70,11 +70,14 @@ class DomainCache:
     load_bandwidth : bytes per second, to emulate network storage (the temporal-coherence
         paper's cluster): after the real read of a domain, the load waits until its size
         divided by this has passed (a sleep, costing no CPU). None: as fast as the disk.
+    fast_builds : build Embree's fast (Morton) BVH for every domain (``scene.bvh_choice``: the
+        render's choice, made from the store alone, so that every cache of a render builds
+        the same BVH); False: Embree's default build.
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None,
-                 load_bandwidth: float | None = None):
+                 load_bandwidth: float | None = None, fast_builds: bool = False):
         if capacity < 1:
             raise ValueError("cache capacity must be at least 1 domain")
         if load_bandwidth is not None and not load_bandwidth > 0:
@@ -92,12 +95,15 @@ class DomainCache:
         # A cache smaller than the store reloads what it evicts: its builds are Embree's
         # scene quality LOW (a two-level BVH, 10-25 % faster to build than the default; the
         # same hits bit for bit, tests/test_build_quality.py), since a load's build is paid
-        # again at every reload. The mesh level stays at Embree's default: LOW there too (the
-        # Morton builder) builds a 2.1 M-triangle domain 3-4x faster (0.12 against 0.40 s)
-        # but changes hits near vertices (6 rays in 50,000 in that test took another
-        # triangle), which would break the out-of-core image's equality with the in-core one.
+        # again at every reload. The mesh level is the render's choice, not the cache's: LOW
+        # there (the Morton builder) builds a 2.1 M-triangle domain 3-4x faster but changes
+        # hits near vertices (6 rays in 50,000 in that test took another triangle), so a
+        # cache choosing it for itself would break the out-of-core image's equality with the
+        # in-core one (scene.bvh_choice).
+        self.fast_builds = fast_builds
+        self.mesh_quality = RTC_BUILD_QUALITY_LOW if fast_builds else None
         self.build_quality = (RTC_BUILD_QUALITY_LOW if capacity < len(store.domains)
-                              else None)
+                              or fast_builds else None)
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
         self._resident_bytes = 0  # sum of the resident domains' nbytes()
@@ -290,7 +296,8 @@ class DomainCache:
             throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))
             time.sleep(throttle)
         read_done = time.perf_counter()
-        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality)
+        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality,
+                        self.mesh_quality)
         done = time.perf_counter()
         with self._lock:
             self.count_load(domain_id, size)

@@ -153,26 +153,28 @@ vertices = np.stack([x, y, z], axis=-1).reshape(-1, 3).astype(np.float32)
 i = np.arange(n * n).reshape(n, n)[:-1, :-1].ravel()
 quads = np.stack([i, i + 1, i + n, i + 1, i + n + 1, i + n], axis=1).reshape(-1, 3)
 arrays = DomainArrays(vertices, quads.astype(np.uint32))
-quality = json.loads(sys.argv[1])
+build, mesh = json.loads(sys.argv[1])
 # first a small build: the binding's start (its layout probe, numba compiling on a cold cache,
 # Embree's threads) is the process's base, not this domain's
 DomainBVH(0, DomainArrays(vertices[:3 * n], quads[:n].astype(np.uint32)),
-          build_quality=quality).close()
+          build_quality=build, mesh_quality=mesh).close()
 before = status("VmRSS")
 with open("/proc/self/clear_refs", "w") as f:
     f.write("5")  # VmHWM := VmRSS
-bvh = DomainBVH(0, arrays, build_quality=quality)
+bvh = DomainBVH(0, arrays, build_quality=build, mesh_quality=mesh)
 print(json.dumps({"resident": status("VmRSS") - before, "peak": status("VmHWM") - before,
                   "model": bvh.nbytes() - arrays.nbytes(), "triangles": bvh.n_triangles}))
 """
 
 
-@pytest.mark.parametrize("quality", [0, None], ids=["low", "default"])
+@pytest.mark.parametrize("quality", [(0, None), (None, None), (0, 0)],
+                         ids=["low", "default", "fast"])
 def test_a_domain_build_stays_within_the_footprint_model(quality):
     """scene.footprint's figures bound what a real build takes: the resident growth, and the
     build's peak with one build's share of ``build_bytes``. Measured in a fresh process (RSS,
     and VmHWM reset before the build; a second build there would reuse the first's freed
-    memory), at LOW quality (out of core) and Embree's default."""
+    memory), at the scene's LOW quality (out of core), Embree's default and the fast (Morton)
+    BVH of ``--bvh fast``."""
     from vastray.scene.embree.library import binding
     from vastray.scene.footprint import CONCURRENT_BUILDS, build_bytes
 

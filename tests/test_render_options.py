@@ -209,6 +209,16 @@ def check_seed(r: Renders):
     assert not np.array_equal(run.image(), r.baseline.image())
 
 
+def check_bvh(r: Renders):
+    fast = r("--bvh", "fast")
+    assert fast.report["settings"]["bvh"] == "fast"
+    assert fast.report["settings"]["bvh_built"] == "fast"
+    assert r.baseline.report["settings"]["bvh_built"].startswith("quality (auto: ")
+    quality = r("--bvh", "quality")  # what auto chose for this small store: the same image
+    assert quality.report["settings"]["bvh_built"] == "quality"
+    assert np.array_equal(quality.image(), r.baseline.image())
+
+
 def check_cache(r: Renders):
     run = r("--cache", "2")
     assert run.report["scheduler"] == "spec-ooc"  # auto: the domains no longer all fit

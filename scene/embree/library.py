@@ -91,6 +91,7 @@ class Api:
             "rtcSetSceneFlags": (None, [p, i32]),
             "rtcGetSceneFlags": (i32, [p]),
             "rtcSetSceneBuildQuality": (None, [p, i32]),
+            "rtcSetGeometryBuildQuality": (None, [p, i32]),
             "rtcCommitScene": (None, [p]),
             "rtcRetainScene": (None, [p]),
             "rtcReleaseScene": (None, [p]),

@@ -48,6 +48,8 @@ from vastray.request import (
     RenderRequest,
     resolve_cache,
 )
+from vastray.scene.bvh_choice import describe as describe_bvh
+from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
@@ -148,7 +150,7 @@ def plan_render(request: RenderRequest, *, animating: bool = False,
         width=request.width, height=request.height, spp=request.spp, integrator=request.integrator,
         bounces=request.bounces, shadow_samples=request.shadow_samples, ao_distance=request.ao_distance,
         seed=request.seed, batch_size=request.batch_size or DEFAULT_BATCH_SIZE,
-        colormap=request.colormap,
+        colormap=request.colormap, bvh=request.bvh,
         color_min=request.color_range[0] if request.color_range else None,
         color_max=request.color_range[1] if request.color_range else None,
     )
@@ -211,7 +213,10 @@ def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLi
     count_overflow(image, result.counters, where)
     error = image_error(image, plan.reference) if plan.reference is not None else None
     report = build_report(
-        store=str(plan.store_path), settings=asdict(plan.settings), seconds=result.seconds,
+        store=str(plan.store_path),
+        settings=dict(asdict(plan.settings),
+                      bvh_built=describe_bvh(plan.settings.bvh, plan.store.n_triangles)),
+        seconds=result.seconds,
         counters=result.counters, error=error, reference=reference_name,
         scheduler=plan.scheduler, options=plan.report_options, progress=result.progress,
     )
@@ -266,7 +271,7 @@ def _renderer(request: RenderRequest, store: Store, store_path: Path, options: J
         def render_one(config, settings, progression=None):
             return _with_progress(render(
                 store, config, settings, threads=options.threads, progress=not request.quiet,
-                cache=kept.for_frame(config, settings.integrator), progression=progression),
+                cache=kept.for_frame(config, settings), progression=progression),
                 progression)
     else:
         def render_one(config, settings, progression=None):
@@ -303,7 +308,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
         shadow_rays(light, request.shadow_samples) for light in config.resolve_lights()), 1)
     threads = request.threads or available_cpus()
     total = request.width * request.height * request.spp
-    footprints = domain_footprints(store.domains)
+    footprints = domain_footprints(store.domains, fast_builds(request.bvh, store.n_triangles))
     building = domain_build_bytes(store.domains)
     reference = request.reference is not None  # a file name, or an array (the Python API)
     # auto: resolved once the cache is known (spec-ooc when the domains do not all fit)

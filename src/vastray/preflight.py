@@ -335,11 +335,11 @@ def parse_size(text: str) -> int:
     return int(value)
 
 
-def domain_footprints(domains) -> list[int]:
+def domain_footprints(domains, fast: bool = False) -> list[int]:
     """Bytes each domain holds once loaded: its arrays plus Embree's scene
-    (``scene.footprint.resident_bytes``)."""
+    (``scene.footprint.resident_bytes``; ``fast``: the fast BVH's, ``--bvh``)."""
     compiled = binding() is not None
-    return [resident_bytes(d.n_triangles, d.nbytes, compiled) for d in domains]
+    return [resident_bytes(d.n_triangles, d.nbytes, compiled, fast) for d in domains]
 
 
 def domain_build_bytes(domains) -> int:

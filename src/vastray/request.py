@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from vastray.preflight import parse_size
+from vastray.scene.bvh_choice import CHOICES as BVH_CHOICES
 from vastray.scene.errors import InputError
 from vastray.schedule import portals
 from vastray.schedule.registry import RENDER_CHOICES, Option, Runtime, spec
@@ -171,6 +172,7 @@ class RenderRequest:
     width: int | None = _option(type=positive_int)
     height: int | None = _option(type=positive_int)
     seed: int = _option(0, type=_non_negative)
+    bvh: str = _option("auto", choices=BVH_CHOICES)
     # how it is run
     cache: int | str | None = _option(type=_cache_size)
     scheduler: str = _option("auto", choices=RENDER_CHOICES)

@@ -115,7 +115,10 @@ class SimNodeState(NodeState):
     rank: int = 0
     domains: Domains | None = None
 
-    def preloader_for(self, store, capacity: int, keep, options, rank: int):
+    def preloader_for(self, store, capacity: int, keep, options, rank: int,
+                      fast_builds: bool = False):
+        """The virtual node's preloader. Its loads cost what the calibration measured, with
+        Embree's default BVH: ``fast_builds`` (``--bvh``) is not modelled."""
         if self.preloader is None:
             self.preloader = VirtualPreloader(self.cluster, self.rank, self.domains, capacity,
                                               preload=options.preload,

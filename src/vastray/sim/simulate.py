@@ -274,7 +274,7 @@ def _sort_first_tiles(options, rank, size, store, config, settings, state):
     ``NodeState`` keeps it) on a ``VirtualDomainLoop``, and the counters it adds to."""
     setup = RenderSetup.of(store, config, settings)
     preloader = state.preloader_for(store, tile_cache_capacity(options, store), setup.keep,
-                                    options, rank)
+                                    options, rank, setup.fast_builds)
     stats = {**traffic_counters(), "shade_s": 0.0}
     return SortFirstTiles(options, setup, state.tile_loop(preloader, stats), (rank, size)), stats
 

@@ -1,0 +1,53 @@
+"""Which BVH Embree builds for a render's domains: the one that traces fastest, or the one
+that builds fastest.
+
+Embree's default build (SAH, ``RTC_BUILD_QUALITY_MEDIUM``) gives the BVH that traces fastest;
+its Morton builder (the mesh's build quality ``LOW``) builds the same domain about 3x faster
+and traces 5-25 % slower. Which wins depends on how many rays each loaded triangle serves:
+a large store is rendered out of core, where a domain is loaded again after every eviction
+(2.7 loads a domain at a 25 % cache in ``bench/ooc.py --large``) and each repeated load
+serves a few dozen rays, so its builds, not its traces, are the render's time.
+
+The two BVHs do not find the same hit for every ray: where a ray passes within float
+rounding of a vertex, Embree may report another of the triangles around it (6 rays in 50,000
+aimed at vertices, ``tests/test_build_quality.py``). So the choice is made from the store
+alone, never from the cache, the node count or the scheduler: a render's image is the same
+bit for bit whatever the cache holds and however many nodes share the work, and the
+single-process reference renders with the same BVH.
+
+- ``auto`` (default): ``fast`` for stores of at least :data:`FAST_TRIANGLES` triangles (the
+  data vastray exists for: larger than memory, loaded more than once), ``quality`` below.
+- ``fast``: Embree's Morton builder for every domain.
+- ``quality``: Embree's default build (a cache smaller than the store builds the two-level
+  form of the same BVH, ``scene.cache``: the same hits, 10-25 % faster to build).
+"""
+
+from __future__ import annotations
+
+#: The values of ``--bvh``.
+CHOICES = ("auto", "fast", "quality")
+#: Stores of at least this many triangles build the fast BVH under ``auto``.
+FAST_TRIANGLES = 8_000_000
+
+
+def fast_builds(choice: str, n_triangles: int) -> bool:
+    """Whether a render whose ``--bvh`` is ``choice`` builds the fast (Morton) BVH for a store
+    of ``n_triangles`` triangles.
+
+    Raises
+    ------
+    ValueError
+        ``choice`` is not one of :data:`CHOICES`.
+    """
+    if choice not in CHOICES:
+        raise ValueError(f"--bvh must be one of {', '.join(CHOICES)}, not {choice!r}")
+    if choice == "auto":
+        return n_triangles >= FAST_TRIANGLES
+    return choice == "fast"
+
+
+def describe(choice: str, n_triangles: int) -> str:
+    """The BVH a render builds, in words, for its report (e.g. ``fast (auto: 30.3 M
+    triangles)``)."""
+    name = "fast" if fast_builds(choice, n_triangles) else "quality"
+    return f"{name} (auto: {n_triangles / 1e6:.1f} M triangles)" if choice == "auto" else name
