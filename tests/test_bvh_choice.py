@@ -8,6 +8,7 @@ import threading
 
 import numpy as np
 import pytest
+from test_build_quality import rays
 
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
@@ -20,7 +21,6 @@ from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW, binding
 from vastray.scene.footprint import resident_bytes
 
 from scenes import bumpy_scene, camera_config, settings, terrain_scene, write_store
-from test_build_quality import rays
 
 needs_binding = pytest.mark.skipif(binding() is None, reason="the compiled Embree binding is "
                                                              "unavailable (embreex fallback)")
