@@ -13,13 +13,10 @@ import pytest
 
 from vastray.preflight import (
     BASE_BYTES,
-    HIT_SHARE_MARGIN,
     LIMIT_BASE_MARGIN,
     MEMORY_HEADROOM,
-    PATH_BYTES,
     MemoryEstimate,
     cache_within,
-    camera_hit_share,
     check_memory,
     crossings_from_surface,
     estimate_memory,
@@ -123,36 +120,6 @@ def test_a_finer_store_makes_spec_ooc_hold_more_copies_of_each_shadow_ray():
     assert speculative_copies(3.2, 4) == 4.0
     plain = estimate_memory(256, 256, 262144, 17)
     assert estimate_memory(256, 256, 262144, 17, copies=4.0).paths > 1.5 * plain.paths
-
-
-def test_paths_that_miss_hold_no_shadow_rays():
-    every = estimate_memory(256, 256, 100_000, 17, copies=2.0)
-    third = estimate_memory(256, 256, 100_000, 17, copies=2.0, hit_share=1 / 3)
-    assert every.paths - 100_000 * PATH_BYTES == pytest.approx(
-        3 * (third.paths - 100_000 * PATH_BYTES), rel=1e-3)  # (whole bytes per path)
-    assert estimate_memory(256, 256, 100_000, 17, hit_share=0.0).paths == 100_000 * PATH_BYTES
-
-
-@pytest.mark.parametrize("distance", [1.0, 3.0])
-def test_the_hit_share_bounds_the_camera_rays_that_hit(tmp_path, distance):
-    """``camera_hit_share`` is at least the share of pixels whose camera ray hits (it counts
-    the rays crossing an occupied cell of some domain, on a grid of pixels, plus a margin),
-    and not far above it: the surface seen from near fills most of the image, from afar a
-    small part."""
-    from vastray.actors.render_setup import RenderSetup
-    from vastray.render.driver import render
-
-    from scenes import bumpy_scene, camera_config, settings, write_store
-
-    store = write_store(tmp_path / "kd8", bumpy_scene(), kd=8)
-    config = camera_config([3.0 * distance, 2.2 * distance, 4.5 * distance], [0.0, -0.5, 0.0])
-    st = settings(width=64, height=48, spp=1, integrator="ao", shadow_samples=1)
-    setup = RenderSetup.of(store, config, st)
-    share = camera_hit_share(setup.geometry, setup.camera, st.seed)
-    depth = render(store, config, st, progress=False).film.depth
-    hit = float(np.isfinite(depth).mean())
-    assert 0.0 < hit < 1.0
-    assert hit <= share <= min(1.0, hit + HIT_SHARE_MARGIN + 0.25), (hit, share)
 
 
 def test_a_refused_limit_names_the_smallest_that_fits_and_that_one_is_accepted():

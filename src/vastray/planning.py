@@ -20,7 +20,6 @@ from vastray.preflight import (
     MemoryEstimate,
     RenderMemory,
     cache_within,
-    camera_hit_share,
     check_limit_fits_machine,
     check_memory,
     check_owned_fit,
@@ -32,7 +31,7 @@ from vastray.preflight import (
     speculative_copies,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
-from vastray.render.driver import FrameCache, RenderResult, render, store_camera
+from vastray.render.driver import FrameCache, RenderResult, render
 from vastray.render.imageio import image_error, read_image
 from vastray.render.integrators import RenderSettings
 from vastray.render.lights import shadow_rays
@@ -55,7 +54,6 @@ from vastray.scene.cpus import available_cpus
 from vastray.scene.errors import InputError
 from vastray.scene.extent import check_extent
 from vastray.scene.store import Store
-from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.registry import Option, Runtime, resolve, spec
 from vastray.transport.keys import load_coordinator_keys
 
@@ -324,27 +322,13 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             crossings_from_surface(lo, hi, [d.n_triangles for d in store.domains]),
             request.bounces + 1 if request.integrator == "pt" else 1)
 
-    @functools.cache
-    def hits() -> float:
-        """The share of paths that may hit anything, where it sets the domain cache (with
-        --memory-limit; else every path is taken to hit, and nothing is traced to know)."""
-        if request.memory_limit is None:
-            return 1.0
-        camera = store_camera(config, store, request.width, request.height)
-        lo, hi = store.domain_boxes()
-        nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
-        geometry = DomainGeometry(lo, hi, nonempty, float(np.abs(camera.position).max()),
-                                  store.occupancy())
-        return camera_hit_share(geometry, camera, request.seed)
-
     def process(cache: int | None) -> MemoryEstimate:
         """One rendering process (a node with --nodes), its domains left out."""
         if request.nodes:
             tile = request.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
             return estimate_memory(request.width, request.height, min(tile, total), rays_per_hit,
                                    role="node",
-                                   copies=copies() if spec(scheduler).tile_copies else 0.0,
-                                   hit_share=hits())
+                                   copies=copies() if spec(scheduler).tile_copies else 0.0)
         all_fit = cache is None or cache >= len(footprints)
         if spec(scheduler).runtime is Runtime.IN_CORE and (all_fit or not resolved_later):
             in_flight = reference_paths_in_flight(total, request.batch_size or DEFAULT_BATCH_SIZE,
@@ -353,10 +337,9 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             in_flight = min(request.max_samples_in_flight or DEFAULT_SAMPLES_IN_FLIGHT, total)
             if spec(resolve(request.scheduler, fits=False)).tile_copies:
                 return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
-                                       reference=reference, copies=copies(),
-                                       hit_share=hits())
+                                       reference=reference, copies=copies())
         return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
-                               reference=reference, hit_share=hits())
+                               reference=reference)
 
     if request.memory_limit is not None:
         if not request.listen:  # the processes it bounds run here

@@ -103,13 +103,6 @@ SPECULATIVE_COPY_BYTES = 16
 #: ``PATH_BYTES`` and ``SHADOW_RAY_BYTES`` already hold.
 SPECULATION_FREE_CROSSINGS = 2.2
 
-#: Camera rays sampled (on a regular grid of pixels) to bound the share of paths that hit.
-HIT_SAMPLE_RAYS = 16_384
-
-#: Added to the sampled share of camera rays that may hit: pixels between the samples may
-#: meet geometry the samples miss.
-HIT_SHARE_MARGIN = 0.05
-
 #: Share of ``MemAvailable`` a render may plan to use: the rest is left to the rest of the
 #: machine (other processes, the page cache the domains are read through) and to the
 #: estimate's own error (bench/memory.py: estimate / measured within 0.8-1.5).
@@ -165,8 +158,7 @@ class RenderMemory:
 
 def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_per_hit: int,
                     role: str = "render", reference: bool = False,
-                    domains: int = 0, copies: float = 0.0,
-                    hit_share: float = 1.0) -> MemoryEstimate:
+                    domains: int = 0, copies: float = 0.0) -> MemoryEstimate:
     """The peak memory of one process of a render.
 
     Parameters
@@ -179,9 +171,6 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
     reference : ``--reference`` is read and compared against (where the outputs are made).
     domains : bytes of the domains this process holds at once (``domain_footprints``).
     copies : spec-ooc's extra copies of each shadow ray per path (``speculative_copies``).
-    hit_share : the share of paths whose camera ray may hit anything (``camera_hit_share``):
-        a path that misses at once spawns no shadow ray (default 1: every path hits, as
-        where ``PATH_BYTES`` and ``SHADOW_RAY_BYTES`` were measured).
     """
     pixels = int(width) * int(height)
     if role == "coordinator":
@@ -194,8 +183,8 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
         raise ValueError(f"unknown role {role!r}")
     per_pixel = (NODE_BYTES_PER_PIXEL if role == "node"
                  else OUTPUT_BYTES_PER_PIXEL + REFERENCE_BYTES_PER_PIXEL * reference)
-    per_path = int(PATH_BYTES + min(max(hit_share, 0.0), 1.0) * shadow_rays_per_hit
-                   * (SHADOW_RAY_BYTES + copies * SPECULATIVE_COPY_BYTES))
+    per_path = int(PATH_BYTES + shadow_rays_per_hit * (SHADOW_RAY_BYTES
+                                                       + copies * SPECULATIVE_COPY_BYTES))
     return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL,
                           paths=int(paths_in_flight) * per_path,
                           outputs=pixels * per_pixel, base=BASE_BYTES, domains=int(domains))
@@ -225,32 +214,6 @@ def crossings_from_surface(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray,
     ray = geometry.crossings(origin.astype(np.float32), direction.astype(np.float32),
                              np.full(rays, np.inf, np.float32))[0]
     return max(1.0, len(ray) / rays)
-
-
-def camera_hit_share(geometry, camera, seed: int = 0) -> float:
-    """An upper estimate of the share of camera rays that hit anything: the share of a
-    regular grid of about ``HIT_SAMPLE_RAYS`` pixels' rays that cross an occupied cell of some
-    domain (a ray that hits must: ``schedule.geometry.DomainGeometry.next_domain``), plus
-    ``HIT_SHARE_MARGIN``, at most 1. A scan seen whole from afar leaves most pixels empty: at
-    1024x1024 on README's 100 M-triangle ``rm`` store a third of the camera rays hit.
-
-    Parameters
-    ----------
-    geometry : the store's ``DomainGeometry`` (boxes and occupancy masks).
-    camera : the render's ``Camera`` (its width and height are the image's).
-    seed : the render's seed (the rays' jitter).
-    """
-    width, height = int(camera.width), int(camera.height)
-    stride = max(1, int(math.sqrt(width * height / HIT_SAMPLE_RAYS)))
-    rows, cols = np.mgrid[stride // 2:height:stride, stride // 2:width:stride]
-    pixel = (rows * width + cols).ravel()
-    if not len(pixel):
-        return 1.0
-    origin, direction = camera.generate32(pixel, np.zeros_like(pixel), seed)
-    n = len(pixel)
-    domain, _ = geometry.next_domain(origin, direction, np.full(n, -np.inf, np.float32),
-                                     np.full(n, -1, np.int32), np.full(n, np.inf, np.float32))
-    return min(1.0, float((domain >= 0).mean()) + HIT_SHARE_MARGIN)
 
 
 def speculative_copies(crossings: float, vertices: int) -> float:
