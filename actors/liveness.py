@@ -10,6 +10,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+#: A node that is not waiting for others and, by the CPU time its heartbeats give, uses less
+#: than this share of one core is not working: its render thread hangs while its event loop
+#: still beats (a heartbeat costs about a millisecond a second).
+HUNG_CPU_SHARE = 0.05
+
 #: A silent process on this machine that still uses CPU is given this many silence limits
 #: before it counts as lost (a node judging its coordinator, the coordinator its nodes).
 BUSY_GRACE = 10

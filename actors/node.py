@@ -227,8 +227,11 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     async def heartbeat() -> None:
         while True:
             await asyncio.sleep(protocol.HEARTBEAT_S)
+            # cpu_s: the process's CPU time, so the coordinator can tell a node whose render
+            # thread hangs (no CPU) while this loop still beats from one that works
             await management.to_coordinator(encode(protocol.HEARTBEAT, {}, {
-                "rank": rank, "waiting_s": management.waiting_s()}))
+                "rank": rank, "waiting_s": management.waiting_s(),
+                "cpu_s": round(time.process_time(), 3)}))
 
     beating = asyncio.ensure_future(heartbeat())
     tree = TreeReduceActor(management, rank, size)

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from vastray.actors import protocol
-from vastray.actors.liveness import BUSY_GRACE, CpuWitness
+from vastray.actors.liveness import BUSY_GRACE, HUNG_CPU_SHARE, CpuWitness
 from vastray.actors.node_failure import NodeFailure, NodeLost, exit_cause
 from vastray.transport.codec import CodecError, decode
 
@@ -26,6 +26,12 @@ def _hello(body: list):
     except CodecError:
         return None
     return message if message.kind == protocol.HELLO else None
+
+
+def _number(value) -> bool:
+    """Whether a message's meta value is a finite number (not a bool)."""
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and value == value and abs(value) != float("inf"))
 
 
 class Watch:
@@ -64,6 +70,9 @@ class Watch:
         self.last_check = self.started
         #: whether a silent node started here still uses CPU (windows of half a timeout)
         self._cpu = CpuWitness(self.heartbeat_timeout / 2)
+        #: rank -> (when, its CPU seconds then) since which a node that heartbeats, and is not
+        #: waiting for others, has used under HUNG_CPU_SHARE of a core: a hung render thread
+        self._idle_since: dict[int, tuple[float, float]] = {}
 
     def joined(self, rank: int, identity: bytes, hello: dict | None = None) -> None:
         self.ranks_joined.add(rank)
@@ -76,6 +85,25 @@ class Watch:
         """Every node has its job: from now on each must heartbeat."""
         self.job_sent = True
         self.last_heard = [time.monotonic()] * self.size
+        self._idle_since.clear()
+
+    def beat(self, rank: int, waiting: float, cpu: float | None) -> None:
+        """A heartbeat of node ``rank``: how long it has waited for others (``waiting_s``)
+        and its process's CPU seconds (``cpu_s``; None from a node that does not say). The
+        node counts as working while it waits, or while its CPU time grows by at least
+        ``HUNG_CPU_SHARE`` of the time since it last did."""
+        now = time.monotonic()
+        self.waiting[rank] = (waiting, now)
+        since = self._idle_since.get(rank)
+        if (cpu is None or waiting > 0 or since is None
+                or cpu - since[1] >= HUNG_CPU_SHARE * (now - since[0])):
+            self._idle_since[rank] = (now, cpu if cpu is not None else 0.0)
+
+    def _hung(self, rank: int, now: float) -> bool:
+        """Whether node ``rank`` heartbeats but has used almost no CPU, without waiting for
+        others, for longer than the node timeout."""
+        since = self._idle_since.get(rank)
+        return since is not None and now - since[0] > self.timeout
 
     def heard(self, rank: int) -> None:
         self.last_heard[rank] = time.monotonic()
@@ -177,6 +205,12 @@ class Watch:
             how = "stalled" if rank < len(self.procs) else "stalled or gone"
             raise self._failure(rank, f"sent nothing for {self.heartbeat_timeout:.0f} s "
                                       f"({how})", NodeLost, cause="stalled")
+        hung = [r for r in self.ranks_joined if self.job_sent and self._hung(r, now)]
+        if hung:
+            rank = min(hung, key=lambda r: self._idle_since[r][0])
+            raise self._failure(rank, f"used almost no CPU for {self.timeout:.0f} s with its "
+                                      "share unfinished, though its heartbeats came (hung: "
+                                      "its render thread stuck)", NodeLost, cause="stalled")
         if judge_silence and self.job_sent and self.ranks_joined and all(
                 self._waited(r, now) > self.timeout for r in range(self.size)):
             raise NodeFailure(
@@ -249,9 +283,12 @@ class Watch:
         self.heard(rank)
         self.kinds[message.kind] = self.kinds.get(message.kind, 0) + 1
         if message.kind == protocol.HEARTBEAT:
-            waiting = message.meta.get("waiting_s", 0.0)
-            if isinstance(waiting, (int, float)) and not isinstance(waiting, bool):
-                self.waiting[rank] = (max(0.0, float(waiting)), time.monotonic())
+            waiting, cpu = message.meta.get("waiting_s", 0.0), message.meta.get("cpu_s")
+            if not _number(waiting):
+                waiting = 0.0
+            self.beat(rank, max(0.0, float(waiting)), float(cpu) if _number(cpu) else None)
+        else:  # a node's film, progress or done: it works
+            self._idle_since.pop(rank, None)
         return identity, message
 
     async def wait_exit(self, grace: float = 15.0) -> None:

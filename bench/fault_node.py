@@ -1,8 +1,8 @@
 """`vastray node` with faults injected, for ``bench/faults.py`` and the node-loss tests only.
 
-    python bench/fault_node.py [--peer-endpoint tcp://HOST:PORT] [--slow-drop S] -- NODE-ARGS
+    python bench/fault_node.py [--peer-endpoint tcp://HOST:PORT] [--slow-drop S] [--hang-trace] -- NODE-ARGS
 
-runs ``vastray.actors.node.main(NODE-ARGS)`` after replacing two of the node's functions:
+runs ``vastray.actors.node.main(NODE-ARGS)`` after replacing some of the node's functions:
 
 - ``--peer-endpoint``: the node tells its peers to send to this endpoint instead of its own,
   where a ``fault_proxy.PeerProxy`` that delays or drops messages forwards them to the node's
@@ -10,6 +10,9 @@ runs ``vastray.actors.node.main(NODE-ARGS)`` after replacing two of the node's f
 - ``--slow-drop S``: dropping a job when the coordinator calls a regroup takes S seconds more
   (a long trace or load still running); the coordinator is silent meanwhile, and the node must
   not take that silence for its loss.
+- ``--hang-trace``: the first trace of a domain's rays off the event loop's thread blocks for
+  ever (a native call that never returns, a deadlock), while the event loop goes on beating:
+  the coordinator must find the node hung by its CPU time, not by silence.
 
 The production node reads no fault hooks: a stray environment variable cannot redirect its
 peer traffic. Faults exist only in a process started through this launcher.
@@ -30,8 +33,23 @@ log = logging.getLogger("fault_node")
 LAUNCHER = __file__
 
 
-def install_faults(peer_endpoint: str | None = None, slow_drop_s: float = 0.0) -> None:
+def install_faults(peer_endpoint: str | None = None, slow_drop_s: float = 0.0,
+                   hang_trace: bool = False) -> None:
     """Replace the node functions the faults act through (see the module's docstring)."""
+    if hang_trace:
+        import threading
+
+        from vastray.actors import domain_loop
+
+        trace = domain_loop.ScheduleOrder.trace
+
+        def hung_trace(self, domain: int, bvh):
+            if threading.current_thread() is not threading.main_thread():
+                log.warning("fault injection: the trace of domain %d never returns", domain)
+                threading.Event().wait()
+            return trace(self, domain, bvh)
+
+        domain_loop.ScheduleOrder.trace = hung_trace
     if peer_endpoint is not None:
         def proxied_endpoint(management) -> str:
             log.warning("fault injection: peers are told to send to %s, not here",
@@ -51,9 +69,9 @@ def install_faults(peer_endpoint: str | None = None, slow_drop_s: float = 0.0) -
 
 
 def command(node_args: list[str], peer_endpoint: str | None = None,
-            slow_drop_s: float = 0.0) -> list[str]:
+            slow_drop_s: float = 0.0, hang_trace: bool = False) -> list[str]:
     """The command line that starts a node with these faults (for ``subprocess``)."""
-    faults = []
+    faults = ["--hang-trace"] if hang_trace else []
     if peer_endpoint is not None:
         faults += ["--peer-endpoint", peer_endpoint]
     if slow_drop_s > 0:
@@ -68,11 +86,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="endpoint the node tells its peers to send to (a proxy's)")
     parser.add_argument("--slow-drop", type=float, default=0.0, metavar="S",
                         help="seconds more that dropping a regrouped job takes")
+    parser.add_argument("--hang-trace", action="store_true",
+                        help="the first trace off the event loop's thread never returns")
     parser.add_argument("node_args", nargs=argparse.REMAINDER,
                         help="-- then the arguments of `vastray node`")
     args = parser.parse_args(argv)
     node_args = args.node_args[1:] if args.node_args[:1] == ["--"] else args.node_args
-    install_faults(args.peer_endpoint, args.slow_drop)
+    install_faults(args.peer_endpoint, args.slow_drop, args.hang_trace)
     return node.main(node_args)
 
 

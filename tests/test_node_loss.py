@@ -169,6 +169,41 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
         assert (f"dropping the job takes {slow_drop:.1f} s more" in text) == slow, text
 
 
+def test_a_node_whose_render_thread_hangs_is_lost_though_it_heartbeats(scene, tmp_path):
+    """A node's render thread blocks for ever (``bench/fault_node.py --hang-trace``) while its
+    event loop keeps beating: silence never comes, but its CPU time stops growing, and after
+    the node timeout the coordinator takes it for lost; the survivors render the frame, the
+    fault-free one bit for bit."""
+    store, toml = scene
+    st = settings(width=32, height=24, spp=16, integrator="pt")
+    port = free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs[:2])
+    node_args = ["--coordinator", f"tcp://127.0.0.1:{port}", "--timeout", "60"]
+    with open(logs[2], "wb") as err:
+        nodes.append(subprocess.Popen([sys.executable, str(FAULT_NODE), "--hang-trace", "--",
+                                       *node_args], stdout=subprocess.DEVNULL, stderr=err,
+                                      stdin=subprocess.DEVNULL))
+    start = time.monotonic()
+    try:
+        result = render_distributed(store.path, toml, st, 3,
+                                    options=JobOptions(scheduler="image",
+                                                       max_samples_in_flight=300),
+                                    listen=f"127.0.0.1:{port}", timeout=8, heartbeat_timeout=3.0)
+    finally:
+        nodes[2].kill()  # its render thread never returns: it cannot exit on its own
+        _reap(nodes)
+    assert time.monotonic() - start > 8.0  # the node timeout passed before it was lost
+    assert "the trace of domain" in logs[2].read_text()  # the fault struck
+    (failure,) = result.counters["node_failures"]
+    assert re.search(r"used almost no CPU for 8 s .*\(hung", failure), failure
+    assert result.counters["recoveries"][0]["cause"] == "stalled"
+    assert result.counters["nodes"] == 2
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    np.testing.assert_array_equal(result.film.image(), reference.image())
+    np.testing.assert_array_equal(result.film.count, reference.count)
+
+
 def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp_path):
     # survive_node_loss=False: no regroup is called; the run fails naming the node, and the
     # others, hearing nothing more from the coordinator, exit on their own.
