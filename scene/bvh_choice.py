@@ -3,7 +3,8 @@ that builds fastest.
 
 Embree's default build (SAH, ``RTC_BUILD_QUALITY_MEDIUM``) gives the BVH that traces fastest;
 its Morton builder (the mesh's build quality ``LOW``) builds the same domain about 3x faster
-and traces 5-25 % slower. Which wins depends on how many rays each loaded triangle serves:
+and traces 5-30 % slower (28 % on random rays, about 5 % in ``bench/ooc.py --large``'s
+renders). Which wins depends on how many rays each loaded triangle serves:
 a large store is rendered out of core, where a domain is loaded again after every eviction
 (2.7 loads a domain at a 25 % cache in ``bench/ooc.py --large``) and each repeated load
 serves a few dozen rays, so its builds, not its traces, are the render's time.

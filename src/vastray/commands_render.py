@@ -94,7 +94,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bvh", **argument("bvh"),
                    help="the BVH Embree builds for each domain: 'quality' (Embree's default "
                         "build: the fastest to trace), 'fast' (Embree's Morton builder: about "
-                        "3x faster to build, 5-25%% slower to trace; for data loaded more than "
+                        "3x faster to build, 5-30%% slower to trace; for data loaded more than "
                         "once, out of core) or 'auto' (default: fast for stores of "
                         f"{FAST_TRIANGLES // 1_000_000} M triangles or more). The two find "
                         "another hit for a few rays passing within rounding of a vertex, so "
