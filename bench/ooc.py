@@ -91,7 +91,7 @@ QUICK = {
     "caches": (0.25,), "integrators": ("pt", "ao"), "storage": ("cold",),
 }
 #: SpRay's regime at this machine's scale: 30.3 M triangles in 72 domains of 65 k-822 k,
-#: whose loads (cold reads, BVH builds) cost 5-8x the rendering they enable; PT only.
+#: whose loads (cold reads, BVH builds) cost 2-8x the rendering they enable; PT only.
 #: To keep within its 30 minutes (issue 40) the paper-faithful pair runs once a cell and with
 #: cold reads only (SpRay's comparison, not the headline), and passes are compared in one
 #: process only (the 2-node comparison is ``--quick``'s and the full run's).
