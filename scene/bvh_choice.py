@@ -51,4 +51,5 @@ def describe(choice: str, n_triangles: int) -> str:
     """The BVH a render builds, in words, for its report (e.g. ``fast (auto: 30.3 M
     triangles)``)."""
     name = "fast" if fast_builds(choice, n_triangles) else "quality"
-    return f"{name} (auto: {n_triangles / 1e6:.1f} M triangles)" if choice == "auto" else name
+    count = f"{n_triangles / 1e6:.1f} M" if n_triangles >= 1_000_000 else f"{n_triangles:,}"
+    return f"{name} (auto: {count} triangles)" if choice == "auto" else name

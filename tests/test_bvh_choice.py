@@ -32,6 +32,7 @@ def test_auto_builds_fast_for_large_stores_only():
     assert fast_builds("fast", 10) and not fast_builds("quality", 10 * FAST_TRIANGLES)
     assert describe("auto", 30_300_000) == "fast (auto: 30.3 M triangles)"
     assert describe("quality", 30_300_000) == "quality"
+    assert describe("auto", 5_204) == "quality (auto: 5,204 triangles)"
     with pytest.raises(ValueError, match="--bvh must be one of auto, fast, quality"):
         fast_builds("morton", 10)
 
