@@ -23,7 +23,7 @@ from vastray.render.driver import render
 from vastray.render.film import Film
 from vastray.render.imageio import read_image
 from vastray.render.progressive import Progression, StopRules, pass_bounds
-from vastray.render.scene_config import load_scene_config
+from vastray.render.scene_config import SceneConfig, load_scene_config
 
 from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
 
@@ -296,6 +296,36 @@ def test_resume_refuses_a_checkpoint_of_another_render(scene, tmp_path):
     assert main(["render", *common, "-o", str(tmp_path / "c.exr"), "--resume",
                  str(tmp_path / "junk.npz")]) != 0
     assert not (tmp_path / "c.exr").exists()
+
+
+def test_a_checkpoint_resumes_only_under_the_bvh_it_was_rendered_with(scene, tmp_path):
+    """The BVH ``--bvh`` resolves to is part of a checkpoint's identity (``auto`` and the
+    choice it makes are the same render); one written before ``--bvh`` existed was rendered
+    with Embree's default BVH."""
+    from vastray.checkpoint import read_checkpoint, render_identity, write_checkpoint
+    from vastray.render.integrators import RenderSettings
+    from vastray.scene.errors import InputError
+
+    store, _ = scene
+    progression = Progression(24, 16, StopRules(4))
+    progression.next_pass()
+    progression.add_pass(0, Film(24, 16))
+
+    def identity(bvh: str) -> dict:
+        return render_identity(store, SceneConfig(), None, RenderSettings(24, 16, bvh=bvh), 16)
+
+    fast = tmp_path / "fast.npz"
+    write_checkpoint(fast, progression, identity("fast"))
+    read_checkpoint(fast, identity("fast"))
+    with pytest.raises(InputError, match="rendered with the fast BVH, this render builds the "
+                                         "quality one; resume with --bvh fast"):
+        read_checkpoint(fast, identity("auto"))  # (a small store: auto is quality)
+    old = tmp_path / "old.npz"
+    write_checkpoint(old, progression, {k: v for k, v in identity("auto").items() if k != "bvh"})
+    read_checkpoint(old, identity("quality"))
+    read_checkpoint(old, identity("auto"))
+    with pytest.raises(InputError, match="resume with --bvh quality"):
+        read_checkpoint(old, identity("fast"))
 
 
 def test_plot_draws_real_reports(scene, tmp_path, capsys):

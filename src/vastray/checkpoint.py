@@ -37,6 +37,7 @@ from vastray.outputs import STORAGE_ERRNOS, OutputError, rescue_folders
 from vastray.render.film import Film
 from vastray.render.imageio import atomic_path, remove_orphans
 from vastray.render.progressive import Progression, Snapshot
+from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.errors import InputError
 from vastray.scene.manifest import NPY_HEADERS
 
@@ -53,8 +54,9 @@ _DIGEST = 64  # hexadecimal characters
 FILM_ARRAYS = ("sum", "batch", "count", "depth", "normal")
 
 #: Settings that do not change the image: the spp bound (a resume may go further), the
-#: pass window and the in-core batch size.
-_FREE_SETTINGS = ("spp", "sample_start", "sample_stop", "batch_size")
+#: pass window and the in-core batch size; and ``--bvh`` as given, since the BVH it resolves
+#: to is what counts (the identity's ``bvh``: ``auto`` and the choice it makes are the same).
+_FREE_SETTINGS = ("spp", "sample_start", "sample_stop", "batch_size", "bvh")
 
 
 def default_path(output: str | Path) -> Path:
@@ -68,9 +70,10 @@ def render_identity(store, config, camera, settings, max_pass_spp: int) -> dict:
     digest = hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.exists() else None
     scene = hashlib.sha256((config.text or "").encode()).hexdigest()
     cam = hashlib.sha256(repr(camera).encode()).hexdigest()
+    bvh = "fast" if fast_builds(settings.bvh, store.n_triangles) else "quality"
     return {"store_manifest_sha256": digest, "scene_sha256": scene, "camera_sha256": cam,
             "settings": {k: v for k, v in asdict(settings).items() if k not in _FREE_SETTINGS},
-            "max_pass_spp": max_pass_spp}
+            "max_pass_spp": max_pass_spp, "bvh": bvh}
 
 
 def write_checkpoint(path: str | Path, progression: Progression, identity: dict) -> Snapshot:
@@ -240,6 +243,11 @@ def _check_identity(path: Path, saved: dict, current: dict) -> None:
         if saved.get(key) != current.get(key):
             raise InputError(path, f"was written for another render: {what} differs; resume "
                                    "with the store, scene and options of the run that wrote it")
+    # (a checkpoint written before --bvh was rendered with Embree's default BVH)
+    if saved.get("bvh", "quality") != current.get("bvh", "quality"):
+        raise InputError(path, f"was rendered with the {saved.get('bvh', 'quality')} BVH, this "
+                               f"render builds the {current.get('bvh', 'quality')} one; resume "
+                               f"with --bvh {saved.get('bvh', 'quality')}")
     theirs, ours = saved.get("settings") or {}, current["settings"]
     for key in ours:
         if theirs.get(key) != ours[key]:
