@@ -193,12 +193,12 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         raise ValueError(f"unknown integrator {settings.integrator!r}")
     start = time.perf_counter()
     shading, keep, color_source = shading_inputs(store, config, settings.integrator)
+    fast = fast_builds(settings.bvh, store.n_triangles)
     if cache is None:
         capacity = cache_capacity or max(len(store.domains), 1)
         cache = DomainCache(store, capacity, keep, drop_page_cache=drop_page_cache,
-                            load_bandwidth=load_bandwidth,
-                            fast_builds=fast_builds(settings.bvh, store.n_triangles))
-    elif cache.fast_builds != fast_builds(settings.bvh, store.n_triangles):
+                            load_bandwidth=load_bandwidth, fast_builds=fast)
+    elif cache.fast_builds != fast:
         raise ValueError(f"the cache builds the {'fast' if cache.fast_builds else 'quality'} "
                          f"BVH; these settings ask for --bvh {settings.bvh}")
     capacity = cache.capacity

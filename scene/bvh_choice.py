@@ -31,9 +31,9 @@ CHOICES = ("auto", "fast", "quality")
 FAST_TRIANGLES = 8_000_000
 
 
-def fast_builds(choice: str, n_triangles: int) -> bool:
-    """Whether a render whose ``--bvh`` is ``choice`` builds the fast (Morton) BVH for a store
-    of ``n_triangles`` triangles.
+def resolve(choice: str, n_triangles: int) -> str:
+    """The BVH (``"fast"`` or ``"quality"``) a render whose ``--bvh`` is ``choice`` builds for a
+    store of ``n_triangles`` triangles.
 
     Raises
     ------
@@ -43,13 +43,18 @@ def fast_builds(choice: str, n_triangles: int) -> bool:
     if choice not in CHOICES:
         raise ValueError(f"--bvh must be one of {', '.join(CHOICES)}, not {choice!r}")
     if choice == "auto":
-        return n_triangles >= FAST_TRIANGLES
-    return choice == "fast"
+        return "fast" if n_triangles >= FAST_TRIANGLES else "quality"
+    return choice
+
+
+def fast_builds(choice: str, n_triangles: int) -> bool:
+    """Whether ``resolve(choice, n_triangles)`` is the fast (Morton) BVH."""
+    return resolve(choice, n_triangles) == "fast"
 
 
 def describe(choice: str, n_triangles: int) -> str:
     """The BVH a render builds, in words, for its report (e.g. ``fast (auto: 30.3 M
     triangles)``)."""
-    name = "fast" if fast_builds(choice, n_triangles) else "quality"
+    name = resolve(choice, n_triangles)
     count = f"{n_triangles / 1e6:.1f} M" if n_triangles >= 1_000_000 else f"{n_triangles:,}"
     return f"{name} (auto: {count} triangles)" if choice == "auto" else name

@@ -101,7 +101,6 @@ class DomainCache:
         # cache choosing it for itself would break the out-of-core image's equality with the
         # in-core one (scene.bvh_choice).
         self.fast_builds = fast_builds
-        self.mesh_quality = RTC_BUILD_QUALITY_LOW if fast_builds else None
         self.build_quality = (RTC_BUILD_QUALITY_LOW if capacity < len(store.domains)
                               or fast_builds else None)
         self.stats = CacheStats()
@@ -111,6 +110,11 @@ class DomainCache:
         self._lock = threading.RLock()
         self._pending: dict[int, Future] = {}
         self._preloader: ThreadPoolExecutor | None = None
+
+    @property
+    def mesh_quality(self) -> int | None:
+        """The mesh's build quality of every domain built here (LOW: the fast BVH)."""
+        return RTC_BUILD_QUALITY_LOW if self.fast_builds else None
 
     def count_afresh(self) -> None:
         """Start the counters again (a new frame): the resident domains stay, so a domain

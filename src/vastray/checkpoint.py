@@ -37,7 +37,7 @@ from vastray.outputs import STORAGE_ERRNOS, OutputError, rescue_folders
 from vastray.render.film import Film
 from vastray.render.imageio import atomic_path, remove_orphans
 from vastray.render.progressive import Progression, Snapshot
-from vastray.scene.bvh_choice import fast_builds
+from vastray.scene.bvh_choice import resolve as resolve_bvh
 from vastray.scene.errors import InputError
 from vastray.scene.manifest import NPY_HEADERS
 
@@ -70,10 +70,9 @@ def render_identity(store, config, camera, settings, max_pass_spp: int) -> dict:
     digest = hashlib.sha256(manifest.read_bytes()).hexdigest() if manifest.exists() else None
     scene = hashlib.sha256((config.text or "").encode()).hexdigest()
     cam = hashlib.sha256(repr(camera).encode()).hexdigest()
-    bvh = "fast" if fast_builds(settings.bvh, store.n_triangles) else "quality"
     return {"store_manifest_sha256": digest, "scene_sha256": scene, "camera_sha256": cam,
             "settings": {k: v for k, v in asdict(settings).items() if k not in _FREE_SETTINGS},
-            "max_pass_spp": max_pass_spp, "bvh": bvh}
+            "max_pass_spp": max_pass_spp, "bvh": resolve_bvh(settings.bvh, store.n_triangles)}
 
 
 def write_checkpoint(path: str | Path, progression: Progression, identity: dict) -> Snapshot:
