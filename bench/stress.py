@@ -4,9 +4,11 @@ that is not the reference's is a failure (issue 20).
 Every render is a separate ``vastray render`` process, as a user runs it, on a small generated
 store: single-process renders in core (1-3 threads, several render workers side by side), out of
 core with caches that force evictions (``image``, ``spec-ooc``) and an in-core animation (every
-domain closed and reloaded each frame), then distributed renders on 2-3 nodes with every
-scheduler (``async`` in three runs of five: it must be bit-identical run to run). Meanwhile a hog of busy
-processes (4 per core by default) keeps the machine loaded, which widens races.
+domain closed and reloaded each frame), out of core and on nodes with Embree's fast BVH
+(``--bvh fast``, against a reference built with it), then distributed renders on 2-3 nodes with
+every scheduler (``async`` in three runs of five: it must be bit-identical run to run).
+Meanwhile a hog of busy processes (4 per core by default) keeps the machine loaded, which
+widens races.
 
 Each run is compared, bit for bit, with the reference render (``--threads 1``, no hog): every
 lossless schedule gives the same image. A run counts as a native crash when its process, or one
@@ -67,6 +69,7 @@ LOCAL = [
     ["--cache", "25%", "--scheduler", "spec-ooc", "--threads", "2"],
     ["--cache", "3", "--scheduler", "spec-ooc", "--threads", "3"],
     ["--frames", str(FRAMES), "--threads", "2"],
+    ["--cache", "3", "--scheduler", "spec-ooc", "--threads", "2", "--bvh", "fast"],
 ]
 #: Distributed configurations: ``async`` (which must be bit-identical run to run) three runs in
 #: five, in these variants, cycled ...
@@ -85,6 +88,7 @@ OTHERS = [
     ["--nodes", "2", "--scheduler", "dynamic", "--cache", "4"],
     ["--nodes", "2", "--scheduler", "spec-insitu"],
     ["--nodes", "3", "--scheduler", "temporal", "--cache", "3"],
+    ["--nodes", "2", "--scheduler", "image", "--cache", "2", "--bvh", "fast"],
 ]
 
 
@@ -140,7 +144,8 @@ def run_one(k: int, options: list[str], work: Path, timeout: float) -> Outcome:
     outcome.native = code < 0 or code in (128 + 6, 128 + 11) or bool(NATIVE.search(text))
     outcome.stalled = "stalled" in text
     if code == 0:
-        reference = "ref_anim" if "--frames" in options else "ref"
+        reference = ("ref_anim" if "--frames" in options
+                     else "ref_fast" if "fast" in options else "ref")
         for got, expect in zip(frame_files(stem, options), frame_files(reference, options),
                                strict=True):
             diff = np.abs(read_image(work / got) - read_image(work / expect))
@@ -155,13 +160,16 @@ def run_one(k: int, options: list[str], work: Path, timeout: float) -> Outcome:
 
 
 def prepare(work: Path, timeout: float) -> None:
-    """A small store (18 domains) and the reference images, rendered without the hog."""
+    """A small store (18 domains) and the reference images, rendered without the hog (one with
+    Embree's fast BVH, ``--bvh fast``, for the runs that build it)."""
     (work / "orbit.toml").write_text(ORBIT)
     steps = [["generate", "rm", "-o", "s.store", "--resolution", "40", "--grid", "3x3x2",
               "--quiet"],
              ["render", "s.store", "-o", "ref.exr", *SIZE, "--threads", "1", "--quiet"],
              ["render", "s.store", "-o", "ref_anim.exr", *SIZE, "--threads", "1", "--scene",
-              "orbit.toml", "--frames", str(FRAMES), "--quiet"]]
+              "orbit.toml", "--frames", str(FRAMES), "--quiet"],
+             ["render", "s.store", "-o", "ref_fast.exr", *SIZE, "--threads", "1", "--bvh",
+              "fast", "--quiet"]]
     for step in steps:
         proc = vastray(*step, cwd=work, timeout=timeout)
         if proc.returncode != 0:
