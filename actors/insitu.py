@@ -88,8 +88,9 @@ class _InSitu:
         for depth in range(schedule.iterations()):
             self.stats["iterations"] += 1
             rad_in, shadow_in = await self._exchange(schedule, tile, depth)
+            cpu = time.thread_time()
             keys, obuf = schedule.trace_locally(rad_in, shadow_in)
-            await self.traced(*schedule.take_queries())
+            await self.traced(*schedule.take_queries(), time.thread_time() - cpu)
             # All-reduce: t-buffer MIN, o-buffer OR.
             reduced = await self.tree.allreduce(
                 {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})

@@ -70,10 +70,11 @@ class NodeState:
         """The node's side of domain decomposition, keeping this state's early batches."""
         return NodeWork(management, rank, stats, preloader, max_batch, early=self.early)
 
-    async def traced(self, radiance: dict[int, int], shadow: dict[int, int]) -> None:
+    async def traced(self, radiance: dict[int, int], shadow: dict[int, int],
+                     cpu_seconds: float = 0.0) -> None:
         """Hears of ray queries traced outside the domain loop (the in-situ iterations):
-        domain -> radiance queries, domain -> shadow queries. A real node has spent that
-        time already; the simulator charges it."""
+        domain -> radiance queries, domain -> shadow queries, and the CPU seconds the trace
+        took. A real node has spent that time already; the simulator charges it."""
 
     async def decided(self, cpu_seconds: float) -> None:
         """Hears of CPU time spent deciding outside the domain loop (the in-situ iterations'

@@ -97,7 +97,9 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
     rows = []
     print(f"\n{settings.width}x{settings.height}, {settings.spp} spp; of the simulated seconds "
           f"a node pays {costs.warmup_s + costs.node_setup_s:.3f} s once "
-          f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc)")
+          f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
+          f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
+          + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
     print("| scheduler | nodes | measured s | simulated s | error | sim image = reference |")
     print("| --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:

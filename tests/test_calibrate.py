@@ -23,7 +23,7 @@ from vastray.sim.costs import VERSION, CostModel
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
-             "latency_s", "byte_s", "warmup_s")
+             "latency_s", "byte_s", "warmup_s", "offload_s")
 VASTRAY = [sys.executable, "-m", "vastray"]  # __main__ without a main guard: spawn must cope
 
 
@@ -57,6 +57,10 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # vectorised numpy, far cheaper than tracing and shading one
     assert model.activation_s > model.trace_ray_s + model.shade_ray_s
     assert model.camera_ray_s < model.trace_ray_s + model.shade_ray_s
+    # a thread hand-off costs microseconds to a few milliseconds, not a whole activation's
+    # worth of seconds; simulating here charges traces their CPU time
+    assert 1e-6 < model.offload_s < 5e-3
+    assert model.trace_scale == 1.0 and model.decision_scale == 1.0
     # (its time, about 20 s on a quiet machine, is no test's business: 120 s on a busy one)
 
 

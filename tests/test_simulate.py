@@ -132,6 +132,39 @@ def test_trace_seconds_are_the_activation_plus_the_queries():
     assert c.message_s(1000) == c.latency_s + 1000 * c.byte_s
 
 
+def test_a_trace_is_charged_its_cpu_time_where_trace_scale_is_set_else_the_constants():
+    c = CostModel(trace_ray_s=1.0, shade_ray_s=2.0, shadow_ray_s=4.0, activation_s=100.0)
+    assert c.trace_charge(3, 5, cpu_seconds=0.25) == c.trace_s(3, 5)
+    assert dataclasses.replace(c, trace_scale=2.0).trace_charge(3, 5, cpu_seconds=0.25) == 0.5
+
+
+@pytest.mark.parametrize("scheduler", ["image", "domain", "async", "spec-insitu"])
+def test_traces_charged_at_their_cpu_time_cost_what_the_simulator_spent_tracing(
+        store, domains, scheduler):
+    """With every other cost 0, the simulated seconds are the CPU time the virtual node's
+    traces took here: more than nothing, at most the simulation's own time, and twice as
+    much at trace_scale 2 (within the scatter of two measurements)."""
+    once = sim(store, domains, scheduler, 1, dataclasses.replace(ZERO, trace_scale=1.0))
+    twice = sim(store, domains, scheduler, 1, dataclasses.replace(ZERO, trace_scale=2.0))
+    assert 0.0 < once.seconds <= once.wall_s
+    assert 1.2 < twice.seconds / once.seconds < 3.3
+
+
+@pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
+def test_a_node_runtime_pays_the_hand_off_of_each_activation_and_a_sort_first_node_not(
+        store, domains, scheduler):
+    """``offload_s`` is charged per activation where the real node's loop traces on a worker
+    thread (the domain-decomposition runtimes), not for sort-first tiles (their own thread)
+    nor in situ (traced on the event loop's thread)."""
+    result = sim(store, domains, scheduler, 1, dataclasses.replace(ZERO, offload_s=0.01),
+                 max_pass_spp=None)
+    if scheduler in NODE_SCHEDULERS and scheduler != "spec-insitu":
+        assert result.counters["activations"] > 0
+        assert result.seconds == pytest.approx(0.01 * result.counters["activations"], rel=0.02)
+    else:
+        assert result.seconds < 0.01
+
+
 @pytest.mark.parametrize("bad", [{"latency_s": -1e-6}, {"trace_ray_s": math.nan},
                                  {"byte_s": math.inf}, {"warmup_s": "1"}, {"cores": 0},
                                  {"cores": 1.5}])
@@ -236,9 +269,9 @@ def test_only_the_first_trace_of_a_node_pays_its_warm_up_and_set_up():
 
     async def main():
         cluster = Cluster(2, costs)
-        await cluster.trace(0, 0.5, node_runtime=True)
-        await cluster.trace(0, 0.5, node_runtime=True)
-        await cluster.trace(1, 0.5, node_runtime=False)
+        await cluster.trace(0, 0.5, runtime="node")
+        await cluster.trace(0, 0.5, runtime="node")
+        await cluster.trace(1, 0.5, runtime="tile")
         return cluster.compute_s
 
     compute_s, _ = run_virtual(main())
@@ -490,11 +523,13 @@ def test_a_fresh_node_pays_its_warm_up_once_and_a_warm_one_not(store, domains, s
 @pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "async", "domain", "spec-insitu"])
 def test_each_runtime_pays_its_own_set_up(store, domains, scheduler):
     base = sim(store, domains, scheduler, 1).seconds
-    node = sim(store, domains, scheduler, 1, dataclasses.replace(COSTS, node_setup_s=1.0))
-    tile = sim(store, domains, scheduler, 1, dataclasses.replace(COSTS, tile_setup_s=1.0))
-    sort_first = scheduler in TILE_SCHEDULERS
-    assert tile.seconds - base == pytest.approx(1.0 if sort_first else 0.0, abs=0.1)
-    assert node.seconds - base == pytest.approx(0.0 if sort_first else 1.0, abs=0.1)
+    paid = {name: sim(store, domains, scheduler, 1,
+                      dataclasses.replace(COSTS, **{name: 1.0})).seconds - base
+            for name in ("node_setup_s", "tile_setup_s", "insitu_setup_s")}
+    own = ("tile_setup_s" if scheduler in TILE_SCHEDULERS
+           else "insitu_setup_s" if scheduler == "spec-insitu" else "node_setup_s")
+    for name, seconds in paid.items():
+        assert seconds == pytest.approx(1.0 if name == own else 0.0, abs=0.1), name
 
 
 @pytest.mark.parametrize("scheduler", ["image", "async", "domain"])

@@ -24,13 +24,17 @@ what is measured, with the real components (nothing is mocked):
   tracing     a 64x48 path-traced tile with the `image` schedule, every domain resident:
               each activation of a domain timed and fitted as a fixed cost (one for
               activations that shade, one for shadow-only ones) plus a cost per radiance
-              query and per shadow query (shading apart, from the schedule's own clock)
+              query and per shadow query (shading apart, from the schedule's own clock);
+              simulating on this machine charges each activation the CPU time its trace
+              takes instead (trace_scale 1), and the same tile traced on a worker thread
+              gives what a node runtime pays to hand each activation over (offload_s)
   the wire    ray batches of 0 to 100,000 rays between two processes over ZeroMQ in the
               wire format nodes use, fitted as a latency plus a cost per byte
   first use   what a fresh process's first render costs beyond its second (compiled
               kernels loaded from numba's cache): what each node pays once
-  a node      real 1-node `async` and `image` renders against the simulator's predictions:
-              what a node pays once beyond that (node runtimes; sort-first nodes)
+  a node      real 1-node `async`, `image` and `spec-insitu` renders against the
+              simulator's predictions: what a node pays once beyond that (node runtimes;
+              sort-first nodes; in-situ nodes)
 The file also records the cores this process may use and what machine it ran on; run it
 on an otherwise idle machine, as another process's load is measured too.
 """
@@ -50,7 +54,10 @@ COST_LABELS = {
     "warmup_s": "once per fresh process (first use)",
     "node_setup_s": "once per node of a node runtime",
     "tile_setup_s": "once per sort-first node",
+    "insitu_setup_s": "once per in-situ node",
     "decision_scale": "per CPU second a schedule decides (measured as it simulates)",
+    "trace_scale": "per CPU second an activation traces (measured as it simulates)",
+    "offload_s": "per activation a node runtime hands to a worker thread",
 }
 
 
@@ -152,7 +159,7 @@ def costs_table(model: CostModel, path: Path, seconds: float) -> str:
                                        f"{model.cores} cores") if x)
     lines = [f"calibrated in {seconds:.1f} s on {where}:"]
     for name, label in COST_LABELS.items():
-        unit = "x" if name == "decision_scale" else "s"  # a factor, not seconds
+        unit = "x" if name.endswith("_scale") else "s"  # a factor, not seconds
         lines.append(f"  {name:<17} {getattr(model, name):10.3e} {unit}  {label}")
     lines.append(f"written to {path}")
     return "\n".join(lines)

@@ -5,13 +5,14 @@ machine it runs on, with the project's own components, never mocks.
   read a read of the disk, its pages dropped after), its read timed apart from its BVH build;
 - tracing: the ``image`` schedule (``ImageSchedule``) over one tile of path-tracing paths with
   every domain resident, each ``process`` call timed with its radiance and shadow queries,
-  and the camera rays it starts from;
+  and the camera rays it starts from; then each call handed to a worker thread as a node's
+  loop does, for what the hand-off costs (``offload_s``);
 - the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
 - fresh processes (``vastray.sim.warmup``): the first render's cost beyond the later ones,
   and the machine's throughput with 1 to 2 x cores processes rendering side by side;
-- a node's own set-up: real 1-node ``async`` and ``image`` renders against the simulator's
-  predictions of them (``vastray.sim.node_cost``).
+- a node's own set-up: real 1-node ``async``, ``image`` and ``spec-insitu`` renders against
+  the simulator's predictions of them (``vastray.sim.node_cost``).
 
 Each measurement has a time budget (``Effort``), so a run takes about as long on a large store
 as on a small one; ``quick`` has smaller budgets (a test, a first look).
@@ -19,6 +20,7 @@ as on a small one; ``quick`` has smaller budgets (a test, a first look).
 
 from __future__ import annotations
 
+import asyncio
 import datetime
 import math
 import multiprocessing
@@ -32,6 +34,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import uvloop
 import zmq
 
 from vastray.actors import protocol
@@ -158,26 +161,32 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     load_byte_s, build_triangle_s = load_costs(time_loads(store, setup.keep, effort,
                                                           report.within("loads"), cold_reads))
     report("tracing", 0.0, "tracing tiles")
-    tracing = trace_costs(time_tiles(store, setup, settings, effort, report.within("tracing")))
+    tiles, offload = time_tiles(store, setup, settings, effort, report.within("tracing"))
+    tracing = trace_costs(tiles)
     report("wire", 0.0, "ray batches between two processes")
     latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
     report("warmup", 0.0, "fresh processes, one and several at a time")
     cores = usable_cores()
     warmup_s, throughput = process_costs(str(store_path), quick, cores)
-    # decisions are charged at the CPU time the real schedule code takes where it simulates
+    # decisions and traces are charged at the CPU time the real code takes where it
+    # simulates (the constants stay for another machine's simulations, trace_scale 0)
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
         latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s, decision_scale=1.0,
+        trace_scale=1.0, offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
     report("node", 0.0, "renders on a real node")
     config, node_render = config or SceneConfig(text=""), node_settings(settings)
     repeats = 1 if quick else 3
     node_setup_s = setup_cost(store_path, model, config, node_render, "async", repeats)
-    report("node", 0.5, "renders on a real node")
+    report("node", 0.33, "renders on a real node")
     tile_setup_s = setup_cost(store_path, model, config, node_render, "image", repeats)
+    report("node", 0.67, "renders on a real node")
+    insitu_setup_s = setup_cost(store_path, model, config, node_render, "spec-insitu", repeats)
     report("node", 1.0, "done")
     return replace(
         model, node_setup_s=node_setup_s, tile_setup_s=tile_setup_s,
+        insitu_setup_s=insitu_setup_s,
         machine=machine_info(calibration={"store": str(Path(store_path)), "quick": quick,
                                           "cold_reads": cold_reads,
                                           "seconds": round(time.perf_counter() - start, 2)}))
@@ -345,7 +354,9 @@ def time_tiles(store: Store, setup: RenderSetup, settings: RenderSettings, effor
 
     Returns
     -------
-    list of TileTiming, one per timed tile.
+    tiles : list of TileTiming, one per timed tile.
+    offload : seconds each activation of two more tiles waited beyond its trace when traced
+        on a worker thread (``time_offload``).
     """
     cache = resident_cache(store, setup.keep)
     try:
@@ -355,9 +366,45 @@ def time_tiles(store: Store, setup: RenderSetup, settings: RenderSettings, effor
         while (elapsed := time.perf_counter() - start) < effort.trace_s or len(tiles) < effort.min_tiles:
             progress(elapsed / effort.trace_s, f"tracing tiles ({len(tiles)} done)")
             tiles.append(time_tile(setup, settings, cache))
+        progress(1.0, "tracing tiles on a worker thread, as nodes do")
+        offload = time_offload(setup, settings, cache)
     finally:
         cache.close()
-    return tiles
+    return tiles, offload
+
+
+def time_offload(setup: RenderSetup, settings: RenderSettings, cache: DomainCache,
+                 tiles: int = 2) -> list[float]:
+    """What a node runtime pays per activation to trace on a worker thread: ``tiles`` tiles
+    traced as the nodes' ``DomainLoop`` with ``offload`` does (each ``process`` call through
+    ``asyncio.to_thread``, on uvloop's event loop as ``vastray node`` runs), each call's
+    seconds as the event loop waited for it less the seconds it ran on the worker thread.
+
+    Returns
+    -------
+    list of float, one per call (>= 0).
+    """
+    def on_worker(policy, domain, bvh) -> float:
+        start = time.perf_counter()
+        traced_queries(policy, domain, bvh)
+        return time.perf_counter() - start
+
+    async def run() -> list[float]:
+        out = []
+        resident = cache.resident_set()
+        for _ in range(tiles):
+            ctx = path_context(setup.shading, settings, 0, settings.paths, setup.ao_distance)
+            policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
+            policy.start(camera_rays(setup.camera, ctx))
+            while (domain := policy.next_domain(resident)) is not None:
+                bvh = cache.get(domain)
+                start = time.perf_counter()
+                worked = await asyncio.to_thread(on_worker, policy, domain, bvh)
+                out.append(max(0.0, time.perf_counter() - start - worked))
+        return out
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        return runner.run(run())
 
 
 def median_calls(tiles: list[TileTiming]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,6 +21,10 @@ from vastray.sim.costs import CostModel
 from vastray.transport.codec import Message
 
 
+#: Each node runtime and the cost model's constant for its set-up.
+RUNTIMES = {"node": "node_setup_s", "tile": "tile_setup_s", "in_situ": "insitu_setup_s"}
+
+
 class Cluster:
     """The shared state of P virtual nodes (see the module docstring). Endpoint P is the
     coordinator.
@@ -58,16 +62,16 @@ class Cluster:
         else:
             await self._cores.run(seconds)
 
-    async def trace(self, rank: int, seconds: float, node_runtime: bool) -> None:
-        """Node ``rank`` traces for ``seconds`` (``CostModel.trace_s`` of its activations).
-        Its first trace also pays a fresh process's first use (``warmup_s``) and its
-        runtime's set-up (``node_setup_s`` on a node runtime, else ``tile_setup_s``): a node
-        that never traces never loads the kernels."""
+    async def trace(self, rank: int, seconds: float, runtime: str) -> None:
+        """Node ``rank`` traces for ``seconds`` (``CostModel.trace_charge`` of its activations).
+        Its first trace also pays a fresh process's first use (``warmup_s``) and the set-up
+        of its ``runtime`` (one of ``RUNTIMES``: ``node_setup_s`` for the domain-decomposition
+        runtimes, ``tile_setup_s`` for sort-first nodes, ``insitu_setup_s`` for in-situ ones):
+        a node that never traces never loads the kernels."""
         if not self._warm[rank]:
             self._warm[rank] = True
             costs = self.costs
-            seconds += costs.warmup_s + (costs.node_setup_s if node_runtime
-                                         else costs.tile_setup_s)
+            seconds += costs.warmup_s + getattr(costs, RUNTIMES[runtime])
         await self.compute(rank, seconds)
 
     async def decided(self, rank: int, cpu_seconds: float) -> None:

@@ -45,12 +45,25 @@ class CostModel:
         event loop).
     tile_setup_s : the same for a sort-first node (``image``, ``spec-ooc``), which runs the
         one-process runtime on a thread of its own.
+    insitu_setup_s : the same for an in-situ node (``spec-insitu``), which loads its domains
+        first and traces on its event loop's thread (no hand-off, no termination waves).
     decision_scale : virtual seconds charged per CPU second a schedule spends deciding
         (``next_domain`` with spec-ooc's filtering, ``likely_next``, the dynamic schedule's
         rounds), measured as the simulator runs the real schedule code (``time.thread_time``,
         so another process on the cores does not inflate it): 1.0 where the simulator runs on
         the calibrated machine (``vastray calibrate`` writes 1.0), 0 charges nothing (the
         default, and what calibration files written before it mean).
+    trace_scale : virtual seconds charged per CPU second the simulator spends running an
+        activation's real trace (``process``: queries, shading, forwarding, queues; measured
+        with ``time.thread_time`` as it simulates): 1.0 where the simulator runs on the
+        calibrated machine (``vastray calibrate`` writes 1.0), so an activation costs its own
+        work on any store, bounce count and domain count; 0 charges the constants above
+        (``trace_s``: the default, and what calibration files written before it mean). The
+        constants are fitted on one store's tile and do not carry over: on 128 domains with
+        3 bounces an activation took about 1.3 times what rm 64³'s 18 domains predicted.
+    offload_s : one activation of a node runtime, beyond its trace: the hand-off of the trace
+        to a worker thread and back to the event loop (``DomainLoop`` with ``offload``,
+        ``asyncio.to_thread``), which sort-first nodes, tracing on their own thread, do not pay.
     cores : cores of the calibrated machine: node processes share this many when the
         simulator reproduces a run on it (None: every node has a core of its own).
     throughput : the calibrated machine's aggregate throughput with 1, 2, ... busy processes,
@@ -71,7 +84,10 @@ class CostModel:
     warmup_s: float = 0.0
     node_setup_s: float = 0.0
     tile_setup_s: float = 0.0
+    insitu_setup_s: float = 0.0
     decision_scale: float = 0.0
+    trace_scale: float = 0.0
+    offload_s: float = 0.0
     cores: int | None = None
     throughput: tuple = ()
     machine: dict = field(default_factory=dict)
@@ -99,6 +115,14 @@ class CostModel:
         return (fixed + radiance * (self.trace_ray_s + self.shade_ray_s)
                 + shadow * self.shadow_ray_s)
 
+    def trace_charge(self, radiance: int, shadow: int, cpu_seconds: float) -> float:
+        """Seconds charged for one activation's trace of ``radiance`` closest-hit and ``shadow``
+        occlusion queries that took the simulator ``cpu_seconds`` of CPU to run: the CPU time
+        times ``trace_scale`` where it is set, else the constants (``trace_s``)."""
+        if self.trace_scale:
+            return cpu_seconds * self.trace_scale
+        return self.trace_s(radiance, shadow)
+
     def load_s(self, nbytes: int, triangles: int) -> float:
         """Seconds to load a domain of ``nbytes`` bytes and build its BVH over ``triangles``."""
         return nbytes * self.load_byte_s + triangles * self.build_triangle_s
@@ -115,7 +139,7 @@ class CostModel:
         """The same costs for nodes already started and warm (``warmup_s`` and
         the set-ups 0: a long job's later frames, a running service)."""
         return CostModel(**{**asdict(self), "warmup_s": 0.0, "node_setup_s": 0.0,
-                            "tile_setup_s": 0.0})
+                            "tile_setup_s": 0.0, "insitu_setup_s": 0.0})
 
     def as_dict(self) -> dict:
         return {"version": VERSION, **asdict(self)}

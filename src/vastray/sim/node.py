@@ -4,13 +4,16 @@ over a management actor whose sockets are the simulated network, a domain loop w
 charged in virtual time and a preloader whose loads are.
 
 Ray batches are encoded and decoded by the real codec, so their size on the wire is the real
-one; what tracing costs is the cost model's (``CostModel.trace_s`` of each activation's
-radiance and shadow queries), not the real time the simulator spends tracing.
+one; what tracing costs is the cost model's: the CPU time the simulator spends running the
+activation's real trace where ``CostModel.trace_scale`` is set (simulating on the calibrated
+machine), else the constants of ``CostModel.trace_s`` for its radiance and shadow queries,
+plus a node runtime's hand-off of the trace to a worker thread (``CostModel.offload_s``).
 """
 
 from __future__ import annotations
 
 import asyncio
+import time
 from dataclasses import dataclass
 
 from vastray.actors import protocol
@@ -66,7 +69,8 @@ class SimManagement:
 
 class VirtualDomainLoop(DomainLoop):
     """The domain loop on the virtual clock: a domain's rays are traced for real, and the
-    activation costs ``CostModel.trace_s`` of its queries on the node's core; the schedule's
+    activation costs ``CostModel.trace_charge`` on the node's core (``offload_s`` more on a
+    node runtime, whose real loop traces on a worker thread); the schedule's
     decisions cost the CPU time they take here (``decided``).
     ``node_runtime``: the loop of a node runtime (whose set-up, ``node_setup_s``, its first
     trace pays), not the one-process runtime's that the sort-first nodes run."""
@@ -82,12 +86,17 @@ class VirtualDomainLoop(DomainLoop):
         await self.cluster.decided(self.rank, cpu_seconds)
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
+        cpu = time.thread_time()
         queries = order.trace(domain, bvh)
+        cpu = time.thread_time() - cpu
         if not queries:  # a domain only loaded (in situ), or nothing left for it
             return queries
-        await self.cluster.trace(self.rank, self.cluster.costs.trace_s(queries.radiance,
-                                                                        queries.shadow),
-                                 node_runtime=self.node_runtime)
+        costs = self.cluster.costs
+        seconds = costs.trace_charge(queries.radiance, queries.shadow, cpu)
+        if self.node_runtime:  # the real node's loop hands the trace to a worker thread
+            seconds += costs.offload_s
+        await self.cluster.trace(self.rank, seconds,
+                                 runtime="node" if self.node_runtime else "tile")
         return queries
 
 
@@ -134,13 +143,17 @@ class SimNodeState(NodeState):
     def node_work(self, management, rank: int, stats: dict, preloader, max_batch: int):
         return SimNode(management, rank, stats, preloader, max_batch, self.early)
 
-    async def traced(self, radiance: dict[int, int], shadow: dict[int, int]) -> None:
+    async def traced(self, radiance: dict[int, int], shadow: dict[int, int],
+                     cpu_seconds: float = 0.0) -> None:
         if not (radiance or shadow):
             return
         costs = self.cluster.costs
-        await self.cluster.trace(self.rank, sum(
-            costs.trace_s(radiance.get(d, 0), shadow.get(d, 0)) for d in radiance | shadow),
-            node_runtime=True)
+        if costs.trace_scale:
+            seconds = cpu_seconds * costs.trace_scale
+        else:
+            seconds = sum(costs.trace_s(radiance.get(d, 0), shadow.get(d, 0))
+                          for d in radiance | shadow)
+        await self.cluster.trace(self.rank, seconds, runtime="in_situ")
 
     async def decided(self, cpu_seconds: float) -> None:
         await self.cluster.decided(self.rank, cpu_seconds)

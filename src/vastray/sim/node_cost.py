@@ -3,7 +3,8 @@ first use (``warmup_s``): its worker and loader threads, first sockets, the firs
 event loop. Measured with a real 1-node render (a fresh node process over real sockets)
 against the simulator's prediction of the same render without it: an ``async`` render for
 the node runtimes (``node_setup_s``), an ``image`` render for the sort-first nodes, which run
-the one-process runtime (``tile_setup_s``)."""
+the one-process runtime (``tile_setup_s``), a ``spec-insitu`` render for the in-situ nodes
+(``insitu_setup_s``)."""
 
 from __future__ import annotations
 
@@ -31,7 +32,8 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     store_path : the store rendered.
     costs : every other constant, measured already.
     config, settings : the render (one pass, one thread, as the nodes of a job run it).
-    scheduler : ``async`` (``node_setup_s``) or ``image`` (``tile_setup_s``).
+    scheduler : ``async`` (``node_setup_s``), ``image`` (``tile_setup_s``) or
+        ``spec-insitu`` (``insitu_setup_s``).
     repeats : real renders (each a fresh node process).
     """
     from vastray.sim.simulate import simulate
@@ -41,6 +43,6 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
                                      config=config, timeout=NODE_RENDER_TIMEOUT_S
                                      ).seconds["busy_max"] for _ in range(repeats))
     simulated = simulate(Store(store_path), options, 1,
-                         replace(costs, node_setup_s=0.0, tile_setup_s=0.0), settings, config,
+                         replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0), settings, config,
                          max_pass_spp=None)
     return max(0.0, busy[len(busy) // 2] - simulated.seconds)

@@ -140,6 +140,8 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
                                  else pass_bounds(settings.spp, max_pass_spp))]
     start = time.perf_counter()
     try:
+        if costs.trace_scale:
+            _warm_up(store, options, settings, config, domains)
         outcome, _ = run_virtual(_render(store, options, nodes, costs, settings, config,
                                          units, domains))
     finally:
@@ -150,6 +152,26 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
                      unit_seconds, max(r for _, r, _ in per_node), cluster.compute_s,
                      _summed([c for _, _, c in per_node]), cluster.messages, cluster.bytes,
                      film, time.perf_counter() - start, costs)
+
+
+#: (scheduler, integrator) whose code paths this process has run once (``_warm_up``).
+_WARMED: set[tuple[str, str]] = set()
+#: The warm-up render: a few pixels, one sample.
+WARM_UP_PIXELS = (8, 8)
+
+
+def _warm_up(store, options: JobOptions, settings: RenderSettings, config, domains) -> None:
+    """Run the scheduler's code once, uncharged, on a few pixels of one node: where traces are
+    charged at the CPU time they take here (``CostModel.trace_scale``), this process's own
+    first use (compiled kernels loaded from numba's cache) must not be charged to the first
+    virtual node that traces (a node's first use is ``warmup_s``, charged apart)."""
+    key = (options.scheduler, settings.integrator)
+    if key in _WARMED:
+        return
+    width, height = WARM_UP_PIXELS
+    tiny = replace(settings, width=width, height=height, spp=1)
+    run_virtual(_render(store, options, 1, CostModel(), tiny, config, [(None, 0, 1)], domains))
+    _WARMED.add(key)
 
 
 def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
