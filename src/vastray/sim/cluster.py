@@ -20,7 +20,6 @@ from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 from vastray.transport.codec import Message
 
-
 #: Each node runtime and the cost model's constant for its set-up.
 RUNTIMES = {"node": "node_setup_s", "tile": "tile_setup_s", "in_situ": "insitu_setup_s"}
 

@@ -42,7 +42,7 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     busy = sorted(render_distributed(store_path, None, settings, 1, options=options,
                                      config=config, timeout=NODE_RENDER_TIMEOUT_S
                                      ).seconds["busy_max"] for _ in range(repeats))
-    simulated = simulate(Store(store_path), options, 1,
-                         replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0), settings, config,
+    unset = replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0)
+    simulated = simulate(Store(store_path), options, 1, unset, settings, config,
                          max_pass_spp=None)
     return max(0.0, busy[len(busy) // 2] - simulated.seconds)
