@@ -254,7 +254,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 group = units_together(units, unit, options,
                                        job["paced"] or job.get("passes_apart", False),
                                        len(store.domains), settings.width * settings.height)
-                start = time.perf_counter()
+                start, cpu_start = time.perf_counter(), time.process_time()
                 if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
                     films, counters = await render_passes_together(
                         options, rank, size, store, frame_config, frame_settings,
@@ -269,6 +269,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     films = [film]
                 busy = time.perf_counter() - start
                 busy_total, frame_busy = busy_total + busy, frame_busy + busy
+                # the process's CPU seconds (all its threads) over the same span: what of
+                # the busy time used the cores, and what waited (the simulator's split)
+                counters = {**counters, "busy_cpu_s": time.process_time() - cpu_start}
                 for unit, film in zip(group, films, strict=True):
                     state.ordinal, state.frame = rendered, frame or 0
                     rendered += 1

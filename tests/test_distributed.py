@@ -65,6 +65,10 @@ def test_nodes_give_the_reference_image(scene, integrator, scheduler):
         for report in per_node:  # the per-node timings the report promises
             assert report["busy_s"] > 0 and report["reduce_s"] >= 0
             assert report["counters"]["shade_s"] >= 0
+            # the process's CPU over its busy span: some, and no more than its threads
+            # could use in that span on this machine's cores
+            cpu = report["counters"]["busy_cpu_s"]
+            assert 0 < cpu <= report["busy_s"] * (os.cpu_count() or 1) + 0.05
         assert sum(report["counters"]["shade_s"] for report in per_node) > 0
         if scheduler in ("domain", "async", "dynamic", "spec-insitu"):
             # Ray batches are conserved: every batch sent was received, none twice.
