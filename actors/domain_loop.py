@@ -13,7 +13,9 @@ temporal frames, the in-situ nodes) reports the same spans under the same names:
 - ``load_wait_s`` (the preloader's counter): time a render worker waited for a domain's load,
   what preloading did not hide;
 - ``trace_s`` (here): time spent tracing and shading the rays of activated domains, nothing
-  else (no decision, no load, no send).
+  else (no decision, no load, no send);
+- ``handed_off`` (here): activations traced on a worker thread (a node runtime's larger ones,
+  ``hands_off``), each paying the hand-off there and back.
 """
 
 from __future__ import annotations
@@ -62,6 +64,28 @@ class DomainOrder(Protocol):
         """Trace every ray waiting for ``domain`` against its loaded ``bvh``; returns the ray
         queries that made (none: the activation traced nothing)."""
 
+    # Optional: ``rays(domain) -> int | None``, the rays that trace would take (radiance and
+    # shadow rays waiting for it); an order without it, or answering None, is always handed
+    # to a worker thread.
+
+
+#: Most rays an activation of a node runtime traces on the event loop's own thread. Handing a
+#: trace to a worker thread and back costs 0.1-0.25 ms on a 2-core machine (``asyncio.to_thread``
+#: on uvloop; the simulator's ``offload_s``), as much as tracing about a hundred rays: a
+#: node's many small activations (a few hundred rays each at 128 domains and 3 bounces) paid
+#: it thousands of times. Up to this many rays a trace takes a few milliseconds, a delay the
+#: event loop's heartbeats and deliveries do not notice; longer ones still leave the loop free.
+INLINE_RAYS = 1024
+
+
+def hands_off(order: DomainOrder, domain: int) -> bool:
+    """Whether a node runtime's loop (``offload``) traces ``domain`` on a worker thread: when
+    the order does not say how many rays it will trace, or they are more than
+    ``INLINE_RAYS``."""
+    rays = getattr(order, "rays", None)
+    count = None if rays is None else rays(domain)
+    return count is None or count > INLINE_RAYS
+
 
 @dataclass(frozen=True)
 class Activation:
@@ -83,7 +107,9 @@ class DomainLoop:
     preloader : the node's domain cache with its loading thread.
     stats : the counters of the node's report; ``schedule_s`` and ``trace_s`` are added to.
     offload : trace on a worker thread, so the event loop keeps routing messages meanwhile
-        (the nodes); False traces on the calling thread (one process, nothing else to serve).
+        (the nodes), except activations of at most ``INLINE_RAYS`` rays where the order says
+        so (``hands_off``); False traces on the calling thread (one process, nothing else to
+        serve).
     """
 
     def __init__(self, preloader: DomainPreloader, stats: dict, offload: bool = True):
@@ -142,9 +168,10 @@ class DomainLoop:
         simulator's loop charges it to the virtual node."""
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
-        """``order.trace(domain, bvh)``, on a worker thread with ``offload``; returns the ray
-        queries made."""
-        if self.offload:
+        """``order.trace(domain, bvh)``, with ``offload`` on a worker thread unless it traces
+        few rays (``hands_off``); returns the ray queries made."""
+        if self.offload and hands_off(order, domain):
+            self.stats["handed_off"] = self.stats.get("handed_off", 0) + 1
             return await asyncio.to_thread(order.trace, domain, bvh)
         return order.trace(domain, bvh)
 
@@ -212,14 +239,21 @@ class ScheduleOrder:
     def trace(self, domain: int, bvh) -> Queries:
         return traced_queries(self.policy, domain, bvh)
 
+    def rays(self, domain: int) -> int:
+        return waiting_rays(self.policy, domain)
+
 
 class ListOrder:
     """Domains in a given order (a round's assignment, a node's own domains to load), each
-    traced by ``trace(domain, bvh)`` (default: nothing, the domains are only loaded)."""
+    traced by ``trace(domain, bvh)`` (default: nothing, the domains are only loaded);
+    ``rays(domain)``: how many rays that traces (default: unknown)."""
 
-    def __init__(self, domains: list[int], trace: Callable[[int, object], int] | None = None):
+    def __init__(self, domains: list[int], trace: Callable[[int, object], int] | None = None,
+                 rays: Callable[[int], int] | None = None):
         self.domains, self.position = list(domains), 0
         self._trace = trace
+        if rays is not None:
+            self.rays = rays
 
     def next_domain(self) -> int | None:
         if self.position == len(self.domains):
@@ -232,6 +266,12 @@ class ListOrder:
 
     def trace(self, domain: int, bvh) -> Queries:
         return Queries() if self._trace is None else self._trace(domain, bvh)
+
+
+def waiting_rays(policy, domain: int) -> int:
+    """Rays of a tile schedule (``ImageSchedule``, ``SpeculativeSchedule``) waiting for
+    ``domain``, radiance and shadow."""
+    return policy.radiance.count(domain) + policy.shadow.count(domain)
 
 
 def traced_queries(policy, domain: int, bvh) -> Queries:

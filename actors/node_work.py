@@ -10,7 +10,13 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder, traced_queries
+from vastray.actors.domain_loop import (
+    DomainLoop,
+    ListOrder,
+    ScheduleOrder,
+    traced_queries,
+    waiting_rays,
+)
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
@@ -159,4 +165,5 @@ class NodeWork:
             self.stats["wait_s"] += time.perf_counter() - start
             self.stats["rounds"] += 1
             mine = [d for d, p in plan.assign.items() if p == self.rank]
-            await self.loop.run(ListOrder(mine, lambda d, bvh: traced_queries(policy, d, bvh)))
+            await self.loop.run(ListOrder(mine, lambda d, bvh: traced_queries(policy, d, bvh),
+                                          rays=lambda d: waiting_rays(policy, d)))

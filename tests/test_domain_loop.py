@@ -6,11 +6,18 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import threading
 
 import numpy as np
 import pytest
 
-from vastray.actors.domain_loop import DomainLoop, ListOrder, ScheduleOrder
+from vastray.actors.domain_loop import (
+    INLINE_RAYS,
+    DomainLoop,
+    ListOrder,
+    ScheduleOrder,
+    hands_off,
+)
 from vastray.actors.preloader import DomainPreloader
 from vastray.schedule.galaxy import GalaxyPolicy
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners, sort_first_tiles
@@ -85,6 +92,40 @@ def test_an_activation_that_traces_nothing_is_no_productive_load(store, preloade
     assert second.queries == 5
     assert loop.traced_domains == {b}
     assert asyncio.run(loop.step(Recorder([], {}, preloader))) is None
+
+
+class Sized(Recorder):
+    """A ``Recorder`` that says how many rays each trace takes and notes the thread it ran on."""
+
+    def __init__(self, domains, preloader, rays):
+        super().__init__(domains, {}, preloader)
+        self.sizes, self.threads = rays, []
+
+    def rays(self, domain):
+        return self.sizes
+
+    def trace(self, domain, bvh):
+        self.threads.append(threading.get_ident())
+        return super().trace(domain, bvh)
+
+
+@pytest.mark.parametrize("rays", [None, 0, INLINE_RAYS, INLINE_RAYS + 1])
+def test_a_node_runtime_traces_small_activations_on_its_loop_and_hands_off_the_rest(
+        store, preloader, rays):
+    a, b = nonempty(store)[:2]
+    order = Sized([a, b], preloader, rays)
+    stats: dict = {}
+    asyncio.run(DomainLoop(preloader, stats, offload=True).run(order))
+    handed = rays is None or rays > INLINE_RAYS
+    assert hands_off(order, a) is handed
+    loop_thread = threading.get_ident()  # asyncio.run's loop runs on this thread
+    assert [t == loop_thread for t in order.threads] == [not handed, not handed]
+    assert stats.get("handed_off", 0) == (2 if handed else 0)
+    # an order that cannot say hands every trace off; one process's loop none
+    assert hands_off(Recorder([a], {}, preloader), a)
+    stats = {}
+    asyncio.run(DomainLoop(preloader, stats, offload=False).run(Sized([a], preloader, None)))
+    assert "handed_off" not in stats
 
 
 def test_without_preloading_no_guess_is_asked_for(store):

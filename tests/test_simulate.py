@@ -152,17 +152,23 @@ def test_traces_charged_at_their_cpu_time_cost_what_the_simulator_spent_tracing(
 
 @pytest.mark.parametrize("scheduler", SIM_SCHEDULERS)
 def test_a_node_runtime_pays_the_hand_off_of_each_activation_and_a_sort_first_node_not(
-        store, domains, scheduler):
-    """``offload_s`` is charged per activation where the real node's loop traces on a worker
-    thread (the domain-decomposition runtimes), not for sort-first tiles (their own thread)
-    nor in situ (traced on the event loop's thread)."""
-    result = sim(store, domains, scheduler, 1, dataclasses.replace(ZERO, offload_s=0.01),
-                 max_pass_spp=None)
+        store, domains, scheduler, monkeypatch):
+    """``offload_s`` is charged per activation the real node's loop hands to a worker thread
+    (the domain-decomposition runtimes' larger ones, ``hands_off``), not for sort-first tiles
+    (their own thread) nor in situ (traced on the event loop's thread)."""
+    import vastray.actors.domain_loop as domain_loop
+
+    costs = dataclasses.replace(ZERO, offload_s=0.01)
+    result = sim(store, domains, scheduler, 1, costs, max_pass_spp=None)
+    # this store's activations are small: a node traces them on its loop's thread
+    assert result.seconds < 0.01 and "handed_off" not in result.counters
+    monkeypatch.setattr(domain_loop, "INLINE_RAYS", -1)  # every one handed off
+    result = sim(store, domains, scheduler, 1, costs, max_pass_spp=None)
     if scheduler in NODE_SCHEDULERS and scheduler != "spec-insitu":
-        assert result.counters["activations"] > 0
+        assert result.counters["handed_off"] == result.counters["activations"] > 0
         assert result.seconds == pytest.approx(0.01 * result.counters["activations"], rel=0.02)
     else:
-        assert result.seconds < 0.01
+        assert result.seconds < 0.01 and "handed_off" not in result.counters
 
 
 @pytest.mark.parametrize("bad", [{"latency_s": -1e-6}, {"trace_ray_s": math.nan},

@@ -61,9 +61,11 @@ class CostModel:
         (``trace_s``: the default, and what calibration files written before it mean). The
         constants are fitted on one store's tile and do not carry over: on 128 domains with
         3 bounces an activation took about 1.3 times what rm 64³'s 18 domains predicted.
-    offload_s : one activation of a node runtime, beyond its trace: the hand-off of the trace
-        to a worker thread and back to the event loop (``DomainLoop`` with ``offload``,
-        ``asyncio.to_thread``), which sort-first nodes, tracing on their own thread, do not pay.
+    offload_s : one activation of a node runtime handed to a worker thread, beyond its trace:
+        the hand-off there and back to the event loop (``DomainLoop`` with ``offload``,
+        ``asyncio.to_thread``; ``domain_loop.hands_off``: activations of more than
+        ``INLINE_RAYS`` rays, and every one of an asynchronous frame with peers). Sort-first
+        and in-situ nodes, tracing on their own thread, do not pay it.
     cores : cores of the calibrated machine: node processes share this many when the
         simulator reproduces a run on it (None: every node has a core of its own).
     throughput : the calibrated machine's aggregate throughput with 1, 2, ... busy processes,

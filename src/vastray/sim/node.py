@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import DomainLoop, DomainOrder, Queries
+from vastray.actors.domain_loop import DomainLoop, DomainOrder, Queries, hands_off
 from vastray.actors.node_state import NodeState
 from vastray.actors.node_work import NodeWork
 from vastray.sim.cache import Domains, VirtualPreloader
@@ -93,8 +93,9 @@ class VirtualDomainLoop(DomainLoop):
             return queries
         costs = self.cluster.costs
         seconds = costs.trace_charge(queries.radiance, queries.shadow, cpu)
-        if self.node_runtime:  # the real node's loop hands the trace to a worker thread
+        if self.node_runtime and hands_off(order, domain):  # as the real node's loop does
             seconds += costs.offload_s
+            self.stats["handed_off"] = self.stats.get("handed_off", 0) + 1
         await self.cluster.trace(self.rank, seconds,
                                  runtime="node" if self.node_runtime else "tile")
         return queries
