@@ -79,6 +79,8 @@ ASYNC = [
     ["--nodes", "2", "--scheduler", "async", "--threads", "2"],
     ["--nodes", "2", "--scheduler", "async", "--cache", "2"],
     ["--nodes", "3", "--scheduler", "async"],
+    # one node: its small activations traced on the event loop's thread (INLINE_RAYS)
+    ["--nodes", "1", "--scheduler", "async", "--cache", "3"],
 ]
 #: ... and every other scheduler in the other runs, cycled.
 OTHERS = [
@@ -89,6 +91,7 @@ OTHERS = [
     ["--nodes", "2", "--scheduler", "spec-insitu"],
     ["--nodes", "3", "--scheduler", "temporal", "--cache", "3"],
     ["--nodes", "2", "--scheduler", "image", "--cache", "2", "--bvh", "fast"],
+    ["--nodes", "2", "--scheduler", "domain", "--cache", "3"],
 ]
 
 
