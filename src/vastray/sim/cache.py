@@ -2,8 +2,9 @@
 
 The cache's rules are ``scene.cache.DomainCache``'s own (capacity, LRU or the scheduler's
 priorities, protected domains, preloads counted against the capacity); only a load differs:
-it hands back the domain already built in memory (``Domains``) and charges the load's cost
-(bytes read, triangles built) to the node's core in virtual time.
+it hands back the domain already built in memory (``Domains``) and charges the load's cost in
+virtual time: the bytes read as a wait (the loader thread blocks on the file), the triangles
+built on the node's core, beside its traces.
 """
 
 from __future__ import annotations
@@ -84,11 +85,14 @@ class VirtualPreloader(CacheFront):
         return self.cache.capacity
 
     async def _load(self, domain: int) -> None:
-        """Charge one load of ``domain`` (read and BVH build on a core, then what the
+        """Charge one load of ``domain`` (the read, a wait on the file that needs no core;
+        the BVH build on the node's core, beside whatever else it computes; then what the
         emulated storage bandwidth adds) and make it resident."""
-        cache, nbytes = self.cache, int(self.domains.nbytes[domain])
-        cost = self.cluster.costs.load_s(nbytes, int(self.domains.triangles[domain]))
-        await self.cluster.compute(self.rank, cost)
+        cache, nbytes, costs = self.cache, int(self.domains.nbytes[domain]), self.cluster.costs
+        read_s = nbytes * costs.load_byte_s
+        await asyncio.sleep(read_s)
+        await self.cluster.compute(self.rank, costs.load_s(0, int(self.domains.triangles[domain])))
+        cost = costs.load_s(nbytes, int(self.domains.triangles[domain]))
         throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - cost)
         await asyncio.sleep(throttle)
         cache.stats.load_seconds += cost + throttle

@@ -2,7 +2,9 @@
 
 Costs come from a ``CostModel``. With ``cores`` set, every node and the coordinator share
 that many cores, as the operating system shares them among node processes on one machine
-(``SharedCores``); otherwise each has a core of its own. A message costs its sender's core
+(``SharedCores``); otherwise each has one core of its own, which everything the node
+computes shares (its traces, its preloader's BVH builds, its sends and decisions: one
+core's processor sharing, as a one-core node's threads share it). A message costs its sender's core
 the one-way time measured between two processes (encoding, copies, decoding;
 ``CostModel.message_s``) and is then delivered, in order between any two endpoints (as
 ZeroMQ's). A tree reduction costs what its messages cost: the
@@ -38,6 +40,8 @@ class Cluster:
         self.size, self.costs = size, costs
         self.coordinator = size  # the coordinator's endpoint
         self._cores = SharedCores(costs.cores, costs.throughput) if costs.cores else None
+        #: without a shared machine, each endpoint's one core
+        self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))
         #: each endpoint's mailboxes by message kind (as a management actor's)
         self.mailboxes = [defaultdict(asyncio.Queue) for _ in range(size + 1)]
         self.compute_s = np.zeros(size + 1)  # (P + 1,) seconds each endpoint computed
@@ -51,13 +55,14 @@ class Cluster:
         return asyncio.get_running_loop().time()
 
     async def compute(self, rank: int, seconds: float) -> None:
-        """Endpoint ``rank`` works ``seconds`` on a core of its own, or sharing the cores
-        (``SharedCores``: as fast as the machine's measured throughput lets)."""
+        """Endpoint ``rank`` works ``seconds`` on its one core (shared by whatever else it
+        computes meanwhile), or sharing the machine's cores (``SharedCores``: as fast as the
+        machine's measured throughput lets)."""
         if seconds <= 0:
             return
         self.compute_s[rank] += seconds
         if self._cores is None:
-            await asyncio.sleep(seconds)
+            await self._own[rank].run(seconds)
         else:
             await self._cores.run(seconds)
 
