@@ -46,7 +46,12 @@ async def stoppable(main):
             stopped = True
             task.cancel()
 
-    loop.add_signal_handler(signal.SIGTERM, stop)
+    # The handler only schedules ``stop`` on the loop (it never raises into a callback). Not
+    # ``loop.add_signal_handler``: its removal leaves SIG_DFL for a moment before the next
+    # disposition is set, and the second SIGTERM `timeout` sends, landing there, killed the
+    # process in its clean-up (exit -15 instead of 143, seen in CI): here every change of
+    # disposition is one ``signal.signal`` call, with no default action between.
+    signal.signal(signal.SIGTERM, lambda signum, frame: loop.call_soon_threadsafe(stop))
     try:
         return await main
     except asyncio.CancelledError:
@@ -54,7 +59,6 @@ async def stoppable(main):
             raise Terminated() from None
         raise
     finally:
-        loop.remove_signal_handler(signal.SIGTERM)  # (which leaves SIG_DFL)
         signal.signal(signal.SIGTERM, signal.SIG_IGN if stopped else raise_terminated)
 
 
