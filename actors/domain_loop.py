@@ -251,9 +251,7 @@ class ListOrder:
     def __init__(self, domains: list[int], trace: Callable[[int, object], int] | None = None,
                  rays: Callable[[int], int] | None = None):
         self.domains, self.position = list(domains), 0
-        self._trace = trace
-        if rays is not None:
-            self.rays = rays
+        self._trace, self._rays = trace, rays
 
     def next_domain(self) -> int | None:
         if self.position == len(self.domains):
@@ -266,6 +264,9 @@ class ListOrder:
 
     def trace(self, domain: int, bvh) -> Queries:
         return Queries() if self._trace is None else self._trace(domain, bvh)
+
+    def rays(self, domain: int) -> int | None:
+        return None if self._rays is None else self._rays(domain)
 
 
 def waiting_rays(policy, domain: int) -> int:

@@ -88,11 +88,12 @@ class VirtualPreloader(CacheFront):
         """Charge one load of ``domain`` (the read, a wait on the file that needs no core;
         the BVH build on the node's core, beside whatever else it computes; then what the
         emulated storage bandwidth adds) and make it resident."""
-        cache, nbytes, costs = self.cache, int(self.domains.nbytes[domain]), self.cluster.costs
-        read_s = nbytes * costs.load_byte_s
+        cache, costs = self.cache, self.cluster.costs
+        nbytes, triangles = int(self.domains.nbytes[domain]), int(self.domains.triangles[domain])
+        read_s, build_s = costs.load_s(nbytes, 0), costs.load_s(0, triangles)
         await asyncio.sleep(read_s)
-        await self.cluster.compute(self.rank, costs.load_s(0, int(self.domains.triangles[domain])))
-        cost = costs.load_s(nbytes, int(self.domains.triangles[domain]))
+        await self.cluster.compute(self.rank, build_s)
+        cost = read_s + build_s
         throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - cost)
         await asyncio.sleep(throttle)
         cache.stats.load_seconds += cost + throttle
