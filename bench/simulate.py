@@ -1,8 +1,9 @@
 """The simulator (``vastray.sim``) against real runs, and the papers' scaling figures in it.
 
-    python bench/simulate.py --quick   # <= 5 min: validation at P = 1, 2, 4 and the
-                                       # speed-ups at 64 and 1024 virtual nodes
-    python bench/simulate.py           # also the figures (docs/sim_*.png) and their tables
+    python bench/simulate.py --quick   # <= 10 min: validation, the replay's check, and
+                                       # the speed-ups at 64 and 1024 nodes (2^18 paths)
+    python bench/simulate.py           # also weak scaling, 2^20 paths, every P, and the
+                                       # figures (docs/sim_*.png) with their tables
 
 Validation: every scheduler renders the same small scene on P = 1, 2, 4 real node processes
 (this machine; ``--threads 1``, as the cost model is per core) and in the simulator with the
@@ -11,9 +12,15 @@ cores as the real processes do. Measured is the real run's ``busy_max`` (the bus
 rendering, start-up and film gathering left out); simulated the same span in virtual time.
 ``sim_error_max=`` is the worst |simulated - measured| / measured.
 
-Scaling: the same schedulers on 1 to 1024 virtual nodes with a core each, warm (no first-use
-or set-up cost: what the papers time is rendering), the constants of this machine, on a store
-of 1,439 domains; speed-up = T(1 node) / T(P nodes).
+Out of sample: the same against real runs on stores and settings the constants were not
+calibrated on (``sim_error_oos_max=``).
+
+Scaling, by replay (``bench/replay_scaling.py``, ``vastray.sim.replay``): one frame of a store
+of 1,439 domains traced once for real, every scheduler's policy replayed over its crossings on
+1 to 1,024 virtual nodes with a core each, warm (what the papers time is rendering), the
+constants of this machine, a stated storage bandwidth and network; speed-up = T(1) / T(P).
+The replay is first checked against the simulator that runs the nodes' own code
+(``replay_error_max=``).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import replay_scaling
 from bench_scenes import CACHE, cached_cosmo, cached_rm, cached_scan
 
 from vastray.actors.coordinator import render_distributed
@@ -34,7 +42,6 @@ from vastray.actors.job_options import JobOptions
 from vastray.render.driver import render, shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
-from vastray.scene.errors import InputError
 from vastray.sim.cache import Domains
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
@@ -47,11 +54,9 @@ VALIDATION_NODES = (1, 2, 4)
 VALIDATION = RenderSettings(width=160, height=120, spp=4, integrator="pt", bounces=1)
 #: and, in full mode, 4 times the paths: a case where tracing outweighs start-up
 HEAVY = RenderSettings(width=320, height=240, spp=4, integrator="pt", bounces=1)
-#: scaling scene and settings: cosmo at 160^3 in 16x16x8 cells = 1,439 domains (the empty
-#: cells have none; SpRay's DNS2 has 1,427), 64x64 px (32x32 with --quick), 2 spp
+#: the scaling store: cosmo at 160^3 in 16x16x8 cells = 1,439 domains (the empty cells have
+#: none; SpRay's DNS2 has 1,427)
 SCALING_GRID = (16, 16, 8)
-SCALING = RenderSettings(width=64, height=64, spp=2, integrator="pt", bounces=1)
-SCALING_QUICK = RenderSettings(width=32, height=32, spp=2, integrator="pt", bounces=1)
 
 
 def scaling_options(scheduler: str, nodes: int, paths: int) -> JobOptions:
@@ -187,42 +192,6 @@ def validate_oos(costs: CostModel, node_counts, repeats: int) -> list[dict]:
     return rows
 
 
-def scaling(store, costs: CostModel, schedulers, node_counts,
-            settings: RenderSettings) -> dict:
-    """{scheduler: {P: simulated seconds}} on warm nodes with a core each."""
-    own = costs.warm().with_cores(None)
-    domains = Domains(store, shading_inputs(store, SceneConfig(), settings.integrator)[1])
-    out: dict = {}
-    for scheduler in schedulers:
-        for nodes in node_counts:
-            start = time.perf_counter()
-            try:
-                sim = simulate(store, scaling_options(scheduler, nodes, settings.paths), nodes,
-                               own, settings, max_pass_spp=None, domains=domains)
-            except InputError as exc:  # what this machine cannot hold, said as it is
-                print(f"  {scheduler:11s} P={nodes:5d}: not simulated: {exc}", flush=True)
-                continue
-            out.setdefault(scheduler, {})[nodes] = sim.seconds
-            print(f"  {scheduler:11s} P={nodes:5d}: {sim.seconds:8.4f} s virtual "
-                  f"({time.perf_counter() - start:.1f} s to simulate)", flush=True)
-    domains.close()
-    return out
-
-
-def speedup_table(times: dict, node_counts) -> None:
-    shown = [p for p in node_counts if p != 1]
-    print("\n| scheduler | T(1) s | " + " | ".join(f"speed-up {p}" for p in shown) + " |")
-    print("| --- | --- |" + " --- |" * len(shown))
-    def speedup(by: dict, p: int) -> str:
-        return f"{by[1] / by[p]:.2f}" if p in by else "n/a"
-
-    for scheduler, by_nodes in times.items():
-        print(f"| {scheduler} | {by_nodes[1]:.3f} | "
-              + " | ".join(speedup(by_nodes, p) for p in shown) + " |")
-    for p in shown:
-        print(f"speedup_{p}=" + ",".join(f"{s}:{speedup(by, p)}" for s, by in times.items()))
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -269,20 +238,13 @@ def main() -> None:
         print(f"\n{time.perf_counter() - start:.0f} s in all")
         return
     big = cached_cosmo(160, SCALING_GRID)
-    counts = (1, 64, 1024) if args.quick else tuple(2 ** k for k in range(11))
-    settings = SCALING_QUICK if args.quick else SCALING
-    print(f"\nscaling on {big.path.name} ({len(big.domains)} domains), "
-          f"{settings.width}x{settings.height} px, {settings.spp} spp, one core per node, warm:")
-    times = scaling(big, costs, SIM_SCHEDULERS, counts, settings)
-    refused = {s: [p for p in counts if p not in by] for s, by in times.items()}
-    fallback = cached_rm(128, (16, 8, 8))  # fewer domains: what one process can hold
-    for scheduler, missing in refused.items():
-        if missing:
-            print(f"  {scheduler} at {missing} nodes on {fallback.path.name} "
-                  f"({len(fallback.domains)} domains) instead:")
-            times[f"{scheduler}@{len(fallback.domains)}-domains"] = scaling(
-                fallback, costs, [scheduler], (1, *missing), settings)[scheduler]
-    speedup_table(times, counts)
+    checked = replay_scaling.check_against_code(big, costs, scaling_options,
+                                                quick=args.quick)
+    counts = (1, 64, 1024) if args.quick else replay_scaling.STRONG_NODES
+    times, breakdown = replay_scaling.strong(big, costs, args.quick, counts)
+    weak = None if args.quick else replay_scaling.weak(big, costs, False,
+                                                       replay_scaling.WEAK_NODES)
+    replay_scaling.scaling_tables(times, breakdown, weak, counts, replay_scaling.WEAK_NODES)
     figures = {}
     if not args.quick:
         from sim_figures import paper_figures
@@ -290,7 +252,9 @@ def main() -> None:
         figures = paper_figures(costs, times, len(big.domains))
     if args.json:
         Path(args.json).write_text(json.dumps({"costs": costs.as_dict(), "validation": rows,
-                                               "scaling": times, "figures": figures},
+                                               "replay_check": checked, "scaling": times,
+                                               "breakdown": breakdown, "weak": weak,
+                                               "figures": figures},
                                               indent=1, default=str))
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 

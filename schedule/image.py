@@ -68,6 +68,10 @@ class ImageSchedule:
     """
 
     name = "image"
+    #: While a render is recorded for the simulator's replay (``vastray.sim.crossings``), the
+    #: recorder: each launched ray gets a segment id (field ``seg``) from its ``launched``, and
+    #: every traced batch goes to its ``traced``. None (the default): nothing recorded.
+    crossing_log = None
 
     def __init__(self, ctx: PathContext, geometry: DomainGeometry, color_source: str | None,
                  scalar_range: tuple[float, float], owner: np.ndarray | None = None,
@@ -135,6 +139,10 @@ class ImageSchedule:
         """Trace every ray waiting for ``domain`` against its loaded BVH."""
         rays = self.radiance.pop(domain)
         shadows = self.shadow.pop(domain)
+        if self.crossing_log is not None:
+            for batch in (rays, shadows):
+                if batch is not None:
+                    self.crossing_log.traced(domain, batch["seg"])
         if self.tally is not None:
             self.tally.received[domain] += sum(len(r) for r in (rays, shadows) if r is not None)
         if rays is not None:
@@ -229,7 +237,8 @@ class ImageSchedule:
         shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
         self.counters["shade_s"] += time.perf_counter() - start
         shadow_rows = continuation_rows = None
-        if self.tally is not None or self.simple is not None:
+        logged = self.crossing_log is not None
+        if self.tally is not None or self.simple is not None or logged:
             # each path has one final hit here: the hit row of every spawned ray, by its path
             # (a search over the hits, not a lookup table over every path of the tile: this
             # runs once per activation)
@@ -238,12 +247,16 @@ class ImageSchedule:
             shadow_rows, continuation_rows = rows[:len(shadow)], rows[len(shadow):]
         hit_domain = None if shadow_rows is None else rays["hit_domain"][hit]
         portal = self._portal_fields(rays, hit, shadow, shadow_rows) if recording else None
+        parent = rays["seg"][hit] if logged else None
         self._launch_shadow(shadow, None if hit_domain is None else hit_domain[shadow_rows],
-                            portal)
+                            portal, None if parent is None else parent[shadow_rows])
         self._launch_radiance(continuation, None if hit_domain is None
-                              else hit_domain[continuation_rows])
+                              else hit_domain[continuation_rows],
+                              None if parent is None else parent[continuation_rows])
 
-    def _launch_radiance(self, rays: RadianceRays, spawned_in: np.ndarray | None = None) -> None:
+    def _launch_radiance(self, rays: RadianceRays, spawned_in: np.ndarray | None = None,
+                         parent: np.ndarray | None = None) -> None:
+        """Queue new radiance rays (``parent``: each one's spawning segment, for a recorder)."""
         if not len(rays):
             return
         extra = start_cursor(len(rays))
@@ -252,6 +265,8 @@ class ImageSchedule:
                          portal_from=np.full(len(rays), -1, np.int32),
                          portal_cell=np.full(len(rays), -1, np.int64))
         soa = radiance_soa(rays, self.color_source is not None, **extra)
+        if self.crossing_log is not None:
+            soa["seg"] = self.crossing_log.launched(self, soa, parent)
         if self.simple is None:
             self._advance_radiance(soa, spawned_in)
             return
@@ -353,7 +368,7 @@ class ImageSchedule:
 
     # -- shadow rays --------------------------------------------------------------------------
     def _launch_shadow(self, rays: ShadowRays, spawned_in: np.ndarray | None = None,
-                       portal: dict | None = None) -> None:
+                       portal: dict | None = None, parent: np.ndarray | None = None) -> None:
         if not len(rays):
             return
         extra = start_cursor(len(rays))
@@ -361,6 +376,8 @@ class ImageSchedule:
             extra.update(portal or {"portal_cell": np.full(len(rays), -1, np.int64),
                                     "portal_value": np.zeros(len(rays), np.float32)})
         soa = shadow_soa(rays, **extra)
+        if self.crossing_log is not None:
+            soa["seg"] = self.crossing_log.launched(self, soa, parent)
         if self.simple is not None and spawned_in is not None:
             simple = spawned_in == self.simple.domain
             if simple.any():  # from a hit on the simplified model: traced there, here

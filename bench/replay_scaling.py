@@ -1,0 +1,198 @@
+"""Scaling at the papers' work per node, by replay (``vastray.sim.replay``), for
+``bench/simulate.py``.
+
+One frame of the 1,439-domain cosmology store is traced once for real (Embree, one process,
+``record_crossings``: 2^18 paths with ``--quick``, 2^20 in full) and every scheduler's policy
+is replayed over its crossings on 1 to 1,024 virtual nodes, each node a core, caching a
+quarter of the domains (the temporal-coherence paper's ratio; a node never caches fewer than
+it owns), reading them at ``STORAGE_MB_S`` and talking over ``NETWORK``. Weak scaling keeps
+``WEAK_PATHS_PER_NODE`` paths per node: an interleaved subset of the recording's paths below
+its size, the recording repeated above it (the same rays again, as more samples would).
+
+Before any figure the replay is checked against the simulator that runs the nodes' own code
+(``sim.simulate``, itself checked against real runs) on a frame small enough for it,
+``CHECK`` on the same store, at P = 1, 16 and 64: ``replay_error_max=``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_scenes import CACHE
+
+from vastray.render.driver import shading_inputs
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.sim.cache import Domains
+from vastray.sim.costs import CostModel
+from vastray.sim.crossings import Crossings, record_crossings
+from vastray.sim.replay import REPLAY_SCHEDULERS, Network, Replay
+from vastray.sim.simulate import simulate
+
+#: The strong-scaling frames: 2^18 paths (--quick) and 2^20 (full), one bounce of pt.
+STRONG_QUICK = RenderSettings(width=512, height=512, spp=1, integrator="pt", bounces=1)
+STRONG = RenderSettings(width=1024, height=1024, spp=1, integrator="pt", bounces=1)
+#: The frame on which the replay is checked against the real-code simulator.
+CHECK = RenderSettings(width=96, height=96, spp=1, integrator="pt", bounces=1)
+CHECK_NODES = (1, 16, 64)
+CHECK_NODES_QUICK = (1, 64)
+#: Node counts of the full bench's strong and weak scaling.
+STRONG_NODES = tuple(2 ** k for k in range(11))
+WEAK_NODES = (1, 4, 16, 64, 256, 1024)
+WEAK_PATHS_PER_NODE = 4096
+#: Storage a node reads its domains at (a parallel file system's share), MB/s.
+STORAGE_MB_S = 200.0
+#: The network beyond a message's CPU cost: 10 Gb/s Ethernet, 25 us a message.
+NETWORK = Network(latency_s=25e-6, bandwidth=1.25e9)
+#: A node caches this share of the store's domains (at least those it owns).
+CACHE_SHARE = 4
+
+
+def recording(store, settings: RenderSettings) -> Crossings:
+    """The store's frame's crossings, recorded once and kept in ``.bench_cache``."""
+    path = CACHE / (f"crossings-{Path(store.path).stem}-{settings.width}x{settings.height}-"
+                    f"{settings.spp}-{settings.integrator}{settings.bounces}.npz")
+    if path.exists():
+        try:
+            return Crossings.load(path)
+        except Exception as exc:  # a stale format: record again
+            print(f"  {exc}; recording again", flush=True)
+    start = time.perf_counter()
+    crossings, _ = record_crossings(store, settings)
+    crossings.save(path)
+    print(f"  recorded {settings.paths:,} paths on {len(store.domains)} domains: "
+          f"{len(crossings):,} segments, {int(crossings.visits.sum()):,} domain visits "
+          f"({time.perf_counter() - start:.0f} s, kept in {path.name})", flush=True)
+    return crossings
+
+
+def _sizes(store) -> tuple[np.ndarray, np.ndarray]:
+    return (np.array([d.nbytes for d in store.domains], np.int64),
+            np.array([d.n_triangles for d in store.domains], np.int64))
+
+
+def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = NETWORK,
+              storage_mb_s: float | None = STORAGE_MB_S, activations=None) -> Replay:
+    lo, hi = store.domain_boxes()
+    return Replay(crossings, *_sizes(store), lo, hi, costs, activations, network,
+                  None if storage_mb_s is None else storage_mb_s * 1e6)
+
+
+def node_cache(n_domains: int, nodes: int) -> int:
+    """Domains a node caches: a quarter of the store, never fewer than it owns."""
+    return max(-(-n_domains // CACHE_SHARE), -(-n_domains // nodes))
+
+
+def check_against_code(store, costs: CostModel, scaling_options, quick: bool) -> list[dict]:
+    """The replay against the simulator running the nodes' own code, on ``CHECK``: both with
+    the calibrated loopback network and storage and the product's caches."""
+    own = costs.warm().with_cores(None)
+    crossings = recording(store, CHECK)
+    replay = replay_of(store, crossings, own, Network(), None)
+    domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
+    rows = []
+    print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
+          f"{CHECK.paths:,} paths, a core per node):")
+    print("| scheduler | P | real-code sim s | replay s | error | sim wall s | replay wall s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    try:
+        for scheduler in REPLAY_SCHEDULERS:
+            for nodes in CHECK_NODES_QUICK if quick else CHECK_NODES:
+                start = time.perf_counter()
+                sim = simulate(store, scaling_options(scheduler, nodes, CHECK.paths), nodes,
+                               own, CHECK, max_pass_spp=None, domains=domains)
+                sim_wall = time.perf_counter() - start
+                replayed = replay.run(scheduler, nodes)
+                error = replayed.seconds / sim.seconds - 1
+                rows.append({"scheduler": scheduler, "nodes": nodes, "sim_s": sim.seconds,
+                             "replay_s": replayed.seconds, "error": error})
+                print(f"| {scheduler} | {nodes} | {sim.seconds:.4f} | {replayed.seconds:.4f} | "
+                      f"{error:+.3f} | {sim_wall:.1f} | {replayed.wall_s:.2f} |", flush=True)
+    finally:
+        domains.close()
+    worst = max(abs(r["error"]) for r in rows)
+    print(f"replay_error_max={worst:.3f}  (replay vs the real-code simulator, "
+          f"{CHECK.paths:,} paths)")
+    return rows
+
+
+def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dict]:
+    """{scheduler: {P: seconds}} of the strong-scaling frame, and each scheduler's
+    breakdown at the largest P."""
+    settings = STRONG_QUICK if quick else STRONG
+    crossings = recording(store, settings)
+    replay = replay_of(store, crossings, costs.warm().with_cores(None))
+    print(f"\nstrong scaling by replay: {settings.paths:,} paths "
+          f"({settings.width}x{settings.height}, {settings.spp} spp, {settings.integrator} "
+          f"{settings.bounces} bounce), {len(store.domains)} domains, a node caching "
+          f"max(D/{CACHE_SHARE}, D/P) domains, storage {STORAGE_MB_S:.0f} MB/s, network "
+          f"{NETWORK.bandwidth / 1e9:.2f} GB/s + {NETWORK.latency_s * 1e6:.0f} us:")
+    times, breakdown = {}, {}
+    for scheduler in REPLAY_SCHEDULERS:
+        for nodes in node_counts:
+            result = replay.run(scheduler, nodes, cache=node_cache(len(store.domains), nodes))
+            times.setdefault(scheduler, {})[nodes] = result.seconds
+            print(f"  {scheduler:11s} P={nodes:5d}: {result.seconds:9.4f} s virtual "
+                  f"({result.wall_s:.1f} s to replay; {result.counters['messages']:,} messages, "
+                  f"{result.counters['loads']:,} loads, {result.counters['rounds']:,} "
+                  "synchronisations)", flush=True)
+        breakdown[scheduler] = result.breakdown
+    return times, breakdown
+
+
+def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
+    """{scheduler: {P: seconds}} with ``WEAK_PATHS_PER_NODE`` paths per node."""
+    base = recording(store, STRONG_QUICK if quick else STRONG)
+    own = costs.warm().with_cores(None)
+    fitted = replay_of(store, base, own).activation  # one fit for every size
+    print(f"\nweak scaling by replay: {WEAK_PATHS_PER_NODE:,} paths per node, the same "
+          "caches, storage and network:")
+    times: dict = {}
+    for nodes in node_counts:
+        paths = WEAK_PATHS_PER_NODE * nodes
+        frame = (base.subset(base.n_paths // paths) if paths <= base.n_paths
+                 else base.repeated(-(-paths // base.n_paths)))
+        replay = replay_of(store, frame, own, activations=fitted)
+        for scheduler in REPLAY_SCHEDULERS:
+            result = replay.run(scheduler, nodes, cache=node_cache(len(store.domains), nodes))
+            times.setdefault(scheduler, {})[nodes] = result.seconds
+            print(f"  {scheduler:11s} P={nodes:5d} ({frame.n_paths:,} paths): "
+                  f"{result.seconds:9.4f} s virtual ({result.wall_s:.1f} s to replay)",
+                  flush=True)
+    return times
+
+
+def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
+                   node_counts, weak_counts=()) -> None:
+    """The strong and weak scaling tables, the breakdown at the largest P, and the
+    ``speedup_64=`` / ``speedup_1024=`` lines."""
+    shown = [p for p in node_counts if p != 1]
+    print("\n| scheduler | T(1) s | " + " | ".join(f"speed-up {p}" for p in shown) + " |")
+    print("| --- | --- |" + " --- |" * len(shown))
+    for scheduler, by in strong_times.items():
+        print(f"| {scheduler} | {by[1]:.3f} | "
+              + " | ".join(f"{by[1] / by[p]:.2f}" for p in shown) + " |")
+    top = max(node_counts)
+    print(f"\nwhere the time goes at P={top} (mean per node, s):")
+    print("| scheduler | total | trace | load | messages | reduction | wait |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for scheduler, parts in breakdown.items():
+        print(f"| {scheduler} | {strong_times[scheduler][top]:.4f} | " + " | ".join(
+            f"{parts[k]:.4f}" for k in ("trace", "load", "messages", "reduction", "wait")) + " |")
+    weak_shown = [p for p in weak_counts if p != 1]
+    if weak_times:
+        print(f"\nweak scaling efficiency T(1)/T(P), {WEAK_PATHS_PER_NODE:,} paths per node:")
+        print("| scheduler | T(1) s | " + " | ".join(f"P={p}" for p in weak_shown) + " |")
+        print("| --- | --- |" + " --- |" * len(weak_shown))
+        for scheduler, by in weak_times.items():
+            print(f"| {scheduler} | {by[1]:.3f} | "
+                  + " | ".join(f"{by[1] / by[p]:.2f}" for p in weak_shown) + " |")
+    for p in shown:
+        print(f"speedup_{p}=" + ",".join(f"{s}:{by[1] / by[p]:.2f}"
+                                         for s, by in strong_times.items()))
+    if weak_times:
+        last = max(weak_counts)
+        print(f"weak_efficiency_{last}=" + ",".join(f"{s}:{by[1] / by[last]:.2f}"
+                                                   for s, by in weak_times.items()))

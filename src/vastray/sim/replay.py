@@ -1,0 +1,792 @@
+"""The simulator at the papers' work per node: each scheduler replayed over one frame's
+recorded domain crossings (``sim.crossings``) instead of tracing.
+
+``sim.simulate`` runs the nodes' own code, traces included, which is exact but costs a real
+trace per virtual activation: a few thousand paths on a thousand nodes. Here the rays are
+traced once (``record_crossings``), and each scheduler's *policy* is replayed over them for any
+node count: which node holds which ray, which domain it traces next, what it loads, what it
+sends and where it waits, with the same ``CostModel`` as ``sim.simulate`` charged per
+activation, load, message and reduction step. A replay step is a few array operations over a
+batch of rays, never a loop per ray, so 2^20 paths on 1,024 nodes replay in seconds.
+
+What is modelled, per scheduler (the runtimes' docstrings say what they do):
+
+- ``domain`` (Navrátil's static schedule): tiles of ``tile`` paths in bulk-synchronous rounds;
+  in a round a node traces every ray waiting for its domains, following rays that stay on
+  its domains (one activation per domain and wave), ships the rest, and the round ends with
+  an all-reduction over the tree of ranks (2 ceil(log2 P) message steps).
+- ``dynamic`` (ray-weighted): rays start on the node that made them; each round the real
+  ``RayWeightedRounds`` assigns domains from the summed ray counts and the holders, rays move
+  to their domain's node, each node traces its assigned domains once; two all-reductions.
+- ``async`` (Galaxy): no rounds; each node, whenever free, injects its share of the next tile
+  if fewer than ``tile`` rays wait there, else traces its fullest domain (cached first) and
+  ships what that produced; messages arrive after their network time; the frame ends with
+  the termination detection's two waves over the tree.
+- ``spec-insitu`` (SpRay in situ): per tile, one iteration per bounce; a ray's copies go to
+  the owners of every domain its line crosses (z-order groups), each node traces its copies,
+  then the t-buffer and o-buffer all-reductions (their bytes charged) resolve the iteration.
+- ``image`` and ``spec-ooc`` (sort-first): each node traces its tiles alone through an LRU
+  cache of ``cache`` domains, the fullest (cached first) domain next; ``spec-ooc`` queues a
+  ray's copies in every domain its line crosses, commits its hit once the domains it needs
+  are traced (its children start then) and drops the copies left.
+
+Limits, said where they matter: a load's read is not overlapped with tracing (the real nodes'
+preloader hides part of it, so loads are pessimistic); an activation's rays are those waiting
+when it starts (as the real loops); speculative copies beyond a ray's hit are charged as
+traced where they were traced before the hit was known, and shading of speculative local hits
+in ``spec-insitu`` is not charged.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vastray.sim.costs import CostModel
+from vastray.sim.crossings import RADIANCE, Crossings, ranges
+
+#: Paths in flight per tile, as the coordinator's default (``DEFAULT_NODE_TILE``).
+DEFAULT_TILE = 65536
+#: Activations of more rays than this are handed to a worker thread in the node runtimes
+#: (``actors.domain_loop.INLINE_RAYS``).
+INLINE_RAYS = 1024
+#: Bytes of a message's header (kind, metadata) beside its rays.
+HEADER_BYTES = 64
+#: The schedulers the replay models.
+REPLAY_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu")
+
+
+@dataclass(frozen=True)
+class Network:
+    """The wire between nodes, beyond the CPU a message costs its sender
+    (``CostModel.message_s``): ``latency_s`` per message and ``bandwidth`` bytes per second
+    (``inf``: loopback, as the calibration measured it)."""
+
+    latency_s: float = 0.0
+    bandwidth: float = math.inf
+
+    def wire_s(self, nbytes: float) -> float:
+        return self.latency_s + nbytes / self.bandwidth
+
+
+@dataclass
+class ReplayResult:
+    """A replayed render.
+
+    Attributes
+    ----------
+    scheduler, nodes : what was replayed.
+    seconds : virtual seconds of the frame (the last node's end; reductions of the film
+        after it are not in it, as in ``SimResult.seconds``).
+    breakdown : mean seconds per node of ``trace`` (activations), ``load`` (reads and
+        builds), ``messages`` (the sender's cost of ray batches), ``reduction`` (all-reductions
+        and termination waves) and ``wait`` (the rest: idle, waiting for rays or a round).
+    counters : ``activations``, ``loads``, ``messages``, ``bytes``, ``rounds`` (global
+        synchronisations), ``traced`` (ray-domain tests, speculative copies included).
+    wall_s : real seconds the replay took.
+    """
+
+    scheduler: str
+    nodes: int
+    seconds: float
+    breakdown: dict
+    counters: dict
+    wall_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        return {"scheduler": self.scheduler, "nodes": self.nodes,
+                "seconds": round(self.seconds, 6),
+                "breakdown": {k: round(v, 6) for k, v in self.breakdown.items()},
+                "counters": self.counters, "wall_s": round(self.wall_s, 3)}
+
+
+class _Lru:
+    """A node's cache of ``capacity`` domains, least recently used evicted."""
+
+    __slots__ = ("capacity", "held", "loads")
+
+    def __init__(self, capacity: int):
+        self.capacity, self.held, self.loads = max(1, capacity), OrderedDict(), 0
+
+    def touch(self, domain: int) -> bool:
+        """Use ``domain``; True when it had to be loaded."""
+        if domain in self.held:
+            self.held.move_to_end(domain)
+            return False
+        if len(self.held) >= self.capacity:
+            self.held.popitem(last=False)
+        self.held[domain] = None
+        self.loads += 1
+        return True
+
+
+@dataclass
+class _Ledger:
+    """Per-node seconds by kind, and the counters."""
+
+    size: int
+    trace: np.ndarray = None
+    load: np.ndarray = None
+    messages: np.ndarray = None
+    reduction: np.ndarray = None
+    counters: dict = field(default_factory=lambda: {"activations": 0, "loads": 0,
+                                                    "messages": 0, "bytes": 0, "rounds": 0,
+                                                    "traced": 0})
+
+    def __post_init__(self):
+        for name in ("trace", "load", "messages", "reduction"):
+            setattr(self, name, np.zeros(self.size))
+
+    def result(self, scheduler: str, seconds: float, start: float) -> ReplayResult:
+        busy = self.trace + self.load + self.messages + self.reduction
+        breakdown = {"trace": float(self.trace.mean()), "load": float(self.load.mean()),
+                     "messages": float(self.messages.mean()),
+                     "reduction": float(self.reduction.mean()),
+                     "wait": float(max(seconds - busy.mean(), 0.0))}
+        return ReplayResult(scheduler, self.size, seconds, breakdown, dict(self.counters),
+                            time.perf_counter() - start)
+
+
+class Replay:
+    """One recorded frame, replayable under every scheduler of ``REPLAY_SCHEDULERS``.
+
+    Parameters
+    ----------
+    crossings : the frame's recording.
+    nbytes, triangles : (D,) each domain's bytes on storage and triangles (a load's cost).
+    lo, hi : (D, 3) domain boxes (``spec-insitu``'s z-order groups).
+    costs : the cost model (its ``cores`` ignored: a core per node).
+    activations : what an activation costs (default: ``fit_activation_costs`` on the
+        recording: this store's per-ray costs with the model's fixed ones).
+    network : the wire beyond the messages' CPU cost.
+    storage_bandwidth : bytes per second a node reads a domain at (None: the calibrated
+        ``load_byte_s``).
+    tile : paths in flight per tile (the coordinator's default).
+    """
+
+    def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
+                 lo: np.ndarray, hi: np.ndarray, costs: CostModel,
+                 activations: ActivationCosts | None = None,
+                 network: Network = Network(), storage_bandwidth: float | None = None,
+                 tile: int = DEFAULT_TILE):
+        self.c = crossings
+        self.costs, self.network = costs, network
+        self.activation = (fit_activation_costs(crossings, costs) if activations is None
+                           else activations)
+        self.lo, self.hi = lo, hi
+        self.tile = tile
+        self.n_domains = crossings.n_domains
+        read = (nbytes * costs.load_byte_s if storage_bandwidth is None
+                else nbytes / storage_bandwidth)
+        #: (D,) seconds to load each domain (read, then build)
+        self.load_s = read + triangles * costs.build_triangle_s
+        self._index()
+
+    # -- the recording as arrays of visits ------------------------------------------------
+    def _index(self) -> None:
+        c = self.c
+        visits = self.visits = c.visits  # (S,) domains each segment is traced in
+        self.copies = c.copies  # (S,) domains each segment's line crosses
+        n_seg = len(c)
+        self.seg_of = np.repeat(np.arange(n_seg), visits)  # (V,) each visit's segment
+        self.domain_of = c.visit_domain.astype(np.int64)  # (V,)
+        self.radiance_of = c.kind[self.seg_of] == RADIANCE  # (V,)
+        self.path_of = c.path[self.seg_of]  # (V,)
+        last = np.zeros(len(self.seg_of), bool)
+        ends = c.visit_first[1:][visits > 0] - 1
+        last[ends] = True
+        first, child = self.children = c.children()
+        traced_child = child[visits[child] > 0]  # children that visit any domain
+        per_parent = np.bincount(c.parent[traced_child], minlength=n_seg)
+        n_succ = np.where(last, per_parent[self.seg_of], 1).astype(np.int64)
+        self.succ_first = np.concatenate([[0], np.cumsum(n_succ)]).astype(np.int64)
+        succ = np.empty(int(self.succ_first[-1]), np.int64)
+        inner = np.nonzero(~last)[0]
+        succ[self.succ_first[inner]] = inner + 1
+        ends = np.nonzero(last)[0]
+        succ[ranges(self.succ_first[ends], n_succ[ends])] = c.visit_first[traced_child]
+        self.succ = succ
+        camera = np.nonzero((c.parent < 0) & (visits > 0))[0]
+        self.camera_visits = c.visit_first[camera]  # (n,) first visits of camera rays
+
+    def successors(self, tokens: np.ndarray) -> np.ndarray:
+        """The visits that follow ``tokens`` (visit ids): the same ray's next domain, or the
+        rays a final hit spawned."""
+        counts = self.succ_first[tokens + 1] - self.succ_first[tokens]
+        return self.succ[ranges(self.succ_first[tokens], counts)]
+
+    def _trace_s(self, radiance: int, shadow: int) -> float:
+        """One activation's seconds, its decision included."""
+        return float(self.activation.seconds(radiance, radiance + shadow)
+                     + self.activation.decision_s)
+
+    def _send_s(self, nbytes: float) -> float:
+        return self.costs.message_s(nbytes)
+
+    def _ray_bytes(self, tokens: np.ndarray) -> float:
+        radiance = int(np.count_nonzero(self.radiance_of[tokens]))
+        b = self.c.ray_bytes
+        return radiance * float(b[0]) + (len(tokens) - radiance) * float(b[1]) + HEADER_BYTES
+
+    def _allreduce_s(self, size: int, nbytes: float = 64.0) -> float:
+        """An all-reduction over the binary tree of ranks: ceil(log2 P) steps up, as many
+        down, each a message of ``nbytes``."""
+        levels = math.ceil(math.log2(size)) if size > 1 else 0
+        return 2 * levels * (self._send_s(nbytes) + self.network.wire_s(nbytes))
+
+    def _tiles(self, tokens: np.ndarray) -> list[np.ndarray]:
+        """``tokens`` split by tile of paths, in tile order."""
+        tile_of = self.path_of[tokens] // self.tile
+        order = np.argsort(tile_of, kind="stable")
+        bounds = np.searchsorted(tile_of[order], np.arange(tile_of.max() + 2 if len(tokens)
+                                                           else 1))
+        return [order[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+    # -- the schedulers -----------------------------------------------------------------------
+    def run(self, scheduler: str, nodes: int, cache: int | None = None) -> ReplayResult:
+        """Replay ``scheduler`` on ``nodes`` nodes with a core each; ``cache``: domains a node
+        holds (default: the product's, every domain it owns, or all for sort-first)."""
+        if scheduler not in REPLAY_SCHEDULERS:
+            raise ValueError(f"the replay models {', '.join(REPLAY_SCHEDULERS)}, not "
+                             f"{scheduler!r}")
+        if nodes < 1:
+            raise ValueError("the replay needs at least 1 node")
+        start = time.perf_counter()
+        owned = -(-self.n_domains // nodes)
+        if scheduler in ("image", "spec-ooc"):
+            ledger, seconds = self._sort_first(nodes, cache or self.n_domains,
+                                               scheduler == "spec-ooc")
+        elif scheduler == "domain":
+            ledger, seconds = self._rounds(nodes, cache or owned)
+        elif scheduler == "dynamic":
+            ledger, seconds = self._dynamic(nodes, cache or owned)
+        elif scheduler == "async":
+            ledger, seconds = self._async(nodes, cache or owned)
+        else:
+            ledger, seconds = self._insitu(nodes)
+        return ledger.result(scheduler, seconds, start)
+
+    def _camera_s(self, paths: int) -> float:
+        return self.costs.camera_ray_s * paths
+
+    def _activations(self, ledger: _Ledger, caches: list[_Lru], node: np.ndarray,
+                     tokens: np.ndarray, offload: bool) -> np.ndarray:
+        """Charge one activation per (node, domain) of ``tokens`` held on ``node`` ((n,)
+        each), loads included; returns (P,) seconds each node spent."""
+        spent = np.zeros(ledger.size)
+        if not len(tokens):
+            return spent
+        domain = self.domain_of[tokens]
+        key = node * self.n_domains + domain
+        keys, inverse = np.unique(key, return_inverse=True)
+        radiance = np.bincount(inverse, weights=self.radiance_of[tokens], minlength=len(keys))
+        total = np.bincount(inverse, minlength=len(keys))
+        cost = self.activation.seconds(radiance, total) + self.activation.decision_s
+        if offload and ledger.size > 1:
+            cost = cost + np.where(total > INLINE_RAYS, self.costs.offload_s, 0.0)
+        act_node, act_domain = keys // self.n_domains, keys % self.n_domains
+        np.add.at(spent, act_node, cost)
+        ledger.trace += np.bincount(act_node, weights=cost, minlength=ledger.size)
+        load = np.zeros(ledger.size)
+        for n, d in zip(act_node.tolist(), act_domain.tolist(), strict=True):
+            if caches[n].touch(d):
+                load[n] += self.load_s[d]
+                ledger.counters["loads"] += 1
+        ledger.load += load
+        ledger.counters["activations"] += len(keys)
+        ledger.counters["traced"] += len(tokens)
+        return spent + load
+
+    def _ship(self, ledger: _Ledger, source: np.ndarray, destination: np.ndarray,
+              tokens: np.ndarray, activation: np.ndarray | None = None) -> np.ndarray:
+        """Charge the batches of ``tokens`` moving from ``source`` to ``destination`` nodes
+        (one batch per pair and kind, and per ``activation`` that made them where given: a
+        node ships after every activation); returns (P,) seconds each sender spent."""
+        spent = np.zeros(ledger.size)
+        moving = source != destination
+        if not moving.any():
+            return spent
+        tokens, source, destination = tokens[moving], source[moving], destination[moving]
+        kind = (~self.radiance_of[tokens]).astype(np.int64)
+        key = (source * ledger.size + destination) * 2 + kind
+        if activation is not None:  # per activation: the batches of each apart
+            key = key + activation[moving].astype(np.int64) * (2 * ledger.size ** 2)
+        keys, inverse = np.unique(key, return_inverse=True)
+        counts = np.bincount(inverse, minlength=len(keys))
+        per_ray = self.c.ray_bytes[keys % 2].astype(float)  # the kind's
+        nbytes = counts * per_ray + HEADER_BYTES
+        cost = self.costs.latency_s + nbytes * self.costs.byte_s
+        senders = keys % (2 * ledger.size ** 2) // 2 // ledger.size
+        spent = np.bincount(senders, weights=cost, minlength=ledger.size)
+        ledger.messages += spent
+        ledger.counters["messages"] += len(keys)
+        ledger.counters["bytes"] += int(nbytes.sum())
+        return spent
+
+    def _round_end(self, ledger: _Ledger, busy: np.ndarray, nbytes: float = 64.0,
+                   reductions: int = 1, extra_wire: float = 0.0) -> float:
+        """A bulk-synchronous round's span: the busiest node, the wire of its last batch, and
+        ``reductions`` all-reductions of ``nbytes``."""
+        reduce_s = reductions * self._allreduce_s(ledger.size, nbytes)
+        ledger.reduction += reduce_s
+        ledger.counters["rounds"] += reductions
+        return float(busy.max()) + extra_wire + reduce_s
+
+    def _rounds(self, size: int, cache: int) -> tuple[_Ledger, float]:
+        """``domain``: bulk-synchronous rounds per tile (see the module docstring)."""
+        from vastray.schedule.ownership import round_robin_owners
+
+        owner = round_robin_owners(self.n_domains, size).astype(np.int64)
+        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        clock = 0.0
+        for tile in self._tiles(self.camera_visits):
+            tokens = self.camera_visits[tile]
+            local_index = self.path_of[tokens] % self.tile
+            made_on = local_index % size  # ``interleaved_paths``: every P-th path of the tile
+            busy = np.full(size, self._camera_s(len(tokens) / size))
+            held = owner[self.domain_of[tokens]]
+            busy += self._ship(ledger, made_on, held, tokens)
+            arrived = made_on == held
+            pending = tokens[~arrived]
+            wave = tokens[arrived]
+            while True:  # one round
+                moved = []
+                while len(wave):  # the drain: waves of rays that stay on the node
+                    at = owner[self.domain_of[wave]]
+                    busy += self._activations(ledger, caches, at, wave, offload=True)
+                    nxt = self.successors(wave)
+                    made = self.succ_first[wave + 1] - self.succ_first[wave]
+                    src = np.repeat(at, made)
+                    made_in = np.repeat(self.domain_of[wave], made)
+                    dst = owner[self.domain_of[nxt]]
+                    stay = src == dst
+                    busy += self._ship(ledger, src[~stay], dst[~stay], nxt[~stay],
+                                       made_in[~stay])
+                    moved.append(nxt[~stay])
+                    wave = nxt[stay]
+                clock += self._round_end(ledger, busy)
+                wave = np.concatenate([pending, *moved]) if moved or len(pending) else pending
+                pending = np.empty(0, np.int64)
+                busy = np.zeros(size)
+                if not len(wave):
+                    break
+        return ledger, clock
+
+    def _dynamic(self, size: int, cache: int) -> tuple[_Ledger, float]:
+        """``dynamic``: ray-weighted rounds (see the module docstring)."""
+        from vastray.schedule.dynamic import RayWeightedRounds
+
+        policy = RayWeightedRounds()
+        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        clock = 0.0
+        vector_bytes = 16.0 * self.n_domains
+        for tile in self._tiles(self.camera_visits):
+            tokens = self.camera_visits[tile]
+            at = (self.path_of[tokens] % self.tile) % size
+            busy = np.full(size, self._camera_s(len(tokens) / size))
+            while True:
+                domain = self.domain_of[tokens]
+                wanted = np.bincount(domain, minlength=self.n_domains)
+                holder = np.full(self.n_domains, size, np.int64)
+                for n in range(size - 1, -1, -1):  # the lowest rank holding each
+                    if caches[n].held:
+                        holder[list(caches[n].held)] = n
+                plan = policy.from_totals(wanted, holder, size)
+                clock += self._round_end(ledger, busy, vector_bytes)
+                if plan.finished:
+                    break
+                busy = np.zeros(size)
+                target = np.full(self.n_domains, -1, np.int64)
+                if plan.assign:
+                    target[list(plan.assign)] = list(plan.assign.values())
+                go = target[domain] >= 0
+                busy += self._ship(ledger, at[go], target[domain[go]], tokens[go])
+                clock += self._round_end(ledger, busy, 8.0 * size)
+                busy = np.zeros(size)
+                traced = tokens[go]
+                where = target[domain[go]]
+                busy += self._activations(ledger, caches, where, traced, offload=True)
+                nxt = self.successors(traced)
+                nxt_at = np.repeat(where, self.succ_first[traced + 1] - self.succ_first[traced])
+                tokens = np.concatenate([tokens[~go], nxt])
+                at = np.concatenate([at[~go], nxt_at])
+        return ledger, clock
+
+    def _insitu(self, size: int) -> tuple[_Ledger, float]:
+        """``spec-insitu``: per tile, an iteration per bounce of speculative copies (see the
+        module docstring)."""
+        from vastray.schedule.ownership import zorder_owners
+
+        c = self.c
+        owner = zorder_owners(self.lo, self.hi, size).astype(np.int64)
+        ledger, caches = _Ledger(size), [_Lru(self.n_domains) for _ in range(size)]
+        clock = 0.0
+        copies = self.copies
+        seg_visits = self.visits
+        first, child = self.children
+        # each segment's holder: a camera ray's maker; a spawned one's, its parent's last
+        # domain's owner (the node whose hit won the t-buffer MIN)
+        last_domain = np.where(seg_visits > 0, c.visit_domain[np.maximum(c.visit_first[1:] - 1,
+                                                                         0)], -1)
+        segments = np.nonzero(c.parent < 0)[0]
+        tiles = c.path[segments] // self.tile
+        for t in np.unique(tiles):
+            live = segments[tiles == t]
+            holder = (c.path[live] % self.tile) % size
+            busy = np.full(size, self._camera_s(len(live) / size))
+            # in situ: a node loads its own domains before its first trace
+            if t == tiles.min():
+                for n in range(size):
+                    mine = np.nonzero(owner == n)[0]
+                    caches[n].held.update(dict.fromkeys(mine.tolist()))
+                    busy[n] += float(self.load_s[mine].sum())
+                    ledger.load[n] += float(self.load_s[mine].sum())
+                ledger.counters["loads"] += self.n_domains
+            while len(live):
+                rows = ranges(c.crossed_first[live], copies[live])
+                copy_seg = np.repeat(live, copies[live])
+                copy_domain = c.crossed_domain[rows].astype(np.int64)
+                copy_from = np.repeat(holder, copies[live])
+                at = owner[copy_domain]
+                kind_radiance = c.kind[copy_seg] == RADIANCE
+                busy += self._ship_copies(ledger, copy_from, at, kind_radiance)
+                # a query call per node, domain and kind holding copies; the node's local
+                # closest hits shaded once per path; the iteration's bookkeeping
+                key = (at * self.n_domains + copy_domain) * 2 + ~kind_radiance
+                keys, total = np.unique(key, return_counts=True)
+                cost = np.where(keys % 2 == 0,
+                                self.activation.query_seconds(RADIANCE, total),
+                                self.activation.query_seconds(1 - RADIANCE, total))
+                per_node = np.bincount(keys // 2 // self.n_domains, weights=cost,
+                                       minlength=size).astype(float)
+                shaded = np.unique(at[kind_radiance] * len(c) + copy_seg[kind_radiance])
+                per_node += np.bincount(shaded // len(c), minlength=size) * self.costs.shade_ray_s
+                per_node += np.where(np.bincount(at, minlength=size) > 0,
+                                     self.activation.fixed_s, 0.0)
+                busy += per_node
+                ledger.trace += per_node
+                ledger.counters["activations"] += len(keys)
+                ledger.counters["traced"] += len(copy_seg)
+                n_live = len(live)
+                clock += self._round_end(ledger, busy, 8.0 * n_live, reductions=2)
+                busy = np.zeros(size)
+                spawned = child[ranges(first[live], first[live + 1] - first[live])]
+                parent_of = np.repeat(live, first[live + 1] - first[live])
+                holder = np.maximum(owner[np.maximum(last_domain[parent_of], 0)], 0)
+                keep = copies[spawned] > 0
+                live, holder = spawned[keep], holder[keep]
+        return ledger, clock
+
+    def _ship_copies(self, ledger, source, destination, radiance) -> np.ndarray:
+        """Charge copies moving between nodes, one batch per pair and kind."""
+        moving = source != destination
+        if not moving.any():
+            return np.zeros(ledger.size)
+        kind = (~radiance[moving]).astype(np.int64)
+        key = (source[moving] * ledger.size + destination[moving]) * 2 + kind
+        keys, counts = np.unique(key, return_counts=True)
+        nbytes = counts * self.c.ray_bytes[keys % 2].astype(float) + HEADER_BYTES
+        cost = self.costs.latency_s + nbytes * self.costs.byte_s
+        spent = np.bincount(keys // 2 // ledger.size, weights=cost, minlength=ledger.size)
+        ledger.messages += spent
+        ledger.counters["messages"] += len(keys)
+        ledger.counters["bytes"] += int(nbytes.sum())
+        return spent
+
+    def _sort_first(self, size: int, cache: int, speculative: bool) -> tuple[_Ledger, float]:
+        """``image`` / ``spec-ooc``: every node its tiles, alone (see the module docstring)."""
+        from vastray.schedule.ownership import sort_first_tiles
+
+        ledger = _Ledger(size)
+        paths = self.c.n_paths
+        tile = max(1, -(-paths // size))  # as the scaling runs: a tile per node
+        path_tile = self.path_of[self.camera_visits] // tile
+        span = np.zeros(size)
+        for rank in range(size):
+            firsts = list(sort_first_tiles(paths, tile, rank, size))
+            mine = np.isin(path_tile, [f // tile for f in firsts])
+            lru = _Lru(cache)
+            seconds = self._camera_s(sum(min(tile, paths - f) for f in firsts))
+            tokens = self.camera_visits[mine]
+            if speculative:
+                seconds += self._speculative_node(ledger, rank, lru, tokens)
+            else:
+                seconds += self._image_node(ledger, rank, lru, tokens)
+            span[rank] = seconds
+            ledger.counters["loads"] += lru.loads
+        return ledger, float(span.max())
+
+    def _node_activation(self, ledger: _Ledger, rank: int, lru: _Lru, domain: int,
+                         radiance: int, shadow: int) -> float:
+        cost = self._trace_s(radiance, shadow)
+        ledger.trace[rank] += cost
+        ledger.counters["activations"] += 1
+        ledger.counters["traced"] += radiance + shadow
+        if lru.touch(domain):
+            ledger.load[rank] += self.load_s[domain]
+            cost += self.load_s[domain]
+        return cost
+
+    def _image_node(self, ledger: _Ledger, rank: int, lru: _Lru, tokens: np.ndarray) -> float:
+        """One sort-first node's ``image`` schedule: the fullest domain next, cached first."""
+        queues = _Queues(self.n_domains)
+        queues.push(self.domain_of[tokens], tokens)
+        seconds = 0.0
+        while True:
+            domain = queues.fullest(lru.held)
+            if domain is None:
+                return seconds
+            batch = queues.pop(domain)
+            radiance = int(np.count_nonzero(self.radiance_of[batch]))
+            seconds += self._node_activation(ledger, rank, lru, domain, radiance,
+                                             len(batch) - radiance)
+            nxt = self.successors(batch)
+            queues.push(self.domain_of[nxt], nxt)
+
+    def _speculative_node(self, ledger: _Ledger, rank: int, lru: _Lru,
+                          tokens: np.ndarray) -> float:
+        """One sort-first node's ``spec-ooc`` schedule: copies in every crossed domain; a
+        segment commits once the domains it needs are traced, its children start then, and
+        its copies left are dropped."""
+        c = self.c
+        segs = self.seg_of[tokens]
+        need = self.visits.copy()  # domains each segment still needs traced
+        done = np.zeros(len(c), bool)
+        queues = _Queues(self.n_domains)
+        self._queue_copies(queues, segs)
+        seconds = 0.0
+        first, child = self.children
+        while True:
+            domain = queues.fullest(lru.held)
+            if domain is None:
+                return seconds
+            batch = queues.pop(domain)
+            batch = batch[~done[batch]]
+            if not len(batch):
+                continue
+            radiance = int(np.count_nonzero(c.kind[batch] == RADIANCE))
+            seconds += self._node_activation(ledger, rank, lru, domain, radiance,
+                                             len(batch) - radiance)
+            needed = self._visits_domain(batch, domain)
+            np.subtract.at(need, batch[needed], 1)
+            finished = np.unique(batch[needed][need[batch[needed]] == 0])
+            done[finished] = True
+            spawned = child[ranges(first[finished], first[finished + 1] - first[finished])]
+            spawned = spawned[self.visits[spawned] > 0]
+            self._queue_copies(queues, spawned)
+
+    def _visits_domain(self, segs: np.ndarray, domain: int) -> np.ndarray:
+        """(m,) bool: whether each of ``segs`` is traced in ``domain`` by the lossless
+        schedule (its hit needs that domain before it is final)."""
+        counts = self.visits[segs]
+        rows = ranges(self.c.visit_first[segs], counts)
+        hit = self.c.visit_domain[rows] == domain
+        out = np.zeros(len(segs), bool)
+        out[np.repeat(np.arange(len(segs)), counts)[hit]] = True
+        return out
+
+    def _queue_copies(self, queues: _Queues, segs: np.ndarray) -> None:
+        c = self.c
+        counts = self.copies[segs]
+        rows = ranges(c.crossed_first[segs], counts)
+        queues.push(c.crossed_domain[rows].astype(np.int64), np.repeat(segs, counts))
+
+    def _async(self, size: int, cache: int) -> tuple[_Ledger, float]:
+        """``async`` (Galaxy): per-node event simulation, no rounds (see the module
+        docstring)."""
+        from vastray.schedule.ownership import round_robin_owners
+
+        owner = round_robin_owners(self.n_domains, size).astype(np.int64)
+        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        queues = [_Queues(self.n_domains) for _ in range(size)]
+        tiles = self._tiles(self.camera_visits)
+        next_tile = [0] * size
+        inbox: list[list] = [[] for _ in range(size)]  # (arrival, tokens)
+        free_at = np.zeros(size)
+        events = [(0.0, n) for n in range(size)]
+        heapq.heapify(events)
+        sleeping = np.zeros(size, bool)
+        end = 0.0
+        while events:
+            now, n = heapq.heappop(events)
+            if now < free_at[n]:
+                continue
+            box = inbox[n]
+            if box:
+                arrived = [t for a, t in box if a <= now]
+                inbox[n] = [(a, t) for a, t in box if a > now]
+                for tokens in arrived:
+                    queues[n].push(self.domain_of[tokens], tokens)
+            q = queues[n]
+            cost = 0.0
+            out = None
+            if next_tile[n] < len(tiles) and q.total < self.tile:
+                tile = tiles[next_tile[n]]
+                next_tile[n] += 1
+                tokens = self.camera_visits[tile]
+                tokens = tokens[(self.path_of[tokens] % self.tile) % size == n]
+                cost += self._camera_s(len(tokens))
+                out = tokens
+            else:
+                domain = q.fullest(caches[n].held)
+                if domain is not None:
+                    batch = q.pop(domain)
+                    radiance = int(np.count_nonzero(self.radiance_of[batch]))
+                    cost += self._node_activation(ledger, n, caches[n], domain, radiance,
+                                                  len(batch) - radiance)
+                    if size > 1:
+                        cost += self.costs.offload_s
+                    out = self.successors(batch)
+            if out is None:  # idle: wake at the next arrival
+                sleeping[n] = True
+                if inbox[n]:
+                    heapq.heappush(events, (min(a for a, _ in inbox[n]), n))
+                    sleeping[n] = False
+                continue
+            dest = owner[self.domain_of[out]]
+            local = dest == n
+            q.push(self.domain_of[out[local]], out[local])
+            if not local.all():
+                far = out[~local]
+                batch_key = dest[~local] * 2 + ~self.radiance_of[far]  # a batch per queue
+                order = np.argsort(batch_key, kind="stable")
+                far, batch_key = far[order], batch_key[order]
+                cuts = np.flatnonzero(np.diff(batch_key)) + 1
+                for group in np.split(np.arange(len(far)), cuts):
+                    tokens = far[group]
+                    m = int(batch_key[group[0]] // 2)
+                    nbytes = self._ray_bytes(tokens)
+                    send = self.costs.latency_s + nbytes * self.costs.byte_s
+                    cost += send
+                    ledger.messages[n] += send
+                    ledger.counters["messages"] += 1
+                    ledger.counters["bytes"] += int(nbytes)
+                    arrival = now + cost + self.network.wire_s(nbytes)
+                    inbox[m].append((arrival, tokens))
+                    if sleeping[m] or free_at[m] <= arrival:
+                        sleeping[m] = False
+                        heapq.heappush(events, (max(arrival, free_at[m]), m))
+            free_at[n] = now + cost
+            end = max(end, free_at[n])
+            heapq.heappush(events, (free_at[n], n))
+        ledger.counters["loads"] = sum(cache.loads for cache in caches)
+        waves = 2 * self._allreduce_s(size)  # termination: two waves over the tree
+        ledger.reduction += waves
+        ledger.counters["rounds"] += 2
+        return ledger, end + waves
+
+
+class _Queues:
+    """A node's rays waiting per domain: (D,) counts and each domain's token arrays."""
+
+    def __init__(self, n_domains: int):
+        self.counts = np.zeros(n_domains, np.int64)
+        self.parts: dict[int, list[np.ndarray]] = {}
+        self.total = 0
+
+    def push(self, domains: np.ndarray, tokens: np.ndarray) -> None:
+        if not len(tokens):
+            return
+        order = np.argsort(domains, kind="stable")
+        domains, tokens = domains[order], tokens[order]
+        cuts = np.flatnonzero(np.diff(domains)) + 1
+        starts = np.concatenate([[0], cuts])
+        for start, part in zip(starts.tolist(), np.split(tokens, cuts), strict=True):
+            d = int(domains[start])
+            self.parts.setdefault(d, []).append(part)
+            self.counts[d] += len(part)
+        self.total += len(tokens)
+
+    def pop(self, domain: int) -> np.ndarray:
+        parts = self.parts.pop(domain)
+        self.total -= int(self.counts[domain])
+        self.counts[domain] = 0
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def fullest(self, cached) -> int | None:
+        """The fullest domain, a cached one with rays first (``schedule.image.fullest``)."""
+        if not self.parts:
+            return None
+        here = [d for d in cached if d in self.parts]
+        if here:
+            return max(here, key=lambda d: (self.counts[d], -d))
+        return int(np.argmax(self.counts))
+
+
+@dataclass(frozen=True)
+class ActivationCosts:
+    """What one activation costs on a store: ``fixed_s`` (radiance rays among its rays),
+    ``fixed_shadow_s`` (shadow rays only), and per ray traced; ``decision_s`` choosing it;
+    and one Embree call alone (``query``: (fixed, per ray) for closest hits and for
+    occlusion; what ``spec-insitu`` makes per domain, its shading apart)."""
+
+    fixed_s: float
+    fixed_shadow_s: float
+    radiance_s: float
+    shadow_s: float
+    decision_s: float = 0.0
+    query: tuple = ((0.0, 0.0), (0.0, 0.0))
+
+    def query_seconds(self, kind: int, rays):
+        """Seconds of query calls of ``kind`` over ``rays`` rays each."""
+        fixed, per_ray = self.query[kind]
+        return np.where(np.asarray(rays) > 0, fixed + np.asarray(rays) * per_ray, 0.0)
+
+    @classmethod
+    def of(cls, costs: CostModel) -> ActivationCosts:
+        """The cost model's constants (``CostModel.trace_s``)."""
+        return cls(costs.activation_s, costs.shadow_activation_s,
+                   costs.trace_ray_s + costs.shade_ray_s, costs.shadow_ray_s, 0.0,
+                   ((0.0, costs.trace_ray_s), (0.0, costs.shadow_ray_s)))
+
+    def seconds(self, radiance, total):
+        """Seconds of activations of ``radiance`` radiance rays among ``total`` (scalars or
+        arrays alike)."""
+        return (np.where(radiance > 0, self.fixed_s, self.fixed_shadow_s)
+                + radiance * self.radiance_s + (total - radiance) * self.shadow_s)
+
+
+def fit_activation_costs(crossings: Crossings, costs: CostModel) -> ActivationCosts:
+    """The four costs of ``ActivationCosts`` fitted (least squares, none negative) to the
+    recording run's own activations on this store: what the real schedule code costs on its
+    domains, bounces and batch sizes. A cost the fit cannot tell (no activation of that kind)
+    stays the cost model's constant."""
+    rays = crossings.activation_rays.astype(float)
+    constants = ActivationCosts.of(costs)
+    if len(rays) < 4:
+        return constants
+    design = np.column_stack([rays[:, 0] > 0, rays[:, 0] == 0, rays[:, 0], rays[:, 1]])
+    solution = _nonnegative_lstsq(design.astype(float), crossings.activation_cpu_s)
+    told = design.any(axis=0)
+    values = np.where(told, solution, [constants.fixed_s, constants.fixed_shadow_s,
+                                       constants.radiance_s, constants.shadow_s])
+    query = []
+    for kind in (RADIANCE, 1 - RADIANCE):
+        calls = crossings.query_rays[:, 0] == kind
+        if calls.sum() >= 2:
+            rays = crossings.query_rays[calls, 1].astype(float)
+            query.append(tuple(float(v) for v in _nonnegative_lstsq(
+                np.column_stack([np.ones_like(rays), rays]), crossings.query_cpu_s[calls])))
+        else:
+            query.append(constants.query[kind])
+    decision = float(np.mean(crossings.decision_cpu_s)) if len(crossings.decision_cpu_s) else 0.0
+    return ActivationCosts(*(float(v) for v in values), decision, tuple(query))
+
+
+def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin |a x - b| with x >= 0, for a few columns: least squares on the columns left,
+    dropping the most negative one until none is."""
+    x = np.zeros(a.shape[1])
+    columns = [c for c in range(a.shape[1]) if a[:, c].any()]
+    while columns:
+        solution = np.linalg.lstsq(a[:, columns], b, rcond=None)[0]
+        if (solution >= 0).all():
+            x[columns] = solution
+            break
+        columns.pop(int(np.argmin(solution)))
+    return x

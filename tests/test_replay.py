@@ -1,0 +1,198 @@
+"""The simulator's replay (``vastray.sim.crossings``, ``vastray.sim.replay``): one frame's
+domain crossings recorded by a real trace, then every scheduler replayed over them. The
+recording must be the render (its image the reference's, every ray's visits on its line), and
+a replay must trace each ray exactly where a lossless schedule does, do what its scheduler
+does (rounds or none, copies, moves), and cost what the real-code simulator says within a
+stated band."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from vastray.render.driver import render
+from vastray.render.integrators import RenderSettings
+from vastray.render.scene_config import SceneConfig
+from vastray.scene.errors import InputError
+from vastray.scene.generate import generate
+from vastray.scene.store import Store
+from vastray.sim.cache import Domains
+from vastray.sim.costs import CostModel
+from vastray.sim.crossings import RADIANCE, SHADOW, Crossings, record_crossings
+from vastray.sim.replay import (
+    REPLAY_SCHEDULERS,
+    ActivationCosts,
+    Network,
+    Replay,
+    fit_activation_costs,
+)
+
+SETTINGS = RenderSettings(width=40, height=32, spp=2, bounces=2, seed=5)
+LOSSLESS_NON_SPECULATIVE = ("image", "domain", "dynamic", "async")
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Store:
+    path = tmp_path_factory.mktemp("replay") / "rm.store"
+    generate("rm", path, 32, grid=(4, 3, 2))
+    return Store(path)
+
+
+@pytest.fixture(scope="module")
+def recorded(store):
+    return record_crossings(store, SETTINGS, tile=500)
+
+
+@pytest.fixture(scope="module")
+def replay(store, recorded) -> Replay:
+    lo, hi = store.domain_boxes()
+    sizes = Domains.__new__(Domains)  # the sizes only: no domain built
+    nbytes = np.array([d.nbytes for d in store.domains], np.int64)
+    triangles = np.array([d.n_triangles for d in store.domains], np.int64)
+    del sizes
+    return Replay(recorded[0], nbytes, triangles, lo, hi, CostModel(), tile=600)
+
+
+def test_the_recorded_frame_is_the_reference_render(store, recorded):
+    crossings, film = recorded
+    reference = render(store, SceneConfig(), SETTINGS, progress=False)
+    np.testing.assert_array_equal(film.image(), reference.film.image())
+    camera = crossings.parent < 0
+    assert camera.sum() == SETTINGS.paths
+    assert np.array_equal(np.sort(crossings.path[camera]), np.arange(SETTINGS.paths))
+    assert crossings.n_paths == SETTINGS.paths and crossings.n_domains == len(store.domains)
+    # every kind of segment is there: camera, continuation and shadow rays
+    assert (crossings.kind == SHADOW).any()
+    assert ((crossings.kind == RADIANCE) & (crossings.depth > 0)).any()
+
+
+def test_every_visit_lies_on_its_rays_line(recorded):
+    """A ray is traced only in domains its line crosses (its speculative copies' domains),
+    each at most once, and the activations' ray counts add up to the visits."""
+    c, _ = recorded
+    assert c.visits.sum() == c.activation_rays.sum() > 0
+    for seg in np.nonzero(c.visits)[0][:: max(1, len(c) // 2000)]:
+        visited = c.visit_domain[c.visit_first[seg]:c.visit_first[seg + 1]]
+        crossed = c.crossed_domain[c.crossed_first[seg]:c.crossed_first[seg + 1]]
+        assert len(set(visited.tolist())) == len(visited)
+        assert set(visited.tolist()) <= set(crossed.tolist())
+    # a shadow ray spawned by a hit: its parent is a radiance segment of the same path
+    shadow = np.nonzero(c.kind == SHADOW)[0]
+    assert (c.kind[c.parent[shadow]] == RADIANCE).all()
+    assert np.array_equal(c.path[c.parent[shadow]], c.path[shadow])
+
+
+def test_a_recording_survives_its_file_and_a_bad_file_is_named(recorded, tmp_path):
+    c, _ = recorded
+    c.save(tmp_path / "frame.npz")
+    back = Crossings.load(tmp_path / "frame.npz")
+    for field in dataclasses.fields(Crossings):
+        assert np.array_equal(getattr(back, field.name), getattr(c, field.name)), field.name
+    (tmp_path / "bad.npz").write_bytes(b"not numpy")
+    with pytest.raises(InputError, match="bad.npz"):
+        Crossings.load(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("scheduler", LOSSLESS_NON_SPECULATIVE)
+@pytest.mark.parametrize("nodes", [1, 3, 8])
+def test_a_lossless_schedule_traces_every_visit_once(replay, recorded, scheduler, nodes):
+    c, _ = recorded
+    result = replay.run(scheduler, nodes)
+    assert result.counters["traced"] == c.visits.sum()
+    assert result.seconds > 0
+    if nodes == 1 or scheduler == "image":
+        assert result.counters["messages"] == 0
+    else:
+        assert result.counters["messages"] > 0
+
+
+@pytest.mark.parametrize("nodes", [1, 4])
+def test_speculation_traces_copies(replay, recorded, nodes):
+    """spec-insitu traces every copy on its line; spec-ooc at least every visit and fewer
+    than every copy of every segment (copies after a committed hit are dropped)."""
+    c, _ = recorded
+    assert replay.run("spec-insitu", nodes).counters["traced"] == c.copies.sum()
+    traced = replay.run("spec-ooc", nodes).counters["traced"]
+    assert c.visits.sum() <= traced <= c.copies.sum()
+
+
+def test_what_each_scheduler_synchronises_on(replay):
+    """domain and dynamic end rounds with all-reductions, more of them on more nodes; async
+    has none but its two termination waves; spec-insitu two per iteration; sort-first
+    nodes never synchronise."""
+    assert replay.run("domain", 8).counters["rounds"] > replay.run("domain", 1).counters["rounds"]
+    assert replay.run("dynamic", 4).counters["rounds"] > 2
+    assert replay.run("async", 8).counters["rounds"] == 2
+    insitu = replay.run("spec-insitu", 4).counters["rounds"]
+    assert insitu % 2 == 0 and insitu >= 2 * (SETTINGS.bounces + 1)
+    assert replay.run("image", 8).counters["rounds"] == 0
+
+
+def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
+    lo, hi = store.domain_boxes()
+    sizes = (np.array([d.nbytes for d in store.domains]),
+             np.array([d.n_triangles for d in store.domains]))
+    fast = Replay(recorded[0], *sizes, lo, hi, CostModel(), tile=600)
+    slow = Replay(recorded[0], *sizes, lo, hi, CostModel(),
+                  network=Network(latency_s=5e-3, bandwidth=1e6), tile=600)
+    for scheduler in ("domain", "async", "spec-insitu", "dynamic"):
+        assert slow.run(scheduler, 4).seconds > fast.run(scheduler, 4).seconds, scheduler
+    assert slow.run("image", 4).seconds == fast.run("image", 4).seconds
+
+
+def test_loads_follow_the_cache(replay):
+    """A sort-first node with room for everything loads each domain once; a cache of one
+    domain loads more."""
+    roomy = replay.run("image", 1)
+    assert roomy.counters["loads"] <= replay.n_domains
+    assert replay.run("image", 1, cache=1).counters["loads"] > roomy.counters["loads"]
+
+
+def test_the_activation_costs_are_fitted_to_the_recording(recorded):
+    c, _ = recorded
+    fitted = fit_activation_costs(c, CostModel())
+    assert fitted.radiance_s >= 0 and fitted.shadow_s >= 0
+    assert fitted.radiance_s + fitted.shadow_s > 0
+    constants = ActivationCosts.of(CostModel())
+    assert constants.seconds(2, 5) == pytest.approx(CostModel().trace_s(2, 3))
+
+
+def test_the_replay_refuses_what_it_does_not_model(replay):
+    with pytest.raises(ValueError, match="temporal"):
+        replay.run("temporal", 2)
+    with pytest.raises(ValueError, match="at least 1"):
+        replay.run("domain", 0)
+    assert set(REPLAY_SCHEDULERS) >= set(LOSSLESS_NON_SPECULATIVE)
+
+
+def test_a_repeated_frame_is_the_same_work_over_more_paths(store, recorded, replay):
+    c, _ = recorded
+    twice = c.repeated(3)
+    assert twice.n_paths == 3 * c.n_paths and len(twice) == 3 * len(c)
+    assert np.array_equal(np.sort(twice.path[twice.parent < 0]), np.arange(twice.n_paths))
+    assert np.array_equal(twice.visits, np.tile(c.visits, 3))
+    seg = len(c) + int(np.nonzero(c.visits > 1)[0][0])
+    original = seg - len(c)
+    assert np.array_equal(twice.visit_domain[twice.visit_first[seg]:twice.visit_first[seg + 1]],
+                          c.visit_domain[c.visit_first[original]:c.visit_first[original + 1]])
+    spawned = np.nonzero(twice.parent >= 0)[0]
+    assert np.array_equal(twice.path[twice.parent[spawned]], twice.path[spawned])
+    lo, hi = store.domain_boxes()
+    sizes = (np.array([d.nbytes for d in store.domains]),
+             np.array([d.n_triangles for d in store.domains]))
+    more = Replay(twice, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    assert more.run("async", 2).counters["traced"] == 3 * c.visits.sum()
+
+
+def test_a_subset_keeps_every_stride_th_path_and_its_rays(recorded):
+    c, _ = recorded
+    third = c.subset(3)
+    assert third.n_paths == -(-c.n_paths // 3)
+    assert np.array_equal(np.sort(third.path[third.parent < 0]), np.arange(third.n_paths))
+    kept = np.nonzero(c.path % 3 == 0)[0]
+    assert np.array_equal(third.visits, c.visits[kept])
+    assert np.array_equal(third.copies, c.copies[kept])
+    spawned = np.nonzero(third.parent >= 0)[0]
+    assert np.array_equal(third.path[third.parent[spawned]], third.path[spawned])
