@@ -16,6 +16,8 @@ Before any figure the replay is checked against the simulator that runs the node
 
 from __future__ import annotations
 
+import multiprocessing
+import os
 import time
 from pathlib import Path
 
@@ -80,6 +82,28 @@ def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = 
                   None if storage_mb_s is None else storage_mb_s * 1e6)
 
 
+#: The replay the worker processes run (inherited at fork: the recording is not copied).
+_REPLAY: Replay | None = None
+
+
+def _replay_one(job: tuple[str, int, int]):
+    scheduler, nodes, cache = job
+    return _REPLAY.run(scheduler, nodes, cache=cache)
+
+
+def replayed(replay: Replay, jobs: list[tuple[str, int, int]]):
+    """``replay.run`` of every (scheduler, nodes, cache) in ``jobs``, in order, on as many
+    processes as this machine has cores (forked: each replay is one process's numpy work)."""
+    global _REPLAY
+    _REPLAY = replay
+    workers = min(len(jobs), os.cpu_count() or 1)
+    if workers <= 1:
+        yield from map(_replay_one, jobs)
+        return
+    with multiprocessing.get_context("fork").Pool(workers) as pool:
+        yield from pool.imap(_replay_one, jobs)
+
+
 def node_cache(n_domains: int, nodes: int) -> int:
     """Domains a node caches: a quarter of the store, never fewer than it owns."""
     return max(-(-n_domains // CACHE_SHARE), -(-n_domains // nodes))
@@ -130,15 +154,16 @@ def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dic
           f"max(D/{CACHE_SHARE}, D/P) domains, storage {STORAGE_MB_S:.0f} MB/s, network "
           f"{NETWORK.bandwidth / 1e9:.2f} GB/s + {NETWORK.latency_s * 1e6:.0f} us:")
     times, breakdown = {}, {}
-    for scheduler in REPLAY_SCHEDULERS:
-        for nodes in node_counts:
-            result = replay.run(scheduler, nodes, cache=node_cache(len(store.domains), nodes))
-            times.setdefault(scheduler, {})[nodes] = result.seconds
-            print(f"  {scheduler:11s} P={nodes:5d}: {result.seconds:9.4f} s virtual "
-                  f"({result.wall_s:.1f} s to replay; {result.counters['messages']:,} messages, "
-                  f"{result.counters['loads']:,} loads, {result.counters['rounds']:,} "
-                  "synchronisations)", flush=True)
-        breakdown[scheduler] = result.breakdown
+    jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes))
+            for scheduler in REPLAY_SCHEDULERS for nodes in node_counts]
+    for (scheduler, nodes, _), result in zip(jobs, replayed(replay, jobs), strict=True):
+        times.setdefault(scheduler, {})[nodes] = result.seconds
+        print(f"  {scheduler:11s} P={nodes:5d}: {result.seconds:9.4f} s virtual "
+              f"({result.wall_s:.1f} s to replay; {result.counters['messages']:,} messages, "
+              f"{result.counters['loads']:,} loads, {result.counters['rounds']:,} "
+              "synchronisations)", flush=True)
+        if nodes == max(node_counts):
+            breakdown[scheduler] = result.breakdown
     return times, breakdown
 
 
@@ -155,8 +180,9 @@ def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
         frame = (base.subset(base.n_paths // paths) if paths <= base.n_paths
                  else base.repeated(-(-paths // base.n_paths)))
         replay = replay_of(store, frame, own, activations=fitted)
-        for scheduler in REPLAY_SCHEDULERS:
-            result = replay.run(scheduler, nodes, cache=node_cache(len(store.domains), nodes))
+        jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes))
+                for scheduler in REPLAY_SCHEDULERS]
+        for scheduler, result in zip(REPLAY_SCHEDULERS, replayed(replay, jobs), strict=True):
             times.setdefault(scheduler, {})[nodes] = result.seconds
             print(f"  {scheduler:11s} P={nodes:5d} ({frame.n_paths:,} paths): "
                   f"{result.seconds:9.4f} s virtual ({result.wall_s:.1f} s to replay)",
@@ -174,6 +200,13 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
     for scheduler, by in strong_times.items():
         print(f"| {scheduler} | {by[1]:.3f} | "
               + " | ".join(f"{by[1] / by[p]:.2f}" for p in shown) + " |")
+    best = min(by[1] for by in strong_times.values())
+    print("\nspeed-up over the fastest scheduler on one node (T_best(1) / T(P): a scheduler "
+          "slow on one node does not flatter itself):")
+    print("| scheduler | " + " | ".join(f"P={p}" for p in shown) + " |")
+    print("| --- |" + " --- |" * len(shown))
+    for scheduler, by in strong_times.items():
+        print(f"| {scheduler} | " + " | ".join(f"{best / by[p]:.2f}" for p in shown) + " |")
     top = max(node_counts)
     print(f"\nwhere the time goes at P={top} (mean per node, s):")
     print("| scheduler | total | trace | load | messages | reduction | wait |")

@@ -106,12 +106,14 @@ class ReplayResult:
 
 
 class _Lru:
-    """A node's cache of ``capacity`` domains, least recently used evicted."""
+    """A node's cache of ``capacity`` domains, least recently used evicted; ``mask`` ((D,)
+    bool, where the store's size is given) says which are held."""
 
-    __slots__ = ("capacity", "held", "loads")
+    __slots__ = ("capacity", "held", "loads", "mask")
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, n_domains: int = 0):
         self.capacity, self.held, self.loads = max(1, capacity), OrderedDict(), 0
+        self.mask = np.zeros(n_domains, bool)
 
     def touch(self, domain: int) -> bool:
         """Use ``domain``; True when it had to be loaded."""
@@ -119,8 +121,12 @@ class _Lru:
             self.held.move_to_end(domain)
             return False
         if len(self.held) >= self.capacity:
-            self.held.popitem(last=False)
+            evicted, _ = self.held.popitem(last=False)
+            if len(self.mask):
+                self.mask[evicted] = False
         self.held[domain] = None
+        if len(self.mask):
+            self.mask[domain] = True
         self.loads += 1
         return True
 
@@ -222,8 +228,9 @@ class Replay:
 
     def _trace_s(self, radiance: int, shadow: int) -> float:
         """One activation's seconds, its decision included."""
-        return float(self.activation.seconds(radiance, radiance + shadow)
-                     + self.activation.decision_s)
+        a = self.activation
+        return ((a.fixed_s if radiance else a.fixed_shadow_s) + radiance * a.radiance_s
+                + shadow * a.shadow_s + a.decision_s)
 
     def _send_s(self, nbytes: float) -> float:
         return self.costs.message_s(nbytes)
@@ -342,7 +349,7 @@ class Replay:
         from vastray.schedule.ownership import round_robin_owners
 
         owner = round_robin_owners(self.n_domains, size).astype(np.int64)
-        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        ledger, caches = _Ledger(size), [_Lru(cache, self.n_domains) for _ in range(size)]
         clock = 0.0
         for tile in self._tiles(self.camera_visits):
             tokens = self.camera_visits[tile]
@@ -382,7 +389,7 @@ class Replay:
         from vastray.schedule.dynamic import RayWeightedRounds
 
         policy = RayWeightedRounds()
-        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        ledger, caches = _Ledger(size), [_Lru(cache, self.n_domains) for _ in range(size)]
         clock = 0.0
         vector_bytes = 16.0 * self.n_domains
         for tile in self._tiles(self.camera_visits):
@@ -510,7 +517,7 @@ class Replay:
         for rank in range(size):
             firsts = list(sort_first_tiles(paths, tile, rank, size))
             mine = np.isin(path_tile, [f // tile for f in firsts])
-            lru = _Lru(cache)
+            lru = _Lru(cache, self.n_domains)
             seconds = self._camera_s(sum(min(tile, paths - f) for f in firsts))
             tokens = self.camera_visits[mine]
             if speculative:
@@ -538,7 +545,7 @@ class Replay:
         queues.push(self.domain_of[tokens], tokens)
         seconds = 0.0
         while True:
-            domain = queues.fullest(lru.held)
+            domain = queues.fullest(lru.mask)
             if domain is None:
                 return seconds
             batch = queues.pop(domain)
@@ -562,7 +569,7 @@ class Replay:
         seconds = 0.0
         first, child = self.children
         while True:
-            domain = queues.fullest(lru.held)
+            domain = queues.fullest(lru.mask)
             if domain is None:
                 return seconds
             batch = queues.pop(domain)
@@ -602,7 +609,7 @@ class Replay:
         from vastray.schedule.ownership import round_robin_owners
 
         owner = round_robin_owners(self.n_domains, size).astype(np.int64)
-        ledger, caches = _Ledger(size), [_Lru(cache) for _ in range(size)]
+        ledger, caches = _Ledger(size), [_Lru(cache, self.n_domains) for _ in range(size)]
         queues = [_Queues(self.n_domains) for _ in range(size)]
         tiles = self._tiles(self.camera_visits)
         next_tile = [0] * size
@@ -633,7 +640,7 @@ class Replay:
                 cost += self._camera_s(len(tokens))
                 out = tokens
             else:
-                domain = q.fullest(caches[n].held)
+                domain = q.fullest(caches[n].mask)
                 if domain is not None:
                     batch = q.pop(domain)
                     radiance = int(np.count_nonzero(self.radiance_of[batch]))
@@ -690,17 +697,25 @@ class _Queues:
         self.total = 0
 
     def push(self, domains: np.ndarray, tokens: np.ndarray) -> None:
-        if not len(tokens):
+        n = len(tokens)
+        if not n:
+            return
+        if n == 1 or (domains[0] == domains).all():
+            d = int(domains[0])
+            self.parts.setdefault(d, []).append(tokens)
+            self.counts[d] += n
+            self.total += n
             return
         order = np.argsort(domains, kind="stable")
         domains, tokens = domains[order], tokens[order]
-        cuts = np.flatnonzero(np.diff(domains)) + 1
-        starts = np.concatenate([[0], cuts])
-        for start, part in zip(starts.tolist(), np.split(tokens, cuts), strict=True):
+        bounds = np.concatenate([[0], np.flatnonzero(np.diff(domains)) + 1, [n]]).tolist()
+        parts = self.parts
+        for start, stop in zip(bounds[:-1], bounds[1:], strict=True):
             d = int(domains[start])
-            self.parts.setdefault(d, []).append(part)
-            self.counts[d] += len(part)
-        self.total += len(tokens)
+            parts.setdefault(d, []).append(tokens[start:stop])
+        firsts = domains[bounds[:-1]]
+        self.counts[firsts] += np.diff(bounds)
+        self.total += n
 
     def pop(self, domain: int) -> np.ndarray:
         parts = self.parts.pop(domain)
@@ -708,14 +723,13 @@ class _Queues:
         self.counts[domain] = 0
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
-    def fullest(self, cached) -> int | None:
-        """The fullest domain, a cached one with rays first (``schedule.image.fullest``)."""
+    def fullest(self, cached: np.ndarray) -> int | None:
+        """The fullest domain (the lowest id on ties), a cached one ((D,) bool ``cached``)
+        with rays first (``schedule.image.fullest``)."""
         if not self.parts:
             return None
-        here = [d for d in cached if d in self.parts]
-        if here:
-            return max(here, key=lambda d: (self.counts[d], -d))
-        return int(np.argmax(self.counts))
+        here = self.counts * cached
+        return int(np.argmax(here if here.any() else self.counts))
 
 
 @dataclass(frozen=True)
