@@ -496,3 +496,26 @@ def test_resume_alone_runs_the_interrupted_command_again_from_anywhere(scene, tm
     # typed options go on top: a larger --spp goes further from the same checkpoint
     assert main(["render", "--resume", str(ckpt), "--spp", "2048", "--quiet"]) == 0
     assert json.loads((run / "run.json").read_text())["passes"][-1]["spp"] == 2048
+
+
+def test_sigusr1_writes_the_checkpoint_on_a_thread_of_its_own(tmp_path):
+    """A handler that wrote the checkpoint ran in the main thread between any two bytecodes,
+    once in the middle of an import ("partially initialized module 'fractions'"), and killed
+    the render: the handler only wakes a thread, which writes."""
+    from vastray.checkpoint import Checkpointer
+
+    checkpoints = Checkpointer(tmp_path / "c.npz", {})
+    written_on: list[threading.Thread] = []
+    checkpoints.write = lambda: written_on.append(threading.current_thread()) or True
+    before = signal.getsignal(signal.SIGUSR1)
+    previous = checkpoints.install_signal()
+    try:
+        os.kill(os.getpid(), signal.SIGUSR1)
+        deadline = time.monotonic() + 60
+        while not written_on and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        checkpoints.uninstall_signal(previous)
+    assert written_on and written_on[0] is not threading.main_thread()
+    assert signal.getsignal(signal.SIGUSR1) == before
+    assert not [t for t in threading.enumerate() if t.name == "checkpoint-on-sigusr1"]

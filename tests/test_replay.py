@@ -196,3 +196,20 @@ def test_a_subset_keeps_every_stride_th_path_and_its_rays(recorded):
     assert np.array_equal(third.copies, c.copies[kept])
     spawned = np.nonzero(third.parent >= 0)[0]
     assert np.array_equal(third.path[third.parent[spawned]], third.path[spawned])
+
+
+def test_sort_first_nodes_on_copies_of_the_same_paths_cost_the_same(store, recorded, replay):
+    """A repeated frame's sort-first nodes with the same base paths are replayed once: the
+    result must equal replaying every node."""
+    c, _ = recorded
+    twice = c.repeated(2)
+    lo, hi = store.domain_boxes()
+    sizes = (np.array([d.nbytes for d in store.domains]),
+             np.array([d.n_triangles for d in store.domains]))
+    fast = Replay(twice, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    plain = dataclasses.replace(twice)  # no ``period``: every node replayed
+    slow = Replay(plain, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    for scheduler in ("image", "spec-ooc"):
+        a, b = fast.run(scheduler, 4), slow.run(scheduler, 4)
+        assert a.seconds == b.seconds and a.counters == b.counters, scheduler
+        assert np.allclose(list(a.breakdown.values()), list(b.breakdown.values()))

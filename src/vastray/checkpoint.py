@@ -272,6 +272,7 @@ class Checkpointer:
                  write_image=None):
         self.path, self.identity, self.every = Path(path), identity, every
         self.write_image = write_image
+        self._signal = None  # (pipe write end, thread) while SIGUSR1 writes checkpoints
         self.progression: Progression | None = None
         self.written: int | None = None  # passes done in the last checkpoint written
         self._last = time.monotonic()
@@ -357,10 +358,43 @@ class Checkpointer:
 
     def install_signal(self) -> object:
         """SIGUSR1 writes a checkpoint now (main thread only); returns the handler it
-        replaced (None where it could not install one)."""
+        replaced (None where it could not install one; give it to ``uninstall_signal``).
+
+        The write runs on a thread of its own, woken through a pipe: a signal handler runs
+        between any two bytecodes of the main thread, in the middle of an import as well, and
+        a write there (which imports and takes locks) once failed with "partially initialized
+        module 'fractions'" and killed the render. The handler only writes a byte to the
+        pipe, which takes no lock.
+        """
         if threading.current_thread() is not threading.main_thread():
             return None
-        return signal.signal(signal.SIGUSR1, lambda signum, frame: self.write())
+        read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)
+
+        def serve() -> None:
+            while os.read(read_fd, 64):  # b"" once the pipe is closed: the render is over
+                self.write()
+            os.close(read_fd)
+
+        def request(signum, frame) -> None:
+            with contextlib.suppress(OSError):  # full pipe: a write is requested already
+                os.write(write_fd, b"w")
+
+        thread = threading.Thread(target=serve, name="checkpoint-on-sigusr1", daemon=True)
+        thread.start()
+        self._signal = (write_fd, thread)
+        return signal.signal(signal.SIGUSR1, request)
+
+    def uninstall_signal(self, previous: object) -> None:
+        """Put back the SIGUSR1 handler ``install_signal`` replaced and stop its thread (after
+        a write under way, if any)."""
+        if getattr(self, "_signal", None) is None:
+            return
+        signal.signal(signal.SIGUSR1, signal.SIG_DFL if previous is None else previous)
+        write_fd, thread = self._signal
+        self._signal = None
+        os.close(write_fd)
+        thread.join(timeout=60)
 
     def finished(self) -> None:
         """The render is complete: its own checkpoint file is removed (a user's resumed

@@ -5,7 +5,6 @@ animation's frames), then the image, PNG and report written all or none, and the
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 from collections.abc import Callable
 from dataclasses import asdict
@@ -63,6 +62,8 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
         result = plan.render_one(plan.config, plan.settings, progression=progression)
     except KeyboardInterrupt as stop:  # Ctrl-C and SIGTERM: the passes done are kept
         progression.interrupted()
+        checkpoints.uninstall_signal(previous)  # a SIGUSR1 write under way ends first
+        previous = None
         checkpoints.drain()  # a checkpoint under way first: then the latest
         stop.checkpointed = checkpoints.write()
         if not stop.checkpointed and not request.quiet and plan.rules.one_pass:
@@ -75,8 +76,7 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
                   f"{checkpoints.path}", file=sys.stderr)
         raise
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGUSR1, previous)
+        checkpoints.uninstall_signal(previous)
     checkpoints.drain()  # no checkpoint is written after (or over) the final outputs
     image, error, report = finish_render(plan, result, outputs[0], request.reference)
     summary = summary_line(request, result, error, outputs, replaced)

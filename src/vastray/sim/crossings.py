@@ -120,7 +120,7 @@ class Crossings:
 
         parent = np.tile(self.parent, times)
         parent = np.where(parent >= 0, parent + seg_shift, -1)
-        return Crossings(np.tile(self.kind, times),
+        repeated = Crossings(np.tile(self.kind, times),
                          np.tile(self.path, times) + np.repeat(k * self.n_paths, n),
                          np.tile(self.depth, times), parent, offsets(self.visit_first),
                          np.tile(self.visit_domain, times), offsets(self.crossed_first),
@@ -128,6 +128,10 @@ class Crossings:
                          self.n_paths * times, self.ray_bytes, self.activation_rays,
                          self.activation_cpu_s, self.decision_cpu_s, self.query_rays,
                          self.query_cpu_s)
+        #: paths of the frame repeated (not saved with the recording): a replay may give
+        #: work on the same paths of each copy the same result
+        repeated.period = self.n_paths
+        return repeated
 
     def subset(self, stride: int) -> Crossings:
         """Every ``stride``-th path of the frame (an image-wide sample of its work), path

@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from vastray.schedule import registry
+from vastray.schedule.registry import Decomposition, Simulation
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, Crossings, ranges
 
@@ -57,8 +59,23 @@ DEFAULT_TILE = 65536
 INLINE_RAYS = 1024
 #: Bytes of a message's header (kind, metadata) beside its rays.
 HEADER_BYTES = 64
-#: The schedulers the replay models.
-REPLAY_SCHEDULERS = ("image", "spec-ooc", "domain", "dynamic", "async", "spec-insitu")
+#: How the replay runs each kind of scheduler (``schedule.registry``'s attributes: the sort-first
+#: tiles, each ``Decomposition`` of the domain runtimes but ``temporal``'s planned one, and
+#: in situ).
+_REPLAYED_DECOMPOSITIONS = (Decomposition.ROUNDS, Decomposition.RAY_WEIGHTED,
+                            Decomposition.ASYNC)
+
+
+def replayed(spec: registry.SchedulerSpec | None) -> bool:
+    """Whether the replay models this scheduler."""
+    return spec is not None and (
+        spec.simulation in (Simulation.SORT_FIRST, Simulation.IN_SITU)
+        or (spec.simulation is Simulation.DOMAINS
+            and spec.decomposition in _REPLAYED_DECOMPOSITIONS))
+
+
+#: The schedulers the replay models, in ``registry.SPECS`` order.
+REPLAY_SCHEDULERS = tuple(spec.name for spec in registry.SPECS if replayed(spec))
 
 
 @dataclass(frozen=True)
@@ -258,24 +275,22 @@ class Replay:
     def run(self, scheduler: str, nodes: int, cache: int | None = None) -> ReplayResult:
         """Replay ``scheduler`` on ``nodes`` nodes with a core each; ``cache``: domains a node
         holds (default: the product's, every domain it owns, or all for sort-first)."""
-        if scheduler not in REPLAY_SCHEDULERS:
+        spec = registry.find(scheduler)
+        if not replayed(spec):
             raise ValueError(f"the replay models {', '.join(REPLAY_SCHEDULERS)}, not "
                              f"{scheduler!r}")
         if nodes < 1:
             raise ValueError("the replay needs at least 1 node")
         start = time.perf_counter()
         owned = -(-self.n_domains // nodes)
-        if scheduler in ("image", "spec-ooc"):
-            ledger, seconds = self._sort_first(nodes, cache or self.n_domains,
-                                               scheduler == "spec-ooc")
-        elif scheduler == "domain":
-            ledger, seconds = self._rounds(nodes, cache or owned)
-        elif scheduler == "dynamic":
-            ledger, seconds = self._dynamic(nodes, cache or owned)
-        elif scheduler == "async":
-            ledger, seconds = self._async(nodes, cache or owned)
-        else:
+        if spec.simulation is Simulation.SORT_FIRST:
+            ledger, seconds = self._sort_first(nodes, cache or self.n_domains, spec.speculates)
+        elif spec.simulation is Simulation.IN_SITU:
             ledger, seconds = self._insitu(nodes)
+        else:
+            run = {Decomposition.ROUNDS: self._rounds, Decomposition.RAY_WEIGHTED: self._dynamic,
+                   Decomposition.ASYNC: self._async}[spec.decomposition]
+            ledger, seconds = run(nodes, cache or owned)
         return ledger.result(scheduler, seconds, start)
 
     def _camera_s(self, paths: int) -> float:
@@ -514,8 +529,22 @@ class Replay:
         tile = max(1, -(-paths // size))  # as the scaling runs: a tile per node
         path_tile = self.path_of[self.camera_visits] // tile
         span = np.zeros(size)
+        # a repeated frame (``Crossings.repeated``) gives nodes whose tiles are the same
+        # paths of the base frame the same work: replayed once, charged to each
+        period = getattr(self.c, "period", 0)
+        same_work: dict = {}
         for rank in range(size):
             firsts = list(sort_first_tiles(paths, tile, rank, size))
+            key = (tuple(f % period for f in firsts)
+                   if period and period % tile == 0 else None)
+            if key is not None and key in same_work:
+                seconds, trace, load, counters = same_work[key]
+                ledger.trace[rank], ledger.load[rank] = trace, load
+                for name, value in counters.items():
+                    ledger.counters[name] += value
+                span[rank] = seconds
+                continue
+            before = dict(ledger.counters)
             mine = np.isin(path_tile, [f // tile for f in firsts])
             lru = _Lru(cache, self.n_domains)
             seconds = self._camera_s(sum(min(tile, paths - f) for f in firsts))
@@ -526,6 +555,9 @@ class Replay:
                 seconds += self._image_node(ledger, rank, lru, tokens)
             span[rank] = seconds
             ledger.counters["loads"] += lru.loads
+            if key is not None:
+                same_work[key] = (seconds, ledger.trace[rank], ledger.load[rank],
+                                  {k: v - before[k] for k, v in ledger.counters.items()})
         return ledger, float(span.max())
 
     def _node_activation(self, ledger: _Ledger, rank: int, lru: _Lru, domain: int,
