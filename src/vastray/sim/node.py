@@ -86,6 +86,9 @@ class VirtualDomainLoop(DomainLoop):
         await self.cluster.decided(self.rank, cpu_seconds)
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
+        # decided before the trace, as the real loop decides it: after it, the domain's rays
+        # are gone and every activation would look small
+        handed = self.node_runtime and hands_off(order, domain)
         cpu = time.thread_time()
         queries = order.trace(domain, bvh)
         cpu = time.thread_time() - cpu
@@ -93,7 +96,7 @@ class VirtualDomainLoop(DomainLoop):
             return queries
         costs = self.cluster.costs
         seconds = costs.trace_charge(queries.radiance, queries.shadow, cpu)
-        if self.node_runtime and hands_off(order, domain):  # as the real node's loop does
+        if handed:  # as the real node's loop does
             seconds += costs.offload_s
             self.stats["handed_off"] = self.stats.get("handed_off", 0) + 1
         await self.cluster.trace(self.rank, seconds,
