@@ -21,13 +21,12 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
 from bench_scenes import CACHE
 
 from vastray.render.driver import shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
-from vastray.sim.cache import Domains
+from vastray.sim.cache import Domains, domain_sizes
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import Crossings, record_crossings
 from vastray.sim.replay import REPLAY_SCHEDULERS, Network, Replay
@@ -71,15 +70,10 @@ def recording(store, settings: RenderSettings) -> Crossings:
     return crossings
 
 
-def _sizes(store) -> tuple[np.ndarray, np.ndarray]:
-    return (np.array([d.nbytes for d in store.domains], np.int64),
-            np.array([d.n_triangles for d in store.domains], np.int64))
-
-
 def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = NETWORK,
               storage_mb_s: float | None = STORAGE_MB_S, activations=None) -> Replay:
     lo, hi = store.domain_boxes()
-    return Replay(crossings, *_sizes(store), lo, hi, costs, activations, network,
+    return Replay(crossings, *domain_sizes(store), lo, hi, costs, activations, network,
                   None if storage_mb_s is None else storage_mb_s * 1e6)
 
 

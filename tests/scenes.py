@@ -16,6 +16,15 @@ from vastray.scene.partition import partition_grid, partition_kd
 from vastray.scene.store import DomainArrays, Store, StoreWriter, relative_to
 
 
+def rm_store(path: Path, size: int, grid) -> Store:
+    """The generated Richtmyer-Meshkov isosurface at ``size``^3 cut into ``grid`` domains,
+    written to ``path``."""
+    from vastray.scene.generate import generate
+
+    generate("rm", path, size, grid=grid)
+    return Store(path)
+
+
 def mesh_arrays(mesh: trimesh.Trimesh, flip: bool = False) -> DomainArrays:
     """A trimesh as store arrays; ``flip`` reverses the winding (normals point inward)."""
     faces = mesh.faces[:, ::-1] if flip else mesh.faces

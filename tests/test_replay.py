@@ -16,9 +16,8 @@ from vastray.render.driver import render
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.scene.errors import InputError
-from vastray.scene.generate import generate
 from vastray.scene.store import Store
-from vastray.sim.cache import Domains
+from vastray.sim.cache import domain_sizes
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, SHADOW, Crossings, record_crossings
 from vastray.sim.replay import (
@@ -29,15 +28,15 @@ from vastray.sim.replay import (
     fit_activation_costs,
 )
 
+from scenes import rm_store
+
 SETTINGS = RenderSettings(width=40, height=32, spp=2, bounces=2, seed=5)
 LOSSLESS_NON_SPECULATIVE = ("image", "domain", "dynamic", "async")
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> Store:
-    path = tmp_path_factory.mktemp("replay") / "rm.store"
-    generate("rm", path, 32, grid=(4, 3, 2))
-    return Store(path)
+    return rm_store(tmp_path_factory.mktemp("replay") / "rm.store", 32, (4, 3, 2))
 
 
 @pytest.fixture(scope="module")
@@ -45,14 +44,15 @@ def recorded(store):
     return record_crossings(store, SETTINGS, tile=500)
 
 
+def replay_of(store, crossings: Crossings, activations=None, **options) -> Replay:
+    """A replay of ``crossings`` on ``store`` with the default costs and tiles of 600 paths."""
+    return Replay(crossings, *domain_sizes(store), *store.domain_boxes(), CostModel(),
+                  activations, tile=600, **options)
+
+
 @pytest.fixture(scope="module")
 def replay(store, recorded) -> Replay:
-    lo, hi = store.domain_boxes()
-    sizes = Domains.__new__(Domains)  # the sizes only: no domain built
-    nbytes = np.array([d.nbytes for d in store.domains], np.int64)
-    triangles = np.array([d.n_triangles for d in store.domains], np.int64)
-    del sizes
-    return Replay(recorded[0], nbytes, triangles, lo, hi, CostModel(), tile=600)
+    return replay_of(store, recorded[0])
 
 
 def test_the_recorded_frame_is_the_reference_render(store, recorded):
@@ -131,12 +131,8 @@ def test_what_each_scheduler_synchronises_on(replay):
 
 
 def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
-    lo, hi = store.domain_boxes()
-    sizes = (np.array([d.nbytes for d in store.domains]),
-             np.array([d.n_triangles for d in store.domains]))
-    fast = Replay(recorded[0], *sizes, lo, hi, CostModel(), tile=600)
-    slow = Replay(recorded[0], *sizes, lo, hi, CostModel(),
-                  network=Network(latency_s=5e-3, bandwidth=1e6), tile=600)
+    fast = replay_of(store, recorded[0])
+    slow = replay_of(store, recorded[0], network=Network(latency_s=5e-3, bandwidth=1e6))
     for scheduler in ("domain", "async", "spec-insitu", "dynamic"):
         assert slow.run(scheduler, 4).seconds > fast.run(scheduler, 4).seconds, scheduler
     assert slow.run("image", 4).seconds == fast.run("image", 4).seconds
@@ -179,10 +175,7 @@ def test_a_repeated_frame_is_the_same_work_over_more_paths(store, recorded, repl
                           c.visit_domain[c.visit_first[original]:c.visit_first[original + 1]])
     spawned = np.nonzero(twice.parent >= 0)[0]
     assert np.array_equal(twice.path[twice.parent[spawned]], twice.path[spawned])
-    lo, hi = store.domain_boxes()
-    sizes = (np.array([d.nbytes for d in store.domains]),
-             np.array([d.n_triangles for d in store.domains]))
-    more = Replay(twice, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    more = replay_of(store, twice, replay.activation)
     assert more.run("async", 2).counters["traced"] == 3 * c.visits.sum()
 
 
@@ -203,12 +196,9 @@ def test_sort_first_nodes_on_copies_of_the_same_paths_cost_the_same(store, recor
     result must equal replaying every node."""
     c, _ = recorded
     twice = c.repeated(2)
-    lo, hi = store.domain_boxes()
-    sizes = (np.array([d.nbytes for d in store.domains]),
-             np.array([d.n_triangles for d in store.domains]))
-    fast = Replay(twice, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    fast = replay_of(store, twice, replay.activation)
     plain = dataclasses.replace(twice)  # no ``period``: every node replayed
-    slow = Replay(plain, *sizes, lo, hi, CostModel(), replay.activation, tile=600)
+    slow = replay_of(store, plain, replay.activation)
     for scheduler in ("image", "spec-ooc"):
         a, b = fast.run(scheduler, 4), slow.run(scheduler, 4)
         assert a.seconds == b.seconds and a.counters == b.counters, scheduler

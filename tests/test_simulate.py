@@ -37,6 +37,8 @@ from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
 from vastray.transport.codec import Message
 
+from scenes import rm_store
+
 #: A tiny render: two samples in one pass (the default passes are of 16 spp).
 SETTINGS = RenderSettings(width=32, height=24, spp=2, bounces=1, shadow_samples=2, seed=3)
 COSTS = CostModel()
@@ -54,9 +56,7 @@ NODE_SCHEDULERS = tuple(s for s in SIM_SCHEDULERS if s not in TILE_SCHEDULERS)
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory) -> Store:
-    path = tmp_path_factory.mktemp("simulate") / "rm.store"
-    generate("rm", path, 32, grid=(3, 2, 2))
-    return Store(path)
+    return rm_store(tmp_path_factory.mktemp("simulate") / "rm.store", 32, (3, 2, 2))
 
 
 @pytest.fixture(scope="module")

@@ -388,7 +388,7 @@ class Checkpointer:
     def uninstall_signal(self, previous: object) -> None:
         """Put back the SIGUSR1 handler ``install_signal`` replaced and stop its thread (after
         a write under way, if any)."""
-        if getattr(self, "_signal", None) is None:
+        if self._signal is None:
             return
         signal.signal(signal.SIGUSR1, signal.SIG_DFL if previous is None else previous)
         write_fd, thread = self._signal

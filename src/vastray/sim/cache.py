@@ -19,6 +19,13 @@ from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 
 
+def domain_sizes(store: Store) -> tuple[np.ndarray, np.ndarray]:
+    """(D,) int64 bytes and (D,) int64 triangles of each of ``store``'s domains (what a load
+    costs), read from its manifest: nothing is loaded."""
+    return (np.array([d.nbytes for d in store.domains], np.int64),
+            np.array([d.n_triangles for d in store.domains], np.int64))
+
+
 class Domains:
     """Every domain of a store built once, in memory, shared by all virtual nodes (the
     simulator traces real rays against them; which node holds which is the virtual caches'
@@ -34,8 +41,7 @@ class Domains:
         self.store = store
         self._real = DomainCache(store, max(len(store.domains), 1), keep)
         #: (D,) bytes and triangles of each domain: what a load costs.
-        self.nbytes = np.array([d.nbytes for d in store.domains], np.int64)
-        self.triangles = np.array([d.n_triangles for d in store.domains], np.int64)
+        self.nbytes, self.triangles = domain_sizes(store)
 
     def get(self, domain: int) -> DomainBVH:
         return self._real.get(domain)

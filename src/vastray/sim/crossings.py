@@ -14,7 +14,7 @@ of a trace, which is what lets the simulator reach the papers' work per node (is
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -120,14 +120,15 @@ class Crossings:
 
         parent = np.tile(self.parent, times)
         parent = np.where(parent >= 0, parent + seg_shift, -1)
-        repeated = Crossings(np.tile(self.kind, times),
-                         np.tile(self.path, times) + np.repeat(k * self.n_paths, n),
-                         np.tile(self.depth, times), parent, offsets(self.visit_first),
-                         np.tile(self.visit_domain, times), offsets(self.crossed_first),
-                         np.tile(self.crossed_domain, times), self.n_domains,
-                         self.n_paths * times, self.ray_bytes, self.activation_rays,
-                         self.activation_cpu_s, self.decision_cpu_s, self.query_rays,
-                         self.query_cpu_s)
+        # the recording run's costs stay: the same store's
+        repeated = replace(self, kind=np.tile(self.kind, times),
+                           path=np.tile(self.path, times) + np.repeat(k * self.n_paths, n),
+                           depth=np.tile(self.depth, times), parent=parent,
+                           visit_first=offsets(self.visit_first),
+                           visit_domain=np.tile(self.visit_domain, times),
+                           crossed_first=offsets(self.crossed_first),
+                           crossed_domain=np.tile(self.crossed_domain, times),
+                           n_paths=self.n_paths * times)
         #: paths of the frame repeated (not saved with the recording): a replay may give
         #: work on the same paths of each copy the same result
         repeated.period = self.n_paths
@@ -149,12 +150,12 @@ class Crossings:
             return (np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
                     values[ranges(first[kept], counts)])
 
-        return Crossings(self.kind[kept], self.path[kept] // stride, self.depth[kept], parent,
-                         *rows(self.visit_first, self.visit_domain),
-                         *rows(self.crossed_first, self.crossed_domain), self.n_domains,
-                         -(-self.n_paths // stride), self.ray_bytes, self.activation_rays,
-                         self.activation_cpu_s, self.decision_cpu_s, self.query_rays,
-                         self.query_cpu_s)
+        visit_first, visit_domain = rows(self.visit_first, self.visit_domain)
+        crossed_first, crossed_domain = rows(self.crossed_first, self.crossed_domain)
+        return replace(self, kind=self.kind[kept], path=self.path[kept] // stride,
+                       depth=self.depth[kept], parent=parent, visit_first=visit_first,
+                       visit_domain=visit_domain, crossed_first=crossed_first,
+                       crossed_domain=crossed_domain, n_paths=-(-self.n_paths // stride))
 
     def save(self, path: str | Path) -> None:
         """Write the recording as one ``.npz`` (to a temporary name, then renamed)."""

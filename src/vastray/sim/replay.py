@@ -153,10 +153,10 @@ class _Ledger:
     """Per-node seconds by kind, and the counters."""
 
     size: int
-    trace: np.ndarray = None
-    load: np.ndarray = None
-    messages: np.ndarray = None
-    reduction: np.ndarray = None
+    trace: np.ndarray = field(init=False)  # (P,) each
+    load: np.ndarray = field(init=False)
+    messages: np.ndarray = field(init=False)
+    reduction: np.ndarray = field(init=False)
     counters: dict = field(default_factory=lambda: {"activations": 0, "loads": 0,
                                                     "messages": 0, "bytes": 0, "rounds": 0,
                                                     "traced": 0})
@@ -249,9 +249,6 @@ class Replay:
         return ((a.fixed_s if radiance else a.fixed_shadow_s) + radiance * a.radiance_s
                 + shadow * a.shadow_s + a.decision_s)
 
-    def _send_s(self, nbytes: float) -> float:
-        return self.costs.message_s(nbytes)
-
     def _ray_bytes(self, tokens: np.ndarray) -> float:
         radiance = int(np.count_nonzero(self.radiance_of[tokens]))
         b = self.c.ray_bytes
@@ -261,7 +258,7 @@ class Replay:
         """An all-reduction over the binary tree of ranks: ceil(log2 P) steps up, as many
         down, each a message of ``nbytes``."""
         levels = math.ceil(math.log2(size)) if size > 1 else 0
-        return 2 * levels * (self._send_s(nbytes) + self.network.wire_s(nbytes))
+        return 2 * levels * (self.costs.message_s(nbytes) + self.network.wire_s(nbytes))
 
     def _tiles(self, tokens: np.ndarray) -> list[np.ndarray]:
         """``tokens`` split by tile of paths, in tile order."""
@@ -326,25 +323,29 @@ class Replay:
 
     def _ship(self, ledger: _Ledger, source: np.ndarray, destination: np.ndarray,
               tokens: np.ndarray, activation: np.ndarray | None = None) -> np.ndarray:
-        """Charge the batches of ``tokens`` moving from ``source`` to ``destination`` nodes
-        (one batch per pair and kind, and per ``activation`` that made them where given: a
-        node ships after every activation); returns (P,) seconds each sender spent."""
-        spent = np.zeros(ledger.size)
+        """Charge the batches of ``tokens`` (visits) moving from ``source`` to
+        ``destination`` nodes (``_batches``); returns (P,) seconds each sender spent."""
+        return self._batches(ledger, source, destination, ~self.radiance_of[tokens],
+                             activation)
+
+    def _batches(self, ledger: _Ledger, source: np.ndarray, destination: np.ndarray,
+                 shadow: np.ndarray, activation: np.ndarray | None = None) -> np.ndarray:
+        """Charge rays (``shadow``: (n,) bool, each one's kind) moving from ``source`` to
+        ``destination`` nodes: one batch per pair and kind, and per ``activation`` that made
+        them where given (a node ships after every activation), each costing its sender
+        ``CostModel.message_s``; returns (P,) seconds each sender spent."""
         moving = source != destination
         if not moving.any():
-            return spent
-        tokens, source, destination = tokens[moving], source[moving], destination[moving]
-        kind = (~self.radiance_of[tokens]).astype(np.int64)
-        key = (source * ledger.size + destination) * 2 + kind
+            return np.zeros(ledger.size)
+        pairs = 2 * ledger.size ** 2
+        key = (source[moving] * ledger.size + destination[moving]) * 2 + shadow[moving]
         if activation is not None:  # per activation: the batches of each apart
-            key = key + activation[moving].astype(np.int64) * (2 * ledger.size ** 2)
-        keys, inverse = np.unique(key, return_inverse=True)
-        counts = np.bincount(inverse, minlength=len(keys))
-        per_ray = self.c.ray_bytes[keys % 2].astype(float)  # the kind's
-        nbytes = counts * per_ray + HEADER_BYTES
-        cost = self.costs.latency_s + nbytes * self.costs.byte_s
-        senders = keys % (2 * ledger.size ** 2) // 2 // ledger.size
-        spent = np.bincount(senders, weights=cost, minlength=ledger.size)
+            key = key + activation[moving].astype(np.int64) * pairs
+        keys, counts = np.unique(key, return_counts=True)
+        nbytes = counts * self.c.ray_bytes[keys % 2].astype(float) + HEADER_BYTES
+        senders = keys % pairs // 2 // ledger.size
+        spent = np.bincount(senders, weights=self.costs.message_s(nbytes),
+                            minlength=ledger.size)
         ledger.messages += spent
         ledger.counters["messages"] += len(keys)
         ledger.counters["bytes"] += int(nbytes.sum())
@@ -466,8 +467,9 @@ class Replay:
                 for n in range(size):
                     mine = np.nonzero(owner == n)[0]
                     caches[n].held.update(dict.fromkeys(mine.tolist()))
-                    busy[n] += float(self.load_s[mine].sum())
-                    ledger.load[n] += float(self.load_s[mine].sum())
+                    load = float(self.load_s[mine].sum())
+                    busy[n] += load
+                    ledger.load[n] += load
                 ledger.counters["loads"] += self.n_domains
             while len(live):
                 rows = ranges(c.crossed_first[live], copies[live])
@@ -476,7 +478,7 @@ class Replay:
                 copy_from = np.repeat(holder, copies[live])
                 at = owner[copy_domain]
                 kind_radiance = c.kind[copy_seg] == RADIANCE
-                busy += self._ship_copies(ledger, copy_from, at, kind_radiance)
+                busy += self._batches(ledger, copy_from, at, ~kind_radiance)
                 # a query call per node, domain and kind holding copies; the node's local
                 # closest hits shaded once per path; the iteration's bookkeeping
                 key = (at * self.n_domains + copy_domain) * 2 + ~kind_radiance
@@ -503,22 +505,6 @@ class Replay:
                 keep = copies[spawned] > 0
                 live, holder = spawned[keep], holder[keep]
         return ledger, clock
-
-    def _ship_copies(self, ledger, source, destination, radiance) -> np.ndarray:
-        """Charge copies moving between nodes, one batch per pair and kind."""
-        moving = source != destination
-        if not moving.any():
-            return np.zeros(ledger.size)
-        kind = (~radiance[moving]).astype(np.int64)
-        key = (source[moving] * ledger.size + destination[moving]) * 2 + kind
-        keys, counts = np.unique(key, return_counts=True)
-        nbytes = counts * self.c.ray_bytes[keys % 2].astype(float) + HEADER_BYTES
-        cost = self.costs.latency_s + nbytes * self.costs.byte_s
-        spent = np.bincount(keys // 2 // ledger.size, weights=cost, minlength=ledger.size)
-        ledger.messages += spent
-        ledger.counters["messages"] += len(keys)
-        ledger.counters["bytes"] += int(nbytes.sum())
-        return spent
 
     def _sort_first(self, size: int, cache: int, speculative: bool) -> tuple[_Ledger, float]:
         """``image`` / ``spec-ooc``: every node its tiles, alone (see the module docstring)."""
@@ -700,7 +686,7 @@ class Replay:
                     tokens = far[group]
                     m = int(batch_key[group[0]] // 2)
                     nbytes = self._ray_bytes(tokens)
-                    send = self.costs.latency_s + nbytes * self.costs.byte_s
+                    send = self.costs.message_s(nbytes)
                     cost += send
                     ledger.messages[n] += send
                     ledger.counters["messages"] += 1
