@@ -36,6 +36,7 @@ from vastray.actors.rendezvous import (
 from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
+from vastray.render.kernels import warm_up
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -83,13 +84,16 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                  port)
         credentials = Credentials(secret=await wait_for_join_secret(port, timeout))
     check_bind(bind_host, credentials)
+    # numba's once-a-process set-up, on a thread while the node says hello and waits for
+    # its job (``render.kernels.warm_up``); a job's work starts once it is done
+    warming = asyncio.ensure_future(asyncio.to_thread(warm_up))
     ctx = zmq.asyncio.Context()
     gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
     try:
         while await _serve_job(ctx, gate, coordinator, rank, timeout, bind_host, advertise,
-                               credentials):
+                               credentials, warming):
             log.info("joining %s again", coordinator)
     finally:
         gate.close()
@@ -97,9 +101,11 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
 
 async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: float,
-                     bind_host: str, advertise: str, credentials: Credentials) -> bool:
+                     bind_host: str, advertise: str, credentials: Credentials,
+                     warming: asyncio.Future) -> bool:
     """Join the coordinator and serve one job on fresh sockets; True when the coordinator
-    called a regroup (join again), False once the job is done and stopped."""
+    called a regroup (join again), False once the job is done and stopped. ``warming``:
+    the node's kernel set-up, awaited before the job's work starts."""
     if credentials.curve:
         gate.close_until_known()  # peers of this job: known from its job message
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, credentials,
@@ -132,7 +138,7 @@ async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: floa
         watchers.append(asyncio.ensure_future(
             management.watch_coordinator(protocol.COORDINATOR_SILENCE_S)))
         aborted = threading.Event()
-        work = asyncio.ensure_future(_serve(management, job, watchers, aborted))
+        work = asyncio.ensure_future(_serve(management, job, watchers, aborted, warming))
         regroup = asyncio.ensure_future(management.mailbox(protocol.REGROUP).get())
         await asyncio.wait([work, regroup], return_when=asyncio.FIRST_COMPLETED)
         if work.done() and work.exception() is None:  # done and stopped
@@ -196,10 +202,12 @@ async def _report_failure(management: ManagementActor, rank: int, exc: BaseExcep
 
 
 async def _serve(management: ManagementActor, job: dict, watchers: list,
-                 aborted: threading.Event) -> None:
+                 aborted: threading.Event, warming: asyncio.Future | None = None) -> None:
     """Render this node's share of ``job`` (every frame), reduce the films, report, and wait
     for the stop. Once ``aborted`` is set, progress reports raise ``JobAborted`` (in a render
-    thread: at its next tile)."""
+    thread: at its next tile). ``warming``: the node's kernel set-up (``render.kernels.
+    warm_up``), finished before the first frame starts (its seconds are start-up, outside
+    every busy span)."""
     from vastray.render.integrators import RenderSettings
     from vastray.scene.store import Store
 
@@ -234,6 +242,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 "cpu_s": round(time.process_time(), 3)}))
 
     beating = asyncio.ensure_future(heartbeat())
+    if warming is not None:
+        await warming
     tree = TreeReduceActor(management, rank, size)
     state = NodeState()
     units = job_units(job)

@@ -204,9 +204,17 @@ class ImageSchedule:
         """Queue rays another node sent for this node's ``domains`` ((m,) each)."""
         (self.radiance if queue == "radiance" else self.shadow).push(domains, rays)
 
-    def take_outbox(self) -> dict[tuple[str, int], list[tuple[np.ndarray, SoA]]]:
-        """Rays to send, by (queue, destination node); the outbox is emptied."""
-        out, self.outbox = self.outbox, {}
+    def take_outbox(self, min_rays: int = 0
+                    ) -> dict[tuple[str, int], list[tuple[np.ndarray, SoA]]]:
+        """Rays to send, by (queue, destination node): those of every destination holding at
+        least ``min_rays`` rays (0: all of them), taken out of the outbox; the others stay."""
+        if min_rays <= 0:
+            out, self.outbox = self.outbox, {}
+            return out
+        out = {key: parts for key, parts in self.outbox.items()
+               if sum(len(domains) for domains, _ in parts) >= min_rays}
+        for key in out:
+            del self.outbox[key]
         return out
 
     def _advance_radiance(self, rays: SoA, spawned_in: np.ndarray | None = None) -> None:

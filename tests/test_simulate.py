@@ -253,6 +253,38 @@ def test_shared_cores_speed_jobs_up_as_others_finish():
     with pytest.raises(ValueError, match="throughput"):
         CostModel(throughput=(1.0, -1.0))
 
+def test_a_node_process_computes_on_one_core_however_many_jobs_it_has():
+    """Two cores: node 0's trace and its load (two jobs of one process, its GIL) take turns
+    on one core, while node 1's trace has the other core to itself."""
+    async def work():
+        cores = SharedCores(2)
+        loop = asyncio.get_running_loop()
+        finished = {}
+
+        async def job(name, seconds, owner):
+            await cores.run(seconds, owner=owner)
+            finished[name] = loop.time()
+
+        await asyncio.gather(job("trace 0", 2.0, 0), job("load 0", 1.0, 0),
+                             job("trace 1", 2.0, 1))
+        return finished
+
+    finished, seconds = run_virtual(work())
+    # node 0's two jobs at half a core each until the load is done (2 s), then its trace alone
+    assert finished["load 0"] == pytest.approx(2.0)
+    assert finished["trace 0"] == pytest.approx(3.0)
+    assert finished["trace 1"] == pytest.approx(2.0)
+    assert seconds == pytest.approx(3.0)
+
+    async def without_owners():
+        cores = SharedCores(2)
+        await asyncio.gather(cores.run(2.0), cores.run(1.0), cores.run(2.0))
+
+    # three processes of their own on two cores: 2/3 of a core each until the short one is
+    # done (1.5 s), then a core each for the 1 s left of the others
+    assert run_virtual(without_owners())[1] == pytest.approx(1.5 + 1.0)
+
+
 
 def test_a_message_costs_its_sender_and_lands_in_the_mailbox_of_its_kind():
     costs = CostModel(latency_s=0.5, byte_s=1e-3)

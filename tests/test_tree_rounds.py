@@ -48,7 +48,7 @@ def test_rounds_send_the_coordinator_nothing_and_give_the_reference(scene, sched
                                                         max_samples_in_flight=tile),
             timeout=120)
     reference = render(store, load_scene_config(toml), st, progress=False).film
-    for result in results.values():
+    for tile, result in results.items():
         np.testing.assert_array_equal(result.film.count, reference.count)
         np.testing.assert_allclose(result.film.image(), reference.image(), rtol=1e-6, atol=1e-6)
         per_node = [r["counters"] for r in result.counters["per_node"]]
@@ -57,6 +57,13 @@ def test_rounds_send_the_coordinator_nothing_and_give_the_reference(scene, sched
         # every node went through the same rounds (the same all-reductions)
         assert len({c["global_barriers"] for c in per_node}) == 1
         assert result.counters["global_barriers"] == per_node[0]["global_barriers"] > 1
+        tiles = -(-st.paths // tile)
+        for c in per_node:
+            if scheduler == "dynamic":  # one all-reduction a round, and the one ending a tile
+                assert c["global_barriers"] == c["rounds"] + tiles
+            else:  # a round's rays leave in a batch per peer and queue, not per activation
+                assert c["global_barriers"] == c["rounds"]
+                assert c["batches_sent"] <= c["rounds"] * 2 * 2 * (3 - 1)
     few, many = (results[t].counters["per_node"][0]["counters"] for t in (400, 150))
     assert many["rounds"] > few["rounds"]
     assert many["coordinator_messages"]["film"] == few["coordinator_messages"]["film"] == 1

@@ -177,7 +177,7 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
         cores=cores, throughput=throughput)
     report("node", 0.0, "renders on a real node")
     config, node_render = config or SceneConfig(text=""), node_settings(settings)
-    repeats = 1 if quick else 3
+    repeats = 2 if quick else 3
     node_setup_s = setup_cost(store_path, model, config, node_render, "async", repeats)
     report("node", 0.33, "renders on a real node")
     tile_setup_s = setup_cost(store_path, model, config, node_render, "image", repeats)

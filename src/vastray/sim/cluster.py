@@ -2,7 +2,8 @@
 
 Costs come from a ``CostModel``. With ``cores`` set, every node and the coordinator share
 that many cores, as the operating system shares them among node processes on one machine
-(``SharedCores``); otherwise each has one core of its own, which everything the node
+(``SharedCores``; a node's own work, whichever of its threads does it, runs at one process's
+speed: its GIL); otherwise each has one core of its own, which everything the node
 computes shares (its traces, its preloader's BVH builds, its sends and decisions: one
 core's processor sharing, as a one-core node's threads share it). A message costs its sender's core
 the one-way time measured between two processes (encoding, copies, decoding;
@@ -64,7 +65,7 @@ class Cluster:
         if self._cores is None:
             await self._own[rank].run(seconds)
         else:
-            await self._cores.run(seconds)
+            await self._cores.run(seconds, owner=rank)
 
     async def trace(self, rank: int, seconds: float, runtime: str) -> None:
         """Node ``rank`` traces for ``seconds`` (``CostModel.trace_charge`` of its activations).

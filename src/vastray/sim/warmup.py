@@ -3,7 +3,9 @@ calibration's node image out of core (the ``image`` schedule: scene set-up, ever
 loaded and its BVH built, the tile traced, the film filled), prints "ready", waits for a line
 on its input, renders it ``--repeat`` times more and prints, as JSON, the first render's extra
 seconds (``warmup_s``: compiled kernels loaded from numba's cache, Embree's device made,
-modules imported on first use) and the later renders' mean seconds. Started k at a time and
+modules imported on first use) and the later renders' mean seconds. Like a node, it pays
+numba's once-a-process set-up first (``render.kernels.warm_up``, which a node does as it
+starts, before its first job), so ``warmup_s`` is what a node's first frame still pays. Started k at a time and
 told to go together, the later renders run side by side: the machine's throughput with k
 busy processes.
 """
@@ -86,6 +88,7 @@ def main(argv: list[str]) -> int:
 
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
+    from vastray.render.kernels import warm_up
     from vastray.render.scene_config import SceneConfig
     from vastray.scene.store import Store
     from vastray.sim.calibrate import calibration_settings, node_settings
@@ -106,6 +109,7 @@ def main(argv: list[str]) -> int:
                            progress=False)
         return time.perf_counter() - start
 
+    warm_up()  # as a node does when it starts
     first = render()
     print("ready", flush=True)
     sys.stdin.readline()  # "go": every process renders from here, side by side
