@@ -23,7 +23,7 @@ from vastray.sim.costs import VERSION, CostModel
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
-             "latency_s", "byte_s", "warmup_s", "offload_s")
+             "latency_s", "byte_s", "receive_s", "warmup_s", "offload_s")
 VASTRAY = [sys.executable, "-m", "vastray"]  # __main__ without a main guard: spawn must cope
 
 
@@ -60,6 +60,9 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # a thread hand-off costs microseconds to a few milliseconds, not a whole activation's
     # worth of seconds; simulating here charges traces their CPU time
     assert 1e-6 < model.offload_s < 5e-3
+    # a batch through the nodes' management actors costs more CPU than the raw wire's one
+    # way, but not a whole activation's worth
+    assert 1e-6 < model.receive_s < 5e-3
     assert model.trace_scale == 1.0 and model.decision_scale == 1.0
     # (its time, about 20 s on a quiet machine, is no test's business: 120 s on a busy one)
 

@@ -253,6 +253,35 @@ def test_shared_cores_speed_jobs_up_as_others_finish():
     with pytest.raises(ValueError, match="throughput"):
         CostModel(throughput=(1.0, -1.0))
 
+def test_a_message_costs_its_receiver_too_and_arrives_in_order():
+    costs = CostModel(latency_s=0.5, byte_s=0.0, receive_s=0.25)
+
+    async def main():
+        cluster = Cluster(2, costs)
+        loop = asyncio.get_running_loop()
+
+        async def sender():
+            for n in range(3):
+                await cluster.send(0, 1, Message("rays", {}, {"n": n}), 10)
+
+        sending = asyncio.ensure_future(sender())
+        box = cluster.mailboxes[1]["rays"]
+        first = await box.get()
+        at_first = loop.time()
+        rest = [await box.get() for _ in range(2)]
+        await sending
+        return cluster, [first, *rest], at_first
+
+    (cluster, got, at_first), seconds = run_virtual(main())
+    assert [m.meta["n"] for m in got] == [0, 1, 2]
+    # the first is in after its send and its receipt; the receiver takes them one at a
+    # time while the sender sends the next (the last: 3 sends, then its receipt)
+    assert at_first == pytest.approx(0.5 + 0.25)
+    assert seconds == pytest.approx(3 * 0.5 + 0.25)
+    assert cluster.compute_s[0] == pytest.approx(1.5)
+    assert cluster.compute_s[1] == pytest.approx(3 * 0.25)
+
+
 def test_a_node_process_computes_on_one_core_however_many_jobs_it_has():
     """Two cores: node 0's trace and its load (two jobs of one process, its GIL) take turns
     on one core, while node 1's trace has the other core to itself."""

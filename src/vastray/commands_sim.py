@@ -29,9 +29,12 @@ what is measured, with the real components (nothing is mocked):
               takes instead (trace_scale 1), and the same tile traced on a worker thread
               gives what a node runtime pays to hand each activation over (offload_s)
   the wire    ray batches of 0 to 100,000 rays between two processes over ZeroMQ in the
-              wire format nodes use, fitted as a latency plus a cost per byte
+              wire format nodes use, fitted as a latency plus a cost per byte; then
+              100-ray batches between two of the nodes' own management actors: the
+              CPU a node pays per message it receives beyond that (receive_s)
   first use   what a fresh process's first render costs beyond its second (compiled
-              kernels loaded from numba's cache): what each node pays once
+              kernels loaded from numba's cache; numba's own set-up a node pays as it
+              starts, before its first job): what each node pays once
   a node      real 1-node `async`, `image` and `spec-insitu` renders against the
               simulator's predictions: what a node pays once beyond that (node runtimes;
               sort-first nodes; in-situ nodes)
@@ -51,6 +54,7 @@ COST_LABELS = {
     "build_triangle_s": "per triangle of a BVH build",
     "latency_s": "per message between processes",
     "byte_s": "per byte on the wire",
+    "receive_s": "per message a node receives (its actors, beyond the wire)",
     "warmup_s": "once per fresh process (first use)",
     "node_setup_s": "once per node of a node runtime",
     "tile_setup_s": "once per sort-first node",

@@ -8,7 +8,9 @@ machine it runs on, with the project's own components, never mocks.
   and the camera rays it starts from; then each call handed to a worker thread as a node's
   loop does, for what the hand-off costs (``offload_s``);
 - the wire: two processes (``multiprocessing``'s spawn) exchanging real ray batches over
-  ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec;
+  ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec; then the
+  same batches between two of the nodes' own management actors (``time_node_messages``),
+  whose CPU beyond the raw wire is what a node pays to receive one (``receive_s``);
 - fresh processes (``vastray.sim.warmup``): the first render's cost beyond the later ones,
   and the machine's throughput with 1 to 2 x cores processes rendering side by side;
 - a node's own set-up: real 1-node ``async``, ``image`` and ``spec-insitu`` renders against
@@ -165,6 +167,10 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     tracing = trace_costs(tiles)
     report("wire", 0.0, "ray batches between two processes")
     latency_s, byte_s = wire_costs(time_wire(setup, effort, report.within("wire")))
+    report("wire", 1.0, "ray batches between two nodes' management actors")
+    # what the nodes' messaging costs beyond the raw wire's one-way time (charged to the
+    # receiver: its routing, checks and mailbox)
+    receive_s = max(0.0, time_node_messages(setup, effort) - latency_s)
     report("warmup", 0.0, "fresh processes, one and several at a time")
     cores = usable_cores()
     warmup_s, throughput = process_costs(str(store_path), quick, cores)
@@ -172,7 +178,8 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     # simulates (the constants stay for another machine's simulations, trace_scale 0)
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
-        latency_s=latency_s, byte_s=byte_s, warmup_s=warmup_s, decision_scale=1.0,
+        latency_s=latency_s, byte_s=byte_s, receive_s=receive_s, warmup_s=warmup_s,
+        decision_scale=1.0,
         trace_scale=1.0, offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
     report("node", 0.0, "renders on a real node")
@@ -618,6 +625,76 @@ def time_wire(setup: RenderSetup, effort: Effort,
             out.append((nbytes, float(np.median(trips)) / 2))
     progress(1.0, "ray batches done")
     return out
+
+
+#: Rays in each batch the nodes' messaging is measured with (``time_node_messages``).
+NODE_MESSAGE_RAYS = 100
+
+
+def time_node_messages(setup: RenderSetup, effort: Effort) -> float:
+    """CPU seconds one ray batch costs the two processes it passes between when nodes send
+    it: two of the nodes' own management actors (``ManagementActor``) in this process (on
+    uvloop, with a join secret, as ``vastray node`` runs them), one sending batches of ``NODE_MESSAGE_RAYS``
+    rays to the other over loopback TCP, each received (checked, decoded, put in its
+    mailbox, taken by a waiting ``receive``) before the next is sent, for
+    ``effort.wire_s`` seconds after ten untimed. The process's CPU time covers both actors,
+    both event loops' turns and ZeroMQ's I/O threads.
+
+    Returns
+    -------
+    float
+        CPU seconds per batch (the median of ten runs' means).
+    """
+    import secrets
+
+    import zmq.asyncio
+
+    from vastray.actors.management import ManagementActor
+    from vastray.transport.security import Credentials, Gate
+
+    arrays = ray_batch(setup, NODE_MESSAGE_RAYS)
+    # a node sends only rays bound for a domain (a camera ray that enters none is not sent)
+    arrays["domain"] = np.maximum(arrays["domain"], 0)
+    n_domains = setup.geometry.n_domains
+
+    async def run() -> float:
+        ctx = zmq.asyncio.Context()
+        credentials = Credentials(secret=secrets.token_bytes(16))
+        gate = Gate(ctx, secret=credentials.secret, what="the calibration")
+        actors = [ManagementActor(ctx, "tcp://127.0.0.1:9", "127.0.0.1", "127.0.0.1",
+                                  PEER_REPLY_TIMEOUT_S, credentials, gate) for _ in range(2)]
+        shared = secrets.token_bytes(16)  # the token of the pair (0, 1)
+        tokens = [[secrets.token_bytes(16), shared], [shared, secrets.token_bytes(16)]]
+        try:
+            for rank, actor in enumerate(actors):
+                actor.join(secrets.token_bytes(16), {
+                    "size": 2, "rank": rank, "endpoints": [a.endpoint for a in actors],
+                    "peer_tokens": tokens[rank], "domains": n_domains, "units": [0]})
+            frames = encode(protocol.RAYS, arrays, {"queue": "radiance", "rank": 0, "tile": 0})
+
+            async def batches(count: int) -> None:
+                for _ in range(count):
+                    await actors[0].to_peer(1, frames)
+                    await actors[1].receive(protocol.RAYS, "a calibration ray batch")
+
+            await batches(10)  # connections made, buffers allocated
+            means = []
+            per_run = effort.wire_s / 10
+            for _ in range(10):
+                count, cpu, start = 0, time.process_time(), time.perf_counter()
+                while time.perf_counter() - start < per_run or count < effort.min_pings:
+                    await batches(10)
+                    count += 10
+                means.append((time.process_time() - cpu) / count)
+            return float(np.median(means))
+        finally:
+            for actor in actors:
+                actor.close()
+            gate.close()
+            ctx.destroy(linger=0)
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        return runner.run(run())
 
 
 def wire_costs(samples: list[tuple[int, float]]) -> tuple[float, float]:

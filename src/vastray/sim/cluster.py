@@ -5,11 +5,12 @@ that many cores, as the operating system shares them among node processes on one
 (``SharedCores``; a node's own work, whichever of its threads does it, runs at one process's
 speed: its GIL); otherwise each has one core of its own, which everything the node
 computes shares (its traces, its preloader's BVH builds, its sends and decisions: one
-core's processor sharing, as a one-core node's threads share it). A message costs its sender's core
-the one-way time measured between two processes (encoding, copies, decoding;
-``CostModel.message_s``) and is then delivered, in order between any two endpoints (as
-ZeroMQ's). A tree reduction costs what its messages cost: the
-actors' own tree-reduce sends them.
+core's processor sharing, as a one-core node's threads share it). A message costs its sender's
+core the one-way time measured between two processes (encoding, copies, decoding;
+``CostModel.message_s``), then its receiver's core what the nodes' management actors add
+(``CostModel.receive_s``), and is delivered, in order between any two endpoints (as
+ZeroMQ's). A tree reduction costs what its messages cost: the actors' own tree-reduce sends
+them.
 """
 
 from __future__ import annotations
@@ -48,6 +49,8 @@ class Cluster:
         self.compute_s = np.zeros(size + 1)  # (P + 1,) seconds each endpoint computed
         self._warm = np.zeros(size + 1, bool)  # (P + 1,) whether each has traced yet
         self._sending = defaultdict(asyncio.Lock)  # endpoint -> its sends, in order
+        self._receiving = defaultdict(asyncio.Lock)  # endpoint -> its arrivals, in order
+        self._arrivals: set[asyncio.Future] = set()  # messages on their way in
         self.messages = 0
         self.bytes = 0
 
@@ -88,9 +91,23 @@ class Cluster:
         """Post ``message`` (decoded, ``nbytes`` on the wire) from ``source`` to
         ``destination``'s mailbox of its kind: the sender's core spends the message's cost
         (``CostModel.message_s``: measured one way between two processes, encoding, copies
-        and decoding lumped on the sender), then it is delivered."""
+        and decoding lumped on the sender), then the receiver's core its ``receive_s``, and
+        it is delivered."""
         async with self._sending[source]:  # a sender's messages leave one after another
             await self.compute(source, self.costs.message_s(nbytes))
         self.messages += 1
         self.bytes += nbytes
-        self.mailboxes[destination][message.kind].put_nowait(message)
+        if not self.costs.receive_s:
+            self.mailboxes[destination][message.kind].put_nowait(message)
+            return
+        arrival = asyncio.ensure_future(self._arrive(destination, message))
+        self._arrivals.add(arrival)
+        arrival.add_done_callback(self._arrivals.discard)
+
+    async def _arrive(self, destination: int, message: Message) -> None:
+        """``destination`` takes ``message`` in (``CostModel.receive_s`` on its core, as its
+        management actor routes it), then it is in its mailbox; a node takes its messages
+        in one after another, in the order they were sent."""
+        async with self._receiving[destination]:
+            await self.compute(destination, self.costs.receive_s)
+            self.mailboxes[destination][message.kind].put_nowait(message)

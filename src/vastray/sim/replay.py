@@ -13,11 +13,13 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
 
 - ``domain`` (Navrátil's static schedule): tiles of ``tile`` paths in bulk-synchronous rounds;
   in a round a node traces every ray waiting for its domains, following rays that stay on
-  its domains (one activation per domain and wave), ships the rest, and the round ends with
+  its domains (one activation per domain and wave), ships the rest when it is done (a batch
+  per peer and kind), and the round ends with
   an all-reduction over the tree of ranks (2 ceil(log2 P) message steps).
 - ``dynamic`` (ray-weighted): rays start on the node that made them; each round the real
   ``RayWeightedRounds`` assigns domains from the summed ray counts and the holders, rays move
-  to their domain's node, each node traces its assigned domains once; two all-reductions.
+  to their domain's node, each node traces its assigned domains once (when the last batch
+  for it is sent); one all-reduction a round.
 - ``async`` (Galaxy): no rounds; each node, whenever free, injects its share of the next tile
   if fewer than ``tile`` rays wait there, else traces its fullest domain (cached first) and
   ships what that produced; messages arrive after their network time; the frame ends with
@@ -258,7 +260,8 @@ class Replay:
         """An all-reduction over the binary tree of ranks: ceil(log2 P) steps up, as many
         down, each a message of ``nbytes``."""
         levels = math.ceil(math.log2(size)) if size > 1 else 0
-        return 2 * levels * (self.costs.message_s(nbytes) + self.network.wire_s(nbytes))
+        return 2 * levels * (self.costs.message_s(nbytes) + self.network.wire_s(nbytes)
+                             + self.costs.receive_s)
 
     def _tiles(self, tokens: np.ndarray) -> list[np.ndarray]:
         """``tokens`` split by tile of paths, in tile order."""
@@ -324,7 +327,7 @@ class Replay:
     def _ship(self, ledger: _Ledger, source: np.ndarray, destination: np.ndarray,
               tokens: np.ndarray, activation: np.ndarray | None = None) -> np.ndarray:
         """Charge the batches of ``tokens`` (visits) moving from ``source`` to
-        ``destination`` nodes (``_batches``); returns (P,) seconds each sender spent."""
+        ``destination`` nodes (``_batches``); returns (P,) seconds each node spent."""
         return self._batches(ledger, source, destination, ~self.radiance_of[tokens],
                              activation)
 
@@ -333,7 +336,8 @@ class Replay:
         """Charge rays (``shadow``: (n,) bool, each one's kind) moving from ``source`` to
         ``destination`` nodes: one batch per pair and kind, and per ``activation`` that made
         them where given (a node ships after every activation), each costing its sender
-        ``CostModel.message_s``; returns (P,) seconds each sender spent."""
+        ``CostModel.message_s`` and its receiver ``CostModel.receive_s``; returns (P,)
+        seconds each node spent."""
         moving = source != destination
         if not moving.any():
             return np.zeros(ledger.size)
@@ -346,6 +350,8 @@ class Replay:
         senders = keys % pairs // 2 // ledger.size
         spent = np.bincount(senders, weights=self.costs.message_s(nbytes),
                             minlength=ledger.size)
+        receivers = keys % pairs // 2 % ledger.size
+        spent += self.costs.receive_s * np.bincount(receivers, minlength=ledger.size)
         ledger.messages += spent
         ledger.counters["messages"] += len(keys)
         ledger.counters["bytes"] += int(nbytes.sum())
@@ -378,20 +384,21 @@ class Replay:
             pending = tokens[~arrived]
             wave = tokens[arrived]
             while True:  # one round
-                moved = []
+                moved, sources = [], []
                 while len(wave):  # the drain: waves of rays that stay on the node
                     at = owner[self.domain_of[wave]]
                     busy += self._activations(ledger, caches, at, wave, offload=True)
                     nxt = self.successors(wave)
                     made = self.succ_first[wave + 1] - self.succ_first[wave]
                     src = np.repeat(at, made)
-                    made_in = np.repeat(self.domain_of[wave], made)
-                    dst = owner[self.domain_of[nxt]]
-                    stay = src == dst
-                    busy += self._ship(ledger, src[~stay], dst[~stay], nxt[~stay],
-                                       made_in[~stay])
+                    stay = src == owner[self.domain_of[nxt]]
                     moved.append(nxt[~stay])
+                    sources.append(src[~stay])
                     wave = nxt[stay]
+                if moved:  # the drain's end: a batch per peer and kind (``NodeWork.drain``)
+                    leaving = np.concatenate(moved)
+                    busy += self._ship(ledger, np.concatenate(sources),
+                                       owner[self.domain_of[leaving]], leaving)
                 clock += self._round_end(ledger, busy)
                 wave = np.concatenate([pending, *moved]) if moved or len(pending) else pending
                 pending = np.empty(0, np.int64)
@@ -428,9 +435,12 @@ class Replay:
                 if plan.assign:
                     target[list(plan.assign)] = list(plan.assign.values())
                 go = target[domain] >= 0
-                busy += self._ship(ledger, at[go], target[domain[go]], tokens[go])
-                clock += self._round_end(ledger, busy, 8.0 * size)
-                busy = np.zeros(size)
+                # the swap: a node knows what it receives from the summed counts, so the
+                # round's one all-reduction is the next round's (``NodeWork.dynamic``)
+                source, destination = at[go], target[domain[go]]
+                busy += self._ship(ledger, source, destination, tokens[go])
+                # a node traces once the last batch for it is sent
+                np.maximum.at(busy, destination, busy[source])
                 traced = tokens[go]
                 where = target[domain[go]]
                 busy += self._activations(ledger, caches, where, traced, offload=True)
@@ -648,7 +658,8 @@ class Replay:
                 for tokens in arrived:
                     queues[n].push(self.domain_of[tokens], tokens)
             q = queues[n]
-            cost = 0.0
+            cost = self.costs.receive_s * len(arrived) if box else 0.0  # taking them in
+            ledger.messages[n] += cost
             out = None
             if next_tile[n] < len(tiles) and q.total < self.tile:
                 tile = tiles[next_tile[n]]
