@@ -32,12 +32,11 @@ what is measured, with the real components (nothing is mocked):
               wire format nodes use, fitted as a latency plus a cost per byte; then
               100-ray batches between two of the nodes' own management actors: the
               CPU a node pays per message it receives beyond that (receive_s)
-  first use   what a fresh process's first render costs beyond its second (compiled
-              kernels loaded from numba's cache; numba's own set-up a node pays as it
-              starts, before its first job): what each node pays once
-  a node      real 1-node `async`, `image` and `spec-insitu` renders against the
-              simulator's predictions: what a node pays once beyond that (node runtimes;
-              sort-first nodes; in-situ nodes)
+  processes   1 to 2 x cores fresh processes rendering side by side: the machine's
+              throughput with k busy processes
+  a node      real 1-node `async`, `image` and `spec-insitu` renders of 16 x 12 pixels
+              against the simulator's predictions: what a node pays once (the least of the
+              three: a fresh process's first use, warmup_s; the rest: each runtime's own)
 The file also records the cores this process may use and what machine it ran on; run it
 on an otherwise idle machine, as another process's load is measured too.
 """

@@ -1,10 +1,12 @@
-"""What a node costs once beyond the model's traces, loads, messages and a fresh process's
-first use (``warmup_s``): its worker and loader threads, first sockets, the first turns of its
-event loop. Measured with a real 1-node render (a fresh node process over real sockets)
-against the simulator's prediction of the same render without it: an ``async`` render for
-the node runtimes (``node_setup_s``), an ``image`` render for the sort-first nodes, which run
-the one-process runtime (``tile_setup_s``), a ``spec-insitu`` render for the in-situ nodes
-(``insitu_setup_s``)."""
+"""What a node costs once beyond the model's traces, loads and messages: a fresh process's
+first use (kernels loaded from numba's cache, Embree's device, modules imported on first
+use), its worker and loader threads, first sockets, the first turns of its event loop.
+Measured with a real 1-node render of a few pixels (a fresh node process over real sockets)
+against the simulator's prediction of the same render without it, for each runtime: an
+``async`` render for the node runtimes, an ``image`` render for the sort-first nodes, which
+run the one-process runtime, a ``spec-insitu`` render for the in-situ nodes. The calibration
+takes the least of the three as ``warmup_s`` and the rest as ``node_setup_s``,
+``tile_setup_s`` and ``insitu_setup_s``."""
 
 from __future__ import annotations
 

@@ -2,10 +2,8 @@
 calibration's node image out of core (the ``image`` schedule: scene set-up, every domain
 loaded and its BVH built, the tile traced, the film filled), prints "ready", waits for a line
 on its input, renders it ``--repeat`` times more and prints, as JSON, the first render's extra
-seconds (``warmup_s``: compiled kernels loaded from numba's cache, Embree's device made,
-modules imported on first use) and the later renders' mean seconds. Like a node, it pays
-numba's once-a-process set-up first (``render.kernels.warm_up``, which a node does as it
-starts, before its first job), so ``warmup_s`` is what a node's first frame still pays. Started k at a time and
+seconds (``warmup_s``, for information: a node's first use is measured on real nodes,
+``vastray.sim.node_cost``) and the later renders' mean seconds. Started k at a time and
 told to go together, the later renders run side by side: the machine's throughput with k
 busy processes.
 """
@@ -67,11 +65,9 @@ def _failure(process: subprocess.Popen, what: str) -> str:
     return f"a calibration process {what}: {err.strip().splitlines()[-1:] or process.returncode}"
 
 
-def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, tuple[float, ...]]:
-    """(warmup_s, throughput): a fresh process's first-use cost (the median over the
-    processes of one at a time) and the aggregate throughput with k = 1 .. 2 x ``cores``
-    processes side by side, in single-process speeds (quick: k = 1, cores, 2 x cores, the
-    rest interpolated)."""
+def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, ...]:
+    """The aggregate throughput with k = 1 .. 2 x ``cores`` processes side by side, in
+    single-process speeds (quick: k = 1, cores, 2 x cores, the rest interpolated)."""
     counts = sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
     alone = measure_processes(store_path, quick, 1)[0]
     measured = {1: 1.0}
@@ -80,7 +76,7 @@ def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, tupl
         measured[k] = k * alone["render_s"] / (sum(r["render_s"] for r in runs) / k)
     known = sorted(measured)
     throughput = np.interp(np.arange(1, known[-1] + 1), known, [measured[k] for k in known])
-    return alone["warmup_s"], tuple(float(t) for t in throughput)
+    return tuple(float(t) for t in throughput)
 
 
 def main(argv: list[str]) -> int:
