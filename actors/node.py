@@ -84,16 +84,20 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                  port)
         credentials = Credentials(secret=await wait_for_join_secret(port, timeout))
     check_bind(bind_host, credentials)
-    # numba's once-a-process set-up, on a thread while the node says hello and waits for
-    # its job (``render.kernels.warm_up``); a job's work starts once it is done
+    # numba's once-a-process set-up (``render.kernels.warm_up``), on a thread while the
+    # node makes its sockets, and done before its first hello: the coordinator starts a job
+    # once every node has said hello, so every node starts its work at once (finished
+    # after the job came, it held back some nodes' starts: 8 nodes on 2 cores then ran
+    # staggered, which no node's busy time shows and the simulator does not model)
     warming = asyncio.ensure_future(asyncio.to_thread(warm_up))
     ctx = zmq.asyncio.Context()
     gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
     try:
+        await warming
         while await _serve_job(ctx, gate, coordinator, rank, timeout, bind_host, advertise,
-                               credentials, warming):
+                               credentials):
             log.info("joining %s again", coordinator)
     finally:
         gate.close()
@@ -101,11 +105,9 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
 
 async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: float,
-                     bind_host: str, advertise: str, credentials: Credentials,
-                     warming: asyncio.Future) -> bool:
+                     bind_host: str, advertise: str, credentials: Credentials) -> bool:
     """Join the coordinator and serve one job on fresh sockets; True when the coordinator
-    called a regroup (join again), False once the job is done and stopped. ``warming``:
-    the node's kernel set-up, awaited before the job's work starts."""
+    called a regroup (join again), False once the job is done and stopped."""
     if credentials.curve:
         gate.close_until_known()  # peers of this job: known from its job message
     management = ManagementActor(ctx, coordinator, bind_host, advertise, timeout, credentials,
@@ -138,7 +140,7 @@ async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: floa
         watchers.append(asyncio.ensure_future(
             management.watch_coordinator(protocol.COORDINATOR_SILENCE_S)))
         aborted = threading.Event()
-        work = asyncio.ensure_future(_serve(management, job, watchers, aborted, warming))
+        work = asyncio.ensure_future(_serve(management, job, watchers, aborted))
         regroup = asyncio.ensure_future(management.mailbox(protocol.REGROUP).get())
         await asyncio.wait([work, regroup], return_when=asyncio.FIRST_COMPLETED)
         if work.done() and work.exception() is None:  # done and stopped
@@ -202,12 +204,10 @@ async def _report_failure(management: ManagementActor, rank: int, exc: BaseExcep
 
 
 async def _serve(management: ManagementActor, job: dict, watchers: list,
-                 aborted: threading.Event, warming: asyncio.Future | None = None) -> None:
+                 aborted: threading.Event) -> None:
     """Render this node's share of ``job`` (every frame), reduce the films, report, and wait
     for the stop. Once ``aborted`` is set, progress reports raise ``JobAborted`` (in a render
-    thread: at its next tile). ``warming``: the node's kernel set-up (``render.kernels.
-    warm_up``), finished before the first frame starts (its seconds are start-up, outside
-    every busy span)."""
+    thread: at its next tile)."""
     from vastray.render.integrators import RenderSettings
     from vastray.scene.store import Store
 
@@ -242,8 +242,6 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 "cpu_s": round(time.process_time(), 3)}))
 
     beating = asyncio.ensure_future(heartbeat())
-    if warming is not None:
-        await warming
     tree = TreeReduceActor(management, rank, size)
     state = NodeState()
     units = job_units(job)
