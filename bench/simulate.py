@@ -6,11 +6,12 @@
                                        # figures (docs/sim_*.png) with their tables
 
 Validation: every scheduler renders the same small scene on P = 1, 2, 4 (``--quick``: 2)
-real node processes (this machine; ``--threads 1``, as the cost model is per core) and in the simulator with the
-constants ``vastray calibrate`` measures here first, the virtual nodes sharing this machine's
-cores as the real processes do. Measured is the real run's ``busy_max`` (the busiest node's
-rendering, start-up and film gathering left out); simulated the same span in virtual time.
-``sim_error_max=`` is the worst |simulated - measured| / measured.
+real node processes (this machine; ``--threads 1``, as the cost model is per core) and in the
+simulator with the constants ``vastray calibrate`` measures here first, the virtual nodes
+sharing this machine's cores as the real processes do. Measured is the real run's
+``busy_max`` (the busiest node's rendering, start-up and film gathering left out); simulated
+the same span in virtual time. ``sim_error_max=`` is the worst |simulated - measured| /
+measured.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``).
