@@ -611,7 +611,7 @@ def warm_up() -> float:
     compiler's registries (numba imports its numpy support, which imports scipy's BLAS where
     scipy is installed): 0.5-0.8 s of CPU measured in a fresh node process on the 2-core
     machine, 80 % of a small job's busy span. A node calls it on a thread as it starts, while
-    it says hello and waits for its job, so no frame pays it.
+    it makes its sockets, and finishes it before its first hello, so no frame pays it.
 
     Returns
     -------
