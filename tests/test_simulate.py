@@ -779,10 +779,11 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
     settings = RenderSettings(width=96, height=72, spp=4, bounces=1)
     errors = {}
     for scheduler in ("async", "domain"):
+        # the median of 5: one real run on 2 cores moves by 20-30 % from the next
         real = statistics.median(
             render_distributed(path, None, settings, 2,
                                options=JobOptions(scheduler=scheduler, threads=1),
-                               timeout=300).seconds["busy_max"] for _ in range(3))
+                               timeout=300).seconds["busy_max"] for _ in range(5))
         simulated = simulate(store, JobOptions(scheduler=scheduler), 2,
                              costs.with_cores(costs.cores), settings,
                              max_pass_spp=None).seconds
