@@ -209,9 +209,8 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     node_setup_s = node_fixed - warmup_s
     tile_setup_s = tile_fixed - warmup_s
     insitu_setup_s = insitu_fixed - warmup_s
-    model = replace(model, warmup_s=warmup_s)
     return replace(
-        model, node_setup_s=node_setup_s, tile_setup_s=tile_setup_s,
+        model, warmup_s=warmup_s, node_setup_s=node_setup_s, tile_setup_s=tile_setup_s,
         insitu_setup_s=insitu_setup_s,
         machine=machine_info(calibration={"store": str(Path(store_path)), "quick": quick,
                                           "cold_reads": cold_reads,
@@ -653,10 +652,10 @@ NODE_MESSAGE_RAYS = 100
 def time_node_messages(setup: RenderSetup, effort: Effort) -> float:
     """CPU seconds one ray batch costs the two processes it passes between when nodes send
     it: two of the nodes' own management actors (``ManagementActor``) in this process (on
-    uvloop, with a join secret, as ``vastray node`` runs them), one sending batches of ``NODE_MESSAGE_RAYS``
-    rays to the other over loopback TCP, each received (checked, decoded, put in its
-    mailbox, taken by a waiting ``receive``) before the next is sent, for
-    ``effort.wire_s`` seconds after ten untimed. The process's CPU time covers both actors,
+    uvloop, with a join secret, as ``vastray node`` runs them), one sending batches of
+    ``NODE_MESSAGE_RAYS`` rays to the other over loopback TCP, each received (checked,
+    decoded, put in its mailbox, taken by a waiting ``receive``) before the next is sent,
+    for ``effort.wire_s`` seconds after ten untimed. The process's CPU time covers both actors,
     both event loops' turns and ZeroMQ's I/O threads.
 
     Returns

@@ -1,12 +1,10 @@
 """What fresh processes measure: ``python -m vastray.sim.warmup STORE`` renders the
 calibration's node image out of core (the ``image`` schedule: scene set-up, every domain
-loaded and its BVH built, the tile traced, the film filled), prints "ready", waits for a line
-on its input, renders it ``--repeat`` times more and prints, as JSON, the first render's extra
-seconds (``warmup_s``, for information: a node's first use is measured on real nodes,
-``vastray.sim.node_cost``) and the later renders' mean seconds. Started k at a time and
-told to go together, the later renders run side by side: the machine's throughput with k
-busy processes.
-"""
+loaded and its BVH built, the tile traced, the film filled) once untimed (its first use paid),
+prints "ready", waits for a line on its input, renders it ``--repeat`` times more and prints,
+as JSON, the later renders' mean seconds (``render_s``). Started k at a time and told to go
+together, the later renders run side by side: the machine's throughput with k busy
+processes. (A node's first use is measured on real nodes: ``vastray.sim.node_cost``.)"""
 
 from __future__ import annotations
 
@@ -84,7 +82,6 @@ def main(argv: list[str]) -> int:
 
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
-    from vastray.render.kernels import warm_up
     from vastray.render.scene_config import SceneConfig
     from vastray.scene.store import Store
     from vastray.sim.calibrate import calibration_settings, node_settings
@@ -95,8 +92,8 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     store = Store(args.store)
-    # the real node's render of the calibration (about 0.4 s here): long enough for the
-    # processes' renders to run side by side
+    # twice the calibration tile (about 0.4 s here): long enough for the processes' renders
+    # to run side by side
     settings = node_settings(calibration_settings(args.quick))
 
     def render() -> float:
@@ -105,13 +102,12 @@ def main(argv: list[str]) -> int:
                            progress=False)
         return time.perf_counter() - start
 
-    warm_up()  # as a node does when it starts
-    first = render()
+    render()  # first use: not timed
     print("ready", flush=True)
     sys.stdin.readline()  # "go": every process renders from here, side by side
     later = [render() for _ in range(args.repeat)]
     mean = sum(later) / len(later)
-    print(json.dumps({"warmup_s": max(0.0, first - mean), "render_s": mean}))
+    print(json.dumps({"render_s": mean}))
     return 0
 
 
