@@ -328,7 +328,15 @@ class ManagementActor:
         (issue 42: nodes done early quit after the node timeout, and the frame was rendered
         again). It fails once the coordinator has been silent for the node timeout (at least
         that long after the wait began)."""
-        getter = asyncio.ensure_future(self.mailbox(kind).get())
+        box = self.mailbox(kind)
+        if not box.empty():
+            # a message already here needs no waiting task (it cost as much as the message's
+            # own checks); yield once all the same, so that a node fed faster than it reads
+            # still lets its heartbeat and its sockets' tasks run
+            await asyncio.sleep(0)
+            if not box.empty():
+                return box.get_nowait()
+        getter = asyncio.ensure_future(box.get())
         try:
             await self.wait_any([getter], what)
             return getter.result()

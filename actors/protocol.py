@@ -141,7 +141,8 @@ def check_ray_ids(message, n_domains: int) -> None:
             continue
         if ids.dtype.kind not in "iu" or ids.ndim != 1:
             raise ProtocolError(f"rays: {name} must be 1-D integers")
-        bad = (ids < 0) | (ids >= n_domains)
+        # negative ids read as unsigned are beyond any domain count: one comparison
+        bad = ids.view(ids.dtype.str.replace("i", "u")) >= n_domains
         if none is not None:
             bad &= ids != none
         if bad.any():

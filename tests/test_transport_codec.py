@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zmq
 
-from vastray.transport.codec import CodecError, decode, encode
+from vastray.transport.codec import PACK_LIMIT, VERSION, CodecError, decode, encode
 
 
 def ray_batch(n=1000):
@@ -46,13 +46,38 @@ def test_decode_does_not_copy():
     assert not message.arrays["origin"].flags.writeable
 
 
+def test_a_small_message_is_one_frame_and_a_large_one_a_frame_per_field():
+    small, large = ray_batch(10), ray_batch(2000)
+    assert sum(a.nbytes for a in large.values()) > PACK_LIMIT
+    assert len(encode("rays", small)) == 2
+    assert len(encode("rays", large)) == 1 + len(large)
+    for arrays in (small, large):
+        message = decode([bytes(f) for f in encode("rays", arrays, {"tile": 1})])
+        assert list(message.arrays) == list(arrays)
+        for name, a in arrays.items():
+            assert message.arrays[name].dtype == a.dtype
+            np.testing.assert_array_equal(message.arrays[name], a)
+
+
+def test_packed_fields_are_aligned_views_and_empty_fields_survive():
+    arrays = {"depth": np.arange(3, dtype=np.uint8), "t": np.zeros(0, np.float32),
+              "beta": np.arange(6.0).reshape(3, 2)}
+    frames = [bytes(f) for f in encode("rays", arrays)]
+    assert len(frames) == 2 and len(frames[1]) == 8 + 0 + 48
+    message = decode(frames)
+    assert message.arrays["t"].shape == (0,)
+    assert message.arrays["beta"].ctypes.data % 8 == 0
+    assert not message.arrays["beta"].flags.owndata
+    np.testing.assert_array_equal(message.arrays["beta"], arrays["beta"])
+
+
 def test_objects_cannot_be_sent():
     with pytest.raises(CodecError, match="cannot be sent"):
         encode("rays", {"x": np.array([object()], dtype=object)})
 
 
 def _header(**changes):
-    base = {"v": 1, "kind": "rays", "n": 2, "fields": [["t", "<f4", [2]]], "meta": {}}
+    base = {"v": VERSION, "kind": "rays", "n": 2, "fields": [["t", "<f4", [2]]], "meta": {}}
     base.update(changes)
     return msgpack.packb(base)
 
@@ -96,3 +121,17 @@ def test_zero_copy_over_real_zeromq_sockets():
         np.testing.assert_array_equal(message.arrays["beta"], arrays["beta"])
     finally:
         ctx.destroy(linger=0)
+
+
+@pytest.mark.parametrize("frames, match", [
+    ([_header(packed=True, fields=[["t", "<f4", [2]], ["u", "|u1", [2]]]), b"\0" * 15],
+     "packed frame has 15 bytes, header says 16"),
+    ([_header(packed=True), b"\0" * 8, b"\0"], "one frame but 2"),
+    ([_header(packed=True, fields=[["t", "<f4", [2], 2]]), b"\0" * 8], "no split fields"),
+    ([_header(packed=True, fields=[["t", "<f4", [2]], ["t", "<f4", [2]]]), b"\0" * 16],
+     "appears twice"),
+    ([_header(packed=1), b"\0" * 8], "true or false"),
+])
+def test_malformed_packed_messages_are_rejected(frames, match):
+    with pytest.raises(CodecError, match=match):
+        decode(frames)

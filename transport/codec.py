@@ -3,15 +3,22 @@ array, sent with ``copy=False`` and decoded without copying. Never pickle.
 
 Header (msgpack map)::
 
-    {"v": 1, "kind": "rays", "n": 4096,
+    {"v": 2, "kind": "rays", "n": 4096,
      "fields": [["origin", "<f4", [4096, 3]], ["pixel", "<u4", [4096]], ...],
-     "meta": {...}}                     # small msgpack-able dict (ids, counters)
+     "meta": {...},                     # small msgpack-able dict (ids, counters)
+     "packed": false}
 
 followed by one frame per field, in order, each exactly ``prod(shape) * itemsize`` bytes. A
 field larger than ``FRAME_LIMIT`` goes as several frames in a row (its entry then has a fourth
 element, the frame count), so that every socket can refuse frames larger than that before it
 holds them (``ZMQ_MAXMSGSIZE``, which ZeroMQ checks per frame). Every part but the last of a
 split field has the same size.
+
+A message whose fields hold at most ``PACK_LIMIT`` bytes in all goes instead as one frame
+(``"packed": true``): the fields in order, each starting at the next multiple of
+``PACK_ALIGN`` bytes, zero padding between. Every frame costs both ends a call into ZeroMQ
+and a Python object (a 100-ray batch of 15 fields took 0.11 ms more a round trip as 16 frames
+than as 2), while copying a few kilobytes costs microseconds; large fields stay zero-copy.
 
 Two limits: ``FRAME_LIMIT`` on every socket a stranger can reach (a listening socket reads a
 handshake frame whole before it checks anything), and ``PEER_FRAME_LIMIT`` on the sockets
@@ -29,7 +36,8 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
-VERSION = 1
+#: 2: small messages packed into one frame (``"packed"``).
+VERSION = 2
 #: Largest message accepted by default (header + frames).
 MAX_MESSAGE_BYTES = 1 << 30
 MAX_FIELDS = 64
@@ -40,6 +48,10 @@ MAX_FIELDS = 64
 FRAME_LIMIT = 128 << 10
 #: Largest frame between members, on a socket that connected to its sender (see above).
 PEER_FRAME_LIMIT = 64 << 20
+#: Largest message (its fields' bytes) sent packed into one frame.
+PACK_LIMIT = 64 << 10
+#: Each field of a packed frame starts at a multiple of this many bytes (any dtype's size).
+PACK_ALIGN = 8
 #: Most frames one field may be split into (a 1 GiB message at most).
 MAX_PARTS = MAX_MESSAGE_BYTES // FRAME_LIMIT
 #: The header is one frame.
@@ -88,28 +100,50 @@ def encode(kind: str, arrays: dict[str, np.ndarray], meta: dict | None = None,
         raise CodecError(f"frame limit {frame_limit} outside {FRAME_LIMIT}..{PEER_FRAME_LIMIT}")
     if len(arrays) > MAX_FIELDS:
         raise CodecError(f"{len(arrays)} fields; at most {MAX_FIELDS}")
-    fields, frames = [], []
+    fields, views = [], []
     for name, array in arrays.items():
         a = np.ascontiguousarray(array)
         if a.dtype.byteorder == ">":
             a = a.astype(a.dtype.newbyteorder("<"))
         if a.dtype.str not in ALLOWED_DTYPES:
             raise CodecError(f"field {name!r}: dtype {a.dtype} cannot be sent")
-        view = memoryview(a).cast("B") if a.size else b""
-        if len(view) > frame_limit:
-            parts = [view[i:i + frame_limit] for i in range(0, len(view), frame_limit)]
-            fields.append([name, a.dtype.str, list(a.shape), len(parts)])
-            frames.extend(parts)
-        else:
-            fields.append([name, a.dtype.str, list(a.shape)])
-            frames.append(view)
+        fields.append([name, a.dtype.str, list(a.shape)])
+        views.append(memoryview(a).cast("B") if a.size else b"")
+    packed = len(views) > 1 and sum(len(v) for v in views) <= PACK_LIMIT
+    if packed:
+        frames = [_pack(views)]
+    else:
+        frames = []
+        for entry, view in zip(fields, views, strict=True):
+            if len(view) > frame_limit:
+                parts = [view[i:i + frame_limit] for i in range(0, len(view), frame_limit)]
+                entry.append(len(parts))
+                frames.extend(parts)
+            else:
+                frames.append(view)
     n = len(next(iter(arrays.values()))) if arrays else 0
     header = msgpack.packb({"v": VERSION, "kind": kind, "n": n, "fields": fields,
-                            "meta": meta or {}}, use_bin_type=True)
+                            "meta": meta or {}, "packed": packed}, use_bin_type=True)
     if len(header) > MAX_HEADER_BYTES:
         raise CodecError(f"{kind} header of {len(header)} bytes exceeds {MAX_HEADER_BYTES}: "
                          "send large data as arrays, not in meta")
     return [header, *frames]
+
+
+def _pack(views: list) -> bytes:
+    """One frame holding ``views`` in order, each at the next multiple of ``PACK_ALIGN``."""
+    pieces = []
+    for view in views:
+        pieces.append(view)
+        pieces.append(_PADDING[-len(view) % PACK_ALIGN])
+    return b"".join(pieces)
+
+
+_PADDING = [bytes(n) for n in range(PACK_ALIGN)]
+
+
+def _aligned(nbytes: int) -> int:
+    return -(-nbytes // PACK_ALIGN) * PACK_ALIGN
 
 
 def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
@@ -141,7 +175,14 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
         raise CodecError("kind longer than 64 characters")
     if len(fields) > MAX_FIELDS:
         raise CodecError(f"{len(fields)} fields; at most {MAX_FIELDS}")
+    packed = header.get("packed", False)
+    if type(packed) is not bool:
+        raise CodecError("header's packed must be true or false")
     specs = [_field(spec) for spec in fields]
+    if packed:
+        if any(parts != 1 for *_, parts in specs):
+            raise CodecError("a packed message has no split fields")
+        return Message(kind, _unpack(specs, buffers, header_bytes, max_bytes), meta)
     if len(buffers) != 1 + sum(parts for *_, parts in specs):
         raise CodecError(f"header lists {sum(p for *_, p in specs)} frames but "
                          f"{len(buffers) - 1} frames came")
@@ -172,6 +213,27 @@ def decode(frames: list, max_bytes: int = MAX_MESSAGE_BYTES) -> Message:
     return Message(kind, arrays, meta)
 
 
+def _unpack(specs: list, buffers: list, header_bytes: int,
+            max_bytes: int) -> dict[str, np.ndarray]:
+    """The fields of a packed message: read-only views of its one frame."""
+    if len(buffers) != 2:
+        raise CodecError(f"a packed message is one frame but {len(buffers) - 1} frames came")
+    frame = memoryview(buffers[1])
+    sizes = [math.prod(shape) * dtype.itemsize for _, dtype, shape, _ in specs]
+    expected = sum(_aligned(n) for n in sizes)
+    if header_bytes + expected > max_bytes:
+        raise CodecError(f"message exceeds {max_bytes} bytes")
+    if frame.nbytes != expected:
+        raise CodecError(f"packed frame has {frame.nbytes} bytes, header says {expected}")
+    arrays, at = {}, 0
+    for (name, dtype, shape, _), size in zip(specs, sizes, strict=True):
+        if name in arrays:
+            raise CodecError(f"field {name!r} appears twice")
+        arrays[name] = np.frombuffer(frame, dtype, size // dtype.itemsize, at).reshape(shape)
+        at += _aligned(size)
+    return arrays
+
+
 def _join(split: list) -> dict[str, np.ndarray]:
     """Fields sent as several frames, copied once into one buffer (one allocation a message:
     a fresh allocation per field costs more in page faults than the copy), each field at a
@@ -190,15 +252,19 @@ def _join(split: list) -> dict[str, np.ndarray]:
 
 
 def _field(spec) -> tuple[str, np.dtype, tuple[int, ...], int]:
-    if not (isinstance(spec, list) and len(spec) in (3, 4) and isinstance(spec[0], str)
-            and isinstance(spec[1], str) and isinstance(spec[2], list)):
+    if not (type(spec) is list and 3 <= len(spec) <= 4 and type(spec[0]) is str
+            and type(spec[1]) is str and type(spec[2]) is list):
         raise CodecError(f"malformed field entry {str(spec)[:80]}")
     name, dtype, shape = spec[:3]
     parts = spec[3] if len(spec) == 4 else 1
     if type(parts) is not int or not 1 <= parts <= MAX_PARTS:
         raise CodecError(f"field {name!r}: bad frame count {parts!r}")
-    if dtype not in ALLOWED_DTYPES:
-        raise CodecError(f"field {name!r}: dtype {dtype!r} not allowed")
+    dtype = _DTYPES.get(dtype)
+    if dtype is None:
+        raise CodecError(f"field {name!r}: dtype {spec[1]!r} not allowed")
     if len(shape) > 4 or not all(type(s) is int and 0 <= s < (1 << 40) for s in shape):
         raise CodecError(f"field {name!r}: bad shape {shape!r}")
-    return name, np.dtype(dtype), tuple(shape), parts
+    return name, dtype, tuple(shape), parts
+
+
+_DTYPES = {name: np.dtype(name) for name in ALLOWED_DTYPES}
