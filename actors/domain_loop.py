@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from vastray.actors.preloader import DomainPreloader
+from vastray.scene.embree.launch import cpu_time
 
 
 @dataclass(frozen=True)
@@ -132,9 +133,9 @@ class DomainLoop:
         order has no domain left."""
         clock = self.clock
         start = clock()
-        cpu = time.thread_time()
+        cpu = cpu_time()
         domain = order.next_domain()
-        await self.decided(time.thread_time() - cpu)
+        await self.decided(cpu_time() - cpu)
         chosen = clock()
         if domain is None:
             self.stats["schedule_s"] += chosen - start
@@ -143,9 +144,9 @@ class DomainLoop:
         bvh = await self.preloader.get(domain)
         loaded = clock()
         if self.preloader.enabled:
-            cpu = time.thread_time()
+            cpu = cpu_time()
             guess = order.likely_next(domain)
-            await self.decided(time.thread_time() - cpu)
+            await self.decided(cpu_time() - cpu)
             self.preloader.preload(guess)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)

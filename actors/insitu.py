@@ -9,8 +9,6 @@ iteration.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from vastray.actors import protocol
@@ -21,6 +19,7 @@ from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult
+from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.ownership import interleaved_paths, zorder_owners
 from vastray.schedule.soa import SoA, join_bound
 from vastray.schedule.spec_insitu import InSituSchedule
@@ -88,16 +87,16 @@ class _InSitu:
         for depth in range(schedule.iterations()):
             self.stats["iterations"] += 1
             rad_in, shadow_in = await self._exchange(schedule, tile, depth)
-            cpu = time.thread_time()
+            cpu = cpu_time()
             keys, obuf = schedule.trace_locally(rad_in, shadow_in)
-            await self.traced(*schedule.take_queries(), time.thread_time() - cpu)
+            await self.traced(*schedule.take_queries(), cpu_time() - cpu)
             # All-reduce: t-buffer MIN, o-buffer OR.
             reduced = await self.tree.allreduce(
                 {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})
-            cpu = time.thread_time()
+            cpu = cpu_time()
             occluded = np.unpackbits(reduced["o"], count=obuf.size).reshape(obuf.shape) > 0
             schedule.resolve(reduced["t"], occluded)
-            await self.decided(time.thread_time() - cpu)
+            await self.decided(cpu_time() - cpu)
         return schedule.result
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
@@ -110,9 +109,9 @@ class _InSitu:
         """
         incoming = {"radiance": [], "shadow": []}
         outgoing = np.zeros(self.size, np.int64)  # batches sent to each node
-        cpu = time.thread_time()
+        cpu = cpu_time()
         speculative = schedule.speculative_copies()
-        await self.decided(time.thread_time() - cpu)
+        await self.decided(cpu_time() - cpu)
         for name, copies in speculative.items():
             dom = copies.domain
             if not len(dom):

@@ -20,6 +20,7 @@ from vastray.actors.domain_loop import (
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
+from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.soa import SoA, join_bound
 
@@ -159,9 +160,9 @@ class NodeWork:
             totals = await tree.allreduce({"wanted": wanted, "holder": holder},
                                           {"wanted": "sum", "holder": "min"})
             self.stats["global_barriers"] = self.stats.get("global_barriers", 0) + 1
-            cpu = time.thread_time()
+            cpu = cpu_time()
             plan = policy_of_rounds.from_totals(totals["wanted"], totals["holder"], size)
-            await self.loop.decided(time.thread_time() - cpu)
+            await self.loop.decided(cpu_time() - cpu)
             if plan.finished:
                 return
             outgoing: dict[tuple[int, str], list] = {}

@@ -55,13 +55,14 @@ class CostModel:
         first and traces on its event loop's thread (no hand-off, no termination waves).
     decision_scale : virtual seconds charged per CPU second a schedule spends deciding
         (``next_domain`` with spec-ooc's filtering, ``likely_next``, the dynamic schedule's
-        rounds), measured as the simulator runs the real schedule code (``time.thread_time``,
-        so another process on the cores does not inflate it): 1.0 where the simulator runs on
+        rounds), measured as the simulator runs the real schedule code (``launch.cpu_time``:
+        the thread's CPU with its split pieces', so another process on the cores does not
+        inflate it): 1.0 where the simulator runs on
         the calibrated machine (``vastray calibrate`` writes 1.0), 0 charges nothing (the
         default, and what calibration files written before it mean).
     trace_scale : virtual seconds charged per CPU second the simulator spends running an
         activation's real trace (``process``: queries, shading, forwarding, queues; measured
-        with ``time.thread_time`` as it simulates): 1.0 where the simulator runs on the
+        with ``launch.cpu_time`` as it simulates): 1.0 where the simulator runs on the
         calibrated machine (``vastray calibrate`` writes 1.0), so an activation costs its own
         work on any store, bounce count and domain count; 0 charges the constants above
         (``trace_s``: the default, and what calibration files written before it mean). The

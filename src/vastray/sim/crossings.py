@@ -13,7 +13,6 @@ of a trace, which is what lets the simulator reach the papers' work per node (is
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import RenderSettings, camera_rays
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.embree.launch import cpu_time
 from vastray.scene.errors import InputError
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
@@ -207,7 +207,7 @@ class CrossingLog:
                  ) -> np.ndarray:
         """(n,) int64 segment ids for new rays ``rays`` of ``schedule``'s tile (``parent``:
         their spawning segments, None for camera rays); records each one's line's domains."""
-        cpu = time.thread_time()
+        cpu = cpu_time()
         n = len(rays)
         kind = RADIANCE if "hit_t" in rays.fields else SHADOW
         ids = np.arange(len(self.kind), len(self.kind) + n, dtype=np.int64)
@@ -224,7 +224,7 @@ class CrossingLog:
         self.parent.append(parent)
         self.ray_bytes[kind] = max(self.ray_bytes[kind], rays.nbytes() // max(n, 1))
         self._walk(ids, rays["origin"], rays["direction"], limit)
-        self.own_cpu_s += time.thread_time() - cpu
+        self.own_cpu_s += cpu_time() - cpu
         return ids
 
     def _walk(self, ids, origin, direction, limit) -> None:
@@ -244,10 +244,10 @@ class CrossingLog:
 
     def traced(self, domain: int, seg: np.ndarray) -> None:
         """Segments ``seg`` ((m,)) traced in ``domain``."""
-        cpu = time.thread_time()
+        cpu = cpu_time()
         self.traced_seg.append(seg.astype(np.int64))
         self.traced_domain.append(np.full(len(seg), domain, np.int32))
-        self.own_cpu_s += time.thread_time() - cpu
+        self.own_cpu_s += cpu_time() - cpu
 
     def activation(self, radiance: int, shadow: int, cpu_s: float, decision_s: float) -> None:
         """One activation of the recording run traced these rays in ``cpu_s`` CPU seconds,
@@ -289,15 +289,15 @@ class _TimedQueries:
         return getattr(self._bvh, name)
 
     def intersect(self, origins, *args, **kwargs):
-        start = time.thread_time()
+        start = cpu_time()
         result = self._bvh.intersect(origins, *args, **kwargs)
-        self._log.query(RADIANCE, len(origins), time.thread_time() - start)
+        self._log.query(RADIANCE, len(origins), cpu_time() - start)
         return result
 
     def occluded(self, origins, *args, **kwargs):
-        start = time.thread_time()
+        start = cpu_time()
         result = self._bvh.occluded(origins, *args, **kwargs)
-        self._log.query(SHADOW, len(origins), time.thread_time() - start)
+        self._log.query(SHADOW, len(origins), cpu_time() - start)
         return result
 
 
@@ -351,17 +351,17 @@ def record_crossings(store: Store, settings: RenderSettings, config: SceneConfig
             policy.crossing_log = log
             policy.start(camera_rays(setup.camera, ctx))
             while True:
-                start = time.thread_time()
+                start = cpu_time()
                 domain = policy.next_domain()
-                decision = time.thread_time() - start
+                decision = cpu_time() - start
                 if domain is None:
                     break
                 bvh = _TimedQueries(get_domain(domain), log)
                 rays = (policy.radiance.count(domain), policy.shadow.count(domain))
                 log.own_cpu_s = 0.0
-                start = time.thread_time()
+                start = cpu_time()
                 policy.process(domain, bvh)
-                log.activation(int(rays[0]), int(rays[1]), time.thread_time() - start,
+                log.activation(int(rays[0]), int(rays[1]), cpu_time() - start,
                                decision)
             film.add_paths(ctx.pixel, ctx.sample, policy.result)
     finally:

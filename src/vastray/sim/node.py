@@ -13,13 +13,13 @@ plus a node runtime's hand-off of the trace to a worker thread (``CostModel.offl
 from __future__ import annotations
 
 import asyncio
-import time
 from dataclasses import dataclass
 
 from vastray.actors import protocol
 from vastray.actors.domain_loop import DomainLoop, DomainOrder, Queries, hands_off
 from vastray.actors.node_state import NodeState
 from vastray.actors.node_work import NodeWork
+from vastray.scene.embree.launch import cpu_time
 from vastray.sim.cache import Domains, VirtualPreloader
 from vastray.sim.cluster import Cluster
 from vastray.transport.codec import decode, frames_nbytes
@@ -89,9 +89,9 @@ class VirtualDomainLoop(DomainLoop):
         # decided before the trace, as the real loop decides it: after it, the domain's rays
         # are gone and every activation would look small
         handed = self.node_runtime and hands_off(order, domain)
-        cpu = time.thread_time()
+        cpu = cpu_time()
         queries = order.trace(domain, bvh)
-        cpu = time.thread_time() - cpu
+        cpu = cpu_time() - cpu
         if not queries:  # a domain only loaded (in situ), or nothing left for it
             return queries
         costs = self.cluster.costs
