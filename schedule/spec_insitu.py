@@ -134,9 +134,7 @@ class InSituSchedule:
         ray = dom = np.zeros(0, np.int64)
         if shadows is not None and len(shadows):
             ray, dom, _, _ = self.geometry.crossings(shadows["origin"], shadows["direction"],
-                                                     shadows["t_max"])
-            keep = ~self.is_local[dom]
-            ray, dom = ray[keep], dom[keep]
+                                                     shadows["t_max"], among=~self.is_local)
         copies["shadow"] = Copies(dom, ray, shadows)
         return copies
 
@@ -224,10 +222,9 @@ class InSituSchedule:
         blocked = np.zeros(len(shadow), bool)
         if len(shadow) == 0:
             return blocked
-        ray, dom, _, _ = self.geometry.crossings(shadow.origin, shadow.direction, shadow.t_max)
-        here = self.is_local[dom]
-        ray = ray[here]
-        for d, pairs in by_domain(dom[here]):
+        ray, dom, _, _ = self.geometry.crossings(shadow.origin, shadow.direction, shadow.t_max,
+                                                 among=self.is_local)
+        for d, pairs in by_domain(dom):
             rows = np.unique(ray[pairs])
             rows = rows[~blocked[rows]]
             if len(rows):
@@ -240,10 +237,9 @@ class InSituSchedule:
         if len(cont) == 0:
             return cand
         ray, dom, _, _ = self.geometry.crossings(cont.origin, cont.direction,
-                                                 np.full(len(cont), np.inf, np.float32))
-        here = self.is_local[dom]
-        ray = ray[here]
-        for d, pairs in by_domain(dom[here]):
+                                                 np.full(len(cont), np.inf, np.float32),
+                                                 among=self.is_local)
+        for d, pairs in by_domain(dom):
             rows = ray[pairs]
             r = self._intersect(int(d), cont.origin[rows], cont.direction[rows], cand.t[rows])
             cand.offer(rows, int(d), self.bvhs[int(d)], r, self.color_source, self.scalar_range)

@@ -241,6 +241,26 @@ def test_next_domain_walks_the_domains_crossings_lists(tmp_path):
     assert len(ray) < 0.9 * len(unmasked)
 
 
+def test_crossings_among_some_domains_are_the_pairs_of_those_domains(tmp_path):
+    generate("rm", tmp_path / "rm", 24, grid=(3, 3, 2), seed=0)
+    geometry = geometry_of(Store(tmp_path / "rm"))
+    rng = np.random.default_rng(2)
+    n = 2000
+    origins = rng.uniform(-0.5, 1.5, (n, 3)).astype(np.float32)
+    directions = (rng.uniform(0, 1, (n, 3)) - origins).astype(np.float32)
+    limit = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0.2, 1.5, n)).astype(np.float32)
+    ray, dom, entry, _ = geometry.crossings(origins, directions, limit)
+    among = np.zeros(18, bool)
+    among[[0, 4, 5, 11, 17]] = True
+    got = geometry.crossings(origins, directions, limit, among=among)
+    asked = among[dom]
+    assert asked.any() and not asked.all()
+    for expected, value in zip((ray[asked], dom[asked], entry[asked]), got[:3], strict=True):
+        assert value.tolist() == expected.tolist()
+    per_ray = np.bincount(got[0], minlength=n)
+    assert got[3].tolist() == [i for count in per_ray for i in range(count)]
+
+
 # --- stores on disk: versions and verify -------------------------------------------------------
 
 
