@@ -226,6 +226,12 @@ class DomainQueues:
         """Bytes held: every block some queue still has a run in, counted once."""
         return self._held
 
+    def peek_fields(self, domain: int, names: tuple[str, ...]) -> list[tuple[np.ndarray, ...]]:
+        """The chunks queued in ``domain``, each as the views of the fields ``names`` only
+        (left queued: do not modify them)."""
+        return [tuple(block.fields[k][start:stop] for k in names)
+                for block, start, stop in self._chunks.get(domain, ())]
+
     def peek(self, domain: int) -> list[SoA]:
         """The chunks queued in ``domain``, left queued (views: do not modify them)."""
         return [block.rows(start, stop) for block, start, stop in self._chunks.get(domain, ())]

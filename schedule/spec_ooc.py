@@ -295,12 +295,23 @@ class SpeculativeSchedule:
         return live, live & ~self.shadow_blocked[rays["sid"]]
 
     def _would_trace(self, domain: int) -> bool:
-        """Whether a ray queued for ``domain`` would survive the filter now (nothing changes)."""
-        for chunk in self.radiance.peek(domain):
-            level = chunk["depth"].astype(np.int64) - self.window_start
-            if self._radiance_predicate(chunk, level)[1].any():
+        """Whether a ray queued for ``domain`` would survive the filter now (nothing changes):
+        ``_radiance_predicate`` and ``_shadow_predicate``'s keep, in one compiled pass that
+        stops at the first survivor. (``likely_next`` asks this of domain after domain: as
+        numpy over views of every field it was most of spec-ooc's decision time, 0.9 ms a
+        decision on 1,439 domains.)"""
+        start = self.window_start
+        for path, depth, hist_t, hist_d, entry in self.radiance.peek_fields(
+                domain, ("path", "depth", "hist_t", "hist_d", "entry")):
+            if _any_radiance_kept(path, depth, hist_t, hist_d, entry, self.hbuf_t, self.hbuf_d,
+                                  start):
                 return True
-        return any(self._shadow_predicate(chunk)[1].any() for chunk in self.shadow.peek(domain))
+        for path, depth, hist_t, hist_d, sid in self.shadow.peek_fields(
+                domain, ("path", "depth", "hist_t", "hist_d", "sid")):
+            if _any_shadow_kept(path, depth, hist_t, hist_d, sid, self.shadow_blocked,
+                                self.hbuf_t, self.hbuf_d, start):
+                return True
+        return False
 
     # -- rounds and windows -------------------------------------------------------------------
     def _new_round(self) -> None:
@@ -586,6 +597,43 @@ def _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto, out):
         out[i] = same
 
 
+@njit(nogil=True, cache=True)
+def _history_equal(i, p, upto, hist_t, hist_d, hbuf_t, hbuf_d) -> bool:
+    """Ray i's history equals the buffer's row p at the depths below upto (``_matches``)."""
+    for j in range(min(upto, hist_t.shape[1])):
+        if not (hist_t[i, j] == hbuf_t[p, j] and hist_d[i, j] == hbuf_d[p, j]):
+            return False
+    return True
+
+
+@njit(nogil=True, cache=True)
+def _any_radiance_kept(path, depth, hist_t, hist_d, entry, hbuf_t, hbuf_d, window_start):
+    """Whether any of the radiance rays ((n,) path, depth and entry, (n, W) history) would
+    be kept by ``_radiance_predicate``: entering before its path's hit at its level, with a
+    live history."""
+    for i in range(len(path)):
+        p = path[i]
+        level = np.int64(depth[i]) - window_start
+        if entry[i] < hbuf_t[p, level] and _history_equal(i, p, level, hist_t, hist_d,
+                                                          hbuf_t, hbuf_d):
+            return True
+    return False
+
+
+@njit(nogil=True, cache=True)
+def _any_shadow_kept(path, depth, hist_t, hist_d, sid, blocked, hbuf_t, hbuf_d, window_start):
+    """Whether any of the shadow rays would be kept by ``_shadow_predicate``: not blocked
+    yet (``blocked``: (S,) by shadow id), with a live history through the hit that cast it."""
+    for i in range(len(path)):
+        if blocked[sid[i]]:
+            continue
+        p = path[i]
+        if _history_equal(i, p, np.int64(depth[i]) - window_start + 1, hist_t, hist_d,
+                          hbuf_t, hbuf_d):
+            return True
+    return False
+
+
 def traversal_order(score: np.ndarray, resident: frozenset[int] = frozenset(),
                     domains: list[int] | None = None) -> list[int]:
     """A round's schedule: domains by descending front-to-back traversal score (SpRay 4.1.2),
@@ -599,6 +647,6 @@ def traversal_order(score: np.ndarray, resident: frozenset[int] = frozenset(),
     only those (the rest of a round, re-ranked by the scores of now); default: every domain.
     """
     ids = np.arange(len(score)) if domains is None else np.asarray(domains, np.int64)
-    score = score[ids]
-    away = ~np.isin(ids, np.fromiter(resident, np.int64, len(resident)))
-    return ids[np.lexsort((ids, -score, away))].tolist()
+    here = np.zeros(len(score), np.bool_)  # a mask, not np.isin: this runs every decision
+    here[np.fromiter(resident, np.int64, len(resident))] = True
+    return ids[np.lexsort((ids, -score[ids], ~here[ids]))].tolist()

@@ -181,6 +181,35 @@ def _drive(store, config, st, cache_capacity, **options):
     return unserved, calls, policy.result.radiance, max(loads.values())
 
 
+def _would_trace_by_predicates(policy, domain: int) -> bool:
+    """``_would_trace`` as the filter's own predicates answer it over every queued chunk."""
+    for chunk in policy.radiance.peek(domain):
+        level = chunk["depth"].astype(np.int64) - policy.window_start
+        if policy._radiance_predicate(chunk, level)[1].any():
+            return True
+    return any(policy._shadow_predicate(chunk)[1].any() for chunk in policy.shadow.peek(domain))
+
+
+def test_the_compiled_would_trace_answers_as_the_filter_predicates(bumpy, config):
+    # likely_next's test, compiled, against the predicates next_domain filters by: at every
+    # step of a tile, for every domain (both answers occur, or the check proves nothing)
+    st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
+    setup = RenderSetup.of(bumpy, config, st)
+    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
+    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
+    policy.start(camera_rays(setup.camera, ctx))
+    cache = DomainCache(bumpy, 5, setup.keep)
+    answers = set()
+    while (domain := policy.next_domain(cache.resident_set(), victim=cache.victim)) is not None:
+        for d in range(len(bumpy.domains)):
+            if d != domain:  # the chosen domain's rays are staged, not queued
+                expected = _would_trace_by_predicates(policy, d)
+                assert policy._would_trace(d) == expected, d
+                answers.add(expected)
+        policy.process(domain, cache.get(domain))
+    assert answers == {True, False}
+
+
 def test_spec_ooc_serves_a_resident_domain_before_it_is_evicted(bumpy, config):
     # serve_before_evict: rays that reached a resident domain are traced before a load evicts
     # it (never a reload for them), in fewer batches than serving each arrival at once.
