@@ -649,4 +649,18 @@ def traversal_order(score: np.ndarray, resident: frozenset[int] = frozenset(),
     ids = np.arange(len(score)) if domains is None else np.asarray(domains, np.int64)
     here = np.zeros(len(score), np.bool_)  # a mask, not np.isin: this runs every decision
     here[np.fromiter(resident, np.int64, len(resident))] = True
-    return ids[np.lexsort((ids, -score[ids], ~here[ids]))].tolist()
+    mine = score[ids]
+    low, high = (int(mine.min()), int(mine.max())) if len(ids) else (0, 0)
+    if len(score) <= 1 << _ID_BITS and high - low < 1 << _SCORE_BITS:
+        # the three keys in one integer (away, then -score, then id): one argsort, not a
+        # three-key lexsort (a round re-ranks its rest every decision: 1,439 domains took
+        # ~0.4 ms a rank)
+        key = (((~here[ids]).astype(np.int64) << (_SCORE_BITS + _ID_BITS))
+               | ((high - mine) << _ID_BITS) | ids)
+        return ids[np.argsort(key)].tolist()
+    return ids[np.lexsort((ids, -mine, ~here[ids]))].tolist()
+
+
+#: Bits of ``traversal_order``'s packed key: domain ids below 2^20, score spans below 2^42.
+_ID_BITS = 20
+_SCORE_BITS = 42

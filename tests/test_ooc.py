@@ -157,6 +157,18 @@ def test_traversal_order_ranks_the_rest_of_a_round():
     assert traversal_order(traversal_score(counter), frozenset({0}), [0, 1, 2]) == [0, 1, 2]
 
 
+@pytest.mark.parametrize("scale", [1, 10**9, 10**13])  # the last: past the packed key
+def test_traversal_order_is_resident_then_score_then_id(scale):
+    rng = np.random.default_rng(scale % 97)
+    for _ in range(50):
+        n = int(rng.integers(1, 600))
+        score = rng.integers(-40, 40, n) * scale
+        resident = frozenset(rng.choice(n, int(rng.integers(0, n + 1)), replace=False).tolist())
+        domains = sorted(rng.choice(n, int(rng.integers(0, n + 1)), replace=False).tolist())
+        expected = sorted(domains, key=lambda d: (d not in resident, -int(score[d]), d))
+        assert traversal_order(score, resident, domains) == expected
+
+
 def _drive(store, config, st, cache_capacity, **options):
     """Run spec-ooc over one tile by hand (sequential loads). Returns (evicted with rays
     that would still be traced, process calls, film radiance, most loads of one domain in
