@@ -11,7 +11,10 @@ simulator with the constants ``vastray calibrate`` measures here first, the virt
 sharing this machine's cores as the real processes do. Measured is the real run's
 ``busy_max`` (the busiest node's rendering, start-up and film gathering left out); simulated
 the same span in virtual time. ``sim_error_max=`` is the worst |simulated - measured| /
-measured.
+measured. The two constants that move most with this machine's moment, what a message and a
+hand-off to a worker thread cost (``receive_s``, ``offload_s``), are measured again before each
+scheduler's real runs (``MessagingProbe``, under a second; printed per row); every other
+constant is the calibration's. ``--no-probe`` charges the calibration's throughout.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``).
@@ -44,7 +47,7 @@ from vastray.render.driver import render, shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.sim.cache import Domains
-from vastray.sim.calibrate import calibrate
+from vastray.sim.calibrate import MessagingProbe, calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
 
@@ -96,9 +99,10 @@ def measured(store, scheduler: str, nodes: int, settings: RenderSettings,
 
 
 def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = VALIDATION,
-             node_counts=VALIDATION_NODES) -> list[dict]:
-    """Every scheduler at ``node_counts``, real and simulated (cores shared as here)."""
-    shared = costs.with_cores(costs.cores)
+             node_counts=VALIDATION_NODES, probe: MessagingProbe | None = None) -> list[dict]:
+    """Every scheduler at ``node_counts``, real and simulated (cores shared as here); with
+    ``probe``, each scheduler's rows charge the message and hand-off costs measured just
+    before its real runs (``MessagingProbe``)."""
     config = SceneConfig()
     reference = render(store, config, settings, progress=False).film.image()
     domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
@@ -108,9 +112,12 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | measured s | simulated s | error | sim image = reference |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| scheduler | nodes | receive / hand-off ms | measured s | simulated s | error "
+          "| sim image = reference |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
+        now = costs if probe is None else probe.now(costs)
+        shared = now.with_cores(now.cores)
         for nodes in node_counts:
             real_s, _ = measured(store, scheduler, nodes, settings, repeats)
             sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared, settings,
@@ -119,8 +126,10 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
             error = (sim.seconds - real_s) / real_s
             rows.append({"scheduler": scheduler, "nodes": nodes, "width": settings.width,
                          "spp": settings.spp, "measured_s": real_s,
-                         "simulated_s": sim.seconds, "error": error, "same_image": same})
-            print(f"| {scheduler} | {nodes} | {real_s:.3f} | {sim.seconds:.3f} | "
+                         "simulated_s": sim.seconds, "error": error, "same_image": same,
+                         "receive_s": now.receive_s, "offload_s": now.offload_s})
+            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {real_s:.3f} | "
+                  f"{sim.seconds:.3f} | "
                   f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
     domains.close()
     return rows
@@ -146,11 +155,11 @@ def oos_cases() -> list[tuple[str, object, RenderSettings, int | None]]:
     return cases
 
 
-def validate_oos(costs: CostModel, node_counts, repeats: int) -> list[dict]:
+def validate_oos(costs: CostModel, node_counts, repeats: int,
+                 probe: MessagingProbe | None = None) -> list[dict]:
     """Every scheduler on the out-of-sample cases, real and simulated (cores shared as here).
     The sort-first schedules get a tile per node, so every node has work; each row says how
-    many nodes traced (``busy``)."""
-    shared = costs.with_cores(costs.cores)
+    many nodes traced (``busy``). With ``probe``, as ``validate``."""
     config = SceneConfig()
     rows = []
     for name, store, settings, cache in oos_cases():
@@ -159,10 +168,13 @@ def validate_oos(costs: CostModel, node_counts, repeats: int) -> list[dict]:
         print(f"\nout of sample: {name}, {len(store.domains)} domains, {settings.width}x"
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
-        print("| scheduler | nodes | busy nodes | real CPU / busy | measured s | simulated s "
-              "| error | real image = reference | sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
+              "| measured s | simulated s | error | real image = reference "
+              "| sim image = reference |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in SIM_SCHEDULERS:
+            now = costs if probe is None else probe.now(costs)
+            shared = now.with_cores(now.cores)
             for nodes in node_counts:
                 options = scaling_options(scheduler, nodes, settings.paths)
                 options = replace(options, threads=1, cache=cache)
@@ -186,13 +198,19 @@ def validate_oos(costs: CostModel, node_counts, repeats: int) -> list[dict]:
                 rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
                              "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
                              "simulated_s": sim.seconds, "error": error,
-                             "same_image": real_same and sim_same})
-                print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | {real_s:.3f} | "
+                             "same_image": real_same and sim_same,
+                             "receive_s": now.receive_s, "offload_s": now.offload_s})
+                print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
+                      f"{_messaging(now)} | {real_s:.3f} | "
                       f"{sim.seconds:.3f} | "
                       f"{error:+.1%} | {'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)
         domains.close()
     return rows
+
+
+def _messaging(costs: CostModel) -> str:
+    return f"{costs.receive_s * 1e3:.2f} / {costs.offload_s * 1e3:.2f}"
 
 
 def main() -> None:
@@ -210,24 +228,35 @@ def main() -> None:
                         help="no real runs: the scaling and figures only")
     parser.add_argument("--validation-only", action="store_true",
                         help="the validation only (no scaling, no figures)")
+    parser.add_argument("--no-probe", action="store_true",
+                        help="charge the calibration's message and hand-off costs throughout "
+                             "(default: measured again before each scheduler's real runs, "
+                             "as this machine's speed moves within minutes)")
     args = parser.parse_args()
     start = time.perf_counter()
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
           "scaling with this machine's calibrated costs")
     small = cached_rm(64, (3, 3, 2))
     costs = CostModel.load(args.costs) if args.costs else costs_here(args.quick, small)
+    probe = None if args.no_probe or args.skip_validation else MessagingProbe(small.path)
+    if probe is not None:
+        print("the message and hand-off costs (receive_s, offload_s) charged in the validation "
+              "are measured again before each scheduler's real runs (MessagingProbe); every "
+              "other constant is the calibration's")
     rows = [] if args.skip_validation else validate(
         small, costs, args.repeats or (1 if args.quick else 3),
-        node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES)
+        node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe)
     if rows and not args.quick:  # work rather than start-up: 4 times the paths
-        rows += validate(small, costs, 1, HEAVY, (1, 4))
+        rows += validate(small, costs, 1, HEAVY, (1, 4), probe=probe)
     if rows:
         worst = max(abs(r["error"]) for r in rows)
         print(f"\nsim_error_max={worst:.3f}  (in sample: the store and settings the "
               "constants were calibrated on)")
         print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
     oos = [] if args.skip_validation else validate_oos(
-        costs, OOS_NODES_QUICK if args.quick else OOS_NODES, 1 if args.quick else 3)
+        costs, OOS_NODES_QUICK if args.quick else OOS_NODES, 1 if args.quick else 3, probe)
+    if probe is not None:
+        probe.close()
     if oos:
         worst = max(abs(r["error"]) for r in oos)
         print(f"\nsim_error_oos_max={worst:.3f}  (out of sample: other stores, a real scan, "

@@ -103,6 +103,22 @@ def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
     assert json.loads(out.read_text())["version"] == VERSION
 
 
+def test_the_messaging_probe_measures_again_only_what_moves(store):
+    # receive_s and offload_s measured now, every other constant kept; a second probe
+    # measures again (its own numbers, not a copy of the first)
+    base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2)
+    probe = cal.MessagingProbe(store)
+    try:
+        first, second = probe.now(base), probe.now(base)
+    finally:
+        probe.close()
+    for now in (first, second):
+        assert 0 < now.receive_s < 0.05 and 0 < now.offload_s < 0.05
+        assert asdict(now) == asdict(base) | {"receive_s": now.receive_s,
+                                              "offload_s": now.offload_s}
+    assert (first.receive_s, first.offload_s) != (second.receive_s, second.offload_s)
+
+
 def test_cli_names_a_missing_store_and_writes_nothing(tmp_path):
     missing, out = tmp_path / "nowhere.store", tmp_path / "costs.json"
     proc = subprocess.run([*VASTRAY, "calibrate", str(missing), "-o", str(out), "--quick"],

@@ -715,6 +715,43 @@ def time_node_messages(setup: RenderSetup, effort: Effort) -> float:
         return runner.run(run())
 
 
+#: Effort of ``MessagingProbe``: a fraction of a second a probe.
+PROBE = Effort(load_s=0.0, min_loads=0, trace_s=0.0, min_tiles=1, spp=1, wire_s=0.1,
+               min_pings=4)
+
+
+class MessagingProbe:
+    """``receive_s`` and ``offload_s`` measured again, in under a second, as ``calibrate``
+    measures them (two management actors exchanging batches; tiles traced through a worker
+    thread). These two move the most with the machine's moment: on the 2-core machine the
+    same measurement gave 0.55 ms a batch and, a minute later, 1.10 ms, and two calibrations
+    back to back an ``offload_s`` of 1.50 and 0.26 ms. A validation that compares real runs
+    with simulations minutes apart takes them beside each real run (``bench/simulate.py``).
+
+    Parameters
+    ----------
+    store_path : the calibration store (its tile and ray batches are the ones measured).
+    """
+
+    def __init__(self, store_path: str | os.PathLike):
+        store = Store(store_path)
+        # a quarter of the calibration tile: as many activations, a hand-off each
+        self.settings = calibration_settings(True, spp=1, width=32, height=24)
+        self.setup = RenderSetup.of(store, SceneConfig(text=""), self.settings)
+        self.cache = resident_cache(store, self.setup.keep)
+
+    def now(self, costs: CostModel) -> CostModel:
+        """``costs`` with ``receive_s`` and ``offload_s`` as this machine pays them now
+        (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
+        node_messages = time_node_messages(self.setup, PROBE)
+        offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
+        return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
+                       offload_s=float(np.median(offload)) if offload else costs.offload_s)
+
+    def close(self) -> None:
+        self.cache.close()
+
+
 def wire_costs(samples: list[tuple[int, float]]) -> tuple[float, float]:
     """(latency_s, byte_s) of ``one_way = latency_s + bytes * byte_s``.
 
