@@ -588,18 +588,12 @@ def _matches(path, hist_t, hist_d, hbuf_t, hbuf_d, upto, out):
     """out[i]: ray i's history ((n, W) t and domain) equals the buffer's ((P, W)) row path[i]
     at the depths below upto[i] ((n,) each). NaN never equals (as numpy's ==)."""
     for i in range(len(path)):
-        p = path[i]
-        same = True
-        for j in range(min(upto[i], hist_t.shape[1])):
-            if not (hist_t[i, j] == hbuf_t[p, j] and hist_d[i, j] == hbuf_d[p, j]):
-                same = False
-                break
-        out[i] = same
+        out[i] = _history_equal(i, path[i], upto[i], hist_t, hist_d, hbuf_t, hbuf_d)
 
 
 @njit(nogil=True, cache=True)
 def _history_equal(i, p, upto, hist_t, hist_d, hbuf_t, hbuf_d) -> bool:
-    """Ray i's history equals the buffer's row p at the depths below upto (``_matches``)."""
+    """Ray i's history equals the buffer's row p at the depths below upto."""
     for j in range(min(upto, hist_t.shape[1])):
         if not (hist_t[i, j] == hbuf_t[p, j] and hist_d[i, j] == hbuf_d[p, j]):
             return False

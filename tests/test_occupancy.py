@@ -222,15 +222,21 @@ def walk(geometry: DomainGeometry, origins, directions, limit) -> list[list[int]
     return seen
 
 
-def test_next_domain_walks_the_domains_crossings_lists(tmp_path):
+def rm_and_rays(tmp_path, n: int, seed: int):
+    """An rm store in 3x3x2 domains and ``n`` random rays through it: (store, (n, 3) origins,
+    (n, 3) directions, (n,) limits, half of them infinite), all float32."""
     generate("rm", tmp_path / "rm", 24, grid=(3, 3, 2), seed=0)
-    store = Store(tmp_path / "rm")
-    geometry = geometry_of(store)
-    rng = np.random.default_rng(1)
-    n = 3000
+    rng = np.random.default_rng(seed)
     origins = rng.uniform(-0.5, 1.5, (n, 3)).astype(np.float32)
     directions = (rng.uniform(0, 1, (n, 3)) - origins).astype(np.float32)
     limit = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0.2, 1.5, n)).astype(np.float32)
+    return Store(tmp_path / "rm"), origins, directions, limit
+
+
+def test_next_domain_walks_the_domains_crossings_lists(tmp_path):
+    n = 3000
+    store, origins, directions, limit = rm_and_rays(tmp_path, n, seed=1)
+    geometry = geometry_of(store)
     ray, dom, _, rank = geometry.crossings(origins, directions, limit)
     listed = [[] for _ in range(n)]
     for r, d in zip(ray, dom, strict=True):
@@ -242,13 +248,9 @@ def test_next_domain_walks_the_domains_crossings_lists(tmp_path):
 
 
 def test_crossings_among_some_domains_are_the_pairs_of_those_domains(tmp_path):
-    generate("rm", tmp_path / "rm", 24, grid=(3, 3, 2), seed=0)
-    geometry = geometry_of(Store(tmp_path / "rm"))
-    rng = np.random.default_rng(2)
     n = 2000
-    origins = rng.uniform(-0.5, 1.5, (n, 3)).astype(np.float32)
-    directions = (rng.uniform(0, 1, (n, 3)) - origins).astype(np.float32)
-    limit = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0.2, 1.5, n)).astype(np.float32)
+    store, origins, directions, limit = rm_and_rays(tmp_path, n, seed=2)
+    geometry = geometry_of(store)
     ray, dom, entry, _ = geometry.crossings(origins, directions, limit)
     among = np.zeros(18, bool)
     among[[0, 4, 5, 11, 17]] = True

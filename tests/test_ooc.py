@@ -169,15 +169,21 @@ def test_traversal_order_is_resident_then_score_then_id(scale):
         assert traversal_order(score, resident, domains) == expected
 
 
-def _drive(store, config, st, cache_capacity, **options):
-    """Run spec-ooc over one tile by hand (sequential loads). Returns (evicted with rays
-    that would still be traced, process calls, film radiance, most loads of one domain in
-    one round)."""
+def _started(store, config, st, **options) -> tuple[RenderSetup, SpeculativeSchedule]:
+    """The render set-up of ``st`` and a spec-ooc schedule of its one tile, camera rays in."""
     setup = RenderSetup.of(store, config, st)
     ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
     policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                  **options)
     policy.start(camera_rays(setup.camera, ctx))
+    return setup, policy
+
+
+def _drive(store, config, st, cache_capacity, **options):
+    """Run spec-ooc over one tile by hand (sequential loads). Returns (evicted with rays
+    that would still be traced, process calls, film radiance, most loads of one domain in
+    one round)."""
+    setup, policy = _started(store, config, st, **options)
     cache = DomainCache(store, cache_capacity, setup.keep)
     unserved = calls = 0
     loads: dict[tuple[int, int], int] = {}  # (round, domain) -> loads
@@ -206,10 +212,7 @@ def test_the_compiled_would_trace_answers_as_the_filter_predicates(bumpy, config
     # likely_next's test, compiled, against the predicates next_domain filters by: at every
     # step of a tile, for every domain (both answers occur, or the check proves nothing)
     st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
-    setup = RenderSetup.of(bumpy, config, st)
-    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
-    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
-    policy.start(camera_rays(setup.camera, ctx))
+    setup, policy = _started(bumpy, config, st)
     cache = DomainCache(bumpy, 5, setup.keep)
     answers = set()
     while (domain := policy.next_domain(cache.resident_set(), victim=cache.victim)) is not None:
@@ -252,11 +255,7 @@ def test_spec_ooc_first_round_follows_the_score(bumpy, config):
     # In the paper's order (no resident rule) the first round visits domains in descending
     # score of the camera rays' Counter; skipped domains only leave gaps.
     st = settings(width=24, height=18, spp=1, integrator="pt", bounces=2)
-    setup = RenderSetup.of(bumpy, config, st)
-    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
-    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
-                                 resident_first=False)
-    policy.start(camera_rays(setup.camera, ctx))
+    setup, policy = _started(bumpy, config, st, resident_first=False)
     expected = traversal_order(policy.score.copy())
     cache = DomainCache(bumpy, len(bumpy.domains), setup.keep)
     visited = []
@@ -271,10 +270,7 @@ def test_spec_ooc_demand_ranks_domains_by_their_place_in_the_round(bumpy, config
     # eviction by demand: the round's schedule is the future Belady's rule looks at, so the
     # domains left in it rank above the rest, the sooner the higher; no rays, no demand
     st = settings(width=24, height=18, spp=1, integrator="pt", bounces=2)
-    setup = RenderSetup.of(bumpy, config, st)
-    ctx = path_context(setup.shading, st, 0, setup.total_paths, setup.ao_distance)
-    policy = SpeculativeSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
-    policy.start(camera_rays(setup.camera, ctx))
+    setup, policy = _started(bumpy, config, st)
     assert policy.next_domain() is not None
     demand, left = policy.demand(), list(policy._schedule)
     assert len(left) >= 2
