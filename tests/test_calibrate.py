@@ -20,6 +20,7 @@ from vastray.scene.errors import InputError
 from vastray.scene.generate import generate
 from vastray.sim import calibrate as cal
 from vastray.sim.costs import VERSION, CostModel
+from vastray.sim.warmup import throughput_of
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
@@ -64,6 +65,11 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # way, but not a whole activation's worth
     assert 1e-6 < model.receive_s < 5e-3
     assert model.trace_scale == 1.0 and model.decision_scale == 1.0
+    # the throughput with 1 .. 2 x cores busy processes: one process is the unit, and k
+    # processes give at most what k processes and the cores can
+    assert len(model.throughput) == 2 * model.cores and model.throughput[0] == 1.0
+    assert all(0.0 < t <= min(k, model.cores)
+               for k, t in enumerate(model.throughput, start=1)), model.throughput
     # (its time, about 20 s on a quiet machine, is no test's business: 120 s on a busy one)
 
 
@@ -194,6 +200,27 @@ def test_wire_costs_fall_back_when_noise_leaves_a_negative_intercept():
     samples = [(50, 5e-5), (150_000, 3e-4), (1_500_000, 3e-3), (15_000_000, 3e-2)]
     latency_s, byte_s = cal.wire_costs(samples)
     assert 0 < latency_s <= 5e-5 and byte_s == pytest.approx(2e-9, rel=0.1)
+
+
+def test_throughput_is_k_times_the_median_alone_over_the_median_together():
+    # two processes each as fast as one alone: twice the work; four on 2 cores: each twice as
+    # slow, two cores' work
+    rounds = [{1: [1.0], 2: [1.0, 1.0], 4: [2.0, 2.0, 2.0, 2.0]}] * 3
+    assert throughput_of(rounds, cores=2) == {1: 1.0, 2: 2.0, 4: 2.0}
+    # contention: two processes each 1.25x slower than one alone
+    rounds = [{1: [1.0], 2: [1.25, 1.25], 4: [2.5, 2.5, 2.5, 2.5]}] * 3
+    assert throughput_of(rounds, cores=2) == pytest.approx({1: 1.0, 2: 1.6, 4: 1.6})
+
+
+def test_throughput_takes_medians_over_rounds_and_caps_at_the_cores():
+    # one round on a machine twice as slow for every count moves nothing (medians); an alone
+    # run slowed in one round does not make the others look faster than the cores give
+    quiet = {1: [1.0], 2: [1.25, 1.25], 4: [2.5, 2.5, 2.5, 2.5]}
+    slow = {k: [2 * s for s in v] for k, v in quiet.items()}
+    assert throughput_of([quiet, slow, quiet], cores=2) == pytest.approx(
+        {1: 1.0, 2: 1.6, 4: 1.6})
+    noisy = [{1: [3.0], 2: [1.0, 1.0], 4: [1.5, 1.5, 1.5, 1.5]}] * 3
+    assert throughput_of(noisy, cores=2) == {1: 1.0, 2: 2.0, 4: 2.0}
 
 
 def test_load_costs_are_ratios_of_totals():

@@ -1,10 +1,17 @@
-"""What fresh processes measure: ``python -m vastray.sim.warmup STORE`` renders the
-calibration's node image out of core (the ``image`` schedule: scene set-up, every domain
-loaded and its BVH built, the tile traced, the film filled) once untimed (its first use paid),
-prints "ready", waits for a line on its input, renders it ``--repeat`` times more and prints,
-as JSON, the later renders' mean seconds (``render_s``). Started k at a time and told to go
-together, the later renders run side by side: the machine's throughput with k busy
-processes. (A node's first use is measured on real nodes: ``vastray.sim.node_cost``.)"""
+"""The machine's throughput with k busy processes, measured by warm processes rendering side
+by side: ``python -m vastray.sim.warmup STORE`` renders the calibration's node image out of
+core (the ``image`` schedule: scene set-up, every domain loaded and its BVH built, the tile
+traced, the film filled) once untimed (its first use paid), prints "ready", then renders once
+for every "go" line on its input, printing each render's seconds as JSON (``render_s``), until
+its input ends. (A node's first use is measured on real nodes: ``vastray.sim.node_cost``.)
+
+``process_costs`` starts 2 x cores such processes once and, round after round, tells 1, then
+2, ... of them to go together: every process count is measured in every round, so a change
+of the machine's speed between rounds (this 2-core machine's moves 2x within minutes) falls on
+all counts alike, and the medians over rounds make the ratio. An earlier version measured each
+count once with its own fresh processes, one after the other: four calibrations gave 1.54 to
+2.15 for 4 processes (more than the 2 cores can give), and every multi-process validation row
+moved with it."""
 
 from __future__ import annotations
 
@@ -18,42 +25,65 @@ import numpy as np
 
 from vastray.scene.errors import InputError
 
-#: Seconds a measuring process may take (it starts Python, imports, renders a few times).
+#: Seconds a measuring process may take to get ready (it starts Python, imports, renders once).
 PROCESS_TIMEOUT_S = 300.0
+#: Seconds one side-by-side render may take.
+RENDER_TIMEOUT_S = 120.0
+#: Rounds of measurements (every process count in each).
+ROUNDS = 5
+ROUNDS_QUICK = 3
 
 
-def measure_processes(store_path: str, quick: bool, count: int) -> list[dict]:
-    """``count`` fresh processes whose later renders run side by side (each says "ready"
-    after its first render, and all are told to go together); each one's ``{"warmup_s",
-    "render_s"}``."""
-    command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path), "--repeat",
-               "2" if quick else "3"] + (["--quick"] if quick else [])
-    processes = [subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True) for _ in range(count)]
-    try:
-        deadline = time.monotonic() + PROCESS_TIMEOUT_S
-        for process in processes:
-            ready, _, _ = select.select([process.stdout], [], [],
-                                        max(0.0, deadline - time.monotonic()))
-            if not ready or process.stdout.readline().strip() != "ready":
-                raise RuntimeError(_failure(process, "did not get ready"))
-        for process in processes:
+class WarmProcesses:
+    """``count`` warm measuring processes (``python -m vastray.sim.warmup``), each ready to
+    render on "go"; closed (their input ended, killed if need be) by ``close``."""
+
+    def __init__(self, store_path: str, quick: bool, count: int):
+        command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path)] + (
+            ["--quick"] if quick else [])
+        self.processes = [subprocess.Popen(command, stdin=subprocess.PIPE,
+                                           stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                           text=True) for _ in range(count)]
+        try:
+            deadline = time.monotonic() + PROCESS_TIMEOUT_S
+            for process in self.processes:
+                if self._line(process, deadline) != "ready":
+                    raise RuntimeError(_failure(process, "did not get ready"))
+        except BaseException:
+            self.close()
+            raise
+
+    @staticmethod
+    def _line(process: subprocess.Popen, deadline: float) -> str | None:
+        ready, _, _ = select.select([process.stdout], [], [],
+                                    max(0.0, deadline - time.monotonic()))
+        return process.stdout.readline().strip() if ready else None
+
+    def render(self, k: int) -> list[float]:
+        """The first ``k`` processes render once, told to go together: each one's seconds."""
+        chosen = self.processes[:k]
+        for process in chosen:
             process.stdin.write("go\n")
             process.stdin.flush()
-        results = []
-        for process in processes:
-            out, _ = process.communicate(timeout=max(1.0, deadline - time.monotonic()))
-            if process.returncode != 0:
-                raise RuntimeError(_failure(process, "failed"))
-            results.append(json.loads(out))
-        return results
-    except subprocess.TimeoutExpired:
-        raise RuntimeError(f"a calibration process took over {PROCESS_TIMEOUT_S:.0f} s") from None
-    finally:
-        for process in processes:
+        deadline = time.monotonic() + RENDER_TIMEOUT_S
+        seconds = []
+        for process in chosen:
+            line = self._line(process, deadline)
+            if not line:
+                raise RuntimeError(_failure(process, f"gave no render time in "
+                                                     f"{RENDER_TIMEOUT_S:.0f} s"))
+            seconds.append(float(json.loads(line)["render_s"]))
+        return seconds
+
+    def close(self) -> None:
+        for process in self.processes:
             if process.poll() is None:
-                process.kill()
-                process.wait()
+                try:
+                    process.stdin.close()
+                    process.wait(timeout=10)
+                except (OSError, subprocess.TimeoutExpired):
+                    process.kill()
+                    process.wait()
 
 
 def _failure(process: subprocess.Popen, what: str) -> str:
@@ -63,15 +93,34 @@ def _failure(process: subprocess.Popen, what: str) -> str:
     return f"a calibration process {what}: {err.strip().splitlines()[-1:] or process.returncode}"
 
 
+def throughput_of(rounds: list[dict[int, list[float]]], cores: int) -> dict[int, float]:
+    """Aggregate throughput per process count, in single-process speeds, from ``rounds`` of
+    side-by-side render seconds (each round: process count -> each process's seconds; count
+    1 in every round): k x the median alone render / the median of the rounds' mean render
+    with k, at most ``min(k, cores)`` (what the cores can give; more is noise)."""
+    alone = float(np.median([r[1][0] for r in rounds]))
+    out = {}
+    for k in sorted(rounds[0]):
+        together = float(np.median([np.mean(r[k]) for r in rounds]))
+        out[k] = min(float(k), float(cores), k * alone / together)
+    return out
+
+
 def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, ...]:
     """The aggregate throughput with k = 1 .. 2 x ``cores`` processes side by side, in
-    single-process speeds (quick: k = 1, cores, 2 x cores, the rest interpolated)."""
+    single-process speeds (quick: k = 1, cores, 2 x cores, the rest interpolated), measured
+    in interleaved rounds by one set of warm processes (see the module docstring)."""
     counts = sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
-    alone = measure_processes(store_path, quick, 1)[0]
-    measured = {1: 1.0}
-    for k in counts[1:]:
-        runs = measure_processes(store_path, quick, k)
-        measured[k] = k * alone["render_s"] / (sum(r["render_s"] for r in runs) / k)
+    processes = WarmProcesses(store_path, quick, counts[-1])
+    try:
+        rounds = []
+        for index in range(ROUNDS_QUICK if quick else ROUNDS):
+            # each round in another order, so no count always follows the same one
+            order = counts[index % len(counts):] + counts[:index % len(counts)]
+            rounds.append({k: processes.render(k) for k in order})
+    finally:
+        processes.close()
+    measured = throughput_of(rounds, cores)
     known = sorted(measured)
     throughput = np.interp(np.arange(1, known[-1] + 1), known, [measured[k] for k in known])
     return tuple(float(t) for t in throughput)
@@ -88,7 +137,6 @@ def main(argv: list[str]) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m vastray.sim.warmup")
     parser.add_argument("store")
-    parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
     args = parser.parse_args(argv)
     store = Store(args.store)
@@ -104,10 +152,9 @@ def main(argv: list[str]) -> int:
 
     render()  # first use: not timed
     print("ready", flush=True)
-    sys.stdin.readline()  # "go": every process renders from here, side by side
-    later = [render() for _ in range(args.repeat)]
-    mean = sum(later) / len(later)
-    print(json.dumps({"render_s": mean}))
+    for line in sys.stdin:  # "go": the processes told together render side by side
+        if line.strip() == "go":
+            print(json.dumps({"render_s": render()}), flush=True)
     return 0
 
 
