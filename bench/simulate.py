@@ -11,10 +11,11 @@ simulator with the constants ``vastray calibrate`` measures here first, the virt
 sharing this machine's cores as the real processes do. Measured is the real run's
 ``busy_max`` (the busiest node's rendering, start-up and film gathering left out); simulated
 the same span in virtual time. ``sim_error_max=`` is the worst |simulated - measured| /
-measured. The two constants that move most with this machine's moment, what a message and a
-hand-off to a worker thread cost (``receive_s``, ``offload_s``), are measured again before each
-scheduler's real runs (``MessagingProbe``, under a second; printed per row); every other
-constant is the calibration's. ``--no-probe`` charges the calibration's throughout.
+measured. The constants that move most with this machine's moment, what a message and a
+hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of 2 and 4
+busy processes, are measured again before each scheduler's real runs (``MachineProbe``, about
+2 s; printed per row); every other constant is the calibration's. ``--no-probe`` charges the
+calibration's throughout.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``).
@@ -47,7 +48,7 @@ from vastray.render.driver import render, shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.sim.cache import Domains
-from vastray.sim.calibrate import MessagingProbe, calibrate
+from vastray.sim.calibrate import MachineProbe, calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
 
@@ -99,10 +100,10 @@ def measured(store, scheduler: str, nodes: int, settings: RenderSettings,
 
 
 def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = VALIDATION,
-             node_counts=VALIDATION_NODES, probe: MessagingProbe | None = None) -> list[dict]:
+             node_counts=VALIDATION_NODES, probe: MachineProbe | None = None) -> list[dict]:
     """Every scheduler at ``node_counts``, real and simulated (cores shared as here); with
     ``probe``, each scheduler's rows charge the message and hand-off costs measured just
-    before its real runs (``MessagingProbe``)."""
+    before its real runs (``MachineProbe``)."""
     config = SceneConfig()
     reference = render(store, config, settings, progress=False).film.image()
     domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
@@ -112,9 +113,9 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | receive / hand-off ms | measured s | simulated s | error "
-          "| sim image = reference |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | measured s "
+          "| simulated s | error | sim image = reference |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
         now = costs if probe is None else probe.now(costs)
         shared = now.with_cores(now.cores)
@@ -127,8 +128,10 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
             rows.append({"scheduler": scheduler, "nodes": nodes, "width": settings.width,
                          "spp": settings.spp, "measured_s": real_s,
                          "simulated_s": sim.seconds, "error": error, "same_image": same,
-                         "receive_s": now.receive_s, "offload_s": now.offload_s})
-            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {real_s:.3f} | "
+                         "receive_s": now.receive_s, "offload_s": now.offload_s,
+                         "throughput": now.throughput})
+            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
+                  f"{real_s:.3f} | "
                   f"{sim.seconds:.3f} | "
                   f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
     domains.close()
@@ -156,7 +159,7 @@ def oos_cases() -> list[tuple[str, object, RenderSettings, int | None]]:
 
 
 def validate_oos(costs: CostModel, node_counts, repeats: int,
-                 probe: MessagingProbe | None = None) -> list[dict]:
+                 probe: MachineProbe | None = None) -> list[dict]:
     """Every scheduler on the out-of-sample cases, real and simulated (cores shared as here).
     The sort-first schedules get a tile per node, so every node has work; each row says how
     many nodes traced (``busy``). With ``probe``, as ``validate``."""
@@ -169,9 +172,9 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| measured s | simulated s | error | real image = reference "
+              "| throughput 2 / 4 | measured s | simulated s | error | real image = reference "
               "| sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in SIM_SCHEDULERS:
             now = costs if probe is None else probe.now(costs)
             shared = now.with_cores(now.cores)
@@ -199,9 +202,10 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
                              "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
                              "simulated_s": sim.seconds, "error": error,
                              "same_image": real_same and sim_same,
-                             "receive_s": now.receive_s, "offload_s": now.offload_s})
+                             "receive_s": now.receive_s, "offload_s": now.offload_s,
+                             "throughput": now.throughput})
                 print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
-                      f"{_messaging(now)} | {real_s:.3f} | "
+                      f"{_messaging(now)} | {_throughput(now)} | {real_s:.3f} | "
                       f"{sim.seconds:.3f} | "
                       f"{error:+.1%} | {'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)
@@ -211,6 +215,12 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
 
 def _messaging(costs: CostModel) -> str:
     return f"{costs.receive_s * 1e3:.2f} / {costs.offload_s * 1e3:.2f}"
+
+
+def _throughput(costs: CostModel) -> str:
+    """The throughput with 2 and 4 busy processes charged (the cores' share of the model)."""
+    t = costs.throughput
+    return " / ".join(f"{t[k - 1]:.2f}" if len(t) >= k else "-" for k in (2, 4))
 
 
 def main() -> None:
@@ -229,20 +239,21 @@ def main() -> None:
     parser.add_argument("--validation-only", action="store_true",
                         help="the validation only (no scaling, no figures)")
     parser.add_argument("--no-probe", action="store_true",
-                        help="charge the calibration's message and hand-off costs throughout "
-                             "(default: measured again before each scheduler's real runs, "
-                             "as this machine's speed moves within minutes)")
+                        help="charge the calibration's message and hand-off costs and "
+                             "throughput throughout (default: measured again before each "
+                             "scheduler's real runs, as this machine's speed moves within "
+                             "minutes)")
     args = parser.parse_args()
     start = time.perf_counter()
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
           "scaling with this machine's calibrated costs")
     small = cached_rm(64, (3, 3, 2))
     costs = CostModel.load(args.costs) if args.costs else costs_here(args.quick, small)
-    probe = None if args.no_probe or args.skip_validation else MessagingProbe(small.path)
+    probe = None if args.no_probe or args.skip_validation else MachineProbe(small.path)
     if probe is not None:
-        print("the message and hand-off costs (receive_s, offload_s) charged in the validation "
-              "are measured again before each scheduler's real runs (MessagingProbe); every "
-              "other constant is the calibration's")
+        print("the message and hand-off costs (receive_s, offload_s) and the throughput of "
+              "busy processes charged in the validation are measured again before each "
+              "scheduler's real runs (MachineProbe); every other constant is the calibration's")
     rows = [] if args.skip_validation else validate(
         small, costs, args.repeats or (1 if args.quick else 3),
         node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe)

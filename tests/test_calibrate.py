@@ -20,7 +20,7 @@ from vastray.scene.errors import InputError
 from vastray.scene.generate import generate
 from vastray.sim import calibrate as cal
 from vastray.sim.costs import VERSION, CostModel
-from vastray.sim.warmup import throughput_of
+from vastray.sim.warmup import WarmProcesses, throughput_of
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
@@ -109,20 +109,32 @@ def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
     assert json.loads(out.read_text())["version"] == VERSION
 
 
-def test_the_messaging_probe_measures_again_only_what_moves(store):
-    # receive_s and offload_s measured now, every other constant kept; a second probe
-    # measures again (its own numbers, not a copy of the first)
-    base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2)
-    probe = cal.MessagingProbe(store)
+def test_the_machine_probe_measures_again_only_what_moves(store):
+    # receive_s, offload_s and the throughput of busy processes measured now, every other
+    # constant kept; a second probe measures again (its own numbers, not a copy of the first)
+    base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2, throughput=(1.0, 1.5))
+    probe = cal.MachineProbe(store, cores=2)
     try:
         first, second = probe.now(base), probe.now(base)
     finally:
         probe.close()
+    # its warm processes are gone with it
+    assert all(p.poll() is not None for p in probe.processes.processes)
     for now in (first, second):
         assert 0 < now.receive_s < 0.05 and 0 < now.offload_s < 0.05
+        # 1, 2 and 4 processes measured, 3 interpolated; each at most what the cores give
+        assert len(now.throughput) == 4 and now.throughput[0] == 1.0
+        assert all(0 < t <= min(k, 2) for k, t in enumerate(now.throughput, start=1))
         assert asdict(now) == asdict(base) | {"receive_s": now.receive_s,
-                                              "offload_s": now.offload_s}
+                                              "offload_s": now.offload_s,
+                                              "throughput": now.throughput}
     assert (first.receive_s, first.offload_s) != (second.receive_s, second.offload_s)
+
+
+def test_a_measuring_process_that_fails_is_named_with_its_error(tmp_path):
+    missing = tmp_path / "missing.store"
+    with pytest.raises(RuntimeError, match="did not get ready: .*missing.store"):
+        WarmProcesses(str(missing), True, 2)
 
 
 def test_cli_names_a_missing_store_and_writes_nothing(tmp_path):

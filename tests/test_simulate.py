@@ -792,13 +792,13 @@ def test_messages_between_two_endpoints_arrive_in_order():
 @pytest.mark.slow
 def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path):
     from vastray.actors.coordinator import render_distributed
-    from vastray.sim.calibrate import MessagingProbe, calibrate
+    from vastray.sim.calibrate import MachineProbe, calibrate
 
     path = tmp_path / "rm.store"
     generate("rm", path, 64, grid=(3, 3, 2))
     store = Store(path)
     calibrated = calibrate(path, quick=True)
-    probe = MessagingProbe(path)
+    probe = MachineProbe(path)
     settings = RenderSettings(width=96, height=72, spp=4, bounces=1)
     errors = {}
     for scheduler in ("async", "domain"):

@@ -54,7 +54,14 @@ from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import setup_cost
-from vastray.sim.warmup import process_costs
+from vastray.sim.warmup import (
+    WarmProcesses,
+    interpolated,
+    measure_rounds,
+    process_costs,
+    throughput_counts,
+    throughput_of,
+)
 from vastray.transport.codec import Message, decode, encode, frames_nbytes
 
 #: ``progress(fraction, text)``: fraction in [0, 1] of the calibration done, and what runs now.
@@ -715,40 +722,55 @@ def time_node_messages(setup: RenderSetup, effort: Effort) -> float:
         return runner.run(run())
 
 
-#: Effort of ``MessagingProbe``: a fraction of a second a probe.
+#: Effort of ``MachineProbe``: a fraction of a second a probe.
 PROBE = Effort(load_s=0.0, min_loads=0, trace_s=0.0, min_tiles=1, spp=1, wire_s=0.1,
                min_pings=4)
 
 
-class MessagingProbe:
-    """``receive_s`` and ``offload_s`` measured again, in under a second, as ``calibrate``
-    measures them (two management actors exchanging batches; tiles traced through a worker
-    thread). These two move the most with the machine's moment: on the 2-core machine the
-    same measurement gave 0.55 ms a batch and, a minute later, 1.10 ms, and two calibrations
-    back to back an ``offload_s`` of 1.50 and 0.26 ms. A validation that compares real runs
-    with simulations minutes apart takes them beside each real run (``bench/simulate.py``).
+class MachineProbe:
+    """What moves most with this machine's moment, measured again in a couple of seconds:
+    ``receive_s`` and ``offload_s`` as ``calibrate`` measures them (two management actors
+    exchanging batches; tiles traced through a worker thread), and the throughput with 1,
+    ``cores`` and 2 x ``cores`` busy processes (one round of ``warmup``'s warm processes
+    rendering the calibration tile side by side). On the 2-core machine the same message
+    measurement gave 0.55 ms a batch and, a minute later, 1.10 ms; two calibrations back to
+    back an ``offload_s`` of 1.50 and 0.26 ms; and the throughput of 2 processes 1.61 at one
+    calibration and 2.0 at another, the validation's 2-node rows over-predicted by up to 38 %
+    after the first. A validation that compares real runs with simulations minutes apart takes
+    them beside each real run (``bench/simulate.py``).
 
     Parameters
     ----------
     store_path : the calibration store (its tile and ray batches are the ones measured).
+    cores : the cores the throughput is measured for (default: ``usable_cores``).
     """
 
-    def __init__(self, store_path: str | os.PathLike):
+    def __init__(self, store_path: str | os.PathLike, cores: int | None = None):
         store = Store(store_path)
         # a quarter of the calibration tile: as many activations, a hand-off each
         self.settings = calibration_settings(True, spp=1, width=32, height=24)
         self.setup = RenderSetup.of(store, SceneConfig(text=""), self.settings)
         self.cache = resident_cache(store, self.setup.keep)
+        self.cores = cores or usable_cores()
+        self.counts = throughput_counts(True, self.cores)
+        try:
+            self.processes = WarmProcesses(str(store_path), True, self.counts[-1], tile=True)
+        except BaseException:
+            self.cache.close()
+            raise
 
     def now(self, costs: CostModel) -> CostModel:
-        """``costs`` with ``receive_s`` and ``offload_s`` as this machine pays them now
-        (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
+        """``costs`` with ``receive_s``, ``offload_s`` and ``throughput`` as this machine pays
+        them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
         node_messages = time_node_messages(self.setup, PROBE)
         offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
+        rounds = measure_rounds(self.processes, self.counts, 1)
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
-                       offload_s=float(np.median(offload)) if offload else costs.offload_s)
+                       offload_s=float(np.median(offload)) if offload else costs.offload_s,
+                       throughput=interpolated(throughput_of(rounds, self.cores)))
 
     def close(self) -> None:
+        self.processes.close()
         self.cache.close()
 
 

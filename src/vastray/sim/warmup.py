@@ -19,6 +19,7 @@ import json
 import select
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -38,17 +39,20 @@ class WarmProcesses:
     """``count`` warm measuring processes (``python -m vastray.sim.warmup``), each ready to
     render on "go"; closed (their input ended, killed if need be) by ``close``."""
 
-    def __init__(self, store_path: str, quick: bool, count: int):
+    def __init__(self, store_path: str, quick: bool, count: int, tile: bool = False):
         command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path)] + (
-            ["--quick"] if quick else [])
+            ["--quick"] if quick else []) + (["--tile"] if tile else [])
+        # stderr to files, not pipes: a long-lived process writing more than a pipe holds
+        # would block (read back only to say why one failed)
+        self.errors = [tempfile.TemporaryFile("w+") for _ in range(count)]
         self.processes = [subprocess.Popen(command, stdin=subprocess.PIPE,
-                                           stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                           text=True) for _ in range(count)]
+                                           stdout=subprocess.PIPE, stderr=errors, text=True)
+                          for errors in self.errors]
         try:
             deadline = time.monotonic() + PROCESS_TIMEOUT_S
             for process in self.processes:
                 if self._line(process, deadline) != "ready":
-                    raise RuntimeError(_failure(process, "did not get ready"))
+                    raise RuntimeError(self._failure(process, "did not get ready"))
         except BaseException:
             self.close()
             raise
@@ -70,12 +74,23 @@ class WarmProcesses:
         for process in chosen:
             line = self._line(process, deadline)
             if not line:
-                raise RuntimeError(_failure(process, f"gave no render time in "
-                                                     f"{RENDER_TIMEOUT_S:.0f} s"))
+                raise RuntimeError(self._failure(process, f"gave no render time in "
+                                                          f"{RENDER_TIMEOUT_S:.0f} s"))
             seconds.append(float(json.loads(line)["render_s"]))
         return seconds
 
+    def _failure(self, process: subprocess.Popen, what: str) -> str:
+        """Why ``process`` failed: the last line of its error output (it is killed)."""
+        if process.poll() is None:
+            process.kill()
+        process.wait()
+        errors = self.errors[self.processes.index(process)]
+        errors.seek(0)
+        last = errors.read().strip().splitlines()[-1:]
+        return f"a calibration process {what}: {last[0] if last else process.returncode}"
+
     def close(self) -> None:
+        """End every process (its input closed; killed after 10 s) and close its files."""
         for process in self.processes:
             if process.poll() is None:
                 try:
@@ -84,13 +99,10 @@ class WarmProcesses:
                 except (OSError, subprocess.TimeoutExpired):
                     process.kill()
                     process.wait()
-
-
-def _failure(process: subprocess.Popen, what: str) -> str:
-    if process.poll() is None:
-        process.kill()
-    _, err = process.communicate()
-    return f"a calibration process {what}: {err.strip().splitlines()[-1:] or process.returncode}"
+        for process, errors in zip(self.processes, self.errors, strict=True):
+            for stream in (process.stdin, process.stdout, errors):
+                if stream is not None and not stream.closed:
+                    stream.close()
 
 
 def throughput_of(rounds: list[dict[int, list[float]]], cores: int) -> dict[int, float]:
@@ -106,24 +118,41 @@ def throughput_of(rounds: list[dict[int, list[float]]], cores: int) -> dict[int,
     return out
 
 
+def measure_rounds(processes: WarmProcesses, counts: list[int],
+                   rounds: int) -> list[dict[int, list[float]]]:
+    """``rounds`` rounds of side-by-side renders, every count of ``counts`` in each, each round
+    in another order (so no count always follows the same one)."""
+    out = []
+    for index in range(rounds):
+        order = counts[index % len(counts):] + counts[:index % len(counts)]
+        out.append({k: processes.render(k) for k in order})
+    return out
+
+
+def interpolated(measured: dict[int, float]) -> tuple[float, ...]:
+    """``measured`` (count -> throughput) for every count 1 .. the largest, the counts not
+    measured interpolated."""
+    known = sorted(measured)
+    throughput = np.interp(np.arange(1, known[-1] + 1), known, [measured[k] for k in known])
+    return tuple(float(t) for t in throughput)
+
+
+def throughput_counts(quick: bool, cores: int) -> list[int]:
+    """The process counts measured: 1 .. 2 x ``cores`` (quick: 1, cores, 2 x cores)."""
+    return sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
+
+
 def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, ...]:
     """The aggregate throughput with k = 1 .. 2 x ``cores`` processes side by side, in
     single-process speeds (quick: k = 1, cores, 2 x cores, the rest interpolated), measured
     in interleaved rounds by one set of warm processes (see the module docstring)."""
-    counts = sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
+    counts = throughput_counts(quick, cores)
     processes = WarmProcesses(store_path, quick, counts[-1])
     try:
-        rounds = []
-        for index in range(ROUNDS_QUICK if quick else ROUNDS):
-            # each round in another order, so no count always follows the same one
-            order = counts[index % len(counts):] + counts[:index % len(counts)]
-            rounds.append({k: processes.render(k) for k in order})
+        rounds = measure_rounds(processes, counts, ROUNDS_QUICK if quick else ROUNDS)
     finally:
         processes.close()
-    measured = throughput_of(rounds, cores)
-    known = sorted(measured)
-    throughput = np.interp(np.arange(1, known[-1] + 1), known, [measured[k] for k in known])
-    return tuple(float(t) for t in throughput)
+    return interpolated(throughput_of(rounds, cores))
 
 
 def main(argv: list[str]) -> int:
@@ -138,16 +167,23 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="python -m vastray.sim.warmup")
     parser.add_argument("store")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--tile", action="store_true",
+                        help="render the calibration tile itself (a probe's shorter renders)")
     args = parser.parse_args(argv)
     store = Store(args.store)
-    # twice the calibration tile (about 0.4 s here): long enough for the processes' renders
+    # twice the calibration tile (about 1.4 s here): long enough for the processes' renders
     # to run side by side
-    settings = node_settings(calibration_settings(args.quick))
+    settings = calibration_settings(args.quick)
+    settings = settings if args.tile else node_settings(settings)
+    # one thread, as the simulated node and the validation's real ones: with the default (all
+    # cores) the process alone split its larger queries over both cores, so the ratio to k
+    # processes side by side counted that as contention (1.4-1.6 for 2 to 4 processes, where
+    # 2 nodes of one thread each got a whole core apiece)
+    options = JobOptions(scheduler="image", threads=1)
 
     def render() -> float:
         start = time.perf_counter()
-        render_out_of_core(store, SceneConfig(text=""), settings, JobOptions(scheduler="image"),
-                           progress=False)
+        render_out_of_core(store, SceneConfig(text=""), settings, options, progress=False)
         return time.perf_counter() - start
 
     render()  # first use: not timed
