@@ -14,8 +14,10 @@ the same span in virtual time. ``sim_error_max=`` is the worst |simulated - meas
 measured. The constants that move most with this machine's moment, what a message and a
 hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of 2 and 4
 busy processes, are measured again before each scheduler's real runs (``MachineProbe``, about
-2 s; printed per row); every other constant is the calibration's. ``--no-probe`` charges the
-calibration's throughout.
+2 s; printed per row), and the share of the CPU time the host gave to other virtual machines
+while the real runs ran ("steal", ``sim.steal``) is charged as cores the real run did not have
+(``CostModel.stolen``; printed per row); every other constant is the calibration's.
+``--no-probe`` charges the calibration's throughout, and no steal.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``).
@@ -51,6 +53,7 @@ from vastray.sim.cache import Domains
 from vastray.sim.calibrate import MachineProbe, calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+from vastray.sim.steal import StealMeter
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 VALIDATION_NODES = (1, 2, 4)
@@ -113,25 +116,27 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | measured s "
+    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | stolen | measured s "
           "| simulated s | error | sim image = reference |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
         now = costs if probe is None else probe.now(costs)
         shared = now.with_cores(now.cores)
         for nodes in node_counts:
-            real_s, _ = measured(store, scheduler, nodes, settings, repeats)
-            sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared, settings,
-                           config, max_pass_spp=None, domains=domains)
+            with StealMeter() as steal:
+                real_s, _ = measured(store, scheduler, nodes, settings, repeats)
+            stolen = steal.share if probe is not None else 0.0
+            sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared.stolen(stolen),
+                           settings, config, max_pass_spp=None, domains=domains)
             same = bool((sim.film.image() == reference).all())
             error = (sim.seconds - real_s) / real_s
             rows.append({"scheduler": scheduler, "nodes": nodes, "width": settings.width,
                          "spp": settings.spp, "measured_s": real_s,
                          "simulated_s": sim.seconds, "error": error, "same_image": same,
                          "receive_s": now.receive_s, "offload_s": now.offload_s,
-                         "throughput": now.throughput})
+                         "throughput": now.throughput, "stolen": stolen})
             print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
-                  f"{real_s:.3f} | "
+                  f"{stolen:.0%} | {real_s:.3f} | "
                   f"{sim.seconds:.3f} | "
                   f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
     domains.close()
@@ -172,9 +177,9 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | measured s | simulated s | error | real image = reference "
-              "| sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+              "| throughput 2 / 4 | stolen | measured s | simulated s | error "
+              "| real image = reference | sim image = reference |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in SIM_SCHEDULERS:
             now = costs if probe is None else probe.now(costs)
             shared = now.with_cores(now.cores)
@@ -182,10 +187,12 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
                 options = scaling_options(scheduler, nodes, settings.paths)
                 options = replace(options, threads=1, cache=cache)
                 times, result = [], None
-                for _ in range(repeats):
-                    result = render_distributed(store.path, None, settings, nodes,
-                                                options=options, timeout=300)
-                    times.append(result.seconds["busy_max"])
+                with StealMeter() as steal:
+                    for _ in range(repeats):
+                        result = render_distributed(store.path, None, settings, nodes,
+                                                    options=options, timeout=300)
+                        times.append(result.seconds["busy_max"])
+                stolen = steal.share if probe is not None else 0.0
                 real_s = sorted(times)[len(times) // 2]
                 per_node = result.counters["per_node"]
                 busy = sum(1 for n in per_node if n["counters"].get("shade_s", 0.0) > 0)
@@ -194,8 +201,9 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
                 cpu_share = (sum(n["counters"].get("busy_cpu_s", 0.0) for n in per_node)
                              / max(sum(n.get("busy_s", 0.0) for n in per_node), 1e-9))
                 real_same = bool((result.film.image() == reference).all())
-                sim = simulate(store, replace(options, threads=None), nodes, shared, settings,
-                               config, max_pass_spp=None, domains=domains)
+                sim = simulate(store, replace(options, threads=None), nodes,
+                               shared.stolen(stolen), settings, config, max_pass_spp=None,
+                               domains=domains)
                 sim_same = bool((sim.film.image() == reference).all())
                 error = (sim.seconds - real_s) / real_s
                 rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
@@ -203,9 +211,9 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
                              "simulated_s": sim.seconds, "error": error,
                              "same_image": real_same and sim_same,
                              "receive_s": now.receive_s, "offload_s": now.offload_s,
-                             "throughput": now.throughput})
+                             "throughput": now.throughput, "stolen": stolen})
                 print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
-                      f"{_messaging(now)} | {_throughput(now)} | {real_s:.3f} | "
+                      f"{_messaging(now)} | {_throughput(now)} | {stolen:.0%} | {real_s:.3f} | "
                       f"{sim.seconds:.3f} | "
                       f"{error:+.1%} | {'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 from vastray.scene.errors import InputError
@@ -144,6 +144,20 @@ class CostModel:
     def with_cores(self, cores: int | None) -> CostModel:
         """The same costs with ``cores`` cores shared by the nodes (None: one each)."""
         return CostModel(**{**asdict(self), "cores": cores})
+
+    def stolen(self, share: float) -> CostModel:
+        """The same costs on shared cores of which the host gave ``share`` (0 <= share < 1) of
+        the wanted time to other machines (``sim.steal``): every entry of ``throughput`` (the
+        ideal ``min(k, cores)`` where it is empty) times ``1 - share``, for 1 .. 2 x cores
+        busy processes. Without ``cores`` (a core a node), unchanged."""
+        if not 0.0 <= share < 1.0:
+            raise ValueError(f"a stolen share must be in [0, 1), got {share!r}")
+        if self.cores is None or share == 0.0:
+            return self
+        counts = max(len(self.throughput), 2 * self.cores)
+        full = [self.throughput[min(k, len(self.throughput)) - 1] if self.throughput
+                else float(min(k, self.cores)) for k in range(1, counts + 1)]
+        return replace(self, throughput=tuple(t * (1.0 - share) for t in full))
 
     def warm(self) -> CostModel:
         """The same costs for nodes already started and warm (``warmup_s`` and

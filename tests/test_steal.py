@@ -1,0 +1,67 @@
+"""The host's steal read from /proc/stat, and the cores a model charges under it."""
+
+from __future__ import annotations
+
+import pytest
+
+from vastray.sim.cores import SharedCores
+from vastray.sim.costs import CostModel
+from vastray.sim.steal import StealMeter, cpu_ticks, stolen_share
+
+
+def stat_file(tmp_path, user, system, idle, steal, name="stat"):
+    path = tmp_path / name
+    path.write_text(f"cpu  {user} 0 {system} {idle} 5 1 2 {steal} 0 0\n"
+                    f"cpu0 {user} 0 {system} {idle} 5 1 2 {steal} 0 0\nintr 1 2 3\n")
+    return path
+
+
+def test_ticks_are_the_busy_and_stolen_fields_of_the_first_line(tmp_path):
+    # busy: user, nice, system, irq, softirq; idle and iowait are not wanted time
+    assert cpu_ticks(stat_file(tmp_path, 100, 20, 500, 30)) == (100 + 20 + 1 + 2, 30)
+
+
+def test_the_stolen_share_is_of_the_time_wanted_between_two_readings():
+    assert stolen_share((100, 10), (170, 40)) == pytest.approx(30 / (70 + 30))
+    assert stolen_share((100, 10), (170, 10)) == 0.0  # nothing stolen
+    assert stolen_share((100, 10), (100, 10)) == 0.0  # nothing ran
+    assert stolen_share(None, (170, 40)) == 0.0 and stolen_share((1, 1), None) == 0.0
+
+
+def test_a_missing_or_foreign_stat_file_reads_as_no_steal(tmp_path):
+    assert cpu_ticks(tmp_path / "missing") is None
+    (tmp_path / "odd").write_text("something else\n")
+    assert cpu_ticks(tmp_path / "odd") is None
+    with StealMeter(tmp_path / "missing") as meter:
+        pass
+    assert meter.share == 0.0
+
+
+def test_the_meter_measures_the_span_it_wraps(tmp_path):
+    path = stat_file(tmp_path, 100, 0, 500, 0)
+    with StealMeter(path) as meter:
+        stat_file(tmp_path, 160, 0, 600, 40)  # 60 busy, 40 stolen meanwhile
+    assert meter.share == pytest.approx(0.4)
+
+
+def test_this_machine_s_share_is_a_share():
+    with StealMeter() as meter:
+        sum(range(100_000))
+    assert 0.0 <= meter.share < 1.0
+
+
+def test_stolen_cores_scale_the_throughput_for_every_process_count():
+    model = CostModel(cores=2, throughput=(1.0, 1.8, 1.9, 2.0))
+    stolen = model.stolen(0.25)
+    assert stolen.throughput == pytest.approx((0.75, 1.35, 1.425, 1.5))
+    # an ideal machine (no throughput measured): min(k, cores) for 1 .. 2 x cores
+    assert CostModel(cores=2).stolen(0.5).throughput == pytest.approx((0.5, 1.0, 1.0, 1.0))
+    # nothing stolen, or a core a node (no shared machine): the same model
+    assert model.stolen(0.0) is model and CostModel().stolen(0.3) == CostModel()
+    with pytest.raises(ValueError, match="stolen share"):
+        model.stolen(1.0)
+
+
+def test_a_process_alone_on_cores_with_steal_runs_slower_by_the_share():
+    cores = SharedCores(2, CostModel(cores=2, throughput=(1.0, 2.0)).stolen(0.2).throughput)
+    assert cores.speed(1) == pytest.approx(0.8) and cores.speed(2) == pytest.approx(0.8)
