@@ -214,20 +214,20 @@ def test_wire_costs_fall_back_when_noise_leaves_a_negative_intercept():
     assert 0 < latency_s <= 5e-5 and byte_s == pytest.approx(2e-9, rel=0.1)
 
 
-def test_throughput_is_k_times_the_median_alone_over_the_median_together():
-    # two processes each as fast as one alone: twice the work; four on 2 cores: each twice as
-    # slow, two cores' work
-    rounds = [{1: [1.0], 2: [1.0, 1.0], 4: [2.0, 2.0, 2.0, 2.0]}] * 3
+def test_throughput_is_the_running_processes_at_their_cpu_cost_against_one_alone():
+    # two processes each needing the CPU of one alone: twice the work; four on 2 cores: two
+    # run at a time (their CPU per render is the same, their wall time twice as long)
+    rounds = [{1: [1.0], 2: [1.0, 1.0], 4: [1.0, 1.0, 1.0, 1.0]}] * 3
     assert throughput_of(rounds, cores=2) == {1: 1.0, 2: 2.0, 4: 2.0}
-    # contention: two processes each 1.25x slower than one alone
-    rounds = [{1: [1.0], 2: [1.25, 1.25], 4: [2.5, 2.5, 2.5, 2.5]}] * 3
+    # contention: each of two processes needs 1.25x the CPU of one alone
+    rounds = [{1: [1.0], 2: [1.25, 1.25], 4: [1.25, 1.25, 1.25, 1.25]}] * 3
     assert throughput_of(rounds, cores=2) == pytest.approx({1: 1.0, 2: 1.6, 4: 1.6})
 
 
 def test_throughput_takes_medians_over_rounds_and_caps_at_the_cores():
-    # one round on a machine twice as slow for every count moves nothing (medians); an alone
-    # run slowed in one round does not make the others look faster than the cores give
-    quiet = {1: [1.0], 2: [1.25, 1.25], 4: [2.5, 2.5, 2.5, 2.5]}
+    # one round twice as costly for every count moves nothing (medians); an alone render
+    # slowed in one round does not make the others look faster than the cores give
+    quiet = {1: [1.0], 2: [1.25, 1.25], 4: [1.25, 1.25, 1.25, 1.25]}
     slow = {k: [2 * s for s in v] for k, v in quiet.items()}
     assert throughput_of([quiet, slow, quiet], cores=2) == pytest.approx(
         {1: 1.0, 2: 1.6, 4: 1.6})

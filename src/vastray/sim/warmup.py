@@ -1,17 +1,21 @@
 """The machine's throughput with k busy processes, measured by warm processes rendering side
 by side: ``python -m vastray.sim.warmup STORE`` renders the calibration's node image out of
-core (the ``image`` schedule: scene set-up, every domain loaded and its BVH built, the tile
-traced, the film filled) once untimed (its first use paid), prints "ready", then renders once
-for every "go" line on its input, printing each render's seconds as JSON (``render_s``), until
-its input ends. (A node's first use is measured on real nodes: ``vastray.sim.node_cost``.)
+core (the ``image`` schedule, one thread: scene set-up, every domain loaded and its BVH built,
+the tile traced, the film filled) once untimed (its first use paid), prints "ready", then
+renders once for every "go" line on its input, printing each render's CPU seconds as JSON
+(``cpu_s``, the process's own, all its threads), until its input ends. (A node's first use is
+measured on real nodes: ``vastray.sim.node_cost``.)
 
 ``process_costs`` starts 2 x cores such processes once and, round after round, tells 1, then
-2, ... of them to go together: every process count is measured in every round, so a change
-of the machine's speed between rounds (this 2-core machine's moves 2x within minutes) falls on
-all counts alike, and the medians over rounds make the ratio. An earlier version measured each
-count once with its own fresh processes, one after the other: four calibrations gave 1.54 to
-2.15 for 4 processes (more than the 2 cores can give), and every multi-process validation row
-moved with it."""
+2, ... of them to go together: every process count is measured in every round, and medians
+over the rounds make the ratio. What the ratio measures is contention, from CPU seconds: k
+processes side by side run ``min(k, cores)`` at a time, each needing more CPU per render than
+one alone where they compete for caches and memory. Wall seconds would also count the time the
+host gave our cores to other virtual machines ("steal", ``sim.steal``), which moves from none
+to a third within minutes here and is measured apart, beside each real run it slows. (Measured
+once per count by fresh processes, one count after another, in wall seconds, four calibrations
+gave 1.54 to 2.15 for 4 processes on 2 cores, and every multi-process validation row moved
+with it.)"""
 
 from __future__ import annotations
 
@@ -64,7 +68,8 @@ class WarmProcesses:
         return process.stdout.readline().strip() if ready else None
 
     def render(self, k: int) -> list[float]:
-        """The first ``k`` processes render once, told to go together: each one's seconds."""
+        """The first ``k`` processes render once, told to go together: each one's CPU
+        seconds."""
         chosen = self.processes[:k]
         for process in chosen:
             process.stdin.write("go\n")
@@ -76,7 +81,7 @@ class WarmProcesses:
             if not line:
                 raise RuntimeError(self._failure(process, f"gave no render time in "
                                                           f"{RENDER_TIMEOUT_S:.0f} s"))
-            seconds.append(float(json.loads(line)["render_s"]))
+            seconds.append(float(json.loads(line)["cpu_s"]))
         return seconds
 
     def _failure(self, process: subprocess.Popen, what: str) -> str:
@@ -107,14 +112,16 @@ class WarmProcesses:
 
 def throughput_of(rounds: list[dict[int, list[float]]], cores: int) -> dict[int, float]:
     """Aggregate throughput per process count, in single-process speeds, from ``rounds`` of
-    side-by-side render seconds (each round: process count -> each process's seconds; count
-    1 in every round): k x the median alone render / the median of the rounds' mean render
-    with k, at most ``min(k, cores)`` (what the cores can give; more is noise)."""
+    side-by-side renders' CPU seconds (each round: process count -> each process's CPU
+    seconds; count 1 in every round): ``min(k, cores)`` processes run at a time, each at the
+    median alone render's CPU over the median of the rounds' mean CPU with k (contention),
+    at most ``min(k, cores)`` (a ratio above 1 is noise)."""
     alone = float(np.median([r[1][0] for r in rounds]))
     out = {}
     for k in sorted(rounds[0]):
         together = float(np.median([np.mean(r[k]) for r in rounds]))
-        out[k] = min(float(k), float(cores), k * alone / together)
+        running = float(min(k, cores))
+        out[k] = running * min(1.0, alone / together)
     return out
 
 
@@ -182,15 +189,15 @@ def main(argv: list[str]) -> int:
     options = JobOptions(scheduler="image", threads=1)
 
     def render() -> float:
-        start = time.perf_counter()
+        start = time.process_time()
         render_out_of_core(store, SceneConfig(text=""), settings, options, progress=False)
-        return time.perf_counter() - start
+        return time.process_time() - start
 
     render()  # first use: not timed
     print("ready", flush=True)
     for line in sys.stdin:  # "go": the processes told together render side by side
         if line.strip() == "go":
-            print(json.dumps({"render_s": render()}), flush=True)
+            print(json.dumps({"cpu_s": render()}), flush=True)
     return 0
 
 
