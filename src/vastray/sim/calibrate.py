@@ -59,7 +59,6 @@ from vastray.sim.warmup import (
     interpolated,
     measure_rounds,
     process_costs,
-    throughput_counts,
     throughput_of,
 )
 from vastray.transport.codec import Message, decode, encode, frames_nbytes
@@ -730,14 +729,15 @@ PROBE = Effort(load_s=0.0, min_loads=0, trace_s=0.0, min_tiles=1, spp=1, wire_s=
 class MachineProbe:
     """What moves most with this machine's moment, measured again in a couple of seconds:
     ``receive_s`` and ``offload_s`` as ``calibrate`` measures them (two management actors
-    exchanging batches; tiles traced through a worker thread), and the throughput with 1,
-    ``cores`` and 2 x ``cores`` busy processes (one round of ``warmup``'s warm processes
-    rendering the calibration tile side by side). On the 2-core machine the same message
-    measurement gave 0.55 ms a batch and, a minute later, 1.10 ms; two calibrations back to
-    back an ``offload_s`` of 1.50 and 0.26 ms; and the throughput of 2 processes 1.61 at one
-    calibration and 2.0 at another, the validation's 2-node rows over-predicted by up to 38 %
-    after the first. A validation that compares real runs with simulations minutes apart takes
-    them beside each real run (``bench/simulate.py``).
+    exchanging batches; tiles traced through a worker thread), and the throughput with 1 to
+    2 x ``cores`` busy processes (one round of ``warmup``'s warm processes rendering the
+    calibration tile, alone and ``cores`` side by side: more run ``cores`` at a time). On the
+    2-core machine the same message measurement gave 0.55 ms a batch and, a minute later,
+    1.10 ms; two calibrations back to back an ``offload_s`` of 1.50 and 0.26 ms; and the
+    throughput of 2 processes 1.61 at one calibration and 2.0 at another, the validation's
+    2-node rows over-predicted by up to 38 % after the first. A validation that compares real
+    runs with simulations minutes apart takes them beside each real run
+    (``bench/simulate.py``).
 
     Parameters
     ----------
@@ -752,9 +752,11 @@ class MachineProbe:
         self.setup = RenderSetup.of(store, SceneConfig(text=""), self.settings)
         self.cache = resident_cache(store, self.setup.keep)
         self.cores = cores or usable_cores()
-        self.counts = throughput_counts(True, self.cores)
+        # contention depends on how many run at once, min(k, cores): 1 and ``cores`` processes
+        # tell it (``calibrate`` also measures 2 x cores)
+        self.counts = sorted({1, self.cores})
         try:
-            self.processes = WarmProcesses(str(store_path), True, self.counts[-1], tile=True)
+            self.processes = WarmProcesses(str(store_path), True, self.cores, tile=True)
         except BaseException:
             self.cache.close()
             raise
@@ -764,10 +766,13 @@ class MachineProbe:
         them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
         node_messages = time_node_messages(self.setup, PROBE)
         offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
-        rounds = measure_rounds(self.processes, self.counts, 1)
+        measured = interpolated(throughput_of(measure_rounds(self.processes, self.counts, 1),
+                                              self.cores))
+        # beyond ``cores`` processes, ``cores`` run at a time at the contention measured
+        throughput = measured + (measured[-1],) * (2 * self.cores - len(measured))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
                        offload_s=float(np.median(offload)) if offload else costs.offload_s,
-                       throughput=interpolated(throughput_of(rounds, self.cores)))
+                       throughput=throughput)
 
     def close(self) -> None:
         self.processes.close()
