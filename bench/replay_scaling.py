@@ -19,6 +19,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from bench_scenes import CACHE
@@ -29,7 +30,13 @@ from vastray.render.scene_config import SceneConfig
 from vastray.sim.cache import Domains, domain_sizes
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import Crossings, record_crossings
-from vastray.sim.replay import REPLAY_SCHEDULERS, Network, Replay
+from vastray.sim.replay import (
+    REPLAY_SCHEDULERS,
+    Network,
+    Replay,
+    fit_activation_costs,
+    sort_first_decisions,
+)
 from vastray.sim.simulate import simulate
 
 #: The strong-scaling frames: 2^18 paths (--quick) and 2^20 (full), one bounce of pt.
@@ -71,10 +78,34 @@ def recording(store, settings: RenderSettings) -> Crossings:
 
 
 def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = NETWORK,
-              storage_mb_s: float | None = STORAGE_MB_S, activations=None) -> Replay:
+              storage_mb_s: float | None = STORAGE_MB_S, activations=None,
+              decisions: dict | None = None) -> Replay:
+    """The replay of ``crossings``; ``decisions``: the sort-first nodes' decision costs
+    (``sort_first_decisions``) on the fitted activation costs."""
     lo, hi = store.domain_boxes()
+    if decisions is not None:
+        activations = replace(activations or fit_activation_costs(crossings, costs),
+                              sort_first_decision_s=decisions)
     return Replay(crossings, *domain_sizes(store), lo, hi, costs, activations, network,
                   None if storage_mb_s is None else storage_mb_s * 1e6)
+
+
+def decisions_of(store, settings: RenderSettings, cache: int | None, sizes) -> dict:
+    """The sort-first nodes' decision costs per activation on ``store`` at tiles of
+    ``sizes`` paths through ``cache`` domains (``sort_first_decisions``), printed."""
+    start = time.perf_counter()
+    domains = Domains(store, shading_inputs(store, SceneConfig(), settings.integrator)[1])
+    try:
+        decisions = sort_first_decisions(store, settings, domains, cache, sizes)
+    finally:
+        domains.close()
+    print("  a sort-first node's decisions per activation (the product's loop, one virtual "
+          f"node, cache {cache or 'all'}): " + "; ".join(
+              f"{scheduler} " + ", ".join(f"{us * 1e6:.0f} us at {paths:,} paths"
+                                         for paths, us in points)
+              for scheduler, points in decisions.items())
+          + f" ({time.perf_counter() - start:.0f} s)", flush=True)
+    return decisions
 
 
 #: The replay the worker processes run (inherited at fork: the recording is not copied).
@@ -109,7 +140,11 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
     the calibrated loopback network and storage and the product's caches."""
     own = costs.warm().with_cores(None)
     crossings = recording(store, CHECK)
-    replay = replay_of(store, crossings, own, Network(), None)
+    nodes_checked = CHECK_NODES_QUICK if quick else CHECK_NODES
+    # the product's caches (every domain) and each checked node count's tile
+    decisions = decisions_of(store, CHECK, None,
+                             sorted({max(1, CHECK.paths // n) for n in nodes_checked}))
+    replay = replay_of(store, crossings, own, Network(), None, decisions=decisions)
     domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
     rows = []
     print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
@@ -118,7 +153,7 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
     print("| --- | --- | --- | --- | --- | --- | --- |")
     try:
         for scheduler in REPLAY_SCHEDULERS:
-            for nodes in CHECK_NODES_QUICK if quick else CHECK_NODES:
+            for nodes in nodes_checked:
                 start = time.perf_counter()
                 sim = simulate(store, scaling_options(scheduler, nodes, CHECK.paths), nodes,
                                own, CHECK, max_pass_spp=None, domains=domains)
@@ -137,12 +172,30 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
     return rows
 
 
+#: Tile sizes a sort-first node's decisions are measured at for the scaling (a node's tile
+#: is paths / P: 2^18 / 1,024 = 256 up; interpolated between, the nearest beyond).
+SCALING_DECISION_TILES = (256, 4096)
+_scaling_decisions: dict = {}
+
+
+def scaling_decisions(store, settings: RenderSettings) -> dict:
+    """The scaling's sort-first decision costs (a node caching a quarter of the domains),
+    measured once per store."""
+    key = str(store.path)
+    if key not in _scaling_decisions:
+        _scaling_decisions[key] = decisions_of(store, settings,
+                                               node_cache(len(store.domains), CACHE_SHARE),
+                                               SCALING_DECISION_TILES)
+    return _scaling_decisions[key]
+
+
 def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dict]:
     """{scheduler: {P: seconds}} of the strong-scaling frame, and each scheduler's
     breakdown at the largest P."""
     settings = STRONG_QUICK if quick else STRONG
     crossings = recording(store, settings)
-    replay = replay_of(store, crossings, costs.warm().with_cores(None))
+    replay = replay_of(store, crossings, costs.warm().with_cores(None),
+                       decisions=scaling_decisions(store, settings))
     print(f"\nstrong scaling by replay: {settings.paths:,} paths "
           f"({settings.width}x{settings.height}, {settings.spp} spp, {settings.integrator} "
           f"{settings.bounces} bounce), {len(store.domains)} domains, a node caching "
@@ -166,7 +219,10 @@ def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
     """{scheduler: {P: seconds}} with ``WEAK_PATHS_PER_NODE`` paths per node."""
     base = recording(store, STRONG_QUICK if quick else STRONG)
     own = costs.warm().with_cores(None)
-    fitted = replay_of(store, base, own).activation  # one fit for every size
+    # one fit for every size
+    fitted = replay_of(store, base, own,
+                       decisions=scaling_decisions(store, STRONG_QUICK if quick else STRONG)
+                       ).activation
     print(f"\nweak scaling by replay: {WEAK_PATHS_PER_NODE:,} paths per node, the same "
           "caches, storage and network:")
     times: dict = {}

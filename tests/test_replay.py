@@ -155,6 +155,51 @@ def test_the_activation_costs_are_fitted_to_the_recording(recorded):
     assert constants.seconds(2, 5) == pytest.approx(CostModel().trace_s(2, 3))
 
 
+def test_a_sort_first_decision_cost_is_interpolated_by_the_node_s_tile():
+    a = ActivationCosts(0.0, 0.0, 0.0, 0.0, decision_s=1e-5,
+                        sort_first_decision_s={"spec-ooc": ((100, 1e-4), (10_000, 3e-4))})
+    assert a.tile_decision_s("spec-ooc", 100) == pytest.approx(1e-4)
+    assert a.tile_decision_s("spec-ooc", 1_000) == pytest.approx(2e-4)  # half way in log
+    assert a.tile_decision_s("spec-ooc", 10) == pytest.approx(1e-4)  # the nearest beyond
+    assert a.tile_decision_s("spec-ooc", 10**6) == pytest.approx(3e-4)
+    assert a.tile_decision_s("image", 1_000) is None  # not measured: decision_s
+
+
+def test_sort_first_nodes_pay_their_measured_decisions(store, recorded):
+    """The product's loop on one virtual node decides for a CPU time per activation that is
+    spec-ooc's more than image's (it filters, guesses and ranks); a replay charges each
+    activation of a sort-first node that, and nothing changes for the others."""
+    from vastray.render.driver import shading_inputs
+    from vastray.sim.cache import Domains
+    from vastray.sim.replay import sort_first_decisions
+
+    domains = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
+    try:
+        measured = sort_first_decisions(store, SETTINGS, domains, None, (160, 640))
+    finally:
+        domains.close()
+    assert set(measured) == {"image", "spec-ooc"}
+    for points in measured.values():
+        assert [paths for paths, _ in points] == [160, 640]
+        assert all(0 < seconds < 0.05 for _, seconds in points)
+    crossings = recorded[0]
+    fitted = fit_activation_costs(crossings, CostModel())
+    plain = replay_of(store, crossings, fitted)
+    charged = replay_of(store, crossings,
+                        dataclasses.replace(fitted, sort_first_decision_s=measured))
+    for scheduler in ("image", "spec-ooc"):
+        before, after = plain.run(scheduler, 2), charged.run(scheduler, 2)
+        activations = after.counters["activations"]
+        assert activations == before.counters["activations"] > 0
+        tile = -(-crossings.n_paths // 2)
+        extra = activations * (charged.activation.tile_decision_s(scheduler, tile)
+                               - fitted.decision_s)
+        # (the breakdown's trace is the mean over the 2 nodes)
+        assert 2 * after.breakdown["trace"] == pytest.approx(
+            2 * before.breakdown["trace"] + extra, rel=1e-6)
+    assert charged.run("domain", 2).seconds == plain.run("domain", 2).seconds
+
+
 def test_the_replay_refuses_what_it_does_not_model(replay):
     with pytest.raises(ValueError, match="temporal"):
         replay.run("temporal", 2)

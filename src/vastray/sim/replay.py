@@ -45,7 +45,7 @@ import heapq
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -205,6 +205,7 @@ class Replay:
                            else activations)
         self.lo, self.hi = lo, hi
         self.tile = tile
+        self._decision_s: float | None = None  # the sort-first schedule's now replayed
         self.n_domains = crossings.n_domains
         read = (nbytes * costs.load_byte_s if storage_bandwidth is None
                 else nbytes / storage_bandwidth)
@@ -245,11 +246,12 @@ class Replay:
         counts = self.succ_first[tokens + 1] - self.succ_first[tokens]
         return self.succ[ranges(self.succ_first[tokens], counts)]
 
-    def _trace_s(self, radiance: int, shadow: int) -> float:
-        """One activation's seconds, its decision included."""
+    def _trace_s(self, radiance: int, shadow: int, decision_s: float | None = None) -> float:
+        """One activation's seconds, its decision (``decision_s``, default the recording's)
+        included."""
         a = self.activation
         return ((a.fixed_s if radiance else a.fixed_shadow_s) + radiance * a.radiance_s
-                + shadow * a.shadow_s + a.decision_s)
+                + shadow * a.shadow_s + (a.decision_s if decision_s is None else decision_s))
 
     def _ray_bytes(self, tokens: np.ndarray) -> float:
         radiance = int(np.count_nonzero(self.radiance_of[tokens]))
@@ -284,7 +286,8 @@ class Replay:
         start = time.perf_counter()
         owned = -(-self.n_domains // nodes)
         if spec.simulation is Simulation.SORT_FIRST:
-            ledger, seconds = self._sort_first(nodes, cache or self.n_domains, spec.speculates)
+            ledger, seconds = self._sort_first(nodes, cache or self.n_domains, spec.speculates,
+                                               scheduler)
         elif spec.simulation is Simulation.IN_SITU:
             ledger, seconds = self._insitu(nodes)
         else:
@@ -516,13 +519,15 @@ class Replay:
                 live, holder = spawned[keep], holder[keep]
         return ledger, clock
 
-    def _sort_first(self, size: int, cache: int, speculative: bool) -> tuple[_Ledger, float]:
+    def _sort_first(self, size: int, cache: int, speculative: bool,
+                    scheduler: str) -> tuple[_Ledger, float]:
         """``image`` / ``spec-ooc``: every node its tiles, alone (see the module docstring)."""
         from vastray.schedule.ownership import sort_first_tiles
 
         ledger = _Ledger(size)
         paths = self.c.n_paths
         tile = max(1, -(-paths // size))  # as the scaling runs: a tile per node
+        self._decision_s = self.activation.tile_decision_s(scheduler, tile)
         path_tile = self.path_of[self.camera_visits] // tile
         span = np.zeros(size)
         # a repeated frame (``Crossings.repeated``) gives nodes whose tiles are the same
@@ -558,7 +563,7 @@ class Replay:
 
     def _node_activation(self, ledger: _Ledger, rank: int, lru: _Lru, domain: int,
                          radiance: int, shadow: int) -> float:
-        cost = self._trace_s(radiance, shadow)
+        cost = self._trace_s(radiance, shadow, self._decision_s)
         ledger.trace[rank] += cost
         ledger.counters["activations"] += 1
         ledger.counters["traced"] += radiance + shadow
@@ -774,6 +779,21 @@ class ActivationCosts:
     shadow_s: float
     decision_s: float = 0.0
     query: tuple = ((0.0, 0.0), (0.0, 0.0))
+    #: a sort-first node's decision per activation by scheduler, measured at a few tile
+    #: sizes: scheduler -> ((paths, seconds), ...) ascending (``sort_first_decisions``: the
+    #: product's loop with its cache, ``likely_next`` and spec-ooc's filtering); a
+    #: scheduler not in it pays ``decision_s``
+    sort_first_decision_s: dict = field(default_factory=dict)
+
+    def tile_decision_s(self, scheduler: str, paths: int) -> float | None:
+        """``scheduler``'s decision per activation on a node of ``paths`` paths: the
+        measurements interpolated in log(paths), the nearest one outside them; None where it
+        was not measured."""
+        points = self.sort_first_decision_s.get(scheduler)
+        if not points:
+            return None
+        sizes, seconds = zip(*points, strict=True)
+        return float(np.interp(math.log(max(paths, 1)), np.log(sizes), seconds))
 
     def query_seconds(self, kind: int, rays):
         """Seconds of query calls of ``kind`` over ``rays`` rays each."""
@@ -819,6 +839,50 @@ def fit_activation_costs(crossings: Crossings, costs: CostModel) -> ActivationCo
             query.append(constants.query[kind])
     decision = float(np.mean(crossings.decision_cpu_s)) if len(crossings.decision_cpu_s) else 0.0
     return ActivationCosts(*(float(v) for v in values), decision, tuple(query))
+
+
+def sort_first_decisions(store, settings, domains, cache: int | None = None,
+                         sizes=(256, 4096),
+                         schedulers=("image", "spec-ooc")) -> dict[str, tuple]:
+    """What a sort-first node's decisions cost per activation on ``store``, by scheduler and
+    tile size (``ActivationCosts.sort_first_decision_s``): one virtual node renders a tile of
+    each of ``sizes`` paths (``settings``' first rows) through a cache of ``cache`` domains
+    (None: the product's default) on the simulator, which runs the product's loop (its
+    choice, the preloader's guess, spec-ooc's filtering, eviction by demand) and charges
+    nothing but the CPU time those decisions take (``decision_scale`` 1, every other cost 0);
+    the decision seconds over the activations. The recording's own decisions are
+    ``ImageSchedule.next_domain`` alone, every domain in memory: on 1,439 domains a tenth of
+    what spec-ooc's take (``replay_error`` −0.48 for spec-ooc against −0.10 for image).
+
+    Parameters
+    ----------
+    store, settings : the recorded frame's store and settings.
+    domains : the store's domains built (``sim.cache.Domains``).
+    cache : domains a node caches; sizes : the tiles' paths (each at most the frame's).
+    """
+    from dataclasses import fields
+
+    from vastray.actors.job_options import JobOptions
+    from vastray.sim.simulate import simulate
+
+    only_decisions = replace(CostModel(**{f.name: 0.0 for f in fields(CostModel)
+                                          if f.name not in ("cores", "machine", "throughput")}),
+                             decision_scale=1.0)
+    out = {}
+    for scheduler in schedulers:
+        points = []
+        for paths in sizes:
+            rows = max(1, min(settings.height, -(-paths // (settings.width * settings.spp))))
+            tile = replace(settings, height=rows)
+            options = JobOptions(scheduler=scheduler, cache=cache,
+                                 max_samples_in_flight=tile.paths)
+            result = simulate(store, options, 1, only_decisions, tile, max_pass_spp=None,
+                              domains=domains)
+            activations = result.counters.get("activations", 0)
+            if activations:
+                points.append((tile.paths, result.counters["schedule_s"] / activations))
+        out[scheduler] = tuple(sorted(dict(points).items()))
+    return out
 
 
 def _nonnegative_lstsq(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -302,9 +302,11 @@ def _sort_first_tiles(options, rank, size, store, config, settings, state):
 
 
 def _with_loads(stats: dict, tiles: SortFirstTiles) -> dict:
-    """``stats`` with the loads the node's cache made since ``tiles`` was made."""
+    """``stats`` with the loads the node's cache made since ``tiles`` was made, and its
+    activations (as ``render_out_of_core`` reports them)."""
     cache = tiles.cache_stats()
-    stats.update(loads=cache.loads, preloads=cache.preloads, bytes_loaded=cache.bytes_loaded)
+    stats.update(loads=cache.loads, preloads=cache.preloads, bytes_loaded=cache.bytes_loaded,
+                 activations=len(tiles.loop.sequence))
     return stats
 
 
