@@ -842,8 +842,7 @@ def fit_activation_costs(crossings: Crossings, costs: CostModel) -> ActivationCo
 
 
 def sort_first_decisions(store, settings, domains, cache: int | None = None,
-                         sizes=(256, 4096),
-                         schedulers=("image", "spec-ooc")) -> dict[str, tuple]:
+                         sizes=(256, 4096), schedulers=None) -> dict[str, tuple]:
     """What a sort-first node's decisions cost per activation on ``store``, by scheduler and
     tile size (``ActivationCosts.sort_first_decision_s``): one virtual node renders a tile of
     each of ``sizes`` paths (``settings``' first rows) through a cache of ``cache`` domains
@@ -859,6 +858,7 @@ def sort_first_decisions(store, settings, domains, cache: int | None = None,
     store, settings : the recorded frame's store and settings.
     domains : the store's domains built (``sim.cache.Domains``).
     cache : domains a node caches; sizes : the tiles' paths (each at most the frame's).
+    schedulers : whose decisions (default: every sort-first one).
     """
     from dataclasses import fields
 
@@ -868,6 +868,9 @@ def sort_first_decisions(store, settings, domains, cache: int | None = None,
     only_decisions = replace(CostModel(**{f.name: 0.0 for f in fields(CostModel)
                                           if f.name not in ("cores", "machine", "throughput")}),
                              decision_scale=1.0)
+    if schedulers is None:
+        schedulers = [spec.name for spec in registry.SPECS
+                      if spec.simulation is Simulation.SORT_FIRST]
     out = {}
     for scheduler in schedulers:
         points = []
