@@ -182,10 +182,10 @@ def main(argv: list[str]) -> int:
     # to run side by side
     settings = calibration_settings(args.quick)
     settings = settings if args.tile else node_settings(settings)
-    # one thread, as the simulated node and the validation's real ones: with the default (all
-    # cores) the process alone split its larger queries over both cores, so the ratio to k
-    # processes side by side counted that as contention (1.4-1.6 for 2 to 4 processes, where
-    # 2 nodes of one thread each got a whole core apiece)
+    # one thread, as the simulated node and the validation's real ones (with all cores a
+    # query of 8,192 rays or more would be split over both, and a render alone would not be
+    # one core's work; this tile's queries are smaller, and its CPU and wall seconds alone
+    # agree within 3 % either way)
     options = JobOptions(scheduler="image", threads=1)
 
     def render() -> float:
