@@ -12,9 +12,10 @@ sharing this machine's cores as the real processes do. Measured is the real run'
 ``busy_max`` (the busiest node's rendering, start-up and film gathering left out); simulated
 the same span in virtual time. ``sim_error_max=`` is the worst |simulated - measured| /
 measured. The constants that move most with this machine's moment, what a message and a
-hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of 2 and 4
-busy processes, are measured again before each scheduler's real runs (``MachineProbe``, about
-2 s; printed per row), and the share of the CPU time the host gave to other virtual machines
+hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of busy
+processes (one alone and two side by side; more run two at a time at that contention), are
+measured again before each scheduler's real runs (``MachineProbe``, about 2 s; printed per
+row), and the share of the CPU time the host gave to other virtual machines
 while the real runs ran ("steal", ``sim.steal``) is charged as cores the real run did not have
 (``CostModel.stolen``; printed per row); every other constant is the calibration's.
 ``--no-probe`` charges the calibration's throughout, and no steal.
@@ -226,7 +227,7 @@ def _messaging(costs: CostModel) -> str:
 
 
 def _throughput(costs: CostModel) -> str:
-    """The throughput with 2 and 4 busy processes charged (the cores' share of the model)."""
+    """The throughput charged with 2 and with 4 busy processes, in single-process speeds."""
     t = costs.throughput
     return " / ".join(f"{t[k - 1]:.2f}" if len(t) >= k else "-" for k in (2, 4))
 
