@@ -11,8 +11,8 @@ machine it runs on, with the project's own components, never mocks.
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec; then the
   same batches between two of the nodes' own management actors (``time_node_messages``),
   whose CPU beyond the raw wire is what a node pays to receive one (``receive_s``);
-- fresh processes (``vastray.sim.warmup``): the machine's throughput with 1 to 2 x cores
-  processes rendering side by side;
+- warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 2 x cores
+  processes rendering side by side, in interleaved rounds, from their CPU seconds;
 - what a node pays once: real 1-node ``async``, ``image`` and ``spec-insitu`` renders of a
   few pixels against the simulator's predictions of them (``vastray.sim.node_cost``): the
   least of the three is every fresh process's first use (``warmup_s``), the rest each
@@ -112,7 +112,7 @@ STAGES = {"setup": 0.03, "loads": 0.1, "tracing": 0.25, "wire": 0.24, "warmup": 
 
 
 def node_settings(settings: RenderSettings) -> RenderSettings:
-    """The fresh processes' render (``vastray.sim.warmup``): the tile's settings at twice the
+    """The measuring processes' render (``vastray.sim.warmup``): the tile's settings at twice the
     width and height (a render of its own, not the traced tile again)."""
     return replace(settings, width=2 * settings.width, height=2 * settings.height)
 
@@ -188,7 +188,7 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     # what the nodes' messaging costs beyond the raw wire's one-way time (charged to the
     # receiver: its routing, checks and mailbox)
     receive_s = max(0.0, time_node_messages(setup, effort) - latency_s)
-    report("warmup", 0.0, "fresh processes, one and several at a time")
+    report("warmup", 0.0, "busy processes side by side, one and several at a time")
     cores = usable_cores()
     throughput = process_costs(str(store_path), quick, cores)
     # decisions and traces are charged at the CPU time the real code takes where it
