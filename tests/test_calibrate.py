@@ -138,6 +138,25 @@ def test_a_measuring_process_that_fails_is_named_with_its_error(tmp_path):
         WarmProcesses(str(missing), True, 2)
 
 
+def test_a_measuring_process_that_cannot_start_leaves_none_running(tmp_path, monkeypatch):
+    import subprocess
+
+    import vastray.sim.warmup as warmup
+
+    started, real_popen = [], subprocess.Popen
+
+    def popen(*args, **kwargs):
+        if started:
+            raise OSError("no more processes")
+        started.append(real_popen(*args, **kwargs))
+        return started[-1]
+
+    monkeypatch.setattr(warmup.subprocess, "Popen", popen)
+    with pytest.raises(OSError, match="no more processes"):
+        WarmProcesses(str(tmp_path / "missing.store"), True, 2)
+    assert len(started) == 1 and started[0].poll() is not None
+
+
 def test_cli_names_a_missing_store_and_writes_nothing(tmp_path):
     missing, out = tmp_path / "nowhere.store", tmp_path / "costs.json"
     proc = subprocess.run([*VASTRAY, "calibrate", str(missing), "-o", str(out), "--quick"],

@@ -46,13 +46,16 @@ class WarmProcesses:
     def __init__(self, store_path: str, quick: bool, count: int, tile: bool = False):
         command = [sys.executable, "-m", "vastray.sim.warmup", str(store_path)] + (
             ["--quick"] if quick else []) + (["--tile"] if tile else [])
-        # stderr to files, not pipes: a long-lived process writing more than a pipe holds
-        # would block (read back only to say why one failed)
-        self.errors = [tempfile.TemporaryFile("w+") for _ in range(count)]
-        self.processes = [subprocess.Popen(command, stdin=subprocess.PIPE,
-                                           stdout=subprocess.PIPE, stderr=errors, text=True)
-                          for errors in self.errors]
+        self.processes: list[subprocess.Popen] = []
+        self.errors: list = []
         try:
+            for _ in range(count):
+                # stderr to a file, not a pipe: a long-lived process writing more than a
+                # pipe holds would block (read back only to say why one failed)
+                self.errors.append(tempfile.TemporaryFile("w+"))
+                self.processes.append(subprocess.Popen(
+                    command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                    stderr=self.errors[-1], text=True))
             deadline = time.monotonic() + PROCESS_TIMEOUT_S
             for process in self.processes:
                 if self._line(process, deadline) != "ready":
@@ -104,10 +107,12 @@ class WarmProcesses:
                 except (OSError, subprocess.TimeoutExpired):
                     process.kill()
                     process.wait()
-        for process, errors in zip(self.processes, self.errors, strict=True):
-            for stream in (process.stdin, process.stdout, errors):
+        for process in self.processes:
+            for stream in (process.stdin, process.stdout):
                 if stream is not None and not stream.closed:
                     stream.close()
+        for errors in self.errors:  # one more than the processes if a start failed
+            errors.close()
 
 
 def throughput_of(rounds: list[dict[int, list[float]]], cores: int) -> dict[int, float]:
