@@ -205,7 +205,6 @@ class Replay:
                            else activations)
         self.lo, self.hi = lo, hi
         self.tile = tile
-        self._decision_s: float | None = None  # the sort-first schedule's now replayed
         self.n_domains = crossings.n_domains
         read = (nbytes * costs.load_byte_s if storage_bandwidth is None
                 else nbytes / storage_bandwidth)
@@ -527,7 +526,7 @@ class Replay:
         ledger = _Ledger(size)
         paths = self.c.n_paths
         tile = max(1, -(-paths // size))  # as the scaling runs: a tile per node
-        self._decision_s = self.activation.tile_decision_s(scheduler, tile)
+        decision_s = self.activation.tile_decision_s(scheduler, tile)
         path_tile = self.path_of[self.camera_visits] // tile
         span = np.zeros(size)
         # a repeated frame (``Crossings.repeated``) gives nodes whose tiles are the same
@@ -551,9 +550,9 @@ class Replay:
             seconds = self._camera_s(sum(min(tile, paths - f) for f in firsts))
             tokens = self.camera_visits[mine]
             if speculative:
-                seconds += self._speculative_node(ledger, rank, lru, tokens)
+                seconds += self._speculative_node(ledger, rank, lru, tokens, decision_s)
             else:
-                seconds += self._image_node(ledger, rank, lru, tokens)
+                seconds += self._image_node(ledger, rank, lru, tokens, decision_s)
             span[rank] = seconds
             ledger.counters["loads"] += lru.loads
             if key is not None:
@@ -562,8 +561,10 @@ class Replay:
         return ledger, float(span.max())
 
     def _node_activation(self, ledger: _Ledger, rank: int, lru: _Lru, domain: int,
-                         radiance: int, shadow: int) -> float:
-        cost = self._trace_s(radiance, shadow, self._decision_s)
+                         radiance: int, shadow: int, decision_s: float | None = None) -> float:
+        """One activation of ``domain`` on node ``rank``, its load included where ``lru``
+        misses; its decision ``decision_s`` (default: the recording's)."""
+        cost = self._trace_s(radiance, shadow, decision_s)
         ledger.trace[rank] += cost
         ledger.counters["activations"] += 1
         ledger.counters["traced"] += radiance + shadow
@@ -572,7 +573,8 @@ class Replay:
             cost += self.load_s[domain]
         return cost
 
-    def _image_node(self, ledger: _Ledger, rank: int, lru: _Lru, tokens: np.ndarray) -> float:
+    def _image_node(self, ledger: _Ledger, rank: int, lru: _Lru, tokens: np.ndarray,
+                    decision_s: float | None) -> float:
         """One sort-first node's ``image`` schedule: the fullest domain next, cached first."""
         queues = _Queues(self.n_domains)
         queues.push(self.domain_of[tokens], tokens)
@@ -584,12 +586,12 @@ class Replay:
             batch = queues.pop(domain)
             radiance = int(np.count_nonzero(self.radiance_of[batch]))
             seconds += self._node_activation(ledger, rank, lru, domain, radiance,
-                                             len(batch) - radiance)
+                                             len(batch) - radiance, decision_s)
             nxt = self.successors(batch)
             queues.push(self.domain_of[nxt], nxt)
 
-    def _speculative_node(self, ledger: _Ledger, rank: int, lru: _Lru,
-                          tokens: np.ndarray) -> float:
+    def _speculative_node(self, ledger: _Ledger, rank: int, lru: _Lru, tokens: np.ndarray,
+                          decision_s: float | None) -> float:
         """One sort-first node's ``spec-ooc`` schedule: copies in every crossed domain; a
         segment commits once the domains it needs are traced, its children start then, and
         its copies left are dropped."""
@@ -611,7 +613,7 @@ class Replay:
                 continue
             radiance = int(np.count_nonzero(c.kind[batch] == RADIANCE))
             seconds += self._node_activation(ledger, rank, lru, domain, radiance,
-                                             len(batch) - radiance)
+                                             len(batch) - radiance, decision_s)
             needed = self._visits_domain(batch, domain)
             np.subtract.at(need, batch[needed], 1)
             finished = np.unique(batch[needed][need[batch[needed]] == 0])
