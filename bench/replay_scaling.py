@@ -90,15 +90,20 @@ def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = 
                   None if storage_mb_s is None else storage_mb_s * 1e6)
 
 
-def decisions_of(store, settings: RenderSettings, cache: int | None, sizes) -> dict:
+def decisions_of(store, settings: RenderSettings, cache: int | None, sizes,
+                 domains: Domains | None = None) -> dict:
     """The sort-first nodes' decision costs per activation on ``store`` at tiles of
-    ``sizes`` paths through ``cache`` domains (``sort_first_decisions``), printed."""
+    ``sizes`` paths through ``cache`` domains (``sort_first_decisions``), printed;
+    ``domains``: the store's domains already built (default: built here, closed after)."""
     start = time.perf_counter()
-    domains = Domains(store, shading_inputs(store, SceneConfig(), settings.integrator)[1])
+    own = domains is None
+    if own:
+        domains = Domains(store, shading_inputs(store, SceneConfig(), settings.integrator)[1])
     try:
         decisions = sort_first_decisions(store, settings, domains, cache, sizes)
     finally:
-        domains.close()
+        if own:
+            domains.close()
     print("  a sort-first node's decisions per activation (the product's loop, one virtual "
           f"node, cache {cache or 'all'}): " + "; ".join(
               f"{scheduler} " + ", ".join(f"{us * 1e6:.0f} us at {paths:,} paths"
@@ -141,17 +146,19 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
     own = costs.warm().with_cores(None)
     crossings = recording(store, CHECK)
     nodes_checked = CHECK_NODES_QUICK if quick else CHECK_NODES
-    # the product's caches (every domain) and each checked node count's tile
-    decisions = decisions_of(store, CHECK, None,
-                             sorted({max(1, CHECK.paths // n) for n in nodes_checked}))
-    replay = replay_of(store, crossings, own, Network(), None, decisions=decisions)
     domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
     rows = []
-    print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
-          f"{CHECK.paths:,} paths, a core per node):")
-    print("| scheduler | P | real-code sim s | replay s | error | sim wall s | replay wall s |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
     try:
+        # the product's caches (every domain) and each checked node count's tile
+        decisions = decisions_of(store, CHECK, None,
+                                 sorted({max(1, CHECK.paths // n) for n in nodes_checked}),
+                                 domains)
+        replay = replay_of(store, crossings, own, Network(), None, decisions=decisions)
+        print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
+              f"{CHECK.paths:,} paths, a core per node):")
+        print("| scheduler | P | real-code sim s | replay s | error | sim wall s "
+              "| replay wall s |")
+        print("| --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in REPLAY_SCHEDULERS:
             for nodes in nodes_checked:
                 start = time.perf_counter()
