@@ -704,6 +704,23 @@ def test_cli_prints_a_line_per_run_and_writes_the_image_and_the_report(store, tm
     assert report["costs"]["latency_s"] == COSTS.latency_s
 
 
+def test_cli_sort_first_runs_print_their_lines_and_report_their_activations(store, tmp_path):
+    """Without --quiet, as a user runs it: the sort-first schedulers' lines and summary, and
+    their nodes' activations in the report (the simulator reports them as a real sort-first
+    node does since session 29)."""
+    COSTS.save(tmp_path / "costs.json")
+    out = vastray("simulate", store.path, "--nodes", "2", "--scheduler", "image,spec-ooc",
+                  *SMALL, "--costs", "costs.json", "--report", "sim.json", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = [line for line in out.stdout.splitlines() if "simulated" in line]
+    assert len(lines) == 2, out.stdout
+    for line, scheduler in zip(lines, ("image", "spec-ooc"), strict=True):
+        assert "speed-up" in line and scheduler in line and "2 nodes" in line, line
+    runs = json.loads((tmp_path / "sim.json").read_text(), parse_constant=_reject)["runs"]
+    assert [r["scheduler"] for r in runs] == ["image", "spec-ooc"]
+    assert all(r["counters"]["activations"] > 0 and r["seconds"] > 0 for r in runs)
+
+
 def test_cli_warm_and_cores_options_reach_the_costs(store, tmp_path):
     dataclasses.replace(COSTS, warmup_s=1.0, cores=3).save(tmp_path / "costs.json")
     runs = {}
