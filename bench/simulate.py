@@ -15,10 +15,11 @@ measured. The constants that move most with this machine's moment, what a messag
 hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of busy
 processes (one alone and two side by side; more run two at a time at that contention), are
 measured again before each scheduler's real runs (``MachineProbe``, about 2 s; printed per
-row), and the share of the CPU time the host gave to other virtual machines
-while the real runs ran ("steal", ``sim.steal``) is charged as cores the real run did not have
-(``CostModel.stolen``; printed per row); every other constant is the calibration's.
-``--no-probe`` charges the calibration's throughout, and no steal.
+row), and the share of the CPU time that went elsewhere while the real runs ran (the host's
+"steal" to other virtual machines, and other processes on this machine: ``sim.StealMeter``) is
+charged as cores the real run did not have (``CostModel.stolen``; printed per row); every other
+constant is the calibration's. ``--no-probe`` charges the calibration's throughout, and
+nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``).
@@ -117,7 +118,7 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | stolen | measured s "
+    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | taken by others | measured s "
           "| simulated s | error | sim image = reference |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
@@ -126,7 +127,7 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
         for nodes in node_counts:
             with StealMeter() as steal:
                 real_s, _ = measured(store, scheduler, nodes, settings, repeats)
-            stolen = steal.share if probe is not None else 0.0
+            stolen = steal.lost if probe is not None else 0.0
             sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared.stolen(stolen),
                            settings, config, max_pass_spp=None, domains=domains)
             same = bool((sim.film.image() == reference).all())
@@ -178,7 +179,7 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | stolen | measured s | simulated s | error "
+              "| throughput 2 / 4 | taken by others | measured s | simulated s | error "
               "| real image = reference | sim image = reference |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in SIM_SCHEDULERS:
@@ -193,7 +194,7 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
                         result = render_distributed(store.path, None, settings, nodes,
                                                     options=options, timeout=300)
                         times.append(result.seconds["busy_max"])
-                stolen = steal.share if probe is not None else 0.0
+                stolen = steal.lost if probe is not None else 0.0
                 real_s = sorted(times)[len(times) // 2]
                 per_node = result.counters["per_node"]
                 busy = sum(1 for n in per_node if n["counters"].get("shade_s", 0.0) > 0)

@@ -1,12 +1,16 @@
-"""The host's steal read from /proc/stat, and the cores a model charges under it."""
+"""The host's steal and other processes' load read from /proc/stat, and the cores a model
+charges under them."""
 
 from __future__ import annotations
+
+import subprocess
+import sys
 
 import pytest
 
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
-from vastray.sim.steal import StealMeter, cpu_ticks, stolen_share
+from vastray.sim.steal import StealMeter, cpu_ticks, others_share, stolen_share
 
 
 def stat_file(tmp_path, user, system, idle, steal, name="stat"):
@@ -44,10 +48,33 @@ def test_the_meter_measures_the_span_it_wraps(tmp_path):
     assert meter.share == pytest.approx(0.4)
 
 
+def test_others_share_is_the_busy_time_beyond_this_process_s():
+    # 100 busy ticks of 10 ms and 25 stolen: 1.0 CPU-s busy, of which this process 0.4 s
+    assert others_share((0, 0), (100, 25), 0.4, 0.01) == pytest.approx(0.6 / 1.25)
+    # this process used it all (or more, by rounding): nobody else
+    assert others_share((0, 0), (100, 0), 1.2, 0.01) == 0.0
+    assert others_share((5, 5), (5, 5), 0.0, 0.01) == 0.0  # nothing ran
+    assert others_share(None, (100, 0), 0.0, 0.01) == 0.0
+
+
+def test_the_meter_counts_other_processes_and_not_waited_children(tmp_path):
+    path = stat_file(tmp_path, 100, 0, 500, 0)
+    with StealMeter(path) as meter:
+        # 2 CPU-s busy and 1 stolen on the machine; this process a negligible part
+        stat_file(tmp_path, 300, 0, 600, 100)
+    assert meter.share == pytest.approx(1 / 3)
+    assert meter.others == pytest.approx(2 / 3, abs=0.02)
+    assert meter.lost == pytest.approx(0.99)  # capped: a share of the cores must remain
+    # on this machine a child it waits for is its own work, not another's
+    with StealMeter() as own:
+        subprocess.run([sys.executable, "-c", "sum(range(30_000_000))"], check=True)
+    assert own.others < 0.5, own.others
+
+
 def test_this_machine_s_share_is_a_share():
     with StealMeter() as meter:
         sum(range(100_000))
-    assert 0.0 <= meter.share < 1.0
+    assert 0.0 <= meter.share < 1.0 and 0.0 <= meter.others < 1.0
 
 
 def test_stolen_cores_scale_the_throughput_for_every_process_count():

@@ -8,10 +8,17 @@ slower by that share while the CPU seconds the simulator charges (a thread's own
 count steal) are not: a validation that charges no steal under-predicts such a run, one taken in
 a quiet minute over-predicts the next. ``StealMeter`` measures the share over a span, so a
 validation can charge the cores the real run actually had (``CostModel.stolen``).
+
+Other processes on this machine take cores the same way: a run beside one busy process (a CPU
+hog, another test) got about two thirds of the 2 cores, and a validation that charged it both
+under-predicted it by 23-32 %. ``StealMeter.others`` measures their share too: the machine's
+busy time over the span less this process's and its finished children's (the real run's nodes
+are children it waits for).
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 #: /proc/stat's first line: "cpu  user nice system idle iowait irq softirq steal guest
@@ -46,18 +53,57 @@ def stolen_share(before: tuple[int, int] | None, after: tuple[int, int] | None) 
     return min(stolen / (busy + stolen), 0.99)
 
 
+def own_cpu_seconds() -> float:
+    """CPU seconds of this process (all its threads) and of its children it has waited for."""
+    times = os.times()
+    return times.user + times.system + times.children_user + times.children_system
+
+
+def others_share(before: tuple[int, int] | None, after: tuple[int, int] | None,
+                 own_s: float, tick_s: float) -> float:
+    """The share of the CPU time wanted between two ``cpu_ticks`` readings that went to other
+    processes on this machine: (busy - ``own_s``) / (busy + stolen), in [0, 1); 0 where either
+    reading is missing or nothing ran. ``tick_s``: seconds a tick (1 / USER_HZ)."""
+    if before is None or after is None:
+        return 0.0
+    busy, stolen = after[0] - before[0], after[1] - before[1]
+    if busy + stolen <= 0:
+        return 0.0
+    others = max(busy * tick_s - own_s, 0.0)
+    return min(others / ((busy + stolen) * tick_s), 0.99)
+
+
 class StealMeter:
-    """The stolen share over a span: ``with StealMeter() as meter: ...``, then
-    ``meter.share`` (0 where ``/proc/stat`` is missing)."""
+    """The CPU time others took over a span: ``with StealMeter() as meter: ...``, then
+    ``meter.share`` (the host's steal), ``meter.others`` (other processes here) and
+    ``meter.lost`` (both; what ``CostModel.stolen`` charges). All 0 where ``/proc/stat`` is
+    missing.
+
+    ``others`` counts the span's busy time beyond this process's and its waited-for
+    children's CPU time, so what runs in the span must be this process or children it waits
+    for before the span ends. It is an average over the span: another process using a core
+    this run left idle is counted as if it had slowed the run.
+    """
 
     def __init__(self, stat: Path = PROC_STAT):
         self.stat = stat
         self.share = 0.0
+        self.others = 0.0
         self._before: tuple[int, int] | None = None
+        self._own_s = 0.0
+
+    @property
+    def lost(self) -> float:
+        """The share of the wanted CPU time that went to the host or to other processes."""
+        return min(self.share + self.others, 0.99)
 
     def __enter__(self) -> StealMeter:
         self._before = cpu_ticks(self.stat)
+        self._own_s = own_cpu_seconds()
         return self
 
     def __exit__(self, *exc) -> None:
-        self.share = stolen_share(self._before, cpu_ticks(self.stat))
+        after = cpu_ticks(self.stat)
+        own_s = own_cpu_seconds() - self._own_s
+        self.share = stolen_share(self._before, after)
+        self.others = others_share(self._before, after, own_s, 1.0 / os.sysconf("SC_CLK_TCK"))
