@@ -10,7 +10,9 @@ real node processes (this machine; ``--threads 1``, as the cost model is per cor
 simulator with the constants ``vastray calibrate`` measures here first, the virtual nodes
 sharing this machine's cores as the real processes do. Measured is the real run's
 ``busy_max`` (the busiest node's rendering, start-up and film gathering left out); simulated
-the same span in virtual time. ``sim_error_max=`` is the worst |simulated - measured| /
+the same span in virtual time. A point is up to ``--repeats`` (3) pairs of a real run and a
+simulation right after it, medians of each side (``--quick``: pairs until the point's real
+runs add up to 1 s; the row prints how many). ``sim_error_max=`` is the worst |simulated - measured| /
 measured. The constants that move most with this machine's moment, what a message and a
 hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of busy
 processes (one alone and two side by side; more run two at a time at that contention), are
@@ -91,24 +93,47 @@ def costs_here(quick: bool, store) -> CostModel:
     return costs
 
 
-def measured(store, scheduler: str, nodes: int, settings: RenderSettings,
-             repeats: int) -> tuple[float, object]:
-    """The real run's busiest node's rendering seconds (median of ``repeats``) and its film."""
-    times, film = [], None
-    for _ in range(repeats):
-        result = render_distributed(store.path, None, settings, nodes,
-                                    options=JobOptions(scheduler=scheduler, threads=1),
-                                    timeout=300)
-        times.append(result.seconds["busy_max"])
-        film = result.film
-    return sorted(times)[len(times) // 2], film
+#: ``--quick``: a validation point repeats its (real run, simulation) pair, up to the rounds
+#: asked for, until its real runs add up to this many seconds: one real run of a fraction of
+#: a second moves by up to 2x from the next here (the scan's 2-node ``domain``: 0.34-0.76 s
+#: over ten validations), a run of several seconds by 20-30 %
+QUICK_BUDGET_S = 1.0
 
 
-def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = VALIDATION,
-             node_counts=VALIDATION_NODES, probe: MachineProbe | None = None) -> list[dict]:
-    """Every scheduler at ``node_counts``, real and simulated (cores shared as here); with
-    ``probe``, each scheduler's rows charge the message and hand-off costs measured just
-    before its real runs (``MachineProbe``)."""
+def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, costs: CostModel,
+           charge_others: bool, rounds: int, budget_s: float, config: SceneConfig,
+           domains: Domains) -> dict:
+    """One validation point: ``rounds`` pairs (or fewer, once the real runs add up to
+    ``budget_s``) of a real run on ``nodes`` processes (``options``) and a simulation charged
+    the CPU time others took during that run (``StealMeter.lost``, with ``charge_others``),
+    one right after the other, so both see the machine's moment. Medians of each side.
+
+    Returns
+    -------
+    dict with ``real_s``, ``sim_s`` (the medians), ``rounds``, ``lost`` (the largest share
+    charged), ``result`` (the last real run's) and ``sim`` (the last simulation's).
+    """
+    reals, sims, lost, result, sim = [], [], [], None, None
+    while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s):
+        with StealMeter() as meter:
+            result = render_distributed(store.path, None, settings, nodes, options=options,
+                                        timeout=300)
+        lost.append(meter.lost if charge_others else 0.0)
+        reals.append(result.seconds["busy_max"])
+        sim = simulate(store, replace(options, threads=None), nodes, costs.stolen(lost[-1]),
+                       settings, config, max_pass_spp=None, domains=domains)
+        sims.append(sim.seconds)
+    return {"real_s": float(np.median(reals)), "sim_s": float(np.median(sims)),
+            "rounds": len(reals), "lost": max(lost), "result": result, "sim": sim}
+
+
+def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VALIDATION,
+             node_counts=VALIDATION_NODES, probe: MachineProbe | None = None,
+             budget_s: float = float("inf")) -> list[dict]:
+    """Every scheduler at ``node_counts``, real and simulated (cores shared as here), each
+    point ``paired`` (``rounds``, ``budget_s``); with ``probe``, each scheduler's rows charge
+    the message and hand-off costs measured just before its real runs (``MachineProbe``) and
+    the CPU time others took during each real run."""
     config = SceneConfig()
     reference = render(store, config, settings, progress=False).film.image()
     domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
@@ -118,28 +143,26 @@ def validate(store, costs: CostModel, repeats: int, settings: RenderSettings = V
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | taken by others | measured s "
-          "| simulated s | error | sim image = reference |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | taken by others "
+          "| rounds | measured s | simulated s | error | images = reference |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
         now = costs if probe is None else probe.now(costs)
         shared = now.with_cores(now.cores)
         for nodes in node_counts:
-            with StealMeter() as steal:
-                real_s, _ = measured(store, scheduler, nodes, settings, repeats)
-            stolen = steal.lost if probe is not None else 0.0
-            sim = simulate(store, JobOptions(scheduler=scheduler), nodes, shared.stolen(stolen),
-                           settings, config, max_pass_spp=None, domains=domains)
-            same = bool((sim.film.image() == reference).all())
-            error = (sim.seconds - real_s) / real_s
+            point = paired(store, settings, nodes, JobOptions(scheduler=scheduler, threads=1),
+                           shared, probe is not None, rounds, budget_s, config, domains)
+            real_s, sim_s, stolen = point["real_s"], point["sim_s"], point["lost"]
+            same = bool((point["sim"].film.image() == reference).all()
+                        and (point["result"].film.image() == reference).all())
+            error = (sim_s - real_s) / real_s
             rows.append({"scheduler": scheduler, "nodes": nodes, "width": settings.width,
-                         "spp": settings.spp, "measured_s": real_s,
-                         "simulated_s": sim.seconds, "error": error, "same_image": same,
+                         "spp": settings.spp, "measured_s": real_s, "simulated_s": sim_s,
+                         "rounds": point["rounds"], "error": error, "same_image": same,
                          "receive_s": now.receive_s, "offload_s": now.offload_s,
                          "throughput": now.throughput, "stolen": stolen})
             print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
-                  f"{stolen:.0%} | {real_s:.3f} | "
-                  f"{sim.seconds:.3f} | "
+                  f"{stolen:.0%} | {point['rounds']} | {real_s:.3f} | {sim_s:.3f} | "
                   f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
     domains.close()
     return rows
@@ -165,11 +188,13 @@ def oos_cases() -> list[tuple[str, object, RenderSettings, int | None]]:
     return cases
 
 
-def validate_oos(costs: CostModel, node_counts, repeats: int,
-                 probe: MachineProbe | None = None) -> list[dict]:
-    """Every scheduler on the out-of-sample cases, real and simulated (cores shared as here).
-    The sort-first schedules get a tile per node, so every node has work; each row says how
-    many nodes traced (``busy``). With ``probe``, as ``validate``."""
+def validate_oos(costs: CostModel, node_counts, rounds: int,
+                 probe: MachineProbe | None = None,
+                 budget_s: float = float("inf")) -> list[dict]:
+    """Every scheduler on the out-of-sample cases, real and simulated (cores shared as here),
+    each point ``paired`` (``rounds``, ``budget_s``). The sort-first schedules get a tile per
+    node, so every node has work; each row says how many nodes traced (``busy``). With
+    ``probe``, as ``validate``."""
     config = SceneConfig()
     rows = []
     for name, store, settings, cache in oos_cases():
@@ -179,44 +204,36 @@ def validate_oos(costs: CostModel, node_counts, repeats: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | taken by others | measured s | simulated s | error "
+              "| throughput 2 / 4 | taken by others | rounds | measured s | simulated s | error "
               "| real image = reference | sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
         for scheduler in SIM_SCHEDULERS:
             now = costs if probe is None else probe.now(costs)
             shared = now.with_cores(now.cores)
             for nodes in node_counts:
                 options = scaling_options(scheduler, nodes, settings.paths)
                 options = replace(options, threads=1, cache=cache)
-                times, result = [], None
-                with StealMeter() as steal:
-                    for _ in range(repeats):
-                        result = render_distributed(store.path, None, settings, nodes,
-                                                    options=options, timeout=300)
-                        times.append(result.seconds["busy_max"])
-                stolen = steal.lost if probe is not None else 0.0
-                real_s = sorted(times)[len(times) // 2]
-                per_node = result.counters["per_node"]
+                point = paired(store, settings, nodes, options, shared, probe is not None,
+                               rounds, budget_s, config, domains)
+                real_s, sim_s, stolen = point["real_s"], point["sim_s"], point["lost"]
+                per_node = point["result"].counters["per_node"]
                 busy = sum(1 for n in per_node if n["counters"].get("shade_s", 0.0) > 0)
                 # the real nodes' CPU over their busy spans (all their threads): the model
                 # charges CPU on shared cores; a share well under 1 is time spent waiting
                 cpu_share = (sum(n["counters"].get("busy_cpu_s", 0.0) for n in per_node)
                              / max(sum(n.get("busy_s", 0.0) for n in per_node), 1e-9))
-                real_same = bool((result.film.image() == reference).all())
-                sim = simulate(store, replace(options, threads=None), nodes,
-                               shared.stolen(stolen), settings, config, max_pass_spp=None,
-                               domains=domains)
-                sim_same = bool((sim.film.image() == reference).all())
-                error = (sim.seconds - real_s) / real_s
+                real_same = bool((point["result"].film.image() == reference).all())
+                sim_same = bool((point["sim"].film.image() == reference).all())
+                error = (sim_s - real_s) / real_s
                 rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
                              "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
-                             "simulated_s": sim.seconds, "error": error,
+                             "simulated_s": sim_s, "rounds": point["rounds"], "error": error,
                              "same_image": real_same and sim_same,
                              "receive_s": now.receive_s, "offload_s": now.offload_s,
                              "throughput": now.throughput, "stolen": stolen})
                 print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
-                      f"{_messaging(now)} | {_throughput(now)} | {stolen:.0%} | {real_s:.3f} | "
-                      f"{sim.seconds:.3f} | "
+                      f"{_messaging(now)} | {_throughput(now)} | {stolen:.0%} | "
+                      f"{point['rounds']} | {real_s:.3f} | {sim_s:.3f} | "
                       f"{error:+.1%} | {'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)
         domains.close()
@@ -238,8 +255,10 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true",
                         help="validation and the speed-ups at 64 and 1024 nodes only")
-    parser.add_argument("--repeats", type=int, default=None,
-                        help="real runs per validation point (median; default 1 quick, 3 full)")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="most (real run, simulation) pairs per validation point, medians "
+                             "of each (default 3; --quick stops once a point's real runs add "
+                             f"up to {QUICK_BUDGET_S:g} s)")
     parser.add_argument("--json", metavar="FILE", help="write every figure as JSON")
     parser.add_argument("--costs", metavar="FILE",
                         help="use this calibration file instead of calibrating now (the "
@@ -264,9 +283,11 @@ def main() -> None:
         print("the message and hand-off costs (receive_s, offload_s) and the throughput of "
               "busy processes charged in the validation are measured again before each "
               "scheduler's real runs (MachineProbe); every other constant is the calibration's")
+    budget_s = QUICK_BUDGET_S if args.quick else float("inf")
     rows = [] if args.skip_validation else validate(
-        small, costs, args.repeats or (1 if args.quick else 3),
-        node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe)
+        small, costs, args.repeats,
+        node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe,
+        budget_s=budget_s)
     if rows and not args.quick:  # work rather than start-up: 4 times the paths
         rows += validate(small, costs, 1, HEAVY, (1, 4), probe=probe)
     if rows:
@@ -275,7 +296,7 @@ def main() -> None:
               "constants were calibrated on)")
         print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
     oos = [] if args.skip_validation else validate_oos(
-        costs, OOS_NODES_QUICK if args.quick else OOS_NODES, 1 if args.quick else 3, probe)
+        costs, OOS_NODES_QUICK if args.quick else OOS_NODES, args.repeats, probe, budget_s)
     if probe is not None:
         probe.close()
     if oos:
