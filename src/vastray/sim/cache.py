@@ -96,7 +96,7 @@ class VirtualPreloader(CacheFront):
         emulated storage bandwidth adds) and make it resident."""
         cache, costs = self.cache, self.cluster.costs
         nbytes, triangles = int(self.domains.nbytes[domain]), int(self.domains.triangles[domain])
-        read_s, build_s = costs.read_s(nbytes), costs.build_s(triangles)
+        read_s, build_s = costs.load_s(nbytes, 0), costs.load_s(0, triangles)
         await asyncio.sleep(read_s)
         await self.cluster.compute(self.rank, build_s)
         cost = read_s + build_s
