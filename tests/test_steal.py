@@ -10,7 +10,7 @@ import pytest
 
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
-from vastray.sim.steal import StealMeter, cpu_ticks, others_share, stolen_share
+from vastray.sim.steal import StealMeter, cpu_ticks, others_share, own_cpu_seconds, stolen_share
 
 
 def stat_file(tmp_path, user, system, idle, steal, name="stat"):
@@ -57,7 +57,7 @@ def test_others_share_is_the_busy_time_beyond_this_process_s():
     assert others_share(None, (100, 0), 0.0, 0.01) == 0.0
 
 
-def test_the_meter_counts_other_processes_and_not_waited_children(tmp_path):
+def test_the_meter_counts_the_busy_time_beyond_this_process_s_as_others(tmp_path):
     path = stat_file(tmp_path, 100, 0, 500, 0)
     with StealMeter(path) as meter:
         # 2 CPU-s busy and 1 stolen on the machine; this process a negligible part
@@ -65,10 +65,16 @@ def test_the_meter_counts_other_processes_and_not_waited_children(tmp_path):
     assert meter.share == pytest.approx(1 / 3)
     assert meter.others == pytest.approx(2 / 3, abs=0.02)
     assert meter.lost == pytest.approx(0.99)  # capped: a share of the cores must remain
-    # on this machine a child it waits for is its own work, not another's
-    with StealMeter() as own:
-        subprocess.run([sys.executable, "-c", "sum(range(30_000_000))"], check=True)
-    assert own.others < 0.5, own.others
+
+
+def test_a_waited_for_child_s_cpu_time_is_this_process_s_own():
+    # the real nodes are such children: their CPU time must not count as others' (the
+    # machine's other load, which moves the meter's share, is no business of this test)
+    before = own_cpu_seconds()
+    child = subprocess.run([sys.executable, "-c", "import time; sum(range(20_000_000)); "
+                            "print(time.process_time())"],
+                           check=True, capture_output=True, text=True)
+    assert own_cpu_seconds() - before >= 0.9 * float(child.stdout)
 
 
 def test_this_machine_s_share_is_a_share():
