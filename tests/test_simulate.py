@@ -44,8 +44,7 @@ from scenes import rm_store
 SETTINGS = RenderSettings(width=32, height=24, spp=2, bounces=1, shadow_samples=2, seed=3)
 COSTS = CostModel()
 #: Every cost 0: a test sets the ones it looks at.
-ZERO = CostModel(**{f.name: 0.0 for f in dataclasses.fields(CostModel)
-                    if f.name not in ("cores", "machine", "throughput")})
+ZERO = CostModel.free()
 #: The trace costs (per query and per activation).
 TRACE_COSTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
                "shadow_activation_s")
@@ -131,6 +130,14 @@ def test_trace_seconds_are_the_activation_plus_the_queries():
     assert c.trace_s(1, 0) == 100 + 3
     assert c.load_s(10, 3) == 10 * c.load_byte_s + 3 * c.build_triangle_s
     assert c.message_s(1000) == c.latency_s + 1000 * c.byte_s
+
+
+def test_a_free_cost_model_charges_nothing():
+    free = CostModel.free()
+    numbers = {k: v for k, v in dataclasses.asdict(free).items() if isinstance(v, float)}
+    assert numbers and all(v == 0.0 for v in numbers.values()), numbers
+    assert free.cores is None and free.throughput == ()
+    assert free.trace_s(3, 5) == 0.0 and free.load_s(10, 3) == 0.0 and free.message_s(99) == 0.0
 
 
 def test_a_trace_is_charged_its_cpu_time_where_trace_scale_is_set_else_the_constants():

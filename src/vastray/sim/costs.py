@@ -159,6 +159,13 @@ class CostModel:
                 else float(min(k, self.cores)) for k in range(1, counts + 1)]
         return replace(self, throughput=tuple(t * (1.0 - share) for t in full))
 
+    @classmethod
+    def free(cls) -> CostModel:
+        """Every cost 0 (a core a node, no throughput measured): what sets a few costs and
+        charges nothing else, e.g. a node's decisions alone."""
+        return cls(**{f.name: 0.0 for f in fields(cls)
+                      if f.name not in ("cores", "machine", "throughput")})
+
     def warm(self) -> CostModel:
         """The same costs for nodes already started and warm (``warmup_s`` and
         the set-ups 0: a long job's later frames, a running service)."""

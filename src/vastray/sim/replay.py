@@ -862,17 +862,14 @@ def sort_first_decisions(store, settings, domains, cache: int | None = None,
     cache : domains a node caches; sizes : the tiles' paths (each at most the frame's).
     schedulers : whose decisions (default: every sort-first one).
     """
-    from dataclasses import fields
-
     from vastray.actors.job_options import JobOptions
     from vastray.sim.simulate import simulate
 
-    only_decisions = replace(CostModel(**{f.name: 0.0 for f in fields(CostModel)
-                                          if f.name not in ("cores", "machine", "throughput")}),
-                             decision_scale=1.0)
+    only_decisions = replace(CostModel.free(), decision_scale=1.0)
     if schedulers is None:
         schedulers = [spec.name for spec in registry.SPECS
                       if spec.simulation is Simulation.SORT_FIRST]
+
     def decided(scheduler: str, paths: int) -> tuple[int, float, int]:
         rows = max(1, min(settings.height, -(-paths // (settings.width * settings.spp))))
         tile = replace(settings, height=rows)
