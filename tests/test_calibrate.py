@@ -18,6 +18,7 @@ import pytest
 from vastray.commands_sim import check_output_file
 from vastray.scene.errors import InputError
 from vastray.scene.generate import generate
+from vastray.scene.store import Store
 from vastray.sim import calibrate as cal
 from vastray.sim.costs import VERSION, CostModel
 from vastray.sim.warmup import WarmProcesses, throughput_of
@@ -53,6 +54,9 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     assert 1e-6 < model.latency_s < 0.1
     assert 1e-12 < model.byte_s < 1e-6  # between 1 MB/s and 1 TB/s
     assert model.load_byte_s < 1e-6 and model.build_triangle_s < 1e-4
+    # what a read and a build cost besides their bytes and triangles: none (the store's
+    # domains too alike to tell) up to a few milliseconds
+    assert 0.0 <= model.read_fixed_s < 5e-3 and 0.0 <= model.build_fixed_s < 5e-3
     assert model.trace_ray_s < 1e-3 and model.shade_ray_s < 1e-3
     # a domain's activation costs more than one of its queries; a camera ray is made in
     # vectorised numpy, far cheaper than tracing and shading one
@@ -255,9 +259,85 @@ def test_throughput_takes_medians_over_rounds_and_caps_at_the_cores():
     assert throughput_of(noisy, cores=2) == {1: 1.0, 2: 2.0, 4: 2.0}
 
 
-def test_load_costs_are_ratios_of_totals():
-    samples = [cal.LoadSample(1000, 10, 1e-3, 2e-3), cal.LoadSample(3000, 30, 2e-3, 6e-3)]
-    assert cal.load_costs(samples) == pytest.approx((3e-3 / 4000, 8e-3 / 40))
+def test_load_costs_of_alike_sizes_are_ratios_of_totals():
+    # 1,000 and 1,200 bytes (triangles): too alike to tell a fixed cost from a slope
+    samples = [cal.LoadSample(1000, 10, 1e-3, 2e-3), cal.LoadSample(1200, 12, 2e-3, 6e-3)]
+    assert cal.load_costs(samples) == pytest.approx((0.0, 3e-3 / 2200, 0.0, 8e-3 / 22))
+
+
+def test_load_costs_fit_a_fixed_part_and_a_slope_over_sizes():
+    def read(nbytes):
+        return 4e-4 + nbytes * 1e-9
+
+    def build(triangles):
+        return 3e-4 + triangles * 1.5e-7
+
+    # loads at one size but many of them, and builds of 2 to 16 domains' triangles: the
+    # build's slope comes from the builds, each size counting once however many loads
+    loads = [cal.LoadSample(b, t, read(b), build(t)) for b, t in ((50_000, 2_000),
+                                                                 (100_000, 2_400)) * 500]
+    builds = [(t, build(t)) for t in (4_400, 8_800, 17_600, 35_200) for _ in range(3)]
+    read_fixed, per_byte, build_fixed, per_triangle = cal.load_costs(loads, builds)
+    assert (read_fixed, per_byte) == pytest.approx((4e-4, 1e-9), rel=1e-6)
+    assert (build_fixed, per_triangle) == pytest.approx((3e-4, 1.5e-7), rel=1e-6)
+    # the model charges a domain 10x the calibration's size what the line says, where
+    # ratios of totals at the calibration's sizes charged it 2.3x
+    model = CostModel(read_fixed_s=read_fixed, load_byte_s=per_byte,
+                      build_fixed_s=build_fixed, build_triangle_s=per_triangle)
+    assert model.load_s(750_000, 22_000) == pytest.approx(read(750_000) + build(22_000))
+
+
+def test_load_costs_fall_back_to_ratios_where_noise_makes_a_part_negative():
+    # read time falling with size: a negative slope is noise, not a cost
+    loads = [cal.LoadSample(1000, 10, 2e-3, 1e-3), cal.LoadSample(4000, 40, 1e-3, 4e-3)]
+    read_fixed, per_byte, build_fixed, per_triangle = cal.load_costs(loads)
+    assert (read_fixed, per_byte) == pytest.approx((0.0, 3e-3 / 5000))
+    assert (build_fixed, per_triangle) == pytest.approx((0.0, 1e-4))
+
+
+def test_merged_arrays_place_each_part_at_its_origin():
+    from vastray.scene.store import DomainArrays
+
+    one = DomainArrays(vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32),
+                       indices=np.array([[0, 1, 2]], np.uint32), origin=np.array([10., 0, 0]))
+    two = DomainArrays(vertices=np.array([[0, 0, 0], [0, 0, 1], [0, 1, 0]], np.float32),
+                       indices=np.array([[0, 2, 1]], np.uint32), origin=np.array([12., 0, 0]))
+    merged = cal.merged_arrays([one, two])
+    np.testing.assert_array_equal(merged.indices, [[0, 1, 2], [3, 5, 4]])
+    np.testing.assert_array_equal(merged.vertices[3:], [[2, 0, 0], [2, 0, 1], [2, 1, 0]])
+    np.testing.assert_array_equal(merged.origin, [10, 0, 0])
+
+
+def test_merged_builds_span_one_domain_to_the_whole_store(store):
+    builds = cal.time_merged_builds(Store(store), frozenset(), rounds=2)
+    sizes = sorted({t for t, _ in builds})
+    domains = [d.n_triangles for d in Store(store).domains if d.n_triangles > 0]
+    assert sizes[-1] == sum(domains) and len(builds) == 2 * len(sizes)
+    assert all(seconds > 0 for _, seconds in builds)
+
+
+def test_a_load_times_its_read_in_wall_seconds_and_its_build_in_cpu_seconds(store, monkeypatch):
+    # Embree builds a large domain on every core: the build is charged the CPU of all its
+    # threads, which a node sharing its cores pays (wall time on the idle calibration
+    # machine charged a CT scan's 25,000-triangle domain half of it)
+    from vastray.scene.cache import DomainCache
+
+    clock = {"cpu": 10.0}
+
+    class CountingBVH(cal.DomainBVH):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            clock["cpu"] += 0.75  # what the build's threads took
+
+    monkeypatch.setattr(cal, "DomainBVH", CountingBVH)
+    monkeypatch.setattr(cal.time, "process_time", lambda: clock["cpu"])
+    opened = Store(store)
+    domain = next(d.id for d in opened.domains if d.n_triangles > 0)
+    sample = cal._timed_load(DomainCache(opened, 1), domain)
+    assert sample.build_s == pytest.approx(0.75)
+    assert 0.0 < sample.read_s < 5.0
+    assert (sample.nbytes, sample.triangles) == (opened.domains[domain].nbytes,
+                                                 opened.domains[domain].n_triangles)
 
 
 def test_trace_costs_fit_calls_take_medians_and_split_shading():

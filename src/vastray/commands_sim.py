@@ -52,6 +52,8 @@ COST_LABELS = {
     "camera_ray_s": "per camera ray",
     "load_byte_s": "per byte read from the store",
     "build_triangle_s": "per triangle of a BVH build",
+    "read_fixed_s": "per domain read, besides its bytes",
+    "build_fixed_s": "per BVH build, besides its triangles",
     "latency_s": "per message between processes",
     "byte_s": "per byte on the wire",
     "receive_s": "per message a node receives (its actors, beyond the wire)",

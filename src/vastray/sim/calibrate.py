@@ -48,8 +48,9 @@ from vastray.render.driver import path_context
 from vastray.render.integrators import RenderSettings, camera_rays
 from vastray.render.scene_config import SceneConfig
 from vastray.report import package_version
+from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
-from vastray.scene.store import Store
+from vastray.scene.store import DomainArrays, Store
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
@@ -177,8 +178,9 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     settings = settings or calibration_settings(quick)
     setup = RenderSetup.of(store, config or SceneConfig(text=""), settings)
     report("loads", 0.0, "loading domains")
-    load_byte_s, build_triangle_s = load_costs(time_loads(store, setup.keep, effort,
-                                                          report.within("loads"), cold_reads))
+    read_fixed_s, load_byte_s, build_fixed_s, build_triangle_s = load_costs(
+        time_loads(store, setup.keep, effort, report.within("loads"), cold_reads),
+        time_merged_builds(store, setup.keep))
     report("tracing", 0.0, "tracing tiles")
     tiles, offload = time_tiles(store, setup, settings, effort, report.within("tracing"))
     tracing = trace_costs(tiles)
@@ -195,6 +197,7 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
     # simulates (the constants stay for another machine's simulations, trace_scale 0)
     model = CostModel(
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
+        read_fixed_s=read_fixed_s, build_fixed_s=build_fixed_s,
         latency_s=latency_s, byte_s=byte_s, receive_s=receive_s, decision_scale=1.0,
         trace_scale=1.0, offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
@@ -245,8 +248,8 @@ class _Stages:
 # -- loads ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class LoadSample:
-    """One cold load of a domain: its manifest bytes and triangles, and the seconds of the
-    read of its files and of its BVH build."""
+    """One load of a domain: its manifest bytes and triangles, the wall seconds of the read of
+    its files and the CPU seconds (every thread's) of its BVH build (``_timed_load``)."""
 
     nbytes: int
     triangles: int
@@ -279,8 +282,8 @@ def time_loads(store: Store, keep: frozenset[str], effort: Effort,
 
     Returns
     -------
-    list of LoadSample, one per timed load (the read and build as ``DomainCache.load``
-    times them: ``CacheStats.read_seconds`` and ``build_seconds``).
+    list of LoadSample, one per timed load (``_timed_load``: the read in wall seconds, the
+    build in CPU seconds).
     """
     domains = [d.id for d in store.domains if d.n_triangles > 0]
     if not domains:
@@ -301,30 +304,110 @@ def time_loads(store: Store, keep: frozenset[str], effort: Effort,
 
 
 def _timed_load(cache: DomainCache, domain: int) -> LoadSample:
-    """One ``cache.load(domain)`` (not kept), its read and build seconds from the stats."""
-    stats = cache.stats
-    read, build = stats.read_seconds, stats.build_seconds
-    bvh = cache.load(domain)
-    bvh.close()
-    info = cache.store.domains[domain]
-    return LoadSample(info.nbytes, info.n_triangles, stats.read_seconds - read,
-                      stats.build_seconds - build)
+    """One load of ``domain`` as ``cache.load`` makes it (not kept): the read's wall seconds
+    and the build's CPU seconds.
 
-
-def load_costs(samples: list[LoadSample]) -> tuple[float, float]:
-    """(load_byte_s, build_triangle_s): total read seconds over total bytes, total build
-    seconds over total triangles.
-
-    Ratios of totals, not a fit with an intercept: the cost model has no per-load constant,
-    so what a load costs besides its bytes (opening files, headers, checks) and besides its
-    triangles (making the Embree scene) is folded into the per-unit costs at this store's
-    domain sizes, and the model then gives exactly the measured total load time for them.
-    (The domains of one store are of similar sizes, so an intercept would be ill-determined.)
+    The build is timed in CPU seconds of the whole process (``time.process_time``: Embree's
+    build threads too), not in wall seconds: Embree builds a domain of tens of thousands of
+    triangles on every core (a turbine scan's 25,000-triangle domain here: 6.4 ms of wall
+    time, 12.5 ms of CPU on 2 cores; one of rm 64³'s 2,400 triangles: one core), and a node
+    that shares its cores with its own traces and other nodes pays the CPU. Timed in wall
+    seconds on the idle calibration machine, a large domain's build was charged half of it.
     """
-    nbytes = sum(s.nbytes for s in samples)
-    triangles = sum(s.triangles for s in samples)
-    return (sum(s.read_s for s in samples) / max(nbytes, 1),
-            sum(s.build_s for s in samples) / max(triangles, 1))
+    store = cache.store
+    start = time.perf_counter()
+    arrays = store.load_domain(domain, drop_cache=cache.drop_page_cache)
+    read_s = time.perf_counter() - start
+    cpu = time.process_time()
+    bvh = DomainBVH(domain, arrays, cache.keep, None, cache.build_quality, cache.mesh_quality)
+    build_s = time.process_time() - cpu
+    bvh.close()
+    info = store.domains[domain]
+    return LoadSample(info.nbytes, info.n_triangles, read_s, build_s)
+
+
+def time_merged_builds(store: Store, keep: frozenset[str], rounds: int = 3
+                       ) -> list[tuple[int, float]]:
+    """BVH builds over the first k non-empty domains' triangles as one mesh (placed as in the
+    store), k = 2, 4, 8, ... and all, ``rounds`` times each, as ``DomainCache.load`` builds
+    (its build qualities for a cache smaller than the store).
+
+    A store's domains are of similar sizes (rm 64³ in 3x3x2: 1,472-3,267 triangles), too
+    close to tell a build's fixed cost from its cost per triangle; these builds span one
+    domain to the whole store.
+
+    Returns
+    -------
+    list of (triangles, seconds), one per build.
+    """
+    ids = [d.id for d in store.domains if d.n_triangles > 0]
+    arrays = [store.load_domain(i) for i in ids]
+    cache = DomainCache(store, 1, keep)
+    counts = sorted({min(2 ** j, len(ids)) for j in range(1, max(1, len(ids) - 1).bit_length() + 1)})
+    # the first build pays first uses (4-8x a warm one): untimed
+    DomainBVH(-1, arrays[0], keep, None, cache.build_quality, cache.mesh_quality).close()
+    samples = []
+    for k in counts:
+        merged = merged_arrays(arrays[:k])
+        for _ in range(rounds):
+            cpu = time.process_time()  # CPU seconds, Embree's build threads too (_timed_load)
+            bvh = DomainBVH(-1, merged, keep, None, cache.build_quality, cache.mesh_quality)
+            samples.append((int(merged.indices.shape[0]), time.process_time() - cpu))
+            bvh.close()
+    return samples
+
+
+def merged_arrays(parts: list[DomainArrays]) -> DomainArrays:
+    """The triangles of ``parts`` as one mesh, each placed at its origin relative to the
+    first's (no attributes: a build does not read them)."""
+    base = np.zeros(3) if parts[0].origin is None else np.asarray(parts[0].origin, np.float64)
+    vertices, indices, offset = [], [], 0
+    for part in parts:
+        origin = np.zeros(3) if part.origin is None else np.asarray(part.origin, np.float64)
+        vertices.append((part.vertices + (origin - base)).astype(np.float32))
+        indices.append(part.indices + np.uint32(offset))
+        offset += part.vertices.shape[0]
+    return DomainArrays(vertices=np.concatenate(vertices), indices=np.concatenate(indices),
+                        origin=None if parts[0].origin is None else base)
+
+
+def load_costs(samples: list[LoadSample], builds: list[tuple[int, float]] = ()
+               ) -> tuple[float, float, float, float]:
+    """(read_fixed_s, load_byte_s, build_fixed_s, build_triangle_s): a load's read and build
+    each fitted as a fixed cost plus a cost per byte or per triangle.
+
+    Least squares with relative residuals (weights 1 / seconds**2): the read over the loads'
+    bytes; the build over one point a size, the loads' medians (triangles, seconds) and the
+    median of each size of ``builds`` (``time_merged_builds``: up to the whole store, which
+    is what sets the build's slope; thousands of loads at one size would otherwise outweigh
+    them). A fit that noise leaves with a negative part, or sizes too alike to fit (the
+    largest under 1.5x the smallest), falls back to no fixed cost and the ratio of totals,
+    which gives exactly the measured total at the measured sizes. Before session 30 both
+    were that ratio: it charged the domains of a CT scan, 10x the calibration store's
+    triangles, 2.4x their real load time (a load's fixed part, about 0.5-1 ms here, charged
+    per triangle).
+    """
+    nbytes = np.array([s.nbytes for s in samples], np.float64)
+    read = np.array([s.read_s for s in samples], np.float64)
+    sizes = sorted({t for t, _ in builds})
+    triangles = np.array([np.median([s.triangles for s in samples])] + sizes, np.float64)
+    build = np.array([np.median([s.build_s for s in samples])]
+                     + [np.median([b for t, b in builds if t == size]) for size in sizes],
+                     np.float64)
+    if not builds:  # no wider sizes: the loads themselves, as the read
+        triangles = np.array([s.triangles for s in samples], np.float64)
+        build = np.array([s.build_s for s in samples], np.float64)
+    return (*_fixed_and_slope(nbytes, read), *_fixed_and_slope(triangles, build))
+
+
+def _fixed_and_slope(x: np.ndarray, seconds: np.ndarray) -> tuple[float, float]:
+    """(fixed, per unit) of ``seconds ~ fixed + x * per_unit``, as ``load_costs`` says."""
+    ratio = (0.0, float(seconds.sum() / max(x.sum(), 1.0)))
+    usable = (x > 0) & (seconds > 0)
+    if usable.sum() < 2 or x[usable].max() < 1.5 * x[usable].min():
+        return ratio
+    fixed, slope = fit_line(x[usable], seconds[usable], 1.0 / seconds[usable] ** 2)
+    return (fixed, slope) if fixed >= 0.0 and slope > 0.0 else ratio
 
 
 # -- tracing --------------------------------------------------------------------------------

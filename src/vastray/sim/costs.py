@@ -35,7 +35,14 @@ class CostModel:
 
     camera_ray_s : making one camera ray (path context included).
     load_byte_s : reading one byte of a domain's files.
-    build_triangle_s : building the BVH over one triangle.
+    build_triangle_s : building the BVH over one triangle, in CPU seconds of every thread
+        Embree builds on (a large domain's build runs on every core; a node sharing its
+        cores pays the CPU, not the wall time of the idle calibration machine).
+    read_fixed_s, build_fixed_s : what a load's read and its build cost besides the bytes and
+        the triangles (opening the files, checks, allocations; making the Embree scene). Here
+        about 0.4 ms and 0.1-0.4 ms: for a store of small domains most of a load, so that
+        folded into the per-unit costs (as calibrations before session 30 did) they charged a
+        CT scan's domains, 10x the triangles of the calibration store's, 2.4x their real load.
     latency_s : one message between two nodes, end to end (encode, send, receive, decode).
     byte_s : one byte on the wire (the inverse of the bandwidth).
     receive_s : what one message costs the node that receives it beyond the raw wire's
@@ -88,6 +95,8 @@ class CostModel:
     camera_ray_s: float = 2e-7
     load_byte_s: float = 1e-9
     build_triangle_s: float = 2e-7
+    read_fixed_s: float = 0.0
+    build_fixed_s: float = 0.0
     latency_s: float = 2e-4
     byte_s: float = 1e-9
     receive_s: float = 0.0
@@ -133,9 +142,17 @@ class CostModel:
             return cpu_seconds * self.trace_scale
         return self.trace_s(radiance, shadow)
 
+    def read_s(self, nbytes: int) -> float:
+        """Seconds to read a domain of ``nbytes`` bytes from the store."""
+        return self.read_fixed_s + nbytes * self.load_byte_s
+
+    def build_s(self, triangles: int) -> float:
+        """Seconds to build a domain's BVH over ``triangles``."""
+        return self.build_fixed_s + triangles * self.build_triangle_s
+
     def load_s(self, nbytes: int, triangles: int) -> float:
         """Seconds to load a domain of ``nbytes`` bytes and build its BVH over ``triangles``."""
-        return nbytes * self.load_byte_s + triangles * self.build_triangle_s
+        return self.read_s(nbytes) + self.build_s(triangles)
 
     def message_s(self, nbytes: int) -> float:
         """Seconds from a message's send to its delivery."""

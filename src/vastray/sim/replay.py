@@ -189,8 +189,8 @@ class Replay:
     activations : what an activation costs (default: ``fit_activation_costs`` on the
         recording: this store's per-ray costs with the model's fixed ones).
     network : the wire beyond the messages' CPU cost.
-    storage_bandwidth : bytes per second a node reads a domain at (None: the calibrated
-        ``load_byte_s``).
+    storage_bandwidth : bytes per second a node reads a domain at, at most (None: the
+        calibrated ``read_s``; else the slower of the two, as ``DomainCache.load`` throttles).
     tile : paths in flight per tile (the coordinator's default).
     """
 
@@ -206,10 +206,11 @@ class Replay:
         self.lo, self.hi = lo, hi
         self.tile = tile
         self.n_domains = crossings.n_domains
-        read = (nbytes * costs.load_byte_s if storage_bandwidth is None
-                else nbytes / storage_bandwidth)
+        read = costs.read_fixed_s + nbytes * costs.load_byte_s
+        if storage_bandwidth is not None:  # as ``DomainCache.load``: the read waits out the rest
+            read = np.maximum(read, nbytes / storage_bandwidth)
         #: (D,) seconds to load each domain (read, then build)
-        self.load_s = read + triangles * costs.build_triangle_s
+        self.load_s = read + costs.build_fixed_s + triangles * costs.build_triangle_s
         self._index()
 
     # -- the recording as arrays of visits ------------------------------------------------
