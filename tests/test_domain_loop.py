@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -81,6 +82,31 @@ def test_each_step_gets_guesses_traces_and_ships_in_that_order(store, preloader)
     assert preloader.stats()["preloads"] == 2
     assert loop.traced_domains == {a, b, c}
     assert loop.productive_loads == {(a, 1), (b, 1), (c, 1)}
+
+
+class Burner(Recorder):
+    """Traces by burning ``cpu_s`` of the tracing thread's CPU."""
+
+    cpu_s = 0.02
+
+    def trace(self, domain, bvh):
+        start = time.thread_time()
+        while time.thread_time() - start < self.cpu_s:
+            pass
+        return super().trace(domain, bvh)
+
+
+@pytest.mark.parametrize("offload", [False, True])
+def test_a_trace_counts_its_cpu_seconds_on_the_thread_that_traces(store, preloader, offload):
+    # the wall span (trace_s) also counts the time other threads and processes held the
+    # core; trace_cpu_s is the work alone, what the simulator charges a trace
+    a, b = nonempty(store)[:2]
+    stats: dict = {}
+    loop = DomainLoop(preloader, stats, offload=offload)
+    order = Burner([a, b], {}, preloader, queries=10_000)  # enough rays to be handed off
+    assert asyncio.run(loop.run(order)) == 2
+    assert stats.get("handed_off", 0) == (2 if offload else 0)
+    assert 2 * Burner.cpu_s <= stats["trace_cpu_s"] <= stats["trace_s"] + 1e-3
 
 
 def test_an_activation_that_traces_nothing_is_no_productive_load(store, preloader):

@@ -92,6 +92,7 @@ class VirtualDomainLoop(DomainLoop):
         cpu = cpu_time()
         queries = order.trace(domain, bvh)
         cpu = cpu_time() - cpu
+        self.stats["trace_cpu_s"] = self.stats.get("trace_cpu_s", 0.0) + cpu
         if not queries:  # a domain only loaded (in situ), or nothing left for it
             return queries
         costs = self.cluster.costs
