@@ -24,7 +24,11 @@ constant is the calibration's. ``--no-probe`` charges the calibration's througho
 nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
-calibrated on (``sim_error_oos_max=``).
+calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over
+the simulation's (``trace_cpu_s``, the same traces): this machine's speed moves by up to a
+fifth within seconds (a fixed kernel's CPU time, 2-second windows: 0.039-0.059 s), which no
+probe before a run sees, and this ratio says how much of a row's error is that
+(``trace_cpu_real_over_sim=``).
 
 Scaling, by replay (``bench/replay_scaling.py``, ``vastray.sim.replay``): one frame of a store
 of 1,439 domains traced once for real, every scheduler's policy replayed over its crossings on
@@ -111,9 +115,12 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     Returns
     -------
     dict with ``real_s``, ``sim_s`` (the medians), ``rounds``, ``lost`` (the largest share
-    charged), ``result`` (the last real run's) and ``sim`` (the last simulation's).
+    charged), ``trace_ratio`` (the median over the pairs of the real nodes' trace CPU over
+    the simulation's, ``trace_cpu_s``: the same traces, so its distance from 1 is the
+    machine's speed moving between the two; None where the runtime does not count it),
+    ``result`` (the last real run's) and ``sim`` (the last simulation's).
     """
-    reals, sims, lost, result, sim = [], [], [], None, None
+    reals, sims, lost, ratios, result, sim = [], [], [], [], None, None
     while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s):
         with StealMeter() as meter:
             result = render_distributed(store.path, None, settings, nodes, options=options,
@@ -123,8 +130,18 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
         sim = simulate(store, replace(options, threads=None), nodes, costs.stolen(lost[-1]),
                        settings, config, max_pass_spp=None, domains=domains)
         sims.append(sim.seconds)
+        real_trace = sum(n["counters"].get("trace_cpu_s", 0.0)
+                         for n in result.counters["per_node"])
+        if real_trace > 0 and sim.counters.get("trace_cpu_s", 0.0) > 0:
+            ratios.append(real_trace / sim.counters["trace_cpu_s"])
     return {"real_s": float(np.median(reals)), "sim_s": float(np.median(sims)),
-            "rounds": len(reals), "lost": max(lost), "result": result, "sim": sim}
+            "rounds": len(reals), "lost": max(lost),
+            "trace_ratio": float(np.median(ratios)) if ratios else None,
+            "result": result, "sim": sim}
+
+
+def _ratio(point: dict) -> str:
+    return "–" if point["trace_ratio"] is None else f"{point['trace_ratio']:.2f}"
 
 
 def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VALIDATION,
@@ -144,8 +161,9 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
     print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | taken by others "
-          "| rounds | measured s | simulated s | error | images = reference |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "| rounds | trace CPU real / sim | measured s | simulated s | error "
+          "| images = reference |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
         now = costs if probe is None else probe.now(costs)
         shared = now.with_cores(now.cores)
@@ -160,10 +178,11 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
                          "spp": settings.spp, "measured_s": real_s, "simulated_s": sim_s,
                          "rounds": point["rounds"], "error": error, "same_image": same,
                          "receive_s": now.receive_s, "offload_s": now.offload_s,
-                         "throughput": now.throughput, "stolen": stolen})
+                         "throughput": now.throughput, "stolen": stolen,
+                         "trace_ratio": point["trace_ratio"]})
             print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
-                  f"{stolen:.0%} | {point['rounds']} | {real_s:.3f} | {sim_s:.3f} | "
-                  f"{error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
+                  f"{stolen:.0%} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
+                  f"{sim_s:.3f} | {error:+.1%} | {'yes' if same else 'NO'} |", flush=True)
     domains.close()
     return rows
 
@@ -204,9 +223,11 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | taken by others | rounds | measured s | simulated s | error "
-              "| real image = reference | sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+              "| throughput 2 / 4 | taken by others | rounds | trace CPU real / sim "
+              "| measured s | simulated s | error | real image = reference "
+              "| sim image = reference |")
+        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
+              "| --- |")
         for scheduler in SIM_SCHEDULERS:
             now = costs if probe is None else probe.now(costs)
             shared = now.with_cores(now.cores)
@@ -230,10 +251,11 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
                              "simulated_s": sim_s, "rounds": point["rounds"], "error": error,
                              "same_image": real_same and sim_same,
                              "receive_s": now.receive_s, "offload_s": now.offload_s,
-                             "throughput": now.throughput, "stolen": stolen})
+                             "throughput": now.throughput, "stolen": stolen,
+                             "trace_ratio": point["trace_ratio"]})
                 print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
                       f"{_messaging(now)} | {_throughput(now)} | {stolen:.0%} | "
-                      f"{point['rounds']} | {real_s:.3f} | {sim_s:.3f} | "
+                      f"{point['rounds']} | {_ratio(point)} | {real_s:.3f} | {sim_s:.3f} | "
                       f"{error:+.1%} | {'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)
         domains.close()
@@ -304,6 +326,11 @@ def main() -> None:
         print(f"\nsim_error_oos_max={worst:.3f}  (out of sample: other stores, a real scan, "
               "other resolutions, bounces and caches; goal 0.20)")
         print(f"sim_error_oos_median={float(np.median([abs(r['error']) for r in oos])):.3f}")
+        ratios = [r["trace_ratio"] for r in oos if r["trace_ratio"] is not None]
+        if ratios:  # the same traces took this much more CPU in the real runs than simulated
+            print(f"trace_cpu_real_over_sim={min(ratios):.2f}..{max(ratios):.2f} (median "
+                  f"{float(np.median(ratios)):.2f}: the machine's speed between a real run "
+                  "and its simulation, over the rows that count it)")
         print(f"oos_images_equal_reference={all(r['same_image'] for r in oos)}")
         rows = rows + oos
     if args.validation_only:
