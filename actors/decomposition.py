@@ -140,8 +140,10 @@ async def _temporal_frame(node, setup, settings, store, options: JobOptions, ran
     # the effective ones, reported
     stats["assignment"] = options.assignment or sched.default_assignment
     stats["priority"] = options.priority or sched.default_priority
+    # the capacity is the job's (``--cache``, else a group's worth): every node decides alike
     assignment = frame_assignment(stats["assignment"], store, setup.camera,
-                                  settings.width, settings.height, size, previous)
+                                  settings.width, settings.height, size, previous,
+                                  preloader.capacity)
     frame = TemporalFrame(node, setup, settings, assignment, rank, size, tile, film, store,
                           stats["priority"], previous, on_tile, base=base,
                           status_label=state.ordinal, simple=routing)

@@ -30,7 +30,7 @@ DEFAULT_MAX_BATCH_RAYS = 65536
 VERSION = 5
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
-ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity")
+ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
 EVICTIONS = ("lru", "demand")
 PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 

@@ -56,9 +56,12 @@ def domain_table(store) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def frame_assignment(kind: str, store, camera, width: int, height: int, size: int,
-                     previous: plan.FrameStats | None) -> plan.Assignment:
-    """This frame's assignment units (``plan.assign_frame`` over the store's domains)."""
-    return plan.assign_frame(kind, camera, *domain_table(store), width, height, size, previous)
+                     previous: plan.FrameStats | None, capacity: int | None = None
+                     ) -> plan.Assignment:
+    """This frame's assignment units (``plan.assign_frame`` over the store's domains; a node's
+    cache holds ``capacity`` domains, the same on every node of a job)."""
+    return plan.assign_frame(kind, camera, *domain_table(store), width, height, size, previous,
+                             capacity)
 
 
 class TemporalFrame(AsyncFrame):

@@ -7,7 +7,13 @@
   against the non-speculative baselines, AO and PT;
 - Xu et al. 2022, Fig. 5: an animation on 4, 8 and 16 nodes, ``temporal`` against Galaxy's
   asynchronous decomposition (``async``, the paper's Abram et al.) and Navrátil's ``domain``
-  and ``dynamic`` rounds, each node caching 4 domains behind emulated storage.
+  and ``dynamic`` rounds, each node caching 4 domains behind emulated storage;
+- Xu et al. at 8 to 64 nodes (``python bench/sim_figures.py --temporal-scale``): ``temporal``
+  with Algorithm 1 (``paper``), with cache affinity (``affinity``, the default) and with the
+  static groups while they fit the caches (``fit``), against Galaxy's ``async`` and the
+  cache-aware baseline (``temporal`` on the static groups, cached domains first), with a
+  quarter of the domains cached a node (the paper's ratio) and with a quarter of a node's
+  group (where the groups do not fit).
 
 Every run: warm nodes (no first-use cost: the papers time rendering, not start-up), a core
 per node, this machine's calibrated costs. Each figure is a PNG in ``docs/`` and a table here.
@@ -17,7 +23,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bench_scenes import cached_cosmo
+from bench_scenes import CACHE, cached_cosmo
 
 from vastray.actors.job_options import JobOptions
 from vastray.render.driver import shading_inputs
@@ -175,9 +181,88 @@ def xu_fig5(costs: CostModel) -> dict:
     return out
 
 
+#: Temporal coherence at the paper's scale: the runs compared (label, scheduler, options)
+TEMPORAL_RUNS = (
+    ("async (Galaxy)", "async", {}),
+    ("cache-aware baseline", "temporal", {"assignment": "spatial", "priority": "queue+resident"}),
+    ("temporal paper", "temporal", {"assignment": "paper"}),
+    ("temporal affinity", "temporal", {"assignment": "affinity"}),
+    ("temporal fit", "temporal", {"assignment": "fit"}),
+)
+TEMPORAL_NODES = (8, 16, 32, 64)
+#: the store: cosmo 160^3 in 8x8x4 cells (256 domains where every cell is non-empty): a
+#: group of 4 domains a node at 64 nodes
+TEMPORAL_GRID = (8, 8, 4)
+
+
+def temporal_at_scale(costs: CostModel, node_counts=TEMPORAL_NODES) -> dict:
+    """Xu et al.'s schedules at 8 to 64 nodes (``TEMPORAL_RUNS``), Fig. 5's orbit and storage,
+    each node caching a quarter of the domains (the paper's ratio: every static group fits
+    from 4 nodes on) or a quarter of a node's static group (none fits): simulated seconds for
+    the animation, and the strongest baseline's over the best ``temporal``'s."""
+    store = cached_cosmo(160, TEMPORAL_GRID)
+    settings = RenderSettings(width=96, height=96, spp=2, integrator="pt", bounces=1,
+                              shadow_samples=2)
+    domains = Domains(store, shading_inputs(store, ORBIT, settings.integrator)[1])
+    n_domains = sum(1 for d in store.domains if d.n_triangles > 0)
+    labels = [label for label, _, _ in TEMPORAL_RUNS]
+    out: dict = {}
+    caches = {"a quarter of the domains": lambda p: max(2, n_domains // 4),
+              "a quarter of a node's group": lambda p: max(2, -(-n_domains // p) // 4)}
+    for name, cache_of in caches.items():
+        print(f"\ntemporal at scale: {XU_FRAMES}-frame orbit of {store.path.name} "
+              f"({n_domains} domains), 96x96 x 2 spp, each node caching {name}, storage "
+              f"{XU_BANDWIDTH_MB_S:g} MB/s a node; simulated seconds for the animation:")
+        print("| nodes | cache | " + " | ".join(labels)
+              + " | strongest baseline / best temporal |")
+        print("| --- | --- |" + " --- |" * (len(labels) + 1))
+        rows = out[name] = {}
+        for nodes in node_counts:
+            cache = cache_of(nodes)
+            t = {label: _run(store, scheduler, nodes, costs, settings, domains, ORBIT,
+                             frames=XU_FRAMES, cache=cache,
+                             load_bandwidth=(XU_BANDWIDTH_MB_S,), **extra)
+                 for label, scheduler, extra in TEMPORAL_RUNS}
+            baseline = min(t[labels[0]], t[labels[1]])
+            best = min(t[label] for label in labels[2:])
+            rows[nodes] = {**t, "cache": cache, "ratio": baseline / best}
+            print(f"| {nodes} | {cache} | " + " | ".join(f"{t[label]:.3f}" for label in labels)
+                  + f" | {baseline / best:.2f} |", flush=True)
+    domains.close()
+    return out
+
+
 def paper_figures(costs: CostModel, times: dict, n_domains: int) -> dict:
     """Every figure; ``times``: the scaling runs on a store of ``n_domains`` domains
     (Navrátil's from them)."""
     warm = costs.warm().with_cores(None)
     return {"navratil_fig12": navratil(times, n_domains), "spray_fig7": spray_insitu(warm),
-            "xu_fig5": xu_fig5(warm)}
+            "xu_fig5": xu_fig5(warm), "temporal_at_scale": temporal_at_scale(warm)}
+
+
+def main() -> None:
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--temporal-scale", action="store_true",
+                        help="Xu et al.'s schedules at 8 to 64 nodes (the figure run alone; "
+                             "the others run in bench/simulate.py's full mode)")
+    parser.add_argument("--costs", default=str(CACHE / "costs.json"),
+                        help="a calibration file (default: the last bench/simulate.py's)")
+    parser.add_argument("--nodes", default=",".join(map(str, TEMPORAL_NODES)),
+                        help="node counts, comma-separated (default: %(default)s)")
+    parser.add_argument("--json", help="write the table's numbers here")
+    args = parser.parse_args()
+    if not args.temporal_scale:
+        parser.error("name the figure to run: --temporal-scale (the papers' others run in "
+                     "`python bench/simulate.py`'s full mode)")
+    costs = CostModel.load(args.costs).warm().with_cores(None)
+    out = temporal_at_scale(costs, tuple(int(n) for n in args.nodes.split(",")))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -104,7 +104,7 @@ class Option(Enum):
 
 #: Names of the domain assignments and priorities (``schedule.temporal``'s ``ASSIGNMENTS``
 #: and ``PRIORITIES``; kept here as names so that the registry loads nothing heavy).
-_ALL_ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity")
+_ALL_ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
 _ALL_PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 
 

@@ -16,6 +16,7 @@ from vastray.schedule.temporal import (
     assign_frame,
     assign_temporal,
     eye_domain,
+    groups_fit,
     projected_rects,
     screen_tiles,
     sequential_owners,
@@ -268,3 +269,31 @@ def test_assign_frame_affinity_follows_what_the_nodes_held():
     assert assign_frame("affinity", *args, stats).owner[[0, 3]].tolist() == [holder, holder]
     assert np.array_equal(assign_frame("affinity", *args, None).owner,
                           assign_frame("spatial", *args, None).owner)  # frame 0
+
+
+# -- fit: the static groups while they fit the caches ---------------------------------------------
+def test_groups_fit_counts_each_nodes_domains_and_the_replicated_one():
+    tiles = np.zeros((2, 4), np.int64)
+    two_and_one = Assignment(np.array([0, 0, -1, 1]), tiles)
+    assert groups_fit(two_and_one, 2) and not groups_fit(two_and_one, 1)
+    assert groups_fit(two_and_one, None)  # no bound
+    # domain 3 is replicated: node 0 may load it too, so node 0's working set is 3 domains
+    replicated = Assignment(np.array([0, 0, -1, 1]), tiles, replicated=3)
+    assert groups_fit(replicated, 3) and not groups_fit(replicated, 2)
+
+
+def test_fit_is_spatial_while_each_group_fits_its_cache_and_affinity_where_not():
+    args, stats = frame_inputs()  # 2 nodes, 3 non-empty domains: spatial groups of 2 and 1
+    stats.loads[:] = 2
+    stats.proc_rays[:] = 1000
+    spatial = assign_frame("spatial", *args, stats)
+    affinity = assign_frame("affinity", *args, stats)
+    assert not np.array_equal(spatial.owner, affinity.owner)  # the test can tell them apart
+    for capacity in (2, 3, None):  # the largest group, 2 domains, fits
+        fit = assign_frame("fit", *args, stats, capacity)
+        assert np.array_equal(fit.owner, spatial.owner) and fit.replicated is None
+    small = assign_frame("fit", *args, stats, 1)  # it does not: Algorithm 1 with affinity
+    assert np.array_equal(small.owner, affinity.owner)
+    assert np.array_equal(small.tiles, affinity.tiles) and small.replicated == affinity.replicated
+    # frame 0 has no statistics: spatial whatever the cache
+    assert np.array_equal(assign_frame("fit", *args, None, 1).owner, spatial.owner)

@@ -65,7 +65,8 @@ def test_temporal_gives_the_reference_image(scene, reference, nodes, cache):
                                                  ("spatial", "queue"),
                                                  ("paper", "queue+act"),
                                                  ("affinity", "cost-benefit"),
-                                                 ("spatial", "queue+resident")])
+                                                 ("spatial", "queue+resident"),
+                                                 ("fit", "cost-rate")])
 def test_every_assignment_and_priority_is_lossless(scene, assignment, priority):
     # Two frames: frame 0 bootstraps (spatial groups, queue order); frame 1 plans from its
     # statistics. (Temporal with its default cost-rate: test_animation_frames_equal_...)

@@ -353,7 +353,7 @@ def test_spatial_owners_balance_the_non_empty_domains():
 def test_names():
     assert PRIORITIES == ("queue", "spray", "queue+act", "cost-benefit", "cost-rate",
                           "queue+resident")
-    assert ASSIGNMENTS == ("sequential", "spatial", "paper", "affinity")
+    assert ASSIGNMENTS == ("sequential", "spatial", "paper", "affinity", "fit")
 
 
 # -- frame statistics --------------------------------------------------------------------------

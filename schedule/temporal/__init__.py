@@ -41,6 +41,7 @@ from vastray.schedule.temporal.assignment import (
     assign_frame,
     assign_temporal,
     eye_domain,
+    groups_fit,
     sequential_owners,
     spatial_owners,
 )
@@ -78,6 +79,7 @@ __all__ = [
     "bootstrap_priority",
     "dep_prime",
     "eye_domain",
+    "groups_fit",
     "load_time",
     "pixel_tiles",
     "potential",

@@ -172,7 +172,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "the temporal-coherence paper's Algorithm 1 from the last frame's ray "
                         "transmissions (paper), or Algorithm 1 where a domain a node holds "
                         "stays there unless moving it saves more than its load (affinity; "
-                        "temporal's default). Frame 0 uses spatial for both")
+                        "temporal's default), or spatial while every node's group fits its "
+                        "cache and affinity where it does not (fit). Frame 0 uses spatial "
+                        "for all three")
     p.add_argument("--priority", **argument("priority"),
                    help="temporal: how a node picks the next domain and what it preloads: "
                         "most queued rays (queue), SpRay's traversal score, queued plus "

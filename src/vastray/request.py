@@ -187,7 +187,7 @@ class RenderRequest:
     rendezvous: str | None = _option()
     keys: str | None = _option()
     no_preload: bool = _option(False, switch=True)
-    assignment: str | None = _option(choices=("sequential", "spatial", "paper", "affinity"))
+    assignment: str | None = _option(choices=("sequential", "spatial", "paper", "affinity", "fit"))
     priority: str | None = _option(choices=("queue", "spray", "queue+act", "cost-benefit",
                                             "cost-rate", "queue+resident"))
     simplified: str | None = _option(nargs="?", const="portal",
