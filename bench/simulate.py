@@ -25,10 +25,12 @@ nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over
-the simulation's (``trace_cpu_s``, the same traces): this machine's speed moves by up to a
-fifth within seconds (a fixed kernel's CPU time, 2-second windows: 0.039-0.059 s), which no
-probe before a run sees, and this ratio says how much of a row's error is that
-(``trace_cpu_real_over_sim=``).
+the simulation's (``trace_cpu_s``, the same traces; ``trace_cpu_real_over_sim=`` its range):
+this machine's speed moves by up to a fifth within seconds (a fixed kernel's CPU time,
+2-second windows: 0.039-0.059 s), which no probe before a run sees, and a real node's traces
+also cost more CPU than the simulator's for a reason not found yet (bench/README.md, session
+31: 1.2-1.6x on one node on the scan, up to 2.2x on 8), so a row's error far from 0 with
+this ratio far from 1 is mostly that.
 
 Scaling, by replay (``bench/replay_scaling.py``, ``vastray.sim.replay``): one frame of a store
 of 1,439 domains traced once for real, every scheduler's policy replayed over its crossings on
@@ -117,7 +119,8 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     dict with ``real_s``, ``sim_s`` (the medians), ``rounds``, ``lost`` (the largest share
     charged), ``trace_ratio`` (the median over the pairs of the real nodes' trace CPU over
     the simulation's, ``trace_cpu_s``: the same traces, so its distance from 1 is the
-    machine's speed moving between the two; None where the runtime does not count it),
+    machine's speed moving between the two, or what a real node's traces pay that the
+    simulator's do not; None where the runtime does not count it),
     ``result`` (the last real run's) and ``sim`` (the last simulation's).
     """
     reals, sims, lost, ratios, result, sim = [], [], [], [], None, None
@@ -329,8 +332,8 @@ def main() -> None:
         ratios = [r["trace_ratio"] for r in oos if r["trace_ratio"] is not None]
         if ratios:  # the same traces took this much more CPU in the real runs than simulated
             print(f"trace_cpu_real_over_sim={min(ratios):.2f}..{max(ratios):.2f} (median "
-                  f"{float(np.median(ratios)):.2f}: the machine's speed between a real run "
-                  "and its simulation, over the rows that count it)")
+                  f"{float(np.median(ratios)):.2f}, over the rows that count it: the same "
+                  "traces' CPU in the real nodes over the simulation's)")
         print(f"oos_images_equal_reference={all(r['same_image'] for r in oos)}")
         rows = rows + oos
     if args.validation_only:

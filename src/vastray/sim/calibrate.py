@@ -338,7 +338,7 @@ def time_merged_builds(store: Store, keep: frozenset[str], rounds: int = 3
 
     Returns
     -------
-    list of (triangles, seconds), one per build.
+    list of (triangles, CPU seconds of every thread: ``_timed_load``), one per build.
     """
     ids = [d.id for d in store.domains if d.n_triangles > 0]
     arrays = [store.load_domain(i) for i in ids]
