@@ -147,6 +147,41 @@ def test_a_node_sweeps_passes_together_only_out_of_core_and_within_the_film_budg
     assert units_together(frames, 0, out, False, 16, 100) == [0, 1]  # one frame at a time
 
 
+def test_ctrl_c_during_the_one_pass_says_nothing_was_kept(store, toml, tmp_path):
+    """As a user runs it, without --quiet: Ctrl-C in the middle of the one pass exits 130,
+    says that nothing finished can be kept and how to keep passes, and writes no image."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "one.exr"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vastray", "render", str(store.path), "--scene", str(toml),
+         "--width", str(W), "--height", str(H), "--spp", "65536", "--cache",
+         str(quarter(store)), "--scheduler", "spec-ooc", "-o", str(out)],
+        stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 120
+        seen = []
+        while not any("passes: one of 65536 spp" in line for line in seen):
+            line = proc.stderr.readline()
+            assert line and time.monotonic() < deadline, "".join(seen)
+            seen.append(line)
+        time.sleep(1.0)  # into the pass
+        assert proc.poll() is None, "".join(seen)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "interrupted during the one pass: nothing finished to keep" in err, err
+    assert "--checkpoint-every" in err
+    assert not out.exists()
+
+
 def test_the_cli_says_it_renders_out_of_core_in_one_pass(store, toml, tmp_path, capsys):
     """As a user runs it, without --quiet: the plan's line and the summary line."""
     from vastray.cli import main
