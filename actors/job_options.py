@@ -15,7 +15,7 @@ from dataclasses import asdict, dataclass, fields
 from vastray.scene.errors import InputError
 from vastray.schedule import registry
 from vastray.schedule.portals import DEFAULT_RESOLUTION
-from vastray.schedule.registry import Option
+from vastray.schedule.registry import ASSIGNMENTS, PRIORITIES, Option
 
 #: Rays per batch between two nodes unless told otherwise (``node_work.NodeWork``; about
 #: 6 MB of path-tracing rays).
@@ -30,9 +30,7 @@ DEFAULT_MAX_BATCH_RAYS = 65536
 VERSION = 5
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
-ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
 EVICTIONS = ("lru", "demand")
-PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 
 DEFAULT_PORTAL_RESOLUTION = DEFAULT_RESOLUTION  # the paper's
 

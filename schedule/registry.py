@@ -102,10 +102,10 @@ class Option(Enum):
     SIMPLIFIED = "--simplified"
 
 
-#: Names of the domain assignments and priorities (``schedule.temporal``'s ``ASSIGNMENTS``
-#: and ``PRIORITIES``; kept here as names so that the registry loads nothing heavy).
-_ALL_ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
-_ALL_PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
+#: Names of the domain assignments and priorities, defined once here (the registry loads
+#: nothing heavy): ``schedule.temporal``, the job options and the CLI take them from it.
+ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
+PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
 
 
 @dataclass(frozen=True)
@@ -230,7 +230,7 @@ SPECS: tuple[SchedulerSpec, ...] = (
         "async with each frame's domain groups and screen tiles planned from the last frame's "
         "ray statistics, and cost-based preloading (Xu et al. 2022)",
         options=_BATCHING | {Option.SIMPLIFIED},
-        assignments=_ALL_ASSIGNMENTS, priorities=_ALL_PRIORITIES,
+        assignments=ASSIGNMENTS, priorities=PRIORITIES,
         default_assignment="affinity", default_priority="cost-rate", frame_statistics=True,
         decomposition=Decomposition.PLANNED, simulation=Simulation.DOMAINS,
         policies=("vastray.schedule.temporal", "vastray.schedule.simplified",

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from vastray.schedule.registry import ASSIGNMENTS
 from vastray.schedule.temporal.screen import projected_rects, screen_tiles
 from vastray.schedule.temporal.stats import FrameStats
 
@@ -19,9 +20,9 @@ if TYPE_CHECKING:
 __all__ = ["ASSIGNMENTS", "Assignment", "assign_affinity", "assign_frame", "assign_temporal",
            "eye_domain", "groups_fit", "sequential_owners", "spatial_owners"]
 
-#: Domain assignments: Table 2's three (``paper`` is Algorithm 1), Algorithm 1 with cache
-#: affinity, and the choice between the static groups and that by whether they fit the caches.
-ASSIGNMENTS = ("sequential", "spatial", "paper", "affinity", "fit")
+# Domain assignments (``ASSIGNMENTS``, named in ``schedule.registry``): Table 2's three
+# (``paper`` is Algorithm 1), Algorithm 1 with cache affinity, and the choice between the
+# static groups and that by whether they fit the caches.
 
 
 def eye_domain(eye: np.ndarray, lo: np.ndarray, hi: np.ndarray, nonempty: np.ndarray) -> int | None:
@@ -416,11 +417,12 @@ def assign_frame(kind: str, camera: Camera, lo: np.ndarray, hi: np.ndarray, none
         return sequential_owners(len(lo), size, nonempty, width, height)
     if kind not in ASSIGNMENTS:
         raise ValueError(f"unknown assignment {kind!r}; expected one of {ASSIGNMENTS}")
-    static = spatial_owners(lo, hi, size, nonempty, width, height) if kind in (
-        "spatial", "fit") or previous is None else None
-    if kind == "spatial" or previous is None or (kind == "fit"
-                                                 and groups_fit(static, capacity)):
-        return static
+    if kind == "spatial" or previous is None:
+        return spatial_owners(lo, hi, size, nonempty, width, height)
+    if kind == "fit":
+        static = spatial_owners(lo, hi, size, nonempty, width, height)
+        if groups_fit(static, capacity):
+            return static
     paper = assign_temporal(screen_tiles(width, height, size), projected_rects(camera, lo, hi),
                             previous.sent, domain_bytes, previous.s_load(), nonempty,
                             eye_domain(camera.position, lo, hi, nonempty))

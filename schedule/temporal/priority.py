@@ -9,13 +9,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vastray.schedule.registry import PRIORITIES
+
 __all__ = ["PRIORITIES", "RESIDENT_COST_S", "PriorityInputs", "best", "bootstrap_priority",
            "dep_prime", "load_time", "potential", "priority", "resident_after_load", "victim"]
 
-#: Preload priorities: the paper's Table 2 ablation (Eq 1 is "cost-benefit"), Eq 1's terms as
-#: a ratio ("cost-rate", ``temporal``'s default) and the queue baseline made cache-aware
-#: ("queue+resident"), the strongest baseline of ``bench/temporal.py``.
-PRIORITIES = ("queue", "spray", "queue+act", "cost-benefit", "cost-rate", "queue+resident")
+# Preload priorities (``PRIORITIES``, named in ``schedule.registry``): the paper's Table 2
+# ablation (Eq 1 is "cost-benefit"), Eq 1's terms as a ratio ("cost-rate", ``temporal``'s
+# default) and the queue baseline made cache-aware ("queue+resident"), the strongest baseline
+# of ``bench/temporal.py``.
+
 #: T_LOAD floor of ``"cost-rate"``, seconds: what activating a resident domain costs (its
 #: BVH is built; a queue pop and a dispatch remain). A resident domain outranks a domain that
 #: must be loaded unless that one promises more than T_LOAD / RESIDENT_COST_S times the work.

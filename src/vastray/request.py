@@ -27,7 +27,14 @@ from vastray.preflight import parse_size
 from vastray.scene.bvh_choice import CHOICES as BVH_CHOICES
 from vastray.scene.errors import InputError
 from vastray.schedule import portals
-from vastray.schedule.registry import RENDER_CHOICES, Option, Runtime, spec
+from vastray.schedule.registry import (
+    ASSIGNMENTS,
+    PRIORITIES,
+    RENDER_CHOICES,
+    Option,
+    Runtime,
+    spec,
+)
 
 #: Defaults for a user's store, and for the built-in scene (a first picture in a few seconds:
 #: larger, smoother, one bounce and two shadow rays toward the sky).
@@ -187,9 +194,8 @@ class RenderRequest:
     rendezvous: str | None = _option()
     keys: str | None = _option()
     no_preload: bool = _option(False, switch=True)
-    assignment: str | None = _option(choices=("sequential", "spatial", "paper", "affinity", "fit"))
-    priority: str | None = _option(choices=("queue", "spray", "queue+act", "cost-benefit",
-                                            "cost-rate", "queue+resident"))
+    assignment: str | None = _option(choices=ASSIGNMENTS)
+    priority: str | None = _option(choices=PRIORITIES)
     simplified: str | None = _option(nargs="?", const="portal",
                                      choices=("portal", "depth>0", "depth>1", "depth>2",
                                               "none"))
