@@ -27,6 +27,7 @@ from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
 from vastray.actors.management import ManagementActor
 from vastray.actors.node_state import NodeState
+from vastray.actors.node_warm_up import warm_node
 from vastray.actors.rendezvous import (
     RESOLVE_WAIT_S,
     coordinator_address,
@@ -36,7 +37,6 @@ from vastray.actors.rendezvous import (
 from vastray.actors.tree_reduce import TreeReduceActor
 from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
-from vastray.render.kernels import warm_up
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
 from vastray.scene.errors import InputError
@@ -84,12 +84,13 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
                  port)
         credentials = Credentials(secret=await wait_for_join_secret(port, timeout))
     check_bind(bind_host, credentials)
-    # numba's once-a-process set-up (``render.kernels.warm_up``), on a thread while the
-    # node makes its sockets, and done before its first hello: the coordinator starts a job
+    # a fresh process's first use of the render kernels (``node_warm_up.warm_node``: numba's
+    # set-up and each kernel's first call), on a thread while the node makes its sockets,
+    # and done before its first hello: the coordinator starts a job
     # once every node has said hello, so every node starts its work at once (finished
     # after the job came, it held back some nodes' starts: 8 nodes on 2 cores then ran
     # staggered, which no node's busy time shows and the simulator does not model)
-    warming = asyncio.ensure_future(asyncio.to_thread(warm_up))
+    warming = asyncio.ensure_future(asyncio.to_thread(warm_node))
     ctx = zmq.asyncio.Context()
     gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:

@@ -27,10 +27,10 @@ Out of sample: the same against real runs on stores and settings the constants w
 calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over
 the simulation's (``trace_cpu_s``, the same traces; ``trace_cpu_real_over_sim=`` its range):
 this machine's speed moves by up to a fifth within seconds (a fixed kernel's CPU time,
-2-second windows: 0.039-0.059 s), which no probe before a run sees, and a real node's traces
-also cost more CPU than the simulator's for a reason not found yet (bench/README.md, session
-31: 1.2-1.6x on one node on the scan, up to 2.2x on 8), so a row's error far from 0 with
-this ratio far from 1 is mostly that.
+2-second windows: 0.039-0.059 s), which no probe before a run sees, so a row's error far from
+0 with this ratio far from 1 is mostly that. (Until session 32 a fresh node also loaded each
+compiled kernel in its first activations: 1.15-2.2x on the scan; nodes now call them as
+they start, ``actors.node_warm_up``.)
 
 Scaling, by replay (``bench/replay_scaling.py``, ``vastray.sim.replay``): one frame of a store
 of 1,439 domains traced once for real, every scheduler's policy replayed over its crossings on

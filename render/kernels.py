@@ -610,8 +610,9 @@ def warm_up() -> float:
     """Pay numba's once-a-process set-up now: the first call of any compiled kernel loads the
     compiler's registries (numba imports its numpy support, which imports scipy's BLAS where
     scipy is installed): 0.5-0.8 s of CPU measured in a fresh node process on the 2-core
-    machine, 80 % of a small job's busy span. A node calls it on a thread as it starts, while
-    it makes its sockets, and finishes it before its first hello, so no frame pays it.
+    machine, 80 % of a small job's busy span. A node calls it (``actors.node_warm_up``, which then
+    calls every kernel once) on a thread as it starts, while it makes its sockets, and
+    finishes it before its first hello, so no frame pays it.
 
     Returns
     -------

@@ -51,8 +51,10 @@ class CostModel:
         nodes' own management actors (0.4-0.5 ms of CPU a batch here, against 0.1 ms one way
         on raw sockets), charged to the receiver's core before the message is in its
         mailbox; 0 (files written before it) charges nothing.
-    warmup_s : what a fresh process pays once, at its first trace: compiled kernels loaded
-        from numba's cache, Embree's device, modules imported on first use.
+    warmup_s : what a fresh node pays once, at its first trace, of its first use of the
+        render code beyond what it paid before its first hello (``actors.node_warm_up``:
+        numba's set-up and every kernel's first call): first allocations, modules of its
+        runtime imported on first use.
     node_setup_s : what a node of the asynchronous and domain runtimes pays once beyond
         ``warmup_s`` (worker and loader threads, first sockets to peers, first turns of its
         event loop).

@@ -1,6 +1,7 @@
-"""What a node costs once beyond the model's traces, loads and messages: a fresh process's
-first use (kernels loaded from numba's cache, Embree's device, modules imported on first
-use), its worker and loader threads, first sockets, the first turns of its event loop.
+"""What a node costs once beyond the model's traces, loads and messages: what is left of a
+fresh process's first use after its warm-up (``actors.node_warm_up``: numba's set-up and
+every kernel's first call, before its first hello), its worker and loader threads, first
+sockets, the first turns of its event loop.
 Measured with a real 1-node render of a few pixels (a fresh node process over real sockets)
 against the simulator's prediction of the same render without it, for each runtime: an
 ``async`` render for the node runtimes, an ``image`` render for the sort-first nodes, which

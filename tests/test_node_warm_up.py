@@ -1,0 +1,85 @@
+"""A node's warm-up (``actors.node_warm_up``): after it, no scheduler's render has a compiled
+kernel left to load, and a node whose temporary folder cannot be written still starts."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import tempfile
+import textwrap
+
+from vastray.actors import node_warm_up
+
+#: Run in a fresh process (this one's kernels are warm from other tests): warm the node, list
+#: every compiled kernel's loaded signatures, render with every scheduler the nodes run (the
+#: simulator runs the nodes' own code in one process) and list what was loaded after.
+FRESH_PROCESS = textwrap.dedent("""
+    import json, sys
+    from numba.core.registry import CPUDispatcher
+    from vastray.actors.job_options import JobOptions
+    from vastray.actors.node_warm_up import warm_node
+    from vastray.render.integrators import RenderSettings
+    from vastray.render.scene_config import SceneConfig
+    from vastray.scene.generate import generate
+    from vastray.scene.store import Store
+    from vastray.sim.costs import CostModel
+    from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+
+    def loaded():
+        found = set()
+        for name, module in list(sys.modules.items()):
+            if not name.startswith("vastray"):
+                continue
+            for value in list(vars(module).values()):
+                members = vars(value).values() if isinstance(value, type) else [value]
+                for member in members:
+                    kernel = getattr(member, "__func__", member)
+                    if isinstance(kernel, CPUDispatcher):
+                        name = kernel.py_func.__module__ + "." + kernel.py_func.__qualname__
+                        found |= {(name, str(sig)) for sig in kernel.signatures}
+        return found
+
+    generate("rm", sys.argv[1], 24, grid=(2, 2, 2))
+    store = Store(sys.argv[1])
+    warm_node()
+    warm = loaded()
+    for scheduler in SIM_SCHEDULERS:
+        for integrator in ("pt", "ao"):
+            settings = RenderSettings(width=24, height=18, spp=1, integrator=integrator,
+                                      bounces=2)
+            simulate(store, JobOptions(scheduler=scheduler, cache=3), 2, CostModel(),
+                     settings, SceneConfig())
+    print(json.dumps({"warm": len(warm), "left": sorted(n for n, _ in loaded() - warm)}))
+""")
+
+
+def test_no_scheduler_has_a_kernel_left_to_load_after_the_warm_up(tmp_path):
+    done = subprocess.run([sys.executable, "-c", FRESH_PROCESS, str(tmp_path / "rm.store")],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    assert found["warm"] >= 10, found  # the warm-up did call the kernels
+    assert found["left"] == [], ("kernels a node's first frame would still load from numba's "
+                                 f"cache; make the warm-up's tiny render call them: {found}")
+
+
+def test_a_node_without_a_writable_temporary_folder_still_warms_numba(
+        tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "missing" / "folder"))
+    with caplog.at_level(logging.WARNING, logger=node_warm_up.__name__):
+        seconds = node_warm_up.warm_node()
+    assert seconds >= 0.0
+    assert "could not warm the render kernels" in caplog.text
+    assert "first frame pays their first calls" in caplog.text
+
+
+def test_the_tiny_store_has_occupancy_masks_with_empty_cells(tmp_path):
+    store = node_warm_up._tiny_store(tmp_path / "warm.store")
+    assert len(store.domains) == 3
+    masks = [d.occupancy for d in store.domains]
+    assert all(m is not None for m in masks)
+    # holes: some cell of each mask is empty, so the mask's query skips rays
+    assert all(m.any() and not m.all() for m in masks)
+
