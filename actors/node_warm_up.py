@@ -9,8 +9,8 @@ bench/README): a fresh node's first ten activations cost 49 ms (``image``) to 83
 serially inside the job's busy span.
 
 ``warm_node`` pays both before the node's first hello: numba's set-up, then a few-pixel
-render of a tiny store written to a temporary folder, with each integrator and both
-sort-first schedules, which calls the kernels every scheduler's activations call (the
+render of a tiny store written to a temporary folder, twice (``WARM_RENDERS``: each
+integrator and each sort-first schedule once), which calls the kernels every scheduler's activations call (the
 domain-decomposition runtimes' tracing, shading and queries are the same kernels; a test
 checks that a render of every scheduler finds none left to load).
 """
@@ -35,6 +35,9 @@ QUADS_PER_SIDE = 16
 #: shadow rays, whose speculative copies spec-ooc keeps in its own kernels).
 WARM_PIXELS = 16
 WARM_BOUNCES = 2
+#: (schedule, integrator) of the warm-up renders: each integrator once, each sort-first
+#: schedule once (the pairs' other two add no kernel: the test's check).
+WARM_RENDERS = (("spec-ooc", "pt"), ("image", "ao"))
 
 
 def warm_node() -> float:
@@ -86,16 +89,15 @@ def _tiny_store(path: Path):
 
 
 def _render_tiny(store) -> None:
-    """A few pixels of ``store`` with each integrator and both sort-first schedules."""
+    """A few pixels of ``store``, once for each of ``WARM_RENDERS``."""
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
     from vastray.render.integrators import RenderSettings
     from vastray.render.scene_config import SceneConfig
 
-    for scheduler in ("image", "spec-ooc"):
-        for integrator in ("pt", "ao"):
-            settings = RenderSettings(width=WARM_PIXELS, height=WARM_PIXELS, spp=1,
-                                      integrator=integrator, bounces=WARM_BOUNCES)
-            render_out_of_core(store, SceneConfig(), settings,
-                               JobOptions(scheduler=scheduler, threads=1, cache=1),
-                               progress=False)
+    for scheduler, integrator in WARM_RENDERS:
+        settings = RenderSettings(width=WARM_PIXELS, height=WARM_PIXELS, spp=1,
+                                  integrator=integrator, bounces=WARM_BOUNCES)
+        render_out_of_core(store, SceneConfig(), settings,
+                           JobOptions(scheduler=scheduler, threads=1, cache=1),
+                           progress=False)

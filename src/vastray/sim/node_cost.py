@@ -30,7 +30,7 @@ NODE_RENDER_TIMEOUT_S = 300.0
 def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneConfig,
                settings: RenderSettings, scheduler: str, repeats: int = 1) -> float:
     """A real 1-node ``scheduler`` render's busy seconds (the median of ``repeats`` renders)
-    minus the simulated ones (with no set-up cost), >= 0.
+    minus the simulated ones (with no set-up cost; the median of as many simulations), >= 0.
 
     Parameters
     ----------
@@ -56,6 +56,12 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     busy_s()
     busy = float(np.median([busy_s() for _ in range(repeats)]))
     unset = replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0)
-    simulated = simulate(Store(store_path), options, 1, unset, settings, config,
-                         max_pass_spp=None)
-    return max(0.0, busy - simulated.seconds)
+    store = Store(store_path)
+    # as many simulations as real renders, medians of each: a simulation charges the CPU
+    # time its traces and decisions take here, which for a render this small moves by a
+    # third from one to the next (0.109-0.187 s against real renders' 0.152-0.156 s, rm 64³,
+    # session 32), and one simulation made that noise the node's set-up cost
+    simulated = float(np.median([
+        simulate(store, options, 1, unset, settings, config, max_pass_spp=None).seconds
+        for _ in range(max(repeats, 1))]))
+    return max(0.0, busy - simulated)
