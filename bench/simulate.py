@@ -14,14 +14,15 @@ the same span in virtual time. A point is up to ``--repeats`` (3) pairs of a rea
 simulation right after it, medians of each side (``--quick``: pairs until the point's real
 runs add up to 1 s; the row prints how many). ``sim_error_max=`` is the worst |simulated - measured| /
 measured. The constants that move most with this machine's moment, what a message and a
-hand-off to a worker thread cost (``receive_s``, ``offload_s``) and the throughput of busy
-processes (one alone and two side by side; more run two at a time at that contention), are
-measured again before each scheduler's real runs (``MachineProbe``, about 2 s; printed per
-row), and the share of the CPU time that went elsewhere while the real runs ran (the host's
-"steal" to other virtual machines, and other processes on this machine: ``sim.StealMeter``) is
-charged as cores the real run did not have (``CostModel.stolen``; printed per row); every other
-constant is the calibration's. ``--no-probe`` charges the calibration's throughout, and
-nothing taken by others.
+hand-off to a worker thread cost (``receive_s``, ``offload_s``), are measured again before
+each scheduler's real runs (``MachineProbe``, about 2 s; printed per row), and so is a round
+of the throughput of busy processes (one alone and two side by side; more run two at a time
+at that contention), charged from the medians of every round so far (one round moves by a
+sixth with the host's speed), and the share of the CPU time that went elsewhere while the
+real runs ran (the host's "steal" to other virtual machines, and other processes on this
+machine: ``sim.StealMeter``) is charged as cores the real run did not have
+(``CostModel.stolen``; printed per row); every other constant is the calibration's.
+``--no-probe`` charges the calibration's throughout, and nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over

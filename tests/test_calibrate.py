@@ -21,7 +21,7 @@ from vastray.scene.generate import generate
 from vastray.scene.store import Store
 from vastray.sim import calibrate as cal
 from vastray.sim.costs import VERSION, CostModel
-from vastray.sim.warmup import WarmProcesses, throughput_of
+from vastray.sim.warmup import WarmProcesses, interpolated, throughput_of
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
@@ -116,10 +116,16 @@ def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
 def test_the_machine_probe_measures_again_only_what_moves(store):
     # receive_s, offload_s and the throughput of busy processes measured now, every other
     # constant kept; a second probe measures again (its own numbers, not a copy of the first)
+    # and adds a round of side-by-side renders to the throughput's
     base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2, throughput=(1.0, 1.5))
     probe = cal.MachineProbe(store, cores=2)
     try:
+        assert len(probe.rounds) == probe.SEED_ROUNDS
         first, second = probe.now(base), probe.now(base)
+        assert len(probe.rounds) == probe.SEED_ROUNDS + 2
+        assert all(set(r) == {1, 2} and len(r[2]) == 2 for r in probe.rounds)
+        assert second.throughput[1] == pytest.approx(
+            interpolated(throughput_of(probe.rounds, 2))[1])
     finally:
         probe.close()
     # its warm processes are gone with it

@@ -813,20 +813,31 @@ class MachineProbe:
     """What moves most with this machine's moment, measured again in a couple of seconds:
     ``receive_s`` and ``offload_s`` as ``calibrate`` measures them (two management actors
     exchanging batches; tiles traced through a worker thread), and the throughput with 1 to
-    2 x ``cores`` busy processes (one round of ``warmup``'s warm processes rendering the
-    calibration tile, alone and ``cores`` side by side: more run ``cores`` at a time). On the
-    2-core machine the same message measurement gave 0.55 ms a batch and, a minute later,
-    1.10 ms; two calibrations back to back an ``offload_s`` of 1.50 and 0.26 ms; and the
-    throughput of 2 processes 1.61 at one calibration and 2.0 at another, the validation's
-    2-node rows over-predicted by up to 38 % after the first. A validation that compares real
-    runs with simulations minutes apart takes them beside each real run
-    (``bench/simulate.py``).
+    2 x ``cores`` busy processes (``warmup``'s warm processes rendering the calibration tile,
+    alone and ``cores`` side by side: more run ``cores`` at a time). On the 2-core machine
+    the same message measurement gave 0.55 ms a batch and, a minute later, 1.10 ms; two
+    calibrations back to back an ``offload_s`` of 1.50 and 0.26 ms; and the throughput of 2
+    processes 1.61 at one calibration and 2.0 at another, the validation's 2-node rows
+    over-predicted by up to 38 % after the first. A validation that compares real runs with
+    simulations minutes apart takes them beside each real run (``bench/simulate.py``).
+
+    The throughput is the exception: each ``now`` adds one round of renders to those of the
+    probe so far (``SEED_ROUNDS`` of them at its start) and charges the throughput of all of
+    them. One round is noise: twelve in a row here gave 1.68-2.00 for 2 processes (median
+    1.97), the lone render's own CPU moving 0.55-0.82 s from one round to the next as the
+    host's speed drifts, and the 8-node validation rows charged at the 1.48-1.62 of a single
+    round over-predicted by 27-62 % (session 32). How much busy processes slow each other is
+    the machine's; what others take of it at the moment is the ``StealMeter``'s, beside each
+    real run.
 
     Parameters
     ----------
     store_path : the calibration store (its tile and ray batches are the ones measured).
     cores : the cores the throughput is measured for (default: ``usable_cores``).
     """
+
+    #: Rounds of side-by-side renders a probe measures as it starts (about 1.5 s each).
+    SEED_ROUNDS = 2
 
     def __init__(self, store_path: str | os.PathLike, cores: int | None = None):
         store = Store(store_path)
@@ -840,7 +851,11 @@ class MachineProbe:
         self.counts = sorted({1, self.cores})
         try:
             self.processes = WarmProcesses(str(store_path), True, self.cores, tile=True)
+            #: every round of side-by-side renders measured so far (``now`` adds one)
+            self.rounds = measure_rounds(self.processes, self.counts, self.SEED_ROUNDS)
         except BaseException:
+            if hasattr(self, "processes"):
+                self.processes.close()
             self.cache.close()
             raise
 
@@ -849,8 +864,8 @@ class MachineProbe:
         them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
         node_messages = time_node_messages(self.setup, PROBE)
         offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
-        measured = interpolated(throughput_of(measure_rounds(self.processes, self.counts, 1),
-                                              self.cores))
+        self.rounds += measure_rounds(self.processes, self.counts, 1)
+        measured = interpolated(throughput_of(self.rounds, self.cores))
         # beyond ``cores`` processes, ``cores`` run at a time at the contention measured
         throughput = measured + (measured[-1],) * (2 * self.cores - len(measured))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
