@@ -106,7 +106,7 @@ class AsyncFrame:
         policy = self.policy(tile)
         mine = self.my_paths(policy)
         self.film.count_samples(policy.ctx.pixel[mine])
-        policy.start(camera_rays(self.setup.camera, policy.ctx).take(mine))
+        self.node.loop.start_tile(policy, camera_rays(self.setup.camera, policy.ctx).take(mine))
         if self.on_tile is not None:
             self.on_tile(len(mine))
 

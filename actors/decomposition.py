@@ -105,7 +105,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             if mode is Decomposition.RAY_WEIGHTED:
                 policy.owner = image_plane_start(len(store.domains), rank)
             node.begin_tile(base + index, policy)
-            policy.start(camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
+            node.loop.start_tile(policy,
+                                 camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
             if mode is Decomposition.ROUNDS:
                 await node.rounds(policy, tree)
             else:

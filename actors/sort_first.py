@@ -76,7 +76,7 @@ class SortFirstTiles:
     async def trace(self, ctx: PathContext) -> PathResult:
         """Trace the paths of ``ctx`` through the domains in their schedule's order."""
         policy = tile_schedule(self.options, self.setup, ctx, self.ablation)
-        policy.start(camera_rays(self.setup.camera, ctx))
+        self.loop.start_tile(policy, camera_rays(self.setup.camera, ctx))
         await self.loop.run(ScheduleOrder(
             policy, self.preloader, evicting=registry.spec(self.options.scheduler).evicts,
             by_demand=self.options.eviction == "demand"))

@@ -269,3 +269,46 @@ def test_eviction_by_demand_keeps_the_domain_queued_rays_need(store, preloader, 
     assert loop.sequence == [a, b, c]  # the access sequence, for the Belady count
     # capacity 2: loading c evicts one of a (least recently used) and b (no rays wait)
     assert preloader.resident() == ({a, c} if by_demand else {b, c})
+
+
+class BurningStart:
+    """A schedule whose tile start burns ``cpu_s`` of CPU (the ray-domain enumeration)."""
+
+    cpu_s = 0.02
+
+    def __init__(self):
+        self.started = []
+
+    def start(self, rays):
+        begin = time.thread_time()
+        while time.thread_time() - begin < self.cpu_s:
+            pass
+        self.started.append(rays)
+
+
+def test_a_tile_start_counts_its_cpu_and_the_simulator_charges_it_as_a_decision(preloader):
+    from vastray.sim.clock import run_virtual
+    from vastray.sim.cluster import Cluster
+    from vastray.sim.costs import CostModel
+    from vastray.sim.node import VirtualDomainLoop
+
+    stats: dict = {}
+    loop = DomainLoop(preloader, stats, offload=False)
+    policy, rays = BurningStart(), object()
+    loop.start_tile(policy, rays)
+    assert policy.started == [rays]
+    assert stats["start_cpu_s"] >= BurningStart.cpu_s
+
+    # the virtual node's loop: the start is charged to its core with its next decision
+    cluster = Cluster(1, CostModel(decision_scale=1.0))
+    virtual = VirtualDomainLoop(cluster, 0, None, {})
+
+    async def start_then_decide():
+        virtual.start_tile(BurningStart(), rays)
+        await virtual.decided(0.001)
+        await virtual.decided(0.001)  # charged once, not again
+
+    _, seconds = run_virtual(start_then_decide())
+    assert BurningStart.cpu_s + 0.002 <= cluster.compute_s[0] < BurningStart.cpu_s + 0.05
+    assert seconds == pytest.approx(cluster.compute_s[0])
+    assert virtual.undecided_cpu_s == 0.0
