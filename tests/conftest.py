@@ -29,6 +29,21 @@ def pytest_xdist_auto_num_workers(config):
     return max(1, min(available_cpus(), 4))
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionstart(session):
+    """Compile (or load) every render kernel once, in this process, before any test starts
+    node processes. A node calls them all before its first hello (``actors.node_warm_up``);
+    on a cold numba cache (a fresh install, or CI's bounds-checked run in a fresh cache
+    folder) that is about 16 s of compiling a process, and 8 nodes doing it side by side on
+    2 cores would take a minute, more than many tests' join timeouts. Done once, by the
+    controller (xdist's workers start after it)."""
+    if hasattr(session.config, "workerinput"):
+        return
+    from vastray.actors.node_warm_up import warm_node
+
+    warm_node()
+
+
 def pytest_collection_modifyitems(config, items):
     """Skip ``@pytest.mark.slow`` tests unless a ``-m`` expression selects by marker."""
     if config.option.markexpr:

@@ -25,12 +25,16 @@ from vastray.sim.costs import CostModel
 
 #: Seconds the real 1-node render may take before the calibration gives up on it.
 NODE_RENDER_TIMEOUT_S = 300.0
+#: Simulations of the few-pixel render per real one (each about 0.2 s of wall time): the
+#: simulations are the noisy side (``setup_cost``).
+SIMULATIONS_PER_RENDER = 3
 
 
 def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneConfig,
                settings: RenderSettings, scheduler: str, repeats: int = 1) -> float:
     """A real 1-node ``scheduler`` render's busy seconds (the median of ``repeats`` renders)
-    minus the simulated ones (with no set-up cost; the median of as many simulations), >= 0.
+    minus the simulated ones (with no set-up cost; the median of
+    ``SIMULATIONS_PER_RENDER`` times as many simulations), >= 0.
 
     Parameters
     ----------
@@ -39,10 +43,11 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     config, settings : the render (one pass, one thread, as the nodes of a job run it).
     scheduler : ``async`` (``node_setup_s``), ``image`` (``tile_setup_s``) or
         ``spec-insitu`` (``insitu_setup_s``).
-    repeats : real renders (each a fresh node process), after one untimed render: the
-        first process to run a runtime's kernels on a machine compiles them into numba's
-        cache (seconds, measured 2.8 s for ``spec-insitu`` on a fresh machine), which no
-        later node pays.
+    repeats : real renders (each a fresh node process). None is left untimed: the first
+        process to run the kernels on a machine compiles them into numba's cache (2.8 s for
+        ``spec-insitu``'s on a fresh machine), which every node now does before its first
+        hello (``actors.node_warm_up``), outside the busy span timed here; the calibration
+        has read the store's files before (``time_loads``).
     """
     from vastray.sim.simulate import simulate
 
@@ -53,15 +58,15 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
                                   config=config, timeout=NODE_RENDER_TIMEOUT_S
                                   ).seconds["busy_max"]
 
-    busy_s()
     busy = float(np.median([busy_s() for _ in range(repeats)]))
     unset = replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0)
     store = Store(store_path)
-    # as many simulations as real renders, medians of each: a simulation charges the CPU
-    # time its traces and decisions take here, which for a render this small moves by a
-    # third from one to the next (0.109-0.187 s against real renders' 0.152-0.156 s, rm 64³,
-    # session 32), and one simulation made that noise the node's set-up cost
+    # the median of SIMULATIONS_PER_RENDER times as many simulations as real renders: a
+    # simulation charges the CPU time its traces and decisions take here, which for a render
+    # this small moves by a third from one to the next (0.109-0.187 s against real renders'
+    # 0.152-0.156 s, rm 64³, session 32); one simulation made that noise the node's set-up
+    # cost, and three still moved it 0.04-0.08 s from one calibration to the next
     simulated = float(np.median([
         simulate(store, options, 1, unset, settings, config, max_pass_spp=None).seconds
-        for _ in range(max(repeats, 1))]))
+        for _ in range(SIMULATIONS_PER_RENDER * max(repeats, 1))]))
     return max(0.0, busy - simulated)
