@@ -17,8 +17,8 @@ measured. The constants that move most with this machine's moment, what a messag
 hand-off to a worker thread cost (``receive_s``, ``offload_s``), are measured again before
 each scheduler's real runs (``MachineProbe``, about 2 s; printed per row), and so is a round
 of the throughput of busy processes (one alone and two side by side; more run two at a time
-at that contention), charged from the medians of every round so far (one round moves by a
-sixth with the host's speed), and the share of the CPU time that went elsewhere while the
+at that contention), charged from the medians of the latest six rounds (one round moves by
+a sixth with the host's speed), and the share of the CPU time that went elsewhere while the
 real runs ran (the host's "steal" to other virtual machines, and other processes on this
 machine: ``sim.StealMeter``) is charged as cores the real run did not have
 (``CostModel.stolen``; printed per row); every other constant is the calibration's.

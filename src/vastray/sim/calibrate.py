@@ -822,8 +822,8 @@ class MachineProbe:
     simulations minutes apart takes them beside each real run (``bench/simulate.py``).
 
     The throughput is the exception: each ``now`` adds one round of renders to those of the
-    probe so far (``SEED_ROUNDS`` of them at its start, up to ``MAX_ROUNDS``) and charges the
-    throughput of all of them. One round is noise: twelve in a row here gave 1.68-2.00 for 2 processes (median
+    probe so far (``SEED_ROUNDS`` of them at its start) and charges the throughput of the
+    latest ``WINDOW``. One round is noise: twelve in a row here gave 1.68-2.00 for 2 processes (median
     1.97), the lone render's own CPU moving 0.55-0.82 s from one round to the next as the
     host's speed drifts, and the 8-node validation rows charged at the 1.48-1.62 of a single
     round over-predicted by 27-62 % (session 32). How much busy processes slow each other is
@@ -838,9 +838,12 @@ class MachineProbe:
 
     #: Rounds of side-by-side renders a probe measures as it starts (about 1.5 s each).
     SEED_ROUNDS = 2
-    #: Rounds after which ``now`` measures no more (the medians of 8 hardly move: twelve
-    #: rounds in a row gave 1.68-2.00 for 2 processes, the median of any 8 of them 1.85-2.00).
-    MAX_ROUNDS = 8
+    #: The latest rounds ``now`` charges the medians of: enough that one round's noise moves
+    #: them little (twelve rounds in a row gave 1.68-2.00 for 2 processes), few enough to
+    #: follow the host over minutes (one validation's first 8 rounds gave 1.67, taken while
+    #: its calibration measured traces at twice their usual cost, and kept for every later
+    #: row: the scan's sort-first rows then over-predicted by 30-61 %).
+    WINDOW = 6
 
     def __init__(self, store_path: str | os.PathLike, cores: int | None = None):
         store = Store(store_path)
@@ -867,8 +870,8 @@ class MachineProbe:
         them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
         node_messages = time_node_messages(self.setup, PROBE)
         offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
-        if len(self.rounds) < self.MAX_ROUNDS:
-            self.rounds += measure_rounds(self.processes, self.counts, 1)
+        self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
+                       )[-self.WINDOW:]
         measured = interpolated(throughput_of(self.rounds, self.cores))
         # beyond ``cores`` processes, ``cores`` run at a time at the contention measured
         throughput = measured + (measured[-1],) * (2 * self.cores - len(measured))
