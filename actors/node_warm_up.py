@@ -3,16 +3,16 @@
 A fresh process pays twice before its traces run at speed: numba's set-up (its registries,
 ``render.kernels.warm_up``, 0.5-0.8 s of CPU) and the first call of every compiled kernel
 and code path a render runs (each kernel's machine code loaded from numba's cache, Embree's
-device, first allocations). Measured on the turbine-blade scan on one node (session 32,
+device, first allocations). Measured on the turbine-blade scan on one node (session 31,
 bench/README): a fresh node's first ten activations cost 49 ms (``image``) to 83 ms
 (``async``) more CPU than the same activations later; 8 nodes sharing 2 cores pay it
 serially inside the job's busy span.
 
 ``warm_node`` pays both before the node's first hello: numba's set-up, then a few-pixel
 render of a tiny store written to a temporary folder, twice (``WARM_RENDERS``: each
-integrator and each sort-first schedule once), which calls the kernels every scheduler's activations call (the
-domain-decomposition runtimes' tracing, shading and queries are the same kernels; a test
-checks that a render of every scheduler finds none left to load).
+integrator and each sort-first schedule once), which calls the kernels every scheduler's
+activations call (the domain-decomposition runtimes' tracing, shading and queries are the
+same kernels; a test checks that a render of every scheduler finds none left to load).
 """
 
 from __future__ import annotations
