@@ -78,19 +78,20 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     A node that hears nothing from the coordinator mid-job (no regroup, no heartbeat) still
     exits on its own after ``protocol.COORDINATOR_SILENCE_S``.
     """
+    # a fresh process's first use of the render kernels (``node_warm_up.warm_node``: numba's
+    # set-up and each kernel's first call), on a thread while the node waits for its
+    # coordinator and makes its sockets, and done before its first hello: the coordinator
+    # starts a job once every node has said hello, so every node starts its work at once
+    # (finished after the job came, it held back some nodes' starts: 8 nodes on 2 cores then
+    # ran staggered, which no node's busy time shows and the simulator does not model)
+    warming = asyncio.ensure_future(asyncio.to_thread(warm_node))
+    warming.add_done_callback(_log_warm)
     if credentials is None:
         port = int(coordinator.rpartition(":")[2])
         log.info("waiting up to %.0f s for a coordinator of this user on port %d", timeout,
                  port)
         credentials = Credentials(secret=await wait_for_join_secret(port, timeout))
     check_bind(bind_host, credentials)
-    # a fresh process's first use of the render kernels (``node_warm_up.warm_node``: numba's
-    # set-up and each kernel's first call), on a thread while the node makes its sockets,
-    # and done before its first hello: the coordinator starts a job
-    # once every node has said hello, so every node starts its work at once (finished
-    # after the job came, it held back some nodes' starts: 8 nodes on 2 cores then ran
-    # staggered, which no node's busy time shows and the simulator does not model)
-    warming = asyncio.ensure_future(asyncio.to_thread(warm_node))
     ctx = zmq.asyncio.Context()
     gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:
@@ -103,6 +104,12 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     finally:
         gate.close()
         ctx.destroy(linger=0)
+
+
+def _log_warm(warming: asyncio.Future) -> None:
+    """Say when the warm-up is done (its seconds), so a log shows how long a node took."""
+    if not warming.cancelled() and warming.exception() is None:
+        log.info("render kernels warm (%.1f s)", warming.result())
 
 
 async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: float,

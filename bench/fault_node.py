@@ -10,7 +10,7 @@ runs ``vastray.actors.node.main(NODE-ARGS)`` after replacing some of the node's 
 - ``--slow-drop S``: dropping a job when the coordinator calls a regroup takes S seconds more
   (a long trace or load still running); the coordinator is silent meanwhile, and the node must
   not take that silence for its loss.
-- ``--hang-trace``: the first trace of a domain's rays off the event loop's thread blocks for
+- ``--hang-trace``: the first trace of a job's domain rays off the event loop's thread blocks for
   ever (a native call that never returns, a deadlock), while the event loop goes on beating:
   the coordinator must find the node hung by its CPU time, not by silence.
 
@@ -42,9 +42,20 @@ def install_faults(peer_endpoint: str | None = None, slow_drop_s: float = 0.0,
         from vastray.actors import domain_loop
 
         trace = domain_loop.ScheduleOrder.trace
+        # the node's warm-up renders a tiny store on a thread before its hello: only the
+        # job's traces hang
+        warmed, warm_node = threading.Event(), node.warm_node
+
+        def warm_then_hang() -> float:
+            try:
+                return warm_node()
+            finally:
+                warmed.set()
+
+        node.warm_node = warm_then_hang
 
         def hung_trace(self, domain: int, bvh):
-            if threading.current_thread() is not threading.main_thread():
+            if warmed.is_set() and threading.current_thread() is not threading.main_thread():
                 log.warning("fault injection: the trace of domain %d never returns", domain)
                 threading.Event().wait()
             return trace(self, domain, bvh)

@@ -88,6 +88,18 @@ def test_a_lost_node_is_survived_with_the_fault_free_image(scene, scheduler, sig
 FAULT_NODE = Path(__file__).resolve().parents[1] / "bench" / "fault_node.py"
 
 
+def _wait_warm(logs: list[Path], timeout: float = 120.0) -> None:
+    """Wait until every node logging to ``logs`` has warmed its kernels (``run_node`` does
+    that while it waits for its coordinator, and logs it): a test whose coordinator gives
+    its nodes only a few seconds to join times that, not how fast 3 fresh processes warm up
+    beside the rest of the suite on 2 cores (CI once saw one join after 8 s)."""
+    deadline = time.monotonic() + timeout
+    while not all(log.exists() and "render kernels warm" in log.read_text(errors="replace")
+                  for log in logs):
+        assert time.monotonic() < deadline, f"nodes not warm after {timeout:.0f} s"
+        time.sleep(0.1)
+
+
 def _start_nodes(port: int, logs: list[Path], slow_drop_s: float = 0.0
                  ) -> list[subprocess.Popen]:
     """`vastray node` processes started as a user starts them on other machines; with
@@ -184,8 +196,9 @@ def test_a_node_whose_render_thread_hangs_is_lost_though_it_heartbeats(scene, tm
         nodes.append(subprocess.Popen([sys.executable, str(FAULT_NODE), "--hang-trace", "--",
                                        *node_args], stdout=subprocess.DEVNULL, stderr=err,
                                       stdin=subprocess.DEVNULL))
-    start = time.monotonic()
     try:
+        _wait_warm(logs)
+        start = time.monotonic()
         result = render_distributed(store.path, toml, st, 3,
                                     options=JobOptions(scheduler="image",
                                                        max_samples_in_flight=300),
