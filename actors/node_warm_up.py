@@ -17,6 +17,7 @@ same kernels; a test checks that a render of every scheduler finds none left to 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import tempfile
 import time
@@ -88,8 +89,36 @@ def _tiny_store(path: Path):
     return Store(path)
 
 
+#: The loggers of what the warm-up renders run (loads, schedules, the one-process runtime):
+#: held at WARNING while it runs, so a waiting node's log says only that it is warm. A
+#: node waiting for its coordinator logs through none of them.
+QUIET_LOGGERS = ("vastray.scene", "vastray.render", "vastray.schedule",
+                 "vastray.actors.preloader", "vastray.actors.local",
+                 "vastray.actors.sort_first", "vastray.actors.domain_loop",
+                 "vastray.actors.render_setup")
+
+
+@contextlib.contextmanager
+def _quiet():
+    """``QUIET_LOGGERS`` at WARNING or above for the block, then as they were."""
+    loggers = [logging.getLogger(name) for name in QUIET_LOGGERS]
+    levels = [logger.level for logger in loggers]
+    for logger in loggers:
+        logger.setLevel(max(logger.getEffectiveLevel(), logging.WARNING))
+    try:
+        yield
+    finally:
+        for logger, level in zip(loggers, levels, strict=True):
+            logger.setLevel(level)
+
+
 def _render_tiny(store) -> None:
-    """A few pixels of ``store``, once for each of ``WARM_RENDERS``."""
+    """A few pixels of ``store``, once for each of ``WARM_RENDERS``, quietly."""
+    with _quiet():
+        _render_each(store)
+
+
+def _render_each(store) -> None:
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
     from vastray.render.integrators import RenderSettings
