@@ -94,8 +94,10 @@ class NodeWork:
         """Send the outbox as ray batches (counted per destination in ``post.sent_to``),
         labelled with ``tile`` (default: the current tile); ``full_only``: only the
         destinations whose rays fill a batch."""
-        outbox = policy.take_outbox(self.post.max_batch if full_only else 0)
-        await self.post.ship(outbox, {"tile": self.tile if tile is None else tile})
+        with self.loop.bookkeeping():
+            batches = self.post.batches(
+                policy.take_outbox(self.post.max_batch if full_only else 0))
+        await self.post.ship(batches, {"tile": self.tile if tile is None else tile})
 
     def deliver(self, policy, message) -> bool:
         """Hand a batch to the tile's policy (True), or drop and count one whose path indices
@@ -108,10 +110,11 @@ class NodeWork:
         self.post.received(message)
         if not message.arrays:
             return True
-        arrays = dict(message.arrays)
-        domains = np.array(arrays.pop("domain"))
-        rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
-        policy.receive(message.meta["queue"], domains, rays)
+        with self.loop.bookkeeping():
+            arrays = dict(message.arrays)
+            domains = np.array(arrays.pop("domain"))
+            rays = SoA(**{k: np.array(v) for k, v in arrays.items()})
+            policy.receive(message.meta["queue"], domains, rays)
         return True
 
     async def rounds(self, policy, tree) -> None:
@@ -137,6 +140,22 @@ class NodeWork:
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
 
+    def _outgoing(self, queues: dict, assign: dict[int, int]
+                  ) -> list[tuple[tuple[int, str], tuple[np.ndarray, SoA]]]:
+        """The rays a round's plan (``assign``: domain -> node) sends away, taken out of
+        ``queues`` (queue name -> ``DomainQueues``): ((node, queue name), (domains (m,),
+        rays (m,))) per destination and queue, in order."""
+        outgoing: dict[tuple[int, str], list] = {}
+        for domain, node in assign.items():
+            if node == self.rank:
+                continue
+            for name, q in queues.items():
+                rays = q.pop(domain)
+                if rays is not None:
+                    outgoing.setdefault((node, name), []).append(
+                        (np.full(len(rays), domain), rays))
+        return [(key, join_bound(parts)) for key, parts in sorted(outgoing.items())]
+
     async def dynamic(self, policy, tree) -> None:
         """Ray-weighted rounds: every node computes the same round's schedule from two
         vectors all-reduced over the tree (rays waiting per domain, summed; the lowest rank
@@ -152,10 +171,10 @@ class NodeWork:
         n_domains = len(policy.radiance.counts())
         policy_of_rounds = RayWeightedRounds()
         while True:
-            wanted = sum(q.counts().astype(np.int64) for q in queues.values())
-            holder = np.full(n_domains, size, np.int64)
-            resident = sorted(self.preloader.resident())
-            holder[resident] = self.rank
+            with self.loop.bookkeeping():
+                wanted = sum(q.counts().astype(np.int64) for q in queues.values())
+                holder = np.full(n_domains, size, np.int64)
+                holder[sorted(self.preloader.resident())] = self.rank
             start = time.perf_counter()
             totals = await tree.allreduce({"wanted": wanted, "holder": holder},
                                           {"wanted": "sum", "holder": "min"})
@@ -165,17 +184,10 @@ class NodeWork:
             await self.loop.decided(cpu_time() - cpu)
             if plan.finished:
                 return
-            outgoing: dict[tuple[int, str], list] = {}
-            for domain, node in plan.assign.items():
-                if node == self.rank:
-                    continue
-                for name, q in queues.items():
-                    rays = q.pop(domain)
-                    if rays is not None:
-                        outgoing.setdefault((node, name), []).append(
-                            (np.full(len(rays), domain), rays))
-            for (node, name), parts in sorted(outgoing.items()):
-                await self.post.send(node, name, {"tile": self.tile}, *join_bound(parts))
+            with self.loop.bookkeeping():
+                outgoing = self._outgoing(queues, plan.assign)
+            for (node, name), (domains, rays) in outgoing:
+                await self.post.send(node, name, {"tile": self.tile}, domains, rays)
             mine = np.array([d for d, p in plan.assign.items() if p == self.rank], np.int64)
             await self.receive_rays(policy, int(totals["wanted"][mine].sum()
                                                 - wanted[mine].sum()))

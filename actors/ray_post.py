@@ -55,15 +55,23 @@ class RayPost:
         self.stats["rays_sent"] += 0 if domains is None else len(domains)
         self.stats["bytes_sent"] += frames_nbytes(frames)
 
-    async def ship(self, outbox: dict[tuple[str, int], list[tuple[np.ndarray, SoA]]],
-                   meta: dict) -> None:
-        """Send a schedule's outbox ((queue, node) -> [(domains, rays)]), the rays for one
-        destination coalesced into batches of at most ``max_batch`` rays."""
+    def batches(self, outbox: dict[tuple[str, int], list[tuple[np.ndarray, SoA]]]
+                ) -> list[tuple[str, int, np.ndarray, SoA]]:
+        """A schedule's outbox ((queue, node) -> [(domains, rays)]) as batches (queue, node,
+        domains (m,), rays (m,)): the rays for one destination coalesced, at most
+        ``max_batch`` a batch."""
+        out = []
         for (queue, node), parts in outbox.items():
             domains, rays = join_bound(parts)
             for first in range(0, len(domains), self.max_batch):
                 rows = np.arange(first, min(first + self.max_batch, len(domains)))
-                await self.send(node, queue, meta, domains[rows], rays.take(rows))
+                out.append((queue, node, domains[rows], rays.take(rows)))
+        return out
+
+    async def ship(self, batches: list[tuple[str, int, np.ndarray, SoA]], meta: dict) -> None:
+        """Send ``batches`` (``batches``' output), each labelled with ``meta``."""
+        for queue, node, domains, rays in batches:
+            await self.send(node, queue, meta, domains, rays)
 
     def take_sent_to(self) -> dict[int, int]:
         """Batches sent per destination since the last call (and start counting again)."""

@@ -312,3 +312,41 @@ def test_a_tile_start_counts_its_cpu_and_the_simulator_charges_it_as_a_decision(
     assert BurningStart.cpu_s + 0.002 <= cluster.compute_s[0] < BurningStart.cpu_s + 0.05
     assert seconds == pytest.approx(cluster.compute_s[0])
     assert virtual.undecided_cpu_s == 0.0
+
+
+def burn(cpu_s: float) -> None:
+    """Spend ``cpu_s`` of this thread's CPU."""
+    begin = time.thread_time()
+    while time.thread_time() - begin < cpu_s:
+        pass
+
+
+def test_bookkeeping_counts_its_cpu_even_when_it_fails_and_the_simulator_charges_it(preloader):
+    from vastray.sim.clock import run_virtual
+    from vastray.sim.cluster import Cluster
+    from vastray.sim.costs import CostModel
+    from vastray.sim.node import VirtualDomainLoop
+
+    stats: dict = {}
+    loop = DomainLoop(preloader, stats, offload=False)
+    with loop.bookkeeping():
+        burn(0.01)
+    with pytest.raises(ValueError), loop.bookkeeping():
+        burn(0.01)
+        raise ValueError("a malformed batch")
+    assert 0.02 <= stats["bookkeeping_cpu_s"] < 0.2
+
+    # the virtual node's loop charges it to the node's core with its next decision, once
+    cluster = Cluster(1, CostModel(decision_scale=1.0))
+    virtual = VirtualDomainLoop(cluster, 0, None, {})
+
+    async def keep_books_then_decide():
+        with virtual.bookkeeping():
+            burn(0.02)
+        await virtual.decided(0.0)
+        await virtual.decided(0.0)
+
+    _, seconds = run_virtual(keep_books_then_decide())
+    assert 0.02 <= cluster.compute_s[0] < 0.1
+    assert seconds == pytest.approx(cluster.compute_s[0])
+    assert virtual.stats["bookkeeping_cpu_s"] >= 0.02

@@ -535,6 +535,8 @@ def test_rounds_end_over_the_tree_without_the_coordinator(store, domains, schedu
     assert result.counters["batches_sent"] == result.counters["batches_received"]
     assert result.counters["global_barriers"] >= result.counters["rounds"] // 3
     assert result.compute_seconds[-1] == 0  # the coordinator took no part in a round
+    # delivering the batches and taking the rounds' rays are counted (and charged)
+    assert result.counters["bookkeeping_cpu_s"] > 0
 
 
 def test_spec_insitu_speculates_and_counts_its_iterations(store, domains):
