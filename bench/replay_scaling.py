@@ -140,11 +140,50 @@ def node_cache(n_domains: int, nodes: int) -> int:
     return max(-(-n_domains // CACHE_SHARE), -(-n_domains // nodes))
 
 
+_CHECK_DOMAINS: dict = {}  # a check worker's built domains, by store path
+
+
+def _simulate_check(job) -> tuple[float, float]:
+    """(simulated seconds, wall seconds) of one check point, in a check worker."""
+    from vastray.scene.store import Store
+
+    path, scheduler, nodes, options, costs = job
+    if path not in _CHECK_DOMAINS:
+        store = Store(path)
+        _CHECK_DOMAINS[path] = Domains(
+            store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
+    domains = _CHECK_DOMAINS[path]
+    start = time.perf_counter()
+    sim = simulate(domains.store, options, nodes, costs, CHECK, max_pass_spp=None,
+                   domains=domains)
+    return sim.seconds, time.perf_counter() - start
+
+
+def simulated_in_parallel(jobs: list):
+    """``_simulate_check`` of every job, in order, on as many fresh processes as this
+    machine has cores (spawned, not forked: each builds its own Embree scenes, which a
+    forked child could not safely build on). A simulation charges the traces' CPU time, not
+    their wall time, so two of them side by side charge what one alone would."""
+
+    workers = min(len(jobs), os.cpu_count() or 1)
+    if workers <= 1:
+        yield from map(_simulate_check, jobs)
+        return
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        yield from pool.imap(_simulate_check, jobs)
+
+
 def check_against_code(store, costs: CostModel, scaling_options, quick: bool) -> list[dict]:
     """The replay against the simulator running the nodes' own code, on ``CHECK``: both with
     the calibrated loopback network and storage and the product's caches."""
     own = costs.warm().with_cores(None)
-    crossings = recording(store, CHECK)
+    # recorded now, not kept: the replay charges the recording's trace CPU and the
+    # simulator the CPU its traces take as it runs, so both must see the machine at one
+    # speed (a kept recording's CPU was 1.40x this machine's a day later, and replay_error
+    # moved with it from 0.13 to 0.89 between runs)
+    start = time.perf_counter()
+    crossings, _ = record_crossings(store, CHECK)
+    print(f"\n  the check's frame recorded now ({time.perf_counter() - start:.0f} s)")
     nodes_checked = CHECK_NODES_QUICK if quick else CHECK_NODES
     domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
     rows = []
@@ -159,18 +198,17 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
         print("| scheduler | P | real-code sim s | replay s | error | sim wall s "
               "| replay wall s |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
-        for scheduler in REPLAY_SCHEDULERS:
-            for nodes in nodes_checked:
-                start = time.perf_counter()
-                sim = simulate(store, scaling_options(scheduler, nodes, CHECK.paths), nodes,
-                               own, CHECK, max_pass_spp=None, domains=domains)
-                sim_wall = time.perf_counter() - start
-                replayed = replay.run(scheduler, nodes)
-                error = replayed.seconds / sim.seconds - 1
-                rows.append({"scheduler": scheduler, "nodes": nodes, "sim_s": sim.seconds,
-                             "replay_s": replayed.seconds, "error": error})
-                print(f"| {scheduler} | {nodes} | {sim.seconds:.4f} | {replayed.seconds:.4f} | "
-                      f"{error:+.3f} | {sim_wall:.1f} | {replayed.wall_s:.2f} |", flush=True)
+        jobs = [(str(store.path), scheduler, nodes, scaling_options(scheduler, nodes,
+                                                                     CHECK.paths), own)
+                for scheduler in REPLAY_SCHEDULERS for nodes in nodes_checked]
+        for (_, scheduler, nodes, _, _), (sim_s, sim_wall) in zip(
+                jobs, simulated_in_parallel(jobs), strict=True):
+            replayed = replay.run(scheduler, nodes)
+            error = replayed.seconds / sim_s - 1
+            rows.append({"scheduler": scheduler, "nodes": nodes, "sim_s": sim_s,
+                         "replay_s": replayed.seconds, "error": error})
+            print(f"| {scheduler} | {nodes} | {sim_s:.4f} | {replayed.seconds:.4f} | "
+                  f"{error:+.3f} | {sim_wall:.1f} | {replayed.wall_s:.2f} |", flush=True)
     finally:
         domains.close()
     worst = max(abs(r["error"]) for r in rows)
