@@ -120,9 +120,14 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
     base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2, throughput=(1.0, 1.5))
     probe = cal.MachineProbe(store, cores=2)
     try:
-        assert len(probe.rounds) == probe.SEED_ROUNDS
+        assert len(probe.rounds) == len(probe.messages) == probe.SEED_ROUNDS
         first, second = probe.now(base), probe.now(base)
         assert len(probe.rounds) == probe.SEED_ROUNDS + 2
+        # the message cost charged is the median of the measurements so far, not the latest
+        assert len(probe.messages) == len(probe.offloads) == probe.SEED_ROUNDS + 2
+        assert second.receive_s == pytest.approx(
+            max(0.0, float(np.median(probe.messages)) - base.latency_s))
+        assert second.offload_s == pytest.approx(float(np.median(probe.offloads)))
         assert all(set(r) == {1, 2} and len(r[2]) == 2 for r in probe.rounds)
         assert second.throughput[1] == pytest.approx(
             interpolated(throughput_of(probe.rounds, 2))[1])

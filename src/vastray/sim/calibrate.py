@@ -821,14 +821,18 @@ class MachineProbe:
     over-predicted by up to 38 % after the first. A validation that compares real runs with
     simulations minutes apart takes them beside each real run (``bench/simulate.py``).
 
-    The throughput is the exception: each ``now`` adds one round of renders to those of the
-    probe so far (``SEED_ROUNDS`` of them at its start) and charges the throughput of the
-    latest ``WINDOW``. One round is noise: twelve in a row here gave 1.68-2.00 for 2 processes (median
-    1.97), the lone render's own CPU moving 0.55-0.82 s from one round to the next as the
-    host's speed drifts, and the 8-node validation rows charged at the 1.48-1.62 of a single
-    round over-predicted by 27-62 % (session 32). How much busy processes slow each other is
-    the machine's; what others take of it at the moment is the ``StealMeter``'s, beside each
-    real run.
+    Each ``now`` measures each of them once more and charges the medians of the latest
+    ``WINDOW`` measurements (``SEED_ROUNDS`` of each taken as the probe starts). One message
+    measurement is noise too: one validation's 20 probes gave ``receive_s`` 0.13-1.00 ms, and
+    the row charged the 1.00 (the scan's 8-node ``dynamic``, a message-heavy one) was
+    over-predicted by 85 % while its 2-node row, probed alike, was within 3 % (session 33).
+    The throughput: each ``now`` adds one round of renders to those of the probe so far and
+    charges the throughput of the latest ``WINDOW``. One round is noise: twelve in a row here
+    gave 1.68-2.00 for 2 processes (median 1.97), the lone render's own CPU moving 0.55-0.82 s
+    from one round to the next as the host's speed drifts, and the 8-node validation rows
+    charged at the 1.48-1.62 of a single round over-predicted by 27-62 % (session 32). How
+    much busy processes slow each other is the machine's; what others take of it at the
+    moment is the ``StealMeter``'s, beside each real run.
 
     Parameters
     ----------
@@ -859,6 +863,11 @@ class MachineProbe:
             self.processes = WarmProcesses(str(store_path), True, self.cores, tile=True)
             #: every round of side-by-side renders measured so far (``now`` adds one)
             self.rounds = measure_rounds(self.processes, self.counts, self.SEED_ROUNDS)
+            #: the latest measurements of a batch's messaging (s) and of a hand-off (s)
+            self.messages: list[float] = []
+            self.offloads: list[float] = []
+            for _ in range(self.SEED_ROUNDS):
+                self._measure_messaging()
         except BaseException:
             if hasattr(self, "processes"):
                 self.processes.close()
@@ -868,16 +877,26 @@ class MachineProbe:
     def now(self, costs: CostModel) -> CostModel:
         """``costs`` with ``receive_s``, ``offload_s`` and ``throughput`` as this machine pays
         them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
-        node_messages = time_node_messages(self.setup, PROBE)
-        offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
+        self._measure_messaging()
         self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
                        )[-self.WINDOW:]
         measured = interpolated(throughput_of(self.rounds, self.cores))
         # beyond ``cores`` processes, ``cores`` run at a time at the contention measured
         throughput = measured + (measured[-1],) * (2 * self.cores - len(measured))
+        node_messages = float(np.median(self.messages))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
-                       offload_s=float(np.median(offload)) if offload else costs.offload_s,
+                       offload_s=(float(np.median(self.offloads)) if self.offloads
+                                  else costs.offload_s),
                        throughput=throughput)
+
+    def _measure_messaging(self) -> None:
+        """Measure a batch's messaging and a hand-off once more, keeping the latest
+        ``WINDOW`` of each."""
+        self.messages = (self.messages + [time_node_messages(self.setup, PROBE)]
+                         )[-self.WINDOW:]
+        offload = time_offload(self.setup, self.settings, self.cache, tiles=1)
+        if offload:
+            self.offloads = (self.offloads + [float(np.median(offload))])[-self.WINDOW:]
 
     def close(self) -> None:
         self.processes.close()
