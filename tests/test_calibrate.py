@@ -137,7 +137,8 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
     assert all(p.poll() is not None for p in probe.processes.processes)
     for now in (first, second):
         assert 0 < now.receive_s < 0.05 and 0 < now.offload_s < 0.05
-        # 1 and 2 processes measured, at most what the cores give; 3 and 4 run 2 at a time
+        # 1 and 2 processes measured, at most what the cores give; 3 and 4 run 2 at a time,
+        # as fast as 2 where the calibration (base) measured no more processes than cores
         assert len(now.throughput) == 4 and now.throughput[0] == 1.0
         assert 0 < now.throughput[1] <= 2.0
         assert now.throughput[2] == now.throughput[3] == now.throughput[1]
@@ -145,6 +146,15 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
                                               "offload_s": now.offload_s,
                                               "throughput": now.throughput}
     assert (first.receive_s, first.offload_s) != (second.receive_s, second.offload_s)
+
+
+def test_beyond_the_cores_the_probe_keeps_the_calibration_s_slow_down():
+    # the calibration: 4 processes on 2 cores at 0.9 of 2 (switching costs each CPU)
+    assert cal.oversubscribed((1.0, 1.6), (1.0, 2.0, 1.9, 1.8), 4) == pytest.approx(
+        (1.0, 1.6, 1.6 * 0.95, 1.6 * 0.9))
+    # no calibrated count beyond the cores, or a ratio above 1 (noise): as fast as at them
+    assert cal.oversubscribed((1.0, 1.6), (1.0, 2.0), 4) == (1.0, 1.6, 1.6, 1.6)
+    assert cal.oversubscribed((1.0, 1.6), (1.0, 1.5, 1.7, 1.8), 4) == (1.0, 1.6, 1.6, 1.6)
 
 
 def test_a_measuring_process_that_fails_is_named_with_its_error(tmp_path):
