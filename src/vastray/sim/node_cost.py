@@ -32,9 +32,9 @@ SIMULATIONS_PER_RENDER = 3
 
 def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneConfig,
                settings: RenderSettings, scheduler: str, repeats: int = 1) -> float:
-    """A real 1-node ``scheduler`` render's busy seconds (the median of ``repeats`` renders)
-    minus the simulated ones (with no set-up cost; the median of
-    ``SIMULATIONS_PER_RENDER`` times as many simulations), >= 0.
+    """What a real 1-node ``scheduler`` render's busy seconds exceed its simulation's (with
+    no set-up cost) by, >= 0: the median over ``repeats`` pairs of a real render and the
+    median of ``SIMULATIONS_PER_RENDER`` simulations right after it.
 
     Parameters
     ----------
@@ -48,25 +48,29 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
         ``spec-insitu``'s on a fresh machine), which every node now does before its first
         hello (``actors.node_warm_up``), outside the busy span timed here; the calibration
         has read the store's files before (``time_loads``).
+
+    Notes
+    -----
+    The cost is a difference of two renders of about 0.2 s, and a simulation charges the CPU
+    time its traces and decisions take here, which moves by a third from one to the next
+    (0.109-0.187 s against real renders' 0.152-0.156 s, rm 64³, session 32). Three real
+    renders and then nine simulations still gave 0, 0.048 and 0.066 s in three calibrations
+    of one evening (session 33), charged to each of 8 nodes on 2 cores: the scan's 8-node rows
+    +45 to +75 % at 0.066. Each real render is now paired with the simulations right after
+    it, so both sides of a difference see the machine at one moment.
     """
     from vastray.sim.simulate import simulate
 
     options = JobOptions(scheduler=scheduler, threads=1)
-
-    def busy_s() -> float:
-        return render_distributed(store_path, None, settings, 1, options=options,
-                                  config=config, timeout=NODE_RENDER_TIMEOUT_S
-                                  ).seconds["busy_max"]
-
-    busy = float(np.median([busy_s() for _ in range(repeats)]))
     unset = replace(costs, node_setup_s=0.0, tile_setup_s=0.0, insitu_setup_s=0.0)
     store = Store(store_path)
-    # the median of SIMULATIONS_PER_RENDER times as many simulations as real renders: a
-    # simulation charges the CPU time its traces and decisions take here, which for a render
-    # this small moves by a third from one to the next (0.109-0.187 s against real renders'
-    # 0.152-0.156 s, rm 64³, session 32); one simulation made that noise the node's set-up
-    # cost, and three still moved it 0.04-0.08 s from one calibration to the next
-    simulated = float(np.median([
-        simulate(store, options, 1, unset, settings, config, max_pass_spp=None).seconds
-        for _ in range(SIMULATIONS_PER_RENDER * max(repeats, 1))]))
-    return max(0.0, busy - simulated)
+    differences = []
+    for _ in range(max(repeats, 1)):
+        busy = render_distributed(store_path, None, settings, 1, options=options,
+                                  config=config, timeout=NODE_RENDER_TIMEOUT_S
+                                  ).seconds["busy_max"]
+        simulated = float(np.median([
+            simulate(store, options, 1, unset, settings, config, max_pass_spp=None).seconds
+            for _ in range(SIMULATIONS_PER_RENDER)]))
+        differences.append(busy - simulated)
+    return max(0.0, float(np.median(differences)))
