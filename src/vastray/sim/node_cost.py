@@ -58,6 +58,11 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
     of one evening (session 33), charged to each of 8 nodes on 2 cores: the scan's 8-node rows
     +45 to +75 % at 0.066. Each real render is now paired with the simulations right after
     it, so both sides of a difference see the machine at one moment.
+
+    What it measures is not all a node's own: on rm 64³ the difference is about 0 in one
+    domain (one load) and grows about 2.5-3 ms a load (18 and 32 loads, session 33), what a
+    load costs inside a render beyond the calibration's isolated loads (``time_loads``).
+    Charged per node, it over-charges nodes that load few domains.
     """
     from vastray.sim.simulate import simulate
 
