@@ -153,8 +153,8 @@ class DomainLoop:
         rays outside traces and decisions (delivering a received batch to the schedule's
         queues, taking a round's rays out of them). The simulator runs the same code and
         charges that CPU with the node's next decision. Uncharged, it was missing from the
-        simulation: 0.45-0.51 s of 6.0-6.7 s of CPU in a real 8-node ``dynamic`` render of
-        rm 128³ (96x72 x 2 spp, 3 bounces, 32 domains cached a node)."""
+        simulation: 0.45-0.60 s of 6.0-8.2 s of CPU in real 8-node ``dynamic`` renders of
+        rm 128³ (96x72 x 2 spp, 3 bounces, 32 domains cached a node; four runs)."""
         cpu = cpu_time()
         try:
             yield

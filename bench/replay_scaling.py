@@ -164,7 +164,6 @@ def simulated_in_parallel(jobs: list):
     machine has cores (spawned, not forked: each builds its own Embree scenes, which a
     forked child could not safely build on). A simulation charges the traces' CPU time, not
     their wall time, so two of them side by side charge what one alone would."""
-
     workers = min(len(jobs), os.cpu_count() or 1)
     if workers <= 1:
         yield from map(_simulate_check, jobs)
