@@ -64,6 +64,10 @@ def test_rounds_send_the_coordinator_nothing_and_give_the_reference(scene, sched
             else:  # a round's rays leave in a batch per peer and queue, not per activation
                 assert c["global_barriers"] == c["rounds"]
                 assert c["batches_sent"] <= c["rounds"] * 2 * 2 * (3 - 1)
+            # a node that took rays in counted the CPU of putting them in its queues
+            if c["rays_received"]:
+                assert c["bookkeeping_cpu_s"] > 0, c
+        assert sum(c["rays_received"] for c in per_node) > 0
     few, many = (results[t].counters["per_node"][0]["counters"] for t in (400, 150))
     assert many["rounds"] > few["rounds"]
     assert many["coordinator_messages"]["film"] == few["coordinator_messages"]["film"] == 1
