@@ -127,12 +127,19 @@ def replayed(replay: Replay, jobs: list[tuple[str, int, int]]):
     processes as this machine has cores (forked: each replay is one process's numpy work)."""
     global _REPLAY
     _REPLAY = replay
+    yield from in_parallel(_replay_one, jobs, "fork")
+
+
+def in_parallel(function, jobs: list, start_method: str):
+    """``function`` of every job, in order, on as many processes as this machine has cores,
+    started by ``start_method`` ("fork" or "spawn"); here, one after another, where one
+    process would do."""
     workers = min(len(jobs), os.cpu_count() or 1)
     if workers <= 1:
-        yield from map(_replay_one, jobs)
+        yield from map(function, jobs)
         return
-    with multiprocessing.get_context("fork").Pool(workers) as pool:
-        yield from pool.imap(_replay_one, jobs)
+    with multiprocessing.get_context(start_method).Pool(workers) as pool:
+        yield from pool.imap(function, jobs)
 
 
 def node_cache(n_domains: int, nodes: int) -> int:
@@ -164,12 +171,7 @@ def simulated_in_parallel(jobs: list):
     machine has cores (spawned, not forked: each builds its own Embree scenes, which a
     forked child could not safely build on). A simulation charges the traces' CPU time, not
     their wall time, so two of them side by side charge what one alone would."""
-    workers = min(len(jobs), os.cpu_count() or 1)
-    if workers <= 1:
-        yield from map(_simulate_check, jobs)
-        return
-    with multiprocessing.get_context("spawn").Pool(workers) as pool:
-        yield from pool.imap(_simulate_check, jobs)
+    return in_parallel(_simulate_check, jobs, "spawn")
 
 
 def check_against_code(store, costs: CostModel, scaling_options, quick: bool) -> list[dict]:
