@@ -827,7 +827,7 @@ class MachineProbe:
 
     Each ``now`` measures each of them once more and charges the medians of the latest
     ``WINDOW`` measurements (``SEED_ROUNDS`` of each taken as the probe starts). One message
-    measurement is noise too: one validation's 20 probes gave ``receive_s`` 0.13-1.00 ms, and
+    measurement is noise too: one validation's 21 probes gave ``receive_s`` 0.21-1.00 ms, and
     the row charged the 1.00 (the scan's 8-node ``dynamic``, a message-heavy one) was
     over-predicted by 85 % while its 2-node row, probed alike, was within 3 % (session 33).
     The throughput: each ``now`` adds one round of renders to those of the probe so far and
