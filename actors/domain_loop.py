@@ -133,7 +133,7 @@ class DomainLoop:
         self.sequence: list[int] = []
         #: CPU seconds of tile starts and bookkeeping not yet charged (the simulator's loop
         #: charges them with its next decision; this loop has nothing to charge)
-        self.undecided_cpu_s = 0.0
+        self.uncharged_cpu_s = 0.0
 
     def start_tile(self, policy, rays) -> None:
         """``policy.start(rays)``: queue a tile's camera rays to their first domains (the
@@ -145,7 +145,7 @@ class DomainLoop:
         policy.start(rays)
         cpu = cpu_time() - cpu
         self.stats["start_cpu_s"] = self.stats.get("start_cpu_s", 0.0) + cpu
-        self.undecided_cpu_s += cpu
+        self.uncharged_cpu_s += cpu
 
     @contextmanager
     def bookkeeping(self) -> Iterator[None]:
@@ -161,7 +161,7 @@ class DomainLoop:
         finally:
             cpu = cpu_time() - cpu
             self.stats["bookkeeping_cpu_s"] = self.stats.get("bookkeeping_cpu_s", 0.0) + cpu
-            self.undecided_cpu_s += cpu
+            self.uncharged_cpu_s += cpu
 
     async def step(self, order: DomainOrder,
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:

@@ -311,7 +311,7 @@ def test_a_tile_start_counts_its_cpu_and_the_simulator_charges_it_as_a_decision(
     _, seconds = run_virtual(start_then_decide())
     assert BurningStart.cpu_s + 0.002 <= cluster.compute_s[0] < BurningStart.cpu_s + 0.05
     assert seconds == pytest.approx(cluster.compute_s[0])
-    assert virtual.undecided_cpu_s == 0.0
+    assert virtual.uncharged_cpu_s == 0.0
 
 
 def burn(cpu_s: float) -> None:

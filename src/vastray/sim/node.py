@@ -83,8 +83,9 @@ class VirtualDomainLoop(DomainLoop):
         self.node_runtime = node_runtime
 
     async def decided(self, cpu_seconds: float) -> None:
-        # with the tile starts made since the last decision (``start_tile``)
-        cpu_seconds, self.undecided_cpu_s = cpu_seconds + self.undecided_cpu_s, 0.0
+        # with the tile starts and bookkeeping since the last decision (``start_tile``,
+        # ``bookkeeping``)
+        cpu_seconds, self.uncharged_cpu_s = cpu_seconds + self.uncharged_cpu_s, 0.0
         await self.cluster.decided(self.rank, cpu_seconds)
 
     async def trace(self, order: DomainOrder, domain: int, bvh) -> Queries:
