@@ -26,6 +26,10 @@ from vastray.sim.warmup import WarmProcesses, interpolated, throughput_of
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
              "latency_s", "byte_s", "receive_s", "warmup_s", "offload_s")
+# differences of a real render and its simulation, clamped at 0: a node whose simulation
+# already charges all it does measures 0 (the quick calibration gave warmup_s 0 in two of
+# three runs, session 34)
+SET_UP_COSTS = ("warmup_s", "node_setup_s", "tile_setup_s", "insitu_setup_s")
 VASTRAY = [sys.executable, "-m", "vastray"]  # __main__ without a main guard: spawn must cope
 
 
@@ -49,8 +53,12 @@ def quick(store):
 @pytest.mark.slow  # the quick calibration takes 20 s; .ci/run runs it
 def test_quick_calibration_measures_every_constant_plausibly(quick):
     model, _, _seconds = quick
-    values = {name: getattr(model, name) for name in CONSTANTS}
+    values = {name: getattr(model, name) for name in CONSTANTS if name not in SET_UP_COSTS}
     assert all(math.isfinite(v) and v > 0 for v in values.values()), values
+    # a set-up costs nothing up to a fraction of a second (a 1-node render of the store
+    # takes about 0.2 s)
+    set_up = {name: getattr(model, name) for name in SET_UP_COSTS}
+    assert all(0.0 <= v < 0.5 for v in set_up.values()), set_up
     assert 1e-6 < model.latency_s < 0.1
     assert 1e-12 < model.byte_s < 1e-6  # between 1 MB/s and 1 TB/s
     assert model.load_byte_s < 1e-6 and model.build_triangle_s < 1e-4
