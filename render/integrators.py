@@ -31,7 +31,7 @@ from vastray.render.lights import (
 )
 from vastray.render.materials import MaterialTable, blinn_phong_lobe_of_cos
 from vastray.render.rng import Purpose
-from vastray.render.tracer import DomainTracer, Hits, facing
+from vastray.render.tracer import DomainTracer, Hits
 
 #: Shadow rays stop this fraction short of their light (see ``render.kernels.SPAWN_EPSILON``).
 SPAWN_EPSILON = kernels.SPAWN_EPSILON
@@ -221,14 +221,17 @@ def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> 
     return out
 
 
-def shade(ctx: PathContext, rays: RadianceRays, hits: Hits
+def shade(ctx: PathContext, rays: RadianceRays, hits: Hits, rows: np.ndarray | None = None
           ) -> tuple[ShadowRays, RadianceRays]:
     """Turn final closest hits into shadow rays and continuation rays, through the compiled
     kernels (``render.kernels``).
 
     Parameters
     ----------
-    rays : k radiance rays that hit; hits : their hits (all rows hit).
+    rays : n radiance rays; hits : their hits.
+    rows : (k,) int64 the rows of ``rays`` and ``hits`` to shade, in order, all of them hits
+        (None: every row, all of which hit). The same as shading ``rays.take(rows)`` and
+        ``hits.take(rows)``, bit for bit, without the takes.
 
     Returns
     -------
@@ -242,7 +245,7 @@ def shade(ctx: PathContext, rays: RadianceRays, hits: Hits
         Path tracing with a light of a kind the kernels do not know (not one of
         ``render.lights``' point, directional, quad and ambient lights).
     """
-    return _shade_fused(ctx, rays, hits)
+    return _shade_fused(ctx, rays, hits, rows)
 
 
 _LIGHT_KINDS = {PointLight: kernels.POINT, DirectionalLight: kernels.DIRECTIONAL,
@@ -293,12 +296,14 @@ def _hemisphere_samples(ctx: PathContext, path: np.ndarray, bounce: np.ndarray, 
     return (u, *kernels.hemisphere_angles(v))
 
 
-def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
-                 ) -> tuple[ShadowRays, RadianceRays]:
+def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits,
+                 rows: np.ndarray | None = None) -> tuple[ShadowRays, RadianceRays]:
     """``shade`` through ``render.kernels`` (the same rays as ``tests/oracles.py``'s numpy
     chain, bit for bit)."""
     settings, mats = ctx.settings, ctx.shading.materials
-    k = len(rays)
+    rows = np.arange(len(rays), dtype=np.int64) if rows is None else _c(rows, np.int64)
+    k = len(rows)
+    path, depth = rays.path[rows], rays.depth[rows]  # of the shaded rows
     has_color = hits.color is not None
     color = hits.color if has_color else np.zeros((0, 3))
     dirs = _c(rays.direction, np.float32)
@@ -308,13 +313,13 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
         m = settings.shadow_samples
         if m <= 0 or k == 0:
             return _no_shadow(), _no_rays()
-        hu, hc, hs = _hemisphere_samples(ctx, rays.path, np.ones(k, np.uint8),
+        hu, hc, hs = _hemisphere_samples(ctx, path, np.ones(k, np.uint8),
                                          Purpose.AO_DIRECTION, m)
         s_org, s_dir = np.empty((k * m, 3), np.float32), np.empty((k * m, 3), np.float32)
         contribution = np.empty((k * m, 3))
-        kernels.shade_ao(dirs, point, error, normal, _c(color, np.float64), has_color, m, hu, hc, hs,
-                         s_org, s_dir, contribution)
-        return ShadowRays(np.repeat(rays.path, m), np.zeros(k * m, np.uint8), s_org, s_dir,
+        kernels.shade_ao(rows, dirs, point, error, normal, _c(color, np.float64), has_color, m,
+                         hu, hc, hs, s_org, s_dir, contribution)
+        return ShadowRays(np.repeat(path, m), np.zeros(k * m, np.uint8), s_org, s_dir,
                           np.full(k * m, ctx.ao_distance, np.float32), contribution), _no_rays()
     kinds, params = _light_table(ctx.shading.lights)
     counts = np.array([shadow_rays(light, settings.shadow_samples)
@@ -327,11 +332,10 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
     hem = np.zeros((3, len(ambient), k * settings.shadow_samples), np.float32)
     for slot, li in enumerate(ambient):
         hem_slot[li] = slot
-        hem[:, slot] = _hemisphere_samples(ctx, rays.path, rays.depth, purposes[li],
-                                           counts[li])
-    more = rays.depth < settings.bounces
+        hem[:, slot] = _hemisphere_samples(ctx, path, depth, purposes[li], counts[li])
+    more = depth < settings.bounces
     if more.any():
-        bu, bc, bs = _hemisphere_samples(ctx, rays.path, rays.depth, Purpose.BOUNCE_DIRECTION, 1)
+        bu, bc, bs = _hemisphere_samples(ctx, path, depth, Purpose.BOUNCE_DIRECTION, 1)
     else:
         bu = bc = bs = np.zeros(k, np.float32)
     n = k * int(counts.sum())
@@ -344,7 +348,7 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
                         np.empty((k, 3), np.float32), np.empty((k, 3), np.float32),
                         np.empty((k, 3)))
     n_shadow, n_cont = kernels.shade_pt(
-        _c(rays.path, np.int64), _c(rays.depth, np.uint8), dirs, _c(rays.beta, np.float64),
+        rows, _c(rays.path, np.int64), _c(rays.depth, np.uint8), dirs, _c(rays.beta, np.float64),
         point, error, normal, _c(hits.material, np.int64), _c(color, np.float64), has_color,
         ctx.pixel, ctx.sample, np.uint64(settings.seed), settings.bounces, mats.diffuse,
         mats.has_specular, kinds, counts, purposes, params, hem_slot, hem[0], hem[1], hem[2],
@@ -353,7 +357,7 @@ def _shade_fused(ctx: PathContext, rays: RadianceRays, hits: Hits
         cont.path, cont.depth, cont.origin, cont.direction, cont.beta)
     shadow = shadow.take(slice(0, n_shadow))
     if mats.has_specular and n_shadow:
-        vertex = s_vertex[:n_shadow]
+        vertex = rows[s_vertex[:n_shadow]]
         material = hits.material[vertex]
         lobe = blinn_phong_lobe_of_cos(mats.shininess[material], s_cos_h[:n_shadow])
         shadow.contribution += (rays.beta[vertex] * mats.specular[material]
@@ -423,8 +427,11 @@ class PathResult:
                 isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights):
             # (nothing else is seen directly: point and directional lights have no area)
             self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
-        self.first_t[rays.path] = hits.t + _camera_start(ctx)
-        self.first_normal[rays.path] = facing(hits.normal, rays.direction.astype(np.float64))
+        # first_t = t + start and first_normal = facing(normal, direction), as float32, in
+        # one compiled pass
+        kernels.first_hits(_c(rays.path, np.int64), _c(hits.t, np.float64),
+                           _c(hits.normal, np.float64), _c(rays.direction, np.float32),
+                           float(_camera_start(ctx)), self.first_t, self.first_normal)
 
 
 def _camera_start(ctx: PathContext) -> float:
@@ -444,8 +451,7 @@ def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:
         hits = tracer.intersect(rays.origin, rays.direction, kind="camera" if first else "bounce")
         if first:
             result.record_camera_hits(ctx, rays, hits)
-        hit = np.nonzero(hits.hit)[0]
-        shadow, rays = shade(ctx, rays.take(hit), hits.take(hit))
+        shadow, rays = shade(ctx, rays, hits, np.nonzero(hits.hit)[0])
         if len(shadow):
             blocked = tracer.occluded(shadow.origin, shadow.direction, shadow.t_max)
             add_unoccluded(result.radiance, shadow, ~blocked)

@@ -235,36 +235,96 @@ def hit_points(rows, prim, u, v, vertices, indices, point, error):
     vertices : (V, 3) float32; indices : (T, 3) uint32 the domain's triangles.
     point : (n, 3) float64 out; error : (n,) float64 out.
     """
-    # scalars, not small arrays: two np.empty(3) a hit were a third of this kernel's time
     for k in range(rows.shape[0]):
-        i = rows[k]
-        a, b, c = indices[prim[k], 0], indices[prim[k], 1], indices[prim[k], 2]
-        uk, vk = np.float64(u[k]), np.float64(v[k])
-        a0, a1, a2 = (np.float64(vertices[a, 0]), np.float64(vertices[a, 1]),
-                      np.float64(vertices[a, 2]))
-        b0, b1, b2 = (np.float64(vertices[b, 0]), np.float64(vertices[b, 1]),
-                      np.float64(vertices[b, 2]))
-        c0, c1, c2 = (np.float64(vertices[c, 0]), np.float64(vertices[c, 1]),
-                      np.float64(vertices[c, 2]))
-        e10, e11, e12 = b0 - a0, b1 - a1, b2 - a2
-        e20, e21, e22 = c0 - a0, c1 - a1, c2 - a2
-        point[i, 0] = a0 + uk * e10 + vk * e20
-        point[i, 1] = a1 + uk * e11 + vk * e21
-        point[i, 2] = a2 + uk * e12 + vk * e22
-        magnitude = max(0.0, abs(a0), abs(b0), abs(c0))
-        magnitude = max(magnitude, abs(a1), abs(b1), abs(c1))
-        magnitude = max(magnitude, abs(a2), abs(b2), abs(c2))
-        n0 = e11 * e22 - e12 * e21
-        n1 = e12 * e20 - e10 * e22
-        n2 = e10 * e21 - e11 * e20
-        area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        l1 = np.sqrt(e10 * e10 + e11 * e11 + e12 * e12)
-        l2 = np.sqrt(e20 * e20 + e21 * e21 + e22 * e22)
-        l3 = np.sqrt((e20 - e10) ** 2 + (e21 - e11) ** 2 + (e22 - e12) ** 2)
-        longest = max(l1, l2, l3)
-        product = l1 * l2
-        tilt = longest * _SLIVER if area2 * _SLIVER <= product else longest * product / area2
-        error[i] = HIT_ERROR * (magnitude + tilt)
+        _rebuild_point(rows[k], prim[k], np.float64(u[k]), np.float64(v[k]), vertices, indices,
+                       point, error)
+
+
+@njit(inline="always")
+def _rebuild_point(i, p, uk, vk, vertices, indices, point, error):
+    """``hit_points`` for one hit: row ``i`` of ``point``/``error`` from triangle ``p`` at
+    barycentrics ``uk, vk`` (float64)."""
+    # scalars, not small arrays: two np.empty(3) a hit were a third of this kernel's time
+    a, b, c = indices[p, 0], indices[p, 1], indices[p, 2]
+    a0, a1, a2 = (np.float64(vertices[a, 0]), np.float64(vertices[a, 1]),
+                  np.float64(vertices[a, 2]))
+    b0, b1, b2 = (np.float64(vertices[b, 0]), np.float64(vertices[b, 1]),
+                  np.float64(vertices[b, 2]))
+    c0, c1, c2 = (np.float64(vertices[c, 0]), np.float64(vertices[c, 1]),
+                  np.float64(vertices[c, 2]))
+    e10, e11, e12 = b0 - a0, b1 - a1, b2 - a2
+    e20, e21, e22 = c0 - a0, c1 - a1, c2 - a2
+    point[i, 0] = a0 + uk * e10 + vk * e20
+    point[i, 1] = a1 + uk * e11 + vk * e21
+    point[i, 2] = a2 + uk * e12 + vk * e22
+    magnitude = max(0.0, abs(a0), abs(b0), abs(c0))
+    magnitude = max(magnitude, abs(a1), abs(b1), abs(c1))
+    magnitude = max(magnitude, abs(a2), abs(b2), abs(c2))
+    n0 = e11 * e22 - e12 * e21
+    n1 = e12 * e20 - e10 * e22
+    n2 = e10 * e21 - e11 * e20
+    area2 = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    l1 = np.sqrt(e10 * e10 + e11 * e11 + e12 * e12)
+    l2 = np.sqrt(e20 * e20 + e21 * e21 + e22 * e22)
+    l3 = np.sqrt((e20 - e10) ** 2 + (e21 - e11) ** 2 + (e22 - e12) ** 2)
+    longest = max(l1, l2, l3)
+    product = l1 * l2
+    tilt = longest * _SLIVER if area2 * _SLIVER <= product else longest * product / area2
+    error[i] = HIT_ERROR * (magnitude + tilt)
+
+
+@njit(nogil=True, cache=True)
+def one_domain_hits(prim, tfar, u, v, ng, vertices, indices, t, normal, point, error):
+    """The final hits of rays queried in one domain only, in one pass: what
+    ``ClosestHits.offer`` (into an empty record) and then ``ClosestHits.hits`` give, bit for
+    bit, without the record between them.
+
+    Parameters
+    ----------
+    prim : (n,) int32 (-1: a miss); tfar, u, v : (n,) float32; ng : (n, 3) float32 Embree's
+        output for the n rays.
+    vertices : (V, 3) float32; indices : (T, 3) uint32 the domain's triangles.
+    t : (n,) float64 out (inf: a miss); normal : (n, 3) float64 out, unit (0 for a miss);
+    point : (n, 3) float64 out and error : (n,) float64 out (``hit_points``; 0 for a miss).
+    """
+    for i in range(prim.shape[0]):
+        p = prim[i]
+        if p < 0:
+            t[i] = np.inf
+            normal[i, 0], normal[i, 1], normal[i, 2] = 0.0, 0.0, 0.0
+            point[i, 0], point[i, 1], point[i, 2] = 0.0, 0.0, 0.0
+            error[i] = 0.0
+            continue
+        t[i] = np.float64(tfar[i])
+        x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
+        length = np.sqrt((x * x + y * y) + z * z)  # as unit_normals
+        if not length > 0:
+            length = 1.0
+        normal[i, 0], normal[i, 1], normal[i, 2] = x / length, y / length, z / length
+        _rebuild_point(i, p, np.float64(u[i]), np.float64(v[i]), vertices, indices, point,
+                       error)
+
+
+@njit(nogil=True, cache=True)
+def first_hits(path, t, normal, dirs, start, first_t, first_normal):
+    """``PathResult.record_camera_hits``' layers in one pass: for camera ray k of path
+    ``path[k]``, ``first_t = t + start`` and ``first_normal`` the normal facing the ray
+    (``tracer.facing``, whose ``einsum`` sums in ``_dot``'s order), both stored as float32.
+
+    Parameters
+    ----------
+    path : (k,) int64; t : (k,) float64; normal : (k, 3) float64; dirs : (k, 3) float32.
+    start : float64, how far from the camera the rays started.
+    first_t : (P,) float32 out; first_normal : (P, 3) float32 out.
+    """
+    for k in range(path.shape[0]):
+        i = path[k]
+        first_t[i] = t[k] + start
+        g0, g1, g2 = normal[k, 0], normal[k, 1], normal[k, 2]
+        side = -1.0 if _dot(g0, g1, g2, np.float64(dirs[k, 0]), np.float64(dirs[k, 1]),
+                            np.float64(dirs[k, 2])) > 0 else 1.0
+        first_normal[i, 0], first_normal[i, 1], first_normal[i, 2] = (g0 * side, g1 * side,
+                                                                      g2 * side)
 
 
 @njit(nogil=True, cache=True)
@@ -291,23 +351,26 @@ def ray_points(org, dirs, t, point, error):
 # ---------------------------------------------------------------------------------------------
 
 @njit(nogil=True, cache=True)
-def shade_ao(dirs, point, error, normal, color, has_color, m, hu, hc, hs, s_org, s_dir,
+def shade_ao(rows, dirs, point, error, normal, color, has_color, m, hu, hc, hs, s_org, s_dir,
              s_contrib):
     """``oracles._ambient_occlusion_rays``: ``m`` cosine-weighted rays per hit.
 
     Parameters
     ----------
-    dirs : (k, 3) float32 radiance ray directions; point : (k, 3) float64 hit points;
-    error : (k,) float64 their error bounds; normal : (k, 3) float64.
-    color : (k, 3) float64 (read only when ``has_color``).
+    rows : (k,) int64 the rows of the inputs below to shade, in order (the hits: reading
+        them in place spares the caller a take of every array).
+    dirs : (n, 3) float32 radiance ray directions; point : (n, 3) float64 hit points;
+    error : (n,) float64 their error bounds; normal : (n, 3) float64.
+    color : (n, 3) float64 (read only when ``has_color``).
     m : rays per hit (>= 1); hu, hc, hs : (k * m,) float32 uniform u and azimuth cos/sin.
     s_org, s_dir : (k * m, 3) float32 out; s_contrib : (k * m, 3) float64 out.
     """
-    k = dirs.shape[0]
+    k = rows.shape[0]
     for i in range(k):
-        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, i)
+        q = rows[i]
+        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, q)
         if has_color:
-            c0, c1, c2 = color[i, 0] / m, color[i, 1] / m, color[i, 2] / m
+            c0, c1, c2 = color[q, 0] / m, color[q, 1] / m, color[q, 2] / m
         else:
             c0 = c1 = c2 = 1.0 / m
         for j in range(m):
@@ -358,7 +421,7 @@ def _sample_light(kind, prm, o0, o1, o2, nf0, nf1, nf2, su, sv, hu, hc, hs):
 
 
 @njit(nogil=True, cache=True)
-def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has_color,
+def shade_pt(rows, path, depth, dirs, beta, point, error, normal, material, color, has_color,
              pixel, sample, seed, bounces, diffuse, has_specular,
              kinds, counts, purposes, params, hem_slot, hem_u, hem_c, hem_s, bu, bc, bs,
              s_path, s_depth, s_org, s_dir, s_tmax, s_contrib, s_vertex, s_weight, s_cos_h,
@@ -369,12 +432,14 @@ def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has
 
     Parameters
     ----------
-    path : (k,) int64; depth : (k,) uint8; dirs : (k, 3) float32; beta : (k, 3) float64
-        the radiance rays that hit.
-    point : (k, 3) float64 hit points and error : (k,) float64 their bounds
+    rows : (k,) int64 the rows of the per-ray inputs below to shade, in order (the rays that
+        hit: reading them in place spares the caller a take of every array).
+    path : (n,) int64; depth : (n,) uint8; dirs : (n, 3) float32; beta : (n, 3) float64
+        the radiance rays.
+    point : (n, 3) float64 hit points and error : (n,) float64 their bounds
         (``hit_points``); lights are sampled from the point, rays leave from it offset.
-    normal : (k, 3) float64 unit geometric normals; material : (k,) int64;
-        color : (k, 3) float64 (read only when ``has_color``).
+    normal : (n, 3) float64 unit geometric normals; material : (n,) int64;
+        color : (n, 3) float64 (read only when ``has_color``).
     pixel, sample : (P,) uint32 path keys; seed : uint64; bounces : the last vertex that
         continues is ``bounces - 1``.
     diffuse : (M, 3) float64 albedo per material; has_specular : also fill ``s_vertex``,
@@ -387,14 +452,15 @@ def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has
     bu, bc, bs : (k,) float32 the continuation bounce's u and azimuth cos/sin (read only for
         rows with ``depth < bounces``).
     s_* : shadow-ray outputs with room for every sample: path, depth, origin, direction,
-        t_max, contribution; s_vertex (int64), s_weight ((n, 3) float64), s_cos_h (float64).
+        t_max, contribution; s_vertex (int64: the shaded row, an index into ``rows``),
+        s_weight ((., 3) float64), s_cos_h (float64).
     c_* : continuation outputs with room for k rows: path, depth, origin, direction, beta.
 
     Returns
     -------
     (shadow rays written, continuation rays written)
     """
-    k = path.shape[0]
+    k = rows.shape[0]
     n_shadow = 0
     for li in range(kinds.shape[0]):
         m = counts[li]
@@ -405,19 +471,21 @@ def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has
         start = key_start(seed, purposes[li])
         slot = hem_slot[li]
         for i in range(k):
+            q = rows[i]
             d0, d1, d2, nf0, nf1, nf2, p0, p1, p2, o0, o1, o2 = _frame(dirs, point, error,
-                                                                       normal, i)
-            a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
+                                                                       normal, q)
+            a0, a1, a2 = diffuse[material[q], 0], diffuse[material[q], 1], diffuse[material[q], 2]
             if has_color:
-                a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
-            td0 = beta[i, 0] * a0 / _PI
-            td1 = beta[i, 1] * a1 / _PI
-            td2 = beta[i, 2] * a2 / _PI
-            p = path[i]
+                a0, a1, a2 = a0 * color[q, 0], a1 * color[q, 1], a2 * color[q, 2]
+            td0 = beta[q, 0] * a0 / _PI
+            td1 = beta[q, 1] * a1 / _PI
+            td2 = beta[q, 2] * a2 / _PI
+            p = path[q]
+            dq = depth[q]
             for j in range(m):
                 su = sv = hu = hc = hs = _F32_ZERO
                 if kind == QUAD:
-                    su, sv = _uniform_pair(hash_key(start, pixel[p], sample[p], depth[i], j))
+                    su, sv = _uniform_pair(hash_key(start, pixel[p], sample[p], dq, j))
                 elif kind == AMBIENT:
                     r = i * m + j
                     hu, hc, hs = hem_u[slot, r], hem_c[slot, r], hem_s[slot, r]
@@ -430,7 +498,7 @@ def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has
                 g0, g1, g2 = c * e0, c * e1, c * e2
                 n = n_shadow
                 s_path[n] = p
-                s_depth[n] = depth[i]
+                s_depth[n] = dq
                 s_org[n, 0], s_org[n, 1], s_org[n, 2] = o0, o1, o2
                 s_dir[n, 0], s_dir[n, 1], s_dir[n, 2] = w0, w1, w2
                 s_tmax[n] = dist * _SHORTEN
@@ -444,19 +512,20 @@ def shade_pt(path, depth, dirs, beta, point, error, normal, material, color, has
                 n_shadow += 1
     n_cont = 0
     for i in range(k):
-        if depth[i] >= bounces:
+        q = rows[i]
+        if depth[q] >= bounces:
             continue
-        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, i)
-        a0, a1, a2 = diffuse[material[i], 0], diffuse[material[i], 1], diffuse[material[i], 2]
+        _, _, _, nf0, nf1, nf2, _, _, _, o0, o1, o2 = _frame(dirs, point, error, normal, q)
+        a0, a1, a2 = diffuse[material[q], 0], diffuse[material[q], 1], diffuse[material[q], 2]
         if has_color:
-            a0, a1, a2 = a0 * color[i, 0], a1 * color[i, 1], a2 * color[i, 2]
-        b0, b1, b2 = beta[i, 0] * a0, beta[i, 1] * a1, beta[i, 2] * a2
+            a0, a1, a2 = a0 * color[q, 0], a1 * color[q, 1], a2 * color[q, 2]
+        b0, b1, b2 = beta[q, 0] * a0, beta[q, 1] * a1, beta[q, 2] * a2
         if not (b0 > 0 or b1 > 0 or b2 > 0):
             continue
         w0, w1, w2 = _hemisphere(nf0, nf1, nf2, bu[i], bc[i], bs[i])
         n = n_cont
-        c_path[n] = path[i]
-        c_depth[n] = depth[i] + 1
+        c_path[n] = path[q]
+        c_depth[n] = depth[q] + 1
         c_org[n, 0], c_org[n, 1], c_org[n, 2] = o0, o1, o2
         c_dir[n, 0], c_dir[n, 1], c_dir[n, 2] = w0, w1, w2
         c_beta[n, 0], c_beta[n, 1], c_beta[n, 2] = b0, b1, b2

@@ -173,6 +173,39 @@ class ClosestHits:
 NO_DOMAIN = np.iinfo(np.int32).max
 
 
+def _fusable(r: dict, bvh) -> bool:
+    """Whether ``one_domain_hits`` takes Embree's output ``r`` of ``bvh`` as it is (the
+    compiled binding's dtypes; the embreex fallback may differ)."""
+    return (r["primID"].dtype == np.int32 and r["tfar"].dtype == np.float32
+            and r["u"].dtype == np.float32 and r["v"].dtype == np.float32
+            and r["Ng"].dtype == np.float32 and r["Ng"].flags.c_contiguous
+            and bvh.vertices.dtype == np.float32 and bvh.vertices.flags.c_contiguous
+            and bvh.indices.flags.c_contiguous and bvh.indices.dtype in (np.uint32, np.int32))
+
+
+def one_domain_hits(bvh, r: dict, color_source: str | None,
+                    scalar_range: tuple[float, float]) -> Hits:
+    """The hits of rays whose only domain is ``bvh`` (Embree output ``r`` for all n of them),
+    bit for bit what ``ClosestHits.offer`` into an empty record and ``ClosestHits.hits``
+    give, in one compiled pass (``kernels.one_domain_hits``: no record, no gathers between
+    them; 5 % of a one-domain render, ``bench/peers.py``'s scene, issue 39)."""
+    n = len(r["primID"])
+    t, normal, point, error = np.empty(n), np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    kernels.one_domain_hits(r["primID"], r["tfar"], r["u"], r["v"], r["Ng"], bvh.vertices,
+                            bvh.indices, t, normal, point, error)
+    material = np.zeros(n, np.int64)
+    color = np.zeros((n, 3)) if color_source is not None else None
+    if bvh.objects is not None or color is not None:
+        won = np.nonzero(r["primID"] >= 0)[0]
+        prim = r["primID"][won]
+        if bvh.objects is not None:
+            material[won] = bvh.objects[prim]
+        if color is not None:
+            color[won] = vertex_color(bvh, prim, r["u"][won], r["v"][won], color_source,
+                                      scalar_range)
+    return Hits(t, normal, material, color, point, error)
+
+
 def vertex_color(bvh, prim, u, v, color_source: str, scalar_range) -> np.ndarray:
     """Per-vertex colour, or the colour-mapped scalar, interpolated at barycentrics (u, v).
 
@@ -494,14 +527,17 @@ class DomainTracer:
             self.stats.rays[kind] += n
         if self.record is not None:
             self.record.append(("closest", origins, directions, None))
-        best = ClosestHits.empty(n, self.color_source is not None)
         only = self._only_domain()
         if only is not None:
             self._count_visit(only, n)
             bvh = self.cache.get(only)
-            r = bvh.intersect(origins, directions, best.t, self.pool)
+            r = bvh.intersect(origins, directions, np.full(n, np.inf, np.float32), self.pool)
+            if _fusable(r, bvh):
+                return one_domain_hits(bvh, r, self.color_source, self.scalar_range)
+            best = ClosestHits.empty(n, self.color_source is not None)
             best.offer(np.arange(n), only, bvh, r, self.color_source, self.scalar_range)
             return best.hits()
+        best = ClosestHits.empty(n, self.color_source is not None)
         top = self._top_level()
         tree = None
         if top is not None:

@@ -242,7 +242,7 @@ class ImageSchedule:
         if len(hit) == 0:
             return
         start = time.perf_counter()
-        shadow, continuation = shade(self.ctx, radiance.take(hit), hits.take(hit))
+        shadow, continuation = shade(self.ctx, radiance, hits, hit)
         self.counters["shade_s"] += time.perf_counter() - start
         shadow_rows = continuation_rows = None
         logged = self.crossing_log is not None

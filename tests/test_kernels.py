@@ -131,6 +131,23 @@ def test_fused_ao_shading_equals_numpy_chain(with_color):
     _assert_same(cont, cont_np)
 
 
+@pytest.mark.parametrize("integrator", ["pt", "ao"])
+def test_shading_rows_in_place_equals_shading_their_takes(integrator):
+    # shade(rays, hits, rows) reads the rows in place (no takes, issue 39): the same rays as
+    # shading the taken rows, in the order of rows (not sorted), specular lobes included
+    mats = [Material(np.array([0.7, 0.6, 0.5]), np.zeros(3), 32.0),
+            Material(np.array([0.2, 0.8, 0.3]), np.array([0.3, 0.3, 0.3]), 48.0)]
+    rays, hits, pixel, sample = _batch(3000, 11, len(mats), True)
+    settings = RenderSettings(integrator=integrator, bounces=3, shadow_samples=4, seed=5)
+    ctx = PathContext(Shading(LIGHTS, MaterialTable(mats), True), settings, pixel, sample, 1.0)
+    rows = np.random.default_rng(3).permutation(3000)[:1700]
+    shadow, cont = shade(ctx, rays, hits, rows)
+    shadow_take, cont_take = shade(ctx, rays.take(rows), hits.take(rows))
+    assert len(shadow) > 1000 and (len(cont) > 1000 or integrator == "ao")
+    _assert_same(shadow, shadow_take)
+    _assert_same(cont, cont_take)
+
+
 def test_shade_refuses_a_light_of_another_kind():
     class Dim(PointLight):  # not one of the kinds the kernels know
         pass
@@ -283,3 +300,74 @@ def test_fused_film_add_equals_bincount(counting):
         got, want = getattr(films[0], name), getattr(films[1], name)
         assert got.any()
         np.testing.assert_array_equal(got, want)
+
+
+def test_one_domain_hits_equal_offer_then_hits_bit_for_bit():
+    # one pass from Embree's output to the final hits (issue 39) against the record it
+    # replaced: misses, zero normals, slivers, degenerate and far-away triangles included
+    from types import SimpleNamespace
+
+    from vastray.render.tracer import ClosestHits, one_domain_hits
+
+    rng = np.random.default_rng(39)
+    n, tris = 20_000, 400
+    vertices = (rng.standard_normal((3 * tris, 3))
+                * rng.choice([1e-3, 1.0, 1e4], (3 * tris, 1))).astype(np.float32)
+    vertices[3:6] = vertices[0]  # a degenerate triangle
+    vertices[7] = vertices[6] + np.float32([1e-4, 0, 0])  # a sliver
+    vertices[8] = vertices[6] + np.float32([1.0, 1e-6, 0])
+    for objects, color_source in ((None, None), (rng.integers(0, 3, tris), "scalars")):
+        bvh = SimpleNamespace(objects=objects, vertices=vertices,
+                              indices=np.arange(3 * tris, dtype=np.uint32).reshape(tris, 3),
+                              scalars=rng.random(3 * tris).astype(np.float32))
+        u = rng.random(n).astype(np.float32)
+        r = {"primID": np.where(rng.random(n) < 0.3, -1,
+                                rng.integers(0, tris, n)).astype(np.int32),
+             "tfar": rng.uniform(0, 1e3, n).astype(np.float32),
+             "Ng": (rng.standard_normal((n, 3)) * rng.uniform(1e-6, 1e6, (n, 1))
+                    ).astype(np.float32),
+             "u": u, "v": (rng.random(n) * (1 - u)).astype(np.float32)}
+        r["Ng"][:50] = 0.0
+        r["tfar"][r["primID"] < 0] = np.inf
+        got = one_domain_hits(bvh, r, color_source, (0.0, 1.0))
+        best = ClosestHits.empty(n, color_source is not None)
+        best.offer(np.arange(n), 0, bvh, r, color_source, (0.0, 1.0))
+        want = best.hits()
+        for name in ("t", "normal", "material", "color", "point", "error"):
+            if getattr(want, name) is None:
+                assert getattr(got, name) is None
+            else:
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name),
+                                              err_msg=name)
+        assert (~got.hit).sum() > 1000 and np.isfinite(got.error).all()
+
+
+def test_first_hits_equal_the_numpy_layers():
+    # record_camera_hits' kernel against t + start and tracer.facing, rays grazing the
+    # surface (dot product about 0) included
+    from vastray.render.tracer import facing
+
+    rng = np.random.default_rng(40)
+    k, paths = 30_000, 50_000
+    normal = rng.standard_normal((k, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal[:20] = 0.0
+    dirs = rng.standard_normal((k, 3)).astype(np.float32)
+    # grazing: directions made perpendicular to the normal in float64, then rounded
+    grazing = slice(100, 10_000)
+    d = dirs[grazing].astype(np.float64)
+    d -= np.einsum("ij,ij->i", d, normal[grazing])[:, None] * normal[grazing]
+    dirs[grazing] = d.astype(np.float32)
+    t = np.where(rng.random(k) < 0.2, np.inf, rng.uniform(0, 1e4, k))
+    path = rng.permutation(paths)[:k].astype(np.int64)
+    start = 12.375
+    first_t, first_normal = np.full(paths, np.inf, np.float32), np.zeros((paths, 3), np.float32)
+    kernels.first_hits(path, t, normal, dirs, start, first_t, first_normal)
+    want_t, want_n = first_t.copy(), first_normal.copy()
+    want_t[:], want_n[:] = np.inf, 0.0
+    want_t[path] = t + start
+    want_n[path] = facing(normal, dirs.astype(np.float64))
+    np.testing.assert_array_equal(first_t, want_t)
+    np.testing.assert_array_equal(first_normal, want_n)
+    flipped = np.einsum("ij,ij->i", normal, dirs.astype(np.float64)) > 0
+    assert flipped[grazing].any() and (~flipped[grazing]).any()
