@@ -333,6 +333,38 @@ def one_domain_hits(prim, tfar, u, v, ng, vertices, indices, t, normal, point, e
 
 
 @njit(nogil=True, cache=True)
+def scalar_colors(prim, u, v, indices, scalars, lo, hi, table, nan_color, out):
+    """``tracer.vertex_color`` of a scalar-coloured domain in one pass: the vertex scalars
+    interpolated at Embree's barycentrics, then ``materials.colormap``, bit for bit.
+
+    Parameters
+    ----------
+    prim : (k,) int32 triangles hit; u, v : (k,) float32 their barycentrics.
+    indices : (T, 3) uint32; scalars : (V,) float32 per vertex.
+    lo, hi : float64 the range mapped to the table's ends; table : (m, 3) float64, m >= 2.
+    nan_color : (3,) float64, the colour of a NaN scalar; out : (k, 3) float64.
+    """
+    span = hi - lo if hi > lo else 1.0
+    top = table.shape[0] - 1
+    for k in range(prim.shape[0]):
+        p = prim[k]
+        w0 = np.float64(_F32_ONE - u[k] - v[k])  # float32 arithmetic, as numpy's
+        s0 = np.float64(scalars[indices[p, 0]])
+        s1 = np.float64(scalars[indices[p, 1]])
+        s2 = np.float64(scalars[indices[p, 2]])
+        x = (_dot(w0, np.float64(u[k]), np.float64(v[k]), s0, s1, s2) - lo) / span
+        if np.isnan(x):
+            out[k, 0], out[k, 1], out[k, 2] = nan_color[0], nan_color[1], nan_color[2]
+            continue
+        x = min(max(x, 0.0), 1.0) * top
+        i = min(np.int64(x), top - 1)
+        f = x - i
+        g = 1.0 - f
+        for c in range(3):
+            out[k, c] = table[i, c] * g + table[i + 1, c] * f
+
+
+@njit(nogil=True, cache=True)
 def first_hits(path, t, normal, dirs, start, first_t, first_normal):
     """``PathResult.record_camera_hits``' layers in one pass: for camera ray k of path
     ``path[k]``, ``first_t = t + start`` and ``first_normal`` the normal facing the ray

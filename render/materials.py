@@ -68,14 +68,29 @@ def colormap(values: np.ndarray, lo: float, hi: float, lut: np.ndarray | None = 
 
     Returns
     -------
-    (n, 3) float64 linear-ish RGB in [0, 1]
+    (n, 3) float64 linear-ish RGB in [0, 1]; ``NAN_COLOR`` where a value is NaN.
     """
-    table = _VIRIDIS if lut is None else lut
+    table = color_table(lut)
     span = hi - lo if hi > lo else 1.0
     x = np.clip((np.asarray(values, np.float64) - lo) / span, 0.0, 1.0) * (len(table) - 1)
+    nan = np.isnan(x)
+    if nan.any():  # a NaN has no place on the map (it made an index out of bounds before)
+        x = np.where(nan, 0.0, x)
     i = np.minimum(x.astype(np.int64), len(table) - 2)
     f = (x - i)[:, None]
-    return table[i] * (1.0 - f) + table[i + 1] * f
+    out = table[i] * (1.0 - f) + table[i + 1] * f
+    out[nan] = NAN_COLOR
+    return out
+
+
+#: The colour of a NaN scalar (a volume's missing values, a simulation's undefined cells), as
+#: ParaView shows NaNs in a colour of their own: mid grey, on no colour map's path.
+NAN_COLOR = np.array([0.5, 0.5, 0.5])
+
+
+def color_table(lut: np.ndarray | None) -> np.ndarray:
+    """``colormap``'s table: ``lut`` ((k, 3), k >= 2), or viridis sampled at 9 points."""
+    return _VIRIDIS if lut is None else lut
 
 
 def blinn_phong_lobe_of_cos(shininess: np.ndarray, cos_h: np.ndarray) -> np.ndarray:

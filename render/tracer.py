@@ -26,7 +26,7 @@ import numpy as np
 
 from vastray.render import kernels
 from vastray.render.boxtree import BoxTree
-from vastray.render.materials import ScalarMap, colormap
+from vastray.render.materials import NAN_COLOR, ScalarMap, color_table, colormap
 from vastray.scene.cache import DomainCache
 from vastray.scene.cpus import available_cpus
 from vastray.scene.embree.scenes import TopScene
@@ -213,6 +213,18 @@ def vertex_color(bvh, prim, u, v, color_source: str, scalar_range) -> np.ndarray
     -------
     (k, 3) float64
     """
+    if color_source != "colors" and bvh.scalars.dtype == np.float32:
+        # in one compiled pass (``kernels.scalar_colors``), bit for bit the numpy below
+        lo, hi, *lut = scalar_range  # a ScalarMap, or (lo, hi)
+        out = np.empty((len(prim), 3))
+        kernels.scalar_colors(np.ascontiguousarray(prim, np.int32),
+                              np.ascontiguousarray(u, np.float32),
+                              np.ascontiguousarray(v, np.float32),
+                              np.ascontiguousarray(bvh.indices), np.ascontiguousarray(bvh.scalars),
+                              float(lo), float(hi),
+                              np.ascontiguousarray(color_table(lut[0] if lut else None), np.float64),
+                              NAN_COLOR, out)
+        return out
     tri = bvh.indices[prim]
     w = np.stack([1.0 - u - v, u, v], axis=1).astype(np.float64)
     if color_source == "colors":

@@ -371,3 +371,34 @@ def test_first_hits_equal_the_numpy_layers():
     np.testing.assert_array_equal(first_normal, want_n)
     flipped = np.einsum("ij,ij->i", normal, dirs.astype(np.float64)) > 0
     assert flipped[grazing].any() and (~flipped[grazing]).any()
+
+
+@pytest.mark.parametrize("lut", [None, "table"])
+def test_scalar_colors_equal_the_numpy_colormap_and_nan_is_grey(lut):
+    # the compiled scalar colouring (issue 39) against the numpy interpolation and colormap
+    # it replaced, scalars beyond the range, infinite and NaN ones included
+    from types import SimpleNamespace
+
+    from vastray.render.materials import NAN_COLOR, colormap
+    from vastray.render.tracer import vertex_color
+
+    rng = np.random.default_rng(41)
+    k, tris = 50_000, 500
+    scalars = rng.uniform(-2.0, 3.0, 3 * tris).astype(np.float32)
+    scalars[:6] = [np.nan, 1.0, 2.0, np.inf, -np.inf, 0.5]  # triangles 0 and 1
+    bvh = SimpleNamespace(indices=rng.integers(0, 3 * tris, (tris, 3)).astype(np.uint32),
+                          scalars=scalars)
+    bvh.indices[0], bvh.indices[1] = [0, 1, 2], [3, 4, 5]
+    prim = rng.integers(0, tris, k).astype(np.int32)
+    u = rng.random(k).astype(np.float32)
+    v = (rng.random(k) * (1 - u)).astype(np.float32)
+    table = None if lut is None else rng.random((7, 3))
+    got = vertex_color(bvh, prim, u, v, "scalars", (0.0, 1.5, table))
+    tri = bvh.indices[prim]
+    w = np.stack([1.0 - u - v, u, v], axis=1).astype(np.float64)
+    want = colormap(np.einsum("kj,kj->k", w, bvh.scalars[tri].astype(np.float64)), 0.0, 1.5,
+                    table)
+    np.testing.assert_array_equal(got, want)
+    nan = prim == 0
+    assert nan.any() and (got[nan] == NAN_COLOR).all()
+    assert np.isfinite(got).all() and ((got >= 0) & (got <= 1)).all()
