@@ -122,6 +122,8 @@ def test_spec_insitu_speculates(scene):
     assert sum(c["speculative_rays"] for c in per_node) > 0
     assert sum(c["wasted_rays"] for c in per_node) > 0  # speculation costs something
     assert sum(c["intersection_cache_hits"] for c in per_node) > 0  # and pays off
+    # each node counted the CPU of cutting its copies into batches and copying peers' out
+    assert all(c["bookkeeping_cpu_s"] > 0 for c in per_node), per_node
 
 
 def test_dynamic_keeps_resident_domains_where_they_are(scene):

@@ -350,3 +350,32 @@ def test_bookkeeping_counts_its_cpu_even_when_it_fails_and_the_simulator_charges
     assert 0.02 <= cluster.compute_s[0] < 0.1
     assert seconds == pytest.approx(cluster.compute_s[0])
     assert virtual.stats["bookkeeping_cpu_s"] >= 0.02
+
+
+def test_spec_insitu_counts_its_bookkeeping_and_charges_it_once():
+    # the in-situ exchange's copying (actors/insitu.py) is counted as the domain loop's is,
+    # and handed to the simulator's clock as a decision once (issue 38)
+    import asyncio
+
+    from vastray.actors.insitu import _InSitu
+
+    charged = []
+
+    async def decided(cpu_seconds):
+        charged.append(cpu_seconds)
+
+    node = _InSitu.__new__(_InSitu)
+    node.stats, node.decided, node._uncharged_s = {}, decided, 0.0
+    with node._bookkeeping():
+        burn(0.01)
+    with pytest.raises(ValueError), node._bookkeeping():
+        burn(0.01)
+        raise ValueError("a malformed batch")
+
+    async def charge_twice():
+        await node._charge_bookkeeping()
+        await node._charge_bookkeeping()
+
+    asyncio.run(charge_twice())
+    assert 0.02 <= node.stats["bookkeeping_cpu_s"] < 0.2
+    assert charged[0] == node.stats["bookkeeping_cpu_s"] and charged[1] == 0.0
