@@ -64,7 +64,8 @@ def warm_node() -> float:
 
 def _tiny_store(path: Path):
     """A floor in two domains and a wall in a third, each a grid of ``QUADS_PER_SIDE``²
-    quads with holes: rays cross domains, bounce, and cast shadow rays through other domains."""
+    quads with holes: rays cross domains, bounce, and cast shadow rays through other domains.
+    Its vertices carry a scalar, so hits are coloured (``kernels.scalar_colors``)."""
     from vastray.scene.store import DomainArrays, Store, StoreWriter
 
     n = QUADS_PER_SIDE
@@ -83,9 +84,9 @@ def _tiny_store(path: Path):
               np.stack([u, zero, v - 0.5], axis=1),         # floor, right half
               np.stack([2.0 * u - 1.0, v, zero - 0.5], axis=1)]  # the wall behind
     with StoreWriter(path) as writer:
-        for vertices in sheets:
+        for vertices in sheets:  # with a scalar per vertex: the colour kernel is warmed too
             writer.add_domain(DomainArrays(vertices=vertices.astype(np.float32),
-                                           indices=indices))
+                                           indices=indices, scalars=u.astype(np.float32)))
     return Store(path)
 
 
