@@ -105,6 +105,20 @@ class Activation:
     queries: int  # ray queries made
 
 
+@contextmanager
+def counted_bookkeeping(stats: dict, charge: Callable[[float], None]) -> Iterator[None]:
+    """Count the calling thread's CPU in the enclosed code (which must not await: the event
+    loop's other tasks would count too) as ``stats["bookkeeping_cpu_s"]``, and pass it to
+    ``charge``, even when the code raises."""
+    cpu = cpu_time()
+    try:
+        yield
+    finally:
+        spent = cpu_time() - cpu
+        stats["bookkeeping_cpu_s"] = stats.get("bookkeeping_cpu_s", 0.0) + spent
+        charge(spent)
+
+
 class DomainLoop:
     """Activates domains in a schedule's order through a node's preloader.
 
@@ -155,13 +169,11 @@ class DomainLoop:
         charges that CPU with the node's next decision. Uncharged, it was missing from the
         simulation: 0.45-0.60 s of 6.0-8.2 s of CPU in real 8-node ``dynamic`` renders of
         rm 128³ (96x72 x 2 spp, 3 bounces, 32 domains cached a node; four runs)."""
-        cpu = cpu_time()
-        try:
+        with counted_bookkeeping(self.stats, self._leave_uncharged):
             yield
-        finally:
-            cpu = cpu_time() - cpu
-            self.stats["bookkeeping_cpu_s"] = self.stats.get("bookkeeping_cpu_s", 0.0) + cpu
-            self.uncharged_cpu_s += cpu
+
+    def _leave_uncharged(self, cpu_seconds: float) -> None:
+        self.uncharged_cpu_s += cpu_seconds
 
     async def step(self, order: DomainOrder,
                    ship: Callable[[], Awaitable[None]] | None = None) -> Activation | None:

@@ -15,6 +15,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from vastray.actors import protocol
+from vastray.actors.domain_loop import counted_bookkeeping
 from vastray.actors.job_options import JobOptions
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import RayPost, traffic_counters
@@ -167,13 +168,11 @@ class _InSitu:
         arrays and messages, outside the traces and the schedule's decisions. Uncounted, the
         simulator (which runs this code) charged none of it (issue 38, as ``DomainLoop``'s
         ``bookkeeping``)."""
-        cpu = cpu_time()
-        try:
+        with counted_bookkeeping(self.stats, self._leave_uncharged):
             yield
-        finally:
-            spent = cpu_time() - cpu
-            self.stats["bookkeeping_cpu_s"] = self.stats.get("bookkeeping_cpu_s", 0.0) + spent
-            self._uncharged_s += spent
+
+    def _leave_uncharged(self, cpu_seconds: float) -> None:
+        self._uncharged_s += cpu_seconds
 
     async def _charge_bookkeeping(self) -> None:
         """Charge the bookkeeping counted since the last charge, as a decision (the
