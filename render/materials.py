@@ -84,7 +84,8 @@ def colormap(values: np.ndarray, lo: float, hi: float, lut: np.ndarray | None = 
 
 
 #: The colour of a NaN scalar (a volume's missing values, a simulation's undefined cells), as
-#: ParaView shows NaNs in a colour of their own: mid grey, on no colour map's path.
+#: ParaView shows NaNs in a colour of their own: mid grey (the built-in viridis has none; under
+#: a grey colour map a NaN looks like a mid value).
 NAN_COLOR = np.array([0.5, 0.5, 0.5])
 
 
