@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from hogs import busy_processes
+from numba_env import checked_env
 
 from vastray.render.imageio import read_image
 
@@ -101,8 +102,8 @@ def main() -> int:
     python = prepare(args.code, args.work)
     run_dir = args.work / f"run-{args.code}-{args.resolution}-{args.grid}"
     run_dir.mkdir(exist_ok=True)
-    env = dict(os.environ, NUMBA_BOUNDSCHECK="0" if args.no_boundscheck else "1",
-               PYTHONFAULTHANDLER="1")
+    env = checked_env(dict(os.environ, NUMBA_BOUNDSCHECK="0" if args.no_boundscheck else "1",
+                           PYTHONFAULTHANDLER="1"))  # checked kernels: a fresh numba cache
 
     def cli(*argv: str) -> subprocess.CompletedProcess:
         return subprocess.run([str(python), "-m", "vastray.cli", *argv], cwd=run_dir, env=env,

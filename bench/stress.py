@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 from hogs import cpu_hog
+from numba_env import checked_env
 
 from vastray.render.imageio import read_image
 
@@ -120,7 +121,7 @@ class Outcome:
 
 def vastray(*args: str, cwd: Path, timeout: float) -> subprocess.CompletedProcess:
     """``vastray ARGS`` in ``cwd``, as a user runs it (fault handler on, to name a crash)."""
-    env = dict(os.environ, PYTHONFAULTHANDLER="1")
+    env = checked_env(dict(os.environ, PYTHONFAULTHANDLER="1"))  # a fresh cache if checked
     return subprocess.run([sys.executable, "-m", "vastray.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
