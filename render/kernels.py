@@ -323,11 +323,7 @@ def one_domain_hits(prim, tfar, u, v, ng, vertices, indices, t, normal, point, e
                 error[i] = 0.0
                 continue
             t[i] = np.float64(tfar[i])
-            x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
-            length = np.sqrt((x * x + y * y) + z * z)  # as unit_normals
-            if not length > 0:
-                length = 1.0
-            normal[i, 0], normal[i, 1], normal[i, 2] = x / length, y / length, z / length
+            normal[i, 0], normal[i, 1], normal[i, 2] = _unit(ng[i, 0], ng[i, 1], ng[i, 2])
             _rebuild_point(i, np.float64(u[i]), np.float64(v[i]), corners, i - first, point,
                            error)
 
@@ -709,11 +705,18 @@ def unit_normals(ng, out):
     """``ClosestHits.hits``' normals: float32 ``ng`` ((n, 3)) to float64 unit vectors in
     ``out`` (rows of length 0 stay 0), as ``ng / norm(ng)`` in numpy."""
     for i in range(ng.shape[0]):
-        x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
-        length = np.sqrt((x * x + y * y) + z * z)
-        if not length > 0:
-            length = 1.0
-        out[i, 0], out[i, 1], out[i, 2] = x / length, y / length, z / length
+        out[i, 0], out[i, 1], out[i, 2] = _unit(ng[i, 0], ng[i, 1], ng[i, 2])
+
+
+@njit(inline="always")
+def _unit(x32, y32, z32):
+    """One float32 normal as a float64 unit vector, ``ng / norm(ng)`` as numpy computes it (a
+    zero normal stays 0)."""
+    x, y, z = np.float64(x32), np.float64(y32), np.float64(z32)
+    length = np.sqrt((x * x + y * y) + z * z)
+    if not length > 0:
+        length = 1.0
+    return x / length, y / length, z / length
 
 
 @njit(nogil=True, cache=True)
