@@ -21,7 +21,14 @@ from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
 from vastray.scene.embree import kernels, library
 from vastray.scene.embree.launch import _SPLIT_MIN, launch
-from vastray.scene.embree.scenes import _PAGE, SCENE_FLAGS, Scene, TopScene, _padded
+from vastray.scene.embree.scenes import (
+    _PAGE,
+    QUERIES_ENV,
+    SCENE_FLAGS,
+    Scene,
+    TopScene,
+    _padded,
+)
 from vastray.scene.store import DomainArrays
 
 from embree_hooks import buffer_pointer, compiled_functions, live_scenes
@@ -193,6 +200,67 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
     np.testing.assert_array_equal(occ, (whole["primID"] >= 0)[perm])
 
 
+def _query_both_ways(monkeypatch, scene, origins, dirs, t_far, threads):
+    """``scene``'s closest hits and occlusion with 16-ray packets and with single rays."""
+    answers = {}
+    for mode in ("packets", "single"):
+        monkeypatch.setenv(QUERIES_ENV, mode)
+        answers[mode] = (scene.intersect(origins, dirs, t_far, threads),
+                         scene.occluded(origins, dirs, t_far, threads))
+    return answers["packets"], answers["single"]
+
+
+@pytest.mark.parametrize("n", [0, 1, 15, 17, 30000])
+def test_packets_answer_bit_for_bit_as_single_rays(api, monkeypatch, n):
+    """16-ray packets (the default) give every output of the 1-ray queries, bit for bit, on
+    coherent rays (a pinhole fan, as camera rays), scattered rays with every kind of t_far,
+    and rays through shared edges and vertices (ties, broken by id in both), for one scene
+    and for parts of it as instances (ties between instances), split over threads or not, with
+    a last packet part full."""
+    rng = np.random.default_rng(n)
+    mesh = MESHES["icosphere"]()
+    arrays = _arrays(mesh)
+    scattered = _rays(arrays, 10000, seed=n)
+    on_edges, on_vertices = _edge_and_vertex_targets(mesh, rng)
+    targets = np.concatenate([on_edges, on_vertices])[:10000]
+    tie_origins = (rng.normal(size=(len(targets), 3)) * 3).astype(np.float32)
+    grid = np.stack(np.meshgrid(np.linspace(-1.2, 1.2, 100), np.linspace(-1.2, 1.2, 100)),
+                    axis=-1).reshape(-1, 2)
+    eye = np.array([0.0, 0.0, 4.0], np.float32)
+    origins = np.concatenate([scattered[0], tie_origins, np.broadcast_to(eye, (len(grid), 3))])
+    dirs = np.concatenate([scattered[1], (targets - tie_origins).astype(np.float32),
+                           (np.column_stack([grid, np.zeros(len(grid))]) - eye).astype(
+                               np.float32)])
+    t_far = np.concatenate([scattered[2], np.full(len(targets) + len(grid), np.inf)])
+    pick = rng.permutation(len(origins))[:n] if n < len(origins) else np.arange(len(origins))
+    origins, dirs, t_far = (np.ascontiguousarray(a[pick], np.float32)
+                            for a in (origins, dirs, t_far))
+    cut = np.linspace(0, len(arrays.indices), 4).astype(int)
+    whole = Scene(arrays.vertices, arrays.indices)
+    parts = [Scene(arrays.vertices, arrays.indices[a:b]) for a, b in zip(cut, cut[1:],
+                                                                          strict=False)]
+    top = TopScene(parts, [4, 5, 6])
+    for scene in (whole, top):
+        for threads in (1, 2):
+            (hits, blocked), (hits1, blocked1) = _query_both_ways(
+                monkeypatch, scene, origins, dirs, t_far, threads)
+            assert set(hits) == set(hits1)
+            for key in hits:
+                np.testing.assert_array_equal(hits[key], hits1[key], err_msg=key)
+            np.testing.assert_array_equal(blocked, blocked1)
+            if n == 30000:
+                assert 0.2 < (hits["primID"] >= 0).mean() < 0.9
+                assert (np.isfinite(t_far) & (hits["primID"] < 0)).any()
+
+
+def test_an_unknown_query_mode_is_refused(api, monkeypatch):
+    monkeypatch.setenv(QUERIES_ENV, "wide")
+    arrays = _arrays(MESHES["box"]())
+    scene = Scene(arrays.vertices, arrays.indices)
+    with pytest.raises(ValueError, match="VASTRAY_QUERIES='wide'"):
+        scene.occluded(np.zeros((1, 3)), np.ones((1, 3)), np.ones(1))
+
+
 def test_zero_copy_from_memory_mapped_store(api, tmp_path):
     store = write_store(tmp_path / "s", bumpy_scene())
     arrays = store.load_domain(0, mmap=True)
@@ -304,7 +372,8 @@ def test_no_kernel_uses_numbas_threading_layer(api):
     from numba.np.ufunc import parallel
 
     compiled = compiled_functions(kernels)
-    assert {kernels.intersect_nearest, kernels.occluded1} <= set(compiled)
+    assert {kernels.intersect_nearest, kernels.occluded1, kernels.intersect_nearest16,
+            kernels.occluded16} <= set(compiled)
     for kernel in compiled:
         assert not kernel.targetoptions.get("parallel"), kernel
     arrays = _arrays(MESHES["icosphere"]())
@@ -390,7 +459,7 @@ WARM_START = textwrap.dedent("""
     blocked = scene.occluded(o, d, t, threads=2)[0]
     done = time.perf_counter()
     assert hit == 0 and blocked
-    launched = [kernels.intersect_nearest, kernels.occluded1]
+    launched = [kernels.intersect_nearest16, kernels.occluded16]
     hits = sum(sum(k.stats.cache_hits.values()) for k in launched)
     misses = sum(sum(k.stats.cache_misses.values()) for k in launched)
     print(f"{imported - start:.3f} {done - imported:.3f} {hits} {misses} "

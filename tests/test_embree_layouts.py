@@ -62,6 +62,7 @@ def test_untested_version_is_refused(reload_binding, monkeypatch):
     ("HITN_INST", kernels.HITN_INST + 1, "the filter read"),  # RTCHitN's instID elsewhere
     ("ARG_CONTEXT", kernels.ARG_CONTEXT - 8, "RTCFilterFunctionNArguments"),
     ("CTX_RECORD", 4, "RTCRayQueryContext"),  # our record over Embree's instance stack
+    ("PACKET", 8, "16-ray packet"),  # RTCRayHit16's lanes elsewhere
 ])
 def test_mismatching_layout_is_refused(reload_binding, monkeypatch, name, value, problem):
     """The probe's expectations changed one at a time (as a library laid out otherwise would

@@ -42,8 +42,20 @@ def _external3(name: str):
     return call
 
 
+def _external4(name: str):
+    @intrinsic
+    def call(typingctx, a, b, c, d):
+        if all(isinstance(x, types.Integer) for x in (a, b, c, d)):
+            return types.void(a, b, c, d), _codegen(name, 4)
+        return None
+
+    return call
+
+
 rtc_intersect1 = _external3("rtcIntersect1")  # (scene, rayhit, args)
 rtc_occluded1 = _external3("rtcOccluded1")  # (scene, ray, args)
+rtc_intersect16 = _external4("rtcIntersect16")  # (valid, scene, rayhit16, args)
+rtc_occluded16 = _external4("rtcOccluded16")  # (valid, scene, ray16, args)
 
 
 def _memory(width: int, kind: str):

@@ -38,7 +38,9 @@ from vastray.scene.embree.intrinsics import (
     load_i32,
     load_i64,
     rtc_intersect1,
+    rtc_intersect16,
     rtc_occluded1,
+    rtc_occluded16,
     store_f32,
     store_i32,
 )
@@ -269,3 +271,130 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
         rtc_intersect1(scene, f.ctypes.data, arguments.ctypes.data)
         _store_hit(f, i32, prim, tfar, u, v, ng, i)
         inst[i] = i32[RAYHIT_INST] if prim[i] >= 0 else -1
+
+
+# ---------------------------------------------------------------------------------------------
+# 16-ray packets: the same queries, 16 consecutive rays a call
+# ---------------------------------------------------------------------------------------------
+
+#: Lanes of a packet query (``rtcIntersect16``, ``rtcOccluded16``).
+PACKET = 16
+#: 32-bit fields of RTCRayHit16 (``RTC_ALIGN(64)``): RTCRay16's 12, then RTCHit16's Ng_x, Ng_y,
+#: Ng_z, u, v, primID, geomID, instID[1] and instPrimID[1] (with instance arrays). Field k is
+#: RTCRayHit's word k (``RAYHIT_*``); lane i of it is word ``k * PACKET + i``.
+PACKET_FIELDS = 21
+
+
+@njit(inline="always")
+def _set_lane(f, i32, org, dirs, tfar, i, lane):
+    # RTCRay16's fields, as _set_ray1 sets RTCRay's words, in lane ``lane``
+    f[lane] = org[i, 0]
+    f[PACKET + lane] = org[i, 1]
+    f[2 * PACKET + lane] = org[i, 2]
+    f[3 * PACKET + lane] = 0.0
+    f[4 * PACKET + lane] = dirs[i, 0]
+    f[5 * PACKET + lane] = dirs[i, 1]
+    f[6 * PACKET + lane] = dirs[i, 2]
+    f[7 * PACKET + lane] = 0.0
+    f[RAYHIT_TFAR * PACKET + lane] = tfar[i]
+    i32[9 * PACKET + lane] = -1
+    i32[10 * PACKET + lane] = 0
+    i32[11 * PACKET + lane] = 0
+
+
+@njit(nogil=True, cache=True)
+def occluded16(scene, org, dirs, tfar_in, out):
+    """``occluded1``'s answers, 16 rays a ``rtcOccluded16`` (the last call's missing lanes
+    invalid); ``out`` (n,) bool.
+
+    The packet (RTCRay16 in an RTCRayHit16-sized buffer) and its ``valid`` mask are this call's
+    own, 64-byte aligned as Embree requires of 16-wide packets. Rays that stay together cross
+    the same BVH nodes (camera rays of a pixel, shadow rays towards one point light): Embree
+    traverses those 16 at a time, and falls back to single rays inside a packet that scatters.
+    """
+    n = org.shape[0]
+    raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
+    f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
+    i32 = f.view(np.int32)
+    raw_valid = np.empty(PACKET + 16, np.int32)
+    valid = _aligned(raw_valid, 16, PACKET)
+    for start in range(0, n, PACKET):
+        m = min(PACKET, n - start)
+        for lane in range(PACKET):
+            if lane < m:
+                valid[lane] = -1
+                _set_lane(f, i32, org, dirs, tfar_in, start + lane, lane)
+            else:
+                valid[lane] = 0
+        rtc_occluded16(valid.ctypes.data, scene, f.ctypes.data, 0)
+        for lane in range(m):
+            out[start + lane] = f[RAYHIT_TFAR * PACKET + lane] < 0
+
+
+@njit(nogil=True, cache=True)
+def intersect_nearest16(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    """``intersect_nearest``'s closest hits, bit for bit, 16 rays a ``rtcIntersect16`` with
+    the tie filter ``filt`` (each lane keeps its own record in the context: Embree calls the
+    filter with the packet's lanes, or with one lane valid where it traces a lane alone).
+
+    Embree's packet and single-ray triangle tests compute the same distances and
+    barycentrics, and the tie filter picks among equally near candidates by id whatever order
+    they come in, so a ray's hit does not depend on the rays it shares a packet with
+    (``tests/test_embree.py`` compares the two kernels on coherent and scattered rays, with
+    ties and through instances).
+    """
+    n = org.shape[0]
+    raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
+    f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
+    i32 = f.view(np.int32)
+    raw_valid = np.empty(PACKET + 16, np.int32)
+    valid = _aligned(raw_valid, 16, PACKET)
+    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
+    context = _aligned(raw_context, 4, _CTX_WORDS)
+    cf = context.view(np.float32)
+    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
+    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
+    a32 = arguments.view(np.int32)
+    for start in range(0, n, PACKET):
+        m = min(PACKET, n - start)
+        a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
+        a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
+        arguments[1] = context.ctypes.data
+        arguments[2] = filt
+        context[0] = _INVALID  # instID[0]
+        context[1] = _INVALID  # instPrimID[0] (where present)
+        for lane in range(PACKET):
+            if lane < m:
+                i = start + lane
+                valid[lane] = -1
+                _set_lane(f, i32, org, dirs, tfar_in, i, lane)
+                i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
+                i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
+                i32[RAYHIT_INST * PACKET + lane] = _INVALID
+                record = (CTX_RECORD + _RECORD_BYTES * lane) // 4
+                cf[record] = tfar_in[i]
+                context[record + 1] = _NO_ID
+                context[record + 2] = _NO_ID
+            else:
+                valid[lane] = 0
+        rtc_intersect16(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
+        for lane in range(m):
+            i = start + lane
+            p = i32[RAYHIT_PRIM * PACKET + lane]
+            tfar[i] = f[RAYHIT_TFAR * PACKET + lane]
+            if p == _INVALID:
+                prim[i] = -1
+                u[i] = 0.0
+                v[i] = 0.0
+                ng[i, 0] = 0.0
+                ng[i, 1] = 0.0
+                ng[i, 2] = 0.0
+                inst[i] = -1
+            else:
+                prim[i] = p
+                ng[i, 0] = f[RAYHIT_NG * PACKET + lane]
+                ng[i, 1] = f[(RAYHIT_NG + 1) * PACKET + lane]
+                ng[i, 2] = f[(RAYHIT_NG + 2) * PACKET + lane]
+                u[i] = f[RAYHIT_U * PACKET + lane]
+                v[i] = f[RAYHIT_V * PACKET + lane]
+                inst[i] = i32[RAYHIT_INST * PACKET + lane]

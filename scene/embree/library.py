@@ -105,6 +105,8 @@ class Api:
             # (the layout probe's queries; the kernels call these by name)
             "rtcIntersect1": (None, [p, p, p]),
             "rtcOccluded1": (None, [p, p, p]),
+            "rtcIntersect16": (None, [p, p, p, p]),
+            "rtcOccluded16": (None, [p, p, p, p]),
         }
         for name, (res, args) in sigs.items():
             fn = getattr(self.lib, name)

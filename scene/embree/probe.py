@@ -11,8 +11,9 @@ library built with ``RTC_MAX_INSTANCE_LEVEL_COUNT`` 1: a build with more instanc
 and the tasking system, not the instance levels nor instance arrays), so ``check_layouts``
 asks the library itself: it traces known rays through a tiny two-level scene with the
 structures padded by sentinel words and checks exactly which words Embree wrote, and what a
-filter given our context sees. Any difference raises ``LayoutMismatch``, one line naming it;
-``library.binding()`` then falls back to embreex.
+filter given our context sees. The 16-ray packets (``RTCRayHit16``: field k of lane i at word
+``16 k + i``) are checked the same way, one lane of a packet at a time. Any difference raises
+``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back to embreex.
 
 The checks read the expected offsets from ``kernels`` at call time (tests change them to
 simulate a mismatching library).
@@ -147,10 +148,10 @@ def _probe(api: Api, Scene, TopScene) -> str:
     top = TopScene([far, near], [0, 1], api=api)
     try:
         for scene, inst in ((top, 1), (near, _INVALID)):
-            problem = _probe_intersect(api, scene, inst)
+            problem = _probe_intersect(api, scene, inst) or _probe_packet(api, scene, inst)
             if problem:
                 return problem
-        return _probe_occluded(api, top)
+        return _probe_occluded(api, top) or _probe_occluded_packet(api, top)
     finally:
         for scene in (top, near, far):
             scene.close()
@@ -232,3 +233,106 @@ def _probe_occluded(api: Api, scene) -> str:
         api.rtcOccluded1(handle, ray.ctypes.data, None)
     api.check("the layout probe")
     return _diff("RTCRay (occlusion)", ray, want)
+
+
+#: The packet lane the packet probes trace (not lane 0: a layout that ignores lanes shows).
+_LANE = 5
+
+
+def _packet_words() -> int:
+    return kernels.PACKET_FIELDS * kernels.PACKET
+
+
+def _packet(ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A padded RTCRayHit16 buffer holding the 1-ray buffer ``ray``'s fields in lane
+    ``_LANE`` (every other lane left at the sentinel) and its ``valid`` mask (that lane
+    only), set as ``kernels.intersect_nearest16`` sets its own."""
+    buf = _buffer(_packet_words() + 64)
+    for field in range(kernels.PACKET_FIELDS):
+        buf[field * kernels.PACKET + _LANE] = ray[field]
+    valid = _buffer(kernels.PACKET).view(np.int32)
+    valid[:] = 0
+    valid[_LANE] = -1
+    return buf, valid
+
+
+def _probe_packet(api: Api, scene, inst: int) -> str:
+    """One ``rtcIntersect16`` with one lane valid: the filter sees 16 lanes and that lane's
+    candidate where ``_tie_filter`` reads them, and Embree writes that lane's hit and nothing
+    else (the other lanes and the padding keep their sentinels)."""
+    where = "through an instance" if inst != _INVALID else "of a scene"
+    single = _ray([0.25, 0.25, -1.0], [0.0, 0.0, 1.0])
+    ray, valid = _packet(single)
+    before = ray.copy()
+    ctx = _buffer()
+    ctx[0] = ctx[1] = _INVALID
+    r = (kernels.CTX_RECORD + 16 * _LANE) // 4  # _RECORD_BYTES per lane
+    ctx[r:r + 1].view(np.float32)[0] = np.inf
+    ctx[r + 1] = ctx[r + 2] = _NO_ID
+    seen = []
+
+    def filt(args):
+        try:
+            u64 = ctypes.c_uint64.from_address
+            u32 = ctypes.c_uint32.from_address
+            n = u32(args + kernels.ARG_N).value
+            lane_ray, lane_hit = u64(args + kernels.ARG_RAY).value, u64(args + kernels.ARG_HIT).value
+            valid_at = u64(args + kernels.ARG_VALID).value
+            lanes = min(n, kernels.PACKET)
+            seen.append({
+                "N": n,
+                "valid": [ctypes.c_int32.from_address(valid_at + 4 * k).value
+                          for k in range(lanes)],
+                "t": ctypes.c_float.from_address(lane_ray + 4 * (kernels.RAYN_TFAR * n + _LANE)).value,
+                "prim": u32(lane_hit + 4 * (kernels.HITN_PRIM * n + _LANE)).value,
+                "inst": u32(lane_hit + 4 * (kernels.HITN_INST * n + _LANE)).value,
+            })
+        except Exception as exc:  # noqa: BLE001 - reported below, never raised into Embree
+            seen.append({"error": repr(exc)})
+
+    callback = _FILTER(filt)
+    args = _buffer(16).view(np.int64)
+    args[:] = 0
+    a32 = args.view(np.int32)
+    a32[0] = kernels.RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER
+    a32[1] = -1  # RTC_FEATURE_FLAG_ALL
+    args[1] = ctx.ctypes.data
+    args[2] = ctypes.cast(callback, ctypes.c_void_p).value
+    with scene._lease() as handle:
+        api.rtcIntersect16(valid.ctypes.data, handle, ray.ctypes.data, args.ctypes.data)
+    api.check("the packet layout probe")
+    if not seen:
+        return f"no hit {where} of a 16-ray packet reached the filter"
+    got = seen[0]
+    if "error" in got:
+        return f"the filter of a 16-ray packet could not read its arguments ({got['error']})"
+    want_valid = [-1 if k == _LANE else 0 for k in range(kernels.PACKET)]
+    if got["N"] != kernels.PACKET or got["valid"] != want_valid:
+        return (f"a 16-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
+                f"N {kernels.PACKET} and lane {_LANE} only")
+    if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
+        return (f"the filter of a 16-ray packet read t {got['t']}, primID {got['prim']}, "
+                f"instID {got['inst']} in lane {_LANE} {where}, expected 1.0, 1, {inst}")
+    # the lane's fields, read as a 1-ray buffer, must hold the hit the 1-ray probe checks
+    pad = np.full(_WORDS - kernels.PACKET_FIELDS, SENTINEL, np.uint32)
+    lane = np.concatenate([ray[_LANE:_packet_words():kernels.PACKET], pad])
+    lane_before = np.concatenate([before[_LANE:_packet_words():kernels.PACKET], pad])
+    problem = _check_hit(lane, lane_before, 1, inst)
+    if problem:
+        return f"16-ray packet lane {_LANE}: {problem}"
+    others = np.ones(len(ray), bool)
+    others[_LANE:_packet_words():kernels.PACKET] = False
+    problem = _diff("RTCRayHit16 (other lanes and padding)", ray[others], before[others])
+    return problem and problem + " (RTCRayHit16 laid out otherwise?)"
+
+
+def _probe_occluded_packet(api: Api, scene) -> str:
+    """One ``rtcOccluded16`` with one lane valid: Embree writes that lane's tfar (-inf, a hit)
+    and nothing else."""
+    ray, valid = _packet(_ray([0.25, 0.25, -1.0], [0.0, 0.0, 1.0]))
+    want = ray.copy()
+    want.view(np.float32)[kernels.RAYHIT_TFAR * kernels.PACKET + _LANE] = -np.inf
+    with scene._lease() as handle:
+        api.rtcOccluded16(valid.ctypes.data, handle, ray.ctypes.data, None)
+    api.check("the packet layout probe")
+    return _diff("RTCRay16 (occlusion)", ray, want)

@@ -51,7 +51,13 @@ import threading
 
 import numpy as np
 
-from vastray.scene.embree.kernels import filter_address, intersect_nearest, occluded1
+from vastray.scene.embree.kernels import (
+    filter_address,
+    intersect_nearest,
+    intersect_nearest16,
+    occluded1,
+    occluded16,
+)
 from vastray.scene.embree.launch import launch, rays
 from vastray.scene.embree.library import (
     RTC_BUFFER_TYPE_INDEX,
@@ -78,6 +84,9 @@ SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
 TRIANGLE_TEST_ENV = "VASTRAY_TRIANGLE_TEST"
 #: Added to every scene's flags: the tie filter is passed in the query arguments.
 FILTER_FLAG = RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
+#: ``VASTRAY_QUERIES=single`` traces one ray per Embree call instead of 16-ray packets (the
+#: same answers, bit for bit): for measurements (``bench/throughput.py``) and comparisons.
+QUERIES_ENV = "VASTRAY_QUERIES"
 
 _PAGE = mmap.PAGESIZE
 
@@ -92,6 +101,18 @@ def scene_flags() -> int:
         return RTC_SCENE_FLAG_NONE
     raise ValueError(f"{TRIANGLE_TEST_ENV}={test!r}: expected 'watertight' (the default) or "
                      f"'fast' (Embree's non-watertight test, for measurements)")
+
+
+def query_kernels():
+    """The (closest-hit, occlusion) kernels queries run: the 16-ray packet kernels, or the
+    1-ray ones where ``VASTRAY_QUERIES`` says ``single``; any other value is refused."""
+    mode = os.environ.get(QUERIES_ENV, "").strip().lower()
+    if mode in ("", "packets"):
+        return intersect_nearest16, occluded16
+    if mode == "single":
+        return intersect_nearest, occluded1
+    raise ValueError(f"{QUERIES_ENV}={mode!r}: expected 'packets' (the default) or 'single' "
+                     f"(one ray per Embree call, for measurements)")
 
 
 def _padded(arr: np.ndarray, dtype, cols: int) -> np.ndarray:
@@ -177,8 +198,9 @@ class _SceneHandle:
         org, dirs, tf = rays(origins, directions, t_far)
         out = np.empty(len(org), np.bool_)
         if len(org):
+            kernel = query_kernels()[1]
             with self._lease() as handle:
-                launch(occluded1, threads, len(org), handle, org, dirs, tf, out)
+                launch(kernel, threads, len(org), handle, org, dirs, tf, out)
         return out
 
     def intersect(self, origins, directions, t_far, threads: int = 1) -> dict[str, np.ndarray]:
@@ -193,8 +215,9 @@ class _SceneHandle:
                "Ng": np.empty((n, 3), np.float32)}
         inst = np.empty(n, np.int32)
         if n:
+            kernel = query_kernels()[0]
             with self._lease() as handle:
-                launch(intersect_nearest, threads, n, handle, filter_address(), org, dirs,
+                launch(kernel, threads, n, handle, filter_address(), org, dirs,
                         tf, out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
         self._label_hits(out, inst)
         return out
