@@ -54,7 +54,10 @@ LLVM 19 works: ``apt-get install -y libllvm19`` (Debian 12), or point ``DRJIT_LI
 at a ``libLLVM-*.so``.
 
     python bench/peers.py [--quick] [--spp 16] [--resolution 288] [--threads N] [--repeat 3]
-                          [--hog N]
+                          [--hog N] [--scan FILE[:ISO]]
+
+``--scan`` renders a real scan (issue 39: "and on real scans") instead of ``rm``, with the
+same camera framing, light and material rules.
 """
 
 from __future__ import annotations
@@ -69,7 +72,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_scenes import CACHE, cached_rm
+from bench_scenes import CACHE, SHARED_DATA, cached_rm
 from hogs import busy_processes
 
 from vastray.render.camera import Camera
@@ -96,6 +99,35 @@ def plain_store(resolution: int) -> Store:
         with StoreWriter(path, objects=[{"name": "rm"}], overwrite=True) as writer:
             writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
     return Store(path)
+
+
+def scan_store(spec: str) -> tuple[Store, str]:
+    """A real scan as one plain domain: ``spec`` is a mesh file, or a volume file and its
+    iso value as ``FILE:ISO``, absolute or under ``../shared/data`` (e.g.
+    ``volumes/embryo_256.nii.gz:60``, 976,059 triangles). Returns the store and its label."""
+    name, _, iso = spec.rpartition(":")
+    try:
+        float(iso)
+    except ValueError:  # no iso value: a mesh
+        name, iso = spec, ""
+    source = Path(name) if Path(name).is_file() else SHARED_DATA / name
+    if not source.is_file():
+        raise SystemExit(f"--scan: no file {name!r} (nor {SHARED_DATA / name}); give a mesh, "
+                         f"or a volume and its iso value as FILE:ISO")
+    path = CACHE / f"peers-{source.name}-{iso or 'mesh'}.store"
+    if not (path / "manifest.json").is_file():
+        from vastray.cli import main as cli
+
+        whole = CACHE / f"peers-{source.name}-{iso or 'mesh'}-source.store"
+        args = ["partition", str(source), "-o", str(whole), "--grid", "1x1x1", "--force",
+                "--quiet"] + (["--iso", iso] if iso else [])
+        if cli(args) != 0:
+            raise SystemExit(f"--scan: could not partition {source}")
+        dom = Store(whole).load_domain(0, mmap=False)
+        with StoreWriter(path, objects=[{"name": source.stem}], overwrite=True) as writer:
+            writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
+    label = f"{source.name}" + (f" at iso {iso}" if iso else "")
+    return Store(path), label
 
 
 def write_ply(path: Path, vertices: np.ndarray, indices: np.ndarray) -> None:
@@ -294,6 +326,10 @@ def main() -> int:
     parser.add_argument("--hog", type=int, default=0, metavar="N",
                         help="also time both sides (llvm_ad_rgb) beside N busy processes and "
                              "print mitsuba_ratio_hog= (default 0: quiet runs only)")
+    parser.add_argument("--scan", default=None, metavar="FILE[:ISO]",
+                        help="render a real scan instead of rm: a mesh, or a volume and its "
+                             "iso value, absolute or under ../shared/data (e.g. "
+                             "volumes/embryo_256.nii.gz:60, ~1 M triangles)")
     parser.add_argument("--save", type=Path, default=None,
                         help="write both images (.npy) into this folder")
     args = parser.parse_args()
@@ -308,10 +344,13 @@ def main() -> int:
               "e.g. apt-get install -y libllvm19", file=sys.stderr)
         return 2
 
-    store = plain_store(resolution)
+    if args.scan:
+        store, label = scan_store(args.scan)
+    else:
+        store, label = plain_store(resolution), f"rm {resolution}^3"
     n_tri = sum(d.n_triangles for d in store.domains)
     camera, light_pos, intensity = setup(store)
-    print(f"scene: rm {resolution}^3, {n_tri:,} triangles, 1 domain; {WIDTH}x{HEIGHT}, {spp} "
+    print(f"scene: {label}, {n_tri:,} triangles, 1 domain; {WIDTH}x{HEIGHT}, {spp} "
           f"spp, vastray --bounces {BOUNCES} = Mitsuba max_depth {MAX_DEPTH}, point light, "
           f"two-sided diffuse {ALBEDO}, {args.threads} threads")
 

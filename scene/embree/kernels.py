@@ -6,20 +6,23 @@ They run without the GIL and are loaded from numba's on-disk cache by a warm pro
 context, arguments) is that call's own, aligned as Embree's headers declare. The kernels do
 not check bounds: ``launch.rays`` checks their inputs.
 
-Queries: one ray at a time
---------------------------
-Closest hits use ``rtcIntersect1`` with an argument filter (``_tie_filter``) that keeps, of
-equally near hits, the lowest (instance, primitive) id: the hit of a ray does not depend on the
-order Embree meets tied candidates in, so a domain queried directly and the same domain met as
-an instance of a top-level scene give the same hit (without it, rays through a shared edge kept
-different triangles on the two paths: issue 20). Occlusion uses ``rtcOccluded1``. 16-ray
-packets were dropped after a heap corruption seen with them in session 4 (``bench/README.md``)
-that no later attempt reproduced, neither the packet path as committed nor a rebuild of that
-experiment (``docs/DESIGN.md``, render workers): they stay out because, with the robust flag and
-the tie filter, 1-ray and 16-ray queries measure the same speed (1.7 M-triangle isosurface, one
-thread: closest hit 1.70 vs 1.71 Mrays/s incoherent, 3.21 vs 3.23 coherent; occlusion 1.76 vs
-1.80 incoherent, 3.70 vs 3.54 coherent; again in session 22 on ``bench/peers.py``'s recorded
-queries, ``bench/README.md#peerspy``).
+Queries: 16-ray packets
+-----------------------
+Closest hits use ``rtcIntersect16`` (``intersect_nearest16``) with an argument filter
+(``_tie_filter``) that keeps, of equally near hits, the lowest (instance, primitive) id: the hit
+of a ray does not depend on the order Embree meets tied candidates in, so a domain queried
+directly and the same domain met as an instance of a top-level scene give the same hit (without
+it, rays through a shared edge kept different triangles on the two paths: issue 20), and a ray's
+hit does not depend on the rays it shares a packet with. Occlusion uses ``rtcOccluded16``
+(``occluded16``). The 1-ray kernels (``intersect_nearest``, ``occluded1``) give the same answers
+bit for bit (``tests/test_embree.py``) and stay for measurements (``VASTRAY_QUERIES=single``).
+
+Packets were dropped once (9dd359d) after a heap corruption seen with them in session 4
+(``bench/README.md``) that no later attempt reproduced, neither the packet path as committed nor
+a rebuild of that experiment (``docs/DESIGN.md``, render workers), and stayed out while they
+measured no faster (2026-11-29, ``bench/README.md#peerspy``). On an AVX-512 machine (2026-12-01)
+they trace camera rays 1.3-1.7x and shadow rays 1.3x as fast as single rays, and bounce rays
+no slower; renders take 10 % less.
 
 Everything the kernels compile in is defined here except the Embree calls and memory access
 of ``intrinsics`` (numba's cache sees changes to this file only: see there).
@@ -117,13 +120,10 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
 @njit(nogil=True, cache=True)
 def occluded1(scene, org, dirs, tfar_in, out):
     """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, one ``rtcOccluded1`` per ray;
-    ``out`` (n,) bool.
+    ``out`` (n,) bool (``occluded16``'s answers; for measurements).
 
-    One ray at a time, not 16-ray packets: with the robust flag 1-ray and packet occlusion
-    measure the same speed (the heap corruption once blamed on ``rtcOccluded16`` packets from
-    two threads, bench/README.md session 4, did not reproduce: docs/DESIGN.md, render
-    workers). The ray buffer is a whole RTCRayHit (96 bytes, 16-byte aligned), though Embree
-    reads and writes only its RTCRay part.
+    The ray buffer is a whole RTCRayHit (96 bytes, 16-byte aligned), though Embree reads and
+    writes only its RTCRay part.
     """
     n = org.shape[0]
     raw = np.empty(RAYHIT_WORDS + 4, np.float32)
@@ -136,7 +136,7 @@ def occluded1(scene, org, dirs, tfar_in, out):
 
 
 # ---------------------------------------------------------------------------------------------
-# Closest hits: 1-ray queries whose ties an argument filter breaks by id
+# Closest hits: queries whose ties an argument filter breaks by id
 # ---------------------------------------------------------------------------------------------
 
 _RECORD_BYTES = 16
@@ -233,9 +233,10 @@ def _store_hit(f, i32, prim, tfar, u, v, ng, i):
 
 @njit(nogil=True, cache=True)
 def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
-    """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt``: the outputs
-    are (n,) each (``ng`` (n, 3)); ``inst`` receives the instance (top-level geometry id) of
-    each hit, -1 for a miss or a scene without instances.
+    """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt`` (for
+    measurements: ``intersect_nearest16``'s answers): the outputs are (n,) each (``ng``
+    (n, 3)); ``inst`` receives the instance (top-level geometry id) of each hit, -1 for a miss
+    or a scene without instances.
 
     The ray, the context and the arguments Embree reads live in this call's own buffers, all
     16-byte aligned: RTCRayHit must be (rtcIntersect1's manual; RTCRay is ``RTC_ALIGN(16)``),

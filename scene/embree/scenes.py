@@ -32,7 +32,7 @@ flag on the scene queried and on every instanced scene. Embree 4.3/4.4's CPU 1-r
 an argument filter whenever ``RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER`` is set, flag or not;
 the flag decides which packet (4/8/16-wide) traversal a committed scene selects, the filtering
 one or the one that never calls a filter (``Scene::accels_select``). So the 1-ray results are
-the same with it, bit for bit, and a packet query with the filter would run it.
+the same with it, bit for bit, and the 16-ray packet queries (the default) run the filter.
 
 Two levels
 ----------
