@@ -287,20 +287,32 @@ PACKET_FIELDS = 21
 
 
 @njit(inline="always")
-def _set_lane(f, i32, org, dirs, tfar, i, lane):
-    # RTCRay16's fields, as _set_ray1 sets RTCRay's words, in lane ``lane``
-    f[lane] = org[i, 0]
-    f[PACKET + lane] = org[i, 1]
-    f[2 * PACKET + lane] = org[i, 2]
-    f[3 * PACKET + lane] = 0.0
-    f[4 * PACKET + lane] = dirs[i, 0]
-    f[5 * PACKET + lane] = dirs[i, 1]
-    f[6 * PACKET + lane] = dirs[i, 2]
-    f[7 * PACKET + lane] = 0.0
-    f[RAYHIT_TFAR * PACKET + lane] = tfar[i]
-    i32[9 * PACKET + lane] = -1
-    i32[10 * PACKET + lane] = 0
-    i32[11 * PACKET + lane] = 0
+def _packet_constants(f, i32):
+    """The RTCRay16 fields Embree reads and never writes, the same for every ray: tnear 0,
+    time 0, mask all ones, id 0, flags 0 (set once per kernel call, not per packet)."""
+    for lane in range(PACKET):
+        f[3 * PACKET + lane] = 0.0
+        f[7 * PACKET + lane] = 0.0
+        i32[9 * PACKET + lane] = -1
+        i32[10 * PACKET + lane] = 0
+        i32[11 * PACKET + lane] = 0
+
+
+@njit(inline="always")
+def _packet_rays(f, valid, org, dirs, tfar, start, m):
+    """Rays ``start .. start + m`` into lanes ``0 .. m`` of the packet (origin, direction,
+    tfar), the lanes past ``m`` invalid."""
+    for lane in range(PACKET):
+        valid[lane] = -1 if lane < m else 0
+    for lane in range(m):
+        i = start + lane
+        f[lane] = org[i, 0]
+        f[PACKET + lane] = org[i, 1]
+        f[2 * PACKET + lane] = org[i, 2]
+        f[4 * PACKET + lane] = dirs[i, 0]
+        f[5 * PACKET + lane] = dirs[i, 1]
+        f[6 * PACKET + lane] = dirs[i, 2]
+        f[RAYHIT_TFAR * PACKET + lane] = tfar[i]
 
 
 @njit(nogil=True, cache=True)
@@ -319,14 +331,10 @@ def occluded16(scene, org, dirs, tfar_in, out):
     i32 = f.view(np.int32)
     raw_valid = np.empty(PACKET + 16, np.int32)
     valid = _aligned(raw_valid, 16, PACKET)
+    _packet_constants(f, i32)
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
-        for lane in range(PACKET):
-            if lane < m:
-                valid[lane] = -1
-                _set_lane(f, i32, org, dirs, tfar_in, start + lane, lane)
-            else:
-                valid[lane] = 0
+        _packet_rays(f, valid, org, dirs, tfar_in, start, m)
         rtc_occluded16(valid.ctypes.data, scene, f.ctypes.data, 0)
         for lane in range(m):
             out[start + lane] = f[RAYHIT_TFAR * PACKET + lane] < 0
@@ -356,46 +364,35 @@ def intersect_nearest16(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, i
     raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
     arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
     a32 = arguments.view(np.int32)
+    _packet_constants(f, i32)
+    record = CTX_RECORD // 4  # lane k's record: words record + 4k .. record + 4k + 2
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
+        # (set in the loop, so the buffers Embree reads stay referenced through it)
         a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
         a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
         arguments[1] = context.ctypes.data
         arguments[2] = filt
         context[0] = _INVALID  # instID[0]
         context[1] = _INVALID  # instPrimID[0] (where present)
-        for lane in range(PACKET):
-            if lane < m:
-                i = start + lane
-                valid[lane] = -1
-                _set_lane(f, i32, org, dirs, tfar_in, i, lane)
-                i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
-                i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
-                i32[RAYHIT_INST * PACKET + lane] = _INVALID
-                record = (CTX_RECORD + _RECORD_BYTES * lane) // 4
-                cf[record] = tfar_in[i]
-                context[record + 1] = _NO_ID
-                context[record + 2] = _NO_ID
-            else:
-                valid[lane] = 0
-        rtc_intersect16(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
+        _packet_rays(f, valid, org, dirs, tfar_in, start, m)
         for lane in range(m):
+            i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
+            i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
+            i32[RAYHIT_INST * PACKET + lane] = _INVALID
+            cf[record + 4 * lane] = tfar_in[start + lane]
+            context[record + 4 * lane + 1] = _NO_ID
+            context[record + 4 * lane + 2] = _NO_ID
+        rtc_intersect16(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
+        for lane in range(m):  # a miss reads as primID -1, zero u, v and Ng (as _store_hit)
             i = start + lane
             p = i32[RAYHIT_PRIM * PACKET + lane]
+            hit = p != _INVALID
             tfar[i] = f[RAYHIT_TFAR * PACKET + lane]
-            if p == _INVALID:
-                prim[i] = -1
-                u[i] = 0.0
-                v[i] = 0.0
-                ng[i, 0] = 0.0
-                ng[i, 1] = 0.0
-                ng[i, 2] = 0.0
-                inst[i] = -1
-            else:
-                prim[i] = p
-                ng[i, 0] = f[RAYHIT_NG * PACKET + lane]
-                ng[i, 1] = f[(RAYHIT_NG + 1) * PACKET + lane]
-                ng[i, 2] = f[(RAYHIT_NG + 2) * PACKET + lane]
-                u[i] = f[RAYHIT_U * PACKET + lane]
-                v[i] = f[RAYHIT_V * PACKET + lane]
-                inst[i] = i32[RAYHIT_INST * PACKET + lane]
+            prim[i] = p if hit else -1
+            inst[i] = i32[RAYHIT_INST * PACKET + lane] if hit else -1
+            u[i] = f[RAYHIT_U * PACKET + lane] if hit else np.float32(0.0)
+            v[i] = f[RAYHIT_V * PACKET + lane] if hit else np.float32(0.0)
+            ng[i, 0] = f[RAYHIT_NG * PACKET + lane] if hit else np.float32(0.0)
+            ng[i, 1] = f[(RAYHIT_NG + 1) * PACKET + lane] if hit else np.float32(0.0)
+            ng[i, 2] = f[(RAYHIT_NG + 2) * PACKET + lane] if hit else np.float32(0.0)
