@@ -231,6 +231,19 @@ def _store_hit(f, i32, prim, tfar, u, v, ng, i):
         v[i] = f[RAYHIT_V]
 
 
+@njit(inline="always")
+def _query_buffers():
+    """A kernel call's own ray query context (int32 words ``context`` and their float32 view
+    ``cf``: Embree's 16 bytes, then the tie filter's per-lane records) and
+    RTCIntersectArguments (int64 words ``arguments`` and their int32 view ``a32``), zeroed
+    and 16-byte aligned."""
+    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
+    context = _aligned(raw_context, 4, _CTX_WORDS)
+    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
+    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
+    return context, context.view(np.float32), arguments, arguments.view(np.int32)
+
+
 @njit(nogil=True, cache=True)
 def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
     """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt`` (for
@@ -248,12 +261,7 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
     raw = np.empty(RAYHIT_WORDS + 4, np.float32)
     f = _aligned(raw, 4, RAYHIT_WORDS)
     i32 = f.view(np.int32)
-    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
-    context = _aligned(raw_context, 4, _CTX_WORDS)
-    cf = context.view(np.float32)
-    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
-    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
-    a32 = arguments.view(np.int32)
+    context, cf, arguments, a32 = _query_buffers()
     for i in range(n):
         # (set in the loop, so the buffers Embree reads stay referenced through it)
         a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
@@ -315,6 +323,17 @@ def _packet_rays(f, valid, org, dirs, tfar, start, m):
         f[RAYHIT_TFAR * PACKET + lane] = tfar[i]
 
 
+@njit(inline="always")
+def _packet_buffers():
+    """A kernel call's own RTCRayHit16 buffer (float32 words ``f`` and their int32 view
+    ``i32``) and ``valid`` mask, each 64-byte aligned as Embree requires of 16-wide packets
+    (the views keep their allocations alive as long as they are used)."""
+    raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
+    f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
+    raw_valid = np.empty(PACKET + 16, np.int32)
+    return f, f.view(np.int32), _aligned(raw_valid, 16, PACKET)
+
+
 @njit(nogil=True, cache=True)
 def occluded16(scene, org, dirs, tfar_in, out):
     """``occluded1``'s answers, 16 rays a ``rtcOccluded16`` (the last call's missing lanes
@@ -326,11 +345,7 @@ def occluded16(scene, org, dirs, tfar_in, out):
     traverses those 16 at a time, and falls back to single rays inside a packet that scatters.
     """
     n = org.shape[0]
-    raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
-    f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
-    i32 = f.view(np.int32)
-    raw_valid = np.empty(PACKET + 16, np.int32)
-    valid = _aligned(raw_valid, 16, PACKET)
+    f, i32, valid = _packet_buffers()
     _packet_constants(f, i32)
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
@@ -353,17 +368,8 @@ def intersect_nearest16(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, i
     ties and through instances).
     """
     n = org.shape[0]
-    raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
-    f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
-    i32 = f.view(np.int32)
-    raw_valid = np.empty(PACKET + 16, np.int32)
-    valid = _aligned(raw_valid, 16, PACKET)
-    raw_context = np.zeros(_CTX_WORDS + 4, np.int32)
-    context = _aligned(raw_context, 4, _CTX_WORDS)
-    cf = context.view(np.float32)
-    raw_arguments = np.zeros(_ARGS_WORDS + 2, np.int64)
-    arguments = _aligned(raw_arguments, 2, _ARGS_WORDS)
-    a32 = arguments.view(np.int32)
+    f, i32, valid = _packet_buffers()
+    context, cf, arguments, a32 = _query_buffers()
     _packet_constants(f, i32)
     record = CTX_RECORD // 4  # lane k's record: words record + 4k .. record + 4k + 2
     for start in range(0, n, PACKET):

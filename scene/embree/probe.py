@@ -157,6 +157,20 @@ def _probe(api: Api, Scene, TopScene) -> str:
             scene.close()
 
 
+def _arguments(ctx: np.ndarray, callback) -> np.ndarray:
+    """RTCIntersectArguments as ``kernels.intersect_nearest`` sets its own: the argument
+    filter invoked, every feature, the context ``ctx`` and the filter ``callback`` (kept
+    alive by the caller through the query)."""
+    args = _buffer(16).view(np.int64)
+    args[:] = 0
+    a32 = args.view(np.int32)
+    a32[0] = kernels.RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER
+    a32[1] = -1  # RTC_FEATURE_FLAG_ALL
+    args[1] = ctx.ctypes.data
+    args[2] = ctypes.cast(callback, ctypes.c_void_p).value
+    return args
+
+
 def _probe_intersect(api: Api, scene, inst: int) -> str:
     """One ``rtcIntersect1`` with a filter reading its arguments where ``_tie_filter`` does."""
     where = "through an instance" if inst != _INVALID else "of a scene"
@@ -185,13 +199,7 @@ def _probe_intersect(api: Api, scene, inst: int) -> str:
             seen.append({"error": repr(exc)})
 
     callback = _FILTER(filt)
-    args = _buffer(16).view(np.int64)
-    args[:] = 0
-    a32 = args.view(np.int32)
-    a32[0] = kernels.RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER
-    a32[1] = -1  # RTC_FEATURE_FLAG_ALL
-    args[1] = ctx.ctypes.data
-    args[2] = ctypes.cast(callback, ctypes.c_void_p).value
+    args = _arguments(ctx, callback)
     with scene._lease() as handle:
         api.rtcIntersect1(handle, ray.ctypes.data, args.ctypes.data)
     api.check("the layout probe")
@@ -291,13 +299,7 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
             seen.append({"error": repr(exc)})
 
     callback = _FILTER(filt)
-    args = _buffer(16).view(np.int64)
-    args[:] = 0
-    a32 = args.view(np.int32)
-    a32[0] = kernels.RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER
-    a32[1] = -1  # RTC_FEATURE_FLAG_ALL
-    args[1] = ctx.ctypes.data
-    args[2] = ctypes.cast(callback, ctypes.c_void_p).value
+    args = _arguments(ctx, callback)
     with scene._lease() as handle:
         api.rtcIntersect16(valid.ctypes.data, handle, ray.ctypes.data, args.ctypes.data)
     api.check("the packet layout probe")
