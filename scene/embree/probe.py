@@ -66,15 +66,43 @@ def _ray(org, direction) -> np.ndarray:
     return buf
 
 
-def _context() -> np.ndarray:
-    """A padded context buffer set as ``kernels.intersect_nearest`` sets its own (instID[0]
-    and instPrimID[0] invalid, lane 0's record: t_far, no instance, no primitive)."""
+def _context(lane: int = 0) -> np.ndarray:
+    """A padded context buffer set as the kernels set their own (instID[0] and
+    instPrimID[0] invalid, ``lane``'s record: t_far, no instance, no primitive)."""
     ctx = _buffer()
     ctx[0] = ctx[1] = _INVALID
-    r = kernels.CTX_RECORD // 4
+    r = (kernels.CTX_RECORD + 16 * lane) // 4  # 16 bytes (kernels._RECORD_BYTES) a lane
     ctx[r:r + 1].view(np.float32)[0] = np.inf
     ctx[r + 1] = ctx[r + 2] = _NO_ID
     return ctx
+
+
+def _recording_filter(seen: list, lane: int, ctx: np.ndarray):
+    """A filter (Python, through ctypes) that appends to ``seen`` what ``_tie_filter`` would
+    read of its arguments: N, the valid words of the call's lanes, the context's address, and
+    lane ``lane``'s candidate distance, primitive and instance; and the context's words."""
+
+    def filt(args):
+        try:
+            u64 = ctypes.c_uint64.from_address
+            u32 = ctypes.c_uint32.from_address
+            n = u32(args + kernels.ARG_N).value
+            lane_ray, lane_hit = u64(args + kernels.ARG_RAY).value, u64(args + kernels.ARG_HIT).value
+            valid_at = u64(args + kernels.ARG_VALID).value
+            seen.append({
+                "N": n,
+                "valid": [ctypes.c_int32.from_address(valid_at + 4 * k).value
+                          for k in range(min(n, kernels.PACKET))],
+                "context": u64(args + kernels.ARG_CONTEXT).value,
+                "t": ctypes.c_float.from_address(lane_ray + 4 * (kernels.RAYN_TFAR * n + lane)).value,
+                "prim": u32(lane_hit + 4 * (kernels.HITN_PRIM * n + lane)).value,
+                "inst": u32(lane_hit + 4 * (kernels.HITN_INST * n + lane)).value,
+                "ctx": ctx.copy(),
+            })
+        except Exception as exc:  # noqa: BLE001 - reported by the probe, never raised into Embree
+            seen.append({"error": repr(exc)})
+
+    return filt
 
 
 def _diff(name: str, got: np.ndarray, want: np.ndarray, allowed: dict | None = None) -> str:
@@ -179,25 +207,7 @@ def _probe_intersect(api: Api, scene, inst: int) -> str:
     ctx = _context()
     ctx_before = ctx.copy()
     seen = []
-
-    def filt(args):
-        try:
-            u64 = ctypes.c_uint64.from_address
-            u32 = ctypes.c_uint32.from_address
-            n = u32(args + kernels.ARG_N).value
-            lane_ray, lane_hit = u64(args + kernels.ARG_RAY).value, u64(args + kernels.ARG_HIT).value
-            seen.append({
-                "N": n,
-                "valid": ctypes.c_int32.from_address(u64(args + kernels.ARG_VALID).value).value,
-                "context": u64(args + kernels.ARG_CONTEXT).value,
-                "t": ctypes.c_float.from_address(lane_ray + 4 * kernels.RAYN_TFAR * n).value,
-                "prim": u32(lane_hit + 4 * kernels.HITN_PRIM * n).value,
-                "inst": u32(lane_hit + 4 * kernels.HITN_INST * n).value,
-                "ctx": ctx.copy(),
-            })
-        except Exception as exc:  # noqa: BLE001 - reported below, never raised into Embree
-            seen.append({"error": repr(exc)})
-
+    filt = _recording_filter(seen, 0, ctx)
     callback = _FILTER(filt)
     args = _arguments(ctx, callback)
     with scene._lease() as handle:
@@ -210,7 +220,7 @@ def _probe_intersect(api: Api, scene, inst: int) -> str:
     got = seen[0]
     if "error" in got:
         return f"the filter could not read its arguments ({got['error']})"
-    if got["N"] != 1 or got["valid"] != -1 or got["context"] != ctx.ctypes.data:
+    if got["N"] != 1 or got["valid"] != [-1] or got["context"] != ctx.ctypes.data:
         return (f"RTCFilterFunctionNArguments not as expected (N {got['N']}, valid "
                 f"{got['valid']}, context 0x{got['context']:x} for 0x{ctx.ctypes.data:x})")
     if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
@@ -272,32 +282,9 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
     single = _ray([0.25, 0.25, -1.0], [0.0, 0.0, 1.0])
     ray, valid = _packet(single)
     before = ray.copy()
-    ctx = _buffer()
-    ctx[0] = ctx[1] = _INVALID
-    r = (kernels.CTX_RECORD + 16 * _LANE) // 4  # _RECORD_BYTES per lane
-    ctx[r:r + 1].view(np.float32)[0] = np.inf
-    ctx[r + 1] = ctx[r + 2] = _NO_ID
+    ctx = _context(_LANE)
     seen = []
-
-    def filt(args):
-        try:
-            u64 = ctypes.c_uint64.from_address
-            u32 = ctypes.c_uint32.from_address
-            n = u32(args + kernels.ARG_N).value
-            lane_ray, lane_hit = u64(args + kernels.ARG_RAY).value, u64(args + kernels.ARG_HIT).value
-            valid_at = u64(args + kernels.ARG_VALID).value
-            lanes = min(n, kernels.PACKET)
-            seen.append({
-                "N": n,
-                "valid": [ctypes.c_int32.from_address(valid_at + 4 * k).value
-                          for k in range(lanes)],
-                "t": ctypes.c_float.from_address(lane_ray + 4 * (kernels.RAYN_TFAR * n + _LANE)).value,
-                "prim": u32(lane_hit + 4 * (kernels.HITN_PRIM * n + _LANE)).value,
-                "inst": u32(lane_hit + 4 * (kernels.HITN_INST * n + _LANE)).value,
-            })
-        except Exception as exc:  # noqa: BLE001 - reported below, never raised into Embree
-            seen.append({"error": repr(exc)})
-
+    filt = _recording_filter(seen, _LANE, ctx)
     callback = _FILTER(filt)
     args = _arguments(ctx, callback)
     with scene._lease() as handle:
