@@ -77,9 +77,9 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # way, but not a whole activation's worth
     assert 1e-6 < model.receive_s < 5e-3
     assert model.trace_scale == 1.0 and model.decision_scale == 1.0
-    # the throughput with 1 .. 2 x cores busy processes: one process is the unit, and k
-    # processes give at most what k processes and the cores can
-    assert len(model.throughput) == 2 * model.cores and model.throughput[0] == 1.0
+    # the throughput with 1 .. 4 x cores busy processes (a validation runs 8 nodes on 2 cores):
+    # one process is the unit, and k processes give at most what k processes and the cores can
+    assert len(model.throughput) == 4 * model.cores and model.throughput[0] == 1.0
     assert all(0.0 < t <= min(k, model.cores)
                for k, t in enumerate(model.throughput, start=1)), model.throughput
     # (its time, about 20 s on a quiet machine, is no test's business: 120 s on a busy one)
@@ -145,11 +145,11 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
     assert all(p.poll() is not None for p in probe.processes.processes)
     for now in (first, second):
         assert 0 < now.receive_s < 0.05 and 0 < now.offload_s < 0.05
-        # 1 and 2 processes measured, at most what the cores give; 3 and 4 run 2 at a time,
+        # 1 and 2 processes measured, at most what the cores give; 3 .. 8 run 2 at a time,
         # as fast as 2 where the calibration (base) measured no more processes than cores
-        assert len(now.throughput) == 4 and now.throughput[0] == 1.0
+        assert len(now.throughput) == 8 and now.throughput[0] == 1.0
         assert 0 < now.throughput[1] <= 2.0
-        assert now.throughput[2] == now.throughput[3] == now.throughput[1]
+        assert all(t == now.throughput[1] for t in now.throughput[2:])
         assert asdict(now) == asdict(base) | {"receive_s": now.receive_s,
                                               "offload_s": now.offload_s,
                                               "throughput": now.throughput}

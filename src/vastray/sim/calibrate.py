@@ -11,7 +11,7 @@ machine it runs on, with the project's own components, never mocks.
   ZeroMQ (a DEALER to the peer's ROUTER, as nodes do) in the project's wire codec; then the
   same batches between two of the nodes' own management actors (``time_node_messages``),
   whose CPU beyond the raw wire is what a node pays to receive one (``receive_s``);
-- warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 2 x cores
+- warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 4 x cores
   processes rendering side by side, in interleaved rounds, from their CPU seconds;
 - what a node pays once: real 1-node ``async``, ``image`` and ``spec-insitu`` renders of a
   few pixels against the simulator's predictions of them (``vastray.sim.node_cost``): the
@@ -861,7 +861,7 @@ class MachineProbe:
         self.cache = resident_cache(store, self.setup.keep)
         self.cores = cores or usable_cores()
         # contention depends on how many run at once, min(k, cores): 1 and ``cores`` processes
-        # tell it (``calibrate`` also measures 2 x cores)
+        # tell it (``calibrate`` also measures 2 x and 4 x cores)
         self.counts = sorted({1, self.cores})
         try:
             self.processes = WarmProcesses(str(store_path), True, self.cores, tile=True)
@@ -885,7 +885,7 @@ class MachineProbe:
         self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
                        )[-self.WINDOW:]
         throughput = oversubscribed(interpolated(throughput_of(self.rounds, self.cores)),
-                                    costs.throughput, 2 * self.cores)
+                                    costs.throughput, 4 * self.cores)
         node_messages = float(np.median(self.messages))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
                        offload_s=(float(np.median(self.offloads)) if self.offloads

@@ -6,16 +6,17 @@ renders once for every "go" line on its input, printing each render's CPU second
 (``cpu_s``, the process's own, all its threads), until its input ends. (A node's first use is
 measured on real nodes: ``vastray.sim.node_cost``.)
 
-``process_costs`` starts 2 x cores such processes once and, round after round, tells 1, then
-2, ... of them to go together: every process count is measured in every round, and medians
-over the rounds make the ratio. What the ratio measures is contention, from CPU seconds: k
-processes side by side run ``min(k, cores)`` at a time, each needing more CPU per render than
-one alone where they compete for caches and memory. Wall seconds would also count the time the
-host gave our cores to other virtual machines ("steal", ``sim.steal``), which moves from none
-to a third within minutes here and is measured apart, beside each real run it slows. (Measured
-once per count by fresh processes, one count after another, in wall seconds, four calibrations
-gave 1.54 to 2.15 for 4 processes on 2 cores, and every multi-process validation row moved
-with it.)"""
+``process_costs`` starts 4 x cores such processes once and, round after round, tells 1, then 2,
+... of them to go together (4 x cores because a validation runs 8 node processes on 2 cores,
+and 8 processes measured 1.64 where 4 measured 1.77, session 35): every process count is
+measured in every round, and medians over the rounds make the ratio. What the ratio measures is
+contention, from CPU seconds: k processes side by side run ``min(k, cores)`` at a time, each
+needing more CPU per render than one alone where they compete for caches and memory. Wall
+seconds would also count the time the host gave our cores to other virtual machines ("steal",
+``sim.steal``), which moves from none to a third within minutes here and is measured apart,
+beside each real run it slows. (Measured once per count by fresh processes, one count after
+another, in wall seconds, four calibrations gave 1.54 to 2.15 for 4 processes on 2 cores, and
+every multi-process validation row moved with it.)"""
 
 from __future__ import annotations
 
@@ -150,13 +151,15 @@ def interpolated(measured: dict[int, float]) -> tuple[float, ...]:
 
 
 def throughput_counts(quick: bool, cores: int) -> list[int]:
-    """The process counts measured: 1 .. 2 x ``cores`` (quick: 1, cores, 2 x cores)."""
-    return sorted({1, cores, 2 * cores}) if quick else list(range(1, 2 * cores + 1))
+    """The process counts measured: 1 .. 2 x ``cores`` and 4 x ``cores`` (quick: 1, cores,
+    2 x cores, 4 x cores); the counts between are interpolated."""
+    counts = {1, cores, 2 * cores} if quick else set(range(1, 2 * cores + 1))
+    return sorted(counts | {4 * cores})
 
 
 def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, ...]:
-    """The aggregate throughput with k = 1 .. 2 x ``cores`` processes side by side, in
-    single-process speeds (quick: k = 1, cores, 2 x cores, the rest interpolated), measured
+    """The aggregate throughput with k = 1 .. 4 x ``cores`` processes side by side, in
+    single-process speeds (``throughput_counts``, the rest interpolated), measured
     in interleaved rounds by one set of warm processes (see the module docstring)."""
     counts = throughput_counts(quick, cores)
     processes = WarmProcesses(store_path, quick, counts[-1])
