@@ -94,11 +94,16 @@ def plain_store(resolution: int) -> Store:
     """The ``rm`` scene at ``resolution``^3 as one domain without scalars (plain diffuse)."""
     path = CACHE / f"peers-rm-{resolution}.store"
     if not (path / "manifest.json").is_file():
-        source = cached_rm(resolution, (1, 1, 1))
-        dom = source.load_domain(0, mmap=False)
-        with StoreWriter(path, objects=[{"name": "rm"}], overwrite=True) as writer:
-            writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
+        write_plain(cached_rm(resolution, (1, 1, 1)), path, "rm")
     return Store(path)
+
+
+def write_plain(source: Store, path: Path, name: str) -> None:
+    """``source``'s one domain as a store at ``path`` of its triangles alone (no scalars, one
+    object ``name``): the plain diffuse surface both renderers shade."""
+    dom = source.load_domain(0, mmap=False)
+    with StoreWriter(path, objects=[{"name": name}], overwrite=True) as writer:
+        writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
 
 
 def scan_store(spec: str) -> tuple[Store, str]:
@@ -123,9 +128,7 @@ def scan_store(spec: str) -> tuple[Store, str]:
                 "--quiet"] + (["--iso", iso] if iso else [])
         if cli(args) != 0:
             raise SystemExit(f"--scan: could not partition {source}")
-        dom = Store(whole).load_domain(0, mmap=False)
-        with StoreWriter(path, objects=[{"name": source.stem}], overwrite=True) as writer:
-            writer.add_domain(DomainArrays(np.asarray(dom.vertices), np.asarray(dom.indices)))
+        write_plain(Store(whole), path, source.stem)
     label = f"{source.name}" + (f" at iso {iso}" if iso else "")
     return Store(path), label
 

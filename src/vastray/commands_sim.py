@@ -33,8 +33,8 @@ what is measured, with the real components (nothing is mocked):
               100-ray batches between two of the nodes' own management actors: the
               CPU a node pays per message it receives beyond that (receive_s)
   processes   1 to 2 x cores and 4 x cores warm processes rendering side by side,
-              in interleaved rounds: the machine's throughput with k busy processes, from their CPU
-              seconds (contention; the host's steal is not counted)
+              in interleaved rounds: the machine's throughput with k busy processes,
+              from their CPU seconds (contention; the host's steal is not counted)
   a node      real 1-node `async`, `image` and `spec-insitu` renders of 16 x 12 pixels
               against the simulator's predictions: what a node pays once (the least of the
               three: a fresh process's first use, warmup_s; the rest: each runtime's own)
