@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vastray.processes import peak_rss_bytes
+from vastray.render import kernels
 from vastray.render.camera import Camera
 from vastray.render.colormaps import scalar_map
 from vastray.render.film import Film
@@ -88,10 +89,9 @@ def path_context(shading: Shading, settings: RenderSettings, first: int, stop: i
     is pixel ``i // (s1 - s0)``, sample ``s0 + i % (s1 - s0)``. A pass adds its samples to
     every pixel; without a window (the whole of ``spp``) it is today's pixel-major order."""
     s0, s1 = settings.samples
-    per_pixel = np.uint64(s1 - s0)
-    ids = np.arange(first, stop, dtype=np.uint64)
-    pixel = (ids // per_pixel).astype(np.uint32)
-    sample = (ids % per_pixel + np.uint64(s0)).astype(np.uint32)
+    n = max(stop - first, 0)
+    pixel, sample = np.empty(n, np.uint32), np.empty(n, np.uint32)
+    kernels.path_keys(int(first), int(s0), int(s1 - s0), pixel, sample)
     return PathContext(shading, settings, pixel, sample, ao_distance)
 
 

@@ -23,6 +23,18 @@ CHANNELS = 3
 FILM_BYTES_PER_PIXEL = 24 + 8 * BATCHES * CHANNELS + 8 + 4 + 12
 
 
+#: ``kernels.film_add``'s "not given" (every row counted; every row in batch 0)
+_NONE_BOOL = np.zeros(0, np.bool_)
+_NONE_INT = np.zeros(0, np.uint32)
+
+
+def _integers(keys) -> np.ndarray:
+    """(n,) pixel or sample keys as the kernels take them: contiguous uint32, the path
+    contexts' own type (no copy from those; one kernel signature, so that a node's warm-up
+    compiles the one its schedulers use)."""
+    return np.ascontiguousarray(keys, np.uint32)
+
+
 class Film:
     """Accumulates path radiance per pixel.
 
@@ -65,26 +77,21 @@ class Film:
         """
         if len(pixel) == 0:
             return
-        # Bins over the batch's pixel range only (a batch covers a run of pixels): the cost
+        # Bins over the batch's pixel run only (a batch covers a run of pixels): the cost
         # follows the batch, not the film. Adding the zeros of other pixels changed nothing.
-        lo = int(pixel.min())
-        local = pixel - lo
-        kernels.film_add(self.sum, self.batch, self.count, lo,
-                         np.ascontiguousarray(local, np.int64),
+        kernels.film_add(self.sum, self.batch, self.count, _integers(pixel),
                          np.ascontiguousarray(radiance, np.float64),
-                         np.ones(len(local), np.bool_) if counted is None
-                         else np.ascontiguousarray(counted, np.bool_),
-                         np.zeros(len(local), np.int64) if sample is None
-                         else np.ascontiguousarray(np.asarray(sample) % BATCHES, np.int64))
+                         _NONE_BOOL if counted is None else np.ascontiguousarray(counted, np.bool_),
+                         _NONE_INT if sample is None else _integers(sample))
 
     def add_paths(self, pixel: np.ndarray, sample: np.ndarray, paths,
                   counted: np.ndarray | None = None) -> None:
         """Add a batch of finished paths (a ``PathResult``) with keys (n,) pixel and sample;
         sample 0 of each pixel sets the depth and normal layers."""
-        self.add(pixel.astype(np.int64), paths.radiance, counted, sample)
-        zero = sample == 0
-        self.depth[pixel[zero]] = paths.first_t[zero]
-        self.normal[pixel[zero]] = paths.first_normal[zero]
+        self.add(pixel, paths.radiance, counted, sample)
+        kernels.film_first_hits(self.depth, self.normal, _integers(pixel), _integers(sample),
+                                np.ascontiguousarray(paths.first_t, np.float32),
+                                np.ascontiguousarray(paths.first_normal, np.float32))
 
     def count_samples(self, pixel: np.ndarray) -> None:
         """Count one sample per entry of ``pixel`` (n,) without adding radiance: a path is

@@ -12,6 +12,7 @@ from vastray.render import kernels
 from vastray.render.film import Film
 from vastray.render.integrators import (
     PathContext,
+    PathResult,
     RadianceRays,
     RenderSettings,
     Shading,
@@ -216,6 +217,27 @@ def test_fused_camera_rays_equal_generate(fov, width, height):
     np.testing.assert_array_equal(o32, origin.astype(np.float32))
     np.testing.assert_array_equal(d32, direction.astype(np.float32))
     assert len(np.unique(d32, axis=0)) == n  # jittered: every ray differs
+    o_far, d_far = camera.generate32(pixel, sample, 17, advance=2.5)
+    np.testing.assert_array_equal(d_far, d32)
+    np.testing.assert_array_equal(o_far, (origin + direction * 2.5).astype(np.float32))
+
+
+def test_fused_camera_rays_find_row_and_column_of_any_uint32_pixel():
+    # the kernel takes pixel // width and pixel % width through float64 ((pixel + 0.5) /
+    # width, floored): exact up to 2^32 pixels, the keys' range, on a film that wide
+    from vastray.render.camera import Camera
+
+    camera = Camera(np.array([0.0, 0.0, 5.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 50.0,
+                    65535, 65537)
+    rng = np.random.default_rng(3)
+    pixel = np.concatenate([rng.integers(0, 65535 * 65537, 4000), [0, 65534, 65535, 65536,
+                                                                   65535 * 65537 - 1]])
+    pixel = pixel.astype(np.uint32)
+    sample = rng.integers(0, 1 << 20, len(pixel)).astype(np.uint32)
+    origin, direction = camera.generate(pixel, sample, 5)
+    o32, d32 = camera.generate32(pixel, sample, 5)
+    np.testing.assert_array_equal(d32, direction.astype(np.float32))
+    np.testing.assert_array_equal(o32, origin.astype(np.float32))
 
 
 def test_fused_unit_normals_equal_numpy():
@@ -300,6 +322,53 @@ def test_fused_film_add_equals_bincount(counting):
         got, want = getattr(films[0], name), getattr(films[1], name)
         assert got.any()
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("s0, s1, first, stop", [(0, 16, 0, 65536), (3, 7, 12345, 99999),
+                                                  (0, 1, 5, 9), (4, 8, 7, 7), (16, 32, 131071, 196608)])
+def test_path_keys_are_the_division_of_path_numbers(s0, s1, first, stop):
+    # path_context numbers the paths of a pass by counting (kernels.path_keys): the keys must
+    # be the pixel-major division of the path numbers, whatever the window and the first path
+    from vastray.render.driver import path_context
+
+    settings = RenderSettings(width=64, height=64, spp=s1).window(s0, s1)
+    ctx = path_context(None, settings, first, stop, 1.0)
+    ids = np.arange(first, stop, dtype=np.uint64)
+    per_pixel = np.uint64(s1 - s0)
+    assert ctx.pixel.dtype == ctx.sample.dtype == np.uint32
+    np.testing.assert_array_equal(ctx.pixel, (ids // per_pixel).astype(np.uint32))
+    np.testing.assert_array_equal(ctx.sample, (ids % per_pixel + np.uint64(s0)).astype(np.uint32))
+
+
+def test_film_first_hits_take_sample_zero_rows_last_one_winning():
+    # the depth and normal layers: rows of sample 0 only, a later row of a pixel over an
+    # earlier one (numpy's fancy assignment), whatever the keys' integer type
+    film, want = Film(4, 2), Film(4, 2)
+    pixel = np.array([0, 3, 3, 5, 5, 7], np.uint32)
+    sample = np.array([0, 0, 0, 1, 0, 2], np.uint32)
+    t = np.arange(6, dtype=np.float32) + 1
+    normal = np.arange(18, dtype=np.float32).reshape(6, 3)
+    kernels.film_first_hits(film.depth, film.normal, pixel, sample, t, normal)
+    zero = sample == 0
+    want.depth[pixel[zero]] = t[zero]
+    want.normal[pixel[zero]] = normal[zero]
+    np.testing.assert_array_equal(film.depth, want.depth)
+    np.testing.assert_array_equal(film.normal, want.normal)
+    assert film.depth[3] == 3 and film.depth[5] == 5 and np.isinf(film.depth[7])
+
+
+def test_film_refuses_pixels_outside_it_before_writing():
+    # the kernels do not check bounds row by row: a key past the film (or a negative one,
+    # wrapped to uint32) is refused whole, and nothing is written
+    film = Film(4, 2)
+    with pytest.raises(IndexError, match="outside the film"):
+        film.add(np.array([1, 8]), np.ones((2, 3)))
+    with pytest.raises(IndexError, match="outside the film"):
+        film.add(np.array([1, -1]), np.ones((2, 3)))
+    paths = PathResult.empty(2)
+    with pytest.raises(IndexError, match="outside the film"):
+        film.add_paths(np.array([9, 1], np.uint32), np.array([0, 0], np.uint32), paths)
+    assert not film.sum.any() and not film.count.any()
 
 
 def test_one_domain_hits_equal_offer_then_hits_bit_for_bit():
