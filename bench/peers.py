@@ -45,7 +45,10 @@ users run it with a peer doing less work per query; ``--repeat`` more interleave
 ``VASTRAY_TRIANGLE_TEST=fast`` (Mitsuba's triangle test) print ``mitsuba_ratio_same_test=``,
 and ``embree_camera_rays_s=`` times the query alone: Mitsuba's own camera rays (its sensor,
 this resolution and spp) traced by Mitsuba and by vastray's kernels (watertight and fast), the
-same rays and threads on both sides, hits counted to show they agree.
+same rays and threads on both sides, hits counted to show they agree. ``embree_bounce_rays_s=``
+and ``embree_shadow_rays_s=`` do the same with vastray's own bounce and shadow rays (recorded
+from one render of the scene; Mitsuba traces them with ``ray_intersect_preliminary`` and
+``ray_test``): together, where the two renderers' query time differs, kind by kind.
 
 Install Mitsuba (optional extra): ``pip install -e ".[peers]"`` (or ``pip install mitsuba``);
 for ``llvm_ad_rgb`` also a recent system libLLVM: Dr.Jit 1.5 refuses LLVM 14 and, with LLVM 15
@@ -311,6 +314,74 @@ def camera_rays_same(peer: MitsubaRenderer, store: Store, spp: int, threads: int
     return out
 
 
+def recorded_rays_same(peer: MitsubaRenderer, store: Store, camera: Camera, light_pos,
+                       intensity, spp: int, threads: int, repeat: int
+                       ) -> dict[str, dict[str, tuple[float, int, int]]]:
+    """vastray's own bounce and shadow rays (those of one render of this scene, recorded by
+    the tracer) traced by Mitsuba (``ray_intersect_preliminary``; ``ray_test`` up to each
+    shadow ray's ``maxt``) and by vastray's kernels (watertight and fast), ``threads``
+    threads each: where a render's query time goes after its camera rays, on the same rays.
+
+    Returns {"bounce" | "shadow": {side: (best seconds of ``repeat``, rays, rays that hit)}}."""
+    import drjit as dr
+
+    mi = peer.mi
+    config = SceneConfig(camera={"position": camera.position, "look_at": camera.look_at,
+                                 "up": camera.up, "fov": FOV},
+                         lights=[PointLight(np.asarray(light_pos, float), np.full(3, intensity))])
+    settings = RenderSettings(width=WIDTH, height=HEIGHT, spp=spp, integrator="pt",
+                              bounces=BOUNCES, seed=3)
+    batches: list = []
+    render(store, config, settings, threads=threads, progress=False, record_rays=batches)
+    dom = store.load_domain(0, mmap=False)
+    out: dict[str, dict[str, tuple[float, int, int]]] = {}
+    for kind in ("bounce", "occluded"):
+        mine = [b for b in batches if b[0] == kind]
+        if not mine:
+            continue
+        org = np.concatenate([b[1] for b in mine]).astype(np.float32)
+        dirs = np.concatenate([b[2] for b in mine]).astype(np.float32)
+        t_max = (np.concatenate([b[3] for b in mine]).astype(np.float32) if kind == "occluded"
+                 else np.full(len(org), np.inf, np.float32))
+        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(org[:, k])) for k in range(3))),
+                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, k]))
+                                     for k in range(3))))
+        if kind == "occluded":
+            ray.maxt = mi.Float(t_max)
+        dr.eval(ray)
+        times, hits = [], 0
+        for _ in range(repeat):
+            result = None  # a new variable each time (an evaluated one would be reused)
+            start = time.perf_counter()
+            if kind == "occluded":
+                result = peer.scene.ray_test(ray)
+                dr.eval(result)
+            else:
+                result = peer.scene.ray_intersect_preliminary(ray)
+                dr.eval(result.t, result.prim_index)
+            dr.sync_thread()
+            times.append(time.perf_counter() - start)
+            hits = int(dr.count(result if kind == "occluded" else result.is_valid())[0])
+        sides = {"mitsuba": (min(times), len(org), hits)}
+        for side, test in (("vastray", "watertight"), ("vastray_fast", "fast")):
+            with triangle_test(test):
+                scene = Scene(np.asarray(dom.vertices), np.asarray(dom.indices))
+            try:
+                times = []
+                for _ in range(repeat):
+                    start = time.perf_counter()
+                    if kind == "occluded":
+                        hit = scene.occluded(org, dirs, t_max, threads)
+                    else:
+                        hit = scene.intersect(org, dirs, t_max, threads)["primID"] >= 0
+                    times.append(time.perf_counter() - start)
+                sides[side] = (min(times), len(org), int(hit.sum()))
+            finally:
+                scene.close()
+        out["shadow" if kind == "occluded" else kind] = sides
+    return out
+
+
 def _blocks(image: np.ndarray) -> np.ndarray:
     """Means of 8 x 8 pixel blocks: (H / 8, W / 8, 3)."""
     return image.reshape(HEIGHT // 8, 8, WIDTH // 8, 8, 3).mean(axis=(1, 3))
@@ -414,6 +485,18 @@ def main() -> int:
                       + f"  ({WIDTH * HEIGHT * spp:,} of Mitsuba's camera rays, "
                         f"{args.threads} threads, best of {max(3, args.repeat)}; hits "
                       + ", ".join(f"{side} {hit:,}" for side, (_, hit) in same.items()) + ")")
+                recorded = recorded_rays_same(peer, store, camera, light_pos, intensity, spp,
+                                              args.threads, max(3, args.repeat))
+                for kind, sides in recorded.items():
+                    rays = next(iter(sides.values()))[1]
+                    print(f"embree_{kind}_rays_s=" + ",".join(
+                        f"{side}:{secs:.4f}" for side, (secs, _, _) in sides.items())
+                          + f"  ({rays:,} of vastray's {kind} rays, "
+                            f"{rays and sides['vastray'][0] / rays * 1e9 * args.threads:.0f} vs "
+                            f"{rays and sides['mitsuba'][0] / rays * 1e9 * args.threads:.0f} "
+                            f"thread-ns a ray; hits "
+                          + ", ".join(f"{side} {hit:,}" for side, (_, _, hit) in sides.items())
+                          + ")")
             if variant == "llvm_ad_rgb" and args.hog:
                 print(f"mitsuba_ratio_median="
                       f"{np.median(v_times) / np.median(m_times):.3f} (median / median)")

@@ -175,8 +175,9 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
     progress : show a progress bar on stderr for renders longer than two seconds.
     drop_page_cache : make every domain load a real disk read.
     record_rays : if a list, every query batch is appended to it as (kind, origins,
-        directions, t_max): ``"closest"`` queries (t_max None: unbounded) and ``"occluded"``
-        queries bounded by t_max, exactly what was asked of the domains.
+        directions, t_max): closest-hit queries of ``"camera"`` and ``"bounce"`` rays (t_max
+        None: unbounded) and ``"occluded"`` queries bounded by t_max, exactly what was asked
+        of the domains.
     two_level : with every domain resident, trace through one top-level Embree scene of
         instances (``DomainTracer``); False: domain by domain (the same image, bit for bit).
     cache : a domain cache of ``store`` to use (e.g. with every domain already loaded, so

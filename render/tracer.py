@@ -538,7 +538,7 @@ class DomainTracer:
         with self._stats_lock:
             self.stats.rays[kind] += n
         if self.record is not None:
-            self.record.append(("closest", origins, directions, None))
+            self.record.append((kind, origins, directions, None))
         only = self._only_domain()
         if only is not None:
             self._count_visit(only, n)

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 import warnings
 import weakref
 from concurrent.futures import ThreadPoolExecutor
@@ -499,27 +500,63 @@ def test_mismatched_ray_arrays_are_refused(api):
         scene.occluded(o, np.ones((4, 3), np.float32), np.ones(3, np.float32))
 
 
-def test_launch_gives_each_thread_a_contiguous_part():
-    """``launch`` slices every array argument into at most ``threads`` contiguous parts of at
-    least ``_SPLIT_MIN`` rays, passes the other arguments whole, and runs a query too small to
-    split on the calling thread (a plain Python kernel: no Embree)."""
+def test_launch_cuts_the_rays_into_contiguous_pieces_the_threads_take_in_turn():
+    """``launch`` slices every array argument into contiguous pieces that tile the rays once,
+    runs them on at most ``threads`` threads (no more than ``n // _SPLIT_MIN``), passes the
+    other arguments whole, and runs a query too small to split on the calling thread (a plain
+    Python kernel: no Embree)."""
     seen = []
 
     def kernel(tag, values, out):
-        seen.append((tag, int(values[0]), len(values), threading.get_ident()))
+        seen.append((int(values[0]), len(values), tag, threading.get_ident()))
         out[:] = values * 2
 
     n = 3 * _SPLIT_MIN + 5
     values, out = np.arange(n, dtype=np.float32), np.zeros(n, np.float32)
-    launch(kernel, 8, n, "whole", values, out)  # 8 threads asked, 3 parts of >= _SPLIT_MIN
+    launch(kernel, 8, n, "whole", values, out)  # 8 threads asked: 3 at most
     np.testing.assert_array_equal(out, values * 2)
-    parts = sorted(seen)
-    assert [p[0] for p in parts] == ["whole"] * 3
-    assert [p[1] for p in parts] == [0, parts[0][2], parts[0][2] + parts[1][2]]  # contiguous
-    assert sum(p[2] for p in parts) == n and min(p[2] for p in parts) >= _SPLIT_MIN
+    pieces = sorted(seen)
+    assert [p[2] for p in pieces] == ["whole"] * len(pieces)
+    starts = [p[0] for p in pieces]
+    assert starts == [0] + list(np.cumsum([p[1] for p in pieces])[:-1])  # tiled, no overlap
+    assert sum(p[1] for p in pieces) == n and len(pieces) >= 3  # several pieces a thread
+    assert len({p[3] for p in pieces}) <= 3
     seen.clear()
     launch(kernel, 8, 100, "whole", values[:100], out[:100])
-    assert [(s[2], s[3]) for s in seen] == [(100, threading.get_ident())]
+    assert [(s[1], s[3]) for s in seen] == [(100, threading.get_ident())]
+
+
+def test_a_failing_piece_stops_the_others_and_raises_once_all_returned():
+    # the first error is raised after every thread has returned, and no piece starts after it
+    started = []
+
+    def kernel(values):
+        started.append(int(values[0]))
+        if values[0] == 0:
+            raise RuntimeError("piece 0 failed")
+        time.sleep(0.05)  # the other thread is inside a piece when piece 0 fails
+
+    n = 64 * _SPLIT_MIN
+    with pytest.raises(RuntimeError, match="piece 0 failed"):
+        launch(kernel, 2, n, np.arange(n, dtype=np.float32))
+    assert 0 in started and len(started) < 8  # 8 pieces: the rest were not started
+
+
+def test_split_queries_balance_rays_of_unequal_cost():
+    # rays whose cost differs by half (an empty half of an image against its object): the
+    # thread that finished its cheap pieces takes the expensive ones
+    took = {}
+
+    def kernel(values):
+        time.sleep(0.05 if values[0] >= len_half else 0.0)
+        took.setdefault(threading.get_ident(), []).append(int(values[0]))
+
+    n = 32 * _SPLIT_MIN
+    len_half = n // 2
+    launch(kernel, 2, n, np.arange(n, dtype=np.float32))
+    assert len(took) == 2
+    expensive = [sum(v >= len_half for v in starts) for starts in took.values()]
+    assert min(expensive) >= 1, took  # both threads traced pieces of the costly half
 
 
 def test_split_queries_from_many_threads_never_meet_a_shut_pool():
