@@ -45,7 +45,11 @@ users run it with a peer doing less work per query; ``--repeat`` more interleave
 ``VASTRAY_TRIANGLE_TEST=fast`` (Mitsuba's triangle test) print ``mitsuba_ratio_same_test=``,
 and ``embree_camera_rays_s=`` times the query alone: Mitsuba's own camera rays (its sensor,
 this resolution and spp) traced by Mitsuba and by vastray's kernels (watertight and fast), the
-same rays and threads on both sides, hits counted to show they agree. ``embree_bounce_rays_s=``
+same rays and threads on both sides, hits counted to show they agree; ``mitsuba_coherent``
+is Mitsuba tracing them as coherent packets (one frustum per packet, Embree's
+``intersectCoherent``), as its path integrator traces camera rays in a render: vastray traces
+every packet ray by ray, since a coherent packet's hits are not the single-ray hits bit for
+bit (docs/DESIGN.md, render workers). ``embree_bounce_rays_s=``
 and ``embree_shadow_rays_s=`` do the same with vastray's own bounce and shadow rays (recorded
 from one render of the scene; Mitsuba traces them with ``ray_intersect_preliminary`` and
 ``ray_test``): together, where the two renderers' query time differs, kind by kind.
@@ -268,8 +272,9 @@ def triangle_test(test: str):
 def camera_rays_same(peer: MitsubaRenderer, store: Store, spp: int, threads: int,
                      repeat: int) -> dict[str, tuple[float, int]]:
     """Mitsuba's own camera rays (pixel-major, ``spp`` jittered samples a pixel) traced by
-    Mitsuba (``ray_intersect_preliminary``, its packets) and by vastray's closest-hit kernel
-    on scenes with the watertight and the fast triangle test, ``threads`` threads each.
+    Mitsuba (``ray_intersect_preliminary``, its packets traced ray by ray, and as coherent
+    packets: what its path integrator asks for camera rays) and by vastray's closest-hit
+    kernel on scenes with the watertight and the fast triangle test, ``threads`` threads each.
 
     Returns {side: (best seconds of ``repeat``, rays that hit)}."""
     import drjit as dr
@@ -283,17 +288,18 @@ def camera_rays_same(peer: MitsubaRenderer, store: Store, spp: int, threads: int
     ray, _ = peer.scene.sensors()[0].sample_ray(0.0, 0.5, position, mi.Point2f(0.5, 0.5))
     dr.eval(ray)
     out = {}
-    times, hits = [], 0
-    for _ in range(repeat):
-        # a new set of variables each time: an old result alive would be reused, untraced
-        pi = None
-        start = time.perf_counter()
-        pi = peer.scene.ray_intersect_preliminary(ray)
-        dr.eval(pi.t, pi.prim_index)
-        dr.sync_thread()
-        times.append(time.perf_counter() - start)
-        hits = int(dr.count(pi.is_valid())[0])
-    out["mitsuba"] = (min(times), hits)
+    for side, coherent in (("mitsuba", False), ("mitsuba_coherent", True)):
+        times, hits = [], 0
+        for _ in range(repeat):
+            # a new set of variables each time: an old result alive would be reused, untraced
+            pi = None
+            start = time.perf_counter()
+            pi = peer.scene.ray_intersect_preliminary(ray, coherent=coherent)
+            dr.eval(pi.t, pi.prim_index)
+            dr.sync_thread()
+            times.append(time.perf_counter() - start)
+            hits = int(dr.count(pi.is_valid())[0])
+        out[side] = (min(times), hits)
     origins = np.ascontiguousarray(np.array(ray.o).T, np.float32)
     directions = np.ascontiguousarray(np.array(ray.d).T, np.float32)
     t_far = np.full(n, np.inf, np.float32)
