@@ -94,7 +94,7 @@ def run_in_parts(part, n: int, parts: int) -> None:
     if parts <= 1:
         part(0, n)
         return
-    size = max(_PIECE_MIN, -(-n // (parts * _PIECES_PER_PART)))
+    size = max(1, -(-n // (parts * _PIECES_PER_PART)))
     pieces = iter(range(0, n, size))
     take = threading.Lock()
     failed = threading.Event()
@@ -122,10 +122,10 @@ def run_in_parts(part, n: int, parts: int) -> None:
         future.result()
 
 
-#: Pieces a thread takes on average in ``run_in_parts`` (the last ones balance the threads).
+#: Pieces a thread takes on average in ``run_in_parts`` (the last ones balance the threads;
+#: the callers split only work of thousands of rows, ``launch`` at least ``_SPLIT_MIN`` a
+#: thread, so a piece's hand-over, microseconds, stays small beside it).
 _PIECES_PER_PART = 4
-#: Fewest rows of a piece (the pool's hand-over costs microseconds).
-_PIECE_MIN = 1024
 
 
 _helped = threading.local()  # per thread: CPU seconds its pieces took on split_pool
