@@ -423,20 +423,15 @@ class PathResult:
 
     def record_camera_hits(self, ctx: PathContext, rays: RadianceRays, hits: Hits) -> None:
         """Camera emission and the first-hit layers, once camera hits are final."""
-        if sees_lights_directly(ctx):
+        if ctx.settings.integrator == "pt" and any(
+                isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights):
+            # (nothing else is seen directly: point and directional lights have no area)
             self.radiance[rays.path] += camera_emission(ctx, rays, hits.t)
         # first_t = t + start and first_normal = facing(normal, direction), as float32, in
         # one compiled pass
         kernels.first_hits(_c(rays.path, np.int64), _c(hits.t, np.float64),
                            _c(hits.normal, np.float64), _c(rays.direction, np.float32),
                            float(_camera_start(ctx)), self.first_t, self.first_normal)
-
-
-def sees_lights_directly(ctx: PathContext) -> bool:
-    """Whether camera rays see lights themselves: quad and ambient lights, path traced
-    (point and directional lights have no area)."""
-    return ctx.settings.integrator == "pt" and any(
-        isinstance(light, QuadLight | AmbientLight) for light in ctx.shading.lights)
 
 
 def _camera_start(ctx: PathContext) -> float:
@@ -448,26 +443,15 @@ def _camera_start(ctx: PathContext) -> float:
 
 
 def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:
-    """The reference order: every wavefront to its closest hits, shade, test shadows, repeat.
-
-    Only the rays that hit go on (``DomainTracer.closest_hits``): a miss's first-hit layers
-    are ``PathResult.empty``'s (no distance, no normal), and camera rays that miss are
-    recorded apart only where they see a light (``sees_lights_directly``)."""
+    """The reference order: every wavefront to its closest hits, shade, test shadows, repeat."""
     result = PathResult.empty(len(ctx.pixel))
     rays = camera_rays(camera, ctx)
     while len(rays):
         first = rays.depth[0] == 0
-        rows, hits = tracer.closest_hits(rays.origin, rays.direction,
-                                         kind="camera" if first else "bounce")
-        hit_rays = rays.take(rows)
+        hits = tracer.intersect(rays.origin, rays.direction, kind="camera" if first else "bounce")
         if first:
-            result.record_camera_hits(ctx, hit_rays, hits)
-            if sees_lights_directly(ctx):
-                missed = np.setdiff1d(np.arange(len(rays)), rows, assume_unique=True)
-                result.record_camera_hits(ctx, rays.take(missed), Hits(
-                    np.full(len(missed), np.inf), np.zeros((len(missed), 3)),
-                    np.zeros(len(missed), np.int64), None))
-        shadow, rays = shade(ctx, hit_rays, hits)
+            result.record_camera_hits(ctx, rays, hits)
+        shadow, rays = shade(ctx, rays, hits, np.nonzero(hits.hit)[0])
         if len(shadow):
             blocked = tracer.occluded(shadow.origin, shadow.direction, shadow.t_max)
             add_unoccluded(result.radiance, shadow, ~blocked)

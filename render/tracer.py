@@ -173,15 +173,6 @@ class ClosestHits:
 NO_DOMAIN = np.iinfo(np.int32).max
 
 
-def _taken(best: ClosestHits, compact: bool) -> tuple[np.ndarray | None, Hits]:
-    """``best``'s hits: of the rows that hit (with those rows) where ``compact``, else of
-    every row (rows None)."""
-    if not compact:
-        return None, best.hits()
-    rows = np.flatnonzero(np.isfinite(best.t))
-    return rows, best.hits(rows)
-
-
 def _fusable(r: dict, bvh) -> bool:
     """Whether ``one_domain_hits`` takes Embree's output ``r`` of ``bvh`` as it is (the
     compiled binding's dtypes; the embreex fallback may differ)."""
@@ -543,25 +534,6 @@ class DomainTracer:
         origins, directions : (n, 3) float32; directions need not be unit length.
         kind : ``"camera"`` or ``"bounce"``, for the ray counters.
         """
-        return self._closest(origins, directions, kind, compact=False)[1]
-
-    def closest_hits(self, origins: np.ndarray, directions: np.ndarray, kind: str = "bounce"
-                     ) -> tuple[np.ndarray, Hits]:
-        """The rays that hit something and their closest hits: ``intersect`` taken at the
-        rows that hit, bit for bit, without building the misses' records (most camera rays
-        of a scan miss: their hit points, normals and materials were most of the work
-        between a render's Embree queries).
-
-        Returns
-        -------
-        rows : (k,) int64, the rays that hit, in increasing order.
-        hits : their ``Hits`` (k rows).
-        """
-        return self._closest(origins, directions, kind, compact=True)
-
-    def _closest(self, origins: np.ndarray, directions: np.ndarray, kind: str, compact: bool
-                 ) -> tuple[np.ndarray | None, Hits]:
-        """``closest_hits`` (``compact``) or (None, ``intersect``)."""
         n = len(origins)
         with self._stats_lock:
             self.stats.rays[kind] += n
@@ -573,14 +545,10 @@ class DomainTracer:
             bvh = self.cache.get(only)
             r = bvh.intersect(origins, directions, np.full(n, np.inf, np.float32), self.pool)
             if _fusable(r, bvh):
-                if not compact:
-                    return None, one_domain_hits(bvh, r, self.color_source, self.scalar_range)
-                rows = np.flatnonzero(r["primID"] >= 0)
-                return rows, one_domain_hits(bvh, {key: value[rows] for key, value in r.items()},
-                                             self.color_source, self.scalar_range)
+                return one_domain_hits(bvh, r, self.color_source, self.scalar_range)
             best = ClosestHits.empty(n, self.color_source is not None)
             best.offer(np.arange(n), only, bvh, r, self.color_source, self.scalar_range)
-            return _taken(best, compact)
+            return best.hits()
         best = ClosestHits.empty(n, self.color_source is not None)
         top = self._top_level()
         tree = None
@@ -591,14 +559,14 @@ class DomainTracer:
                                                           np.full(n, np.inf, np.float32),
                                                           self._threads()), resident)
             if tree.size == 0:
-                return _taken(best, compact)
+                return best.hits()
         slabs = self.slabs(origins, directions)
         for d, idx in self._visits(slabs, best.t, tree=tree):
             self._count_visit(d, len(idx))
             bvh = self.cache.get(d)
             r = bvh.intersect(origins[idx], directions[idx], best.t[idx], self.pool)
             best.offer(idx, d, bvh, r, self.color_source, self.scalar_range)
-        return _taken(best, compact)
+        return best.hits()
 
     def occluded(self, origins: np.ndarray, directions: np.ndarray, t_max: np.ndarray
                  ) -> np.ndarray:

@@ -179,37 +179,3 @@ def test_top_scene_close_releases(stores):
     tracer.close()
     assert live_scenes() == before + len(cache.resident())
 
-
-
-@pytest.mark.parametrize("name, two_level, capacity", [
-    ("one", True, 1),  # one domain: Embree's output straight to hit records
-    ("grid8", True, 8),  # every domain resident: the top-level scene
-    ("kd64", False, 64),  # domain by domain
-    ("grid8", True, 3),  # a bounded cache: visits
-])
-def test_closest_hits_are_intersect_at_the_rows_that_hit(stores, name, two_level, capacity):
-    # trace_paths goes on with the rays that hit only: their rows and records must be
-    # intersect's, bit for bit, on every path of the tracer
-    store = stores[name]
-    rng = np.random.default_rng(3)
-    n = 4000
-    origins = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
-    origins[:, 1] = 2.5
-    directions = (rng.normal(size=(n, 3)) * 0.7 + [0.0, -1.0, 0.0]).astype(np.float32)
-    keep = frozenset({"colors"}) if name == "one" else frozenset()
-    tracer = DomainTracer(store, DomainCache(store, capacity, keep=keep), threads=2,
-                          two_level=two_level, color_source="colors" if name == "one" else None)
-    try:
-        full = tracer.intersect(origins, directions)
-        rows, hits = tracer.closest_hits(origins, directions, kind="camera")
-    finally:
-        tracer.close()
-    assert 0 < len(rows) < n and rows.dtype == np.int64
-    np.testing.assert_array_equal(rows, np.flatnonzero(full.hit))
-    want = full.take(rows)
-    for field in ("t", "normal", "material", "color", "point", "error"):
-        a, b = getattr(hits, field), getattr(want, field)
-        assert (a is None) == (b is None), field
-        if a is not None:
-            np.testing.assert_array_equal(a, b, err_msg=field)
-    assert (name == "one") == (hits.color is not None)
