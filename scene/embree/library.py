@@ -112,7 +112,7 @@ class Api:
             fn = getattr(self.lib, name)
             fn.restype, fn.argtypes = res, args
             setattr(self, name, fn)
-        self.device = self.rtcNewDevice(os.environ.get("XCFG", "").encode() or None)
+        self.device = self.rtcNewDevice(None)
         if not self.device:
             raise OSError("rtcNewDevice failed")
         self.version = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION))
