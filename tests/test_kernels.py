@@ -324,8 +324,9 @@ def test_fused_film_add_equals_bincount(counting):
         np.testing.assert_array_equal(got, want)
 
 
-@pytest.mark.parametrize("s0, s1, first, stop", [(0, 16, 0, 65536), (3, 7, 12345, 99999),
-                                                  (0, 1, 5, 9), (4, 8, 7, 7), (16, 32, 131071, 196608)])
+@pytest.mark.parametrize("s0, s1, first, stop", [
+    (0, 16, 0, 65536), (3, 7, 12345, 99999), (0, 1, 5, 9), (4, 8, 7, 7),
+    (16, 32, 131071, 196608)])
 def test_path_keys_are_the_division_of_path_numbers(s0, s1, first, stop):
     # path_context numbers the paths of a pass by counting (kernels.path_keys): the keys must
     # be the pixel-major division of the path numbers, whatever the window and the first path

@@ -1,11 +1,12 @@
 """Running a query kernel on a batch of rays: its inputs checked, split over threads.
 
 A query of several threads splits its rays into contiguous pieces, which threads of one
-process-wide pool take in turn and trace with the serial kernel (``launch``); render workers that trace on one
-thread each run their kernels side by side. No kernel is ``parallel=True``: numba's threading
-layer, whose default (workqueue) is not safe to enter from two Python threads at once, is never
-used (issue 20: heap corruption under load was reported only with two threads in compiled
-code; with no kernel sharing native state, that class is ruled out).
+process-wide pool take in turn and trace with the serial kernel (``launch``); render workers
+that trace on one thread each run their kernels side by side. No kernel is
+``parallel=True``: numba's threading layer, whose default (workqueue) is not safe to enter
+from two Python threads at once, is never used (issue 20: heap corruption under load was
+reported only with two threads in compiled code; with no kernel sharing native state, that
+class is ruled out).
 """
 
 from __future__ import annotations
