@@ -289,32 +289,50 @@ def camera_rays_same(peer: MitsubaRenderer, store: Store, spp: int, threads: int
     dr.eval(ray)
     out = {}
     for side, coherent in (("mitsuba", False), ("mitsuba_coherent", True)):
-        times, hits = [], 0
-        for _ in range(repeat):
-            # a new set of variables each time: an old result alive would be reused, untraced
-            pi = None
-            start = time.perf_counter()
-            pi = peer.scene.ray_intersect_preliminary(ray, coherent=coherent)
-            dr.eval(pi.t, pi.prim_index)
-            dr.sync_thread()
-            times.append(time.perf_counter() - start)
-            hits = int(dr.count(pi.is_valid())[0])
-        out[side] = (min(times), hits)
+        out[side] = _mitsuba_times(
+            dr, repeat, lambda c=coherent: peer.scene.ray_intersect_preliminary(ray, coherent=c),
+            lambda pi: (pi.t, pi.prim_index), lambda pi: pi.is_valid())
     origins = np.ascontiguousarray(np.array(ray.o).T, np.float32)
     directions = np.ascontiguousarray(np.array(ray.d).T, np.float32)
     t_far = np.full(n, np.inf, np.float32)
+    out.update(_vastray_times(store, repeat, lambda scene: scene.intersect(
+        origins, directions, t_far, threads)["primID"] >= 0))
+    return out
+
+
+def _mitsuba_times(dr, repeat: int, trace, evaluated, hit) -> tuple[float, int]:
+    """(best seconds of ``repeat`` runs of Mitsuba's ``trace()``, evaluated as far as
+    ``evaluated(result)``, and the rays ``hit(result)`` counts)."""
+    times, hits = [], 0
+    for _ in range(repeat):
+        # a new variable each time: an old result alive would be reused, untraced
+        result = None
+        start = time.perf_counter()
+        result = trace()
+        dr.eval(evaluated(result))
+        dr.sync_thread()
+        times.append(time.perf_counter() - start)
+        hits = int(dr.count(hit(result))[0])
+    return min(times), hits
+
+
+def _vastray_times(store: Store, repeat: int, query) -> dict[str, tuple[float, int]]:
+    """{"vastray" | "vastray_fast": (best seconds of ``repeat`` runs of ``query(scene)``, the
+    rays its (n,) bool answer counts)}, on ``store``'s one domain built with the watertight
+    and with the fast triangle test; each scene answers once untimed first."""
     dom = store.load_domain(0, mmap=False)
+    out = {}
     for side, test in (("vastray", "watertight"), ("vastray_fast", "fast")):
         with triangle_test(test):
             scene = Scene(np.asarray(dom.vertices), np.asarray(dom.indices))
         try:
-            scene.intersect(origins[:16], directions[:16], t_far[:16], threads)
+            query(scene)
             times = []
             for _ in range(repeat):
                 start = time.perf_counter()
-                hits = scene.intersect(origins, directions, t_far, threads)
+                hit = query(scene)
                 times.append(time.perf_counter() - start)
-            out[side] = (min(times), int((hits["primID"] >= 0).sum()))
+            out[side] = (min(times), int(hit.sum()))
         finally:
             scene.close()
     return out
@@ -331,7 +349,6 @@ def recorded_rays_same(peer: MitsubaRenderer, store: Store, camera: Camera, ligh
     Returns {"bounce" | "shadow": {side: (best seconds of ``repeat``, rays, rays that hit)}}."""
     import drjit as dr
 
-    mi = peer.mi
     config = SceneConfig(camera={"position": camera.position, "look_at": camera.look_at,
                                  "up": camera.up, "fov": FOV},
                          lights=[PointLight(np.asarray(light_pos, float), np.full(3, intensity))])
@@ -339,7 +356,6 @@ def recorded_rays_same(peer: MitsubaRenderer, store: Store, camera: Camera, ligh
                               bounces=BOUNCES, seed=3)
     batches: list = []
     render(store, config, settings, threads=threads, progress=False, record_rays=batches)
-    dom = store.load_domain(0, mmap=False)
     out: dict[str, dict[str, tuple[float, int, int]]] = {}
     for kind in ("bounce", "occluded"):
         mine = [b for b in batches if b[0] == kind]
@@ -349,43 +365,34 @@ def recorded_rays_same(peer: MitsubaRenderer, store: Store, camera: Camera, ligh
         dirs = np.concatenate([b[2] for b in mine]).astype(np.float32)
         t_max = (np.concatenate([b[3] for b in mine]).astype(np.float32) if kind == "occluded"
                  else np.full(len(org), np.inf, np.float32))
-        ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(org[:, k])) for k in range(3))),
-                       mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, k]))
-                                     for k in range(3))))
-        if kind == "occluded":
-            ray.maxt = mi.Float(t_max)
-        dr.eval(ray)
-        times, hits = [], 0
-        for _ in range(repeat):
-            result = None  # a new variable each time (an evaluated one would be reused)
-            start = time.perf_counter()
-            if kind == "occluded":
-                result = peer.scene.ray_test(ray)
-                dr.eval(result)
-            else:
-                result = peer.scene.ray_intersect_preliminary(ray)
-                dr.eval(result.t, result.prim_index)
-            dr.sync_thread()
-            times.append(time.perf_counter() - start)
-            hits = int(dr.count(result if kind == "occluded" else result.is_valid())[0])
-        sides = {"mitsuba": (min(times), len(org), hits)}
-        for side, test in (("vastray", "watertight"), ("vastray_fast", "fast")):
-            with triangle_test(test):
-                scene = Scene(np.asarray(dom.vertices), np.asarray(dom.indices))
-            try:
-                times = []
-                for _ in range(repeat):
-                    start = time.perf_counter()
-                    if kind == "occluded":
-                        hit = scene.occluded(org, dirs, t_max, threads)
-                    else:
-                        hit = scene.intersect(org, dirs, t_max, threads)["primID"] >= 0
-                    times.append(time.perf_counter() - start)
-                sides[side] = (min(times), len(org), int(hit.sum()))
-            finally:
-                scene.close()
-        out["shadow" if kind == "occluded" else kind] = sides
+        mitsuba, vastray = _recorded_times(peer, dr, store, org, dirs, t_max,
+                                           kind == "occluded", threads, repeat)
+        out["shadow" if kind == "occluded" else kind] = {
+            side: (secs, len(org), hits)
+            for side, (secs, hits) in {"mitsuba": mitsuba, **vastray}.items()}
     return out
+
+
+def _recorded_times(peer: MitsubaRenderer, dr, store: Store, org: np.ndarray,
+                    dirs: np.ndarray, t_max: np.ndarray, occlusion: bool, threads: int,
+                    repeat: int) -> tuple[tuple[float, int], dict[str, tuple[float, int]]]:
+    """``recorded_rays_same``'s timings of one query kind, closest hits or (``occlusion``)
+    shadow rays up to ``t_max``: Mitsuba's (seconds, hits), vastray's ``_vastray_times``."""
+    mi = peer.mi
+    ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(org[:, k])) for k in range(3))),
+                   mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, k])) for k in range(3))))
+    if occlusion:
+        ray.maxt = mi.Float(t_max)
+    dr.eval(ray)
+    if occlusion:
+        return (_mitsuba_times(dr, repeat, lambda: peer.scene.ray_test(ray),
+                               lambda blocked: blocked, lambda blocked: blocked),
+                _vastray_times(store, repeat,
+                               lambda scene: scene.occluded(org, dirs, t_max, threads)))
+    return (_mitsuba_times(dr, repeat, lambda: peer.scene.ray_intersect_preliminary(ray),
+                           lambda pi: (pi.t, pi.prim_index), lambda pi: pi.is_valid()),
+            _vastray_times(store, repeat, lambda scene: scene.intersect(
+                org, dirs, t_max, threads)["primID"] >= 0))
 
 
 def _blocks(image: np.ndarray) -> np.ndarray:

@@ -88,8 +88,9 @@ class Film:
                   counted: np.ndarray | None = None) -> None:
         """Add a batch of finished paths (a ``PathResult``) with keys (n,) pixel and sample;
         sample 0 of each pixel sets the depth and normal layers."""
+        pixel, sample = _integers(pixel), _integers(sample)  # once, for both kernels
         self.add(pixel, paths.radiance, counted, sample)
-        kernels.film_first_hits(self.depth, self.normal, _integers(pixel), _integers(sample),
+        kernels.film_first_hits(self.depth, self.normal, pixel, sample,
                                 np.ascontiguousarray(paths.first_t, np.float32),
                                 np.ascontiguousarray(paths.first_normal, np.float32))
 
