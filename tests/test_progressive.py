@@ -207,6 +207,31 @@ def test_stopping_rules_stop_nodes_too(scene, tmp_path):
     np.testing.assert_array_equal(image, read_image(tmp_path / "same-spp.exr"))
 
 
+@pytest.mark.parametrize("rule, nodes", [(("--target-error", "0.05"), None),
+                                         (("--target-error", "0.05"), "2"),
+                                         (("--time-limit", "1"), None)])
+def test_the_summary_line_says_which_rule_stopped_the_render(scene, tmp_path, capsys, rule,
+                                                             nodes):
+    # the stopping rules' summary line, as users see it (no --quiet; the other tests of the
+    # rules pass it): which rule stopped the render and at how many samples, in one process
+    # and on nodes, one line, and the report agrees
+    store, toml = scene
+    report = tmp_path / "run.json"
+    code = main(["render", str(store.path), "-o", str(tmp_path / "run.exr"), "--scene",
+                 str(toml), "--width", "32", "--height", "24", "--report", str(report),
+                 "--spp", "100000" if rule[0] == "--time-limit" else "256", *rule]
+                + ([] if nodes is None else ["--nodes", nodes, "--scheduler", "async"]))
+    assert code == 0
+    done = json.loads(report.read_text())
+    printed = capsys.readouterr()
+    lines = [line for line in (printed.out + printed.err).splitlines()
+             if line.startswith("wrote ")]
+    assert len(lines) == 1, printed
+    assert done["stopped_by"] == rule[0].removeprefix("--")
+    assert (f"; stopped by {rule[0]} at {done['passes'][-1]['spp']} spp" in lines[0]), lines[0]
+    assert "Traceback" not in printed.err
+
+
 def _cli(*args: str, **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "vastray", *args], stderr=subprocess.PIPE,
                             text=True, **kw)
