@@ -35,6 +35,15 @@ def _integers(keys) -> np.ndarray:
     return np.ascontiguousarray(keys, np.uint32)
 
 
+def changing_rows(sample: np.ndarray, paths) -> np.ndarray:
+    """(k,) the rows of a batch of partial paths (a ``PathResult``; ``sample`` (n,)) that
+    change a film: some radiance (NaN included), or sample 0's first hit (a distance other
+    than inf, or a normal). Every other row adds +-0.0 to sums that start at +0.0, and inf and
+    zero normals to the first-hit layers: nothing."""
+    first_hit = (sample == 0) & ((paths.first_t != np.inf) | np.any(paths.first_normal != 0, axis=1))
+    return np.flatnonzero(np.any(paths.radiance != 0, axis=1) | first_hit)
+
+
 class Film:
     """Accumulates path radiance per pixel.
 
@@ -104,12 +113,18 @@ class Film:
     def add_partial(self, pixel: np.ndarray, sample: np.ndarray, paths) -> None:
         """Add what part of a batch of paths was gathered here (a ``PathResult``): radiance
         sums, and the first-hit layers of sample 0 where this part saw the camera hit. Parts
-        of one path from elsewhere add up; samples are counted by ``count_samples``."""
-        self.add(pixel.astype(np.int64), paths.radiance, counted=np.zeros(len(pixel), bool),
-                 sample=sample)
+        of one path from elsewhere add up; samples are counted by ``count_samples``.
+
+        Only the rows that change the film are folded in (``changing_rows``): under domain
+        decomposition each node holds every path of a tile it took part in, most of them
+        traced elsewhere (on 8 nodes a node folded all 49,152 paths of each tile, 1.6 ms a
+        tile on its event loop); the others add zeros, which change no sum's bits."""
+        rows = changing_rows(sample, paths)
+        pixel, sample = pixel[rows], sample[rows]
+        self.add(pixel, paths.radiance[rows], counted=np.zeros(len(rows), bool), sample=sample)
         zero = np.nonzero(sample == 0)[0]
-        np.minimum.at(self.depth, pixel[zero], paths.first_t[zero])
-        self.normal[pixel[zero]] += paths.first_normal[zero]
+        np.minimum.at(self.depth, pixel[zero], paths.first_t[rows][zero])
+        self.normal[pixel[zero]] += paths.first_normal[rows][zero]
 
     def merge(self, other: Film) -> None:
         """Add another node's partial film. Sums and counts add; each pixel's depth and normal

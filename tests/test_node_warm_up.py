@@ -1,5 +1,6 @@
 """A node's warm-up (``actors.node_warm_up``): after it, no scheduler's render has a compiled
-kernel left to load, and a node whose temporary folder cannot be written still starts."""
+kernel left to load nor a module left to import, and a node whose temporary folder cannot be
+written still starts."""
 
 from __future__ import annotations
 
@@ -44,14 +45,16 @@ FRESH_PROCESS = textwrap.dedent("""
     generate("rm", sys.argv[1], 24, grid=(2, 2, 2))
     store = Store(sys.argv[1])
     warm_node()
-    warm = loaded()
+    warm, modules = loaded(), set(sys.modules)
     for scheduler in SIM_SCHEDULERS:
         for integrator in ("pt", "ao"):
             settings = RenderSettings(width=24, height=18, spp=1, integrator=integrator,
                                       bounces=2)
             simulate(store, JobOptions(scheduler=scheduler, cache=3), 2, CostModel(),
                      settings, SceneConfig())
-    print(json.dumps({"warm": len(warm), "left": sorted(n for n, _ in loaded() - warm)}))
+    print(json.dumps({"warm": len(warm), "left": sorted(n for n, _ in loaded() - warm),
+                      "imported": sorted(m for m in set(sys.modules) - modules
+                                         if m.startswith("vastray"))}))
 """)
 
 
@@ -63,6 +66,8 @@ def test_no_scheduler_has_a_kernel_left_to_load_after_the_warm_up(tmp_path):
     assert found["warm"] >= 10, found  # the warm-up did call the kernels
     assert found["left"] == [], ("kernels a node's first frame would still load from numba's "
                                  f"cache; make the warm-up's tiny render call them: {found}")
+    assert found["imported"] == [], ("modules a node's first frame would still import; add "
+                                     f"them to node_warm_up.FIRST_USE_MODULES: {found}")
 
 
 def test_a_node_without_a_writable_temporary_folder_still_warms_numba(

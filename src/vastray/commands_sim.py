@@ -63,6 +63,7 @@ COST_LABELS = {
     "insitu_setup_s": "once per in-situ node",
     "decision_scale": "per CPU second a schedule decides (measured as it simulates)",
     "trace_scale": "per CPU second an activation traces (measured as it simulates)",
+    "node_cpu_scale": "per CPU second a node's own code runs beyond those (measured so)",
     "offload_s": "per activation a node runtime hands to a worker thread",
 }
 

@@ -20,8 +20,10 @@ from collections import defaultdict
 
 import numpy as np
 
+from vastray.scene.embree.launch import cpu_time
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
+from vastray.sim.meter import NodeMeter, start_simulator_task
 from vastray.transport.codec import Message
 
 #: Each node runtime and the cost model's constant for its set-up.
@@ -53,6 +55,9 @@ class Cluster:
         self._arrivals: set[asyncio.Future] = set()  # messages on their way in
         self.messages = 0
         self.bytes = 0
+        #: each node's own code measured beyond the named work (``sim.meter``); charged
+        #: only where ``costs.node_cpu_scale`` is set
+        self.meter = NodeMeter(costs.node_cpu_scale)
 
     @staticmethod
     def now() -> float:
@@ -61,14 +66,19 @@ class Cluster:
     async def compute(self, rank: int, seconds: float) -> None:
         """Endpoint ``rank`` works ``seconds`` on its one core (shared by whatever else it
         computes meanwhile), or sharing the machine's cores (``SharedCores``: as fast as the
-        machine's measured throughput lets)."""
+        machine's measured throughput lets); with what its own code computed since its last
+        charge (``NodeMeter.take``)."""
+        seconds += self.meter.take(rank) if rank < self.size else 0.0
         if seconds <= 0:
             return
+        cpu = cpu_time()
         self.compute_s[rank] += seconds
         if self._cores is None:
-            await self._own[rank].run(seconds)
+            done = self._own[rank].start(seconds)
         else:
-            await self._cores.run(seconds, owner=rank)
+            done = self._cores.start(seconds, owner=rank)
+        self.meter.simulator_spent(cpu_time() - cpu)  # not the node's own work
+        await done
 
     async def trace(self, rank: int, seconds: float, runtime: str) -> None:
         """Node ``rank`` traces for ``seconds`` (``CostModel.trace_charge`` of its activations).
@@ -84,8 +94,15 @@ class Cluster:
 
     async def decided(self, rank: int, cpu_seconds: float) -> None:
         """Node ``rank``'s schedule decided for ``cpu_seconds`` of CPU (measured as the real
-        schedule code ran here): charged to its core times ``CostModel.decision_scale``."""
+        schedule code ran here, in the node's current step): charged to its core times
+        ``CostModel.decision_scale``."""
+        self.meter.account(rank, cpu_seconds)
         await self.compute(rank, cpu_seconds * self.costs.decision_scale)
+
+    async def flush(self, rank: int) -> None:
+        """Charge node ``rank`` what its own code computed since its last charge (the end of
+        a busy span: nothing after it would take it along)."""
+        await self.compute(rank, 0.0)
 
     async def send(self, source: int, destination: int, message: Message, nbytes: int) -> None:
         """Post ``message`` (decoded, ``nbytes`` on the wire) from ``source`` to
@@ -100,7 +117,9 @@ class Cluster:
         if not self.costs.receive_s:
             self.mailboxes[destination][message.kind].put_nowait(message)
             return
-        arrival = asyncio.ensure_future(self._arrive(destination, message))
+        cpu = cpu_time()
+        arrival = start_simulator_task(self._arrive(destination, message))
+        self.meter.simulator_spent(cpu_time() - cpu)
         self._arrivals.add(arrival)
         arrival.add_done_callback(self._arrivals.discard)
 

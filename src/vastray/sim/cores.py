@@ -43,6 +43,10 @@ class SharedCores:
     async def run(self, seconds: float, owner=None) -> None:
         """Work ``seconds`` (at full speed) among the other jobs. ``owner``: the process the
         job is part of; its jobs share one process's speed (None: a process of its own)."""
+        await self.start(seconds, owner)
+
+    def start(self, seconds: float, owner=None) -> asyncio.Future:
+        """``run``'s job started now; the future is done when it has worked ``seconds``."""
         loop = asyncio.get_running_loop()
         self._advance(loop.time())
         done = loop.create_future()
@@ -51,7 +55,7 @@ class SharedCores:
         self._jobs[key] = [seconds, done, owner]
         self._owned[owner] = self._owned.get(owner, 0) + 1
         self._schedule(loop)
-        await done
+        return done
 
     def _rate(self, job: list) -> float:
         """A running job's speed now: its process's share of the machine, split among the

@@ -77,6 +77,13 @@ class CostModel:
         (``trace_s``: the default, and what calibration files written before it mean). The
         constants are fitted on one store's tile and do not carry over: on 128 domains with
         3 bounces an activation took about 1.3 times what rm 64³'s 18 domains predicted.
+    node_cpu_scale : virtual seconds charged per CPU second a virtual node's own code spends
+        beyond the work charged apart (its frame loop, the film it folds paths into, the
+        batches it cuts, its waves; ``sim.meter``), measured as the simulator runs it: 1.0
+        where the simulator runs on the calibrated machine (``vastray calibrate`` writes
+        1.0), 0 charges nothing (the default, and what calibration files written before it
+        mean). Where it is set, making camera rays is measured with the rest
+        (``camera_ray_s`` is not charged besides).
     offload_s : one activation of a node runtime handed to a worker thread, beyond its trace:
         the hand-off there and back to the event loop (``DomainLoop`` with ``offload``,
         ``asyncio.to_thread``; ``domain_loop.hands_off``: activations of more than
@@ -108,6 +115,7 @@ class CostModel:
     insitu_setup_s: float = 0.0
     decision_scale: float = 0.0
     trace_scale: float = 0.0
+    node_cpu_scale: float = 0.0
     offload_s: float = 0.0
     cores: int | None = None
     throughput: tuple = ()

@@ -61,10 +61,19 @@ class SimManagement:
         return done
 
     async def to_peer(self, rank: int, frames: list) -> None:
-        await self.cluster.send(self.rank, rank, decode(frames), frames_nbytes(frames))
+        await self.cluster.send(self.rank, rank, self._decoded(frames), frames_nbytes(frames))
 
     async def to_coordinator(self, frames: list) -> None:
-        await self.cluster.send(self.rank, self.cluster.coordinator, decode(frames), frames_nbytes(frames))
+        await self.cluster.send(self.rank, self.cluster.coordinator, self._decoded(frames),
+                                frames_nbytes(frames))
+
+    def _decoded(self, frames: list):
+        """The message of ``frames``, decoded here as its receiver would (the message's cost,
+        ``CostModel.message_s``, charges that; the node's own CPU does not)."""
+        cpu = cpu_time()
+        message = decode(frames)
+        self.cluster.meter.account(self.rank, cpu_time() - cpu)
+        return message
 
 
 class VirtualDomainLoop(DomainLoop):
@@ -96,6 +105,7 @@ class VirtualDomainLoop(DomainLoop):
         queries = order.trace(domain, bvh)
         cpu = cpu_time() - cpu
         self.stats["trace_cpu_s"] = self.stats.get("trace_cpu_s", 0.0) + cpu
+        self.cluster.meter.account(self.rank, cpu)
         if not queries:  # a domain only loaded (in situ), or nothing left for it
             return queries
         costs = self.cluster.costs
@@ -155,6 +165,7 @@ class SimNodeState(NodeState):
                      cpu_seconds: float = 0.0) -> None:
         if not (radiance or shadow):
             return
+        self.cluster.meter.account(self.rank, cpu_seconds)
         costs = self.cluster.costs
         if costs.trace_scale:
             seconds = cpu_seconds * costs.trace_scale

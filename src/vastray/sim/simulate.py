@@ -12,6 +12,7 @@ and the traffic between domains the true one; only time is the cost model's.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -46,6 +47,7 @@ from vastray.sim.cache import Domains
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.costs import CostModel
+from vastray.sim.meter import start_node_task
 from vastray.sim.node import SimManagement, SimNodeState
 
 #: The schedulers the simulator runs (every distributed one; ``schedule.registry``'s, each
@@ -195,11 +197,17 @@ def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
 async def _render(store, options, size, costs, settings, config, units, domains):
     cluster = Cluster(size, costs)
     unit_ends: list[list[float]] = [[] for _ in units]
+    loop = asyncio.get_running_loop()
+    metered = bool(costs.node_cpu_scale)
+    if metered:  # each node's own code measured as it runs (``sim.meter``)
+        loop.set_task_factory(cluster.meter.task_factory)
     # No coordinator runs: it takes part in no round and no termination (the nodes' tree
     # does both); what it does once per job (start, films) is outside the simulated span.
-    per_node = await asyncio.gather(*(
-        _node(cluster, rank, store, options, settings, config, units, domains, unit_ends)
-        for rank in range(size)))
+    with cluster.meter.collections_apart() if metered else contextlib.nullcontext():
+        per_node = await asyncio.gather(*(
+            start_node_task(loop, rank, _node(cluster, rank, store, options, settings, config,
+                                              units, domains, unit_ends))
+            for rank in range(size)))
     marks = [0.0] + [max(ends) for ends in unit_ends]
     film = per_node[0][3]
     return ([p[:3] for p in per_node], list(np.diff(marks)), cluster, film)
@@ -228,9 +236,11 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
                                settings.width * settings.height)
         windows = [units[unit][1:] for unit in group]
         state.ordinal, state.frame = ordinal, frame or 0
+        await cluster.flush(rank)  # the last unit's film reduction: not this unit's span
         start = cluster.now()
-        paths = sum(frame_settings.window(*window).paths for window in windows)
-        await cluster.compute(rank, cluster.costs.camera_ray_s * paths / size)
+        if not cluster.costs.node_cpu_scale:  # else measured as the node makes them
+            paths = sum(frame_settings.window(*window).paths for window in windows)
+            await cluster.compute(rank, cluster.costs.camera_ray_s * paths / size)
         if len(group) > 1:
             parts, counters = await _sort_first_passes(options, rank, size, store,
                                                        frame_config, frame_settings, windows,
@@ -240,6 +250,7 @@ async def _node(cluster: Cluster, rank: int, store, options, settings, config, u
                                           store, frame_config,
                                           frame_settings.window(*windows[0]), state)
             parts = [part]
+        await cluster.flush(rank)
         busy += cluster.now() - start
         for unit in group:  # a sweep's time is its first pass's
             unit_ends[unit].append(cluster.now())
