@@ -35,6 +35,7 @@ from vastray.sim.replay import (
     Network,
     Replay,
     fit_activation_costs,
+    fit_node_own_costs,
     sort_first_decisions,
 )
 from vastray.sim.simulate import simulate
@@ -46,6 +47,9 @@ STRONG = RenderSettings(width=1024, height=1024, spp=1, integrator="pt", bounces
 CHECK = RenderSettings(width=96, height=96, spp=1, integrator="pt", bounces=1)
 CHECK_NODES = (1, 16, 64)
 CHECK_NODES_QUICK = (64,)
+#: Virtual nodes the nodes' own code is fitted at (``fit_node_own_costs``; the quick check's
+#: 64 are not among them).
+OWN_FIT_NODES = 8
 #: Node counts of the full bench's strong and weak scaling (every fourth power of two: the
 #: full bench must stay within 30 minutes on 2 cores)
 STRONG_NODES = (1, 4, 16, 64, 256, 1024)
@@ -81,13 +85,37 @@ def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = 
               storage_mb_s: float | None = STORAGE_MB_S, activations=None,
               decisions: dict | None = None) -> Replay:
     """The replay of ``crossings``; ``decisions``: the sort-first nodes' decision costs
-    (``sort_first_decisions``) on the fitted activation costs."""
+    (``sort_first_decisions``) on the fitted activation costs; the nodes' own code as
+    fitted on ``store`` (``own_costs_of``), where it was."""
     lo, hi = store.domain_boxes()
     if decisions is not None:
         activations = replace(activations or fit_activation_costs(crossings, costs),
                               sort_first_decision_s=decisions)
     return Replay(crossings, *domain_sizes(store), lo, hi, costs, activations, network,
-                  None if storage_mb_s is None else storage_mb_s * 1e6)
+                  None if storage_mb_s is None else storage_mb_s * 1e6,
+                  own=_own_costs.get(str(store.path)) if costs.node_cpu_scale else None)
+
+
+#: store path -> each scheduler's ``NodeOwnCosts`` (``own_costs_of``)
+_own_costs: dict = {}
+
+
+def own_costs_of(store, scaling_options, domains: Domains) -> dict:
+    """Each scheduler's nodes' own code on ``store`` (``fit_node_own_costs`` on ``CHECK`` at
+    ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the store."""
+    key = str(store.path)
+    if key not in _own_costs:
+        start = time.perf_counter()
+        _own_costs[key] = fit_node_own_costs(store, CHECK, domains, OWN_FIT_NODES,
+                                             scaling_options)
+        print(f"  the nodes' own code ({OWN_FIT_NODES} virtual nodes running the product's "
+              f"code, {CHECK.paths:,} paths), per frame / batch sent / batch received / "
+              "activation: " + "; ".join(
+                  f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} / "
+                  f"{c.received_s * 1e6:.0f} / {c.activation_s * 1e6:.0f} us"
+                  for name, c in _own_costs[key].items())
+              + f" ({time.perf_counter() - start:.0f} s)", flush=True)
+    return _own_costs[key]
 
 
 def decisions_of(store, settings: RenderSettings, cache: int | None, sizes,
@@ -193,6 +221,8 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
         decisions = decisions_of(store, CHECK, None,
                                  sorted({max(1, CHECK.paths // n) for n in nodes_checked}),
                                  domains)
+        if own.node_cpu_scale:
+            own_costs_of(store, scaling_options, domains)
         replay = replay_of(store, crossings, own, Network(), None, decisions=decisions)
         print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
               f"{CHECK.paths:,} paths, a core per node):")
@@ -306,11 +336,12 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
         print(f"| {scheduler} | " + " | ".join(f"{best / by[p]:.2f}" for p in shown) + " |")
     top = max(node_counts)
     print(f"\nwhere the time goes at P={top} (mean per node, s):")
-    print("| scheduler | total | trace | load | messages | reduction | wait |")
-    print("| --- | --- | --- | --- | --- | --- | --- |")
+    print("| scheduler | total | trace | load | messages | reduction | own code | wait |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler, parts in breakdown.items():
         print(f"| {scheduler} | {strong_times[scheduler][top]:.4f} | " + " | ".join(
-            f"{parts[k]:.4f}" for k in ("trace", "load", "messages", "reduction", "wait")) + " |")
+            f"{parts.get(k, 0.0):.4f}"
+            for k in ("trace", "load", "messages", "reduction", "own", "wait")) + " |")
     weak_shown = [p for p in weak_counts if p != 1]
     if weak_times:
         print(f"\nweak scaling efficiency T(1)/T(P), {WEAK_PATHS_PER_NODE:,} paths per node:")

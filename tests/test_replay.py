@@ -24,8 +24,10 @@ from vastray.sim.replay import (
     REPLAY_SCHEDULERS,
     ActivationCosts,
     Network,
+    NodeOwnCosts,
     Replay,
     fit_activation_costs,
+    fit_node_own_costs,
 )
 
 from scenes import rm_store
@@ -251,3 +253,60 @@ def test_sort_first_nodes_on_copies_of_the_same_paths_cost_the_same(store, recor
         a, b = fast.run(scheduler, 4), slow.run(scheduler, 4)
         assert a.seconds == b.seconds and a.counters == b.counters, scheduler
         assert np.allclose(list(a.breakdown.values()), list(b.breakdown.values()))
+
+
+# -- the nodes' own code -------------------------------------------------------------------
+@pytest.mark.parametrize("scheduler", REPLAY_SCHEDULERS)
+def test_a_node_s_frame_set_up_makes_the_frame_that_much_later(store, recorded, scheduler):
+    plain = replay_of(store, recorded[0]).run(scheduler, 4)
+    own = replay_of(store, recorded[0],
+                    own={scheduler: NodeOwnCosts(per_node_s=0.5)}).run(scheduler, 4)
+    assert own.seconds == pytest.approx(plain.seconds + 0.5, rel=1e-9)
+    assert own.breakdown["own"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("scheduler", ["domain", "dynamic", "async", "spec-insitu"])
+def test_each_batch_s_own_code_is_charged_to_its_sender_and_its_receiver(store, recorded,
+                                                                         scheduler):
+    plain = replay_of(store, recorded[0]).run(scheduler, 4)
+    costs = NodeOwnCosts(sent_s=1e-3, received_s=2e-3)
+    own = replay_of(store, recorded[0], own={scheduler: costs}).run(scheduler, 4)
+    batches = own.counters["messages"]
+    assert batches > 0 and own.seconds > plain.seconds
+    # every batch once on each side (the all-reductions' messages are not ray batches)
+    assert own.breakdown["own"] * 4 == pytest.approx(3e-3 * batches, rel=1e-9)
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async"])
+def test_each_activation_s_own_code_is_charged(store, recorded, scheduler):
+    plain = replay_of(store, recorded[0]).run(scheduler, 4)
+    own = replay_of(store, recorded[0],
+                    own={scheduler: NodeOwnCosts(activation_s=1e-3)}).run(scheduler, 4)
+    assert own.breakdown["own"] * 4 == pytest.approx(1e-3 * own.counters["activations"])
+    assert own.seconds > plain.seconds
+
+
+def test_only_the_scheduler_replayed_pays_its_own_code(store, recorded):
+    replay = replay_of(store, recorded[0], own={"async": NodeOwnCosts(per_node_s=1.0)})
+    assert replay.run("domain", 4).breakdown["own"] == 0.0
+    assert replay.run("async", 4).breakdown["own"] == 1.0
+
+
+def test_the_nodes_own_code_is_fitted_on_the_simulator_running_it(store):
+    """Fitted on the real-code simulator: none negative, and not all zero (a node's own code
+    costs something)."""
+    from vastray.actors.job_options import JobOptions
+    from vastray.render.driver import shading_inputs
+    from vastray.sim.cache import Domains
+
+    domains = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
+    try:
+        fitted = fit_node_own_costs(store, SETTINGS, domains, 4,
+                                    lambda s, n, paths: JobOptions(scheduler=s),
+                                    schedulers=["async", "domain"])
+    finally:
+        domains.close()
+    assert set(fitted) == {"async", "domain"}
+    for costs in fitted.values():
+        values = dataclasses.astuple(costs)
+        assert all(v >= 0 for v in values) and sum(values) > 0

@@ -159,19 +159,20 @@ class _Ledger:
     load: np.ndarray = field(init=False)
     messages: np.ndarray = field(init=False)
     reduction: np.ndarray = field(init=False)
+    own: np.ndarray = field(init=False)  # the nodes' own code (``NodeOwnCosts``)
     counters: dict = field(default_factory=lambda: {"activations": 0, "loads": 0,
                                                     "messages": 0, "bytes": 0, "rounds": 0,
                                                     "traced": 0})
 
     def __post_init__(self):
-        for name in ("trace", "load", "messages", "reduction"):
+        for name in ("trace", "load", "messages", "reduction", "own"):
             setattr(self, name, np.zeros(self.size))
 
     def result(self, scheduler: str, seconds: float, start: float) -> ReplayResult:
-        busy = self.trace + self.load + self.messages + self.reduction
+        busy = self.trace + self.load + self.messages + self.reduction + self.own
         breakdown = {"trace": float(self.trace.mean()), "load": float(self.load.mean()),
                      "messages": float(self.messages.mean()),
-                     "reduction": float(self.reduction.mean()),
+                     "reduction": float(self.reduction.mean()), "own": float(self.own.mean()),
                      "wait": float(max(seconds - busy.mean(), 0.0))}
         return ReplayResult(scheduler, self.size, seconds, breakdown, dict(self.counters),
                             time.perf_counter() - start)
@@ -192,15 +193,19 @@ class Replay:
     storage_bandwidth : bytes per second a node reads a domain at, at most (None: the
         calibrated ``read_s``; else the slower of the two, as ``DomainCache.load`` throttles).
     tile : paths in flight per tile (the coordinator's default).
+    own : each scheduler's nodes' own code (``fit_node_own_costs``; default: none charged).
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
                  lo: np.ndarray, hi: np.ndarray, costs: CostModel,
                  activations: ActivationCosts | None = None,
                  network: Network = Network(), storage_bandwidth: float | None = None,
-                 tile: int = DEFAULT_TILE):
+                 tile: int = DEFAULT_TILE, own: dict[str, NodeOwnCosts] | None = None):
         self.c = crossings
         self.costs, self.network = costs, network
+        #: each scheduler's ``NodeOwnCosts`` (none: charged as nothing)
+        self.own_by_scheduler = own or {}
+        self.own = NodeOwnCosts()  # the scheduler being replayed's
         self.activation = (fit_activation_costs(crossings, costs) if activations is None
                            else activations)
         self.lo, self.hi = lo, hi
@@ -284,6 +289,7 @@ class Replay:
         if nodes < 1:
             raise ValueError("the replay needs at least 1 node")
         start = time.perf_counter()
+        self.own = self.own_by_scheduler.get(scheduler, NodeOwnCosts())
         owned = -(-self.n_domains // nodes)
         if spec.simulation is Simulation.SORT_FIRST:
             ledger, seconds = self._sort_first(nodes, cache or self.n_domains, spec.speculates,
@@ -294,7 +300,9 @@ class Replay:
             run = {Decomposition.ROUNDS: self._rounds, Decomposition.RAY_WEIGHTED: self._dynamic,
                    Decomposition.ASYNC: self._async}[spec.decomposition]
             ledger, seconds = run(nodes, cache or owned)
-        return ledger.result(scheduler, seconds, start)
+        # every node's frame set-up at the start, all at once: the whole frame later by it
+        ledger.own += self.own.per_node_s
+        return ledger.result(scheduler, seconds + self.own.per_node_s, start)
 
     def _camera_s(self, paths: int) -> float:
         return self.costs.camera_ray_s * paths
@@ -317,6 +325,9 @@ class Replay:
         act_node, act_domain = keys // self.n_domains, keys % self.n_domains
         np.add.at(spent, act_node, cost)
         ledger.trace += np.bincount(act_node, weights=cost, minlength=ledger.size)
+        own = self.own.activation_s * np.bincount(act_node, minlength=ledger.size)
+        spent += own
+        ledger.own += own
         load = np.zeros(ledger.size)
         for n, d in zip(act_node.tolist(), act_domain.tolist(), strict=True):
             if caches[n].touch(d):
@@ -356,6 +367,10 @@ class Replay:
         receivers = keys % pairs // 2 % ledger.size
         spent += self.costs.receive_s * np.bincount(receivers, minlength=ledger.size)
         ledger.messages += spent
+        own = (self.own.sent_s * np.bincount(senders, minlength=ledger.size)
+               + self.own.received_s * np.bincount(receivers, minlength=ledger.size))
+        ledger.own += own
+        spent = spent + own
         ledger.counters["messages"] += len(keys)
         ledger.counters["bytes"] += int(nbytes.sum())
         return spent
@@ -567,6 +582,8 @@ class Replay:
         misses; its decision ``decision_s`` (default: the recording's)."""
         cost = self._trace_s(radiance, shadow, decision_s)
         ledger.trace[rank] += cost
+        ledger.own[rank] += self.own.activation_s
+        cost += self.own.activation_s
         ledger.counters["activations"] += 1
         ledger.counters["traced"] += radiance + shadow
         if lru.touch(domain):
@@ -668,6 +685,9 @@ class Replay:
             q = queues[n]
             cost = self.costs.receive_s * len(arrived) if box else 0.0  # taking them in
             ledger.messages[n] += cost
+            if box:  # and queueing them
+                ledger.own[n] += self.own.received_s * len(arrived)
+                cost += self.own.received_s * len(arrived)
             out = None
             if next_tile[n] < len(tiles) and q.total < self.tile:
                 tile = tiles[next_tile[n]]
@@ -706,8 +726,9 @@ class Replay:
                     m = int(batch_key[group[0]] // 2)
                     nbytes = self._ray_bytes(tokens)
                     send = self.costs.message_s(nbytes)
-                    cost += send
+                    cost += send + self.own.sent_s
                     ledger.messages[n] += send
+                    ledger.own[n] += self.own.sent_s
                     ledger.counters["messages"] += 1
                     ledger.counters["bytes"] += int(nbytes)
                     arrival = now + cost + self.network.wire_s(nbytes)
@@ -767,6 +788,50 @@ class _Queues:
             return None
         here = self.counts * cached
         return int(np.argmax(here if here.any() else self.counts))
+
+
+@dataclass(frozen=True)
+class NodeOwnCosts:
+    """What a node's own code costs beyond its traces, decisions, loads and messages' CPU
+    (``sim.meter``): its frame's set-up (``per_node_s``, once a frame), a ray batch it cuts
+    and sends (``sent_s``) or takes in and queues (``received_s``), an activation's
+    bookkeeping around the trace (``activation_s``). Fitted per scheduler on the simulator
+    that runs the nodes' code (``fit_node_own_costs``); zero: charged as nothing."""
+
+    per_node_s: float = 0.0
+    sent_s: float = 0.0
+    received_s: float = 0.0
+    activation_s: float = 0.0
+
+
+def fit_node_own_costs(store, settings, domains, nodes: int, options_of,
+                       schedulers=None) -> dict[str, NodeOwnCosts]:
+    """``NodeOwnCosts`` of each of ``schedulers`` (default: every replayed one), fitted (least
+    squares, none negative) to what each node's own code took in one simulation of
+    ``settings`` on ``nodes`` virtual nodes running the product's code, against its ray batches
+    sent and received and its activations (every other cost free, so nothing else is charged).
+
+    Parameters
+    ----------
+    store, settings : the frame simulated; domains : the store's domains built.
+    nodes : virtual nodes (not those the replay is checked at: the fit stays out of sample).
+    options_of : (scheduler, nodes, paths) -> the job's options (the bench's scaling options).
+    """
+    from vastray.sim.simulate import simulate
+
+    own_only = replace(CostModel.free(), node_cpu_scale=1.0)
+    fitted = {}
+    for scheduler in schedulers or REPLAY_SCHEDULERS:
+        options = options_of(scheduler, nodes, settings.paths)
+        simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
+                 domains=domains)  # once uncharged: this process's first use of the code
+        result = simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
+                          domains=domains)
+        design = np.array([[1.0, c.get("batches_sent", 0), c.get("batches_received", 0),
+                            c.get("activations", 0)] for c in result.node_counters], float)
+        fitted[scheduler] = NodeOwnCosts(*(float(v) for v in _nonnegative_lstsq(
+            design, result.own_seconds)))
+    return fitted
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,9 @@ class SimResult:
     reduce_seconds : virtual seconds of the film reductions.
     compute_seconds : (P + 1,) virtual seconds each node (and the coordinator, last) computed.
     counters : the nodes' counters summed (loads, rays sent, batches, ...).
+    node_counters : (P,) each node's counters.
+    own_seconds : (P,) CPU seconds each node's own code took beyond the work charged apart
+        (``sim.meter``; zeros where ``CostModel.node_cpu_scale`` is 0: not measured).
     messages, bytes : messages and bytes on the simulated network.
     film : the image's film (rank 0's after the last reduction; an animation's last frame's).
     wall_s : real seconds the simulation took.
@@ -87,6 +90,8 @@ class SimResult:
     film: Film
     wall_s: float
     costs: CostModel = field(repr=False, default=None)
+    node_counters: list = field(repr=False, default_factory=list)
+    own_seconds: np.ndarray = field(repr=False, default=None)
 
     def as_dict(self) -> dict:
         """The result for a JSON report (the film left out)."""
@@ -150,10 +155,12 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
         if own:
             domains.close()
     per_node, unit_seconds, cluster, film = outcome
+    node_counters = [c for _, _, c in per_node]
     return SimResult(options.scheduler, nodes, max(busy for busy, _, _ in per_node),
                      unit_seconds, max(r for _, r, _ in per_node), cluster.compute_s,
-                     _summed([c for _, _, c in per_node]), cluster.messages, cluster.bytes,
-                     film, time.perf_counter() - start, costs)
+                     _summed(node_counters), cluster.messages, cluster.bytes,
+                     film, time.perf_counter() - start, costs, node_counters,
+                     np.array([cluster.meter.measured[rank] for rank in range(nodes)]))
 
 
 #: (scheduler, integrator) whose code paths this process has run once (``_warm_up``).
