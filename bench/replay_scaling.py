@@ -47,9 +47,9 @@ STRONG = RenderSettings(width=1024, height=1024, spp=1, integrator="pt", bounces
 CHECK = RenderSettings(width=96, height=96, spp=1, integrator="pt", bounces=1)
 CHECK_NODES = (1, 16, 64)
 CHECK_NODES_QUICK = (64,)
-#: Virtual nodes the nodes' own code is fitted at (``fit_node_own_costs``; the quick check's
-#: 64 are not among them).
-OWN_FIT_NODES = 8
+#: Virtual nodes the nodes' own code is fitted at (``fit_node_own_costs``; the checks' 64
+#: are not among them).
+OWN_FIT_NODES = (4, 16)
 #: Node counts of the full bench's strong and weak scaling (every fourth power of two: the
 #: full bench must stay within 30 minutes on 2 cores)
 STRONG_NODES = (1, 4, 16, 64, 256, 1024)
@@ -102,17 +102,18 @@ _own_costs: dict = {}
 
 def own_costs_of(store, scaling_options, domains: Domains) -> dict:
     """Each scheduler's nodes' own code on ``store`` (``fit_node_own_costs`` on ``CHECK`` at
-    ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the store."""
+    each of ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the store."""
     key = str(store.path)
     if key not in _own_costs:
         start = time.perf_counter()
         _own_costs[key] = fit_node_own_costs(store, CHECK, domains, OWN_FIT_NODES,
                                              scaling_options)
-        print(f"  the nodes' own code ({OWN_FIT_NODES} virtual nodes running the product's "
-              f"code, {CHECK.paths:,} paths), per frame / batch sent / batch received / "
-              "activation: " + "; ".join(
-                  f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} / "
-                  f"{c.received_s * 1e6:.0f} / {c.activation_s * 1e6:.0f} us"
+        print(f"  the nodes' own code (fitted on {' and '.join(map(str, OWN_FIT_NODES))} "
+              f"virtual nodes running the product's code, {CHECK.paths:,} paths), per frame / "
+              "batch sent + a ray in it / batch received + a ray / activation: " + "; ".join(
+                  f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} + "
+                  f"{c.ray_sent_s * 1e6:.1f} / {c.received_s * 1e6:.0f} + "
+                  f"{c.ray_received_s * 1e6:.1f} / {c.activation_s * 1e6:.0f} us"
                   for name, c in _own_costs[key].items())
               + f" ({time.perf_counter() - start:.0f} s)", flush=True)
     return _own_costs[key]

@@ -275,6 +275,9 @@ def test_each_batch_s_own_code_is_charged_to_its_sender_and_its_receiver(store, 
     assert batches > 0 and own.seconds > plain.seconds
     # every batch once on each side (the all-reductions' messages are not ray batches)
     assert own.breakdown["own"] * 4 == pytest.approx(3e-3 * batches, rel=1e-9)
+    by_ray = replay_of(store, recorded[0], own={scheduler: NodeOwnCosts(
+        ray_sent_s=1e-6, ray_received_s=1e-6)}).run(scheduler, 4)
+    assert by_ray.seconds > plain.seconds and by_ray.breakdown["own"] > 0
 
 
 @pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async"])
@@ -301,7 +304,7 @@ def test_the_nodes_own_code_is_fitted_on_the_simulator_running_it(store):
 
     domains = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
     try:
-        fitted = fit_node_own_costs(store, SETTINGS, domains, 4,
+        fitted = fit_node_own_costs(store, SETTINGS, domains, (2, 4),
                                     lambda s, n, paths: JobOptions(scheduler=s),
                                     schedulers=["async", "domain"])
     finally:

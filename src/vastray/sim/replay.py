@@ -367,8 +367,11 @@ class Replay:
         receivers = keys % pairs // 2 % ledger.size
         spent += self.costs.receive_s * np.bincount(receivers, minlength=ledger.size)
         ledger.messages += spent
-        own = (self.own.sent_s * np.bincount(senders, minlength=ledger.size)
-               + self.own.received_s * np.bincount(receivers, minlength=ledger.size))
+        own = self.own.batches_s(
+            np.bincount(senders, minlength=ledger.size),
+            np.bincount(receivers, minlength=ledger.size),
+            np.bincount(senders, weights=counts, minlength=ledger.size),
+            np.bincount(receivers, weights=counts, minlength=ledger.size))
         ledger.own += own
         spent = spent + own
         ledger.counters["messages"] += len(keys)
@@ -686,8 +689,9 @@ class Replay:
             cost = self.costs.receive_s * len(arrived) if box else 0.0  # taking them in
             ledger.messages[n] += cost
             if box:  # and queueing them
-                ledger.own[n] += self.own.received_s * len(arrived)
-                cost += self.own.received_s * len(arrived)
+                took = self.own.batches_s(0, len(arrived), 0, sum(len(t) for t in arrived))
+                ledger.own[n] += took
+                cost += took
             out = None
             if next_tile[n] < len(tiles) and q.total < self.tile:
                 tile = tiles[next_tile[n]]
@@ -726,9 +730,10 @@ class Replay:
                     m = int(batch_key[group[0]] // 2)
                     nbytes = self._ray_bytes(tokens)
                     send = self.costs.message_s(nbytes)
-                    cost += send + self.own.sent_s
+                    cut = self.own.batches_s(1, 0, len(tokens), 0)
+                    cost += send + cut
                     ledger.messages[n] += send
-                    ledger.own[n] += self.own.sent_s
+                    ledger.own[n] += cut
                     ledger.counters["messages"] += 1
                     ledger.counters["bytes"] += int(nbytes)
                     arrival = now + cost + self.network.wire_s(nbytes)
@@ -794,27 +799,44 @@ class _Queues:
 class NodeOwnCosts:
     """What a node's own code costs beyond its traces, decisions, loads and messages' CPU
     (``sim.meter``): its frame's set-up (``per_node_s``, once a frame), a ray batch it cuts
-    and sends (``sent_s``) or takes in and queues (``received_s``), an activation's
-    bookkeeping around the trace (``activation_s``). Fitted per scheduler on the simulator
+    and sends (``sent_s``, and ``ray_sent_s`` a ray in it) or takes in and queues
+    (``received_s``, ``ray_received_s``), an activation's bookkeeping around the trace
+    (``activation_s``). Fitted per scheduler on the simulator
     that runs the nodes' code (``fit_node_own_costs``); zero: charged as nothing."""
 
     per_node_s: float = 0.0
     sent_s: float = 0.0
     received_s: float = 0.0
     activation_s: float = 0.0
+    ray_sent_s: float = 0.0
+    ray_received_s: float = 0.0
+
+    def batches_s(self, sent, received, rays_sent, rays_received):
+        """Seconds of batches sent and received carrying those rays (scalars or arrays)."""
+        return (self.sent_s * sent + self.received_s * received
+                + self.ray_sent_s * rays_sent + self.ray_received_s * rays_received)
 
 
-def fit_node_own_costs(store, settings, domains, nodes: int, options_of,
+#: The counters ``fit_node_own_costs`` regresses a node's own seconds on, after its frame's
+#: set-up (``NodeOwnCosts``' fields in order).
+_OWN_COUNTERS = ("batches_sent", "batches_received", "activations", "rays_sent",
+                 "rays_received")
+
+
+def fit_node_own_costs(store, settings, domains, node_counts, options_of,
                        schedulers=None) -> dict[str, NodeOwnCosts]:
     """``NodeOwnCosts`` of each of ``schedulers`` (default: every replayed one), fitted (least
-    squares, none negative) to what each node's own code took in one simulation of
-    ``settings`` on ``nodes`` virtual nodes running the product's code, against its ray batches
-    sent and received and its activations (every other cost free, so nothing else is charged).
+    squares, none negative) to what each node's own code took in simulations of ``settings``
+    on each of ``node_counts`` virtual nodes running the product's code (every other cost
+    free, so nothing else is charged), against its ray batches and rays sent and received
+    and its activations: several node counts, so that batches and rays (whose ratio changes
+    with P) are told apart.
 
     Parameters
     ----------
     store, settings : the frame simulated; domains : the store's domains built.
-    nodes : virtual nodes (not those the replay is checked at: the fit stays out of sample).
+    node_counts : virtual nodes (not those the replay is checked at: the fit stays out of
+        sample).
     options_of : (scheduler, nodes, paths) -> the job's options (the bench's scaling options).
     """
     from vastray.sim.simulate import simulate
@@ -822,15 +844,21 @@ def fit_node_own_costs(store, settings, domains, nodes: int, options_of,
     own_only = replace(CostModel.free(), node_cpu_scale=1.0)
     fitted = {}
     for scheduler in schedulers or REPLAY_SCHEDULERS:
-        options = options_of(scheduler, nodes, settings.paths)
-        simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
-                 domains=domains)  # once uncharged: this process's first use of the code
-        result = simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
-                          domains=domains)
-        design = np.array([[1.0, c.get("batches_sent", 0), c.get("batches_received", 0),
-                            c.get("activations", 0)] for c in result.node_counters], float)
-        fitted[scheduler] = NodeOwnCosts(*(float(v) for v in _nonnegative_lstsq(
-            design, result.own_seconds)))
+        rows, own = [], []
+        for i, nodes in enumerate(node_counts):
+            options = options_of(scheduler, nodes, settings.paths)
+            if i == 0:  # once uncharged: this process's first use of the code
+                simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
+                         domains=domains)
+            result = simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
+                              domains=domains)
+            rows += [[1.0, *(c.get(k, 0) for k in _OWN_COUNTERS)]
+                     for c in result.node_counters]
+            own.append(result.own_seconds)
+        solution = _nonnegative_lstsq(np.array(rows, float), np.concatenate(own))
+        per_node, sent, received, activation, rays_sent, rays_received = map(float, solution)
+        fitted[scheduler] = NodeOwnCosts(per_node, sent, received, activation, rays_sent,
+                                         rays_received)
     return fitted
 
 
