@@ -8,7 +8,7 @@ import dataclasses
 import time
 
 import pytest
-from test_simulate import SETTINGS, TILE_SCHEDULERS, ZERO, sim
+from test_simulate import SETTINGS, TILE_SCHEDULERS, ZERO, charged_on_a_ticking_clock, sim
 from test_simulate import domains as domains  # noqa: F401 (fixtures)
 from test_simulate import reference as reference  # noqa: F401
 from test_simulate import store as store  # noqa: F401
@@ -122,31 +122,9 @@ def test_a_node_s_own_code_is_charged_and_the_image_stays_the_reference(store, d
 
 def test_charged_seconds_scale_with_node_cpu_scale(store, domains, monkeypatch):
     """At node_cpu_scale 2 a render is charged twice what the same clock readings cost at 1
-    (every CPU clock the simulation reads ticking 1 ms a reading: two real runs' CPU differ
-    on a busy machine)."""
-    import itertools
-
-    import vastray.actors.domain_loop
-    import vastray.actors.insitu
-    import vastray.actors.node_work
-    import vastray.sim.cluster
-    import vastray.sim.crossings
-    import vastray.sim.meter
-    import vastray.sim.node
-
-    def ticking_clock():
-        readings = itertools.count(1)
-        return lambda: next(readings) * 1e-3
-
-    charged = {}
-    for scale in (1.0, 2.0):
-        clock = ticking_clock()
-        for module in (vastray.actors.domain_loop, vastray.actors.insitu,
-                       vastray.actors.node_work, vastray.sim.crossings, vastray.sim.node,
-                       vastray.sim.cluster, vastray.sim.meter):
-            monkeypatch.setattr(module, "cpu_time", clock)
-        charged[scale] = sim(store, domains, "async", 1,
-                             dataclasses.replace(ZERO, node_cpu_scale=scale)).seconds
+    (on a ticking clock: two real runs' CPU differ on a busy machine)."""
+    charged = charged_on_a_ticking_clock(monkeypatch, lambda scale: sim(
+        store, domains, "async", 1, dataclasses.replace(ZERO, node_cpu_scale=scale)).seconds)
     assert charged[1.0] > 0.0
     assert charged[2.0] == pytest.approx(2.0 * charged[1.0], rel=1e-9)
 

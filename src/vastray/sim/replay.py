@@ -801,8 +801,8 @@ class NodeOwnCosts:
     (``sim.meter``): its frame's set-up (``per_node_s``, once a frame), a ray batch it cuts
     and sends (``sent_s``, and ``ray_sent_s`` a ray in it) or takes in and queues
     (``received_s``, ``ray_received_s``), an activation's bookkeeping around the trace
-    (``activation_s``). Fitted per scheduler on the simulator
-    that runs the nodes' code (``fit_node_own_costs``); zero: charged as nothing."""
+    (``activation_s``). Fitted per scheduler on the simulator that runs the nodes' code
+    (``fit_node_own_costs``); zero: charged as nothing."""
 
     per_node_s: float = 0.0
     sent_s: float = 0.0
