@@ -40,7 +40,8 @@ def changing_rows(sample: np.ndarray, paths) -> np.ndarray:
     change a film: some radiance (NaN included), or sample 0's first hit (a distance other
     than inf, or a normal). Every other row adds +-0.0 to sums that start at +0.0, and inf and
     zero normals to the first-hit layers: nothing."""
-    first_hit = (sample == 0) & ((paths.first_t != np.inf) | np.any(paths.first_normal != 0, axis=1))
+    first_hit = (sample == 0) & ((paths.first_t != np.inf)
+                                 | np.any(paths.first_normal != 0, axis=1))
     return np.flatnonzero(np.any(paths.radiance != 0, axis=1) | first_hit)
 
 

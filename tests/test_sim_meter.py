@@ -135,3 +135,8 @@ def test_node_cpu_scale_is_a_cost_field_a_calibration_file_keeps(tmp_path):
     assert CostModel.load(path).node_cpu_scale == 1.0
     with pytest.raises(ValueError, match="node_cpu_scale"):
         CostModel(node_cpu_scale=-1.0)
+
+
+def test_a_simulation_that_measures_nothing_reports_no_own_seconds(store, domains):
+    result = sim(store, domains, "async", 2, ZERO)
+    assert result.own_seconds.tolist() == [0.0, 0.0]

@@ -61,7 +61,10 @@ class NodeMeter:
 
     def account(self, rank: int, cpu_seconds: float) -> None:
         """``cpu_seconds`` that node ``rank``'s measured steps spent (this one or an earlier
-        one: a bookkeeping charged with the next decision) are charged another way."""
+        one: a bookkeeping charged with the next decision) are charged another way (nothing
+        to do where nothing is measured: ``scale`` 0)."""
+        if not self.scale:
+            return
         self.accounted[rank] += cpu_seconds
         self.pending[rank] -= cpu_seconds
         self.measured[rank] -= cpu_seconds
