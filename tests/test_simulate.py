@@ -169,7 +169,6 @@ def charged_on_a_ticking_clock(monkeypatch, seconds_at) -> dict[float, float]:
     import vastray.actors.domain_loop
     import vastray.actors.insitu
     import vastray.actors.node_work
-    import vastray.sim.cluster
     import vastray.sim.crossings
     import vastray.sim.meter
     import vastray.sim.node
@@ -179,7 +178,7 @@ def charged_on_a_ticking_clock(monkeypatch, seconds_at) -> dict[float, float]:
         readings = itertools.count(1)
         for module in (vastray.actors.domain_loop, vastray.actors.insitu,
                        vastray.actors.node_work, vastray.sim.crossings, vastray.sim.node,
-                       vastray.sim.cluster, vastray.sim.meter):
+                       vastray.sim.meter):
             monkeypatch.setattr(module, "cpu_time", lambda r=readings: next(r) * 1e-3)
         charged[scale] = seconds_at(scale)
     return charged

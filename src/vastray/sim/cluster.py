@@ -20,7 +20,6 @@ from collections import defaultdict
 
 import numpy as np
 
-from vastray.scene.embree.launch import cpu_time
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 from vastray.sim.meter import NodeMeter, start_simulator_task
@@ -71,13 +70,12 @@ class Cluster:
         seconds += self.meter.take(rank) if rank < self.size else 0.0
         if seconds <= 0:
             return
-        cpu = cpu_time()
         self.compute_s[rank] += seconds
-        if self._cores is None:
-            done = self._own[rank].start(seconds)
-        else:
-            done = self._cores.start(seconds, owner=rank)
-        self.meter.simulator_spent(cpu_time() - cpu)  # not the node's own work
+        with self.meter.simulators_own():
+            if self._cores is None:
+                done = self._own[rank].start(seconds)
+            else:
+                done = self._cores.start(seconds, owner=rank)
         await done
 
     async def trace(self, rank: int, seconds: float, runtime: str) -> None:
@@ -117,9 +115,8 @@ class Cluster:
         if not self.costs.receive_s:
             self.mailboxes[destination][message.kind].put_nowait(message)
             return
-        cpu = cpu_time()
-        arrival = start_simulator_task(self._arrive(destination, message))
-        self.meter.simulator_spent(cpu_time() - cpu)
+        with self.meter.simulators_own():
+            arrival = start_simulator_task(self._arrive(destination, message))
         self._arrivals.add(arrival)
         arrival.add_done_callback(self._arrivals.discard)
 

@@ -13,7 +13,7 @@ row under-predicted.
 coroutines and the tasks they start: the context variable ``NODE`` names the node, and tasks
 inherit it) is timed in this thread's CPU seconds (``launch.cpu_time``), less what its steps
 charged another way (``account``: a trace's or a decision's CPU, the simulator's own
-decoding of a sent batch and its cores' bookkeeping: ``simulator_spent``), and the rest
+decoding of a sent batch and its cores' bookkeeping: ``simulators_own``), and the rest
 waits in ``pending`` until the node's next charge on its cores takes it along
 (``Cluster.compute``) or the node flushes it (the end of its busy span). Tasks the simulator
 starts for itself (a message's arrival) run in a context without ``NODE`` and are charged to
@@ -51,8 +51,6 @@ class NodeMeter:
 
     def __init__(self, scale: float):
         self.scale = scale
-        #: rank -> CPU seconds of its steps charged another way (traces, decisions, ...)
-        self.accounted: defaultdict[int, float] = defaultdict(float)
         #: rank -> CPU seconds measured and not yet charged
         self.pending: defaultdict[int, float] = defaultdict(float)
         #: rank -> CPU seconds measured in all
@@ -65,7 +63,6 @@ class NodeMeter:
         to do where nothing is measured: ``scale`` 0)."""
         if not self.scale:
             return
-        self.accounted[rank] += cpu_seconds
         self.pending[rank] -= cpu_seconds
         self.measured[rank] -= cpu_seconds
 
@@ -75,7 +72,11 @@ class NodeMeter:
         never inside one: a collection's pause grows with every virtual node's objects
         (60-90 ms with 64 nodes of the 1,439-domain store), and inside a step it was charged
         to whichever node's code (or trace, or decision) it interrupted, so the busiest
-        node's time was one collection's; a real node collects only its own."""
+        node's time was one collection's; a real node collects only its own. Nothing changes
+        where nothing is measured (``scale`` 0)."""
+        if not self.scale:
+            yield
+            return
         enabled = gc.isenabled()
         gc.disable()
         try:
@@ -90,12 +91,11 @@ class NodeMeter:
             asyncio.get_running_loop().call_soon(gc.collect, 1 if self._steps % (
                 10 * COLLECT_EVERY_STEPS) else 2)
 
-    def simulator_spent(self, cpu_seconds: float) -> None:
-        """``cpu_seconds`` of the current step were the simulator's own (its cores' and
-        network's bookkeeping), not the node's it runs for (none outside a node's task)."""
-        rank = NODE.get()
-        if rank is not None:
-            self.account(rank, cpu_seconds)
+    def simulators_own(self) -> _SimulatorsOwn:
+        """A block whose CPU is the simulator's own work (its cores' and network's
+        bookkeeping, its decoding of a sent batch), not the node's whose step runs it:
+        ``with meter.simulators_own(): ...``."""
+        return _SimulatorsOwn(self)
 
     def take(self, rank: int) -> float:
         """Virtual seconds to charge node ``rank`` for what it computed since the last take
@@ -117,8 +117,8 @@ class NodeMeter:
 
     @types.coroutine
     def _measured(self, coro, rank: int):
-        """``coro``, each of its steps' CPU (less what was accounted during it) added to
-        ``pending[rank]``."""
+        """``coro``, each of its steps' CPU added to ``pending[rank]`` (what ``account``
+        takes off)."""
         value, error = None, None
         while True:
             start = cpu_time()
@@ -141,6 +141,25 @@ class NodeMeter:
         self.measured[rank] += spent
         if not gc.isenabled():
             self._collect_between_steps()
+
+
+class _SimulatorsOwn:
+    """``NodeMeter.simulators_own``'s block: its CPU accounted to the node whose step runs it
+    (none outside a node's task; the clock not read where nothing is measured)."""
+
+    __slots__ = ("meter", "start")
+
+    def __init__(self, meter: NodeMeter):
+        self.meter, self.start = meter, 0.0
+
+    def __enter__(self) -> None:
+        if self.meter.scale:
+            self.start = cpu_time()
+
+    def __exit__(self, *exc) -> None:
+        rank = NODE.get() if self.meter.scale else None
+        if rank is not None:
+            self.meter.account(rank, cpu_time() - self.start)
 
 
 def start_node_task(loop: asyncio.AbstractEventLoop, rank: int, coro) -> asyncio.Task:

@@ -70,10 +70,8 @@ class SimManagement:
     def _decoded(self, frames: list):
         """The message of ``frames``, decoded here as its receiver would (the message's cost,
         ``CostModel.message_s``, charges that; the node's own CPU does not)."""
-        cpu = cpu_time()
-        message = decode(frames)
-        self.cluster.meter.account(self.rank, cpu_time() - cpu)
-        return message
+        with self.cluster.meter.simulators_own():
+            return decode(frames)
 
 
 class VirtualDomainLoop(DomainLoop):

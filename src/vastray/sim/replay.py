@@ -856,9 +856,7 @@ def fit_node_own_costs(store, settings, domains, node_counts, options_of,
                      for c in result.node_counters]
             own.append(result.own_seconds)
         solution = _nonnegative_lstsq(np.array(rows, float), np.concatenate(own))
-        per_node, sent, received, activation, rays_sent, rays_received = map(float, solution)
-        fitted[scheduler] = NodeOwnCosts(per_node, sent, received, activation, rays_sent,
-                                         rays_received)
+        fitted[scheduler] = NodeOwnCosts(*map(float, solution))
     return fitted
 
 

@@ -12,7 +12,6 @@ and the traffic between domains the true one; only time is the cost model's.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -205,12 +204,11 @@ async def _render(store, options, size, costs, settings, config, units, domains)
     cluster = Cluster(size, costs)
     unit_ends: list[list[float]] = [[] for _ in units]
     loop = asyncio.get_running_loop()
-    metered = bool(costs.node_cpu_scale)
-    if metered:  # each node's own code measured as it runs (``sim.meter``)
+    if costs.node_cpu_scale:  # each node's own code measured as it runs (``sim.meter``)
         loop.set_task_factory(cluster.meter.task_factory)
     # No coordinator runs: it takes part in no round and no termination (the nodes' tree
     # does both); what it does once per job (start, films) is outside the simulated span.
-    with cluster.meter.collections_apart() if metered else contextlib.nullcontext():
+    with cluster.meter.collections_apart():
         per_node = await asyncio.gather(*(
             start_node_task(loop, rank, _node(cluster, rank, store, options, settings, config,
                                               units, domains, unit_ends))
