@@ -388,5 +388,10 @@ def test_trace_costs_fit_calls_take_medians_and_split_shading():
 @pytest.mark.slow
 def test_the_default_calibration_measures_every_constant(store):
     model = cal.calibrate(store)  # about a minute on a quiet machine
-    assert all(getattr(model, name) > 0 for name in CONSTANTS)
+    values = {name: getattr(model, name) for name in CONSTANTS if name not in SET_UP_COSTS}
+    assert all(math.isfinite(v) and v > 0 for v in values.values()), values
+    # set-up costs are differences clamped at 0, as in the quick calibration's test: with a
+    # node's own code charged (``sim.meter``) every calibration of session 37 measured 0
+    set_up = {name: getattr(model, name) for name in SET_UP_COSTS}
+    assert all(0.0 <= v < 0.5 for v in set_up.values()), set_up
     assert not model.machine["calibration"]["quick"]
