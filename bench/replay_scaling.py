@@ -22,11 +22,13 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 from bench_scenes import CACHE
 
 from vastray.render.driver import shading_inputs
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
+from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
 from vastray.sim.cache import Domains, domain_sizes
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import Crossings, record_crossings
@@ -83,17 +85,46 @@ def recording(store, settings: RenderSettings) -> Crossings:
 
 def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = NETWORK,
               storage_mb_s: float | None = STORAGE_MB_S, activations=None,
-              decisions: dict | None = None) -> Replay:
+              decisions: dict | None = None, domains: Domains | None = None,
+              whole_caches: bool = False) -> Replay:
     """The replay of ``crossings``; ``decisions``: the sort-first nodes' decision costs
     (``sort_first_decisions``) on the fitted activation costs; the nodes' own code as
-    fitted on ``store`` (``own_costs_of``), where it was."""
+    fitted on ``store`` (``own_costs_of``), where it was; with ``costs.load_scale``, each
+    domain's load as this machine takes it (``loads_of``; ``domains``: the store's built
+    domains, else built here; ``whole_caches``: nodes caching every domain)."""
     lo, hi = store.domain_boxes()
     if decisions is not None:
         activations = replace(activations or fit_activation_costs(crossings, costs),
                               sort_first_decision_s=decisions)
     return Replay(crossings, *domain_sizes(store), lo, hi, costs, activations, network,
                   None if storage_mb_s is None else storage_mb_s * 1e6,
-                  own=_own_costs.get(str(store.path)) if costs.node_cpu_scale else None)
+                  own=_own_costs.get(str(store.path)) if costs.node_cpu_scale else None,
+                  loads=loads_of(store, costs, domains, whole_caches) if costs.load_scale
+                  else None)
+
+
+def loads_of(store, costs: CostModel, domains: Domains | None, whole_caches: bool
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(D,) read and (D,) build seconds of each of ``store``'s domains as this machine loads
+    them (``Domains.load_seconds``, times ``costs.load_scale``), as the real-code simulator
+    charges them: built at the qualities of a node cache holding every domain
+    (``whole_caches``) or a share of them (Embree's LOW scene quality; the replay's caches
+    of D/4 or D/P, and the P = 1 run's whole store too), measured once per store."""
+    key = (str(store.path), whole_caches)
+    if key not in _loads:
+        own = domains is None
+        if own:
+            domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
+        try:
+            _loads[key] = domains.load_seconds(None if whole_caches else RTC_BUILD_QUALITY_LOW)
+        finally:
+            if own:
+                domains.close()
+    return tuple(costs.load_scale * seconds for seconds in _loads[key])
+
+
+#: (store path, whole caches) -> (D,) read and (D,) build CPU seconds (``loads_of``)
+_loads: dict = {}
 
 
 #: store path -> each scheduler's ``NodeOwnCosts`` (``own_costs_of``)
@@ -224,7 +255,8 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
                                  domains)
         if own.node_cpu_scale:
             own_costs_of(store, scaling_options, domains)
-        replay = replay_of(store, crossings, own, Network(), None, decisions=decisions)
+        replay = replay_of(store, crossings, own, Network(), None, decisions=decisions,
+                           domains=domains, whole_caches=True)
         print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
               f"{CHECK.paths:,} paths, a core per node):")
         print("| scheduler | P | real-code sim s | replay s | error | sim wall s "

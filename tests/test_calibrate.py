@@ -76,7 +76,7 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # a batch through the nodes' management actors costs more CPU than the raw wire's one
     # way, but not a whole activation's worth
     assert 1e-6 < model.receive_s < 5e-3
-    assert model.trace_scale == 1.0 and model.decision_scale == 1.0
+    assert model.trace_scale == 1.0 and model.decision_scale == 1.0 and model.load_scale == 1.0
     # the throughput with 1 .. 4 x cores busy processes (a validation runs 8 nodes on 2 cores):
     # one process is the unit, and k processes give at most what k processes and the cores can
     assert len(model.throughput) == 4 * model.cores and model.throughput[0] == 1.0

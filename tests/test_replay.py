@@ -140,6 +140,24 @@ def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
     assert slow.run("image", 4).seconds == fast.run("image", 4).seconds
 
 
+def test_measured_loads_replace_the_constants_read_then_build(store, recorded):
+    """``loads``: each domain's read and build as measured (the real-code simulator's
+    ``Domains.load_seconds``) is what a load costs; the storage floor lengthens the read."""
+    n = len(store.domains)
+    read, build = np.full(n, 0.01), np.arange(n) * 1e-3
+    once = replay_of(store, recorded[0], loads=(read, build))
+    twice = replay_of(store, recorded[0], loads=(2 * read, 2 * build))
+    assert np.allclose(once.load_s, read + build)
+    a, b = once.run("image", 1), twice.run("image", 1)
+    assert a.counters["loads"] == b.counters["loads"] > 0
+    assert b.breakdown["load"] == pytest.approx(2 * a.breakdown["load"], rel=1e-9)
+    assert b.seconds > a.seconds
+    nbytes = domain_sizes(store)[0]
+    slow = replay_of(store, recorded[0], loads=(read, build),
+                     storage_bandwidth=float(nbytes.max()))  # 1 s for the largest read
+    assert np.allclose(slow.load_s, np.maximum(read, nbytes / nbytes.max()) + build)
+
+
 def test_loads_follow_the_cache(replay):
     """A sort-first node with room for everything loads each domain once; a cache of one
     domain loads more."""

@@ -480,7 +480,7 @@ def test_a_get_joins_a_preload_in_flight(domains):
 
 def test_an_emulated_storage_bandwidth_lengthens_a_load_without_holding_the_core(domains):
     load_s = LOADS.load_s(int(domains.nbytes[2]), int(domains.triangles[2]))
-    bandwidth = domains.nbytes[2] / (10 * load_s)  # the read lasts ten times the load's cost
+    bandwidth = domains.nbytes[2] / (10 * load_s)  # its read lasts ten times the load's cost
 
     async def main():
         cluster, preloader = _preloader(domains, 2, LOADS, bandwidth=float(bandwidth))
@@ -488,9 +488,77 @@ def test_an_emulated_storage_bandwidth_lengthens_a_load_without_holding_the_core
         return cluster.now(), cluster.compute_s[0], preloader
 
     seconds, core_s, preloader = run_virtual(main())[0]
-    # the read and the build take the node's core; the rest of the read is a wait
-    assert seconds == pytest.approx(10 * load_s) and core_s == pytest.approx(load_s)
-    assert preloader.stats()["load_throttle_s"] == pytest.approx(9 * load_s, abs=1e-4)
+    # the read and the build take the node's core; the rest of the read is a wait (as
+    # ``DomainCache.load``: the read lasts the bytes over the bandwidth, then the build)
+    read_s = LOADS.read_s(int(domains.nbytes[2]))
+    build_s = LOADS.build_s(int(domains.triangles[2]))
+    assert seconds == pytest.approx(10 * load_s + build_s) and core_s == pytest.approx(load_s)
+    assert preloader.stats()["load_throttle_s"] == pytest.approx(10 * load_s - read_s,
+                                                                 abs=1e-4)
+
+
+def test_a_load_is_charged_the_cpu_time_it_takes_here_where_load_scale_is_set(domains):
+    """``load_scale``: a load costs the CPU seconds this process takes to read and build
+    that domain at the node cache's qualities (``Domains.load_cpu_s``: a cache of 2 of the
+    store's 12 domains builds Embree's LOW scene quality), times the scale, not the
+    constants."""
+    costs = dataclasses.replace(LOADS, load_scale=2.0)
+
+    async def main():
+        cluster, preloader = _preloader(domains, 2, costs, preload=False)
+        await preloader.get(5)
+        return cluster.now(), preloader.cache
+
+    seconds, cache = run_virtual(main())[0]
+    read_s, build_s = domains.load_cpu_s(5, cache.build_quality, cache.mesh_quality)
+    assert cache.build_quality is not None and read_s > 0 and build_s > 0
+    assert seconds == pytest.approx(2.0 * (read_s + build_s), rel=1e-12)
+
+
+def test_a_domain_s_load_is_timed_once_and_kept_where_its_qualities_are_the_kept_ones(
+        store, monkeypatch):
+    from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
+    from vastray.sim import cache as sim_cache
+
+    fresh = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
+    try:
+        seconds = fresh.load_cpu_s(7)  # the kept domains' qualities: the build is kept
+        assert min(seconds) > 0 and 7 in fresh._real
+        kept = fresh.get(7)
+        low = fresh.load_cpu_s(8, RTC_BUILD_QUALITY_LOW)  # another quality: timed, dropped
+        assert min(low) > 0 and 8 not in fresh._real
+
+        def no_build(*args, **kwargs):
+            raise AssertionError("a domain's load was timed twice")
+
+        monkeypatch.setattr(sim_cache, "DomainBVH", no_build)
+        assert fresh.load_cpu_s(7) == seconds
+        assert fresh.load_cpu_s(8, RTC_BUILD_QUALITY_LOW) == low
+        assert fresh.get(7) is kept
+    finally:
+        fresh.close()
+
+
+def test_the_simulator_s_own_load_is_not_charged_as_the_node_s_code(store):
+    """The simulator times a domain's load as a node's step asks for it: those CPU seconds
+    are the load's charge, not the node's own code as well (``NodeMeter``)."""
+    from vastray.sim.meter import start_node_task
+
+    fresh = Domains(store, shading_inputs(store, SceneConfig(), SETTINGS.integrator)[1])
+    costs = dataclasses.replace(ZERO, load_scale=1.0, node_cpu_scale=1.0)
+
+    async def main():
+        cluster, preloader = _preloader(fresh, 12, costs, preload=False)
+        asyncio.get_running_loop().set_task_factory(cluster.meter.task_factory)
+        await start_node_task(asyncio.get_running_loop(), 0, preloader.get(9))
+        return cluster.meter.measured[0]
+
+    try:
+        own_s = run_virtual(main())[0]
+        load_s = sum(fresh.load_cpu_s(9))
+        assert load_s > 0 and own_s < 0.5 * load_s
+    finally:
+        fresh.close()
 
 
 # -- simulated renders: the image is the reference's whatever the schedule ------------------

@@ -64,6 +64,7 @@ COST_LABELS = {
     "decision_scale": "per CPU second a schedule decides (measured as it simulates)",
     "trace_scale": "per CPU second an activation traces (measured as it simulates)",
     "node_cpu_scale": "per CPU second a node's own code runs beyond those (measured so)",
+    "load_scale": "per CPU second a domain's load takes (measured as it simulates)",
     "offload_s": "per activation a node runtime hands to a worker thread",
 }
 

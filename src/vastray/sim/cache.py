@@ -9,6 +9,7 @@ virtual time: the read and the build on the node's core, beside its traces (``_l
 from __future__ import annotations
 
 import asyncio
+import time
 
 import numpy as np
 
@@ -41,9 +42,58 @@ class Domains:
         self._real = DomainCache(store, max(len(store.domains), 1), keep)
         #: (D,) bytes and triangles of each domain: what a load costs.
         self.nbytes, self.triangles = domain_sizes(store)
+        #: (domain, scene quality, mesh quality) -> CPU seconds of one load here
+        self._load_cpu: dict[tuple, float] = {}
 
     def get(self, domain: int) -> DomainBVH:
         return self._real.get(domain)
+
+    def load_cpu_s(self, domain: int, scene_quality: int | None = None,
+                   mesh_quality: int | None = None) -> tuple[float, float]:
+        """(read, build): CPU seconds a node's load of ``domain`` takes on this machine, its
+        read (from the page cache, as a render's loads once the store has been read) and its
+        BVH build at the node cache's qualities, timed once (``time.process_time``:
+        Embree's build threads too, as ``sim.calibrate`` times builds) and remembered.
+
+        Why measured, not the calibration's line: a build's cost per triangle depends on the
+        geometry, not only on its count. The turbine-blade scan's domains build at 200-225
+        ns a triangle here, rm 64³'s triangles merged to the same counts at 175 ns, so the
+        calibration's fit charged the scan's loads about a quarter less than they cost.
+
+        A load at the qualities of the domains kept here becomes the kept one (no second
+        build); at other qualities (a cache smaller than the store builds Embree's LOW scene
+        quality) it is built once more, timed, and dropped. The first measurement of a
+        process builds once untimed first: a first build pays first uses, 4-8x a warm one.
+        """
+        key = (domain, scene_quality, mesh_quality)
+        seconds = self._load_cpu.get(key)
+        if seconds is not None:
+            return seconds
+        real = self._real
+        if not self._load_cpu:
+            DomainBVH(domain, self.store.load_domain(domain), real.keep, None, scene_quality,
+                      mesh_quality).close()
+        start = time.process_time()
+        arrays = self.store.load_domain(domain)
+        read = time.process_time()
+        bvh = DomainBVH(domain, arrays, real.keep, None, scene_quality, mesh_quality)
+        seconds = self._load_cpu[key] = (read - start, time.process_time() - read)
+        if ((scene_quality, mesh_quality) == (real.build_quality, real.mesh_quality)
+                and domain not in real and domain not in real._pending):
+            with real._lock:
+                real._insert(domain, bvh)
+        else:
+            bvh.close()
+        return seconds
+
+    def load_seconds(self, scene_quality: int | None = None, mesh_quality: int | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """(D,) read and (D,) build CPU seconds of every domain (``load_cpu_s``; 0 for an
+        empty one)."""
+        out = np.zeros((2, len(self.store.domains)))
+        for domain in np.flatnonzero(self.triangles):
+            out[:, domain] = self.load_cpu_s(int(domain), scene_quality, mesh_quality)
+        return out[0], out[1]
 
     def close(self) -> None:
         self._real.close()
@@ -73,8 +123,9 @@ class VirtualPreloader(CacheFront):
     domains : the built domains.
     capacity : most domains resident at once.
     preload : load the schedule's guess ahead (False: every load is waited for).
-    bandwidth : emulated storage, bytes per second (``--load-bandwidth``): a load lasts at
-        least its size over this, the rest of it a wait that needs no core; None: no floor.
+    bandwidth : emulated storage, bytes per second (``--load-bandwidth``): a load's read
+        lasts at least its size over this (as ``DomainCache.load``), the rest of it a wait
+        that needs no core; None: no floor.
     """
 
     def __init__(self, cluster, rank: int, domains: Domains, capacity: int,
@@ -91,8 +142,9 @@ class VirtualPreloader(CacheFront):
 
     async def _load(self, domain: int) -> None:
         """Charge one load of ``domain`` (the read and the BVH build on the node's core,
-        beside whatever else it computes; then what the emulated storage bandwidth adds, a
-        wait) and make it resident.
+        beside whatever else it computes: the CPU time they take here where
+        ``CostModel.load_scale`` is set, else the constants; then what the emulated storage
+        bandwidth adds to the read, a wait) and make it resident.
 
         The read is compute, not a wait: the calibration times reads from the page cache,
         as a render's loads are once a store has been read, and such a read is the loader
@@ -103,10 +155,16 @@ class VirtualPreloader(CacheFront):
         a load on the node's timeline)."""
         cache, costs = self.cache, self.cluster.costs
         nbytes, triangles = int(self.domains.nbytes[domain]), int(self.domains.triangles[domain])
-        read_s, build_s = costs.read_s(nbytes), costs.build_s(triangles)
-        await self.cluster.compute(self.rank, read_s + build_s)
+        if costs.load_scale:  # the simulator's own load of it is its work, not the node's
+            with self.cluster.meter.simulators_own():
+                read_s, build_s = (costs.load_scale * s for s in self.domains.load_cpu_s(
+                    domain, cache.build_quality, cache.mesh_quality))
+        else:
+            read_s, build_s = costs.read_s(nbytes), costs.build_s(triangles)
         cost = read_s + build_s
-        throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - cost)
+        await self.cluster.compute(self.rank, cost)
+        # as ``DomainCache.load``: the read lasts at least the bytes over the bandwidth
+        throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - read_s)
         await asyncio.sleep(throttle)
         cache.stats.load_seconds += cost + throttle
         cache.stats.throttle_seconds += throttle

@@ -199,7 +199,8 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
         **tracing, load_byte_s=load_byte_s, build_triangle_s=build_triangle_s,
         read_fixed_s=read_fixed_s, build_fixed_s=build_fixed_s,
         latency_s=latency_s, byte_s=byte_s, receive_s=receive_s, decision_scale=1.0,
-        trace_scale=1.0, node_cpu_scale=1.0, offload_s=float(np.median(offload)) if offload else 0.0,
+        trace_scale=1.0, node_cpu_scale=1.0, load_scale=1.0,
+        offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
     report("node", 0.0, "renders on a real node")
     config, repeats = config or SceneConfig(text=""), 3

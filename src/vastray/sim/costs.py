@@ -84,6 +84,14 @@ class CostModel:
         1.0), 0 charges nothing (the default, and what calibration files written before it
         mean). Where it is set, making camera rays is measured with the rest
         (``camera_ray_s`` is not charged besides).
+    load_scale : virtual seconds charged per CPU second a domain's load (its read and its BVH
+        build at the node cache's build qualities) takes the simulator here
+        (``sim.cache.Domains.load_cpu_s``: each domain timed once): 1.0 where the simulator
+        runs on the calibrated machine (``vastray calibrate`` writes 1.0), 0 charges the
+        constants (``read_s`` and ``build_s``: the default, and what calibration files
+        written before it mean). A build's cost per triangle moves with the geometry: the
+        turbine-blade scan's domains cost about a quarter more a triangle than rm 64³'s,
+        whose builds the constants are fitted on.
     offload_s : one activation of a node runtime handed to a worker thread, beyond its trace:
         the hand-off there and back to the event loop (``DomainLoop`` with ``offload``,
         ``asyncio.to_thread``; ``domain_loop.hands_off``: activations of more than
@@ -116,6 +124,7 @@ class CostModel:
     decision_scale: float = 0.0
     trace_scale: float = 0.0
     node_cpu_scale: float = 0.0
+    load_scale: float = 0.0
     offload_s: float = 0.0
     cores: int | None = None
     throughput: tuple = ()

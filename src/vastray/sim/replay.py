@@ -194,13 +194,17 @@ class Replay:
         calibrated ``read_s``; else the slower of the two, as ``DomainCache.load`` throttles).
     tile : paths in flight per tile (the coordinator's default).
     own : each scheduler's nodes' own code (``fit_node_own_costs``; default: none charged).
+    loads : (D,) read and (D,) build seconds of each domain's load, where measured
+        (``sim.cache.Domains.load_seconds`` times ``CostModel.load_scale``, as the real-code
+        simulator charges them); default: the constants (``read_s``, ``build_s``).
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
                  lo: np.ndarray, hi: np.ndarray, costs: CostModel,
                  activations: ActivationCosts | None = None,
                  network: Network = Network(), storage_bandwidth: float | None = None,
-                 tile: int = DEFAULT_TILE, own: dict[str, NodeOwnCosts] | None = None):
+                 tile: int = DEFAULT_TILE, own: dict[str, NodeOwnCosts] | None = None,
+                 loads: tuple[np.ndarray, np.ndarray] | None = None):
         self.c = crossings
         self.costs, self.network = costs, network
         #: each scheduler's ``NodeOwnCosts`` (none: charged as nothing)
@@ -211,11 +215,15 @@ class Replay:
         self.lo, self.hi = lo, hi
         self.tile = tile
         self.n_domains = crossings.n_domains
-        read = costs.read_fixed_s + nbytes * costs.load_byte_s
+        if loads is None:
+            read = costs.read_fixed_s + nbytes * costs.load_byte_s
+            build = costs.build_fixed_s + triangles * costs.build_triangle_s
+        else:
+            read, build = (np.asarray(seconds, np.float64) for seconds in loads)
         if storage_bandwidth is not None:  # as ``DomainCache.load``: the read waits out the rest
             read = np.maximum(read, nbytes / storage_bandwidth)
         #: (D,) seconds to load each domain (read, then build)
-        self.load_s = read + costs.build_fixed_s + triangles * costs.build_triangle_s
+        self.load_s = read + build
         self._index()
 
     # -- the recording as arrays of visits ------------------------------------------------
