@@ -303,7 +303,10 @@ def test_render_colours_the_halves_by_their_scalar_with_a_legend(tmp_path, capsy
     assert main(["render", str(store), "-o", str(tmp_path / "d.png"), *size]) == 0
     default = read_png(tmp_path / "d.png")
     assert not np.array_equal(default[:20], plain[:20])  # viridis, not autumn
-    assert main(["render", str(store), "-o", str(tmp_path / "l.png"), "--legend", *size]) == 0
+    capsys.readouterr()
+    assert main(["render", str(store), "-o", str(tmp_path / "l.png"), "--legend",
+                 *size[:-1]]) == 0  # as a user runs it, without --quiet
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("wrote ")
     assert np.array_equal(read_png(tmp_path / "l.png")[:20], default[:20])
     assert not np.array_equal(read_png(tmp_path / "l.png")[-20:], default[-20:])
 
