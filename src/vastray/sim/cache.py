@@ -42,8 +42,8 @@ class Domains:
         self._real = DomainCache(store, max(len(store.domains), 1), keep)
         #: (D,) bytes and triangles of each domain: what a load costs.
         self.nbytes, self.triangles = domain_sizes(store)
-        #: (domain, scene quality, mesh quality) -> CPU seconds of one load here
-        self._load_cpu: dict[tuple, float] = {}
+        #: (domain, scene quality, mesh quality) -> (read, build) CPU seconds of one load here
+        self._load_cpu: dict[tuple, tuple[float, float]] = {}
 
     def get(self, domain: int) -> DomainBVH:
         return self._real.get(domain)
