@@ -142,6 +142,11 @@ class DomainLoop:
         #: domains any ray was traced against (each must be loaded at least once: the floor).
         self.productive_loads: set[tuple[int, int]] = set()
         self.traced_domains: set[int] = set()
+        #: ray queries traced against each load of a domain while it stayed resident, by
+        #: (domain, its load number): how much work a load bought (issue 40's tail loads)
+        self.load_queries: dict[tuple[int, int], int] = {}
+        # the loads before this loop's (a loop the simulator's tests make may have no cache)
+        self._earlier_loads = {} if preloader is None else preloader.loads_per_domain()
         #: every activated domain in order: the access sequence whose optimal load count
         #: (``schedule.belady``) the report gives beside the loads made.
         self.sequence: list[int] = []
@@ -204,12 +209,24 @@ class DomainLoop:
                                 done - guessed, int(queries))
         self.stats["schedule_s"] += activation.schedule_s
         self.stats["trace_s"] += activation.trace_s
+        key = (domain, activation.load_count)
+        self.load_queries[key] = self.load_queries.get(key, 0) + int(queries)
         if queries:
             self.traced_domains.add(domain)
-            self.productive_loads.add((domain, activation.load_count))
+            self.productive_loads.add(key)
         if ship is not None:
             await ship()
         return activation
+
+    def loads_serving_under(self, loads: int, queries: int) -> int:
+        """How many of this render's ``loads`` bought fewer than ``queries`` ray queries
+        while they stayed resident (loads no ray was traced after included): the tail loads
+        whose read and build buy almost nothing (issue 40). A domain still resident from a
+        load before this loop began (an earlier pass's) is not counted."""
+        earlier = self._earlier_loads
+        served = [q for (domain, count), q in self.load_queries.items()
+                  if count > earlier.get(domain, 0)]
+        return loads - len(served) + sum(1 for q in served if q < queries)
 
     async def decided(self, cpu_seconds: float) -> None:
         """The schedule spent ``cpu_seconds`` of this thread's CPU deciding (``next_domain``,

@@ -119,6 +119,8 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,
         **stats.as_dict(),
         "untraced_loads": stats.loads - len(loop.productive_loads),
+        "loads_under_100_queries": loop.loads_serving_under(stats.loads, 100),
+        "loads_under_1000_queries": loop.loads_serving_under(stats.loads, 1000),
         "activations": len(loop.sequence),
         "belady_loads": belady_loads(loop.sequence, capacity),
         "peak_rss_bytes": peak_rss_bytes(),

@@ -34,21 +34,24 @@ schedule deciding, spec-ooc's filtering included, and tracing); and O(c), the ou
 overhead: total time over the same schedule's with every domain cached on the same storage.
 Each comparison line gives ``time_ratio=``, ``loads_ratio=``, ``load_time_ratio=`` and
 ``render_ratio=`` (baseline / spec-ooc) and, for both schedules, ``overhead=``,
-``loads_over_floor=`` and ``loads_over_belady=``; a ``HEADLINE`` line per cache and storage
-sets spec-ooc's fastest configuration against the baseline's fastest (both with preloading
-and resident-first: every switch spec-ooc gets, the baseline gets) beside the goals of
-issue 25 (1.3x, O(25 %) <= 1.5). Every render of the tables is one pass, which is what
-``vastray render`` runs out of core by default (issue 40: out of core, where nothing reads the
-image between passes, the CLI renders in one pass; same tiles, same loads; the 100 % cells,
-in core, are one pass here where the CLI would render passes). The passes section then sets
-the CLI's own renders (``vastray.render``, its plan and defaults) beside one pass, in one
-process and on 2 nodes, and prints ``passes_loads_ratio=`` (CLI default / one pass) and
-``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a reference or
-checkpoint gets). Then (not with ``--large``) the history-depth sweep of Fig. 8 (H = 1..B for
-B = 3, strongest). With every domain cached nothing is evicted, so ``strongest+demand``'s
-100 % cells are ``strongest``'s. ``--ablation`` adds every switch combination for both
-schedules, and spec-ooc's own switches (PT, 25 % cache, first scene). ``--ray-sweep`` adds
-the strongest PT comparison at a 25 % cache with 4x and 16x the paths (first scene).
+``loads_over_floor=``, ``loads_over_belady=`` and ``tail_loads=`` (``a/b/n``: of its ``n``
+loads, ``a`` bought fewer than 100 ray queries while they stayed resident and ``b`` fewer than
+1,000: issue 40's tail loads, whose read and build buy almost nothing); a ``HEADLINE`` line
+per cache and storage sets spec-ooc's fastest configuration against the baseline's fastest
+(both with preloading and resident-first: every switch spec-ooc gets, the baseline gets)
+beside the goals of issue 25 (1.3x, O(25 %) <= 1.5). Every render of the tables is one pass,
+which is what ``vastray render`` runs out of core by default (issue 40: out of core, where
+nothing reads the image between passes, the CLI renders in one pass; same tiles, same loads;
+the 100 % cells, in core, are one pass here where the CLI would render passes). The passes
+section then sets the CLI's own renders (``vastray.render``, its plan and defaults) beside one
+pass, in one process and on 2 nodes, and prints ``passes_loads_ratio=`` (CLI default / one
+pass) and ``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a
+reference or checkpoint gets). Then (not with ``--large``) the history-depth sweep of Fig. 8
+(H = 1..B for B = 3, strongest). With every domain cached nothing is evicted, so
+``strongest+demand``'s 100 % cells are ``strongest``'s. ``--ablation`` adds every switch
+combination for both schedules, and spec-ooc's own switches (PT, 25 % cache, first scene).
+``--ray-sweep`` adds the strongest PT comparison at a 25 % cache with 4x and 16x the paths
+(first scene).
 
     python bench/ooc.py            # full run (hours on 2 cores)
     python bench/ooc.py --quick    # a few minutes (1.2 M triangles, cold reads only)
@@ -149,6 +152,7 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int,
         "render_s": result.seconds["render"] + result.seconds["schedule"],  # deciding + tracing
         "total_s": total, "wait_share": c["load_wait_s"] / max(total, 1e-9),
         "wasted": c.get("wasted_rays", 0), "speculative": c.get("speculative_rays", 0),
+        "under_100": c["loads_under_100_queries"], "under_1000": c["loads_under_1000_queries"],
     }
 
 
@@ -217,11 +221,19 @@ def comparison(integrator: str, fraction: float, storage: str, config: str,
             f"load_time_ratio={load_time:.2f} render_ratio={render:.2f} "
             f"overhead={each(overheads)} "
             f"loads_over_floor={each({n: c['loads'] / max(c['floor'], 1) for n, c in cells.items()})} "
-            f"loads_over_belady={each({n: c['loads'] / max(c['belady'], 1) for n, c in cells.items()})}")
+            f"loads_over_belady={each({n: c['loads'] / max(c['belady'], 1) for n, c in cells.items()})} "
+            f"tail_loads={tails(cells)}")
     if config == "paper-faithful":
         line += f"  [{SPRAY}]"
     wins = [what for what, ratio in (("loads", loads), ("time", time_ratio)) if ratio < 1]
     return line + (f"  <- the baseline wins on {' and '.join(wins)}" if wins else "")
+
+
+def tails(cells: dict[str, dict]) -> str:
+    """Per schedule, its loads that bought fewer than 100 and fewer than 1,000 ray queries
+    while they stayed resident, out of all its loads (``image:a/b/n,spec-ooc:...``)."""
+    return ",".join(f"{name}:{c['under_100']:.0f}/{c['under_1000']:.0f}/{c['loads']:.0f}"
+                    for name, c in cells.items())
 
 
 def headline(fraction: float, storage: str, results: dict) -> str | None:

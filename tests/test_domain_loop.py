@@ -84,6 +84,38 @@ def test_each_step_gets_guesses_traces_and_ships_in_that_order(store, preloader)
     assert loop.productive_loads == {(a, 1), (b, 1), (c, 1)}
 
 
+class Served(Recorder):
+    """Traces ``queries[domain]`` ray queries at each activation of ``domain``."""
+
+    def __init__(self, domains, preloader, queries: dict[int, int]):
+        super().__init__(domains, {}, preloader)
+        self.per_domain = queries
+
+    def trace(self, domain, bvh):
+        return self.per_domain[domain]
+
+
+def test_a_load_is_credited_with_the_queries_traced_while_it_stayed(store):
+    # issue 40's tail loads: with one domain cached, a, b, a is three loads; a's first served
+    # 5 + 5 queries (two activations), b's 2, a's second 5; a load no ray was traced after
+    # counts as serving none, and a domain still resident from an earlier loop is not a load
+    a, b, c = nonempty(store)[:3]
+    with contextlib.closing(DomainPreloader(store, capacity=1, preload=False)) as preloader:
+        loop = DomainLoop(preloader, {}, offload=False)
+        asyncio.run(loop.run(Served([a, a, b, a], preloader, {a: 5, b: 2})))
+        loads = preloader.stats()["loads"]
+        assert loads == 3
+        assert loop.load_queries == {(a, 1): 10, (b, 1): 2, (a, 2): 5}
+        assert loop.loads_serving_under(loads, 3) == 1  # b's
+        assert loop.loads_serving_under(loads, 6) == 2  # and a's second
+        assert loop.loads_serving_under(loads, 11) == 3
+        assert loop.loads_serving_under(loads + 1, 3) == 2  # a load never traced: served none
+        later = DomainLoop(preloader, {}, offload=False)  # a is resident: no load of its own
+        asyncio.run(later.run(Served([a, c], preloader, {a: 5, c: 0})))
+        assert later.load_queries == {(a, 2): 5, (c, 1): 0}
+        assert later.loads_serving_under(1, 1) == 1  # c's load, which served nothing
+
+
 class Burner(Recorder):
     """Traces by burning ``cpu_s`` of the tracing thread's CPU."""
 
