@@ -261,6 +261,45 @@ def test_compute_overlaps_on_own_cores_and_shares_shared_ones():
     assert run_virtual(work(slow))[1] == pytest.approx(2.0)
 
 
+def test_a_job_wider_than_a_core_uses_the_cores_no_other_process_is_using():
+    """An Embree build keeps more than one core busy: alone on the machine it runs at its
+    width, up to the cores; beside another busy process on 2 cores it gets one core until
+    that process is done; on one core, or beside another job of its own process, one core."""
+    async def alone(cores, seconds, width):
+        await SharedCores(cores).run(seconds, owner=0, width=width)
+
+    assert run_virtual(alone(2, 1.8, 1.8))[1] == pytest.approx(1.0)
+    assert run_virtual(alone(2, 3.0, 4.0))[1] == pytest.approx(1.5)  # at most the cores
+    assert run_virtual(alone(1, 1.8, 1.8))[1] == pytest.approx(1.8)  # no spare core
+
+    async def beside(second_owner):
+        cores = SharedCores(2)
+        loop = asyncio.get_running_loop()
+        ends = {}
+
+        async def job(name, seconds, owner, width=1.0):
+            await cores.run(seconds, owner=owner, width=width)
+            ends[name] = loop.time()
+
+        await asyncio.gather(job("build", 1.8, 0, 1.8), job("trace", 0.5, second_owner))
+        return ends
+
+    ends = run_virtual(beside(1))[0]
+    # a core each until the trace is done at 0.5 s; then the build's last 1.3 s at 1.8 cores
+    assert ends["trace"] == pytest.approx(0.5)
+    assert ends["build"] == pytest.approx(0.5 + 1.3 / 1.8)
+    ends = run_virtual(beside(0))[0]  # the trace is the build's own process's: one core
+    # between them until the trace is done at 1 s; then the build alone, 1.8 cores wide
+    assert ends["trace"] == pytest.approx(1.0)
+    assert ends["build"] == pytest.approx(1.0 + 1.3 / 1.8)
+
+    async def narrow():
+        await SharedCores(2).run(1.0, width=0.5)
+
+    with pytest.raises(ValueError, match="width"):
+        run_virtual(narrow())
+
+
 def test_a_temporal_run_too_large_for_this_machine_is_refused_saying_why():
     from vastray.scene.errors import InputError
     from vastray.sim.simulate import _check_memory
@@ -513,6 +552,27 @@ def test_a_load_is_charged_the_cpu_time_it_takes_here_where_load_scale_is_set(do
     read_s, build_s = domains.load_cpu_s(5, cache.build_quality, cache.mesh_quality)
     assert cache.build_quality is not None and read_s > 0 and build_s > 0
     assert seconds == pytest.approx(2.0 * (read_s + build_s), rel=1e-12)
+
+
+@pytest.mark.parametrize("cores", [None, 2])
+def test_a_lone_node_s_build_uses_the_spare_core_as_embree_s_threads_do(domains, cores):
+    """A load's build is charged its CPU seconds at the width it kept busy here
+    (``Domains.build_width``): a node alone on a 2-core machine builds that much faster; a
+    node with a core of its own (``cores`` None) or sharing every core does not."""
+    costs = dataclasses.replace(LOADS, load_scale=1.0, cores=cores)
+
+    async def main():
+        cluster, preloader = _preloader(domains, 2, costs, preload=False)
+        await preloader.get(5)
+        return cluster.now(), preloader.cache
+
+    seconds, cache = run_virtual(main())[0]
+    qualities = (cache.build_quality, cache.mesh_quality)
+    read_s, build_s = domains.load_cpu_s(5, *qualities)
+    width = domains.build_width(5, *qualities)
+    assert 1.0 <= width <= os.cpu_count()
+    expected = read_s + (build_s / min(width, 2) if cores == 2 else build_s)
+    assert seconds == pytest.approx(expected, rel=1e-9)
 
 
 def test_a_domain_s_load_is_timed_once_and_kept_where_its_qualities_are_the_kept_ones(

@@ -44,6 +44,8 @@ class Domains:
         self.nbytes, self.triangles = domain_sizes(store)
         #: (domain, scene quality, mesh quality) -> (read, build) CPU seconds of one load here
         self._load_cpu: dict[tuple, tuple[float, float]] = {}
+        #: the same key -> the cores its build kept busy (its CPU over its wall time)
+        self._build_width: dict[tuple, float] = {}
 
     def get(self, domain: int) -> DomainBVH:
         return self._real.get(domain)
@@ -75,9 +77,13 @@ class Domains:
                       mesh_quality).close()
         start = time.process_time()
         arrays = self.store.load_domain(domain)
-        read = time.process_time()
+        read, read_wall = time.process_time(), time.perf_counter()
         bvh = DomainBVH(domain, arrays, real.keep, None, scene_quality, mesh_quality)
-        seconds = self._load_cpu[key] = (read - start, time.process_time() - read)
+        build, build_wall = time.process_time() - read, time.perf_counter() - read_wall
+        seconds = self._load_cpu[key] = (read - start, build)
+        # Embree builds on its own threads too: the cores the build kept busy (1 where it
+        # was too short to time)
+        self._build_width[key] = max(1.0, build / build_wall) if build_wall > 1e-4 else 1.0
         if ((scene_quality, mesh_quality) == (real.build_quality, real.mesh_quality)
                 and domain not in real and domain not in real._pending):
             with real._lock:
@@ -85,6 +91,13 @@ class Domains:
         else:
             bvh.close()
         return seconds
+
+    def build_width(self, domain: int, scene_quality: int | None = None,
+                    mesh_quality: int | None = None) -> float:
+        """The cores ``domain``'s build at these qualities kept busy here (its CPU seconds
+        over its wall seconds, at least 1; measured with ``load_cpu_s``)."""
+        self.load_cpu_s(domain, scene_quality, mesh_quality)
+        return self._build_width[(domain, scene_quality, mesh_quality)]
 
     def load_seconds(self, scene_quality: int | None = None, mesh_quality: int | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -155,14 +168,20 @@ class VirtualPreloader(CacheFront):
         a load on the node's timeline)."""
         cache, costs = self.cache, self.cluster.costs
         nbytes, triangles = int(self.domains.nbytes[domain]), int(self.domains.triangles[domain])
+        width = 1.0
         if costs.load_scale:  # the simulator's own load of it is its work, not the node's
             with self.cluster.meter.simulators_own():
-                read_s, build_s = (costs.load_scale * s for s in self.domains.load_cpu_s(
-                    domain, cache.build_quality, cache.mesh_quality))
+                qualities = (cache.build_quality, cache.mesh_quality)
+                read_s, build_s = (costs.load_scale * s
+                                   for s in self.domains.load_cpu_s(domain, *qualities))
+                width = self.domains.build_width(domain, *qualities)
         else:
             read_s, build_s = costs.read_s(nbytes), costs.build_s(triangles)
         cost = read_s + build_s
-        await self.cluster.compute(self.rank, cost)
+        # the read on the loader thread, then the build on Embree's threads too: where the
+        # machine has a core no other node is using, the build uses it (``SharedCores``)
+        await self.cluster.compute(self.rank, read_s)
+        await self.cluster.compute(self.rank, build_s, width)
         # as ``DomainCache.load``: the read lasts at least the bytes over the bandwidth
         throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - read_s)
         await asyncio.sleep(throttle)

@@ -62,11 +62,12 @@ class Cluster:
     def now() -> float:
         return asyncio.get_running_loop().time()
 
-    async def compute(self, rank: int, seconds: float) -> None:
+    async def compute(self, rank: int, seconds: float, width: float = 1.0) -> None:
         """Endpoint ``rank`` works ``seconds`` on its one core (shared by whatever else it
         computes meanwhile), or sharing the machine's cores (``SharedCores``: as fast as the
-        machine's measured throughput lets); with what its own code computed since its last
-        charge (``NodeMeter.take``)."""
+        machine's measured throughput lets; a job ``width`` cores wide alone, an Embree
+        build, uses cores no other process is using, up to that); with what its own code
+        computed since its last charge (``NodeMeter.take``)."""
         seconds += self.meter.take(rank) if rank < self.size else 0.0
         if seconds <= 0:
             return
@@ -75,7 +76,7 @@ class Cluster:
             if self._cores is None:
                 done = self._own[rank].start(seconds)
             else:
-                done = self._cores.start(seconds, owner=rank)
+                done = self._cores.start(seconds, owner=rank, width=width)
         await done
 
     async def trace(self, rank: int, seconds: float, runtime: str) -> None:

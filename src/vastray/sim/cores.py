@@ -7,7 +7,15 @@ A node process computes on one core at a time however many of its threads have w
 render worker, its loader and its event loop take turns holding Python's GIL): its jobs share
 that one process's speed. Measured on a real node (``domain``, rm 128³, one node on 2 cores):
 each of 354 extra loads added 2.3 ms to its busy span, more than the load's 1.2 ms alone, so
-a node's loads do not run beside its traces on the idle second core."""
+a node's loads do not run beside its traces on the idle second core.
+
+One job alone in its process may be wider than a core: an Embree BVH build runs on Embree's
+threads too (a domain of the out-of-core benchmark's store builds on 1.7-1.8 cores here). A
+job's ``width`` is the cores it would keep busy alone; where the machine has cores no other
+process is using (fewer busy processes than cores), a process whose one running job is wider
+than a core gets a share of them, up to that width. With every core taken nothing changes:
+lone real nodes used 1.12-1.34 cores over their busy spans (the turbine-blade scan's rows of
+``bench/simulate.py``'s validation, 2026-12-01), and the simulator charged them one."""
 
 from __future__ import annotations
 
@@ -27,9 +35,13 @@ class SharedCores:
 
     def __init__(self, cores: int, throughput: tuple[float, ...] = ()):
         self.cores, self.throughput = cores, throughput
-        #: id -> [work left (s at full speed), future, owner]
+        #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
+        #: owner -> the width of its one running job, for processes whose one job is wider
+        #: than a core (several jobs of a process share one core: no entry)
+        self._wide: dict = {}
+        self._bonus: dict = {}  # owner -> speed beyond the equal share (``_share``)
         self._ids = itertools.count()
         self._last = 0.0
         self._timer: asyncio.TimerHandle | None = None
@@ -40,27 +52,63 @@ class SharedCores:
                  else min(k, self.cores))
         return min(1.0, total / k)
 
-    async def run(self, seconds: float, owner=None) -> None:
-        """Work ``seconds`` (at full speed) among the other jobs. ``owner``: the process the
-        job is part of; its jobs share one process's speed (None: a process of its own)."""
-        await self.start(seconds, owner)
+    async def run(self, seconds: float, owner=None, width: float = 1.0) -> None:
+        """Work ``seconds`` (at full speed on one core) among the other jobs. ``owner``: the
+        process the job is part of; its jobs share one process's speed (None: a process of
+        its own). ``width``: the cores the job keeps busy alone (>= 1; see the module
+        docstring)."""
+        await self.start(seconds, owner, width)
 
-    def start(self, seconds: float, owner=None) -> asyncio.Future:
+    def start(self, seconds: float, owner=None, width: float = 1.0) -> asyncio.Future:
         """``run``'s job started now; the future is done when it has worked ``seconds``."""
+        if not width >= 1.0:
+            raise ValueError(f"a job's width is at least one core, got {width!r}")
         loop = asyncio.get_running_loop()
         self._advance(loop.time())
         done = loop.create_future()
         key = next(self._ids)
         owner = ("job", key) if owner is None else owner
-        self._jobs[key] = [seconds, done, owner]
+        self._jobs[key] = [seconds, done, owner, float(width)]
         self._owned[owner] = self._owned.get(owner, 0) + 1
+        self._widen(owner)
         self._schedule(loop)
         return done
+
+    def _widen(self, owner) -> None:
+        """Note ``owner``'s width (its one running job's, where wider than a core) and share
+        the spare cores afresh."""
+        self._wide.pop(owner, None)
+        if self._owned.get(owner, 0) == 1:
+            width = next(job[3] for job in self._jobs.values() if job[2] == owner)
+            if width > 1.0:
+                self._wide[owner] = width
+        self._bonus = self._share()
+
+    def _share(self) -> dict:
+        """What each wide process gets beyond the equal share ``speed(busy)``: the cores no
+        process is using (fewer busy processes than cores), shared among the processes whose
+        one job is wider than a core, each up to its width (water-filling)."""
+        busy = len(self._owned)
+        if not self._wide or busy >= self.cores:
+            return {}
+        base = self.speed(busy)
+        room = {owner: width - base for owner, width in self._wide.items() if width > base}
+        bonus = dict.fromkeys(room, 0.0)
+        spare = (self.cores - busy) * base
+        while spare > 1e-12 and room:
+            grant = min(spare / len(room), min(room.values()))
+            for owner in room:
+                bonus[owner] += grant
+                room[owner] -= grant
+            spare -= grant * len(room)
+            room = {owner: left for owner, left in room.items() if left > 1e-12}
+        return bonus
 
     def _rate(self, job: list) -> float:
         """A running job's speed now: its process's share of the machine, split among the
         process's running jobs."""
-        return self.speed(len(self._owned)) / self._owned[job[2]]
+        owner = job[2]
+        return (self.speed(len(self._owned)) + self._bonus.get(owner, 0.0)) / self._owned[owner]
 
     def _advance(self, now: float) -> None:
         """Charge the time since the last event to every running job."""
@@ -83,9 +131,10 @@ class SharedCores:
         self._advance(loop.time())
         least = min(job[0] for job in self._jobs.values())
         for key in [k for k, job in self._jobs.items() if job[0] <= max(least, 0.0) + 1e-12]:
-            seconds, done, owner = self._jobs.pop(key)
+            seconds, done, owner, _ = self._jobs.pop(key)
             self._owned[owner] -= 1
             if not self._owned[owner]:
                 del self._owned[owner]
+            self._widen(owner)
             done.set_result(None)
         self._schedule(loop)
