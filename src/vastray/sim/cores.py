@@ -9,16 +9,16 @@ that one process's speed. Measured on a real node (``domain``, rm 128³, one nod
 each of 354 extra loads added 2.3 ms to its busy span, more than the load's 1.2 ms alone, so
 a node's loads do not run beside its traces on the idle second core.
 
-A job may be wider than a core: an Embree BVH build runs on Embree's threads too (a domain
-of the out-of-core benchmark's store builds on 1.7-1.8 cores here), beside the Python of the
-process's other threads. A job's ``width`` is the cores it would keep busy alone; where the
-machine has cores no other process is using (fewer busy processes than cores), a process
-with a job wider than a core gets a share of them, up to that width, shared among its jobs
-as its one core is (a small build measures about one core wide, so a node's small loads
-beside its traces still take turns on one core, as measured above). With every core taken
-nothing changes. Lone real nodes used 1.09-1.38 cores over their busy spans (the
-validation of ``bench/simulate.py``, 2026-12-01), and the simulator had charged them one:
-its 1-node rows were over-predicted by up to 29 %."""
+One job alone in its process may be wider than a core: an Embree BVH build runs on Embree's
+threads too (a domain of the out-of-core benchmark's store builds on 1.7-1.8 cores here). A
+job's ``width`` is the cores it would keep busy alone; where the machine has cores no other
+process is using (fewer busy processes than cores), a process whose one running job is wider
+than a core gets a share of them, up to that width. With every core taken nothing changes.
+Lone real nodes used 1.09-1.38 cores over their busy spans (``bench/simulate.py``'s
+validation, 2026-12-01), and the simulator had charged them one: its 1-node rows were
+over-predicted by up to 29 %. A process's other jobs beside such a job still take turns on
+one core: letting them share its width made the scan's lone ``domain``, ``async`` and
+``temporal`` rows 12-15 % too fast."""
 
 from __future__ import annotations
 
@@ -41,8 +41,8 @@ class SharedCores:
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
-        #: owner -> the width of its widest running job, for processes with a job wider than
-        #: a core
+        #: owner -> the width of its one running job, for processes whose one job is wider
+        #: than a core (several jobs of a process share one core: no entry)
         self._wide: dict = {}
         self._bonus: dict = {}  # owner -> speed beyond the equal share (``_share``)
         self._ids = itertools.count()
@@ -78,19 +78,19 @@ class SharedCores:
         return done
 
     def _widen(self, owner) -> None:
-        """Note ``owner``'s width (its widest running job's, where wider than a core) and
-        share the spare cores afresh."""
+        """Note ``owner``'s width (its one running job's, where wider than a core) and share
+        the spare cores afresh."""
         self._wide.pop(owner, None)
-        if owner in self._owned:
-            width = max(job[3] for job in self._jobs.values() if job[2] == owner)
+        if self._owned.get(owner, 0) == 1:
+            width = next(job[3] for job in self._jobs.values() if job[2] == owner)
             if width > 1.0:
                 self._wide[owner] = width
         self._bonus = self._share()
 
     def _share(self) -> dict:
         """What each wide process gets beyond the equal share ``speed(busy)``: the cores no
-        process is using (fewer busy processes than cores), shared among the processes with
-        a job wider than a core, each up to its widest job's width (water-filling)."""
+        process is using (fewer busy processes than cores), shared among the processes whose
+        one job is wider than a core, each up to its width (water-filling)."""
         busy = len(self._owned)
         if not self._wide or busy >= self.cores:
             return {}
