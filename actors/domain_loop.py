@@ -138,10 +138,6 @@ class DomainLoop:
         self.clock = time.perf_counter
         stats.setdefault("schedule_s", 0.0)
         stats.setdefault("trace_s", 0.0)
-        #: (domain, its load number) of loads followed by at least one ray query, and the
-        #: domains any ray was traced against (each must be loaded at least once: the floor).
-        self.productive_loads: set[tuple[int, int]] = set()
-        self.traced_domains: set[int] = set()
         #: ray queries traced against each load of a domain while it stayed resident, by
         #: (domain, its load number): how much work a load bought (issue 40's tail loads)
         self.load_queries: dict[tuple[int, int], int] = {}
@@ -211,12 +207,20 @@ class DomainLoop:
         self.stats["trace_s"] += activation.trace_s
         key = (domain, activation.load_count)
         self.load_queries[key] = self.load_queries.get(key, 0) + int(queries)
-        if queries:
-            self.traced_domains.add(domain)
-            self.productive_loads.add(key)
         if ship is not None:
             await ship()
         return activation
+
+    @property
+    def productive_loads(self) -> set[tuple[int, int]]:
+        """(domain, its load number) of the loads followed by at least one ray query."""
+        return {key for key, queries in self.load_queries.items() if queries}
+
+    @property
+    def traced_domains(self) -> set[int]:
+        """The domains any ray was traced against (each must be loaded at least once: the
+        floor)."""
+        return {domain for (domain, _), queries in self.load_queries.items() if queries}
 
     def loads_serving_under(self, loads: int, queries: int) -> int:
         """How many of this render's ``loads`` bought fewer than ``queries`` ray queries

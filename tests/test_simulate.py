@@ -567,7 +567,7 @@ def test_a_lone_node_s_build_uses_the_spare_core_as_embree_s_threads_do(domains,
     qualities = (RTC_BUILD_QUALITY_LOW, None)  # a cache of 2 of the 12 domains builds these
     read_s, build_s = domains.load_cpu_s(5, *qualities)
     assert 1.0 <= domains.build_width(5, *qualities) <= os.cpu_count()
-    monkeypatch.setitem(domains._build_width, (5, *qualities), 1.7)
+    monkeypatch.setitem(domains._load_cpu, (5, *qualities), (read_s, build_s, 1.7))
 
     async def main():
         cluster, preloader = _preloader(domains, 2, costs, preload=False)

@@ -43,9 +43,8 @@ class Domains:
         #: (D,) bytes and triangles of each domain: what a load costs.
         self.nbytes, self.triangles = domain_sizes(store)
         #: (domain, scene quality, mesh quality) -> (read, build) CPU seconds of one load here
-        self._load_cpu: dict[tuple, tuple[float, float]] = {}
-        #: the same key -> the cores its build kept busy (its CPU over its wall time)
-        self._build_width: dict[tuple, float] = {}
+        #: and the cores its build kept busy (its CPU over its wall time)
+        self._load_cpu: dict[tuple, tuple[float, float, float]] = {}
 
     def get(self, domain: int) -> DomainBVH:
         return self._real.get(domain)
@@ -67,10 +66,21 @@ class Domains:
         quality) it is built once more, timed, and dropped. The first measurement of a
         process builds once untimed first: a first build pays first uses, 4-8x a warm one.
         """
+        return self._timed(domain, scene_quality, mesh_quality)[:2]
+
+    def build_width(self, domain: int, scene_quality: int | None = None,
+                    mesh_quality: int | None = None) -> float:
+        """The cores ``domain``'s build at these qualities kept busy here (its CPU seconds
+        over its wall seconds, at least 1; measured with ``load_cpu_s``)."""
+        return self._timed(domain, scene_quality, mesh_quality)[2]
+
+    def _timed(self, domain: int, scene_quality: int | None,
+               mesh_quality: int | None) -> tuple[float, float, float]:
+        """(read CPU s, build CPU s, build width) of one load, timed once (``load_cpu_s``)."""
         key = (domain, scene_quality, mesh_quality)
-        seconds = self._load_cpu.get(key)
-        if seconds is not None:
-            return seconds
+        timed = self._load_cpu.get(key)
+        if timed is not None:
+            return timed
         real = self._real
         if not self._load_cpu:
             DomainBVH(domain, self.store.load_domain(domain), real.keep, None, scene_quality,
@@ -80,24 +90,17 @@ class Domains:
         read, read_wall = time.process_time(), time.perf_counter()
         bvh = DomainBVH(domain, arrays, real.keep, None, scene_quality, mesh_quality)
         build, build_wall = time.process_time() - read, time.perf_counter() - read_wall
-        seconds = self._load_cpu[key] = (read - start, build)
         # Embree builds on its own threads too: the cores the build kept busy (1 where it
         # was too short to time)
-        self._build_width[key] = max(1.0, build / build_wall) if build_wall > 1e-4 else 1.0
+        width = max(1.0, build / build_wall) if build_wall > 1e-4 else 1.0
+        timed = self._load_cpu[key] = (read - start, build, width)
         if ((scene_quality, mesh_quality) == (real.build_quality, real.mesh_quality)
                 and domain not in real and domain not in real._pending):
             with real._lock:
                 real._insert(domain, bvh)
         else:
             bvh.close()
-        return seconds
-
-    def build_width(self, domain: int, scene_quality: int | None = None,
-                    mesh_quality: int | None = None) -> float:
-        """The cores ``domain``'s build at these qualities kept busy here (its CPU seconds
-        over its wall seconds, at least 1; measured with ``load_cpu_s``)."""
-        self.load_cpu_s(domain, scene_quality, mesh_quality)
-        return self._build_width[(domain, scene_quality, mesh_quality)]
+        return timed
 
     def load_seconds(self, scene_quality: int | None = None, mesh_quality: int | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
