@@ -5,7 +5,7 @@ Two schedulers share this runtime (Navrátil's static domain schedule and the Ga
 asynchronous baseline of the temporal-coherence paper):
 
 - ``domain``: bulk-synchronous rounds. Every node drains its queues, sends what it produced,
-  and all-reduces over the tree of ranks how many batches it sent to whom; each node then
+  and all-reduces over the butterfly of ranks how many batches it sent to whom; each node then
   waits for the batches sent to it; a round in which nobody sent anything ends the tile.
 - ``async``: no global rounds and no barrier inside a frame (Galaxy). Each node injects the
   camera rays of its share of the next tile whenever fewer than ``tile`` rays wait in its

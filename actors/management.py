@@ -70,10 +70,10 @@ class ManagementActor:
     this node shares with its sender alone (``peer_tokens``, from the job), which names the
     sender's rank; the rank in the message must be that one, and so must the rank the
     connection it came over was made to (with keys, whose CURVE key the handshake checked),
-    and the kind must be one that rank may send now (``protocol.
-    peer_rule``: a film only from a tree child, once per unit; a broadcast only from the
-    parent). Ray batches name only domains of the job. A message that fails any check is
-    dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
+    and the kind must be one that rank may send now (``protocol.check_peer_kind``: a film
+    only from a tree child, once per unit; an all-reduce partial only from its step's
+    butterfly partner). Ray batches name only domains of the job. A message that fails any
+    check is dropped, logged at a bounded rate and counted in ``rejections`` (the node's report).
 
     Parameters
     ----------

@@ -1,7 +1,7 @@
 """A node's side of domain decomposition: the rays of its domains traced through the domain
 loop, its outboxes shipped through the ray post, batches from its peers delivered to their
 tile (or held for a later one), and the round protocols of ``domain`` and ``dynamic`` (each
-round ends with all-reductions over the tree of ranks, not through the coordinator)."""
+round ends with all-reductions over the butterfly of ranks, not through the coordinator)."""
 
 from __future__ import annotations
 
@@ -119,10 +119,10 @@ class NodeWork:
 
     async def rounds(self, policy, tree) -> None:
         """Bulk-synchronous rounds until a round moves no ray between nodes. A round ends with
-        one all-reduction over the tree of ranks (``tree``, the tree-reduce actor): the sum
+        one all-reduction over the butterfly of ranks (``tree``, the tree-reduce actor): the sum
         of every node's batches sent per destination, from which each node takes how many to
         expect; a round in which nothing moved ends the tile on every node at once. No
-        coordinator message: log2(P) steps up and down the tree, not 2P through one process.
+        coordinator message: log2(P) exchange steps, not 2P messages through one process.
         """
         size = tree.size
         while True:

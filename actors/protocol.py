@@ -28,8 +28,7 @@ FAILED = "failed"        # node -> coordinator: this node's job failed (the erro
 STOP = "stop"            # coordinator -> node: shut down
 REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, join again
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
-REDUCE = "reduce"        # node -> parent node: partial of an all-reduce
-BROADCAST = "bcast"      # node -> child node: result of an all-reduce
+EXCHANGE = "exchange"    # node -> butterfly partner: its partial at one all-reduce step
 GRANT = "grant"          # coordinator -> node (paced passes): the next unit to render, or -1
 WAVE = "wave"            # node -> child node (async, temporal): a termination wave, or finished
 WAVE_REPLY = "wave_reply"  # node -> parent node: its subtree's batches sent and received
@@ -37,7 +36,7 @@ WAVE_REPLY = "wave_reply"  # node -> parent node: its subtree's batches sent and
 #: Who may send what. A node takes control kinds only from its coordinator connection and
 #: data kinds only from peers of its job; the coordinator takes only node kinds.
 FROM_COORDINATOR = frozenset({JOB, STOP, REGROUP, HEARTBEAT, GRANT})
-FROM_PEER = frozenset({RAYS, FILM, REDUCE, BROADCAST, WAVE, WAVE_REPLY})
+FROM_PEER = frozenset({RAYS, FILM, EXCHANGE, WAVE, WAVE_REPLY})
 FROM_NODE = frozenset({HELLO, PROGRESS, HEARTBEAT, FILM, DONE, FRAME, FAILED})
 
 _NUMBER = (int, float)
@@ -56,8 +55,7 @@ META = {
     STOP: {},
     REGROUP: {"lost": str},
     RAYS: {"rank": int, "tile": int, "queue": str},
-    REDUCE: {"rank": int},
-    BROADCAST: {"rank": int},
+    EXCHANGE: {"rank": int, "call": int, "step": int},
     GRANT: {"next": int},
     WAVE: {"rank": int, "label": int, "wave": int, "finished": bool},
     WAVE_REPLY: {"rank": int, "label": int, "wave": int, "sent": int, "received": int},
@@ -94,29 +92,31 @@ def check(message, allowed: frozenset[str]) -> None:
         _check_rays(message)
     elif kind == FILM:
         _check_film(message)
-    elif message.arrays and kind not in (REDUCE, BROADCAST):
+    elif message.arrays and kind != EXCHANGE:
         raise ProtocolError(f"{kind} carries no arrays")
 
 
 def check_peer_kind(message, sender: int, rank: int, size: int) -> None:
-    """Whether node ``sender`` may send ``message`` to node ``rank`` of ``size``: films,
-    all-reduce partials and termination replies go up the tree (only from a child),
-    broadcasts and termination waves down it (only from the parent); ray batches between any
-    two nodes.
+    """Whether node ``sender`` may send ``message`` to node ``rank`` of ``size``: films and
+    termination replies go up the tree (only from a child), termination waves down it (only
+    from the parent), an all-reduce partial only from the butterfly partner of its step; ray
+    batches between any two nodes.
 
     Raises
     ------
     ProtocolError
         Naming the rule broken.
     """
-    from vastray.transport.tree import children, parent
+    from vastray.transport.tree import children, exchange_partner, parent
 
     kind = message.kind
-    if kind in (FILM, REDUCE, WAVE_REPLY) and sender not in children(rank, size):
+    if kind in (FILM, WAVE_REPLY) and sender not in children(rank, size):
         raise ProtocolError(f"{kind} from node {sender}, which is not a child of node {rank}")
-    if kind in (BROADCAST, WAVE) and sender != parent(rank):
-        what = "broadcast" if kind == BROADCAST else kind
-        raise ProtocolError(f"{what} from node {sender}, which is not node {rank}'s parent")
+    if kind == WAVE and sender != parent(rank):
+        raise ProtocolError(f"{kind} from node {sender}, which is not node {rank}'s parent")
+    if kind == EXCHANGE and sender != exchange_partner(rank, size, message.meta["step"]):
+        raise ProtocolError(f"all-reduce step {message.meta['step']} from node {sender}, "
+                            f"which is not node {rank}'s partner at that step")
     if kind == RAYS and sender == rank:
         raise ProtocolError("ray batch from this node's own rank")
 

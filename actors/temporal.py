@@ -155,7 +155,7 @@ class TemporalFrame(AsyncFrame):
 
 async def summed_stats(tree, stats: plan.FrameStats) -> plan.FrameStats:
     """The frame's statistics summed over every node (the same on each), by the tree-reduce
-    actor: ceil(log2 P) steps up, then down."""
+    actor's all-reduction (log2 P butterfly steps)."""
     arrays = stats.to_arrays()
     total = await tree.allreduce(arrays, {name: "sum" for name in arrays})
     return plan.FrameStats.from_arrays(total)

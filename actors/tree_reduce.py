@@ -1,5 +1,7 @@
-"""A node's tree-reduce actor: reductions over the binary tree of ranks in ceil(log2 P) steps
-(MIN, MAX, OR and SUM of arrays, and the film, summed up the tree to rank 0)."""
+"""A node's tree-reduce actor: all-reductions of arrays (MIN, MAX, OR and SUM) over the
+butterfly of ranks, every node ending with the result after log2 C exchange steps (C the
+largest power of two <= P; two more where P is not one), and the film summed up the binary
+tree of ranks to rank 0 in ceil(log2 P) steps (``transport.tree``)."""
 
 from __future__ import annotations
 
@@ -9,17 +11,25 @@ from vastray.actors import protocol
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.management import ManagementActor
 from vastray.transport.codec import PEER_FRAME_LIMIT, encode
-from vastray.transport.tree import COMBINE, children, parent
+from vastray.transport.tree import COMBINE, butterfly, children, exchange_partner, parent
 
 
 class TreeReduceActor:
-    """Combines partial results up the binary tree of ranks (ceil(log2 P) steps)."""
+    """Combines partial results: all-reductions over the butterfly of ranks, films up the
+    binary tree."""
 
     def __init__(self, management: ManagementActor, rank: int, size: int):
         self.management, self.rank, self.size = management, rank, size
-        #: levels the last all-reduce climbed below this node (at the root: the tree's height,
-        #: floor(log2 P) <= ceil(log2 P)); carried up in each partial's header.
-        self.levels = 0
+        #: message steps the last all-reduce waited on at this node
+        #: (``transport.tree.butterfly_steps`` at a rank that folds in an extra one, 2 at an
+        #: extra rank, log2 C at the others)
+        self.steps = 0
+        #: all-reductions begun, numbering each one's partials: every node makes the same
+        #: calls in the same order (they are collective), and a partner may already be in the
+        #: next one
+        self._calls = 0
+        #: partials that came before this node asked for them, by (call, step)
+        self._early_partials: dict[tuple[int, int], object] = {}
         #: films from children for a later frame than the one being reduced, by (child rank,
         #: frame ordinal): a child goes on to its next frame without waiting for this node.
         self._early_films: dict[tuple[int, int], object] = {}
@@ -51,23 +61,57 @@ class TreeReduceActor:
 
     async def allreduce(self, arrays: dict[str, np.ndarray], ops: dict[str, str]
                         ) -> dict[str, np.ndarray]:
-        """Combine ``arrays`` over all nodes (``ops``: name -> "max" | "min" | "or" | "sum")
-        up the tree, then broadcast the result down it; every node returns the same arrays."""
+        """Combine ``arrays`` over all nodes (``ops``: name -> "max" | "min" | "or" | "sum");
+        every node returns the same arrays, bit for bit.
+
+        Recursive doubling: at step s this node sends its partial to rank XOR 2^s, receives
+        that node's, and combines the two; after log2 C steps every core rank holds the
+        combination of all. The two partners of a step combine the same two partials in
+        opposite order, and every combiner is commutative bit for bit (``COMBINE``), so
+        partners (and by induction all nodes) hold identical arrays: float sums too, whose
+        grouping differs from a serial sum's but is fixed by P. Ranks beyond C fold into
+        rank - C first and are sent the result last.
+        """
+        if set(arrays) != set(ops):
+            raise ValueError(f"all-reduce: arrays {sorted(arrays)} and combiners {sorted(ops)} "
+                             "must name the same arrays")
         total = {k: np.array(v, copy=True) for k, v in arrays.items()}
-        self.levels = 0
-        for _ in children(self.rank, self.size):
-            message = await self.management.receive(protocol.REDUCE, "partial from a child node")
-            self.levels = max(self.levels, int(message.meta.get("levels", 0)) + 1)
-            for name, op in ops.items():
-                total[name] = COMBINE[op](total[name], message.arrays[name])
-        up = parent(self.rank)
-        if up is not None:
-            await self.management.to_peer(up, encode(
-                protocol.REDUCE, total, {"rank": self.rank, "levels": self.levels},
-                PEER_FRAME_LIMIT))
-            message = await self.management.receive(protocol.BROADCAST, "reduced result")
-            total = {k: np.array(v) for k, v in message.arrays.items()}
-        for child in children(self.rank, self.size):
-            await self.management.to_peer(child, encode(
-                protocol.BROADCAST, total, {"rank": self.rank}, PEER_FRAME_LIMIT))
+        call, self._calls = self._calls, self._calls + 1
+        core, steps = butterfly(self.size)
+        if self.rank >= core:  # an extra rank: its partner combines for it
+            await self._send(call, -1, total)
+            self.steps = 2
+            return {k: np.array(v) for k, v in (await self._partial(call, steps)).items()}
+        self.steps = steps
+        folds = exchange_partner(self.rank, self.size, -1) is not None
+        if folds:
+            total = _combined(total, await self._partial(call, -1), ops)
+            self.steps += 2
+        for step in range(steps):
+            await self._send(call, step, total)
+            total = _combined(total, await self._partial(call, step), ops)
+        if folds:
+            await self._send(call, steps, total)
         return total
+
+    async def _send(self, call: int, step: int, arrays: dict[str, np.ndarray]) -> None:
+        partner = exchange_partner(self.rank, self.size, step)
+        await self.management.to_peer(partner, encode(
+            protocol.EXCHANGE, arrays, {"rank": self.rank, "call": call, "step": step},
+            PEER_FRAME_LIMIT))
+
+    async def _partial(self, call: int, step: int) -> dict[str, np.ndarray]:
+        """The arrays this node's partner sent at ``step`` of all-reduce ``call`` (those of
+        other steps are kept until asked for)."""
+        while (call, step) not in self._early_partials:
+            message = await self.management.receive(
+                protocol.EXCHANGE, f"all-reduce partial from node "
+                f"{exchange_partner(self.rank, self.size, step)}")
+            key = (int(message.meta["call"]), int(message.meta["step"]))
+            self._early_partials[key] = message.arrays
+        return self._early_partials.pop((call, step))
+
+
+def _combined(total: dict[str, np.ndarray], theirs: dict[str, np.ndarray],
+              ops: dict[str, str]) -> dict[str, np.ndarray]:
+    return {name: COMBINE[op](total[name], theirs[name]) for name, op in ops.items()}

@@ -166,7 +166,7 @@ async def allreduce_over_sockets(arrays: list[dict], ops: dict[str, str]):
 
     Returns
     -------
-    (results, actors): every rank's result, and the actors (``levels`` climbed).
+    (results, actors): every rank's result, and the actors (``steps`` each waited on).
     """
     import asyncio
 

@@ -223,17 +223,28 @@ def test_listening_beyond_loopback_needs_keys(scene):
 
 
 @pytest.mark.parametrize("size", range(1, 10))
-async def test_tree_allreduce_over_real_sockets(size):
+async def test_butterfly_allreduce_over_real_sockets(size):
     """The tree-reduce actor of P nodes (real ZeroMQ sockets, one event loop): MIN, OR and
-    SUM reach every node in ceil(log2 P) levels."""
+    SUM reach every node in log2 C exchange steps (C the largest power of two <= P; two more
+    where P is not one), and float sums are the same bits on every node."""
     rng = np.random.default_rng(size)
     values = [{"t": rng.integers(0, 1 << 60, 100, dtype=np.uint64),
                "o": rng.integers(0, 256, 64).astype(np.uint8),
-               "n": rng.integers(0, 1000, 10)} for _ in range(size)]
-    results, actors = await allreduce_over_sockets(values, {"t": "min", "o": "or", "n": "sum"})
-    assert actors[0].levels == (int(np.floor(np.log2(size))) if size > 1 else 0)
-    assert actors[0].levels <= int(np.ceil(np.log2(size)))
+               "n": rng.integers(0, 1000, 10),
+               "f": rng.random(50) * 10.0 ** rng.integers(-8, 8, 50)} for _ in range(size)]
+    ops = {"t": "min", "o": "or", "n": "sum", "f": "sum"}
+    results, actors = await allreduce_over_sockets(values, ops)
+    core = 1 << (size.bit_length() - 1)
+    log_core = core.bit_length() - 1
+    assert actors[0].steps == log_core + (2 if size > core else 0)
+    assert actors[0].steps < 2 * max(int(np.ceil(np.log2(size))), 1)  # the tree's up and down
+    for rank, actor in enumerate(actors):
+        assert actor.steps == (2 if rank >= core else actors[0].steps if rank < size - core
+                               else log_core)
     for result in results:
         np.testing.assert_array_equal(result["t"], np.minimum.reduce([v["t"] for v in values]))
         np.testing.assert_array_equal(result["o"], np.bitwise_or.reduce([v["o"] for v in values]))
         np.testing.assert_array_equal(result["n"], np.sum([v["n"] for v in values], axis=0))
+        np.testing.assert_allclose(result["f"], np.sum([v["f"] for v in values], axis=0),
+                                   rtol=1e-14)
+        assert result["f"].tobytes() == results[0]["f"].tobytes()  # the same bits everywhere

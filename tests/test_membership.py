@@ -67,7 +67,7 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
             (1, token[1], film_frames(Film(4, 3), {"rank": 1, "ordinal": 2})),  # no unit 2
             (2, token[2], film_frames(Film(4, 3), {"rank": 2, "ordinal": -1})),  # nor unit -1
             (2, token[2], film_frames(Film(4, 3), {"rank": 2, "ordinal": 1})),  # a later unit's
-            (1, token[1], encode(protocol.BROADCAST, {}, {"rank": 1})),  # node 0: no parent
+            (2, token[2], encode(protocol.EXCHANGE, {}, {"rank": 2, "call": 0, "step": 0})),  # 1's step
             (2, token[2], _rays(5, 10**6, 2)),         # a domain the job does not have
             (2, token[2], _rays(5, 7, 2)),             # one it has
             (2, pair_tokens(1)[0][0], _rays(5, 7, 2)),  # a token of no pair of this job
@@ -81,7 +81,7 @@ async def test_peer_messages_are_bound_to_the_rank_whose_token_they_carry():
         assert films.qsize() == 2
         assert [(m.meta["rank"], m.meta["ordinal"]) for m in (
             films.get_nowait(), films.get_nowait())] == [(1, 0), (2, 1)]
-        assert node0.mailbox(protocol.BROADCAST).qsize() == 0
+        assert node0.mailbox(protocol.EXCHANGE).qsize() == 0
         rays = node0.mailbox(protocol.RAYS)
         assert rays.qsize() == 1 and int(rays.get_nowait().arrays["domain"][0]) == 7
         assert node0.rejections.counts == {"malformed": 7, "stranger": 2,
@@ -182,10 +182,11 @@ async def test_with_keys_only_the_rank_a_token_names_can_speak_or_listen_with_it
         outsider.setsockopt(zmq.ROUTING_ID, routing_id(token))
         outsider.connect(nodes[0].endpoint)
         await _until(lambda: gate.refusals >= 1)
-        # goes to node 1 (node 0 is its parent in the tree), never to the outsider
-        await nodes[0].to_peer(1, encode(protocol.BROADCAST, {}, {"rank": 0}))
+        # goes to node 1 (node 0 is its partner at step 0), never to the outsider
+        await nodes[0].to_peer(1, encode(protocol.EXCHANGE, {}, {"rank": 0, "call": 0,
+                                                                  "step": 0}))
         assert not await outsider.poll(300)
-        assert (await nodes[1].receive(protocol.BROADCAST, "broadcast")).meta["rank"] == 0
+        assert (await nodes[1].receive(protocol.EXCHANGE, "partial")).meta["rank"] == 0
         outsider.close(linger=0)
 
 
@@ -194,12 +195,12 @@ async def test_a_message_retried_is_not_overtaken_by_a_later_one_to_the_same_pee
     # wait for it (each pair's messages stay in order, as on the one socket a pair had before
     # the peer sockets were reversed).
     def partial(i):
-        return encode(protocol.REDUCE, {"x": np.zeros(1)}, {"rank": 1, "levels": i})
+        return encode(protocol.EXCHANGE, {"x": np.zeros(1)}, {"rank": 1, "call": i, "step": 0})
 
     with member_actors(2, domains=4) as (_, _, _, nodes):
         sender = nodes[1]
         await sender.to_peer(0, partial(0))  # node 0 has connected
-        assert (await nodes[0].receive(protocol.REDUCE, "partial")).meta["levels"] == 0
+        assert (await nodes[0].receive(protocol.EXCHANGE, "partial")).meta["call"] == 0
         first, real = partial(1), sender._send_now
         refusals = [3]
 
@@ -213,6 +214,6 @@ async def test_a_message_retried_is_not_overtaken_by_a_later_one_to_the_same_pee
         retried = asyncio.ensure_future(sender.to_peer(0, first))
         await asyncio.sleep(0)  # it was refused and waits to try again
         await asyncio.gather(sender.to_peer(0, partial(2)), retried)
-        got = [(await nodes[0].receive(protocol.REDUCE, "partial")).meta["levels"]
+        got = [(await nodes[0].receive(protocol.EXCHANGE, "partial")).meta["call"]
                for _ in range(2)]
         assert refusals == [0] and got == [1, 2]

@@ -1,8 +1,15 @@
-"""The binary tree over node ranks that reductions and broadcasts follow.
+"""The patterns over node ranks that reductions follow: the binary tree (films, termination
+waves) and the butterfly (all-reductions).
 
-Rank 0 is the root; rank r's children are 2r + 1 and 2r + 2. A reduction climbs the tree in
-ceil(log2 P) steps (each node combines its children's values with its own and passes the
-result up); the broadcast walks back down the same edges.
+Tree: rank 0 is the root; rank r's children are 2r + 1 and 2r + 2. A film climbs it in
+ceil(log2 P) steps (each node adds its children's films to its own and passes the sum up).
+
+Butterfly (recursive doubling): every node ends with the combined arrays after
+log2(C) exchange steps, C the largest power of two <= P; at step s rank r < C swaps its
+partial with rank r XOR 2^s and combines the two. The P - C ranks beyond C first fold their
+arrays into rank r - C (step -1) and get the result back from it (step log2 C). A tree's
+reduce-then-broadcast has 2 ceil(log2 P) message steps on its critical path; the butterfly
+has log2 C (power-of-two P) or log2 C + 2.
 """
 
 from __future__ import annotations
@@ -20,7 +27,36 @@ def children(rank: int, size: int) -> list[int]:
     return [c for c in (2 * rank + 1, 2 * rank + 2) if c < size]
 
 
-#: Element-wise combiners of the reductions the schedulers need.
+def butterfly(size: int) -> tuple[int, int]:
+    """(C, log2 C) of a butterfly over ``size`` ranks: C, the largest power of two <= size,
+    ranks exchange in log2 C steps."""
+    steps = max(size, 1).bit_length() - 1
+    return 1 << steps, steps
+
+
+def exchange_partner(rank: int, size: int, step: int) -> int | None:
+    """The rank ``rank`` exchanges partials with at ``step`` of a butterfly over ``size``
+    ranks (-1: an extra rank's fold into the core; log2 C: the result back out), or None
+    where it has none at that step. The relation is symmetric."""
+    core, steps = butterfly(size)
+    if step in (-1, steps):
+        if rank >= core:
+            return rank - core
+        return rank + core if rank + core < size else None
+    if 0 <= step < steps and rank < core:
+        return rank ^ (1 << step)
+    return None
+
+
+def butterfly_steps(size: int) -> int:
+    """Message steps on an all-reduction's critical path over ``size`` ranks."""
+    core, steps = butterfly(size)
+    return steps + (2 if size > core else 0)
+
+
+#: Element-wise combiners of the reductions the schedulers need. Each is commutative bit for
+#: bit (IEEE addition included), so the two partners of a butterfly step, combining the same
+#: two partials in opposite order, hold identical arrays.
 COMBINE: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "max": np.maximum,
     "min": np.minimum,

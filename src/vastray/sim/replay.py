@@ -14,8 +14,9 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
 - ``domain`` (Navrátil's static schedule): tiles of ``tile`` paths in bulk-synchronous rounds;
   in a round a node traces every ray waiting for its domains, following rays that stay on
   its domains (one activation per domain and wave), ships the rest when it is done (a batch
-  per peer and kind), and the round ends with
-  an all-reduction over the tree of ranks (2 ceil(log2 P) message steps).
+  per peer and kind), and the round ends with an all-reduction over the butterfly of ranks
+  (``transport.tree.butterfly_steps``: log2 P message steps, two more where P is no power
+  of two).
 - ``dynamic`` (ray-weighted): rays start on the node that made them; each round the real
   ``RayWeightedRounds`` assigns domains from the summed ray counts and the holders, rays move
   to their domain's node, each node traces its assigned domains once (when the last batch
@@ -53,6 +54,7 @@ from vastray.schedule import registry
 from vastray.schedule.registry import Decomposition, Simulation
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, Crossings, ranges
+from vastray.transport.tree import butterfly_steps
 
 #: Paths in flight per tile, as the coordinator's default (``DEFAULT_NODE_TILE``).
 DEFAULT_TILE = 65536
@@ -271,12 +273,21 @@ class Replay:
         b = self.c.ray_bytes
         return radiance * float(b[0]) + (len(tokens) - radiance) * float(b[1]) + HEADER_BYTES
 
+    def _step_s(self, nbytes: float) -> float:
+        """One message step of a reduction: sent, on the wire, received."""
+        return (self.costs.message_s(nbytes) + self.network.wire_s(nbytes)
+                + self.costs.receive_s)
+
     def _allreduce_s(self, size: int, nbytes: float = 64.0) -> float:
-        """An all-reduction over the binary tree of ranks: ceil(log2 P) steps up, as many
-        down, each a message of ``nbytes``."""
+        """An all-reduction over the butterfly of ranks (``actors.tree_reduce``): its
+        ``butterfly_steps`` exchanges one after another, each a message of ``nbytes``."""
+        return butterfly_steps(size) * self._step_s(nbytes)
+
+    def _wave_s(self, size: int) -> float:
+        """A termination wave over the binary tree of ranks (``actors.tree_termination``):
+        ceil(log2 P) steps down and as many replies up."""
         levels = math.ceil(math.log2(size)) if size > 1 else 0
-        return 2 * levels * (self.costs.message_s(nbytes) + self.network.wire_s(nbytes)
-                             + self.costs.receive_s)
+        return 2 * levels * self._step_s(64.0)
 
     def _tiles(self, tokens: np.ndarray) -> list[np.ndarray]:
         """``tokens`` split by tile of paths, in tile order."""
@@ -753,7 +764,7 @@ class Replay:
             end = max(end, free_at[n])
             heapq.heappush(events, (free_at[n], n))
         ledger.counters["loads"] = sum(cache.loads for cache in caches)
-        waves = 2 * self._allreduce_s(size)  # termination: two waves over the tree
+        waves = 2 * self._wave_s(size)  # termination: two waves over the tree
         ledger.reduction += waves
         ledger.counters["rounds"] += 2
         return ledger, end + waves
