@@ -67,7 +67,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     ----------
     options : the job's options, sent whole to every node (default: ``JobOptions()``, the
         ``image`` schedule on sort-first tiles). Where they leave them unset, the tile
-        (``max_samples_in_flight``) is 65536 paths per node, and ``threads`` this machine's
+        (``max_samples_in_flight``) is 65536 paths (a sort-first node's own; a
+        domain-decomposition job's, shared by its nodes), and ``threads`` this machine's
         cores shared among the nodes started here (with ``listen``: each node's own cores).
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,

@@ -129,7 +129,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="out-of-core (image, spec-ooc) and every --nodes scheduler: paths "
                         "traced at once; bounds the rays held in memory (default: "
                         f"{DEFAULT_SAMPLES_IN_FLIGHT}; with --nodes, "
-                        f"{DEFAULT_NODE_SAMPLES_IN_FLIGHT} per node)")
+                        f"{DEFAULT_NODE_SAMPLES_IN_FLIGHT}: each node's own for image and "
+                        "spec-ooc, shared by the nodes for the domain-decomposition "
+                        "schedulers, whose nodes hold the rays waiting for their domains)")
     p.add_argument("--history-depth", **argument("history_depth"), metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")

@@ -41,8 +41,9 @@ from vastray.schedule.registry import (
 STORE_DEFAULTS = {"width": 320, "height": 240, "spp": 4, "bounces": 3, "shadow_samples": 16}
 BUILTIN_DEFAULTS = {"width": 640, "height": 480, "spp": 8, "bounces": 1, "shadow_samples": 2}
 
-#: Paths traced at once by the out-of-core schedulers in one process, and per node with
-#: ``--nodes`` (a quarter: every node on this machine holds its own).
+#: Paths traced at once by the out-of-core schedulers in one process, and with ``--nodes``
+#: a quarter of it (every node on this machine holds its own): a sort-first node's tile, or
+#: a domain-decomposition job's, shared by its nodes (``JobOptions.max_samples_in_flight``).
 DEFAULT_SAMPLES_IN_FLIGHT = 262144
 DEFAULT_NODE_SAMPLES_IN_FLIGHT = DEFAULT_SAMPLES_IN_FLIGHT // 4
 
