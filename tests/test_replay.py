@@ -132,6 +132,29 @@ def test_what_each_scheduler_synchronises_on(replay):
     assert replay.run("image", 8).counters["rounds"] == 0
 
 
+@pytest.mark.parametrize("nodes", [5, 8])
+def test_an_all_reduction_costs_its_butterfly_steps_and_the_tree_twice_its_height(store,
+                                                                                recorded,
+                                                                                nodes):
+    """Each all-reduction costs its critical path's message steps: log2 C on the butterfly
+    (two more where P is no power of two), 2 ceil(log2 P) on the first design's tree; the
+    termination waves of ``async`` stay on the tree."""
+    butterfly = replay_of(store, recorded[0], network=Network(latency_s=1e-3))
+    tree = replay_of(store, recorded[0], network=Network(latency_s=1e-3), reduction="tree")
+    step = butterfly._step_s(64.0)
+    assert butterfly._allreduce_s(nodes) == pytest.approx(
+        {5: 4, 8: 3}[nodes] * step, rel=1e-12)
+    assert tree._allreduce_s(nodes) == pytest.approx(2 * 3 * step, rel=1e-12)
+    for scheduler in ("domain", "dynamic", "spec-insitu"):
+        fast, slow = butterfly.run(scheduler, nodes), tree.run(scheduler, nodes)
+        assert fast.counters["rounds"] == slow.counters["rounds"] > 0
+        assert fast.breakdown["reduction"] < slow.breakdown["reduction"], scheduler
+        assert fast.seconds < slow.seconds, scheduler
+    assert butterfly.run("async", nodes).seconds == tree.run("async", nodes).seconds
+    with pytest.raises(ValueError, match="reduction must be one of butterfly, tree"):
+        replay_of(store, recorded[0], reduction="ring")
+
+
 def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
     fast = replay_of(store, recorded[0])
     slow = replay_of(store, recorded[0], network=Network(latency_s=5e-3, bandwidth=1e6))

@@ -54,6 +54,12 @@ def butterfly_steps(size: int) -> int:
     return steps + (2 if size > core else 0)
 
 
+def tree_steps(size: int) -> int:
+    """Message steps of a wave down the binary tree of ``size`` ranks and its answers back
+    up (a termination wave; the first design's all-reductions: reduce, then broadcast)."""
+    return 2 * ((size - 1).bit_length() if size > 1 else 0)
+
+
 #: Element-wise combiners of the reductions the schedulers need. Each is commutative bit for
 #: bit (IEEE addition included), so the two partners of a butterfly step, combining the same
 #: two partials in opposite order, hold identical arrays.

@@ -54,7 +54,7 @@ from vastray.schedule import registry
 from vastray.schedule.registry import Decomposition, Simulation
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, Crossings, ranges
-from vastray.transport.tree import butterfly_steps
+from vastray.transport.tree import butterfly_steps, tree_steps
 
 #: Paths in flight per tile, as the coordinator's default (``DEFAULT_NODE_TILE``).
 DEFAULT_TILE = 65536
@@ -180,6 +180,10 @@ class _Ledger:
                             time.perf_counter() - start)
 
 
+#: The all-reductions' patterns the replay charges: message steps on the critical path.
+REDUCTIONS = {"butterfly": butterfly_steps, "tree": tree_steps}
+
+
 class Replay:
     """One recorded frame, replayable under every scheduler of ``REPLAY_SCHEDULERS``.
 
@@ -199,6 +203,9 @@ class Replay:
     loads : (D,) read and (D,) build seconds of each domain's load, where measured
         (``sim.cache.Domains.load_seconds`` times ``CostModel.load_scale``, as the real-code
         simulator charges them); default: the constants (``read_s``, ``build_s``).
+    reduction : the all-reductions' pattern, a key of ``REDUCTIONS``: ``"butterfly"`` (the
+        product's) or ``"tree"`` (the first design's reduce and broadcast, for comparison:
+        ``bench/replay_variants.py``).
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
@@ -206,7 +213,13 @@ class Replay:
                  activations: ActivationCosts | None = None,
                  network: Network = Network(), storage_bandwidth: float | None = None,
                  tile: int = DEFAULT_TILE, own: dict[str, NodeOwnCosts] | None = None,
-                 loads: tuple[np.ndarray, np.ndarray] | None = None):
+                 loads: tuple[np.ndarray, np.ndarray] | None = None,
+                 reduction: str = "butterfly"):
+        if reduction not in REDUCTIONS:
+            raise ValueError(f"reduction must be one of {', '.join(REDUCTIONS)}, "
+                             f"not {reduction!r}")
+        #: message steps on an all-reduction's critical path over P nodes
+        self.reduction_steps = REDUCTIONS[reduction]
         self.c = crossings
         self.costs, self.network = costs, network
         #: each scheduler's ``NodeOwnCosts`` (none: charged as nothing)
@@ -279,15 +292,14 @@ class Replay:
                 + self.costs.receive_s)
 
     def _allreduce_s(self, size: int, nbytes: float = 64.0) -> float:
-        """An all-reduction over the butterfly of ranks (``actors.tree_reduce``): its
-        ``butterfly_steps`` exchanges one after another, each a message of ``nbytes``."""
-        return butterfly_steps(size) * self._step_s(nbytes)
+        """An all-reduction (``actors.tree_reduce``: over the butterfly of ranks, its
+        ``butterfly_steps`` exchanges one after another), each step a message of ``nbytes``."""
+        return self.reduction_steps(size) * self._step_s(nbytes)
 
     def _wave_s(self, size: int) -> float:
         """A termination wave over the binary tree of ranks (``actors.tree_termination``):
         ceil(log2 P) steps down and as many replies up."""
-        levels = math.ceil(math.log2(size)) if size > 1 else 0
-        return 2 * levels * self._step_s(64.0)
+        return tree_steps(size) * self._step_s(64.0)
 
     def _tiles(self, tokens: np.ndarray) -> list[np.ndarray]:
         """``tokens`` split by tile of paths, in tile order."""

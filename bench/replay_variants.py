@@ -1,0 +1,153 @@
+"""Two design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
+side on the same constants, recording and nodes in one run.
+
+    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 6 min)
+    python bench/replay_variants.py           # 2^20 paths, P = 1, 4, ... 1,024 (about 15 min)
+
+1. **All-reductions**: over the butterfly of ranks (recursive doubling, log2 P exchange steps:
+   the product's, ``actors/tree_reduce.py``) against the first design's reduce up the binary
+   tree and broadcast back down (2 ceil(log2 P) steps). Strong scaling of the frame
+   ``bench/simulate.py`` scales (cosmo 160³ in 1,439 domains, a node caching a quarter of
+   them, 200 MB/s storage); ``speedup_<P>_<reduction>=`` per scheduler that all-reduces.
+2. **The tile of the domain-decomposition schedulers**: the job's 65,536 paths (the
+   product's: every node starts 1/P of each tile) against 65,536 paths per node (the job's
+   tile P times larger: not the product's, whose nodes would then hold up to P times the
+   rays). Weak scaling at 4,096 paths a node; ``weak_<P>_<tile>=`` efficiencies T(1)/T(P).
+
+The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
+writes; else a quick calibration now); the nodes' own code is fitted first, as
+``bench/simulate.py`` does (about 100 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import replay_scaling as rs
+from bench_scenes import CACHE, cached_cosmo, cached_rm
+from simulate import SCALING_GRID, scaling_options
+
+from vastray.render.driver import shading_inputs
+from vastray.render.scene_config import SceneConfig
+from vastray.sim.cache import Domains
+from vastray.sim.calibrate import calibrate
+from vastray.sim.costs import CostModel
+from vastray.sim.replay import REDUCTIONS
+
+#: Schedulers whose frames make all-reductions (the others' times do not depend on them).
+REDUCING = ("domain", "dynamic", "spec-insitu")
+#: Domain-decomposition schedulers the tile applies to.
+TILED = ("domain", "dynamic", "spec-insitu", "async")
+JOB_TILE = 65536
+
+
+def constants(path: str | None) -> CostModel:
+    default = CACHE / "costs.json"
+    if path is None and not default.exists():
+        print("+ calibrate --quick (no .bench_cache/costs.json yet)", flush=True)
+        costs = calibrate(cached_rm(64, (3, 3, 2)).path, quick=True)
+        costs.save(default)
+        return costs
+    return CostModel.load(path or default)
+
+
+def strong_by_reduction(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{reduction: {scheduler: {P: seconds}}} of the strong-scaling frame."""
+    settings = rs.STRONG_QUICK if quick else rs.STRONG
+    crossings = rs.recording(store, settings)
+    times: dict = {}
+    for reduction in REDUCTIONS:
+        replay = rs.replay_of(store, crossings, costs.warm().with_cores(None),
+                              decisions=rs.scaling_decisions(store, settings),
+                              reduction=reduction)
+        jobs = [(s, n, rs.node_cache(len(store.domains), n)) for s in REDUCING for n in counts]
+        for (scheduler, nodes, _), result in zip(jobs, rs.replayed(replay, jobs), strict=True):
+            times.setdefault(reduction, {}).setdefault(scheduler, {})[nodes] = result.seconds
+            print(f"  {reduction:9s} {scheduler:11s} P={nodes:5d}: {result.seconds:8.4f} s "
+                  f"virtual ({result.counters['rounds']:,} synchronisations)", flush=True)
+    return times
+
+
+def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{tile name: {scheduler: {P: seconds}}} at ``WEAK_PATHS_PER_NODE`` paths a node."""
+    settings = rs.STRONG_QUICK if quick else rs.STRONG
+    base = rs.recording(store, settings)
+    own = costs.warm().with_cores(None)
+    fitted = rs.replay_of(store, base, own, decisions=rs.scaling_decisions(store, settings)
+                          ).activation
+    times: dict = {}
+    for nodes in counts:
+        paths = rs.WEAK_PATHS_PER_NODE * nodes
+        frame = (base.subset(base.n_paths // paths) if paths <= base.n_paths
+                 else base.repeated(-(-paths // base.n_paths)))
+        for name, tile in (("job", JOB_TILE), ("node", JOB_TILE * nodes)):
+            replay = rs.replay_of(store, frame, own, activations=fitted, tile=tile)
+            jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes)) for s in TILED]
+            for scheduler, result in zip(TILED, rs.replayed(replay, jobs), strict=True):
+                times.setdefault(name, {}).setdefault(scheduler, {})[nodes] = result.seconds
+                print(f"  tile per {name:4s} {scheduler:11s} P={nodes:5d} "
+                      f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
+                      f"({result.counters['rounds']:,} synchronisations)", flush=True)
+    return times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true",
+                        help="2^18 paths at 1, 64 and 1,024 nodes (default: 2^20 paths at "
+                             "every fourth power of two)")
+    parser.add_argument("--costs", metavar="FILE",
+                        help="the calibration to replay with (default: "
+                             ".bench_cache/costs.json, else a quick calibration now)")
+    args = parser.parse_args()
+    start = time.perf_counter()
+    costs = constants(args.costs)
+    store = cached_cosmo(160, SCALING_GRID)
+    domains = Domains(store, shading_inputs(store, SceneConfig(), rs.CHECK.integrator)[1])
+    try:
+        if costs.node_cpu_scale:
+            rs.own_costs_of(store, scaling_options, domains)
+    finally:
+        domains.close()
+    counts = (1, 64, 1024) if args.quick else rs.STRONG_NODES
+    print("\n1. all-reductions: strong scaling by replay, "
+          f"{(rs.STRONG_QUICK if args.quick else rs.STRONG).paths:,} paths, "
+          f"{len(store.domains)} domains:", flush=True)
+    strong = strong_by_reduction(store, costs, args.quick, counts)
+    print("\n| scheduler | all-reductions | " + " | ".join(f"P={n}" for n in counts[1:])
+          + " |")
+    print("| --- | --- |" + " --- |" * (len(counts) - 1))
+    for scheduler in REDUCING:
+        for reduction in REDUCTIONS:
+            t = strong[reduction][scheduler]
+            print(f"| {scheduler} | {reduction}{' (the product)' if reduction == 'butterfly' else ''}"
+                  " | " + " | ".join(f"{t[1] / t[n]:.2f}" for n in counts[1:]) + " |")
+    for reduction in REDUCTIONS:
+        for n in counts[1:]:
+            print(f"speedup_{n}_{reduction}=" + ",".join(
+                f"{s}:{strong[reduction][s][1] / strong[reduction][s][n]:.2f}"
+                for s in REDUCING))
+    weak_counts = (1, 64, 1024)
+    print(f"\n2. the tile: weak scaling by replay, {rs.WEAK_PATHS_PER_NODE:,} paths a node:",
+          flush=True)
+    weak = weak_by_tile(store, costs, args.quick, weak_counts)
+    print("\n| scheduler | tile | " + " | ".join(f"P={n}" for n in weak_counts[1:]) + " |")
+    print("| --- | --- |" + " --- |" * (len(weak_counts) - 1))
+    for scheduler in TILED:
+        for name in ("job", "node"):
+            t = weak[name][scheduler]
+            label = (f"{JOB_TILE:,} paths a job (the product)" if name == "job"
+                     else f"{JOB_TILE:,} paths a node")
+            print(f"| {scheduler} | {label} | "
+                  + " | ".join(f"{t[1] / t[n]:.2f}" for n in weak_counts[1:]) + " |")
+    for name in ("job", "node"):
+        for n in weak_counts[1:]:
+            print(f"weak_{n}_{name}=" + ",".join(
+                f"{s}:{weak[name][s][1] / weak[name][s][n]:.2f}" for s in TILED))
+    print(f"\n{time.perf_counter() - start:.0f} s in all")
+
+
+if __name__ == "__main__":
+    main()
