@@ -1,8 +1,8 @@
 """Two design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
-    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 6 min)
-    python bench/replay_variants.py           # 2^20 paths, P = 1, 4, ... 1,024 (about 15 min)
+    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 3 min)
+    python bench/replay_variants.py           # 2^20 paths, P = 1, 4, ... 1,024 (about 4 min)
 
 1. **All-reductions**: over the butterfly of ranks (recursive doubling, log2 P exchange steps:
    the product's, ``actors/tree_reduce.py``) against the first design's reduce up the binary
@@ -16,7 +16,7 @@ side on the same constants, recording and nodes in one run.
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
 writes; else a quick calibration now); the nodes' own code is fitted first, as
-``bench/simulate.py`` does (about 100 s).
+``bench/simulate.py`` does (about 75 s).
 """
 
 from __future__ import annotations
