@@ -66,11 +66,11 @@ class TreeReduceActor:
 
         Recursive doubling: at step s this node sends its partial to rank XOR 2^s, receives
         that node's, and combines the two; after log2 C steps every core rank holds the
-        combination of all. The two partners of a step combine the same two partials in
-        opposite order, and every combiner is commutative bit for bit (``COMBINE``), so
-        partners (and by induction all nodes) hold identical arrays: float sums too, whose
-        grouping differs from a serial sum's but is fixed by P. Ranks beyond C fold into
-        rank - C first and are sent the result last.
+        combination of all. The two partners of a step combine the same two partials in the
+        same order, the lower rank's first, so they (and by induction all nodes) hold
+        identical bits whatever the combiner: float sums, whose grouping differs from a serial
+        sum's but is fixed by P, and MAX or MIN of a +0.0 and a -0.0, which keep the first's
+        sign. Ranks beyond C fold into rank - C first and are sent the result last.
         """
         if set(arrays) != set(ops):
             raise ValueError(f"all-reduce: arrays {sorted(arrays)} and combiners {sorted(ops)} "
@@ -89,7 +89,10 @@ class TreeReduceActor:
             self.steps += 2
         for step in range(steps):
             await self._send(call, step, total)
-            total = _combined(total, await self._partial(call, step), ops)
+            theirs = await self._partial(call, step)
+            lower_first = self.rank < exchange_partner(self.rank, self.size, step)
+            total = (_combined(total, theirs, ops) if lower_first
+                     else _combined(theirs, total, ops))
         if folds:
             await self._send(call, steps, total)
         return total
@@ -112,6 +115,6 @@ class TreeReduceActor:
         return self._early_partials.pop((call, step))
 
 
-def _combined(total: dict[str, np.ndarray], theirs: dict[str, np.ndarray],
+def _combined(first: dict[str, np.ndarray], second: dict[str, np.ndarray],
               ops: dict[str, str]) -> dict[str, np.ndarray]:
-    return {name: COMBINE[op](total[name], theirs[name]) for name, op in ops.items()}
+    return {name: COMBINE[op](first[name], second[name]) for name, op in ops.items()}

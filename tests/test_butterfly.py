@@ -1,7 +1,8 @@
 """The all-reductions' butterfly (``transport.tree``, ``actors.tree_reduce``): every rank has
 one partner per step, the relation is symmetric and covers every rank; P nodes making several
 all-reductions in a row, their partials delivered in any order (a partner already in the
-next call), all end each call with the same arrays, bit for bit."""
+next call), all end each call with the same arrays, bit for bit (float sums and the signs of
+zeros included)."""
 
 from __future__ import annotations
 
@@ -90,9 +91,11 @@ def test_all_reductions_in_a_row_agree_bit_for_bit_whatever_the_delivery_order(s
     rng = random.Random(seed)
     data = np.random.default_rng(seed)
     values = [[{"sum": data.random(17) * 10.0 ** data.integers(-6, 6, 17),
-                "min": data.integers(0, 1 << 40, 5), "or": data.integers(0, 256, 3, np.uint8)}
+                "min": data.integers(0, 1 << 40, 5), "or": data.integers(0, 256, 3, np.uint8),
+                # signed zeros: MAX of +0.0 and -0.0 keeps the first operand's sign
+                "max": np.where(data.random(8) < 0.5, -0.0, 0.0)}
                for _ in range(size)] for _ in range(calls)]
-    ops = {"sum": "sum", "min": "min", "or": "or"}
+    ops = {"sum": "sum", "min": "min", "or": "or", "max": "max"}
 
     async def node(network, rank):
         actor = TreeReduceActor(network.management(rank), rank, size)

@@ -60,9 +60,10 @@ def tree_steps(size: int) -> int:
     return 2 * ((size - 1).bit_length() if size > 1 else 0)
 
 
-#: Element-wise combiners of the reductions the schedulers need. Each is commutative bit for
-#: bit (IEEE addition included), so the two partners of a butterfly step, combining the same
-#: two partials in opposite order, hold identical arrays.
+#: Element-wise combiners of the reductions the schedulers need. The two partners of a
+#: butterfly step apply them to the same two partials in the same order (the lower rank's
+#: first): MAX and MIN of +0.0 and -0.0 keep the first operand's sign, so the order, not
+#: commutativity, makes the partners' bits the same.
 COMBINE: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "max": np.maximum,
     "min": np.minimum,
