@@ -327,21 +327,32 @@ def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dic
     return times, breakdown
 
 
+def weak_setup(store, costs: CostModel, quick: bool):
+    """(recording, costs, activation costs) of the weak scaling: the strong frame's recording,
+    the costs warm with a core a node, and the activation costs fitted once for every size."""
+    settings = STRONG_QUICK if quick else STRONG
+    base = recording(store, settings)
+    own = costs.warm().with_cores(None)
+    fitted = replay_of(store, base, own, decisions=scaling_decisions(store, settings)).activation
+    return base, own, fitted
+
+
+def weak_frame(base: Crossings, nodes: int) -> Crossings:
+    """``WEAK_PATHS_PER_NODE`` paths a node on ``nodes`` nodes: an interleaved subset of
+    ``base``'s paths below its size, ``base`` repeated above it."""
+    paths = WEAK_PATHS_PER_NODE * nodes
+    return (base.subset(base.n_paths // paths) if paths <= base.n_paths
+            else base.repeated(-(-paths // base.n_paths)))
+
+
 def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
     """{scheduler: {P: seconds}} with ``WEAK_PATHS_PER_NODE`` paths per node."""
-    base = recording(store, STRONG_QUICK if quick else STRONG)
-    own = costs.warm().with_cores(None)
-    # one fit for every size
-    fitted = replay_of(store, base, own,
-                       decisions=scaling_decisions(store, STRONG_QUICK if quick else STRONG)
-                       ).activation
+    base, own, fitted = weak_setup(store, costs, quick)
     print(f"\nweak scaling by replay: {WEAK_PATHS_PER_NODE:,} paths per node, the same "
           "caches, storage and network:")
     times: dict = {}
     for nodes in node_counts:
-        paths = WEAK_PATHS_PER_NODE * nodes
-        frame = (base.subset(base.n_paths // paths) if paths <= base.n_paths
-                 else base.repeated(-(-paths // base.n_paths)))
+        frame = weak_frame(base, nodes)
         replay = replay_of(store, frame, own, activations=fitted)
         jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes))
                 for scheduler in REPLAY_SCHEDULERS]

@@ -33,13 +33,14 @@ from vastray.render.scene_config import SceneConfig
 from vastray.sim.cache import Domains
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
-from vastray.sim.replay import REDUCTIONS
+from vastray.sim.replay import DEFAULT_TILE, REDUCTIONS
 
 #: Schedulers whose frames make all-reductions (the others' times do not depend on them).
 REDUCING = ("domain", "dynamic", "spec-insitu")
 #: Domain-decomposition schedulers the tile applies to.
 TILED = ("domain", "dynamic", "spec-insitu", "async")
-JOB_TILE = 65536
+#: The product's tile: a domain-decomposition job's paths in flight.
+JOB_TILE = DEFAULT_TILE
 
 
 def constants(path: str | None) -> CostModel:
@@ -71,16 +72,10 @@ def strong_by_reduction(store, costs: CostModel, quick: bool, counts) -> dict:
 
 def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
     """{tile name: {scheduler: {P: seconds}}} at ``WEAK_PATHS_PER_NODE`` paths a node."""
-    settings = rs.STRONG_QUICK if quick else rs.STRONG
-    base = rs.recording(store, settings)
-    own = costs.warm().with_cores(None)
-    fitted = rs.replay_of(store, base, own, decisions=rs.scaling_decisions(store, settings)
-                          ).activation
+    base, own, fitted = rs.weak_setup(store, costs, quick)
     times: dict = {}
     for nodes in counts:
-        paths = rs.WEAK_PATHS_PER_NODE * nodes
-        frame = (base.subset(base.n_paths // paths) if paths <= base.n_paths
-                 else base.repeated(-(-paths // base.n_paths)))
+        frame = rs.weak_frame(base, nodes)
         for name, tile in (("job", JOB_TILE), ("node", JOB_TILE * nodes)):
             replay = rs.replay_of(store, frame, own, activations=fitted, tile=tile)
             jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes)) for s in TILED]
