@@ -23,7 +23,9 @@ asynchronous baseline of the temporal-coherence paper):
   computes the same schedule: keep loaded domains where they are wanted, hand the most-wanted
   unloaded domains to nodes whose domains are no longer needed; rays for a scheduled domain
   then move to its node, which traces them. Rays start where their camera rays were made (an
-  image-plane start). Neither round involves the coordinator.
+  image-plane start). The next tile comes in while the last one's rays thin out, so a tile's
+  last rounds are not paid alone (``actors.dynamic_frame``). Neither round involves the
+  coordinator.
 
 Within a node the rays follow the ``image`` schedule (``schedule.image``), so every ray visits
 the same domains in the same order as on one node: the image is the reference image.
@@ -37,6 +39,7 @@ import zlib
 import numpy as np
 
 from vastray.actors.async_frame import AsyncFrame
+from vastray.actors.dynamic_frame import DynamicFrame
 from vastray.actors.job_options import JobOptions
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import traffic_counters
@@ -46,7 +49,6 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.schedule import registry
-from vastray.schedule.dynamic import image_plane_start
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 from vastray.schedule.registry import Decomposition
@@ -96,21 +98,22 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             stats["shade_s"] += frame.shade_s
             stats["tiles_made"] = frame.made
             await finish_simplified(routing, tree, state, stats, rank, options.portal_memory)
-        for index, first in enumerate(range(0, total, tile) if mode.rounds else ()):
+        elif mode is Decomposition.RAY_WEIGHTED:
+            frame = DynamicFrame(node, setup, settings, owner, rank, size, tile, film, on_tile,
+                                 base=base)
+            await frame.run(tree)
+            stats["shade_s"] += frame.shade_s
+        for index, first in enumerate(range(0, total, tile)
+                                      if mode is Decomposition.ROUNDS else ()):
             ctx = path_context(setup.shading, settings, first, min(first + tile, total),
                                setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
                                    owner=owner, rank=rank)
             mine = interleaved_paths(len(ctx.pixel), rank, size)
-            if mode is Decomposition.RAY_WEIGHTED:
-                policy.owner = image_plane_start(len(store.domains), rank)
             node.begin_tile(base + index, policy)
             node.loop.start_tile(policy,
                                  camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
-            if mode is Decomposition.ROUNDS:
-                await node.rounds(policy, tree)
-            else:
-                await node.dynamic(policy, tree)
+            await node.rounds(policy, tree)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")
             film.add_paths(ctx.pixel, ctx.sample, policy.result, counted=mine)

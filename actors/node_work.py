@@ -1,7 +1,8 @@
 """A node's side of domain decomposition: the rays of its domains traced through the domain
 loop, its outboxes shipped through the ray post, batches from its peers delivered to their
-tile (or held for a later one), and the round protocols of ``domain`` and ``dynamic`` (each
-round ends with all-reductions over the butterfly of ranks, not through the coordinator)."""
+tile (or held for a later one), and the round protocol of ``domain`` (each round ends with an
+all-reduction over the butterfly of ranks, not through the coordinator; ``dynamic``'s rounds
+are ``actors.dynamic_frame``'s)."""
 
 from __future__ import annotations
 
@@ -12,16 +13,11 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.domain_loop import (
     DomainLoop,
-    ListOrder,
     ScheduleOrder,
-    traced_queries,
-    waiting_rays,
 )
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
-from vastray.scene.embree.launch import cpu_time
-from vastray.schedule.dynamic import RayWeightedRounds
 from vastray.schedule.soa import SoA, join_bound
 
 
@@ -61,13 +57,6 @@ class NodeWork:
         while not self.accept(policy, await self.management.receive(protocol.RAYS,
                                                                     "ray batch")):
             pass
-
-    async def receive_rays(self, policy, rays: int) -> None:
-        """Deliver batches of the current tile until ``rays`` rays have come."""
-        while rays > 0:
-            message = await self.management.receive(protocol.RAYS, "ray batch")
-            if self.accept(policy, message) and message.arrays:
-                rays -= len(message.arrays["domain"])
 
     async def drain(self, policy) -> None:
         """Send the outbox, then trace every local domain until no local ray waits, sending
@@ -155,44 +144,3 @@ class NodeWork:
                     outgoing.setdefault((node, name), []).append(
                         (np.full(len(rays), domain), rays))
         return [(key, join_bound(parts)) for key, parts in sorted(outgoing.items())]
-
-    async def dynamic(self, policy, tree) -> None:
-        """Ray-weighted rounds: every node computes the same round's schedule from two
-        vectors all-reduced over the tree (rays waiting per domain, summed; the lowest rank
-        holding each domain, ``schedule.dynamic.RayWeightedRounds.from_totals``), swaps rays,
-        and traces: one all-reduction a round, no coordinator message. A batch goes only
-        where rays go, and a node knows how many rays it will receive without asking: every
-        ray waiting for a domain the plan gives it, less its own (the summed counts less
-        its local ones). A second all-reduction of the batch counts, as this had before,
-        made every round two log P waves (at 2^20 paths the replay's ``dynamic`` peaked at
-        256 nodes, 1.57 s of its 4.22 s reductions)."""
-        size = tree.size
-        queues = {"radiance": policy.radiance, "shadow": policy.shadow}
-        n_domains = len(policy.radiance.counts())
-        policy_of_rounds = RayWeightedRounds()
-        while True:
-            with self.loop.bookkeeping():
-                wanted = sum(q.counts().astype(np.int64) for q in queues.values())
-                holder = np.full(n_domains, size, np.int64)
-                holder[sorted(self.preloader.resident())] = self.rank
-            start = time.perf_counter()
-            totals = await tree.allreduce({"wanted": wanted, "holder": holder},
-                                          {"wanted": "sum", "holder": "min"})
-            self.stats["global_barriers"] = self.stats.get("global_barriers", 0) + 1
-            cpu = cpu_time()
-            plan = policy_of_rounds.from_totals(totals["wanted"], totals["holder"], size)
-            await self.loop.decided(cpu_time() - cpu)
-            if plan.finished:
-                return
-            with self.loop.bookkeeping():
-                outgoing = self._outgoing(queues, plan.assign)
-            for (node, name), (domains, rays) in outgoing:
-                await self.post.send(node, name, {"tile": self.tile}, domains, rays)
-            mine = np.array([d for d, p in plan.assign.items() if p == self.rank], np.int64)
-            await self.receive_rays(policy, int(totals["wanted"][mine].sum()
-                                                - wanted[mine].sum()))
-            self.stats["wait_s"] += time.perf_counter() - start
-            self.stats["rounds"] += 1
-            await self.loop.run(ListOrder(mine.tolist(),
-                                          lambda d, bvh: traced_queries(policy, d, bvh),
-                                          rays=lambda d: waiting_rays(policy, d)))

@@ -1,4 +1,4 @@
-"""Two design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
+"""Three design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
     python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 3 min)
@@ -13,6 +13,11 @@ side on the same constants, recording and nodes in one run.
    product's: every node starts 1/P of each tile) against 65,536 paths per node (the job's
    tile P times larger: not the product's, whose nodes would then hold up to P times the
    rays). Weak scaling at 4,096 paths a node; ``weak_<P>_<tile>=`` efficiencies T(1)/T(P).
+3. **``dynamic``'s tiles in flight**: the next tile taken in while the last one's rays thin
+   out, up to two tiles (the product's, ``actors/dynamic_frame.py``) against one tile at a
+   time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
+   the virtual seconds by P, ``dynamic_speedup_<tiles>=`` T(1)/T(P), each side against its
+   own T(1).
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
 writes; else a quick calibration now); the nodes' own code is fitted first, as
@@ -67,6 +72,31 @@ def strong_by_reduction(store, costs: CostModel, quick: bool, counts) -> dict:
             times.setdefault(reduction, {}).setdefault(scheduler, {})[nodes] = result.seconds
             print(f"  {reduction:9s} {scheduler:11s} P={nodes:5d}: {result.seconds:8.4f} s "
                   f"virtual ({result.counters['rounds']:,} synchronisations)", flush=True)
+    return times
+
+
+def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{tiles in flight: {P: (seconds, all-reductions)}} of ``dynamic`` in the strong-scaling
+    frame (``dynamic_frame.MAX_TILES``, set before the replays are forked)."""
+    from vastray.actors import dynamic_frame
+
+    settings = rs.STRONG_QUICK if quick else rs.STRONG
+    crossings = rs.recording(store, settings)
+    product = dynamic_frame.MAX_TILES
+    times: dict = {}
+    try:
+        for tiles in (product, 1):
+            dynamic_frame.MAX_TILES = tiles
+            replay = rs.replay_of(store, crossings, costs.warm().with_cores(None),
+                                  decisions=rs.scaling_decisions(store, settings))
+            jobs = [("dynamic", n, rs.node_cache(len(store.domains), n)) for n in counts]
+            for (_, nodes, _), result in zip(jobs, rs.replayed(replay, jobs), strict=True):
+                times.setdefault(tiles, {})[nodes] = (result.seconds, result.counters["rounds"])
+                print(f"  dynamic, {tiles} tile(s) in flight, P={nodes:5d}: "
+                      f"{result.seconds:8.4f} s virtual ({result.counters['rounds']:,} "
+                      "all-reductions)", flush=True)
+    finally:
+        dynamic_frame.MAX_TILES = product
     return times
 
 
@@ -141,6 +171,21 @@ def main() -> None:
         for n in weak_counts[1:]:
             print(f"weak_{n}_{name}=" + ",".join(
                 f"{s}:{weak[name][s][1] / weak[name][s][n]:.2f}" for s in TILED))
+    print("\n3. dynamic's tiles in flight: strong scaling by replay, the frame of 1.:",
+          flush=True)
+    by_tiles = dynamic_by_tiles(store, costs, args.quick, counts)
+    print("\n| tiles in flight | " + " | ".join(f"P={n}" for n in counts) + " |")
+    print("| --- |" + " --- |" * len(counts))
+    for tiles, t in by_tiles.items():
+        label = f"{tiles} (the product)" if tiles > 1 else "1 (before session 41)"
+        print(f"| {label}: seconds (all-reductions) | "
+              + " | ".join(f"{t[n][0]:.3f} ({t[n][1]:,})" for n in counts) + " |")
+        print(f"| {label}: speed-up | "
+              + " | ".join(f"{t[1][0] / t[n][0]:.2f}" for n in counts) + " |")
+    for tiles, t in by_tiles.items():
+        print(f"dynamic_seconds_{tiles}=" + ",".join(f"{n}:{t[n][0]:.3f}" for n in counts))
+        print(f"dynamic_speedup_{tiles}=" + ",".join(f"{n}:{t[1][0] / t[n][0]:.2f}"
+                                                  for n in counts))
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 
 

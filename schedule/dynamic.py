@@ -6,7 +6,7 @@ has loaded.
 A pure policy: it sees numbers, never sockets. Every node all-reduces two vectors over the
 tree of ranks (rays waiting per domain, summed; the lowest rank holding each domain) and asks
 ``RayWeightedRounds.from_totals`` for the round's assignment, so every node computes the same
-one with no coordinator (``actors.node_work.NodeWork.dynamic``); each node then swaps rays so
+one with no coordinator (``actors.dynamic_frame.DynamicFrame``); each node then swaps rays so
 that every domain's rays are on the node it was assigned to, and traces them there.
 """
 

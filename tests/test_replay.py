@@ -132,6 +132,26 @@ def test_what_each_scheduler_synchronises_on(replay):
     assert replay.run("image", 8).counters["rounds"] == 0
 
 
+def test_dynamic_takes_the_next_tile_in_while_the_last_ones_rays_thin_out(store, recorded,
+                                                                          monkeypatch):
+    """As the nodes' ``DynamicFrame``: a round whose rays waiting were under a tile's paths
+    takes the next tile in at its end, so fewer all-reductions find only a tile's stragglers;
+    one tile at a time (``MAX_TILES`` 1) is the schedule before it."""
+    from vastray.actors import dynamic_frame
+
+    replay = replay_of(store, recorded[0])
+    monkeypatch.setattr(dynamic_frame, "MAX_TILES", 1)
+    alone = {n: replay.run("dynamic", n) for n in (1, 4, 8)}
+    monkeypatch.setattr(dynamic_frame, "MAX_TILES", 2)
+    pipelined = {n: replay.run("dynamic", n) for n in (1, 4, 8)}
+    for n in (4, 8):
+        assert pipelined[n].counters["rounds"] < alone[n].counters["rounds"], n
+        assert pipelined[n].seconds < alone[n].seconds, n
+    for n in (1, 4, 8):  # the same rays traced, whatever the order
+        assert pipelined[n].counters["activations"] > 0
+        assert pipelined[n].counters["traced"] == alone[n].counters["traced"], n
+
+
 @pytest.mark.parametrize("nodes", [5, 8])
 def test_an_all_reduction_costs_its_butterfly_steps_and_the_tree_twice_its_height(store,
                                                                                 recorded,

@@ -167,8 +167,8 @@ def charged_on_a_ticking_clock(monkeypatch, seconds_at) -> dict[float, float]:
     """``seconds_at(scale)`` for scales 1 and 2, each run with every CPU clock a simulation
     reads (``launch.cpu_time`` where each module imported it) ticking 1 ms a reading."""
     import vastray.actors.domain_loop
+    import vastray.actors.dynamic_frame
     import vastray.actors.insitu
-    import vastray.actors.node_work
     import vastray.sim.crossings
     import vastray.sim.meter
     import vastray.sim.node
@@ -177,7 +177,7 @@ def charged_on_a_ticking_clock(monkeypatch, seconds_at) -> dict[float, float]:
     for scale in (1.0, 2.0):
         readings = itertools.count(1)
         for module in (vastray.actors.domain_loop, vastray.actors.insitu,
-                       vastray.actors.node_work, vastray.sim.crossings, vastray.sim.node,
+                       vastray.actors.dynamic_frame, vastray.sim.crossings, vastray.sim.node,
                        vastray.sim.meter):
             monkeypatch.setattr(module, "cpu_time", lambda r=readings: next(r) * 1e-3)
         charged[scale] = seconds_at(scale)

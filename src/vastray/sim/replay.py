@@ -20,7 +20,9 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
 - ``dynamic`` (ray-weighted): rays start on the node that made them; each round the real
   ``RayWeightedRounds`` assigns domains from the summed ray counts and the holders, rays move
   to their domain's node, each node traces its assigned domains once (when the last batch
-  for it is sent); one all-reduction a round.
+  for it is sent); one all-reduction a round. A round whose rays waiting were under one
+  tile's paths takes the next tile in at its end (at most two tiles in flight), as the
+  nodes' ``DynamicFrame`` does.
 - ``async`` (Galaxy): no rounds; each node, whenever free, injects its share of the next tile
   if fewer than ``tile`` rays wait there, else traces its fullest domain (cached first) and
   ships what that produced; messages arrive after their network time; the frame ends with
@@ -460,46 +462,74 @@ class Replay:
         return ledger, clock
 
     def _dynamic(self, size: int, cache: int) -> tuple[_Ledger, float]:
-        """``dynamic``: ray-weighted rounds (see the module docstring)."""
+        """``dynamic``: ray-weighted rounds, the next tile taken in at the end of a round whose
+        all-reduced rays waiting were under one tile's paths, at most ``MAX_TILES`` tiles in
+        flight (``actors.dynamic_frame``; see the module docstring)."""
+        from vastray.actors import dynamic_frame
+        from vastray.actors.dynamic_frame import takes_next_tile
         from vastray.schedule.dynamic import RayWeightedRounds
 
         policy = RayWeightedRounds()
         ledger, caches = _Ledger(size), [_Lru(cache, self.n_domains) for _ in range(size)]
         clock = 0.0
-        vector_bytes = 16.0 * self.n_domains
-        for tile in self._tiles(self.camera_visits):
-            tokens = self.camera_visits[tile]
-            at = (self.path_of[tokens] % self.tile) % size
-            busy = np.full(size, self._camera_s(len(tokens) / size))
-            while True:
-                domain = self.domain_of[tokens]
-                wanted = np.bincount(domain, minlength=self.n_domains)
-                holder = np.full(self.n_domains, size, np.int64)
-                for n in range(size - 1, -1, -1):  # the lowest rank holding each
-                    if caches[n].held:
-                        holder[list(caches[n].held)] = n
-                plan = policy.from_totals(wanted, holder, size)
-                clock += self._round_end(ledger, busy, vector_bytes)
-                if plan.finished:
+        tiles = self._tiles(self.camera_visits)
+        live: list[int] = []  # tiles in flight, in order
+        tokens, at = np.empty(0, np.int64), np.empty(0, np.int64)
+        busy = np.zeros(size)
+
+        def take_in() -> None:
+            nonlocal tokens, at
+            index = taken[0]
+            taken[0] += 1
+            live.append(index)
+            fresh = self.camera_visits[tiles[index]]
+            tokens = np.concatenate([tokens, fresh])
+            at = np.concatenate([at, (self.path_of[fresh] % self.tile) % size])
+            busy[:] += self._camera_s(len(fresh) / size)
+
+        taken = [0]  # the next tile to take in
+        take_in()
+        while True:
+            domain = self.domain_of[tokens]
+            wanted = np.bincount(domain, minlength=self.n_domains)
+            holder = np.full(self.n_domains, size, np.int64)
+            for n in range(size - 1, -1, -1):  # the lowest rank holding each
+                if caches[n].held:
+                    holder[list(caches[n].held)] = n
+            plan = policy.from_totals(wanted, holder, size)
+            # the all-reduction: wanted and holders a domain, the rays waiting a tile in flight
+            clock += self._round_end(ledger, busy, 16.0 * self.n_domains + 8.0 * len(live))
+            waiting = np.bincount(self.path_of[tokens] // self.tile,
+                                  minlength=max(live) + 1 if live else 0)
+            while live and not waiting[live[0]]:  # retire, in tile order
+                live.pop(0)
+            take = (taken[0] < len(tiles) and len(live) < dynamic_frame.MAX_TILES
+                    and takes_next_tile(wanted, holder, size, self.tile))
+            busy = np.zeros(size)
+            if plan.finished:
+                if not take:
                     break
-                busy = np.zeros(size)
-                target = np.full(self.n_domains, -1, np.int64)
-                if plan.assign:
-                    target[list(plan.assign)] = list(plan.assign.values())
-                go = target[domain] >= 0
-                # the swap: a node knows what it receives from the summed counts, so the
-                # round's one all-reduction is the next round's (``NodeWork.dynamic``)
-                source, destination = at[go], target[domain[go]]
-                busy += self._ship(ledger, source, destination, tokens[go])
-                # a node traces once the last batch for it is sent
-                np.maximum.at(busy, destination, busy[source])
-                traced = tokens[go]
-                where = target[domain[go]]
-                busy += self._activations(ledger, caches, where, traced, offload=True)
-                nxt = self.successors(traced)
-                nxt_at = np.repeat(where, self.succ_first[traced + 1] - self.succ_first[traced])
-                tokens = np.concatenate([tokens[~go], nxt])
-                at = np.concatenate([at[~go], nxt_at])
+                take_in()
+                continue
+            target = np.full(self.n_domains, -1, np.int64)
+            if plan.assign:
+                target[list(plan.assign)] = list(plan.assign.values())
+            go = target[domain] >= 0
+            # the swap: a node knows what it receives from the summed counts, so the
+            # round's one all-reduction is the next round's (``DynamicFrame.run``)
+            source, destination = at[go], target[domain[go]]
+            busy += self._ship(ledger, source, destination, tokens[go])
+            # a node traces once the last batch for it is sent
+            np.maximum.at(busy, destination, busy[source])
+            traced = tokens[go]
+            where = target[domain[go]]
+            busy += self._activations(ledger, caches, where, traced, offload=True)
+            nxt = self.successors(traced)
+            nxt_at = np.repeat(where, self.succ_first[traced + 1] - self.succ_first[traced])
+            tokens = np.concatenate([tokens[~go], nxt])
+            at = np.concatenate([at[~go], nxt_at])
+            if take:
+                take_in()
         return ledger, clock
 
     def _insitu(self, size: int) -> tuple[_Ledger, float]:
