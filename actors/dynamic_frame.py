@@ -13,8 +13,9 @@ plan gives it, less its own. No coordinator message, one all-reduction a round.
 a few rays each, cost a whole all-reduction (log2 P exchange steps) while the next tile
 waited: at 2^20 paths on 1,024 virtual nodes the replay counted 235 rounds for 16 tiles, and
 ``dynamic``'s speed-up peaked at 256 nodes. Now, once the all-reduced rays waiting fall under
-one tile's paths (``tile``) and fewer than ``MAX_TILES`` tiles are in flight, every node takes
-in the next tile at the end of that round: it makes the camera rays of its share (every P-th
+an eighth of a tile's paths and none waits for a domain no node holds (``takes_next_tile``),
+and fewer than ``MAX_TILES`` tiles are in flight, every node takes in the next tile at the end
+of that round: it makes the camera rays of its share (every P-th
 path) and queues them where they were made (an image-plane start); they are counted in the
 next all-reduction and move from then on. The decision is made from the all-reduced totals,
 so every node makes it in the same round, and a tile's batches never reach a node that has
@@ -25,7 +26,7 @@ lost light). A tile retires into the film once none of its rays waits anywhere (
 all-reduced count is 0), in tile order, so the film adds tiles in the order one process does.
 
 Memory: a node holds at most ``MAX_TILES`` tiles' path state, and the rays waiting stay under
-about two tiles' worth (the next tile comes in under one tile's rays).
+about a tile and an eighth (the next tile comes in under an eighth of one).
 """
 
 from __future__ import annotations
@@ -46,18 +47,28 @@ from vastray.schedule.ownership import interleaved_paths
 
 #: Tiles a node holds path state for at once: the one finishing and the next.
 MAX_TILES = 2
+#: The next tile comes in once fewer than a tile's paths over this many rays wait, over all
+#: nodes (``takes_next_tile``).
+TAKE_IN_BELOW = 8
 
 
 def takes_next_tile(wanted: np.ndarray, holder: np.ndarray, size: int, tile: int) -> bool:
     """Whether a round takes the next tile in (where one is left and fewer than ``MAX_TILES``
     are in flight), from its all-reduced totals: (D,) ``wanted``, the rays waiting per domain,
-    and (D,) ``holder``, the lowest rank holding each (``size``: none). Under one tile's rays
-    waiting, unless some wait for a domain no node holds: those get a node only once a node
-    has no wanted domain of its own (``RayWeightedRounds``'s rule 3), and a new tile's rays
-        keep the held domains wanted, so they would wait until it drained (replayed on 4 x 3 x 2
-    domains, 2 nodes: 96 all-reductions one tile at a time, 122 with the tile taken in
-    regardless, 88 with this rule)."""
-    if int(wanted.sum()) >= tile:
+    and (D,) ``holder``, the lowest rank holding each (``size``: none). Under
+    1 / ``TAKE_IN_BELOW`` of a tile's rays waiting, and none for a domain no node holds.
+
+    Why so few: a wanted domain no node holds gets a node only once some node has no wanted
+    domain of its own (``RayWeightedRounds``'s rule 3), and a new tile's rays keep the nodes'
+    domains wanted, so the old tile's rays for such domains wait until the new tile drains.
+    Taken in under a whole tile's rays, the replayed frame of ``bench/simulate.py --quick``
+    (2^18 paths, 1,439 domains) took 2.63 -> 5.25 s on 64 nodes and 1.60 -> 2.08 s on 256
+    (180 -> 347 and 86 -> 100 all-reductions) while 1,024 nodes gained (1.33 -> 1.12 s);
+    under an eighth, no node count lost more than 0.6 % and 1,024 nodes gained 6 % (2^18)
+    and 19 % (2^20). Rays waiting for an unheld domain as the tile would come in starve the
+    same way (on 4 x 3 x 2 domains and 2 nodes, 96 all-reductions one tile at a time, 122 with
+    the tile always taken in under a tile's rays, 88 with this check)."""
+    if int(wanted.sum()) >= max(1, tile // TAKE_IN_BELOW):
         return False
     return not bool(wanted[holder >= size].any())
 

@@ -56,7 +56,8 @@ class Decomposition(Enum):
 
     #: Navrátil's static domain schedule: tiles traced in bulk-synchronous rounds.
     ROUNDS = "static ownership, bulk-synchronous rounds"
-    #: Navrátil's dynamic schedule: tiles traced in ray-weighted rounds re-assigning domains.
+    #: Navrátil's dynamic schedule: ray-weighted rounds re-assigning domains, the next tile
+    #: taken in while the last one's rays thin out.
     RAY_WEIGHTED = "ray-weighted rounds re-assigning domains"
     #: Galaxy: no global rounds, credit-based injection, termination detection per frame.
     ASYNC = "owned domains, no global rounds"
@@ -66,8 +67,10 @@ class Decomposition(Enum):
 
     @property
     def rounds(self) -> bool:
-        """Each tile is traced in rounds over the tree of ranks (else the whole frame runs
-        without rounds, as one ``AsyncFrame`` or ``TemporalFrame``)."""
+        """Rays move in rounds that end with all-reductions over the butterfly of ranks
+        (``domain``: each tile's rounds in turn; ``dynamic``: the frame's, two tiles
+        overlapping, ``DynamicFrame``); else the whole frame runs without rounds, as one
+        ``AsyncFrame`` or ``TemporalFrame``."""
         return self in (Decomposition.ROUNDS, Decomposition.RAY_WEIGHTED)
 
 

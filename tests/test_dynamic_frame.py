@@ -69,16 +69,17 @@ def test_the_next_tile_comes_in_early_and_saves_all_reductions(store, domains, n
     assert two["rounds"] <= one["rounds"]
 
 
-def test_the_next_tile_comes_in_under_a_tiles_rays_unless_some_wait_for_an_unheld_domain():
+def test_the_next_tile_comes_in_under_an_eighth_of_a_tile_unless_rays_wait_for_an_unheld_domain():
     holder = np.array([0, 1, 2, 0])  # 3 nodes; every domain held
-    assert dynamic_frame.takes_next_tile(np.array([10, 0, 5, 0]), holder, 3, tile=16)
-    assert not dynamic_frame.takes_next_tile(np.array([10, 0, 6, 0]), holder, 3, tile=16)
+    below = dynamic_frame.TAKE_IN_BELOW
+    assert dynamic_frame.takes_next_tile(np.array([0, 0, 1, 0]), holder, 3, tile=2 * below)
+    assert not dynamic_frame.takes_next_tile(np.array([1, 0, 1, 0]), holder, 3, tile=2 * below)
+    assert dynamic_frame.takes_next_tile(np.zeros(4, np.int64), holder, 3, tile=1)
     # rays wait for domain 3, which no node holds: rule 3 gives it a node only once some
     # node has no wanted domain, which a new tile's rays would put off
     unheld = np.array([0, 1, 2, 3])
-    assert not dynamic_frame.takes_next_tile(np.array([1, 0, 0, 1]), unheld, 3, tile=16)
-    assert dynamic_frame.takes_next_tile(np.array([1, 0, 0, 0]), unheld, 3, tile=16)
-    assert dynamic_frame.takes_next_tile(np.zeros(4, np.int64), unheld, 3, tile=16)
+    assert not dynamic_frame.takes_next_tile(np.array([0, 0, 0, 1]), unheld, 3, tile=64 * below)
+    assert dynamic_frame.takes_next_tile(np.array([1, 0, 0, 0]), unheld, 3, tile=64 * below)
 
 
 def test_a_tile_comes_in_only_under_one_tiles_rays_waiting(store, domains, monkeypatch):
