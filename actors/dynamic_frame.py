@@ -44,6 +44,7 @@ from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.dynamic import RayWeightedRounds, image_plane_start
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths
+from vastray.schedule.soa import SoA, join_bound
 
 #: Tiles a node holds path state for at once: the one finishing and the next.
 MAX_TILES = 2
@@ -83,8 +84,8 @@ class DynamicFrame:
     owner : (D,) the static owner of each domain (the policies' default; rays start where
         they are made).
     rank, size : this node and the nodes.
-    tile : paths per tile; also the rays waiting, over all nodes, under which the next tile
-        is taken in.
+    tile : paths per tile (the next one comes in under an eighth of it waiting, over all
+        nodes: ``takes_next_tile``).
     film : this node's partial film, fed as tiles retire.
     on_tile : hears of the paths this node started, as each tile retires.
     base : label of the frame's first tile (labels are unique over the frames of a job).
@@ -168,6 +169,22 @@ class DynamicFrame:
     def rays(self, domain: int) -> int:
         return sum(waiting_rays(policy, domain) for policy, _ in self.live.values())
 
+    def _outgoing(self, queues: dict, assign: dict[int, int]
+                  ) -> list[tuple[tuple[int, str], tuple[np.ndarray, SoA]]]:
+        """The rays a round's plan (``assign``: domain -> node) sends away, taken out of
+        ``queues`` (queue name -> ``DomainQueues``): ((node, queue name), (domains (m,),
+        rays (m,))) per destination and queue, in order."""
+        outgoing: dict[tuple[int, str], list] = {}
+        for domain, node in assign.items():
+            if node == self.rank:
+                continue
+            for name, q in queues.items():
+                rays = q.pop(domain)
+                if rays is not None:
+                    outgoing.setdefault((node, name), []).append(
+                        (np.full(len(rays), domain), rays))
+        return [(key, join_bound(parts)) for key, parts in sorted(outgoing.items())]
+
     async def run(self, tree) -> None:
         """The frame's rounds, until every tile has retired."""
         node, size, stats = self.node, self.size, self.node.stats
@@ -204,7 +221,7 @@ class DynamicFrame:
                     stats.get("rounds_with_tiles_overlapping", 0) + 1)
             for index, (policy, _) in list(self.live.items()):
                 with node.loop.bookkeeping():
-                    outgoing = node._outgoing({"radiance": policy.radiance,
+                    outgoing = self._outgoing({"radiance": policy.radiance,
                                                "shadow": policy.shadow}, plan.assign)
                 for (peer, name), (domains, rays) in outgoing:
                     await node.post.send(peer, name, {"tile": self.base + index}, domains, rays)

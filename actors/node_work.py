@@ -18,7 +18,7 @@ from vastray.actors.domain_loop import (
 from vastray.actors.job_options import DEFAULT_MAX_BATCH_RAYS
 from vastray.actors.preloader import DomainPreloader
 from vastray.actors.ray_post import RayPost
-from vastray.schedule.soa import SoA, join_bound
+from vastray.schedule.soa import SoA
 
 
 class NodeWork:
@@ -128,19 +128,3 @@ class NodeWork:
             for _ in range(int(total[self.rank])):
                 await self.receive_batch(policy)
             self.stats["wait_s"] += time.perf_counter() - start
-
-    def _outgoing(self, queues: dict, assign: dict[int, int]
-                  ) -> list[tuple[tuple[int, str], tuple[np.ndarray, SoA]]]:
-        """The rays a round's plan (``assign``: domain -> node) sends away, taken out of
-        ``queues`` (queue name -> ``DomainQueues``): ((node, queue name), (domains (m,),
-        rays (m,))) per destination and queue, in order."""
-        outgoing: dict[tuple[int, str], list] = {}
-        for domain, node in assign.items():
-            if node == self.rank:
-                continue
-            for name, q in queues.items():
-                rays = q.pop(domain)
-                if rays is not None:
-                    outgoing.setdefault((node, name), []).append(
-                        (np.full(len(rays), domain), rays))
-        return [(key, join_bound(parts)) for key, parts in sorted(outgoing.items())]
