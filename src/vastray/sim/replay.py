@@ -20,9 +20,9 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
 - ``dynamic`` (ray-weighted): rays start on the node that made them; each round the real
   ``RayWeightedRounds`` assigns domains from the summed ray counts and the holders, rays move
   to their domain's node, each node traces its assigned domains once (when the last batch
-  for it is sent); one all-reduction a round. A round whose rays waiting were under one
-  tile's paths takes the next tile in at its end (at most two tiles in flight), as the
-  nodes' ``DynamicFrame`` does.
+  for it is sent); one all-reduction a round. A round whose rays waiting were under an eighth
+  of a tile's paths, none for a domain no node holds, takes the next tile in at its end (at
+  most two tiles in flight), as the nodes' ``DynamicFrame`` does (``takes_next_tile``).
 - ``async`` (Galaxy): no rounds; each node, whenever free, injects its share of the next tile
   if fewer than ``tile`` rays wait there, else traces its fullest domain (cached first) and
   ships what that produced; messages arrive after their network time; the frame ends with
@@ -463,8 +463,8 @@ class Replay:
 
     def _dynamic(self, size: int, cache: int) -> tuple[_Ledger, float]:
         """``dynamic``: ray-weighted rounds, the next tile taken in at the end of a round whose
-        all-reduced rays waiting were under one tile's paths, at most ``MAX_TILES`` tiles in
-        flight (``actors.dynamic_frame``; see the module docstring)."""
+        all-reduced totals let it (``takes_next_tile``), at most ``MAX_TILES`` tiles in flight
+        (``actors.dynamic_frame``; see the module docstring)."""
         from vastray.actors import dynamic_frame
         from vastray.actors.dynamic_frame import takes_next_tile
         from vastray.schedule.dynamic import RayWeightedRounds
@@ -476,6 +476,7 @@ class Replay:
         live: list[int] = []  # tiles in flight, in order
         tokens, at = np.empty(0, np.int64), np.empty(0, np.int64)
         busy = np.zeros(size)
+        taken = [0]  # the next tile to take in
 
         def take_in() -> None:
             nonlocal tokens, at
@@ -487,7 +488,6 @@ class Replay:
             at = np.concatenate([at, (self.path_of[fresh] % self.tile) % size])
             busy[:] += self._camera_s(len(fresh) / size)
 
-        taken = [0]  # the next tile to take in
         take_in()
         while True:
             domain = self.domain_of[tokens]
