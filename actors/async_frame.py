@@ -16,10 +16,9 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import Queries, traced_queries
+from vastray.actors.domain_loop import Queries, traced_tiles
 from vastray.actors.node_work import NodeWork
 from vastray.actors.tree_termination import TreeTermination
-from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.schedule.galaxy import GalaxyPolicy
@@ -73,14 +72,8 @@ class AsyncFrame:
         """The tile's policy, made on demand (rays carry their state; the policy only the
         tile's path keys and the partial radiance gathered here)."""
         if tile not in self.policies:
-            first = tile * self.tile
-            ctx = path_context(self.setup.shading, self.settings, first,
-                               min(first + self.tile, self.setup.total_paths),
-                               self.setup.ao_distance)
-            self.policies[tile] = ImageSchedule(ctx, self.setup.geometry,
-                                                self.setup.color_source,
-                                                self.setup.scalar_range, owner=self.owner,
-                                                rank=self.rank, simple=self.simple)
+            self.policies[tile] = self.setup.tile_schedule(
+                self.settings, tile * self.tile, self.tile, self.owner, self.rank, self.simple)
             self.made += 1
         return self.policies[tile]
 
@@ -151,9 +144,7 @@ class AsyncFrame:
 
     def trace(self, domain: int, bvh) -> Queries:
         """Trace the domain's rays of every tile that has rays for it."""
-        waiting = [policy for policy in self.policies.values()
-                   if policy.radiance.count(domain) or policy.shadow.count(domain)]
-        return sum((traced_queries(policy, domain, bvh) for policy in waiting), Queries())
+        return traced_tiles(self.policies.values(), domain, bvh)
 
     async def step(self) -> bool:
         """Trace the chosen local domain for every tile that has rays for it, then ship;

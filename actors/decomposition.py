@@ -45,11 +45,9 @@ from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import traffic_counters
 from vastray.actors.render_setup import RenderSetup
 from vastray.actors.simplified_frames import finish_simplified, simplified_routing
-from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.schedule import registry
-from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 from vastray.schedule.registry import Decomposition
 
@@ -105,10 +103,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             stats["shade_s"] += frame.shade_s
         for index, first in enumerate(range(0, total, tile)
                                       if mode is Decomposition.ROUNDS else ()):
-            ctx = path_context(setup.shading, settings, first, min(first + tile, total),
-                               setup.ao_distance)
-            policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
-                                   owner=owner, rank=rank)
+            policy = setup.tile_schedule(settings, first, tile, owner, rank)
+            ctx = policy.ctx
             mine = interleaved_paths(len(ctx.pixel), rank, size)
             node.begin_tile(base + index, policy)
             node.loop.start_tile(policy,

@@ -355,6 +355,13 @@ def waiting_rays(policy, domain: int) -> int:
     return policy.radiance.count(domain) + policy.shadow.count(domain)
 
 
+def traced_tiles(policies, domain: int, bvh) -> Queries:
+    """``traced_queries`` of every tile schedule in ``policies`` (in their order) that has rays
+    waiting for ``domain``: a frame with several tiles in flight traces them in one activation."""
+    return sum((traced_queries(policy, domain, bvh) for policy in policies
+                if waiting_rays(policy, domain)), Queries())
+
+
 def traced_queries(policy, domain: int, bvh) -> Queries:
     """``policy.process(domain, bvh)``; returns the ray queries it made (from its counters)."""
     counters = policy.counters

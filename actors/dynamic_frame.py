@@ -36,8 +36,7 @@ import time
 import numpy as np
 
 from vastray.actors import protocol
-from vastray.actors.domain_loop import ListOrder, Queries, traced_queries, waiting_rays
-from vastray.render.driver import path_context
+from vastray.actors.domain_loop import ListOrder, Queries, traced_tiles, waiting_rays
 from vastray.render.film import Film
 from vastray.render.integrators import camera_rays
 from vastray.scene.embree.launch import cpu_time
@@ -109,19 +108,17 @@ class DynamicFrame:
     def take_in(self) -> None:
         """Make the next tile's policy and queue the camera rays of this node's share."""
         index, self.next_tile = self.next_tile, self.next_tile + 1
-        setup, first = self.setup, index * self.tile
-        ctx = path_context(setup.shading, self.settings, first,
-                           min(first + self.tile, setup.total_paths), setup.ao_distance)
-        policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range,
-                               owner=self.owner, rank=self.rank)
+        policy = self.setup.tile_schedule(self.settings, index * self.tile, self.tile,
+                                          self.owner, self.rank)
         policy.owner = image_plane_start(self.n_domains, self.rank)
-        mine = interleaved_paths(len(ctx.pixel), self.rank, self.size)
+        mine = interleaved_paths(len(policy.ctx.pixel), self.rank, self.size)
         self.live[index] = (policy, mine)
         stats = self.node.stats
         stats["most_tiles_in_flight"] = max(stats.get("most_tiles_in_flight", 0), len(self.live))
         for message in self.node.early.pop(self.base + index, []):
             self._delivered_early += self._deliver(index, message)
-        self.node.loop.start_tile(policy, camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
+        self.node.loop.start_tile(policy, camera_rays(self.setup.camera, policy.ctx)
+                                  .take(np.nonzero(mine)[0]))
 
     def _deliver(self, index: int, message) -> int:
         """Hand a batch to tile ``index``'s policy; the rays it brought (0 if dropped)."""
@@ -163,8 +160,7 @@ class DynamicFrame:
     def trace(self, domain: int, bvh) -> Queries:
         """Trace the domain's rays of every tile in flight that has rays for it, in tile
         order."""
-        return sum((traced_queries(policy, domain, bvh) for policy, _ in self.live.values()
-                    if waiting_rays(policy, domain)), Queries())
+        return traced_tiles((policy for policy, _ in self.live.values()), domain, bvh)
 
     def rays(self, domain: int) -> int:
         return sum(waiting_rays(policy, domain) for policy, _ in self.live.values())

@@ -11,6 +11,7 @@ from vastray.render.camera import Camera
 from vastray.render.colormaps import scalar_map
 from vastray.render.driver import (
     default_ao_distance,
+    path_context,
     shading_inputs,
     store_camera,
     with_camera_clip,
@@ -21,6 +22,7 @@ from vastray.render.scene_config import SceneConfig
 from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.store import Store
 from vastray.schedule.geometry import DomainGeometry
+from vastray.schedule.image import ImageSchedule
 
 
 @dataclass
@@ -51,3 +53,13 @@ class RenderSetup:
                            store.occupancy()),
             settings.ao_distance or default_ao_distance(store),
             settings.paths, fast_builds(settings.bvh, store.n_triangles))
+
+    def tile_schedule(self, settings: RenderSettings, first: int, tile: int,
+                      owner: np.ndarray, rank: int, simple=None) -> ImageSchedule:
+        """The ``image`` schedule of the tile of paths ``first`` .. ``first + tile`` (cut at
+        the frame's paths) on node ``rank``: its path keys and the partial radiance gathered
+        here; ``owner`` (D,): each domain's node; ``simple``: simplified-model routing."""
+        ctx = path_context(self.shading, settings, first, min(first + tile, self.total_paths),
+                           self.ao_distance)
+        return ImageSchedule(ctx, self.geometry, self.color_source, self.scalar_range,
+                             owner=owner, rank=rank, simple=simple)
