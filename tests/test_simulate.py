@@ -973,8 +973,10 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
         # what a message and a hand-off cost and what busy processes get of the cores move
         # with the machine's moment, and the host's steal with it: each of 5 rounds measures
         # them beside one real run and charges them to one simulation, as bench/simulate.py
-        # does. Medians over the rounds: one real run on 2 cores moves by 20-30 % from the
-        # next, and one probe by as much (CI once saw async +44 % from a single probe)
+        # does. The fastest of the 5 on each side: what others take of a shared host only ever
+        # adds to a run, and the steal meter charges only part of it (CI once saw async real
+        # runs at 0.51-0.58 s and 0.75-0.78 s in one test, load 3-4 on 2 cores, 10-14 % stolen:
+        # median -26 %, fastest -3 %); one probe moves by as much (CI once saw async +44 %)
         reals, simulations, lost = [], [], []
         for _ in range(5):
             costs = probe.now(calibrated)
@@ -986,11 +988,13 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
                                         costs.with_cores(costs.cores).stolen(steal.lost),
                                         settings, max_pass_spp=None).seconds)
             lost.append((steal.share, steal.others))
-        real, simulated = statistics.median(reals), statistics.median(simulations)
-        errors[scheduler] = (f"real {real:.3f} s {sorted(round(r, 3) for r in reals)}, "
-                             f"simulated {simulated:.3f} s "
+        real, simulated = min(reals), min(simulations)
+        errors[scheduler] = (f"real fastest {real:.3f} s {sorted(round(r, 3) for r in reals)}, "
+                             f"simulated fastest {simulated:.3f} s "
                              f"{sorted(round(r, 3) for r in simulations)}, error "
-                             f"{(simulated - real) / real:+.1%}, (stolen, others) "
+                             f"{(simulated - real) / real:+.1%} (of the medians "
+                             f"{statistics.median(simulations) / statistics.median(reals) - 1:+.1%}), "
+                             f"(stolen, others) "
                              f"{[(f'{a:.0%}', f'{b:.0%}') for a, b in lost]}",
                              (simulated - real) / real)
         print(scheduler, errors[scheduler][0])
