@@ -1,9 +1,9 @@
 """The sort-first tile loop, one implementation for one process (``local.render_out_of_core``),
 the sort-first nodes (which run it) and the simulator (``vastray.sim``): which tiles of which
-passes a node traces (every ``size``-th of its ``sort_first_tiles`` share), how each tile's
-schedule is made and started, and how its paths enter the films. How a schedule's activations
-run is the caller's: the domain loop it hands in (a ``DomainLoop`` over a real cache and its
-preloading thread, or the simulator's ``VirtualDomainLoop`` on virtual time)."""
+passes a node traces (its share of the image-plane blocks, ``sort_first_tile_paths``), how
+each tile's schedule is made and started, and how its paths enter the films. How a schedule's
+activations run is the caller's: the domain loop it hands in (a ``DomainLoop`` over a real
+cache and its preloading thread, or the simulator's ``VirtualDomainLoop`` on virtual time)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import numpy as np
 from vastray.actors.domain_loop import DomainLoop, ScheduleOrder
 from vastray.actors.job_options import JobOptions
 from vastray.actors.render_setup import RenderSetup
-from vastray.render.driver import path_context
+from vastray.render.driver import paths_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathContext, PathResult, RenderSettings, camera_rays
 from vastray.render.progressive import Progression
@@ -22,7 +22,7 @@ from vastray.scene.cache import CacheStats
 from vastray.scene.store import Store
 from vastray.schedule import registry
 from vastray.schedule.image import ImageSchedule
-from vastray.schedule.ownership import sort_first_tiles
+from vastray.schedule.ownership import sort_first_tile_paths
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 
@@ -56,7 +56,8 @@ class SortFirstTiles:
     setup : the render's set-up.
     loop : the domain loop every tile's schedule runs through (its ``preloader``: the node's
         cache, whose counters from now on ``cache_stats`` gives).
-    share : (k, n): the tiles k, k + n, k + 2n, ... of every sweep.
+    share : (k, n): node k of n, rendering its share of every sweep's image-plane blocks
+        (``ownership.sort_first_tile_paths``).
     ablation : spec-ooc's rules switched off (None: all on).
     on_tile : called with the number of paths after each finished tile.
     counters : where each tile's schedule counters are summed (default: a dict of its own).
@@ -88,11 +89,8 @@ class SortFirstTiles:
     async def render_pass(self, window: RenderSettings) -> Film:
         """The film of one pass (``window.samples``): this node's share of its tiles."""
         film = Film(window.width, window.height)
-        total = window.paths
-        size = self._tile_size(total)
-        for first in sort_first_tiles(total, size, *self.share):
-            ctx = path_context(self.setup.shading, window, first, min(first + size, total),
-                               self.setup.ao_distance)
+        for ids in self._tiles(window.paths):
+            ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)
             film.add_paths(ctx.pixel, ctx.sample, await self.trace(ctx))
         return film
 
@@ -100,11 +98,9 @@ class SortFirstTiles:
         """Every pass of ``spans``, in tiles that run on from one pass into the next (a domain
         is loaded once per tile, not once per pass); each pass is merged into the
         progression once its last tile is done. Returns the progression's film."""
-        size = self._tile_size(spans.total)
-        for first in sort_first_tiles(spans.total, size, *self.share):
-            stop = min(first + size, spans.total)
-            ctx, passes = spans.context(self.setup.shading, first, stop, self.setup.ao_distance)
-            spans.add(ctx, passes, await self.trace(ctx), stop)
+        for ids in self._tiles(spans.total):
+            ctx, passes = spans.context(self.setup.shading, ids, self.setup.ao_distance)
+            spans.add(ctx, passes, await self.trace(ctx), int(ids[-1]) + 1)
         spans.add_rest()  # passes in other nodes' tiles only, and those after this node's last
         return spans.progression.film
 
@@ -112,10 +108,12 @@ class SortFirstTiles:
         """The cache's counters since this object was made (peaks: the cache's own)."""
         return _CallStats(self.preloader.cache.stats, self._before)
 
-    def _tile_size(self, total: int) -> int:
-        size = max(1, min(self.options.max_samples_in_flight or total, total))
-        self.tile = max(self.tile, size)
-        return size
+    def _tiles(self, total: int):
+        """This node's tiles of a sweep of ``total`` paths, each (n,) path ids."""
+        for ids in sort_first_tile_paths(total, self.options.max_samples_in_flight or total,
+                                         *self.share):
+            self.tile = max(self.tile, len(ids))
+            yield ids
 
 
 class PassSpans:
@@ -143,11 +141,10 @@ class PassSpans:
         self.merged = 0  # passes of ``windows`` merged so far
         progression.start()
 
-    def context(self, shading, first: int, stop: int, ao_distance: float
+    def context(self, shading, ids: np.ndarray, ao_distance: float
                 ) -> tuple[PathContext, np.ndarray]:
-        """The paths ``first <= id < stop`` and (n,) the position in ``windows`` of each's
-        pass."""
-        ids = np.arange(first, stop, dtype=np.int64)
+        """The paths ``ids`` ((n,) int64, ascending) and (n,) the position in ``windows`` of
+        each's pass."""
         k = np.searchsorted(self.offsets, ids, side="right") - 1
         local = ids - self.offsets[k]
         pixel = (local // self.per_pixel[k]).astype(np.uint32)
@@ -155,8 +152,8 @@ class PassSpans:
         return PathContext(shading, self.settings, pixel, sample, ao_distance), k
 
     def add(self, ctx: PathContext, passes: np.ndarray, result: PathResult, stop: int) -> None:
-        """Add the traced tile of the paths up to id ``stop`` to its passes' films, and merge
-        every pass it completes (tiles come in order)."""
+        """Add the traced tile whose last path is ``stop - 1`` to its passes' films, and merge
+        every pass this node's tiles complete (they come in path order)."""
         for k in np.unique(passes):
             rows = np.nonzero(passes == k)[0]
             if int(k) not in self.films:

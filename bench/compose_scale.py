@@ -17,8 +17,9 @@ per node (real and simulated), coordinator messages per node, lost nodes, and wh
 image equals the single-process reference bit for bit (every scheduler here is lossless).
 
 The job is ``real_scale.py``'s: rm at 64^3 in 4x4x2 = 32 domains (four a node), 320x240 px x
-4 spp, one bounce, one thread a node, the sort-first schedules (``image``, ``spec-ooc``)
-with a tile per node in a 1-spp pass; plus the compose file's own ``--cache 25%`` (8 domains a node; not for
+4 spp, one bounce, one thread a node, the nodes' default tile (the sort-first schedules
+deal each pass's image-plane blocks to every node; until session 42 this bench gave them a
+tile a node in a 1-spp pass); plus the compose file's own ``--cache 25%`` (8 domains a node; not for
 ``spec-insitu``, which refuses it: its nodes keep the domains they own loaded), and
 ``vastray render``'s progressive passes (1, 1 and 2 spp), which the simulation follows.
 
@@ -83,19 +84,10 @@ def render_args(settings: RenderSettings) -> list[str]:
             "--seed", str(settings.seed)]
 
 
-def tile_paths(settings: RenderSettings, nodes: int) -> int:
-    """The sort-first tile: a tile per node in each 1-spp pass (the CLI's first two passes
-    are 1 spp each; a tile of the whole render's paths / nodes would leave half the nodes
-    without one there)."""
-    return -(-settings.width * settings.height // nodes)
-
-
 def job(scheduler: str, nodes: int, settings: RenderSettings, domains: int) -> JobOptions:
     """The job as the simulator sees it: the coordinator's command below, as options."""
-    tile = {"max_samples_in_flight": tile_paths(settings, nodes)} if scheduler in (
-        "image", "spec-ooc") else {}
     cache = None if scheduler in NO_CACHE else max(1, math.floor(domains * CACHE_PERCENT / 100))
-    return JobOptions(scheduler=scheduler, threads=1, cache=cache, **tile)
+    return JobOptions(scheduler=scheduler, threads=1, cache=cache)
 
 
 def quota_costs(costs: CostModel, cpus: float) -> CostModel:
@@ -117,8 +109,6 @@ def coordinator_command(scheduler: str, nodes: int, settings: RenderSettings) ->
     if scheduler in NO_CACHE:
         del command[at:at + 2]
     extra = ["--threads", "1", *render_args(settings), "--reference", "/data/reference.exr"]
-    if scheduler in ("image", "spec-ooc"):
-        extra += ["--max-samples-in-flight", str(tile_paths(settings, nodes))]
     return command + extra
 
 

@@ -11,9 +11,9 @@ messages through the coordinator, and whether the real image equals the single-p
 reference (it must: every scheduler here is lossless).
 
 The scene gives every node work: rm at 64^3 in 4x4x2 = 32 domains (two a node), 320x240 px
-x 4 spp (307,200 paths), one bounce. The sort-first schedules (``image``, ``spec-ooc``)
-cut the image into a tile per node, as ``bench/simulate.py``'s scaling does: their default
-tile (65,536 paths) would leave 11 of 16 nodes idle.
+x 4 spp (307,200 paths), one bounce. Every scheduler runs with the nodes' defaults (the
+sort-first schedules deal the image's blocks to every node; until session 42 their default
+tile of 65,536 paths left 11 of 16 nodes idle here, and this bench gave them a tile a node).
 
     python bench/real_scale.py                 # 16 nodes, every scheduler (~10 min)
     python bench/real_scale.py --nodes 8 --quick   # 8 nodes, 160x120 (~3 min)
@@ -55,10 +55,7 @@ def machine_costs(store, costs_file: str | None, saved_as: str) -> CostModel:
 
 
 def options(scheduler: str, nodes: int, paths: int) -> JobOptions:
-    """One thread a node; the sort-first schedules with a tile per node."""
-    if scheduler in ("image", "spec-ooc"):
-        return JobOptions(scheduler=scheduler, threads=1,
-                          max_samples_in_flight=max(1, -(-paths // nodes)))
+    """One thread a node, the nodes' defaults otherwise."""
     return JobOptions(scheduler=scheduler, threads=1)
 
 

@@ -1,4 +1,4 @@
-"""Three design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
+"""Four design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
     python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 3 min)
@@ -18,6 +18,12 @@ side on the same constants, recording and nodes in one run.
    time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
    the virtual seconds by P, ``dynamic_speedup_<tiles>=`` T(1)/T(P), each side against its
    own T(1).
+4. **The sort-first schedules' share of the image**: up to 4 blocks of paths a node, dealt
+   round robin (the product's since session 42, ``ownership.sort_first_tile_paths``) against
+   one block a node, a band of the image (as the benches ran them before). Strong scaling of
+   the frame of 1. and weak scaling at 4,096 paths a node; ``sort_first_speedup_<P>_<k>=``
+   and ``sort_first_weak_<P>_<k>=`` per scheduler, against the same T(1) (one node has one
+   share either way).
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
 writes; else a quick calibration now); the nodes' own code is fitted first, as
@@ -44,6 +50,8 @@ from vastray.sim.replay import DEFAULT_TILE, REDUCTIONS
 REDUCING = ("domain", "dynamic", "spec-insitu")
 #: Domain-decomposition schedulers the tile applies to.
 TILED = ("domain", "dynamic", "spec-insitu", "async")
+#: The sort-first schedulers.
+SORT_FIRST = ("image", "spec-ooc")
 #: The product's tile: a domain-decomposition job's paths in flight.
 JOB_TILE = DEFAULT_TILE
 
@@ -97,6 +105,40 @@ def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
                       "all-reductions)", flush=True)
     finally:
         dynamic_frame.MAX_TILES = product
+    return times
+
+
+def sort_first_by_blocks(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{blocks a node: {"strong" | "weak": {scheduler: {P: seconds}}}} of the sort-first
+    schedules (``ownership.BLOCKS_PER_NODE``, set before the replays are forked)."""
+    from vastray.schedule import ownership
+
+    settings = rs.STRONG_QUICK if quick else rs.STRONG
+    crossings = rs.recording(store, settings)
+    base, own, fitted = rs.weak_setup(store, costs, quick)
+    product = ownership.BLOCKS_PER_NODE
+    times: dict = {}
+    try:
+        for blocks in (product, 1):
+            ownership.BLOCKS_PER_NODE = blocks
+            frames = [("strong", nodes, crossings) for nodes in counts]
+            frames += [("weak", nodes, rs.weak_frame(base, nodes)) for nodes in counts]
+            for kind, nodes, frame in frames:
+                replay = (rs.replay_of(store, frame, costs.warm().with_cores(None),
+                                       decisions=rs.scaling_decisions(store, settings))
+                          if kind == "strong" else
+                          rs.replay_of(store, frame, own, activations=fitted))
+                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes))
+                        for s in SORT_FIRST]
+                for scheduler, result in zip(SORT_FIRST, rs.replayed(replay, jobs),
+                                             strict=True):
+                    times.setdefault(blocks, {}).setdefault(kind, {}).setdefault(
+                        scheduler, {})[nodes] = result.seconds
+                    print(f"  {blocks} block(s) a node, {kind:6s} {scheduler:8s} "
+                          f"P={nodes:5d} ({frame.n_paths:,} paths): {result.seconds:8.4f} s "
+                          f"virtual ({result.counters['loads']:,} loads)", flush=True)
+    finally:
+        ownership.BLOCKS_PER_NODE = product
     return times
 
 
@@ -186,6 +228,24 @@ def main() -> None:
         print(f"dynamic_seconds_{tiles}=" + ",".join(f"{n}:{t[n][0]:.3f}" for n in counts))
         print(f"dynamic_speedup_{tiles}=" + ",".join(f"{n}:{t[1][0] / t[n][0]:.2f}"
                                                   for n in counts))
+    print("\n4. the sort-first schedules' share of the image: strong scaling of the frame of "
+          f"1. and weak scaling at {rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
+    by_blocks = sort_first_by_blocks(store, costs, args.quick, counts)
+    print("\n| scheduler | blocks a node | scaling | " + " | ".join(f"P={n}" for n in counts[1:])
+          + " |")
+    print("| --- | --- | --- |" + " --- |" * (len(counts) - 1))
+    for scheduler in SORT_FIRST:
+        for blocks, t in by_blocks.items():
+            label = f"up to {blocks} (the product)" if blocks > 1 else "1 (a band a node)"
+            for kind, word in (("strong", "speed-up"), ("weak", "weak efficiency")):
+                by = t[kind][scheduler]
+                print(f"| {scheduler} | {label} | {word} | "
+                      + " | ".join(f"{by[1] / by[n]:.2f}" for n in counts[1:]) + " |")
+    for blocks, t in by_blocks.items():
+        for kind, name in (("strong", "speedup"), ("weak", "weak")):
+            for n in counts[1:]:
+                print(f"sort_first_{name}_{n}_{blocks}=" + ",".join(
+                    f"{s}:{t[kind][s][1] / t[kind][s][n]:.2f}" for s in SORT_FIRST))
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 
 

@@ -81,11 +81,10 @@ SCALING_GRID = (16, 16, 8)
 
 
 def scaling_options(scheduler: str, nodes: int, paths: int) -> JobOptions:
-    """The options of a scaling run: the sort-first schedules cut the image into a tile per
-    node (their default tile, 65,536 paths, would leave every node but one idle); the others
-    run with the nodes' defaults."""
-    if scheduler in ("image", "spec-ooc"):
-        return JobOptions(scheduler=scheduler, max_samples_in_flight=max(1, -(-paths // nodes)))
+    """The options of a scaling run of ``paths`` on ``nodes``: the product's defaults (until
+    session 42 the sort-first schedules got a tile per node here, as their default tile of
+    65,536 paths left every node but one idle on a small frame; they now deal the frame's
+    blocks to every node themselves, ``ownership.sort_first_tile_paths``)."""
     return JobOptions(scheduler=scheduler)
 
 
@@ -217,9 +216,8 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
                  probe: MachineProbe | None = None,
                  budget_s: float = float("inf"), quick: bool = False) -> list[dict]:
     """Every scheduler on the out-of-sample cases (``oos_cases(quick)``), real and simulated
-    (cores shared as here), each point ``paired`` (``rounds``, ``budget_s``). The sort-first
-    schedules get a tile per node, so every node has work; each row says how many nodes
-    traced (``busy``). With ``probe``, as ``validate``."""
+    (cores shared as here), each point ``paired`` (``rounds``, ``budget_s``); each row says
+    how many nodes traced (``busy``). With ``probe``, as ``validate``."""
     config = SceneConfig()
     rows = []
     for name, store, settings, cache in oos_cases(quick):

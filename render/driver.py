@@ -95,6 +95,19 @@ def path_context(shading: Shading, settings: RenderSettings, first: int, stop: i
     return PathContext(shading, settings, pixel, sample, ao_distance)
 
 
+def paths_context(shading: Shading, settings: RenderSettings, ids: np.ndarray,
+                  ao_distance: float) -> PathContext:
+    """The paths ``ids`` ((n,) int64, ascending) of the pass ``settings.samples``, numbered
+    as ``path_context`` numbers them; a run of consecutive ids is ``path_context``'s."""
+    if len(ids) == 0 or int(ids[-1]) - int(ids[0]) + 1 == len(ids):
+        first = int(ids[0]) if len(ids) else 0
+        return path_context(shading, settings, first, first + len(ids), ao_distance)
+    s0, s1 = settings.samples
+    pixel = (ids // (s1 - s0)).astype(np.uint32)
+    sample = (s0 + ids % (s1 - s0)).astype(np.uint32)
+    return PathContext(shading, settings, pixel, sample, ao_distance)
+
+
 def run_passes(trace_pass, settings: RenderSettings, progression: Progression | None,
                bar) -> Film:
     """The image's film: ``trace_pass(window, bar) -> Film`` for each pass ``progression``

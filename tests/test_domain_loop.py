@@ -21,7 +21,13 @@ from vastray.actors.domain_loop import (
 )
 from vastray.actors.preloader import DomainPreloader
 from vastray.schedule.galaxy import GalaxyPolicy
-from vastray.schedule.ownership import interleaved_paths, round_robin_owners, sort_first_tiles
+from vastray.schedule.ownership import (
+    MIN_BLOCK_PATHS,
+    interleaved_paths,
+    round_robin_owners,
+    sort_first_block,
+    sort_first_tile_paths,
+)
 
 from scenes import bumpy_scene, write_store
 
@@ -270,10 +276,43 @@ def test_round_robin_and_interleaved_shares_cover_everything_once():
     assert np.nonzero(shares[1])[0].tolist() == [1, 4, 7]
 
 
-def test_sort_first_tiles_deal_the_image_plane_round_robin():
-    assert list(sort_first_tiles(10, 3, 0, 2)) == [0, 6]  # tiles 0 and 2 of 0, 3, 6, 9
-    assert list(sort_first_tiles(10, 3, 1, 2)) == [3, 9]
-    assert list(sort_first_tiles(4, 8, 1, 2)) == []  # one tile: the other node has none
+def _tiles(total, tile, rank, size):
+    return [ids.tolist() for ids in sort_first_tile_paths(total, tile, rank, size)]
+
+
+def test_sort_first_tiles_deal_the_image_plane_blocks_round_robin():
+    # one node: the tiles of `tile` paths in order
+    assert _tiles(10, 4, 0, 1) == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    # a frame of 4 paths on 2 nodes: a block each (the default tile would leave one idle)
+    assert _tiles(4, 8, 0, 2) == [[0, 1]] and _tiles(4, 8, 1, 2) == [[2, 3]]
+    # blocks of at most the tile, dealt round robin: 0, 3, 6, 9 to nodes 0, 1, 0, 1
+    assert _tiles(10, 3, 0, 2) == [[0, 1, 2], [6, 7, 8]]
+    assert _tiles(10, 3, 1, 2) == [[3, 4, 5], [9]]
+    # paths enough: 4 blocks a node, in one tile, spread over the frame
+    total = 8 * 4 * MIN_BLOCK_PATHS
+    block = sort_first_block(total, 65536, 8)
+    assert block == MIN_BLOCK_PATHS
+    (tile,) = sort_first_tile_paths(total, 65536, 3, 8)
+    assert (np.unique(tile // block) == [3, 11, 19, 27]).all()
+
+
+@pytest.mark.parametrize("total,tile,size", [(1, 5, 3), (17, 4, 3), (2560, 600, 2),
+                                             (76800, 65536, 8), (2048, 65536, 1024),
+                                             (1 << 18, 65536, 64), (1 << 20, 65536, 4),
+                                             (100_003, 65536, 7)])
+def test_sort_first_shares_cover_every_path_once_and_alike(total, tile, size):
+    shares = [np.concatenate([np.zeros(0, np.int64),
+                              *sort_first_tile_paths(total, tile, rank, size)])
+              for rank in range(size)]
+    assert np.array_equal(np.sort(np.concatenate(shares)), np.arange(total))
+    assert all((np.diff(ids) > 0).all() for ids in shares)  # in path order
+    assert all(len(ids) <= tile for rank in range(size)
+               for ids in sort_first_tile_paths(total, tile, rank, size))
+    # no node idle while another has more than a block: the shares differ by a block at most
+    lengths = [len(ids) for ids in shares]
+    assert max(lengths) - min(lengths) <= sort_first_block(total, tile, size)
+    if total >= size:
+        assert min(lengths) > 0
 
 
 class DemandSchedule(FakeSchedule):

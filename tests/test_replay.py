@@ -47,9 +47,10 @@ def recorded(store):
 
 
 def replay_of(store, crossings: Crossings, activations=None, **options) -> Replay:
-    """A replay of ``crossings`` on ``store`` with the default costs and tiles of 600 paths."""
+    """A replay of ``crossings`` on ``store`` with the default costs and (unless ``options``
+    say) tiles of 600 paths."""
     return Replay(crossings, *domain_sizes(store), *store.domain_boxes(), CostModel(),
-                  activations, tile=600, **options)
+                  activations, **{"tile": 600, **options})
 
 
 @pytest.fixture(scope="module")
@@ -247,9 +248,11 @@ def test_sort_first_nodes_pay_their_measured_decisions(store, recorded):
         assert all(0 < seconds < 0.05 for _, seconds in points)
     crossings = recorded[0]
     fitted = fit_activation_costs(crossings, CostModel())
-    plain = replay_of(store, crossings, fitted)
+    # a tile as large as the frame: each of the 2 nodes traces half of it in one tile
+    plain = replay_of(store, crossings, fitted, tile=crossings.n_paths)
     charged = replay_of(store, crossings,
-                        dataclasses.replace(fitted, sort_first_decision_s=measured))
+                        dataclasses.replace(fitted, sort_first_decision_s=measured),
+                        tile=crossings.n_paths)
     for scheduler in ("image", "spec-ooc"):
         before, after = plain.run(scheduler, 2), charged.run(scheduler, 2)
         activations = after.counters["activations"]

@@ -698,14 +698,10 @@ def test_async_sends_ray_batches_only_between_nodes(store, domains):
 
 
 def test_sort_first_tiles_give_every_node_work_and_a_speed_up(store, domains):
-    paths = SETTINGS.width * SETTINGS.height * SETTINGS.spp
-    whole = sim(store, domains, "image", 2, max_pass_spp=None)
-    assert whole.compute_seconds[1] < 0.1 * whole.compute_seconds[0]  # one tile: node 0's
-    split = sim(store, domains, "image", 2, max_pass_spp=None,
-                max_samples_in_flight=paths // 2)
-    alone = sim(store, domains, "image", 1, max_pass_spp=None,
-                max_samples_in_flight=paths // 2)
-    assert all(split.compute_seconds[:-1] > 0)
+    # the default tile (65,536 paths) holds this whole frame; its blocks still go to both
+    split = sim(store, domains, "image", 2, max_pass_spp=None)
+    alone = sim(store, domains, "image", 1, max_pass_spp=None)
+    assert all(split.compute_seconds[:-1] > 0.3 * split.compute_seconds[:-1].max())
     assert split.seconds < alone.seconds
 
 

@@ -120,18 +120,20 @@ def _node_pids(parent: int, rank: int) -> list[int]:
 def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp_path):
     # issue 42: a node done with its share waited for the stop with the node timeout, quit,
     # and the frame was rendered again (--node-timeout 20: 4 nodes cascaded down to 1). Here
-    # node 0 has the image's one tile and is slowed for 8 s besides: nodes 1 and 2 idle
-    # for far longer than --node-timeout 5, still heartbeating, and stay members.
+    # node 0 is slowed for up to 20 s: nodes 1 and 2 idle
+    # for far longer than --node-timeout 5, still heartbeating, and stay members. (Until
+    # session 42 node 0 had the image's one tile; now each node a third of its blocks, so
+    # node 0 is slowed for longer than its third takes at 0.3 of its speed.)
     store, toml = lit_store
     common = [str(store.path), "--scene", str(toml), "--width", "64", "--height", "48",
-              "--spp", "24", "--scheduler", "image"]
+              "--spp", "48", "--scheduler", "image"]
     proc = subprocess.Popen(
         [*VASTRAY, "render", *common, "-o", "a.exr", "--report", "a.json", "--nodes", "3",
          "--node-timeout", "5", "--heartbeat-timeout", "30"], cwd=tmp_path,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     hit: list[int] = []
     log = tmp_path / "a.json.nodes" / "node0.log"
-    slow = threading.Thread(target=_throttle, args=(proc.pid, 0, log, 8.0, hit))
+    slow = threading.Thread(target=_throttle, args=(proc.pid, 0, log, 20.0, hit))
     slow.start()
     try:
         _, err = proc.communicate(timeout=600)

@@ -600,23 +600,25 @@ class Replay:
 
     def _sort_first(self, size: int, cache: int, speculative: bool,
                     scheduler: str) -> tuple[_Ledger, float]:
-        """``image`` / ``spec-ooc``: every node its tiles, alone (see the module docstring)."""
-        from vastray.schedule.ownership import sort_first_tiles
+        """``image`` / ``spec-ooc``: every node its tiles, alone, one after another through
+        its cache (``ownership.sort_first_tile_paths``, as ``actors.sort_first``; see the
+        module docstring)."""
+        from vastray.schedule.ownership import sort_first_block, sort_first_tile_paths
 
         ledger = _Ledger(size)
         paths = self.c.n_paths
-        tile = max(1, -(-paths // size))  # as the scaling runs: a tile per node
-        decision_s = self.activation.tile_decision_s(scheduler, tile)
-        path_tile = self.path_of[self.camera_visits] // tile
+        block = sort_first_block(paths, self.tile, size)
+        path_block = self.path_of[self.camera_visits] // block
         span = np.zeros(size)
-        # a repeated frame (``Crossings.repeated``) gives nodes whose tiles are the same
+        # a repeated frame (``Crossings.repeated``) gives nodes whose blocks are the same
         # paths of the base frame the same work: replayed once, charged to each
         period = getattr(self.c, "period", 0)
         same_work: dict = {}
         for rank in range(size):
-            firsts = list(sort_first_tiles(paths, tile, rank, size))
-            key = (tuple(f % period for f in firsts)
-                   if period and period % tile == 0 else None)
+            tiles = list(sort_first_tile_paths(paths, self.tile, rank, size))
+            key = (tuple((tuple(int(x) % period for x in ids[::block]), len(ids))
+                         for ids in tiles)
+                   if period and period % block == 0 else None)
             if key is not None and key in same_work:
                 seconds, trace, load, counters = same_work[key]
                 ledger.trace[rank], ledger.load[rank] = trace, load
@@ -625,14 +627,15 @@ class Replay:
                 span[rank] = seconds
                 continue
             before = dict(ledger.counters)
-            mine = np.isin(path_tile, [f // tile for f in firsts])
             lru = _Lru(cache, self.n_domains)
-            seconds = self._camera_s(sum(min(tile, paths - f) for f in firsts))
-            tokens = self.camera_visits[mine]
-            if speculative:
-                seconds += self._speculative_node(ledger, rank, lru, tokens, decision_s)
-            else:
-                seconds += self._image_node(ledger, rank, lru, tokens, decision_s)
+            seconds = self._camera_s(sum(len(ids) for ids in tiles))
+            for ids in tiles:
+                decision_s = self.activation.tile_decision_s(scheduler, len(ids))
+                tokens = self.camera_visits[np.isin(path_block, ids[::block] // block)]
+                if speculative:
+                    seconds += self._speculative_node(ledger, rank, lru, tokens, decision_s)
+                else:
+                    seconds += self._image_node(ledger, rank, lru, tokens, decision_s)
             span[rank] = seconds
             ledger.counters["loads"] += lru.loads
             if key is not None:
