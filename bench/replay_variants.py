@@ -18,11 +18,12 @@ side on the same constants, recording and nodes in one run.
    time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
    the virtual seconds by P, ``dynamic_speedup_<tiles>=`` T(1)/T(P), each side against its
    own T(1).
-4. **The sort-first schedules' share of the image**: up to 4 blocks of paths a node, dealt
-   round robin (the product's since session 42, ``ownership.sort_first_tile_paths``) against
-   one block a node, a band of the image (as the benches ran them before). Strong scaling of
-   the frame of 1. and weak scaling at 4,096 paths a node; ``sort_first_speedup_<P>_<k>=``
-   and ``sort_first_weak_<P>_<k>=`` per scheduler, against the same T(1) (one node has one
+4. **The sort-first schedules' share of the image**: a band of the image a node (the
+   product's, ``ownership.sort_first_tile_paths``) against up to 4 blocks a node dealt round
+   robin (shares spread over the image: balanced, but each node meets more domains; on real
+   nodes sharing this machine's cores they lost, session 42). Strong scaling of the frame of
+   1. and weak scaling at 4,096 paths a node; ``sort_first_speedup_<P>_<k>=`` and
+   ``sort_first_weak_<P>_<k>=`` per scheduler, against the same T(1) (one node has one
    share either way).
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
@@ -52,6 +53,8 @@ REDUCING = ("domain", "dynamic", "spec-insitu")
 TILED = ("domain", "dynamic", "spec-insitu", "async")
 #: The sort-first schedulers.
 SORT_FIRST = ("image", "spec-ooc")
+#: Blocks a sort-first node is dealt in section 4's alternative to the product's band.
+SPREAD_BLOCKS = 4
 #: The product's tile: a domain-decomposition job's paths in flight.
 JOB_TILE = DEFAULT_TILE
 
@@ -119,7 +122,7 @@ def sort_first_by_blocks(store, costs: CostModel, quick: bool, counts) -> dict:
     product = ownership.BLOCKS_PER_NODE
     times: dict = {}
     try:
-        for blocks in (product, 1):
+        for blocks in (product, SPREAD_BLOCKS):
             ownership.BLOCKS_PER_NODE = blocks
             frames = [("strong", nodes, crossings) for nodes in counts]
             frames += [("weak", nodes, rs.weak_frame(base, nodes)) for nodes in counts]
@@ -230,13 +233,16 @@ def main() -> None:
                                                   for n in counts))
     print("\n4. the sort-first schedules' share of the image: strong scaling of the frame of "
           f"1. and weak scaling at {rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
+    from vastray.schedule import ownership
+
     by_blocks = sort_first_by_blocks(store, costs, args.quick, counts)
     print("\n| scheduler | blocks a node | scaling | " + " | ".join(f"P={n}" for n in counts[1:])
           + " |")
     print("| --- | --- | --- |" + " --- |" * (len(counts) - 1))
     for scheduler in SORT_FIRST:
         for blocks, t in by_blocks.items():
-            label = f"up to {blocks} (the product)" if blocks > 1 else "1 (a band a node)"
+            label = (f"{blocks} (the product)" if blocks == ownership.BLOCKS_PER_NODE
+                     else f"up to {blocks}")
             for kind, word in (("strong", "speed-up"), ("weak", "weak efficiency")):
                 by = t[kind][scheduler]
                 print(f"| {scheduler} | {label} | {word} | "

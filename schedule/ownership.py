@@ -32,13 +32,16 @@ def zorder_owners(lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
     return owner
 
 
-#: Image-plane blocks a sort-first node is dealt at least, where the frame has paths enough
-#: (``sort_first_block``): a node's share then spans the image, not one band of it, so the
-#: nodes' shares cost alike (one band a node left the 8-node validation rows with 3 of 8
-#: nodes on background only; the replayed weak scaling lost 28-36 % to the busiest band).
-BLOCKS_PER_NODE = 4
-#: Fewest paths in such a block: below it a node's paths scatter over more domains than
-#: the balance they buy is worth (the replayed strong scaling at 256 paths a node).
+#: Image-plane blocks a sort-first node is dealt where the frame has paths enough
+#: (``sort_first_block``): 1, a band of the image a node. More blocks spread a node's share
+#: over the image, so the shares cost alike, but each node then meets most of the domains:
+#: measured on real nodes (session 42, 4 blocks against 1, medians of 3), the turbine scan
+#: on 8 processes 0.483 against 0.316 s (61 against 33 loads), rm 128³ out of core 5.2
+#: against 2.7 s (852 against 491 loads); only the replay's core-per-node cluster at 4,096
+#: paths a node gains (weak efficiency 0.94-1.08 against 0.56-0.87,
+#: ``bench/replay_variants.py`` section 4). A knob for that comparison, 1 in the product.
+BLOCKS_PER_NODE = 1
+#: Fewest paths in a block where a node is dealt several.
 MIN_BLOCK_PATHS = 1024
 
 
@@ -46,7 +49,10 @@ def sort_first_block(total: int, tile: int, size: int) -> int:
     """Paths in each image-plane block of a sort-first frame of ``total`` paths over ``size``
     nodes, ``tile`` at most in flight on a node: on one node, the tile; on several, the
     frame cut into ``k`` blocks a node, ``k`` as many as keep ``MIN_BLOCK_PATHS`` a block, 1
-    to ``BLOCKS_PER_NODE`` (so every node gets blocks, and as many), none over the tile."""
+    to ``BLOCKS_PER_NODE`` (so every node gets blocks, and as many), none over the tile.
+    With ``BLOCKS_PER_NODE`` 1: a band a node, or tiles round robin where the frame holds
+    more than a tile a node (until session 42 always tiles, which left every node but one
+    idle on a frame of fewer paths than the tile)."""
     total, tile = max(int(total), 1), max(int(tile), 1)
     if size <= 1:
         return min(tile, total)

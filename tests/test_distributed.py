@@ -36,6 +36,21 @@ def scene(tmp_path_factory):
     return store, root / "scene.toml"
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_sort_first_nodes_all_trace_a_frame_smaller_than_their_tile(scene, scheduler):
+    """The nodes' default tile (65,536 paths) holds this 1,536-path frame many times over;
+    its image-plane blocks still go to every node (until session 42 node 0 traced it alone),
+    and the image is the reference's, bit for bit."""
+    store, toml = scene
+    st = settings(width=32, height=24, spp=2)
+    reference = render(store, load_scene_config(toml), st, progress=False).film
+    result = render_distributed(store.path, toml, st, 3,
+                                options=JobOptions(scheduler=scheduler, threads=1), timeout=60)
+    np.testing.assert_array_equal(result.film.image(), reference.image())
+    activations = [n["counters"]["activations"] for n in result.counters["per_node"]]
+    assert len(activations) == 3 and min(activations) > 0, activations
+
+
 @pytest.mark.parametrize("size", range(1, 10))
 def test_tree_edges_cover_every_rank_once(size):
     ranks = range(size)

@@ -20,6 +20,7 @@ from vastray.actors.domain_loop import (
     hands_off,
 )
 from vastray.actors.preloader import DomainPreloader
+from vastray.schedule import ownership
 from vastray.schedule.galaxy import GalaxyPolicy
 from vastray.schedule.ownership import (
     MIN_BLOCK_PATHS,
@@ -288,19 +289,32 @@ def test_sort_first_tiles_deal_the_image_plane_blocks_round_robin():
     # blocks of at most the tile, dealt round robin: 0, 3, 6, 9 to nodes 0, 1, 0, 1
     assert _tiles(10, 3, 0, 2) == [[0, 1, 2], [6, 7, 8]]
     assert _tiles(10, 3, 1, 2) == [[3, 4, 5], [9]]
-    # paths enough: 4 blocks a node, in one tile, spread over the frame
+    # the product: a band of the frame a node, where it holds less than a tile a node
+    total = 8 * 4 * MIN_BLOCK_PATHS
+    assert _tiles(total, 65536, 3, 8) == [list(range(3 * total // 8, 4 * total // 8))]
+
+
+def test_sort_first_blocks_spread_a_nodes_share_where_asked(monkeypatch):
+    # bench/replay_variants.py's alternative: 4 blocks a node, in one tile, over the frame
+    monkeypatch.setattr(ownership, "BLOCKS_PER_NODE", 4)
     total = 8 * 4 * MIN_BLOCK_PATHS
     block = sort_first_block(total, 65536, 8)
     assert block == MIN_BLOCK_PATHS
     (tile,) = sort_first_tile_paths(total, 65536, 3, 8)
     assert (np.unique(tile // block) == [3, 11, 19, 27]).all()
+    # fewer paths: as many blocks a node as keep MIN_BLOCK_PATHS each, at least one
+    assert sort_first_block(8 * 2 * MIN_BLOCK_PATHS, 65536, 8) == MIN_BLOCK_PATHS
+    assert sort_first_block(100, 65536, 8) == 13
 
 
+@pytest.mark.parametrize("blocks", [1, 4])
 @pytest.mark.parametrize("total,tile,size", [(1, 5, 3), (17, 4, 3), (2560, 600, 2),
                                              (76800, 65536, 8), (2048, 65536, 1024),
                                              (1 << 18, 65536, 64), (1 << 20, 65536, 4),
                                              (100_003, 65536, 7)])
-def test_sort_first_shares_cover_every_path_once_and_alike(total, tile, size):
+def test_sort_first_shares_cover_every_path_once_and_alike(total, tile, size, blocks,
+                                                           monkeypatch):
+    monkeypatch.setattr(ownership, "BLOCKS_PER_NODE", blocks)
     shares = [np.concatenate([np.zeros(0, np.int64),
                               *sort_first_tile_paths(total, tile, rank, size)])
               for rank in range(size)]
