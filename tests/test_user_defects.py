@@ -120,20 +120,22 @@ def _node_pids(parent: int, rank: int) -> list[int]:
 def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp_path):
     # issue 42: a node done with its share waited for the stop with the node timeout, quit,
     # and the frame was rendered again (--node-timeout 20: 4 nodes cascaded down to 1). Here
-    # node 0 is slowed for up to 20 s: nodes 1 and 2 idle
+    # node 0 is slowed for up to 40 s: nodes 1 and 2 idle
     # for far longer than --node-timeout 5, still heartbeating, and stay members. (Until
-    # session 42 node 0 had the image's one tile; now each node a third of its blocks, so
-    # node 0 is slowed for longer than its third takes at 0.3 of its speed.)
+    # session 42 node 0 had the image's one tile; now each node has tiles of 4,096 paths
+    # round robin, a third of the work each, and node 0's third at 0.3 of its speed takes
+    # the others' twice over and more.)
     store, toml = lit_store
     common = [str(store.path), "--scene", str(toml), "--width", "64", "--height", "48",
-              "--spp", "48", "--scheduler", "image"]
+              "--spp", "96", "--scheduler", "image"]
     proc = subprocess.Popen(
         [*VASTRAY, "render", *common, "-o", "a.exr", "--report", "a.json", "--nodes", "3",
-         "--node-timeout", "5", "--heartbeat-timeout", "30"], cwd=tmp_path,
+         "--max-samples-in-flight", "4096", "--node-timeout", "5", "--heartbeat-timeout", "30"],
+        cwd=tmp_path,
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     hit: list[int] = []
     log = tmp_path / "a.json.nodes" / "node0.log"
-    slow = threading.Thread(target=_throttle, args=(proc.pid, 0, log, 20.0, hit))
+    slow = threading.Thread(target=_throttle, args=(proc.pid, 0, log, 40.0, hit))
     slow.start()
     try:
         _, err = proc.communicate(timeout=600)
