@@ -58,7 +58,7 @@ class JobOptions:
         node and ``render_out_of_core`` dispatch on it).
     cache : most domains resident per process; None: all (or as many as a node owns).
     max_samples_in_flight : paths traced at once (the tile): a sort-first node's own (it
-        renders its tiles alone, each of the image-plane blocks dealt to it,
+        renders its band of the image, or its tiles round robin, alone:
         ``ownership.sort_first_tile_paths``), a domain-decomposition job's as a whole (every
         node starts its share of each tile, 1/P of its paths, and a node holds the rays
         waiting for its domains, up to the whole tile's where they gather there); None: all

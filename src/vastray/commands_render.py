@@ -137,9 +137,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "(default: --bounces, the most aggressive)")
     p.add_argument("--nodes", **argument("nodes"), metavar="N",
                    help="render with N node processes on this machine, talking ZeroMQ over "
-                        "loopback: image and spec-ooc deal the image's blocks of paths to "
-                        "the nodes round robin, up to 4 a node, each traced by its node alone "
-                        "(sort-first); "
+                        "loopback: image and spec-ooc give each node a band of the image, "
+                        "or tiles of --max-samples-in-flight paths round robin on a larger "
+                        "frame, each traced by its node alone (sort-first); "
                         "domain, async, dynamic, spec-insitu and temporal split the domains "
                         "(see --scheduler)")
     p.add_argument("--node-timeout", **argument("node_timeout"), metavar="S",
