@@ -42,6 +42,7 @@ from simulate import SCALING_GRID, scaling_options
 
 from vastray.render.driver import shading_inputs
 from vastray.render.scene_config import SceneConfig
+from vastray.schedule import ownership
 from vastray.sim.cache import Domains
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
@@ -114,8 +115,6 @@ def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
 def sort_first_by_blocks(store, costs: CostModel, quick: bool, counts) -> dict:
     """{blocks a node: {"strong" | "weak": {scheduler: {P: seconds}}}} of the sort-first
     schedules (``ownership.BLOCKS_PER_NODE``, set before the replays are forked)."""
-    from vastray.schedule import ownership
-
     settings = rs.STRONG_QUICK if quick else rs.STRONG
     crossings = rs.recording(store, settings)
     base, own, fitted = rs.weak_setup(store, costs, quick)
@@ -160,6 +159,26 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
                       f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
                       f"({result.counters['rounds']:,} synchronisations)", flush=True)
     return times
+
+
+def print_sort_first(by_blocks: dict, counts) -> None:
+    """Section 4's table and ``sort_first_*=`` lines from ``sort_first_by_blocks``."""
+    print("\n| scheduler | blocks a node | scaling | " + " | ".join(f"P={n}" for n in counts[1:])
+          + " |")
+    print("| --- | --- | --- |" + " --- |" * (len(counts) - 1))
+    for scheduler in SORT_FIRST:
+        for blocks, t in by_blocks.items():
+            label = (f"{blocks} (the product)" if blocks == ownership.BLOCKS_PER_NODE
+                     else f"up to {blocks}")
+            for kind, word in (("strong", "speed-up"), ("weak", "weak efficiency")):
+                by = t[kind][scheduler]
+                print(f"| {scheduler} | {label} | {word} | "
+                      + " | ".join(f"{by[1] / by[n]:.2f}" for n in counts[1:]) + " |")
+    for blocks, t in by_blocks.items():
+        for kind, name in (("strong", "speedup"), ("weak", "weak")):
+            for n in counts[1:]:
+                print(f"sort_first_{name}_{n}_{blocks}=" + ",".join(
+                    f"{s}:{t[kind][s][1] / t[kind][s][n]:.2f}" for s in SORT_FIRST))
 
 
 def main() -> None:
@@ -233,25 +252,7 @@ def main() -> None:
                                                   for n in counts))
     print("\n4. the sort-first schedules' share of the image: strong scaling of the frame of "
           f"1. and weak scaling at {rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
-    from vastray.schedule import ownership
-
-    by_blocks = sort_first_by_blocks(store, costs, args.quick, counts)
-    print("\n| scheduler | blocks a node | scaling | " + " | ".join(f"P={n}" for n in counts[1:])
-          + " |")
-    print("| --- | --- | --- |" + " --- |" * (len(counts) - 1))
-    for scheduler in SORT_FIRST:
-        for blocks, t in by_blocks.items():
-            label = (f"{blocks} (the product)" if blocks == ownership.BLOCKS_PER_NODE
-                     else f"up to {blocks}")
-            for kind, word in (("strong", "speed-up"), ("weak", "weak efficiency")):
-                by = t[kind][scheduler]
-                print(f"| {scheduler} | {label} | {word} | "
-                      + " | ".join(f"{by[1] / by[n]:.2f}" for n in counts[1:]) + " |")
-    for blocks, t in by_blocks.items():
-        for kind, name in (("strong", "speedup"), ("weak", "weak")):
-            for n in counts[1:]:
-                print(f"sort_first_{name}_{n}_{blocks}=" + ",".join(
-                    f"{s}:{t[kind][s][1] / t[kind][s][n]:.2f}" for s in SORT_FIRST))
+    print_sort_first(sort_first_by_blocks(store, costs, args.quick, counts), counts)
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 
 
