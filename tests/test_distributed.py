@@ -39,8 +39,8 @@ def scene(tmp_path_factory):
 @pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
 def test_sort_first_nodes_all_trace_a_frame_smaller_than_their_tile(scene, scheduler):
     """The nodes' default tile (65,536 paths) holds this 1,536-path frame many times over;
-    its image-plane blocks still go to every node (until session 42 node 0 traced it alone),
-    and the image is the reference's, bit for bit."""
+    each node still traces a band of it (until session 42 node 0 traced it alone), and the
+    image is the reference's, bit for bit."""
     store, toml = scene
     st = settings(width=32, height=24, spp=2)
     reference = render(store, load_scene_config(toml), st, progress=False).film

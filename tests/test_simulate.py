@@ -698,7 +698,7 @@ def test_async_sends_ray_batches_only_between_nodes(store, domains):
 
 
 def test_sort_first_tiles_give_every_node_work_and_a_speed_up(store, domains):
-    # the default tile (65,536 paths) holds this whole frame; its blocks still go to both
+    # the default tile (65,536 paths) holds this whole frame; each node still gets a band
     split = sim(store, domains, "image", 2, max_pass_spp=None)
     alone = sim(store, domains, "image", 1, max_pass_spp=None)
     assert all(split.compute_seconds[:-1] > 0.3 * split.compute_seconds[:-1].max())
