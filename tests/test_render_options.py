@@ -86,7 +86,7 @@ class Renders:
         self.count = 0
         self._baseline = None
 
-    def __call__(self, *args: str, base: list[str] | None = None, quiet: bool = True,
+    def __call__(self, *args: str, base: list[str] | None = None, quiet: bool = False,
                  scene: bool = True, output: str = "o.exr", store: bool = True) -> Run:
         self.count += 1
         run_dir = self.folder / f"run{self.count}"
@@ -99,6 +99,10 @@ class Renders:
         self.capsys.readouterr()
         code = main(argv)
         err = self.capsys.readouterr().err
+        if code == 0 and not quiet:
+            # every option's path as users run it, summary line included (a crash in the
+            # summary once hid behind --quiet)
+            assert "wrote " in err, err
         doc = json.loads(report.read_text()) if report.exists() else None
         return Run(code, err, doc, out)
 
