@@ -705,6 +705,24 @@ def test_sort_first_tiles_give_every_node_work_and_a_speed_up(store, domains):
     assert split.seconds < alone.seconds
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_sort_first_blocks_spread_over_the_image_give_the_reference(store, domains, reference,
+                                                                   scheduler, monkeypatch):
+    """``bench/replay_variants.py``'s alternative to a band a node: 4 blocks a node spread
+    over the image, so a node's tiles are not runs of paths (``paths_context`` and
+    ``PassSpans.context`` over scattered ids). The nodes' own code, one pass and a frame's
+    passes swept out of core: the reference image either way."""
+    from vastray.schedule import ownership
+
+    monkeypatch.setattr(ownership, "BLOCKS_PER_NODE", 4)
+    monkeypatch.setattr(ownership, "MIN_BLOCK_PATHS", 16)
+    one_pass = sim(store, domains, scheduler, 3, max_pass_spp=None)
+    np.testing.assert_array_equal(one_pass.film.image(), reference)
+    swept = sim(store, domains, scheduler, 3, max_pass_spp=1, cache=2)
+    np.testing.assert_array_equal(swept.film.image(), reference)
+    assert swept.unit_seconds[1:] == [0.0] * (SETTINGS.spp - 1)  # the passes in one sweep
+
+
 def test_a_sort_first_node_keeps_its_cache_and_sweeps_passes_out_of_core(store, domains):
     # in core, as a node's NodeState: what the first pass loaded the second finds resident
     passes = sim(store, domains, "image", 1, max_pass_spp=1)
