@@ -19,6 +19,16 @@ the render thread).
 
     python bench/masks.py            # both scenes, a few minutes on 2 cores
     python bench/masks.py --spp 2    # quicker
+    python bench/masks.py --resolution 32 --resolution 64 --bound   # what finer culling could do
+
+``--resolution R`` (repeatable) adds a row per schedule with every domain's mask computed
+again at ``R`` cells along its longest axis (in memory, ignoring the stores' 1 % cap: what a
+finer grid would remove). ``--bound`` adds the ceiling of any conservative culling (finer
+masks, boxes of triangle runs, ...): a pair is kept only where its ray hits a triangle of the
+domain before its limit, found by querying a side Embree scene of every domain outside the
+cache (``ExactCulling``; an oracle for the measurement, not something a render could do
+without loading the domain). Its loads are the fewest that dropping rays which find nothing
+in a domain can give; the rest are loads for rays that do hit there.
 """
 
 from __future__ import annotations
@@ -37,8 +47,10 @@ from vastray.actors.local import render_out_of_core
 from vastray.render.integrators import RenderSettings
 from vastray.render.scene_config import SceneConfig
 from vastray.scene import occupancy
+from vastray.scene.embree.scenes import Scene
 from vastray.scene.generate import generate
 from vastray.scene.manifest import VERSION
+from vastray.scene.occupancy import Occupancy
 from vastray.scene.partition import partition_kd
 from vastray.scene.readers import read_mesh
 from vastray.scene.store import Store, StoreWriter, is_store
@@ -104,8 +116,72 @@ class Counting:
         DomainQueues.push = self._push
 
 
-def run(store: Store, settings: RenderSettings, scheduler: str, cache: int, masks: bool) -> dict:
+class ExactCulling(Occupancy):
+    """The store's masks, then an oracle: of the pairs they keep, only those whose ray hits a
+    triangle of the domain within its limit (grown by 1e-4 relative, so a hit at the limit
+    is kept). Each domain's side scene is built once, outside every cache and count."""
+
+    def __init__(self, store: Store, masks: Occupancy | None):
+        lo, hi = store.domain_boxes()
+        if masks is None:  # every cell occupied: only the oracle drops pairs
+            super().__init__(lo, hi, [None] * len(store.domains))
+        else:
+            self.__dict__.update(masks.__dict__)
+        self.store, self.scenes = store, {}
+
+    @property
+    def any_useful(self) -> bool:
+        return True
+
+    def crosses(self, origins, directions, ray, domain, limit, pad):
+        keep = super().crosses(origins, directions, ray, domain, limit, pad)
+        ends = np.broadcast_to(np.asarray(limit, np.float32), (len(origins),))
+        for d in np.unique(domain[keep]):
+            rows = np.nonzero(keep & (domain == d))[0]
+            scene = self._scene(int(d))
+            if scene is None:
+                keep[rows] = False
+                continue
+            r = ray[rows]
+            hit = scene.occluded(np.ascontiguousarray(origins[r], np.float32),
+                                 np.ascontiguousarray(directions[r], np.float32),
+                                 np.ascontiguousarray(ends[r] * np.float32(1.0001)), 1)
+            keep[rows[~hit]] = False
+        return keep
+
+    def _scene(self, domain: int) -> Scene | None:
+        if domain not in self.scenes:
+            arrays = self.store.load_domain(domain)
+            self.scenes[domain] = (Scene(np.asarray(arrays.vertices), np.asarray(arrays.indices))
+                                   if len(arrays.indices) else None)
+        return self.scenes[domain]
+
+    def close(self) -> None:
+        for scene in self.scenes.values():
+            if scene is not None:
+                scene.close()
+
+
+def finer(store: Store, resolution: int) -> Occupancy:
+    """Every domain's mask at ``resolution`` cells along its longest axis (no size cap)."""
+    lo, hi = store.domain_boxes()
+    masks = []
+    for d in range(len(store.domains)):
+        arrays = store.load_domain(d)
+        extent = np.maximum(hi[d] - lo[d], 0.0)
+        dims = np.clip(np.ceil(resolution * extent / max(extent.max(), 1e-300) - 1e-9), 1,
+                       resolution).astype(np.int64)
+        masks.append(occupancy.compute(np.asarray(arrays.vertices), np.asarray(arrays.indices),
+                                       lo[d], hi[d], dims))
+    return Occupancy(lo, hi, masks)
+
+
+def run(store: Store, settings: RenderSettings, scheduler: str, cache: int, masks: bool,
+        culling: Occupancy | None = None) -> dict:
+    """One render at ``cache`` domains; ``culling`` replaces the store's masks (None: the
+    store's own, or none without ``masks``)."""
     os.environ[occupancy.ENV] = "1" if masks else "0"
+    store._occupancy = culling  # (None: the store's masks, built again when asked)
     start = time.perf_counter()
     with Counting() as counting:
         result = render_out_of_core(store, SceneConfig(), settings,
@@ -118,7 +194,8 @@ def run(store: Store, settings: RenderSettings, scheduler: str, cache: int, mask
             "seconds": time.perf_counter() - start, "image": result.film.image()}
 
 
-def scene_report(name: str, store: Store, settings: RenderSettings) -> None:
+def scene_report(name: str, store: Store, settings: RenderSettings,
+                 resolutions: tuple[int, ...] = (), bound: bool = False) -> None:
     n = len(store.domains)
     cache = max(1, math.ceil(0.25 * n))
     masks = [d.occupancy for d in store.domains if d.occupancy is not None]
@@ -130,6 +207,9 @@ def scene_report(name: str, store: Store, settings: RenderSettings) -> None:
     print("| scheduler | masks | loads | floor | pairs queued | rays traced | render s |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     summary = []
+    variants = [(f"{r} cells", lambda r=r: finer(store, r)) for r in resolutions]
+    if bound:
+        variants.append(("bound (oracle)", lambda: ExactCulling(store, store.occupancy())))
     for scheduler in SCHEDULERS:
         got = {}
         for on in (False, True):
@@ -142,6 +222,20 @@ def scene_report(name: str, store: Store, settings: RenderSettings) -> None:
                        f"{got[False]['pairs']:,} -> {got[True]['pairs']:,} "
                        f"({got[True]['pairs'] / got[False]['pairs']:.3f}), "
                        f"image {'identical' if same else 'DIFFERS'}")
+        for label, make in variants:
+            culling = make()
+            try:
+                r = run(store, settings, scheduler, cache, True, culling)
+            finally:
+                if isinstance(culling, ExactCulling):
+                    culling.close()
+                store._occupancy = None
+            same = np.array_equal(r["image"], got[False]["image"])
+            print(f"| {scheduler} | {label} | {r['loads']} | {r['floor']} | {r['pairs']:,} | "
+                  f"{r['traced']:,} | {r['seconds']:.1f} |", flush=True)
+            summary.append(f"{scheduler}, {label}: loads {r['loads']} "
+                           f"({r['loads'] / got[True]['loads']:.3f} of the store's masks'), "
+                           f"pairs {r['pairs']:,}, image {'identical' if same else 'DIFFERS'}")
     print()
     for line in summary:
         print(f"masks_{name.split()[0]}: {line}", flush=True)
@@ -152,17 +246,26 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--skip-generated", action="store_true")
+    parser.add_argument("--resolution", type=int, action="append", default=[], metavar="R",
+                        help="also masks of R cells along each domain's longest axis "
+                             f"(1..{occupancy.MAX_CELLS}; repeatable)")
+    parser.add_argument("--bound", action="store_true",
+                        help="also the ceiling of any culling: pairs kept only where the ray "
+                             "hits the domain (an oracle)")
     args = parser.parse_args()
+    if any(not 1 <= r <= occupancy.MAX_CELLS for r in args.resolution):
+        parser.error(f"--resolution must be 1..{occupancy.MAX_CELLS}")
+    extra = {"resolutions": tuple(args.resolution), "bound": args.bound}
     settings = RenderSettings(width=32, height=24, spp=args.spp, integrator="pt", bounces=3,
                               shadow_samples=4, seed=7)
     started = time.perf_counter()
     if not args.skip_generated:
-        scene_report("rm 320^3 5x5x4", generated(320, (5, 5, 4)), settings)
+        scene_report("rm 320^3 5x5x4", generated(320, (5, 5, 4)), settings, **extra)
     got = scan(64)
     if isinstance(got, str):
         print(f"\n## scan: skipped: {got}")
     else:
-        scene_report(f"{SCAN.stem} kd64", got, settings)
+        scene_report(f"{SCAN.stem} kd64", got, settings, **extra)
     print(f"\nbench/masks.py: {time.perf_counter() - started:.0f} s")
 
 
