@@ -134,23 +134,39 @@ _loads: dict = {}
 _own_costs: dict = {}
 
 
-def own_costs_of(store, scaling_options, domains: Domains) -> dict:
+def own_costs_of(store, scaling_options) -> dict:
     """Each scheduler's nodes' own code on ``store`` (``fit_node_own_costs`` on ``CHECK`` at
-    each of ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the store."""
+    each of ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the
+    store: one scheduler a job, the jobs on as many fresh processes as this machine has
+    cores, each building the store's domains itself."""
     key = str(store.path)
     if key not in _own_costs:
         start = time.perf_counter()
-        _own_costs[key] = fit_node_own_costs(store, CHECK, domains, OWN_FIT_NODES,
-                                             scaling_options)
-        print(f"  the nodes' own code (fitted on {' and '.join(map(str, OWN_FIT_NODES))} "
-              f"virtual nodes running the product's code, {CHECK.paths:,} paths), per frame / "
-              "batch sent + a ray in it / batch received + a ray / activation: " + "; ".join(
-                  f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} + "
-                  f"{c.ray_sent_s * 1e6:.1f} / {c.received_s * 1e6:.0f} + "
-                  f"{c.ray_received_s * 1e6:.1f} / {c.activation_s * 1e6:.0f} us"
-                  for name, c in _own_costs[key].items())
-              + f" ({time.perf_counter() - start:.0f} s)", flush=True)
+        jobs = own_fit_jobs(store, scaling_options)
+        took_own_fits(store, [fit for _, fit in zip(jobs, in_parallel(_check_job, jobs,
+                                                                       "spawn"), strict=True)],
+                      time.perf_counter() - start)
     return _own_costs[key]
+
+
+def own_fit_jobs(store, scaling_options) -> list[tuple]:
+    """The check workers' jobs (``_check_job``) that fit each replayed scheduler's own code."""
+    return [("fit", str(store.path), scheduler,
+             {n: scaling_options(scheduler, n, CHECK.paths) for n in OWN_FIT_NODES})
+            for scheduler in REPLAY_SCHEDULERS]
+
+
+def took_own_fits(store, fits: list, seconds: float) -> None:
+    """Keep the fits of ``own_fit_jobs`` (in its order) for ``store``'s replays; print them."""
+    _own_costs[str(store.path)] = dict(zip(REPLAY_SCHEDULERS, fits, strict=True))
+    print(f"  the nodes' own code (fitted on {' and '.join(map(str, OWN_FIT_NODES))} "
+          f"virtual nodes running the product's code, {CHECK.paths:,} paths), per frame / "
+          "batch sent + a ray in it / batch received + a ray / activation: " + "; ".join(
+              f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} + "
+              f"{c.ray_sent_s * 1e6:.1f} / {c.received_s * 1e6:.0f} + "
+              f"{c.ray_received_s * 1e6:.1f} / {c.activation_s * 1e6:.0f} us"
+              for name, c in _own_costs[str(store.path)].items())
+          + f" ({seconds:.0f} s)", flush=True)
 
 
 def decisions_of(store, settings: RenderSettings, cache: int | None, sizes,
@@ -213,28 +229,33 @@ def node_cache(n_domains: int, nodes: int) -> int:
 _CHECK_DOMAINS: dict = {}  # a check worker's built domains, by store path
 
 
-def _simulate_check(job) -> tuple[float, float]:
-    """(simulated seconds, wall seconds) of one check point, in a check worker."""
+def _check_domains(path: str) -> Domains:
+    """The store's domains built in this check worker (once)."""
     from vastray.scene.store import Store
 
-    path, scheduler, nodes, options, costs = job
     if path not in _CHECK_DOMAINS:
         store = Store(path)
         _CHECK_DOMAINS[path] = Domains(
             store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
-    domains = _CHECK_DOMAINS[path]
+    return _CHECK_DOMAINS[path]
+
+
+def _check_job(job):
+    """One job of a check worker: ``("sim", path, scheduler, nodes, options, costs)`` ->
+    (simulated seconds, wall seconds) of one check point; ``("fit", path, scheduler,
+    {nodes: options})`` -> the scheduler's ``NodeOwnCosts`` (``fit_node_own_costs``)."""
+    if job[0] == "fit":
+        _, path, scheduler, options = job
+        domains = _check_domains(path)
+        return fit_node_own_costs(domains.store, CHECK, domains, OWN_FIT_NODES,
+                                  lambda _s, nodes, _p: options[nodes],
+                                  schedulers=[scheduler])[scheduler]
+    _, path, scheduler, nodes, options, costs = job
+    domains = _check_domains(path)
     start = time.perf_counter()
     sim = simulate(domains.store, options, nodes, costs, CHECK, max_pass_spp=None,
                    domains=domains)
     return sim.seconds, time.perf_counter() - start
-
-
-def simulated_in_parallel(jobs: list):
-    """``_simulate_check`` of every job, in order, on as many fresh processes as this
-    machine has cores (spawned, not forked: each builds its own Embree scenes, which a
-    forked child could not safely build on). A simulation charges the traces' CPU time, not
-    their wall time, so two of them side by side charge what one alone would."""
-    return in_parallel(_simulate_check, jobs, "spawn")
 
 
 def check_against_code(store, costs: CostModel, scaling_options, quick: bool) -> list[dict]:
@@ -256,8 +277,18 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
         decisions = decisions_of(store, CHECK, None,
                                  sorted({max(1, CHECK.paths // n) for n in nodes_checked}),
                                  domains)
-        if own.node_cpu_scale:
-            own_costs_of(store, scaling_options, domains)
+        # the own-code fits (which the replay needs) and the real-code simulations (which
+        # do not) side by side on fresh processes, a core each: a simulation and a fit
+        # charge CPU time, not wall time, so two side by side charge what one alone would
+        start = time.perf_counter()
+        fits = (own_fit_jobs(store, scaling_options)
+                if own.node_cpu_scale and str(store.path) not in _own_costs else [])
+        sims = [("sim", str(store.path), scheduler, nodes,
+                 scaling_options(scheduler, nodes, CHECK.paths), own)
+                for scheduler in REPLAY_SCHEDULERS for nodes in nodes_checked]
+        done = list(in_parallel(_check_job, fits + sims, "spawn"))
+        if fits:
+            took_own_fits(store, done[:len(fits)], time.perf_counter() - start)
         replay = replay_of(store, crossings, own, Network(), None, decisions=decisions,
                            domains=domains, whole_caches=True)
         print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
@@ -265,11 +296,8 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
         print("| scheduler | P | real-code sim s | replay s | error | sim wall s "
               "| replay wall s |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
-        jobs = [(str(store.path), scheduler, nodes, scaling_options(scheduler, nodes,
-                                                                     CHECK.paths), own)
-                for scheduler in REPLAY_SCHEDULERS for nodes in nodes_checked]
-        for (_, scheduler, nodes, _, _), (sim_s, sim_wall) in zip(
-                jobs, simulated_in_parallel(jobs), strict=True):
+        for (_, _, scheduler, nodes, _, _), (sim_s, sim_wall) in zip(
+                sims, done[len(fits):], strict=True):
             replayed = replay.run(scheduler, nodes)
             error = replayed.seconds / sim_s - 1
             rows.append({"scheduler": scheduler, "nodes": nodes, "sim_s": sim_s,

@@ -40,10 +40,7 @@ import replay_scaling as rs
 from bench_scenes import CACHE, cached_cosmo, cached_rm
 from simulate import SCALING_GRID, scaling_options
 
-from vastray.render.driver import shading_inputs
-from vastray.render.scene_config import SceneConfig
 from vastray.schedule import ownership
-from vastray.sim.cache import Domains
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.replay import DEFAULT_TILE, REDUCTIONS
@@ -194,12 +191,8 @@ def main() -> None:
     start = time.perf_counter()
     costs = constants(args.costs)
     store = cached_cosmo(160, SCALING_GRID)
-    domains = Domains(store, shading_inputs(store, SceneConfig(), rs.CHECK.integrator)[1])
-    try:
-        if costs.node_cpu_scale:
-            rs.own_costs_of(store, scaling_options, domains)
-    finally:
-        domains.close()
+    if costs.node_cpu_scale:
+        rs.own_costs_of(store, scaling_options)
     counts = (1, 64, 1024) if args.quick else rs.STRONG_NODES
     print("\n1. all-reductions: strong scaling by replay, "
           f"{(rs.STRONG_QUICK if args.quick else rs.STRONG).paths:,} paths, "
