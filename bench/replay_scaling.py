@@ -142,10 +142,8 @@ def own_costs_of(store, scaling_options) -> dict:
     key = str(store.path)
     if key not in _own_costs:
         start = time.perf_counter()
-        jobs = own_fit_jobs(store, scaling_options)
-        took_own_fits(store, [fit for _, fit in zip(jobs, in_parallel(_check_job, jobs,
-                                                                       "spawn"), strict=True)],
-                      time.perf_counter() - start)
+        fits = list(in_parallel(_check_job, own_fit_jobs(store, scaling_options), "spawn"))
+        took_own_fits(store, fits, time.perf_counter() - start)
     return _own_costs[key]
 
 
