@@ -3,18 +3,13 @@ itself renders for a minute or more, so it is not run here)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import sys
-from pathlib import Path
 
 import pytest
+from bench_modules import BENCH, load_bench
 
-SCRIPT = Path(__file__).resolve().parent.parent / "bench" / "convergence.py"
-spec = importlib.util.spec_from_file_location("bench_convergence", SCRIPT)
-convergence = importlib.util.module_from_spec(spec)
-sys.modules[spec.name] = convergence  # dataclasses look their module up there
-spec.loader.exec_module(convergence)
+convergence = load_bench("convergence")
 
 
 def report(scheduler="async", nodes=2, errors=(1e-1, 1e-2, 1e-3), estimated=None,
@@ -150,7 +145,7 @@ def test_the_hidden_lamp_scene_hides_its_light_in_a_cup_under_the_ceiling(tmp_pa
     import numpy as np
     import trimesh
 
-    sys.path.insert(0, str(SCRIPT.parent))
+    sys.path.insert(0, str(BENCH))
     from bench_scenes import hidden_lamp_scene
 
     from vastray.render.scene_config import load_scene_config

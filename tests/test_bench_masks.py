@@ -4,30 +4,16 @@ triangle of the domain and queues the fewest rays (the bench itself renders for 
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from bench_modules import load_bench
 
 from vastray.render.integrators import RenderSettings
 from vastray.scene.embree.scenes import Scene
 from vastray.scene.generate import generate
 from vastray.scene.store import Store
 
-BENCH = Path(__file__).resolve().parent.parent / "bench"
-
-
-def load(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-masks = load("bench_masks", BENCH / "masks.py")
+masks = load_bench("masks")
 SETTINGS = RenderSettings(width=24, height=18, spp=2, integrator="pt", bounces=2,
                           shadow_samples=1, seed=3)
 

@@ -4,19 +4,14 @@ peak RSS real renders reach (issue 23). Renders a few small images as real proce
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from bench_modules import BENCH, load_bench
 
-SCRIPT = Path(__file__).resolve().parent.parent / "bench" / "memory.py"
-spec = importlib.util.spec_from_file_location("bench_memory", SCRIPT)
-memory = importlib.util.module_from_spec(spec)
-sys.modules[spec.name] = memory  # dataclasses look their module up there
-spec.loader.exec_module(memory)
+memory = load_bench("memory")
 
 
 def test_table_rows_and_ratios():
@@ -36,7 +31,7 @@ def test_quick_cases_cover_sizes_threads_schedulers_and_nodes():
 
 @pytest.mark.slow
 def test_quick_sweep_keeps_every_estimate_within_range_of_the_measured_peak():
-    out = subprocess.run([sys.executable, str(SCRIPT), "--quick"], capture_output=True,
+    out = subprocess.run([sys.executable, str(BENCH / "memory.py"), "--quick"], capture_output=True,
                          text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     ratios = [float(line.rsplit("|", 2)[1]) for line in out.stdout.splitlines()
@@ -65,7 +60,7 @@ def test_spec_ooc_on_a_fine_store_stays_under_every_limit_it_accepts():
     --memory-limit 700M was accepted (every domain cached) and peaked at 1,005 MB: the
     estimate left out the speculative copies, and the queues held whole pushes. Now a limit
     is refused naming the smallest that fits, or the peak stays under it. About 40 s."""
-    out = subprocess.run([sys.executable, str(SCRIPT), "--limits", "--quick", "--check"],
+    out = subprocess.run([sys.executable, str(BENCH / "memory.py"), "--limits", "--quick", "--check"],
                          capture_output=True, text=True, timeout=1200)
     assert out.returncode == 0, out.stdout + out.stderr
     rows = [line.split("|")[1:-1] for line in out.stdout.splitlines()

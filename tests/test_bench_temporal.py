@@ -3,27 +3,12 @@ animations on 4 nodes for minutes, so it is not run here)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from bench_modules import load_bench
 
-BENCH = Path(__file__).resolve().parent.parent / "bench"
-
-
-def load(name: str, path: Path):
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
-if "bench_scenes" not in sys.modules:  # the script imports it from beside itself
-    load("bench_scenes", BENCH / "bench_scenes.py")
-temporal = load("bench_temporal", BENCH / "temporal.py")
+load_bench("bench_scenes", "bench_scenes")  # the script imports it from beside itself
+temporal = load_bench("temporal")
 
 
 def test_converged_split_takes_the_variances_out_of_the_error():
