@@ -121,12 +121,8 @@ class ExactCulling(Occupancy):
     triangle of the domain within its limit (grown by 1e-4 relative, so a hit at the limit
     is kept). Each domain's side scene is built once, outside every cache and count."""
 
-    def __init__(self, store: Store, masks: Occupancy | None):
-        lo, hi = store.domain_boxes()
-        if masks is None:  # every cell occupied: only the oracle drops pairs
-            super().__init__(lo, hi, [None] * len(store.domains))
-        else:
-            self.__dict__.update(masks.__dict__)
+    def __init__(self, store: Store):
+        super().__init__(*store.domain_boxes(), [d.occupancy for d in store.domains])
         self.store, self.scenes = store, {}
 
     @property
@@ -168,9 +164,7 @@ def finer(store: Store, resolution: int) -> Occupancy:
     masks = []
     for d in range(len(store.domains)):
         arrays = store.load_domain(d)
-        extent = np.maximum(hi[d] - lo[d], 0.0)
-        dims = np.clip(np.ceil(resolution * extent / max(extent.max(), 1e-300) - 1e-9), 1,
-                       resolution).astype(np.int64)
+        dims = occupancy.grid_dims(lo[d], hi[d], math.inf, resolution)
         masks.append(occupancy.compute(np.asarray(arrays.vertices), np.asarray(arrays.indices),
                                        lo[d], hi[d], dims))
     return Occupancy(lo, hi, masks)
@@ -209,7 +203,7 @@ def scene_report(name: str, store: Store, settings: RenderSettings,
     summary = []
     variants = [(f"{r} cells", lambda r=r: finer(store, r)) for r in resolutions]
     if bound:
-        variants.append(("bound (oracle)", lambda: ExactCulling(store, store.occupancy())))
+        variants.append(("bound (oracle)", lambda: ExactCulling(store)))
     for scheduler in SCHEDULERS:
         got = {}
         for on in (False, True):

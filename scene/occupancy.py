@@ -58,17 +58,19 @@ def enabled() -> bool:
 # --- building ----------------------------------------------------------------------------------
 
 
-def grid_dims(lo: np.ndarray, hi: np.ndarray, nbytes: int) -> tuple[int, int, int]:
+def grid_dims(lo: np.ndarray, hi: np.ndarray, nbytes: float,
+              resolution: int = RESOLUTION) -> tuple[int, int, int]:
     """Cells per axis for a domain of box ``[lo, hi]`` and ``nbytes`` bytes of arrays.
 
-    The longest axis gets ``RESOLUTION`` cells (halved until the packed bits fit in
-    ``MAX_SHARE`` of ``nbytes``), the others in proportion to their extent, at least one.
+    The longest axis gets ``resolution`` cells (halved until the packed bits fit in
+    ``MAX_SHARE`` of ``nbytes``; ``inf``: no cap), the others in proportion to their
+    extent, at least one.
     """
     extent = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
     longest = float(extent.max(initial=0.0))
     if not np.isfinite(longest) or longest <= 0:
         return (1, 1, 1)
-    r = RESOLUTION
+    r = resolution
     while r > 1:
         dims = np.clip(np.ceil(r * extent / longest - 1e-9), 1, r).astype(np.int64)
         if (int(np.prod(dims)) + 7) // 8 <= MAX_SHARE * nbytes:

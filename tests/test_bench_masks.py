@@ -32,7 +32,7 @@ def test_the_oracle_keeps_exactly_the_pairs_whose_ray_hits_the_domain(store):
     origins = (lo + (hi - lo) * rng.random((n, 3))).astype(np.float32)
     directions = rng.normal(size=(n, 3)).astype(np.float32)
     limit = np.full(n, np.float32(np.linalg.norm(hi - lo) / 3))
-    oracle = masks.ExactCulling(store, store.occupancy())
+    oracle = masks.ExactCulling(store)
     try:
         ray = np.repeat(np.arange(n), len(store.domains))
         domain = np.tile(np.arange(len(store.domains)), n)
@@ -58,7 +58,7 @@ def test_finer_masks_and_the_oracle_keep_the_image_and_queue_fewer_pairs(store, 
     cache = max(1, len(store.domains) // 4)
     plain = masks.run(store, SETTINGS, scheduler, cache, True)
     finer = masks.run(store, SETTINGS, scheduler, cache, True, masks.finer(store, 32))
-    oracle_culling = masks.ExactCulling(store, store.occupancy())
+    oracle_culling = masks.ExactCulling(store)
     try:
         exact = masks.run(store, SETTINGS, scheduler, cache, True, oracle_culling)
     finally:
