@@ -12,7 +12,13 @@ BENCH = Path(__file__).resolve().parent.parent / "bench"
 
 
 def load_bench(script: str, name: str | None = None):
-    """``bench/<script>.py`` as module ``name`` (default ``bench_<script>``), loaded once."""
+    """``bench/<script>.py`` as module ``name`` (default ``bench_<script>``), loaded once.
+
+    ``bench/`` goes on the end of ``sys.path`` first, as it is when a script runs: scripts import
+    their siblings (``bench_scenes``, ``hogs``) from beside themselves.
+    """
+    if str(BENCH) not in sys.path:
+        sys.path.append(str(BENCH))
     name = name or f"bench_{script}"
     if name not in sys.modules:
         spec = importlib.util.spec_from_file_location(name, BENCH / f"{script}.py")

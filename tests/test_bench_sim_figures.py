@@ -7,11 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from test_bench_temporal import BENCH, load
+from bench_modules import BENCH, load_bench
 
 from vastray.actors.job_options import JobOptions
 
-figures = load("bench_sim_figures", BENCH / "sim_figures.py")
+figures = load_bench("sim_figures")
 
 
 def test_every_temporal_run_is_a_job_the_nodes_accept():

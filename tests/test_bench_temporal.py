@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from bench_modules import load_bench
 
-load_bench("bench_scenes", "bench_scenes")  # the script imports it from beside itself
 temporal = load_bench("temporal")
 
 
