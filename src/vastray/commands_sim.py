@@ -35,9 +35,10 @@ what is measured, with the real components (nothing is mocked):
   processes   1 to 2 x cores and 4 x cores warm processes rendering side by side,
               in interleaved rounds: the machine's throughput with k busy processes,
               from their CPU seconds (contention; the host's steal is not counted)
-  a node      real 1-node `async`, `image` and `spec-insitu` renders of 16 x 12 pixels
-              against the simulator's predictions: what a node pays once (the least of the
-              three: a fresh process's first use, warmup_s; the rest: each runtime's own)
+  a node      real `async`, `image` and `spec-insitu` renders of 16 x 12 pixels on 8
+              node processes sharing the cores, against the simulator's predictions: what
+              each node pays once (the least of the three: a fresh process's first use,
+              warmup_s; the rest: each runtime's own)
 The file also records the cores this process may use and what machine it ran on; run it
 on an otherwise idle machine, as another process's load is measured too.
 """

@@ -13,8 +13,9 @@ machine it runs on, with the project's own components, never mocks.
   whose CPU beyond the raw wire is what a node pays to receive one (``receive_s``);
 - warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 4 x cores
   processes rendering side by side, in interleaved rounds, from their CPU seconds;
-- what a node pays once: real 1-node ``async``, ``image`` and ``spec-insitu`` renders of a
-  few pixels against the simulator's predictions of them (``vastray.sim.node_cost``): the
+- what a node pays once: real ``async``, ``image`` and ``spec-insitu`` renders of a few
+  pixels on ``node_cost.SETUP_NODES`` node processes against the simulator's predictions of them
+  (``vastray.sim.node_cost``): the
   least of the three is every fresh process's first use (``warmup_s``), the rest each
   runtime's own set-up.
 
@@ -54,7 +55,7 @@ from vastray.scene.store import DomainArrays, Store
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim.costs import CostModel
-from vastray.sim.node_cost import setup_cost
+from vastray.sim.node_cost import SETUP_NODES, setup_cost
 from vastray.sim.warmup import (
     WarmProcesses,
     interpolated,
@@ -108,8 +109,8 @@ QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=
                min_pings=4)
 
 #: Share of the run each stage takes (for ``progress``), in the order they run.
-STAGES = {"setup": 0.03, "loads": 0.1, "tracing": 0.25, "wire": 0.24, "warmup": 0.3,
-          "node": 0.08}
+STAGES = {"setup": 0.02, "loads": 0.07, "tracing": 0.18, "wire": 0.17, "warmup": 0.21,
+          "node": 0.35}
 
 
 def node_settings(settings: RenderSettings) -> RenderSettings:
@@ -119,7 +120,7 @@ def node_settings(settings: RenderSettings) -> RenderSettings:
 
 
 def setup_settings(settings: RenderSettings) -> RenderSettings:
-    """The real 1-node renders that measure what a node pays once (``setup_cost``): 16 x 12
+    """The real renders that measure what a node pays once (``setup_cost``): 16 x 12
     pixels at one sample, so their time beyond the simulator's charge for their work is the
     fixed cost and not also what the model misses in proportion to work (a render of the
     tile's size charged that share to every node as a constant: 0.37 s where 8 fresh nodes
@@ -202,13 +203,14 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
         trace_scale=1.0, node_cpu_scale=1.0, load_scale=1.0,
         offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
-    report("node", 0.0, "renders on a real node")
-    config, repeats = config or SceneConfig(text=""), 3
+    report("node", 0.0, f"renders on {SETUP_NODES} real nodes")
+    # each pair starts SETUP_NODES fresh node processes (about 8 s on 2 cores)
+    config, repeats = config or SceneConfig(text=""), 2 if quick else 3
 
     def fixed_cost(scheduler: str, done: float) -> float:
         cost = setup_cost(store_path, model, config, setup_settings(settings), scheduler,
                           repeats)
-        report("node", done, "renders on a real node")
+        report("node", done, f"renders on {SETUP_NODES} real nodes")
         return cost
 
     node_fixed = fixed_cost("async", 1 / 3)  # the node runtimes
