@@ -40,7 +40,9 @@ results are the same bits.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import sys
 
 import numpy as np
 from numba import njit
@@ -832,11 +834,11 @@ def _first_dispatch(x):
 
 def warm_up() -> float:
     """Pay numba's once-a-process set-up now: the first call of any compiled kernel loads the
-    compiler's registries (numba imports its numpy support, which imports scipy's BLAS where
-    scipy is installed): 0.5-0.8 s of CPU measured in a fresh node process on the 2-core
-    machine, 80 % of a small job's busy span. A node calls it (``actors.node_warm_up``, which then
-    calls every kernel once) on a thread as it starts, while it makes its sockets, and
-    finishes it before its first hello, so no frame pays it.
+    compiler's registries (numba imports its numpy support): 0.5-0.8 s of CPU measured in a
+    fresh node process on the 2-core machine, 80 % of a small job's busy span. A node calls it
+    (``actors.node_warm_up``, which then calls every kernel once) on a thread as it starts,
+    while it makes its sockets, and finishes it before its first hello, so no frame pays it.
+    It is paid without numba's BLAS (``_without_numba_blas``).
 
     Returns
     -------
@@ -846,5 +848,31 @@ def warm_up() -> float:
     import time
 
     start = time.perf_counter()
-    _first_dispatch(1)
+    with _without_numba_blas():
+        _first_dispatch(1)
     return time.perf_counter() - start
+
+
+#: The module numba's numpy support imports as it loads, to see whether ``np.dot`` and
+#: ``np.linalg`` can be compiled: it imports all of ``scipy.linalg`` (and through it
+#: ``numpy.f2py``), 0.25 s of a fresh process's start, which no kernel here uses.
+NUMBA_BLAS_PROBE = "scipy.linalg.cython_blas"
+
+
+@contextlib.contextmanager
+def _without_numba_blas():
+    """While numba loads its numpy support for the first time, its BLAS probe finds nothing
+    (``sys.modules`` maps ``NUMBA_BLAS_PROBE`` to None, so its import fails at once without
+    importing ``scipy.linalg``); numba then compiles no BLAS call in this process, which none
+    of the kernels makes (a test compiles every kernel after it). Afterwards the probe's
+    module imports as usual. Where numba's numpy support or the probe's module is loaded
+    already, nothing changes."""
+    if "numba.np.arraymath" in sys.modules or NUMBA_BLAS_PROBE in sys.modules:
+        yield
+        return
+    sys.modules[NUMBA_BLAS_PROBE] = None
+    try:
+        yield
+    finally:
+        if NUMBA_BLAS_PROBE in sys.modules and sys.modules[NUMBA_BLAS_PROBE] is None:
+            del sys.modules[NUMBA_BLAS_PROBE]

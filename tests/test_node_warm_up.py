@@ -88,3 +88,46 @@ def test_the_tiny_store_has_occupancy_masks_with_empty_cells(tmp_path):
     # holes: some cell of each mask is empty, so the mask's query skips rays
     assert all(m.any() and not m.all() for m in masks)
 
+
+
+#: A node's process as it starts (``vastray.actors.node`` imported, then warmed), then every
+#: scheduler's render, then scipy's BLAS imported as any later user would.
+FRESH_NODE = textwrap.dedent("""
+    import json, sys
+    import vastray.actors.node
+    from vastray.actors.node_warm_up import warm_node
+    warm_node()
+    scipy_at_warm = sorted(m for m in sys.modules if m.startswith("scipy.linalg"))
+    from vastray.actors.job_options import JobOptions
+    from vastray.render.integrators import RenderSettings
+    from vastray.render.scene_config import SceneConfig
+    from vastray.scene.store import Store
+    from vastray.sim.costs import CostModel
+    from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+    store = Store(sys.argv[1])
+    for scheduler in SIM_SCHEDULERS:
+        for integrator in ("pt", "ao"):
+            settings = RenderSettings(width=24, height=18, spp=1, integrator=integrator,
+                                      bounces=2)
+            simulate(store, JobOptions(scheduler=scheduler, cache=3), 2, CostModel(),
+                     settings, SceneConfig())
+    import scipy.linalg.cython_blas
+    from numba.np import arraymath
+    print(json.dumps({"scipy_at_warm": scipy_at_warm, "numba_blas": arraymath._HAVE_BLAS,
+                      "cython_blas": hasattr(scipy.linalg.cython_blas, "__pyx_capi__")}))
+""")
+
+
+def test_a_node_warms_numba_without_scipy_and_still_renders_every_scheduler(tmp_path):
+    from vastray.scene.generate import generate
+
+    generate("rm", tmp_path / "rm.store", 24, grid=(2, 2, 2))
+    done = subprocess.run([sys.executable, "-c", FRESH_NODE, str(tmp_path / "rm.store")],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    found = json.loads(done.stdout.strip().splitlines()[-1])
+    # numba's BLAS probe did not import scipy.linalg (0.25 s of every node's start) ...
+    assert found["scipy_at_warm"] == [], found
+    assert found["numba_blas"] is False, found
+    # ... yet every kernel of every scheduler ran, and scipy's BLAS imports afterwards
+    assert found["cython_blas"] is True, found
