@@ -11,13 +11,19 @@ import sys
 import tempfile
 import textwrap
 
-from vastray.actors import node_warm_up
+import pytest
 
-#: Run in a fresh process (this one's kernels are warm from other tests): warm the node, list
-#: every compiled kernel's loaded signatures, render with every scheduler the nodes run (the
-#: simulator runs the nodes' own code in one process) and list what was loaded after.
+from vastray.actors import node_warm_up
+from vastray.scene.generate import generate
+
+#: Run in a fresh process (this one's kernels are warm from other tests), started as a node
+#: starts (``vastray.actors.node`` imported): warm the node, list every compiled kernel's
+#: loaded signatures and whether scipy's linear algebra was imported, render with every
+#: scheduler the nodes run (the simulator runs the nodes' own code in one process), list what
+#: was loaded after, then import scipy's BLAS as a later user would.
 FRESH_PROCESS = textwrap.dedent("""
     import json, sys
+    import vastray.actors.node
     from numba.core.registry import CPUDispatcher
     from vastray.actors.job_options import JobOptions
     from vastray.actors.node_warm_up import warm_node
@@ -42,27 +48,39 @@ FRESH_PROCESS = textwrap.dedent("""
                         found |= {(name, str(sig)) for sig in kernel.signatures}
         return found
 
-    generate("rm", sys.argv[1], 24, grid=(2, 2, 2))
     store = Store(sys.argv[1])
     warm_node()
     warm, modules = loaded(), set(sys.modules)
+    scipy_at_warm = sorted(m for m in modules if m.startswith("scipy.linalg"))
     for scheduler in SIM_SCHEDULERS:
         for integrator in ("pt", "ao"):
             settings = RenderSettings(width=24, height=18, spp=1, integrator=integrator,
                                       bounces=2)
             simulate(store, JobOptions(scheduler=scheduler, cache=3), 2, CostModel(),
                      settings, SceneConfig())
-    print(json.dumps({"warm": len(warm), "left": sorted(n for n, _ in loaded() - warm),
-                      "imported": sorted(m for m in set(sys.modules) - modules
-                                         if m.startswith("vastray"))}))
+    left = sorted(n for n, _ in loaded() - warm)
+    imported = sorted(m for m in set(sys.modules) - modules if m.startswith("vastray"))
+    import scipy.linalg.cython_blas
+    from numba.np import arraymath
+    print(json.dumps({"warm": len(warm), "left": left, "imported": imported,
+                      "scipy_at_warm": scipy_at_warm, "numba_blas": arraymath._HAVE_BLAS,
+                      "cython_blas": hasattr(scipy.linalg.cython_blas, "__pyx_capi__")}))
 """)
 
 
-def test_no_scheduler_has_a_kernel_left_to_load_after_the_warm_up(tmp_path):
-    done = subprocess.run([sys.executable, "-c", FRESH_PROCESS, str(tmp_path / "rm.store")],
+@pytest.fixture(scope="module")
+def fresh_node(tmp_path_factory) -> dict:
+    """What ``FRESH_PROCESS`` found, on a store written here (writing one imports scipy)."""
+    path = tmp_path_factory.mktemp("warm-up") / "rm.store"
+    generate("rm", path, 24, grid=(2, 2, 2))
+    done = subprocess.run([sys.executable, "-c", FRESH_PROCESS, str(path)],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
-    found = json.loads(done.stdout.strip().splitlines()[-1])
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_no_scheduler_has_a_kernel_left_to_load_after_the_warm_up(fresh_node):
+    found = fresh_node
     assert found["warm"] >= 10, found  # the warm-up did call the kernels
     assert found["left"] == [], ("kernels a node's first frame would still load from numba's "
                                  f"cache; make the warm-up's tiny render call them: {found}")
@@ -89,45 +107,10 @@ def test_the_tiny_store_has_occupancy_masks_with_empty_cells(tmp_path):
     assert all(m.any() and not m.all() for m in masks)
 
 
-
-#: A node's process as it starts (``vastray.actors.node`` imported, then warmed), then every
-#: scheduler's render, then scipy's BLAS imported as any later user would.
-FRESH_NODE = textwrap.dedent("""
-    import json, sys
-    import vastray.actors.node
-    from vastray.actors.node_warm_up import warm_node
-    warm_node()
-    scipy_at_warm = sorted(m for m in sys.modules if m.startswith("scipy.linalg"))
-    from vastray.actors.job_options import JobOptions
-    from vastray.render.integrators import RenderSettings
-    from vastray.render.scene_config import SceneConfig
-    from vastray.scene.store import Store
-    from vastray.sim.costs import CostModel
-    from vastray.sim.simulate import SIM_SCHEDULERS, simulate
-    store = Store(sys.argv[1])
-    for scheduler in SIM_SCHEDULERS:
-        for integrator in ("pt", "ao"):
-            settings = RenderSettings(width=24, height=18, spp=1, integrator=integrator,
-                                      bounces=2)
-            simulate(store, JobOptions(scheduler=scheduler, cache=3), 2, CostModel(),
-                     settings, SceneConfig())
-    import scipy.linalg.cython_blas
-    from numba.np import arraymath
-    print(json.dumps({"scipy_at_warm": scipy_at_warm, "numba_blas": arraymath._HAVE_BLAS,
-                      "cython_blas": hasattr(scipy.linalg.cython_blas, "__pyx_capi__")}))
-""")
-
-
-def test_a_node_warms_numba_without_scipy_and_still_renders_every_scheduler(tmp_path):
-    from vastray.scene.generate import generate
-
-    generate("rm", tmp_path / "rm.store", 24, grid=(2, 2, 2))
-    done = subprocess.run([sys.executable, "-c", FRESH_NODE, str(tmp_path / "rm.store")],
-                          capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
-    found = json.loads(done.stdout.strip().splitlines()[-1])
+def test_a_node_warms_numba_without_scipy_and_still_renders_every_scheduler(fresh_node):
     # numba's BLAS probe did not import scipy.linalg (0.25 s of every node's start) ...
-    assert found["scipy_at_warm"] == [], found
-    assert found["numba_blas"] is False, found
-    # ... yet every kernel of every scheduler ran, and scipy's BLAS imports afterwards
-    assert found["cython_blas"] is True, found
+    assert fresh_node["scipy_at_warm"] == [], fresh_node
+    assert fresh_node["numba_blas"] is False, fresh_node
+    # ... yet every kernel of every scheduler ran (the test above), and scipy's BLAS
+    # imports afterwards
+    assert fresh_node["cython_blas"] is True, fresh_node
