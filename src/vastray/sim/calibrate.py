@@ -14,10 +14,9 @@ machine it runs on, with the project's own components, never mocks.
 - warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 4 x cores
   processes rendering side by side, in interleaved rounds, from their CPU seconds;
 - what a node pays once: real ``async``, ``image`` and ``spec-insitu`` renders of a few
-  pixels on ``node_cost.SETUP_NODES`` node processes against the simulator's predictions of them
-  (``vastray.sim.node_cost``): the
-  least of the three is every fresh process's first use (``warmup_s``), the rest each
-  runtime's own set-up.
+  pixels on ``node_cost.SETUP_NODES`` node processes against the simulator's predictions of
+  them (``vastray.sim.node_cost``): the least of the three is every fresh process's first
+  use (``warmup_s``), the rest each runtime's own set-up.
 
 Each measurement has a time budget (``Effort``), so a run takes about as long on a large store
 as on a small one; ``quick`` has smaller budgets (a test, a first look).
