@@ -835,7 +835,7 @@ def _first_dispatch(x):
 def warm_up() -> float:
     """Pay numba's once-a-process set-up now: the first call of any compiled kernel loads the
     compiler's registries (numba imports its numpy support): 0.5-0.8 s of CPU measured in a
-    fresh node process on the 2-core machine, 80 % of a small job's busy span (0.2-0.3 s
+    fresh node process on the 2-core machine, 80 % of a small job's busy span (0.2-0.4 s
     since it runs without numba's BLAS probe, ``_without_numba_blas``). A node calls it
     (``actors.node_warm_up``, which then calls every kernel once) on a thread as it starts,
     while it makes its sockets, and finishes it before its first hello, so no frame pays it.
