@@ -4,10 +4,9 @@ itself renders for a minute or more, so it is not run here)."""
 from __future__ import annotations
 
 import math
-import sys
 
 import pytest
-from bench_modules import BENCH, load_bench
+from bench_modules import load_bench
 
 convergence = load_bench("convergence")
 
@@ -144,9 +143,7 @@ def test_the_hidden_lamp_scene_hides_its_light_in_a_cup_under_the_ceiling(tmp_pa
     # light inside the cup (below its rim, above its floor), the rim below the ceiling.
     import numpy as np
     import trimesh
-
-    sys.path.insert(0, str(BENCH))
-    from bench_scenes import hidden_lamp_scene
+    from bench_scenes import hidden_lamp_scene  # bench/ is on sys.path (load_bench)
 
     from vastray.render.scene_config import load_scene_config
     ply, toml = hidden_lamp_scene(tmp_path, cup=0.5, depth=0.2, gap=0.1)
