@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -296,3 +297,15 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
+
+
+#: A progress bar as ``tqdm`` draws it: "render:  75%|███▌  | 1.15k/1.54k [00:02<00:00, 636path/s]".
+PROGRESS_BAR = re.compile(r"[^\r\n|]*?: *\d+%\|[^|\r\n]*\|[^\[\r\n]*\[[^\]\r\n]*\]")
+
+
+def said_lines(stderr: str) -> list[str]:
+    """What a command said on ``stderr``, its progress bars left out: a render shows its bar
+    after 2 s, which a tiny render on a busy machine takes, and a line printed while a bar is
+    up follows the bar on the same line."""
+    text = PROGRESS_BAR.sub("", stderr)
+    return [line.strip() for line in text.splitlines() if line.strip()]
