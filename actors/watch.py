@@ -110,6 +110,12 @@ class Watch:
         if rank < len(self.procs):
             self._cpu.forget(self.procs[rank].pid)
 
+    def _starting(self, rank: int, now: float) -> bool:
+        """Whether node ``rank``, started here and not yet joined, is still using the CPU
+        (so it is starting slowly, not stuck), for at most ``BUSY_GRACE`` node timeouts."""
+        return (now - self.started <= BUSY_GRACE * self.timeout
+                and self._cpu.busy(self.procs[rank].pid, now))
+
     def _busy_here(self, rank: int, now: float) -> bool:
         """Whether node ``rank``, started here and silent, is still using the CPU (so it is
         slow, not stalled), for at most ``BUSY_GRACE`` heartbeat timeouts of silence.
@@ -173,22 +179,28 @@ class Watch:
                 failure.cause = exit_cause(code)
                 raise failure
         waiting = set(range(len(self.procs))) - self.ranks_joined
-        if self.ranks_joined and waiting and now - self.last_join > self.heartbeat_timeout:
+        # a node started here that still uses CPU is starting (importing, warming its kernels
+        # on a starved machine), not stuck: it is given up to BUSY_GRACE limits to join
+        stuck = {r for r in waiting if not self._starting(r, now)}
+        if self.ranks_joined and stuck and now - self.last_join > self.heartbeat_timeout:
             # the others joined long ago: a node started here that has not is stuck
-            raise self._failure(min(waiting), f"did not join within "
-                                              f"{self.heartbeat_timeout:.0f} s of the others "
-                                              "(stalled)", NodeLost, cause="stalled")
-        if len(self.ranks_joined) < self.size and now - self.started > self.timeout:
-            if self.procs:  # nodes started here: name the one that never said hello
-                rank = min(set(range(self.size)) - self.ranks_joined)
-                raise self._failure(rank, f"did not join within {self.timeout:.0f} s")
+            raise self._failure(min(stuck), f"did not join within "
+                                            f"{self.heartbeat_timeout:.0f} s of the others "
+                                            "(stalled)", NodeLost, cause="stalled")
+        late = len(self.ranks_joined) < self.size and now - self.started > self.timeout
+        if late and self.procs:  # nodes started here: name one that never said hello
+            blamed = (set(range(self.size)) - self.ranks_joined - waiting) | stuck
+            if blamed:  # (none while every one missing is still starting)
+                raise self._failure(min(blamed), f"did not join within "
+                                                 f"{now - self.started:.0f} s")
+        elif late:
             joined = len(self.ranks_joined)
             if self.regrouping:
                 raise NodeFailure(
                     f"after the node loss, "
                     f"{'no' if joined == 0 else f'only {joined} of the {self.size}'} surviving "
-                    f"node(s) joined again within {self.timeout:.0f} s on {self.address}; the others "
-                    "ended or lost this coordinator (see their logs)")
+                    f"node(s) joined again within {self.timeout:.0f} s on {self.address}; the "
+                    "others ended or lost this coordinator (see their logs)")
             raise NodeFailure(
                 f"{'no node' if joined == 0 else f'only {joined} of {self.size} nodes'} joined "
                 f"within {self.timeout:.0f} s on {self.address}; check that each node's "

@@ -391,6 +391,43 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
         idle.wait()
 
 
+def test_a_node_still_starting_on_a_starved_machine_is_given_time_to_join(tmp_path,
+                                                                          monkeypatch):
+    """A node started here that has not joined within the node timeout but keeps using the
+    CPU (importing and warming its kernels beside other jobs: 3 nodes with --node-timeout 5
+    under a CPU hog failed "node 0 did not join within 5 s") is starting, not stuck, for up to
+    ``BUSY_GRACE`` timeouts; one that uses none is named at the timeout."""
+    from vastray.actors import watch as watch_module
+    from vastray.actors.node_failure import NodeFailure
+    from vastray.actors.watch import Watch
+
+    monkeypatch.setattr(watch_module, "BUSY_GRACE", 4)
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    logs = [tmp_path / f"node{rank}.log" for rank in (0, 1)]
+    for log in logs:
+        log.write_text("")
+    try:
+        def check_until_it_fails(watch, seconds):
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                watch.check()
+                time.sleep(0.1)
+
+        watch = Watch(2, [busy, idle], logs, timeout=1.0, launched={}, heartbeat_timeout=1.0)
+        with pytest.raises(NodeFailure, match=r"node 1 .*did not join within"):
+            check_until_it_fails(watch, 3.0)  # the idle one, not the busy one
+        watch = Watch(1, [busy], logs[:1], timeout=1.0, launched={}, heartbeat_timeout=1.0)
+        check_until_it_fails(watch, 2.5)  # past the timeout, still starting: no verdict
+        with pytest.raises(NodeFailure, match=r"node 0 .*did not join within [45] s"):
+            check_until_it_fails(watch, 3.0)  # past BUSY_GRACE timeouts: named all the same
+    finally:
+        busy.kill()
+        idle.kill()
+        busy.wait()
+        idle.wait()
+
+
 @pytest.mark.parametrize("coordinator", ["busy", "idle", "queued"])
 async def test_a_node_takes_a_silent_but_working_coordinator_for_slow(coordinator, monkeypatch):
     """A node started by its coordinator that hears nothing for the silence limit exits only
