@@ -54,6 +54,7 @@ def test_limit_table_shows_refusals_with_the_limit_they_name_and_peaks_against_l
     assert rows[0].ratio is None and rows[1].ratio == 863_000_000 / (906 * 2**20)
 
 
+@pytest.mark.timeout(1500)  # its own limit is 1,200 s
 @pytest.mark.slow
 def test_spec_ooc_on_a_fine_store_stays_under_every_limit_it_accepts():
     """Issue 37: spec-ooc on rm 128^3 cut 8x8x4 (136 domains), 256x256 x 4 spp. Before it,

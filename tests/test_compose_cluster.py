@@ -131,6 +131,7 @@ def override(data: Path, scheduler: str) -> dict:
     }}
 
 
+@pytest.mark.timeout(2400)  # the image's build and the cluster's run may each take TIMEOUT_S
 @pytest.mark.slow
 @pytest.mark.parametrize("scheduler", ["spec-ooc", "async"])
 def test_the_compose_cluster_renders_the_single_process_image(engine, scene, tmp_path, scheduler):

@@ -43,6 +43,7 @@ def test_a_stale_directive_is_an_error(tmp_path):
         script_for(block, True, None)
 
 
+@pytest.mark.timeout(2400)  # its own limit is 1,800 s
 @pytest.mark.slow
 def test_the_readme_runs_top_to_bottom(tmp_path):
     run = subprocess.run([sys.executable, str(ROOT / "bench" / "readme.py"), "--small"],

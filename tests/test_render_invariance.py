@@ -93,6 +93,7 @@ def test_rays_on_domain_faces_edges_and_axis_aligned(stores, tmp_path):
     np.testing.assert_array_equal(blocked_eight, blocked_one)
 
 
+@pytest.mark.timeout(3600)  # renders, each allowed 900 s
 @pytest.mark.slow
 def test_in_core_and_every_schedule_give_one_image_at_full_size(tmp_path):
     """Issue 20's case, as a user runs it: ``rm --resolution 64 --grid 3x3x2`` at 256x256 x 16

@@ -199,6 +199,7 @@ def mapped(pid: int, store: Path) -> bool:
         return False
 
 
+@pytest.mark.timeout(2400)  # a reference render and the render, each allowed 900 s
 @pytest.mark.slow
 def test_truncating_the_store_during_an_in_core_render(store, tmp_path):
     """``vastray render`` in its own process; once it renders (its progress bar shows paths

@@ -14,6 +14,7 @@ import pytest
 STRESS = Path(__file__).resolve().parent.parent / "bench" / "stress.py"
 
 
+@pytest.mark.timeout(2000)  # its own limit is 1,500 s
 @pytest.mark.slow
 def test_renders_under_a_cpu_hog_never_crash_and_equal_the_reference():
     proc = subprocess.run([sys.executable, str(STRESS), "--local", "7", "--distributed", "5"],
