@@ -356,7 +356,21 @@ def test_frames_recovered_after_a_node_dies_equal_the_fault_free_frames(scene, s
         np.testing.assert_array_equal(delivered[frame].film.count, expected.count)
 
 
-def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
+@pytest.fixture
+def busy_and_idle():
+    """Two processes a ``Watch`` can be given as its nodes: one using a whole core, one
+    sleeping (a node stopped or hung); killed after the test."""
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        yield busy, idle
+    finally:
+        for proc in (busy, idle):
+            proc.kill()
+            proc.wait()
+
+
+def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path, busy_and_idle):
     """A node started here that sends nothing but keeps using the CPU (its event loop held up
     by numba compiling on a busy machine) is given time; one that uses none (stopped, hung) is
     stalled after the heartbeat timeout and half of it more."""
@@ -364,35 +378,28 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path):
     from vastray.actors.node_failure import NodeLost
     from vastray.actors.watch import Watch
 
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    busy, idle = busy_and_idle
     for rank in (0, 1):
         (tmp_path / f"node{rank}.log").write_text(f"node {rank}: joined\n")
-    try:
-        watch = Watch(2, [busy, idle], [tmp_path / f"node{r}.log" for r in (0, 1)], timeout=60,
-                       launched={},
-                       heartbeat_timeout=1.0)
-        for rank in (0, 1):
-            watch.joined(rank, bytes([rank]))
-        watch.job_out()
-        deadline = time.monotonic() + 10
-        with pytest.raises(NodeLost, match=r"node 1 .*sent nothing for 1 s \(stalled\)"):
-            while time.monotonic() < deadline:
-                watch.check()
-                time.sleep(0.2)
-        assert time.monotonic() - watch.last_heard[0] < BUSY_GRACE  # node 0 was not blamed
-        watch.heard(1)  # node 1 answers again: node 0, still silent but busy, is not stalled
-        time.sleep(1.6)
-        watch.check()
-    finally:
-        busy.kill()
-        idle.kill()
-        busy.wait()
-        idle.wait()
+    watch = Watch(2, [busy, idle], [tmp_path / f"node{r}.log" for r in (0, 1)], timeout=60,
+                  launched={}, heartbeat_timeout=1.0)
+    for rank in (0, 1):
+        watch.joined(rank, bytes([rank]))
+    watch.job_out()
+    deadline = time.monotonic() + 10
+    with pytest.raises(NodeLost, match=r"node 1 .*sent nothing for 1 s \(stalled\)"):
+        while time.monotonic() < deadline:
+            watch.check()
+            time.sleep(0.2)
+    assert time.monotonic() - watch.last_heard[0] < BUSY_GRACE  # node 0 was not blamed
+    watch.heard(1)  # node 1 answers again: node 0, still silent but busy, is not stalled
+    time.sleep(1.6)
+    watch.check()
 
 
 def test_a_node_still_starting_on_a_starved_machine_is_given_time_to_join(tmp_path,
-                                                                          monkeypatch):
+                                                                          monkeypatch,
+                                                                          busy_and_idle):
     """A node started here that has not joined within the node timeout but keeps using the
     CPU (importing and warming its kernels beside other jobs: 3 nodes with --node-timeout 5
     under a CPU hog failed "node 0 did not join within 5 s") is starting, not stuck, for up to
@@ -402,30 +409,24 @@ def test_a_node_still_starting_on_a_starved_machine_is_given_time_to_join(tmp_pa
     from vastray.actors.watch import Watch
 
     monkeypatch.setattr(watch_module, "BUSY_GRACE", 4)
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    busy, idle = busy_and_idle
     logs = [tmp_path / f"node{rank}.log" for rank in (0, 1)]
     for log in logs:
         log.write_text("")
-    try:
-        def check_until_it_fails(watch, seconds):
-            deadline = time.monotonic() + seconds
-            while time.monotonic() < deadline:
-                watch.check()
-                time.sleep(0.1)
 
-        watch = Watch(2, [busy, idle], logs, timeout=1.0, launched={}, heartbeat_timeout=1.0)
-        with pytest.raises(NodeFailure, match=r"node 1 .*did not join within"):
-            check_until_it_fails(watch, 3.0)  # the idle one, not the busy one
-        watch = Watch(1, [busy], logs[:1], timeout=1.0, launched={}, heartbeat_timeout=1.0)
-        check_until_it_fails(watch, 2.5)  # past the timeout, still starting: no verdict
-        with pytest.raises(NodeFailure, match=r"node 0 .*did not join within [45] s"):
-            check_until_it_fails(watch, 3.0)  # past BUSY_GRACE timeouts: named all the same
-    finally:
-        busy.kill()
-        idle.kill()
-        busy.wait()
-        idle.wait()
+    def check_for(watch, seconds):
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            watch.check()
+            time.sleep(0.1)
+
+    watch = Watch(2, [busy, idle], logs, timeout=1.0, launched={}, heartbeat_timeout=1.0)
+    with pytest.raises(NodeFailure, match=r"node 1 .*did not join within"):
+        check_for(watch, 3.0)  # the idle one, not the busy one
+    watch = Watch(1, [busy], logs[:1], timeout=1.0, launched={}, heartbeat_timeout=1.0)
+    check_for(watch, 2.5)  # past the timeout, still starting: no verdict
+    with pytest.raises(NodeFailure, match=r"node 0 .*did not join within [45] s"):
+        check_for(watch, 3.0)  # past BUSY_GRACE timeouts: named all the same
 
 
 @pytest.mark.parametrize("coordinator", ["busy", "idle", "queued"])
