@@ -78,7 +78,7 @@ def test_launch_failure_names_the_host_and_writes_nothing(tmp_path, local_ssh, c
     out = tmp_path / "o.exr"
     code = main(["launch", "--hosts", str(tmp_path / "hosts"), "--advertise", "127.0.0.1",
                  "--ssh", local_ssh, "--logs", str(tmp_path / "logs"), str(store.path), "-o",
-                 str(out), "--keys", str(tmp_path / "keys"), "--node-timeout", "20", "--quiet"])
+                 str(out), "--keys", str(tmp_path / "keys"), "--node-timeout", "20"])  # no --quiet
     assert code != 0
     assert "broken" in capsys.readouterr().err
     assert not out.exists()
