@@ -103,9 +103,13 @@ class Model:
                 + [("deliver", i) for i in range(len(self.flight))])
 
 
-@hsettings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.data())
-def test_the_frame_ends_exactly_when_no_batch_is_in_flight_whatever_the_delivery_order(data):
+def _property(examples: int):
+    """The frame-end property below as a test of ``examples`` random runs of the model."""
+    return hsettings(max_examples=examples, deadline=None,
+                     suppress_health_check=[HealthCheck.too_slow])(given(st.data())(_frame_ends))
+
+
+def _frame_ends(data):
     size = data.draw(st.integers(1, 9), label="nodes")
     work = data.draw(st.lists(st.integers(0, 3), min_size=size, max_size=size), label="tiles")
     model = Model(size, work, budget=data.draw(st.integers(0, 40), label="batches"))
@@ -128,6 +132,11 @@ def test_the_frame_ends_exactly_when_no_batch_is_in_flight_whatever_the_delivery
     assert sum(model.sent) == sum(model.received)
     # the root needs two waves at least: one to see the counts, one to see them again
     assert model.nodes[0].waves >= 2
+
+
+# 250 runs of the model by default (6 s); 3,000 more with -m slow (a minute; CI runs them)
+test_the_frame_ends_exactly_when_no_batch_is_in_flight_whatever_the_delivery_order = _property(250)
+test_the_frame_ends_exactly_in_many_more_delivery_orders = pytest.mark.slow(_property(3000))
 
 
 def test_a_batch_in_flight_makes_the_root_wave_again_until_the_counts_repeat():

@@ -117,6 +117,7 @@ def _node_pids(parent: int, rank: int) -> list[int]:
     return pids
 
 
+@pytest.mark.slow  # 45 s of idling past the node timeout by design (CI runs it)
 def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp_path):
     # issue 42: a node done with its share waited for the stop with the node timeout, quit,
     # and the frame was rendered again (--node-timeout 20: 4 nodes cascaded down to 1). Here
