@@ -110,23 +110,25 @@ class Watch:
         if rank < len(self.procs):
             self._cpu.forget(self.procs[rank].pid)
 
-    def _starting(self, rank: int, now: float) -> bool:
-        """Whether node ``rank``, started here and not yet joined, is still using the CPU
-        (so it is starting slowly, not stuck), for at most ``BUSY_GRACE`` node timeouts."""
-        return (now - self.started <= BUSY_GRACE * self.timeout
+    def _working(self, rank: int, since: float, limit: float, now: float) -> bool:
+        """Whether node ``rank``, a process started here, is still using the CPU, waited on
+        since ``since`` for at most ``BUSY_GRACE`` times ``limit`` (so it is slow, not stuck).
+
+        A node's start (imports, kernel warm-up) or its event loop (numba compiling on a cold
+        cache) can be held up past a limit on a machine kept busy by other jobs; a stopped or
+        hung node uses no CPU. Only for processes started here (their CPU time is in /proc)."""
+        return (rank < len(self.procs) and now - since <= BUSY_GRACE * limit
                 and self._cpu.busy(self.procs[rank].pid, now))
 
-    def _busy_here(self, rank: int, now: float) -> bool:
-        """Whether node ``rank``, started here and silent, is still using the CPU (so it is
-        slow, not stalled), for at most ``BUSY_GRACE`` heartbeat timeouts of silence.
+    def _starting(self, rank: int, now: float) -> bool:
+        """Whether node ``rank``, started here and not yet joined, is still starting (for at
+        most ``BUSY_GRACE`` node timeouts)."""
+        return self._working(rank, self.started, self.timeout, now)
 
-        A node whose event loop is held up (numba compiling its kernels on a cold cache, on a
-        machine kept busy by other jobs) sends no heartbeat for a while; a stopped or hung
-        node uses no CPU. Only for processes started here (their CPU time is in /proc)."""
-        if rank >= len(self.procs) or now - self.last_heard[rank] > (
-                BUSY_GRACE * self.heartbeat_timeout):
-            return False
-        return self._cpu.busy(self.procs[rank].pid, now)
+    def _busy_here(self, rank: int, now: float) -> bool:
+        """Whether node ``rank``, started here and silent, is still working (for at most
+        ``BUSY_GRACE`` heartbeat timeouts of silence)."""
+        return self._working(rank, self.last_heard[rank], self.heartbeat_timeout, now)
 
     def _failure(self, rank: int, why: str, kind: type = NodeFailure,
                  cause: str = "lost", log_tail: bool = True) -> NodeFailure:
