@@ -134,7 +134,7 @@ def _frame_ends(data):
     assert model.nodes[0].waves >= 2
 
 
-# 250 runs of the model by default (6 s); 3,000 more with -m slow (a minute; CI runs them)
+# 250 random runs of the model by default (6 s); 3,000 with -m slow (a minute; CI runs them)
 test_the_frame_ends_exactly_when_no_batch_is_in_flight_whatever_the_delivery_order = _property(250)
 test_the_frame_ends_exactly_in_many_more_delivery_orders = pytest.mark.slow(_property(3000))
 
