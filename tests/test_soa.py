@@ -1,6 +1,7 @@
 """Per-domain ray queues: what goes in comes out, per domain, in push order."""
 
 import numpy as np
+import pytest
 
 from vastray.schedule.soa import DomainQueues, SoA
 
@@ -97,3 +98,21 @@ def test_a_growing_array_keeps_every_block_in_order_across_reallocations():
     assert np.array_equal(grown.values, np.concatenate(blocks))
     grown.values[[0, -1]] -= 1  # a view: assignments stay
     assert grown.values[0] == blocks[0][0] - 1 and grown.values[-1] == blocks[-1][-1] - 1
+
+
+def test_take_by_mask_or_indices_copies_the_rows_fancy_indexing_would():
+    rng = np.random.default_rng(5)
+    rays = SoA(id=np.arange(50, dtype=np.int64), origin=rng.random((50, 3), dtype=np.float32),
+               level=rng.integers(0, 4, 50).astype(np.int8))
+    mask = rng.random(50) < 0.4
+    for rows in (mask, np.flatnonzero(mask)[::-1], np.array([3, 3, -1]), np.zeros(50, bool),
+                 np.array([], np.int64)):
+        taken = rays.take(rows)
+        for name, field in rays.fields.items():
+            assert taken[name].dtype == field.dtype and taken[name].shape[1:] == field.shape[1:]
+            assert np.array_equal(taken[name], field[rows])
+            assert not np.shares_memory(taken[name], field)  # a copy: the caller may write
+    with pytest.raises(IndexError, match="a mask of 49 rows for 50 rays"):
+        rays.take(mask[:49])
+    with pytest.raises(IndexError):
+        rays.take(np.array([50]))
