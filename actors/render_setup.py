@@ -3,7 +3,7 @@ shading inputs, the camera, the domain boxes, the AO distance and the number of 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -53,6 +53,10 @@ class RenderSetup:
                            store.occupancy()),
             settings.ao_distance or default_ao_distance(store),
             settings.paths, fast_builds(settings.bvh, store.n_triangles))
+
+    def without_masks(self) -> RenderSetup:
+        """The same set-up, its domain queries without the occupancy masks."""
+        return replace(self, geometry=self.geometry.without_masks())
 
     def tile_schedule(self, settings: RenderSettings, first: int, tile: int,
                       owner: np.ndarray, rank: int, simple=None) -> ImageSchedule:

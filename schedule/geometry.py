@@ -8,6 +8,8 @@ orders and ties stay those of the boxes: the masks only remove pairs.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from vastray.render import boxwalk
@@ -44,6 +46,12 @@ class DomainGeometry:
         self.box_magnitude = float(max(np.abs(lo).max(initial=0), np.abs(hi).max(initial=0)))
         self.origin_bound = max(origin_bound, 2.0 * self.box_magnitude)
         self.tree = BoxTree(lo, hi, self.ids)
+
+    def without_masks(self) -> DomainGeometry:
+        """The same boxes, queried without the occupancy masks (the same arrays, shared)."""
+        plain = copy.copy(self)
+        plain.occupancy = None
+        return plain
 
     def slabs(self, origins: np.ndarray, directions: np.ndarray) -> RaySlabs:
         """The rays' slab-test data, padded as every query of this geometry pads its boxes."""
