@@ -311,6 +311,27 @@ def test_masks_keep_the_image_and_queue_fewer_rays(rm_store, scheduler, monkeypa
     assert masked.counters["loads"] <= plain.counters["loads"]
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_a_cache_of_every_domain_renders_without_consulting_the_masks(rm_store, scheduler,
+                                                                      monkeypatch):
+    # every domain resident: the masks can save no load, only cost their test
+    store = Store(rm_store)
+    tests = []
+    real = occupancy.Occupancy.crosses
+
+    def counted(self, *args, **kwargs):
+        tests.append(1)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(occupancy.Occupancy, "crosses", counted)
+    whole = render(store, scheduler, len(store.domains))
+    assert tests == []
+    quarter = render(store, scheduler, max(1, len(store.domains) // 4))
+    assert tests  # out of core the masks are asked
+    assert np.array_equal(whole.film.image(), quarter.film.image())
+    assert whole.counters["loads"] <= len(store.domains)
+
+
 def test_a_version_4_store_opens_and_renders_the_same_image(rm_store, tmp_path):
     old = copy_store(rm_store, tmp_path / "v4")
     downgrade_to_version_4(old)
