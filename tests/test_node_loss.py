@@ -376,6 +376,14 @@ def busy_and_idle():
             proc.wait()
 
 
+def _check_for(watch, seconds: float, every: float = 0.1) -> None:
+    """Call ``watch.check()`` every ``every`` seconds for ``seconds`` (what raises, raises)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        watch.check()
+        time.sleep(every)
+
+
 def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path, busy_and_idle):
     """A node started here that sends nothing but keeps using the CPU (its event loop held up
     by numba compiling on a busy machine) is given time; one that uses none (stopped, hung) is
@@ -392,11 +400,8 @@ def test_a_silent_node_still_using_the_cpu_is_slow_not_stalled(tmp_path, busy_an
     for rank in (0, 1):
         watch.joined(rank, bytes([rank]))
     watch.job_out()
-    deadline = time.monotonic() + 10
     with pytest.raises(NodeLost, match=r"node 1 .*sent nothing for 1 s \(stalled\)"):
-        while time.monotonic() < deadline:
-            watch.check()
-            time.sleep(0.2)
+        _check_for(watch, 10.0, every=0.2)
     assert time.monotonic() - watch.last_heard[0] < BUSY_GRACE  # node 0 was not blamed
     watch.heard(1)  # node 1 answers again: node 0, still silent but busy, is not stalled
     time.sleep(1.6)
@@ -420,19 +425,13 @@ def test_a_node_still_starting_on_a_starved_machine_is_given_time_to_join(tmp_pa
     for log in logs:
         log.write_text("")
 
-    def check_for(watch, seconds):
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            watch.check()
-            time.sleep(0.1)
-
     watch = Watch(2, [busy, idle], logs, timeout=1.0, launched={}, heartbeat_timeout=1.0)
     with pytest.raises(NodeFailure, match=r"node 1 .*did not join within"):
-        check_for(watch, 3.0)  # the idle one, not the busy one
+        _check_for(watch, 3.0)  # the idle one, not the busy one
     watch = Watch(1, [busy], logs[:1], timeout=1.0, launched={}, heartbeat_timeout=1.0)
-    check_for(watch, 2.5)  # past the timeout, still starting: no verdict
+    _check_for(watch, 2.5)  # past the timeout, still starting: no verdict
     with pytest.raises(NodeFailure, match=r"node 0 .*did not join within [45] s"):
-        check_for(watch, 3.0)  # past BUSY_GRACE timeouts: named all the same
+        _check_for(watch, 3.0)  # past BUSY_GRACE timeouts: named all the same
 
 
 @pytest.mark.parametrize("coordinator", ["busy", "idle", "queued"])
