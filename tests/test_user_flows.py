@@ -42,8 +42,11 @@ def store(tmp_path_factory):
     return write_store(tmp_path_factory.mktemp("flows") / "s.store", bumpy_scene(), grid=(2, 2, 1))
 
 
+# (spec-ooc alone and image on nodes: every domain cached, the loop without occupancy masks)
 @pytest.mark.parametrize("how", [[], ["--cache", "25%", "--scheduler", "spec-ooc"],
+                                 ["--scheduler", "spec-ooc"],
                                  ["--scheduler", "image", "--cache", "1"],
+                                 ["--nodes", "2", "--scheduler", "image"],
                                  ["--nodes", "2", "--scheduler", "async"],
                                  ["--nodes", "2", "--scheduler", "domain"],
                                  ["--nodes", "2", "--scheduler", "dynamic"],
