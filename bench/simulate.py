@@ -115,7 +115,8 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     """One validation point: ``rounds`` pairs (or fewer, once the real runs add up to
     ``budget_s``) of a real run on ``nodes`` processes (``options``) and a simulation charged
     the CPU time others took during that run (``StealMeter.lost``, with ``charge_others``),
-    one right after the other, so both see the machine's moment. Medians of each side.
+    one right after the other, so both see the machine's moment: the medians of each side, and
+    the median of the pairs' errors.
 
     Returns
     -------
