@@ -314,6 +314,30 @@ def test_nodes_give_the_single_process_frames(store, orbit_toml, tmp_path):
     assert summary["scheduler"] == "async" and summary["options"]["nodes"] == 2
 
 
+def test_nodes_frames_without_quiet_say_each_frame_and_the_summary(store, orbit_toml,
+                                                                   tmp_path):
+    # The CLI as users run it (no --quiet) on the paths the tests above take quietly: a
+    # first frame other than 0, a bound on the samples in flight and a node timeout.
+    import subprocess
+    import sys
+
+    single = tmp_path / "single.exr"
+    common = ["--scene", str(orbit_toml), "--frames", "2", "--first-frame", "1", *SMALL]
+    assert main(["render", str(store.path), "-o", str(single), "--quiet", *common]) == 0
+    out = subprocess.run([sys.executable, "-m", "vastray.cli", "render", str(store.path),
+                          "-o", "a.exr", "--report", "a.json", "--nodes", "2", "--scheduler",
+                          "async", "--max-samples-in-flight", "64", "--node-timeout", "30",
+                          *common], cwd=tmp_path, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr
+    assert "frame 1 (1/2): " in out.stderr and "frame 2 (2/2): " in out.stderr, out.stderr
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("wrote 2 frames: a_{0001..0002}.exr, a_{0001..0002}.json, "
+                           "summary a.json (32x24"), last
+    for frame in (1, 2):
+        np.testing.assert_allclose(read_exr(frame_path(tmp_path / "a.exr", frame)),
+                                   read_exr(frame_path(single, frame)), atol=1e-6)
+
+
 def test_a_slow_frame_write_does_not_silence_the_coordinator(store, orbit_toml):
     # Writing a frame (a 4K EXR and PNG take seconds) must not stop the coordinator's
     # heartbeats: nodes hearing nothing for COORDINATOR_SILENCE_S exit, and frames were then

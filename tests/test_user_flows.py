@@ -387,6 +387,22 @@ def test_generate_and_info_as_a_user_runs_them(tmp_path):
     assert info.returncode == 0 and "attributes: scalars" in info.stdout, info.stdout
 
 
+def test_generate_with_a_seed_and_simplify_again_with_force_say_what_they_wrote(tmp_path):
+    out = vastray("generate", "rm", "-o", "g.store", "--resolution", "24", "--grid", "2x2x1",
+                  "--seed", "3", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("g.store: rm at 24^3") and "2x2x1 grid" in out.stdout
+    first = vastray("simplify", "g.store", "--ratio", "0.2", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    again = vastray("simplify", "g.store", "--ratio", "0.2", cwd=tmp_path)
+    assert again.returncode == 2 and "pass --force to replace it" in again.stderr
+    forced = vastray("simplify", "g.store", "--ratio", "0.2", "--force", cwd=tmp_path)
+    assert forced.returncode == 0, forced.stderr
+    for run in (first, forced):
+        assert run.stdout.startswith("g.store: simplified model of "), run.stdout
+        assert "triangle rate" in run.stdout and "(asked 20.00%)" in run.stdout
+
+
 def test_info_piped_into_head_ends_without_a_traceback(store, tmp_path):
     """`vastray info STORE | head -1`: the reader closes the pipe early."""
     info = subprocess.Popen([sys.executable, "-m", "vastray.cli", "info", str(store.path)],
