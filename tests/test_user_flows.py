@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -232,14 +233,27 @@ def test_a_remote_node_exits_when_its_coordinator_goes_silent(store, tmp_path):
     node = subprocess.Popen([sys.executable, "-m", "vastray.cli", "node", "--coordinator",
                              f"tcp://127.0.0.1:{port}", "--timeout", "60"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err = bytearray()
+
+    def read_stderr():
+        while chunk := coordinator.stderr.read1(4096):
+            err.extend(chunk)
+
+    reader = threading.Thread(target=read_stderr, daemon=True)
+    reader.start()
     try:
-        time.sleep(4.0)
+        # the coordinator is killed once the node has joined (a fixed wait of 4 s lost that
+        # race on a busy machine, where a node's start takes seconds)
+        deadline = time.monotonic() + 60
+        while b"node 0 joined" not in err and time.monotonic() < deadline:
+            time.sleep(0.1)
         assert node.poll() is None, node.stderr.read().decode()
         coordinator.kill()
-        _, err = coordinator.communicate()
+        coordinator.wait(timeout=15)
+        reader.join(timeout=15)
         _, log = node.communicate(timeout=15)
         assert "joined" in log.decode() and "lost the coordinator" in log.decode(), log
-        assert "waiting for 1 node(s)" in err.decode() and "node 0 joined" in err.decode(), err
+        assert b"waiting for 1 node(s)" in err and b"node 0 joined" in err, err.decode()
     finally:
         for p in (node, coordinator):
             _reap(p)
