@@ -22,6 +22,7 @@ from vastray.scene.cache import CacheStats
 from vastray.scene.store import Store
 from vastray.schedule import registry
 from vastray.schedule.image import ImageSchedule
+from vastray.schedule.image_cost import SweepWeights, pixel_weights
 from vastray.schedule.ownership import sort_first_tile_paths
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
@@ -80,6 +81,7 @@ class SortFirstTiles:
         #: the largest tile of any sweep (paths)
         self.tile = 1
         self._before = _cache_counts(self.preloader.cache.stats)
+        self._pixel_weights = None  # (W * H,) int64, ``image_cost.pixel_weights``, on demand
 
     async def trace(self, ctx: PathContext) -> PathResult:
         """Trace the paths of ``ctx`` through the domains in their schedule's order."""
@@ -96,7 +98,7 @@ class SortFirstTiles:
     async def render_pass(self, window: RenderSettings) -> Film:
         """The film of one pass (``window.samples``): this node's share of its tiles."""
         film = Film(window.width, window.height)
-        for ids in self._tiles(window.paths):
+        for ids in self._tiles(window.paths, [window.samples[1] - window.samples[0]]):
             ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)
             film.add_paths(ctx.pixel, ctx.sample, await self.trace(ctx))
         return film
@@ -105,7 +107,7 @@ class SortFirstTiles:
         """Every pass of ``spans``, in tiles that run on from one pass into the next (a domain
         is loaded once per tile, not once per pass); each pass is merged into the
         progression once its last tile is done. Returns the progression's film."""
-        for ids in self._tiles(spans.total):
+        for ids in self._tiles(spans.total, spans.per_pixel):
             ctx, passes = spans.context(self.setup.shading, ids, self.setup.ao_distance)
             spans.add(ctx, passes, await self.trace(ctx), int(ids[-1]) + 1)
         spans.add_rest()  # passes in other nodes' tiles only, and those after this node's last
@@ -115,10 +117,19 @@ class SortFirstTiles:
         """The cache's counters since this object was made (peaks: the cache's own)."""
         return _CallStats(self.preloader.cache.stats, self._before)
 
-    def _tiles(self, total: int):
-        """This node's tiles of a sweep of ``total`` paths, each (n,) path ids."""
+    def _tiles(self, total: int, per_pixel):
+        """This node's tiles of a sweep of ``total`` paths, each (n,) path ids: passes of
+        (K,) ``per_pixel`` samples a pixel, whose paths the bands' cuts weigh
+        (``image_cost``) where several nodes share the sweep."""
+        weights = None
+        if self.share[1] > 1:
+            if self._pixel_weights is None:  # once: the camera and boxes do not change
+                self._pixel_weights = pixel_weights(self.setup.camera, self.setup.geometry,
+                                                    self.setup.camera.width,
+                                                    self.setup.camera.height)
+            weights = SweepWeights(self._pixel_weights, np.asarray(per_pixel, np.int64))
         for ids in sort_first_tile_paths(total, self.options.max_samples_in_flight or total,
-                                         *self.share):
+                                         *self.share, weight_before=weights):
             self.tile = max(self.tile, len(ids))
             yield ids
 

@@ -464,3 +464,38 @@ def test_spec_insitu_counts_its_bookkeeping_and_charges_it_once():
     asyncio.run(charge_twice())
     assert 0.02 <= node.stats["bookkeeping_cpu_s"] < 0.2
     assert charged[0] == node.stats["bookkeeping_cpu_s"] and charged[1] == 0.0
+
+
+def _heavy_half(total: int):
+    """``weight_before`` of a frame whose second half costs 9 a path, its first 1."""
+    weight = np.where(np.arange(total) < total // 2, 1, 9).astype(np.int64)
+    before = np.concatenate([[0], np.cumsum(weight)])
+    return weight, (lambda ids: before[ids])
+
+
+@pytest.mark.parametrize("total,tile,size", [(1, 5, 3), (17, 65536, 3), (40_000, 65536, 8),
+                                             (2048, 65536, 1024), (100_003, 4096, 30)])
+def test_weighted_bands_cover_every_path_once_and_cost_alike(total, tile, size):
+    weight, before = _heavy_half(total)
+    tiles = [list(sort_first_tile_paths(total, tile, rank, size, before))
+             for rank in range(size)]
+    shares = [np.concatenate([np.zeros(0, np.int64), *t]) for t in tiles]
+    assert np.array_equal(np.concatenate(shares), np.arange(total))  # bands, in rank order
+    assert all(len(ids) <= tile for t in tiles for ids in t)
+    costs = np.array([weight[ids].sum() for ids in shares])
+    # equal to within a path's weight, where equal paths were 1:9 between the halves
+    assert costs.max() - costs.min() <= 2 * weight.max()
+    if total >= 4 * size:
+        equal = [weight[np.concatenate(list(sort_first_tile_paths(total, tile, rank, size)))]
+                 .sum() for rank in range(size)]
+        assert costs.max() < max(equal)
+
+
+def test_weighted_bands_only_where_a_node_has_a_band():
+    # frames of more than a tile a node keep their tiles dealt round robin
+    _, before = _heavy_half(10)
+    assert [t.tolist() for t in sort_first_tile_paths(10, 3, 1, 2, before)] == [[3, 4, 5], [9]]
+    # one node: its tiles in order, the weights not read
+    assert [t.tolist() for t in sort_first_tile_paths(10, 4, 0, 1, None)] == \
+        [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9]]
+    assert [t.tolist() for t in sort_first_tile_paths(4, 8, 0, 1, before)] == [[0, 1, 2, 3]]

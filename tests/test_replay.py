@@ -8,6 +8,7 @@ stated band."""
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -320,10 +321,28 @@ def test_sort_first_nodes_on_copies_of_the_same_paths_cost_the_same(store, recor
     fast = replay_of(store, twice, replay.activation)
     plain = dataclasses.replace(twice)  # no ``period``: every node replayed
     slow = replay_of(store, plain, replay.activation)
-    for scheduler in ("image", "spec-ooc"):
+    # tiles of 600 paths dealt round robin, then a band a node cut by cost
+    for tile, scheduler in itertools.product((600, 65536), ("image", "spec-ooc")):
+        fast.tile = slow.tile = tile
         a, b = fast.run(scheduler, 4), slow.run(scheduler, 4)
         assert a.seconds == b.seconds and a.counters == b.counters, scheduler
         assert np.allclose(list(a.breakdown.values()), list(b.breakdown.values()))
+
+
+def test_the_replay_cuts_sort_first_bands_at_equal_estimated_cost(recorded, replay):
+    """As the nodes (``image_cost``): a path weighs 1 + PER_DOMAIN x the domains its camera
+    ray's line crosses; the bands' weights differ by a path's at most, their paths do not."""
+    from vastray.schedule.image_cost import PER_DOMAIN
+    from vastray.schedule.ownership import weighted_band_cuts
+
+    c, _ = recorded
+    camera = np.nonzero(c.parent < 0)[0]
+    weight = np.ones(c.n_paths, np.int64)
+    weight[c.path[camera]] += PER_DOMAIN * c.copies[camera]
+    cuts = weighted_band_cuts(replay.band_weights(), c.n_paths, 3)
+    band = [int(weight[a:b].sum()) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    assert max(band) - min(band) <= 2 * weight.max()
+    assert len(set(np.diff(cuts).tolist())) > 1
 
 
 # -- the nodes' own code -------------------------------------------------------------------

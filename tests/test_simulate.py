@@ -723,6 +723,25 @@ def test_sort_first_blocks_spread_over_the_image_give_the_reference(store, domai
     assert swept.unit_seconds[1:] == [0.0] * (SETTINGS.spp - 1)  # the passes in one sweep
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_sort_first_bands_cut_by_cost_give_the_reference(store, domains, reference, scheduler):
+    """The product's bands, cut at equal estimated cost (``schedule.image_cost``) rather than
+    equal paths: the nodes' own code, one pass and a frame's passes swept out of core, the
+    reference image either way."""
+    from vastray.actors.render_setup import RenderSetup
+    from vastray.schedule.image_cost import SweepWeights, pixel_weights
+    from vastray.schedule.ownership import weighted_band_cuts
+
+    setup = RenderSetup.of(store, SceneConfig(), SETTINGS)
+    weights = pixel_weights(setup.camera, setup.geometry, SETTINGS.width, SETTINGS.height)
+    cuts = weighted_band_cuts(SweepWeights(weights, np.array([SETTINGS.spp])), SETTINGS.paths, 3)
+    assert len(np.unique(np.diff(cuts))) > 1  # this frame's bands are not equal ones
+    one_pass = sim(store, domains, scheduler, 3, max_pass_spp=None)
+    np.testing.assert_array_equal(one_pass.film.image(), reference)
+    swept = sim(store, domains, scheduler, 3, max_pass_spp=1, cache=2)
+    np.testing.assert_array_equal(swept.film.image(), reference)
+
+
 def test_a_sort_first_node_keeps_its_cache_and_sweeps_passes_out_of_core(store, domains):
     # in core, as a node's NodeState: what the first pass loaded the second finds resident
     passes = sim(store, domains, "image", 1, max_pass_spp=1)

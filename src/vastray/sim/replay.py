@@ -608,17 +608,25 @@ class Replay:
         ledger = _Ledger(size)
         paths = self.c.n_paths
         block = sort_first_block(paths, self.tile, size)
-        path_block = self.path_of[self.camera_visits] // block
+        camera_path = self.path_of[self.camera_visits]
+        path_block = camera_path // block
+        by_path = np.argsort(camera_path, kind="stable")
+        sorted_path = camera_path[by_path]
+        weight_before = self.band_weights() if size > 1 else None
         span = np.zeros(size)
         # a repeated frame (``Crossings.repeated``) gives nodes whose blocks are the same
         # paths of the base frame the same work: replayed once, charged to each
         period = getattr(self.c, "period", 0)
         same_work: dict = {}
         for rank in range(size):
-            tiles = list(sort_first_tile_paths(paths, self.tile, rank, size))
-            key = (tuple((tuple(int(x) % period for x in ids[::block]), len(ids))
-                         for ids in tiles)
-                   if period and period % block == 0 else None)
+            tiles = list(sort_first_tile_paths(paths, self.tile, rank, size, weight_before))
+            runs = all(int(ids[-1]) - int(ids[0]) + 1 == len(ids) for ids in tiles)
+            key = None
+            if period and runs:
+                key = tuple((int(ids[0]) % period, len(ids)) for ids in tiles)
+            elif period and period % block == 0:
+                key = tuple((tuple(int(x) % period for x in ids[::block]), len(ids))
+                            for ids in tiles)
             if key is not None and key in same_work:
                 seconds, trace, load, counters = same_work[key]
                 ledger.trace[rank], ledger.load[rank] = trace, load
@@ -631,7 +639,11 @@ class Replay:
             seconds = self._camera_s(sum(len(ids) for ids in tiles))
             for ids in tiles:
                 decision_s = self.activation.tile_decision_s(scheduler, len(ids))
-                tokens = self.camera_visits[np.isin(path_block, ids[::block] // block)]
+                if runs:  # a run of paths: the camera visits of its paths, in order
+                    first, stop = np.searchsorted(sorted_path, [ids[0], ids[-1] + 1])
+                    tokens = self.camera_visits[np.sort(by_path[first:stop])]
+                else:
+                    tokens = self.camera_visits[np.isin(path_block, ids[::block] // block)]
                 if speculative:
                     seconds += self._speculative_node(ledger, rank, lru, tokens, decision_s)
                 else:
@@ -642,6 +654,20 @@ class Replay:
                 same_work[key] = (seconds, ledger.trace[rank], ledger.load[rank],
                                   {k: v - before[k] for k, v in ledger.counters.items()})
         return ledger, float(span.max())
+
+    def band_weights(self):
+        """``weight_before`` of the sort-first bands' cuts (``ownership.weighted_band_cuts``):
+        each path weighs 1 + ``image_cost.PER_DOMAIN`` x the domains its camera ray's line
+        crosses, as recorded (the product reads the same count off a coarse grid of camera
+        rays against the boxes, ``image_cost.pixel_weights``)."""
+        from vastray.schedule.image_cost import PER_DOMAIN
+
+        c = self.c
+        camera = np.nonzero(c.parent < 0)[0]
+        weight = np.ones(c.n_paths, np.int64)
+        weight[c.path[camera]] += PER_DOMAIN * self.copies[camera].astype(np.int64)
+        before = np.concatenate([[0], np.cumsum(weight)])
+        return lambda ids: before[ids]
 
     def _node_activation(self, ledger: _Ledger, rank: int, lru: _Lru, domain: int,
                          radiance: int, shadow: int, decision_s: float | None = None) -> float:
