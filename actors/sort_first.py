@@ -20,7 +20,7 @@ from vastray.render.integrators import PathContext, PathResult, RenderSettings, 
 from vastray.render.progressive import Progression
 from vastray.scene.cache import CacheStats
 from vastray.scene.store import Store
-from vastray.schedule import registry
+from vastray.schedule import image_cost, registry
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.image_cost import SweepWeights, pixel_weights
 from vastray.schedule.ownership import sort_first_tile_paths
@@ -120,9 +120,10 @@ class SortFirstTiles:
     def _tiles(self, total: int, per_pixel):
         """This node's tiles of a sweep of ``total`` paths, each (n,) path ids: passes of
         (K,) ``per_pixel`` samples a pixel, whose paths the bands' cuts weigh
-        (``image_cost``) where several nodes share the sweep."""
+        (``image_cost``) where several nodes share the sweep and the scheduler's bands are
+        cut by cost (``image_cost.CUT_BY_COST``)."""
         weights = None
-        if self.share[1] > 1:
+        if self.share[1] > 1 and self.options.scheduler in image_cost.CUT_BY_COST:
             if self._pixel_weights is None:  # once: the camera and boxes do not change
                 self._pixel_weights = pixel_weights(self.setup.camera, self.setup.geometry,
                                                     self.setup.camera.width,

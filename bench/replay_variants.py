@@ -18,13 +18,16 @@ side on the same constants, recording and nodes in one run.
    time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
    the virtual seconds by P, ``dynamic_speedup_<tiles>=`` T(1)/T(P), each side against its
    own T(1).
-4. **The sort-first schedules' share of the image**: a band of the image a node (the
-   product's, ``ownership.sort_first_tile_paths``) against up to 4 blocks a node dealt round
-   robin (shares spread over the image: balanced, but each node meets more domains; on real
-   nodes sharing this machine's cores they lost, session 42). Strong scaling of the frame of
-   1. and weak scaling at 4,096 paths a node; ``sort_first_speedup_<P>_<k>=`` and
-   ``sort_first_weak_<P>_<k>=`` per scheduler, against the same T(1) (one node has one
-   share either way).
+4. **The sort-first schedules' share of the image**: a band of the image a node cut at
+   equal estimated cost (``ownership.weighted_band_cuts`` over ``schedule.image_cost``'s
+   weights: the product's for ``image``) against a band of equal paths (the product's for
+   ``spec-ooc``, and both schedulers' before session 49) and up to 4 blocks a node dealt
+   round robin (shares spread over the image: balanced, but each node meets more domains;
+   on real nodes sharing this machine's cores they lost, session 42). Strong scaling of the
+   frame of 1. and weak scaling at 4,096 paths a node;
+   ``sort_first_speedup_<P>_<share>=`` and ``sort_first_weak_<P>_<share>=`` per
+   scheduler (share ``cost``, ``equal`` or ``blocks``), against the same T(1) (one node
+   has one share either way).
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
 writes; else a quick calibration now); the nodes' own code is fitted first, as
@@ -40,7 +43,7 @@ import replay_scaling as rs
 from bench_scenes import CACHE, cached_cosmo, cached_rm
 from simulate import SCALING_GRID, scaling_options
 
-from vastray.schedule import ownership
+from vastray.schedule import image_cost, ownership
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.replay import DEFAULT_TILE, REDUCTIONS
@@ -51,8 +54,12 @@ REDUCING = ("domain", "dynamic", "spec-insitu")
 TILED = ("domain", "dynamic", "spec-insitu", "async")
 #: The sort-first schedulers.
 SORT_FIRST = ("image", "spec-ooc")
-#: Blocks a sort-first node is dealt in section 4's alternative to the product's band.
-SPREAD_BLOCKS = 4
+#: Section 4's shares of the image a sort-first node renders: name -> (blocks a node,
+#: schedulers whose bands are cut by cost, label); the product's: ``image`` cut by cost,
+#: ``spec-ooc`` equal (``image_cost.CUT_BY_COST``).
+SHARES = {"cost": (1, frozenset(SORT_FIRST), "a band cut by cost"),
+          "equal": (1, frozenset(), "a band of equal paths"),
+          "blocks": (4, frozenset(), "up to 4 blocks dealt round robin")}
 #: The product's tile: a domain-decomposition job's paths in flight.
 JOB_TILE = DEFAULT_TILE
 
@@ -109,17 +116,18 @@ def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
     return times
 
 
-def sort_first_by_blocks(store, costs: CostModel, quick: bool, counts) -> dict:
-    """{blocks a node: {"strong" | "weak": {scheduler: {P: seconds}}}} of the sort-first
-    schedules (``ownership.BLOCKS_PER_NODE``, set before the replays are forked)."""
+def sort_first_by_share(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{share: {"strong" | "weak": {scheduler: {P: seconds}}}} of the sort-first schedules,
+    each share of ``SHARES`` set (``ownership.BLOCKS_PER_NODE``, ``image_cost.CUT_BY_COST``) before
+    the replays are forked."""
     settings = rs.STRONG_QUICK if quick else rs.STRONG
     crossings = rs.recording(store, settings)
     base, own, fitted = rs.weak_setup(store, costs, quick)
-    product = ownership.BLOCKS_PER_NODE
+    product = ownership.BLOCKS_PER_NODE, image_cost.CUT_BY_COST
     times: dict = {}
     try:
-        for blocks in (product, SPREAD_BLOCKS):
-            ownership.BLOCKS_PER_NODE = blocks
+        for share, (blocks, weighted, _) in SHARES.items():
+            ownership.BLOCKS_PER_NODE, image_cost.CUT_BY_COST = blocks, weighted
             frames = [("strong", nodes, crossings) for nodes in counts]
             frames += [("weak", nodes, rs.weak_frame(base, nodes)) for nodes in counts]
             for kind, nodes, frame in frames:
@@ -131,13 +139,13 @@ def sort_first_by_blocks(store, costs: CostModel, quick: bool, counts) -> dict:
                         for s in SORT_FIRST]
                 for scheduler, result in zip(SORT_FIRST, rs.replayed(replay, jobs),
                                              strict=True):
-                    times.setdefault(blocks, {}).setdefault(kind, {}).setdefault(
+                    times.setdefault(share, {}).setdefault(kind, {}).setdefault(
                         scheduler, {})[nodes] = result.seconds
-                    print(f"  {blocks} block(s) a node, {kind:6s} {scheduler:8s} "
-                          f"P={nodes:5d} ({frame.n_paths:,} paths): {result.seconds:8.4f} s "
-                          f"virtual ({result.counters['loads']:,} loads)", flush=True)
+                    print(f"  {share:6s} {kind:6s} {scheduler:8s} P={nodes:5d} "
+                          f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
+                          f"({result.counters['loads']:,} loads)", flush=True)
     finally:
-        ownership.BLOCKS_PER_NODE = product
+        ownership.BLOCKS_PER_NODE, image_cost.CUT_BY_COST = product
     return times
 
 
@@ -158,23 +166,24 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
     return times
 
 
-def print_sort_first(by_blocks: dict, counts) -> None:
-    """Section 4's table and ``sort_first_*=`` lines from ``sort_first_by_blocks``."""
-    print("\n| scheduler | blocks a node | scaling | " + " | ".join(f"P={n}" for n in counts[1:])
-          + " |")
+def print_sort_first(by_share: dict, counts) -> None:
+    """Section 4's table and ``sort_first_*=`` lines from ``sort_first_by_share``."""
+    print("\n| scheduler | a node's share | scaling | "
+          + " | ".join(f"P={n}" for n in counts[1:]) + " |")
     print("| --- | --- | --- |" + " --- |" * (len(counts) - 1))
     for scheduler in SORT_FIRST:
-        for blocks, t in by_blocks.items():
-            label = (f"{blocks} (the product)" if blocks == ownership.BLOCKS_PER_NODE
-                     else f"up to {blocks}")
+        for share, t in by_share.items():
             for kind, word in (("strong", "speed-up"), ("weak", "weak efficiency")):
                 by = t[kind][scheduler]
+                ours = (SHARES[share][0] == ownership.BLOCKS_PER_NODE and (
+                    scheduler in SHARES[share][1]) == (scheduler in image_cost.CUT_BY_COST))
+                label = SHARES[share][2] + (" (the product)" if ours else "")
                 print(f"| {scheduler} | {label} | {word} | "
                       + " | ".join(f"{by[1] / by[n]:.2f}" for n in counts[1:]) + " |")
-    for blocks, t in by_blocks.items():
+    for share, t in by_share.items():
         for kind, name in (("strong", "speedup"), ("weak", "weak")):
             for n in counts[1:]:
-                print(f"sort_first_{name}_{n}_{blocks}=" + ",".join(
+                print(f"sort_first_{name}_{n}_{share}=" + ",".join(
                     f"{s}:{t[kind][s][1] / t[kind][s][n]:.2f}" for s in SORT_FIRST))
 
 
@@ -245,7 +254,7 @@ def main() -> None:
                                                   for n in counts))
     print("\n4. the sort-first schedules' share of the image: strong scaling of the frame of "
           f"1. and weak scaling at {rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
-    print_sort_first(sort_first_by_blocks(store, costs, args.quick, counts), counts)
+    print_sort_first(sort_first_by_share(store, costs, args.quick, counts), counts)
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 
 

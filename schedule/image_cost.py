@@ -20,6 +20,14 @@ GRID = 64
 #: gave 0.81 / 0.99 weak efficiency at 4 / 64 nodes, the paths' own recorded work 0.80 /
 #: 0.97, equal bands 0.58 / 0.78).
 PER_DOMAIN = 4
+#: The schedulers whose bands are cut by this estimate (the others': equal paths). ``image``
+#: gains (replayed at 2^18 paths on 1,439 domains, session 49: speed-up at 64 / 1,024 nodes
+#: 7.33 / 18.85 against 5.93 / 15.75, weak efficiency 0.97 against 0.78); ``spec-ooc`` does
+#: not where a band is a few thousand paths (64 nodes: 4.23 against 4.71, weak 0.78 against
+#: 0.87; 1,024: 9.71 against 7.86): a narrow band over the data still loads its domains and
+#: pays its speculation's decisions per activation, which its paths do not weigh.
+#: ``bench/replay_variants.py`` section 4 prints both for both.
+CUT_BY_COST = frozenset({"image"})
 
 
 def pixel_weights(camera, geometry, width: int, height: int) -> np.ndarray:

@@ -612,7 +612,10 @@ class Replay:
         path_block = camera_path // block
         by_path = np.argsort(camera_path, kind="stable")
         sorted_path = camera_path[by_path]
-        weight_before = self.band_weights() if size > 1 else None
+        from vastray.schedule import image_cost
+
+        weight_before = (self.band_weights() if size > 1 and scheduler in image_cost.CUT_BY_COST
+                         else None)
         span = np.zeros(size)
         # a repeated frame (``Crossings.repeated``) gives nodes whose blocks are the same
         # paths of the base frame the same work: replayed once, charged to each
