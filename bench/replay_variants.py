@@ -1,7 +1,7 @@
 """Four design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
-    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 3 min)
+    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 12 min)
     python bench/replay_variants.py           # 2^20 paths, P = 1, 4, ... 1,024 (about 4 min)
 
 1. **All-reductions**: over the butterfly of ranks (recursive doubling, log2 P exchange steps:

@@ -38,8 +38,10 @@ def zorder_owners(lo: np.ndarray, hi: np.ndarray, size: int) -> np.ndarray:
 #: measured on real nodes (session 42, 4 blocks against 1, medians of 3), the turbine scan
 #: on 8 processes 0.483 against 0.316 s (61 against 33 loads), rm 128³ out of core 5.2
 #: against 2.7 s (852 against 491 loads); only the replay's core-per-node cluster at 4,096
-#: paths a node gains (weak efficiency 0.90-1.01 against 0.60-0.76 on 4 to 256 nodes,
-#: ``bench/replay_variants.py`` section 4). A knob for that comparison, 1 in the product.
+#: paths a node gains (weak efficiency 0.90-1.01 against 0.60-0.76 on 4 to 256 nodes for
+#: bands of equal paths, ``bench/replay_variants.py`` section 4; ``image``'s bands cut by
+#: cost since session 49 reach 0.97, each still one run of the image, the loads over all
+#: nodes 1.4 times equal bands'). A knob for that comparison, 1 in the product.
 BLOCKS_PER_NODE = 1
 #: Fewest paths in a block where a node is dealt several.
 MIN_BLOCK_PATHS = 1024
