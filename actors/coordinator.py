@@ -26,7 +26,7 @@ from pathlib import Path
 
 from vastray.actors.attempt import coordinate
 from vastray.actors.gather import Passes
-from vastray.actors.job_options import JobOptions, JobOptionsError
+from vastray.actors.job_options import JobOptions, JobOptionsError, default_tile
 from vastray.actors.node_failure import NodeFailure, NodeLost
 from vastray.actors.node_logs import NodeLogs
 from vastray.actors.results import render_result
@@ -45,8 +45,6 @@ from vastray.transport.keys import CoordinatorKeys
 
 log = logging.getLogger(__name__)
 
-#: Paths each node traces at once where the job's options leave ``max_samples_in_flight`` unset.
-DEFAULT_NODE_TILE = 65536
 
 
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
@@ -67,8 +65,9 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     ----------
     options : the job's options, sent whole to every node (default: ``JobOptions()``, the
         ``image`` schedule on sort-first tiles). Where they leave them unset, the tile
-        (``max_samples_in_flight``) is 65536 paths (a sort-first node's own; a
-        domain-decomposition job's, shared by its nodes), and ``threads`` this machine's
+        (``max_samples_in_flight``) is ``job_options.default_tile``'s (65536 paths a
+        sort-first node; a domain-decomposition job's, shared by its nodes, 65536 or 4096
+        a node past 16 nodes), and ``threads`` this machine's
         cores shared among the nodes started here (with ``listen``: each node's own cores).
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,
@@ -126,7 +125,8 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
     if nodes < 1:
         raise ValueError("--nodes must be at least 1")
     options = replace(
-        options, max_samples_in_flight=options.max_samples_in_flight or DEFAULT_NODE_TILE,
+        options, max_samples_in_flight=(options.max_samples_in_flight
+                                        or default_tile(scheduler, nodes)),
         threads=options.threads or (None if listen else max(1, available_cpus() // nodes)))
     store = Store(store_path)
     if sched.frame_statistics:

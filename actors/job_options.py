@@ -17,6 +17,13 @@ from vastray.schedule import registry
 from vastray.schedule.portals import DEFAULT_RESOLUTION
 from vastray.schedule.registry import ASSIGNMENTS, PRIORITIES, Option
 
+#: Paths a sort-first node traces at once where the job's options leave
+#: ``max_samples_in_flight`` unset, and a domain-decomposition job's tile on up to 16 nodes.
+DEFAULT_NODE_TILE = 65536
+#: Paths a domain-decomposition job's default tile gives each node at least: past 16 nodes the
+#: tile grows with the nodes (``default_tile``).
+MIN_NODE_SHARE = 4096
+
 #: Rays per batch between two nodes unless told otherwise (``node_work.NodeWork``; about
 #: 6 MB of path-tracing rays).
 DEFAULT_MAX_BATCH_RAYS = 65536
@@ -33,6 +40,28 @@ SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 EVICTIONS = ("lru", "demand")
 
 DEFAULT_PORTAL_RESOLUTION = DEFAULT_RESOLUTION  # the paper's
+
+
+def default_tile(scheduler: str, nodes: int) -> int:
+    """The paths in flight (``max_samples_in_flight``) where a job on ``nodes`` nodes leaves
+    them unset: a sort-first node's own ``DEFAULT_NODE_TILE``; a domain-decomposition job's
+    ``DEFAULT_NODE_TILE`` or ``MIN_NODE_SHARE`` a node, whichever is more.
+
+    Why the job's tile grows with the nodes: every node starts 1/P of each tile, and each of
+    a tile's rounds (``domain``, ``dynamic``, ``spec-insitu``) costs an all-reduction of
+    log2 P steps whatever its work. At 1,024 nodes a fixed tile of 65,536 paths gave a node
+    64 paths a tile, and by replay at 4,096 paths a node (``bench/replay_variants.py``,
+    section 2) ``domain`` ran at 0.17 of one node's speed and ``dynamic`` at 0.18, their
+    frames 64 tiles of 10-30 rounds each. What it costs: a node holds path state for its
+    share of the tile (at least 4,096 paths, as before on 16 nodes), and the rays waiting
+    for its domains, up to the whole tile's where they all gather there, so past 16 nodes
+    that worst case grows with P. ``--max-samples-in-flight`` sets a hard bound.
+    """
+    if nodes < 1:
+        raise ValueError(f"a job needs at least 1 node, not {nodes}")
+    if not registry.spec(scheduler).runtime.nodes_only:
+        return DEFAULT_NODE_TILE
+    return max(DEFAULT_NODE_TILE, MIN_NODE_SHARE * nodes)
 
 
 class JobOptionsError(InputError):
@@ -62,7 +91,8 @@ class JobOptions:
         ``ownership.sort_first_tile_paths``), a domain-decomposition job's as a whole (every
         node starts its share of each tile, 1/P of its paths, and a node holds the rays
         waiting for its domains, up to the whole tile's where they gather there); None: all
-        of them (``render_distributed`` fills in 65536).
+        of them (``render_distributed`` fills in ``default_tile``: 65,536, or 4,096 a node
+        for a domain-decomposition job on more than 16 nodes).
     history_depth : spec-ooc's H, bounces speculated before hits resolve; None: every bounce
         (passed to ``schedule.spec_ooc.SpeculativeSchedule``).
     max_batch_rays : most rays in one batch between two nodes (``node_work.NodeWork``).

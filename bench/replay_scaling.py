@@ -87,13 +87,13 @@ def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = 
               storage_mb_s: float | None = STORAGE_MB_S, activations=None,
               decisions: dict | None = None, domains: Domains | None = None,
               whole_caches: bool = False, reduction: str = "butterfly",
-              tile: int | None = None) -> Replay:
+              tile: int | None = None, fill_busy: bool = True) -> Replay:
     """The replay of ``crossings``; ``decisions``: the sort-first nodes' decision costs
     (``sort_first_decisions``) on the fitted activation costs; the nodes' own code as
     fitted on ``store`` (``own_costs_of``), where it was; with ``costs.load_scale``, each
     domain's load as this machine takes it (``loads_of``; ``domains``: the store's built
-    domains, else built here; ``whole_caches``: nodes caching every domain); ``reduction``
-    and ``tile`` as ``Replay``'s (default: the product's)."""
+    domains, else built here; ``whole_caches``: nodes caching every domain); ``reduction``,
+    ``tile`` and ``fill_busy`` as ``Replay``'s (default: the product's)."""
     lo, hi = store.domain_boxes()
     if decisions is not None:
         activations = replace(activations or fit_activation_costs(crossings, costs),
@@ -102,8 +102,7 @@ def replay_of(store, crossings: Crossings, costs: CostModel, network: Network = 
                   None if storage_mb_s is None else storage_mb_s * 1e6,
                   own=_own_costs.get(str(store.path)) if costs.node_cpu_scale else None,
                   loads=loads_of(store, costs, domains, whole_caches) if costs.load_scale
-                  else None, reduction=reduction,
-                  **({} if tile is None else {"tile": tile}))
+                  else None, reduction=reduction, tile=tile, fill_busy=fill_busy)
 
 
 def loads_of(store, costs: CostModel, domains: Domains | None, whole_caches: bool

@@ -9,10 +9,13 @@ side on the same constants, recording and nodes in one run.
    tree and broadcast back down (2 ceil(log2 P) steps). Strong scaling of the frame
    ``bench/simulate.py`` scales (cosmo 160³ in 1,439 domains, a node caching a quarter of
    them, 200 MB/s storage); ``speedup_<P>_<reduction>=`` per scheduler that all-reduces.
-2. **The tile of the domain-decomposition schedulers**: the job's 65,536 paths (the
-   product's: every node starts 1/P of each tile) against 65,536 paths per node (the job's
-   tile P times larger: not the product's, whose nodes would then hold up to P times the
-   rays). Weak scaling at 4,096 paths a node; ``weak_<P>_<tile>=`` efficiencies T(1)/T(P).
+2. **The tile of the domain-decomposition schedulers**: the product's (65,536 paths a job
+   or 4,096 a node, whichever is more: ``job_options.default_tile``, since session 50)
+   against the job's 65,536 paths on any number of nodes (before) and 65,536 paths per
+   node; and ``dynamic``'s rule 3 as the product has it (busy nodes take unheld domains
+   that keep the round as short, ``schedule.dynamic``) against the paper's (idle nodes
+   only), on the product's tile and on the fixed one. Weak scaling at 4,096 paths a node;
+   ``weak_<P>_<tile>=`` efficiencies T(1)/T(P), ``dynamic_weak_<P>_<rule>_<tile>=``.
 3. **``dynamic``'s tiles in flight**: the next tile taken in while the last one's rays thin
    out, up to two tiles (the product's, ``actors/dynamic_frame.py``) against one tile at a
    time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
@@ -43,6 +46,7 @@ import replay_scaling as rs
 from bench_scenes import CACHE, cached_cosmo, cached_rm
 from simulate import SCALING_GRID, scaling_options
 
+from vastray.actors.job_options import MIN_NODE_SHARE, default_tile
 from vastray.schedule import image_cost, ownership
 from vastray.sim.calibrate import calibrate
 from vastray.sim.costs import CostModel
@@ -60,8 +64,14 @@ SORT_FIRST = ("image", "spec-ooc")
 SHARES = {"cost": (1, frozenset(SORT_FIRST), "a band cut by cost"),
           "equal": (1, frozenset(), "a band of equal paths"),
           "blocks": (4, frozenset(), "up to 4 blocks dealt round robin")}
-#: The product's tile: a domain-decomposition job's paths in flight.
+#: A domain-decomposition job's paths in flight before session 50, on any number of nodes.
 JOB_TILE = DEFAULT_TILE
+#: Section 2's tiles by node count: the product's, the fixed job's, and one a node.
+TILES = {"product": lambda nodes: default_tile("domain", nodes),
+         "job": lambda nodes: JOB_TILE, "node": lambda nodes: JOB_TILE * nodes}
+TILE_LABELS = {"product": f"{JOB_TILE:,} or {MIN_NODE_SHARE:,} a node (the product)",
+               "job": f"{JOB_TILE:,} paths a job (before)",
+               "node": f"{JOB_TILE:,} paths a node"}
 
 
 def constants(path: str | None) -> CostModel:
@@ -150,19 +160,26 @@ def sort_first_by_share(store, costs: CostModel, quick: bool, counts) -> dict:
 
 
 def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
-    """{tile name: {scheduler: {P: seconds}}} at ``WEAK_PATHS_PER_NODE`` paths a node."""
+    """{tile name: {scheduler: {P: seconds}}} at ``WEAK_PATHS_PER_NODE`` paths a node, and
+    under ``"paper <tile>"`` ``dynamic`` with the paper's rule 3."""
     base, own, fitted = rs.weak_setup(store, costs, quick)
     times: dict = {}
     for nodes in counts:
         frame = rs.weak_frame(base, nodes)
-        for name, tile in (("job", JOB_TILE), ("node", JOB_TILE * nodes)):
-            replay = rs.replay_of(store, frame, own, activations=fitted, tile=tile)
-            jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes)) for s in TILED]
-            for scheduler, result in zip(TILED, rs.replayed(replay, jobs), strict=True):
-                times.setdefault(name, {}).setdefault(scheduler, {})[nodes] = result.seconds
-                print(f"  tile per {name:4s} {scheduler:11s} P={nodes:5d} "
-                      f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
-                      f"({result.counters['rounds']:,} synchronisations)", flush=True)
+        for name, tile in TILES.items():
+            for fill_busy in (True, False):
+                schedulers = TILED if fill_busy else ("dynamic",)
+                if name == "node" and not fill_busy:
+                    continue
+                replay = rs.replay_of(store, frame, own, activations=fitted,
+                                      tile=tile(nodes), fill_busy=fill_busy)
+                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes)) for s in schedulers]
+                key = name if fill_busy else f"paper {name}"
+                for scheduler, result in zip(schedulers, rs.replayed(replay, jobs), strict=True):
+                    times.setdefault(key, {}).setdefault(scheduler, {})[nodes] = result.seconds
+                    print(f"  {key:13s} {scheduler:11s} P={nodes:5d} "
+                          f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
+                          f"({result.counters['rounds']:,} synchronisations)", flush=True)
     return times
 
 
@@ -226,17 +243,26 @@ def main() -> None:
     weak = weak_by_tile(store, costs, args.quick, weak_counts)
     print("\n| scheduler | tile | " + " | ".join(f"P={n}" for n in weak_counts[1:]) + " |")
     print("| --- | --- |" + " --- |" * (len(weak_counts) - 1))
+    one = weak["job"]  # one node: the same tile of 4,096 paths either way
     for scheduler in TILED:
-        for name in ("job", "node"):
+        for name in TILES:
             t = weak[name][scheduler]
-            label = (f"{JOB_TILE:,} paths a job (the product)" if name == "job"
-                     else f"{JOB_TILE:,} paths a node")
-            print(f"| {scheduler} | {label} | "
-                  + " | ".join(f"{t[1] / t[n]:.2f}" for n in weak_counts[1:]) + " |")
-    for name in ("job", "node"):
+            print(f"| {scheduler} | {TILE_LABELS[name]} | "
+                  + " | ".join(f"{one[scheduler][1] / t[n]:.2f}" for n in weak_counts[1:])
+                  + " |")
+            if scheduler == "dynamic" and f"paper {name}" in weak:
+                t = weak[f"paper {name}"]["dynamic"]
+                print(f"| {scheduler} | {TILE_LABELS[name]}, the paper's rule 3 | "
+                      + " | ".join(f"{t[1] / t[n]:.2f}" for n in weak_counts[1:])
+                      + " |")
+    for name in TILES:
         for n in weak_counts[1:]:
             print(f"weak_{n}_{name}=" + ",".join(
-                f"{s}:{weak[name][s][1] / weak[name][s][n]:.2f}" for s in TILED))
+                f"{s}:{one[s][1] / weak[name][s][n]:.2f}" for s in TILED))
+    for name in ("product", "job"):
+        for n in weak_counts[1:]:
+            paper = weak[f"paper {name}"]["dynamic"]  # against its own T(1)
+            print(f"dynamic_weak_{n}_paper_{name}={paper[1] / paper[n]:.2f}")
     print("\n3. dynamic's tiles in flight: strong scaling by replay, the frame of 1.:",
           flush=True)
     by_tiles = dynamic_by_tiles(store, costs, args.quick, counts)

@@ -142,3 +142,33 @@ def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
         router.close()
         auth.stop()
         ctx.term()
+
+
+def test_a_domain_decomposition_job_s_default_tile_grows_with_its_nodes_past_16():
+    from vastray.actors.job_options import (
+        DEFAULT_NODE_TILE,
+        MIN_NODE_SHARE,
+        default_tile,
+    )
+
+    assert DEFAULT_NODE_TILE == 16 * MIN_NODE_SHARE
+    for scheduler in ("domain", "dynamic", "async", "spec-insitu", "temporal"):
+        assert default_tile(scheduler, 1) == default_tile(scheduler, 16) == DEFAULT_NODE_TILE
+        assert default_tile(scheduler, 17) == 17 * MIN_NODE_SHARE
+        assert default_tile(scheduler, 1024) == 1024 * MIN_NODE_SHARE
+    for scheduler in ("image", "spec-ooc"):  # a sort-first node's tile is its own
+        assert default_tile(scheduler, 1024) == DEFAULT_NODE_TILE
+    with pytest.raises(ValueError, match="at least 1 node"):
+        default_tile("domain", 0)
+
+
+def test_the_cli_s_nodes_job_takes_the_default_tile_for_its_node_count():
+    from vastray.actors.job_options import MIN_NODE_SHARE
+    from vastray.planning import job_options
+    from vastray.request import RenderRequest
+
+    assert job_options(RenderRequest(nodes=64), "domain", None).max_samples_in_flight \
+        == 64 * MIN_NODE_SHARE
+    assert job_options(RenderRequest(nodes=64), "image", None).max_samples_in_flight == 65536
+    assert job_options(RenderRequest(nodes=64, max_samples_in_flight=1000), "domain",
+                       None).max_samples_in_flight == 1000

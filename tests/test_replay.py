@@ -405,3 +405,22 @@ def test_the_nodes_own_code_is_fitted_on_the_simulator_running_it(store):
     for costs in fitted.values():
         values = dataclasses.astuple(costs)
         assert all(v >= 0 for v in values) and sum(values) > 0
+
+
+def test_the_replay_s_default_tile_is_the_coordinator_s_for_each_node_count(
+        store, recorded, monkeypatch):
+    """Tile None: each run takes ``default_tile`` for its scheduler and node count (here
+    scaled down: 600 paths, 150 a node), so 8 nodes run tiles of 1,200 paths, in fewer
+    rounds than tiles of 600; 2 nodes keep 600."""
+    from vastray.actors import job_options
+
+    monkeypatch.setattr(job_options, "DEFAULT_NODE_TILE", 600)
+    monkeypatch.setattr(job_options, "MIN_NODE_SHARE", 150)
+    crossings = recorded[0]
+    default = replay_of(store, crossings, tile=None)
+    for nodes, tile in ((2, 600), (8, 1200)):
+        ran = default.run("domain", nodes)
+        fixed = replay_of(store, crossings, tile=tile).run("domain", nodes)
+        assert (ran.seconds, ran.counters) == (fixed.seconds, fixed.counters)
+    assert (default.run("domain", 8).counters["rounds"]
+            < replay_of(store, crossings, tile=600).run("domain", 8).counters["rounds"])

@@ -54,6 +54,28 @@ def test_free_nodes_are_taken_in_rank_order_and_busy_ones_are_skipped():
     assert list(plan.assign)[0] == 3  # kept domains come first: each node traces in this order
 
 
+def test_a_busy_node_takes_a_domain_that_keeps_the_round_as_short():
+    # node 0 keeps 3 (10 rays), node 1 keeps 7 (20): unheld 5's 4 rays go to node 0, which
+    # then traces 14, under the round's busiest 20; with the paper's rule 5 waits
+    queues = {0: {"3": 10, "5": 4, "7": 20}, 1: {}}
+    loaded = {0: [3], 1: [7]}
+    assert POLICY.next_round(queues, loaded).assign == {3: 0, 7: 1, 5: 0}
+    assert RayWeightedRounds(fill_busy=False).next_round(queues, loaded).assign == {3: 0, 7: 1}
+
+
+def test_a_busy_node_does_not_take_a_domain_that_makes_the_round_longer():
+    # 5's 15 rays would give node 0 25 against the busiest's 20: 5 waits for a later round
+    plan = POLICY.next_round({0: {"3": 10, "5": 15, "7": 20}, 1: {}}, {0: [3], 1: [7]})
+    assert plan.assign == {3: 0, 7: 1}
+
+
+def test_unheld_domains_go_to_the_least_busy_nodes_first():
+    # kept rays: node 0 12, node 1 3, node 2 20; 8 (9 rays) goes to node 1, 6 (8) to node 0
+    queues = {0: {"1": 12, "2": 3, "4": 20, "8": 9, "6": 8}}
+    plan = POLICY.next_round(queues, {0: [1], 1: [2], 2: [4]})
+    assert plan.assign == {1: 0, 2: 1, 4: 2, 8: 1, 6: 0}
+
+
 def test_an_empty_round_says_finished():
     assert POLICY.next_round({0: {}, 1: {}}, {0: [1], 1: [2]}) == Round({}, finished=True)
 

@@ -71,7 +71,8 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
     s.add_argument("--cache", type=_cache_size, metavar="N|P%",
                    help="most domains in each node's memory (default: the scheduler's)")
     s.add_argument("--max-samples-in-flight", type=positive_int, metavar="N",
-                   help="paths per tile (default: 65536, as the nodes')")
+                   help="paths per tile (default: the nodes': 65536, or 4096 a node for a "
+                        "domain-decomposition job on more than 16 nodes)")
     s.add_argument("--max-pass-spp", type=positive_int, metavar="N",
                    help="render in sample-major passes of at most N spp, as `vastray render` "
                         "(default: one pass)")

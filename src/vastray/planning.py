@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from vastray.actors.coordinator import render_distributed
-from vastray.actors.job_options import DEFAULT_PORTAL_RESOLUTION, JobOptions
+from vastray.actors.job_options import DEFAULT_PORTAL_RESOLUTION, JobOptions, default_tile
 from vastray.actors.local import render_out_of_core
 from vastray.preflight import (
     MemoryEstimate,
@@ -41,7 +41,6 @@ from vastray.render.scene_config import SceneConfig, load_scene_config
 from vastray.report import build_report, count_overflow
 from vastray.request import (
     DEFAULT_BATCH_SIZE,
-    DEFAULT_NODE_SAMPLES_IN_FLIGHT,
     DEFAULT_PORTAL_INTERVAL,
     DEFAULT_PORTAL_THRESHOLD,
     DEFAULT_SAMPLES_IN_FLIGHT,
@@ -325,7 +324,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
     def process(cache: int | None) -> MemoryEstimate:
         """One rendering process (a node with --nodes), its domains left out."""
         if request.nodes:
-            tile = request.max_samples_in_flight or DEFAULT_NODE_SAMPLES_IN_FLIGHT
+            tile = request.max_samples_in_flight or default_tile(scheduler, request.nodes)
             return estimate_memory(request.width, request.height, min(tile, total), rays_per_hit,
                                    role="node",
                                    copies=copies() if spec(scheduler).tile_copies else 0.0)
@@ -376,7 +375,8 @@ def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> Jo
     tiles = job.runtime is not Runtime.IN_CORE
     in_flight = request.max_samples_in_flight
     if in_flight is None and tiles:
-        in_flight = DEFAULT_NODE_SAMPLES_IN_FLIGHT if request.nodes else DEFAULT_SAMPLES_IN_FLIGHT
+        in_flight = (default_tile(scheduler, request.nodes) if request.nodes
+                     else DEFAULT_SAMPLES_IN_FLIGHT)
     return JobOptions(
         scheduler=scheduler, cache=cache if job.accepts(Option.CACHE) else None,
         max_samples_in_flight=in_flight,

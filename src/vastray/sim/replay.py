@@ -52,14 +52,16 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from vastray.actors.job_options import DEFAULT_NODE_TILE, default_tile
 from vastray.schedule import registry
 from vastray.schedule.registry import Decomposition, Simulation
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, Crossings, ranges
 from vastray.transport.tree import butterfly_steps, tree_steps
 
-#: Paths in flight per tile, as the coordinator's default (``DEFAULT_NODE_TILE``).
-DEFAULT_TILE = 65536
+#: A sort-first node's paths in flight, and a domain-decomposition job's on up to 16 nodes
+#: (``job_options.default_tile``, the coordinator's default).
+DEFAULT_TILE = DEFAULT_NODE_TILE
 #: Activations of more rays than this are handed to a worker thread in the node runtimes
 #: (``actors.domain_loop.INLINE_RAYS``).
 INLINE_RAYS = 1024
@@ -200,7 +202,8 @@ class Replay:
     network : the wire beyond the messages' CPU cost.
     storage_bandwidth : bytes per second a node reads a domain at, at most (None: the
         calibrated ``read_s``; else the slower of the two, as ``DomainCache.load`` throttles).
-    tile : paths in flight per tile (the coordinator's default).
+    tile : paths in flight per tile; None: the coordinator's default for the scheduler and
+        node count replayed (``job_options.default_tile``).
     own : each scheduler's nodes' own code (``fit_node_own_costs``; default: none charged).
     loads : (D,) read and (D,) build seconds of each domain's load, where measured
         (``sim.cache.Domains.load_seconds`` times ``CostModel.load_scale``, as the real-code
@@ -208,20 +211,23 @@ class Replay:
     reduction : the all-reductions' pattern, a key of ``REDUCTIONS``: ``"butterfly"`` (the
         product's) or ``"tree"`` (the first design's reduce and broadcast, for comparison:
         ``bench/replay_variants.py``).
+    fill_busy : ``dynamic``'s rule 3 gives busy nodes unheld domains too (the product's,
+        ``RayWeightedRounds``); False: only idle nodes, the paper's (for comparison).
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
                  lo: np.ndarray, hi: np.ndarray, costs: CostModel,
                  activations: ActivationCosts | None = None,
                  network: Network = Network(), storage_bandwidth: float | None = None,
-                 tile: int = DEFAULT_TILE, own: dict[str, NodeOwnCosts] | None = None,
+                 tile: int | None = None, own: dict[str, NodeOwnCosts] | None = None,
                  loads: tuple[np.ndarray, np.ndarray] | None = None,
-                 reduction: str = "butterfly"):
+                 reduction: str = "butterfly", fill_busy: bool = True):
         if reduction not in REDUCTIONS:
             raise ValueError(f"reduction must be one of {', '.join(REDUCTIONS)}, "
                              f"not {reduction!r}")
         #: message steps on an all-reduction's critical path over P nodes
         self.reduction_steps = REDUCTIONS[reduction]
+        self.fill_busy = fill_busy
         self.c = crossings
         self.costs, self.network = costs, network
         #: each scheduler's ``NodeOwnCosts`` (none: charged as nothing)
@@ -230,7 +236,9 @@ class Replay:
         self.activation = (fit_activation_costs(crossings, costs) if activations is None
                            else activations)
         self.lo, self.hi = lo, hi
-        self.tile = tile
+        #: the tile asked for (None: ``default_tile``'s), and the one of the run under way
+        self.tile_asked = tile
+        self.tile = DEFAULT_TILE if tile is None else tile
         self.n_domains = crossings.n_domains
         if loads is None:
             read = costs.read_fixed_s + nbytes * costs.load_byte_s
@@ -323,6 +331,8 @@ class Replay:
             raise ValueError("the replay needs at least 1 node")
         start = time.perf_counter()
         self.own = self.own_by_scheduler.get(scheduler, NodeOwnCosts())
+        self.tile = (default_tile(scheduler, nodes) if self.tile_asked is None
+                     else self.tile_asked)
         owned = -(-self.n_domains // nodes)
         if spec.simulation is Simulation.SORT_FIRST:
             ledger, seconds = self._sort_first(nodes, cache or self.n_domains, spec.speculates,
@@ -469,7 +479,7 @@ class Replay:
         from vastray.actors.dynamic_frame import takes_next_tile
         from vastray.schedule.dynamic import RayWeightedRounds
 
-        policy = RayWeightedRounds()
+        policy = RayWeightedRounds(self.fill_busy)
         ledger, caches = _Ledger(size), [_Lru(cache, self.n_domains) for _ in range(size)]
         clock = 0.0
         tiles = self._tiles(self.camera_visits)

@@ -18,10 +18,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from vastray.actors.coordinator import DEFAULT_NODE_TILE
 from vastray.actors.decomposition import render_owned_domains
 from vastray.actors.insitu import render_spec_insitu
-from vastray.actors.job_options import JobOptions
+from vastray.actors.job_options import JobOptions, default_tile
 from vastray.actors.node import (
     SETTING_COUNTERS,
     UnitPasses,
@@ -103,11 +102,11 @@ class SimResult:
                 "costs": None if self.costs is None else self.costs.as_dict()}
 
 
-def node_options(options: JobOptions) -> JobOptions:
-    """The options a node runs with, as the coordinator completes them: a tile of
-    ``DEFAULT_NODE_TILE`` paths where none is set, one query thread."""
+def node_options(options: JobOptions, nodes: int) -> JobOptions:
+    """The options a node of a job on ``nodes`` nodes runs with, as the coordinator completes
+    them: ``default_tile``'s tile where none is set, one query thread."""
     return replace(options, max_samples_in_flight=options.max_samples_in_flight
-                   or DEFAULT_NODE_TILE, threads=1)
+                   or default_tile(options.scheduler, nodes), threads=1)
 
 
 def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
@@ -137,7 +136,7 @@ def simulate(store: Store, options: JobOptions, nodes: int, costs: CostModel,
         raise ValueError("the simulator needs at least 1 node")
     _check_memory(options.scheduler, nodes, len(store.domains))
     config = SceneConfig() if config is None else config
-    options = node_options(options)
+    options = node_options(options, nodes)
     own = domains is None
     if own:
         domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
