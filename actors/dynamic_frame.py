@@ -58,9 +58,11 @@ def takes_next_tile(wanted: np.ndarray, holder: np.ndarray, size: int, tile: int
     and (D,) ``holder``, the lowest rank holding each (``size``: none). Under
     1 / ``TAKE_IN_BELOW`` of a tile's rays waiting, and none for a domain no node holds.
 
-    Why so few: a wanted domain no node holds gets a node only once some node has no wanted
-    domain of its own (``RayWeightedRounds``'s rule 3), and a new tile's rays keep the nodes'
-    domains wanted, so the old tile's rays for such domains wait until the new tile drains.
+    Why so few: a wanted domain no node holds gets a node only where some node has no wanted
+    domain of its own or its kept rays leave room under the round's busiest
+    (``RayWeightedRounds``'s rule 3), and a new tile's rays keep the nodes' domains wanted,
+    so the old tile's rays for such domains can wait until the new tile drains (measured
+    with the paper's rule 3, idle nodes only, before session 50).
     Taken in under a whole tile's rays, the replayed frame of ``bench/simulate.py --quick``
     (2^18 paths, 1,439 domains) took 2.63 -> 5.25 s on 64 nodes and 1.60 -> 2.08 s on 256
     (180 -> 347 and 86 -> 100 all-reductions) while 1,024 nodes gained (1.33 -> 1.12 s);

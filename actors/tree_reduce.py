@@ -11,7 +11,16 @@ from vastray.actors import protocol
 from vastray.actors.film_wire import film_frames, film_from
 from vastray.actors.management import ManagementActor
 from vastray.transport.codec import PEER_FRAME_LIMIT, encode
-from vastray.transport.tree import COMBINE, butterfly, children, exchange_partner, parent
+from vastray.transport.tree import (
+    COMBINE,
+    butterfly,
+    children,
+    exchange_partner,
+    gather_step,
+    parent,
+    scatter_ranges,
+    scatters,
+)
 
 
 class TreeReduceActor:
@@ -87,15 +96,62 @@ class TreeReduceActor:
         if folds:
             total = _combined(total, await self._partial(call, -1), ops)
             self.steps += 2
-        for step in range(steps):
-            await self._send(call, step, total)
-            theirs = await self._partial(call, step)
-            lower_first = self.rank < exchange_partner(self.rank, self.size, step)
-            total = (_combined(total, theirs, ops) if lower_first
-                     else _combined(theirs, total, ops))
+        if scatters(self.size, sum(v.nbytes for v in total.values())):
+            total = await self._scattered(call, total, ops)
+        else:
+            for step in range(steps):
+                await self._send(call, step, total)
+                theirs = await self._partial(call, step)
+                lower_first = self.rank < exchange_partner(self.rank, self.size, step)
+                total = (_combined(total, theirs, ops) if lower_first
+                         else _combined(theirs, total, ops))
         if folds:
             await self._send(call, steps, total)
         return total
+
+    async def _scattered(self, call: int, total: dict[str, np.ndarray], ops: dict[str, str]
+                         ) -> dict[str, np.ndarray]:
+        """The core ranks' part of a long all-reduction (``transport.tree.scatters``):
+        recursive halving, each step sending the half of the range the partner keeps and
+        combining the half this rank keeps, then recursive doubling, each step sending the
+        range this rank holds and taking the partner's. Every element is combined by the
+        same partners in the same order as the butterfly's whole-array steps (the lower
+        rank's partial first), so the bits are the butterfly's; arrays are flattened and
+        each is split alone."""
+        steps = butterfly(self.size)[1]
+        self.steps += steps  # the gather walks the steps back
+        flat = {k: np.ascontiguousarray(v).reshape(-1).copy() for k, v in total.items()}
+        ranges = {k: scatter_ranges(self.rank, len(v), steps) for k, v in flat.items()}
+        for step in range(steps):
+            parts, kept = {}, {}
+            for k, v in flat.items():
+                lo, hi, keeps_low = ranges[k][step]
+                mid = lo + (hi - lo) // 2
+                parts[k] = v[mid:hi] if keeps_low else v[lo:mid]
+                kept[k] = (lo, mid) if keeps_low else (mid, hi)
+            await self._send(call, step, parts)
+            theirs = await self._partial(call, step)
+            lower_first = not (self.rank >> step) & 1
+            for k, (lo, hi) in kept.items():
+                mine = flat[k][lo:hi]
+                flat[k][lo:hi] = (COMBINE[ops[k]](mine, theirs[k]) if lower_first
+                                  else COMBINE[ops[k]](theirs[k], mine))
+        for step in reversed(range(steps)):
+            held, theirs_at = {}, {}
+            for k, v in flat.items():
+                lo, hi, keeps_low = ranges[k][step]
+                mid = lo + (hi - lo) // 2
+                held[k] = v[lo:mid] if keeps_low else v[mid:hi]
+                theirs_at[k] = (mid, hi) if keeps_low else (lo, mid)
+            label = gather_step(step, self.size)
+            await self._send(call, label, held)
+            theirs = await self._partial(call, label)
+            for k, (lo, hi) in theirs_at.items():
+                if len(theirs[k]) != hi - lo:
+                    raise protocol.ProtocolError(
+                        f"all-reduce gather: {len(theirs[k])} values of {k!r} for {hi - lo}")
+                flat[k][lo:hi] = theirs[k]
+        return {k: flat[k].reshape(total[k].shape) for k in total}
 
     async def _send(self, call: int, step: int, arrays: dict[str, np.ndarray]) -> None:
         partner = exchange_partner(self.rank, self.size, step)

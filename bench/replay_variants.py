@@ -179,7 +179,9 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
                     times.setdefault(key, {}).setdefault(scheduler, {})[nodes] = result.seconds
                     print(f"  {key:13s} {scheduler:11s} P={nodes:5d} "
                           f"({frame.n_paths:,} paths): {result.seconds:8.4f} s virtual "
-                          f"({result.counters['rounds']:,} synchronisations)", flush=True)
+                          f"({result.counters['rounds']:,} synchronisations, at most "
+                          f"{result.counters.get('most_rays_held', 0):,} rays held by a node)",
+                          flush=True)
     return times
 
 

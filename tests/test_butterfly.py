@@ -18,8 +18,9 @@ from hypothesis import strategies as st
 
 from vastray.actors import protocol
 from vastray.actors.tree_reduce import TreeReduceActor
+from vastray.transport import tree
 from vastray.transport.codec import decode, encode
-from vastray.transport.tree import butterfly, butterfly_steps, exchange_partner
+from vastray.transport.tree import butterfly, butterfly_steps, exchange_partner, scatters
 
 
 @pytest.mark.parametrize("size", range(1, 41))
@@ -84,16 +85,17 @@ class ShuffledNetwork:
         self.boxes[peer][message.kind].put_nowait(message)
 
 
-@hsettings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(size=st.integers(1, 13), calls=st.integers(1, 4), seed=st.integers(0, 2**32 - 1))
-def test_all_reductions_in_a_row_agree_bit_for_bit_whatever_the_delivery_order(size, calls,
-                                                                               seed):
+def reduce_on(size: int, calls: int, seed: int, lengths=(17, 5, 3, 8)):
+    """Each of ``size`` nodes' results of ``calls`` all-reductions in a row over a shuffled
+    network, the values, the ops and the messages sent."""
     rng = random.Random(seed)
     data = np.random.default_rng(seed)
-    values = [[{"sum": data.random(17) * 10.0 ** data.integers(-6, 6, 17),
-                "min": data.integers(0, 1 << 40, 5), "or": data.integers(0, 256, 3, np.uint8),
+    n_sum, n_min, n_or, n_max = lengths
+    values = [[{"sum": data.random(n_sum) * 10.0 ** data.integers(-6, 6, n_sum),
+                "min": data.integers(0, 1 << 40, n_min).reshape(-1, 1)[:, [0, 0]],
+                "or": data.integers(0, 256, n_or, np.uint8),
                 # signed zeros: MAX of +0.0 and -0.0 keeps the first operand's sign
-                "max": np.where(data.random(8) < 0.5, -0.0, 0.0)}
+                "max": np.where(data.random(n_max) < 0.5, -0.0, 0.0)}
                for _ in range(size)] for _ in range(calls)]
     ops = {"sum": "sum", "min": "min", "or": "or", "max": "max"}
 
@@ -112,8 +114,10 @@ def test_all_reductions_in_a_row_agree_bit_for_bit_whatever_the_delivery_order(s
         return out, network.sent
 
     results, sent = asyncio.run(run())
-    core, steps = butterfly(size)
-    assert sent == calls * (core * steps + 2 * (size - core))
+    return results, values, ops, sent
+
+
+def check_agreement(size, calls, results, values, ops):
     for call in range(calls):
         first = results[0][call]
         np.testing.assert_allclose(first["sum"], np.sum([v["sum"] for v in values[call]], 0),
@@ -124,7 +128,54 @@ def test_all_reductions_in_a_row_agree_bit_for_bit_whatever_the_delivery_order(s
                                       np.bitwise_or.reduce([v["or"] for v in values[call]]))
         for rank in range(1, size):
             for name in ops:
+                assert results[rank][call][name].shape == first[name].shape
                 assert results[rank][call][name].tobytes() == first[name].tobytes()
+
+
+@hsettings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(size=st.integers(1, 13), calls=st.integers(1, 4), seed=st.integers(0, 2**32 - 1))
+def test_all_reductions_in_a_row_agree_bit_for_bit_whatever_the_delivery_order(size, calls,
+                                                                               seed):
+    results, values, ops, sent = reduce_on(size, calls, seed)
+    core, steps = butterfly(size)
+    assert sent == calls * (core * steps + 2 * (size - core))
+    check_agreement(size, calls, results, values, ops)
+
+
+@hsettings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(size=st.integers(4, 13), calls=st.integers(1, 3), seed=st.integers(0, 2**32 - 1),
+       lengths=st.tuples(*[st.integers(0, 40)] * 4))
+def test_a_scattered_reduction_gives_the_butterfly_s_bits_whatever_the_delivery_order(
+        size, calls, seed, lengths, monkeypatch_module):
+    """Long arrays reduce by halving then doubling (Rabenseifner's): every node ends with
+    the whole arrays, bit for bit those of the butterfly's whole-array steps (float sums'
+    grouping and zeros' signs included), in twice the steps; ranges a node holds may be
+    empty where arrays are shorter than the nodes."""
+    butterfly_results = reduce_on(size, calls, seed, lengths)
+    with monkeypatch_module.context() as patch:
+        patch.setattr(tree, "SCATTER_MIN_BYTES", 0)
+        assert scatters(size, 0)
+        results, values, ops, sent = reduce_on(size, calls, seed, lengths)
+    core, steps = butterfly(size)
+    assert sent == calls * (2 * core * steps + 2 * (size - core))
+    check_agreement(size, calls, results, values, ops)
+    for rank in range(size):
+        for call in range(calls):
+            for name in ops:
+                assert (results[rank][call][name].tobytes()
+                        == butterfly_results[0][rank][call][name].tobytes())
+
+
+def test_short_arrays_and_two_nodes_keep_the_butterfly():
+    assert not scatters(2, 1 << 30)  # one step: nothing to halve
+    assert not scatters(1024, 64)
+    assert scatters(4, tree.SCATTER_MIN_BYTES)
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    with pytest.MonkeyPatch.context() as patch:
+        yield patch
 
 
 def test_arrays_without_a_combiner_are_refused():

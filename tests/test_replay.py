@@ -184,6 +184,24 @@ def test_an_all_reduction_costs_its_butterfly_steps_and_the_tree_twice_its_heigh
         replay_of(store, recorded[0], reduction="ring")
 
 
+def test_a_long_all_reduction_costs_its_halving_and_doubling(store, recorded):
+    """From ``SCATTER_MIN_BYTES`` an all-reduction scatters, as the tree-reduce actor does:
+    2 log2 C steps of halves, quarters, ... of the array instead of log2 C whole ones (two
+    whole fold steps more where P is no power of two); on 1,024 nodes a t-buffer of 32 MB
+    costs a fraction of its whole-array steps."""
+    from vastray.transport.tree import SCATTER_MIN_BYTES
+
+    replay = replay_of(store, recorded[0], network=Network(latency_s=1e-3, bandwidth=1e9))
+    long = float(SCATTER_MIN_BYTES)
+    for nodes, core_steps in ((8, 3), (12, 3)):
+        halves = sum(replay._step_s(long / 2 ** (s + 1)) for s in range(core_steps))
+        folds = 2 * replay._step_s(long) if nodes == 12 else 0.0
+        assert replay._allreduce_s(nodes, long) == pytest.approx(2 * halves + folds, rel=1e-12)
+    assert replay._allreduce_s(8, long - 1) == pytest.approx(3 * replay._step_s(long - 1))
+    t_buffer = 8.0 * 4096 * 1024
+    assert replay._allreduce_s(1024, t_buffer) < 0.4 * 10 * replay._step_s(t_buffer)
+
+
 def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
     fast = replay_of(store, recorded[0])
     slow = replay_of(store, recorded[0], network=Network(latency_s=5e-3, bandwidth=1e6))

@@ -648,6 +648,31 @@ def test_every_schedule_on_any_node_count_renders_the_reference_image(store, dom
     assert np.array_equal(result.film.image(), reference), scheduler
 
 
+@pytest.mark.parametrize("scheduler", ["spec-insitu", "dynamic", "domain"])
+def test_scattered_all_reductions_give_the_reference_image(store, domains, reference,
+                                                           scheduler, monkeypatch):
+    """Every all-reduction scattered (halving, then doubling: the tree-reduce actor's way
+    for long arrays, such as spec-insitu's t-buffers of large tiles) on 4 and 6 virtual
+    nodes of the nodes' own code: the reference image (the scattered path taken)."""
+    from vastray.actors.tree_reduce import TreeReduceActor
+    from vastray.transport import tree
+
+    scattered = []
+    original = TreeReduceActor._scattered
+
+    async def counted(self, *args):
+        scattered.append(self.rank)
+        return await original(self, *args)
+
+    monkeypatch.setattr(TreeReduceActor, "_scattered", counted)
+    monkeypatch.setattr(tree, "SCATTER_MIN_BYTES", 0)
+    for nodes in (4, 6):
+        scattered.clear()
+        result = sim(store, domains, scheduler, nodes)
+        np.testing.assert_array_equal(result.film.image(), reference)
+        assert set(scattered) == set(range(4))  # the core ranks; 4 and 5 fold in
+
+
 @pytest.mark.parametrize("scheduler", ["async", "domain", "spec-insitu", "image"])
 def test_ambient_occlusion_is_the_reference_image_too(store, scheduler):
     settings = dataclasses.replace(SETTINGS, integrator="ao", spp=1)

@@ -36,16 +36,56 @@ def butterfly(size: int) -> tuple[int, int]:
 
 def exchange_partner(rank: int, size: int, step: int) -> int | None:
     """The rank ``rank`` exchanges partials with at ``step`` of a butterfly over ``size``
-    ranks (-1: an extra rank's fold into the core; log2 C: the result back out), or None
-    where it has none at that step. The relation is symmetric."""
+    ranks (-1: an extra rank's fold into the core; log2 C: the result back out; log2 C + 1 +
+    s: step s's partner again, for the gather of a scattered reduction, ``gather_step``), or
+    None where it has none at that step. The relation is symmetric."""
     core, steps = butterfly(size)
     if step in (-1, steps):
         if rank >= core:
             return rank - core
         return rank + core if rank + core < size else None
+    if steps < step <= 2 * steps:
+        step -= steps + 1
     if 0 <= step < steps and rank < core:
         return rank ^ (1 << step)
     return None
+
+
+def gather_step(step: int, size: int) -> int:
+    """The label of the gather's exchange with step ``step``'s partner (a scattered
+    reduction's second half, ``scatters``), distinct from every butterfly step's."""
+    return butterfly(size)[1] + 1 + step
+
+
+#: Bytes of an all-reduction's arrays from which it scatters (``scatters``).
+SCATTER_MIN_BYTES = 1 << 20
+
+
+def scatters(size: int, nbytes: int) -> bool:
+    """Whether an all-reduction of ``nbytes`` over ``size`` ranks reduces by scattering
+    (recursive halving, then recursive doubling back: Rabenseifner's all-reduce, as MPI
+    libraries do for long vectors) instead of exchanging whole partials at every step.
+
+    Each of the butterfly's log2 C steps sends the whole array; a scattered reduction's
+    2 log2 C steps send halves, quarters, ..., 2 (C - 1) / C of it in all. For a
+    spec-insitu t-buffer of 4,194,304 paths (a tile of 4,096 paths on each of 1,024 nodes)
+    that is 2 arrays' worth a node instead of 10. Small arrays keep the butterfly: its
+    steps are half as many, and there a step's latency is the cost."""
+    return butterfly(size)[1] >= 2 and nbytes >= SCATTER_MIN_BYTES
+
+
+def scatter_ranges(rank: int, length: int, steps: int) -> list[tuple[int, int, bool]]:
+    """(lo, hi, keeps_low) at each step of a scattered reduction of ``length`` elements:
+    at step s rank ``rank`` and its partner (rank XOR 2^s) hold [lo, hi); the rank whose bit
+    s is 0 keeps [lo, mid), the other [mid, hi), mid = lo + (hi - lo) // 2; the gather
+    walks the same ranges back."""
+    lo, hi, ranges = 0, length, []
+    for step in range(steps):
+        keeps_low = not (rank >> step) & 1
+        ranges.append((lo, hi, keeps_low))
+        mid = lo + (hi - lo) // 2
+        lo, hi = (lo, mid) if keeps_low else (mid, hi)
+    return ranges
 
 
 def butterfly_steps(size: int) -> int:

@@ -29,7 +29,10 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
   the termination detection's two waves over the tree.
 - ``spec-insitu`` (SpRay in situ): per tile, one iteration per bounce; a ray's copies go to
   the owners of every domain its line crosses (z-order groups), each node traces its copies,
-  then the t-buffer and o-buffer all-reductions (their bytes charged) resolve the iteration.
+  then the t-buffer and o-buffer all-reduction resolves the iteration (as the nodes': an
+  8-byte key a path of the tile and a bit a shadow slot, every iteration; before session 50
+  the replay charged two all-reductions of 8 bytes a live path, where the second is the
+  batches' (P,) counts).
 - ``image`` and ``spec-ooc`` (sort-first): each node traces its tiles alone through an LRU
   cache of ``cache`` domains, the fullest (cached first) domain next; ``spec-ooc`` queues a
   ray's copies in every domain its line crosses, commits its hit once the domains it needs
@@ -57,7 +60,7 @@ from vastray.schedule import registry
 from vastray.schedule.registry import Decomposition, Simulation
 from vastray.sim.costs import CostModel
 from vastray.sim.crossings import RADIANCE, Crossings, ranges
-from vastray.transport.tree import butterfly_steps, tree_steps
+from vastray.transport.tree import butterfly, butterfly_steps, scatters, tree_steps
 
 #: A sort-first node's paths in flight, and a domain-decomposition job's on up to 16 nodes
 #: (``job_options.default_tile``, the coordinator's default).
@@ -173,6 +176,14 @@ class _Ledger:
     def __post_init__(self):
         for name in ("trace", "load", "messages", "reduction", "own"):
             setattr(self, name, np.zeros(self.size))
+
+    def held(self, node: np.ndarray) -> None:
+        """Count rays held: (n,) the node each ray waiting waits on; the counter
+        ``most_rays_held`` keeps the most any node held at once (a round's start, for the
+        round schedulers), a measure of a node's memory for rays."""
+        if len(node):
+            most = int(np.bincount(node, minlength=self.size).max())
+            self.counters["most_rays_held"] = max(self.counters.get("most_rays_held", 0), most)
 
     def result(self, scheduler: str, seconds: float, start: float) -> ReplayResult:
         busy = self.trace + self.load + self.messages + self.reduction + self.own
@@ -303,7 +314,13 @@ class Replay:
 
     def _allreduce_s(self, size: int, nbytes: float = 64.0) -> float:
         """An all-reduction (``actors.tree_reduce``: over the butterfly of ranks, its
-        ``butterfly_steps`` exchanges one after another), each step a message of ``nbytes``."""
+        ``butterfly_steps`` exchanges one after another), each step a message of ``nbytes``;
+        of a long array (``transport.tree.scatters``) halving then doubling, step s's two
+        messages of ``nbytes`` / 2^(s+1)."""
+        if self.reduction_steps is butterfly_steps and scatters(size, int(nbytes)):
+            core, steps = butterfly(size)
+            halves = sum(self._step_s(nbytes / 2 ** (step + 1)) for step in range(steps))
+            return 2 * halves + (2 * self._step_s(nbytes) if size > core else 0.0)
         return self.reduction_steps(size) * self._step_s(nbytes)
 
     def _wave_s(self, size: int) -> float:
@@ -448,6 +465,7 @@ class Replay:
             pending = tokens[~arrived]
             wave = tokens[arrived]
             while True:  # one round
+                ledger.held(owner[self.domain_of[np.concatenate([pending, wave])]])
                 moved, sources = [], []
                 while len(wave):  # the drain: waves of rays that stay on the node
                     at = owner[self.domain_of[wave]]
@@ -501,6 +519,7 @@ class Replay:
         take_in()
         while True:
             domain = self.domain_of[tokens]
+            ledger.held(at)
             wanted = np.bincount(domain, minlength=self.n_domains)
             holder = np.full(self.n_domains, size, np.int64)
             for n in range(size - 1, -1, -1):  # the lowest rank holding each
@@ -560,8 +579,13 @@ class Replay:
                                                                          0)], -1)
         segments = np.nonzero(c.parent < 0)[0]
         tiles = c.path[segments] // self.tile
+        # the t-buffer MIN and o-buffer OR cover every path of the tile at every iteration:
+        # an 8-byte key a path and a bit a shadow slot (the most shadow rays a hit spawned)
+        shadow = child[c.kind[child] != RADIANCE]
+        slots = max(1, int(np.bincount(c.parent[shadow]).max(initial=0)) if len(shadow) else 1)
         for t in np.unique(tiles):
             live = segments[tiles == t]
+            buffers = len(live) * (8.0 + slots / 8.0)
             holder = (c.path[live] % self.tile) % size
             busy = np.full(size, self._camera_s(len(live) / size))
             # in situ: a node loads its own domains before its first trace
@@ -598,8 +622,11 @@ class Replay:
                 ledger.trace += per_node
                 ledger.counters["activations"] += len(keys)
                 ledger.counters["traced"] += len(copy_seg)
-                n_live = len(live)
-                clock += self._round_end(ledger, busy, 8.0 * n_live, reductions=2)
+                # the batches' counts (a (P,) SUM) as the copies leave, the buffers after
+                counts = self._allreduce_s(size, 8.0 * size)
+                ledger.reduction += counts
+                ledger.counters["rounds"] += 1
+                clock += counts + self._round_end(ledger, busy, buffers)
                 busy = np.zeros(size)
                 spawned = child[ranges(first[live], first[live + 1] - first[live])]
                 parent_of = np.repeat(live, first[live + 1] - first[live])
