@@ -1,7 +1,7 @@
 """Four design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
-    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 12 min)
+    python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 7 min)
     python bench/replay_variants.py           # 2^20 paths, P = 1, 4, ... 1,024 (about 4 min)
 
 1. **All-reductions**: over the butterfly of ranks (recursive doubling, log2 P exchange steps:
@@ -18,7 +18,8 @@ side on the same constants, recording and nodes in one run.
    ``weak_<P>_<tile>=`` efficiencies T(1)/T(P), ``dynamic_weak_<P>_<rule>_<tile>=``.
 3. **``dynamic``'s tiles in flight**: the next tile taken in while the last one's rays thin
    out, up to two tiles (the product's, ``actors/dynamic_frame.py``) against one tile at a
-   time (before session 41). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
+   time (before session 41), in tiles of 65,536 paths (the product's tile is one frame from
+   64 nodes on). Strong scaling of the frame of 1.; ``dynamic_seconds_<tiles>=``
    the virtual seconds by P, ``dynamic_speedup_<tiles>=`` T(1)/T(P), each side against its
    own T(1).
 4. **The sort-first schedules' share of the image**: a band of the image a node cut at
@@ -103,7 +104,9 @@ def strong_by_reduction(store, costs: CostModel, quick: bool, counts) -> dict:
 
 def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
     """{tiles in flight: {P: (seconds, all-reductions)}} of ``dynamic`` in the strong-scaling
-    frame (``dynamic_frame.MAX_TILES``, set before the replays are forked)."""
+    frame (``dynamic_frame.MAX_TILES``, set before the replays are forked), in tiles of
+    ``JOB_TILE`` paths on every node count (the product's tile holds the whole frame from 64
+    nodes on, where tiles in flight change nothing)."""
     from vastray.actors import dynamic_frame
 
     settings = rs.STRONG_QUICK if quick else rs.STRONG
@@ -114,7 +117,8 @@ def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
         for tiles in (product, 1):
             dynamic_frame.MAX_TILES = tiles
             replay = rs.replay_of(store, crossings, costs.warm().with_cores(None),
-                                  decisions=rs.scaling_decisions(store, settings))
+                                  decisions=rs.scaling_decisions(store, settings),
+                                  tile=JOB_TILE)
             jobs = [("dynamic", n, rs.node_cache(len(store.domains), n)) for n in counts]
             for (_, nodes, _), result in zip(jobs, rs.replayed(replay, jobs), strict=True):
                 times.setdefault(tiles, {})[nodes] = (result.seconds, result.counters["rounds"])
