@@ -67,7 +67,7 @@ def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathL
         ``image`` schedule on sort-first tiles). Where they leave them unset, the tile
         (``max_samples_in_flight``) is ``job_options.default_tile``'s (65536 paths a
         sort-first node; a domain-decomposition job's, shared by its nodes, 65536 or 4096
-        a node past 16 nodes), and ``threads`` this machine's
+        a node past 16 nodes, at most 2^22), and ``threads`` this machine's
         cores shared among the nodes started here (with ``listen``: each node's own cores).
     timeout : seconds any single wait may take (start-up, silence of a node, shutdown).
     listen : ``HOST:PORT`` to wait for ``nodes`` nodes started elsewhere (docker compose,

@@ -21,8 +21,11 @@ from vastray.schedule.registry import ASSIGNMENTS, PRIORITIES, Option
 #: ``max_samples_in_flight`` unset, and a domain-decomposition job's tile on up to 16 nodes.
 DEFAULT_NODE_TILE = 65536
 #: Paths a domain-decomposition job's default tile gives each node at least: past 16 nodes the
-#: tile grows with the nodes (``default_tile``).
+#: tile grows with the nodes (``default_tile``), up to ``MAX_JOB_TILE``.
 MIN_NODE_SHARE = 4096
+#: The most paths a domain-decomposition job's default tile holds (1,024 nodes' shares):
+#: every node keeps path state for each path of a tile (about 48 bytes a path, so 200 MB).
+MAX_JOB_TILE = 1 << 22
 
 #: Rays per batch between two nodes unless told otherwise (``node_work.NodeWork``; about
 #: 6 MB of path-tracing rays).
@@ -45,23 +48,24 @@ DEFAULT_PORTAL_RESOLUTION = DEFAULT_RESOLUTION  # the paper's
 def default_tile(scheduler: str, nodes: int) -> int:
     """The paths in flight (``max_samples_in_flight``) where a job on ``nodes`` nodes leaves
     them unset: a sort-first node's own ``DEFAULT_NODE_TILE``; a domain-decomposition job's
-    ``DEFAULT_NODE_TILE`` or ``MIN_NODE_SHARE`` a node, whichever is more.
+    ``DEFAULT_NODE_TILE`` or ``MIN_NODE_SHARE`` a node, whichever is more, at most
+    ``MAX_JOB_TILE``.
 
     Why the job's tile grows with the nodes: every node starts 1/P of each tile, and each of
     a tile's rounds (``domain``, ``dynamic``, ``spec-insitu``) costs an all-reduction of
     log2 P steps whatever its work. At 1,024 nodes a fixed tile of 65,536 paths gave a node
     64 paths a tile, and by replay at 4,096 paths a node (``bench/replay_variants.py``,
-    section 2) ``domain`` ran at 0.17 of one node's speed and ``dynamic`` at 0.18, their
-    frames 64 tiles of 10-30 rounds each. What it costs: a node holds path state for its
-    share of the tile (at least 4,096 paths, as before on 16 nodes), and the rays waiting
-    for its domains, up to the whole tile's where they all gather there, so past 16 nodes
-    that worst case grows with P. ``--max-samples-in-flight`` sets a hard bound.
+    section 2) ``domain`` and ``dynamic`` ran at 0.17 of one node's speed, their frames 64
+    tiles of 10-30 rounds each. What it costs is memory: every node keeps path state for
+    each path of a tile (about 48 bytes a path: 3 MB at 65,536 paths, 200 MB at
+    ``MAX_JOB_TILE``), and the rays waiting for its domains, up to the whole tile's where
+    they all gather there. ``--max-samples-in-flight`` sets a hard bound.
     """
     if nodes < 1:
         raise ValueError(f"a job needs at least 1 node, not {nodes}")
     if not registry.spec(scheduler).runtime.nodes_only:
         return DEFAULT_NODE_TILE
-    return max(DEFAULT_NODE_TILE, MIN_NODE_SHARE * nodes)
+    return min(max(DEFAULT_NODE_TILE, MIN_NODE_SHARE * nodes), MAX_JOB_TILE)
 
 
 class JobOptionsError(InputError):
@@ -92,7 +96,7 @@ class JobOptions:
         node starts its share of each tile, 1/P of its paths, and a node holds the rays
         waiting for its domains, up to the whole tile's where they gather there); None: all
         of them (``render_distributed`` fills in ``default_tile``: 65,536, or 4,096 a node
-        for a domain-decomposition job on more than 16 nodes).
+        for a domain-decomposition job on more than 16 nodes, up to 4,194,304).
     history_depth : spec-ooc's H, bounces speculated before hits resolve; None: every bounce
         (passed to ``schedule.spec_ooc.SpeculativeSchedule``).
     max_batch_rays : most rays in one batch between two nodes (``node_work.NodeWork``).

@@ -147,6 +147,7 @@ def test_a_node_refuses_a_job_of_another_options_version_and_says_why(tmp_path):
 def test_a_domain_decomposition_job_s_default_tile_grows_with_its_nodes_past_16():
     from vastray.actors.job_options import (
         DEFAULT_NODE_TILE,
+        MAX_JOB_TILE,
         MIN_NODE_SHARE,
         default_tile,
     )
@@ -155,7 +156,8 @@ def test_a_domain_decomposition_job_s_default_tile_grows_with_its_nodes_past_16(
     for scheduler in ("domain", "dynamic", "async", "spec-insitu", "temporal"):
         assert default_tile(scheduler, 1) == default_tile(scheduler, 16) == DEFAULT_NODE_TILE
         assert default_tile(scheduler, 17) == 17 * MIN_NODE_SHARE
-        assert default_tile(scheduler, 1024) == 1024 * MIN_NODE_SHARE
+        assert default_tile(scheduler, 1024) == 1024 * MIN_NODE_SHARE == MAX_JOB_TILE
+        assert default_tile(scheduler, 4096) == MAX_JOB_TILE  # path state a node bounded
     for scheduler in ("image", "spec-ooc"):  # a sort-first node's tile is its own
         assert default_tile(scheduler, 1024) == DEFAULT_NODE_TILE
     with pytest.raises(ValueError, match="at least 1 node"):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from vastray.actors.job_options import MIN_NODE_SHARE
+from vastray.actors.job_options import MAX_JOB_TILE, MIN_NODE_SHARE
 from vastray.execute import run
 from vastray.render.progressive import DEFAULT_MAX_PASS_SPP
 from vastray.request import (
@@ -133,7 +133,7 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         f"{DEFAULT_NODE_SAMPLES_IN_FLIGHT}: each node's own for image and "
                         "spec-ooc, shared by the nodes for the domain-decomposition "
                         "schedulers, whose nodes hold the rays waiting for their domains, "
-                        f"and past 16 nodes {MIN_NODE_SHARE} a node)")
+                        f"and past 16 nodes {MIN_NODE_SHARE} a node, at most {MAX_JOB_TILE})")
     p.add_argument("--history-depth", **argument("history_depth"), metavar="H",
                    help="spec-ooc: bounces speculated before hits are resolved "
                         "(default: --bounces, the most aggressive)")

@@ -72,7 +72,7 @@ def add_simulate(sub: argparse._SubParsersAction, fmt) -> None:
                    help="most domains in each node's memory (default: the scheduler's)")
     s.add_argument("--max-samples-in-flight", type=positive_int, metavar="N",
                    help="paths per tile (default: the nodes': 65536, or 4096 a node for a "
-                        "domain-decomposition job on more than 16 nodes)")
+                        "domain-decomposition job on more than 16 nodes, at most 4194304)")
     s.add_argument("--max-pass-spp", type=positive_int, metavar="N",
                    help="render in sample-major passes of at most N spp, as `vastray render` "
                         "(default: one pass)")
