@@ -310,6 +310,23 @@ def test_a_temporal_run_too_large_for_this_machine_is_refused_saying_why():
     _check_memory("async", 1024, 1439)  # no (D, D) state
 
 
+def test_a_run_whose_nodes_path_state_cannot_fit_is_refused_naming_the_tile():
+    from vastray.actors.job_options import JobOptions
+    from vastray.scene.errors import InputError
+    from vastray.sim.simulate import _check_path_memory, node_options
+
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    paths = 1 << 22
+    # from 1,024 nodes the default tile is the cap, 4,194,304 paths, on each virtual node
+    nodes = max(1024, int(memory // (64 * paths)) + 1)
+    with pytest.raises(InputError, match=rf"domain on {nodes} virtual nodes with tiles of "
+                                         r"4,194,304 paths .*--max-samples-in-flight"):
+        _check_path_memory(node_options(JobOptions(scheduler="domain"), nodes), nodes, paths)
+    _check_path_memory(node_options(JobOptions(scheduler="domain", max_samples_in_flight=4096),
+                                    nodes), nodes, paths)  # a smaller tile fits
+    _check_path_memory(node_options(JobOptions(scheduler="image"), nodes), nodes, paths)
+
+
 def test_shared_cores_speed_jobs_up_as_others_finish():
     async def work():
         cores = SharedCores(1)
