@@ -123,33 +123,20 @@ class TreeReduceActor:
         flat = {k: np.ascontiguousarray(v).reshape(-1).copy() for k, v in total.items()}
         ranges = {k: scatter_ranges(self.rank, len(v), steps) for k, v in flat.items()}
         for step in range(steps):
-            parts, kept = {}, {}
-            for k, v in flat.items():
-                lo, hi, keeps_low = ranges[k][step]
-                mid = lo + (hi - lo) // 2
-                parts[k] = v[mid:hi] if keeps_low else v[lo:mid]
-                kept[k] = (lo, mid) if keeps_low else (mid, hi)
-            await self._send(call, step, parts)
-            theirs = await self._partial(call, step)
+            halves = {k: _halves(*ranges[k][step]) for k in flat}
+            await self._send(call, step, {k: flat[k][slice(*halves[k][1])] for k in flat})
+            theirs = _checked(await self._partial(call, step), halves, 0)  # for my half
             lower_first = not (self.rank >> step) & 1
-            for k, (lo, hi) in kept.items():
+            for k, ((lo, hi), _) in halves.items():
                 mine = flat[k][lo:hi]
                 flat[k][lo:hi] = (COMBINE[ops[k]](mine, theirs[k]) if lower_first
                                   else COMBINE[ops[k]](theirs[k], mine))
         for step in reversed(range(steps)):
-            held, theirs_at = {}, {}
-            for k, v in flat.items():
-                lo, hi, keeps_low = ranges[k][step]
-                mid = lo + (hi - lo) // 2
-                held[k] = v[lo:mid] if keeps_low else v[mid:hi]
-                theirs_at[k] = (mid, hi) if keeps_low else (lo, mid)
+            halves = {k: _halves(*ranges[k][step]) for k in flat}
             label = gather_step(step, self.size)
-            await self._send(call, label, held)
-            theirs = await self._partial(call, label)
-            for k, (lo, hi) in theirs_at.items():
-                if len(theirs[k]) != hi - lo:
-                    raise protocol.ProtocolError(
-                        f"all-reduce gather: {len(theirs[k])} values of {k!r} for {hi - lo}")
+            await self._send(call, label, {k: flat[k][slice(*halves[k][0])] for k in flat})
+            theirs = _checked(await self._partial(call, label), halves, 1)
+            for k, (_, (lo, hi)) in halves.items():
                 flat[k][lo:hi] = theirs[k]
         return {k: flat[k].reshape(total[k].shape) for k in total}
 
@@ -169,6 +156,24 @@ class TreeReduceActor:
             key = (int(message.meta["call"]), int(message.meta["step"]))
             self._early_partials[key] = message.arrays
         return self._early_partials.pop((call, step))
+
+
+def _halves(lo: int, hi: int, keeps_low: bool) -> tuple[tuple[int, int], tuple[int, int]]:
+    """(this rank's half, its partner's half) of [lo, hi) at a step of a scattered
+    all-reduction (``transport.tree.scatter_ranges``)."""
+    mid = lo + (hi - lo) // 2
+    return ((lo, mid), (mid, hi)) if keeps_low else ((mid, hi), (lo, mid))
+
+
+def _checked(partial: dict[str, np.ndarray], halves: dict, which: int) -> dict[str, np.ndarray]:
+    """``partial`` if each array holds as many values as its range ``halves[k][which]``;
+    else a ``ProtocolError`` naming the array."""
+    for k, ranges in halves.items():
+        lo, hi = ranges[which]
+        if k not in partial or len(partial[k]) != hi - lo:
+            raise protocol.ProtocolError(f"scattered all-reduce: {k!r} should hold {hi - lo} "
+                                         "values from the partner")
+    return partial
 
 
 def _combined(first: dict[str, np.ndarray], second: dict[str, np.ndarray],

@@ -190,14 +190,18 @@ def _check_memory(scheduler: str, nodes: int, n_domains: int) -> None:
     sched = registry.spec(scheduler)
     if not sched.frame_statistics:
         return
-    need = 4 * 8 * n_domains ** 2 * nodes
+    _refuse_beyond_memory(4 * 8 * n_domains ** 2 * nodes,
+                          f"{sched.name} on {nodes} virtual nodes of {n_domains} domains",
+                          "the nodes' frame statistics ((D, D) per node)",
+                          "simulate fewer nodes or a store of fewer domains")
+
+
+def _refuse_beyond_memory(need: float, run: str, state: str, advice: str) -> None:
+    """Raise ``InputError`` where ``need`` bytes exceed half this machine's memory."""
     memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     if need > memory / 2:
-        raise InputError(None, f"{sched.name} on {nodes} virtual nodes of {n_domains} domains "
-                               f"needs about {need / 2 ** 30:.0f} GiB for the nodes' frame "
-                               "statistics ((D, D) per node) and this machine has "
-                               f"{memory / 2 ** 30:.0f} GiB: simulate fewer nodes or a store of "
-                               "fewer domains")
+        raise InputError(None, f"{run} needs about {need / 2 ** 30:.0f} GiB for {state} and "
+                               f"this machine has {memory / 2 ** 30:.0f} GiB: {advice}")
 
 
 #: Bytes of path state a domain-decomposition node keeps for each path of a tile (48
@@ -213,14 +217,11 @@ def _check_path_memory(options: JobOptions, nodes: int, paths: int) -> None:
     if not registry.spec(options.scheduler).runtime.nodes_only:
         return
     tile = min(options.max_samples_in_flight or paths, paths)
-    need = PATH_STATE_BYTES * tile * nodes
-    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    if need > memory / 2:
-        raise InputError(None, f"{options.scheduler} on {nodes} virtual nodes with tiles of "
-                               f"{tile:,} paths needs about {need / 2 ** 30:.0f} GiB for the "
-                               "nodes' path state (each keeps every path of a tile) and this "
-                               f"machine has {memory / 2 ** 30:.0f} GiB: set a smaller "
-                               "--max-samples-in-flight, or simulate fewer nodes")
+    _refuse_beyond_memory(PATH_STATE_BYTES * tile * nodes,
+                          f"{options.scheduler} on {nodes} virtual nodes with tiles of "
+                          f"{tile:,} paths",
+                          "the nodes' path state (each keeps every path of a tile)",
+                          "set a smaller --max-samples-in-flight, or simulate fewer nodes")
 
 
 async def _render(store, options, size, costs, settings, config, units, domains):
