@@ -194,3 +194,15 @@ def test_a_partial_from_a_rank_not_the_partner_of_its_step_is_refused():
     protocol.check_peer_kind(fold, 5, 1, 6)  # the extra rank 5 folds into 5 - 4
     with pytest.raises(protocol.ProtocolError):
         protocol.check_peer_kind(fold, 5, 0, 6)
+
+
+def test_a_scattered_partial_of_the_wrong_length_is_refused_naming_the_array():
+    from vastray.actors.tree_reduce import _checked, _halves
+
+    halves = {"t": _halves(0, 10, True)}  # this rank keeps [0, 5), its partner [5, 10)
+    assert halves["t"] == ((0, 5), (5, 10))
+    assert _checked({"t": np.zeros(5)}, halves, 0)["t"].shape == (5,)
+    with pytest.raises(protocol.ProtocolError, match="'t' should hold 5 values"):
+        _checked({"t": np.zeros(4)}, halves, 1)
+    with pytest.raises(protocol.ProtocolError, match="'t' should hold"):
+        _checked({}, halves, 0)
