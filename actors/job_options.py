@@ -58,7 +58,8 @@ def default_tile(scheduler: str, nodes: int) -> int:
     section 2) ``domain`` and ``dynamic`` ran at 0.17 of one node's speed, their frames 64
     tiles of 10-30 rounds each. What it costs is memory: every node keeps path state for
     each path of a tile (about 48 bytes a path: 3 MB at 65,536 paths, 200 MB at
-    ``MAX_JOB_TILE``), and the rays waiting for its domains, up to the whole tile's where
+    ``MAX_JOB_TILE``; ``spec-insitu`` also a t-buffer key of 8 bytes and an o-buffer byte
+    a shadow slot), and the rays waiting for its domains, up to the whole tile's where
     they all gather there. ``--max-samples-in-flight`` sets a hard bound.
     """
     if nodes < 1:
