@@ -107,6 +107,9 @@ class TreeReduceActor:
                          else _combined(theirs, total, ops))
         if folds:
             await self._send(call, steps, total)
+            # the send may still read these arrays (ZeroMQ sends large frames without a
+            # copy): the caller gets its own
+            total = {k: v.copy() for k, v in total.items()}
         return total
 
     async def _scattered(self, call: int, total: dict[str, np.ndarray], ops: dict[str, str]
@@ -117,7 +120,9 @@ class TreeReduceActor:
         range this rank holds and taking the partner's. Every element is combined by the
         same partners in the same order as the butterfly's whole-array steps (the lower
         rank's partial first), so the bits are the butterfly's; arrays are flattened and
-        each is split alone."""
+        each is split alone. Sends read ``flat`` without a copy (ZeroMQ's large frames):
+        the halving writes only the half it keeps, and the doubling writes a half it sent
+        while halving only once the partner's reply, which needed that half, has come."""
         steps = butterfly(self.size)[1]
         self.steps += steps  # the gather walks the steps back
         flat = {k: np.ascontiguousarray(v).reshape(-1).copy() for k, v in total.items()}
@@ -138,7 +143,9 @@ class TreeReduceActor:
             theirs = _checked(await self._partial(call, label), halves, 1)
             for k, (_, (lo, hi)) in halves.items():
                 flat[k][lo:hi] = theirs[k]
-        return {k: flat[k].reshape(total[k].shape) for k in total}
+        # copies: the last sends may still read ``flat`` (large frames go without a copy),
+        # and a caller may write into what it gets
+        return {k: flat[k].reshape(total[k].shape).copy() for k in total}
 
     async def _send(self, call: int, step: int, arrays: dict[str, np.ndarray]) -> None:
         partner = exchange_partner(self.rank, self.size, step)
