@@ -75,10 +75,12 @@ def lit_store(tmp_path_factory):
 
 def _throttle(parent: int, rank: int, log: Path, seconds: float, hit: list) -> None:
     """Slow node ``rank`` (a child of ``parent``) down for ``seconds`` once it has its job
-    (its ``log`` says it joined): stopped 0.7 s of every second (it still heartbeats every
-    second or so), then let it run. Running 0.3 s a second keeps it well above the hung
-    node's 5 % of a core even when other jobs take most of this machine's 2 cores (at 0.1 s
-    a second it fell under it once, in CI beside a benchmark, and was taken for hung)."""
+    (its ``log`` says it joined): stopped 0.8 s of every second (it still heartbeats every
+    second or so), then let it run. Running 0.2 s a second keeps it above the hung node's
+    5 % of a core even when other jobs take most of this machine's 2 cores (at 0.1 s a
+    second it fell under it once, in CI beside a benchmark, and was taken for hung); at
+    0.3 s a second it was once not slow enough, in CI's slow tests side by side: node 0
+    busy 9.9 s against the others' 5.4, so they idled less than the node timeout."""
     deadline = time.monotonic() + 120
     while not hit and time.monotonic() < deadline:
         if log.exists() and "joined" in log.read_text(errors="replace"):
@@ -89,10 +91,10 @@ def _throttle(parent: int, rank: int, log: Path, seconds: float, hit: list) -> N
         while hit and time.monotonic() < end:
             for pid in hit:
                 os.kill(pid, signal.SIGSTOP)
-            time.sleep(0.7)
+            time.sleep(0.8)
             for pid in hit:
                 os.kill(pid, signal.SIGCONT)
-            time.sleep(0.3)
+            time.sleep(0.2)
     except ProcessLookupError:
         pass
     finally:
@@ -124,7 +126,7 @@ def test_a_node_done_early_waits_idle_and_is_never_taken_for_lost(lit_store, tmp
     # node 0 is slowed for up to 40 s: nodes 1 and 2 idle
     # for far longer than --node-timeout 5, still heartbeating, and stay members. (Until
     # session 42 node 0 had the image's one tile; now each node has tiles of 4,096 paths
-    # round robin, a third of the work each, and node 0's third at 0.3 of its speed takes
+    # round robin, a third of the work each, and node 0's third at 0.2 of its speed takes
     # the others' twice over and more.)
     store, toml = lit_store
     common = [str(store.path), "--scene", str(toml), "--width", "64", "--height", "48",
