@@ -46,7 +46,6 @@ from vastray.transport.keys import CoordinatorKeys
 log = logging.getLogger(__name__)
 
 
-
 def render_distributed(store_path: str | os.PathLike, scene_path: str | os.PathLike | None,
                        settings: RenderSettings, nodes: int, options: JobOptions | None = None,
                        timeout: float = 120.0, listen: str | None = None,

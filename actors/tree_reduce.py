@@ -128,7 +128,7 @@ class TreeReduceActor:
         flat = {k: np.ascontiguousarray(v).reshape(-1).copy() for k, v in total.items()}
         ranges = {k: scatter_ranges(self.rank, len(v), steps) for k, v in flat.items()}
         for step in range(steps):
-            halves = {k: _halves(*ranges[k][step]) for k in flat}
+            halves = {k: ranges[k][step] for k in flat}
             await self._send(call, step, {k: flat[k][slice(*halves[k][1])] for k in flat})
             theirs = _checked(await self._partial(call, step), halves, 0)  # for my half
             lower_first = not (self.rank >> step) & 1
@@ -137,7 +137,7 @@ class TreeReduceActor:
                 flat[k][lo:hi] = (COMBINE[ops[k]](mine, theirs[k]) if lower_first
                                   else COMBINE[ops[k]](theirs[k], mine))
         for step in reversed(range(steps)):
-            halves = {k: _halves(*ranges[k][step]) for k in flat}
+            halves = {k: ranges[k][step] for k in flat}
             label = gather_step(step, self.size)
             await self._send(call, label, {k: flat[k][slice(*halves[k][0])] for k in flat})
             theirs = _checked(await self._partial(call, label), halves, 1)
@@ -163,13 +163,6 @@ class TreeReduceActor:
             key = (int(message.meta["call"]), int(message.meta["step"]))
             self._early_partials[key] = message.arrays
         return self._early_partials.pop((call, step))
-
-
-def _halves(lo: int, hi: int, keeps_low: bool) -> tuple[tuple[int, int], tuple[int, int]]:
-    """(this rank's half, its partner's half) of [lo, hi) at a step of a scattered
-    all-reduction (``transport.tree.scatter_ranges``)."""
-    mid = lo + (hi - lo) // 2
-    return ((lo, mid), (mid, hi)) if keeps_low else ((mid, hi), (lo, mid))
 
 
 def _checked(partial: dict[str, np.ndarray], halves: dict, which: int) -> dict[str, np.ndarray]:

@@ -197,10 +197,12 @@ def test_a_partial_from_a_rank_not_the_partner_of_its_step_is_refused():
 
 
 def test_a_scattered_partial_of_the_wrong_length_is_refused_naming_the_array():
-    from vastray.actors.tree_reduce import _checked, _halves
+    from vastray.actors.tree_reduce import _checked
+    from vastray.transport.tree import scatter_ranges
 
-    halves = {"t": _halves(0, 10, True)}  # this rank keeps [0, 5), its partner [5, 10)
-    assert halves["t"] == ((0, 5), (5, 10))
+    assert scatter_ranges(2, 10, 2) == [((0, 5), (5, 10)), ((2, 5), (0, 2))]
+    assert scatter_ranges(1, 10, 2) == [((5, 10), (0, 5)), ((5, 7), (7, 10))]
+    halves = {"t": scatter_ranges(0, 10, 1)[0]}  # this rank keeps [0, 5), its partner [5, 10)
     assert _checked({"t": np.zeros(5)}, halves, 0)["t"].shape == (5,)
     with pytest.raises(protocol.ProtocolError, match="'t' should hold 5 values"):
         _checked({"t": np.zeros(4)}, halves, 1)

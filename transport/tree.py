@@ -74,18 +74,21 @@ def scatters(size: int, nbytes: int) -> bool:
     return butterfly(size)[1] >= 2 and nbytes >= SCATTER_MIN_BYTES
 
 
-def scatter_ranges(rank: int, length: int, steps: int) -> list[tuple[int, int, bool]]:
-    """(lo, hi, keeps_low) at each step of a scattered reduction of ``length`` elements:
-    at step s rank ``rank`` and its partner (rank XOR 2^s) hold [lo, hi); the rank whose bit
-    s is 0 keeps [lo, mid), the other [mid, hi), mid = lo + (hi - lo) // 2; the gather
-    walks the same ranges back."""
-    lo, hi, ranges = 0, length, []
+def scatter_ranges(rank: int, length: int, steps: int
+                   ) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """(this rank's half, its partner's half) of the range at each step of a scattered
+    reduction of ``length`` elements: at step s rank ``rank`` and its partner (rank XOR 2^s)
+    hold [lo, hi); the rank whose bit s is 0 keeps [lo, mid), the other [mid, hi), mid =
+    lo + (hi - lo) // 2, and the next step splits the half kept; the gather walks the same
+    halves back."""
+    lo, hi, halves = 0, length, []
     for step in range(steps):
-        keeps_low = not (rank >> step) & 1
-        ranges.append((lo, hi, keeps_low))
         mid = lo + (hi - lo) // 2
-        lo, hi = (lo, mid) if keeps_low else (mid, hi)
-    return ranges
+        low, high = (lo, mid), (mid, hi)
+        mine, theirs = (low, high) if not (rank >> step) & 1 else (high, low)
+        halves.append((mine, theirs))
+        lo, hi = mine
+    return halves
 
 
 def butterfly_steps(size: int) -> int:
