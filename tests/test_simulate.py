@@ -951,6 +951,20 @@ def test_cli_sort_first_runs_print_their_lines_and_report_their_activations(stor
     assert all(r["counters"]["activations"] > 0 and r["seconds"] > 0 for r in runs)
 
 
+def test_cli_refuses_nodes_whose_path_state_cannot_fit_saying_what_to_set(store, tmp_path):
+    """Without --quiet, as a user runs it: 100,000 virtual ``domain`` nodes, each keeping
+    every path of a 4,194,304-path tile, are refused before any run, exit 2, naming the tile
+    and the option to set; no report is written."""
+    COSTS.save(tmp_path / "costs.json")
+    out = vastray("simulate", store.path, "--nodes", "100000", "--scheduler", "domain",
+                  "--width", "512", "--height", "512", "--spp", "64", "--costs", "costs.json",
+                  "--report", "sim.json", cwd=tmp_path)
+    assert out.returncode == 2, out.stderr
+    assert "domain on 100000 virtual nodes with tiles of 4,194,304 paths" in out.stderr
+    assert "--max-samples-in-flight" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "sim.json").exists()
+
+
 def test_cli_warm_and_cores_options_reach_the_costs(store, tmp_path):
     dataclasses.replace(COSTS, warmup_s=1.0, cores=3).save(tmp_path / "costs.json")
     runs = {}
