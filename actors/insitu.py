@@ -1,10 +1,10 @@
 """SpRay's speculative in situ schedule (Park et al., Listings 5-7) on the nodes: each node
-loads the domains it owns (assigned along the z-order curve, as in the paper) and keeps them;
-per tile, it carries out ``schedule.spec_insitu.InSituSchedule`` one bounce per iteration: it
-sends the speculative copies of its rays to the owners of the domains they cross (one radiance
-and one shadow batch per peer), takes the copies for its own domains, and joins the two
-all-reductions over the tree of nodes (t-buffer MIN, o-buffer OR) whose results resolve the
-iteration.
+loads the domains it owns (runs of the z-order curve, as in the paper, here of equal
+triangles: ``ownership.insitu_owners``) and keeps them; per tile, it carries out
+``schedule.spec_insitu.InSituSchedule`` one bounce per iteration: it sends the speculative
+copies of its rays to the owners of the domains they cross (one radiance and one shadow batch
+per peer), takes the copies for its own domains, and joins the two all-reductions over the
+tree of nodes (t-buffer MIN, o-buffer OR) whose results resolve the iteration.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult
 from vastray.scene.embree.launch import cpu_time
-from vastray.schedule.ownership import interleaved_paths, zorder_owners
+from vastray.schedule.ownership import insitu_owners, interleaved_paths
 from vastray.schedule.soa import SoA, join_bound
 from vastray.schedule.spec_insitu import InSituSchedule
 
@@ -37,7 +37,7 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     keeps the node's preloader (its domains stay loaded) from one frame to the next."""
     setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
-    owner = zorder_owners(lo, hi, size)
+    owner = insitu_owners(lo, hi, [d.n_triangles for d in store.domains], size)
     local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
     own_state = state is None
     state = NodeState() if state is None else state

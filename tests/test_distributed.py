@@ -118,6 +118,62 @@ def test_zorder_ownership_is_balanced_and_compact():
         assert np.all(block.max(axis=0) - block.min(axis=0) == 1)
 
 
+def test_weighted_zorder_runs_hold_equal_weight_and_stay_contiguous():
+    from vastray.schedule.ownership import zorder_owners
+
+    lo = np.stack(np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    rank_along = zorder_owners(lo, lo + 1, len(lo))  # each domain's place on the curve
+    weights = np.ones(len(lo), np.int64)
+    weights[rank_along < 8] = 7  # the first 8 domains of the curve weigh 7 times the others
+    owner = zorder_owners(lo, lo + 1, 8, weights)
+    held = np.bincount(owner, weights=weights, minlength=8)
+    assert held.max() - held.min() <= weights.max()  # equal as whole domains allow
+    assert np.bincount(owner, minlength=8)[0] < 8  # the heavy run is split over more nodes
+    along = owner[np.argsort(rank_along)]
+    assert np.all(np.diff(along) >= 0)  # runs of the curve, in rank order
+    # equal weights give the runs of equal counts; the weights are integers, so every node
+    # computes the same owners
+    assert np.array_equal(zorder_owners(lo, lo + 1, 8, np.full(len(lo), 5)),
+                          zorder_owners(lo, lo + 1, 8))
+    with pytest.raises(ValueError, match="non-negative"):
+        zorder_owners(lo, lo + 1, 8, -weights)
+
+
+def test_insitu_owners_balance_triangles_and_may_leave_a_node_none():
+    from vastray.schedule.ownership import insitu_owners
+
+    lo = np.stack(np.meshgrid(*[np.arange(2.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    triangles = np.array([1000, 0, 0, 0, 0, 0, 0, 10])  # one domain holds the data
+    owner = insitu_owners(lo, lo + 1, triangles, 4)
+    held = np.bincount(owner, weights=triangles, minlength=4)
+    assert held.max() == 1000 and np.count_nonzero(owner == owner[0]) <= 2
+    assert len(set(owner.tolist())) < 4  # the heavy domain spans the shares of several nodes
+    # a store of empty domains is cut by count
+    assert np.bincount(insitu_owners(lo, lo + 1, np.zeros(8, int), 4)).tolist() == [2] * 4
+
+
+@pytest.mark.slow
+def test_spec_insitu_with_a_node_that_owns_no_domain_gives_the_reference(tmp_path):
+    """Runs of equal triangles leave a node nothing to own where one domain outweighs its
+    share; that node still makes its camera rays and holds paths, and the image is the
+    reference's."""
+    from vastray.schedule.ownership import insitu_owners
+
+    store = write_store(tmp_path / "g3", bumpy_scene(), grid=(3, 3, 3))
+    (tmp_path / "scene.toml").write_text(SCENE_TOML)
+    nodes = 7
+    owner = insitu_owners(*store.domain_boxes(), [d.n_triangles for d in store.domains], nodes)
+    assert len(set(owner.tolist())) < nodes  # the premise: some node owns nothing
+    st = _reference_settings("pt")
+    reference = render(store, load_scene_config(tmp_path / "scene.toml"), st, progress=False)
+    result = render_distributed(store.path, tmp_path / "scene.toml", st, nodes,
+                                options=JobOptions(scheduler="spec-insitu", threads=1),
+                                timeout=120)
+    np.testing.assert_allclose(result.film.image(), reference.film.image(), rtol=1e-6,
+                               atol=1e-6)
+    np.testing.assert_array_equal(result.film.count, reference.film.count)
+
+
 def test_big_outboxes_travel_in_bounded_batches(scene):
     # With a tiny batch bound, the same render needs many more batches and still matches.
     store, toml = scene

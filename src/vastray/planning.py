@@ -344,11 +344,13 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
         if not request.listen:  # the processes it bounds run here
             check_limit_fits_machine(request.memory_limit)
         if spec(scheduler).runtime is Runtime.IN_SITU:  # no cache to bound: every node's own domains must fit
-            from vastray.schedule.ownership import zorder_owners
+            from vastray.schedule.ownership import insitu_owners
 
             nodes = request.nodes or 1
-            check_owned_fit(request.memory_limit, process(cache), footprints,
-                            zorder_owners(*store.domain_boxes(), nodes), nodes, building)
+            owners = insitu_owners(*store.domain_boxes(),
+                                   [d.n_triangles for d in store.domains], nodes)
+            check_owned_fit(request.memory_limit, process(cache), footprints, owners, nodes,
+                            building)
         else:
             fitting = cache_within(request.memory_limit, process(cache), footprints,
                                    request.width, request.height, building)

@@ -28,7 +28,8 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
   ships what that produced; messages arrive after their network time; the frame ends with
   the termination detection's two waves over the tree.
 - ``spec-insitu`` (SpRay in situ): per tile, one iteration per bounce; a ray's copies go to
-  the owners of every domain its line crosses (z-order groups), each node traces its copies,
+  the owners of every domain its line crosses (z-order runs of equal triangles,
+  ``ownership.insitu_owners``), each node traces its copies,
   then the t-buffer and o-buffer all-reduction resolves the iteration (as the nodes': an
   8-byte key a path of the tile and a bit a shadow slot, every iteration; before session 50
   the replay charged two all-reductions of 8 bytes a live path, where the second is the
@@ -247,6 +248,7 @@ class Replay:
         self.activation = (fit_activation_costs(crossings, costs) if activations is None
                            else activations)
         self.lo, self.hi = lo, hi
+        self.triangles = np.asarray(triangles, np.int64)  # (D,) ``spec-insitu``'s owners
         #: the tile asked for (None: ``default_tile``'s), and the one of the run under way
         self.tile_asked = tile
         self.tile = DEFAULT_TILE if tile is None else tile
@@ -564,10 +566,10 @@ class Replay:
     def _insitu(self, size: int) -> tuple[_Ledger, float]:
         """``spec-insitu``: per tile, an iteration per bounce of speculative copies (see the
         module docstring)."""
-        from vastray.schedule.ownership import zorder_owners
+        from vastray.schedule.ownership import insitu_owners
 
         c = self.c
-        owner = zorder_owners(self.lo, self.hi, size).astype(np.int64)
+        owner = insitu_owners(self.lo, self.hi, self.triangles, size).astype(np.int64)
         ledger, caches = _Ledger(size), [_Lru(self.n_domains) for _ in range(size)]
         clock = 0.0
         copies = self.copies
