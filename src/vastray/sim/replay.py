@@ -756,10 +756,15 @@ class Replay:
         self._queue_copies(queues, segs)
         seconds = 0.0
         first, child = self.children
+        visited = np.zeros(self.n_domains, bool)  # this round's domains so far
         while True:
-            domain = queues.fullest(lru.mask)
+            domain = queues.next_in_round(lru.mask, visited)
             if domain is None:
-                return seconds
+                if not queues.parts:
+                    return seconds
+                visited[:] = False  # a new round
+                continue
+            visited[domain] = True
             batch = queues.pop(domain)
             batch = batch[~done[batch]]
             if not len(batch):
@@ -786,10 +791,14 @@ class Replay:
         return out
 
     def _queue_copies(self, queues: _Queues, segs: np.ndarray) -> None:
+        """Queue a copy of each of ``segs`` into every domain its line crosses, each weighing
+        SpRay's traversal score M - j in its domain, j its place along the line (M = D)."""
         c = self.c
         counts = self.copies[segs]
         rows = ranges(c.crossed_first[segs], counts)
-        queues.push(c.crossed_domain[rows].astype(np.int64), np.repeat(segs, counts))
+        place = rows - np.repeat(c.crossed_first[segs], counts)
+        queues.push(c.crossed_domain[rows].astype(np.int64), np.repeat(segs, counts),
+                    self.n_domains - place)
 
     def _async(self, size: int, cache: int) -> tuple[_Ledger, float]:
         """``async`` (Galaxy): per-node event simulation, no rounds (see the module
@@ -888,13 +897,20 @@ class _Queues:
 
     def __init__(self, n_domains: int):
         self.counts = np.zeros(n_domains, np.int64)
+        #: (D,) SpRay's front-to-back traversal score of the rays waiting (``push``'s weights)
+        self.score = np.zeros(n_domains, np.int64)
         self.parts: dict[int, list[np.ndarray]] = {}
         self.total = 0
 
-    def push(self, domains: np.ndarray, tokens: np.ndarray) -> None:
+    def push(self, domains: np.ndarray, tokens: np.ndarray,
+             weights: np.ndarray | None = None) -> None:
+        """Queue (n,) ``tokens`` into (n,) ``domains``; ``weights`` (n,) int: each one's
+        share of its domain's ``score``."""
         n = len(tokens)
         if not n:
             return
+        if weights is not None:
+            np.add.at(self.score, domains, weights)
         if n == 1 or (domains[0] == domains).all():
             d = int(domains[0])
             self.parts.setdefault(d, []).append(tokens)
@@ -916,7 +932,22 @@ class _Queues:
         parts = self.parts.pop(domain)
         self.total -= int(self.counts[domain])
         self.counts[domain] = 0
+        self.score[domain] = 0
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def next_in_round(self, cached: np.ndarray, visited: np.ndarray) -> int | None:
+        """``spec-ooc``'s next domain of a round (``SpeculativeSchedule.next_domain``, every
+        domain once a round): among those with rays not ``visited`` ((D,) bool) this round,
+        a cached one ((D,) bool ``cached``) first, then the highest ``score``, the lowest id
+        on ties; None when none is left this round."""
+        if not self.parts:
+            return None
+        waiting = (self.counts > 0) & ~visited
+        if not waiting.any():
+            return None
+        here = waiting & cached
+        pool = here if here.any() else waiting
+        return int(np.argmax(np.where(pool, self.score, -1)))
 
     def fullest(self, cached: np.ndarray) -> int | None:
         """The fullest domain (the lowest id on ties), a cached one ((D,) bool ``cached``)
