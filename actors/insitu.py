@@ -26,7 +26,7 @@ from vastray.render.integrators import PathResult
 from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.ownership import insitu_owners, interleaved_paths
 from vastray.schedule.soa import SoA, join_bound
-from vastray.schedule.spec_insitu import InSituSchedule
+from vastray.schedule.spec_insitu import MISS_KEY, InSituSchedule
 
 
 async def render_spec_insitu(management, tree, options: JobOptions, rank: int, size: int,
@@ -51,7 +51,7 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     total = setup.total_paths
     tile = max(1, min(options.max_samples_in_flight or total, total))
     stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
-             "intersection_cache_hits": 0, "iterations": 0}
+             "intersection_cache_hits": 0, "iterations": 0, "tbuffer_paths": 0}
     runner = _InSitu(management, tree, rank, size, owner, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats, state.traced,
                      state.decided)
@@ -89,20 +89,46 @@ class _InSitu:
         schedule = InSituSchedule(ctx, camera, mine, self.owner, self.rank, self.bvhs,
                                   self.geometry, self.color_source, self.scalar_range,
                                   self.stats)
+        active = np.ones(schedule.n_paths, bool)  # paths the buffers cover this iteration
         for depth in range(schedule.iterations()):
             self.stats["iterations"] += 1
             rad_in, shadow_in = await self._exchange(schedule, tile, depth)
             cpu = cpu_time()
             keys, obuf = schedule.trace_locally(rad_in, shadow_in)
             await self.traced(*schedule.take_queries(), cpu_time() - cpu)
-            # All-reduce: t-buffer MIN, o-buffer OR.
-            reduced = await self.tree.allreduce(
-                {"t": keys, "o": np.packbits(obuf, axis=None)}, {"t": "min", "o": "or"})
+            # All-reduce: t-buffer MIN, o-buffer OR, over the active paths only
+            global_keys, occluded = await self._reduce_buffers(keys, obuf, active)
             cpu = cpu_time()
-            occluded = np.unpackbits(reduced["o"], count=obuf.size).reshape(obuf.shape) > 0
-            schedule.resolve(reduced["t"], occluded)
+            schedule.resolve(global_keys, occluded)
+            # a path has rays next iteration only if it hit something in this one: every node
+            # holds the MIN, so every node drops the same paths from the next buffers
+            active = global_keys != MISS_KEY
             await self.decided(cpu_time() - cpu)
         return schedule.result
+
+    async def _reduce_buffers(self, keys: np.ndarray, obuf: np.ndarray, active: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray]:
+        """The t-buffer's MIN and the o-buffer's OR over the nodes, for the ``active`` paths.
+
+        ``keys`` (n,) uint64 and ``obuf`` (n, slots) bool are this node's, ``active`` (n,)
+        bool the same on every node: the paths whose last iteration found a hit somewhere.
+        Any other path has no ray in this iteration on any node, so its key is the miss and
+        its bits are clear everywhere, and leaving it out of the reduction changes nothing
+        (Listing 5 reduces the whole buffers; once most paths have left the data, as in a
+        frame mostly background or deep bounces, that is most of the bytes). Returns (n,)
+        keys and (n, slots) bits, the inactive paths' the miss and clear."""
+        rows = np.flatnonzero(active)
+        self.stats["tbuffer_paths"] += len(rows)
+        part = obuf[rows]
+        reduced = await self.tree.allreduce(
+            {"t": keys[rows], "o": np.packbits(part, axis=None)}, {"t": "min", "o": "or"})
+        cpu = cpu_time()
+        global_keys = np.full(len(keys), MISS_KEY, np.uint64)
+        global_keys[rows] = reduced["t"]
+        occluded = np.zeros(obuf.shape, bool)
+        occluded[rows] = np.unpackbits(reduced["o"], count=part.size).reshape(part.shape) > 0
+        await self.decided(cpu_time() - cpu)
+        return global_keys, occluded
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
         """Send the schedule's speculative copies to the owners of their domains (to each peer,

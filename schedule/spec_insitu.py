@@ -37,6 +37,10 @@ def hit_keys(t: np.ndarray, domain: np.ndarray) -> np.ndarray:
     return (bits << np.uint64(32)) | np.asarray(domain, np.int64).astype(np.uint32).astype(np.uint64)
 
 
+#: A path's t-buffer key where no node found a hit (``hit_keys`` of an infinite t).
+MISS_KEY = hit_keys(np.full(1, np.inf, np.float32), np.full(1, NO_DOMAIN))[0]
+
+
 def shadow_slots(path: np.ndarray) -> np.ndarray:
     """Position of each shadow ray among the rays of its path (rows of one path contiguous or
     not; order kept)."""
@@ -249,7 +253,7 @@ class InSituSchedule:
     def _record_camera(self, ctx, result, best, ray_of_path, won, global_keys, mine) -> None:
         """First hits and camera emission, once, by the node that owns the winning hit (or,
         for rays that hit nothing anywhere, by the node that made the camera ray)."""
-        miss = global_keys == hit_keys(np.full(1, np.inf, np.float32), np.full(1, NO_DOMAIN))
+        miss = global_keys == MISS_KEY
         winners = np.nonzero(won & np.isfinite(best.t))[0]
         if len(winners):
             result.record_camera_hits(ctx, _radiance_for(ray_of_path, winners),

@@ -174,6 +174,22 @@ def test_spec_insitu_with_a_node_that_owns_no_domain_gives_the_reference(tmp_pat
     np.testing.assert_array_equal(result.film.count, reference.film.count)
 
 
+def test_spec_insitu_reduces_only_the_paths_still_in_flight(scene, references):
+    """The t-buffer and o-buffer cover every path of the tile in the first iteration and,
+    after it, only the paths whose last iteration hit something (the others have no ray on
+    any node): fewer than every path every iteration, the image still the reference's."""
+    store, toml = scene
+    st = _reference_settings("pt")
+    result = render_distributed(store.path, toml, st, 2,
+                                options=JobOptions(scheduler="spec-insitu"), timeout=60)
+    np.testing.assert_allclose(result.film.image(), references["pt"].image(), rtol=1e-6,
+                               atol=1e-6)
+    for report in result.counters["per_node"]:
+        counters = report["counters"]
+        covered, iterations = counters["tbuffer_paths"], counters["iterations"]
+        assert st.paths < covered < iterations * st.paths, (covered, iterations)
+
+
 def test_big_outboxes_travel_in_bounded_batches(scene):
     # With a tiny batch bound, the same render needs many more batches and still matches.
     store, toml = scene

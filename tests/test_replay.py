@@ -202,6 +202,25 @@ def test_a_long_all_reduction_costs_its_halving_and_doubling(store, recorded):
     assert replay._allreduce_s(1024, t_buffer) < 0.4 * 10 * replay._step_s(t_buffer)
 
 
+def test_spec_insitu_reduces_the_paths_in_flight_not_the_whole_tile(store, recorded):
+    """As the nodes' ``_reduce_buffers``: the first iteration's buffers cover the tile, the
+    next ones the paths whose last iteration hit something; what the replay charges for
+    them lies between one whole-tile reduction an iteration and the first one alone."""
+    c = recorded[0]
+    replay = replay_of(store, c, tile=c.n_paths,
+                       network=Network(latency_s=1e-4, bandwidth=1e8))
+    result = replay.run("spec-insitu", 4)
+    iterations = result.counters["rounds"] // 2  # each: the counts, then the buffers
+    counts = replay._allreduce_s(4, 8.0 * 4)  # the batches' (4,) counts each iteration
+    shadow = c.kind != RADIANCE
+    slots = int(np.bincount(c.parent[shadow & (c.parent >= 0)]).max())
+    whole = replay._allreduce_s(4, c.n_paths * (8.0 + slots / 8.0))
+    reduced = result.breakdown["reduction"] - iterations * counts
+    assert iterations >= 3
+    assert whole + (iterations - 1) * replay._allreduce_s(4, 0.0) < reduced
+    assert reduced < 0.95 * iterations * whole
+
+
 def test_a_slower_network_costs_the_schedules_that_move_rays(store, recorded):
     fast = replay_of(store, recorded[0])
     slow = replay_of(store, recorded[0], network=Network(latency_s=5e-3, bandwidth=1e6))

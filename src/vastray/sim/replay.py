@@ -31,9 +31,10 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
   the owners of every domain its line crosses (z-order runs of equal triangles,
   ``ownership.insitu_owners``), each node traces its copies,
   then the t-buffer and o-buffer all-reduction resolves the iteration (as the nodes': an
-  8-byte key a path of the tile and a bit a shadow slot, every iteration; before session 50
-  the replay charged two all-reductions of 8 bytes a live path, where the second is the
-  batches' (P,) counts).
+  8-byte key a path and a bit a shadow slot, over the tile's paths in the first iteration
+  and those whose last iteration hit something after it; before session 50 the replay
+  charged two all-reductions of 8 bytes a live path, where the second is the batches' (P,)
+  counts).
 - ``image`` and ``spec-ooc`` (sort-first): each node traces its tiles alone through an LRU
   cache of ``cache`` domains, the fullest (cached first) domain next; ``spec-ooc`` queues a
   ray's copies in every domain its line crosses, commits its hit once the domains it needs
@@ -581,13 +582,13 @@ class Replay:
                                                                          0)], -1)
         segments = np.nonzero(c.parent < 0)[0]
         tiles = c.path[segments] // self.tile
-        # the t-buffer MIN and o-buffer OR cover every path of the tile at every iteration:
+        # the t-buffer MIN and o-buffer OR cover the paths in flight (``insitu._reduce_buffers``):
         # an 8-byte key a path and a bit a shadow slot (the most shadow rays a hit spawned)
         shadow = child[c.kind[child] != RADIANCE]
         slots = max(1, int(np.bincount(c.parent[shadow]).max(initial=0)) if len(shadow) else 1)
         for t in np.unique(tiles):
             live = segments[tiles == t]
-            buffers = len(live) * (8.0 + slots / 8.0)
+            active = len(live)  # paths the buffers cover: the tile's, then those that hit
             holder = (c.path[live] % self.tile) % size
             busy = np.full(size, self._camera_s(len(live) / size))
             # in situ: a node loads its own domains before its first trace
@@ -628,9 +629,10 @@ class Replay:
                 counts = self._allreduce_s(size, 8.0 * size)
                 ledger.reduction += counts
                 ledger.counters["rounds"] += 1
-                clock += counts + self._round_end(ledger, busy, buffers)
+                clock += counts + self._round_end(ledger, busy, active * (8.0 + slots / 8.0))
                 busy = np.zeros(size)
                 spawned = child[ranges(first[live], first[live + 1] - first[live])]
+                active = len(np.unique(c.path[spawned]))
                 parent_of = np.repeat(live, first[live + 1] - first[live])
                 holder = np.maximum(owner[np.maximum(last_domain[parent_of], 0)], 0)
                 keep = copies[spawned] > 0
