@@ -5,7 +5,8 @@ One frame of the 1,439-domain cosmology store is traced once for real (Embree, o
 ``record_crossings``: 2^18 paths with ``--quick``, 2^20 in full) and every scheduler's policy
 is replayed over its crossings on 1 to 1,024 virtual nodes, each node a core, caching a
 quarter of the domains (the temporal-coherence paper's ratio; a node never caches fewer than
-it owns), reading them at ``STORAGE_MB_S`` and talking over ``NETWORK``. Weak scaling keeps
+it owns, ``node_cache``), reading them at ``STORAGE_MB_S`` and talking over ``NETWORK``.
+Weak scaling keeps
 ``WEAK_PATHS_PER_NODE`` paths per node: an interleaved subset of the recording's paths below
 its size, the recording repeated above it (the same rays again, as more samples would).
 
@@ -218,9 +219,20 @@ def in_parallel(function, jobs: list, start_method: str):
         yield from pool.imap(function, jobs)
 
 
-def node_cache(n_domains: int, nodes: int) -> int:
-    """Domains a node caches: a quarter of the store, never fewer than it owns."""
-    return max(-(-n_domains // CACHE_SHARE), -(-n_domains // nodes))
+def node_cache(n_domains: int, nodes: int, scheduler: str) -> int:
+    """Domains a node of ``scheduler`` caches: a quarter of the store, and never fewer than
+    it owns (a domain-decomposition node on fewer than ``CACHE_SHARE`` nodes owns more).
+
+    A sort-first node owns none, so it caches a quarter on one node too: until session 51
+    the one-node run cached every domain (as the owners of a one-node domain decomposition
+    must), four times the memory of a sort-first node on more, which made T(1), the
+    speed-ups' and weak efficiencies' base, that of a larger machine."""
+    from vastray.schedule import registry
+
+    quarter = -(-n_domains // CACHE_SHARE)
+    if registry.find(scheduler).simulation is registry.Simulation.SORT_FIRST:
+        return quarter
+    return max(quarter, -(-n_domains // nodes))
 
 
 _CHECK_DOMAINS: dict = {}  # a check worker's built domains, by store path
@@ -321,7 +333,7 @@ def scaling_decisions(store, settings: RenderSettings) -> dict:
     key = str(store.path)
     if key not in _scaling_decisions:
         _scaling_decisions[key] = decisions_of(store, settings,
-                                               node_cache(len(store.domains), CACHE_SHARE),
+                                               node_cache(len(store.domains), CACHE_SHARE, "spec-ooc"),
                                                SCALING_DECISION_TILES)
     return _scaling_decisions[key]
 
@@ -336,10 +348,11 @@ def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dic
     print(f"\nstrong scaling by replay: {settings.paths:,} paths "
           f"({settings.width}x{settings.height}, {settings.spp} spp, {settings.integrator} "
           f"{settings.bounces} bounce), {len(store.domains)} domains, a node caching "
-          f"max(D/{CACHE_SHARE}, D/P) domains, storage {STORAGE_MB_S:.0f} MB/s, network "
+          f"D/{CACHE_SHARE} domains (a domain decomposition's node max(D/{CACHE_SHARE}, D/P): "
+          f"what it owns), storage {STORAGE_MB_S:.0f} MB/s, network "
           f"{NETWORK.bandwidth / 1e9:.2f} GB/s + {NETWORK.latency_s * 1e6:.0f} us:")
     times, breakdown = {}, {}
-    jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes))
+    jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes, scheduler))
             for scheduler in REPLAY_SCHEDULERS for nodes in node_counts]
     for (scheduler, nodes, _), result in zip(jobs, replayed(replay, jobs), strict=True):
         times.setdefault(scheduler, {})[nodes] = result.seconds
@@ -379,14 +392,24 @@ def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
     for nodes in node_counts:
         frame = weak_frame(base, nodes)
         replay = replay_of(store, frame, own, activations=fitted)
-        jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes))
+        jobs = [(scheduler, nodes, node_cache(len(store.domains), nodes, scheduler))
                 for scheduler in REPLAY_SCHEDULERS]
         for scheduler, result in zip(REPLAY_SCHEDULERS, replayed(replay, jobs), strict=True):
             times.setdefault(scheduler, {})[nodes] = result.seconds
             print(f"  {scheduler:11s} P={nodes:5d} ({frame.n_paths:,} paths): "
                   f"{result.seconds:9.4f} s virtual ({result.wall_s:.1f} s to replay)",
                   flush=True)
+        if nodes == 1:  # the base before session 51, printed beside the efficiencies
+            for scheduler in SORT_FIRST:
+                WHOLE_CACHE_T1[scheduler] = replay.run(scheduler, 1).seconds
     return times
+
+
+#: The replayed sort-first schedulers (``node_cache`` gives their one-node run a quarter of
+#: the domains), and their one-node weak-scaling time caching every domain, the base until
+#: session 51 (filled by ``weak``).
+SORT_FIRST = ("image", "spec-ooc")
+WHOLE_CACHE_T1: dict = {}
 
 
 def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
@@ -422,6 +445,11 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
         for scheduler, by in weak_times.items():
             print(f"| {scheduler} | {by[1]:.3f} | "
                   + " | ".join(f"{by[1] / by[p]:.2f}" for p in weak_shown) + " |")
+        last = max(weak_counts)
+        for scheduler, t1 in WHOLE_CACHE_T1.items():
+            print(f"  {scheduler}'s one node caching every domain (four times the memory of "
+                  f"the others, the base until session 51): T(1) {t1:.3f} s, efficiency at "
+                  f"{last} against it {t1 / weak_times[scheduler][last]:.2f}")
     for p in shown:
         print(f"speedup_{p}=" + ",".join(f"{s}:{by[1] / by[p]:.2f}"
                                          for s, by in strong_times.items()))

@@ -60,8 +60,8 @@ TILED = ("domain", "dynamic", "spec-insitu", "async")
 #: The sort-first schedulers.
 SORT_FIRST = ("image", "spec-ooc")
 #: Section 4's shares of the image a sort-first node renders: name -> (blocks a node,
-#: schedulers whose bands are cut by cost, label); the product's: ``image`` cut by cost,
-#: ``spec-ooc`` equal (``image_cost.CUT_BY_COST``).
+#: schedulers whose bands are cut by cost, label); the product's: both cut by cost
+#: (``image_cost.CUT_BY_COST``; ``spec-ooc``'s bands were of equal paths until session 51).
 SHARES = {"cost": (1, frozenset(SORT_FIRST), "a band cut by cost"),
           "equal": (1, frozenset(), "a band of equal paths"),
           "blocks": (4, frozenset(), "up to 4 blocks dealt round robin")}
@@ -94,7 +94,7 @@ def strong_by_reduction(store, costs: CostModel, quick: bool, counts) -> dict:
         replay = rs.replay_of(store, crossings, costs.warm().with_cores(None),
                               decisions=rs.scaling_decisions(store, settings),
                               reduction=reduction)
-        jobs = [(s, n, rs.node_cache(len(store.domains), n)) for s in REDUCING for n in counts]
+        jobs = [(s, n, rs.node_cache(len(store.domains), n, s)) for s in REDUCING for n in counts]
         for (scheduler, nodes, _), result in zip(jobs, rs.replayed(replay, jobs), strict=True):
             times.setdefault(reduction, {}).setdefault(scheduler, {})[nodes] = result.seconds
             print(f"  {reduction:9s} {scheduler:11s} P={nodes:5d}: {result.seconds:8.4f} s "
@@ -119,7 +119,7 @@ def dynamic_by_tiles(store, costs: CostModel, quick: bool, counts) -> dict:
             replay = rs.replay_of(store, crossings, costs.warm().with_cores(None),
                                   decisions=rs.scaling_decisions(store, settings),
                                   tile=JOB_TILE)
-            jobs = [("dynamic", n, rs.node_cache(len(store.domains), n)) for n in counts]
+            jobs = [("dynamic", n, rs.node_cache(len(store.domains), n, "dynamic")) for n in counts]
             for (_, nodes, _), result in zip(jobs, rs.replayed(replay, jobs), strict=True):
                 times.setdefault(tiles, {})[nodes] = (result.seconds, result.counters["rounds"])
                 print(f"  dynamic, {tiles} tile(s) in flight, P={nodes:5d}: "
@@ -149,7 +149,7 @@ def sort_first_by_share(store, costs: CostModel, quick: bool, counts) -> dict:
                                        decisions=rs.scaling_decisions(store, settings))
                           if kind == "strong" else
                           rs.replay_of(store, frame, own, activations=fitted))
-                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes))
+                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes, s))
                         for s in SORT_FIRST]
                 for scheduler, result in zip(SORT_FIRST, rs.replayed(replay, jobs),
                                              strict=True):
@@ -177,7 +177,8 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
                     continue
                 replay = rs.replay_of(store, frame, own, activations=fitted,
                                       tile=tile(nodes), fill_busy=fill_busy)
-                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes)) for s in schedulers]
+                jobs = [(s, nodes, rs.node_cache(len(store.domains), nodes, s))
+                        for s in schedulers]
                 key = name if fill_busy else f"paper {name}"
                 for scheduler, result in zip(schedulers, rs.replayed(replay, jobs), strict=True):
                     times.setdefault(key, {}).setdefault(scheduler, {})[nodes] = result.seconds
