@@ -362,6 +362,9 @@ def strong(store, costs: CostModel, quick: bool, node_counts) -> tuple[dict, dic
               "synchronisations)", flush=True)
         if nodes == max(node_counts):
             breakdown[scheduler] = result.breakdown
+    if 1 in node_counts:  # the base before session 51, printed beside the speed-ups
+        for scheduler in SORT_FIRST:
+            WHOLE_CACHE_T1["strong"][scheduler] = replay.run(scheduler, 1).seconds
     return times, breakdown
 
 
@@ -399,17 +402,21 @@ def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
             print(f"  {scheduler:11s} P={nodes:5d} ({frame.n_paths:,} paths): "
                   f"{result.seconds:9.4f} s virtual ({result.wall_s:.1f} s to replay)",
                   flush=True)
+            if nodes == max(node_counts):
+                WEAK_BUSIEST[scheduler] = result.busiest
         if nodes == 1:  # the base before session 51, printed beside the efficiencies
             for scheduler in SORT_FIRST:
-                WHOLE_CACHE_T1[scheduler] = replay.run(scheduler, 1).seconds
+                WHOLE_CACHE_T1["weak"][scheduler] = replay.run(scheduler, 1).seconds
     return times
 
 
 #: The replayed sort-first schedulers (``node_cache`` gives their one-node run a quarter of
-#: the domains), and their one-node weak-scaling time caching every domain, the base until
-#: session 51 (filled by ``weak``).
+#: the domains), and their one-node times caching every domain, the base until session 51,
+#: by scaling ("strong", "weak"; filled by ``strong`` and ``weak``).
 SORT_FIRST = ("image", "spec-ooc")
-WHOLE_CACHE_T1: dict = {}
+WHOLE_CACHE_T1: dict = {"strong": {}, "weak": {}}
+#: Each scheduler's busiest node at the weak scaling's largest P (``ReplayResult.busiest``).
+WEAK_BUSIEST: dict = {}
 
 
 def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
@@ -422,6 +429,11 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
     for scheduler, by in strong_times.items():
         print(f"| {scheduler} | {by[1]:.3f} | "
               + " | ".join(f"{by[1] / by[p]:.2f}" for p in shown) + " |")
+    top = max(node_counts)
+    for scheduler, t1 in WHOLE_CACHE_T1["strong"].items():
+        print(f"  {scheduler}'s one node caching every domain (four times the memory of the "
+              f"others, the base until session 51): T(1) {t1:.3f} s, speed-up at {top} "
+              f"against it {t1 / strong_times[scheduler][top]:.2f}")
     best = min(by[1] for by in strong_times.values())
     print("\nspeed-up over the fastest scheduler on one node (T_best(1) / T(P): a scheduler "
           "slow on one node does not flatter itself):")
@@ -446,7 +458,16 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
             print(f"| {scheduler} | {by[1]:.3f} | "
                   + " | ".join(f"{by[1] / by[p]:.2f}" for p in weak_shown) + " |")
         last = max(weak_counts)
-        for scheduler, t1 in WHOLE_CACHE_T1.items():
+        if WEAK_BUSIEST:
+            print(f"\nthe busiest node at P={last} of the weak scaling (s; the frame is its "
+                  "busy time and its waits):")
+            print("| scheduler | frame | rank | trace | load | messages | reduction | own code |")
+            print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+            for scheduler, b in WEAK_BUSIEST.items():
+                print(f"| {scheduler} | {weak_times[scheduler][last]:.4f} | {b['rank']} | "
+                      + " | ".join(f"{b[k]:.4f}" for k in ("trace", "load", "messages",
+                                                          "reduction", "own")) + " |")
+        for scheduler, t1 in WHOLE_CACHE_T1["weak"].items():
             print(f"  {scheduler}'s one node caching every domain (four times the memory of "
                   f"the others, the base until session 51): T(1) {t1:.3f} s, efficiency at "
                   f"{last} against it {t1 / weak_times[scheduler][last]:.2f}")

@@ -354,6 +354,17 @@ def test_a_spec_ooc_round_takes_each_domain_once_cached_first_then_by_score():
     assert queues.next_in_round(cached, visited) == 3
 
 
+@pytest.mark.parametrize("scheduler", REPLAY_SCHEDULERS)
+def test_the_busiest_node_is_the_one_whose_busy_time_is_the_most(replay, scheduler):
+    result = replay.run(scheduler, 4)
+    kinds = ("trace", "load", "messages", "reduction", "own")
+    busiest = result.busiest
+    assert 0 <= busiest["rank"] < 4
+    mean_busy = sum(result.breakdown[k] for k in kinds)
+    assert sum(busiest[k] for k in kinds) >= mean_busy - 1e-12
+    assert sum(busiest[k] for k in kinds) <= result.seconds + 1e-9
+
+
 def test_the_replay_refuses_what_it_does_not_model(replay):
     with pytest.raises(ValueError, match="temporal"):
         replay.run("temporal", 2)

@@ -119,6 +119,8 @@ class ReplayResult:
     counters : ``activations``, ``loads``, ``messages``, ``bytes``, ``rounds`` (global
         synchronisations), ``traced`` (ray-domain tests, speculative copies included).
     wall_s : real seconds the replay took.
+    busiest : the busiest node's seconds by the same kinds as ``breakdown`` (``wait`` left
+        out) and its ``rank``: where the frame's critical path spends its time.
     """
 
     scheduler: str
@@ -127,12 +129,14 @@ class ReplayResult:
     breakdown: dict
     counters: dict
     wall_s: float = 0.0
+    busiest: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return {"scheduler": self.scheduler, "nodes": self.nodes,
                 "seconds": round(self.seconds, 6),
                 "breakdown": {k: round(v, 6) for k, v in self.breakdown.items()},
-                "counters": self.counters, "wall_s": round(self.wall_s, 3)}
+                "counters": self.counters, "wall_s": round(self.wall_s, 3),
+                "busiest": self.busiest}
 
 
 class _Lru:
@@ -193,8 +197,11 @@ class _Ledger:
                      "messages": float(self.messages.mean()),
                      "reduction": float(self.reduction.mean()), "own": float(self.own.mean()),
                      "wait": float(max(seconds - busy.mean(), 0.0))}
+        rank = int(np.argmax(busy))
+        busiest = {"rank": rank, **{name: float(getattr(self, name)[rank]) for name in
+                                    ("trace", "load", "messages", "reduction", "own")}}
         return ReplayResult(scheduler, self.size, seconds, breakdown, dict(self.counters),
-                            time.perf_counter() - start)
+                            time.perf_counter() - start, busiest)
 
 
 #: The all-reductions' patterns the replay charges: message steps on the critical path.
