@@ -26,7 +26,7 @@ from vastray.render.integrators import PathResult
 from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.ownership import insitu_owners, interleaved_paths
 from vastray.schedule.soa import SoA, join_bound
-from vastray.schedule.spec_insitu import MISS_KEY, InSituSchedule
+from vastray.schedule.spec_insitu import COPY_FIELDS, MISS_KEY, InSituSchedule
 
 
 async def render_spec_insitu(management, tree, options: JobOptions, rank: int, size: int,
@@ -152,11 +152,12 @@ class _InSitu:
                 dest = self.owner[dom]
                 order = np.argsort(dest, kind="stable")
                 nodes, first = np.unique(dest[order], return_index=True)
+                fields = COPY_FIELDS[name]
                 for node, rows in zip(nodes, np.split(order, first[1:]), strict=True):
                     if node == self.rank:
-                        incoming[name].append((dom[rows], copies.take(rows)))
+                        incoming[name].append((dom[rows], copies.take(rows, fields)))
                     else:
-                        sends.append((int(node), name, dom[rows], copies.take(rows)))
+                        sends.append((int(node), name, dom[rows], copies.take(rows, fields)))
         await self._charge_bookkeeping()
         for node, name, dom, copies in sends:
             outgoing[node] += 1

@@ -52,6 +52,14 @@ def shadow_slots(path: np.ndarray) -> np.ndarray:
     return slot
 
 
+#: The fields a copy carries, by queue: a radiance copy is traced and, where its hit is the
+#: receiver's closest, shaded (``RADIANCE_FIELDS``); a shadow copy is tested and its o-buffer
+#: bit set (the ray batches' shadow fields, which ``protocol`` requires, and its slot). A
+#: radiance ray's cached candidate hit stays with its holder: sent along until session 51,
+#: it was about half of a radiance copy's bytes.
+COPY_FIELDS = {"radiance": RADIANCE_FIELDS, "shadow": (*SHADOW_FIELDS, "slot")}
+
+
 @dataclass(frozen=True)
 class Copies:
     """Rays queued speculatively into domains, without copying them yet: copy i is ray
@@ -61,9 +69,13 @@ class Copies:
     ray: np.ndarray  # (m,) int rows of ``rays``
     rays: SoA | None
 
-    def take(self, rows: np.ndarray) -> SoA:
-        """The copies ``rows`` as rays (one gather from the source rays)."""
-        return self.rays.take(self.ray[rows])
+    def take(self, rows: np.ndarray, fields: tuple[str, ...] | None = None) -> SoA:
+        """The copies ``rows`` as rays (one gather from the source rays), of ``fields``
+        only where given."""
+        index = self.ray[rows]
+        if fields is None:
+            return self.rays.take(index)
+        return SoA(**{f: self.rays[f][index] for f in fields})
 
 
 class InSituSchedule:

@@ -93,3 +93,19 @@ def test_a_node_that_wins_every_hit_it_found_keeps_their_children(node):
     schedule.resolve(keys, np.zeros_like(obuf))  # the MIN over one node: its own keys
     assert stats["wasted_rays"] == 0
     assert len(schedule.rays) > 0 and bool(schedule.rays["local_done"].all())
+
+
+def test_a_copy_carries_what_its_receiver_uses_not_the_holders_candidate(node):
+    from vastray.schedule.paths import RADIANCE_FIELDS
+    from vastray.schedule.spec_insitu import COPY_FIELDS
+
+    schedule = schedule_of(node, {})
+    radiance = schedule.speculative_copies()["radiance"]
+    rows = np.arange(len(radiance.domain))
+    sent = radiance.take(rows, COPY_FIELDS["radiance"])
+    whole = radiance.take(rows)
+    assert "cand_t" in whole.fields and not any(f.startswith("cand_") for f in sent.fields)
+    assert set(sent.fields) == set(RADIANCE_FIELDS)
+    for f in sent.fields:  # the same rows of the same rays
+        np.testing.assert_array_equal(sent[f], whole[f])
+    assert sent.nbytes() < 0.75 * whole.nbytes()
