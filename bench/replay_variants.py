@@ -60,8 +60,8 @@ TILED = ("domain", "dynamic", "spec-insitu", "async")
 #: The sort-first schedulers.
 SORT_FIRST = ("image", "spec-ooc")
 #: Section 4's shares of the image a sort-first node renders: name -> (blocks a node,
-#: schedulers whose bands are cut by cost, label); the product's: both cut by cost
-#: (``image_cost.CUT_BY_COST``; ``spec-ooc``'s bands were of equal paths until session 51).
+#: schedulers whose bands are cut by cost, label); the product's: ``image`` cut by cost,
+#: ``spec-ooc`` equal (``image_cost.CUT_BY_COST``).
 SHARES = {"cost": (1, frozenset(SORT_FIRST), "a band cut by cost"),
           "equal": (1, frozenset(), "a band of equal paths"),
           "blocks": (4, frozenset(), "up to 4 blocks dealt round robin")}

@@ -22,17 +22,17 @@ GRID = 64
 PER_DOMAIN = 4
 #: The schedulers whose bands are cut by this estimate (the others': equal paths). ``image``
 #: gains (replayed at 2^18 paths on 1,439 domains, session 49: speed-up at 64 / 1,024 nodes
-#: 7.33 / 18.85 against 5.93 / 15.75, weak efficiency 0.97 against 0.78). ``spec-ooc`` too
-#: since session 51, once the replay went round by round as its nodes do (it had activated a
-#: domain for every few rays that reached it, 5 times the real loop's activations, which made
-#: narrow bands over the data look dear): at 2^20 paths, a node caching a quarter of the
-#: domains, 4.14 / 2.96 / 2.09 s on 64 / 256 / 1,024 nodes against 4.93 / 3.70 / 2.54 s for
-#: equal paths (16 nodes: 7.78 against 7.38 s), weak efficiency at 64 / 1,024 nodes 1.05 /
-#: 1.03 against 0.85 / 0.83. On this 2-core machine real nodes do not tell them apart (rm
-#: 128³, 2 nodes: the busier node 1.76 / 1.84 s against 1.82 / 1.93 s; 4 nodes sharing the
-#: cores: 6.77 against 6.69 s, 398 against 367 loads): the gain is a core a node's.
-#: ``bench/replay_variants.py`` section 4 prints both for both.
-CUT_BY_COST = frozenset({"image", "spec-ooc"})
+#: 7.33 / 18.85 against 5.93 / 15.75, weak efficiency 0.97 against 0.78). ``spec-ooc`` keeps
+#: bands of equal paths: replayed round by round as its nodes go (session 51), the cut wins at
+#: 2^20 paths (4.14 / 2.96 / 2.09 s on 64 / 256 / 1,024 nodes against 4.93 / 3.70 / 2.54 s,
+#: weak efficiency at 1,024 nodes 1.03 against 0.83) but loses at 2^18 (speed-up at 64 nodes
+#: 4.78 against 5.46, weak efficiency 0.77 against 0.88, winning only at 1,024: 7.61 against
+#: 6.47): a narrow band over the data still loads and activates most of its domains, which a
+#: weight per path cannot say. Real nodes on this 2-core machine cannot tell them apart (rm
+#: 128³, 2 nodes: the busier node 1.76 / 1.84 s cut against 1.82 / 1.93 s; 4 nodes sharing
+#: the cores 6.77 against 6.69 s, 398 loads against 367). Equal bands hold the weak-scaling
+#: goal (0.80) at both sizes. ``bench/replay_variants.py`` section 4 prints both for both.
+CUT_BY_COST = frozenset({"image"})
 
 
 def pixel_weights(camera, geometry, width: int, height: int) -> np.ndarray:
