@@ -296,12 +296,14 @@ def test_the_cli_survives_a_lost_node_started_elsewhere(scene, tmp_path):
 
 
 def test_a_node_done_with_its_share_is_not_taken_for_lost(scene):
-    # Sort-first with one tile: node 1 has no share, sends its empty film and `done` at once,
-    # then waits seconds for node 0's stop. It must go on heartbeating meanwhile: a node that
-    # fell silent once done was declared lost after heartbeat_timeout (and, with a real loss
-    # elsewhere, blamed in its place, since it had been silent longest).
+    # Sort-first, one tile a node: the node done first sends its film and `done`, then waits
+    # for the other's stop. It must go on heartbeating meanwhile: a node that fell silent once
+    # done was declared lost after heartbeat_timeout (and, with a real loss elsewhere, blamed
+    # in its place, since it had been silent longest). (Until session 42 node 1 had no share
+    # of a one-tile frame; now each node takes a band, so the frame must be long enough on its
+    # own: 128 spp took 2.7 s in one CI run, under the 3 s the premise needs.)
     store, toml = scene
-    st = settings(width=64, height=48, spp=128, integrator="pt")
+    st = settings(width=64, height=48, spp=256, integrator="pt")
     paths = st.width * st.height * st.spp
     start = time.monotonic()
     result = render_distributed(store.path, toml, st, 2,

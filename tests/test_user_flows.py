@@ -339,11 +339,13 @@ def test_per_node_keys_admit_their_nodes_and_a_revoked_one_is_refused_and_logged
         time.sleep(3.0)  # the coordinator listens, its allow-list read with beta on it
         (tmp_path / "keys" / "public" / "beta.key").unlink()  # beta is shut out, at once
         beta = node("--key-name", "beta")
-        _, beta_log = beta.communicate(timeout=30)
+        # the node's own --timeout (30 s) decides; this wait only outlasts it (a refused
+        # handshake reached a node on a busy CI machine after more than 30 s of its start-up)
+        _, beta_log = beta.communicate(timeout=60)
         assert beta.returncode != 0 and b"authentication" in beta_log, beta_log
         # the same host without --key-name: its host name's key, which it has not
         anonymous = node()
-        _, anonymous_log = anonymous.communicate(timeout=30)
+        _, anonymous_log = anonymous.communicate(timeout=60)
         assert anonymous.returncode == 2 and b"no key for node" in anonymous_log, anonymous_log
         alpha = node("--key-name", "alpha")
         _, err = coordinator.communicate(timeout=60)
