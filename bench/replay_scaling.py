@@ -219,6 +219,17 @@ def in_parallel(function, jobs: list, start_method: str):
         yield from pool.imap(function, jobs)
 
 
+def _sort_first(scheduler: str) -> bool:
+    from vastray.schedule import registry
+
+    return registry.find(scheduler).simulation is registry.Simulation.SORT_FIRST
+
+
+#: The replayed sort-first schedulers (``node_cache`` gives their one-node run a quarter of
+#: the domains, as on more nodes).
+SORT_FIRST = tuple(s for s in REPLAY_SCHEDULERS if _sort_first(s))
+
+
 def node_cache(n_domains: int, nodes: int, scheduler: str) -> int:
     """Domains a node of ``scheduler`` caches: a quarter of the store, and never fewer than
     it owns (a domain-decomposition node on fewer than ``CACHE_SHARE`` nodes owns more).
@@ -227,10 +238,8 @@ def node_cache(n_domains: int, nodes: int, scheduler: str) -> int:
     the one-node run cached every domain (as the owners of a one-node domain decomposition
     must), four times the memory of a sort-first node on more, which made T(1), the
     speed-ups' and weak efficiencies' base, that of a larger machine."""
-    from vastray.schedule import registry
-
     quarter = -(-n_domains // CACHE_SHARE)
-    if registry.find(scheduler).simulation is registry.Simulation.SORT_FIRST:
+    if _sort_first(scheduler):
         return quarter
     return max(quarter, -(-n_domains // nodes))
 
@@ -410,10 +419,8 @@ def weak(store, costs: CostModel, quick: bool, node_counts) -> dict:
     return times
 
 
-#: The replayed sort-first schedulers (``node_cache`` gives their one-node run a quarter of
-#: the domains), and their one-node times caching every domain, the base until session 51,
+#: The sort-first schedulers' one-node times caching every domain, the base until session 51,
 #: by scaling ("strong", "weak"; filled by ``strong`` and ``weak``).
-SORT_FIRST = ("image", "spec-ooc")
 WHOLE_CACHE_T1: dict = {"strong": {}, "weak": {}}
 #: Each scheduler's busiest node at the weak scaling's largest P (``ReplayResult.busiest``).
 WEAK_BUSIEST: dict = {}
@@ -441,7 +448,6 @@ def scaling_tables(strong_times: dict, breakdown: dict, weak_times: dict | None,
     print("| --- |" + " --- |" * len(shown))
     for scheduler, by in strong_times.items():
         print(f"| {scheduler} | " + " | ".join(f"{best / by[p]:.2f}" for p in shown) + " |")
-    top = max(node_counts)
     print(f"\nwhere the time goes at P={top} (mean per node, s):")
     print("| scheduler | total | trace | load | messages | reduction | own code | wait |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")

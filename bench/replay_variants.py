@@ -58,7 +58,7 @@ REDUCING = ("domain", "dynamic", "spec-insitu")
 #: Domain-decomposition schedulers the tile applies to.
 TILED = ("domain", "dynamic", "spec-insitu", "async")
 #: The sort-first schedulers.
-SORT_FIRST = ("image", "spec-ooc")
+SORT_FIRST = rs.SORT_FIRST
 #: Section 4's shares of the image a sort-first node renders: name -> (blocks a node,
 #: schedulers whose bands are cut by cost, label); the product's: ``image`` cut by cost,
 #: ``spec-ooc`` equal (``image_cost.CUT_BY_COST``).
