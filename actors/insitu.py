@@ -2,8 +2,8 @@
 loads the domains it owns (runs of the z-order curve, as in the paper, here of equal
 triangles: ``ownership.insitu_owners``) and keeps them; per tile, it carries out
 ``schedule.spec_insitu.InSituSchedule`` one bounce per iteration: it sends the speculative
-copies of its rays to the owners of the domains they cross (one radiance and one shadow batch
-per peer), takes the copies for its own domains, and joins the two all-reductions over the
+copies of its rays to the owners of the domains they cross (over two hops of a grid of
+nodes, ``schedule.relay``), takes the copies for its own domains, and joins the two all-reductions over the
 tree of nodes (t-buffer MIN, o-buffer OR) whose results resolve the iteration.
 """
 
@@ -25,6 +25,7 @@ from vastray.render.film import Film
 from vastray.render.integrators import PathResult
 from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.ownership import insitu_owners, interleaved_paths
+from vastray.schedule.relay import relay_of, routes
 from vastray.schedule.soa import SoA, join_bound
 from vastray.schedule.spec_insitu import COPY_FIELDS, MISS_KEY, InSituSchedule
 
@@ -51,7 +52,8 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     total = setup.total_paths
     tile = max(1, min(options.max_samples_in_flight or total, total))
     stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
-             "intersection_cache_hits": 0, "iterations": 0, "tbuffer_paths": 0}
+             "intersection_cache_hits": 0, "iterations": 0, "tbuffer_paths": 0,
+             "rays_relayed": 0}
     runner = _InSitu(management, tree, rank, size, owner, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats, state.traced,
                      state.decided)
@@ -131,62 +133,142 @@ class _InSitu:
         return global_keys, occluded
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
-        """Send the schedule's speculative copies to the owners of their domains (to each peer,
-        one batch per queue it has copies in); returns the copies for this node's domains,
-        its own and the peers'.
+        """Send the schedule's speculative copies to the owners of their domains over two
+        hops (``schedule.relay``: to the node of this node's row in the owner's column, which
+        forwards them down its column), relay the copies that come here for others; returns
+        the copies for this node's domains, its own and the peers'.
 
-        How many batches come here is summed over the nodes by the tree (one (P,) SUM):
-        a batch per peer and queue, empty or not, made P^2 messages an iteration.
+        Every pair of the routes carries one batch per queue and hop, empty or not, so each
+        node knows how many batches to wait for without asking the others: 2 (w - 1) pairs
+        of a node on a grid of w = ceil(sqrt P) columns (sent straight, a batch per peer and
+        queue made P^2 messages an iteration, and only batches where rays went needed their
+        counts summed over the tree first).
         """
         incoming = {"radiance": [], "shadow": []}
-        outgoing = np.zeros(self.size, np.int64)  # batches sent to each node
+        relayed = {"radiance": [], "shadow": []}  # (to, domains, copies) this node forwards
         cpu = cpu_time()
         speculative = schedule.speculative_copies()
         await self.decided(cpu_time() - cpu)
-        with self._bookkeeping():  # cutting the copies into batches, one per peer and queue
-            sends = []
+        with self._bookkeeping():  # the copies cut by where they go first
+            first_hop = {}
             for name, copies in speculative.items():
                 dom = copies.domain
                 if not len(dom):
                     continue
-                dest = self.owner[dom]
-                order = np.argsort(dest, kind="stable")
-                nodes, first = np.unique(dest[order], return_index=True)
+                to = self.owner[dom]
+                via = relay_of(self.size, self.rank, to)
                 fields = COPY_FIELDS[name]
+                mine = np.flatnonzero(to == self.rank)
+                if len(mine):
+                    incoming[name].append((dom[mine], copies.take(mine, fields)))
+                forward = np.flatnonzero((via == self.rank) & (to != self.rank))
+                if len(forward):
+                    relayed[name].append((to[forward], dom[forward],
+                                          copies.take(forward, fields)))
+                away = np.flatnonzero(via != self.rank)
+                if not len(away):
+                    continue
+                order = away[np.argsort(via[away], kind="stable")]
+                nodes, first = np.unique(via[order], return_index=True)
                 for node, rows in zip(nodes, np.split(order, first[1:]), strict=True):
-                    if node == self.rank:
-                        incoming[name].append((dom[rows], copies.take(rows, fields)))
-                    else:
-                        sends.append((int(node), name, dom[rows], copies.take(rows, fields)))
+                    batch = copies.take(rows, fields)
+                    batch["to"] = to[rows]
+                    first_hop[int(node), name] = (dom[rows], batch)
         await self._charge_bookkeeping()
-        for node, name, dom, copies in sends:
-            outgoing[node] += 1
-            await self.post.send(node, name, {"tile": tile, "depth": depth}, dom, copies)
-        expect = (await self.tree.allreduce({"n": outgoing}, {"n": "sum"}))["n"][self.rank]
-        n_paths, slots, is_local = schedule.n_paths, schedule.slots, schedule.is_local
-        received = 0
-        while received < expect:
+        first_hops, second_hops = routes(self.size)
+        await self._send_hop(first_hops.to(self.rank), first_hop, tile, depth, 1)
+        expect = {1: 2 * first_hops.count_from(self.rank),
+                  2: 2 * second_hops.count_from(self.rank)}
+        received = {1: 0, 2: 0}
+        while received[1] < expect[1] or received[2] < expect[2]:
+            if received[1] == expect[1] and relayed is not None:
+                await self._send_hop(second_hops.to(self.rank), self._second_hop(relayed),
+                                     tile, depth, 2)
+                relayed = None
+                continue
             message = await self.management.receive(protocol.RAYS, "ray batch")
-            try:  # indices into this tile's paths and shadow slots
-                protocol.check_ray_index(message, "path", n_paths)
-                protocol.check_ray_index(message, "slot", slots)
-                domain = message.arrays.get("domain")
-                if domain is not None and not is_local[domain].all():
-                    raise protocol.ProtocolError("rays for a domain this node does not hold")
+            try:
+                hop = self._check_batch(message, schedule)
             except protocol.ProtocolError as exc:
                 self.management.rejections.add("malformed", str(exc))
                 continue
-            received += 1
+            received[hop] += 1
             self.post.received(message)
             if message.arrays:
                 with self._bookkeeping():  # the batch copied out of its message
                     arrays = {k: np.array(v) for k, v in message.arrays.items()}
-                    dom = arrays.pop("domain")
-                    incoming[message.meta["queue"]].append((dom, SoA(**arrays)))
+                    dom, to = arrays.pop("domain"), arrays.pop("to", None)
+                    queue = message.meta["queue"]
+                    if to is None:
+                        incoming[queue].append((dom, SoA(**arrays)))
+                    else:
+                        here = to == self.rank
+                        rays = SoA(**arrays)
+                        if here.all():
+                            incoming[queue].append((dom, rays))
+                        else:
+                            incoming[queue].append((dom[here], rays.take(np.flatnonzero(here))))
+                            on = np.flatnonzero(~here)
+                            self.stats["rays_relayed"] += len(on)
+                            relayed[queue].append((to[on], dom[on], rays.take(on)))
+        if relayed is not None:  # a node that receives no first hop (one node, or P = 2)
+            await self._send_hop(second_hops.to(self.rank), self._second_hop(relayed),
+                                 tile, depth, 2)
         with self._bookkeeping():
             joined = join_bound(incoming["radiance"]), join_bound(incoming["shadow"])
         await self._charge_bookkeeping()
         return joined
+
+    def _second_hop(self, relayed: dict) -> dict:
+        """The copies this node forwards, as one batch per destination and queue."""
+        batches = {}
+        with self._bookkeeping():
+            for name, parts in relayed.items():
+                if not parts:
+                    continue
+                to = np.concatenate([p[0] for p in parts])
+                dom, rays = join_bound([(p[1], p[2]) for p in parts])
+                order = np.argsort(to, kind="stable")
+                nodes, first = np.unique(to[order], return_index=True)
+                for node, rows in zip(nodes, np.split(order, first[1:]), strict=True):
+                    batches[int(node), name] = (dom[rows], rays.take(rows))
+        return batches
+
+    async def _send_hop(self, nodes: list[int], batches: dict, tile: int, depth: int,
+                        hop: int) -> None:
+        """A batch of each queue to each of ``nodes`` (empty where ``batches``, keyed by
+        (node, queue), has none for it)."""
+        await self._charge_bookkeeping()
+        for node in nodes:
+            for name in ("radiance", "shadow"):
+                dom, rays = batches.get((node, name), (None, None))
+                await self.post.send(node, name, {"tile": tile, "depth": depth, "hop": hop},
+                                     dom, rays)
+
+    def _check_batch(self, message, schedule: InSituSchedule) -> int:
+        """The hop (1 or 2) of a ray batch whose indices fit this tile and whose rays are
+        for this node's domains or, on a first hop, for the owners of theirs; raises
+        ``protocol.ProtocolError`` otherwise."""
+        hop = message.meta.get("hop")
+        if hop not in (1, 2):
+            raise protocol.ProtocolError(f"rays: hop must be 1 or 2, not {hop!r}")
+        protocol.check_ray_index(message, "path", schedule.n_paths)
+        protocol.check_ray_index(message, "slot", schedule.slots)
+        protocol.check_ray_index(message, "to", self.size)
+        domain = message.arrays.get("domain")
+        if domain is None or not len(domain):
+            return hop
+        if int(domain.max()) >= len(self.owner):
+            raise protocol.ProtocolError("rays: domain id beyond the store's")
+        to = message.arrays.get("to")
+        if to is None and hop == 1:
+            raise protocol.ProtocolError("rays: a first hop needs its rays' 'to' field")
+        destination = np.full(len(domain), self.rank) if to is None else to
+        if not np.array_equal(self.owner[domain], destination):
+            raise protocol.ProtocolError("rays for a domain their destination does not own")
+        if not schedule.is_local[domain[destination == self.rank]].all():
+            raise protocol.ProtocolError("rays for a domain this node does not hold")
+        return hop
 
     @contextmanager
     def _bookkeeping(self) -> Iterator[None]:

@@ -190,6 +190,34 @@ def test_spec_insitu_reduces_only_the_paths_still_in_flight(scene, references):
         assert st.paths < covered < iterations * st.paths, (covered, iterations)
 
 
+def test_spec_insitu_relays_its_copies_over_two_hops(scene, references):
+    """On 5 nodes (a grid of 3 columns whose last row is short) each node sends one batch a
+    queue to each node its routes name, empty or not, every iteration, and no other: fewer
+    than a batch to each of its 4 peers; copies between nodes of different rows and columns
+    are relayed, and the image is the reference's."""
+    from vastray.schedule.relay import routes
+
+    store, toml = scene
+    st = _reference_settings("pt")
+    nodes = 5
+    result = render_distributed(store.path, toml, st, nodes,
+                                options=JobOptions(scheduler="spec-insitu", threads=1),
+                                timeout=120)
+    np.testing.assert_allclose(result.film.image(), references["pt"].image(), rtol=1e-6,
+                               atol=1e-6)
+    first, second = routes(nodes)
+    relayed = 0
+    for rank, report in enumerate(result.counters["per_node"]):
+        counters = report["counters"]
+        pairs = len(first.to(rank)) + len(second.to(rank))
+        assert counters["batches_sent"] == 2 * pairs * counters["iterations"]
+        assert counters["batches_received"] == 2 * counters["iterations"] * (
+            first.count_from(rank) + second.count_from(rank))
+        relayed += counters["rays_relayed"]
+    assert sum(len(first.to(r)) + len(second.to(r)) for r in range(nodes)) < nodes * (nodes - 1)
+    assert relayed > 0
+
+
 def test_big_outboxes_travel_in_bounded_batches(scene):
     # With a tiny batch bound, the same render needs many more batches and still matches.
     store, toml = scene

@@ -124,13 +124,13 @@ def test_speculation_traces_copies(replay, recorded, nodes):
 
 def test_what_each_scheduler_synchronises_on(replay):
     """domain and dynamic end rounds with all-reductions, more of them on more nodes; async
-    has none but its two termination waves; spec-insitu two per iteration; sort-first
-    nodes never synchronise."""
+    has none but its two termination waves; spec-insitu one per iteration (the buffers: how
+    many batches come is fixed by its routes); sort-first nodes never synchronise."""
     assert replay.run("domain", 8).counters["rounds"] > replay.run("domain", 1).counters["rounds"]
     assert replay.run("dynamic", 4).counters["rounds"] > 2
     assert replay.run("async", 8).counters["rounds"] == 2
     insitu = replay.run("spec-insitu", 4).counters["rounds"]
-    assert insitu % 2 == 0 and insitu >= 2 * (SETTINGS.bounces + 1)
+    assert insitu >= SETTINGS.bounces + 1
     assert replay.run("image", 8).counters["rounds"] == 0
 
 
@@ -210,12 +210,11 @@ def test_spec_insitu_reduces_the_paths_in_flight_not_the_whole_tile(store, recor
     replay = replay_of(store, c, tile=c.n_paths,
                        network=Network(latency_s=1e-4, bandwidth=1e8))
     result = replay.run("spec-insitu", 4)
-    iterations = result.counters["rounds"] // 2  # each: the counts, then the buffers
-    counts = replay._allreduce_s(4, 8.0 * 4)  # the batches' (4,) counts each iteration
+    iterations = result.counters["rounds"]  # each: the buffers' all-reduction
     shadow = c.kind != RADIANCE
     slots = int(np.bincount(c.parent[shadow & (c.parent >= 0)]).max())
     whole = replay._allreduce_s(4, c.n_paths * (8.0 + slots / 8.0))
-    reduced = result.breakdown["reduction"] - iterations * counts
+    reduced = result.breakdown["reduction"]
     assert iterations >= 3
     assert whole + (iterations - 1) * replay._allreduce_s(4, 0.0) < reduced
     assert reduced < 0.95 * iterations * whole

@@ -34,7 +34,9 @@ What is modelled, per scheduler (the runtimes' docstrings say what they do):
   8-byte key a path and a bit a shadow slot, over the tile's paths in the first iteration
   and those whose last iteration hit something after it; before session 50 the replay
   charged two all-reductions of 8 bytes a live path, where the second is the batches' (P,)
-  counts).
+  counts). The copies travel over the two hops of ``schedule.relay`` (a batch per pair of
+  its routes, queue and hop; before session 52 straight, a batch per pair that had copies,
+  and the (P,) counts summed over the tree first).
 - ``image`` and ``spec-ooc`` (sort-first): each node traces its tiles alone through an LRU
   cache of ``cache`` domains, the fullest (cached first) domain next; ``spec-ooc`` queues a
   ray's copies in every domain its line crosses, commits its hit once the domains it needs
@@ -448,6 +450,60 @@ class Replay:
         ledger.counters["bytes"] += int(nbytes.sum())
         return spent
 
+    def _relayed(self, ledger: _Ledger, busy: np.ndarray, source: np.ndarray,
+                 destination: np.ndarray, shadow: np.ndarray) -> np.ndarray:
+        """``spec-insitu``'s copies moving from ``source`` to ``destination`` nodes ((n,)
+        ranks; ``shadow`` (n,) bool, each one's queue) over the two hops of
+        ``schedule.relay``, as the nodes' ``_exchange``: a batch per pair of the routes,
+        queue and hop, empty or not, the first hop's rays carrying their destination (8
+        bytes); a relay forwards once its first-hop batches are in. Returns (P,) when each
+        node, from ``busy`` (P,), has its copies in."""
+        from vastray.schedule.relay import relay_of, routes
+
+        size = ledger.size
+        if size == 1:
+            return busy
+        moving = source != destination
+        source, destination = source[moving], destination[moving]
+        kind = shadow[moving].astype(np.int64)
+        via = relay_of(size, source, destination)
+        first_hops, second_hops = routes(size)
+        hop = via != source
+        ready = self._hop(ledger, busy, first_hops, source[hop], via[hop], kind[hop], 8)
+        hop = via != destination
+        return self._hop(ledger, ready, second_hops, via[hop], destination[hop], kind[hop], 0)
+
+    def _hop(self, ledger: _Ledger, busy: np.ndarray, hops, source: np.ndarray,
+             destination: np.ndarray, kind: np.ndarray, extra_bytes: int) -> np.ndarray:
+        """One hop of ``_relayed``: ``hops`` (``relay.Hops``) its batches, two queues each;
+        the rays ((n,) ``source``, ``destination``, ``kind``) in them. A sender pays
+        ``CostModel.message_s`` a batch, a receiver ``receive_s``, both their own code; a node
+        goes on when it has sent its batches and every batch for it has been sent and taken
+        in. Returns (P,) when each node goes on."""
+        size = ledger.size
+        pairs = hops.source * size + hops.destination  # sorted, as ``Hops``
+        at = np.searchsorted(pairs, source * size + destination)
+        counts = np.bincount(at * 2 + kind, minlength=2 * len(pairs)).reshape(-1, 2)
+        nbytes = counts * (self.c.ray_bytes.astype(float) + extra_bytes) + HEADER_BYTES
+        rays = counts.sum(axis=1).astype(float)
+        batches_out = 2 * np.bincount(hops.source, minlength=size)
+        batches_in = 2 * np.bincount(hops.destination, minlength=size)
+        sending = np.bincount(hops.source, weights=self.costs.message_s(nbytes).sum(axis=1),
+                              minlength=size)
+        taking = self.costs.receive_s * batches_in
+        ledger.messages += sending + taking
+        own_out = self.own.batches_s(batches_out, 0, np.bincount(hops.source, weights=rays,
+                                                                 minlength=size), 0)
+        own_in = self.own.batches_s(0, batches_in, 0, np.bincount(
+            hops.destination, weights=rays, minlength=size))
+        ledger.own += own_out + own_in
+        ledger.counters["messages"] += 2 * len(pairs)
+        ledger.counters["bytes"] += int(nbytes.sum())
+        sent = busy + sending + own_out
+        arrived = sent.copy()
+        np.maximum.at(arrived, hops.destination, sent[hops.source])
+        return arrived + taking + own_in
+
     def _round_end(self, ledger: _Ledger, busy: np.ndarray, nbytes: float = 64.0,
                    reductions: int = 1, extra_wire: float = 0.0) -> float:
         """A bulk-synchronous round's span: the busiest node, the wire of its last batch, and
@@ -614,7 +670,7 @@ class Replay:
                 copy_from = np.repeat(holder, copies[live])
                 at = owner[copy_domain]
                 kind_radiance = c.kind[copy_seg] == RADIANCE
-                busy += self._batches(ledger, copy_from, at, ~kind_radiance)
+                busy = self._relayed(ledger, busy, copy_from, at, ~kind_radiance)
                 # a query call per node, domain and kind holding copies; the node's local
                 # closest hits shaded once per path; the iteration's bookkeeping
                 key = (at * self.n_domains + copy_domain) * 2 + ~kind_radiance
@@ -632,11 +688,7 @@ class Replay:
                 ledger.trace += per_node
                 ledger.counters["activations"] += len(keys)
                 ledger.counters["traced"] += len(copy_seg)
-                # the batches' counts (a (P,) SUM) as the copies leave, the buffers after
-                counts = self._allreduce_s(size, 8.0 * size)
-                ledger.reduction += counts
-                ledger.counters["rounds"] += 1
-                clock += counts + self._round_end(ledger, busy, active * (8.0 + slots / 8.0))
+                clock += self._round_end(ledger, busy, active * (8.0 + slots / 8.0))
                 busy = np.zeros(size)
                 spawned = child[ranges(first[live], first[live + 1] - first[live])]
                 active = len(np.unique(c.path[spawned]))
