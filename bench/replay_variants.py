@@ -1,4 +1,4 @@
-"""Four design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
+"""Five design choices of the node runtimes compared by replay (``vastray.sim.replay``), each
 side on the same constants, recording and nodes in one run.
 
     python bench/replay_variants.py --quick   # 2^18 paths, P = 1, 64, 1,024 (about 7 min)
@@ -32,6 +32,14 @@ side on the same constants, recording and nodes in one run.
    ``sort_first_speedup_<P>_<share>=`` and ``sort_first_weak_<P>_<share>=`` per
    scheduler (share ``cost``, ``equal`` or ``blocks``), against the same T(1) (one node
    has one share either way).
+
+5. **``spec-insitu``'s routes and holders**: copies over the two hops of ``schedule.relay``
+   (the product's since session 52) against a batch straight to each node with copies and the
+   batches' (P,) counts all-reduced first (before); and each domain held by its owner (the
+   product's, SpRay's in situ) against more holders for the domains the camera rays cross
+   most (``ownership.insitu_holders``, bounded by the bytes of the node owning the most: a
+   design measured here, not built into the nodes). Weak scaling at 4,096 paths a node;
+   ``insitu_weak_<variant>=`` efficiencies T(1)/T(P) by P.
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
 writes; else a quick calibration now); the nodes' own code is fitted first, as
@@ -190,6 +198,46 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
     return times
 
 
+#: Section 5's variants of ``spec-insitu``: name -> (routes, holders, label).
+INSITU_VARIANTS = {"relay": ("relay", "owner", "two hops, one holder a domain (the product)"),
+                   "straight": ("straight", "owner", "straight, one holder (before session 52)"),
+                   "holders": ("relay", "camera", "two hops, holders by camera crossings "
+                               "(not built)")}
+
+
+def insitu_variants(store, costs: CostModel, quick: bool, counts) -> dict:
+    """{variant: {P: (seconds, busiest node's seconds by kind)}} of ``INSITU_VARIANTS`` at
+    ``WEAK_PATHS_PER_NODE`` paths a node."""
+    base, own, fitted = rs.weak_setup(store, costs, quick)
+    times: dict = {}
+    for nodes in counts:
+        replay = rs.replay_of(store, rs.weak_frame(base, nodes), own, activations=fitted)
+        for name, (routes, holders, _) in INSITU_VARIANTS.items():
+            replay.insitu_routes, replay.insitu_holders = routes, holders
+            result = replay.run("spec-insitu", nodes)
+            times.setdefault(name, {})[nodes] = (result.seconds, result.busiest)
+            print(f"  {name:8s} P={nodes:5d}: {result.seconds:8.4f} s virtual "
+                  f"({result.counters['messages']:,} batches, {result.counters['loads']:,} "
+                  f"loads)", flush=True)
+    return times
+
+
+def print_insitu(times: dict, counts) -> None:
+    """Section 5's table and ``insitu_weak_*=`` lines from ``insitu_variants``."""
+    last = counts[-1]
+    print("\n| variant | " + " | ".join(f"P={n}" for n in counts[1:])
+          + f" | busiest node at P={last}: messages / reduction / own code (s) |")
+    print("| --- |" + " --- |" * len(counts))
+    for name, by in times.items():
+        b = by[last][1]
+        print(f"| {INSITU_VARIANTS[name][2]} | "
+              + " | ".join(f"{by[1][0] / by[n][0]:.2f}" for n in counts[1:])
+              + f" | {b['messages']:.3f} / {b['reduction']:.3f} / {b['own']:.3f} |")
+    for name, by in times.items():
+        print(f"insitu_weak_{name}=" + ",".join(f"{n}:{by[1][0] / by[n][0]:.2f}"
+                                               for n in counts[1:]))
+
+
 def print_sort_first(by_share: dict, counts) -> None:
     """Section 4's table and ``sort_first_*=`` lines from ``sort_first_by_share``."""
     print("\n| scheduler | a node's share | scaling | "
@@ -288,6 +336,10 @@ def main() -> None:
     print("\n4. the sort-first schedules' share of the image: strong scaling of the frame of "
           f"1. and weak scaling at {rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
     print_sort_first(sort_first_by_share(store, costs, args.quick, counts), counts)
+    insitu_counts = (1, 64, 256, 1024)
+    print("\n5. spec-insitu's routes and holders: weak scaling by replay, "
+          f"{rs.WEAK_PATHS_PER_NODE:,} paths a node:", flush=True)
+    print_insitu(insitu_variants(store, costs, args.quick, insitu_counts), insitu_counts)
     print(f"\n{time.perf_counter() - start:.0f} s in all")
 
 

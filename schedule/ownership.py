@@ -5,6 +5,7 @@ assignment is ``schedule.temporal``'s)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,6 +63,110 @@ def insitu_owners(lo: np.ndarray, hi: np.ndarray, triangles, size: int) -> np.nd
     node's bytes are balanced too (what ``--memory-limit`` checks)."""
     weights = np.asarray(triangles, np.int64) + INSITU_DOMAIN_WEIGHT
     return zorder_owners(lo, hi, size, weights)
+
+
+@dataclass(frozen=True)
+class Holders:
+    """The nodes holding each domain in situ: its owner first, then, for the domains crossed
+    most, extra holders (``insitu_holders``). Domain d's holders are
+    ``nodes[first[d]:first[d + 1]]``.
+
+    Parameters
+    ----------
+    first : (D + 1,) int64 offsets into ``nodes``.
+    nodes : (H,) int64 ranks, H >= D.
+    """
+
+    first: np.ndarray
+    nodes: np.ndarray
+
+    @classmethod
+    def owned(cls, owner: np.ndarray) -> Holders:
+        """Each domain held by its owner alone ((D,) ``owner``)."""
+        owner = np.asarray(owner, np.int64)
+        return cls(np.arange(len(owner) + 1, dtype=np.int64), owner.copy())
+
+    @property
+    def owner(self) -> np.ndarray:
+        """(D,) each domain's owner."""
+        return self.nodes[self.first[:-1]]
+
+    @property
+    def count(self) -> np.ndarray:
+        """(D,) how many nodes hold each domain."""
+        return np.diff(self.first)
+
+    def destination(self, domain: np.ndarray, path: np.ndarray) -> np.ndarray:
+        """(n,) the node that traces path ``path``'s copy in ``domain`` ((n,) each): holder
+        ``path mod k`` of the domain's k, so each (path, domain) is traced by one node and a
+        replicated domain's paths are dealt evenly among its holders."""
+        domain = np.asarray(domain, np.int64)
+        return self.nodes[self.first[domain] + np.asarray(path, np.int64) % self.count[domain]]
+
+    def held_by(self, rank: int) -> np.ndarray:
+        """Sorted ids of the domains ``rank`` holds."""
+        domain = np.repeat(np.arange(len(self.first) - 1), self.count)
+        return np.unique(domain[self.nodes == rank])
+
+
+def insitu_holders(owner: np.ndarray, weights: np.ndarray, size: int,
+                   footprints: np.ndarray) -> Holders:
+    """``spec-insitu``'s holders: each domain's owner, and for a domain whose ``weights``
+    ((D,) non-negative integers, the crossings expected there) reach k >= 2 node shares
+    (k = floor(w_d P / W)), k - 1 more, each the node then least loaded by weight (ties to
+    the lower rank) among those it leaves holding no more bytes (``footprints``: (D,)
+    integers) than the node that owns the most, the domain's weight split evenly among its
+    holders. Domains are taken heaviest first (ties to the lower id). Integer weights and
+    float64 sums in a fixed order, so every node would compute the same holders.
+
+    Not built into the nodes (``actors/insitu.py`` holds each domain on its owner); the
+    replay measures it (``Replay.insitu_holders``, ``bench/replay_variants.py`` section 5).
+
+    Why: with one holder a domain, the node owning the domain most lines cross traces its
+    copies and holds the rays its hits spawn, work that grows with P while a node's share
+    does not (issue 38: at 1,024 nodes 0.72 % of all copies, 7.4 node shares, and 10.6× the
+    mean node's copies to send). Its data is then on more than one node, which SpRay's in
+    situ never does (each domain stays where it was made), so it costs memory; bounded by
+    the most any node owns, it costs no node more than ``--memory-limit``'s check of the
+    owners (``preflight.check_owned_fit``) allowed for.
+    """
+    owner = np.asarray(owner, np.int64)
+    weight = np.asarray(weights, np.int64)
+    total = int(weight.sum())
+    if size < 2 or total <= 0:
+        return Holders.owned(owner)
+    k = np.clip(weight * size // total, 1, size)
+    replicated = [int(d) for d in np.argsort(-weight, kind="stable") if k[d] > 1]
+    if not replicated:
+        return Holders.owned(owner)
+    # float64 sums in a fixed order: the same bits on every node
+    load = np.bincount(owner, weights=weight.astype(np.float64), minlength=size)
+    footprint = np.asarray(footprints, np.int64)
+    held = np.bincount(owner, weights=footprint, minlength=size).astype(np.int64)
+    cap = held.max()
+    ranks = np.arange(size)
+    extra: dict[int, np.ndarray] = {}
+    for d in replicated:  # once a frame, over the few domains heavier than two shares
+        order = np.lexsort((ranks, load))
+        room = held[order] + footprint[d] <= cap
+        chosen = order[room & (order != owner[d])][: k[d] - 1]
+        if not len(chosen):
+            continue
+        held[chosen] += footprint[d]
+        k[d] = len(chosen) + 1
+        share = float(weight[d]) / float(k[d])
+        load[owner[d]] -= float(weight[d]) - share
+        load[chosen] += share
+        extra[d] = chosen
+    count = np.ones(len(owner), np.int64)
+    for d, chosen in extra.items():
+        count[d] += len(chosen)
+    first = np.concatenate([[0], np.cumsum(count)]).astype(np.int64)
+    nodes = np.empty(first[-1], np.int64)
+    nodes[first[:-1]] = owner
+    for d, chosen in extra.items():
+        nodes[first[d] + 1:first[d + 1]] = chosen
+    return Holders(first, nodes)
 
 
 #: Image-plane blocks a sort-first node is dealt where the frame has paths enough

@@ -152,6 +152,41 @@ def test_insitu_owners_balance_triangles_and_may_leave_a_node_none():
     assert np.bincount(insitu_owners(lo, lo + 1, np.zeros(8, int), 4)).tolist() == [2] * 4
 
 
+def test_insitu_holders_split_the_most_crossed_domains_within_the_owners_bytes():
+    """A domain crossed k node shares' worth gets k holders where the bytes allow (the
+    least loaded nodes, no node holding more than the most any node owns); a path's copy in
+    it goes to one holder, the paths dealt evenly; every node computes the same."""
+    from vastray.schedule.ownership import Holders, insitu_holders
+
+    owner = np.repeat(np.arange(4), 4)  # 16 domains, 4 a node
+    weights = np.ones(16, np.int64)
+    weights[5] = 60  # domain 5 (node 1's) crossed 60 times of 75: 3 node shares
+    footprints = np.full(16, 10)
+    holders = insitu_holders(owner, weights, 4, footprints)
+    assert holders.count[5] == 1  # every node already holds the most any node owns
+    footprints[[4, 6, 7]] = 20  # node 1 holds the most bytes (100): room for 5 on others
+    footprints[5] = 40
+    holders = insitu_holders(owner, weights, 4, footprints)
+    assert holders.owner.tolist() == owner.tolist()
+    assert holders.count.tolist() == [1] * 5 + [3] + [1] * 10
+    extra = holders.nodes[holders.first[5] + 1:holders.first[6]]
+    assert holders.nodes[holders.first[5]] == 1 and 1 not in extra.tolist()
+    held = [int(footprints[holders.held_by(n)].sum()) for n in range(4)]
+    assert held[1] == max(held) == 100  # none more than the most any node owned
+    paths = np.arange(300)
+    to = holders.destination(np.full(300, 5), paths)
+    assert sorted(set(to.tolist())) == sorted([1, *extra.tolist()])
+    assert np.bincount(to, minlength=4)[[1, *extra.tolist()]].tolist() == [100] * 3
+    assert np.array_equal(holders.destination(np.zeros(300, int), paths), np.zeros(300))
+    again = insitu_holders(owner, weights, 4, footprints)
+    assert np.array_equal(again.nodes, holders.nodes)
+    # nothing crossed, or one node: each domain its owner's
+    for h in (insitu_holders(owner, np.zeros(16, int), 4, footprints),
+              insitu_holders(np.zeros(16, int), weights, 1, footprints)):
+        assert h.count.tolist() == [1] * 16
+    assert Holders.owned(owner).held_by(2).tolist() == [8, 9, 10, 11]
+
+
 @pytest.mark.slow
 def test_spec_insitu_with_a_node_that_owns_no_domain_gives_the_reference(tmp_path):
     """Runs of equal triangles leave a node nothing to own where one domain outweighs its

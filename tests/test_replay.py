@@ -511,3 +511,43 @@ def test_the_replay_s_default_tile_is_the_coordinator_s_for_each_node_count(
         assert (ran.seconds, ran.counters) == (fixed.seconds, fixed.counters)
     assert (default.run("domain", 8).counters["rounds"]
             < replay_of(store, crossings, tile=600).run("domain", 8).counters["rounds"])
+
+
+def test_spec_insitu_relays_over_the_routes_and_can_replay_the_straight_sends(store, recorded):
+    """The product's two hops: a batch per pair of ``relay.routes``, queue and hop, every
+    iteration, and one all-reduction an iteration; straight (before session 52): a batch per
+    pair with copies and the (P,) counts all-reduced first. Both trace every copy once."""
+    from vastray.schedule.relay import routes
+
+    c = recorded[0]
+    replay = replay_of(store, c, tile=c.n_paths)
+    relayed = replay.run("spec-insitu", 5)
+    replay.insitu_routes = "straight"
+    straight = replay.run("spec-insitu", 5)
+    iterations = relayed.counters["rounds"]
+    assert straight.counters["rounds"] == 2 * iterations
+    first, second = routes(5)
+    assert relayed.counters["messages"] == 2 * iterations * (len(first.source)
+                                                             + len(second.source))
+    assert straight.counters["messages"] <= 2 * iterations * 5 * 4
+    assert relayed.counters["traced"] == straight.counters["traced"] == c.copies.sum()
+
+
+def test_spec_insitu_with_holders_by_camera_crossings_traces_each_copy_once(store, recorded):
+    """``insitu_holders="camera"``: the most-crossed domains get more holders where the
+    bytes allow; a copy is still traced once, and a holder loads what it holds."""
+    c = recorded[0]
+    replay = replay_of(store, c, tile=c.n_paths)
+    owned = replay.run("spec-insitu", 4)
+    replay.insitu_holders = "camera"
+    from vastray.schedule.ownership import insitu_owners
+
+    owner = insitu_owners(*store.domain_boxes(), [d.n_triangles for d in store.domains], 4)
+    holding = replay._insitu_holding(owner, 4)
+    held = replay.run("spec-insitu", 4)
+    assert held.counters["traced"] == owned.counters["traced"] == c.copies.sum()
+    assert owned.counters["loads"] == c.n_domains
+    assert held.counters["loads"] == holding.count.sum() >= c.n_domains
+    replay.insitu_holders = "everywhere"
+    with pytest.raises(ValueError, match="owner or camera"):
+        replay.run("spec-insitu", 4)

@@ -235,6 +235,15 @@ class Replay:
         ``bench/replay_variants.py``).
     fill_busy : ``dynamic``'s rule 3 gives busy nodes unheld domains too (the product's,
         ``RayWeightedRounds``); False: only idle nodes, the paper's (for comparison).
+
+    Attributes
+    ----------
+    insitu_routes : ``spec-insitu``'s copies over ``"relay"``, the two hops of
+        ``schedule.relay`` (the product's), or ``"straight"``, a batch per pair with copies
+        and the batches' (P,) counts all-reduced first (before session 52).
+    insitu_holders : ``"owner"``, each domain held by its owner (the product's), or
+        ``"camera"``, ``ownership.insitu_holders`` weighted by the camera rays' crossings
+        (a design measured here, not built: ``bench/replay_variants.py``, section 5).
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
@@ -259,6 +268,8 @@ class Replay:
                            else activations)
         self.lo, self.hi = lo, hi
         self.triangles = np.asarray(triangles, np.int64)  # (D,) ``spec-insitu``'s owners
+        self.nbytes = np.asarray(nbytes, np.int64)
+        self.insitu_routes, self.insitu_holders = "relay", "owner"
         #: the tile asked for (None: ``default_tile``'s), and the one of the run under way
         self.tile_asked = tile
         self.tile = DEFAULT_TILE if tile is None else tile
@@ -450,6 +461,22 @@ class Replay:
         ledger.counters["bytes"] += int(nbytes.sum())
         return spent
 
+    def _insitu_holding(self, owner: np.ndarray, size: int):
+        """``spec-insitu``'s ``ownership.Holders`` by ``insitu_holders`` (see the class)."""
+        from vastray.schedule.ownership import Holders, insitu_holders
+
+        if self.insitu_holders == "owner":
+            return Holders.owned(owner)
+        if self.insitu_holders != "camera":
+            raise ValueError(f"insitu_holders must be owner or camera, not "
+                             f"{self.insitu_holders!r}")
+        c = self.c
+        camera = np.nonzero(c.parent < 0)[0]
+        rows = ranges(c.crossed_first[camera], self.copies[camera])
+        weights = np.bincount(c.crossed_domain[rows].astype(np.int64),
+                              minlength=self.n_domains)
+        return insitu_holders(owner, weights, size, self.nbytes)
+
     def _relayed(self, ledger: _Ledger, busy: np.ndarray, source: np.ndarray,
                  destination: np.ndarray, shadow: np.ndarray) -> np.ndarray:
         """``spec-insitu``'s copies moving from ``source`` to ``destination`` nodes ((n,)
@@ -634,6 +661,7 @@ class Replay:
 
         c = self.c
         owner = insitu_owners(self.lo, self.hi, self.triangles, size).astype(np.int64)
+        holding = self._insitu_holding(owner, size)
         ledger, caches = _Ledger(size), [_Lru(self.n_domains) for _ in range(size)]
         clock = 0.0
         copies = self.copies
@@ -657,20 +685,27 @@ class Replay:
             # in situ: a node loads its own domains before its first trace
             if t == tiles.min():
                 for n in range(size):
-                    mine = np.nonzero(owner == n)[0]
+                    mine = holding.held_by(n)
                     caches[n].held.update(dict.fromkeys(mine.tolist()))
                     load = float(self.load_s[mine].sum())
                     busy[n] += load
                     ledger.load[n] += load
-                ledger.counters["loads"] += self.n_domains
+                ledger.counters["loads"] += int(holding.count.sum())
             while len(live):
                 rows = ranges(c.crossed_first[live], copies[live])
                 copy_seg = np.repeat(live, copies[live])
                 copy_domain = c.crossed_domain[rows].astype(np.int64)
                 copy_from = np.repeat(holder, copies[live])
-                at = owner[copy_domain]
+                at = holding.destination(copy_domain, c.path[copy_seg])
                 kind_radiance = c.kind[copy_seg] == RADIANCE
-                busy = self._relayed(ledger, busy, copy_from, at, ~kind_radiance)
+                if self.insitu_routes == "relay":
+                    busy = self._relayed(ledger, busy, copy_from, at, ~kind_radiance)
+                else:  # straight, the counts summed first (before session 52)
+                    busy += self._batches(ledger, copy_from, at, ~kind_radiance)
+                    counts = self._allreduce_s(size, 8.0 * size)
+                    ledger.reduction += counts
+                    ledger.counters["rounds"] += 1
+                    clock += counts
                 # a query call per node, domain and kind holding copies; the node's local
                 # closest hits shaded once per path; the iteration's bookkeeping
                 key = (at * self.n_domains + copy_domain) * 2 + ~kind_radiance
@@ -693,7 +728,8 @@ class Replay:
                 spawned = child[ranges(first[live], first[live + 1] - first[live])]
                 active = len(np.unique(c.path[spawned]))
                 parent_of = np.repeat(live, first[live + 1] - first[live])
-                holder = np.maximum(owner[np.maximum(last_domain[parent_of], 0)], 0)
+                holder = holding.destination(np.maximum(last_domain[parent_of], 0),
+                                             c.path[parent_of])
                 keep = copies[spawned] > 0
                 live, holder = spawned[keep], holder[keep]
         return ledger, clock
