@@ -188,7 +188,8 @@ class _InSitu:
                 continue
             message = await self.management.receive(protocol.RAYS, "ray batch")
             try:
-                hop = self._check_batch(message, schedule)
+                hop = check_copies(message, tile, depth, self.owner, self.rank, self.size,
+                                   schedule.n_paths, schedule.slots, schedule.is_local)
             except protocol.ProtocolError as exc:
                 self.management.rejections.add("malformed", str(exc))
                 continue
@@ -245,31 +246,6 @@ class _InSitu:
                 await self.post.send(node, name, {"tile": tile, "depth": depth, "hop": hop},
                                      dom, rays)
 
-    def _check_batch(self, message, schedule: InSituSchedule) -> int:
-        """The hop (1 or 2) of a ray batch whose indices fit this tile and whose rays are
-        for this node's domains or, on a first hop, for the owners of theirs; raises
-        ``protocol.ProtocolError`` otherwise."""
-        hop = message.meta.get("hop")
-        if hop not in (1, 2):
-            raise protocol.ProtocolError(f"rays: hop must be 1 or 2, not {hop!r}")
-        protocol.check_ray_index(message, "path", schedule.n_paths)
-        protocol.check_ray_index(message, "slot", schedule.slots)
-        protocol.check_ray_index(message, "to", self.size)
-        domain = message.arrays.get("domain")
-        if domain is None or not len(domain):
-            return hop
-        if int(domain.max()) >= len(self.owner):
-            raise protocol.ProtocolError("rays: domain id beyond the store's")
-        to = message.arrays.get("to")
-        if to is None and hop == 1:
-            raise protocol.ProtocolError("rays: a first hop needs its rays' 'to' field")
-        destination = np.full(len(domain), self.rank) if to is None else to
-        if not np.array_equal(self.owner[domain], destination):
-            raise protocol.ProtocolError("rays for a domain their destination does not own")
-        if not schedule.is_local[domain[destination == self.rank]].all():
-            raise protocol.ProtocolError("rays for a domain this node does not hold")
-        return hop
-
     @contextmanager
     def _bookkeeping(self) -> Iterator[None]:
         """Count the CPU of the enclosed code (no await inside: the event loop's other tasks
@@ -289,3 +265,42 @@ class _InSitu:
         spent, self._uncharged_s = self._uncharged_s, 0.0
         await self.decided(spent)
 
+
+def check_copies(message, tile: int, depth: int, owner: np.ndarray, rank: int, size: int,
+                 n_paths: int, slots: int, is_local: np.ndarray) -> int:
+    """The hop (1 or 2) of a batch of copies for node ``rank`` of ``size`` in iteration
+    ``depth`` of ``tile``, ``owner`` (D,) the domains' owners, ``is_local`` (D,) bool those
+    this node holds; raises ``protocol.ProtocolError`` unless it is of this iteration, from
+    a peer, its indices fit the tile (``n_paths`` paths, ``slots`` shadow slots a path), and
+    its rays are for this node's domains or, on a first hop, for peers this node relays to
+    from its sender (a copy forwarded anywhere else would never arrive: the routes fix
+    every batch)."""
+    meta = message.meta
+    hop, sender = meta.get("hop"), meta.get("rank")
+    if hop not in (1, 2):
+        raise protocol.ProtocolError(f"rays: hop must be 1 or 2, not {hop!r}")
+    if meta.get("tile") != tile or meta.get("depth") != depth:
+        raise protocol.ProtocolError(f"rays of tile {meta.get('tile')!r} iteration "
+                                     f"{meta.get('depth')!r} in tile {tile} iteration {depth}")
+    if type(sender) is not int or not 0 <= sender < size or sender == rank:
+        raise protocol.ProtocolError(f"rays from {sender!r}, not a peer of {size} nodes")
+    protocol.check_ray_index(message, "path", n_paths)
+    protocol.check_ray_index(message, "slot", slots)
+    protocol.check_ray_index(message, "to", size)
+    domain = message.arrays.get("domain")
+    if domain is None or not len(domain):
+        return hop
+    if int(domain.max()) >= len(owner):
+        raise protocol.ProtocolError("rays: domain id beyond the store's")
+    to = message.arrays.get("to")
+    if (to is None) != (hop == 2):
+        raise protocol.ProtocolError("rays: a first hop, and it alone, names its rays' 'to'")
+    destination = np.full(len(domain), rank) if to is None else to
+    if not np.array_equal(owner[domain], destination):
+        raise protocol.ProtocolError("rays for a domain their destination does not own")
+    if to is not None and not (relay_of(size, sender, to) == rank).all():
+        raise protocol.ProtocolError(f"rays from node {sender} that node {rank} does not "
+                                     "relay")
+    if not is_local[domain[destination == rank]].all():
+        raise protocol.ProtocolError("rays for a domain this node does not hold")
+    return hop

@@ -64,3 +64,51 @@ def test_routes_need_a_node():
         grid_width(0)
     assert [grid_width(n) for n in (1, 2, 4, 5, 1024, 1025)] == [1, 2, 2, 3, 32, 33]
     assert np.array_equal(relay_of(4, np.array([0, 0, 3]), np.array([3, 1, 0])), [1, 1, 2])
+
+
+def _batch(meta: dict, **arrays):
+    from vastray.actors import protocol
+    from vastray.transport.codec import decode, encode
+
+    base = {"queue": "radiance", "tile": 0, "depth": 1}
+    return decode(encode(protocol.RAYS, arrays, {**base, **meta}))
+
+
+def test_a_node_takes_only_the_copies_its_routes_bring_it():
+    """``actors.insitu.check_copies`` on 4 nodes (a 2 x 2 grid: node 1 relays node 0's copies
+    for node 3): a first hop names each ray's destination, and only one this node relays to
+    from its sender or itself; a second hop only this node's domains; a batch of another
+    iteration, from a stranger or with an index past the tile is refused, naming why."""
+    from vastray.actors.insitu import check_copies
+    from vastray.actors.protocol import ProtocolError
+
+    owner = np.array([0, 1, 2, 3])
+    local = owner == 1
+
+    def check(message, rank=1):
+        return check_copies(message, 0, 1, owner, rank, 4, 10, 2, owner == rank)
+
+    path = np.array([1, 2])
+    assert check(_batch({"hop": 1, "rank": 0}, domain=np.array([1, 3]), path=path,
+                        to=np.array([1, 3]))) == 1
+    assert check(_batch({"hop": 2, "rank": 3}, domain=np.array([1, 1]), path=path)) == 2
+    assert check(_batch({"hop": 1, "rank": 0})) == 1  # an empty batch: counted
+    assert local.sum() == 1
+    refused = [
+        (_batch({"hop": 1, "rank": 2}, domain=np.array([3, 3]), path=path,
+                to=np.array([3, 3])), "does not relay"),  # 2 sends to 3 straight
+        (_batch({"hop": 1, "rank": 0}, domain=np.array([2, 3]), path=path,
+                to=np.array([3, 3])), "does not own"),
+        (_batch({"hop": 2, "rank": 3}, domain=np.array([1, 2]), path=path), "does not own"),
+        (_batch({"hop": 1, "rank": 0}, domain=np.array([1, 1]), path=path), "'to'"),
+        (_batch({"hop": 3, "rank": 0}), "hop must be 1 or 2"),
+        (_batch({"hop": 1, "rank": 0, "depth": 0}), "iteration 0 in tile 0 iteration 1"),
+        (_batch({"hop": 1, "rank": 7}), "not a peer"),
+        (_batch({"hop": 1, "rank": 1}), "not a peer"),
+        (_batch({"hop": 2, "rank": 3}, domain=np.array([1, 1]), path=np.array([1, 10])),
+         "path outside"),
+        (_batch({"hop": 2, "rank": 3}, domain=np.array([1, 9]), path=path), "beyond"),
+    ]
+    for message, why in refused:
+        with pytest.raises(ProtocolError, match=why):
+            check(message)
