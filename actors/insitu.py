@@ -20,14 +20,15 @@ from vastray.actors.job_options import JobOptions
 from vastray.actors.node_state import NodeState, frame_load_stats
 from vastray.actors.ray_post import RayPost, traffic_counters
 from vastray.actors.render_setup import RenderSetup
+from vastray.preflight import domain_footprints
 from vastray.render.driver import path_context
 from vastray.render.film import Film
 from vastray.render.integrators import PathResult
 from vastray.scene.embree.launch import cpu_time
-from vastray.schedule.ownership import insitu_owners, interleaved_paths
+from vastray.schedule.ownership import Holders, insitu_holders, insitu_owners, interleaved_paths
 from vastray.schedule.relay import relay_of, routes
 from vastray.schedule.soa import SoA, join_bound
-from vastray.schedule.spec_insitu import COPY_FIELDS, MISS_KEY, InSituSchedule
+from vastray.schedule.spec_insitu import COPY_FIELDS, MISS_KEY, InSituSchedule, camera_crossings
 
 
 async def render_spec_insitu(management, tree, options: JobOptions, rank: int, size: int,
@@ -39,7 +40,13 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
     owner = insitu_owners(lo, hi, [d.n_triangles for d in store.domains], size)
-    local = [int(d) for d in np.nonzero(owner == rank)[0] if store.domains[d].n_triangles]
+    holders = Holders.owned(owner)
+    if size > 1:  # more holders for the domains the camera rays cross most, as every node sees
+        weights = camera_crossings(setup.geometry, setup.camera, setup.shading, settings,
+                                   setup.ao_distance, len(owner))
+        holders = insitu_holders(owner, weights, size,
+                                 domain_footprints(store.domains, setup.fast_builds))
+    local = [int(d) for d in holders.held_by(rank) if store.domains[d].n_triangles]
     own_state = state is None
     state = NodeState() if state is None else state
     preloader = state.preloader_for(store, max(len(local), 1), setup.keep, options, rank,
@@ -53,8 +60,9 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     tile = max(1, min(options.max_samples_in_flight or total, total))
     stats = {**traffic_counters(), "shade_s": 0.0, "speculative_rays": 0, "wasted_rays": 0,
              "intersection_cache_hits": 0, "iterations": 0, "tbuffer_paths": 0,
-             "rays_relayed": 0}
-    runner = _InSitu(management, tree, rank, size, owner, bvhs, setup.geometry,
+             "rays_relayed": 0, "domains_also_held": int(np.count_nonzero(
+                 owner[local] != rank)) if local else 0}
+    runner = _InSitu(management, tree, rank, size, holders, bvhs, setup.geometry,
                      setup.color_source, setup.scalar_range, stats, state.traced,
                      state.decided)
     for index, first in enumerate(range(0, total, tile)):
@@ -77,10 +85,11 @@ class _InSitu:
     """Carries out one node's ``InSituSchedule`` per tile: sends its speculative copies,
     takes the copies for its domains, joins the all-reductions."""
 
-    def __init__(self, management, tree, rank, size, owner, bvhs, geometry, color_source,
-                 scalar_range, stats, traced, decided):
+    def __init__(self, management, tree, rank, size, holders: Holders, bvhs, geometry,
+                 color_source, scalar_range, stats, traced, decided):
         self.management, self.tree, self.rank, self.size = management, tree, rank, size
-        self.owner, self.bvhs, self.geometry = owner, bvhs, geometry
+        self.holders, self.owner = holders, holders.owner
+        self.bvhs, self.geometry = bvhs, geometry
         self.color_source, self.scalar_range, self.stats = color_source, scalar_range, stats
         self.post = RayPost(management, rank, stats)
         self.traced = traced  # hears of the queries each iteration traced (``NodeState``)
@@ -155,7 +164,7 @@ class _InSitu:
                 dom = copies.domain
                 if not len(dom):
                     continue
-                to = self.owner[dom]
+                to = self.holders.destination(dom, copies.rays["path"][copies.ray])
                 via = relay_of(self.size, self.rank, to)
                 fields = COPY_FIELDS[name]
                 mine = np.flatnonzero(to == self.rank)
@@ -188,7 +197,7 @@ class _InSitu:
                 continue
             message = await self.management.receive(protocol.RAYS, "ray batch")
             try:
-                hop = check_copies(message, tile, depth, self.owner, self.rank, self.size,
+                hop = check_copies(message, tile, depth, self.holders, self.rank, self.size,
                                    schedule.n_paths, schedule.slots, schedule.is_local)
             except protocol.ProtocolError as exc:
                 self.management.rejections.add("malformed", str(exc))
@@ -266,15 +275,15 @@ class _InSitu:
         await self.decided(spent)
 
 
-def check_copies(message, tile: int, depth: int, owner: np.ndarray, rank: int, size: int,
+def check_copies(message, tile: int, depth: int, holders: Holders, rank: int, size: int,
                  n_paths: int, slots: int, is_local: np.ndarray) -> int:
     """The hop (1 or 2) of a batch of copies for node ``rank`` of ``size`` in iteration
-    ``depth`` of ``tile``, ``owner`` (D,) the domains' owners, ``is_local`` (D,) bool those
-    this node holds; raises ``protocol.ProtocolError`` unless it is of this iteration, from
-    a peer, its indices fit the tile (``n_paths`` paths, ``slots`` shadow slots a path), and
-    its rays are for this node's domains or, on a first hop, for peers this node relays to
-    from its sender (a copy forwarded anywhere else would never arrive: the routes fix
-    every batch)."""
+    ``depth`` of ``tile``, ``holders`` the domains' (``Holders.destination`` names the node
+    each copy is for), ``is_local`` (D,) bool those this node holds; raises
+    ``protocol.ProtocolError`` unless it is of this iteration, from a peer, its indices fit
+    the tile (``n_paths`` paths, ``slots`` shadow slots a path), and its rays are for this
+    node's domains or, on a first hop, for peers this node relays to from its sender (a
+    copy forwarded anywhere else would never arrive: the routes fix every batch)."""
     meta = message.meta
     hop, sender = meta.get("hop"), meta.get("rank")
     if hop not in (1, 2):
@@ -290,14 +299,16 @@ def check_copies(message, tile: int, depth: int, owner: np.ndarray, rank: int, s
     domain = message.arrays.get("domain")
     if domain is None or not len(domain):
         return hop
-    if int(domain.max()) >= len(owner):
+    if int(domain.max()) >= len(is_local):
         raise protocol.ProtocolError("rays: domain id beyond the store's")
-    to = message.arrays.get("to")
+    to, path = message.arrays.get("to"), message.arrays.get("path")
     if (to is None) != (hop == 2):
         raise protocol.ProtocolError("rays: a first hop, and it alone, names its rays' 'to'")
+    if path is None:
+        raise protocol.ProtocolError("rays: copies need their 'path'")
     destination = np.full(len(domain), rank) if to is None else to
-    if not np.array_equal(owner[domain], destination):
-        raise protocol.ProtocolError("rays for a domain their destination does not own")
+    if not np.array_equal(holders.destination(domain, path), destination):
+        raise protocol.ProtocolError("rays for a domain their destination does not hold")
     if to is not None and not (relay_of(size, sender, to) == rank).all():
         raise protocol.ProtocolError(f"rays from node {sender} that node {rank} does not "
                                      "relay")

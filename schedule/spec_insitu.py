@@ -25,7 +25,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vastray.render.integrators import PathResult, RadianceRays, ShadowRays, camera_rays, shade
+from vastray.render.integrators import (
+    PathContext,
+    PathResult,
+    RadianceRays,
+    ShadowRays,
+    camera_rays,
+    shade,
+)
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
 from vastray.schedule.paths import RADIANCE_FIELDS, SHADOW_FIELDS
 from vastray.schedule.soa import SoA, index_of
@@ -76,6 +83,26 @@ class Copies:
         if fields is None:
             return self.rays.take(index)
         return SoA(**{f: self.rays[f][index] for f in fields})
+
+
+#: Camera rays ``camera_crossings`` follows, at most: a grid over the image, one a pixel
+#: where the image has fewer pixels (about 5 ms of box walks on 1,439 domains).
+CROSSING_PROBES = 4096
+
+
+def camera_crossings(geometry, camera, shading, settings, ao_distance: float,
+                     n_domains: int) -> np.ndarray:
+    """(D,) int64 how many of up to ``CROSSING_PROBES`` camera rays (sample 0 of pixels
+    evenly spread over the image) cross each domain where it is occupied: what every node
+    computes alike before a frame, to give the domains crossed most more holders
+    (``ownership.insitu_holders``)."""
+    pixels = settings.width * settings.height
+    pixel = np.unique(np.linspace(0, pixels - 1, min(CROSSING_PROBES, pixels)).astype(np.uint32))
+    ctx = PathContext(shading, settings, pixel, np.zeros(len(pixel), np.uint32), ao_distance)
+    rays = camera_rays(camera, ctx)
+    _, domain, _, _ = geometry.crossings(rays.origin, rays.direction,
+                                         np.full(len(pixel), np.inf, np.float32))
+    return np.bincount(domain, minlength=n_domains).astype(np.int64)
 
 
 class InSituSchedule:

@@ -253,6 +253,25 @@ def test_spec_insitu_relays_its_copies_over_two_hops(scene, references):
     assert relayed > 0
 
 
+def test_spec_insitu_gives_the_most_crossed_domains_more_holders(tmp_path):
+    """On 6 nodes over a 3 x 3 x 1 grid of domains the two the camera rays cross most (a
+    sixth of the crossings each, two node shares) get another holder each within the bytes
+    the busiest owner holds (``ownership.insitu_holders``): each path's copy in such a
+    domain is traced by one holder, and the image is the reference's."""
+    store = write_store(tmp_path / "g331", bumpy_scene(), grid=(3, 3, 1))
+    (tmp_path / "scene.toml").write_text(SCENE_TOML)
+    st = _reference_settings("pt")
+    reference = render(store, load_scene_config(tmp_path / "scene.toml"), st, progress=False)
+    result = render_distributed(store.path, tmp_path / "scene.toml", st, 6,
+                                options=JobOptions(scheduler="spec-insitu", threads=1),
+                                timeout=120)
+    np.testing.assert_allclose(result.film.image(), reference.film.image(), rtol=1e-6,
+                               atol=1e-6)
+    np.testing.assert_array_equal(result.film.count, reference.film.count)
+    also = [report["counters"]["domains_also_held"] for report in result.counters["per_node"]]
+    assert sum(also) == 2, also
+
+
 def test_big_outboxes_travel_in_bounded_batches(scene):
     # With a tiny batch bound, the same render needs many more batches and still matches.
     store, toml = scene

@@ -81,12 +81,13 @@ def test_a_node_takes_only_the_copies_its_routes_bring_it():
     iteration, from a stranger or with an index past the tile is refused, naming why."""
     from vastray.actors.insitu import check_copies
     from vastray.actors.protocol import ProtocolError
+    from vastray.schedule.ownership import Holders
 
     owner = np.array([0, 1, 2, 3])
     local = owner == 1
 
-    def check(message, rank=1):
-        return check_copies(message, 0, 1, owner, rank, 4, 10, 2, owner == rank)
+    def check(message, rank=1, holders=Holders.owned(owner)):
+        return check_copies(message, 0, 1, holders, rank, 4, 10, 2, owner == rank)
 
     path = np.array([1, 2])
     assert check(_batch({"hop": 1, "rank": 0}, domain=np.array([1, 3]), path=path,
@@ -98,8 +99,8 @@ def test_a_node_takes_only_the_copies_its_routes_bring_it():
         (_batch({"hop": 1, "rank": 2}, domain=np.array([3, 3]), path=path,
                 to=np.array([3, 3])), "does not relay"),  # 2 sends to 3 straight
         (_batch({"hop": 1, "rank": 0}, domain=np.array([2, 3]), path=path,
-                to=np.array([3, 3])), "does not own"),
-        (_batch({"hop": 2, "rank": 3}, domain=np.array([1, 2]), path=path), "does not own"),
+                to=np.array([3, 3])), "destination does not hold"),
+        (_batch({"hop": 2, "rank": 3}, domain=np.array([1, 2]), path=path), "destination does not hold"),
         (_batch({"hop": 1, "rank": 0}, domain=np.array([1, 1]), path=path), "'to'"),
         (_batch({"hop": 3, "rank": 0}), "hop must be 1 or 2"),
         (_batch({"hop": 1, "rank": 0, "depth": 0}), "iteration 0 in tile 0 iteration 1"),
@@ -112,3 +113,10 @@ def test_a_node_takes_only_the_copies_its_routes_bring_it():
     for message, why in refused:
         with pytest.raises(ProtocolError, match=why):
             check(message)
+    # domain 1 held by nodes 1 and 3: node 1 takes its even paths, node 3 its odd ones
+    shared = Holders(np.array([0, 1, 3, 4, 5]), np.array([0, 1, 3, 2, 3]))
+    even, odd = np.array([2, 4]), np.array([2, 3])
+    assert check(_batch({"hop": 2, "rank": 3}, domain=np.array([1, 1]), path=even),
+                 holders=shared) == 2
+    with pytest.raises(ProtocolError, match="does not hold"):
+        check(_batch({"hop": 2, "rank": 3}, domain=np.array([1, 1]), path=odd), holders=shared)
