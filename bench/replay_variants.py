@@ -35,10 +35,10 @@ side on the same constants, recording and nodes in one run.
 
 5. **``spec-insitu``'s routes and holders**: copies over the two hops of ``schedule.relay``
    (the product's since session 52) against a batch straight to each node with copies and the
-   batches' (P,) counts all-reduced first (before); and each domain held by its owner (the
-   product's, SpRay's in situ) against more holders for the domains the camera rays cross
-   most (``ownership.insitu_holders``, bounded by the bytes of the node owning the most: a
-   design measured here, not built into the nodes). Weak scaling at 4,096 paths a node;
+   batches' (P,) counts all-reduced first (before); and more holders for the domains the
+   camera rays cross most (``ownership.insitu_holders``, bounded by the bytes of the node
+   owning the most: the product's since session 52) against each domain held by its owner
+   alone (before, SpRay's in situ). Weak scaling at 4,096 paths a node;
    ``insitu_weak_<variant>=`` efficiencies T(1)/T(P) by P.
 
 The constants are ``--costs`` (default ``.bench_cache/costs.json``, which ``bench/simulate.py``
@@ -199,10 +199,10 @@ def weak_by_tile(store, costs: CostModel, quick: bool, counts) -> dict:
 
 
 #: Section 5's variants of ``spec-insitu``: name -> (routes, holders, label).
-INSITU_VARIANTS = {"relay": ("relay", "owner", "two hops, one holder a domain (the product)"),
-                   "straight": ("straight", "owner", "straight, one holder (before session 52)"),
-                   "holders": ("relay", "camera", "two hops, holders by camera crossings "
-                               "(not built)")}
+INSITU_VARIANTS = {"holders": ("relay", "camera", "two hops, more holders for the domains "
+                               "crossed most (the product)"),
+                   "relay": ("relay", "owner", "two hops, one holder a domain"),
+                   "straight": ("straight", "owner", "straight, one holder (before session 52)")}
 
 
 def insitu_variants(store, costs: CostModel, quick: bool, counts) -> dict:

@@ -117,10 +117,8 @@ def insitu_holders(owner: np.ndarray, weights: np.ndarray, size: int,
     the lower rank) among those it leaves holding no more bytes (``footprints``: (D,)
     integers) than the node that owns the most, the domain's weight split evenly among its
     holders. Domains are taken heaviest first (ties to the lower id). Integer weights and
-    float64 sums in a fixed order, so every node would compute the same holders.
-
-    Not built into the nodes (``actors/insitu.py`` holds each domain on its owner); the
-    replay measures it (``Replay.insitu_holders``, ``bench/replay_variants.py`` section 5).
+    float64 sums in a fixed order, so every node computes the same holders
+    (``actors/insitu.py``, over ``spec_insitu.camera_crossings``).
 
     Why: with one holder a domain, the node owning the domain most lines cross traces its
     copies and holds the rays its hits spawn, work that grows with P while a node's share

@@ -86,7 +86,9 @@ def test_a_node_takes_only_the_copies_its_routes_bring_it():
     owner = np.array([0, 1, 2, 3])
     local = owner == 1
 
-    def check(message, rank=1, holders=Holders.owned(owner)):
+    owned = Holders.owned(owner)
+
+    def check(message, rank=1, holders=owned):
         return check_copies(message, 0, 1, holders, rank, 4, 10, 2, owner == rank)
 
     path = np.array([1, 2])

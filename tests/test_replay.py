@@ -521,6 +521,7 @@ def test_spec_insitu_relays_over_the_routes_and_can_replay_the_straight_sends(st
 
     c = recorded[0]
     replay = replay_of(store, c, tile=c.n_paths)
+    replay.insitu_holders = "owner"
     relayed = replay.run("spec-insitu", 5)
     replay.insitu_routes = "straight"
     straight = replay.run("spec-insitu", 5)
@@ -534,13 +535,16 @@ def test_spec_insitu_relays_over_the_routes_and_can_replay_the_straight_sends(st
 
 
 def test_spec_insitu_with_holders_by_camera_crossings_traces_each_copy_once(store, recorded):
-    """``insitu_holders="camera"``: the most-crossed domains get more holders where the
-    bytes allow; a copy is still traced once, and a holder loads what it holds."""
+    """``insitu_holders="camera"`` (the product's): the most-crossed domains get more
+    holders where the bytes allow; a copy is still traced once, as with one holder a
+    domain, and a holder loads what it holds."""
     c = recorded[0]
     replay = replay_of(store, c, tile=c.n_paths)
+    assert replay.insitu_holders == "camera"
+    replay.insitu_holders = "owner"
     owned = replay.run("spec-insitu", 4)
     replay.insitu_holders = "camera"
-    from vastray.schedule.ownership import insitu_owners
+    from vastray.schedule.ownership import Holders, insitu_owners
 
     owner = insitu_owners(*store.domain_boxes(), [d.n_triangles for d in store.domains], 4)
     holding = replay._insitu_holding(owner, 4)
@@ -548,6 +552,15 @@ def test_spec_insitu_with_holders_by_camera_crossings_traces_each_copy_once(stor
     assert held.counters["traced"] == owned.counters["traced"] == c.copies.sum()
     assert owned.counters["loads"] == c.n_domains
     assert held.counters["loads"] == holding.count.sum() >= c.n_domains
+    # this store's crossings are even, so no domain reaches two shares: given holders, every
+    # domain on its owner and the next node, each copy is still traced once, each holder
+    # loads what it holds, and the traces spread over the nodes
+    two = Holders(np.arange(0, 2 * c.n_domains + 1, 2),
+                  np.stack([owner, (owner + 1) % 4], axis=1).ravel())
+    replay.insitu_holders = two
+    shared = replay.run("spec-insitu", 4)
+    assert shared.counters["traced"] == c.copies.sum()
+    assert shared.counters["loads"] == 2 * c.n_domains
     replay.insitu_holders = "everywhere"
     with pytest.raises(ValueError, match="owner or camera"):
         replay.run("spec-insitu", 4)

@@ -241,9 +241,11 @@ class Replay:
     insitu_routes : ``spec-insitu``'s copies over ``"relay"``, the two hops of
         ``schedule.relay`` (the product's), or ``"straight"``, a batch per pair with copies
         and the batches' (P,) counts all-reduced first (before session 52).
-    insitu_holders : ``"owner"``, each domain held by its owner (the product's), or
-        ``"camera"``, ``ownership.insitu_holders`` weighted by the camera rays' crossings
-        (a design measured here, not built: ``bench/replay_variants.py``, section 5).
+    insitu_holders : ``"camera"``, ``ownership.insitu_holders`` weighted by the camera
+        rays' crossings (the product's since session 52: the nodes weigh a grid of at most
+        ``spec_insitu.CROSSING_PROBES`` camera rays, the replay the recording's camera
+        rays), or ``"owner"``, each domain held by its owner alone (before; SpRay's), or
+        an ``ownership.Holders`` to replay with.
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
@@ -269,7 +271,7 @@ class Replay:
         self.lo, self.hi = lo, hi
         self.triangles = np.asarray(triangles, np.int64)  # (D,) ``spec-insitu``'s owners
         self.nbytes = np.asarray(nbytes, np.int64)
-        self.insitu_routes, self.insitu_holders = "relay", "owner"
+        self.insitu_routes, self.insitu_holders = "relay", "camera"
         #: the tile asked for (None: ``default_tile``'s), and the one of the run under way
         self.tile_asked = tile
         self.tile = DEFAULT_TILE if tile is None else tile
@@ -465,6 +467,8 @@ class Replay:
         """``spec-insitu``'s ``ownership.Holders`` by ``insitu_holders`` (see the class)."""
         from vastray.schedule.ownership import Holders, insitu_holders
 
+        if isinstance(self.insitu_holders, Holders):  # given (a test's)
+            return self.insitu_holders
         if self.insitu_holders == "owner":
             return Holders.owned(owner)
         if self.insitu_holders != "camera":
