@@ -392,7 +392,9 @@ def check_owned_fit(limit: int, fixed: MemoryEstimate, footprints: list[int], ow
                     nodes: int, building: int = 0) -> None:
     """Check that every node can hold all the domains it owns under ``limit`` besides its film
     and paths (``fixed``): in situ (``spec-insitu``) a node keeps its domains loaded, so the
-    limit cannot be met by evicting.
+    limit cannot be met by evicting. The extra holders of the domains crossed most
+    (``ownership.insitu_holders``) never leave a node more than the node owning the most,
+    so this check of the owners covers them.
 
     Parameters
     ----------
