@@ -1,10 +1,12 @@
 """SpRay's speculative in situ schedule (Park et al., Listings 5-7) on the nodes: each node
 loads the domains it owns (runs of the z-order curve, as in the paper, here of equal
-triangles: ``ownership.insitu_owners``) and keeps them; per tile, it carries out
-``schedule.spec_insitu.InSituSchedule`` one bounce per iteration: it sends the speculative
-copies of its rays to the owners of the domains they cross (over two hops of a grid of
-nodes, ``schedule.relay``), takes the copies for its own domains, and joins the two all-reductions over the
-tree of nodes (t-buffer MIN, o-buffer OR) whose results resolve the iteration.
+triangles: ``ownership.insitu_owners``), and those it also holds (the domains the camera rays
+cross most have more holders: ``ownership.insitu_holders``), and keeps them; per tile, it
+carries out ``schedule.spec_insitu.InSituSchedule`` one bounce per iteration: it sends the
+speculative copies of its rays to the holders of the domains they cross (over two hops of a
+grid of nodes, ``schedule.relay``), takes the copies for its own domains, and joins the
+all-reduction over the tree of nodes (t-buffer MIN, o-buffer OR) whose result resolves the
+iteration.
 """
 
 from __future__ import annotations
@@ -88,7 +90,7 @@ class _InSitu:
     def __init__(self, management, tree, rank, size, holders: Holders, bvhs, geometry,
                  color_source, scalar_range, stats, traced, decided):
         self.management, self.tree, self.rank, self.size = management, tree, rank, size
-        self.holders, self.owner = holders, holders.owner
+        self.holders = holders
         self.bvhs, self.geometry = bvhs, geometry
         self.color_source, self.scalar_range, self.stats = color_source, scalar_range, stats
         self.post = RayPost(management, rank, stats)
@@ -97,7 +99,7 @@ class _InSitu:
         self._uncharged_s = 0.0  # bookkeeping CPU not yet charged (``_bookkeeping``)
 
     async def tile(self, ctx, camera, mine: np.ndarray, tile: int) -> PathResult:
-        schedule = InSituSchedule(ctx, camera, mine, self.owner, self.rank, self.bvhs,
+        schedule = InSituSchedule(ctx, camera, mine, self.holders.owner, self.rank, self.bvhs,
                                   self.geometry, self.color_source, self.scalar_range,
                                   self.stats)
         active = np.ones(schedule.n_paths, bool)  # paths the buffers cover this iteration
@@ -142,10 +144,11 @@ class _InSitu:
         return global_keys, occluded
 
     async def _exchange(self, schedule: InSituSchedule, tile: int, depth: int):
-        """Send the schedule's speculative copies to the owners of their domains over two
-        hops (``schedule.relay``: to the node of this node's row in the owner's column, which
-        forwards them down its column), relay the copies that come here for others; returns
-        the copies for this node's domains, its own and the peers'.
+        """Send the schedule's speculative copies to the holders of their domains (a path's
+        copy in a domain of k holders to holder ``path mod k``: ``Holders.destination``) over
+        two hops (``schedule.relay``: to the node of this node's row in the holder's column,
+        which forwards them down its column), relay the copies that come here for others;
+        returns the copies for this node's domains, its own and the peers'.
 
         Every pair of the routes carries one batch per queue and hop, empty or not, so each
         node knows how many batches to wait for without asking the others: 2 (w - 1) pairs

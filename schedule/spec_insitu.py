@@ -5,7 +5,7 @@ copies, joins the all-reductions and hands their results back).
 In every iteration a node:
 
 1. queues its rays speculatively into *every* domain they cross before their best known hit
-   (``speculative_copies``): copies for other nodes' domains go to their owners;
+   (``speculative_copies``): copies for other nodes' domains go to their holders;
 2. traces the radiance copies it holds against its own domains (a local closest hit per path)
    and tests the shadow copies for occlusion, setting bits of the **o-buffer**; shades its
    local closest hits *speculatively* and traces their shadow and continuation rays against

@@ -244,8 +244,10 @@ class Replay:
     insitu_holders : ``"camera"``, ``ownership.insitu_holders`` weighted by the camera
         rays' crossings (the product's since session 52: the nodes weigh a grid of at most
         ``spec_insitu.CROSSING_PROBES`` camera rays, the replay the recording's camera
-        rays), or ``"owner"``, each domain held by its owner alone (before; SpRay's), or
-        an ``ownership.Holders`` to replay with.
+        rays, and bound the extra holders by the domains' bytes on storage where the nodes
+        take their resident bytes, ``preflight.domain_footprints``), or ``"owner"``, each
+        domain held by its owner alone (before; SpRay's), or an ``ownership.Holders`` to
+        replay with.
     """
 
     def __init__(self, crossings: Crossings, nbytes: np.ndarray, triangles: np.ndarray,
