@@ -41,7 +41,7 @@ async def render_spec_insitu(management, tree, options: JobOptions, rank: int, s
     keeps the node's preloader (its domains stay loaded) from one frame to the next."""
     setup = RenderSetup.of(store, config, settings)
     lo, hi = store.domain_boxes()
-    owner = insitu_owners(lo, hi, [d.n_triangles for d in store.domains], size)
+    owner = insitu_owners(lo, hi, store.domain_triangles(), size)
     holders = Holders.owned(owner)
     if size > 1:  # more holders for the domains the camera rays cross most, as every node sees
         weights = camera_crossings(setup.geometry, setup.camera, setup.shading, settings,

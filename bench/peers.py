@@ -435,7 +435,7 @@ def main() -> int:
         store, label = scan_store(args.scan)
     else:
         store, label = plain_store(resolution), f"rm {resolution}^3"
-    n_tri = sum(d.n_triangles for d in store.domains)
+    n_tri = store.n_triangles
     camera, light_pos, intensity = setup(store)
     print(f"scene: {label}, {n_tri:,} triangles, 1 domain; {WIDTH}x{HEIGHT}, {spp} "
           f"spp, vastray --bounces {BOUNCES} = Mitsuba max_depth {MAX_DEPTH}, point light, "

@@ -39,7 +39,7 @@ def main() -> int:
     args = parser.parse_args()
     grid = tuple(int(g) for g in args.grid.split("x"))
     store = cached_rm(args.resolution, grid)
-    n_tri = sum(d.n_triangles for d in store.domains)
+    n_tri = store.n_triangles
     settings = RenderSettings(width=args.width, height=args.height, spp=args.spp)
     print(f"scene: rm {args.resolution}^3, {n_tri:,} triangles in {len(store.domains)} domains "
           f"(grid {args.grid}); {args.width}x{args.height}, {args.spp} spp, pt, "

@@ -212,6 +212,10 @@ class Store:
     def n_triangles(self) -> int:
         return sum(d.n_triangles for d in self.domains)
 
+    def domain_triangles(self) -> np.ndarray:
+        """(D,) int64 triangles of each domain, from the manifest (nothing is loaded)."""
+        return np.array([d.n_triangles for d in self.domains], np.int64)
+
     @property
     def world_bounds(self) -> np.ndarray:
         """(2, 3) float64 scene bounds in world coordinates (``bounds`` + ``origin``)."""

@@ -546,7 +546,7 @@ def test_spec_insitu_with_holders_by_camera_crossings_traces_each_copy_once(stor
     replay.insitu_holders = "camera"
     from vastray.schedule.ownership import Holders, insitu_owners
 
-    owner = insitu_owners(*store.domain_boxes(), [d.n_triangles for d in store.domains], 4)
+    owner = insitu_owners(*store.domain_boxes(), store.domain_triangles(), 4)
     holding = replay._insitu_holding(owner, 4)
     held = replay.run("spec-insitu", 4)
     assert held.counters["traced"] == owned.counters["traced"] == c.copies.sum()

@@ -318,7 +318,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
         """spec-ooc's speculative copies of each shadow ray, beyond the model's own."""
         lo, hi = store.domain_boxes()
         return speculative_copies(
-            crossings_from_surface(lo, hi, [d.n_triangles for d in store.domains]),
+            crossings_from_surface(lo, hi, store.domain_triangles()),
             request.bounces + 1 if request.integrator == "pt" else 1)
 
     def process(cache: int | None) -> MemoryEstimate:
@@ -347,8 +347,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             from vastray.schedule.ownership import insitu_owners
 
             nodes = request.nodes or 1
-            owners = insitu_owners(*store.domain_boxes(),
-                                   [d.n_triangles for d in store.domains], nodes)
+            owners = insitu_owners(*store.domain_boxes(), store.domain_triangles(), nodes)
             check_owned_fit(request.memory_limit, process(cache), footprints, owners, nodes,
                             building)
         else:

@@ -23,7 +23,7 @@ def domain_sizes(store: Store) -> tuple[np.ndarray, np.ndarray]:
     """(D,) int64 bytes and (D,) int64 triangles of each of ``store``'s domains (what a load
     costs), read from its manifest: nothing is loaded."""
     return (np.array([d.nbytes for d in store.domains], np.int64),
-            np.array([d.n_triangles for d in store.domains], np.int64))
+            store.domain_triangles())
 
 
 class Domains:

@@ -435,10 +435,9 @@ class Replay:
     def _batches(self, ledger: _Ledger, source: np.ndarray, destination: np.ndarray,
                  shadow: np.ndarray, activation: np.ndarray | None = None) -> np.ndarray:
         """Charge rays (``shadow``: (n,) bool, each one's kind) moving from ``source`` to
-        ``destination`` nodes: one batch per pair and kind, and per ``activation`` that made
-        them where given (a node ships after every activation), each costing its sender
-        ``CostModel.message_s`` and its receiver ``CostModel.receive_s``; returns (P,)
-        seconds each node spent."""
+        ``destination`` nodes: one batch per pair and kind that carries rays, and per
+        ``activation`` that made them where given (a node ships after every activation)
+        (``_charge``); returns (P,) seconds each node spent."""
         moving = source != destination
         if not moving.any():
             return np.zeros(ledger.size)
@@ -449,21 +448,28 @@ class Replay:
         keys, counts = np.unique(key, return_counts=True)
         nbytes = counts * self.c.ray_bytes[keys % 2].astype(float) + HEADER_BYTES
         senders = keys % pairs // 2 // ledger.size
-        spent = np.bincount(senders, weights=self.costs.message_s(nbytes),
-                            minlength=ledger.size)
         receivers = keys % pairs // 2 % ledger.size
-        spent += self.costs.receive_s * np.bincount(receivers, minlength=ledger.size)
-        ledger.messages += spent
-        own = self.own.batches_s(
-            np.bincount(senders, minlength=ledger.size),
-            np.bincount(receivers, minlength=ledger.size),
-            np.bincount(senders, weights=counts, minlength=ledger.size),
-            np.bincount(receivers, weights=counts, minlength=ledger.size))
-        ledger.own += own
-        spent = spent + own
-        ledger.counters["messages"] += len(keys)
+        sending, taking = self._charge(ledger, senders, receivers, counts, nbytes)
+        return sending + taking
+
+    def _charge(self, ledger: _Ledger, senders: np.ndarray, receivers: np.ndarray,
+                rays: np.ndarray, nbytes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Charge ray batches ((b,) ``senders``, ``receivers``, the ``rays`` and ``nbytes``
+        each carries): ``CostModel.message_s`` a batch to its sender, ``receive_s`` to its
+        receiver, and to both their own code (``NodeOwnCosts.batches_s``). Returns (P,)
+        seconds each node spent sending and (P,) taking in."""
+        size = ledger.size
+        sending = np.bincount(senders, weights=self.costs.message_s(nbytes), minlength=size)
+        taking = self.costs.receive_s * np.bincount(receivers, minlength=size)
+        ledger.messages += sending + taking
+        own_out = self.own.batches_s(np.bincount(senders, minlength=size), 0,
+                                     np.bincount(senders, weights=rays, minlength=size), 0)
+        own_in = self.own.batches_s(0, np.bincount(receivers, minlength=size),
+                                    0, np.bincount(receivers, weights=rays, minlength=size))
+        ledger.own += own_out + own_in
+        ledger.counters["messages"] += len(senders)
         ledger.counters["bytes"] += int(nbytes.sum())
-        return spent
+        return sending + own_out, taking + own_in
 
     def _insitu_holding(self, owner: np.ndarray, size: int):
         """``spec-insitu``'s ``ownership.Holders`` by ``insitu_holders`` (see the class)."""
@@ -516,26 +522,15 @@ class Replay:
         size = ledger.size
         pairs = hops.source * size + hops.destination  # sorted, as ``Hops``
         at = np.searchsorted(pairs, source * size + destination)
-        counts = np.bincount(at * 2 + kind, minlength=2 * len(pairs)).reshape(-1, 2)
-        nbytes = counts * (self.c.ray_bytes.astype(float) + extra_bytes) + HEADER_BYTES
-        rays = counts.sum(axis=1).astype(float)
-        batches_out = 2 * np.bincount(hops.source, minlength=size)
-        batches_in = 2 * np.bincount(hops.destination, minlength=size)
-        sending = np.bincount(hops.source, weights=self.costs.message_s(nbytes).sum(axis=1),
-                              minlength=size)
-        taking = self.costs.receive_s * batches_in
-        ledger.messages += sending + taking
-        own_out = self.own.batches_s(batches_out, 0, np.bincount(hops.source, weights=rays,
-                                                                 minlength=size), 0)
-        own_in = self.own.batches_s(0, batches_in, 0, np.bincount(
-            hops.destination, weights=rays, minlength=size))
-        ledger.own += own_out + own_in
-        ledger.counters["messages"] += 2 * len(pairs)
-        ledger.counters["bytes"] += int(nbytes.sum())
-        sent = busy + sending + own_out
+        counts = np.bincount(at * 2 + kind, minlength=2 * len(pairs))  # (pair, queue) rows
+        nbytes = counts * (self.c.ray_bytes[np.arange(len(counts)) % 2].astype(float)
+                           + extra_bytes) + HEADER_BYTES
+        sending, taking = self._charge(ledger, np.repeat(hops.source, 2),
+                                       np.repeat(hops.destination, 2), counts, nbytes)
+        sent = busy + sending
         arrived = sent.copy()
         np.maximum.at(arrived, hops.destination, sent[hops.source])
-        return arrived + taking + own_in
+        return arrived + taking
 
     def _round_end(self, ledger: _Ledger, busy: np.ndarray, nbytes: float = 64.0,
                    reductions: int = 1, extra_wire: float = 0.0) -> float:
