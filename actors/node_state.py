@@ -46,13 +46,16 @@ class NodeState:
                       fast_builds: bool = False) -> DomainPreloader:
         """The node's preloader, made on the first frame (its threads, preloading switch and
         emulated storage bandwidth from ``options``, the bandwidth of ``rank``; its BVH builds
-        the render's, ``RenderSetup.fast_builds``)."""
+        the render's, ``RenderSetup.fast_builds``); a later frame asking for a larger
+        ``capacity`` gets it (``DomainPreloader.reserve``)."""
         if self.preloader is None:
             self.pool = query_pool(options.threads)
             self.preloader = DomainPreloader(
                 store, capacity, keep, pool=self.pool,
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
                 drop_page_cache=options.cold_reads, fast_builds=fast_builds)
+        else:
+            self.preloader.reserve(capacity)
         return self.preloader
 
     def domain_loop(self, preloader: DomainPreloader, stats: dict) -> DomainLoop:

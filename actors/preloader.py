@@ -77,6 +77,10 @@ class DomainPreloader(CacheFront):
     def capacity(self) -> int:
         return self.cache.capacity
 
+    def reserve(self, capacity: int) -> None:
+        """At least ``capacity`` domains resident from now on (``DomainCache.reserve``)."""
+        self.cache.reserve(capacity)
+
     async def get(self, domain: int) -> DomainBVH:
         """The built domain, loading it if it is not resident (the wait is counted)."""
         if domain in self.cache:

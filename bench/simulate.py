@@ -4,6 +4,7 @@
                                        # the speed-ups at 64 and 1024 nodes (2^18 paths)
     python bench/simulate.py           # also weak scaling, 2^20 paths, every P, and the
                                        # figures (docs/sim_*.png) with their tables
+    python bench/simulate.py --quick --validation-only --hog 1   # on a machine not idle
 
 Validation: every scheduler renders the same small scene on P = 1, 2, 4 (``--quick``: 2) real
 node processes (this machine; ``--threads 1``, as the cost model is per core) and in the
@@ -21,11 +22,12 @@ to a worker thread cost (``receive_s``, ``offload_s``), are measured again befor
 scheduler's real runs (``MachineProbe``, about 2 s; printed per row), and so is a round of the
 throughput of busy processes (one alone and two side by side; more run two at a time at that
 contention), charged from the medians of the latest six rounds (one round moves by a sixth with
-the host's speed), and the share of the CPU time that went elsewhere while the real runs ran
-(the host's "steal" to other virtual machines, and other processes on this machine:
-``sim.StealMeter``) is charged as cores the real run did not have (``CostModel.stolen``;
-printed per row); every other constant is the calibration's. ``--no-probe`` charges the
-calibration's throughout, and nothing taken by others.
+the host's speed). The host's "steal" to other virtual machines while a real run ran
+(``sim.steal.StealMeter``) is charged as cores the run did not have (``CostModel.stolen``), and
+the other processes on this machine that wanted a core around it (``sim.steal.others_running``:
+about 1 beside ``--hog 1``) run as that many busy processes beside the virtual nodes
+(``CostModel.beside``), both printed per row; every other constant is the calibration's.
+``--no-probe`` charges the calibration's throughout, and nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over
@@ -57,6 +59,7 @@ from pathlib import Path
 import numpy as np
 import replay_scaling
 from bench_scenes import CACHE, cached_cosmo, cached_rm, cached_scan
+from hogs import busy_processes
 
 from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
@@ -67,7 +70,7 @@ from vastray.sim.cache import Domains
 from vastray.sim.calibrate import MachineProbe, calibrate
 from vastray.sim.costs import CostModel
 from vastray.sim.simulate import SIM_SCHEDULERS, simulate
-from vastray.sim.steal import StealMeter
+from vastray.sim.steal import Contention
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 VALIDATION_NODES = (1, 2, 4)
@@ -114,7 +117,8 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
            domains: Domains) -> dict:
     """One validation point: ``rounds`` pairs (or fewer, once the real runs add up to
     ``budget_s``) of a real run on ``nodes`` processes (``options``) and a simulation charged
-    the CPU time others took during that run (``StealMeter.lost``, with ``charge_others``),
+    the host's steal during that run and the other processes that wanted a core around it
+    (``sim.steal.Contention``: run beside the virtual nodes), with ``charge_others``,
     one right after the other, so both see the machine's moment: the medians of each side, and
     the median of the pairs' errors.
 
@@ -124,21 +128,25 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     each simulation's error against the real run of its own pair: the machine's speed moves
     between pairs, and a simulation shares its moment with its own run only),
     ``error_of_medians`` (``sim_s / real_s - 1``, the rule before session 48), ``rounds``,
-    ``lost`` (the largest share charged), ``trace_ratio`` (the median over the pairs of the
-    real nodes' trace CPU over the simulation's, ``trace_cpu_s``: the same traces, so its
-    distance from 1 is the machine's speed moving between the two, or what a real node's
-    traces pay that the simulator's do not; None where the runtime does not count it),
+    ``lost`` (the largest share of the host's steal charged), ``others`` (the median of
+    the others' busy processes charged, ``sim.steal.Contention``), ``trace_ratio`` (the
+    median over the pairs of the real nodes' trace CPU over the simulation's,
+    ``trace_cpu_s``: the same traces, so its distance from 1 is the machine's speed moving
+    between the two, or what a real node's traces pay that the simulator's do not; None
+    where the runtime does not count it),
     ``result`` (the last real run's) and ``sim`` (the last simulation's).
     """
-    reals, sims, lost, ratios, result, sim = [], [], [], [], None, None
+    reals, sims, lost, others, ratios, result, sim = [], [], [], [], [], None, None
     while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s):
-        with StealMeter() as meter:
+        with Contention() as seen:
             result = render_distributed(store.path, None, settings, nodes, options=options,
                                         timeout=300)
-        lost.append(meter.lost if charge_others else 0.0)
+        charged = seen.charged(costs) if charge_others else costs
+        lost.append(seen.share if charge_others else 0.0)
+        others.append(seen.others if charge_others else 0.0)
         reals.append(result.seconds["busy_max"])
-        sim = simulate(store, replace(options, threads=None), nodes, costs.stolen(lost[-1]),
-                       settings, config, max_pass_spp=None, domains=domains)
+        sim = simulate(store, replace(options, threads=None), nodes, charged, settings, config,
+                       max_pass_spp=None, domains=domains)
         sims.append(sim.seconds)
         real_trace = sum(n["counters"].get("trace_cpu_s", 0.0)
                          for n in result.counters["per_node"])
@@ -148,7 +156,7 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     return {"real_s": real_s, "sim_s": sim_s,
             "error": float(np.median([s / r - 1.0 for r, s in zip(reals, sims, strict=True)])),
             "error_of_medians": sim_s / real_s - 1.0,
-            "rounds": len(reals), "lost": max(lost),
+            "rounds": len(reals), "lost": max(lost), "others": float(np.median(others)),
             "trace_ratio": float(np.median(ratios)) if ratios else None,
             "result": result, "sim": sim}
 
@@ -173,8 +181,8 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
           f"({costs.warmup_s + costs.tile_setup_s:.3f} s for image, spec-ooc; "
           f"{costs.warmup_s + costs.insitu_setup_s:.3f} s for spec-insitu); traces charged "
           + ("at the CPU time they take here" if costs.trace_scale else "by the constants"))
-    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | taken by others "
-          "| rounds | trace CPU real / sim | measured s | simulated s | error (pairs) "
+    print("| scheduler | nodes | receive / hand-off ms | throughput 2 / 4 | others running "
+          "/ steal | rounds | trace CPU real / sim | measured s | simulated s | error (pairs) "
           "| error of medians | images = reference |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for scheduler in SIM_SCHEDULERS:
@@ -193,9 +201,9 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
                          "error_of_medians": point["error_of_medians"], "same_image": same,
                          "receive_s": now.receive_s, "offload_s": now.offload_s,
                          "throughput": now.throughput, "stolen": stolen,
-                         "trace_ratio": point["trace_ratio"]})
+                         "others": point["others"], "trace_ratio": point["trace_ratio"]})
             print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
-                  f"{stolen:.0%} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
+                  f"{_others(point)} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
                   f"{sim_s:.3f} | {error:+.1%} | {point['error_of_medians']:+.1%} | "
                   f"{'yes' if same else 'NO'} |", flush=True)
     domains.close()
@@ -239,7 +247,7 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
               f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
               f"({settings.paths:,} paths)")
         print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | taken by others | rounds | trace CPU real / sim "
+              "| throughput 2 / 4 | others running / steal | rounds | trace CPU real / sim "
               "| measured s | simulated s | error (pairs) | error of medians "
               "| real image = reference | sim image = reference |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
@@ -269,15 +277,20 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
                              "same_image": real_same and sim_same,
                              "receive_s": now.receive_s, "offload_s": now.offload_s,
                              "throughput": now.throughput, "stolen": stolen,
-                             "trace_ratio": point["trace_ratio"]})
+                             "others": point["others"], "trace_ratio": point["trace_ratio"]})
                 print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
-                      f"{_messaging(now)} | {_throughput(now)} | {stolen:.0%} | "
+                      f"{_messaging(now)} | {_throughput(now)} | {_others(point)} | "
                       f"{point['rounds']} | {_ratio(point)} | {real_s:.3f} | {sim_s:.3f} | "
                       f"{error:+.1%} | {point['error_of_medians']:+.1%} | "
                       f"{'yes' if real_same else 'NO'} | "
                       f"{'yes' if sim_same else 'NO'} |", flush=True)
         domains.close()
     return rows
+
+
+def _others(point: dict) -> str:
+    """Other processes wanting a core (median over the pairs) / the host's largest steal."""
+    return f"{point['others']:.2f} / {point['lost']:.0%}"
 
 
 def _messaging(costs: CostModel) -> str:
@@ -312,10 +325,23 @@ def main() -> None:
                              "throughput throughout (default: measured again before each "
                              "scheduler's real runs, as this machine's speed moves within "
                              "minutes)")
+    parser.add_argument("--hog", type=int, default=0, metavar="N",
+                        help="run everything (the calibration too) beside N busy processes: "
+                             "the validation on a machine that is not idle, as a cluster "
+                             "node beside a simulation (default 0)")
     args = parser.parse_args()
+    if args.hog < 0:
+        parser.error(f"--hog takes a count of busy processes, 0 or more, not {args.hog}")
+    with busy_processes(args.hog):
+        run(args)
+
+
+def run(args: argparse.Namespace) -> None:
+    """The bench ``main`` parsed the options of (see the module docstring)."""
     start = time.perf_counter()
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
-          "scaling with this machine's calibrated costs")
+          "scaling with this machine's calibrated costs"
+          + (f", all of it beside {args.hog} busy processes (--hog)" if args.hog else ""))
     small = cached_rm(64, (3, 3, 2))
     costs = CostModel.load(args.costs) if args.costs else costs_here(args.quick, small)
     probe = None if args.no_probe or args.skip_validation else MachineProbe(small.path)

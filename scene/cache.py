@@ -194,6 +194,15 @@ class DomainCache:
         self._insert(domain_id, bvh)
         return bvh
 
+    def reserve(self, capacity: int) -> None:
+        """Raise the capacity to at least ``capacity`` domains (never lowers it): a node's
+        later frame that holds more domains than its first (in situ, a camera that gives it
+        more holdings; after a node's loss, the survivors' larger shares). Without it the
+        cache would evict what the frame still uses from its accounting only. The bytes stay
+        bounded by the render's memory check, which covers the most any node holds."""
+        with self._lock:
+            self.capacity = max(self.capacity, int(capacity))
+
     def prioritise(self, priority, protect: Iterable[int] = ()) -> None:
         """Evict by ``priority`` ((D,) numbers, lowest first; None: least recently used) and
         never evict a domain of ``protect`` (the active domain and the next one) to make room

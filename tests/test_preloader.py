@@ -114,6 +114,25 @@ def test_node_state_keeps_one_preloader_across_frames(store):
     state.close()
 
 
+def test_a_later_frame_holding_more_domains_keeps_them_all_resident(store):
+    """An in-situ node whose later frame holds more domains than its first (another camera
+    gives it more holdings) gets the capacity for them: none of the frame's is evicted."""
+    ids = nonempty(store)[:4]
+    state = NodeState()
+    options = JobOptions(threads=1)
+    preloader = state.preloader_for(store, 2, frozenset(), options, rank=0)
+    assert preloader.capacity == 2
+    assert state.preloader_for(store, 4, frozenset(), options, rank=0) is preloader
+    assert preloader.capacity == 4
+    for domain in ids:
+        preloader.cache.get(domain)
+    assert set(preloader.cache.resident()) == set(ids)
+    assert preloader.cache.stats.evictions == 0
+    state.preloader_for(store, 1, frozenset(), options, rank=0)  # never lowered
+    assert preloader.capacity == 4
+    state.close()
+
+
 def test_a_node_reads_cold_when_the_job_says_so(store):
     state = NodeState()
     preloader = state.preloader_for(store, 2, frozenset(), JobOptions(cold_reads=True), rank=0)

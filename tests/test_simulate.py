@@ -1054,7 +1054,7 @@ def test_messages_between_two_endpoints_arrive_in_order():
 def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path):
     from vastray.actors.coordinator import render_distributed
     from vastray.sim.calibrate import MachineProbe, calibrate
-    from vastray.sim.steal import StealMeter
+    from vastray.sim.steal import Contention
 
     path = tmp_path / "rm.store"
     generate("rm", path, 64, grid=(3, 3, 2))
@@ -1077,20 +1077,21 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
         reals, simulations, lost = [], [], []
         for _ in range(7):
             costs = probe.now(calibrated)
-            with StealMeter() as steal:
+            with Contention() as seen:
                 reals.append(render_distributed(
                     path, None, settings, 2, options=JobOptions(scheduler=scheduler, threads=1),
                     timeout=300).seconds["busy_max"])
             simulations.append(simulate(store, JobOptions(scheduler=scheduler), 2,
-                                        costs.with_cores(costs.cores).stolen(steal.lost),
-                                        settings, max_pass_spp=None).seconds)
-            lost.append((steal.share, steal.others))
+                                        seen.charged(costs.with_cores(costs.cores)), settings,
+                                        max_pass_spp=None).seconds)
+            lost.append((seen.share, seen.others))
         rounds = list(zip(reals, simulations, lost, strict=True))
         paired = statistics.median(simulated / real - 1 for real, simulated, _ in rounds)
         shown = [(round(real, 3), round(simulated, 3), f"{simulated / real - 1:+.0%}",
-                  f"{stolen:.0%}", f"{others:.0%}")
+                  f"{stolen:.0%}", f"{others:.2f}")
                  for real, simulated, (stolen, others) in rounds]
-        errors[scheduler] = (f"rounds (real s, simulated s, error, stolen, others) {shown}, "
+        errors[scheduler] = (f"rounds (real s, simulated s, error, stolen, others running) "
+                             f"{shown}, "
                              f"median error {paired:+.1%} (the fastest of each: "
                              f"{min(simulations) / min(reals) - 1:+.1%})", paired)
         print(scheduler, errors[scheduler][0])

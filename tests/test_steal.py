@@ -1,16 +1,30 @@
 """The host's steal and other processes' load read from /proc/stat, and the cores a model
-charges under them."""
+charges under them (the steal as a share, other processes as busy processes beside the
+nodes)."""
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
+from vastray.sim.clock import run_virtual
 from vastray.sim.cores import SharedCores
-from vastray.sim.costs import CostModel
-from vastray.sim.steal import StealMeter, cpu_ticks, others_share, own_cpu_seconds, stolen_share
+from vastray.sim.costs import CostModel, aggregate_throughput
+from vastray.sim.node_cost import span_per_setup
+from vastray.sim.steal import (
+    Contention,
+    StealMeter,
+    cpu_ticks,
+    others_running,
+    others_share,
+    own_cpu_seconds,
+    running_now,
+    stolen_share,
+)
 
 
 def stat_file(tmp_path, user, system, idle, steal, name="stat"):
@@ -98,3 +112,76 @@ def test_stolen_cores_scale_the_throughput_for_every_process_count():
 def test_a_process_alone_on_cores_with_steal_runs_slower_by_the_share():
     cores = SharedCores(2, CostModel(cores=2, throughput=(1.0, 2.0)).stolen(0.2).throughput)
     assert cores.speed(1) == pytest.approx(0.8) and cores.speed(2) == pytest.approx(0.8)
+
+
+def test_others_running_is_the_runnable_tasks_beside_this_one(tmp_path):
+    path = stat_file(tmp_path, 100, 20, 500, 0)
+    path.write_text(path.read_text() + "procs_running 4\nprocs_blocked 0\n")
+    assert running_now(path) == 4
+    assert others_running(0.02, path) == 3.0  # this process is one of the four
+    assert running_now(tmp_path / "missing") is None
+    assert others_running(0.02, tmp_path / "missing") == 0.0
+    # no procs_running line (not Linux's format): nothing known, nothing charged
+    assert others_running(0.02, stat_file(tmp_path, 1, 1, 1, 0, name="plain")) == 0.0
+
+
+def test_a_spinner_beside_this_process_is_one_process_running():
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+    from hogs import busy_processes
+
+    with busy_processes(1):
+        beside = others_running()
+    # the spinner wants a core all the time; whatever else runs (the suite's other workers)
+    # only adds to it
+    assert beside >= 0.9, beside
+
+
+def test_contention_charges_the_steal_as_a_share_and_others_as_processes(tmp_path):
+    path = stat_file(tmp_path, 100, 20, 500, 0)
+    path.write_text(path.read_text() + "procs_running 2\n")
+    with Contention(path) as seen:
+        pass
+    assert seen.share == 0.0 and seen.others == 1.0
+    model = CostModel(cores=2, throughput=(1.0, 2.0, 1.9))
+    assert seen.charged(model) == model.beside(1.0)
+    assert seen.charged(CostModel()) == CostModel()  # a core a node: nothing shared
+
+
+def test_throughput_between_counts_is_interpolated():
+    assert aggregate_throughput((1.0, 2.0, 1.8), 2, 2.5) == pytest.approx(1.9)
+    assert aggregate_throughput((1.0, 2.0, 1.8), 2, 9) == pytest.approx(1.8)  # the last
+    assert aggregate_throughput((0.9, 1.8), 2, 0.5) == pytest.approx(0.45)
+    assert aggregate_throughput((), 2, 3.5) == 2.0 and aggregate_throughput((), None, 3.5) == 3.5
+    assert CostModel(cores=2, throughput=(1.0, 2.0)).throughput_at(1.5) == pytest.approx(1.5)
+
+
+def test_others_beside_the_nodes_take_their_share_of_the_cores():
+    throughput = (1.0, 2.0, 2.0, 2.0)
+    alone = SharedCores(2, throughput)
+    beside = SharedCores(2, throughput, others=1.0)
+    # one node beside one busy process: each has a core, as the operating system gives it
+    assert beside.speed(1) == pytest.approx(1.0) == alone.speed(1)
+    # two nodes and the process: 2 cores among 3; eight nodes: among 9
+    assert beside.speed(2) == pytest.approx(2 / 3) and alone.speed(2) == pytest.approx(1.0)
+    assert beside.speed(8) == pytest.approx(2 / 9)
+    with pytest.raises(ValueError, match="other processes"):
+        CostModel(cores=2).beside(-1.0)
+    assert CostModel().beside(1.0) == CostModel()  # a core a node: nothing shared
+    # a cost every busy node pays once spans more with others on the cores
+    assert span_per_setup(CostModel(cores=2, throughput=throughput), 2) == 1.0
+    assert span_per_setup(CostModel(cores=2, throughput=throughput).beside(1.0), 2) == \
+        pytest.approx(1.5)
+
+
+def test_a_wide_job_gets_no_spare_core_the_others_hold():
+    """An Embree build alone (2 cores wide) takes the idle second core, but not the one a
+    busy process of others holds."""
+    async def build(others):
+        cores = SharedCores(2, (1.0, 2.0, 2.0), others=others)
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        await cores.run(1.0, owner="node", width=2.0)
+        return loop.time() - start
+
+    assert run_virtual(build(0.0))[0] == pytest.approx(0.5)
+    assert run_virtual(build(1.0))[0] == pytest.approx(1.0)

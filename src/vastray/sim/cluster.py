@@ -42,7 +42,8 @@ class Cluster:
     def __init__(self, size: int, costs: CostModel):
         self.size, self.costs = size, costs
         self.coordinator = size  # the coordinator's endpoint
-        self._cores = SharedCores(costs.cores, costs.throughput) if costs.cores else None
+        self._cores = (SharedCores(costs.cores, costs.throughput, costs.others)
+                       if costs.cores else None)
         #: without a shared machine, each endpoint's one core
         self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))
         #: each endpoint's mailboxes by message kind (as a management actor's)

@@ -25,6 +25,8 @@ from __future__ import annotations
 import asyncio
 import itertools
 
+from vastray.sim.costs import aggregate_throughput
+
 
 class SharedCores:
     """Processor sharing over ``cores`` cores.
@@ -34,10 +36,13 @@ class SharedCores:
     cores : the cores.
     throughput : (K,) aggregate throughput, in single-process speeds, with 1..K busy jobs
         (empty: ideal, ``min(k, cores)``); beyond K, the last value.
+    others : busy processes that are not the simulated nodes' (``CostModel.others``): always
+        running beside them, taking their share of the cores as the operating system gives
+        it (k jobs of the nodes run as k of k + ``others`` busy processes).
     """
 
-    def __init__(self, cores: int, throughput: tuple[float, ...] = ()):
-        self.cores, self.throughput = cores, throughput
+    def __init__(self, cores: int, throughput: tuple[float, ...] = (), others: float = 0.0):
+        self.cores, self.throughput, self.others = cores, throughput, others
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
@@ -50,10 +55,10 @@ class SharedCores:
         self._timer: asyncio.TimerHandle | None = None
 
     def speed(self, k: int) -> float:
-        """Each job's speed (1: a process alone on a core) with ``k`` jobs running."""
-        total = (self.throughput[min(k, len(self.throughput)) - 1] if self.throughput
-                 else min(k, self.cores))
-        return min(1.0, total / k)
+        """Each job's speed (1: a process alone on a core) with ``k`` jobs running (beside
+        ``others``)."""
+        busy = k + self.others
+        return min(1.0, aggregate_throughput(self.throughput, self.cores, busy) / busy)
 
     async def run(self, seconds: float, owner=None, width: float = 1.0) -> None:
         """Work ``seconds`` (at full speed on one core) among the other jobs. ``owner``: the
@@ -92,12 +97,12 @@ class SharedCores:
         process is using (fewer busy processes than cores), shared among the processes whose
         one job is wider than a core, each up to its width (water-filling)."""
         busy = len(self._owned)
-        if not self._wide or busy >= self.cores:
+        if not self._wide or busy + self.others >= self.cores:
             return {}
         base = self.speed(busy)
         room = {owner: width - base for owner, width in self._wide.items() if width > base}
         bonus = dict.fromkeys(room, 0.0)
-        spare = (self.cores - busy) * base
+        spare = (self.cores - busy - self.others) * base
         while spare > 1e-12 and room:
             grant = min(spare / len(room), min(room.values()))
             for owner in room:

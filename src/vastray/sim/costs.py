@@ -12,10 +12,24 @@ import math
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
+import numpy as np
+
 from vastray.scene.errors import InputError
 
 #: The format of a calibration file; a file of another version is refused.
 VERSION = 1
+
+
+def aggregate_throughput(throughput: tuple, cores: int | None, busy: float) -> float:
+    """The aggregate throughput, in single-process speeds, of ``busy`` (> 0, may be
+    fractional) busy processes on ``cores`` cores that give ``throughput`` ((K,) with 1 .. K
+    busy processes): interpolated between counts, under one process in proportion, beyond K
+    the last value; empty: the ideal ``min(busy, cores)`` (``cores`` None: ``busy``)."""
+    if not throughput:
+        return float(min(busy, cores if cores is not None else busy))
+    if busy <= 1.0:
+        return float(busy * throughput[0])
+    return float(np.interp(busy, np.arange(1, len(throughput) + 1), throughput))
 
 
 @dataclass(frozen=True)
@@ -101,6 +115,10 @@ class CostModel:
         simulator reproduces a run on it (None: every node has a core of its own).
     throughput : the calibrated machine's aggregate throughput with 1, 2, ... busy processes,
         in single-process speeds (empty: ideal, one core's worth per core).
+    others : busy processes that are not the render's on the shared cores (a simulation
+        beside it, another job; ``sim.steal.others_running``, fractional for work that comes
+        and goes): the shared cores run them beside the nodes (``beside``). 0 from a
+        calibration.
     machine : what machine the constants were measured on (free text for reports).
     """
 
@@ -128,6 +146,7 @@ class CostModel:
     offload_s: float = 0.0
     cores: int | None = None
     throughput: tuple = ()
+    others: float = 0.0
     machine: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -180,6 +199,21 @@ class CostModel:
     def with_cores(self, cores: int | None) -> CostModel:
         """The same costs with ``cores`` cores shared by the nodes (None: one each)."""
         return CostModel(**{**asdict(self), "cores": cores})
+
+    def beside(self, others: float) -> CostModel:
+        """The same costs on shared cores that also run ``others`` busy processes of others
+        (>= 0; see the attribute). Without ``cores`` (a core a node), unchanged."""
+        if not (math.isfinite(others) and others >= 0.0):
+            raise ValueError(f"other processes must be a finite count >= 0, got {others!r}")
+        if self.cores is None or others == 0.0:
+            return self
+        return replace(self, others=float(others))
+
+    def throughput_at(self, busy: float) -> float:
+        """The aggregate throughput, in single-process speeds, with ``busy`` (> 0, may be
+        fractional) busy processes on the shared cores: ``throughput`` interpolated (beyond
+        its end, its last value; empty: the ideal ``min(busy, cores)``)."""
+        return aggregate_throughput(self.throughput, self.cores, busy)
 
     def stolen(self, share: float) -> CostModel:
         """The same costs on shared cores of which the host gave ``share`` (0 <= share < 1) of

@@ -98,11 +98,10 @@ def setup_cost(store_path: str | os.PathLike, costs: CostModel, config: SceneCon
 
 def span_per_setup(costs: CostModel, nodes: int) -> float:
     """Seconds a cost every one of ``nodes`` busy nodes pays once adds to their span: 1 where
-    each has a core (``costs.cores`` None or >= ``nodes``), else ``nodes`` over the
-    aggregate throughput of ``nodes`` processes on the cores (``costs.throughput``, in
-    single-process speeds; the cores' count where it has no such entry)."""
-    if costs.cores is None or nodes <= costs.cores:
+    each has a core (``costs.cores`` None, or ``nodes`` and ``costs.others`` within the
+    cores), else one over each node's share of the aggregate throughput of ``nodes`` and the
+    others' busy processes on the cores (``CostModel.throughput_at``)."""
+    if costs.cores is None or nodes + costs.others <= costs.cores:
         return 1.0
-    throughput = (costs.throughput[nodes - 1] if len(costs.throughput) >= nodes
-                  else float(costs.cores))
-    return nodes / max(throughput, 1e-9)
+    busy = nodes + costs.others
+    return busy / max(costs.throughput_at(busy), 1e-9)

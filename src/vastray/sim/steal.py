@@ -14,11 +14,21 @@ hog, another test) got about two thirds of the 2 cores, and a validation that ch
 under-predicted it by 23-32 %. ``StealMeter.others`` measures their share too: the machine's
 busy time over the span less this process's and its finished children's (the real run's nodes
 are children it waits for).
+
+Charged as cores the run did not have, others' share over-charges a run that leaves cores
+idle part of the time (a node waiting on its peers, fewer nodes than cores): the other process
+took a core the run did not want. Beside one busy process, the validation's 2-node rows were
+then over-predicted by up to 28 % (2026-12-04). So others are measured by what they demand
+instead: ``others_running``, how many of their processes want a core while this one waits,
+which the simulator runs as that many busy processes beside the nodes (``CostModel.beside``), sharing
+the cores as the operating system shares them; the host's steal, which slows whatever runs,
+stays a share (``CostModel.stolen``).
 """
 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 #: /proc/stat's first line: "cpu  user nice system idle iowait irq softirq steal guest
@@ -73,6 +83,40 @@ def others_share(before: tuple[int, int] | None, after: tuple[int, int] | None,
     return min(others / ((busy + stolen) * tick_s), 0.99)
 
 
+#: How long ``others_running`` watches the machine, and how often it looks
+OTHERS_WINDOW_S = 0.25
+OTHERS_EVERY_S = 0.01
+
+
+def running_now(stat: Path = PROC_STAT) -> int | None:
+    """The machine's runnable tasks now (``procs_running`` in ``/proc/stat``; the caller
+    counts as one); None where the file or the line is missing."""
+    try:
+        for line in stat.read_text().splitlines():
+            if line.startswith("procs_running"):
+                return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def others_running(seconds: float = OTHERS_WINDOW_S, stat: Path = PROC_STAT) -> float:
+    """How many processes of others want a core, on average over ``seconds`` while this one
+    waits: the machine's runnable tasks less this one, looked at every ``OTHERS_EVERY_S``
+    (a spinner beside it: 1; three spinners on 2 cores: 3, where the cores they keep busy
+    would say 2; a quiet machine: about 0). 0 where ``/proc/stat`` says nothing."""
+    counts = []
+    deadline = time.monotonic() + seconds
+    while True:
+        now = running_now(stat)
+        if now is None:
+            return 0.0
+        counts.append(max(now - 1, 0))
+        if time.monotonic() >= deadline:
+            return sum(counts) / len(counts)
+        time.sleep(OTHERS_EVERY_S)
+
+
 class StealMeter:
     """The CPU time others took over a span: ``with StealMeter() as meter: ...``, then
     ``meter.share`` (the host's steal), ``meter.others`` (other processes here) and
@@ -107,3 +151,33 @@ class StealMeter:
         own_s = own_cpu_seconds() - self._own_s
         self.share = stolen_share(self._before, after)
         self.others = others_share(self._before, after, own_s, 1.0 / os.sysconf("SC_CLK_TCK"))
+
+
+class Contention:
+    """What else wanted this machine's cores around a span: ``with Contention() as seen:
+    ...``, then ``seen.share`` (the host's steal during it, ``StealMeter.share``),
+    ``seen.others`` (other processes wanting a core, ``others_running`` before and after
+    it, averaged: during it the span's own processes would count) and ``seen.charged(costs)``
+    (the costs a simulation of the span is charged)."""
+
+    def __init__(self, stat: Path = PROC_STAT):
+        self.stat = stat
+        self._meter = StealMeter(stat)
+        self._before = 0.0
+        self.share = 0.0
+        self.others = 0.0
+
+    def __enter__(self) -> Contention:
+        self._before = others_running(stat=self.stat)
+        self._meter.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._meter.__exit__(*exc)
+        self.share = self._meter.share
+        self.others = (self._before + others_running(stat=self.stat)) / 2
+
+    def charged(self, costs):
+        """``costs`` (a ``CostModel``) with the steal as cores the span did not have and the
+        others as busy processes beside its own (``CostModel.stolen``, ``beside``)."""
+        return costs.stolen(self.share).beside(self.others)
