@@ -110,17 +110,24 @@ def costs_here(quick: bool, store) -> CostModel:
 #: a second moves by up to 2x from the next here (the scan's 2-node ``domain``: 0.34-0.76 s
 #: over ten validations), a run of several seconds by 20-30 %
 QUICK_BUDGET_S = 1.0
+#: ...but beside this many other processes wanting a core, a point takes every pair it may:
+#: where three processes share two cores the operating system's placement moves a run far
+#: more than the work does (rm 128³'s ``image`` on 2 nodes beside a spinner: 1.08-1.29 s
+#: in four runs, one node as fast as alone while the other shared a core with the spinner;
+#: the simulation, charging each its fair share, 1.18 s)
+BUSY_HOST_OTHERS = 0.5
 
 
 def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, costs: CostModel,
            charge_others: bool, rounds: int, budget_s: float, config: SceneConfig,
            domains: Domains) -> dict:
     """One validation point: ``rounds`` pairs (or fewer, once the real runs add up to
-    ``budget_s``) of a real run on ``nodes`` processes (``options``) and a simulation charged
-    the host's steal during that run and the other processes that wanted a core around it
-    (``sim.steal.Contention``: run beside the virtual nodes), with ``charge_others``,
-    one right after the other, so both see the machine's moment: the medians of each side, and
-    the median of the pairs' errors.
+    ``budget_s``, unless others want the cores: ``BUSY_HOST_OTHERS``) of a real run on
+    ``nodes`` processes (``options``) and a simulation charged the host's steal during that
+    run and the other processes that wanted a core around it (``sim.steal.Contention``: run
+    beside the virtual nodes), with ``charge_others``, one right after the other, so both
+    see the machine's moment: the medians of each side, and the median of the pairs'
+    errors.
 
     Returns
     -------
@@ -137,7 +144,8 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     ``result`` (the last real run's) and ``sim`` (the last simulation's).
     """
     reals, sims, lost, others, ratios, result, sim = [], [], [], [], [], None, None
-    while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s):
+    while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s
+                                           or max(others) >= BUSY_HOST_OTHERS):
         with Contention() as seen:
             result = render_distributed(store.path, None, settings, nodes, options=options,
                                         timeout=300)
