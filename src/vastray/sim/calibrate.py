@@ -838,7 +838,7 @@ class MachineProbe:
     from one round to the next as the host's speed drifts, and the 8-node validation rows
     charged at the 1.48-1.62 of a single round over-predicted by 27-62 % (session 32). How
     much busy processes slow each other is the machine's; what others take of it at the
-    moment is the ``StealMeter``'s, beside each real run.
+    moment is ``sim.steal.Contention``'s, around each real run.
 
     Parameters
     ----------

@@ -1,4 +1,5 @@
-"""The share of this machine's CPU time its hypervisor gave to other machines ("steal").
+"""What else wants this machine's cores while a real run runs: the host's "steal" and other
+processes.
 
 On a virtual machine the host may run other guests on the cores ours wants: Linux counts that
 time as ``steal`` in ``/proc/stat``. On the 2-core machine this project is measured on it goes
@@ -9,25 +10,20 @@ count steal) are not: a validation that charges no steal under-predicts such a r
 a quiet minute over-predicts the next. ``StealMeter`` measures the share over a span, so a
 validation can charge the cores the real run actually had (``CostModel.stolen``).
 
-Other processes on this machine take cores the same way: a run beside one busy process (a CPU
-hog, another test) got about two thirds of the 2 cores, and a validation that charged it both
-under-predicted it by 23-32 %. ``StealMeter.others`` measures their share too: the machine's
-busy time over the span less this process's and its finished children's (the real run's nodes
-are children it waits for).
-
-Charged as cores the run did not have, others' share over-charges a run that leaves cores
-idle part of the time (a node waiting on its peers, fewer nodes than cores): the other process
-took a core the run did not want. Beside one busy process, the validation's 2-node rows were
-then over-predicted by up to 28 % (2026-12-04). So others are measured by what they demand
-instead: ``others_running``, how many of their processes want a core while this one waits,
-which the simulator runs as that many busy processes beside the nodes (``CostModel.beside``), sharing
-the cores as the operating system shares them; the host's steal, which slows whatever runs,
-stays a share (``CostModel.stolen``).
+Other processes on this machine take cores too: a run beside one busy process (a CPU hog,
+another test) got about two thirds of the 2 cores, and a validation that charged it both
+under-predicted it by 23-32 %. From session 30 their CPU share over the run was charged like
+the steal, as cores the run did not have; but that over-charges a run that leaves cores idle
+part of the time (a node waiting on its peers): the other process took a core the run did not
+want. Beside one busy process the validation's 2-node rows were then over-predicted by up to
+28 % (2026-12-04). So other processes are counted as what they are, processes that want a
+core (``others_running``), and the simulator runs that many busy processes beside the nodes
+(``CostModel.beside``), sharing the cores as the operating system does. ``Contention``
+measures both around a real run.
 """
 
 from __future__ import annotations
 
-import os
 import time
 from pathlib import Path
 
@@ -61,26 +57,6 @@ def stolen_share(before: tuple[int, int] | None, after: tuple[int, int] | None) 
     if busy + stolen <= 0 or stolen <= 0:
         return 0.0
     return min(stolen / (busy + stolen), 0.99)
-
-
-def own_cpu_seconds() -> float:
-    """CPU seconds of this process (all its threads) and of its children it has waited for."""
-    times = os.times()
-    return times.user + times.system + times.children_user + times.children_system
-
-
-def others_share(before: tuple[int, int] | None, after: tuple[int, int] | None,
-                 own_s: float, tick_s: float) -> float:
-    """The share of the CPU time wanted between two ``cpu_ticks`` readings that went to other
-    processes on this machine: (busy - ``own_s``) / (busy + stolen), in [0, 1); 0 where either
-    reading is missing or nothing ran. ``tick_s``: seconds a tick (1 / USER_HZ)."""
-    if before is None or after is None:
-        return 0.0
-    busy, stolen = after[0] - before[0], after[1] - before[1]
-    if busy + stolen <= 0:
-        return 0.0
-    others = max(busy * tick_s - own_s, 0.0)
-    return min(others / ((busy + stolen) * tick_s), 0.99)
 
 
 #: How long ``others_running`` watches the machine, and how often it looks
@@ -118,39 +94,21 @@ def others_running(seconds: float = OTHERS_WINDOW_S, stat: Path = PROC_STAT) -> 
 
 
 class StealMeter:
-    """The CPU time others took over a span: ``with StealMeter() as meter: ...``, then
-    ``meter.share`` (the host's steal), ``meter.others`` (other processes here) and
-    ``meter.lost`` (both; what ``CostModel.stolen`` charges). All 0 where ``/proc/stat`` is
-    missing.
-
-    ``others`` counts the span's busy time beyond this process's and its waited-for
-    children's CPU time, so what runs in the span must be this process or children it waits
-    for before the span ends. It is an average over the span: another process using a core
-    this run left idle is counted as if it had slowed the run.
-    """
+    """The share of the CPU time wanted over a span that the host gave to other machines:
+    ``with StealMeter() as meter: ...``, then ``meter.share`` (0 where ``/proc/stat`` is
+    missing)."""
 
     def __init__(self, stat: Path = PROC_STAT):
         self.stat = stat
         self.share = 0.0
-        self.others = 0.0
         self._before: tuple[int, int] | None = None
-        self._own_s = 0.0
-
-    @property
-    def lost(self) -> float:
-        """The share of the wanted CPU time that went to the host or to other processes."""
-        return min(self.share + self.others, 0.99)
 
     def __enter__(self) -> StealMeter:
         self._before = cpu_ticks(self.stat)
-        self._own_s = own_cpu_seconds()
         return self
 
     def __exit__(self, *exc) -> None:
-        after = cpu_ticks(self.stat)
-        own_s = own_cpu_seconds() - self._own_s
-        self.share = stolen_share(self._before, after)
-        self.others = others_share(self._before, after, own_s, 1.0 / os.sysconf("SC_CLK_TCK"))
+        self.share = stolen_share(self._before, cpu_ticks(self.stat))
 
 
 class Contention:
