@@ -115,9 +115,11 @@ def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
     proc = subprocess.run([*VASTRAY, "calibrate", str(store), "-o", str(out), "--quick"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
-    # every constant and scale the model charges by, each on a line of its own
+    # every constant and scale the model charges by, each on a line of its own (``others``
+    # is no constant of the machine: the other processes beside one run, 0 from a calibration)
     printed = {line.split()[0] for line in proc.stdout.splitlines() if line.startswith("  ")}
-    assert {f.name for f in fields(CostModel)} - {"cores", "throughput", "machine"} <= printed
+    assert {f.name for f in fields(CostModel)} - {"cores", "throughput", "machine",
+                                                  "others"} <= printed
     assert f"written to {out}" in proc.stdout
     model = CostModel.load(out)
     assert model.latency_s > 0 and model.machine["calibration"]["quick"]
