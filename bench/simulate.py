@@ -49,6 +49,7 @@ The replay is first checked against the simulator that runs the nodes' own code
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -146,12 +147,13 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
     reals, sims, lost, others, ratios, result, sim = [], [], [], [], [], None, None
     while len(reals) < max(rounds, 1) and (not reals or sum(reals) < budget_s
                                            or max(others) >= BUSY_HOST_OTHERS):
-        with Contention() as seen:
+        # without charge_others, nothing is measured (Contention samples 0.5 s a run)
+        with Contention() if charge_others else contextlib.nullcontext() as seen:
             result = render_distributed(store.path, None, settings, nodes, options=options,
                                         timeout=300)
-        charged = seen.charged(costs) if charge_others else costs
-        lost.append(seen.share if charge_others else 0.0)
-        others.append(seen.others if charge_others else 0.0)
+        charged = seen.charged(costs) if seen else costs
+        lost.append(seen.share if seen else 0.0)
+        others.append(seen.others if seen else 0.0)
         reals.append(result.seconds["busy_max"])
         sim = simulate(store, replace(options, threads=None), nodes, charged, settings, config,
                        max_pass_spp=None, domains=domains)
