@@ -225,8 +225,7 @@ class CostModel:
         if self.cores is None or share == 0.0:
             return self
         counts = max(len(self.throughput), 2 * self.cores)
-        full = [self.throughput[min(k, len(self.throughput)) - 1] if self.throughput
-                else float(min(k, self.cores)) for k in range(1, counts + 1)]
+        full = [self.throughput_at(k) for k in range(1, counts + 1)]
         return replace(self, throughput=tuple(t * (1.0 - share) for t in full))
 
     @classmethod

@@ -523,7 +523,7 @@ class Replay:
         pairs = hops.source * size + hops.destination  # sorted, as ``Hops``
         at = np.searchsorted(pairs, source * size + destination)
         counts = np.bincount(at * 2 + kind, minlength=2 * len(pairs))  # (pair, queue) rows
-        nbytes = counts * (self.c.ray_bytes[np.arange(len(counts)) % 2].astype(float)
+        nbytes = counts * (np.tile(self.c.ray_bytes, len(pairs)).astype(float)
                            + extra_bytes) + HEADER_BYTES
         sending, taking = self._charge(ledger, np.repeat(hops.source, 2),
                                        np.repeat(hops.destination, 2), counts, nbytes)
