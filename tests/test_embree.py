@@ -48,6 +48,9 @@ def _arrays(mesh: trimesh.Trimesh) -> DomainArrays:
 
 
 def _embreex(arrays: DomainArrays):
+    if os.environ.get(library.EMBREE_CONFIG_ENV):
+        # e.g. max_isa=avx2: our device runs another ISA's kernels, whose last bits differ
+        pytest.skip(f"embreex's own Embree device does not read {library.EMBREE_CONFIG_ENV}")
     scene = rtcore_scene.EmbreeScene()
     mesh_construction.TriangleMesh(scene, np.asarray(arrays.vertices, np.float32),
                                    np.asarray(arrays.indices, np.uint32))
@@ -218,6 +221,8 @@ def test_packets_answer_bit_for_bit_as_single_rays(api, monkeypatch, n):
     and rays through shared edges and vertices (ties, broken by id in both), for one scene
     and for parts of it as instances (ties between instances), split over threads or not, with
     a last packet part full."""
+    if not api.packets:
+        pytest.skip("this Embree traces 16-ray packets ray by ray: the packet kernels are unused")
     rng = np.random.default_rng(n)
     mesh = MESHES["icosphere"]()
     arrays = _arrays(mesh)
@@ -460,7 +465,8 @@ WARM_START = textwrap.dedent("""
     blocked = scene.occluded(o, d, t, threads=2)[0]
     done = time.perf_counter()
     assert hit == 0 and blocked
-    launched = [kernels.intersect_nearest16, kernels.occluded16]
+    launched = ([kernels.intersect_nearest16, kernels.occluded16] if scene._api.packets
+                else [kernels.intersect_nearest, kernels.occluded1])
     hits = sum(sum(k.stats.cache_hits.values()) for k in launched)
     misses = sum(sum(k.stats.cache_misses.values()) for k in launched)
     print(f"{imported - start:.3f} {done - imported:.3f} {hits} {misses} "

@@ -5,6 +5,10 @@ the argument filter needs."""
 from __future__ import annotations
 
 import ctypes
+import os
+import subprocess
+import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -67,6 +71,9 @@ def test_untested_version_is_refused(reload_binding, monkeypatch):
 def test_mismatching_layout_is_refused(reload_binding, monkeypatch, name, value, problem):
     """The probe's expectations changed one at a time (as a library laid out otherwise would
     differ from them): refused in one line naming the structure, then embreex."""
+    if name == "PACKET" and os.environ.get(library.EMBREE_CONFIG_ENV):
+        pytest.skip(f"{library.EMBREE_CONFIG_ENV} set: the library may not trace packets, "
+                    "and then no packet is probed")
     monkeypatch.setattr(kernels, name, value)
     message = _refused("does not match the layouts the kernels use")
     print(message)
@@ -123,3 +130,53 @@ def test_filter_flag_is_set_on_every_scene_the_filter_traverses():
     finally:
         for scene in (top, robust, fast):
             scene.close()
+
+
+WITHOUT_AVX512 = textwrap.dedent("""
+    import os, warnings
+    import numpy as np
+    warnings.simplefilter("error")  # no EmbreeFallbackWarning: the compiled binding is used
+    from vastray.scene.embree import kernels, library
+    from vastray.scene.embree.scenes import Scene, TopScene
+    api = library.binding()
+    assert api is not None and not api.packets, api
+    rng = np.random.default_rng(3)
+    v = rng.random((300, 3)).astype(np.float32)
+    f = rng.integers(0, 300, (400, 3)).astype(np.uint32)
+    o = (rng.random((5000, 3)) * 3 - 1).astype(np.float32)
+    d = (rng.random((5000, 3)) - 0.5).astype(np.float32)
+    t = np.full(5000, np.inf, np.float32)
+    whole = Scene(v, f)
+    parts = [Scene(v, f[:150]), Scene(v, f[150:])]
+    top = TopScene(parts, [0, 1])
+    a = whole.intersect(o, d, t, threads=2)
+    b = top.intersect(o, d, t, threads=1)
+    assert (a["primID"] >= 0).sum() > 100
+    # the same hits whether the mesh is one scene or two instances (the tie filter's records)
+    np.testing.assert_array_equal(a["tfar"], b["tfar"])
+    np.testing.assert_array_equal(np.where(b["id"] == 1, b["primID"] + 150, b["primID"]),
+                                  a["primID"])
+    np.testing.assert_array_equal(whole.occluded(o, d, t, threads=2), a["primID"] >= 0)
+    print(sum(len(k.overloads) for k in (kernels.intersect_nearest, kernels.occluded1)),
+          sum(len(k.overloads) for k in (kernels.intersect_nearest16, kernels.occluded16)))
+    os.environ["VASTRAY_QUERIES"] = "packets"
+    try:
+        whole.occluded(o, d, t)
+    except ValueError as exc:
+        print(exc)
+""")
+
+
+def test_a_library_tracing_packets_ray_by_ray_runs_the_one_ray_kernels():
+    """Without AVX-512 (emulated: Embree's ``max_isa=avx2``) ``rtcIntersect16`` traces a
+    packet's rays one by one and hands the filter one lane, which the packet kernels' per-lane
+    records cannot follow. Such a library is not refused (it was, and every query went through
+    embreex): it is used with the 1-ray kernels, ties broken as everywhere, and a request for
+    packets there is refused with the reason."""
+    env = {**os.environ, library.EMBREE_CONFIG_ENV: "max_isa=avx2"}
+    env.pop("VASTRAY_QUERIES", None)
+    out = subprocess.run([sys.executable, "-c", WITHOUT_AVX512], env=env, check=True,
+                         capture_output=True, text=True).stdout.splitlines()
+    single, packets = (int(x) for x in out[0].split())
+    assert single == 2 and packets == 0  # only the 1-ray kernels ran
+    assert "traces 16-ray packets ray by ray" in out[1] and "unset VASTRAY_QUERIES" in out[1]

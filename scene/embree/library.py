@@ -14,6 +14,19 @@ run once at load: e.g. a build with ``RTC_MAX_INSTANCE_LEVEL_COUNT > 1``, which 
 property reports), ``binding()`` returns None after one ``EmbreeFallbackWarning`` (one line
 naming the problem) and ``DomainBVH`` uses embreex's ``run`` as before. ``VASTRAY_EMBREEX=1``
 in the environment chooses embreex's ``run`` on purpose (no warning), e.g. to compare the two.
+
+Packets
+-------
+16-ray packets are native only where Embree runs its AVX-512 kernels
+(``RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED``). Elsewhere (an AVX2 CPU: most desktops and
+many servers) ``rtcIntersect16`` traces the packet's rays one by one and calls the filter with
+one lane (``N`` 1), so the tie filter's per-lane records would be read at the wrong lane:
+there ``Api.packets`` is False and queries run the 1-ray kernels, which give the same answers
+(before, the probe refused such a library and every query went through embreex's ``run``).
+
+``VASTRAY_EMBREE_CONFIG`` is passed to ``rtcNewDevice`` as Embree's device configuration
+string, e.g. ``max_isa=avx2`` (trace as on a CPU without AVX-512: tests run the 1-ray path so
+on any machine) or ``verbose=1`` (Embree prints the ISA it selected).
 """
 
 from __future__ import annotations
@@ -31,6 +44,8 @@ RTC_DEVICE_PROPERTY_VERSION = 0
 RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
 RTC_DEVICE_PROPERTY_VERSION_MINOR = 2
 RTC_DEVICE_PROPERTY_VERSION_PATCH = 3
+#: Whether rtcIntersect16/rtcOccluded16 trace a packet as one (AVX-512) or ray by ray.
+RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED = 34
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
 RTC_BUFFER_TYPE_INDEX = 0
 RTC_BUFFER_TYPE_VERTEX = 1
@@ -51,6 +66,8 @@ RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
 #: (major, minor) versions of Embree whose headers the layouts and constants here were checked
 #: against (``pyproject.toml`` pins embreex to the same: ``>=4.3,<4.5``).
 TESTED_VERSIONS = ((4, 3), (4, 4))
+#: Embree's device configuration string (``rtcNewDevice``'s argument), e.g. ``max_isa=avx2``.
+EMBREE_CONFIG_ENV = "VASTRAY_EMBREE_CONFIG"
 
 
 class EmbreeFallbackWarning(RuntimeWarning):
@@ -112,9 +129,11 @@ class Api:
             fn = getattr(self.lib, name)
             fn.restype, fn.argtypes = res, args
             setattr(self, name, fn)
-        self.device = self.rtcNewDevice(None)
+        config = os.environ.get(EMBREE_CONFIG_ENV, "").strip()
+        self.device = self.rtcNewDevice(config.encode() or None)
         if not self.device:
-            raise OSError("rtcNewDevice failed")
+            raise OSError("rtcNewDevice failed" + (f" with {EMBREE_CONFIG_ENV}={config!r}"
+                                                   if config else ""))
         self.version = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION))
         self.major = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MAJOR))
         self.minor = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MINOR))
@@ -126,6 +145,9 @@ class Api:
             tested = ", ".join(f"{a}.{b}" for a, b in TESTED_VERSIONS)
             raise OSError(f"{path.name} is Embree {self.version}, not a tested version "
                           f"({tested}) whose layouts the kernels use")
+        #: 16-ray packets traced as packets (AVX-512); else the kernels query ray by ray
+        self.packets = bool(self.rtcGetDeviceProperty(
+            self.device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED))
 
     def close(self) -> None:
         """Release the device (only when the library is refused: no scene of it is left)."""

@@ -12,8 +12,9 @@ and the tasking system, not the instance levels nor instance arrays), so ``check
 asks the library itself: it traces known rays through a tiny two-level scene with the
 structures padded by sentinel words and checks exactly which words Embree wrote, and what a
 filter given our context sees. The 16-ray packets (``RTCRayHit16``: field k of lane i at word
-``16 k + i``) are checked the same way, one lane of a packet at a time. Any difference raises
-``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back to embreex.
+``16 k + i``) are checked the same way, one lane of a packet at a time, where the library
+traces 16-ray packets natively (``Api.packets``; elsewhere the kernels never call them). Any
+difference raises ``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back to embreex.
 
 The checks read the expected offsets from ``kernels`` at call time (tests change them to
 simulate a mismatching library).
@@ -176,10 +177,12 @@ def _probe(api: Api, Scene, TopScene) -> str:
     top = TopScene([far, near], [0, 1], api=api)
     try:
         for scene, inst in ((top, 1), (near, _INVALID)):
-            problem = _probe_intersect(api, scene, inst) or _probe_packet(api, scene, inst)
+            problem = _probe_intersect(api, scene, inst) or (
+                _probe_packet(api, scene, inst) if api.packets else "")
             if problem:
                 return problem
-        return _probe_occluded(api, top) or _probe_occluded_packet(api, top)
+        return _probe_occluded(api, top) or (
+            _probe_occluded_packet(api, top) if api.packets else "")
     finally:
         for scene in (top, near, far):
             scene.close()

@@ -60,6 +60,7 @@ from vastray.scene.embree.kernels import (
 )
 from vastray.scene.embree.launch import launch, rays
 from vastray.scene.embree.library import (
+    EMBREE_CONFIG_ENV,
     RTC_BUFFER_TYPE_INDEX,
     RTC_BUFFER_TYPE_VERTEX,
     RTC_BUILD_QUALITY_LOW,
@@ -85,7 +86,9 @@ TRIANGLE_TEST_ENV = "VASTRAY_TRIANGLE_TEST"
 #: Added to every scene's flags: the tie filter is passed in the query arguments.
 FILTER_FLAG = RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
 #: ``VASTRAY_QUERIES=single`` traces one ray per Embree call instead of 16-ray packets (the
-#: same answers, bit for bit): for measurements (``bench/throughput.py``) and comparisons.
+#: same answers, bit for bit): for measurements (``bench/throughput.py``) and comparisons. A
+#: library that traces 16-ray packets ray by ray (no AVX-512: ``Api.packets``) always runs the
+#: 1-ray kernels.
 QUERIES_ENV = "VASTRAY_QUERIES"
 
 _PAGE = mmap.PAGESIZE
@@ -103,14 +106,20 @@ def scene_flags() -> int:
                      f"'fast' (Embree's non-watertight test, for measurements)")
 
 
-def query_kernels():
-    """The (closest-hit, occlusion) kernels queries run: the 16-ray packet kernels, or the
-    1-ray ones where ``VASTRAY_QUERIES`` says ``single``; any other value is refused."""
+def query_kernels(packets: bool = True):
+    """The (closest-hit, occlusion) kernels queries run: the 16-ray packet kernels where the
+    library traces packets natively (``packets``, ``Api.packets``), else the 1-ray ones; the
+    1-ray ones too where ``VASTRAY_QUERIES`` says ``single``. ``VASTRAY_QUERIES=packets`` on a
+    library without native packets, or any other value, is refused."""
     mode = os.environ.get(QUERIES_ENV, "").strip().lower()
-    if mode in ("", "packets"):
-        return intersect_nearest16, occluded16
+    if mode == "" or (mode == "packets" and packets):
+        return (intersect_nearest16, occluded16) if packets else (intersect_nearest, occluded1)
     if mode == "single":
         return intersect_nearest, occluded1
+    if mode == "packets":
+        raise ValueError(f"{QUERIES_ENV}=packets: this Embree traces 16-ray packets ray by ray "
+                         f"(no AVX-512 here, or {EMBREE_CONFIG_ENV} lowers its ISA), and the "
+                         f"packet kernels need them traced as one; unset {QUERIES_ENV}")
     raise ValueError(f"{QUERIES_ENV}={mode!r}: expected 'packets' (the default) or 'single' "
                      f"(one ray per Embree call, for measurements)")
 
@@ -198,7 +207,7 @@ class _SceneHandle:
         org, dirs, tf = rays(origins, directions, t_far)
         out = np.empty(len(org), np.bool_)
         if len(org):
-            kernel = query_kernels()[1]
+            kernel = query_kernels(self._api.packets)[1]
             with self._lease() as handle:
                 launch(kernel, threads, len(org), handle, org, dirs, tf, out)
         return out
@@ -215,7 +224,7 @@ class _SceneHandle:
                "Ng": np.empty((n, 3), np.float32)}
         inst = np.empty(n, np.int32)
         if n:
-            kernel = query_kernels()[0]
+            kernel = query_kernels(self._api.packets)[0]
             with self._lease() as handle:
                 launch(kernel, threads, n, handle, filter_address(), org, dirs,
                         tf, out["primID"], out["tfar"], out["u"], out["v"], out["Ng"], inst)
