@@ -205,7 +205,7 @@ def test_ties_keep_the_lowest_id_whatever_the_path(api):
 
 
 def _query_both_ways(monkeypatch, scene, origins, dirs, t_far, threads):
-    """``scene``'s closest hits and occlusion with 16-ray packets and with single rays."""
+    """``scene``'s closest hits and occlusion with 8-ray packets and with single rays."""
     answers = {}
     for mode in ("packets", "single"):
         monkeypatch.setenv(QUERIES_ENV, mode)
@@ -216,13 +216,13 @@ def _query_both_ways(monkeypatch, scene, origins, dirs, t_far, threads):
 
 @pytest.mark.parametrize("n", [0, 1, 15, 17, 30000])
 def test_packets_answer_bit_for_bit_as_single_rays(api, monkeypatch, n):
-    """16-ray packets (the default) give every output of the 1-ray queries, bit for bit, on
+    """8-ray packets (the default) give every output of the 1-ray queries, bit for bit, on
     coherent rays (a pinhole fan, as camera rays), scattered rays with every kind of t_far,
     and rays through shared edges and vertices (ties, broken by id in both), for one scene
     and for parts of it as instances (ties between instances), split over threads or not, with
     a last packet part full."""
     if not api.packets:
-        pytest.skip("this Embree traces 16-ray packets ray by ray: the packet kernels are unused")
+        pytest.skip("this Embree traces 8-ray packets ray by ray: the packet kernels are unused")
     rng = np.random.default_rng(n)
     mesh = MESHES["icosphere"]()
     arrays = _arrays(mesh)
@@ -378,8 +378,8 @@ def test_no_kernel_uses_numbas_threading_layer(api):
     from numba.np.ufunc import parallel
 
     compiled = compiled_functions(kernels)
-    assert {kernels.intersect_nearest, kernels.occluded1, kernels.intersect_nearest16,
-            kernels.occluded16} <= set(compiled)
+    assert {kernels.intersect_nearest, kernels.occluded1, kernels.intersect_nearest8,
+            kernels.occluded8} <= set(compiled)
     for kernel in compiled:
         assert not kernel.targetoptions.get("parallel"), kernel
     arrays = _arrays(MESHES["icosphere"]())
@@ -465,7 +465,7 @@ WARM_START = textwrap.dedent("""
     blocked = scene.occluded(o, d, t, threads=2)[0]
     done = time.perf_counter()
     assert hit == 0 and blocked
-    launched = ([kernels.intersect_nearest16, kernels.occluded16] if scene._api.packets
+    launched = ([kernels.intersect_nearest8, kernels.occluded8] if scene._api.packets
                 else [kernels.intersect_nearest, kernels.occluded1])
     hits = sum(sum(k.stats.cache_hits.values()) for k in launched)
     misses = sum(sum(k.stats.cache_misses.values()) for k in launched)

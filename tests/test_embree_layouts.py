@@ -66,7 +66,7 @@ def test_untested_version_is_refused(reload_binding, monkeypatch):
     ("HITN_INST", kernels.HITN_INST + 1, "the filter read"),  # RTCHitN's instID elsewhere
     ("ARG_CONTEXT", kernels.ARG_CONTEXT - 8, "RTCFilterFunctionNArguments"),
     ("CTX_RECORD", 4, "RTCRayQueryContext"),  # our record over Embree's instance stack
-    ("PACKET", 8, "16-ray packet"),  # RTCRayHit16's lanes elsewhere
+    ("PACKET", 16, "8-ray packet"),  # RTCRayHit8's lanes elsewhere
 ])
 def test_mismatching_layout_is_refused(reload_binding, monkeypatch, name, value, problem):
     """The probe's expectations changed one at a time (as a library laid out otherwise would
@@ -158,7 +158,7 @@ WITHOUT_AVX512 = textwrap.dedent("""
                                   a["primID"])
     np.testing.assert_array_equal(whole.occluded(o, d, t, threads=2), a["primID"] >= 0)
     print(sum(len(k.overloads) for k in (kernels.intersect_nearest, kernels.occluded1)),
-          sum(len(k.overloads) for k in (kernels.intersect_nearest16, kernels.occluded16)))
+          sum(len(k.overloads) for k in (kernels.intersect_nearest8, kernels.occluded8)))
     os.environ["VASTRAY_QUERIES"] = "packets"
     try:
         whole.occluded(o, d, t)
@@ -168,15 +168,15 @@ WITHOUT_AVX512 = textwrap.dedent("""
 
 
 def test_a_library_tracing_packets_ray_by_ray_runs_the_one_ray_kernels():
-    """Without AVX-512 (emulated: Embree's ``max_isa=avx2``) ``rtcIntersect16`` traces a
-    packet's rays one by one and hands the filter one lane, which the packet kernels' per-lane
-    records cannot follow. Such a library is not refused (it was, and every query went through
-    embreex): it is used with the 1-ray kernels, ties broken as everywhere, and a request for
-    packets there is refused with the reason."""
-    env = {**os.environ, library.EMBREE_CONFIG_ENV: "max_isa=avx2"}
+    """Without AVX (emulated: Embree's ``max_isa=sse4.2``) ``rtcIntersect8`` traces a packet's
+    rays one by one and hands the filter one lane, which the packet kernels' per-lane records
+    cannot follow. Such a library is not refused (with 16-ray packets an AVX2 one was, and
+    every query went through embreex): it is used with the 1-ray kernels, ties broken as
+    everywhere, and a request for packets there is refused with the reason."""
+    env = {**os.environ, library.EMBREE_CONFIG_ENV: "max_isa=sse4.2"}
     env.pop("VASTRAY_QUERIES", None)
     out = subprocess.run([sys.executable, "-c", WITHOUT_AVX512], env=env, check=True,
                          capture_output=True, text=True).stdout.splitlines()
     single, packets = (int(x) for x in out[0].split())
     assert single == 2 and packets == 0  # only the 1-ray kernels ran
-    assert "traces 16-ray packets ray by ray" in out[1] and "unset VASTRAY_QUERIES" in out[1]
+    assert "traces 8-ray packets ray by ray" in out[1] and "unset VASTRAY_QUERIES" in out[1]

@@ -10,7 +10,7 @@ Modules
   buffers, before the binding is used.
 - ``intrinsics``: Embree's query functions called by name, and raw memory access, from
   numba-compiled code (so the kernels are cached on disk).
-- ``kernels``: the serial ``nogil`` query kernels, 16-ray packets (and 1-ray twins), and the tie filter
+- ``kernels``: the serial ``nogil`` query kernels, 8-ray packets (and 1-ray twins), and the tie filter
   that makes closest hits independent of traversal order.
 - ``launch``: a query's ray arrays checked, its rays split over threads.
 - ``scenes``: ``Scene`` (one mesh, zero copy) and ``TopScene`` (instances of several), their

@@ -54,8 +54,8 @@ def _external4(name: str):
 
 rtc_intersect1 = _external3("rtcIntersect1")  # (scene, rayhit, args)
 rtc_occluded1 = _external3("rtcOccluded1")  # (scene, ray, args)
-rtc_intersect16 = _external4("rtcIntersect16")  # (valid, scene, rayhit16, args)
-rtc_occluded16 = _external4("rtcOccluded16")  # (valid, scene, ray16, args)
+rtc_intersect8 = _external4("rtcIntersect8")  # (valid, scene, rayhit8, args)
+rtc_occluded8 = _external4("rtcOccluded8")  # (valid, scene, ray8, args)
 
 
 def _memory(width: int, kind: str):

@@ -6,23 +6,25 @@ They run without the GIL and are loaded from numba's on-disk cache by a warm pro
 context, arguments) is that call's own, aligned as Embree's headers declare. The kernels do
 not check bounds: ``launch.rays`` checks their inputs.
 
-Queries: 16-ray packets
------------------------
-Closest hits use ``rtcIntersect16`` (``intersect_nearest16``) with an argument filter
+Queries: 8-ray packets
+----------------------
+Closest hits use ``rtcIntersect8`` (``intersect_nearest8``) with an argument filter
 (``_tie_filter``) that keeps, of equally near hits, the lowest (instance, primitive) id: the hit
 of a ray does not depend on the order Embree meets tied candidates in, so a domain queried
 directly and the same domain met as an instance of a top-level scene give the same hit (without
 it, rays through a shared edge kept different triangles on the two paths: issue 20), and a ray's
-hit does not depend on the rays it shares a packet with. Occlusion uses ``rtcOccluded16``
-(``occluded16``). The 1-ray kernels (``intersect_nearest``, ``occluded1``) give the same answers
+hit does not depend on the rays it shares a packet with. Occlusion uses ``rtcOccluded8``
+(``occluded8``). The 1-ray kernels (``intersect_nearest``, ``occluded1``) give the same answers
 bit for bit (``tests/test_embree.py``) and stay for measurements (``VASTRAY_QUERIES=single``).
 
 Packets were dropped once (9dd359d) after a heap corruption seen with them in session 4
 (``bench/README.md``) that no later attempt reproduced, neither the packet path as committed nor
 a rebuild of that experiment (``docs/DESIGN.md``, render workers), and stayed out while they
 measured no faster (2026-11-29, ``bench/README.md#peerspy``). On an AVX-512 machine (2026-12-01)
-they trace camera rays 1.3-1.7x and shadow rays 1.3x as fast as single rays, and bounce rays
-no slower; renders take 10 % less.
+16-ray packets traced camera rays 1.3-1.7x and shadow rays 1.3x as fast as single rays, and
+bounce rays no slower; renders took 10 % less. 8-ray packets (2026-12-04) trace camera and
+bounce rays another 20 % faster there (``bench/README.md#peerspy``), and are native wherever
+Embree runs AVX or AVX2 kernels too, where 16-ray packets are traced ray by ray (``library``).
 
 Everything the kernels compile in is defined here except the Embree calls and memory access
 of ``intrinsics`` (numba's cache sees changes to this file only: see there).
@@ -41,9 +43,9 @@ from vastray.scene.embree.intrinsics import (
     load_i32,
     load_i64,
     rtc_intersect1,
-    rtc_intersect16,
+    rtc_intersect8,
     rtc_occluded1,
-    rtc_occluded16,
+    rtc_occluded8,
     store_f32,
     store_i32,
 )
@@ -120,7 +122,7 @@ def _set_ray1(f, i32, org, dirs, tfar, i):
 @njit(nogil=True, cache=True)
 def occluded1(scene, org, dirs, tfar_in, out):
     """Occlusion of rays ``org + t dirs``, ``0 <= t <= tfar_in``, one ``rtcOccluded1`` per ray;
-    ``out`` (n,) bool (``occluded16``'s answers; for measurements).
+    ``out`` (n,) bool (``occluded8``'s answers; for measurements).
 
     The ray buffer is a whole RTCRayHit (96 bytes, 16-byte aligned), though Embree reads and
     writes only its RTCRay part.
@@ -247,7 +249,7 @@ def _query_buffers():
 @njit(nogil=True, cache=True)
 def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
     """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt`` (for
-    measurements: ``intersect_nearest16``'s answers): the outputs are (n,) each (``ng``
+    measurements: ``intersect_nearest8``'s answers): the outputs are (n,) each (``ng``
     (n, 3)); ``inst`` receives the instance (top-level geometry id) of each hit, -1 for a miss
     or a scene without instances.
 
@@ -283,12 +285,12 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
 
 
 # ---------------------------------------------------------------------------------------------
-# 16-ray packets: the same queries, 16 consecutive rays a call
+# 8-ray packets: the same queries, 8 consecutive rays a call
 # ---------------------------------------------------------------------------------------------
 
-#: Lanes of a packet query (``rtcIntersect16``, ``rtcOccluded16``).
-PACKET = 16
-#: 32-bit fields of RTCRayHit16 (``RTC_ALIGN(64)``): RTCRay16's 12, then RTCHit16's Ng_x, Ng_y,
+#: Lanes of a packet query (``rtcIntersect8``, ``rtcOccluded8``).
+PACKET = 8
+#: 32-bit fields of RTCRayHit8 (``RTC_ALIGN(32)``): RTCRay8's 12, then RTCHit8's Ng_x, Ng_y,
 #: Ng_z, u, v, primID, geomID, instID[1] and instPrimID[1] (with instance arrays). Field k is
 #: RTCRayHit's word k (``RAYHIT_*``); lane i of it is word ``k * PACKET + i``.
 PACKET_FIELDS = 21
@@ -296,7 +298,7 @@ PACKET_FIELDS = 21
 
 @njit(inline="always")
 def _packet_constants(f, i32):
-    """The RTCRay16 fields Embree reads and never writes, the same for every ray: tnear 0,
+    """The RTCRay8 fields Embree reads and never writes, the same for every ray: tnear 0,
     time 0, mask all ones, id 0, flags 0 (set once per kernel call, not per packet)."""
     for lane in range(PACKET):
         f[3 * PACKET + lane] = 0.0
@@ -325,9 +327,9 @@ def _packet_rays(f, valid, org, dirs, tfar, start, m):
 
 @njit(inline="always")
 def _packet_buffers():
-    """A kernel call's own RTCRayHit16 buffer (float32 words ``f`` and their int32 view
-    ``i32``) and ``valid`` mask, each 64-byte aligned as Embree requires of 16-wide packets
-    (the views keep their allocations alive as long as they are used)."""
+    """A kernel call's own RTCRayHit8 buffer (float32 words ``f`` and their int32 view
+    ``i32``) and ``valid`` mask, each 64-byte aligned (Embree requires 32 bytes of 8-wide
+    packets; the views keep their allocations alive as long as they are used)."""
     raw = np.empty(PACKET_FIELDS * PACKET + 16, np.float32)
     f = _aligned(raw, 16, PACKET_FIELDS * PACKET)
     raw_valid = np.empty(PACKET + 16, np.int32)
@@ -335,14 +337,15 @@ def _packet_buffers():
 
 
 @njit(nogil=True, cache=True)
-def occluded16(scene, org, dirs, tfar_in, out):
-    """``occluded1``'s answers, 16 rays a ``rtcOccluded16`` (the last call's missing lanes
+def occluded8(scene, org, dirs, tfar_in, out):
+    """``occluded1``'s answers, 8 rays a ``rtcOccluded8`` (the last call's missing lanes
     invalid); ``out`` (n,) bool.
 
-    The packet (RTCRay16 in an RTCRayHit16-sized buffer) and its ``valid`` mask are this call's
-    own, 64-byte aligned as Embree requires of 16-wide packets. Rays that stay together cross
-    the same BVH nodes (camera rays of a pixel, shadow rays towards one point light): Embree
-    traverses those 16 at a time, and falls back to single rays inside a packet that scatters.
+    The packet (RTCRay8 in an RTCRayHit8-sized buffer) and its ``valid`` mask are this call's
+    own, 64-byte aligned (Embree requires 32 bytes of 8-wide packets). Rays that stay together
+    cross the same BVH nodes (camera rays of a pixel, shadow rays towards one point light):
+    Embree traverses those 8 at a time, and falls back to single rays inside a packet that
+    scatters.
     """
     n = org.shape[0]
     f, i32, valid = _packet_buffers()
@@ -350,14 +353,14 @@ def occluded16(scene, org, dirs, tfar_in, out):
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
-        rtc_occluded16(valid.ctypes.data, scene, f.ctypes.data, 0)
+        rtc_occluded8(valid.ctypes.data, scene, f.ctypes.data, 0)
         for lane in range(m):
             out[start + lane] = f[RAYHIT_TFAR * PACKET + lane] < 0
 
 
 @njit(nogil=True, cache=True)
-def intersect_nearest16(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
-    """``intersect_nearest``'s closest hits, bit for bit, 16 rays a ``rtcIntersect16`` with
+def intersect_nearest8(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
+    """``intersect_nearest``'s closest hits, bit for bit, 8 rays a ``rtcIntersect8`` with
     the tie filter ``filt`` (each lane keeps its own record in the context: Embree calls the
     filter with the packet's lanes, or with one lane valid where it traces a lane alone).
 
@@ -389,7 +392,7 @@ def intersect_nearest16(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, i
             cf[record + 4 * lane] = tfar_in[start + lane]
             context[record + 4 * lane + 1] = _NO_ID
             context[record + 4 * lane + 2] = _NO_ID
-        rtc_intersect16(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
+        rtc_intersect8(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
         for lane in range(m):  # a miss reads as primID -1, zero u, v and Ng (as _store_hit)
             i = start + lane
             p = i32[RAYHIT_PRIM * PACKET + lane]

@@ -17,16 +17,18 @@ in the environment chooses embreex's ``run`` on purpose (no warning), e.g. to co
 
 Packets
 -------
-16-ray packets are native only where Embree runs its AVX-512 kernels
-(``RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED``). Elsewhere (an AVX2 CPU: most desktops and
-many servers) ``rtcIntersect16`` traces the packet's rays one by one and calls the filter with
-one lane (``N`` 1), so the tie filter's per-lane records would be read at the wrong lane:
-there ``Api.packets`` is False and queries run the 1-ray kernels, which give the same answers
-(before, the probe refused such a library and every query went through embreex's ``run``).
+The kernels trace 8-ray packets (``rtcIntersect8``, ``rtcOccluded8``), native wherever Embree
+runs its AVX, AVX2 or AVX-512 kernels (``RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED``). A packet
+width the library does not trace natively is traced ray by ray, the filter called with one
+lane (``N`` 1) at a time, so the tie filter's per-lane records would be read at the wrong lane:
+there (an SSE-only CPU, or ``max_isa=sse4.2``) ``Api.packets`` is False and queries run the
+1-ray kernels, which give the same answers. (The kernels traced 16-ray packets until
+2026-12-04; native only with AVX-512, so on an AVX2 CPU, what most users have, the load-time
+probe refused the library and every query went through embreex's ``run``.)
 
 ``VASTRAY_EMBREE_CONFIG`` is passed to ``rtcNewDevice`` as Embree's device configuration
-string, e.g. ``max_isa=avx2`` (trace as on a CPU without AVX-512: tests run the 1-ray path so
-on any machine) or ``verbose=1`` (Embree prints the ISA it selected).
+string, e.g. ``max_isa=avx2`` (trace as on a CPU without AVX-512; ``sse4.2``: without AVX,
+the 1-ray path) or ``verbose=1`` (Embree prints the ISA it selected).
 """
 
 from __future__ import annotations
@@ -44,8 +46,8 @@ RTC_DEVICE_PROPERTY_VERSION = 0
 RTC_DEVICE_PROPERTY_VERSION_MAJOR = 1
 RTC_DEVICE_PROPERTY_VERSION_MINOR = 2
 RTC_DEVICE_PROPERTY_VERSION_PATCH = 3
-#: Whether rtcIntersect16/rtcOccluded16 trace a packet as one (AVX-512) or ray by ray.
-RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED = 34
+#: Whether rtcIntersect8/rtcOccluded8 trace a packet as one (AVX and up) or ray by ray.
+RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED = 33
 RTC_GEOMETRY_TYPE_TRIANGLE = 0
 RTC_BUFFER_TYPE_INDEX = 0
 RTC_BUFFER_TYPE_VERTEX = 1
@@ -122,8 +124,8 @@ class Api:
             # (the layout probe's queries; the kernels call these by name)
             "rtcIntersect1": (None, [p, p, p]),
             "rtcOccluded1": (None, [p, p, p]),
-            "rtcIntersect16": (None, [p, p, p, p]),
-            "rtcOccluded16": (None, [p, p, p, p]),
+            "rtcIntersect8": (None, [p, p, p, p]),
+            "rtcOccluded8": (None, [p, p, p, p]),
         }
         for name, (res, args) in sigs.items():
             fn = getattr(self.lib, name)
@@ -145,9 +147,9 @@ class Api:
             tested = ", ".join(f"{a}.{b}" for a, b in TESTED_VERSIONS)
             raise OSError(f"{path.name} is Embree {self.version}, not a tested version "
                           f"({tested}) whose layouts the kernels use")
-        #: 16-ray packets traced as packets (AVX-512); else the kernels query ray by ray
+        #: 8-ray packets traced as packets (AVX and up); else the kernels query ray by ray
         self.packets = bool(self.rtcGetDeviceProperty(
-            self.device, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED))
+            self.device, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED))
 
     def close(self) -> None:
         """Release the device (only when the library is refused: no scene of it is left)."""

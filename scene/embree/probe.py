@@ -11,9 +11,9 @@ library built with ``RTC_MAX_INSTANCE_LEVEL_COUNT`` 1: a build with more instanc
 and the tasking system, not the instance levels nor instance arrays), so ``check_layouts``
 asks the library itself: it traces known rays through a tiny two-level scene with the
 structures padded by sentinel words and checks exactly which words Embree wrote, and what a
-filter given our context sees. The 16-ray packets (``RTCRayHit16``: field k of lane i at word
-``16 k + i``) are checked the same way, one lane of a packet at a time, where the library
-traces 16-ray packets natively (``Api.packets``; elsewhere the kernels never call them). Any
+filter given our context sees. The 8-ray packets (``RTCRayHit8``: field k of lane i at word
+``8 k + i``) are checked the same way, one lane of a packet at a time, where the library
+traces 8-ray packets natively (``Api.packets``; elsewhere the kernels never call them). Any
 difference raises ``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back to embreex.
 
 The checks read the expected offsets from ``kernels`` at call time (tests change them to
@@ -265,9 +265,9 @@ def _packet_words() -> int:
 
 
 def _packet(ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A padded RTCRayHit16 buffer holding the 1-ray buffer ``ray``'s fields in lane
+    """A padded RTCRayHit8 buffer holding the 1-ray buffer ``ray``'s fields in lane
     ``_LANE`` (every other lane left at the sentinel) and its ``valid`` mask (that lane
-    only), set as ``kernels.intersect_nearest16`` sets its own."""
+    only), set as ``kernels.intersect_nearest8`` sets its own."""
     buf = _buffer(_packet_words() + 64)
     for field in range(kernels.PACKET_FIELDS):
         buf[field * kernels.PACKET + _LANE] = ray[field]
@@ -278,7 +278,7 @@ def _packet(ray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _probe_packet(api: Api, scene, inst: int) -> str:
-    """One ``rtcIntersect16`` with one lane valid: the filter sees 16 lanes and that lane's
+    """One ``rtcIntersect8`` with one lane valid: the filter sees 8 lanes and that lane's
     candidate where ``_tie_filter`` reads them, and Embree writes that lane's hit and nothing
     else (the other lanes and the padding keep their sentinels)."""
     where = "through an instance" if inst != _INVALID else "of a scene"
@@ -291,19 +291,19 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
     callback = _FILTER(filt)
     args = _arguments(ctx, callback)
     with scene._lease() as handle:
-        api.rtcIntersect16(valid.ctypes.data, handle, ray.ctypes.data, args.ctypes.data)
+        api.rtcIntersect8(valid.ctypes.data, handle, ray.ctypes.data, args.ctypes.data)
     api.check("the packet layout probe")
     if not seen:
-        return f"no hit {where} of a 16-ray packet reached the filter"
+        return f"no hit {where} of a 8-ray packet reached the filter"
     got = seen[0]
     if "error" in got:
-        return f"the filter of a 16-ray packet could not read its arguments ({got['error']})"
+        return f"the filter of a 8-ray packet could not read its arguments ({got['error']})"
     want_valid = [-1 if k == _LANE else 0 for k in range(kernels.PACKET)]
     if got["N"] != kernels.PACKET or got["valid"] != want_valid:
-        return (f"a 16-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
+        return (f"a 8-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
                 f"N {kernels.PACKET} and lane {_LANE} only")
     if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
-        return (f"the filter of a 16-ray packet read t {got['t']}, primID {got['prim']}, "
+        return (f"the filter of a 8-ray packet read t {got['t']}, primID {got['prim']}, "
                 f"instID {got['inst']} in lane {_LANE} {where}, expected 1.0, 1, {inst}")
     # the lane's fields, read as a 1-ray buffer, must hold the hit the 1-ray probe checks
     pad = np.full(_WORDS - kernels.PACKET_FIELDS, SENTINEL, np.uint32)
@@ -311,20 +311,20 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
     lane_before = np.concatenate([before[_LANE:_packet_words():kernels.PACKET], pad])
     problem = _check_hit(lane, lane_before, 1, inst)
     if problem:
-        return f"16-ray packet lane {_LANE}: {problem}"
+        return f"8-ray packet lane {_LANE}: {problem}"
     others = np.ones(len(ray), bool)
     others[_LANE:_packet_words():kernels.PACKET] = False
-    problem = _diff("RTCRayHit16 (other lanes and padding)", ray[others], before[others])
-    return problem and problem + " (RTCRayHit16 laid out otherwise?)"
+    problem = _diff("RTCRayHit8 (other lanes and padding)", ray[others], before[others])
+    return problem and problem + " (RTCRayHit8 laid out otherwise?)"
 
 
 def _probe_occluded_packet(api: Api, scene) -> str:
-    """One ``rtcOccluded16`` with one lane valid: Embree writes that lane's tfar (-inf, a hit)
+    """One ``rtcOccluded8`` with one lane valid: Embree writes that lane's tfar (-inf, a hit)
     and nothing else."""
     ray, valid = _packet(_ray([0.25, 0.25, -1.0], [0.0, 0.0, 1.0]))
     want = ray.copy()
     want.view(np.float32)[kernels.RAYHIT_TFAR * kernels.PACKET + _LANE] = -np.inf
     with scene._lease() as handle:
-        api.rtcOccluded16(valid.ctypes.data, handle, ray.ctypes.data, None)
+        api.rtcOccluded8(valid.ctypes.data, handle, ray.ctypes.data, None)
     api.check("the packet layout probe")
-    return _diff("RTCRay16 (occlusion)", ray, want)
+    return _diff("RTCRay8 (occlusion)", ray, want)

@@ -32,7 +32,7 @@ flag on the scene queried and on every instanced scene. Embree 4.3/4.4's CPU 1-r
 an argument filter whenever ``RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER`` is set, flag or not;
 the flag decides which packet (4/8/16-wide) traversal a committed scene selects, the filtering
 one or the one that never calls a filter (``Scene::accels_select``). So the 1-ray results are
-the same with it, bit for bit, and the 16-ray packet queries (the default) run the filter.
+the same with it, bit for bit, and the 8-ray packet queries (the default) run the filter.
 
 Two levels
 ----------
@@ -54,9 +54,9 @@ import numpy as np
 from vastray.scene.embree.kernels import (
     filter_address,
     intersect_nearest,
-    intersect_nearest16,
+    intersect_nearest8,
     occluded1,
-    occluded16,
+    occluded8,
 )
 from vastray.scene.embree.launch import launch, rays
 from vastray.scene.embree.library import (
@@ -85,9 +85,9 @@ SCENE_FLAGS = RTC_SCENE_FLAG_ROBUST
 TRIANGLE_TEST_ENV = "VASTRAY_TRIANGLE_TEST"
 #: Added to every scene's flags: the tie filter is passed in the query arguments.
 FILTER_FLAG = RTC_SCENE_FLAG_FILTER_FUNCTION_IN_ARGUMENTS
-#: ``VASTRAY_QUERIES=single`` traces one ray per Embree call instead of 16-ray packets (the
+#: ``VASTRAY_QUERIES=single`` traces one ray per Embree call instead of 8-ray packets (the
 #: same answers, bit for bit): for measurements (``bench/throughput.py``) and comparisons. A
-#: library that traces 16-ray packets ray by ray (no AVX-512: ``Api.packets``) always runs the
+#: library that traces 8-ray packets ray by ray (no AVX: ``Api.packets``) always runs the
 #: 1-ray kernels.
 QUERIES_ENV = "VASTRAY_QUERIES"
 
@@ -107,18 +107,18 @@ def scene_flags() -> int:
 
 
 def query_kernels(packets: bool = True):
-    """The (closest-hit, occlusion) kernels queries run: the 16-ray packet kernels where the
+    """The (closest-hit, occlusion) kernels queries run: the 8-ray packet kernels where the
     library traces packets natively (``packets``, ``Api.packets``), else the 1-ray ones; the
     1-ray ones too where ``VASTRAY_QUERIES`` says ``single``. ``VASTRAY_QUERIES=packets`` on a
     library without native packets, or any other value, is refused."""
     mode = os.environ.get(QUERIES_ENV, "").strip().lower()
     if mode == "" or (mode == "packets" and packets):
-        return (intersect_nearest16, occluded16) if packets else (intersect_nearest, occluded1)
+        return (intersect_nearest8, occluded8) if packets else (intersect_nearest, occluded1)
     if mode == "single":
         return intersect_nearest, occluded1
     if mode == "packets":
-        raise ValueError(f"{QUERIES_ENV}=packets: this Embree traces 16-ray packets ray by ray "
-                         f"(no AVX-512 here, or {EMBREE_CONFIG_ENV} lowers its ISA), and the "
+        raise ValueError(f"{QUERIES_ENV}=packets: this Embree traces 8-ray packets ray by ray "
+                         f"(no AVX here, or {EMBREE_CONFIG_ENV} lowers its ISA), and the "
                          f"packet kernels need them traced as one; unset {QUERIES_ENV}")
     raise ValueError(f"{QUERIES_ENV}={mode!r}: expected 'packets' (the default) or 'single' "
                      f"(one ray per Embree call, for measurements)")
