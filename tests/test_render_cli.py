@@ -43,6 +43,21 @@ def test_render_writes_exr_layers_png_and_report(store, tmp_path):
     assert doc["counters"]["rays"]["camera"] == 32 * 24 * 2
     assert doc["counters"]["loads"] >= 1
     assert "error" not in doc
+    # how the render queried Embree: the compiled binding, packets where the CPU has AVX
+    assert doc["embree"]["binding"] == "compiled" and doc["embree"]["version"].startswith("4.")
+    assert doc["embree"]["queries"] in ("8-ray packets", "1 ray a call")
+
+
+def test_report_says_one_ray_a_call_where_packets_are_not_native(store, tmp_path):
+    # an SSE-only CPU, emulated: Embree traces 8-ray packets ray by ray there
+    report = tmp_path / "sse.json"
+    env = {**os.environ, "VASTRAY_EMBREE_CONFIG": "max_isa=sse4.2"}
+    subprocess.run([sys.executable, "-m", "vastray", "render", str(store.path), "-o",
+                    str(tmp_path / "sse.exr"), "--report", str(report), *SMALL],
+                   env=env, check=True, capture_output=True)
+    embree = json.loads(report.read_text())["embree"]
+    assert embree == {"binding": "compiled", "version": embree["version"],
+                      "queries": "1 ray a call"}
 
 
 def test_report_has_error_against_reference_beside_time(store, tmp_path, capsys):

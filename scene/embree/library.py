@@ -199,3 +199,19 @@ def binding() -> Api | None:
                               f"using embreex's run()", EmbreeFallbackWarning, stacklevel=3)
             _api_tried = True
     return _api
+
+
+def description() -> dict | None:
+    """How this process queries Embree, for a render's report: ``binding`` ("compiled", or
+    "embreex" where the fallback runs), and for the compiled binding Embree's ``version``
+    and ``queries`` ("8-ray packets", or "1 ray a call" where packets are not native or
+    ``VASTRAY_QUERIES=single``); None where no query has loaded the library in this process
+    (a coordinator whose nodes trace: it does not load Embree for a report)."""
+    if not _api_tried:
+        return None
+    if _api is None:
+        return {"binding": "embreex"}
+    single = os.environ.get("VASTRAY_QUERIES", "").strip().lower() == "single"
+    version = f"{_api.major}.{_api.minor}.{_api.version % 100}"
+    return {"binding": "compiled", "version": version,
+            "queries": "8-ray packets" if _api.packets and not single else "1 ray a call"}

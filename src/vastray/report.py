@@ -21,8 +21,11 @@ def package_version() -> str:
 
 
 def run_header(store: str, scheduler: str, options: dict | None) -> dict:
-    """What every report opens with: versions, the command, the store and how it was run."""
-    return {
+    """What every report opens with: versions, the command, the store and how it was run
+    (``embree``: how this process queried Embree, where it did: ``library.description``)."""
+    from vastray.scene.embree.library import description
+
+    header = {
         "vastray": package_version(),
         "python": sys.version.split()[0],
         "machine": platform.machine(),
@@ -31,6 +34,10 @@ def run_header(store: str, scheduler: str, options: dict | None) -> dict:
         "scheduler": scheduler,
         "options": dict(options or {}),
     }
+    embree = description()
+    if embree is not None:
+        header["embree"] = embree
+    return header
 
 
 def count_overflow(image: np.ndarray, counters: dict, where: str) -> int:
