@@ -22,9 +22,10 @@ Packets were dropped once (9dd359d) after a heap corruption seen with them in se
 a rebuild of that experiment (``docs/DESIGN.md``, render workers), and stayed out while they
 measured no faster (2026-11-29, ``bench/README.md#peerspy``). On an AVX-512 machine (2026-12-01)
 16-ray packets traced camera rays 1.3-1.7x and shadow rays 1.3x as fast as single rays, and
-bounce rays no slower; renders took 10 % less. 8-ray packets (2026-12-04) trace camera and
-bounce rays another 20 % faster there (``bench/README.md#peerspy``), and are native wherever
-Embree runs AVX or AVX2 kernels too, where 16-ray packets are traced ray by ray (``library``).
+bounce rays no slower; renders took 10 % less. 8-ray packets (2026-12-04) trace camera rays
+13-18 %, bounce rays 10-14 % and shadow rays 5-12 % faster than 16-ray ones there
+(``bench/README.md#peerspy``), and are native wherever Embree runs AVX or AVX2 kernels too,
+where 16-ray packets are traced ray by ray (``library``).
 
 Everything the kernels compile in is defined here except the Embree calls and memory access
 of ``intrinsics`` (numba's cache sees changes to this file only: see there).

@@ -14,7 +14,8 @@ structures padded by sentinel words and checks exactly which words Embree wrote,
 filter given our context sees. The 8-ray packets (``RTCRayHit8``: field k of lane i at word
 ``8 k + i``) are checked the same way, one lane of a packet at a time, where the library
 traces 8-ray packets natively (``Api.packets``; elsewhere the kernels never call them). Any
-difference raises ``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back to embreex.
+difference raises ``LayoutMismatch``, one line naming it; ``library.binding()`` then falls back
+to embreex.
 
 The checks read the expected offsets from ``kernels`` at call time (tests change them to
 simulate a mismatching library).
@@ -294,16 +295,16 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
         api.rtcIntersect8(valid.ctypes.data, handle, ray.ctypes.data, args.ctypes.data)
     api.check("the packet layout probe")
     if not seen:
-        return f"no hit {where} of a 8-ray packet reached the filter"
+        return f"no hit {where} of an 8-ray packet reached the filter"
     got = seen[0]
     if "error" in got:
-        return f"the filter of a 8-ray packet could not read its arguments ({got['error']})"
+        return f"the filter of an 8-ray packet could not read its arguments ({got['error']})"
     want_valid = [-1 if k == _LANE else 0 for k in range(kernels.PACKET)]
     if got["N"] != kernels.PACKET or got["valid"] != want_valid:
-        return (f"a 8-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
+        return (f"an 8-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
                 f"N {kernels.PACKET} and lane {_LANE} only")
     if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
-        return (f"the filter of a 8-ray packet read t {got['t']}, primID {got['prim']}, "
+        return (f"the filter of an 8-ray packet read t {got['t']}, primID {got['prim']}, "
                 f"instID {got['inst']} in lane {_LANE} {where}, expected 1.0, 1, {inst}")
     # the lane's fields, read as a 1-ray buffer, must hold the hit the 1-ray probe checks
     pad = np.full(_WORDS - kernels.PACKET_FIELDS, SENTINEL, np.uint32)
