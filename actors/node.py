@@ -107,9 +107,16 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
 
 
 def _log_warm(warming: asyncio.Future) -> None:
-    """Say when the warm-up is done (its seconds), so a log shows how long a node took."""
+    """Say when the warm-up is done (its seconds) and how this node queries Embree, so a log
+    shows how long a node took and whether its host traces packets (``library.description``:
+    a render's report describes the coordinator's process, not each host's)."""
     if not warming.cancelled() and warming.exception() is None:
-        log.info("render kernels warm (%.1f s)", warming.result())
+        from vastray.scene.embree.library import description
+
+        embree = description() or {}
+        how = (f"Embree {embree['version']}, {embree['queries']}" if "queries" in embree
+               else embree.get("binding", "Embree not loaded"))
+        log.info("render kernels warm (%.1f s; %s)", warming.result(), how)
 
 
 async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: float,

@@ -114,3 +114,33 @@ def test_a_node_warms_numba_without_scipy_and_still_renders_every_scheduler(fres
     # ... yet every kernel of every scheduler ran (the test above), and scipy's BLAS
     # imports afterwards
     assert fresh_node["cython_blas"] is True, fresh_node
+
+
+def test_a_nodes_log_says_how_it_queries_embree(tmp_path):
+    # A node warms its kernels while it waits for a coordinator; its log line then names the
+    # Embree version and the query path of its own host (a cluster's report describes the
+    # coordinator's machine only). Emulated as an SSE-only host: one ray a call.
+    import os
+    import signal
+
+    from scenes import free_port
+
+    env = {**os.environ, "VASTRAY_RUNTIME_DIR": str(tmp_path),
+           "VASTRAY_EMBREE_CONFIG": "max_isa=sse4.2"}
+    node = subprocess.Popen([sys.executable, "-m", "vastray", "-v", "node", "--coordinator",
+                             f"tcp://127.0.0.1:{free_port()}", "--timeout", "600"],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        lines = []
+        while not any("render kernels warm" in line for line in lines):
+            line = node.stderr.readline()
+            assert line, "".join(lines)  # the node ended before its warm-up line
+            lines.append(line)
+        node.send_signal(signal.SIGTERM)
+        node.wait(timeout=60)
+    finally:
+        node.kill()
+        node.wait()
+        node.stderr.close()
+    warm = next(line for line in lines if "render kernels warm" in line)
+    assert "; Embree 4." in warm and warm.rstrip().endswith(", 1 ray a call)"), warm

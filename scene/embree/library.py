@@ -205,8 +205,9 @@ def description() -> dict | None:
     """How this process queries Embree, for a render's report: ``binding`` ("compiled", or
     "embreex" where the fallback runs), and for the compiled binding Embree's ``version``
     and ``queries`` ("8-ray packets", or "1 ray a call" where packets are not native or
-    ``VASTRAY_QUERIES=single``); None where no query has loaded the library in this process
-    (a coordinator whose nodes trace: it does not load Embree for a report)."""
+    ``VASTRAY_QUERIES=single``); None where this process has not loaded the library (it is
+    not loaded for a report). A coordinator describes its own process (its memory estimate
+    loads the library); each node logs its own when its kernels are warm."""
     if not _api_tried:
         return None
     if _api is None:
