@@ -49,12 +49,16 @@ def test_render_writes_exr_layers_png_and_report(store, tmp_path):
 
 
 def test_report_says_one_ray_a_call_where_packets_are_not_native(store, tmp_path):
-    # an SSE-only CPU, emulated: Embree traces 8-ray packets ray by ray there
+    # an SSE-only CPU, emulated: Embree traces 8-ray packets ray by ray there (the CLI as
+    # users run it, without --quiet: its last line names what it wrote)
     report = tmp_path / "sse.json"
     env = {**os.environ, "VASTRAY_EMBREE_CONFIG": "max_isa=sse4.2"}
-    subprocess.run([sys.executable, "-m", "vastray", "render", str(store.path), "-o",
-                    str(tmp_path / "sse.exr"), "--report", str(report), *SMALL],
-                   env=env, check=True, capture_output=True)
+    loud = [a for a in SMALL if a != "--quiet"]
+    done = subprocess.run([sys.executable, "-m", "vastray", "render", str(store.path), "-o",
+                           str(tmp_path / "sse.exr"), "--report", str(report), *loud],
+                          env=env, check=True, capture_output=True, text=True)
+    last = (done.stdout + done.stderr).strip().splitlines()[-1]
+    assert last.startswith("wrote ") and "sse.exr, " in last and "sse.json (32x24" in last, last
     embree = json.loads(report.read_text())["embree"]
     assert embree == {"binding": "compiled", "version": embree["version"],
                       "queries": "1 ray a call"}

@@ -212,7 +212,11 @@ def description() -> dict | None:
         return None
     if _api is None:
         return {"binding": "embreex"}
-    single = os.environ.get("VASTRAY_QUERIES", "").strip().lower() == "single"
+    # the choice the queries made (loaded with the library: no import for a report)
+    from vastray.scene.embree.kernels import intersect_nearest8
+    from vastray.scene.embree.scenes import query_kernels
+
+    packets = query_kernels(_api.packets)[0] is intersect_nearest8
     version = f"{_api.major}.{_api.minor}.{_api.version % 100}"
     return {"binding": "compiled", "version": version,
-            "queries": "8-ray packets" if _api.packets and not single else "1 ray a call"}
+            "queries": "8-ray packets" if packets else "1 ray a call"}

@@ -106,7 +106,7 @@ def scene_flags() -> int:
                      f"'fast' (Embree's non-watertight test, for measurements)")
 
 
-def query_kernels(packets: bool = True):
+def query_kernels(packets: bool):
     """The (closest-hit, occlusion) kernels queries run: the 8-ray packet kernels where the
     library traces packets natively (``packets``, ``Api.packets``), else the 1-ray ones; the
     1-ray ones too where ``VASTRAY_QUERIES`` says ``single``. ``VASTRAY_QUERIES=packets`` on a
