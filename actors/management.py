@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import os
 import time
@@ -20,6 +21,10 @@ from vastray.transport.codec import PEER_FRAME_LIMIT, CodecError, decode
 from vastray.transport.security import FRAME_OVERHEAD, Credentials, Gate, connect_as, serve
 
 log = logging.getLogger(__name__)
+
+#: Numbers the monitor endpoints of coordinator sockets: a fresh one each job, since pyzmq's
+#: default names it after the socket's descriptor, which the next job's socket may reuse.
+_HANDSHAKE_MONITORS = itertools.count()
 
 
 class AuthenticationFailed(RuntimeError):
@@ -98,7 +103,17 @@ class ManagementActor:
         port = self.router.bind_to_random_port(f"tcp://{bind_host}")
         self.endpoint = f"tcp://{advertise}:{port}"
         keys = credentials.keys
-        self.coordinator = self._dealer(coordinator, keys.coordinator_public if keys else None)
+        self.coordinator = self.ctx.socket(zmq.DEALER)
+        connect_as(self.coordinator, credentials, keys.coordinator_public if keys else None)
+        # Watched before it connects: a refused handshake is never tried again, so its one
+        # event, raised by ZeroMQ's I/O thread as soon as the coordinator answers, would be
+        # lost to a monitor attached later (a node on a busy machine then waited out its
+        # timeout instead of saying "authentication failed").
+        self._handshake_events = self.coordinator.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
+            addr=f"inproc://vastray-handshake-{next(_HANDSHAKE_MONITORS)}")
+        self.coordinator.connect(coordinator)
         self.coordinator_heard = time.monotonic()
         self.inbound: dict[int, zmq.asyncio.Socket] = {}  # connected to each peer, by rank
         self._send_locks: dict[int, asyncio.Lock] = {}  # one send at a time to each peer
@@ -116,12 +131,6 @@ class ManagementActor:
         self._tasks = [asyncio.ensure_future(self._route(self.router, self._take_on_port)),
                        asyncio.ensure_future(self._route(self.coordinator,
                                                          self._take_control))]
-
-    def _dealer(self, endpoint: str, server_key: bytes | None) -> zmq.asyncio.Socket:
-        sock = self.ctx.socket(zmq.DEALER)
-        connect_as(sock, self.credentials, server_key)
-        sock.connect(endpoint)
-        return sock
 
     def mailbox(self, kind: str) -> _Mailbox:
         return self.mailboxes.setdefault(kind, _Mailbox())
@@ -296,9 +305,7 @@ class ManagementActor:
     async def watch_handshake(self, endpoint: str) -> None:
         """Raise ``AuthenticationFailed`` if the coordinator refuses this node's CURVE
         handshake (other keys); returns never otherwise."""
-        monitor = self.coordinator.get_monitor_socket(
-            zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
-            | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+        monitor = self._handshake_events
         unclear = 0
         try:
             while True:
@@ -441,7 +448,10 @@ class ManagementActor:
     def close(self) -> None:
         for task in [*self._tasks, self._watcher]:
             task.cancel()
-        for sock in [self.router, self.coordinator, *self.inbound.values()]:
+        if not self.coordinator.closed:
+            self.coordinator.disable_monitor()
+        for sock in [self.router, self.coordinator, self._handshake_events,
+                     *self.inbound.values()]:
             sock.close(linger=0)
 
 
