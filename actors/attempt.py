@@ -54,6 +54,8 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
                 what="the coordinator")
     router = ctx.socket(zmq.ROUTER)
     serve(router, credentials)
+    # watched before it binds, so that no connection escapes the doorkeeper's bound
+    doorkeeper = gate.watch(router, f"tcp://{host}:{port or '(a random port)'}")
     try:
         if int(port or 0):
             router.bind(f"tcp://{host}:{port}")
@@ -64,7 +66,7 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
         gate.close()
         ctx.destroy(linger=0)
         raise NodeFailure(f"cannot listen on tcp://{host}:{port}: {exc}") from None
-    gate.watch(router, f"tcp://{host}:{port}")
+    doorkeeper.where = f"tcp://{host}:{port}"
     if bound is not None:
         bound["listen"] = f"{host}:{port}"
     linger = 0

@@ -213,12 +213,13 @@ class Gate:
         (``transport.doorkeeper``), and count and log handshakes that fail before any ZAP
         request (a CURVE client with no key or the wrong server key; a stranger's protocol).
         Returns the watcher: cancel it when ``sock`` closes (``close`` cancels every one
-        left)."""
+        left); set its ``where`` once the socket's port is known."""
         # A fresh endpoint each time: pyzmq's default is named after the socket's descriptor,
         # which the next socket reuses while the closed one's monitor may still be bound (a
         # node joining again after a regroup died on "Address already in use").
         watcher = Doorkeeper(sock, f"inproc://vastray-monitor-{next(_MONITORS)}", where,
-                             HANDSHAKE_S, on_failed=lambda event: self._failed(event, where))
+                             HANDSHAKE_S, on_failed=lambda event: self._failed(event,
+                                                                               watcher.where))
         self._watchers = [w for w in self._watchers if not w.done()] + [watcher]
         return watcher
 
