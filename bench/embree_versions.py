@@ -38,14 +38,12 @@ from vastray.render.integrators import RenderSettings
 from vastray.scene.embree.intrinsics import _external4, rtc_intersect8
 from vastray.scene.embree.kernels import (
     _INVALID,
-    _NO_ID,
-    CTX_RECORD,
     PACKET,
-    RAYHIT_GEOM,
-    RAYHIT_INST,
     RAYHIT_PRIM,
     RAYHIT_TFAR,
     _aligned,
+    _fresh_records,
+    _no_hits,
     _packet_buffers,
     _packet_constants,
     _packet_rays,
@@ -91,10 +89,7 @@ def embree3_nearest8(scene, org, dirs, tfar_in, prim, tfar):
         context[3] = 0
         context[4] = _INVALID
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
-        for lane in range(m):
-            i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
-            i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
-            i32[RAYHIT_INST * PACKET + lane] = _INVALID
+        _no_hits(i32, m)
         e3_intersect8(valid.ctypes.data, scene, context.ctypes.data, f.ctypes.data)
         for lane in range(m):
             prim[start + lane] = i32[RAYHIT_PRIM * PACKET + lane]
@@ -109,7 +104,6 @@ def embree4_nearest8(scene, filt, flags, org, dirs, tfar_in, prim, tfar):
     f, i32, valid = _packet_buffers()
     context, cf, arguments, a32 = _query_buffers()
     _packet_constants(f, i32)
-    record = CTX_RECORD // 4
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
         a32[0] = flags
@@ -119,13 +113,8 @@ def embree4_nearest8(scene, filt, flags, org, dirs, tfar_in, prim, tfar):
         context[0] = _INVALID
         context[1] = _INVALID
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
-        for lane in range(m):
-            i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
-            i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
-            i32[RAYHIT_INST * PACKET + lane] = _INVALID
-            cf[record + 4 * lane] = tfar_in[start + lane]
-            context[record + 4 * lane + 1] = _NO_ID
-            context[record + 4 * lane + 2] = _NO_ID
+        _no_hits(i32, m)
+        _fresh_records(context, cf, tfar_in, start, m)
         rtc_intersect8(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
         for lane in range(m):
             prim[start + lane] = i32[RAYHIT_PRIM * PACKET + lane]

@@ -327,6 +327,28 @@ def _packet_rays(f, valid, org, dirs, tfar, start, m):
 
 
 @njit(inline="always")
+def _no_hits(i32, m):
+    """Lanes ``0 .. m`` of an RTCRayHit8 buffer hit nothing yet (primID, geomID and instID[0]
+    invalid), as Embree requires of a closest-hit query."""
+    for lane in range(m):
+        i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
+        i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
+        i32[RAYHIT_INST * PACKET + lane] = _INVALID
+
+
+@njit(inline="always")
+def _fresh_records(context, cf, tfar_in, start, m):
+    """The tie filter's records of lanes ``0 .. m`` (rays ``start ..``): the best distance so far
+    each ray's ``tfar_in``, no instance and no primitive (lane k's record: int32 words
+    ``CTX_RECORD // 4 + 4k`` .. ``+ 2`` of ``context``, ``cf`` their float32 view)."""
+    record = CTX_RECORD // 4
+    for lane in range(m):
+        cf[record + 4 * lane] = tfar_in[start + lane]
+        context[record + 4 * lane + 1] = _NO_ID
+        context[record + 4 * lane + 2] = _NO_ID
+
+
+@njit(inline="always")
 def _packet_buffers():
     """A kernel call's own RTCRayHit8 buffer (float32 words ``f`` and their int32 view
     ``i32``) and ``valid`` mask, each 64-byte aligned (Embree requires 32 bytes of 8-wide
@@ -375,7 +397,6 @@ def intersect_nearest8(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
     f, i32, valid = _packet_buffers()
     context, cf, arguments, a32 = _query_buffers()
     _packet_constants(f, i32)
-    record = CTX_RECORD // 4  # lane k's record: words record + 4k .. record + 4k + 2
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
         # (set in the loop, so the buffers Embree reads stay referenced through it)
@@ -386,13 +407,8 @@ def intersect_nearest8(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
         context[0] = _INVALID  # instID[0]
         context[1] = _INVALID  # instPrimID[0] (where present)
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
-        for lane in range(m):
-            i32[RAYHIT_PRIM * PACKET + lane] = _INVALID
-            i32[RAYHIT_GEOM * PACKET + lane] = _INVALID
-            i32[RAYHIT_INST * PACKET + lane] = _INVALID
-            cf[record + 4 * lane] = tfar_in[start + lane]
-            context[record + 4 * lane + 1] = _NO_ID
-            context[record + 4 * lane + 2] = _NO_ID
+        _no_hits(i32, m)
+        _fresh_records(context, cf, tfar_in, start, m)
         rtc_intersect8(valid.ctypes.data, scene, f.ctypes.data, arguments.ctypes.data)
         for lane in range(m):  # a miss reads as primID -1, zero u, v and Ng (as _store_hit)
             i = start + lane
