@@ -48,6 +48,7 @@ from vastray.scene.embree.kernels import (
     _packet_constants,
     _packet_rays,
     _query_buffers,
+    _query_set_up,
     filter_address,
 )
 from vastray.scene.embree.library import RTC_SCENE_FLAG_ROBUST
@@ -106,12 +107,7 @@ def embree4_nearest8(scene, filt, flags, org, dirs, tfar_in, prim, tfar):
     _packet_constants(f, i32)
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
-        a32[0] = flags
-        a32[1] = -1
-        arguments[1] = context.ctypes.data
-        arguments[2] = filt
-        context[0] = _INVALID
-        context[1] = _INVALID
+        _query_set_up(arguments, a32, context, filt, flags)
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
         _no_hits(i32, m)
         _fresh_records(context, cf, tfar_in, start, m)
@@ -197,6 +193,11 @@ def main() -> int:
     library = Path(mitsuba.__file__).parent / "libembree3.so"
     if not library.is_file():
         print(f"no Embree 3 library in this Mitsuba ({library})", file=sys.stderr)
+        return 2
+    reason = peers.try_llvm()
+    if reason is not None:  # its rays and its call come from the LLVM variant
+        print(f"Mitsuba's llvm_ad_rgb does not run here ({reason}); bench/README.md#peerspy "
+              "says what it needs (a libLLVM Dr.Jit accepts)", file=sys.stderr)
         return 2
     embree3 = Embree3(library)
     store, label = peers.scan_store(args.scan)

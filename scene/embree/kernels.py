@@ -247,6 +247,33 @@ def _query_buffers():
     return context, context.view(np.float32), arguments, arguments.view(np.int32)
 
 
+@njit(inline="always")
+def _query_set_up(arguments, a32, context, filt, flags):
+    """Before each call: RTCIntersectArguments (query ``flags``, incoherent; every feature;
+    this call's context; the argument filter ``filt``) and the context's Embree part as
+    ``rtcInitRayQueryContext`` leaves it with one instance level (instID[0] and, where
+    present, instPrimID[0] invalid). Set in the query loop, so the buffers Embree reads stay
+    referenced through it."""
+    a32[0] = flags
+    a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
+    arguments[1] = context.ctypes.data
+    arguments[2] = filt
+    context[0] = _INVALID
+    context[1] = _INVALID
+
+
+@njit(inline="always")
+def _fresh_records(context, cf, tfar_in, start, m):
+    """The tie filter's records of lanes ``0 .. m`` (rays ``start ..``): the best distance so far
+    each ray's ``tfar_in``, no instance and no primitive (lane k's record: int32 words
+    ``CTX_RECORD // 4 + 4k`` .. ``+ 2`` of ``context``, ``cf`` their float32 view)."""
+    record = CTX_RECORD // 4
+    for lane in range(m):
+        cf[record + 4 * lane] = tfar_in[start + lane]
+        context[record + 4 * lane + 1] = _NO_ID
+        context[record + 4 * lane + 2] = _NO_ID
+
+
 @njit(nogil=True, cache=True)
 def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, inst):
     """Closest hits, one ``rtcIntersect1`` per ray with the tie filter ``filt`` (for
@@ -266,20 +293,12 @@ def intersect_nearest(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, ins
     i32 = f.view(np.int32)
     context, cf, arguments, a32 = _query_buffers()
     for i in range(n):
-        # (set in the loop, so the buffers Embree reads stay referenced through it)
-        a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
-        a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
-        arguments[1] = context.ctypes.data
-        arguments[2] = filt
+        _query_set_up(arguments, a32, context, filt, RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER)
         _set_ray1(f, i32, org, dirs, tfar_in, i)
         i32[RAYHIT_PRIM] = _INVALID
         i32[RAYHIT_GEOM] = _INVALID
         i32[RAYHIT_INST] = _INVALID  # instID[0]
-        context[0] = _INVALID  # instID[0]
-        context[1] = _INVALID  # instPrimID[0] (where present)
-        cf[CTX_RECORD // 4] = tfar_in[i]  # lane 0's record: a 1-ray call has one lane
-        context[CTX_RECORD // 4 + 1] = _NO_ID
-        context[CTX_RECORD // 4 + 2] = _NO_ID
+        _fresh_records(context, cf, tfar_in, i, 1)  # lane 0's: a 1-ray call has one lane
         rtc_intersect1(scene, f.ctypes.data, arguments.ctypes.data)
         _store_hit(f, i32, prim, tfar, u, v, ng, i)
         inst[i] = i32[RAYHIT_INST] if prim[i] >= 0 else -1
@@ -337,18 +356,6 @@ def _no_hits(i32, m):
 
 
 @njit(inline="always")
-def _fresh_records(context, cf, tfar_in, start, m):
-    """The tie filter's records of lanes ``0 .. m`` (rays ``start ..``): the best distance so far
-    each ray's ``tfar_in``, no instance and no primitive (lane k's record: int32 words
-    ``CTX_RECORD // 4 + 4k`` .. ``+ 2`` of ``context``, ``cf`` their float32 view)."""
-    record = CTX_RECORD // 4
-    for lane in range(m):
-        cf[record + 4 * lane] = tfar_in[start + lane]
-        context[record + 4 * lane + 1] = _NO_ID
-        context[record + 4 * lane + 2] = _NO_ID
-
-
-@njit(inline="always")
 def _packet_buffers():
     """A kernel call's own RTCRayHit8 buffer (float32 words ``f`` and their int32 view
     ``i32``) and ``valid`` mask, each 64-byte aligned (Embree requires 32 bytes of 8-wide
@@ -399,13 +406,7 @@ def intersect_nearest8(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
     _packet_constants(f, i32)
     for start in range(0, n, PACKET):
         m = min(PACKET, n - start)
-        # (set in the loop, so the buffers Embree reads stay referenced through it)
-        a32[0] = RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER  # flags (incoherent)
-        a32[1] = -1  # feature_mask: RTC_FEATURE_FLAG_ALL
-        arguments[1] = context.ctypes.data
-        arguments[2] = filt
-        context[0] = _INVALID  # instID[0]
-        context[1] = _INVALID  # instPrimID[0] (where present)
+        _query_set_up(arguments, a32, context, filt, RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER)
         _packet_rays(f, valid, org, dirs, tfar_in, start, m)
         _no_hits(i32, m)
         _fresh_records(context, cf, tfar_in, start, m)
