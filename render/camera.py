@@ -107,6 +107,30 @@ class Camera:
                             float(advance), origin, direction)
         return origin, direction
 
+    def generate32_in_box(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
+                          advance: float, lo: np.ndarray, hi: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``generate32``'s rays, bit for bit, of the samples whose ray enters the box
+        ``[lo, hi]`` ((3,) float64 each; the caller grows it against rounding), in one fused
+        kernel (``kernels.camera_rays_in_box``).
+
+        Returns
+        -------
+        rows : (k,) int64 the kept samples' rows of ``pixel``, ascending
+        origins, directions : (k, 3) float32 their rays
+        """
+        forward, right, up = self.frame()
+        n = len(pixel)
+        rows = np.empty(n, np.int64)
+        origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        kept = kernels.camera_rays_in_box(
+            np.ascontiguousarray(pixel, np.uint32), np.ascontiguousarray(sample, np.uint32),
+            np.uint64(seed), np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
+            float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
+            np.asarray(self.position, np.float64), forward, right, up, float(advance),
+            np.asarray(lo, np.float64), np.asarray(hi, np.float64), rows, origin, direction)
+        return rows[:kept], origin[:kept], direction[:kept]
+
 
 def start_distance(eye: np.ndarray, clip: np.ndarray) -> float:
     """How far from the camera at ``eye`` ((3,)) its rays may start: 0, unless the box

@@ -195,6 +195,54 @@ def camera_rays(camera, ctx: PathContext) -> RadianceRays:
                         np.ones((n, 3)))
 
 
+def seen_camera_rays(camera, ctx: PathContext) -> tuple[RadianceRays, np.ndarray]:
+    """The batch's camera rays that can see something: those entering ``Shading.clip``, the
+    box of everything a ray can hit or see (the store and its quad lights), in path order,
+    each bit for bit ``camera_rays``' ray; and the paths of the others, whose camera rays
+    escape at once (an object that fills a quarter of the frame leaves three quarters of
+    them; not generating their rays spares their query and their hit records).
+
+    The box is grown by ``2^-18`` of the largest coordinate involved, far beyond float64's
+    rounding in the test and float32's in the rays: a ray that Embree could find a hit for,
+    or that meets a quad light, is always kept. Without ``Shading.clip``, every ray is kept.
+
+    Returns
+    -------
+    rays : the camera rays kept (``path`` their rows of the batch)
+    escaped : (m,) int64 the rows of the others, ascending
+    """
+    clip = ctx.shading.clip
+    if clip is None:
+        return camera_rays(camera, ctx), np.zeros(0, np.int64)
+    advance = _camera_start(ctx)
+    lo, hi = np.asarray(clip, np.float64)
+    reach = max(np.abs(lo).max(), np.abs(hi).max()) + np.abs(ctx.shading.eye).max() + advance
+    pad = 2.0 ** -18 * reach
+    rows, origin, direction = camera.generate32_in_box(ctx.pixel, ctx.sample, ctx.settings.seed,
+                                                       advance, lo - pad, hi + pad)
+    n, k = len(ctx.pixel), len(rows)
+    escaped = np.zeros(0, np.int64)
+    if k < n:
+        seen = np.zeros(n, bool)
+        seen[rows] = True
+        escaped = np.nonzero(~seen)[0]
+    return RadianceRays(rows, np.zeros(k, np.uint8), origin, direction, np.ones((k, 3))), escaped
+
+
+def escaped_emission(ctx: PathContext) -> np.ndarray | None:
+    """What a camera ray that meets nothing sees ((3,) float64: the ambient lights, summed in
+    ``camera_emission``'s order), or None where that is nothing."""
+    if ctx.settings.integrator != "pt":
+        return None
+    ambient = [light for light in ctx.shading.lights if isinstance(light, AmbientLight)]
+    if not ambient:
+        return None
+    out = np.zeros(3)
+    for light in ambient:
+        out += light.radiance
+    return out
+
+
 def camera_emission(ctx: PathContext, rays: RadianceRays, t_hit: np.ndarray) -> np.ndarray:
     """Radiance camera rays see directly: quad lights in front of the first surface, and the
     environment where they escape (path tracing only).
@@ -445,7 +493,11 @@ def _camera_start(ctx: PathContext) -> float:
 def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:
     """The reference order: every wavefront to its closest hits, shade, test shadows, repeat."""
     result = PathResult.empty(len(ctx.pixel))
-    rays = camera_rays(camera, ctx)
+    rays, escaped = seen_camera_rays(camera, ctx)
+    tracer.count_escaped(len(escaped))
+    sky = escaped_emission(ctx)
+    if sky is not None and len(escaped):
+        result.radiance[escaped] += sky
     while len(rays):
         first = rays.depth[0] == 0
         hits = tracer.intersect(rays.origin, rays.direction, kind="camera" if first else "bounce")

@@ -750,38 +750,106 @@ def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, p
     origin, direction : (n, 3) float32 out.
     """
     start = key_start(seed, purpose)
-    w, h = np.float64(width), np.float64(height)
     n = pixel.shape[0]
     # directions a chunk at a time into contiguous columns (a loop LLVM vectorises), then
     # stored into the (n, 3) rows
     dx, dy, dz = np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK)
     for base in range(0, n, _CAMERA_CHUNK):
         m = min(_CAMERA_CHUNK, n - base)
+        _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
+                           forward, right, up, dx, dy, dz)
         for k in range(m):
-            i = base + k
-            jx, jy = _uniform_pair(hash_key(start, pixel[i], sample[i], 0, 0))
-            fp = np.float64(pixel[i])
-            # pixel // width and pixel % width, exactly: (pixel + 0.5) / width lies at least
-            # 0.5 / width from an integer, far beyond float64 rounding for pixel < 2^32
-            q = np.floor((fp + 0.5) / w)
-            column = (fp - q * w) + np.float64(jx)
-            row = q + np.float64(jy)
-            sx = (2.0 * column / w - 1.0) * tan_half * aspect
-            sy = (1.0 - 2.0 * row / h) * tan_half
-            d0 = forward[0] + sx * right[0] + sy * up[0]
-            d1 = forward[1] + sx * right[1] + sy * up[1]
-            d2 = forward[2] + sx * right[2] + sy * up[2]
-            length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
-            dx[k], dy[k], dz[k] = d0 / length, d1 / length, d2 / length
+            _store_camera_ray(base + k, dx[k], dy[k], dz[k], position, advance, origin,
+                              direction)
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, aspect,
+                       position, forward, right, up, advance, lo, hi, rows, origin, direction):
+    """``camera_rays``' rays, bit for bit, of the paths whose float32 ray enters the box
+    ``[lo, hi]`` only (the others cannot hit anything in it): their rows of the batch into
+    ``rows`` and the rays into the first rows of ``origin`` and ``direction``, in order.
+
+    Parameters
+    ----------
+    pixel ... advance : as ``camera_rays``.
+    lo, hi : (3,) float64 the box, grown by the caller so that rounding cannot drop a ray
+        that enters it (``integrators.camera_rays``).
+    rows : (n,) int64 out; origin, direction : (n, 3) float32 out.
+
+    Returns
+    -------
+    int, the number of rays kept.
+    """
+    start = key_start(seed, purpose)
+    n = pixel.shape[0]
+    dx, dy, dz = np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK)
+    kept = 0
+    for base in range(0, n, _CAMERA_CHUNK):
+        m = min(_CAMERA_CHUNK, n - base)
+        _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
+                           forward, right, up, dx, dy, dz)
         for k in range(m):
-            i = base + k
-            direction[i, 0], direction[i, 1], direction[i, 2] = dx[k], dy[k], dz[k]
-            if advance > 0:
-                origin[i, 0] = position[0] + dx[k] * advance
-                origin[i, 1] = position[1] + dy[k] * advance
-                origin[i, 2] = position[2] + dz[k] * advance
-            else:
-                origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
+            _store_camera_ray(kept, dx[k], dy[k], dz[k], position, advance, origin, direction)
+            if _enters_box(origin[kept], direction[kept], lo, hi):
+                rows[kept] = base + k
+                kept += 1
+    return kept
+
+
+@njit(inline="always", nogil=True, error_model="numpy")
+def _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
+                       forward, right, up, dx, dy, dz):
+    """The float64 unit directions of the camera rays ``base .. base + m`` into the columns
+    ``dx, dy, dz`` ((``_CAMERA_CHUNK``,) float64)."""
+    w, h = np.float64(width), np.float64(height)
+    for k in range(m):
+        i = base + k
+        jx, jy = _uniform_pair(hash_key(start, pixel[i], sample[i], 0, 0))
+        fp = np.float64(pixel[i])
+        # pixel // width and pixel % width, exactly: (pixel + 0.5) / width lies at least
+        # 0.5 / width from an integer, far beyond float64 rounding for pixel < 2^32
+        q = np.floor((fp + 0.5) / w)
+        column = (fp - q * w) + np.float64(jx)
+        row = q + np.float64(jy)
+        sx = (2.0 * column / w - 1.0) * tan_half * aspect
+        sy = (1.0 - 2.0 * row / h) * tan_half
+        d0 = forward[0] + sx * right[0] + sy * up[0]
+        d1 = forward[1] + sx * right[1] + sy * up[1]
+        d2 = forward[2] + sx * right[2] + sy * up[2]
+        length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+        dx[k], dy[k], dz[k] = d0 / length, d1 / length, d2 / length
+
+
+@njit(inline="always", nogil=True, error_model="numpy")
+def _store_camera_ray(i, d0, d1, d2, position, advance, origin, direction):
+    """Row ``i`` of ``origin`` and ``direction`` (float32): the unit direction (d0, d1, d2)
+    and the camera ``position``, moved ``advance`` along it where that is positive."""
+    direction[i, 0], direction[i, 1], direction[i, 2] = d0, d1, d2
+    if advance > 0:
+        origin[i, 0] = position[0] + d0 * advance
+        origin[i, 1] = position[1] + d1 * advance
+        origin[i, 2] = position[2] + d2 * advance
+    else:
+        origin[i, 0], origin[i, 1], origin[i, 2] = position[0], position[1], position[2]
+
+
+@njit(inline="always", nogil=True, error_model="numpy")
+def _enters_box(o, d, lo, hi):
+    """Whether the ray ``o + t d``, t >= 0 ((3,) float32 each), meets the box ``[lo, hi]``,
+    in float64 (a zero component: the ray stays in that slab or never enters it)."""
+    near, far = -np.inf, np.inf
+    for a in range(3):
+        oa, da = np.float64(o[a]), np.float64(d[a])
+        if da == 0.0:
+            if oa < lo[a] or oa > hi[a]:
+                return False
+            continue
+        t0, t1 = (lo[a] - oa) / da, (hi[a] - oa) / da
+        if t0 > t1:
+            t0, t1 = t1, t0
+        near, far = max(near, t0), min(far, t1)
+    return near <= far and far >= 0.0
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

@@ -222,6 +222,54 @@ def test_fused_camera_rays_equal_generate(fov, width, height):
     np.testing.assert_array_equal(o_far, (origin + direction * 2.5).astype(np.float32))
 
 
+def _enters_box_numpy(origin, direction, lo, hi):
+    """The slab test in float64 with numpy (zero components handled apart): the oracle."""
+    o, d = origin.astype(np.float64), direction.astype(np.float64)
+    near, far = np.full(len(o), -np.inf), np.full(len(o), np.inf)
+    inside = np.ones(len(o), bool)
+    for a in range(3):
+        flat = d[:, a] == 0
+        inside &= ~flat | ((o[:, a] >= lo[a]) & (o[:, a] <= hi[a]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (lo[a] - o[:, a]) / d[:, a], (hi[a] - o[:, a]) / d[:, a]
+        near = np.where(flat, near, np.maximum(near, np.minimum(t0, t1)))
+        far = np.where(flat, far, np.minimum(far, np.maximum(t0, t1)))
+    return inside & (near <= far) & (far >= 0)
+
+
+@pytest.mark.parametrize("advance", [0.0, 1.5])
+def test_camera_rays_in_box_are_generate32s_rays_that_enter_the_box(advance):
+    from vastray.render.camera import Camera
+
+    # looking along -z at the box's corner: some rays miss, some graze, none all aligned
+    camera = Camera(np.array([0.0, 0.0, 6.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]), 60.0,
+                    64, 48)
+    n = 64 * 48 * 2
+    pixel, sample = (np.arange(n) // 2).astype(np.uint32), (np.arange(n) % 2).astype(np.uint32)
+    lo, hi = np.array([-2.0, -1.0, -1.0]), np.array([0.5, 1.5, 1.0])
+    o32, d32 = camera.generate32(pixel, sample, 9, advance)
+    rows, o_in, d_in = camera.generate32_in_box(pixel, sample, 9, advance, lo, hi)
+    expect = np.nonzero(_enters_box_numpy(o32, d32, lo, hi))[0]
+    assert 0 < len(expect) < n  # the test sees both kinds
+    np.testing.assert_array_equal(rows, expect)
+    np.testing.assert_array_equal(o_in, o32[expect])
+    np.testing.assert_array_equal(d_in, d32[expect])
+
+
+def test_box_test_of_axis_aligned_rays_keeps_those_inside_a_slab():
+    # zero direction components: a ray inside the slab keeps it, one outside never enters;
+    # and a box behind the ray is missed
+    lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0])
+    origin = np.array([[0.5, 0.5, 5.0], [1.5, 0.5, 5.0], [0.5, 0.5, 5.0], [1.0, 1.0, 5.0],
+                       [0.0, 0.0, 0.0]], np.float32)
+    direction = np.array([[0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, -1], [1, 0, 0]],
+                         np.float32)
+    got = np.array([kernels._enters_box.py_func(o, d, lo, hi)
+                    for o, d in zip(origin, direction, strict=True)])
+    np.testing.assert_array_equal(got, [True, False, False, True, True])
+    np.testing.assert_array_equal(got, _enters_box_numpy(origin, direction, lo, hi))
+
+
 def test_fused_camera_rays_find_row_and_column_of_any_uint32_pixel():
     # the kernel takes pixel // width and pixel % width through float64 ((pixel + 0.5) /
     # width, floored): exact up to 2^32 pixels, the keys' range, on a film that wide
