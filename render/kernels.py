@@ -784,14 +784,29 @@ def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, as
     start = key_start(seed, purpose)
     n = pixel.shape[0]
     dx, dy, dz = np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK)
+    inside = np.empty(_CAMERA_CHUNK, np.bool_)
     kept = 0
     for base in range(0, n, _CAMERA_CHUNK):
         m = min(_CAMERA_CHUNK, n - base)
         _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
                            forward, right, up, dx, dy, dz)
+        # no stores but one column, no branch: loops LLVM vectorises
+        if advance > 0:
+            for k in range(m):
+                n0, f0 = _slab(position[0] + dx[k] * advance, dx[k], lo[0], hi[0])
+                n1, f1 = _slab(position[1] + dy[k] * advance, dy[k], lo[1], hi[1])
+                n2, f2 = _slab(position[2] + dz[k] * advance, dz[k], lo[2], hi[2])
+                inside[k] = _overlap(n0, f0, n1, f1, n2, f2)
+        else:
+            for k in range(m):
+                n0, f0 = _slab(position[0], dx[k], lo[0], hi[0])
+                n1, f1 = _slab(position[1], dy[k], lo[1], hi[1])
+                n2, f2 = _slab(position[2], dz[k], lo[2], hi[2])
+                inside[k] = _overlap(n0, f0, n1, f1, n2, f2)
         for k in range(m):
-            _store_camera_ray(kept, dx[k], dy[k], dz[k], position, advance, origin, direction)
-            if _enters_box(origin[kept], direction[kept], lo, hi):
+            if inside[k]:
+                _store_camera_ray(kept, dx[k], dy[k], dz[k], position, advance, origin,
+                                  direction)
                 rows[kept] = base + k
                 kept += 1
     return kept
@@ -835,21 +850,25 @@ def _store_camera_ray(i, d0, d1, d2, position, advance, origin, direction):
 
 
 @njit(inline="always", nogil=True, error_model="numpy")
-def _enters_box(o, d, lo, hi):
-    """Whether the ray ``o + t d``, t >= 0 ((3,) float32 each), meets the box ``[lo, hi]``,
-    in float64 (a zero component: the ray stays in that slab or never enters it)."""
-    near, far = -np.inf, np.inf
-    for a in range(3):
-        oa, da = np.float64(o[a]), np.float64(d[a])
-        if da == 0.0:
-            if oa < lo[a] or oa > hi[a]:
-                return False
-            continue
-        t0, t1 = (lo[a] - oa) / da, (hi[a] - oa) / da
-        if t0 > t1:
-            t0, t1 = t1, t0
-        near, far = max(near, t0), min(far, t1)
-    return near <= far and far >= 0.0
+def _overlap(n0, f0, n1, f1, n2, f2):
+    """Whether three slabs' distance intervals share a t >= 0: the ray meets their box."""
+    near, far = max(max(n0, n1), n2), min(min(f0, f1), f2)
+    return (near <= far) & (far >= 0.0)
+
+
+@njit(inline="always", nogil=True, error_model="numpy")
+def _slab(o, d, lo, hi):
+    """Entry and exit distances of the ray ``o + t d`` (each rounded to float32 first)
+    through the slab ``lo <= x <= hi``; a ray parallel to it (``d`` 0) is in it for every t
+    or for none (selects, not branches: the caller's loop stays vectorised)."""
+    o, d = np.float64(np.float32(o)), np.float64(np.float32(d))
+    parallel = d == 0.0
+    step = 1.0 if parallel else d
+    t0, t1 = (lo - o) / step, (hi - o) / step
+    outside = 1.0 - 2.0 * ((o >= lo) & (o <= hi))  # -1 within the slab, 1 outside it
+    near = outside * np.inf if parallel else min(t0, t1)
+    far = -outside * np.inf if parallel else max(t0, t1)
+    return near, far
 
 
 @njit(nogil=True, cache=True, error_model="numpy")

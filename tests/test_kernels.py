@@ -257,17 +257,21 @@ def test_camera_rays_in_box_are_generate32s_rays_that_enter_the_box(advance):
 
 
 def test_box_test_of_axis_aligned_rays_keeps_those_inside_a_slab():
-    # zero direction components: a ray inside the slab keeps it, one outside never enters;
-    # and a box behind the ray is missed
+    # zero direction components: a ray inside the slab (or on its face) keeps it, one outside
+    # never enters; and a box behind the ray is missed
     lo, hi = np.array([-1.0, -1.0, -1.0]), np.array([1.0, 1.0, 1.0])
-    origin = np.array([[0.5, 0.5, 5.0], [1.5, 0.5, 5.0], [0.5, 0.5, 5.0], [1.0, 1.0, 5.0],
-                       [0.0, 0.0, 0.0]], np.float32)
-    direction = np.array([[0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, -1], [1, 0, 0]],
-                         np.float32)
-    got = np.array([kernels._enters_box.py_func(o, d, lo, hi)
-                    for o, d in zip(origin, direction, strict=True)])
-    np.testing.assert_array_equal(got, [True, False, False, True, True])
-    np.testing.assert_array_equal(got, _enters_box_numpy(origin, direction, lo, hi))
+    position = np.array([[0.5, 0.5, 5.0], [1.5, 0.5, 5.0], [0.5, 0.5, 5.0], [1.0, 1.0, 5.0],
+                         [0.0, 0.0, 0.0], [-3.0, -1.0, 0.2]])
+    direction = np.array([[0, 0, -1], [0, 0, -1], [0, 0, 1], [0, 0, -1], [1, 0, 0],
+                          [0.6, -0.8, 0]])
+
+    def enters(o, d):  # the kernel's slab test, as Python
+        slabs = [kernels._slab.py_func(o[a], d[a], lo[a], hi[a]) for a in range(3)]
+        return kernels._overlap.py_func(*(t for slab in slabs for t in slab))
+
+    got = np.array([enters(p, d) for p, d in zip(position, direction, strict=True)])
+    np.testing.assert_array_equal(got, [True, False, False, True, True, False])
+    np.testing.assert_array_equal(got, _enters_box_numpy(position, direction, lo, hi))
 
 
 def test_fused_camera_rays_find_row_and_column_of_any_uint32_pixel():
