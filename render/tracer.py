@@ -238,7 +238,7 @@ class TraceStats:
     """Work counters of a tracer."""
 
     rays: dict = field(default_factory=lambda: {"camera": 0, "bounce": 0, "shadow": 0})
-    #: Camera rays counted in ``rays`` that missed the scene's box and were never queried.
+    #: Camera rays that missed the scene's box: never queried, so not in ``rays``.
     camera_escaped: int = 0
     ray_domain_tests: int = 0
     domains_entered: set = field(default_factory=set)
@@ -414,10 +414,9 @@ class DomainTracer:
                         box_pad(self.box_magnitude, self.origin_bound, origins))
 
     def count_escaped(self, n_rays: int) -> None:
-        """Count ``n_rays`` camera rays that miss the scene's box: rays of the batch, never
-        queried (``integrators.seen_camera_rays``)."""
+        """Count ``n_rays`` camera rays that miss the scene's box, never queried
+        (``integrators.seen_camera_rays``): ``rays`` counts the rays traced."""
         with self._stats_lock:
-            self.stats.rays["camera"] += n_rays
             self.stats.camera_escaped += n_rays
 
     def _count_visit(self, domain: int, n_rays: int) -> None:
