@@ -774,7 +774,7 @@ def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, as
     ----------
     pixel ... advance : as ``camera_rays``.
     lo, hi : (3,) float64 the box, grown by the caller so that rounding cannot drop a ray
-        that enters it (``integrators.camera_rays``).
+        that enters it (``integrators.seen_camera_rays``).
     rows : (n,) int64 out; origin, direction : (n, 3) float32 out.
 
     Returns
