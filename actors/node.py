@@ -136,19 +136,7 @@ async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: floa
         hello = encode(protocol.HELLO, {}, {
             "rank": rank, "endpoint": advertised, "host": socket.gethostname(),
             "pid": os.getpid()})
-        await management.to_coordinator(hello)
-        # Say hello again every heartbeat until the job comes. A hello that reached a
-        # coordinator socket about to close (the last job's, after a regroup) is lost with
-        # it; the repeat reaches the next one.
-        watchers.append(asyncio.ensure_future(management.repeat_to_coordinator(hello)))
-        waiting = asyncio.ensure_future(management.receive(protocol.JOB,
-                                                           "job from the coordinator"))
-        await asyncio.wait([waiting, handshake], return_when=asyncio.FIRST_COMPLETED)
-        watchers.pop().cancel()
-        if not waiting.done():
-            waiting.cancel()
-            handshake.result()  # raises AuthenticationFailed
-        job = waiting.result().meta
+        job = (await join(management, hello, handshake)).meta
         RankFormatter.rank = int(job["rank"])  # assigned (compose, SSH), or new after a regroup
         log.info("joined %s as node %d of %d", coordinator, int(job["rank"]), int(job["size"]))
         management.coordinator_heard = time.monotonic()
@@ -185,6 +173,33 @@ async def _serve_job(ctx, gate: Gate, coordinator: str, rank: int, timeout: floa
         for task in watchers:
             task.cancel()
         management.close()
+
+
+async def join(management: ManagementActor, hello: list, handshake: asyncio.Future):
+    """Say ``hello`` to the coordinator until its job comes, and return the job message;
+    raise ``AuthenticationFailed`` as soon as ``handshake`` (``watch_handshake``) does.
+
+    Every wait races the handshake's watch, the first send too: ZeroMQ drops the connection
+    of a refused handshake, so a hello sent after the refusal waits for a connection that
+    never comes (on a busy machine the refusal can come first: the node waited out its
+    timeout and said ``TimeoutError``, not "authentication failed")."""
+    async def first(work):
+        task = asyncio.ensure_future(work)
+        await asyncio.wait([task, handshake], return_when=asyncio.FIRST_COMPLETED)
+        if not task.done():
+            task.cancel()
+            handshake.result()  # raises AuthenticationFailed
+        return task.result()
+
+    await first(management.to_coordinator(hello))
+    # Say hello again every heartbeat until the job comes. A hello that reached a
+    # coordinator socket about to close (the last job's, after a regroup) is lost with it;
+    # the repeat reaches the next one.
+    repeating = asyncio.ensure_future(management.repeat_to_coordinator(hello))
+    try:
+        return await first(management.receive(protocol.JOB, "job from the coordinator"))
+    finally:
+        repeating.cancel()
 
 
 def peer_endpoint(management: ManagementActor) -> str:
