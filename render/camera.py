@@ -96,15 +96,10 @@ class Camera:
         """``generate``'s rays cast to float32 ((n, 3) each), in one fused kernel
         (``kernels.camera_rays``; bit for bit the same, tested), each starting ``advance``
         along its direction (``start_distance``), computed in float64."""
-        forward, right, up = self.frame()
         n = len(pixel)
         origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-        kernels.camera_rays(np.ascontiguousarray(pixel, np.uint32),
-                            np.ascontiguousarray(sample, np.uint32), np.uint64(seed),
-                            np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
-                            float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
-                            np.asarray(self.position, np.float64), forward, right, up,
-                            float(advance), origin, direction)
+        kernels.camera_rays(*self._kernel_inputs(pixel, sample, seed, advance), origin,
+                            direction)
         return origin, direction
 
     def generate32_in_box(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
@@ -119,17 +114,23 @@ class Camera:
         rows : (k,) int64 the kept samples' rows of ``pixel``, ascending
         origins, directions : (k, 3) float32 their rays
         """
-        forward, right, up = self.frame()
         n = len(pixel)
         rows = np.empty(n, np.int64)
         origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         kept = kernels.camera_rays_in_box(
-            np.ascontiguousarray(pixel, np.uint32), np.ascontiguousarray(sample, np.uint32),
-            np.uint64(seed), np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
-            float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
-            np.asarray(self.position, np.float64), forward, right, up, float(advance),
-            np.asarray(lo, np.float64), np.asarray(hi, np.float64), rows, origin, direction)
+            *self._kernel_inputs(pixel, sample, seed, advance), np.asarray(lo, np.float64),
+            np.asarray(hi, np.float64), rows, origin, direction)
         return rows[:kept], origin[:kept], direction[:kept]
+
+    def _kernel_inputs(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
+                       advance: float) -> tuple:
+        """The camera kernels' inputs before their outputs (``kernels.camera_rays``' pixel
+        .. advance), as ``generate`` computes them."""
+        forward, right, up = self.frame()
+        return (np.ascontiguousarray(pixel, np.uint32), np.ascontiguousarray(sample, np.uint32),
+                np.uint64(seed), np.uint64(Purpose.CAMERA_JITTER), self.width, self.height,
+                float(np.tan(np.radians(self.fov) / 2.0)), self.width / self.height,
+                np.asarray(self.position, np.float64), forward, right, up, float(advance))
 
 
 def start_distance(eye: np.ndarray, clip: np.ndarray) -> float:
