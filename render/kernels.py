@@ -790,19 +790,14 @@ def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, as
         m = min(_CAMERA_CHUNK, n - base)
         _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
                            forward, right, up, dx, dy, dz)
-        # no stores but one column, no branch: loops LLVM vectorises
-        if advance > 0:
-            for k in range(m):
-                n0, f0 = _slab(position[0] + dx[k] * advance, dx[k], lo[0], hi[0])
-                n1, f1 = _slab(position[1] + dy[k] * advance, dy[k], lo[1], hi[1])
-                n2, f2 = _slab(position[2] + dz[k] * advance, dz[k], lo[2], hi[2])
-                inside[k] = _overlap(n0, f0, n1, f1, n2, f2)
-        else:
-            for k in range(m):
-                n0, f0 = _slab(position[0], dx[k], lo[0], hi[0])
-                n1, f1 = _slab(position[1], dy[k], lo[1], hi[1])
-                n2, f2 = _slab(position[2], dz[k], lo[2], hi[2])
-                inside[k] = _overlap(n0, f0, n1, f1, n2, f2)
+        # no stores but one column, no branch: a loop LLVM vectorises (the origins as
+        # _store_camera_ray makes them: moved by ``advance`` only where it is positive)
+        reach = advance if advance > 0 else 0.0
+        for k in range(m):
+            n0, f0 = _slab(position[0] + dx[k] * reach, dx[k], lo[0], hi[0])
+            n1, f1 = _slab(position[1] + dy[k] * reach, dy[k], lo[1], hi[1])
+            n2, f2 = _slab(position[2] + dz[k] * reach, dz[k], lo[2], hi[2])
+            inside[k] = _overlap(n0, f0, n1, f1, n2, f2)
         for k in range(m):
             if inside[k]:
                 _store_camera_ray(kept, dx[k], dy[k], dz[k], position, advance, origin,
