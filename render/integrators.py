@@ -195,12 +195,13 @@ def camera_rays(camera, ctx: PathContext) -> RadianceRays:
                         np.ones((n, 3)))
 
 
-def seen_camera_rays(camera, ctx: PathContext) -> tuple[RadianceRays, np.ndarray]:
+def seen_camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """The batch's camera rays that can see something: those entering ``Shading.clip``, the
     box of everything a ray can hit or see (the store and its quad lights), in path order,
     each bit for bit ``camera_rays``' ray; and the paths of the others, whose camera rays
     escape at once (an object that fills a quarter of the frame leaves three quarters of
-    them; not generating their rays spares their query and their hit records).
+    them; not generating their rays spares their query and their hit records;
+    ``escaped_paths`` names them where a scene's sky needs them).
 
     The box is grown by ``2^-18`` of the largest coordinate involved, far beyond float64's
     rounding in the test and float32's in the rays: a ray that Embree could find a hit for,
@@ -208,25 +209,27 @@ def seen_camera_rays(camera, ctx: PathContext) -> tuple[RadianceRays, np.ndarray
 
     Returns
     -------
-    rays : the camera rays kept (``path`` their rows of the batch)
-    escaped : (m,) int64 the rows of the others, ascending
+    the camera rays kept (``path`` their rows of the batch)
     """
     clip = ctx.shading.clip
     if clip is None:
-        return camera_rays(camera, ctx), np.zeros(0, np.int64)
+        return camera_rays(camera, ctx)
     advance = _camera_start(ctx)
     lo, hi = np.asarray(clip, np.float64)
     reach = max(np.abs(lo).max(), np.abs(hi).max()) + np.abs(ctx.shading.eye).max() + advance
     pad = 2.0 ** -18 * reach
     rows, origin, direction = camera.generate32_in_box(ctx.pixel, ctx.sample, ctx.settings.seed,
                                                        advance, lo - pad, hi + pad)
-    n, k = len(ctx.pixel), len(rows)
-    escaped = np.zeros(0, np.int64)
-    if k < n:
-        seen = np.zeros(n, bool)
-        seen[rows] = True
-        escaped = np.nonzero(~seen)[0]
-    return RadianceRays(rows, np.zeros(k, np.uint8), origin, direction, np.ones((k, 3))), escaped
+    k = len(rows)
+    return RadianceRays(rows, np.zeros(k, np.uint8), origin, direction, np.ones((k, 3)))
+
+
+def escaped_paths(n: int, seen: RadianceRays) -> np.ndarray:
+    """(m,) int64 the rows of a batch of ``n`` paths whose camera rays ``seen_camera_rays``
+    left out, ascending."""
+    left_out = np.ones(n, bool)
+    left_out[seen.path] = False
+    return np.nonzero(left_out)[0]
 
 
 def escaped_emission(ctx: PathContext) -> np.ndarray | None:
@@ -493,11 +496,12 @@ def _camera_start(ctx: PathContext) -> float:
 def trace_paths(tracer: DomainTracer, camera, ctx: PathContext) -> PathResult:
     """The reference order: every wavefront to its closest hits, shade, test shadows, repeat."""
     result = PathResult.empty(len(ctx.pixel))
-    rays, escaped = seen_camera_rays(camera, ctx)
-    tracer.count_escaped(len(escaped))
+    n = len(ctx.pixel)
+    rays = seen_camera_rays(camera, ctx)
+    tracer.count_escaped(n - len(rays))
     sky = escaped_emission(ctx)
-    if sky is not None and len(escaped):
-        result.radiance[escaped] += sky
+    if sky is not None and len(rays) < n:  # the rows left out only where the sky needs them
+        result.radiance[escaped_paths(n, rays)] += sky
     while len(rays):
         first = rays.depth[0] == 0
         hits = tracer.intersect(rays.origin, rays.direction, kind="camera" if first else "bounce")

@@ -9,7 +9,7 @@ import pytest
 
 from vastray.render import driver, integrators
 from vastray.render.driver import render
-from vastray.render.integrators import camera_rays, seen_camera_rays
+from vastray.render.integrators import camera_rays, escaped_paths, seen_camera_rays
 from vastray.render.tracer import DomainTracer
 from vastray.scene.cache import DomainCache
 from vastray.scene.store import DomainArrays
@@ -33,8 +33,7 @@ def square(tmp_path_factory):
 
 def _every_camera_ray(monkeypatch):
     """Make ``trace_paths`` trace every camera ray, as before rays were left out."""
-    monkeypatch.setattr(integrators, "seen_camera_rays",
-                        lambda camera, ctx: (camera_rays(camera, ctx), np.zeros(0, np.int64)))
+    monkeypatch.setattr(integrators, "seen_camera_rays", camera_rays)
 
 
 @pytest.mark.parametrize("integrator", ["pt", "ao"])
@@ -66,7 +65,8 @@ def test_no_escaped_camera_ray_hits_anything(square, position, fov):
     shading = driver.with_camera_clip(driver.shading_inputs(square, config, "ao")[0], square,
                                       camera)
     ctx = driver.path_context(shading, run, 0, run.paths, 1.0)
-    kept, escaped = seen_camera_rays(camera, ctx)
+    kept = seen_camera_rays(camera, ctx)
+    escaped = escaped_paths(run.paths, kept)
     every = camera_rays(camera, ctx)
     tracer = DomainTracer(square, DomainCache(square, 1), threads=1)
     try:
