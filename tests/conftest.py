@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,17 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared test data not found at {SHARED_DATA} (expected <repo>/../shared/data)")
     return SHARED_DATA
+
+
+def pytest_configure(config):
+    """Let SIGINT reach the renders the tests start. Many tests press Ctrl-C on a render as a
+    user does in a terminal; a suite started in the background by a shell without job
+    control (``pytest ... &`` in a script) inherits SIGINT ignored, every process it starts
+    would inherit that too, and those tests would wait out their timeouts on renders that
+    never heard the signal. A handled signal is not inherited across ``exec``, so the
+    children start with the default and install Python's ``KeyboardInterrupt``."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def pytest_xdist_auto_num_workers(config):
