@@ -175,7 +175,7 @@ def test_ctrl_c_during_the_one_pass_says_nothing_was_kept(store, toml, tmp_path)
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
+            proc.communicate()  # its pipe closed here, not by a later test's collection
     assert proc.returncode == 130, err
     assert "interrupted during the one pass: nothing finished to keep" in err, err
     assert "--checkpoint-every" in err

@@ -283,6 +283,7 @@ def test_interrupt_checkpoint_and_resume_give_the_uninterrupted_image(scene, tmp
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.communicate()  # its pipe closed here, not by a later test's collection
     assert proc.returncode == 130, err
     assert "--resume" in err and str(ckpt.name) in err
     interrupted = json.loads((tmp_path / "run.json").read_text())
@@ -508,6 +509,7 @@ def test_resume_alone_runs_the_interrupted_command_again_from_anywhere(scene, tm
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.communicate()  # its pipe closed here, not by a later test's collection
     assert proc.returncode == 130, err
     assert json.loads((run / "run.json").read_text())["stopped_by"] == "interrupted"
     capsys.readouterr()
