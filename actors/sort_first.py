@@ -23,7 +23,7 @@ from vastray.scene.store import Store
 from vastray.schedule import image_cost, registry
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.image_cost import SweepWeights, pixel_weights
-from vastray.schedule.ownership import sort_first_tile_paths
+from vastray.schedule.ownership import sort_first_sweep_paths
 from vastray.schedule.spec_ooc import SpeculationRules, SpeculativeSchedule
 
 
@@ -119,18 +119,22 @@ class SortFirstTiles:
 
     def _tiles(self, total: int, per_pixel):
         """This node's tiles of a sweep of ``total`` paths, each (n,) path ids: passes of
-        (K,) ``per_pixel`` samples a pixel, whose paths the bands' cuts weigh
-        (``image_cost``) where several nodes share the sweep and the scheduler's bands are
-        cut by cost (``image_cost.CUT_BY_COST``)."""
+        (K,) ``per_pixel`` samples a pixel, each pass shared among the nodes as it would be
+        alone (``ownership.sort_first_sweep_paths``), its paths weighed by the bands' cuts
+        (``image_cost``) where several nodes share it and the scheduler's bands are cut by
+        cost (``image_cost.CUT_BY_COST``)."""
+        per_pixel = np.asarray(per_pixel, np.int64)
+        pixels = total // max(int(per_pixel.sum()), 1)
         weights = None
         if self.share[1] > 1 and self.options.scheduler in image_cost.CUT_BY_COST:
             if self._pixel_weights is None:  # once: the camera and boxes do not change
                 self._pixel_weights = pixel_weights(self.setup.camera, self.setup.geometry,
                                                     self.setup.camera.width,
                                                     self.setup.camera.height)
-            weights = SweepWeights(self._pixel_weights, np.asarray(per_pixel, np.int64))
-        for ids in sort_first_tile_paths(total, self.options.max_samples_in_flight or total,
-                                         *self.share, weight_before=weights):
+            weights = lambda k: SweepWeights(self._pixel_weights, per_pixel[k:k + 1])  # noqa: E731
+        for ids in sort_first_sweep_paths(pixels * per_pixel,
+                                          self.options.max_samples_in_flight or total,
+                                          *self.share, weight_before_pass=weights):
             self.tile = max(self.tile, len(ids))
             yield ids
 

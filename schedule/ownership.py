@@ -229,6 +229,45 @@ def sort_first_tile_paths(total: int, tile: int, rank: int, size: int,
         yield ids[ids < total]
 
 
+def sort_first_sweep_paths(passes, tile: int, rank: int, size: int,
+                           weight_before_pass: Callable[[int], Callable | None] | None = None
+                           ) -> Iterator[np.ndarray]:
+    """The tiles node ``rank`` of ``size`` renders of a sweep of several passes, each (n,)
+    int64 path ids ascending, the sweep's paths numbered pass after pass (``passes``: (K,)
+    paths of each): the node's share of each pass, as ``sort_first_tile_paths`` cuts that
+    pass alone (with ``weight_before_pass(k)`` its ``weight_before``), run on from one pass
+    into the next in tiles of at most ``tile`` paths, so a tile's domain loads serve several
+    passes. Over the ranks every path is in exactly one tile; on one node the tiles are
+    ``sort_first_tile_paths``' of the whole sweep.
+
+    Cut as one frame, a sweep gave a node a band of the sweep's path ids, not of the image:
+    on 2 nodes one traced the first passes' whole images and the other the last pass's,
+    each crossing every domain the image shows, where a pass alone gives each its half of
+    the image (1.46-1.51x the loads of one pass at a quarter cached, ``bench/ooc.py
+    --quick``'s ``passes_kept_loads_ratio_nodes``). Here a node's share of every pass is
+    the same part of the image.
+    """
+    tile = max(int(tile), 1)
+    held: list[np.ndarray] = []
+    count = 0
+    offset = 0
+    for k, paths in enumerate(passes):
+        before = None if weight_before_pass is None else weight_before_pass(k)
+        for ids in sort_first_tile_paths(int(paths), tile, rank, size, before):
+            ids = ids + offset
+            while len(ids):
+                take = ids[:tile - count]
+                held.append(take)
+                count += len(take)
+                ids = ids[len(take):]
+                if count == tile:
+                    yield np.concatenate(held)
+                    held, count = [], 0
+        offset += int(paths)
+    if count:
+        yield np.concatenate(held)
+
+
 def weighted_band_cuts(weight_before: Callable[[np.ndarray], np.ndarray], total: int,
                        size: int) -> np.ndarray:
     """(size + 1,) int64: where each node's band of a frame of ``total`` paths starts (and,

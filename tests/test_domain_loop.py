@@ -27,6 +27,7 @@ from vastray.schedule.ownership import (
     interleaved_paths,
     round_robin_owners,
     sort_first_block,
+    sort_first_sweep_paths,
     sort_first_tile_paths,
 )
 
@@ -490,6 +491,47 @@ def test_weighted_bands_cover_every_path_once_and_cost_alike(total, tile, size):
                  .sum() for rank in range(size)]
         assert costs.max() < max(equal)
 
+
+@pytest.mark.parametrize("pixels,spps,tile,size", [(768, (1, 1, 2, 4), 65536, 2),
+                                                   (768, (1, 1, 2, 4), 1000, 3),
+                                                   (4096, (1, 1, 2, 4, 8, 16, 16), 65536, 8),
+                                                   (76800, (1, 1, 2), 65536, 16),
+                                                   (100, (1, 1), 7, 1)])
+def test_a_sweep_of_passes_shares_each_pass_as_it_would_be_alone(pixels, spps, tile, size):
+    """Several passes swept together (pass after pass, each pixel-major) are shared as each
+    pass alone is, in tiles that run on from one pass into the next."""
+    passes = pixels * np.array(spps, np.int64)
+    offsets = np.concatenate([[0], np.cumsum(passes)])
+    tiles = [list(sort_first_sweep_paths(passes, tile, rank, size)) for rank in range(size)]
+    shares = [np.concatenate([np.zeros(0, np.int64), *t]) for t in tiles]
+    assert np.array_equal(np.sort(np.concatenate(shares)), np.arange(offsets[-1]))
+    assert all(0 < len(ids) <= tile for t in tiles for ids in t)
+    assert all((np.diff(ids) > 0).all() for ids in shares)  # in path order
+    for rank, ids in enumerate(shares):
+        k = np.searchsorted(offsets, ids, side="right") - 1
+        for j in range(len(spps)):  # each pass: its share alone, moved to its ids
+            alone = np.concatenate([np.zeros(0, np.int64), *sort_first_tile_paths(
+                int(passes[j]), tile, rank, size)])
+            assert np.array_equal(ids[k == j], alone + offsets[j])
+    if size == 1:  # one node: the tiles of the whole sweep
+        assert [t.tolist() for t in tiles[0]] == [
+            t.tolist() for t in sort_first_tile_paths(int(offsets[-1]), tile, 0, 1)]
+    if tile >= offsets[-1]:  # a node's share of the whole sweep in one tile
+        assert all(len(t) == 1 for t in tiles)
+
+
+def test_a_sweep_of_passes_gives_a_node_the_same_band_in_every_pass():
+    # Cut as one frame, a sweep of 1, 1, 2 and 4 spp gave node 0 the first three passes'
+    # whole images and node 1 the last pass's, each crossing every domain the image shows
+    # (1.5x the loads of one pass on 2 nodes): now each traces its half of every pass.
+    pixels, spps = 768, np.array([1, 1, 2, 4])
+    offsets = np.concatenate([[0], np.cumsum(pixels * spps)])
+    for rank in range(2):
+        (ids,) = sort_first_sweep_paths(pixels * spps, 65536, rank, 2)
+        k = np.searchsorted(offsets, ids, side="right") - 1
+        pixel = (ids - offsets[k]) // spps[k]
+        for j in range(4):
+            assert set(pixel[k == j].tolist()) == set(range(rank * 384, (rank + 1) * 384))
 
 def test_weighted_bands_only_where_a_node_has_a_band():
     # frames of more than a tile a node keep their tiles dealt round robin

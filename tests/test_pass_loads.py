@@ -15,9 +15,9 @@ from vastray.actors.coordinator import render_distributed
 from vastray.actors.job_options import JobOptions
 from vastray.actors.local import render_out_of_core
 from vastray.render.progressive import Progression, StopRules
-from vastray.render.scene_config import load_scene_config
+from vastray.render.scene_config import SceneConfig, load_scene_config
 
-from scenes import POINT_AND_SKY_TOML, bumpy_scene, settings, write_store
+from scenes import POINT_AND_SKY_TOML, bumpy_scene, rm_store, settings, write_store
 
 W, H, SPP = 48, 32, 8
 
@@ -92,6 +92,34 @@ def test_unpaced_passes_on_two_nodes_cost_the_loads_of_one_pass(store, config, t
                                    progression=Progression(W, H, StopRules(SPP)))
     np.testing.assert_array_equal(passes.film.image(), reference.film.image())
 
+
+@pytest.fixture(scope="module")
+def rm(tmp_path_factory):
+    """rm 48^3 in 5x5x4 grid domains (52 with triangles): the image's top and bottom halves
+    show different domains, as on a real store."""
+    return rm_store(tmp_path_factory.mktemp("passes-rm") / "rm.store", 48, (5, 5, 4))
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_kept_passes_on_two_nodes_cost_the_loads_of_one_pass_with_the_nodes_tile(rm,
+                                                                                   scheduler):
+    """Passes kept (a checkpoint or --max-pass-spp wants them) but unpaced, on 2 nodes with
+    the nodes' own tile, as `vastray render --nodes 2` runs them: each node sweeps its part of
+    every pass, the same part of the image, so the sweep loads what one pass loads. When the
+    sweep was cut as one frame, one node traced the first passes' whole images and the other
+    the last's: 1.4-1.8x the loads here (``bench/ooc.py --quick``: 1.46-1.51x)."""
+    w, h, spp = 32, 24, 8
+    st = settings(width=w, height=h, spp=spp, integrator="ao", bounces=1)
+    options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1)
+    one = render_distributed(rm.path, None, st, 2, options)
+    passes = render_distributed(rm.path, None, st, 2, options,
+                                progression_of=lambda frame: Progression(w, h, StopRules(spp)))
+    assert len(passes.progress["passes"]) == 4
+    assert passes.counters["loads"] <= 1.1 * one.counters["loads"], (
+        passes.counters["loads"], one.counters["loads"])
+    reference = render_out_of_core(rm, SceneConfig(), st, options, progress=False,
+                                   progression=Progression(w, h, StopRules(spp)))
+    np.testing.assert_array_equal(passes.film.image(), reference.film.image())
 
 def test_a_node_keeps_its_cache_from_pass_to_pass(store, toml):
     """Paced passes (a rule may stop between them) are rendered one by one, but what a node
