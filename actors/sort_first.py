@@ -120,9 +120,8 @@ class SortFirstTiles:
     def _tiles(self, total: int, per_pixel):
         """This node's tiles of a sweep of ``total`` paths, each (n,) path ids: passes of
         (K,) ``per_pixel`` samples a pixel, each pass shared among the nodes as it would be
-        alone (``ownership.sort_first_sweep_paths``), its paths weighed by the bands' cuts
-        (``image_cost``) where several nodes share it and the scheduler's bands are cut by
-        cost (``image_cost.CUT_BY_COST``)."""
+        alone (``ownership.sort_first_sweep_paths``), its bands cut at equal estimated cost
+        (``image_cost``) where the scheduler's are (``image_cost.CUT_BY_COST``)."""
         per_pixel = np.asarray(per_pixel, np.int64)
         pixels = total // max(int(per_pixel.sum()), 1)
         weights = None
@@ -131,7 +130,7 @@ class SortFirstTiles:
                 self._pixel_weights = pixel_weights(self.setup.camera, self.setup.geometry,
                                                     self.setup.camera.width,
                                                     self.setup.camera.height)
-            weights = lambda k: SweepWeights(self._pixel_weights, per_pixel[k:k + 1])  # noqa: E731
+            weights = SweepWeights(self._pixel_weights, per_pixel).of_pass
         for ids in sort_first_sweep_paths(pixels * per_pixel,
                                           self.options.max_samples_in_flight or total,
                                           *self.share, weight_before_pass=weights):

@@ -11,6 +11,8 @@ box walks, the same integers on every node.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 #: Cells along each image axis the estimate is read at (fewer where the image has fewer pixels).
@@ -78,6 +80,12 @@ class SweepWeights:
         self.offsets = np.concatenate([[0], np.cumsum(n * self.per_pixel)])  # (K + 1,) paths
         self.weight_offsets = np.concatenate(  # (K + 1,) weight before each pass
             [[0], np.cumsum(int(self.before_pixel[-1]) * self.per_pixel)])
+
+    def of_pass(self, k: int) -> Callable[[np.ndarray], np.ndarray]:
+        """Pass ``k`` alone's ``weight_before``: (n,) int64 ids of its own paths (0 to its
+        paths) to (n,) int64 the weight of its paths before each."""
+        offset, before = int(self.offsets[k]), int(self.weight_offsets[k])
+        return lambda ids: self(np.asarray(ids, np.int64) + offset) - before
 
     def __call__(self, ids: np.ndarray) -> np.ndarray:
         """(n,) int64 the weight of the sweep's paths before each of (n,) ``ids``."""

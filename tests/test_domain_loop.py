@@ -520,6 +520,27 @@ def test_a_sweep_of_passes_shares_each_pass_as_it_would_be_alone(pixels, spps, t
         assert all(len(t) == 1 for t in tiles)
 
 
+
+def test_a_sweep_weighs_each_pass_as_that_pass_alone_and_cuts_its_bands_by_cost():
+    from vastray.schedule.image_cost import SweepWeights
+
+    rng = np.random.default_rng(5)
+    pixel, spps = rng.integers(0, 50, 300).astype(np.int64), np.array([1, 1, 2, 4])
+    sweep = SweepWeights(pixel, spps)
+    for k, spp in enumerate(spps):
+        ids = np.arange(300 * spp + 1)
+        assert np.array_equal(sweep.of_pass(k)(ids), SweepWeights(pixel, [spp])(ids))
+    passes = 300 * spps
+    tiles = [list(sort_first_sweep_paths(passes, 65536, rank, 3, sweep.of_pass))
+             for rank in range(3)]
+    shares = [np.concatenate(t) for t in tiles]
+    assert np.array_equal(np.sort(np.concatenate(shares)), np.arange(passes.sum()))
+    offsets = np.concatenate([[0], np.cumsum(passes)])
+    for k, spp in enumerate(spps):  # each pass's bands cost alike, as that pass's alone
+        costs = [pixel[(ids[(ids >= offsets[k]) & (ids < offsets[k + 1])] - offsets[k])
+                       // spp].sum() for ids in shares]
+        assert max(costs) - min(costs) <= 2 * pixel.max()
+
 def test_a_sweep_of_passes_gives_a_node_the_same_band_in_every_pass():
     # Cut as one frame, a sweep of 1, 1, 2 and 4 spp gave node 0 the first three passes'
     # whole images and node 1 the last pass's, each crossing every domain the image shows
