@@ -223,3 +223,28 @@ def test_the_cli_says_it_renders_out_of_core_in_one_pass(store, toml, tmp_path, 
     assert f"passes: one of {SPP} spp (out of core" in err, err
     assert err.strip().splitlines()[-1].startswith(f"wrote {out}"), err
     assert out.is_file()
+
+
+def test_the_cli_on_two_nodes_keeps_its_passes_at_the_loads_of_one(rm, tmp_path, capsys):
+    """As a user runs it, without --quiet: `vastray render --nodes 2` out of core with its
+    passes kept (--max-pass-spp) loads what its one pass loads, and gives the same image."""
+    import json
+
+    from vastray.cli import main
+    from vastray.render.imageio import read_image
+
+    common = [str(rm.path), "--width", "32", "--height", "24", "--spp", "8", "--integrator",
+              "ao", "--cache", str(-(-len(rm.domains) // 4)), "--scheduler", "image",
+              "--nodes", "2"]
+    loads = {}
+    for name, extra in (("one", []), ("kept", ["--max-pass-spp", "2"])):
+        assert main(["render", *common, *extra, "-o", str(tmp_path / f"{name}.exr"),
+                     "--report", str(tmp_path / f"{name}.json")]) == 0
+        err = capsys.readouterr().err
+        assert err.strip().splitlines()[-1].startswith(f"wrote {tmp_path / name}.exr"), err
+        report = json.loads((tmp_path / f"{name}.json").read_text())
+        loads[name] = report["counters"]["loads"]
+        assert len(report["passes"]) == (1 if name == "one" else 5), report["passes"]
+    assert loads["kept"] <= 1.1 * loads["one"], loads
+    np.testing.assert_array_equal(read_image(tmp_path / "kept.exr"),
+                                  read_image(tmp_path / "one.exr"))
