@@ -61,10 +61,11 @@ def pixel_weights(camera, geometry, width: int, height: int) -> np.ndarray:
 
 
 class SweepWeights:
-    """The summed weight before any path of a sweep of passes (``ownership.weighted_band_cuts``'
-    ``weight_before``): pass after pass, each pixel-major (as ``driver.paths_context`` and
-    ``sort_first.PassSpans`` number paths), every sample of a pixel weighing the pixel's
-    weight.
+    """The summed weight before any path of a sweep of passes, and of each pass alone
+    (``of_pass``: ``ownership.weighted_band_cuts``' ``weight_before`` of that pass, as
+    ``ownership.sort_first_sweep_paths`` cuts each pass): pass after pass, each pixel-major
+    (as ``driver.paths_context`` and ``sort_first.PassSpans`` number paths), every sample of
+    a pixel weighing the pixel's weight.
 
     Parameters
     ----------
