@@ -198,10 +198,10 @@ def camera_rays(camera, ctx: PathContext) -> RadianceRays:
 def seen_camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """The batch's camera rays that can see something: those entering ``Shading.clip``, the
     box of everything a ray can hit or see (the store and its quad lights), in path order,
-    each bit for bit ``camera_rays``' ray; and the paths of the others, whose camera rays
-    escape at once (an object that fills a quarter of the frame leaves three quarters of
-    them; not generating their rays spares their query and their hit records;
-    ``escaped_paths`` names them where a scene's sky needs them).
+    each bit for bit ``camera_rays``' ray. The others escape at once and are not made (an
+    object that fills a quarter of the frame leaves three quarters of them: their query and
+    their hit records are spared); ``escaped_paths`` names their paths where a scene's sky
+    needs them.
 
     The box is grown by ``2^-18`` of the largest coordinate involved, far beyond float64's
     rounding in the test and float32's in the rays: a ray that Embree could find a hit for,
