@@ -323,6 +323,60 @@ class ScheduleOrder:
         return waiting_rays(self.policy, domain)
 
 
+class LeadOrder:
+    """A leading order whose every activation also traces the rays ``followers`` (tile
+    schedules started ahead, ``ImageSchedule`` or ``SpeculativeSchedule``) have waiting for
+    its domain: they ride on the leader's loads and choose nothing (passes traced ahead,
+    ``SortFirstTiles.render_ahead``). Before the leader loads a domain, the followers' rays
+    waiting in ``resident()`` domains are traced, the fullest domain first: they cost no load
+    now, and the load may evict their domain. The leader's rays go first in an activation.
+    ``before()``, if given, is called before each choice (it may add followers to the list).
+    """
+
+    def __init__(self, lead: DomainOrder, followers: list,
+                 resident: Callable[[], frozenset[int]] = frozenset,
+                 before: Callable[[], None] | None = None):
+        self.lead, self.followers, self.resident, self.before = (lead, followers, resident,
+                                                                 before)
+        self._riding: int | None = None  # a domain activated for the followers alone
+        #: ray queries the followers made
+        self.ahead_queries = 0
+
+    def next_domain(self) -> int | None:
+        if self.before is not None:
+            self.before()  # may add followers
+        domain = self.lead.next_domain()
+        self._riding = None
+        if domain is None or not self.followers:
+            return domain
+        resident = self.resident()
+        if domain in resident:
+            return domain
+        waiting = {d: sum(waiting_rays(policy, d) for policy in self.followers)
+                   for d in resident}
+        best = max(waiting, key=lambda d: (waiting[d], -d), default=None)
+        if best is None or not waiting[best]:
+            return domain
+        self._riding = best
+        return best
+
+    def likely_next(self, current: int) -> int | None:
+        return self.lead.likely_next(current)
+
+    def trace(self, domain: int, bvh) -> Queries:
+        lead = Queries() if domain == self._riding else self.lead.trace(domain, bvh)
+        followers = traced_tiles(self.followers, domain, bvh)
+        self.ahead_queries += int(followers)
+        return lead + followers
+
+    def rays(self, domain: int) -> int | None:
+        own = getattr(self.lead, "rays", None)
+        count = 0 if domain == self._riding else None if own is None else own(domain)
+        if count is None:
+            return None
+        return count + sum(waiting_rays(policy, domain) for policy in self.followers)
+
+
 class ListOrder:
     """Domains in a given order (a round's assignment, a node's own domains to load), each
     traced by ``trace(domain, bvh)`` (default: nothing, the domains are only loaded);

@@ -95,6 +95,14 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
             if fused:
                 film = runner.run(stoppable(tiles.render_passes(PassSpans(progression,
                                                                           settings))))
+            elif (progression is not None and capacity < len(store.domains)
+                  and progression.rules.time_limit is None):
+                # passes apart, out of core: the next passes traced on the current one's
+                # loads. Not under a time limit: its rule predicts a pass's time from the
+                # last one's time per sample, which passes traced ahead would not give
+                film = runner.run(stoppable(tiles.render_ahead(progression, settings)))
+                if progression.stopped_by != "spp":  # the bar ends where the render does
+                    bar.total = bar.n
             else:
                 film = run_passes(lambda window, _: runner.run(stoppable(
                     tiles.render_pass(window))),

@@ -149,10 +149,15 @@ def test_passes_measured_against_a_reference_end_apart(store, toml, nodes):
         render_distributed(store.path, toml, st, nodes, options,
                            progression_of=lambda frame: progression)
     seconds = [p["seconds"] for p in progression.series]
-    assert len(seconds) == 4, seconds
-    # the last pass holds half the samples: it takes a real share of the time (passes merged
-    # together at the end of one sweep end within a millisecond of each other)
-    assert seconds[3] - seconds[2] > 0.1 * seconds[3], seconds
+    assert len(seconds) == 4 and seconds == sorted(seconds), seconds
+    if nodes is None:
+        # out of core the next pass is traced ahead, on the current one's loads
+        # (``SortFirstTiles.render_ahead``): the first pass still ends well before the last
+        # (passes merged together at the end of one sweep end within a millisecond)
+        assert seconds[3] - seconds[0] > 0.25 * seconds[3], seconds
+    else:
+        # the last pass holds half the samples: it takes a real share of the time
+        assert seconds[3] - seconds[2] > 0.1 * seconds[3], seconds
 
 
 def test_a_node_sweeps_passes_together_only_out_of_core_and_within_the_film_budget():
@@ -248,3 +253,81 @@ def test_the_cli_on_two_nodes_keeps_its_passes_at_the_loads_of_one(rm, tmp_path,
     assert loads["kept"] <= 1.1 * loads["one"], loads
     np.testing.assert_array_equal(read_image(tmp_path / "kept.exr"),
                                   read_image(tmp_path / "one.exr"))
+
+
+def apart(rm, options, st, **rules):
+    """``render_out_of_core`` of ``rm`` in passes apart (``StopRules(**rules)``) and its
+    progression."""
+    progression = Progression(st.width, st.height, StopRules(st.spp, **rules.get("stop", {})),
+                              rules.get("reference"))
+    return render_out_of_core(rm, SceneConfig(), st, options, progress=False,
+                              progression=progression), progression
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_passes_apart_where_loads_take_the_time_are_traced_on_the_first_ones_loads(rm,
+                                                                                   scheduler):
+    """Passes apart (here a reference's error curve) in one process out of core, loads most
+    of the time (1 MB/s storage): while a pass's tile leads, the later passes' tiles trace
+    their rays in the domains it activates. Each pass still ends on its own, its film merged
+    before the next one's, and the films are bit for bit those of passes swept one after
+    another (as a time limit still has them, whose rule predicts a pass's time from the last
+    one's): 1.2-1.3x one pass's loads, against 2.9-3.2x."""
+    w, h, spp = 32, 24, 8  # passes of 1, 1, 2, 4 spp, all within the tile
+    st = settings(width=w, height=h, spp=spp, integrator="ao", bounces=1)
+    options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1,
+                         load_bandwidth=1.0)
+    one = render_out_of_core(rm, SceneConfig(), st, options, progress=False)
+    reference = np.full((h, w, 3), 0.2, np.float32)
+    ahead, progression = apart(rm, options, st, reference=reference)
+    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    assert ahead.counters["ahead_queries"] > 0  # later passes rode along
+    assert "ahead_queries" not in alone.counters
+    seconds = [p["seconds"] for p in progression.series]
+    assert len(seconds) == 4 and seconds == sorted(seconds), seconds
+    loads = (one.counters["loads"], ahead.counters["loads"], alone.counters["loads"])
+    assert loads[2] > 2.5 * loads[0], loads
+    assert loads[1] <= 1.5 * loads[0], loads
+    np.testing.assert_array_equal(ahead.film.image(), alone.film.image())
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_passes_apart_where_traces_take_the_time_trace_the_next_one_ahead(rm, scheduler):
+    """Where traces take most of the time (path tracing, loads from the page cache) only the
+    next pass rides along, so that each pass's error still comes early: 2.5-2.9x one pass's
+    loads, against 3.3-4.1x; the same films."""
+    w, h, spp = 32, 24, 16
+    st = settings(width=w, height=h, spp=spp, integrator="pt", bounces=3)
+    options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1)
+    reference = np.full((h, w, 3), 0.2, np.float32)
+    ahead, _ = apart(rm, options, st, reference=reference)
+    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    assert ahead.counters["ahead_queries"] > 0
+    assert ahead.counters["loads"] <= 0.85 * alone.counters["loads"], (
+        ahead.counters["loads"], alone.counters["loads"])
+    np.testing.assert_array_equal(ahead.film.image(), alone.film.image())
+
+
+def test_a_pass_traced_ahead_is_given_up_where_the_error_target_stops(rm):
+    """The rule stops after pass 1: the image is that of passes 0 and 1 bit for bit (what a
+    2-spp render gives), and the paths traced ahead of pass 2 are given up."""
+    w, h = 32, 24
+    st = settings(width=w, height=h, spp=16, integrator="ao", bounces=1)
+    options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1)
+    reference = render_out_of_core(rm, SceneConfig(), settings(
+        width=w, height=h, spp=64, integrator="ao", bounces=1, seed=99), JobOptions(),
+        progress=False).film.image()
+    _, curve = apart(rm, options, st, reference=reference)
+    errors = [p["rel_mse"] for p in curve.series]
+    assert errors[1] < errors[0], errors
+    target = (errors[0] + errors[1]) / 2
+    result, progression = apart(rm, options, st, reference=reference,
+                                stop={"target_error": target})
+    assert progression.stopped_by == "target-error"
+    assert len(progression.series) == 2, progression.series
+    assert result.counters["given_up_paths"] > 0
+    two = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=2,
+                                                         integrator="ao", bounces=1),
+                             options, progress=False,
+                             progression=Progression(w, h, StopRules(2)))
+    np.testing.assert_array_equal(result.film.image(), two.film.image())
