@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import concurrent.futures
 import logging
 import os
 import socket
@@ -26,6 +27,7 @@ from vastray.actors.film_wire import film_frames
 from vastray.actors.insitu import render_spec_insitu
 from vastray.actors.job_options import JobOptions
 from vastray.actors.management import ManagementActor
+from vastray.actors.node_ahead import GrantedPasses, traces_ahead
 from vastray.actors.node_state import NodeState
 from vastray.actors.node_warm_up import warm_node
 from vastray.actors.rendezvous import (
@@ -280,6 +282,67 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     busy_total = reduce_total = frame_busy = frame_reduce = 0.0
     inputs: dict = {}  # frame -> its settings and scene (resolved once per frame)
     rendered = 0  # units rendered so far: they label tiles, statuses and films in order
+
+    async def deliver(unit: int, film) -> None:
+        """Reduce the film of ``unit`` (the next one rendered) over the nodes; node 0 sends
+        it to the coordinator."""
+        nonlocal rendered, reduce_total, frame_reduce
+        frame = units[unit][0]
+        state.ordinal, state.frame = rendered, frame or 0
+        rendered += 1
+        reduce_start = time.perf_counter()
+        film = await tree.reduce_film(film, settings.width, settings.height, state.ordinal)
+        reduce_s = time.perf_counter() - reduce_start
+        reduce_total, frame_reduce = reduce_total + reduce_s, frame_reduce + reduce_s
+        if rank == 0:
+            meta = {"rank": rank, "unit": unit}
+            await management.to_coordinator(film_frames(
+                film, meta if frame is None else dict(meta, frame=frame)))
+
+    async def delivered_and_granted(unit: int, film) -> int:
+        """``deliver``, then the unit to render next: the coordinator's grant where a rule
+        may stop the render (paced), else the following one (-1: none)."""
+        await deliver(unit, film)
+        if job["paced"]:
+            return await _granted(management, unit, len(units))
+        return unit + 1 if unit + 1 < len(units) else -1
+
+    async def render_units(unit: int, frame, first: int, stop: int, frame_settings,
+                           frame_config, start: float, cpu_start: float) -> int:
+        """Render ``unit`` (with the units that go in one sweep with it, ``units_together``),
+        deliver their films, and return the unit to render next (-1: none)."""
+        nonlocal busy_total, frame_busy, frame_totals
+        group = units_together(units, unit, options,
+                               job["paced"] or job.get("passes_apart", False),
+                               len(store.domains), settings.width * settings.height)
+        if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
+            films, counters = await render_passes_together(
+                options, rank, size, store, frame_config, frame_settings,
+                [units[u][1:] for u in group], report, state)
+        else:
+            # the ordinal counts the units rendered, not their number: a rule that stops a
+            # frame early skips its other passes, and labels follow one another
+            state.ordinal, state.frame = rendered, frame or 0
+            film, counters = await render_share(
+                management, tree, options, rank, size, store, frame_config,
+                frame_settings.window(first, stop), report, state)
+            films = [film]
+        busy = time.perf_counter() - start
+        busy_total, frame_busy = busy_total + busy, frame_busy + busy
+        # the process's CPU seconds (all its threads) over the same span: what of the busy
+        # time used the cores, and what waited (the simulator's split)
+        counters = {**counters, "busy_cpu_s": time.process_time() - cpu_start}
+        for unit, film in zip(group, films, strict=True):
+            counters = _report_counters(counters, management)
+            accumulate_counters(totals, counters)
+            accumulate_counters(frame_totals, counters)
+            counters = {}  # a sweep's counters go with its first pass
+            await deliver(unit, film)
+        if job["paced"]:  # the coordinator rules on this pass before the next
+            return await _granted(management, unit, len(units))
+        return unit + 1 if unit + 1 < len(units) else -1
+
+    ahead = traces_ahead(job, options, len(store.domains))
     try:
         try:
             unit = 0 if units else -1
@@ -289,47 +352,22 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs.clear()
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
-                group = units_together(units, unit, options,
-                                       job["paced"] or job.get("passes_apart", False),
-                                       len(store.domains), settings.width * settings.height)
                 start, cpu_start = time.perf_counter(), time.process_time()
-                if len(group) > 1:  # every pass in one sweep of tiles (issue 40)
-                    films, counters = await render_passes_together(
-                        options, rank, size, store, frame_config, frame_settings,
-                        [units[u][1:] for u in group], report, state)
-                else:
-                    # the ordinal counts the units rendered, not their number: a rule that
-                    # stops a frame early skips its other passes, and labels follow one another
-                    state.ordinal, state.frame = rendered, frame or 0
-                    film, counters = await render_share(
-                        management, tree, options, rank, size, store, frame_config,
-                        frame_settings.window(first, stop), report, state)
-                    films = [film]
-                busy = time.perf_counter() - start
-                busy_total, frame_busy = busy_total + busy, frame_busy + busy
-                # the process's CPU seconds (all its threads) over the same span: what of
-                # the busy time used the cores, and what waited (the simulator's split)
-                counters = {**counters, "busy_cpu_s": time.process_time() - cpu_start}
-                for unit, film in zip(group, films, strict=True):
-                    state.ordinal, state.frame = rendered, frame or 0
-                    rendered += 1
-                    reduce_start = time.perf_counter()
-                    film = await tree.reduce_film(film, settings.width, settings.height,
-                                                  state.ordinal)
-                    reduce_s = time.perf_counter() - reduce_start
-                    reduce_total, frame_reduce = reduce_total + reduce_s, frame_reduce + reduce_s
-                    counters = _report_counters(counters, management)
+                if ahead:
+                    # passes apart, each delivered and granted as it ends, while the render
+                    # thread traces the next ones ahead (issue 40)
+                    unit, counters, waiting = await render_units_ahead(
+                        options, rank, size, store, frame_config, frame_settings, units, unit,
+                        delivered_and_granted, report, state, aborted)
+                    busy = time.perf_counter() - start - waiting
+                    busy_total, frame_busy = busy_total + busy, frame_busy + busy
+                    counters = _report_counters({**counters, "busy_cpu_s": time.process_time()
+                                                 - cpu_start}, management)
                     accumulate_counters(totals, counters)
                     accumulate_counters(frame_totals, counters)
-                    counters = {}  # a sweep's counters go with its first pass
-                    if rank == 0:
-                        meta = {"rank": rank, "unit": unit}
-                        await management.to_coordinator(film_frames(
-                            film, meta if frame is None else dict(meta, frame=frame)))
-                if job["paced"]:  # the coordinator rules on this pass before the next
-                    unit = await _granted(management, unit, len(units))
                 else:
-                    unit = unit + 1 if unit + 1 < len(units) else -1
+                    unit = await render_units(unit, frame, first, stop, frame_settings,
+                                              frame_config, start, cpu_start)
                 if frame is not None and (unit < 0 or units[unit][0] != frame):
                     # the frame's last pass: its counters on their own
                     await management.to_coordinator(encode(protocol.FRAME, {}, {
@@ -366,6 +404,53 @@ async def _granted(management, unit: int, count: int) -> int:
         raise RuntimeError(f"the coordinator granted unit {granted} after unit {unit} of "
                            f"{count}")
     return granted
+
+
+async def render_units_ahead(options: JobOptions, rank: int, size: int, store, config, settings,
+                             units: list, unit: int, deliver, report, state: NodeState,
+                             aborted: threading.Event) -> tuple[int, dict, float]:
+    """This node's share of the passes of ``units[unit]``'s frame from ``unit`` on, later
+    passes traced ahead (``node_ahead``): each pass, as it ends, is delivered
+    (``deliver(unit, film)``, awaited on this event loop while the render thread waits) and
+    ruled on by the coordinator. Returns the unit granted after the last one delivered (-1:
+    none), the render's counters and the seconds spent delivering and waiting for grants."""
+    from vastray.actors.local import render_out_of_core
+
+    loop = asyncio.get_running_loop()
+    frame = units[unit][0]
+    mine = [u for u in range(unit, len(units)) if units[u][0] == frame]
+    waiting = 0.0
+
+    def delivered(u: int, film) -> int:  # on the render thread
+        nonlocal waiting
+        start = time.perf_counter()
+        try:
+            return waited_on(loop, deliver(u, film), aborted)
+        finally:
+            waiting += time.perf_counter() - start
+
+    passes = GrantedPasses(mine, [units[u][1:] for u in mine], delivered)
+    result = await asyncio.to_thread(
+        render_out_of_core, store, config, settings, options, progress=False,
+        share=(rank, size), on_tile=report, progression=passes, state=state)
+    return passes.granted, result.counters, waiting
+
+
+#: Seconds between a render thread's looks at the job's abort while it waits on the loop.
+ABORT_POLL_S = 0.25
+
+
+def waited_on(loop: asyncio.AbstractEventLoop, work, aborted: threading.Event):
+    """Run the coroutine ``work`` on ``loop`` from another thread and return its result;
+    once ``aborted`` is set (a regroup), cancel it and raise ``JobAborted``."""
+    future = asyncio.run_coroutine_threadsafe(work, loop)
+    while True:
+        try:
+            return future.result(timeout=ABORT_POLL_S)
+        except concurrent.futures.TimeoutError:
+            if aborted.is_set():
+                future.cancel()
+                raise JobAborted("the coordinator called a regroup") from None
 
 
 async def render_share(management, tree, options: JobOptions, rank: int, size: int, store,

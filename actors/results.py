@@ -36,6 +36,9 @@ def render_result(film, camera, reports: list[dict], scheduler: str,
                                          for r in reports), 4),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
                                           for r in reports)}
+    for name in ("ahead_queries", "given_up_paths"):  # passes traced ahead (``node_ahead``)
+        if any(name in r["counters"] for r in reports):
+            counters[name] = sum(r["counters"].get(name, 0) for r in reports)
     counters.update(portal_shares([r["counters"] for r in reports]))
     seconds = {"total": round(wall, 4),
                "busy_max": max(r["busy_s"] for r in reports),

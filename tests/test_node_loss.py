@@ -495,3 +495,47 @@ def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsy
                         r"indices\.npy: triangle index [\d,]+ is out of range: .*", last), last
     assert "joined" not in last
     assert not (tmp_path / "o.exr").exists()
+
+
+@pytest.mark.parametrize("rule", ["reference", pytest.param("target-error",
+                                                             marks=pytest.mark.slow)])
+def test_a_lost_node_is_survived_while_its_passes_are_traced_ahead(scene, tmp_path, rule):
+    """Out of core with passes apart (a reference; an error target, whose passes the
+    coordinator grants one by one), each node's render thread traces its next passes ahead
+    and waits, as each pass ends, for the pass's reduction over the nodes or the grant
+    (``node.render_units_ahead``). Node 2 is killed mid-frame: the survivors' render threads
+    give up that wait at the regroup, the two nodes render the passes left, and the image is
+    the fault-free one bit for bit."""
+    from vastray.actors.local import render_out_of_core
+    from vastray.render.progressive import Progression, StopRules
+
+    store, toml = scene
+    st = settings(width=32, height=24, spp=64, integrator="pt")
+    options = JobOptions(scheduler="image", cache=2, max_samples_in_flight=300)
+    reference = np.full((24, 32, 3), 0.2, np.float32)
+    rules = StopRules(64, target_error=1e-12) if rule == "target-error" else StopRules(64)
+    port = free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs)
+    hit: list[int] = []
+    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
+    striker.start()
+    try:
+        result = render_distributed(store.path, toml, st, 3, options=options,
+                                    listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0,
+                                    progression_of=lambda frame: Progression(32, 24, rules,
+                                                                             reference))
+    finally:
+        striker.join()
+        _reap(nodes)
+    assert hit, "the test found no node 2 to kill"
+    assert result.counters["nodes"] == 2 and len(result.counters["node_failures"]) == 1
+    assert len(result.progress["passes"]) == 8  # 1, 1, 2, 4, 8, 16, 16, 16 spp
+    fault_free = render_out_of_core(store, load_scene_config(toml), st, options, progress=False,
+                                    progression=Progression(32, 24, StopRules(64)))
+    np.testing.assert_array_equal(result.film.image(), fault_free.film.image())
+    np.testing.assert_array_equal(result.film.count, fault_free.film.count)
+    for i in set(range(3)) - set(hit):
+        text = logs[i].read_text()
+        assert nodes[i].returncode == 0, text
+        assert "regroups" in text and re.search(r"joined \S+ as node [01] of 2", text), text

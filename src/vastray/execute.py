@@ -17,7 +17,7 @@ from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.outputs import StagedOutputs
-from vastray.planning import RenderPlan, finish_render, plan_render
+from vastray.planning import RenderPlan, finish_render, plan_render, traces_passes_ahead
 from vastray.preflight import check_output_paths, gigabytes
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.imageio import image_error, write_image, write_png
@@ -56,6 +56,12 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
               "what the cache lost, and nothing reads the image between passes; --reference, "
               "--time-limit, --target-error, --checkpoint-every or --max-pass-spp renders in "
               "passes)", file=sys.stderr)
+    ahead = traces_passes_ahead(plan)
+    if ahead is not None and not request.quiet:
+        print("passes: apart, out of core, " + (
+            "the next passes traced on the current one's domain loads (each pass's image "
+            "still merged as it ends)" if ahead else "each sweeping the domains alone "
+            "(--time-limit predicts a pass's time from the last one's)"), file=sys.stderr)
     replaced = [str(p) for p in outputs if p.exists()]  # before any checkpoint writes them
     previous = checkpoints.install_signal()
     try:

@@ -203,6 +203,22 @@ def renders_in_one_pass(request: RenderRequest, options: JobOptions, domains: in
     return out_of_core and not watched
 
 
+def traces_passes_ahead(plan: RenderPlan) -> bool | None:
+    """Out of core with passes apart in a tile schedule (``image``, ``spec-ooc``): whether
+    later passes are traced on the current one's domain loads (True), or, under a time limit,
+    whose rule predicts a pass's time from the last one's, each pass sweeps the domains
+    alone (False). None where neither applies (in core, in one pass, unpaced passes kept for
+    checkpoints, which run on from one pass into the next, or other schedulers)."""
+    request, options = plan.request, plan.options
+    out_of_core = options.cache is not None and options.cache < len(plan.store.domains)
+    apart = (plan.reference is not None or request.time_limit is not None
+             or request.target_error is not None)
+    if (not out_of_core or not apart or plan.rules.one_pass
+            or spec(plan.scheduler).runtime is not Runtime.TILES):
+        return None
+    return request.time_limit is None
+
+
 def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
                   reference_name: str | None) -> tuple[np.ndarray, dict | None, dict]:
     """A finished render's image ((H, W, 3) as the film holds it), its error against the
