@@ -45,8 +45,11 @@ nothing reads the image between passes, the CLI renders in one pass; same tiles,
 the 100 % cells, in core, are one pass here where the CLI would render passes). The passes
 section then sets the CLI's own renders (``vastray.render``, its plan and defaults) beside one
 pass, in one process and on 2 nodes, and prints ``passes_loads_ratio=`` (CLI default / one
-pass) and ``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a
-reference or checkpoint gets). Then (not with ``--large``) the history-depth sweep of Fig. 8
+pass), ``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a
+checkpoint gets), ``passes_apart_loads_ratio=`` (the CLI with ``--target-error``, whose
+passes end apart, the next ones traced on the current one's loads, as with a reference) and
+``passes_alone_loads_ratio=`` (the same with ``--time-limit``: each pass alone). Then
+(not with ``--large``) the history-depth sweep of Fig. 8
 (H = 1..B for B = 3, strongest). With every domain cached nothing is evicted, so
 ``strongest+demand``'s 100 % cells are ``strongest``'s. ``--ablation`` adds every switch
 combination for both schedules, and spec-ooc's own switches (PT, 25 % cache, first scene).
@@ -364,8 +367,10 @@ def passes(store: Store, plan: dict) -> None:
     st = settings(plan, "pt")
     print(f"\n### passes as the CLI renders them (pt, cache {cache} of {n} domains, cold reads)\n")
     print("| nodes | scheduler | one-pass loads | CLI default loads (passes) | CLI passes kept "
-          "loads (passes) | one-pass s | CLI default s | CLI passes kept s |")
-    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+          "loads (passes) | CLI passes apart, traced ahead, loads | CLI passes apart, each "
+          "alone, loads | one-pass s | CLI default s | CLI passes kept s | apart, ahead s | "
+          "apart, alone s |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     ratios: dict = {}
     for nodes in plan.get("passes_nodes", (None, 2)):
         for scheduler in SCHEDULERS:
@@ -380,13 +385,20 @@ def passes(store: Store, plan: dict) -> None:
                        "total_s": time.perf_counter() - start}
             default = cli_run(store, plan, scheduler, cache, nodes)
             kept = cli_run(store, plan, scheduler, cache, nodes, max_pass_spp=16)
+            # passes apart: an error target that never stops (the next passes traced ahead)
+            # and the same with a time limit that never stops (each pass alone)
+            ahead = cli_run(store, plan, scheduler, cache, nodes, target_error=1e-12)
+            alone = cli_run(store, plan, scheduler, cache, nodes, target_error=1e-12,
+                            time_limit=3600.0)
             where = "1 process" if nodes is None else f"{nodes} nodes"
             print(f"| {where} | {scheduler} | {one['loads']} | {default['loads']} "
                   f"({default['passes']}) | {kept['loads']} ({kept['passes']}) | "
-                  f"{one['total_s']:.2f} | {default['total_s']:.2f} | {kept['total_s']:.2f} |",
+                  f"{ahead['loads']} ({ahead['passes']}) | {alone['loads']} "
+                  f"({alone['passes']}) | {one['total_s']:.2f} | {default['total_s']:.2f} | "
+                  f"{kept['total_s']:.2f} | {ahead['total_s']:.2f} | {alone['total_s']:.2f} |",
                   flush=True)
-            ratios.setdefault(where, {})[scheduler] = (default["loads"] / one["loads"],
-                                                       kept["loads"] / one["loads"])
+            ratios.setdefault(where, {})[scheduler] = tuple(
+                r["loads"] / one["loads"] for r in (default, kept, ahead, alone))
     for where, by in ratios.items():
         tag = "" if where == "1 process" else "_nodes"
         print(f"passes_loads_ratio{tag}="
@@ -394,7 +406,13 @@ def passes(store: Store, plan: dict) -> None:
               + f" (CLI default / one pass, {where}; goal <= 1.1) "
               f"passes_kept_loads_ratio{tag}="
               + ",".join(f"{s}:{r[1]:.2f}" for s, r in by.items())
-              + " (CLI with --max-pass-spp 16 / one pass)", flush=True)
+              + " (CLI with --max-pass-spp 16 / one pass) "
+              f"passes_apart_loads_ratio{tag}="
+              + ",".join(f"{s}:{r[2]:.2f}" for s, r in by.items())
+              + " (CLI with --target-error, the next passes traced ahead / one pass) "
+              f"passes_alone_loads_ratio{tag}="
+              + ",".join(f"{s}:{r[3]:.2f}" for s, r in by.items())
+              + " (the same with --time-limit: each pass alone)", flush=True)
 
 
 def warm_up(store: Store, plan: dict) -> None:
