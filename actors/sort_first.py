@@ -15,7 +15,7 @@ from vastray.actors.domain_loop import DomainLoop, LeadOrder, ScheduleOrder
 from vastray.actors.job_options import JobOptions
 from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import paths_context
-from vastray.render.film import Film
+from vastray.render.film import FILM_BYTES_PER_PIXEL, Film
 from vastray.render.integrators import PathContext, PathResult, RenderSettings, camera_rays
 from vastray.render.progressive import Progression
 from vastray.scene.cache import CacheStats
@@ -50,6 +50,10 @@ def tile_cache_capacity(options: JobOptions, store: Store) -> int:
 #: Activations of a render with passes apart before its later passes may be traced ahead
 #: (``SortFirstTiles.render_ahead``): enough to tell whether loads or traces take its time.
 AHEAD_AFTER = 4
+#: Most bytes of films of the passes traced ahead hold at once (a film of each such pass
+#: with tiles in flight or done): past it, no other pass's tile starts. A pass is then most
+#: of a tile or more, and passes apart cost little more than one pass's loads anyway.
+AHEAD_FILM_BYTES = 256 << 20
 
 
 class SortFirstTiles:
@@ -138,11 +142,12 @@ class SortFirstTiles:
         pass ends as soon as its own rays do. Tiles after it ride along, as many as fit in
         the tile's paths beside it: each activation also traces the rays they have waiting
         for its domain, at no load of their own (``LeadOrder``). The tiles of the current
-        pass and of the next one always ride; those of later passes once the render has
-        waited for loads at least as long as it traced (from its ``AHEAD_AFTER``-th
-        activation): their traces then delay the current pass less than the loads they
-        save would cost. Where traces take most of the time, the current pass ends later by
-        at most its riders' traces, and each pass's error still comes early.
+        pass and of the next one ride; those of later passes once the render has waited for
+        loads at least as long as it traced (from its ``AHEAD_AFTER``-th activation): their
+        traces then delay the current pass less than the loads they save would cost. Other
+        passes' tiles start only while their films fit in ``AHEAD_FILM_BYTES``. Where traces
+        take most of the time, the current pass ends later by at most its riders' traces,
+        and each pass's error still comes early.
 
         A pass's film is merged as its last tile ends and the progression rules on the next
         pass; where it stops, the tiles traced ahead are given up (``given_up_paths``).
@@ -165,14 +170,20 @@ class SortFirstTiles:
         in_flight: dict[int, int] = {}  # pass -> its tiles started and not finished
         enumerated: set[int] = set()  # passes whose every tile has started
         flight: list = []  # (pass, paths context, schedule), the leader first
-        riders: list = []  # the schedules of flight, the leader's popped as it leads
+        riders: list = []  # the schedules of flight[1:]
         waited, traced = self.preloader.cache.stats.wait_seconds, self.loop.stats["trace_s"]
         activations = len(self.loop.sequence)
+        film_bytes = settings.width * settings.height * FILM_BYTES_PER_PIXEL
 
         def loads_dominate() -> bool:
             return (len(self.loop.sequence) - activations >= AHEAD_AFTER
                     and self.preloader.cache.stats.wait_seconds - waited
                     >= self.loop.stats["trace_s"] - traced)
+
+        def films_fit(index: int) -> bool:
+            ahead = {k for k, _, _ in flight} | set(films) | {index}
+            ahead.discard(current)
+            return len(ahead) * film_bytes <= AHEAD_FILM_BYTES
 
         def start_following() -> None:
             """Start the tiles that may go now, in order."""
@@ -182,12 +193,14 @@ class SortFirstTiles:
                 if ids is None:
                     enumerated.add(index)
                 elif flight and (sum(len(c.pixel) for _, c, _ in flight) + len(ids) > cap
+                                 or index != current and not films_fit(index)
                                  or index > current + 1 and not loads_dominate()):
                     return
                 else:
                     ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)
                     flight.append((index, ctx, self._started(ctx)))
-                    riders.append(flight[-1][2])
+                    if len(flight) > 1:
+                        riders.append(flight[-1][2])
                     in_flight[index] = in_flight.get(index, 0) + 1
                 following = next(tiles, None)
 
@@ -201,11 +214,13 @@ class SortFirstTiles:
                     break
                 current = step[0]
                 continue
-            index, ctx, policy = flight.pop(0)
-            riders.pop(0)  # the others ride
+            index, ctx, policy = flight[0]  # leads, in flight until it is done
             order = LeadOrder(self._order(policy), riders, self.preloader.resident,
                               start_following)
             await self.loop.run(order)
+            flight.pop(0)
+            if riders:
+                riders.pop(0)  # the next leader
             _merge(self.counters, {"ahead_queries": order.ahead_queries})
             self._finished(policy, len(ctx.pixel))
             if index not in films:

@@ -413,3 +413,26 @@ def test_the_cli_says_it_traces_passes_ahead_out_of_core(rm, tmp_path, capsys):
         assert len(reports[name]["passes"]) == 4
     assert reports["ahead"]["counters"]["ahead_queries"] > 0
     assert reports["ahead"]["counters"]["loads"] < reports["alone"]["counters"]["loads"]
+
+
+@pytest.mark.parametrize("bound", ["films", "tile"])
+def test_passes_are_traced_ahead_only_within_the_tile_and_while_their_films_fit(rm, monkeypatch,
+                                                                                bound):
+    """Tiles ride only within the tile's paths (a pass of one tile leaves no room beside
+    it), and a pass traced ahead holds a film of its own until it is merged: with no room
+    for one (``AHEAD_FILM_BYTES`` 0, as a 4K image's 2 GB film has against 256 MiB), no
+    other pass's tile starts. Either way the render loads what passes alone load."""
+    from vastray.actors import sort_first
+
+    w, h = 32, 24
+    st = settings(width=w, height=h, spp=8, integrator="ao", bounces=1)
+    options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1,
+                         max_samples_in_flight=w * h if bound == "tile" else None)
+    reference = np.full((h, w, 3), 0.2, np.float32)
+    if bound == "films":
+        monkeypatch.setattr(sort_first, "AHEAD_FILM_BYTES", 0)
+    ahead, _ = apart(rm, options, st, reference=reference)
+    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    assert ahead.counters["ahead_queries"] == 0
+    assert ahead.counters["loads"] == alone.counters["loads"]
+    np.testing.assert_array_equal(ahead.film.image(), alone.film.image())
