@@ -436,3 +436,35 @@ def test_passes_are_traced_ahead_only_within_the_tile_and_while_their_films_fit(
     assert ahead.counters["ahead_queries"] == 0
     assert ahead.counters["loads"] == alone.counters["loads"]
     np.testing.assert_array_equal(ahead.film.image(), alone.film.image())
+
+
+def test_an_animation_on_two_nodes_traces_each_frames_passes_ahead(store, tmp_path, capsys):
+    """As a user runs it, without --quiet: `vastray render --frames 2 --nodes 2` out of core
+    with an error target renders each frame's passes traced ahead, frame after frame (the
+    coordinator's grant after a frame's last pass is the next frame's first), and gives one
+    process's frames bit for bit (the rule stops each where one process does)."""
+    import json
+
+    from vastray.cli import main
+    from vastray.render.imageio import read_image
+
+    toml = tmp_path / "orbit.toml"
+    toml.write_text(POINT_AND_SKY_TOML.replace(
+        "look_at = [0.0, -0.5, 0.0]\n", "look_at = [0.0, -0.5, 0.0]\n[camera.orbit]\n"
+        "degrees_per_frame = 40\n", 1))
+    common = [str(store.path), "--scene", str(toml), "--frames", "2", "--width", str(W),
+              "--height", str(H), "--spp", "16", "--integrator", "pt", "--bounces", "2",
+              "--cache", str(quarter(store)), "--scheduler", "image", "--target-error", "0.02"]
+    for name, extra in (("one", []), ("nodes", ["--nodes", "2"])):
+        assert main(["render", *common, *extra, "-o", str(tmp_path / f"{name}.exr"),
+                     "--report", str(tmp_path / f"{name}.json")]) == 0
+        err = capsys.readouterr().err
+        assert "wrote" in err.strip().splitlines()[-1], err
+    for frame in (0, 1):
+        np.testing.assert_array_equal(read_image(tmp_path / f"nodes_{frame:04d}.exr"),
+                                      read_image(tmp_path / f"one_{frame:04d}.exr"))
+    for frame in (0, 1):  # the rule stopped each frame early, its passes traced ahead dropped
+        report = json.loads((tmp_path / f"nodes_{frame:04d}.json").read_text())
+        assert report["stopped_by"] == "target-error", report["stopped_by"]
+        assert report["counters"]["ahead_queries"] > 0, report["counters"]
+        assert report["counters"]["given_up_paths"] > 0, report["counters"]
