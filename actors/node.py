@@ -311,7 +311,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                            frame_config, start: float, cpu_start: float) -> int:
         """Render ``unit`` (with the units that go in one sweep with it, ``units_together``),
         deliver their films, and return the unit to render next (-1: none)."""
-        nonlocal busy_total, frame_busy, frame_totals
+        nonlocal busy_total, frame_busy
         group = units_together(units, unit, options,
                                job["paced"] or job.get("passes_apart", False),
                                len(store.domains), settings.width * settings.height)
