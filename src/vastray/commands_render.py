@@ -286,7 +286,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
         "pass is the whole image at fewer samples, the same whatever the scheduler or node "
         "count. The report's 'passes' gives each pass's time, spp, error against "
         "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95% "
-        "confidence interval; `vastray plot` draws them. --spp is the upper bound.")
+        "confidence interval; `vastray plot` draws them. --spp is the upper bound. Out of "
+        "core, where nothing reads the image between passes, the render is one pass; with "
+        "--reference or --target-error each pass still ends on its own, the next passes "
+        "traced on its domain loads; --time-limit keeps each pass alone.")
     passes.add_argument("--time-limit", **argument("time_limit"), metavar="SECONDS",
                         help="stop before a pass that would end after SECONDS of rendering "
                              "(predicted from the pass before; the first pass always runs)")
