@@ -15,6 +15,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,25 @@ def _reap(nodes: list[subprocess.Popen]) -> None:
             node.wait()
 
 
+@contextmanager
+def _three_nodes_losing_rank_2(tmp_path: Path, slow_drop_s: float = 0.0):
+    """Three `vastray node` processes started as a user starts them (``_start_nodes``), the
+    one given rank 2 killed a second after all have their job: yields (the address the
+    coordinator listens on, the node processes, their logs, [the killed one's index] or []
+    if none was found). The nodes are reaped on the way out."""
+    port = free_port()
+    logs = [tmp_path / f"n{i}.log" for i in range(3)]
+    nodes = _start_nodes(port, logs, slow_drop_s)
+    hit: list[int] = []
+    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
+    striker.start()
+    try:
+        yield f"127.0.0.1:{port}", nodes, logs, hit
+    finally:
+        striker.join()
+        _reap(nodes)
+
+
 @pytest.mark.parametrize("scheduler, slow", [
     pytest.param("async", False, marks=pytest.mark.slow), ("image", False),
     pytest.param("async", True, marks=pytest.mark.slow)])
@@ -156,19 +176,10 @@ def test_a_lost_node_started_elsewhere_is_survived(scene, tmp_path, scheduler, s
     slow_drop = protocol.COORDINATOR_SILENCE_S + 1.0 if slow else 0.0
     store, toml = scene
     st = settings(width=32, height=24, spp=128, integrator="pt")
-    port = free_port()
-    logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    nodes = _start_nodes(port, logs, slow_drop)
-    hit: list[int] = []
-    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
-    striker.start()
-    try:
+    with _three_nodes_losing_rank_2(tmp_path, slow_drop) as (listen, nodes, logs, hit):
         result = render_distributed(store.path, toml, st, 3,
                                     options=JobOptions(scheduler=scheduler, max_samples_in_flight=300),
-                                    listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0)
-    finally:
-        striker.join()
-        _reap(nodes)
+                                    listen=listen, timeout=60, heartbeat_timeout=3.0)
     assert hit, "the test found no node 2 to kill"
     assert result.counters["nodes_asked"] == 3 and result.counters["nodes"] == 2
     failures = result.counters["node_failures"]
@@ -230,23 +241,13 @@ def test_without_survival_a_lost_node_started_elsewhere_fails_the_run(scene, tmp
     # survive_node_loss=False: no regroup is called; the run fails naming the node, and the
     # others, hearing nothing more from the coordinator, exit on their own.
     store, toml = scene
-    port = free_port()
-    logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    nodes = _start_nodes(port, logs)
-    hit: list[int] = []
-    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
-    striker.start()
-    try:
-        with pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing"):
-            render_distributed(store.path, toml,
-                               settings(width=32, height=24, spp=128,
-                                                          integrator="pt"), 3,
-                               options=JobOptions(scheduler="async", max_samples_in_flight=300),
-                               listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0,
-                               survive_node_loss=False)
-    finally:
-        striker.join()
-        _reap(nodes)
+    with (_three_nodes_losing_rank_2(tmp_path) as (listen, nodes, logs, hit),
+          pytest.raises(NodeFailure, match=r"^node 2 \(pid \d+ on \S+\) sent nothing")):
+        render_distributed(store.path, toml,
+                           settings(width=32, height=24, spp=128, integrator="pt"), 3,
+                           options=JobOptions(scheduler="async", max_samples_in_flight=300),
+                           listen=listen, timeout=60, heartbeat_timeout=3.0,
+                           survive_node_loss=False)
     assert hit, "the test found no node 2 to kill"
     for i in set(range(3)) - set(hit):
         text = logs[i].read_text()
@@ -514,20 +515,11 @@ def test_a_lost_node_is_survived_while_its_passes_are_traced_ahead(scene, tmp_pa
     options = JobOptions(scheduler="image", cache=2, max_samples_in_flight=300)
     reference = np.full((24, 32, 3), 0.2, np.float32)
     rules = StopRules(64, target_error=1e-12) if rule == "target-error" else StopRules(64)
-    port = free_port()
-    logs = [tmp_path / f"n{i}.log" for i in range(3)]
-    nodes = _start_nodes(port, logs)
-    hit: list[int] = []
-    striker = threading.Thread(target=_kill_rank_2_once_joined, args=(nodes, logs, hit))
-    striker.start()
-    try:
-        result = render_distributed(store.path, toml, st, 3, options=options,
-                                    listen=f"127.0.0.1:{port}", timeout=60, heartbeat_timeout=3.0,
+    with _three_nodes_losing_rank_2(tmp_path) as (listen, nodes, logs, hit):
+        result = render_distributed(store.path, toml, st, 3, options=options, listen=listen,
+                                    timeout=60, heartbeat_timeout=3.0,
                                     progression_of=lambda frame: Progression(32, 24, rules,
                                                                              reference))
-    finally:
-        striker.join()
-        _reap(nodes)
     assert hit, "the test found no node 2 to kill"
     assert result.counters["nodes"] == 2 and len(result.counters["node_failures"]) == 1
     assert len(result.progress["passes"]) == 8  # 1, 1, 2, 4, 8, 16, 16, 16 spp

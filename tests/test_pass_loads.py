@@ -304,21 +304,26 @@ def test_passes_apart_where_traces_take_the_time_trace_the_next_one_ahead(rm, sc
     np.testing.assert_array_equal(ahead.film.image(), alone.film.image())
 
 
-def test_a_pass_traced_ahead_is_given_up_where_the_error_target_stops(rm):
-    """The rule stops after pass 1: the image is that of passes 0 and 1 bit for bit (what a
-    2-spp render gives), and the paths traced ahead of pass 2 are given up."""
+@pytest.mark.parametrize("nodes,scheduler", [(None, "spec-ooc"), (2, "image")])
+def test_a_pass_traced_ahead_is_given_up_where_the_error_target_stops(rm, nodes, scheduler):
+    """The rule (on nodes, the coordinator's) stops after pass 1: the passes traced ahead
+    are given up, and the image is that of passes 0 and 1 bit for bit (what a 2-spp render
+    gives)."""
     w, h = 32, 24
     st = settings(width=w, height=h, spp=16, integrator="ao", bounces=1)
-    options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1)
+    options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1)
     reference = render_out_of_core(rm, SceneConfig(), settings(
         width=w, height=h, spp=64, integrator="ao", bounces=1, seed=99), JobOptions(),
         progress=False).film.image()
     _, curve = apart(rm, options, st, reference=reference)
     errors = [p["rel_mse"] for p in curve.series]
     assert errors[1] < errors[0], errors
-    target = (errors[0] + errors[1]) / 2
-    result, progression = apart(rm, options, st, reference=reference,
-                                stop={"target_error": target})
+    stop = {"target_error": (errors[0] + errors[1]) / 2}
+    if nodes is None:
+        result, progression = apart(rm, options, st, reference=reference, stop=stop)
+    else:
+        result, progression = apart_on_nodes(rm, options, st, nodes, reference=reference,
+                                             stop=stop)
     assert progression.stopped_by == "target-error"
     assert len(progression.series) == 2, progression.series
     assert result.counters["given_up_paths"] > 0
@@ -359,30 +364,6 @@ def test_passes_apart_on_two_nodes_are_traced_on_the_first_ones_loads(rm):
     in_one_process, _ = apart(rm, options, st, reference=reference)
     np.testing.assert_array_equal(ahead.film.image(), in_one_process.film.image())
     np.testing.assert_array_equal(alone.film.image(), in_one_process.film.image())
-
-
-def test_on_two_nodes_a_pass_traced_ahead_is_given_up_where_the_error_target_stops(rm):
-    """The coordinator's rule stops after pass 1: the nodes drop the passes they traced
-    ahead, and the image is that of passes 0 and 1 bit for bit."""
-    w, h = 32, 24
-    st = settings(width=w, height=h, spp=16, integrator="ao", bounces=1)
-    options = JobOptions(scheduler="image", cache=-(-len(rm.domains) // 4), threads=1)
-    reference = render_out_of_core(rm, SceneConfig(), settings(
-        width=w, height=h, spp=64, integrator="ao", bounces=1, seed=99), JobOptions(),
-        progress=False).film.image()
-    _, curve = apart(rm, options, st, reference=reference)
-    errors = [p["rel_mse"] for p in curve.series]
-    assert errors[1] < errors[0], errors
-    result, progression = apart_on_nodes(rm, options, st, reference=reference,
-                                         stop={"target_error": (errors[0] + errors[1]) / 2})
-    assert progression.stopped_by == "target-error"
-    assert len(progression.series) == 2, progression.series
-    assert result.counters["given_up_paths"] > 0
-    two = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=2,
-                                                         integrator="ao", bounces=1),
-                             options, progress=False,
-                             progression=Progression(w, h, StopRules(2)))
-    np.testing.assert_array_equal(result.film.image(), two.film.image())
 
 
 def test_the_cli_says_it_traces_passes_ahead_out_of_core(rm, tmp_path, capsys):
