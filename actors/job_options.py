@@ -256,6 +256,11 @@ class JobOptions:
             raise JobOptionsError("--assignment and --priority choose how --scheduler temporal "
                                   "plans (async takes only --assignment sequential so far)")
 
+    def out_of_core(self, domains: int) -> bool:
+        """Whether a process of this job caches fewer of a store's ``domains`` than it has
+        (``cache`` set and below them)."""
+        return self.cache is not None and self.cache < domains
+
     def load_bytes_per_second(self, rank: int = 0) -> float | None:
         """The emulated storage bandwidth of process ``rank`` in bytes/s (``load_bandwidth``
         cycled over the ranks), or None."""

@@ -506,8 +506,7 @@ def units_together(units: list, unit: int, options: JobOptions, apart: bool, dom
     ``SWEEP_FILM_BYTES``. Else ``unit`` alone. In core the node's cache keeps every domain
     from pass to pass, so passes apart cost no loads. Every node groups alike (the job and
     options are the same), so their reductions pair."""
-    out_of_core = options.cache is not None and options.cache < domains
-    if (apart or not out_of_core
+    if (apart or not options.out_of_core(domains)
             or registry.spec(options.scheduler).runtime is not Runtime.TILES):
         return [unit]
     most = max(1, SWEEP_FILM_BYTES // max(1, pixels * FILM_BYTES_PER_PIXEL))

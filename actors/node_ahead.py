@@ -25,7 +25,7 @@ def traces_ahead(job: dict, options: JobOptions, domains: int) -> bool:
     that does not say whether it is time-limited is taken as one."""
     return ((job["paced"] or job.get("passes_apart", False))
             and not job.get("time_limited", True)
-            and options.cache is not None and options.cache < domains
+            and options.out_of_core(domains)
             and registry.spec(options.scheduler).runtime is Runtime.TILES)
 
 

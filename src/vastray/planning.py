@@ -195,12 +195,11 @@ def renders_in_one_pass(request: RenderRequest, options: JobOptions, domains: in
     the passes buy nothing, so the render is one pass: its tiles and domain loads are the
     one-pass render's, and its report's series has one point (the final image's error
     estimate). In core, passes cost no loads and stay."""
-    out_of_core = options.cache is not None and options.cache < domains
     watched = (reference is not None or request.time_limit is not None
                or request.target_error is not None or request.checkpoint_every is not None
                or request.checkpoint is not None or request.max_pass_spp is not None
                or request.resume is not None)
-    return out_of_core and not watched
+    return options.out_of_core(domains) and not watched
 
 
 def traces_passes_ahead(plan: RenderPlan) -> bool | None:
@@ -210,10 +209,9 @@ def traces_passes_ahead(plan: RenderPlan) -> bool | None:
     alone (False). None where neither applies (in core, in one pass, unpaced passes kept for
     checkpoints, which run on from one pass into the next, or other schedulers)."""
     request, options = plan.request, plan.options
-    out_of_core = options.cache is not None and options.cache < len(plan.store.domains)
     apart = (plan.reference is not None or request.time_limit is not None
              or request.target_error is not None)
-    if (not out_of_core or not apart or plan.rules.one_pass
+    if (not options.out_of_core(len(plan.store.domains)) or not apart or plan.rules.one_pass
             or spec(plan.scheduler).runtime is not Runtime.TILES):
         return None
     return request.time_limit is None
