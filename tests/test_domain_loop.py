@@ -520,7 +520,6 @@ def test_a_sweep_of_passes_shares_each_pass_as_it_would_be_alone(pixels, spps, t
         assert all(len(t) == 1 for t in tiles)
 
 
-
 def test_a_sweep_weighs_each_pass_as_that_pass_alone_and_cuts_its_bands_by_cost():
     from vastray.schedule.image_cost import SweepWeights
 
@@ -541,6 +540,7 @@ def test_a_sweep_weighs_each_pass_as_that_pass_alone_and_cuts_its_bands_by_cost(
                        // spp].sum() for ids in shares]
         assert max(costs) - min(costs) <= 2 * pixel.max()
 
+
 def test_a_sweep_of_passes_gives_a_node_the_same_band_in_every_pass():
     # Cut as one frame, a sweep of 1, 1, 2 and 4 spp gave node 0 the first three passes'
     # whole images and node 1 the last pass's, each crossing every domain the image shows
@@ -553,6 +553,7 @@ def test_a_sweep_of_passes_gives_a_node_the_same_band_in_every_pass():
         pixel = (ids - offsets[k]) // spps[k]
         for j in range(4):
             assert set(pixel[k == j].tolist()) == set(range(rank * 384, (rank + 1) * 384))
+
 
 def test_weighted_bands_only_where_a_node_has_a_band():
     # frames of more than a tile a node keep their tiles dealt round robin
