@@ -117,7 +117,7 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
         watch.job_out()
         beating = asyncio.ensure_future(_heartbeat(router, identities, token))
         frames = Frames(size, job.get("frames"), frame_done)
-        passes.begin(lambda next_unit: grant(router, identities, token, next_unit))
+        passes.begin(lambda next_unit, clock: grant(router, identities, token, next_unit, clock))
         try:
             film, reports = await gather(router, watch, settings, bar, frames, size, passes)
         except NodeLost as lost:

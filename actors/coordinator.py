@@ -225,9 +225,9 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
         # measured against a reference, each pass's error is wanted as it ends (a curve of
         # error against time): nodes then render the passes apart, not in one sweep of tiles
         apart = any(progression(frame).reference is not None for frame in todo)
-        # a time limit's rule predicts a pass's time from the last one's: nodes then render
-        # each pass alone, not with the next ones traced ahead (``node_ahead``)
-        time_limited = any(progression(frame).rules.time_limit is not None for frame in todo)
+        # what the time rule knows of the first unit's pass: nodes trace ahead only the
+        # passes it may still grant (``node_ahead``; each grant brings it anew)
+        clock = progression(units[0][0]).pass_clock() if units else (None, None)
         try:
             with RenderBar(total=total, unit="path", unit_scale=True, delay=2.0,
                           disable=not progress, desc=f"render ({scheduler}, {size} nodes)",
@@ -235,7 +235,7 @@ def _render_attempts(job, store, config, camera, settings, nodes, options, timeo
                 passes = Passes(units, progression, paced, image=frames is None)
                 film, reports = asyncio.run(stoppable(coordinate(
                     dict(job, frames=remaining, units=units, paced=paced,
-                         passes_apart=apart, time_limited=time_limited), size, settings,
+                         passes_apart=apart, pass_clock=list(clock)), size, settings,
                     timeout, listen, keys, launched or {}, bar, progress, rendezvous,
                     heartbeat_timeout or timeout, frame_done,
                     regroup=survive_node_loss and size > 1, bound=bound,

@@ -24,7 +24,8 @@ class Passes:
     """The job's units, (frame, first sample, stop sample), one per pass of each frame, as
     node 0's film of each arrives (in unit order): merged into its frame's progression; a
     frame is whole once its progression stops. Paced (a rule may stop a frame early), every
-    unit waits for a grant: the next pass of the frame, the first of the next frame, or -1.
+    unit waits for a grant: the next pass of the frame, the first of the next frame, or -1,
+    with the time rule's clock of the pass granted (``Progression.pass_clock``).
 
     Parameters
     ----------
@@ -79,7 +80,11 @@ class Passes:
                 self._start(self.units[following])
         self.expected = following
         if self.paced:
-            await self.send_grant(following if following < len(self.units) else -1)
+            if following < len(self.units):  # with what the time rule knows of it
+                await self.send_grant(following,
+                                      self.progression(self.units[following][0]).pass_clock())
+            else:
+                await self.send_grant(-1, (None, None))
         return None if step is not None else (frame, progression.film)
 
 
@@ -192,8 +197,12 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
     return film, reports
 
 
-async def grant(router, identities: dict[int, bytes], token: bytes, next_unit: int) -> None:
-    """Tell every node the unit to render next (``-1``: none; paced runs only)."""
+async def grant(router, identities: dict[int, bytes], token: bytes, next_unit: int,
+                clock: tuple = (None, None)) -> None:
+    """Tell every node the unit to render next (``-1``: none; paced runs only), with the time
+    rule's ``clock`` of it (``Progression.pass_clock``: what a node traces ahead by)."""
+    budget, per_sample = clock
+    meta = {"next": next_unit, "budget_s": budget, "per_sample_s": per_sample}
     for rank in sorted(identities):
         await router.send_multipart([identities[rank], token,
-                                     *encode(protocol.GRANT, {}, {"next": next_unit})])
+                                     *encode(protocol.GRANT, {}, meta)])

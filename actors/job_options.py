@@ -36,8 +36,9 @@ DEFAULT_MAX_BATCH_RAYS = 65536
 #: and spec-insitu's batches go only where rays go (their counts in the schedule, or summed
 #: over the tree), so nodes of version 3 would wait for batches that never come; 5: the job's
 #: settings beside these options carry color_min and color_max (``--color-range``), which a
-#: node of version 4 cannot read.
-VERSION = 5
+#: node of version 4 cannot read; 6: trace_ahead (``--passes-alone``), and a time-limited
+#: job's passes traced ahead by the clock each grant brings.
+VERSION = 6
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 EVICTIONS = ("lru", "demand")
@@ -104,6 +105,10 @@ class JobOptions:
     threads : threads each process's Embree queries split their rays over; None: all cores
         (``render_distributed`` fills in this machine's cores shared among its nodes).
     preload : load the next domain in the background (the domain cache's preloading).
+    trace_ahead : out of core with passes apart (a reference, a time limit, an error target),
+        trace later passes on the current one's domain loads
+        (``SortFirstTiles.render_ahead``); False: each pass sweeps the domains alone
+        (``--passes-alone``: the earliest error point of each pass, at more loads).
     resident_first : schedules serve domains in memory before loading others (the image and
         spec-ooc schedules, and async's).
     load_bandwidth : MB/s of emulated network storage: a domain load takes at least its size
@@ -143,6 +148,7 @@ class JobOptions:
     max_batch_rays: int = DEFAULT_MAX_BATCH_RAYS
     threads: int | None = None
     preload: bool = True
+    trace_ahead: bool = True
     resident_first: bool = True
     load_bandwidth: tuple[float, ...] | None = None
     cold_reads: bool = False
@@ -316,7 +322,8 @@ class JobOptions:
 _INT, _FLOAT = (int,), (int, float)
 _TYPES = {
     "scheduler": str, "cache": _INT, "max_samples_in_flight": _INT, "history_depth": _INT,
-    "max_batch_rays": _INT, "threads": _INT, "preload": bool, "resident_first": bool,
+    "max_batch_rays": _INT, "threads": _INT, "preload": bool, "trace_ahead": bool,
+    "resident_first": bool,
     "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str,
     "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,

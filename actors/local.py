@@ -96,10 +96,9 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
                 film = runner.run(stoppable(tiles.render_passes(PassSpans(progression,
                                                                           settings))))
             elif (progression is not None and capacity < len(store.domains)
-                  and progression.rules.time_limit is None):
+                  and options.trace_ahead):
                 # passes apart, out of core: the next passes traced on the current one's
-                # loads. Not under a time limit: its rule predicts a pass's time from the
-                # last one's time per sample, which passes traced ahead would not give
+                # loads (under a time limit, those its rule may still grant)
                 film = runner.run(stoppable(tiles.render_ahead(progression, settings)))
                 if progression.stopped_by != "spp":  # the bar ends where the render does
                     bar.total = bar.n

@@ -11,6 +11,7 @@ import argparse
 import asyncio
 import concurrent.futures
 import logging
+import math
 import os
 import socket
 import sys
@@ -299,13 +300,14 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
             await management.to_coordinator(film_frames(
                 film, meta if frame is None else dict(meta, frame=frame)))
 
-    async def delivered_and_granted(unit: int, film) -> int:
+    async def delivered_and_granted(unit: int, film) -> tuple[int, tuple]:
         """``deliver``, then the unit to render next: the coordinator's grant where a rule
-        may stop the render (paced), else the following one (-1: none)."""
+        may stop the render (paced), else the following one (-1: none); with the time
+        rule's clock of it (``Progression.pass_clock``; (None, None) without a limit)."""
         await deliver(unit, film)
         if job["paced"]:
-            return await _granted(management, unit, len(units))
-        return unit + 1 if unit + 1 < len(units) else -1
+            return await _granted_with_clock(management, unit, len(units))
+        return (unit + 1 if unit + 1 < len(units) else -1), (None, None)
 
     async def render_units(unit: int, frame, first: int, stop: int, frame_settings,
                            frame_config, start: float, cpu_start: float) -> int:
@@ -343,6 +345,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
         return unit + 1 if unit + 1 < len(units) else -1
 
     ahead = traces_ahead(job, options, len(store.domains))
+    # what the time rule knows of the unit under way (``Progression.pass_clock``): the job's
+    # first unit's, then each grant's
+    clock = _clock_of(job.get("pass_clock"))
     try:
         try:
             unit = 0 if units else -1
@@ -356,9 +361,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                 if ahead:
                     # passes apart, each delivered and granted as it ends, while the render
                     # thread traces the next ones ahead (issue 40)
-                    unit, counters, waiting = await render_units_ahead(
+                    unit, clock, counters, waiting = await render_units_ahead(
                         options, rank, size, store, frame_config, frame_settings, units, unit,
-                        delivered_and_granted, report, state, aborted)
+                        delivered_and_granted, report, state, aborted, clock)
                     busy = time.perf_counter() - start - waiting
                     busy_total, frame_busy = busy_total + busy, frame_busy + busy
                     counters = _report_counters({**counters, "busy_cpu_s": time.process_time()
@@ -398,22 +403,45 @@ def job_units(job: dict) -> list[tuple[int | None, int, int]]:
 
 async def _granted(management, unit: int, count: int) -> int:
     """The unit the coordinator grants after ``unit`` (-1: none, the job is done)."""
+    return (await _granted_with_clock(management, unit, count))[0]
+
+
+async def _granted_with_clock(management, unit: int, count: int) -> tuple[int, tuple]:
+    """The unit the coordinator grants after ``unit`` (-1: none, the job is done) and the
+    time rule's (budget_s, per_sample_s) of it (``Progression.pass_clock``), each None where
+    the grant does not say."""
     message = await management.receive(protocol.GRANT, "pass grant from the coordinator")
     granted = int(message.meta["next"])
     if granted != -1 and not unit < granted < count:
         raise RuntimeError(f"the coordinator granted unit {granted} after unit {unit} of "
                            f"{count}")
-    return granted
+    return granted, _clock_of([message.meta.get(key) for key in ("budget_s", "per_sample_s")])
+
+
+def _clock_of(values) -> tuple:
+    """(budget_s, per_sample_s) from a job's ``pass_clock``: each None where not told."""
+    values = values if isinstance(values, list | tuple) and len(values) == 2 else (None, None)
+    return tuple(_seconds_or_none(v) for v in values)
+
+
+def _seconds_or_none(value) -> float | None:
+    """A grant's optional seconds: a finite number, else None (not told)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value) if math.isfinite(value) else None
 
 
 async def render_units_ahead(options: JobOptions, rank: int, size: int, store, config, settings,
                              units: list, unit: int, deliver, report, state: NodeState,
-                             aborted: threading.Event) -> tuple[int, dict, float]:
+                             aborted: threading.Event, clock: tuple
+                             ) -> tuple[int, tuple, dict, float]:
     """This node's share of the passes of ``units[unit]``'s frame from ``unit`` on, later
     passes traced ahead (``node_ahead``): each pass, as it ends, is delivered
     (``deliver(unit, film)``, awaited on this event loop while the render thread waits) and
-    ruled on by the coordinator. Returns the unit granted after the last one delivered (-1:
-    none), the render's counters and the seconds spent delivering and waiting for grants."""
+    ruled on by the coordinator. ``clock``: the time rule's (budget_s, per_sample_s) of
+    ``units[unit]`` (``Progression.pass_clock``). Returns the unit granted after the last
+    one delivered (-1: none) and its clock, the render's counters and the seconds spent
+    delivering and waiting for grants."""
     from vastray.actors.local import render_out_of_core
 
     loop = asyncio.get_running_loop()
@@ -421,7 +449,7 @@ async def render_units_ahead(options: JobOptions, rank: int, size: int, store, c
     mine = [u for u in range(unit, len(units)) if units[u][0] == frame]
     waiting = 0.0
 
-    def delivered(u: int, film) -> int:  # on the render thread
+    def delivered(u: int, film) -> tuple[int, tuple]:  # on the render thread
         nonlocal waiting
         start = time.perf_counter()
         try:
@@ -429,11 +457,11 @@ async def render_units_ahead(options: JobOptions, rank: int, size: int, store, c
         finally:
             waiting += time.perf_counter() - start
 
-    passes = GrantedPasses(mine, [units[u][1:] for u in mine], delivered)
+    passes = GrantedPasses(mine, [units[u][1:] for u in mine], delivered, clock)
     result = await asyncio.to_thread(
         render_out_of_core, store, config, settings, options, progress=False,
         share=(rank, size), on_tile=report, progression=passes, state=state)
-    return passes.granted, result.counters, waiting
+    return passes.granted, passes.clock, result.counters, waiting
 
 
 #: Seconds between a render thread's looks at the job's abort while it waits on the loop.

@@ -30,6 +30,7 @@ REGROUP = "regroup"      # coordinator -> node: a node was lost; drop this job, 
 RAYS = "rays"            # node -> node: a ray batch for the receiver's domains
 EXCHANGE = "exchange"    # node -> butterfly partner: its partial at one all-reduce step
 GRANT = "grant"          # coordinator -> node (paced passes): the next unit to render, or -1
+                         # (and the time rule's budget_s and per_sample_s of it, or None)
 WAVE = "wave"            # node -> child node (async, temporal): a termination wave, or finished
 WAVE_REPLY = "wave_reply"  # node -> parent node: its subtree's batches sent and received
 

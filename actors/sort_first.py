@@ -145,9 +145,12 @@ class SortFirstTiles:
         pass and of the next one ride; those of later passes once the render has waited for
         loads at least as long as it traced (from its ``AHEAD_AFTER``-th activation): their
         traces then delay the current pass less than the loads they save would cost. Other
-        passes' tiles start only while their films fit in ``AHEAD_FILM_BYTES``. Where traces
-        take most of the time, the current pass ends later by at most its riders' traces,
-        and each pass's error still comes early.
+        passes' tiles start only while their films fit in ``AHEAD_FILM_BYTES``, and only
+        while the progression's time rule may still grant their pass
+        (``Progression.may_grant``: a time limit's rule predicts a pass's time from the last
+        one's, riders' traces included, as the passes before it ran). Where traces take
+        most of the time, the current pass ends later by at most its riders' traces, and
+        each pass's error still comes early.
 
         A pass's film is merged as its last tile ends and the progression rules on the next
         pass; where it stops, the tiles traced ahead are given up (``given_up_paths``).
@@ -194,7 +197,8 @@ class SortFirstTiles:
                     enumerated.add(index)
                 elif flight and (sum(len(c.pixel) for _, c, _ in flight) + len(ids) > cap
                                  or index != current and not films_fit(index)
-                                 or index > current + 1 and not loads_dominate()):
+                                 or index > current + 1 and not loads_dominate()
+                                 or not progression.may_grant(index)):
                     return
                 else:
                     ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)

@@ -165,6 +165,37 @@ def pass_point(film: Film, index: int, seconds: float,
     return point
 
 
+def passes_in_time(budget_s: float | None, running_s: float, per_sample_s: float | None,
+                   spp: list[int]) -> int:
+    """How many of the passes after the current one the time rule may still grant, by its
+    own prediction: the current pass (``spp[0]`` samples a pixel, running for
+    ``running_s`` of the ``budget_s`` seconds the limit left when it was granted) takes
+    ``span = max(running_s, per_sample_s * spp[0])`` (at least what it has run; the last
+    pass's seconds a sample, ``per_sample_s``, where there is one), and each pass after it
+    ``span / spp[0]`` seconds a sample: pass i after it is granted if ``span + span / spp[0]
+    * (spp[1] + ... + spp[i]) <= budget_s``, the rule ``Progression.next_pass`` applies.
+
+    Parameters
+    ----------
+    budget_s : seconds left of the time limit when the current pass was granted (None: no
+        limit, every pass may be granted).
+    running_s : seconds the current pass has run.
+    per_sample_s : the last pass's seconds a sample (None: no pass done yet).
+    spp : (K,) samples a pixel of the current pass and of each after it.
+    """
+    if budget_s is None:
+        return len(spp) - 1
+    span = max(running_s, (per_sample_s or 0.0) * spp[0])
+    per_sample = span / max(spp[0], 1)
+    total, count = span, 0
+    for samples in spp[1:]:
+        total += per_sample * samples
+        if total > budget_s:
+            break
+        count += 1
+    return count
+
+
 @dataclass(frozen=True)
 class Snapshot:
     """The image after the passes done so far, replaced whole after each pass (so a signal
@@ -269,6 +300,34 @@ class Progression:
         self._pass_started = time.perf_counter()
         self._granted = (done, *self.passes[done])
         return self._granted
+
+    def pass_clock(self) -> tuple[float | None, float | None]:
+        """What the time rule knows of the pass granted now: (seconds left of the limit when
+        it was granted, or None without a limit; the last pass's seconds a sample, or None
+        before any): the arguments ``passes_in_time`` predicts with, which a coordinator
+        sends its nodes with each grant."""
+        if self.rules.time_limit is None:
+            return None, None
+        last = self.snapshot.series[-1] if self.snapshot.series else None
+        per_sample = (None if last is None or not last.get("pass_seconds") else
+                      last["pass_seconds"] / max(last["pass_spp"], 1))
+        started = self._pass_started or time.perf_counter()
+        budget = self.rules.time_limit - (self.elapsed() - (time.perf_counter() - started))
+        return budget, per_sample
+
+    def may_grant(self, index: int) -> bool:
+        """Whether the rules may still grant pass ``index`` (after the current one), by the
+        time rule's own prediction (``passes_in_time``; always, without a time limit): what
+        a runtime asks before it traces that pass ahead of its turn."""
+        done = self.snapshot.passes_done
+        if self.stopped_by is not None or index >= len(self.passes):
+            return False
+        if index <= done or self.rules.time_limit is None:
+            return True
+        budget, per_sample = self.pass_clock()
+        running = time.perf_counter() - (self._pass_started or time.perf_counter())
+        spp = [stop - first for first, stop in self.passes[done:index + 1]]
+        return passes_in_time(budget, running, per_sample, spp) >= index - done
 
     def retake(self) -> None:
         """Before a runtime (re)starts mid-way: after a node loss, the pass granted and lost

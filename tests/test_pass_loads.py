@@ -7,6 +7,8 @@ of tiles (as one process does)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -251,6 +253,11 @@ def test_the_cli_on_two_nodes_keeps_its_passes_at_the_loads_of_one(rm, tmp_path,
                                   read_image(tmp_path / "one.exr"))
 
 
+def each_alone(options: JobOptions) -> JobOptions:
+    """``options`` with each pass sweeping the domains alone (``--passes-alone``)."""
+    return dataclasses.replace(options, trace_ahead=False)
+
+
 def apart(rm, options, st, **rules):
     """``render_out_of_core`` of ``rm`` in passes apart (``StopRules(**rules)``) and its
     progression."""
@@ -260,23 +267,26 @@ def apart(rm, options, st, **rules):
                               progression=progression), progression
 
 
-@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+@pytest.mark.parametrize("scheduler,stop", [("image", {}), ("spec-ooc", {}),
+                                            ("image", {"time_limit": 3600.0})],
+                         ids=["image", "spec-ooc", "image-time-limit"])
 def test_passes_apart_where_loads_take_the_time_are_traced_on_the_first_ones_loads(rm,
-                                                                                   scheduler):
-    """Passes apart (here a reference's error curve) in one process out of core, loads most
-    of the time (1 MB/s storage): while a pass's tile leads, the later passes' tiles trace
-    their rays in the domains it activates. Each pass still ends on its own, its film merged
-    before the next one's, and the films are bit for bit those of passes swept one after
-    another (as a time limit still has them, whose rule predicts a pass's time from the last
-    one's): 1.2-1.3x one pass's loads, against 2.9-3.2x."""
+                                                                                   scheduler,
+                                                                                   stop):
+    """Passes apart (a reference's error curve; or a time limit, whose rule may still grant
+    every pass) in one process out of core, loads most of the time (1 MB/s storage): while a
+    pass's tile leads, the later passes' tiles trace their rays in the domains it activates.
+    Each pass still ends on its own, its film merged before the next one's, and the films
+    are bit for bit those of passes swept one after another (``--passes-alone``): 1.2-1.3x
+    one pass's loads, against 2.9-3.2x."""
     w, h, spp = 32, 24, 8  # passes of 1, 1, 2, 4 spp, all within the tile
     st = settings(width=w, height=h, spp=spp, integrator="ao", bounces=1)
     options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1,
                          load_bandwidth=1.0)
     one = render_out_of_core(rm, SceneConfig(), st, options, progress=False)
     reference = np.full((h, w, 3), 0.2, np.float32)
-    ahead, progression = apart(rm, options, st, reference=reference)
-    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    ahead, progression = apart(rm, options, st, reference=reference, stop=stop)
+    alone, _ = apart(rm, each_alone(options), st, reference=reference, stop=stop)
     assert ahead.counters["ahead_queries"] > 0  # later passes rode along
     assert "ahead_queries" not in alone.counters
     seconds = [p["seconds"] for p in progression.series]
@@ -297,7 +307,7 @@ def test_passes_apart_where_traces_take_the_time_trace_the_next_one_ahead(rm, sc
     options = JobOptions(scheduler=scheduler, cache=-(-len(rm.domains) // 4), threads=1)
     reference = np.full((h, w, 3), 0.2, np.float32)
     ahead, _ = apart(rm, options, st, reference=reference)
-    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    alone, _ = apart(rm, each_alone(options), st, reference=reference)
     assert ahead.counters["ahead_queries"] > 0
     assert ahead.counters["loads"] <= 0.85 * alone.counters["loads"], (
         ahead.counters["loads"], alone.counters["loads"])
@@ -343,19 +353,20 @@ def apart_on_nodes(rm, options, st, nodes: int = 2, **rules):
     return result, progression
 
 
-def test_passes_apart_on_two_nodes_are_traced_on_the_first_ones_loads(rm):
+@pytest.mark.parametrize("stop", [{}, {"time_limit": 3600.0}], ids=["reference", "time-limit"])
+def test_passes_apart_on_two_nodes_are_traced_on_the_first_ones_loads(rm, stop):
     """As in one process, on each of 2 nodes: each pass is reduced over the nodes as it ends
-    while the node's render thread traces the later ones ahead; the films are those of one
-    process bit for bit."""
+    while the node's render thread traces the later ones ahead (under a time limit, those
+    the coordinator's rule may still grant, by the clock each grant brings); the films are
+    those of one process bit for bit."""
     w, h, spp = 32, 24, 8
     st = settings(width=w, height=h, spp=spp, integrator="ao", bounces=1)
     options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1,
                          load_bandwidth=1.0)
     reference = np.full((h, w, 3), 0.2, np.float32)
     one = render_distributed(rm.path, None, st, 2, options)
-    ahead, progression = apart_on_nodes(rm, options, st, reference=reference)
-    alone, _ = apart_on_nodes(rm, options, st, reference=reference,
-                              stop={"time_limit": 3600.0})
+    ahead, progression = apart_on_nodes(rm, options, st, reference=reference, stop=stop)
+    alone, _ = apart_on_nodes(rm, each_alone(options), st, reference=reference, stop=stop)
     assert ahead.counters["ahead_queries"] > 0
     assert len(progression.series) == 4
     loads = (one.counters["loads"], ahead.counters["loads"], alone.counters["loads"])
@@ -368,8 +379,8 @@ def test_passes_apart_on_two_nodes_are_traced_on_the_first_ones_loads(rm):
 
 def test_the_cli_says_it_traces_passes_ahead_out_of_core(rm, tmp_path, capsys):
     """As a user runs it, without --quiet: `vastray render --reference` out of core traces
-    the next passes ahead (the report's ``ahead_queries``) at fewer loads than with a time
-    limit, which keeps each pass alone, and says which it does."""
+    the next passes ahead (the report's ``ahead_queries``), with a time limit too, at fewer
+    loads than with --passes-alone, and says which it does."""
     import json
 
     from vastray.cli import main
@@ -382,8 +393,12 @@ def test_the_cli_says_it_traces_passes_ahead_out_of_core(rm, tmp_path, capsys):
               "--reference", str(reference)]
     reports = {}
     for name, extra, said in (
-            ("ahead", [], "the next passes traced on the current one's domain loads"),
-            ("alone", ["--time-limit", "3600"], "each sweeping the domains alone")):
+            ("ahead", [], "the next passes traced on the current one's domain loads (each "
+                          "pass's image still merged as it ends)"),
+            ("timed", ["--time-limit", "3600"], "the next passes traced on the current one's "
+             "domain loads (each pass's image still merged as it ends; only passes "
+             "--time-limit's rule may still grant)"),
+            ("alone", ["--passes-alone"], "each sweeping the domains alone (--passes-alone)")):
         out = tmp_path / f"{name}.exr"
         assert main(["render", *common, *extra, "-o", str(out), "--report",
                      str(tmp_path / f"{name}.json")]) == 0
@@ -392,8 +407,61 @@ def test_the_cli_says_it_traces_passes_ahead_out_of_core(rm, tmp_path, capsys):
         assert err.strip().splitlines()[-1].startswith(f"wrote {out}"), err
         reports[name] = json.loads((tmp_path / f"{name}.json").read_text())
         assert len(reports[name]["passes"]) == 4
-    assert reports["ahead"]["counters"]["ahead_queries"] > 0
-    assert reports["ahead"]["counters"]["loads"] < reports["alone"]["counters"]["loads"]
+    for name in ("ahead", "timed"):
+        assert reports[name]["counters"]["ahead_queries"] > 0
+        assert reports[name]["counters"]["loads"] < reports["alone"]["counters"]["loads"]
+    assert reports["alone"]["options"]["trace_ahead"] is False
+
+
+def test_a_time_limit_gives_up_the_passes_its_rule_stops_before(rm):
+    """Under a time limit the next pass rides from the start (the rule cannot yet tell), and
+    is given up where the rule stops before it: here after pass 0 (0.7-0.8 s of loads at
+    1 MB/s; pass 1 predicted to end past the 1 s limit). The image is pass 0's bit for bit."""
+    w, h = 32, 24
+    st = settings(width=w, height=h, spp=16, integrator="ao", bounces=1)
+    options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1,
+                         load_bandwidth=1.0)
+    result, progression = apart(rm, options, st, stop={"time_limit": 1.0})
+    assert progression.stopped_by == "time-limit"
+    assert len(progression.series) == 1, progression.series
+    assert result.counters["given_up_paths"] > 0
+    first = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=1,
+                                                           integrator="ao", bounces=1),
+                               options, progress=False,
+                               progression=Progression(w, h, StopRules(1)))
+    np.testing.assert_array_equal(result.film.image(), first.film.image())
+
+
+def test_a_pass_rides_only_while_the_rule_may_grant_it(rm, monkeypatch):
+    """``render_ahead`` starts a tile of pass k only while ``Progression.may_grant(k)``
+    says the rules may still grant it: with a rule that grants nothing two passes ahead, no
+    tile of pass k starts before pass k - 1 leads. The film is the same."""
+    from vastray.actors import sort_first
+
+    w, h = 32, 24
+    st = settings(width=w, height=h, spp=8, integrator="ao", bounces=1)
+    options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1,
+                         load_bandwidth=1.0)
+    progression = Progression(w, h, StopRules(8, time_limit=3600.0))
+    monkeypatch.setattr(progression, "may_grant",
+                        lambda index: index <= progression.snapshot.passes_done + 1)
+    started = []  # (pass of the tile, pass under way) at each tile's start
+    real = sort_first.SortFirstTiles._started
+
+    def recording(tiles, ctx):
+        first = int(ctx.sample.min())
+        index = next(k for k, (a, b) in enumerate(progression.passes) if a <= first < b)
+        started.append((index, progression.snapshot.passes_done))
+        return real(tiles, ctx)
+
+    monkeypatch.setattr(sort_first.SortFirstTiles, "_started", recording)
+    result = render_out_of_core(rm, SceneConfig(), st, options, progress=False,
+                                progression=progression)
+    assert result.counters["ahead_queries"] > 0
+    assert any(index == done + 1 for index, done in started), started  # the next one rode
+    assert all(index <= done + 1 for index, done in started), started
+    alone, _ = apart(rm, each_alone(options), st)
+    np.testing.assert_array_equal(result.film.image(), alone.film.image())
 
 
 @pytest.mark.parametrize("bound", ["films", "tile"])
@@ -416,7 +484,7 @@ def test_passes_are_traced_ahead_only_within_the_tile_and_while_their_films_fit(
     if bound == "films":
         monkeypatch.setattr(sort_first, "AHEAD_FILM_BYTES", 0)
     ahead, _ = apart(rm, options, st, reference=reference)
-    alone, _ = apart(rm, options, st, reference=reference, stop={"time_limit": 3600.0})
+    alone, _ = apart(rm, each_alone(options), st, reference=reference)
     assert ahead.counters["ahead_queries"] == 0
     assert ahead.counters["loads"] == alone.counters["loads"]
     np.testing.assert_array_equal(ahead.film.image(), alone.film.image())

@@ -546,3 +546,83 @@ def test_sigusr1_writes_the_checkpoint_on_a_thread_of_its_own(tmp_path):
     assert written_on and written_on[0] is not threading.main_thread()
     assert signal.getsignal(signal.SIGUSR1) == before
     assert not [t for t in threading.enumerate() if t.name == "checkpoint-on-sigusr1"]
+
+
+def test_passes_in_time_predicts_as_the_time_rule_rules():
+    from vastray.render.progressive import passes_in_time
+
+    # no limit: every pass after the current one
+    assert passes_in_time(None, 5.0, 1.0, [1, 1, 2, 4]) == 3
+    # the current pass of 2 spp at 1 s a sample takes 2 s; then 2 s (2 spp) fits 5 s, the
+    # next 4 s (4 spp) does not
+    assert passes_in_time(5.0, 0.5, 1.0, [2, 2, 4]) == 1
+    assert passes_in_time(8.0, 0.5, 1.0, [2, 2, 4]) == 2
+    # a pass that has run longer than predicted is predicted from its time so far
+    assert passes_in_time(5.0, 3.0, 1.0, [2, 2, 4]) == 0
+    # the first pass (no last pass's time a sample): from its own time so far
+    assert passes_in_time(1.0, 0.0, None, [1, 1]) == 1
+    assert passes_in_time(1.0, 0.6, None, [1, 1]) == 0  # 0.6 + 0.6 > 1
+
+
+class _Clock:
+    """A stand-in for ``time`` in ``vastray.render.progressive``: ``perf_counter`` reads
+    ``now``."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def perf_counter(self) -> float:
+        return self.now
+
+
+def test_may_grant_is_what_the_time_rule_then_grants(monkeypatch):
+    """``Progression.may_grant`` (what a runtime traces ahead by) agrees with the rule that
+    ``next_pass`` applies, pass by pass."""
+    from vastray.render import progressive
+
+    clock = _Clock()
+    monkeypatch.setattr(progressive, "time", clock)
+    progression = Progression(4, 2, StopRules(8, time_limit=10.0))  # passes 1, 1, 2, 4 spp
+    assert progression.next_pass() == (0, 0, 1)
+    assert progression.pass_clock() == (10.0, None)
+    assert progression.may_grant(0) and progression.may_grant(3)  # nothing run yet
+    clock.now += 2.0  # pass 0 has run 2 s: pass 1 would end at 4 s, pass 2 at 8 s, 3 at 16 s
+    assert [progression.may_grant(k) for k in (1, 2, 3)] == [True, True, False]
+    progression.add_pass(0, Film(4, 2))
+    assert progression.next_pass() == (1, 1, 2)  # granted: 2 + 2 <= 10
+    budget, per_sample = progression.pass_clock()
+    assert budget == pytest.approx(8.0) and per_sample == pytest.approx(2.0)
+    clock.now += 3.0  # pass 1 runs longer: from its 3 s, pass 2 would end at 5 + 6 > 10
+    assert progression.may_grant(1) and not progression.may_grant(2)
+    progression.add_pass(1, Film(4, 2))
+    assert progression.next_pass() is None and progression.stopped_by == "time-limit"
+    assert not progression.may_grant(2)
+    # without a limit every pass may be granted, whatever the time
+    free = Progression(4, 2, StopRules(8))
+    free.next_pass()
+    clock.now += 1e6
+    assert free.may_grant(3) and free.pass_clock() == (None, None)
+
+
+def test_a_node_predicts_from_the_clock_each_grant_brings(monkeypatch):
+    """``GrantedPasses.may_grant`` on a node: the job's clock for its first pass, then each
+    grant's, read on the node's own clock from the grant's arrival."""
+    from vastray.actors import node_ahead
+
+    clock = _Clock()
+    monkeypatch.setattr(node_ahead, "time", clock)
+    grants = iter([(11, (5.0, 2.0)), (-1, (None, None))])
+    passes = node_ahead.GrantedPasses([10, 11, 12], [(0, 1), (1, 2), (2, 4)],
+                                      lambda unit, film: next(grants), clock=(10.0, None))
+    assert passes.next_pass() == (0, 0, 1)
+    clock.now += 3.0  # pass 0 has run 3 s of 10: pass 1 would end at 6 s, pass 2 at 12 s
+    assert passes.may_grant(1) and not passes.may_grant(2)
+    passes.add_pass(0, None)  # granted unit 11 with 5 s left and 2 s a sample
+    assert passes.next_pass() == (1, 1, 2) and passes.clock == (5.0, 2.0)
+    assert not passes.may_grant(2)  # pass 1's 1 spp, 2 s, then pass 2's 2 spp: 6 s > 5 s
+    passes.add_pass(1, None)
+    assert passes.next_pass() is None and passes.granted == -1
+    untimed = node_ahead.GrantedPasses([0, 1, 2], [(0, 1), (1, 2), (2, 4)],
+                                       lambda unit, film: (1, (None, None)))
+    clock.now += 1e6
+    assert untimed.may_grant(2)

@@ -288,8 +288,14 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
         "--reference (MSE, relMSE, PSNR) and the film's own variance estimate and 95% "
         "confidence interval; `vastray plot` draws them. --spp is the upper bound. Out of "
         "core, where nothing reads the image between passes, the render is one pass; with "
-        "--reference or --target-error each pass still ends on its own, the next passes "
-        "traced on its domain loads; --time-limit keeps each pass alone.")
+        "--reference, --target-error or --time-limit each pass still ends on its own, the "
+        "next passes traced on its domain loads (under --time-limit, those its rule may "
+        "still grant).")
+    passes.add_argument("--passes-alone", **argument("passes_alone"),
+                        help="out of core with passes apart: each pass sweeps the domains "
+                             "alone, not traced ahead on the one before (each pass's error "
+                             "as early as it can come, at more domain loads; the 'alone' "
+                             "rows of bench/ooc.py)")
     passes.add_argument("--time-limit", **argument("time_limit"), metavar="SECONDS",
                         help="stop before a pass that would end after SECONDS of rendering "
                              "(predicted from the pass before; the first pass always runs)")

@@ -60,8 +60,9 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
     if ahead is not None and not request.quiet:
         print("passes: apart, out of core, " + (
             "the next passes traced on the current one's domain loads (each pass's image "
-            "still merged as it ends)" if ahead else "each sweeping the domains alone "
-            "(--time-limit predicts a pass's time from the last one's)"), file=sys.stderr)
+            "still merged as it ends" + ("; only passes --time-limit's rule may still grant"
+                                         if request.time_limit is not None else "") + ")"
+            if ahead else "each sweeping the domains alone (--passes-alone)"), file=sys.stderr)
     replaced = [str(p) for p in outputs if p.exists()]  # before any checkpoint writes them
     previous = checkpoints.install_signal()
     try:

@@ -203,18 +203,19 @@ def renders_in_one_pass(request: RenderRequest, options: JobOptions, domains: in
 
 
 def traces_passes_ahead(plan: RenderPlan) -> bool | None:
-    """Out of core with passes apart in a tile schedule (``image``, ``spec-ooc``): whether
-    later passes are traced on the current one's domain loads (True), or, under a time limit,
-    whose rule predicts a pass's time from the last one's, each pass sweeps the domains
-    alone (False). None where neither applies (in core, in one pass, unpaced passes kept for
-    checkpoints, which run on from one pass into the next, or other schedulers)."""
+    """Out of core with passes apart (a reference, a time limit or an error target) in a tile
+    schedule (``image``, ``spec-ooc``): whether later passes are traced on the current one's
+    domain loads (True; under a time limit, the passes its rule may still grant), or each
+    pass sweeps the domains alone (False: ``--passes-alone``). None where neither applies
+    (in core, in one pass, unpaced passes kept for checkpoints, which run on from one pass
+    into the next, or other schedulers)."""
     request, options = plan.request, plan.options
     apart = (plan.reference is not None or request.time_limit is not None
              or request.target_error is not None)
     if (not options.out_of_core(len(plan.store.domains)) or not apart or plan.rules.one_pass
             or spec(plan.scheduler).runtime is not Runtime.TILES):
         return None
-    return request.time_limit is None
+    return options.trace_ahead
 
 
 def finish_render(plan: RenderPlan, result: RenderResult, where: str | os.PathLike,
@@ -396,7 +397,8 @@ def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> Jo
         scheduler=scheduler, cache=cache if job.accepts(Option.CACHE) else None,
         max_samples_in_flight=in_flight,
         history_depth=request.history_depth, threads=request.threads,
-        preload=not request.no_preload, load_bandwidth=request.load_bandwidth,
+        preload=not request.no_preload, trace_ahead=not request.passes_alone,
+        load_bandwidth=request.load_bandwidth,
         cold_reads=request.cold_reads, eviction=request.eviction,
         simplified=request.simplified,
         portal_interval=request.portal_interval or DEFAULT_PORTAL_INTERVAL,

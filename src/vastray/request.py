@@ -195,6 +195,7 @@ class RenderRequest:
     rendezvous: str | None = _option()
     keys: str | None = _option()
     no_preload: bool = _option(False, switch=True)
+    passes_alone: bool = _option(False, switch=True)
     assignment: str | None = _option(choices=ASSIGNMENTS)
     priority: str | None = _option(choices=PRIORITIES)
     simplified: str | None = _option(nargs="?", const="portal",
@@ -350,6 +351,9 @@ class RenderRequest:
                 raise InputError(None, "--no-preload applies to the out-of-core schedulers; "
                                        "the in-core reference render loads each domain once "
                                        "and never preloads")
+            if self.passes_alone:
+                raise InputError(None, "--passes-alone applies to the out-of-core schedulers "
+                                       "(in core every pass is alone: it loads nothing)")
             if self.cold_reads:
                 raise InputError(None, "--cold-reads applies to the out-of-core schedulers; "
                                        "the in-core reference render loads each domain once "
@@ -385,7 +389,8 @@ class RenderRequest:
                                    "give --nodes N")
 
     def refuse_for_passes(self, animating: bool) -> None:
-        """Refuse checkpoint options where they cannot work.
+        """Refuse checkpoint options where they cannot work, and ``--passes-alone`` without
+        passes apart.
 
         Raises
         ------
@@ -400,6 +405,11 @@ class RenderRequest:
             raise InputError(self.resume, "--resume is for lossless renders: --simplified "
                                           "keeps a radiance cache that is not in the "
                                           "checkpoint")
+        if self.passes_alone and not (self.reference is not None or self.time_limit is not None
+                                      or self.target_error is not None):
+            raise InputError(None, "--passes-alone is for passes apart: give --reference, "
+                                   "--time-limit or --target-error, or drop it (without them "
+                                   "an out-of-core render is one pass)")
         if (self.target_error is not None and not self.reference
                 and self.simplified not in (None, "none")):
             raise InputError(None, "--target-error without --reference is for lossless "
