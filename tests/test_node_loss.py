@@ -499,10 +499,11 @@ def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsy
 
 
 @pytest.mark.parametrize("rule", ["reference", pytest.param("target-error",
-                                                             marks=pytest.mark.slow)])
+                                                             marks=pytest.mark.slow),
+                                  pytest.param("time-limit", marks=pytest.mark.slow)])
 def test_a_lost_node_is_survived_while_its_passes_are_traced_ahead(scene, tmp_path, rule):
-    """Out of core with passes apart (a reference; an error target, whose passes the
-    coordinator grants one by one), each node's render thread traces its next passes ahead
+    """Out of core with passes apart (a reference; an error target or a time limit, whose
+    passes the coordinator grants one by one, a time limit's with its clock), each node's render thread traces its next passes ahead
     and waits, as each pass ends, for the pass's reduction over the nodes or the grant
     (``node.render_units_ahead``). Node 2 is killed mid-frame: the survivors' render threads
     give up that wait at the regroup, the two nodes render the passes left, and the image is
@@ -514,7 +515,8 @@ def test_a_lost_node_is_survived_while_its_passes_are_traced_ahead(scene, tmp_pa
     st = settings(width=32, height=24, spp=64, integrator="pt")
     options = JobOptions(scheduler="image", cache=2, max_samples_in_flight=300)
     reference = np.full((24, 32, 3), 0.2, np.float32)
-    rules = StopRules(64, target_error=1e-12) if rule == "target-error" else StopRules(64)
+    rules = {"target-error": StopRules(64, target_error=1e-12),
+             "time-limit": StopRules(64, time_limit=3600.0)}.get(rule, StopRules(64))
     with _three_nodes_losing_rank_2(tmp_path) as (listen, nodes, logs, hit):
         result = render_distributed(store.path, toml, st, 3, options=options, listen=listen,
                                     timeout=60, heartbeat_timeout=3.0,

@@ -282,6 +282,19 @@ def check_no_preload(r: Renders):
     r.refused("--no-preload", naming="--no-preload")  # the in-core reference
 
 
+def check_passes_alone(r: Renders):
+    apart = ["--scheduler", "image", "--cache", "2", "--spp", "4", "--time-limit", "600"]
+    ahead, alone = r(*apart), r(*apart, "--passes-alone")
+    assert ahead.counters["ahead_queries"] > 0 and ahead.report["options"]["trace_ahead"]
+    assert "ahead_queries" not in alone.counters
+    assert alone.report["options"]["trace_ahead"] is False
+    assert "each sweeping the domains alone (--passes-alone)" in alone.err, alone.err
+    np.testing.assert_array_equal(ahead.image(), alone.image())
+    r.refused("--passes-alone", "--time-limit", "600", naming="--passes-alone")  # in core
+    r.refused("--scheduler", "image", "--cache", "2", "--passes-alone",
+              naming="--passes-alone")  # one pass: nothing apart
+
+
 def check_load_bandwidth(r: Renders):
     for scheduler in ("image", "spec-ooc"):
         run = r("--scheduler", scheduler, "--cache", "2", "--load-bandwidth", "5")
