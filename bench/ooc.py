@@ -47,8 +47,12 @@ section then sets the CLI's own renders (``vastray.render``, its plan and defaul
 pass, in one process and on 2 nodes, and prints ``passes_loads_ratio=`` (CLI default / one
 pass), ``passes_kept_loads_ratio=`` (the CLI with ``--max-pass-spp 16``, the passes a
 checkpoint gets), ``passes_apart_loads_ratio=`` (the CLI with ``--target-error``, whose
-passes end apart, the next ones traced on the current one's loads, as with a reference) and
-``passes_alone_loads_ratio=`` (the same with ``--time-limit``: each pass alone). Then
+passes end apart, the next ones traced on the current one's loads, as with a reference),
+``passes_timed_loads_ratio=`` (the CLI with a ``--time-limit`` that never stops: the passes
+its rule may still grant traced ahead), ``passes_alone_loads_ratio=`` (``--target-error``
+with ``--passes-alone``: each pass alone) and ``passes_timed_spp=`` (the samples a pixel a
+``--time-limit`` of 1.5x the one-pass render's seconds reaches, traced ahead / with
+``--passes-alone``). Then
 (not with ``--large``) the history-depth sweep of Fig. 8
 (H = 1..B for B = 3, strongest). With every domain cached nothing is evicted, so
 ``strongest+demand``'s 100 % cells are ``strongest``'s. ``--ablation`` adds every switch
@@ -352,7 +356,7 @@ def cli_run(store: Store, plan: dict, scheduler: str, cache: int, nodes: int | N
                          bvh=plan["bvh"], progress=False, **passes)
     total = time.perf_counter() - start
     return {"loads": out.report["counters"]["loads"], "total_s": total,
-            "passes": len(out.report["passes"])}
+            "passes": len(out.report["passes"]), "spp": out.report["passes"][-1]["spp"]}
 
 
 def passes(store: Store, plan: dict) -> None:
@@ -367,10 +371,12 @@ def passes(store: Store, plan: dict) -> None:
     st = settings(plan, "pt")
     print(f"\n### passes as the CLI renders them (pt, cache {cache} of {n} domains, cold reads)\n")
     print("| nodes | scheduler | one-pass loads | CLI default loads (passes) | CLI passes kept "
-          "loads (passes) | CLI passes apart, traced ahead, loads | CLI passes apart, each "
-          "alone, loads | one-pass s | CLI default s | CLI passes kept s | apart, ahead s | "
-          "apart, alone s |")
-    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+          "loads (passes) | CLI passes apart, traced ahead, loads | CLI time-limited, traced "
+          "ahead, loads | CLI passes apart, each alone, loads | one-pass s | CLI default s | "
+          "CLI passes kept s | apart, ahead s | time-limited, ahead s | apart, alone s | spp "
+          "within 1.5x one pass's s: ahead / alone |")
+    print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+          "| ---: | ---: | ---: |")
     ratios: dict = {}
     for nodes in plan.get("passes_nodes", (None, 2)):
         for scheduler in SCHEDULERS:
@@ -385,20 +391,28 @@ def passes(store: Store, plan: dict) -> None:
                        "total_s": time.perf_counter() - start}
             default = cli_run(store, plan, scheduler, cache, nodes)
             kept = cli_run(store, plan, scheduler, cache, nodes, max_pass_spp=16)
-            # passes apart: an error target that never stops (the next passes traced ahead)
-            # and the same with a time limit that never stops (each pass alone)
+            # passes apart: an error target that never stops (the next passes traced ahead),
+            # a time limit that never stops (those its rule may still grant traced ahead),
+            # and the error target with each pass alone
             ahead = cli_run(store, plan, scheduler, cache, nodes, target_error=1e-12)
+            timed = cli_run(store, plan, scheduler, cache, nodes, time_limit=3600.0)
             alone = cli_run(store, plan, scheduler, cache, nodes, target_error=1e-12,
-                            time_limit=3600.0)
+                            passes_alone=True)
+            # what a user's time limit buys: the samples reached in 1.5x one pass's time
+            limit = round(1.5 * one["total_s"], 2)
+            reached = [cli_run(store, plan, scheduler, cache, nodes, time_limit=limit,
+                               **extra)["spp"] for extra in ({}, {"passes_alone": True})]
             where = "1 process" if nodes is None else f"{nodes} nodes"
             print(f"| {where} | {scheduler} | {one['loads']} | {default['loads']} "
                   f"({default['passes']}) | {kept['loads']} ({kept['passes']}) | "
-                  f"{ahead['loads']} ({ahead['passes']}) | {alone['loads']} "
-                  f"({alone['passes']}) | {one['total_s']:.2f} | {default['total_s']:.2f} | "
-                  f"{kept['total_s']:.2f} | {ahead['total_s']:.2f} | {alone['total_s']:.2f} |",
-                  flush=True)
-            ratios.setdefault(where, {})[scheduler] = tuple(
-                r["loads"] / one["loads"] for r in (default, kept, ahead, alone))
+                  f"{ahead['loads']} ({ahead['passes']}) | {timed['loads']} ({timed['passes']}) "
+                  f"| {alone['loads']} ({alone['passes']}) | {one['total_s']:.2f} | "
+                  f"{default['total_s']:.2f} | {kept['total_s']:.2f} | {ahead['total_s']:.2f} | "
+                  f"{timed['total_s']:.2f} | {alone['total_s']:.2f} | {reached[0]} / "
+                  f"{reached[1]} ({limit:.2f} s) |", flush=True)
+            ratios.setdefault(where, {})[scheduler] = (*(
+                r["loads"] / one["loads"] for r in (default, kept, ahead, timed, alone)),
+                reached)
     for where, by in ratios.items():
         tag = "" if where == "1 process" else "_nodes"
         print(f"passes_loads_ratio{tag}="
@@ -410,9 +424,16 @@ def passes(store: Store, plan: dict) -> None:
               f"passes_apart_loads_ratio{tag}="
               + ",".join(f"{s}:{r[2]:.2f}" for s, r in by.items())
               + " (CLI with --target-error, the next passes traced ahead / one pass) "
-              f"passes_alone_loads_ratio{tag}="
+              f"passes_timed_loads_ratio{tag}="
               + ",".join(f"{s}:{r[3]:.2f}" for s, r in by.items())
-              + " (the same with --time-limit: each pass alone)", flush=True)
+              + " (CLI with --time-limit, traced ahead / one pass) "
+              f"passes_alone_loads_ratio{tag}="
+              + ",".join(f"{s}:{r[4]:.2f}" for s, r in by.items())
+              + " (--target-error with --passes-alone: each pass alone) "
+              f"passes_timed_spp{tag}="
+              + ",".join(f"{s}:{r[5][0]}/{r[5][1]}" for s, r in by.items())
+              + " (spp reached in 1.5x one pass's seconds: traced ahead / --passes-alone)",
+              flush=True)
 
 
 def warm_up(store: Store, plan: dict) -> None:
