@@ -341,6 +341,8 @@ class LeadOrder:
         self._riding: int | None = None  # a domain activated for the followers alone
         #: ray queries the followers made
         self.ahead_queries = 0
+        #: seconds each follower's traces took, by ``id`` of its schedule
+        self.follower_seconds: dict[int, float] = {}
 
     def next_domain(self) -> int | None:
         if self.before is not None:
@@ -365,7 +367,13 @@ class LeadOrder:
 
     def trace(self, domain: int, bvh) -> Queries:
         lead = Queries() if domain == self._riding else self.lead.trace(domain, bvh)
-        followers = traced_tiles(self.followers, domain, bvh)
+        followers = Queries()
+        for policy in self.followers:
+            if waiting_rays(policy, domain):
+                start = time.perf_counter()
+                followers += traced_queries(policy, domain, bvh)
+                self.follower_seconds[id(policy)] = (self.follower_seconds.get(id(policy), 0.0)
+                                                     + time.perf_counter() - start)
         self.ahead_queries += int(followers)
         return lead + followers
 

@@ -6,6 +6,7 @@ reports."""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -62,14 +63,17 @@ class Passes:
         if step is None or step[1:] != (first, stop):
             raise RuntimeError(f"frame {frame}: pass {first}:{stop} is not its next")
 
-    async def film(self, unit: int, pass_film) -> tuple | None:
-        """Merge the film of ``unit``; returns (frame, its film) when that frame is whole."""
+    async def film(self, unit: int, pass_film, ahead_seconds: float = 0.0) -> tuple | None:
+        """Merge the film of ``unit`` (``ahead_seconds``: node 0's seconds of the pass spent
+        tracing later passes, ``Progression.add_pass``); returns (frame, its film) when that
+        frame is whole."""
         if unit != self.expected or unit >= len(self.units):
             raise NodeFailure(f"node 0 sent the film of unit {unit}; unit {self.expected} "
                               "was due")
         frame, first, stop = self.units[unit]
         progression = self.progression(frame)
-        progression.add_pass(progression.passes.index((first, stop)), pass_film)
+        progression.add_pass(progression.passes.index((first, stop)), pass_film,
+                             ahead_seconds=ahead_seconds)
         step = progression.next_pass()
         if step is not None:
             following = unit + 1
@@ -183,7 +187,10 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
             except ValueError as exc:
                 raise NodeFailure(f"node 0 sent a film that does not fit the image: "
                                   f"{exc}") from None
-            finished = await passes.film(int(message.meta.get("unit", 0)), pass_film)
+            ahead = message.meta.get("ahead_s", 0.0)  # a node's own number: checked here
+            ahead = (float(ahead) if isinstance(ahead, int | float) and not isinstance(ahead, bool)
+                     and math.isfinite(ahead) else 0.0)
+            finished = await passes.film(int(message.meta.get("unit", 0)), pass_film, ahead)
             if finished is not None:  # a frame is whole (for an animation, the latest)
                 (frame, film), whole = finished, True
                 if frame is not None:

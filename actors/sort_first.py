@@ -177,6 +177,17 @@ class SortFirstTiles:
         waited, traced = self.preloader.cache.stats.wait_seconds, self.loop.stats["trace_s"]
         activations = len(self.loop.sequence)
         film_bytes = settings.width * settings.height * FILM_BYTES_PER_PIXEL
+        pass_of: dict[int, int] = {}  # id of a rider's schedule -> its pass
+        ahead_s = 0.0  # seconds of the current pass's leader runs done, spent on later passes
+        order = None  # the leader run under way
+
+        def later_seconds() -> float:
+            """Seconds the current pass has spent tracing later passes' rays so far: what the
+            time rule leaves out of its prediction (``Progression.add_pass``)."""
+            running = 0.0 if order is None else sum(
+                seconds for key, seconds in order.follower_seconds.items()
+                if pass_of[key] != current)
+            return ahead_s + running
 
         def loads_dominate() -> bool:
             return (len(self.loop.sequence) - activations >= AHEAD_AFTER
@@ -198,11 +209,12 @@ class SortFirstTiles:
                 elif flight and (sum(len(c.pixel) for _, c, _ in flight) + len(ids) > cap
                                  or index != current and not films_fit(index)
                                  or index > current + 1 and not loads_dominate()
-                                 or not progression.may_grant(index)):
+                                 or not progression.may_grant(index, later_seconds())):
                     return
                 else:
                     ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)
                     flight.append((index, ctx, self._started(ctx)))
+                    pass_of[id(flight[-1][2])] = index
                     if len(flight) > 1:
                         riders.append(flight[-1][2])
                     in_flight[index] = in_flight.get(index, 0) + 1
@@ -212,7 +224,9 @@ class SortFirstTiles:
             start_following()
             if current in enumerated and not in_flight.get(current):
                 progression.add_pass(current, films.pop(current, None)
-                                     or Film(settings.width, settings.height))
+                                     or Film(settings.width, settings.height),
+                                     ahead_seconds=ahead_s)
+                ahead_s = 0.0
                 step = progression.next_pass()
                 if step is None:
                     break
@@ -222,10 +236,12 @@ class SortFirstTiles:
             order = LeadOrder(self._order(policy), riders, self.preloader.resident,
                               start_following)
             await self.loop.run(order)
+            ahead_s = later_seconds()
+            _merge(self.counters, {"ahead_queries": order.ahead_queries})
+            order = None
             flight.pop(0)
             if riders:
                 riders.pop(0)  # the next leader
-            _merge(self.counters, {"ahead_queries": order.ahead_queries})
             self._finished(policy, len(ctx.pixel))
             if index not in films:
                 films[index] = Film(settings.width, settings.height)

@@ -166,34 +166,46 @@ def pass_point(film: Film, index: int, seconds: float,
 
 
 def passes_in_time(budget_s: float | None, running_s: float, per_sample_s: float | None,
-                   spp: list[int]) -> int:
+                   spp: list[int], ahead_s: float = 0.0) -> int:
     """How many of the passes after the current one the time rule may still grant, by its
-    own prediction: the current pass (``spp[0]`` samples a pixel, running for
-    ``running_s`` of the ``budget_s`` seconds the limit left when it was granted) takes
-    ``span = max(running_s, per_sample_s * spp[0])`` (at least what it has run; the last
-    pass's seconds a sample, ``per_sample_s``, where there is one), and each pass after it
-    ``span / spp[0]`` seconds a sample: pass i after it is granted if ``span + span / spp[0]
-    * (spp[1] + ... + spp[i]) <= budget_s``, the rule ``Progression.next_pass`` applies.
+    own prediction. The rule (``Progression.next_pass``) grants the pass after pass k where
+    pass k's end plus pass k's own seconds a sample (its seconds less those spent tracing
+    later passes ahead, ``own_seconds``) times that pass's samples fits the limit. Here the
+    current pass (``spp[0]`` samples a pixel, granted with ``budget_s`` seconds of the limit
+    left) has run ``running_s`` seconds, ``ahead_s`` of them on later passes; its own work
+    takes ``own = max(running_s - ahead_s, per_sample_s * spp[0])`` (at least what it has
+    run; the last pass's own seconds a sample, ``per_sample_s``, where there is one), it
+    ends after ``own + ahead_s``, and each pass after it takes ``own / spp[0]`` seconds a
+    sample: pass i after it is granted if ``own + ahead_s + own / spp[0] * (spp[1] + ... +
+    spp[i]) <= budget_s``.
 
     Parameters
     ----------
     budget_s : seconds left of the time limit when the current pass was granted (None: no
         limit, every pass may be granted).
     running_s : seconds the current pass has run.
-    per_sample_s : the last pass's seconds a sample (None: no pass done yet).
+    per_sample_s : the last pass's own seconds a sample (None: no pass done yet).
     spp : (K,) samples a pixel of the current pass and of each after it.
+    ahead_s : of ``running_s``, the seconds spent tracing later passes ahead.
     """
     if budget_s is None:
         return len(spp) - 1
-    span = max(running_s, (per_sample_s or 0.0) * spp[0])
-    per_sample = span / max(spp[0], 1)
-    total, count = span, 0
+    own = max(running_s - ahead_s, (per_sample_s or 0.0) * spp[0])
+    per_sample = own / max(spp[0], 1)
+    total, count = own + ahead_s, 0
     for samples in spp[1:]:
         total += per_sample * samples
         if total > budget_s:
             break
         count += 1
     return count
+
+
+def own_seconds(point: dict) -> float:
+    """A pass's seconds less those spent tracing later passes ahead (``ahead_seconds``; a
+    point written before it had none): the pass's time as if swept alone, which the time
+    rule predicts the next pass from."""
+    return max((point.get("pass_seconds") or 0.0) - (point.get("ahead_seconds") or 0.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -293,8 +305,7 @@ class Progression:
                 return self._stop("target-error")
         if self.rules.time_limit is not None and last is not None:
             first, stop = self.passes[done]
-            spent = last.get("pass_seconds") or 0.0
-            per_sample = spent / max(last["pass_spp"], 1)
+            per_sample = own_seconds(last) / max(last["pass_spp"], 1)
             if self.elapsed() + per_sample * (stop - first) > self.rules.time_limit:
                 return self._stop("time-limit")
         self._pass_started = time.perf_counter()
@@ -310,15 +321,16 @@ class Progression:
             return None, None
         last = self.snapshot.series[-1] if self.snapshot.series else None
         per_sample = (None if last is None or not last.get("pass_seconds") else
-                      last["pass_seconds"] / max(last["pass_spp"], 1))
+                      own_seconds(last) / max(last["pass_spp"], 1))
         started = self._pass_started or time.perf_counter()
         budget = self.rules.time_limit - (self.elapsed() - (time.perf_counter() - started))
         return budget, per_sample
 
-    def may_grant(self, index: int) -> bool:
+    def may_grant(self, index: int, ahead_seconds: float = 0.0) -> bool:
         """Whether the rules may still grant pass ``index`` (after the current one), by the
         time rule's own prediction (``passes_in_time``; always, without a time limit): what
-        a runtime asks before it traces that pass ahead of its turn."""
+        a runtime asks before it traces that pass ahead of its turn. ``ahead_seconds``: of
+        the current pass's time so far, the seconds spent tracing later passes."""
         done = self.snapshot.passes_done
         if self.stopped_by is not None or index >= len(self.passes):
             return False
@@ -327,7 +339,7 @@ class Progression:
         budget, per_sample = self.pass_clock()
         running = time.perf_counter() - (self._pass_started or time.perf_counter())
         spp = [stop - first for first, stop in self.passes[done:index + 1]]
-        return passes_in_time(budget, running, per_sample, spp) >= index - done
+        return passes_in_time(budget, running, per_sample, spp, ahead_seconds) >= index - done
 
     def retake(self) -> None:
         """Before a runtime (re)starts mid-way: after a node loss, the pass granted and lost
@@ -343,9 +355,12 @@ class Progression:
         self.stopped_by = reason
         return None
 
-    def add_pass(self, index: int, pass_film: Film) -> dict:
+    def add_pass(self, index: int, pass_film: Film, ahead_seconds: float = 0.0) -> dict:
         """Merge the film of pass ``index`` (the next one) into the image; returns its
-        ``pass_point`` (with the pass's own seconds and samples, for the time rule)."""
+        ``pass_point`` (with the pass's seconds and samples, for the time rule).
+        ``ahead_seconds``: of the pass's seconds, those its runtime spent tracing later
+        passes ahead (``SortFirstTiles.render_ahead``), which the time rule leaves out: it
+        predicts each pass as if swept alone."""
         done = self.snapshot.passes_done
         if index != done:
             raise ValueError(f"pass {index} arrived where pass {done} was due")
@@ -360,6 +375,7 @@ class Progression:
         point["stop_bound"] = (point["rel_mse"] if self.reference is not None
                                else stop_bound(point, len(self.passes)))
         point["pass_seconds"] = round(time.perf_counter() - (self._pass_started or 0.0), 4)
+        point["ahead_seconds"] = round(max(float(ahead_seconds), 0.0), 4)
         self.snapshot = Snapshot(film, done + 1, self.snapshot.series + (point,), seconds)
         if self.on_pass is not None:
             self.on_pass(self)

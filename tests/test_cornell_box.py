@@ -66,10 +66,10 @@ def cornell(shared_data, tmp_path_factory):
 class SampleSquares(Progression):
     """Passes of one sample each, whose squares it sums: each pixel's sample variance."""
 
-    def add_pass(self, index, pass_film):
+    def add_pass(self, index, pass_film, **kw):
         sample = pass_film.sum / np.maximum(pass_film.count, 1)[:, None]
         self.squares = getattr(self, "squares", 0.0) + sample ** 2
-        return super().add_pass(index, pass_film)
+        return super().add_pass(index, pass_film, **kw)
 
     def variance_of_mean(self):
         """(H, W, 3) each pixel's sample variance / n."""

@@ -503,8 +503,9 @@ def test_a_node_reporting_its_failure_is_named_in_one_clean_line(tmp_path, capsy
                                   pytest.param("time-limit", marks=pytest.mark.slow)])
 def test_a_lost_node_is_survived_while_its_passes_are_traced_ahead(scene, tmp_path, rule):
     """Out of core with passes apart (a reference; an error target or a time limit, whose
-    passes the coordinator grants one by one, a time limit's with its clock), each node's render thread traces its next passes ahead
-    and waits, as each pass ends, for the pass's reduction over the nodes or the grant
+    passes the coordinator grants one by one, a time limit's with its clock), each node's
+    render thread traces its next passes ahead and waits, as each pass ends, for the pass's
+    reduction over the nodes or the grant
     (``node.render_units_ahead``). Node 2 is killed mid-frame: the survivors' render threads
     give up that wait at the regroup, the two nodes render the passes left, and the image is
     the fault-free one bit for bit."""

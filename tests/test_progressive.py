@@ -52,8 +52,8 @@ def test_pass_bounds_double_then_step_and_cover_every_sample_once():
 class Recorder(Progression):
     """A progression that keeps the image after every pass."""
 
-    def add_pass(self, index, pass_film):
-        point = super().add_pass(index, pass_film)
+    def add_pass(self, index, pass_film, **kw):
+        point = super().add_pass(index, pass_film, **kw)
         self.__dict__.setdefault("images", []).append(self.film.image().copy())
         return point
 
@@ -613,7 +613,8 @@ def test_a_node_predicts_from_the_clock_each_grant_brings(monkeypatch):
     monkeypatch.setattr(node_ahead, "time", clock)
     grants = iter([(11, (5.0, 2.0)), (-1, (None, None))])
     passes = node_ahead.GrantedPasses([10, 11, 12], [(0, 1), (1, 2), (2, 4)],
-                                      lambda unit, film: next(grants), clock=(10.0, None))
+                                      lambda unit, film, ahead: next(grants),
+                                      clock=(10.0, None))
     assert passes.next_pass() == (0, 0, 1)
     clock.now += 3.0  # pass 0 has run 3 s of 10: pass 1 would end at 6 s, pass 2 at 12 s
     assert passes.may_grant(1) and not passes.may_grant(2)
@@ -623,6 +624,28 @@ def test_a_node_predicts_from_the_clock_each_grant_brings(monkeypatch):
     passes.add_pass(1, None)
     assert passes.next_pass() is None and passes.granted == -1
     untimed = node_ahead.GrantedPasses([0, 1, 2], [(0, 1), (1, 2), (2, 4)],
-                                       lambda unit, film: (1, (None, None)))
+                                       lambda unit, film, ahead: (1, (None, None)))
     clock.now += 1e6
     assert untimed.may_grant(2)
+
+
+def test_the_time_rule_predicts_from_a_pass_s_own_seconds(monkeypatch):
+    """A pass that spent some of its seconds tracing later passes ahead is predicted from
+    the rest (``own_seconds``): the next pass as if swept alone, not at the riders' cost too.
+    Here pass 0 ran 4 s, 3 of them on later passes, under a 6 s limit: pass 1 (1 spp) is
+    predicted to end at 4 + 1 s and granted; counted whole (4 + 4 s) it would be refused."""
+    from vastray.render import progressive
+    from vastray.render.progressive import passes_in_time
+
+    assert passes_in_time(6.0, 4.0, None, [1, 1], ahead_s=3.0) == 1
+    assert passes_in_time(6.0, 4.0, None, [1, 1]) == 0
+    clock = _Clock()
+    monkeypatch.setattr(progressive, "time", clock)
+    for ahead, granted in ((3.0, True), (0.0, False)):
+        progression = Progression(4, 2, StopRules(8, time_limit=6.0))
+        progression.next_pass()
+        clock.now += 4.0
+        assert progression.may_grant(1, ahead_seconds=ahead) is granted
+        point = progression.add_pass(0, Film(4, 2), ahead_seconds=ahead)
+        assert point["ahead_seconds"] == ahead and point["pass_seconds"] == pytest.approx(4.0)
+        assert (progression.next_pass() is not None) is granted

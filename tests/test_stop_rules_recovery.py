@@ -69,7 +69,7 @@ def drive(rules: StopRules, clock: Clock, lose: int | None = None, late: float =
     ``recovery`` seconds to start again (``interrupt``: Ctrl-C comes meanwhile)."""
     progression = Progression(W, H, rules, reference=REFERENCE)
 
-    async def grant(unit: int) -> None:  # the nodes hear it (paced rules only)
+    async def grant(unit: int, clock: tuple) -> None:  # the nodes hear it (paced rules only)
         pass
 
     async def attempt(units: list[tuple]) -> bool:
