@@ -63,17 +63,16 @@ class Passes:
         if step is None or step[1:] != (first, stop):
             raise RuntimeError(f"frame {frame}: pass {first}:{stop} is not its next")
 
-    async def film(self, unit: int, pass_film, ahead_seconds: float = 0.0) -> tuple | None:
-        """Merge the film of ``unit`` (``ahead_seconds``: node 0's seconds of the pass spent
-        tracing later passes, ``Progression.add_pass``); returns (frame, its film) when that
-        frame is whole."""
+    async def film(self, unit: int, pass_film, **time_rule) -> tuple | None:
+        """Merge the film of ``unit`` (``time_rule``: node 0's ``ahead_seconds`` and
+        ``traced_ahead`` of the pass, ``Progression.add_pass``); returns (frame, its film)
+        when that frame is whole."""
         if unit != self.expected or unit >= len(self.units):
             raise NodeFailure(f"node 0 sent the film of unit {unit}; unit {self.expected} "
                               "was due")
         frame, first, stop = self.units[unit]
         progression = self.progression(frame)
-        progression.add_pass(progression.passes.index((first, stop)), pass_film,
-                             ahead_seconds=ahead_seconds)
+        progression.add_pass(progression.passes.index((first, stop)), pass_film, **time_rule)
         step = progression.next_pass()
         if step is not None:
             following = unit + 1
@@ -187,10 +186,8 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
             except ValueError as exc:
                 raise NodeFailure(f"node 0 sent a film that does not fit the image: "
                                   f"{exc}") from None
-            ahead = message.meta.get("ahead_s", 0.0)  # a node's own number: checked here
-            ahead = (float(ahead) if isinstance(ahead, int | float) and not isinstance(ahead, bool)
-                     and math.isfinite(ahead) else 0.0)
-            finished = await passes.film(int(message.meta.get("unit", 0)), pass_film, ahead)
+            finished = await passes.film(int(message.meta.get("unit", 0)), pass_film,
+                                         **time_rule_of(message.meta))
             if finished is not None:  # a frame is whole (for an animation, the latest)
                 (frame, film), whole = finished, True
                 if frame is not None:
@@ -202,6 +199,20 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
         elif message.kind == protocol.FAILED:
             raise watch.failed(int(message.meta["rank"]), message.meta["error"])
     return film, reports
+
+
+def time_rule_of(meta: dict) -> dict:
+    """A film message's ``ahead_seconds`` and ``traced_ahead`` (node 0's, for the time rule:
+    ``Progression.add_pass``), each read only where it is finite seconds (else none)."""
+    def seconds(value) -> float | None:
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        return float(value) if ok and math.isfinite(value) and value >= 0 else None
+
+    ahead = seconds(meta.get("ahead_seconds"))
+    traced = meta.get("traced_ahead")
+    traced = [seconds(t) for t in traced] if isinstance(traced, list) else []
+    return {"ahead_seconds": ahead or 0.0,
+            "traced_ahead": [] if None in traced else traced}
 
 
 async def grant(router, identities: dict[int, bytes], token: bytes, next_unit: int,

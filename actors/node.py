@@ -284,10 +284,10 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
     inputs: dict = {}  # frame -> its settings and scene (resolved once per frame)
     rendered = 0  # units rendered so far: they label tiles, statuses and films in order
 
-    async def deliver(unit: int, film, ahead_s: float = 0.0) -> None:
+    async def deliver(unit: int, film, time_rule: dict | None = None) -> None:
         """Reduce the film of ``unit`` (the next one rendered) over the nodes; node 0 sends
-        it to the coordinator, with ``ahead_s``, the seconds it spent in the pass tracing
-        later passes ahead (what the time rule leaves out, ``Progression.add_pass``)."""
+        it to the coordinator, with what its time rule predicts from where passes were
+        traced ahead (``Progression.add_pass``'s ``ahead_seconds`` and ``traced_ahead``)."""
         nonlocal rendered, reduce_total, frame_reduce
         frame = units[unit][0]
         state.ordinal, state.frame = rendered, frame or 0
@@ -297,15 +297,16 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
         reduce_s = time.perf_counter() - reduce_start
         reduce_total, frame_reduce = reduce_total + reduce_s, frame_reduce + reduce_s
         if rank == 0:
-            meta = {"rank": rank, "unit": unit, "ahead_s": float(ahead_s)}
+            meta = {"rank": rank, "unit": unit, **(time_rule or {})}
             await management.to_coordinator(film_frames(
                 film, meta if frame is None else dict(meta, frame=frame)))
 
-    async def delivered_and_granted(unit: int, film, ahead_s: float = 0.0) -> tuple[int, tuple]:
+    async def delivered_and_granted(unit: int, film,
+                                    time_rule: dict | None = None) -> tuple[int, tuple]:
         """``deliver``, then the unit to render next: the coordinator's grant where a rule
         may stop the render (paced), else the following one (-1: none); with the time
         rule's clock of it (``Progression.pass_clock``; (None, None) without a limit)."""
-        await deliver(unit, film, ahead_s)
+        await deliver(unit, film, time_rule)
         if job["paced"]:
             return await _granted_with_clock(management, unit, len(units))
         return (unit + 1 if unit + 1 < len(units) else -1), (None, None)
@@ -450,11 +451,11 @@ async def render_units_ahead(options: JobOptions, rank: int, size: int, store, c
     mine = [u for u in range(unit, len(units)) if units[u][0] == frame]
     waiting = 0.0
 
-    def delivered(u: int, film, ahead_s: float) -> tuple[int, tuple]:  # on the render thread
+    def delivered(u: int, film, time_rule: dict) -> tuple[int, tuple]:  # on the render thread
         nonlocal waiting
         start = time.perf_counter()
         try:
-            return waited_on(loop, deliver(u, film, ahead_s), aborted)
+            return waited_on(loop, deliver(u, film, time_rule), aborted)
         finally:
             waiting += time.perf_counter() - start
 

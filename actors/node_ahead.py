@@ -37,10 +37,11 @@ def traces_ahead(job: dict, options: JobOptions, domains: int) -> bool:
 
 class GrantedPasses:
     """A node's units of one frame as the progression ``SortFirstTiles.render_ahead`` asks
-    for: pass k is unit ``units[k]``, merged by ``deliver(unit, film, ahead_seconds)``
-    (called on the render thread: it reduces the film over the nodes, node 0 sends it with
-    the seconds it spent tracing later passes, and it returns the unit the coordinator
-    grants next, -1 for none, and that unit's clock). The passes go on while the grant is this
+    for: pass k is unit ``units[k]``, merged by ``deliver(unit, film, time_rule)`` (called
+    on the render thread: it reduces the film over the nodes, node 0 sends it with what the
+    time rule predicts from, ``Progression.add_pass``'s ``ahead_seconds`` and
+    ``traced_ahead``, and it returns the unit the coordinator grants next, -1 for none, and
+    that unit's clock). The passes go on while the grant is this
     frame's next unit.
 
     Parameters
@@ -53,7 +54,7 @@ class GrantedPasses:
     """
 
     def __init__(self, units: list[int], windows: list[tuple[int, int]],
-                 deliver: Callable[[int, object, float], tuple[int, tuple]],
+                 deliver: Callable[[int, object, dict], tuple[int, tuple]],
                  clock: tuple = (None, None)):
         self.units, self.passes, self.deliver = list(units), list(windows), deliver
         self.rules = SimpleNamespace(paced=True, time_limit=None)
@@ -71,7 +72,8 @@ class GrantedPasses:
             return None
         return (self._next, *self.passes[self._next])
 
-    def may_grant(self, index: int, ahead_seconds: float = 0.0) -> bool:
+    def may_grant(self, index: int, ahead_seconds: float = 0.0,
+                  traced_ahead: list[float] = ()) -> bool:
         """Whether the coordinator's time rule may still grant pass ``index``, by the rule's
         own prediction from the current pass's clock (``Progression.may_grant``)."""
         if self.stopped_by is not None or index >= len(self.passes):
@@ -81,11 +83,11 @@ class GrantedPasses:
         budget, per_sample = self.clock
         spp = [stop - first for first, stop in self.passes[self._next:index + 1]]
         running = time.perf_counter() - self._granted_at
-        return (passes_in_time(budget, running, per_sample, spp, ahead_seconds)
+        return (passes_in_time(budget, running, per_sample, spp, ahead_seconds, traced_ahead)
                 >= index - self._next)
 
-    def add_pass(self, index: int, film, ahead_seconds: float = 0.0) -> None:
-        self.granted, self.clock = self.deliver(self.units[index], film, ahead_seconds)
+    def add_pass(self, index: int, film, **time_rule) -> None:
+        self.granted, self.clock = self.deliver(self.units[index], film, time_rule)
         self._granted_at = time.perf_counter()
         if index + 1 < len(self.units) and self.granted == self.units[index + 1]:
             self._next = index + 1

@@ -178,16 +178,27 @@ class SortFirstTiles:
         activations = len(self.loop.sequence)
         film_bytes = settings.width * settings.height * FILM_BYTES_PER_PIXEL
         pass_of: dict[int, int] = {}  # id of a rider's schedule -> its pass
-        ahead_s = 0.0  # seconds of the current pass's leader runs done, spent on later passes
+        # pass -> seconds its rays were traced before it led, in the leader runs done; and
+        # that sum over the passes after the current one when it was granted
+        rode: dict[int, float] = {}
+        before = 0.0
         order = None  # the leader run under way
 
-        def later_seconds() -> float:
-            """Seconds the current pass has spent tracing later passes' rays so far: what the
-            time rule leaves out of its prediction (``Progression.add_pass``)."""
-            running = 0.0 if order is None else sum(
-                seconds for key, seconds in order.follower_seconds.items()
-                if pass_of[key] != current)
-            return ahead_s + running
+        def traced_now() -> dict[int, float]:
+            """``rode`` with the leader run under way's riders."""
+            now = dict(rode)
+            for key, seconds in ({} if order is None else order.follower_seconds).items():
+                if pass_of[key] != current:
+                    now[pass_of[key]] = now.get(pass_of[key], 0.0) + seconds
+            return now
+
+        def time_rule(now: dict[int, float], passes: int) -> dict:
+            """What the time rule predicts from (``Progression.add_pass``): the current
+            pass's seconds spent on later passes, and what each of ``passes`` passes from
+            the current one had traced ahead of its turn."""
+            later = sum(seconds for k, seconds in now.items() if k > current)
+            return {"ahead_seconds": later - before,
+                    "traced_ahead": [now.get(current + j, 0.0) for j in range(passes)]}
 
         def loads_dominate() -> bool:
             return (len(self.loop.sequence) - activations >= AHEAD_AFTER
@@ -209,7 +220,8 @@ class SortFirstTiles:
                 elif flight and (sum(len(c.pixel) for _, c, _ in flight) + len(ids) > cap
                                  or index != current and not films_fit(index)
                                  or index > current + 1 and not loads_dominate()
-                                 or not progression.may_grant(index, later_seconds())):
+                                 or not progression.may_grant(
+                                     index, **time_rule(traced_now(), index - current + 1))):
                     return
                 else:
                     ctx = paths_context(self.setup.shading, window, ids, self.setup.ao_distance)
@@ -225,18 +237,18 @@ class SortFirstTiles:
             if current in enumerated and not in_flight.get(current):
                 progression.add_pass(current, films.pop(current, None)
                                      or Film(settings.width, settings.height),
-                                     ahead_seconds=ahead_s)
-                ahead_s = 0.0
+                                     **time_rule(rode, len(progression.passes) - current))
                 step = progression.next_pass()
                 if step is None:
                     break
                 current = step[0]
+                before = sum(seconds for k, seconds in rode.items() if k > current)
                 continue
             index, ctx, policy = flight[0]  # leads, in flight until it is done
             order = LeadOrder(self._order(policy), riders, self.preloader.resident,
                               start_following)
             await self.loop.run(order)
-            ahead_s = later_seconds()
+            rode = traced_now()
             _merge(self.counters, {"ahead_queries": order.ahead_queries})
             order = None
             flight.pop(0)

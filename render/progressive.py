@@ -166,46 +166,55 @@ def pass_point(film: Film, index: int, seconds: float,
 
 
 def passes_in_time(budget_s: float | None, running_s: float, per_sample_s: float | None,
-                   spp: list[int], ahead_s: float = 0.0) -> int:
+                   spp: list[int], ahead_s: float = 0.0, traced: list[float] = ()) -> int:
     """How many of the passes after the current one the time rule may still grant, by its
-    own prediction. The rule (``Progression.next_pass``) grants the pass after pass k where
-    pass k's end plus pass k's own seconds a sample (its seconds less those spent tracing
-    later passes ahead, ``own_seconds``) times that pass's samples fits the limit. Here the
-    current pass (``spp[0]`` samples a pixel, granted with ``budget_s`` seconds of the limit
-    left) has run ``running_s`` seconds, ``ahead_s`` of them on later passes; its own work
-    takes ``own = max(running_s - ahead_s, per_sample_s * spp[0])`` (at least what it has
-    run; the last pass's own seconds a sample, ``per_sample_s``, where there is one), it
-    ends after ``own + ahead_s``, and each pass after it takes ``own / spp[0]`` seconds a
-    sample: pass i after it is granted if ``own + ahead_s + own / spp[0] * (spp[1] + ... +
-    spp[i]) <= budget_s``.
+    own prediction (the rule: ``Progression.next_pass``).
+
+    Passes may be traced partly ahead of their turn (``SortFirstTiles.render_ahead``), so
+    the rule predicts from a pass's work as if swept alone (``pass_work``: its seconds less
+    those spent on later passes, plus those its own rays took before it led), and takes off
+    a pass's prediction what was traced of it ahead. Here the current pass (``spp[0]``
+    samples a pixel, granted with ``budget_s`` seconds of the limit left) has run
+    ``running_s`` seconds, ``ahead_s`` of them on later passes. Its own work left takes
+    ``own = max(running_s - ahead_s, per_sample_s * spp[0] - traced[0])`` (at least what it
+    has run; the last pass's seconds a sample of work, ``per_sample_s``, where there is
+    one), it ends after ``own + ahead_s``, its work a sample is ``(own + traced[0]) /
+    spp[0]``, and pass i after it takes ``max(that * spp[i] - traced[i], 0)``: it is granted
+    if the passes up to it end within ``budget_s``. Without anything traced ahead this is
+    the rule for passes swept alone: each pass at the last one's seconds a sample.
 
     Parameters
     ----------
     budget_s : seconds left of the time limit when the current pass was granted (None: no
         limit, every pass may be granted).
     running_s : seconds the current pass has run.
-    per_sample_s : the last pass's own seconds a sample (None: no pass done yet).
+    per_sample_s : the last pass's seconds of work a sample (None: no pass done yet).
     spp : (K,) samples a pixel of the current pass and of each after it.
     ahead_s : of ``running_s``, the seconds spent tracing later passes ahead.
+    traced : (<= K,) seconds each of those passes' rays were traced before it led (none:
+        0; the current pass's before it was granted, the later ones' so far).
     """
     if budget_s is None:
         return len(spp) - 1
-    own = max(running_s - ahead_s, (per_sample_s or 0.0) * spp[0])
-    per_sample = own / max(spp[0], 1)
+    traced = (list(traced) + [0.0] * len(spp))[:len(spp)]
+    own = max(running_s - ahead_s, (per_sample_s or 0.0) * spp[0] - traced[0])
+    per_sample = (own + traced[0]) / max(spp[0], 1)
     total, count = own + ahead_s, 0
-    for samples in spp[1:]:
-        total += per_sample * samples
+    for samples, done in zip(spp[1:], traced[1:], strict=True):
+        total += max(per_sample * samples - done, 0.0)
         if total > budget_s:
             break
         count += 1
     return count
 
 
-def own_seconds(point: dict) -> float:
-    """A pass's seconds less those spent tracing later passes ahead (``ahead_seconds``; a
-    point written before it had none): the pass's time as if swept alone, which the time
-    rule predicts the next pass from."""
-    return max((point.get("pass_seconds") or 0.0) - (point.get("ahead_seconds") or 0.0), 0.0)
+def pass_work(point: dict) -> float:
+    """A pass's work as if swept alone: its seconds less those spent tracing later passes
+    ahead (``ahead_seconds``) plus those its own rays took before it led
+    (``rode_seconds``); a point written before those keys, its seconds. What the time rule
+    predicts the next pass's seconds a sample from."""
+    return max((point.get("pass_seconds") or 0.0) - (point.get("ahead_seconds") or 0.0)
+               + (point.get("rode_seconds") or 0.0), 0.0)
 
 
 @dataclass(frozen=True)
@@ -259,6 +268,7 @@ class Progression:
         self._started = None  # the first next_pass starts the clock
         self._pass_started = None
         self._granted = None  # the pass next_pass gave, until its film is merged
+        self._next_traced = 0.0  # seconds the next pass's rays were traced ahead of it
 
     @property
     def film(self) -> Film:
@@ -305,8 +315,10 @@ class Progression:
                 return self._stop("target-error")
         if self.rules.time_limit is not None and last is not None:
             first, stop = self.passes[done]
-            per_sample = own_seconds(last) / max(last["pass_spp"], 1)
-            if self.elapsed() + per_sample * (stop - first) > self.rules.time_limit:
+            per_sample = pass_work(last) / max(last["pass_spp"], 1)
+            # what was traced of the pass ahead of its turn is done (``passes_in_time``)
+            predicted = max(per_sample * (stop - first) - self._next_traced, 0.0)
+            if self.elapsed() + predicted > self.rules.time_limit:
                 return self._stop("time-limit")
         self._pass_started = time.perf_counter()
         self._granted = (done, *self.passes[done])
@@ -321,16 +333,19 @@ class Progression:
             return None, None
         last = self.snapshot.series[-1] if self.snapshot.series else None
         per_sample = (None if last is None or not last.get("pass_seconds") else
-                      own_seconds(last) / max(last["pass_spp"], 1))
+                      pass_work(last) / max(last["pass_spp"], 1))
         started = self._pass_started or time.perf_counter()
         budget = self.rules.time_limit - (self.elapsed() - (time.perf_counter() - started))
         return budget, per_sample
 
-    def may_grant(self, index: int, ahead_seconds: float = 0.0) -> bool:
+    def may_grant(self, index: int, ahead_seconds: float = 0.0,
+                  traced_ahead: list[float] = ()) -> bool:
         """Whether the rules may still grant pass ``index`` (after the current one), by the
         time rule's own prediction (``passes_in_time``; always, without a time limit): what
         a runtime asks before it traces that pass ahead of its turn. ``ahead_seconds``: of
-        the current pass's time so far, the seconds spent tracing later passes."""
+        the current pass's time so far, the seconds spent tracing later passes;
+        ``traced_ahead``: the seconds the current pass's and each later one's rays were
+        traced before they led."""
         done = self.snapshot.passes_done
         if self.stopped_by is not None or index >= len(self.passes):
             return False
@@ -339,7 +354,8 @@ class Progression:
         budget, per_sample = self.pass_clock()
         running = time.perf_counter() - (self._pass_started or time.perf_counter())
         spp = [stop - first for first, stop in self.passes[done:index + 1]]
-        return passes_in_time(budget, running, per_sample, spp, ahead_seconds) >= index - done
+        return (passes_in_time(budget, running, per_sample, spp, ahead_seconds, traced_ahead)
+                >= index - done)
 
     def retake(self) -> None:
         """Before a runtime (re)starts mid-way: after a node loss, the pass granted and lost
@@ -349,18 +365,23 @@ class Progression:
         or granted is left as it is (its first ``next_pass`` starts the clock)."""
         if self.stopped_by is None and (self._granted or self.snapshot.passes_done):
             self._granted = None
+            self._next_traced = 0.0  # what was traced ahead went with the runtime
             self.next_pass()
 
     def _stop(self, reason: str) -> None:
         self.stopped_by = reason
         return None
 
-    def add_pass(self, index: int, pass_film: Film, ahead_seconds: float = 0.0) -> dict:
+    def add_pass(self, index: int, pass_film: Film, ahead_seconds: float = 0.0,
+                 traced_ahead: list[float] = ()) -> dict:
         """Merge the film of pass ``index`` (the next one) into the image; returns its
         ``pass_point`` (with the pass's seconds and samples, for the time rule).
-        ``ahead_seconds``: of the pass's seconds, those its runtime spent tracing later
-        passes ahead (``SortFirstTiles.render_ahead``), which the time rule leaves out: it
-        predicts each pass as if swept alone."""
+
+        Where the runtime traced passes ahead of their turn (``SortFirstTiles.render_ahead``)
+        the time rule predicts each pass as if swept alone (``pass_work``) less what was
+        traced of it ahead: ``ahead_seconds`` are the pass's seconds spent tracing later
+        passes, and ``traced_ahead`` the seconds this pass's rays ([0]) and each later
+        one's ([1], ...) were traced before they led, so far."""
         done = self.snapshot.passes_done
         if index != done:
             raise ValueError(f"pass {index} arrived where pass {done} was due")
@@ -376,6 +397,9 @@ class Progression:
                                else stop_bound(point, len(self.passes)))
         point["pass_seconds"] = round(time.perf_counter() - (self._pass_started or 0.0), 4)
         point["ahead_seconds"] = round(max(float(ahead_seconds), 0.0), 4)
+        traced = [max(float(t), 0.0) for t in traced_ahead]
+        point["rode_seconds"] = round(traced[0], 4) if traced else 0.0
+        self._next_traced = traced[1] if len(traced) > 1 else 0.0
         self.snapshot = Snapshot(film, done + 1, self.snapshot.series + (point,), seconds)
         if self.on_pass is not None:
             self.on_pass(self)

@@ -444,7 +444,7 @@ def test_a_pass_rides_only_while_the_rule_may_grant_it(rm, monkeypatch):
                          load_bandwidth=1.0)
     progression = Progression(w, h, StopRules(8, time_limit=3600.0))
     monkeypatch.setattr(progression, "may_grant",
-                        lambda index, ahead_seconds=0.0:
+                        lambda index, **time_rule:
                         index <= progression.snapshot.passes_done + 1)
     started = []  # (pass of the tile, pass under way) at each tile's start
     real = sort_first.SortFirstTiles._started

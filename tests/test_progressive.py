@@ -629,23 +629,33 @@ def test_a_node_predicts_from_the_clock_each_grant_brings(monkeypatch):
     assert untimed.may_grant(2)
 
 
-def test_the_time_rule_predicts_from_a_pass_s_own_seconds(monkeypatch):
-    """A pass that spent some of its seconds tracing later passes ahead is predicted from
-    the rest (``own_seconds``): the next pass as if swept alone, not at the riders' cost too.
-    Here pass 0 ran 4 s, 3 of them on later passes, under a 6 s limit: pass 1 (1 spp) is
-    predicted to end at 4 + 1 s and granted; counted whole (4 + 4 s) it would be refused."""
+def test_the_time_rule_predicts_a_pass_as_if_alone_less_what_was_traced_ahead(monkeypatch):
+    """Where passes are traced partly ahead of their turn, the rule predicts a pass's work
+    as if swept alone (``pass_work``: its seconds less those spent on later passes, plus
+    those its own rays took before it led) and takes off what was traced of the next pass
+    already. Here pass 0 ran 4 s, 3 of them on later passes (0.9 s on pass 1), under a
+    4.5 s limit: pass 1 (1 spp) is predicted to end at 4 + 1 - 0.9 s and is granted; with
+    nothing traced ahead (4 + 4 s) it is not."""
     from vastray.render import progressive
-    from vastray.render.progressive import passes_in_time
+    from vastray.render.progressive import pass_work, passes_in_time
 
-    assert passes_in_time(6.0, 4.0, None, [1, 1], ahead_s=3.0) == 1
-    assert passes_in_time(6.0, 4.0, None, [1, 1]) == 0
+    assert passes_in_time(4.5, 4.0, None, [1, 1], ahead_s=3.0, traced=[0.0, 0.9]) == 1
+    assert passes_in_time(4.5, 4.0, None, [1, 1], ahead_s=3.0) == 0  # 4 + 1 s
+    assert passes_in_time(4.5, 4.0, None, [1, 1]) == 0  # 4 + 4 s
+    # a pass whose own rays took 3 s before it led is predicted at its whole work: 4 s a
+    # sample, so the next 2 spp end at 1 + 8 s
+    assert passes_in_time(10.0, 1.0, None, [1, 2], traced=[3.0]) == 1
+    assert passes_in_time(8.0, 1.0, None, [1, 2], traced=[3.0]) == 0
+    assert pass_work({"pass_seconds": 4.0, "ahead_seconds": 3.0, "rode_seconds": 0.5}) == 1.5
+    assert pass_work({"pass_seconds": 4.0}) == 4.0  # a point of passes swept alone
     clock = _Clock()
     monkeypatch.setattr(progressive, "time", clock)
-    for ahead, granted in ((3.0, True), (0.0, False)):
-        progression = Progression(4, 2, StopRules(8, time_limit=6.0))
+    for ahead, traced, granted in ((3.0, [0.0, 0.9], True), (0.0, [], False)):
+        progression = Progression(4, 2, StopRules(8, time_limit=4.5))
         progression.next_pass()
         clock.now += 4.0
-        assert progression.may_grant(1, ahead_seconds=ahead) is granted
-        point = progression.add_pass(0, Film(4, 2), ahead_seconds=ahead)
+        rule = {"ahead_seconds": ahead, "traced_ahead": traced}
+        assert progression.may_grant(1, **rule) is granted
+        point = progression.add_pass(0, Film(4, 2), **rule)
         assert point["ahead_seconds"] == ahead and point["pass_seconds"] == pytest.approx(4.0)
         assert (progression.next_pass() is not None) is granted
