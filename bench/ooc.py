@@ -52,7 +52,8 @@ passes end apart, the next ones traced on the current one's loads, as with a ref
 its rule may still grant traced ahead), ``passes_alone_loads_ratio=`` (``--target-error``
 with ``--passes-alone``: each pass alone) and ``passes_timed_spp=`` (the samples a pixel a
 ``--time-limit`` of 1.5x and of 2.5x the one-pass render's seconds reaches, traced ahead /
-with ``--passes-alone``). Then
+with ``--passes-alone``), with ``time_limit_overruns=`` (how many of those renders ended
+past their limit). Then
 (not with ``--large``) the history-depth sweep of Fig. 8
 (H = 1..B for B = 3, strongest). With every domain cached nothing is evicted, so
 ``strongest+demand``'s 100 % cells are ``strongest``'s. ``--ablation`` adds every switch
@@ -360,7 +361,8 @@ def cli_run(store: Store, plan: dict, scheduler: str, cache: int, nodes: int | N
                          bvh=plan["bvh"], progress=False, **passes)
     total = time.perf_counter() - start
     return {"loads": out.report["counters"]["loads"], "total_s": total,
-            "passes": len(out.report["passes"]), "spp": out.report["passes"][-1]["spp"]}
+            "passes": len(out.report["passes"]), "spp": out.report["passes"][-1]["spp"],
+            "render_s": out.report["passes"][-1]["seconds"]}
 
 
 def passes(store: Store, plan: dict) -> None:
@@ -383,6 +385,7 @@ def passes(store: Store, plan: dict) -> None:
     print("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
           "| ---: | ---: |" + " ---: |" * len(TIME_LIMITS))
     ratios: dict = {}
+    overruns = {"ahead": [0, 0], "alone": [0, 0]}  # time-limited renders past / all
     for nodes in plan.get("passes_nodes", (None, 2)):
         for scheduler in SCHEDULERS:
             if nodes is None:
@@ -405,9 +408,15 @@ def passes(store: Store, plan: dict) -> None:
                             passes_alone=True)
             # what a user's time limit buys: the samples reached in 1.5x and 2.5x one pass's
             # time, traced ahead and alone
-            reached = [[cli_run(store, plan, scheduler, cache, nodes,
-                                time_limit=round(factor * one["total_s"], 2), **extra)["spp"]
-                        for extra in ({}, {"passes_alone": True})] for factor in TIME_LIMITS]
+            reached = []
+            for factor in TIME_LIMITS:
+                limit = round(factor * one["total_s"], 2)
+                runs = [cli_run(store, plan, scheduler, cache, nodes, time_limit=limit, **extra)
+                        for extra in ({}, {"passes_alone": True})]
+                reached.append([r["spp"] for r in runs])
+                for r, name in zip(runs, ("ahead", "alone"), strict=True):
+                    overruns[name][0] += r["render_s"] > limit
+                    overruns[name][1] += 1
             where = "1 process" if nodes is None else f"{nodes} nodes"
             print(f"| {where} | {scheduler} | {one['loads']} | {default['loads']} "
                   f"({default['passes']}) | {kept['loads']} ({kept['passes']}) | "
@@ -440,6 +449,9 @@ def passes(store: Store, plan: dict) -> None:
               + ",".join(f"{s}:" + ";".join(f"{a}/{b}" for a, b in r[5]) for s, r in by.items())
               + " (spp reached within " + " and ".join(f"{f:g}x" for f in TIME_LIMITS)
               + " one pass's seconds: traced ahead / --passes-alone)", flush=True)
+    print("time_limit_overruns=" + ",".join(f"{name}:{past}/{runs}"
+                                             for name, (past, runs) in overruns.items())
+          + " (time-limited renders whose last pass ended past the limit / all)", flush=True)
 
 
 def warm_up(store: Store, plan: dict) -> None:

@@ -181,7 +181,8 @@ def passes_in_time(budget_s: float | None, running_s: float, per_sample_s: float
     one), it ends after ``own + ahead_s``, its work a sample is ``(own + traced[0]) /
     spp[0]``, and pass i after it takes ``max(that * spp[i] - traced[i], 0)``: it is granted
     if the passes up to it end within ``budget_s``. Without anything traced ahead this is
-    the rule for passes swept alone: each pass at the last one's seconds a sample.
+    the rule for passes swept alone: each pass at the last one's seconds a sample. In the
+    first pass (no ``per_sample_s``) only the next pass is predicted.
 
     Parameters
     ----------
@@ -196,6 +197,11 @@ def passes_in_time(budget_s: float | None, running_s: float, per_sample_s: float
     """
     if budget_s is None:
         return len(spp) - 1
+    if per_sample_s is None:
+        # the first pass: its time so far says little of its work yet, so no pass beyond
+        # the next is predicted (riders of later passes would delay the first pass's end
+        # past the point where the rule grants the next)
+        spp = spp[:2]
     traced = (list(traced) + [0.0] * len(spp))[:len(spp)]
     own = max(running_s - ahead_s, (per_sample_s or 0.0) * spp[0] - traced[0])
     per_sample = (own + traced[0]) / max(spp[0], 1)

@@ -585,13 +585,16 @@ def test_may_grant_is_what_the_time_rule_then_grants(monkeypatch):
     progression = Progression(4, 2, StopRules(8, time_limit=10.0))  # passes 1, 1, 2, 4 spp
     assert progression.next_pass() == (0, 0, 1)
     assert progression.pass_clock() == (10.0, None)
-    assert progression.may_grant(0) and progression.may_grant(3)  # nothing run yet
-    clock.now += 2.0  # pass 0 has run 2 s: pass 1 would end at 4 s, pass 2 at 8 s, 3 at 16 s
-    assert [progression.may_grant(k) for k in (1, 2, 3)] == [True, True, False]
+    assert progression.may_grant(0) and progression.may_grant(1)  # nothing run yet
+    clock.now += 2.0  # pass 0 has run 2 s: pass 1 would end at 4 s; in the first pass no
+    # pass beyond the next is predicted
+    assert [progression.may_grant(k) for k in (1, 2, 3)] == [True, False, False]
     progression.add_pass(0, Film(4, 2))
     assert progression.next_pass() == (1, 1, 2)  # granted: 2 + 2 <= 10
     budget, per_sample = progression.pass_clock()
     assert budget == pytest.approx(8.0) and per_sample == pytest.approx(2.0)
+    # from the last pass's 2 s a sample: pass 1 ends 2 s in, pass 2 6 s, pass 3 14 s (> 8)
+    assert progression.may_grant(2) and not progression.may_grant(3)
     clock.now += 3.0  # pass 1 runs longer: from its 3 s, pass 2 would end at 5 + 6 > 10
     assert progression.may_grant(1) and not progression.may_grant(2)
     progression.add_pass(1, Film(4, 2))
