@@ -21,7 +21,9 @@ JOB = "job"              # coordinator -> node: store, scene, settings, job opti
                          # units (frame, first sample, stop sample) and whether they are paced
 PROGRESS = "progress"    # node -> coordinator: paths done
 HEARTBEAT = "heartbeat"  # node -> coordinator: still alive
-FILM = "film"            # node -> parent node / root -> coordinator: partial film
+FILM = "film"            # node -> parent node / root -> coordinator: partial film (node 0's
+                         # to the coordinator may add the time rule's ahead_seconds and
+                         # traced_ahead, ``gather.time_rule_of``)
 DONE = "done"            # node -> coordinator: per-node timings and counters
 FRAME = "frame"          # node -> coordinator: one animation frame's timings and counters
 FAILED = "failed"        # node -> coordinator: this node's job failed (the error), it exits
