@@ -147,10 +147,11 @@ class SortFirstTiles:
         traces then delay the current pass less than the loads they save would cost. Other
         passes' tiles start only while their films fit in ``AHEAD_FILM_BYTES``, and only
         while the progression's time rule may still grant their pass
-        (``Progression.may_grant``: a time limit's rule predicts a pass's time from the last
-        one's, riders' traces included, as the passes before it ran). Where traces take
-        most of the time, the current pass ends later by at most its riders' traces, and
-        each pass's error still comes early.
+        (``Progression.may_grant``; each pass is merged with the seconds it spent on later
+        passes and those each pass was traced ahead of its turn, so that a time limit's rule
+        predicts each pass as if swept alone, less what was traced of it ahead). Where
+        traces take most of the time, the current pass ends later by at most its riders'
+        traces, and each pass's error still comes early.
 
         A pass's film is merged as its last tile ends and the progression rules on the next
         pass; where it stops, the tiles traced ahead are given up (``given_up_paths``).
