@@ -338,14 +338,22 @@ def test_a_pass_traced_ahead_is_given_up_where_the_error_target_stops(rm, nodes,
     else:
         result, progression = apart_on_nodes(rm, options, st, nodes, reference=reference,
                                              stop=stop)
-    assert progression.stopped_by == "target-error"
-    assert len(progression.series) == 2, progression.series
+    assert_stopped_as_a_shorter_render(rm, options, result, progression, "target-error", 2)
+
+
+def assert_stopped_as_a_shorter_render(rm, options: JobOptions, result, progression,
+                                       rule: str, spp: int) -> None:
+    """``rule`` stopped the AO render of ``rm`` after ``spp`` samples a pixel, the passes
+    traced ahead given up, and its image is that of a ``spp``-sample render bit for bit."""
+    w, h = progression.width, progression.height
+    assert progression.stopped_by == rule
+    assert progression.series[-1]["spp"] == spp, progression.series
     assert result.counters["given_up_paths"] > 0
-    two = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=2,
-                                                         integrator="ao", bounces=1),
-                             options, progress=False,
-                             progression=Progression(w, h, StopRules(2)))
-    np.testing.assert_array_equal(result.film.image(), two.film.image())
+    shorter = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=spp,
+                                                             integrator="ao", bounces=1),
+                                 options, progress=False,
+                                 progression=Progression(w, h, StopRules(spp)))
+    np.testing.assert_array_equal(result.film.image(), shorter.film.image())
 
 
 def apart_on_nodes(rm, options, st, nodes: int = 2, **rules):
@@ -429,14 +437,7 @@ def test_a_time_limit_gives_up_the_passes_its_rule_stops_before(rm):
     options = JobOptions(scheduler="spec-ooc", cache=-(-len(rm.domains) // 4), threads=1,
                          load_bandwidth=1.0)
     result, progression = apart(rm, options, st, stop={"time_limit": 1.0})
-    assert progression.stopped_by == "time-limit"
-    assert len(progression.series) == 1, progression.series
-    assert result.counters["given_up_paths"] > 0
-    first = render_out_of_core(rm, SceneConfig(), settings(width=w, height=h, spp=1,
-                                                           integrator="ao", bounces=1),
-                               options, progress=False,
-                               progression=Progression(w, h, StopRules(1)))
-    np.testing.assert_array_equal(result.film.image(), first.film.image())
+    assert_stopped_as_a_shorter_render(rm, options, result, progression, "time-limit", 1)
 
 
 def test_a_pass_rides_only_while_the_rule_may_grant_it(rm, monkeypatch):
