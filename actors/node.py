@@ -42,6 +42,7 @@ from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
+from vastray.scene.cpus import CpuClock, cgroup_cpu_quota
 from vastray.scene.errors import InputError
 from vastray.schedule import registry
 from vastray.schedule.registry import Runtime
@@ -99,6 +100,7 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     gate = Gate(ctx, secret=credentials.secret, what="this node")
     if advertise is None:
         advertise = _outbound_address(coordinator) if bind_host in ("0.0.0.0", "*") else bind_host
+    warn_of_a_quota_below_a_core()
     try:
         await warming
         while await _serve_job(ctx, gate, coordinator, rank, timeout, bind_host, advertise,
@@ -107,6 +109,18 @@ async def run_node(coordinator: str, rank: int, timeout: float, bind_host: str =
     finally:
         gate.close()
         ctx.destroy(linger=0)
+
+
+def warn_of_a_quota_below_a_core(quota: float | None = None) -> None:
+    """Say so where this node's cgroup holds it to less than one CPU (``quota``: read from
+    its cgroup when None). Such a node runs at full speed until its quota for the period is
+    spent, then not at all until the period ends; a bulk-synchronous round waits on it."""
+    quota = cgroup_cpu_quota() if quota is None else quota
+    if quota is not None and quota < 1.0:
+        log.warning("this node's cgroup holds it to %.2g CPU (a CPU quota): where its quota "
+                    "for a period (100 ms by default) is spent it waits for the next, and "
+                    "rounds over the nodes wait on it (the report's cpu_throttled_s); give "
+                    "each node at least 1 CPU, or share the cores without a quota", quota)
 
 
 def _log_warm(warming: asyncio.Future) -> None:
@@ -312,7 +326,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
         return (unit + 1 if unit + 1 < len(units) else -1), (None, None)
 
     async def render_units(unit: int, frame, first: int, stop: int, frame_settings,
-                           frame_config, start: float, cpu_start: float) -> int:
+                           frame_config, start: float, cpu_start: tuple) -> int:
         """Render ``unit`` (with the units that go in one sweep with it, ``units_together``),
         deliver their films, and return the unit to render next (-1: none)."""
         nonlocal busy_total, frame_busy
@@ -334,8 +348,9 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
         busy = time.perf_counter() - start
         busy_total, frame_busy = busy_total + busy, frame_busy + busy
         # the process's CPU seconds (all its threads) over the same span: what of the busy
-        # time used the cores, and what waited (the simulator's split)
-        counters = {**counters, "busy_cpu_s": time.process_time() - cpu_start}
+        # time used the cores, and what waited (the simulator's split); and what a CPU
+        # quota held it back
+        counters = {**counters, **cpu_clock.since(cpu_start)}
         for unit, film in zip(group, films, strict=True):
             counters = _report_counters(counters, management)
             accumulate_counters(totals, counters)
@@ -347,6 +362,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
         return unit + 1 if unit + 1 < len(units) else -1
 
     ahead = traces_ahead(job, options, len(store.domains))
+    cpu_clock = CpuClock()
     # what the time rule knows of the unit under way (``Progression.pass_clock``): the job's
     # first unit's, then each grant's
     clock = _clock_of(job.get("pass_clock"))
@@ -359,7 +375,7 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                     inputs.clear()
                     inputs[frame] = frame_inputs(settings, config, store, frame)
                 frame_settings, frame_config = inputs[frame]
-                start, cpu_start = time.perf_counter(), time.process_time()
+                start, cpu_start = time.perf_counter(), cpu_clock.mark()
                 if ahead:
                     # passes apart, each delivered and granted as it ends, while the render
                     # thread traces the next ones ahead (issue 40)
@@ -368,8 +384,8 @@ async def _serve(management: ManagementActor, job: dict, watchers: list,
                         delivered_and_granted, report, state, aborted, clock)
                     busy = time.perf_counter() - start - waiting
                     busy_total, frame_busy = busy_total + busy, frame_busy + busy
-                    counters = _report_counters({**counters, "busy_cpu_s": time.process_time()
-                                                 - cpu_start}, management)
+                    counters = _report_counters({**counters, **cpu_clock.since(cpu_start)},
+                                                management)
                     accumulate_counters(totals, counters)
                     accumulate_counters(frame_totals, counters)
                 else:

@@ -36,6 +36,10 @@ def render_result(film, camera, reports: list[dict], scheduler: str,
                                          for r in reports), 4),
                 "peak_rss_bytes_max": max(r["counters"].get("peak_rss_bytes", 0)
                                           for r in reports)}
+    held = [r["counters"]["cpu_throttled_s"] for r in reports
+            if "cpu_throttled_s" in r["counters"]]
+    if held:  # nodes under a CPU quota (a container's): the most throttled one's time
+        counters["cpu_throttled_s_max"] = round(max(held), 4)
     for name in ("ahead_queries", "given_up_paths"):  # passes traced ahead (``node_ahead``)
         if any(name in r["counters"] for r in reports):
             counters[name] = sum(r["counters"].get(name, 0) for r in reports)
@@ -61,6 +65,31 @@ def recovery_lines(counters: dict) -> list[str]:
         how = "stalled" if entry["cause"] == "stalled" else f"died ({entry['cause']})"
         lines.append(f"{which} re-rendered after {node} {how}")
     return lines
+
+
+#: A node throttled by its CPU quota for this share of the busiest node's time or more is
+#: said on the CLI's last lines (``quota_lines``).
+HELD_SHARE = 0.05
+
+
+def quota_lines(counters: dict, seconds: dict) -> list[str]:
+    """A line for the CLI's last lines where a CPU quota throttled a node for
+    ``HELD_SHARE`` of the busiest node's time or more (``cpu_throttled_s`` in the nodes'
+    counters: their cgroups' throttled time over their busy spans,
+    ``scene.cpus.cgroup_cpu_throttled_s``); none otherwise. 8 nodes of 0.25 CPU rendered
+    ``domain`` 2.2x slower than the same nodes sharing the cores without a quota
+    (``bench/compose_scale.py``, 2026-12-05)."""
+    held = counters.get("cpu_throttled_s_max", 0.0)
+    busy = seconds.get("busy_max", 0.0)
+    if not held or held < HELD_SHARE * busy:
+        return []
+    nodes = [(node["counters"].get("cpu_throttled_s", 0.0), node.get("rank", i))
+             for i, node in enumerate(counters.get("per_node", []))]
+    worst = max(nodes)[1] if nodes else "?"
+    return [f"a CPU quota throttled the nodes: up to {held:.2f} s of throttled time (node "
+            f"{worst}, its cgroup's cpu.stat, over the cores) while the busiest node worked "
+            f"{busy:.2f} s; give each node at least 1 CPU, or share the cores without a quota "
+            "(docker compose: NODE_CPUS)"]
 
 
 def portal_shares(per_node: list[dict]) -> dict:

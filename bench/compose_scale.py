@@ -9,6 +9,8 @@ coordinator's command replaced by an override file (the shipped file stays as us
 its render line with this scheduler and the job below), and taken down with
 ``down -v`` whatever happens. Per scheduler: the cluster's wall time (``up`` to every
 container exited), the coordinator's render time and ``busy_max`` (report.json), the
+most throttled node's CPU-quota throttled time over its busy spans (its cgroup's
+``cpu.stat``, summed over the cores it was held on: ``cpu_throttled_s``), the
 simulated ``busy_max`` (this machine's calibrated constants, the virtual nodes sharing the
 2 cores as the containers do, as ``real_scale.py`` simulates its processes) and, beside it,
 the same simulation with each node held to its 0.25 CPU quota (a quarter-speed core of its
@@ -217,11 +219,12 @@ def main() -> None:
               f"{settings.height} px x {settings.spp} spp ({settings.paths:,} paths), "
               f"compose: {p} node containers x {args.node_cpus} CPU x 1 thread, "
               f"--cache {CACHE_PERCENT}%, on {os.cpu_count()} cores\n")
-        print("| scheduler | cluster wall s | render s | real busy_max s | simulated busy_max s "
+        print("| scheduler | cluster wall s | render s | real busy_max s | throttled s, most "
+              "throttled node | simulated busy_max s "
               "| error | simulated, quota s | error | ray batches / node real | simulated "
               "| loads / node real | simulated | coordinator messages / node | lost nodes "
               "| image = reference |")
-        print("| --- " * 15 + "|")
+        print("| --- " * 16 + "|")
         for scheduler in args.schedulers.split(","):
             options = job(scheduler, p, settings, len(store.domains))
             try:
@@ -262,8 +265,11 @@ def main() -> None:
                               max_pass_spp=max_pass_spp, domains=domains).seconds
             capped_error = (capped - busy_max) / busy_max
             results.append((scheduler, same, error, capped_error))
+            # the kernel's throttled time of a node's cgroup over its busy spans, over the
+            # cores (``scene.cpus.cgroup_cpu_throttled_s``)
+            throttled = report["counters"].get("cpu_throttled_s_max", float("nan"))
             print(f"| {scheduler} | {wall:.1f} | {report['seconds']['total']:.2f} | "
-                  f"{busy_max:.2f} | {sim.seconds:.2f} | {error:+.0%} | {capped:.2f} | "
+                  f"{busy_max:.2f} | {throttled:.2f} | {sim.seconds:.2f} | {error:+.0%} | {capped:.2f} | "
                   f"{capped_error:+.0%} | {batches:.1f} | "
                   f"{sim_batches:.1f} | {loads:.1f} | {sim_loads:.1f} | {coordinator:.1f} | {lost} | "
                   f"{'yes' if same else 'NO'} |", flush=True)

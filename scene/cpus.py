@@ -6,12 +6,19 @@ every host core, so N such containers each starting one thread per host core ove
 the host N times over and are throttled by their quota. The count here is the affinity mask
 (``taskset``, ``--cpuset-cpus``, Slurm's binding) lowered to the cgroup CPU quota, rounded up
 (a quota of 1.5 CPUs gives 2 threads, as Go and the JVM round it).
+
+A quota also holds a process back: once its threads together have used ``quota x period``
+CPU seconds in a period (100 ms by default), none of them runs until the period ends.
+``cgroup_cpu_throttled_s`` reads how long the kernel held it so (``cpu.stat``), and
+``CpuClock`` gives a render's CPU seconds and those held seconds over a span, which every
+node reports (``busy_cpu_s``, ``cpu_throttled_s``).
 """
 
 from __future__ import annotations
 
 import math
 import os
+import time
 from pathlib import Path
 
 CGROUP_ROOT = Path("/sys/fs/cgroup")
@@ -56,6 +63,71 @@ def cgroup_cpu_quota(cgroup_root: str | os.PathLike = CGROUP_ROOT,
             if q := _v1_quota(folder):
                 quotas.append(q)
     return min(quotas) if quotas else None
+
+
+def cgroup_cpu_throttled_s(cgroup_root: str | os.PathLike = CGROUP_ROOT,
+                           proc_cgroup: str | os.PathLike = PROC_CGROUP) -> float | None:
+    """Seconds the kernel has throttled this process's cgroup (or an ancestor's) for its CPU
+    quota, the most over the cgroups from the mount's root down to the process's: cgroup v2
+    ``cpu.stat`` ``throttled_usec``, v1 ``cpu.stat`` ``throttled_time`` (nanoseconds); None
+    where none is readable. A counter since the cgroup was made: take differences. The
+    kernel adds the time each core's queue of the group was held, so a group held on two
+    cores for a second counts about 2 s: more than the wall time where the group's threads
+    wanted several cores. It counts the whole group: every process in it."""
+    root = Path(cgroup_root)
+    paths = _membership(Path(proc_cgroup))
+    held = [seconds for folder in _folders(root, paths.get("", "/"))
+            if (seconds := _stat_seconds(folder, "throttled_usec", 1e-6)) is not None]
+    for mount in ("cpu", "cpu,cpuacct", "cpuacct,cpu"):
+        for folder in _folders(root / mount, paths.get("cpu", "/")):
+            if (seconds := _stat_seconds(folder, "throttled_time", 1e-9)) is not None:
+                held.append(seconds)
+    return max(held) if held else None
+
+
+class CpuClock:
+    """This process's CPU seconds (all its threads) and, where a cgroup CPU quota holds it,
+    the seconds its quota held it back, between a ``mark`` and now.
+
+    Parameters
+    ----------
+    cgroup_root, proc_cgroup : as for ``cgroup_cpu_quota`` (fake trees in tests).
+    """
+
+    def __init__(self, cgroup_root: str | os.PathLike = CGROUP_ROOT,
+                 proc_cgroup: str | os.PathLike = PROC_CGROUP):
+        self._where = (cgroup_root, proc_cgroup)
+        #: the tightest quota in CPUs (None: no quota, and nothing to read for held seconds)
+        self.quota = cgroup_cpu_quota(*self._where)
+
+    def mark(self) -> tuple[float, float | None]:
+        """Now: (CPU seconds, held seconds or None)."""
+        held = cgroup_cpu_throttled_s(*self._where) if self.quota is not None else None
+        return time.process_time(), held
+
+    def since(self, mark: tuple[float, float | None]) -> dict[str, float]:
+        """What was spent since ``mark``: ``busy_cpu_s``, and ``cpu_throttled_s`` where a
+        quota holds the process and its counter is readable."""
+        cpu, held = self.mark()
+        spent = {"busy_cpu_s": cpu - mark[0]}
+        if held is not None and mark[1] is not None:
+            spent["cpu_throttled_s"] = round(max(held - mark[1], 0.0), 4)
+        return spent
+
+
+def _stat_seconds(folder: Path, key: str, unit_s: float) -> float | None:
+    """``key`` of ``folder/cpu.stat`` in seconds (its value times ``unit_s``), or None."""
+    text = _read(folder / "cpu.stat")
+    if text is None:
+        return None
+    for line in text.splitlines():
+        fields = line.split()
+        if len(fields) == 2 and fields[0] == key:
+            try:
+                return int(fields[1]) * unit_s
+            except ValueError:
+                return None
+    return None
 
 
 def _membership(proc_cgroup: Path) -> dict[str, str]:

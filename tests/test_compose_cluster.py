@@ -190,6 +190,9 @@ def test_the_compose_cluster_renders_the_single_process_image(engine, scene, tmp
     assert report["scheduler"] == scheduler and report["counters"]["nodes"] == NODES, report
     assert report["error"]["mse"] == 0.0 and report["error"]["max_abs_diff"] == 0.0, report
     assert np.array_equal(read_exr(out / "image.exr"), read_exr(data / "reference.exr"))
+    # each node's container holds it to NODE_CPUS: it reads its cgroup's throttled time
+    held = [node["counters"].get("cpu_throttled_s") for node in report["counters"]["per_node"]]
+    assert all(isinstance(s, float) and s >= 0.0 for s in held), held
 
 
 # ----------------------------------------------------- node log prefixes, without an engine
