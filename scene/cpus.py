@@ -1,4 +1,5 @@
-"""The CPUs this process may use: the default for every ``threads`` setting.
+"""The CPUs this process may use: the default for every ``threads`` setting, and Embree's
+build threads (``scene.embree.library.device_config``).
 
 ``os.cpu_count()`` counts the machine's cores, whatever the process is allowed: a container
 started with ``docker run --cpus 2`` (or compose's ``cpus:``, or a Kubernetes CPU limit) sees

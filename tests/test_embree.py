@@ -631,3 +631,50 @@ def test_the_triangle_test_is_watertight_unless_a_measurement_asks_for_the_fast_
     monkeypatch.setenv(TRIANGLE_TEST_ENV, "quick")
     with pytest.raises(ValueError, match="VASTRAY_TRIANGLE_TEST='quick'.*'fast'"):
         Scene(vertices, indices)
+
+
+# -- Embree's build threads: the CPUs the process may use ---------------------------------------
+def test_embree_builds_on_the_cpus_the_process_may_use(monkeypatch):
+    """A container held to a quota of fewer CPUs than its affinity mask builds on as many
+    threads as its quota allows (``available_cpus``, as for the render threads); a
+    configuration naming its own ``threads`` keeps it."""
+    from vastray.scene import cpus
+
+    monkeypatch.setattr(cpus, "available_cpus", lambda: 3)
+    monkeypatch.delenv(library.EMBREE_CONFIG_ENV, raising=False)
+    assert library.device_config() == "threads=3"
+    monkeypatch.setenv(library.EMBREE_CONFIG_ENV, "max_isa=avx2")
+    assert library.device_config() == "max_isa=avx2,threads=3"
+    monkeypatch.setenv(library.EMBREE_CONFIG_ENV, "threads=1, verbose=0")
+    assert library.device_config() == "threads=1, verbose=0"
+
+
+def test_a_bvh_built_on_one_thread_gives_the_image_built_on_two(tmp_path):
+    """The same image bit for bit whether Embree built the domains' BVHs on one thread (a
+    node under a quota of one CPU) or two: domains of 82k triangles, which Embree builds in
+    parallel."""
+    sphere = trimesh.creation.icosphere(subdivisions=6)
+    store = write_store(tmp_path / "store", mesh_arrays(sphere), grid=(2, 1, 1))
+    extra = os.environ.get(library.EMBREE_CONFIG_ENV, "")
+    images = []
+    for threads in (1, 2):
+        out = tmp_path / f"threads-{threads}.npy"
+        config = ",".join(p for p in (extra, f"threads={threads}") if p)
+        code = textwrap.dedent(f"""
+            import numpy as np
+            from vastray.render.driver import render
+            from vastray.render.integrators import RenderSettings
+            from vastray.render.scene_config import SceneConfig
+            from vastray.scene.embree import library
+            from vastray.scene.store import Store
+            assert library.device_config() == {config!r}
+            film = render(Store({str(store.path)!r}), SceneConfig(),
+                          RenderSettings(width=48, height=32, spp=4, integrator="pt", bounces=2),
+                          threads=2, progress=False).film
+            np.save({str(out)!r}, film.image())
+        """)
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              env={**os.environ, library.EMBREE_CONFIG_ENV: config}, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        images.append(np.load(out))
+    assert images[0].mean() > 0 and np.array_equal(images[0], images[1])

@@ -28,7 +28,9 @@ probe refused the library and every query went through embreex's ``run``.)
 
 ``VASTRAY_EMBREE_CONFIG`` is passed to ``rtcNewDevice`` as Embree's device configuration
 string, e.g. ``max_isa=avx2`` (trace as on a CPU without AVX-512; ``sse4.2``: without AVX,
-the 1-ray path) or ``verbose=1`` (Embree prints the ISA it selected).
+the 1-ray path) or ``verbose=1`` (Embree prints the ISA it selected); ``threads=N`` (Embree's
+build threads) is added unless it names its own, N the CPUs the process may use
+(``device_config``).
 """
 
 from __future__ import annotations
@@ -70,6 +72,22 @@ RTC_FORMAT_FLOAT3X4_COLUMN_MAJOR = 0x9234
 TESTED_VERSIONS = ((4, 3), (4, 4))
 #: Embree's device configuration string (``rtcNewDevice``'s argument), e.g. ``max_isa=avx2``.
 EMBREE_CONFIG_ENV = "VASTRAY_EMBREE_CONFIG"
+
+
+def device_config() -> str:
+    """``rtcNewDevice``'s configuration: ``VASTRAY_EMBREE_CONFIG``, and ``threads=N`` for
+    Embree's build threads unless that names its own, N the CPUs this process may use
+    (``scene.cpus.available_cpus``: the affinity mask lowered to the cgroup CPU quota, as for
+    the render threads). Left to itself Embree builds on a thread per CPU of the affinity
+    mask, which in a container held to a quota of fewer CPUs spends the quota on several
+    cores at once and is then throttled for the rest of the period."""
+    config = os.environ.get(EMBREE_CONFIG_ENV, "").strip()
+    named = {part.split("=", 1)[0].strip() for part in config.split(",") if "=" in part}
+    if "threads" not in named:
+        from vastray.scene.cpus import available_cpus
+
+        config = ",".join(part for part in (config, f"threads={available_cpus()}") if part)
+    return config
 
 
 class EmbreeFallbackWarning(RuntimeWarning):
@@ -131,7 +149,7 @@ class Api:
             fn = getattr(self.lib, name)
             fn.restype, fn.argtypes = res, args
             setattr(self, name, fn)
-        config = os.environ.get(EMBREE_CONFIG_ENV, "").strip()
+        config = device_config()
         self.device = self.rtcNewDevice(config.encode() or None)
         if not self.device:
             raise OSError("rtcNewDevice failed" + (f" with {EMBREE_CONFIG_ENV}={config!r}"
