@@ -76,9 +76,9 @@ def quota_lines(counters: dict, seconds: dict) -> list[str]:
     """A line for the CLI's last lines where a CPU quota throttled a node for
     ``HELD_SHARE`` of the busiest node's time or more (``cpu_throttled_s`` in the nodes'
     counters: their cgroups' throttled time over their busy spans,
-    ``scene.cpus.cgroup_cpu_throttled_s``); none otherwise. 8 nodes of 0.25 CPU rendered
-    ``domain`` 2.2x slower than the same nodes sharing the cores without a quota
-    (``bench/compose_scale.py``, 2026-12-05)."""
+    ``scene.cpus.cgroup_cpu_throttled_s``); none otherwise. 8 nodes of 0.25 CPU took 1.64x
+    as long to render ``domain`` (its busiest node 2.2x) as the same nodes sharing the cores
+    without a quota (``bench/compose_scale.py``, 2026-12-05)."""
     held = counters.get("cpu_throttled_s_max", 0.0)
     busy = seconds.get("busy_max", 0.0)
     if not held or held < HELD_SHARE * busy:

@@ -152,8 +152,9 @@ class Api:
         config = device_config()
         self.device = self.rtcNewDevice(config.encode() or None)
         if not self.device:
-            raise OSError("rtcNewDevice failed" + (f" with {EMBREE_CONFIG_ENV}={config!r}"
-                                                   if config else ""))
+            asked = os.environ.get(EMBREE_CONFIG_ENV, "").strip()
+            raise OSError(f"rtcNewDevice failed with the configuration {config!r}"
+                          + (f" ({EMBREE_CONFIG_ENV}={asked!r})" if asked else ""))
         self.version = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION))
         self.major = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MAJOR))
         self.minor = int(self.rtcGetDeviceProperty(self.device, RTC_DEVICE_PROPERTY_VERSION_MINOR))
