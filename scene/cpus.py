@@ -56,13 +56,9 @@ def cgroup_cpu_quota(cgroup_root: str | os.PathLike = CGROUP_ROOT,
     container sharing the host's cgroup namespace) sees it at the path ``/proc/self/cgroup``
     names, so both, and every folder between them, are read.
     """
-    root = Path(cgroup_root)
-    paths = _membership(Path(proc_cgroup))
-    quotas = [q for folder in _folders(root, paths.get("", "/")) if (q := _v2_quota(folder))]
-    for mount in ("cpu", "cpu,cpuacct", "cpuacct,cpu"):
-        for folder in _folders(root / mount, paths.get("cpu", "/")):
-            if q := _v1_quota(folder):
-                quotas.append(q)
+    v2, v1 = _cpu_cgroups(cgroup_root, proc_cgroup)
+    quotas = [q for folder in v2 if (q := _v2_quota(folder))]
+    quotas += [q for folder in v1 if (q := _v1_quota(folder))]
     return min(quotas) if quotas else None
 
 
@@ -75,15 +71,24 @@ def cgroup_cpu_throttled_s(cgroup_root: str | os.PathLike = CGROUP_ROOT,
     kernel adds the time each core's queue of the group was held, so a group held on two
     cores for a second counts about 2 s: more than the wall time where the group's threads
     wanted several cores. It counts the whole group: every process in it."""
+    v2, v1 = _cpu_cgroups(cgroup_root, proc_cgroup)
+    held = [seconds for folder in v2
+            if (seconds := _stat_seconds(folder, "throttled_usec", 1e-6)) is not None]
+    held += [seconds for folder in v1
+             if (seconds := _stat_seconds(folder, "throttled_time", 1e-9)) is not None]
+    return max(held) if held else None
+
+
+def _cpu_cgroups(cgroup_root: str | os.PathLike,
+                 proc_cgroup: str | os.PathLike) -> tuple[list[Path], list[Path]]:
+    """The cgroup folders over this process that may hold its CPU settings: (the v2
+    hierarchy's, the v1 cpu controller's), each from the mount's root down to the
+    process's cgroup (see ``cgroup_cpu_quota``)."""
     root = Path(cgroup_root)
     paths = _membership(Path(proc_cgroup))
-    held = [seconds for folder in _folders(root, paths.get("", "/"))
-            if (seconds := _stat_seconds(folder, "throttled_usec", 1e-6)) is not None]
-    for mount in ("cpu", "cpu,cpuacct", "cpuacct,cpu"):
-        for folder in _folders(root / mount, paths.get("cpu", "/")):
-            if (seconds := _stat_seconds(folder, "throttled_time", 1e-9)) is not None:
-                held.append(seconds)
-    return max(held) if held else None
+    v1 = [folder for mount in ("cpu", "cpu,cpuacct", "cpuacct,cpu")
+          for folder in _folders(root / mount, paths.get("cpu", "/"))]
+    return _folders(root, paths.get("", "/")), v1
 
 
 class CpuClock:
