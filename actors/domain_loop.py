@@ -198,8 +198,9 @@ class DomainLoop:
         if self.preloader.enabled:
             cpu = cpu_time()
             guess = order.likely_next(domain)
+            segments = None if guess is None else self._segments(order, guess)
             await self.decided(cpu_time() - cpu)
-            self.preloader.preload(guess)
+            self.preloader.preload(guess, segments)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
         done = clock()
