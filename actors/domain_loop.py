@@ -198,9 +198,8 @@ class DomainLoop:
         if self.preloader.enabled:
             cpu = cpu_time()
             guess = order.likely_next(domain)
-            segments = None if guess is None else self._segments(order, guess)
             await self.decided(cpu_time() - cpu)
-            self.preloader.preload(guess, segments)
+            self.preloader.preload(guess)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
         done = clock()

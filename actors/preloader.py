@@ -98,13 +98,11 @@ class DomainPreloader(CacheFront):
         return await asyncio.get_running_loop().run_in_executor(self._loader, self.cache.get_for,
                                                                 domain, segments)
 
-    def preload(self, domain: int | None, segments: RaySegments | None = None) -> None:
+    def preload(self, domain: int | None) -> None:
         """Start loading ``domain`` ahead (no-op when resident, loading, disabled, or when
-        only protected domains could make room); with ``segments``, the rays waiting for it
-        now: built for them alone where they hit few of its triangles
-        (``DomainCache.prefetch``)."""
+        only protected domains could make room)."""
         if self.enabled and domain is not None:
-            self.cache.prefetch(int(domain), segments)
+            self.cache.prefetch(int(domain))
 
     def load_bandwidth_mb_s(self) -> float | None:
         """The emulated storage bandwidth every load is held to, in MB/s (None: none)."""

@@ -372,8 +372,7 @@ class PassSpans:
 
 #: The cache counters that are totals over a cache's life (a call reports its own share).
 _CACHE_TOTALS = ("loads", "hits", "evictions", "load_seconds", "read_seconds", "build_seconds",
-                 "preloads", "wait_seconds", "bytes_loaded", "throttle_seconds", "sparse_loads",
-                 "sparse_triangles", "sparse_domain_triangles", "sparse_preloads_unused")
+                 "preloads", "wait_seconds", "bytes_loaded", "throttle_seconds")
 
 
 def _cache_counts(stats: CacheStats) -> dict:

@@ -15,7 +15,7 @@ from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
 from vastray.scene.sparse import MAX_RAYS as SPARSE_MAX_RAYS
 from vastray.scene.sparse import MAX_SHARE as SPARSE_MAX_SHARE
-from vastray.scene.sparse import RaySegments, Selection, SparseDomainBVH
+from vastray.scene.sparse import RaySegments, SparseDomainBVH
 from vastray.scene.sparse import enabled as sparse_loads_enabled
 from vastray.scene.sparse import select as select_for
 from vastray.scene.store import DomainArrays, Store
@@ -46,8 +46,6 @@ class CacheStats:
     #: triangles those builds took, of their domains' triangles
     sparse_triangles: int = 0
     sparse_domain_triangles: int = 0
-    #: sparse preloads of a domain the schedule did not activate next
-    sparse_preloads_unused: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -65,24 +63,9 @@ class CacheStats:
             "peak_resident_bytes": self.peak_resident_bytes,
             "peak_resident_domains": self.peak_resident_domains,
             "sparse_loads": self.sparse_loads,
-            "sparse_preloads_unused": self.sparse_preloads_unused,
             "sparse_triangle_share": (round(self.sparse_triangles / self.sparse_domain_triangles, 4)
                                       if self.sparse_domain_triangles else 0.0),
         }
-
-
-@dataclass
-class _Ahead:
-    """A sparse preload: the domain read (``DomainCache._read``'s result, when it began and
-    ended), its build for the rays waiting then (None: built whole, or not built) and when
-    that ended; ``cached``: built whole and cached instead."""
-
-    read: tuple
-    start: float
-    read_done: float
-    bvh: SparseDomainBVH | None
-    done: float
-    cached: bool = False
 
 
 class DomainCache:
@@ -140,8 +123,6 @@ class DomainCache:
         self._lock = threading.RLock()
         self._pending: dict[int, Future] = {}
         self._preloader: ThreadPoolExecutor | None = None
-        #: (domain, its sparse preload in flight or done): at most one, beside the cache
-        self._ahead: tuple[int, Future] | None = None
 
     @property
     def mesh_quality(self) -> int | None:
@@ -191,10 +172,6 @@ class DomainCache:
         if a load is needed (``get_for``'s whole builds).
         """
         start = time.perf_counter()
-        if read is None and self._ahead is not None and self._ahead[0] == domain_id:
-            ahead = self._take_ahead(domain_id)
-            if ahead is not None:  # read already: build it whole from that
-                read = (ahead.read, ahead.start, ahead.read_done)
         while True:
             with self._lock:
                 if domain_id in self._resident:
@@ -296,26 +273,10 @@ class DomainCache:
         self.stats.peak_resident_domains = max(
             self.stats.peak_resident_domains, len(self._resident.keys() | self._pending.keys()))
 
-    def prefetch(self, domain_id: int | None, segments: RaySegments | None = None) -> None:
+    def prefetch(self, domain_id: int | None) -> None:
         """Start loading ``domain_id`` on the preloader thread, so its read and BVH build
-        overlap the caller's rendering. Needs room for two domains (the one in use stays).
-
-        With ``segments`` (the rays waiting for it now, where a sparse load may serve them):
-        read it and build it for those rays alone (``_load_ahead``), held beside the cache
-        for ``get_for``, which takes it where the rays waiting then are covered, and builds
-        again from the arrays read where not. Where the rays select too many triangles it is
-        built whole and cached, as any preload."""
+        overlap the caller's rendering. Needs room for two domains (the one in use stays)."""
         if domain_id is None or self.capacity < 2:
-            return
-        if self._sparse_eligible(segments):
-            with self._lock:
-                if (domain_id in self._resident or domain_id in self._pending
-                        or (self._ahead is not None and self._ahead[0] == domain_id)):
-                    return
-                if self._preloader is None:
-                    self._preloader = ThreadPoolExecutor(1, thread_name_prefix="preloader")
-                self._ahead = (domain_id, self._preloader.submit(self._load_ahead, domain_id,
-                                                                 segments))
             return
         with self._lock:
             if domain_id in self._resident or domain_id in self._pending:
@@ -328,60 +289,16 @@ class DomainCache:
 
     def _preload(self, domain_id: int) -> None:
         try:
-            self._preload_built(domain_id, self.load(domain_id))
+            bvh = self.load(domain_id)
+            with self._lock:
+                # resident and no longer pending at once: between two locked steps the domain
+                # was both, and counted twice against the capacity (an extra eviction)
+                self._insert(domain_id, bvh)
+                self._pending.pop(domain_id, None)
+                self.stats.preloads += 1
         finally:
             with self._lock:
                 self._pending.pop(domain_id, None)
-
-    def _preload_built(self, domain_id: int, bvh: DomainBVH) -> None:
-        with self._lock:
-            # resident and no longer pending at once: between two locked steps the domain
-            # was both, and counted twice against the capacity (an extra eviction)
-            self._insert(domain_id, bvh)
-            self._pending.pop(domain_id, None)
-            self.stats.preloads += 1
-
-    def _load_ahead(self, domain_id: int, segments: RaySegments) -> _Ahead:
-        """``prefetch``'s sparse preload: the domain read, its selection for ``segments`` and
-        the sparse build of it (None where the selection is too large: then built whole and
-        cached now if a preload may make room, as ``_preload``)."""
-        start = time.perf_counter()
-        read = self._read(domain_id)
-        read_done = time.perf_counter()
-        arrays = read[0]
-        chosen = self._select(domain_id, arrays, segments)
-        if len(chosen.triangles) <= SPARSE_MAX_SHARE * arrays.n_triangles:
-            bvh = SparseDomainBVH(domain_id, arrays, chosen, self.keep, self.pool,
-                                  self.build_quality, self.mesh_quality)
-            return _Ahead(read, start, read_done, bvh, time.perf_counter())
-        with self._lock:
-            if (domain_id in self._resident or domain_id in self._pending
-                    or not self._make_room(1, for_preload=True)):
-                return _Ahead(read, start, read_done, None, read_done)
-            mine: Future = Future()
-            self._pending[domain_id] = mine
-        try:
-            self._preload_built(domain_id, self.load(domain_id, (read, start, read_done)))
-        finally:
-            with self._lock:
-                self._pending.pop(domain_id, None)
-            mine.set_result(None)
-        return _Ahead(read, start, read_done, None, read_done, cached=True)
-
-    def _take_ahead(self, domain_id: int) -> _Ahead | None:
-        """The sparse preload of ``domain_id`` (waited for), taken; None where there is none
-        or it was cached whole. A sparse preload of another domain is dropped (the guess was
-        wrong: counted in ``sparse_preloads_unused`` where it had begun)."""
-        with self._lock:
-            ahead, self._ahead = self._ahead, None
-        if ahead is None:
-            return None
-        if ahead[0] != domain_id:  # not waited for: cancelled, or left to finish unused
-            if not ahead[1].cancel():
-                self.stats.sparse_preloads_unused += 1
-            return None
-        got = ahead[1].result()
-        return None if got.cached else got
 
     def close(self) -> None:
         """Stop the preloader (waits for a load in flight)."""
@@ -435,65 +352,64 @@ class DomainCache:
         self.stats.build_seconds += done - read_done
         self.stats.load_seconds += done - start
 
-    def _sparse_eligible(self, segments: RaySegments | None) -> bool:
-        """Whether a sparse load may serve ``segments``: some rays, at most
-        ``sparse.MAX_RAYS``, sparse loads on, and a cache smaller than the store."""
-        return (segments is not None and 0 < len(segments) <= SPARSE_MAX_RAYS
-                and sparse_loads_enabled() and self.capacity < len(self.store.domains))
-
-    def _select(self, domain_id: int, arrays: DomainArrays, segments: RaySegments) -> Selection:
-        lo, hi = self.store.domain_boxes()
-        return select_for(arrays.vertices, arrays.indices, lo[domain_id], hi[domain_id],
-                          segments)
-
     def get_for(self, domain_id: int, segments: RaySegments | None) -> DomainBVH | SparseDomainBVH:
         """The domain for tracing the rays ``segments`` (and those ``covers`` accepts).
 
-        A resident domain, or one being loaded whole, is ``get``'s. Otherwise the domain is
-        read (or taken from a sparse preload), and where those rays can hit at most
-        ``sparse.MAX_SHARE`` of its triangles, a ``SparseDomainBVH`` of them is built (or
-        the preload's taken, where it covers them) and returned without entering the cache
-        (it evicts nothing; counted in ``sparse_loads``, its read and build in the load
-        times); else the domain is built whole and cached, a load as ``get``'s.
+        A resident domain, or one being loaded, is ``get``'s. Otherwise the domain is read,
+        and where those rays can hit at most ``sparse.MAX_SHARE`` of its triangles, a
+        ``SparseDomainBVH`` of them is built and returned without entering the cache (it
+        evicts nothing; counted as a sparse load, its read and build in the load times);
+        else the domain is built whole and cached, a load as ``get``'s.
         """
-        if not self._sparse_eligible(segments):
+        if (segments is None or not sparse_loads_enabled() or len(segments) > SPARSE_MAX_RAYS
+                or len(self.store.domains) <= self.capacity):
             return self.get(domain_id)
         start = time.perf_counter()
         with self._lock:
-            whole = domain_id in self._resident or domain_id in self._pending
-        if whole:
+            if domain_id in self._resident or domain_id in self._pending:
+                claimed = None
+            else:  # counted against the capacity while read; room is made if built whole
+                claimed = Future()
+                self._pending[domain_id] = claimed
+        if claimed is None:
             return self.get(domain_id)
-        ahead = self._take_ahead(domain_id)
-        if ahead is None:
-            read = self._read(domain_id)
-            read_start, read_done = start, time.perf_counter()
-        else:
-            read, read_start, read_done = ahead.read, ahead.start, ahead.read_done
-            if ahead.bvh is not None and ahead.bvh.covers(segments.origins, segments.directions,
-                                                          segments.limits, segments.pad).all():
-                self._count_sparse(ahead.bvh, read, read_start, read_done, ahead.done)
-                self.stats.wait_seconds += time.perf_counter() - start
-                return ahead.bvh
-        arrays = read[0]
-        chosen = self._select(domain_id, arrays, segments)
-        if len(chosen.triangles) > SPARSE_MAX_SHARE * arrays.n_triangles:
-            # built whole, as ``get`` would, from the arrays read
-            return self.get(domain_id, (read, read_start, read_done))
-        bvh = SparseDomainBVH(domain_id, arrays, chosen, self.keep, self.pool,
-                              self.build_quality, self.mesh_quality)
-        self._count_sparse(bvh, read, read_start, read_done, time.perf_counter())
+        try:
+            bvh = self._load_for(domain_id, segments, start)
+        except BaseException as exc:
+            with self._lock:
+                self._pending.pop(domain_id, None)
+            claimed.set_exception(exc)
+            raise
+        claimed.set_result(None)
         self.stats.wait_seconds += time.perf_counter() - start
-        log.debug("loaded %d of domain %d's %d triangles for %d rays", bvh.n_triangles,
-                  domain_id, bvh.domain_triangles, len(segments))
         return bvh
 
-    def _count_sparse(self, bvh: SparseDomainBVH, read: tuple, start: float, read_done: float,
-                      done: float) -> None:
+    def _load_for(self, domain_id: int, segments: RaySegments, start: float
+                  ) -> DomainBVH | SparseDomainBVH:
+        """``get_for``'s load, with ``domain_id`` registered as pending (it leaves it)."""
+        arrays, size, throttle = self._read(domain_id)
+        read_done = time.perf_counter()
+        lo, hi = self.store.domain_boxes()
+        chosen = select_for(arrays.vertices, arrays.indices, lo[domain_id], hi[domain_id],
+                            segments)
+        if len(chosen.triangles) <= SPARSE_MAX_SHARE * arrays.n_triangles:
+            bvh = SparseDomainBVH(domain_id, arrays, chosen, self.keep, self.pool,
+                                  self.build_quality, self.mesh_quality)
+            done = time.perf_counter()
+            with self._lock:
+                self._pending.pop(domain_id, None)
+                self.stats.sparse_loads += 1
+                self.stats.sparse_triangles += bvh.n_triangles
+                self.stats.sparse_domain_triangles += bvh.domain_triangles
+                self.stats.bytes_loaded += size
+                self._count_times(start, read_done, done, throttle)
+                self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
+                                                     self._resident_bytes + bvh.nbytes())
+            log.debug("loaded %d of domain %d's %d triangles for %d rays in %.3f s",
+                      bvh.n_triangles, domain_id, bvh.domain_triangles, len(segments),
+                      done - start)
+            return bvh
+        # built whole: as ``get`` would (the claim given up first), from the arrays read
         with self._lock:
-            self.stats.sparse_loads += 1
-            self.stats.sparse_triangles += bvh.n_triangles
-            self.stats.sparse_domain_triangles += bvh.domain_triangles
-            self.stats.bytes_loaded += read[1]
-            self._count_times(start, read_done, done, read[2])
-            self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
-                                                 self._resident_bytes + bvh.nbytes())
+            self._pending.pop(domain_id, None)
+        return self.get(domain_id, ((arrays, size, throttle), start, read_done))

@@ -42,12 +42,12 @@ ENV = "VASTRAY_SPARSE_LOADS"
 #: Most rays an activation may bring for its domain to be loaded sparse (more: whole). The
 #: walk that marks their cells costs about a microsecond a ray; many rays select most
 #: triangles anyway.
-MAX_RAYS = int(os.environ.get("VASTRAY_SPARSE_MAX_RAYS", "4096"))
+MAX_RAYS = 4096
 #: Largest share of a domain's triangles a sparse build may take; above it the domain is
 #: built whole and cached, as any load (a second activation then costs nothing).
 MAX_SHARE = 0.25
 #: Cells along the finest selection grid's longest axis.
-MAX_RESOLUTION = 64
+MAX_RESOLUTION = 96
 
 
 def enabled() -> bool:

@@ -205,18 +205,19 @@ class SpeculativeSchedule:
                 return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
-    def waiting_segments(self, domain: int) -> RaySegments:
+    def waiting_segments(self, domain: int) -> RaySegments | None:
         """The rays ``process(domain, ...)`` will trace, as segments (what a sparse load is
         built for): radiance rays to their closest hit so far, shadow rays to their end. The
         rays ``next_domain`` staged for ``domain``, or (a schedule traced ahead, which
-        chooses nothing; the preloader's guess) every ray queued for it, of which its filter
-        keeps some. The shadow rays its hits cast may leave those cells (``process`` defers
-        them)."""
+        chooses nothing) every ray queued for it, of which its filter keeps some. The shadow
+        rays its hits cast may leave those cells (``process`` defers them)."""
         if self._staged is not None and self._staged[0] == domain:
             radiance, shadow = [self._staged[1]], [self._staged[2]]
-        else:
+        elif self._staged is None:
             radiance = self.radiance.peek(domain)
             shadow = self.shadow.peek(domain)
+        else:
+            return None
         chunks = []
         for rays in radiance:
             if rays is not None:

@@ -217,7 +217,7 @@ class VirtualPreloader(CacheFront):
         self.load_wait_s += self.cluster.now() - start
         return cache._get(domain)
 
-    def preload(self, domain: int | None, segments=None) -> None:
+    def preload(self, domain: int | None) -> None:
         """Start loading ``domain`` ahead (as ``DomainCache.prefetch``: not when resident,
         loading, disabled, or when only protected domains could make room)."""
         cache = self.cache
