@@ -33,9 +33,6 @@ from typing import Protocol
 
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.embree.launch import cpu_time
-from vastray.scene.sparse import MAX_RAYS as SPARSE_MAX_RAYS
-from vastray.scene.sparse import RaySegments
-from vastray.scene.sparse import enabled as sparse_loads_enabled
 
 
 @dataclass(frozen=True)
@@ -193,7 +190,7 @@ class DomainLoop:
             self.stats["schedule_s"] += chosen - start
             return None
         self.sequence.append(domain)
-        bvh = await self.preloader.get(domain, self._segments(order, domain))
+        bvh = await self.preloader.get(domain)
         loaded = clock()
         if self.preloader.enabled:
             cpu = cpu_time()
@@ -213,19 +210,6 @@ class DomainLoop:
         if ship is not None:
             await ship()
         return activation
-
-    def _segments(self, order: DomainOrder, domain: int) -> RaySegments | None:
-        """The rays ``order`` will trace against ``domain`` where a sparse load may serve
-        them (``scene.sparse``): the domain is not in memory nor being loaded and the order
-        says which rays (``segments``), 1 to ``sparse.MAX_RAYS``; else None."""
-        segments_of = getattr(order, "segments", None)
-        if (segments_of is None or not getattr(self.preloader, "sparse_loads", False)
-                or domain in self.preloader.resident() or not sparse_loads_enabled()):
-            return None
-        segments = segments_of(domain)
-        if segments is None or not 0 < len(segments) <= SPARSE_MAX_RAYS:
-            return None
-        return segments
 
     @property
     def productive_loads(self) -> set[tuple[int, int]]:
@@ -338,12 +322,6 @@ class ScheduleOrder:
     def rays(self, domain: int) -> int:
         return waiting_rays(self.policy, domain)
 
-    def segments(self, domain: int) -> RaySegments | None:
-        """The rays ``trace`` will take for ``domain`` (``policy.waiting_segments``), or None
-        where the schedule does not say."""
-        waiting = getattr(self.policy, "waiting_segments", None)
-        return None if waiting is None else waiting(domain)
-
 
 class LeadOrder:
     """A leading order whose every activation also traces the rays ``followers`` (tile
@@ -398,21 +376,6 @@ class LeadOrder:
                                                      + time.perf_counter() - start)
         self.ahead_queries += int(followers)
         return lead + followers
-
-    def segments(self, domain: int) -> RaySegments | None:
-        """The rays ``trace`` will take for ``domain``, the leader's and the followers'
-        (None where one of them does not say; ``waiting_rays`` cannot: a schedule's filter
-        may have taken its rays out of the queues already)."""
-        parts = []
-        if domain != self._riding:
-            own = getattr(self.lead, "segments", None)
-            parts.append(None if own is None else own(domain))
-        for policy in self.followers:
-            waiting = getattr(policy, "waiting_segments", None)
-            parts.append(None if waiting is None else waiting(domain))
-        if any(part is None for part in parts):
-            return None
-        return RaySegments.joined(parts)
 
     def rays(self, domain: int) -> int | None:
         own = getattr(self.lead, "rays", None)

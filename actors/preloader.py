@@ -19,7 +19,6 @@ import numpy as np
 
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.cache import DomainCache
-from vastray.scene.sparse import RaySegments, SparseDomainBVH
 from vastray.scene.store import Store
 
 
@@ -66,9 +65,6 @@ class DomainPreloader(CacheFront):
     fast_builds : build Embree's fast BVH (the render's ``RenderSetup.fast_builds``).
     """
 
-    #: ``get`` builds a domain for the caller's rays alone where they hit few of its triangles
-    sparse_loads = True
-
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
                  preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False):
@@ -85,18 +81,12 @@ class DomainPreloader(CacheFront):
         """At least ``capacity`` domains resident from now on (``DomainCache.reserve``)."""
         self.cache.reserve(capacity)
 
-    async def get(self, domain: int, segments: RaySegments | None = None
-                  ) -> DomainBVH | SparseDomainBVH:
-        """The built domain, loading it if it is not resident (the wait is counted); with
-        ``segments`` (the rays the caller will trace), built for those rays alone where they
-        can hit few of its triangles (``DomainCache.get_for``)."""
+    async def get(self, domain: int) -> DomainBVH:
+        """The built domain, loading it if it is not resident (the wait is counted)."""
         if domain in self.cache:
             return self.cache.get(domain)  # resident: no thread hop
-        if segments is None:
-            return await asyncio.get_running_loop().run_in_executor(self._loader,
-                                                                    self.cache.get, domain)
-        return await asyncio.get_running_loop().run_in_executor(self._loader, self.cache.get_for,
-                                                                domain, segments)
+        return await asyncio.get_running_loop().run_in_executor(self._loader, self.cache.get,
+                                                                domain)
 
     def preload(self, domain: int | None) -> None:
         """Start loading ``domain`` ahead (no-op when resident, loading, disabled, or when

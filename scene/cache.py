@@ -13,12 +13,7 @@ from dataclasses import dataclass, field
 
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
-from vastray.scene.sparse import MAX_RAYS as SPARSE_MAX_RAYS
-from vastray.scene.sparse import MAX_SHARE as SPARSE_MAX_SHARE
-from vastray.scene.sparse import RaySegments, SparseDomainBVH
-from vastray.scene.sparse import enabled as sparse_loads_enabled
-from vastray.scene.sparse import select as select_for
-from vastray.scene.store import DomainArrays, Store
+from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +36,6 @@ class CacheStats:
     bytes_loaded: int = 0
     throttle_seconds: float = 0.0
     peak_resident_domains: int = 0
-    #: loads built for an activation's rays alone (``scene.sparse``), not cached
-    sparse_loads: int = 0
-    #: triangles those builds took, of their domains' triangles
-    sparse_triangles: int = 0
-    sparse_domain_triangles: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -62,9 +52,6 @@ class CacheStats:
             "bvh_build_s": round(self.build_seconds, 4),
             "peak_resident_bytes": self.peak_resident_bytes,
             "peak_resident_domains": self.peak_resident_domains,
-            "sparse_loads": self.sparse_loads,
-            "sparse_triangle_share": (round(self.sparse_triangles / self.sparse_domain_triangles, 4)
-                                      if self.sparse_domain_triangles else 0.0),
         }
 
 
@@ -159,7 +146,7 @@ class DomainCache:
         with self._lock:
             return self.stats.loads_per_domain.get(domain_id, 0)
 
-    def get(self, domain_id: int, read: tuple | None = None) -> DomainBVH:
+    def get(self, domain_id: int) -> DomainBVH:
         """The built domain, loading it (and evicting the LRU one) if needed.
 
         The lock is held only to look up, make room and insert, never through a read or a
@@ -167,9 +154,6 @@ class DomainCache:
         same domain waits for it rather than loading it again, and room-making counts it),
         and callers for resident domains are served meanwhile (issue 42: one thread's load
         held up every other thread's hits for the whole load).
-
-        ``read``: the domain already read (``_read``'s result and when it began), built here
-        if a load is needed (``get_for``'s whole builds).
         """
         start = time.perf_counter()
         while True:
@@ -186,7 +170,7 @@ class DomainCache:
                 pending.result()  # being built (a preload, another thread): wait for that
                 continue  # resident now, unless evicted meanwhile
             try:
-                bvh = self.load(domain_id, read)
+                bvh = self.load(domain_id)
             except BaseException as exc:
                 with self._lock:
                     self._pending.pop(domain_id, None)
@@ -313,28 +297,8 @@ class DomainCache:
         self.stats.loads_per_domain[domain_id] = self.stats.loads_per_domain.get(domain_id, 0) + 1
         self.stats.bytes_loaded += size
 
-    def load(self, domain_id: int, read: tuple | None = None) -> DomainBVH:
-        """Read and build one domain without caching it (counted as a load); ``read``: as
-        ``get``'s."""
-        if read is None:
-            start = time.perf_counter()
-            arrays, size, throttle = self._read(domain_id)
-            read_done = time.perf_counter()
-        else:
-            (arrays, size, throttle), start, read_done = read
-        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality,
-                        self.mesh_quality)
-        done = time.perf_counter()
-        with self._lock:
-            self.count_load(domain_id, size)
-            self._count_times(start, read_done, done, throttle)
-        log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,
-                  done - start)
-        return bvh
-
-    def _read(self, domain_id: int) -> tuple[DomainArrays, int, float]:
-        """The domain's arrays, its bytes on disk, and the seconds waited for the emulated
-        storage bandwidth."""
+    def load(self, domain_id: int) -> DomainBVH:
+        """Read and build one domain without caching it (counted as a load)."""
         start = time.perf_counter()
         # read, not mapped: a domain file truncated or rewritten under a running render
         # changes nothing it has loaded (mapped, it would be a SIGBUS or a changed picture)
@@ -344,72 +308,16 @@ class DomainCache:
         if self.load_bandwidth is not None:  # emulated network storage: wait out the rest
             throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))
             time.sleep(throttle)
-        return arrays, size, throttle
-
-    def _count_times(self, start: float, read_done: float, done: float, throttle: float) -> None:
-        self.stats.read_seconds += read_done - start
-        self.stats.throttle_seconds += throttle
-        self.stats.build_seconds += done - read_done
-        self.stats.load_seconds += done - start
-
-    def get_for(self, domain_id: int, segments: RaySegments | None) -> DomainBVH | SparseDomainBVH:
-        """The domain for tracing the rays ``segments`` (and those ``covers`` accepts).
-
-        A resident domain, or one being loaded, is ``get``'s. Otherwise the domain is read,
-        and where those rays can hit at most ``sparse.MAX_SHARE`` of its triangles, a
-        ``SparseDomainBVH`` of them is built and returned without entering the cache (it
-        evicts nothing; counted as a sparse load, its read and build in the load times);
-        else the domain is built whole and cached, a load as ``get``'s.
-        """
-        if (segments is None or not sparse_loads_enabled() or len(segments) > SPARSE_MAX_RAYS
-                or len(self.store.domains) <= self.capacity):
-            return self.get(domain_id)
-        start = time.perf_counter()
-        with self._lock:
-            if domain_id in self._resident or domain_id in self._pending:
-                claimed = None
-            else:  # counted against the capacity while read; room is made if built whole
-                claimed = Future()
-                self._pending[domain_id] = claimed
-        if claimed is None:
-            return self.get(domain_id)
-        try:
-            bvh = self._load_for(domain_id, segments, start)
-        except BaseException as exc:
-            with self._lock:
-                self._pending.pop(domain_id, None)
-            claimed.set_exception(exc)
-            raise
-        claimed.set_result(None)
-        self.stats.wait_seconds += time.perf_counter() - start
-        return bvh
-
-    def _load_for(self, domain_id: int, segments: RaySegments, start: float
-                  ) -> DomainBVH | SparseDomainBVH:
-        """``get_for``'s load, with ``domain_id`` registered as pending (it leaves it)."""
-        arrays, size, throttle = self._read(domain_id)
         read_done = time.perf_counter()
-        lo, hi = self.store.domain_boxes()
-        chosen = select_for(arrays.vertices, arrays.indices, lo[domain_id], hi[domain_id],
-                            segments)
-        if len(chosen.triangles) <= SPARSE_MAX_SHARE * arrays.n_triangles:
-            bvh = SparseDomainBVH(domain_id, arrays, chosen, self.keep, self.pool,
-                                  self.build_quality, self.mesh_quality)
-            done = time.perf_counter()
-            with self._lock:
-                self._pending.pop(domain_id, None)
-                self.stats.sparse_loads += 1
-                self.stats.sparse_triangles += bvh.n_triangles
-                self.stats.sparse_domain_triangles += bvh.domain_triangles
-                self.stats.bytes_loaded += size
-                self._count_times(start, read_done, done, throttle)
-                self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
-                                                     self._resident_bytes + bvh.nbytes())
-            log.debug("loaded %d of domain %d's %d triangles for %d rays in %.3f s",
-                      bvh.n_triangles, domain_id, bvh.domain_triangles, len(segments),
-                      done - start)
-            return bvh
-        # built whole: as ``get`` would (the claim given up first), from the arrays read
+        bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality,
+                        self.mesh_quality)
+        done = time.perf_counter()
         with self._lock:
-            self._pending.pop(domain_id, None)
-        return self.get(domain_id, ((arrays, size, throttle), start, read_done))
+            self.count_load(domain_id, size)
+            self.stats.read_seconds += read_done - start
+            self.stats.throttle_seconds += throttle
+            self.stats.build_seconds += done - read_done
+            self.stats.load_seconds += done - start
+        log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,
+                  done - start)
+        return bvh

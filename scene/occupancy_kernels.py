@@ -57,22 +57,18 @@ def crosses(origins, directions, ray, domain, limit, radius, lo, hi, cell, dims,
     scratch = np.empty((3, 3), np.float64)  # origin, direction, next boundary
     cells = np.empty((3, 3), np.int64)  # cell, step, and (scratch) the piece's index range
     span = np.empty(6, np.int64)
-    no_marks = np.zeros(0, np.uint8)  # a query that only tests
     for p in range(ray.shape[0]):
         d = domain[p]
         if useful[d]:
             i = ray[p]
             out[p] = _segment_crosses(origins[i], directions[i], limit[i], radius, lo[d], hi[d],
-                                      cell[d], dims[d], bits, base[d], scratch, cells, span,
-                                      no_marks)
+                                      cell[d], dims[d], bits, base[d], scratch, cells, span)
 
 
 @njit(inline="always")
-def _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, rng, marks):
+def _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, rng):
     """Whether a cell meeting the box of the segment's piece ``[ta, tb]`` grown by
-    ``radius`` is occupied (``rng``: (6,) int64 scratch). With ``marks`` (not empty), sets
-    ``marks`` at every such cell instead and returns False (the walk goes on to the end)."""
-    marking = marks.shape[0] > 0
+    ``radius`` is occupied (``rng``: (6,) int64 scratch)."""
     for k in range(3):
         a = o[k] + ta * dv[k]
         b = o[k] + tb * dv[k]
@@ -81,9 +77,6 @@ def _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, rng, marks):
         lo_k = _index(a - radius, lo[k], cell[k], dims[k])
         hi_k = _index(b + radius, lo[k], cell[k], dims[k])
         if lo_k < 0 or hi_k < 0:
-            if marking:  # not finite: every cell
-                marks[:] = 1
-                return False
             return True
         rng[k] = lo_k
         rng[3 + k] = hi_k
@@ -91,19 +84,15 @@ def _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, rng, marks):
     for i in range(rng[0], rng[3] + 1):
         for j in range(rng[1], rng[4] + 1):
             for k in range(rng[2], rng[5] + 1):
-                if marking:
-                    marks[(i * ny + j) * nz + k] = 1
-                elif bits[base + (i * ny + j) * nz + k]:
+                if bits[base + (i * ny + j) * nz + k]:
                     return True
     return False
 
 
 @njit(inline="always")
 def _segment_crosses(origin, direction, limit, radius, lo, hi, cell, dims, bits, base,
-                     scratch, cells, span, marks):
-    """The DDA of one (ray, domain) pair (see ``Occupancy.crosses``). With ``marks`` (not
-    empty): marks every cell it would test (``_piece_hits``) and returns False, or True where
-    it gives up (a coordinate not finite: the caller must take every cell)."""
+                     scratch, cells, span):
+    """The DDA of one (ray, domain) pair (see ``Occupancy.crosses``)."""
     o, dv, nxt = scratch[0], scratch[1], scratch[2]
     idx, step = cells[0], cells[1]
     t0 = 0.0
@@ -149,7 +138,7 @@ def _segment_crosses(origin, direction, limit, radius, lo, hi, cell, dims, bits,
         if nxt[2] < nxt[k]:
             k = 2
         tb = min(max(nxt[k], ta), t1)
-        if _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, span, marks):
+        if _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, span):
             return True
         if tb >= t1:
             return False
@@ -170,49 +159,3 @@ def _boundary(o, dv, lo, cell, n, i, step):
     if i <= 0:
         return np.inf
     return (lo + i * cell - o) / dv
-
-
-@njit(nogil=True, cache=True)
-def mark_segments(origins, directions, limit, radius, lo, hi, cell, dims, marks):
-    """Set ``marks[(i * b + j) * c + k]`` at every cell of one domain's grid (box ``[lo, hi]``,
-    ``dims`` cells of ``cell``) that the query of ``crosses`` would test for any of the rays'
-    segments ``[0, limit]``: every point a hit on the segments can be reported at lies in a
-    marked cell. Returns False where a ray's numbers are not finite (then every cell counts).
-    """
-    scratch = np.empty((3, 3), np.float64)
-    cells = np.empty((3, 3), np.int64)
-    span = np.empty(6, np.int64)
-    for i in range(origins.shape[0]):
-        if _segment_crosses(origins[i], directions[i], limit[i], radius, lo, hi, cell, dims,
-                            marks, 0, scratch, cells, span, marks):
-            return False
-    return True
-
-
-@njit(nogil=True, cache=True)
-def select_triangles(vertices, indices, lo, cell, dims, marked, out):
-    """``out[t]`` = 1 where triangle ``t``'s box meets a cell set in ``marked`` (the
-    summed-area table of the marks, ``(a + 1, b + 1, c + 1)`` int64: the marks in any block of
-    cells in 8 reads). A triangle whose coordinates are not finite is kept."""
-    rng = np.empty(6, np.int64)
-    for t in range(indices.shape[0]):
-        keep = False
-        for k in range(3):
-            a = np.float64(vertices[indices[t, 0], k])
-            b = a
-            for v in range(1, 3):
-                x = np.float64(vertices[indices[t, v], k])
-                a = min(a, x)
-                b = max(b, x)
-            rng[k] = _index(a, lo[k], cell[k], dims[k])
-            rng[3 + k] = _index(b, lo[k], cell[k], dims[k])
-            if rng[k] < 0 or rng[3 + k] < 0:
-                keep = True
-        if not keep:
-            i0, j0, k0 = rng[0], rng[1], rng[2]
-            i1, j1, k1 = rng[3] + 1, rng[4] + 1, rng[5] + 1
-            count = (marked[i1, j1, k1] - marked[i0, j1, k1] - marked[i1, j0, k1]
-                     - marked[i1, j1, k0] + marked[i0, j0, k1] + marked[i0, j1, k0]
-                     + marked[i1, j0, k0] - marked[i0, j0, k0])
-            keep = count > 0
-        out[t] = 1 if keep else 0

@@ -16,7 +16,6 @@ from vastray.render import boxwalk
 from vastray.render.boxtree import BoxTree
 from vastray.render.tracer import RaySlabs, box_pad
 from vastray.scene.occupancy import Occupancy
-from vastray.scene.sparse import RaySegments
 
 
 class DomainGeometry:
@@ -58,20 +57,6 @@ class DomainGeometry:
         """The rays' slab-test data, padded as every query of this geometry pads its boxes."""
         return RaySlabs(origins, directions,
                         box_pad(self.box_magnitude, self.origin_bound, origins))
-
-    def segments(self, chunks: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
-                 ) -> RaySegments:
-        """The rays of ``chunks`` ((origins (n, 3), directions (n, 3), limits (n,)) each) as
-        one batch of segments for a sparse load (``scene.sparse``), padded as this geometry's
-        queries pad them."""
-        chunks = [c for c in chunks if len(c[2])]
-        if not chunks:
-            return RaySegments.empty()
-        origins = np.concatenate([c[0] for c in chunks]).astype(np.float32, copy=False)
-        return RaySegments(origins,
-                           np.concatenate([c[1] for c in chunks]).astype(np.float32, copy=False),
-                           np.concatenate([c[2] for c in chunks]).astype(np.float32, copy=False),
-                           box_pad(self.box_magnitude, self.origin_bound, origins))
 
     def next_domain(self, origins: np.ndarray, directions: np.ndarray, after_t: np.ndarray,
                     after_d: np.ndarray, limit: np.ndarray, masks: bool = True

@@ -23,7 +23,6 @@ from vastray.render.integrators import (
     add_unoccluded,
     shade,
 )
-from vastray.scene.sparse import RaySegments
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import (
     as_radiance,
@@ -129,14 +128,6 @@ class ImageSchedule:
         if not waiting.any():
             return None
         return fullest(waiting, self._resident if self.resident_first else ())
-
-    def waiting_segments(self, domain: int) -> RaySegments:
-        """The rays ``process(domain, ...)`` will trace, as segments (radiance rays to their
-        closest hit so far, shadow rays to their end): what a sparse load is built for.
-        (Their hits and shadow rays are queued, never traced in the same activation.)"""
-        return self.geometry.segments(
-            self.radiance.peek_fields(domain, ("origin", "direction", "hit_t"))
-            + self.shadow.peek_fields(domain, ("origin", "direction", "t_max")))
 
     def demand(self) -> np.ndarray:
         """(D,) int64 rays waiting for each domain (a fresh array): what ``next_domain`` picks

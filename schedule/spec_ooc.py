@@ -41,7 +41,6 @@ from vastray.render.integrators import (
     shade,
 )
 from vastray.render.tracer import NO_DOMAIN, ClosestHits
-from vastray.scene.sparse import RaySegments
 from vastray.schedule.geometry import DomainGeometry
 from vastray.schedule.paths import RADIANCE_FIELDS, as_radiance, as_shadow, shadow_soa
 from vastray.schedule.soa import DomainQueues, GrowingArray, SoA, index_of
@@ -124,7 +123,6 @@ class SpeculativeSchedule:
             "radiance_tests": 0, "shadow_tests": 0, "speculative_rays": 0,
             "wasted_rays": 0, "filtered_rays": 0, "rounds": 0, "windows": 0,
             "rays_in_flight_peak": 0, "shade_s": 0.0, "skipped_domains": 0,
-            "shadow_deferred": 0,
         }
 
     # -- the driver's interface ---------------------------------------------------------------
@@ -205,29 +203,6 @@ class SpeculativeSchedule:
                 return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
-    def waiting_segments(self, domain: int) -> RaySegments | None:
-        """The rays ``process(domain, ...)`` will trace, as segments (what a sparse load is
-        built for): radiance rays to their closest hit so far, shadow rays to their end. The
-        rays ``next_domain`` staged for ``domain``, or (a schedule traced ahead, which
-        chooses nothing) every ray queued for it, of which its filter keeps some. The shadow
-        rays its hits cast may leave those cells (``process`` defers them)."""
-        if self._staged is not None and self._staged[0] == domain:
-            radiance, shadow = [self._staged[1]], [self._staged[2]]
-        elif self._staged is None:
-            radiance = self.radiance.peek(domain)
-            shadow = self.shadow.peek(domain)
-        else:
-            return None
-        chunks = []
-        for rays in radiance:
-            if rays is not None:
-                level = rays["depth"].astype(np.int64) - self.window_start
-                chunks.append((rays["origin"], rays["direction"],
-                               self.hbuf_t[rays["path"], level]))
-        chunks.extend((rays["origin"], rays["direction"], rays["t_max"])
-                      for rays in shadow if rays is not None)
-        return self.geometry.segments(chunks)
-
     def demand(self) -> np.ndarray:
         """(D,) float64, how soon each domain is needed (higher: sooner), what eviction by
         demand keeps: the domains left in this round's schedule by their place in it (the
@@ -256,28 +231,13 @@ class SpeculativeSchedule:
         parts = [] if spawned is None else [spawned[0]]
         if tested is not None and len(tested):
             parts.append(as_shadow(shadow.take(tested)))
-        untested = None
-        if spawned is not None and getattr(bvh, "sparse", False):
-            # a sparse load answers only in the cells this activation's rays cross: the
-            # shadow rays just cast that leave them wait in this domain's queue
-            cast = spawned[0]
-            untested = ~bvh.covers(cast.origin, cast.direction, cast.t_max,
-                                   self.geometry.segments([(cast.origin, cast.direction,
-                                                            cast.t_max)]).pad)
-            self.counters["shadow_deferred"] += int(untested.sum())
-            if untested.any():
-                parts[0] = cast.take(np.nonzero(~untested)[0])
         if parts:
             blocked = bvh.occluded(*(np.concatenate([getattr(p, f) for p in parts])
                                      for f in ("origin", "direction", "t_max")))
             self.counters["shadow_tests"] += len(blocked)
-            n_new = len(parts[0]) if spawned is not None else 0
+            n_new = 0 if spawned is None else len(spawned[0])
             if spawned is not None:
-                tested_new = blocked[:n_new]
-                if untested is not None and untested.any():
-                    tested_new = np.zeros(len(untested), bool)
-                    tested_new[~untested] = blocked[:n_new]
-                self._spawn_shadow(domain, *spawned, tested_new, untested)
+                self._spawn_shadow(domain, *spawned, blocked[:n_new])
             if tested is not None and len(tested):
                 self.shadow_blocked[shadow["sid"][tested[blocked[n_new:]]]] = True
         if shadow is not None:
@@ -515,11 +475,9 @@ class SpeculativeSchedule:
 
     # -- shadow rays --------------------------------------------------------------------------
     def _spawn_shadow(self, domain: int, rays: ShadowRays, hist_t, hist_d, parent_path,
-                      blocked: np.ndarray, untested: np.ndarray | None = None) -> None:
-        """processSecondary: ``rays`` (k,) were tested against this domain (``blocked`` (k,)),
-        but ``untested`` ((k,) bool, None: none), which a sparse load could not answer for;
-        queue the others into the other domains they cross (the untested into this one
-        too), commit those that cross none."""
+                      blocked: np.ndarray) -> None:
+        """processSecondary: ``rays`` (k,) were tested against this domain (``blocked`` (k,));
+        queue the others into the other domains they cross, commit those that cross none."""
         self.counters["speculative_rays"] += len(rays)
         rows = np.nonzero(~blocked)[0]
         self.counters["filtered_rays"] += len(rays) - len(rows)
@@ -531,8 +489,6 @@ class SpeculativeSchedule:
         soa = shadow_soa(rays, hist_t=hist_t[parent], hist_d=hist_d[parent], sid=sid)
         ray, dom, entry, rank = self.geometry.crossings(rays.origin, rays.direction, rays.t_max)
         other = dom != domain
-        if untested is not None:
-            other |= untested[rows][ray]
         ray, dom, entry, rank = ray[other], dom[other], entry[other], rank[other]
         visits = np.bincount(ray, minlength=len(rays)).astype(np.int32)
         self._shadow_pending.append(visits)

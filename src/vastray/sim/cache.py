@@ -195,7 +195,7 @@ class VirtualPreloader(CacheFront):
         with self.cluster.meter.simulators_own():
             cache._insert(domain, cache.load(domain))
 
-    async def get(self, domain: int, segments=None) -> DomainBVH:
+    async def get(self, domain: int) -> DomainBVH:
         """The domain, after its load's cost if it is not resident (joining a preload in
         flight; a resident domain or a joined preload counts as a hit, as in the real
         cache)."""
