@@ -92,6 +92,12 @@ def quota_lines(counters: dict, seconds: dict) -> list[str]:
             "(docker compose: NODE_CPUS)"]
 
 
+def closing_lines(counters: dict, seconds: dict) -> list[str]:
+    """What the CLI and ``vastray.render`` say after a render's summary: its recoveries
+    (never silent) and what a CPU quota held the nodes back (``quota_lines``)."""
+    return recovery_lines(counters) + quota_lines(counters, seconds)
+
+
 def portal_shares(per_node: list[dict]) -> dict:
     """A simplified-model run's shares from its nodes' counters (of a frame, or summed over
     frames); empty for other runs.

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.results import quota_lines, recovery_lines
+from vastray.actors.results import closing_lines
 from vastray.planning import finish_render, plan_render
 from vastray.render.camera import Camera
 from vastray.render.imageio import atomic_path, check_image_path, to_srgb8, write_image
@@ -289,9 +289,7 @@ def _run(request: RenderRequest, store: Store | None, call: str) -> RenderOutput
     image, _, report = finish_render(plan, result, "vastray.render", reference)
     report["command"] = call
     if not request.quiet:
-        for line in recovery_lines(result.counters):  # a recovery is never silent
-            print(line, file=sys.stderr)
-        for line in quota_lines(result.counters, result.seconds):
+        for line in closing_lines(result.counters, result.seconds):
             print(line, file=sys.stderr)
     world_camera = plan.config.resolve_camera(*plan.store.world_bounds, request.width,
                                               request.height)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vastray.actors.results import quota_lines, recovery_lines
+from vastray.actors.results import closing_lines
 from vastray.animation import check_frame_outputs, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
 from vastray.checkpoint import default_path as default_checkpoint
@@ -91,9 +91,7 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
     checkpoints.finished()
     if not request.quiet:
         print(summary, file=sys.stderr)
-        for line in recovery_lines(result.counters):  # a recovery is never silent
-            print(line, file=sys.stderr)
-        for line in quota_lines(result.counters, result.seconds):
+        for line in closing_lines(result.counters, result.seconds):
             print(line, file=sys.stderr)
     return 0
 
