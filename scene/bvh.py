@@ -61,8 +61,8 @@ class DomainBVH:
         faster to build, the same hits); None: Embree's default (MEDIUM). The embreex
         fallback ignores it.
     mesh_quality : the mesh's ``RTCBuildQuality`` (``RTC_BUILD_QUALITY_LOW``: Embree's Morton
-        builder, ``scene.bvh_choice``'s fast BVH); None: Embree's default. The embreex
-        fallback ignores it.
+        builder over Embree's compact triangle layout, ``scene.bvh_choice``'s fast BVH); None:
+        Embree's default. The embreex fallback ignores it.
 
     The Embree scene is released by ``close()``, or when the last reference goes (a cache's
     eviction drops its reference; a query in flight on another thread keeps the domain alive
@@ -80,7 +80,7 @@ class DomainBVH:
         self.compiled = binding() is not None
         if self.compiled:
             self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality,
-                                mesh_quality=mesh_quality)
+                                mesh_quality=mesh_quality, compact=self._fast)
         else:
             self._scene = rtcore_scene.EmbreeScene(embree_device())
             mesh_construction.TriangleMesh(

@@ -1,24 +1,31 @@
 """Which BVH Embree builds for a render's domains: the one that traces fastest, or the one
-that builds fastest.
+that builds fastest and holds least.
 
 Embree's default build (SAH, ``RTC_BUILD_QUALITY_MEDIUM``) gives the BVH that traces fastest;
-its Morton builder (the mesh's build quality ``LOW``) builds the same domain about 3x faster
-and traces 5-30 % slower (28 % on random rays, about 5 % in ``bench/ooc.py --large``'s
-renders). Which wins depends on how many rays each loaded triangle serves:
-a large store is rendered out of core, where a domain is loaded again after every eviction
-(2.7 loads a domain at a 25 % cache in ``bench/ooc.py --large``) and each repeated load
-serves a few dozen rays, so its builds, not its traces, are the render's time.
+the fast BVH is Embree's Morton builder (the mesh's build quality ``LOW``) over Embree's
+compact triangle layout (``RTC_SCENE_FLAG_COMPACT``: leaves index the vertex buffer instead
+of holding copies of the vertices). The builder builds the same domain about 3x faster and
+traces 5-30 % slower (28 % on random rays, about 5 % in ``bench/ooc.py --large``'s renders);
+the layout holds 50-53 B a triangle beyond the store's arrays where the copied vertices held
+90-92 (``scene.footprint``), so a memory budget caches 1.6x the domains, and each build
+touches less fresh memory (on ``--large``'s store a one-pass render at a 25 % cache took
+16 % less time with it and the all-cached render 44 % less), at about 20-30 % slower queries.
+Which wins depends on how many rays each loaded triangle serves: a large store is rendered
+out of core, where a domain is loaded again after every eviction (2.7 loads a domain at a
+25 % cache in ``bench/ooc.py --large``) and each repeated load serves a few dozen rays, so its
+builds, not its traces, are the render's time.
 
-The two BVHs do not find the same hit for every ray: where a ray passes within float
-rounding of a vertex, Embree may report another of the triangles around it (6 rays in 50,000
-aimed at vertices, ``tests/test_build_quality.py``). So the choice is made from the store
-alone, never from the cache, the node count or the scheduler: a render's image is the same
-bit for bit whatever the cache holds and however many nodes share the work, and the
-single-process reference renders with the same BVH.
+The BVHs do not find the same hit for every ray: where a ray passes within float rounding
+of a vertex, Embree may report another of the triangles around it (the builders differ for 6
+rays in 50,000 aimed at vertices, ``tests/test_build_quality.py``; the layouts, whose
+triangle tests round differently, for 0-2). So the choice is made from the store alone,
+never from the cache, the node count or the scheduler: a render's image is the same bit for
+bit whatever the cache holds and however many nodes share the work, and the single-process
+reference renders with the same BVH.
 
 - ``auto`` (default): ``fast`` for stores of at least :data:`FAST_TRIANGLES` triangles (the
   data vastray exists for: larger than memory, loaded more than once), ``quality`` below.
-- ``fast``: Embree's Morton builder for every domain.
+- ``fast``: Embree's Morton builder and compact layout for every domain.
 - ``quality``: Embree's default build (a cache smaller than the store builds the two-level
   form of the same BVH, ``scene.cache``: the same hits, 10-25 % faster to build).
 """

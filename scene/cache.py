@@ -70,7 +70,7 @@ class DomainCache:
     load_bandwidth : bytes per second, to emulate network storage (the temporal-coherence
         paper's cluster): after the real read of a domain, the load waits until its size
         divided by this has passed (a sleep, costing no CPU). None: as fast as the disk.
-    fast_builds : build Embree's fast (Morton) BVH for every domain (``scene.bvh_choice``: the
+    fast_builds : build Embree's fast (Morton, compact) BVH for every domain (``scene.bvh_choice``: the
         render's choice, made from the store alone, so that every cache of a render builds
         the same BVH); False: Embree's default build.
     """

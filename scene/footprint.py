@@ -18,9 +18,13 @@ domains one after another:
 - 40 domains of about 1,200 triangles (``rm`` 128^3 in 16x8x8): 130 B per triangle in all,
   i.e. about 70 KiB per scene beyond 70 B per triangle.
 
-Embree's Morton builder (``--bvh fast``, ``scene.bvh_choice``) holds more: 90 B per triangle
-beyond the arrays on a 403,202-triangle height field, 96 on two domains of 0.5 and 0.7 M
-triangles of the ``rm`` 1600^3 store, its build's peak 104 (same machine and day).
+The fast BVH (``--bvh fast``, ``scene.bvh_choice``: Embree's Morton builder over Embree's
+compact triangle layout) holds less: 51 B per triangle beyond the arrays on a 403,202-triangle
+height field, 50-52 on four domains of 0.2-0.7 M triangles of the ``rm`` 1600^3 store and
+50-53 on three of 0.6-1.1 M of the 100 M-triangle store, its build's peak 8 B a triangle
+above that (2026-12-05). The Morton builder without the compact layout held 90-92 B a
+triangle (peak 98-100): the layout's leaves index the vertex buffer instead of copying the
+vertices.
 
 The figures below sit above every one of those. Without the compiled binding (the embreex
 fallback, which copies the mesh into Embree's buffers) the older, larger per-triangle figure
@@ -32,8 +36,8 @@ from __future__ import annotations
 #: Bytes per triangle a built domain holds beyond its arrays (compiled binding).
 BVH_BYTES_PER_TRIANGLE = 76
 
-#: The same for Embree's Morton builder (the fast BVH).
-FAST_BVH_BYTES_PER_TRIANGLE = 108
+#: The same for the fast BVH (Embree's Morton builder, compact layout).
+FAST_BVH_BYTES_PER_TRIANGLE = 60
 
 #: The same for the embreex fallback: Embree's copy of the mesh (36 + 12 B) and the BVH (64 B).
 FALLBACK_BVH_BYTES_PER_TRIANGLE = 36 + 12 + 64

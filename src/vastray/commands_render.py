@@ -94,9 +94,10 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                    help="random seed (default: 0)")
     p.add_argument("--bvh", **argument("bvh"),
                    help="the BVH Embree builds for each domain: 'quality' (Embree's default "
-                        "build: the fastest to trace), 'fast' (Embree's Morton builder: about "
-                        "3x faster to build, 5-30%% slower to trace; for data loaded more than "
-                        "once, out of core) or 'auto' (default: fast for stores of "
+                        "build: the fastest to trace), 'fast' (Embree's Morton builder over its "
+                        "compact layout: about 3x faster to build, half the memory, 25-50%% "
+                        "slower to trace; for data loaded more than once, out of core) or "
+                        "'auto' (default: fast for stores of "
                         f"{FAST_TRIANGLES // 1_000_000} M triangles or more). The two find "
                         "another hit for a few rays passing within rounding of a vertex, so "
                         "the choice is the store's, never the cache's: an image is the same "
