@@ -8,8 +8,10 @@ of holding copies of the vertices). The builder builds the same domain about 3x 
 traces 5-30 % slower (28 % on random rays, about 5 % in ``bench/ooc.py --large``'s renders);
 the layout holds 50-53 B a triangle beyond the store's arrays where the copied vertices held
 90-92 (``scene.footprint``), so a memory budget caches 1.6x the domains, and each build
-touches less fresh memory (on ``--large``'s store a one-pass render at a 25 % cache took
-16 % less time with it and the all-cached render 44 % less), at about 20-30 % slower queries.
+touches less fresh memory, at 20-30 % slower queries: on ``--large``'s store, CLI renders in
+fresh processes took 16 % less time at a 25 % cache and 44 % less all cached (no gain showed
+in ``bench/ooc.py``'s long-lived process), while the 100 M store's 1 M-path spec-ooc render,
+whose queries weigh more, took about as long in its budget (bench/README, session 62).
 Which wins depends on how many rays each loaded triangle serves: a large store is rendered
 out of core, where a domain is loaded again after every eviction (2.7 loads a domain at a
 25 % cache in ``bench/ooc.py --large``) and each repeated load serves a few dozen rays, so its

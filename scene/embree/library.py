@@ -60,7 +60,8 @@ RTC_BUILD_QUALITY_LOW = 0
 RTC_BUILD_QUALITY_MEDIUM = 1
 RTC_SCENE_FLAG_NONE = 0
 #: Embree's compact layout: leaves index the mesh's own vertex buffer instead of holding copies
-#: of the vertices (Triangle4i rather than Triangle4v), about a third of the memory.
+#: of the vertices (Triangle4i rather than Triangle4v): about 55 % of the scene's memory, and
+#: queries read that buffer, so it must outlive every query (``scenes.Scene``'s lease).
 RTC_SCENE_FLAG_COMPACT = 2
 RTC_SCENE_FLAG_ROBUST = 4
 #: Required on every scene a query with an argument filter traverses, instanced ones included

@@ -95,8 +95,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bvh", **argument("bvh"),
                    help="the BVH Embree builds for each domain: 'quality' (Embree's default "
                         "build: the fastest to trace), 'fast' (Embree's Morton builder over its "
-                        "compact layout: about 3x faster to build, half the memory, 25-50%% "
-                        "slower to trace; for data loaded more than once, out of core) or "
+                        "compact layout: about 3x faster to build, 55%% of the memory, slower "
+                        "to trace (the builder 5-30%%, the layout 20-30%% more); for data "
+                        "loaded more than once, out of core) or "
                         "'auto' (default: fast for stores of "
                         f"{FAST_TRIANGLES // 1_000_000} M triangles or more). The two find "
                         "another hit for a few rays passing within rounding of a vertex, so "
