@@ -302,8 +302,9 @@ class DomainCache:
         start = time.perf_counter()
         # read, not mapped: a domain file truncated or rewritten under a running render
         # changes nothing it has loaded (mapped, it would be a SIGBUS or a changed picture)
-        arrays = self.store.load_domain(domain_id, drop_cache=self.drop_page_cache)
-        size = self.store.domains[domain_id].nbytes
+        arrays = self.store.load_domain(domain_id, drop_cache=self.drop_page_cache,
+                                       attributes=self.keep)
+        size = self.store.domains[domain_id].read_bytes(self.keep)
         throttle = 0.0
         if self.load_bandwidth is not None:  # emulated network storage: wait out the rest
             throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))

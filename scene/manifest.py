@@ -100,6 +100,17 @@ class DomainInfo:
         """How messages name it: ``"domain N"``."""
         return f"domain {self.id}"
 
+    def read_bytes(self, attributes=None) -> int:
+        """Bytes a load reading the vertices, indices and ``attributes`` (None: every file)
+        reads: ``nbytes`` less the arrays of the attributes left unread."""
+        if attributes is None:
+            return self.nbytes
+        unread = 0
+        for kind in set(self.files) & set(ATTRIBUTES) - set(attributes):
+            shape, dtype = expected_array(kind, self.n_triangles, self.n_vertices)
+            unread += int(np.prod(shape)) * dtype.itemsize
+        return max(0, self.nbytes - unread)
+
 
 @dataclass(frozen=True)
 class SimplifiedInfo(DomainInfo):

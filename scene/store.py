@@ -41,6 +41,7 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from mmap import ACCESS_READ
 from mmap import mmap as MemoryMap
@@ -248,13 +249,17 @@ class Store:
         may have changed since the store was opened)."""
         return domain_file(self.root, info.files[kind], kind, info.label)
 
-    def load_domain(self, domain_id: int, mmap: bool = False,
-                    drop_cache: bool = False) -> DomainArrays:
+    def load_domain(self, domain_id: int, mmap: bool = False, drop_cache: bool = False,
+                    attributes: Iterable[str] | None = None) -> DomainArrays:
         """Read one domain's arrays and check them against the manifest.
 
         Parameters
         ----------
         domain_id : index into ``self.domains``.
+        attributes : the optional arrays (``"objects"``, ``"scalars"``, ``"colors"``) to read
+            besides the vertices and indices; None reads every file the domain has. A render
+            reads only those it shades with: an ``rm`` store's scalars are a tenth of its
+            bytes, which a render not coloured by them never needs.
         mmap : memory-map the files instead of reading them into memory (no copy, but the
             arrays change with the files: one truncated while they are in use kills the
             process with SIGBUS; the renderer never maps).
@@ -268,7 +273,7 @@ class Store:
             an index beyond the domain's vertices, an object beyond the manifest's objects), or
             whose checksum is not the manifest's (the file changed since it was written).
         """
-        return self._load(self.domains[domain_id], mmap, drop_cache)
+        return self._load(self.domains[domain_id], mmap, drop_cache, attributes)
 
     def load_simplified(self, mmap: bool = False, drop_cache: bool = False) -> DomainArrays:
         """Read the simplified whole-scene model and check it against its manifest entry.
@@ -288,10 +293,14 @@ class Store:
                                                  "with `vastray simplify STORE --ratio R`")
         return self._load(self.simplified, mmap, drop_cache)
 
-    def _load(self, info: DomainInfo, mmap: bool, drop_cache: bool) -> DomainArrays:
+    def _load(self, info: DomainInfo, mmap: bool, drop_cache: bool,
+              attributes: Iterable[str] | None = None) -> DomainArrays:
         arrays = dict.fromkeys(ARRAYS)
         changed = None
+        wanted = None if attributes is None else {"vertices", "indices", *attributes}
         for kind in info.files:
+            if wanted is not None and kind not in wanted:
+                continue
             path = self.domain_path(info, kind)
             arrays[kind], why = _read_array(path, mmap, drop_cache,
                                             load_check(info.crc32, info.sha256, kind))

@@ -52,6 +52,28 @@ def test_round_trip(two_domain_store, mmap):
     assert store.scalar_range[0] == pytest.approx(lo_s)
 
 
+def test_a_load_reads_only_the_attributes_the_render_shades_with(two_domain_store):
+    # a store with per-vertex colours and scalars, rendered (colours win) without materials:
+    # the scalars and object ids are never read, so their bytes are neither read nor counted
+    from vastray.scene.cache import DomainCache
+
+    path, doms = two_domain_store
+    store = Store(path)
+    info = store.domains[1]
+    (path / info.files["scalars"]).unlink()  # gone: a load that opened it would fail
+    (path / info.files["objects"]).write_bytes(b"not an array")
+    back = store.load_domain(1, attributes={"colors"})
+    np.testing.assert_array_equal(back.colors, doms[1].colors)
+    assert back.scalars is None and back.objects is None
+    with pytest.raises(InputError, match=r"(objects|scalars)\.npy"):
+        store.load_domain(1)  # every file: a damaged one is named
+    cache = DomainCache(store, 1, keep=frozenset({"colors"}))
+    cache.load(1).close()
+    read = info.read_bytes({"colors"})
+    assert cache.stats.bytes_loaded == read == info.nbytes - 50 * 4 - 70 * 2
+    assert info.read_bytes() == info.nbytes
+
+
 def test_failed_write_leaves_nothing(tmp_path):
     path = tmp_path / "broken.store"
     with pytest.raises(RuntimeError):

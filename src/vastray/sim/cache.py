@@ -19,10 +19,12 @@ from vastray.scene.cache import DomainCache
 from vastray.scene.store import Store
 
 
-def domain_sizes(store: Store) -> tuple[np.ndarray, np.ndarray]:
+def domain_sizes(store: Store, keep: frozenset[str] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """(D,) int64 bytes and (D,) int64 triangles of each of ``store``'s domains (what a load
-    costs), read from its manifest: nothing is loaded."""
-    return (np.array([d.nbytes for d in store.domains], np.int64),
+    costs), read from its manifest: nothing is loaded. ``keep``: the attributes a load reads
+    besides the triangles (``DomainInfo.read_bytes``; None: every file)."""
+    return (np.array([d.read_bytes(keep) for d in store.domains], np.int64),
             store.domain_triangles())
 
 
@@ -41,7 +43,7 @@ class Domains:
         self.store = store
         self._real = DomainCache(store, max(len(store.domains), 1), keep)
         #: (D,) bytes and triangles of each domain: what a load costs.
-        self.nbytes, self.triangles = domain_sizes(store)
+        self.nbytes, self.triangles = domain_sizes(store, keep)
         #: (domain, scene quality, mesh quality) -> (read, build) CPU seconds of one load here
         #: and the cores its build kept busy (its CPU over its wall time)
         self._load_cpu: dict[tuple, tuple[float, float, float]] = {}
@@ -83,10 +85,11 @@ class Domains:
             return timed
         real = self._real
         if not self._load_cpu:
-            DomainBVH(domain, self.store.load_domain(domain), real.keep, None, scene_quality,
+            DomainBVH(domain, self.store.load_domain(domain, attributes=real.keep), real.keep,
+                      None, scene_quality,
                       mesh_quality).close()
         start = time.process_time()
-        arrays = self.store.load_domain(domain)
+        arrays = self.store.load_domain(domain, attributes=real.keep)
         read, read_wall = time.process_time(), time.perf_counter()
         bvh = DomainBVH(domain, arrays, real.keep, None, scene_quality, mesh_quality)
         build, build_wall = time.process_time() - read, time.perf_counter() - read_wall

@@ -318,14 +318,14 @@ def _timed_load(cache: DomainCache, domain: int) -> LoadSample:
     """
     store = cache.store
     start = time.perf_counter()
-    arrays = store.load_domain(domain, drop_cache=cache.drop_page_cache)
+    arrays = store.load_domain(domain, drop_cache=cache.drop_page_cache, attributes=cache.keep)
     read_s = time.perf_counter() - start
     cpu = time.process_time()
     bvh = DomainBVH(domain, arrays, cache.keep, None, cache.build_quality, cache.mesh_quality)
     build_s = time.process_time() - cpu
     bvh.close()
     info = store.domains[domain]
-    return LoadSample(info.nbytes, info.n_triangles, read_s, build_s)
+    return LoadSample(info.read_bytes(cache.keep), info.n_triangles, read_s, build_s)
 
 
 def time_merged_builds(store: Store, keep: frozenset[str], rounds: int = 3
