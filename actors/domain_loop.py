@@ -31,6 +31,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Protocol
 
+import numpy as np
+
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.embree.launch import cpu_time
 
@@ -195,8 +197,11 @@ class DomainLoop:
         if self.preloader.enabled:
             cpu = cpu_time()
             guess = order.likely_next(domain)
+            next_load = getattr(order, "next_load", None)
+            ahead = None if next_load is None else next_load(domain, guess)
             await self.decided(cpu_time() - cpu)
             self.preloader.preload(guess)
+            self.preloader.read_ahead(ahead)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
         done = clock()
@@ -315,6 +320,23 @@ class ScheduleOrder:
         if self.by_demand and guess is not None:
             self.preloader.prioritise(self.policy.demand(), protect=(current, guess))
         return guess
+
+    def next_load(self, current: int, guess: int | None) -> int | None:
+        """A guess at the next domain that will need a load besides ``guess`` (the preload's):
+        its files are read ahead (``DomainPreloader.read_ahead``). The policy's own
+        ``next_load`` where it has one (spec-ooc: the next in its round's schedule), else
+        the domain of highest ``demand()`` not resident (the image schedule's fullest queue,
+        lowest id on ties, which it loads next once no resident domain has rays)."""
+        exclude = set(self.preloader.resident()) | {current}
+        if guess is not None:
+            exclude.add(guess)
+        own = getattr(self.policy, "next_load", None)
+        if own is not None:
+            return own(exclude)
+        demand = np.asarray(self.policy.demand(), np.float64).copy()
+        demand[list(exclude)] = 0.0
+        best = int(np.argmax(demand))
+        return best if demand[best] > 0 else None
 
     def trace(self, domain: int, bvh) -> Queries:
         return traced_queries(self.policy, domain, bvh)

@@ -207,22 +207,50 @@ class DomainQueues:
         """Copy the runs out of blocks less than two thirds queued once the popped rows they
         keep alive exceed ``WASTE_FLOOR`` and half the queued bytes: afterwards every block
         held is at least two thirds queued (the queues hold at most 1.5x their rays). Each
-        byte copied frees at least half a byte, so the copies cost at most twice the pushes."""
+        byte copied frees at least half a byte, so the copies cost at most twice the pushes.
+
+        A domain's consecutive runs in such blocks are copied into one new block (their
+        order kept: the rays of a queue pop in the order they were pushed), not run by run:
+        a speculative schedule's queues hold tens of thousands of runs of a few rays, and
+        copying them one at a time, a gather per field and run, took 0.9 s of a 35 s render
+        for 142 MB (the README's 100 M-triangle store at 512x512)."""
         waste = self._held - self._live
         if waste <= max(WASTE_FLOOR, self._live // 2):
             return
         sparse = {key for key, (block, rows, _) in self._blocks.items()
                   if 3 * rows < 2 * len(block)}
-        for chunks in self._chunks.values():
-            for i, (block, start, stop) in enumerate(chunks):
-                if id(block) in sparse:
-                    copy = SoA._trusted({k: a[start:stop].copy() for k, a in block.fields.items()})
-                    self._hold(copy)
-                    chunks[i] = (copy, 0, stop - start)
+        for domain, chunks in self._chunks.items():
+            if not any(id(block) in sparse for block, _, _ in chunks):
+                continue
+            merged: list[tuple[SoA, int, int]] = []
+            group: list[tuple[SoA, int, int]] = []
+            for chunk in chunks:
+                if id(chunk[0]) in sparse:
+                    group.append(chunk)
+                    continue
+                if group:
+                    merged.append(self._copied(group))
+                    group = []
+                merged.append(chunk)
+            if group:
+                merged.append(self._copied(group))
+            self._chunks[domain] = merged
         for key in sparse:
             block, rows, row_bytes = self._blocks.pop(key)
             self._held -= len(block) * row_bytes
             self._live -= rows * row_bytes
+
+    def _copied(self, runs: list[tuple[SoA, int, int]]) -> tuple[SoA, int, int]:
+        """``runs`` (block, start, stop) copied, in order, into one new block held here."""
+        if len(runs) == 1:
+            block, start, stop = runs[0]
+            copy = SoA._trusted({k: a[start:stop].copy() for k, a in block.fields.items()})
+        else:
+            copy = SoA._trusted({k: np.concatenate([b.fields[k][start:stop]
+                                                    for b, start, stop in runs])
+                                 for k in runs[0][0].fields})
+        self._hold(copy)
+        return copy, 0, len(copy)
 
     def counts(self) -> np.ndarray:
         """(D,) rays waiting per domain."""

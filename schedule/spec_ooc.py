@@ -203,6 +203,13 @@ class SpeculativeSchedule:
                 return None
         return next((d for d in self._schedule if d != current and self._would_trace(d)), None)
 
+    def next_load(self, exclude: set[int]) -> int | None:
+        """A guess at the next domain to load, for reading its files ahead: the first in this
+        round's schedule outside ``exclude`` (the resident domains, the current one and the
+        preload's guess) with a ray that would survive the filter now."""
+        return next((d for d in self._schedule if d not in exclude and self._would_trace(d)),
+                    None)
+
     def demand(self) -> np.ndarray:
         """(D,) float64, how soon each domain is needed (higher: sooner), what eviction by
         demand keeps: the domains left in this round's schedule by their place in it (the

@@ -49,7 +49,7 @@ def quarter_limit(store: Store) -> int:
     fixed part (film, outputs, every path of the frame in flight), the margin a limit keeps
     back, and the largest quarter."""
     fixed = (estimate_memory(WIDTH, HEIGHT, WIDTH * HEIGHT * SPP, 1).total + LIMIT_BASE_MARGIN
-             + domain_build_bytes(store.domains))
+             + domain_build_bytes(store.domains, reads_ahead=True))
     largest = sorted(domain_footprints(store.domains), reverse=True)
     return fixed + sum(largest[:len(largest) // 4])
 

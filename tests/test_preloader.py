@@ -207,3 +207,62 @@ def test_a_load_holds_up_no_other_threads_hit_and_a_domain_loads_once(store):
     assert ids[1] in cache
     assert cache.load_count(ids[1]) == 1  # the second thread waited for the first's load
     cache.close()
+
+
+def test_a_read_ahead_takes_no_slot_and_its_load_only_builds(store):
+    ids = nonempty(store)[:3]
+    cache = DomainCache(store, 1, load_bandwidth=store.domains[ids[1]].nbytes / 0.2)
+    try:
+        first = cache.get(ids[0])
+        cache.read_ahead(ids[1])  # the cache is full: a preload would evict ids[0]
+        assert cache.resident() == [ids[0]] and cache.stats.reads_ahead == 1
+        time.sleep(0.4)  # the render traces meanwhile; the read (>= 0.2 s) runs on
+        start = time.perf_counter()
+        loaded = cache.get(ids[1])
+        assert time.perf_counter() - start < 0.15  # the read was not waited for again
+        assert cache.stats.reads_ahead_used == 1 and cache.stats.loads == 2
+        assert cache.stats.read_seconds >= 0.2  # the read ahead counted as its load's read
+        # the same BVH a load without reading ahead builds: the same hits
+        fresh = DomainCache(store, 1).load(ids[1])
+        origin = np.tile(store.domains[ids[1]].lo - 1.0, (64, 1)).astype(np.float32)
+        target = np.random.default_rng(0).uniform(store.domains[ids[1]].lo,
+                                                  store.domains[ids[1]].hi, (64, 3))
+        direction = (target - origin).astype(np.float32)
+        far = np.full(64, np.inf, np.float32)
+        a, b = loaded.intersect(origin, direction, far), fresh.intersect(origin, direction, far)
+        assert (a["primID"] >= 0).any()
+        np.testing.assert_array_equal(a["primID"], b["primID"])
+        np.testing.assert_array_equal(a["tfar"], b["tfar"])
+        del first
+    finally:
+        cache.close()
+
+
+def test_a_replaced_read_ahead_is_not_used_and_a_bad_file_fails_its_load(store, tmp_path):
+    import shutil
+
+    copy = shutil.copytree(store.path, tmp_path / "copy.store")
+    from vastray.scene.store import Store
+
+    damaged = Store(copy)
+    ids = nonempty(damaged)[:3]
+    info = damaged.domains[ids[2]]
+    (copy / info.files["indices"]).write_bytes(b"garbage")
+    cache = DomainCache(damaged, 1)
+    try:
+        cache.get(ids[0])
+        cache.read_ahead(ids[1])
+        cache.read_ahead(ids[2])  # replaces ids[1]'s read
+        cache.get(ids[1])
+        assert cache.stats.reads_ahead == 2 and cache.stats.reads_ahead_used == 0
+        with pytest.raises(Exception, match="indices"):
+            cache.get(ids[2])  # the read ahead's error, raised by the load that takes it
+    finally:
+        cache.close()
+
+
+def test_a_cache_holding_every_domain_reads_nothing_ahead(store):
+    cache = DomainCache(store, len(store.domains))
+    cache.read_ahead(nonempty(store)[0])
+    assert cache.stats.reads_ahead == 0
+    cache.close()

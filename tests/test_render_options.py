@@ -245,7 +245,7 @@ def check_memory_limit(r: Renders):
     # image, 64 paths in flight and one light: the film and paths need `fixed`; the limit
     # leaves room for the two largest domains exactly (and for building them)
     fixed = (estimate_memory(16, 12, 64, 1).total + LIMIT_BASE_MARGIN
-             + domain_build_bytes(r.store.domains))
+             + domain_build_bytes(r.store.domains, reads_ahead=True))
     largest = sorted(domain_footprints(r.store.domains), reverse=True)
     args = ["--scheduler", "image", "--max-samples-in-flight", "64", "--memory-limit"]
     run = r(*args, str(fixed + largest[0] + largest[1] + 1))

@@ -466,6 +466,25 @@ def test_a_load_charges_its_cost_and_a_resident_domain_costs_nothing(domains):
     assert preloader.load_count(3) == 1 and preloader.resident() == {3}
 
 
+def test_a_read_ahead_charges_the_read_while_the_node_works_and_the_load_only_builds(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 1, LOADS)
+        await preloader.get(2)
+        preloader.read_ahead(3)  # the cache is full: no slot taken, nothing evicted
+        assert preloader.resident() == {2}
+        await asyncio.sleep(1.0)  # the node idles long enough for the read
+        start = cluster.now()
+        await preloader.get(3)
+        return preloader, cluster.now() - start
+
+    preloader, load_s = run_virtual(main())[0]
+    build = LOADS.build_s(int(domains.triangles[3]))
+    read = LOADS.read_s(int(domains.nbytes[3]))
+    assert read > 0 and load_s == pytest.approx(build, rel=1e-9)
+    stats = preloader.stats()
+    assert stats["reads_ahead"] == stats["reads_ahead_used"] == 1 and stats["loads"] == 2
+
+
 def test_a_full_cache_evicts_the_least_recently_used_domain(domains):
     async def main():
         cluster, preloader = _preloader(domains, 2, LOADS, preload=False)

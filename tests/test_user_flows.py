@@ -380,7 +380,7 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     # renderer then holds the same 1536 paths at once as spec-ooc (with two it would hold half
     # of them, which leaves room for every domain of this tiny store)
     limit = (estimate_memory(32, 24, 32 * 24 * 2, 1 + 2, reference=True).total
-             + LIMIT_BASE_MARGIN + domain_build_bytes(store.domains) + two + 1)
+             + LIMIT_BASE_MARGIN + domain_build_bytes(store.domains, reads_ahead=True) + two + 1)
     ref = vastray("render", store.path, "-o", "ref.exr", *SMALL, cwd=tmp_path)
     assert ref.returncode == 0
     out = vastray("render", store.path, "-o", "x.exr", "--report", "x.json", *SMALL,

@@ -342,10 +342,15 @@ def domain_footprints(domains, fast: bool = False) -> list[int]:
     return [resident_bytes(d.n_triangles, d.nbytes, compiled, fast) for d in domains]
 
 
-def domain_build_bytes(domains) -> int:
+def domain_build_bytes(domains, reads_ahead: bool = False) -> int:
     """Bytes a process's domain builds add at their peak (``scene.footprint.build_bytes``: two
-    builds of the largest domain at once), on top of the domains it holds."""
-    return build_bytes(max((int(d.n_triangles) for d in domains), default=0))
+    builds of the largest domain at once), on top of the domains it holds; ``reads_ahead``
+    (a cache smaller than the store): also the arrays of two reads ahead
+    (``DomainCache.read_ahead``: one a started load will take, one unclaimed)."""
+    building = build_bytes(max((int(d.n_triangles) for d in domains), default=0))
+    if reads_ahead:
+        building += 2 * max((int(d.nbytes) for d in domains), default=0)
+    return building
 
 
 def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,

@@ -154,6 +154,7 @@ class VirtualPreloader(CacheFront):
         self.enabled, self.bandwidth = preload, bandwidth
         self.load_wait_s = 0.0
         self._preloading = asyncio.Lock()
+        self._reads: dict[int, asyncio.Future] = {}  # domain -> its read ahead
 
     @property
     def capacity(self) -> int:
@@ -172,31 +173,64 @@ class VirtualPreloader(CacheFront):
         overlapped the node's traces for free, and the real-code simulator charged the
         sort-first nodes of the replay's check a third less than the replay (which charges
         a load on the node's timeline)."""
-        cache, costs = self.cache, self.cluster.costs
-        nbytes, triangles = int(self.domains.nbytes[domain]), int(self.domains.triangles[domain])
-        width = 1.0
-        if costs.load_scale:  # the simulator's own load of it is its work, not the node's
-            with self.cluster.meter.simulators_own():
-                qualities = (cache.build_quality, cache.mesh_quality)
-                read_s, build_s = (costs.load_scale * s
-                                   for s in self.domains.load_cpu_s(domain, *qualities))
-                width = self.domains.build_width(domain, *qualities)
+        cache = self.cache
+        ahead = self._reads.pop(domain, None)
+        if ahead is not None:  # read ahead: its cost charged as it ran; waited for if running
+            read_s, throttle = await ahead
+            build_s, width = self._costs(domain)[1:]
+            cache.stats.reads_ahead_used += 1
         else:
-            read_s, build_s = costs.read_s(nbytes), costs.build_s(triangles)
-        cost = read_s + build_s
-        # the read on the loader thread, then the build on Embree's threads too: where the
-        # machine has a core no other node is using, the build uses it (``SharedCores``)
-        await self.cluster.compute(self.rank, read_s)
+            read_s, build_s, width = self._costs(domain)
+            # the read on the loader thread, then the build on Embree's threads too
+            await self.cluster.compute(self.rank, read_s)
+            throttle = 0.0
+        # where the machine has a core no other node is using, the build uses it
+        # (``SharedCores``)
         await self.cluster.compute(self.rank, build_s, width)
-        # as ``DomainCache.load``: the read lasts at least the bytes over the bandwidth
-        throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - read_s)
-        await asyncio.sleep(throttle)
-        cache.stats.load_seconds += cost + throttle
+        if ahead is None:
+            throttle = await self._throttle(domain, read_s)
+        cache.stats.load_seconds += read_s + build_s + throttle
         cache.stats.throttle_seconds += throttle
         # the domain, built here once for every virtual node (its first ``Domains.get`` builds
         # it): the simulator's own work, not the node's code
         with self.cluster.meter.simulators_own():
             cache._insert(domain, cache.load(domain))
+
+    def _costs(self, domain: int) -> tuple[float, float, float]:
+        """(read seconds, build seconds, cores the build keeps busy) of a load of ``domain``."""
+        cache, costs = self.cache, self.cluster.costs
+        if costs.load_scale:  # the simulator's own load of it is its work, not the node's
+            with self.cluster.meter.simulators_own():
+                qualities = (cache.build_quality, cache.mesh_quality)
+                read_s, build_s = (costs.load_scale * s
+                                   for s in self.domains.load_cpu_s(domain, *qualities))
+                return read_s, build_s, self.domains.build_width(domain, *qualities)
+        return (costs.read_s(int(self.domains.nbytes[domain])),
+                costs.build_s(int(self.domains.triangles[domain])), 1.0)
+
+    async def _throttle(self, domain: int, read_s: float) -> float:
+        """As ``DomainCache.load``: the read lasts at least the bytes over the bandwidth."""
+        nbytes = int(self.domains.nbytes[domain])
+        throttle = 0.0 if self.bandwidth is None else max(0.0, nbytes / self.bandwidth - read_s)
+        await asyncio.sleep(throttle)
+        return throttle
+
+    def read_ahead(self, domain: int | None) -> None:
+        """As ``DomainCache.read_ahead``: start ``domain``'s read (its CPU on the node's core,
+        then the bandwidth's wait) without a slot; its load then only builds."""
+        cache = self.cache
+        if (not self.enabled or domain is None or cache.capacity >= len(self.domains.nbytes)
+                or domain in cache or domain in cache._pending or domain in self._reads):
+            return
+        for other in [d for d in self._reads if d not in cache._pending]:
+            del self._reads[other]  # replaced: wasted, as the real reader's (it runs on)
+        self._reads[domain] = asyncio.ensure_future(self._read(int(domain)))
+        cache.stats.reads_ahead += 1
+
+    async def _read(self, domain: int) -> tuple[float, float]:
+        read_s = self._costs(domain)[0]
+        await self.cluster.compute(self.rank, read_s)
+        return read_s, await self._throttle(domain, read_s)
 
     async def get(self, domain: int) -> DomainBVH:
         """The domain, after its load's cost if it is not resident (joining a preload in
@@ -245,4 +279,7 @@ class VirtualPreloader(CacheFront):
         return {**self.cache.stats.as_dict(), "load_wait_s": round(self.load_wait_s, 4)}
 
     def close(self) -> None:
-        """Nothing to stop (no thread)."""
+        """Drop the reads ahead still running (no thread to stop)."""
+        for read in self._reads.values():
+            read.cancel()
+        self._reads.clear()
