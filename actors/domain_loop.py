@@ -197,13 +197,22 @@ class DomainLoop:
         if self.preloader.enabled:
             cpu = cpu_time()
             guess = order.likely_next(domain)
+            # a preload that would evict the domain about to be traced (one served because
+            # it was next to go) starts once its trace is done, which frees it; its files
+            # are read meanwhile. Otherwise the files of the load after it are read ahead.
+            after = guess is not None and self.preloader.victim() == domain
             next_load = getattr(order, "next_load", None)
-            ahead = None if next_load is None else next_load(domain, guess)
+            ahead = (guess if after else None
+                     if next_load is None or not self.preloader.reads_ahead
+                     else next_load(domain, guess))
             await self.decided(cpu_time() - cpu)
-            self.preloader.preload(guess)
+            if not after:
+                self.preloader.preload(guess)
             self.preloader.read_ahead(ahead)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
+        if self.preloader.enabled and after:
+            self.preloader.preload(guess)
         done = clock()
         activation = Activation(domain, self.preloader.load_count(domain),
                                 (chosen - start) + (guessed - loaded), loaded - chosen,
@@ -313,6 +322,8 @@ class ScheduleOrder:
             domain = self.policy.next_domain(resident)
         if self.by_demand and domain is not None:
             self.preloader.prioritise(self.policy.demand(), protect=(domain,))
+        if domain is not None and getattr(self.policy, "served_victim", None) == domain:
+            self.preloader.serve_unrefreshed(domain)
         return domain
 
     def likely_next(self, current: int) -> int | None:
@@ -386,6 +397,11 @@ class LeadOrder:
 
     def likely_next(self, current: int) -> int | None:
         return self.lead.likely_next(current)
+
+    def next_load(self, current: int, guess: int | None) -> int | None:
+        """The leader's guess at the load after ``guess`` (``ScheduleOrder.next_load``)."""
+        own = getattr(self.lead, "next_load", None)
+        return None if own is None else own(current, guess)
 
     def trace(self, domain: int, bvh) -> Queries:
         lead = Queries() if domain == self._riding else self.lead.trace(domain, bvh)

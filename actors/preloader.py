@@ -41,6 +41,11 @@ class CacheFront:
         """The domain a load now would evict (None while there is room)."""
         return self.cache.victim()
 
+    def serve_unrefreshed(self, domain: int) -> None:
+        """The next use of ``domain`` keeps its place in the eviction order
+        (``DomainCache.serve_unrefreshed``)."""
+        self.cache.serve_unrefreshed(domain)
+
     def load_count(self, domain: int) -> int:
         """Times ``domain`` has been loaded so far (preloads included)."""
         return self.cache.load_count(domain)
@@ -93,6 +98,12 @@ class DomainPreloader(CacheFront):
         only protected domains could make room)."""
         if self.enabled and domain is not None:
             self.cache.prefetch(int(domain))
+
+    @property
+    def reads_ahead(self) -> bool:
+        """Whether ``read_ahead`` reads anything: preloading on and a cache smaller than the
+        store (one holding every domain evicts nothing, and its preloads are the reads)."""
+        return self.enabled and self.cache.capacity < len(self.cache.store.domains)
 
     def read_ahead(self, domain: int | None) -> None:
         """Start reading ``domain``'s files ahead, taking no slot (``DomainCache.read_ahead``;

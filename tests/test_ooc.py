@@ -418,3 +418,41 @@ def test_the_report_times_the_schedules_decisions_apart_from_tracing(bumpy, conf
             scheduler=scheduler, cache=4), progress=False).seconds
         assert seconds["schedule"] > 0 and seconds["render"] > 0, scheduler
         assert seconds["schedule"] + seconds["render"] + seconds["load_wait"] <= seconds["total"]
+
+
+def test_spec_ooc_lets_a_served_victim_go_instead_of_serving_every_resident_domain(
+        bumpy, config, monkeypatch):
+    # serve_before_evict serves the domain a load would evict; served, it stays next to go
+    # (serve_unrefreshed) and the guessed preload evicts it once its trace is done. Refreshed
+    # (as before), the next resident domain in line became the victim and was served too: the
+    # render went round the resident domains between two loads with the preloader idle.
+    from vastray.actors import domain_loop
+    from vastray.actors.preloader import DomainPreloader
+
+    served: list[int] = []
+    real_next_domain = domain_loop.ScheduleOrder.next_domain
+
+    def counting(self):
+        domain = real_next_domain(self)
+        if domain is not None and getattr(self.policy, "served_victim", None) == domain:
+            served.append(domain)
+        return domain
+
+    monkeypatch.setattr(domain_loop.ScheduleOrder, "next_domain", counting)
+    st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+
+    def run():
+        served.clear()
+        result = render_out_of_core(bumpy, config, st, options=JobOptions(scheduler="spec-ooc",
+                                                                          cache=7),
+                                    progress=False)
+        assert_same(result.film.image(), reference, "spec-ooc, cache 7 of 27")
+        return len(served), result.counters
+
+    served_now, now = run()
+    monkeypatch.setattr(DomainPreloader, "serve_unrefreshed", lambda self, domain: None)
+    served_before, before = run()
+    assert served_before > 0  # the rule is exercised (else the comparison proves nothing)
+    assert served_now < served_before and now["activations"] < before["activations"]
+    assert now["preloads"] >= before["preloads"]

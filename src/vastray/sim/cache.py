@@ -215,6 +215,11 @@ class VirtualPreloader(CacheFront):
         await asyncio.sleep(throttle)
         return throttle
 
+    @property
+    def reads_ahead(self) -> bool:
+        """As ``DomainPreloader.reads_ahead``."""
+        return self.enabled and self.cache.capacity < len(self.domains.nbytes)
+
     def read_ahead(self, domain: int | None) -> None:
         """As ``DomainCache.read_ahead``: start ``domain``'s read (its CPU on the node's core,
         then the bandwidth's wait) without a slot; its load then only builds."""
