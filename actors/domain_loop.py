@@ -197,22 +197,14 @@ class DomainLoop:
         if self.preloader.enabled:
             cpu = cpu_time()
             guess = order.likely_next(domain)
-            # a preload that would evict the domain about to be traced (one served because
-            # it was next to go) starts once its trace is done, which frees it; its files
-            # are read meanwhile. Otherwise the files of the load after it are read ahead.
-            after = guess is not None and self.preloader.victim() == domain
             next_load = getattr(order, "next_load", None)
-            ahead = (guess if after else None
-                     if next_load is None or not self.preloader.reads_ahead
+            ahead = (None if next_load is None or not self.preloader.reads_ahead
                      else next_load(domain, guess))
             await self.decided(cpu_time() - cpu)
-            if not after:
-                self.preloader.preload(guess)
+            self.preloader.preload(guess)
             self.preloader.read_ahead(ahead)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
-        if self.preloader.enabled and after:
-            self.preloader.preload(guess)
         done = clock()
         activation = Activation(domain, self.preloader.load_count(domain),
                                 (chosen - start) + (guessed - loaded), loaded - chosen,
@@ -322,8 +314,6 @@ class ScheduleOrder:
             domain = self.policy.next_domain(resident)
         if self.by_demand and domain is not None:
             self.preloader.prioritise(self.policy.demand(), protect=(domain,))
-        if domain is not None and getattr(self.policy, "served_victim", None) == domain:
-            self.preloader.serve_unrefreshed(domain)
         return domain
 
     def likely_next(self, current: int) -> int | None:

@@ -41,11 +41,6 @@ class CacheFront:
         """The domain a load now would evict (None while there is room)."""
         return self.cache.victim()
 
-    def serve_unrefreshed(self, domain: int) -> None:
-        """The next use of ``domain`` keeps its place in the eviction order
-        (``DomainCache.serve_unrefreshed``)."""
-        self.cache.serve_unrefreshed(domain)
-
     def load_count(self, domain: int) -> int:
         """Times ``domain`` has been loaded so far (preloads included)."""
         return self.cache.load_count(domain)

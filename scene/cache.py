@@ -117,9 +117,6 @@ class DomainCache:
         # domain -> the Future of its files' read ahead (``read_ahead``): one unclaimed, and
         # one a load of its domain has been started for (a preload) and will take
         self._reads: dict[int, Future] = {}
-        # resident domains whose next use leaves their place in the eviction order
-        # (``serve_unrefreshed``)
-        self._unrefreshed: set[int] = set()
         self._reader: ThreadPoolExecutor | None = None
 
     @property
@@ -197,28 +194,13 @@ class DomainCache:
 
     def _get(self, domain_id: int) -> DomainBVH:
         if domain_id in self._resident:
-            if domain_id in self._unrefreshed:
-                self._unrefreshed.discard(domain_id)  # served, still the next to go
-            else:
-                self._resident.move_to_end(domain_id)
+            self._resident.move_to_end(domain_id)
             self.stats.hits += 1
             return self._resident[domain_id]
         self._make_room(1)
         bvh = self.load(domain_id)
         self._insert(domain_id, bvh)
         return bvh
-
-    def serve_unrefreshed(self, domain_id: int) -> None:
-        """Let the next use of resident ``domain_id`` leave it where it is in the least
-        recently used order: a schedule serves the domain a load would evict
-        (spec-ooc's ``serve_before_evict``) so that it can go, not to keep it. Refreshed,
-        the next domain in line was served next, and the next: at a quarter of ``rm``
-        1600³'s 72 domains cached the render went round all 18 resident domains between two
-        loads (1,653 activations of 1,853) with the preloader idle, as the preload a
-        schedule guesses must wait for the domain it would evict to be served."""
-        with self._lock:
-            if domain_id in self._resident and self._priority is None:
-                self._unrefreshed.add(domain_id)
 
     def reserve(self, capacity: int) -> None:
         """Raise the capacity to at least ``capacity`` domains (never lowers it): a node's
@@ -265,7 +247,6 @@ class DomainCache:
             if evicted is None:
                 return False
             gone = self._resident.pop(evicted)
-            self._unrefreshed.discard(evicted)
             self._resident_bytes -= gone.nbytes()
             self.stats.evictions += 1
             log.debug("evicted domain %d", evicted)

@@ -85,9 +85,6 @@ class SpeculativeSchedule:
         self.resident_first = resident_first
         self.serve_before_evict = serve_before_evict
         self._victim_of: Callable[[], int | None] | None = None
-        #: the domain ``next_domain`` last chose because the cache was about to evict it
-        #: (``serve_before_evict``), else None: served, it stays the one to evict
-        self.served_victim: int | None = None
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -164,7 +161,6 @@ class SpeculativeSchedule:
         """
         if self._staged is not None:
             return self._staged[0]  # chosen and filtered already, not processed yet
-        self.served_victim = None
         self._resident = resident
         self._victim_of = victim
         lazy = self.resident_first and self.serve_before_evict and victim is not None
@@ -187,7 +183,6 @@ class SpeculativeSchedule:
                 if lazy and domain not in resident:
                     going = victim()
                     if going is not None and going != domain and self._filter(going):
-                        self.served_victim = going
                         return going  # its rays now, or a load for them later
                 self._schedule.pop(0)
                 if self._filter(domain):

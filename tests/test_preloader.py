@@ -266,23 +266,3 @@ def test_a_cache_holding_every_domain_reads_nothing_ahead(store):
     cache.read_ahead(nonempty(store)[0])
     assert cache.stats.reads_ahead == 0
     cache.close()
-
-
-def test_a_domain_served_unrefreshed_stays_the_next_to_evict(store):
-    ids = nonempty(store)[:3]
-    cache = DomainCache(store, 2)
-    try:
-        cache.get(ids[0])
-        cache.get(ids[1])
-        assert cache.victim() == ids[0]
-        cache.serve_unrefreshed(ids[0])  # served because it is next to go
-        cache.get(ids[0])
-        assert cache.victim() == ids[0] and cache.stats.hits == 1
-        cache.get(ids[1])
-        cache.get(ids[0])  # a use after that refreshes it as before
-        assert cache.victim() == ids[1]
-        cache.serve_unrefreshed(ids[1])
-        cache.get(ids[2])  # the load evicts it, and the mark goes with it
-        assert set(cache.resident()) == {ids[0], ids[2]} and not cache._unrefreshed
-    finally:
-        cache.close()
