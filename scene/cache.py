@@ -296,10 +296,10 @@ class DomainCache:
         """Start reading ``domain_id``'s files on the reader thread, taking no slot and
         evicting nothing: its load, when it comes, builds from the bytes read (the read,
         a disk's latency or ``load_bandwidth``'s wait, overlapped with the render and with the
-        preloader's build of another domain). One domain is read ahead at a time (besides one a
-        started load will take); a new one replaces it (a replaced read is wasted; it was
-        no load). Its arrays are what the
-        preflight reserves besides the builds (``preflight.domain_build_bytes``).
+        preloader's build of another domain). One domain is read ahead at a time (besides one
+        a started load will take); a new one replaces it (a replaced read is wasted; it was no
+        load). Two reads' arrays are what the preflight reserves besides the builds
+        (``preflight.domain_build_bytes``).
 
         Why: out of core the cache is full, and a preload must evict, so the schedules guess
         one domain ahead and only where a domain can go (``likely_next``); the loads then ran
