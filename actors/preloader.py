@@ -96,9 +96,8 @@ class DomainPreloader(CacheFront):
 
     @property
     def reads_ahead(self) -> bool:
-        """Whether ``read_ahead`` reads anything: preloading on and a cache smaller than the
-        store (one holding every domain evicts nothing, and its preloads are the reads)."""
-        return self.enabled and self.cache.capacity < len(self.cache.store.domains)
+        """Whether ``read_ahead`` reads anything: preloading on (``DomainCache.reads_ahead``)."""
+        return self.enabled and self.cache.reads_ahead
 
     def read_ahead(self, domain: int | None) -> None:
         """Start reading ``domain``'s files ahead, taking no slot (``DomainCache.read_ahead``;

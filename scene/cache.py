@@ -306,7 +306,7 @@ class DomainCache:
         one after another, each started one short activation before it was needed (at a
         quarter of ``rm`` 1600³'s 72 domains cached, 183 of 195 loads were waited for, for 34
         of their 37 ms). A read needs no slot."""
-        if domain_id is None or self.capacity >= len(self.store.domains):
+        if domain_id is None or not self.reads_ahead:
             return
         with self._lock:
             if (domain_id in self._resident or domain_id in self._pending
@@ -319,10 +319,18 @@ class DomainCache:
             self._reads[domain_id] = self._reader.submit(self._read, domain_id)
             self.stats.reads_ahead += 1
 
+    @property
+    def reads_ahead(self) -> bool:
+        """Whether ``read_ahead`` reads anything: a cache smaller than the store (one holding
+        every domain evicts nothing, and its preloads are the reads)."""
+        return self.capacity < len(self.store.domains)
+
     def _read(self, domain_id: int):
-        """The domain's arrays, read as ``load`` reads them (``load_bandwidth`` waited out),
-        with the seconds the read and the wait took."""
+        """The domain's arrays, as a load reads them (``load_bandwidth`` waited out), with
+        the seconds the read and the wait took, and the wait's."""
         start = time.perf_counter()
+        # read, not mapped: a domain file truncated or rewritten under a running render
+        # changes nothing it has loaded (mapped, it would be a SIGBUS or a changed picture)
         arrays = self.store.load_domain(domain_id, drop_cache=self.drop_page_cache,
                                         attributes=self.keep)
         throttle = 0.0
@@ -359,19 +367,8 @@ class DomainCache:
         """Read and build one domain without caching it (counted as a load)."""
         start = time.perf_counter()
         size = self.store.domains[domain_id].read_bytes(self.keep)
-        ahead = self._take_read(domain_id)
-        if ahead is not None:  # read ahead (waited for here if it was still running)
-            arrays, read_s, throttle = ahead
-        else:
-            # read, not mapped: a domain file truncated or rewritten under a running render
-            # changes nothing it has loaded (mapped, it would be a SIGBUS or a changed picture)
-            arrays = self.store.load_domain(domain_id, drop_cache=self.drop_page_cache,
-                                            attributes=self.keep)
-            throttle = 0.0
-            if self.load_bandwidth is not None:  # emulated network storage: wait out the rest
-                throttle = max(0.0, size / self.load_bandwidth - (time.perf_counter() - start))
-                time.sleep(throttle)
-            read_s = time.perf_counter() - start
+        ahead = self._take_read(domain_id)  # waited for here if it is still running
+        arrays, read_s, throttle = ahead if ahead is not None else self._read(domain_id)
         read_done = time.perf_counter()
         bvh = DomainBVH(domain_id, arrays, self.keep, self.pool, self.build_quality,
                         self.mesh_quality)

@@ -242,13 +242,9 @@ class DomainQueues:
 
     def _copied(self, runs: list[tuple[SoA, int, int]]) -> tuple[SoA, int, int]:
         """``runs`` (block, start, stop) copied, in order, into one new block held here."""
-        if len(runs) == 1:
-            block, start, stop = runs[0]
-            copy = SoA._trusted({k: a[start:stop].copy() for k, a in block.fields.items()})
-        else:
-            copy = SoA._trusted({k: np.concatenate([b.fields[k][start:stop]
-                                                    for b, start, stop in runs])
-                                 for k in runs[0][0].fields})
+        copy = SoA._trusted({k: np.concatenate([b.fields[k][start:stop]
+                                                for b, start, stop in runs])
+                             for k in runs[0][0].fields})
         self._hold(copy)
         return copy, 0, len(copy)
 

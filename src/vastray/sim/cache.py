@@ -218,14 +218,14 @@ class VirtualPreloader(CacheFront):
     @property
     def reads_ahead(self) -> bool:
         """As ``DomainPreloader.reads_ahead``."""
-        return self.enabled and self.cache.capacity < len(self.domains.nbytes)
+        return self.enabled and self.cache.reads_ahead
 
     def read_ahead(self, domain: int | None) -> None:
         """As ``DomainCache.read_ahead``: start ``domain``'s read (its CPU on the node's core,
         then the bandwidth's wait) without a slot; its load then only builds."""
         cache = self.cache
-        if (not self.enabled or domain is None or cache.capacity >= len(self.domains.nbytes)
-                or domain in cache or domain in cache._pending or domain in self._reads):
+        if (domain is None or not self.reads_ahead or domain in cache
+                or domain in cache._pending or domain in self._reads):
             return
         for other in [d for d in self._reads if d not in cache._pending]:
             del self._reads[other]  # replaced: wasted, as the real reader's (it runs on)
