@@ -201,8 +201,13 @@ class DomainLoop:
             ahead = (None if next_load is None or not self.preloader.reads_ahead
                      else next_load(domain, guess))
             await self.decided(cpu_time() - cpu)
-            self.preloader.preload(guess)
-            self.preloader.read_ahead(ahead)
+            if guess is None and ahead is not None and self.preloader.builds_ahead:
+                # no preload the cache can make room for now: build the next load in the
+                # slot kept for it (its read too), evicting nothing until it is taken
+                self.preloader.build_ahead(ahead)
+            else:
+                self.preloader.preload(guess)
+                self.preloader.read_ahead(ahead)
         guessed = clock()
         queries = await self.trace(order, domain, bvh)
         done = clock()

@@ -53,7 +53,8 @@ class NodeState:
             self.preloader = DomainPreloader(
                 store, capacity, keep, pool=self.pool,
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
-                drop_page_cache=options.cold_reads, fast_builds=fast_builds)
+                drop_page_cache=options.cold_reads, fast_builds=fast_builds,
+                build_ahead=options.builds_ahead())
         else:
             self.preloader.reserve(capacity)
         return self.preloader

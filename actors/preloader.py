@@ -63,13 +63,16 @@ class DomainPreloader(CacheFront):
         temporal-coherence paper's Table 2 and the benchmarks' "no preloading" rows.
     drop_page_cache : make every load a real read from disk (out-of-core benchmarks).
     fast_builds : build Embree's fast BVH (the render's ``RenderSetup.fast_builds``).
+    build_ahead : keep a slot of the cache for a domain built ahead (``build_ahead``).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
-                 preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False):
+                 preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False,
+                 build_ahead: bool = False):
         self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth,
-                                 drop_page_cache=drop_page_cache, fast_builds=fast_builds)
+                                 drop_page_cache=drop_page_cache, fast_builds=fast_builds,
+                                 build_ahead=build_ahead and preload)
         self.enabled = preload
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
 
@@ -104,6 +107,17 @@ class DomainPreloader(CacheFront):
         no-op when preloading is off)."""
         if self.enabled and domain is not None:
             self.cache.read_ahead(int(domain))
+
+    @property
+    def builds_ahead(self) -> bool:
+        """Whether ``build_ahead`` builds anything (``DomainCache.builds_ahead``)."""
+        return self.enabled and self.cache.builds_ahead
+
+    def build_ahead(self, domain: int | None) -> None:
+        """Start building ``domain`` in the slot kept for it, evicting nothing
+        (``DomainCache.build_ahead``)."""
+        if self.enabled and domain is not None:
+            self.cache.build_ahead(int(domain))
 
     def load_bandwidth_mb_s(self) -> float | None:
         """The emulated storage bandwidth every load is held to, in MB/s (None: none)."""

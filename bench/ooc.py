@@ -18,7 +18,10 @@ same one (the switches are ``JobOptions`` fields, the same for both):
   spec-ooc also serves a resident domain's new rays when the cache is about to evict it
   (``serve_before_evict``) and re-ranks the rest of a round before each pick (``rescore``);
   the baseline serves a resident domain's rays as soon as they arrive (so never evicts one
-  with rays waiting) and picks its fullest queue afresh each time;
+  with rays waiting) and picks its fullest queue afresh each time; neither builds ahead;
+* ``strongest+ahead``: ``strongest`` with one slot of each cache kept for the next domain to
+  load, built while the schedule names no preload (``build_ahead=True``; the CLI's default
+  for spec-ooc, ``JobOptions.builds_ahead``; the baseline's default is ``strongest``);
 * ``strongest+demand``: ``strongest`` with eviction by demand for both
   (``eviction="demand"``: the resident domain the schedule will need last by its own order
   goes first; the baseline's emptiest queue, spec-ooc's latest in its round).
@@ -59,9 +62,10 @@ with ``--passes-alone``: each pass alone) and ``passes_timed_spp=`` (the samples
 with ``--passes-alone``), with ``time_limit_overruns=`` (how many of those renders ended
 past their limit). Then
 (not with ``--large``) the history-depth sweep of Fig. 8
-(H = 1..B for B = 3, strongest). With every domain cached nothing is evicted, so
-``strongest+demand``'s 100 % cells are ``strongest``'s. ``--ablation`` adds every switch
-combination for both schedules, and spec-ooc's own switches (PT, 25 % cache, first scene).
+(H = 1..B for B = 3, strongest). With every domain cached nothing is evicted or built
+ahead, so ``strongest+ahead``'s and ``strongest+demand``'s 100 % cells are ``strongest``'s.
+``--ablation`` adds every switch combination for both schedules, and spec-ooc's own
+switches (PT, 25 % cache, first scene).
 ``--ray-sweep`` adds the strongest PT comparison at a 25 % cache with 4x and 16x the paths
 (first scene).
 
@@ -132,9 +136,19 @@ def scene(name: str, resolution: int, grid: tuple[int, int, int]) -> Store:
 
 CONFIGS = {  # name -> JobOptions switches, the same for both schedules
     "paper-faithful": {"preload": False, "resident_first": False},
-    "strongest": {"preload": True, "resident_first": True},
-    "strongest+demand": {"preload": True, "resident_first": True, "eviction": "demand"},
+    # neither builds ahead (what the baseline does by default; spec-ooc before session 64)
+    "strongest": {"preload": True, "resident_first": True, "build_ahead": False},
+    # both keep a slot of the cache for a domain built ahead (what spec-ooc does by default)
+    "strongest+ahead": {"preload": True, "resident_first": True, "build_ahead": True},
+    "strongest+demand": {"preload": True, "resident_first": True, "eviction": "demand",
+                         "build_ahead": False},
 }
+#: The CLI's defaults (spec-ooc builds ahead, the baseline does not: ``JobOptions.builds_ahead``),
+#: for the renders outside the tables (passes, sweeps).
+DEFAULTS = {"preload": True, "resident_first": True}
+#: Configurations whose all-cached cells are strongest's: with every domain cached nothing is
+#: evicted and nothing is built ahead (no slot to keep).
+SAME_ALL_CACHED = ("strongest+ahead", "strongest+demand")
 #: How domains reach memory: every load a real disk read (cold page cache), and the same with
 #: a parallel file system's share of bandwidth per node emulated on top.
 STORAGE = {
@@ -339,9 +353,9 @@ def main() -> None:
                             if storage not in plan["paper_faithful"]["storage"]:
                                 continue
                             repeats = min(repeats, plan["paper_faithful"]["repeats"])
-                        if fraction == 1.0 and config == "strongest+demand":
-                            # nothing is evicted with every domain cached: the eviction
-                            # rule changes nothing, so strongest's cells are these
+                        if fraction == 1.0 and config in SAME_ALL_CACHED:
+                            # nothing is evicted or built ahead with every domain cached:
+                            # strongest's cells are these
                             cells = results[(1.0, storage, "strongest")]
                         else:
                             cells = cell(store, st, cache, {**switches, **STORAGE[storage]},
@@ -413,7 +427,7 @@ def passes(store: Store, plan: dict) -> None:
     for nodes in plan.get("passes_nodes", (None, 2)):
         for scheduler in SCHEDULERS:
             if nodes is None:
-                one = run(store, st, scheduler, cache, **CONFIGS["strongest"])
+                one = run(store, st, scheduler, cache, **DEFAULTS)
             else:  # the distributed runtime's own one-pass render, the CLI's tile per node
                 start = time.perf_counter()
                 result = render_distributed(store.path, None, st, nodes, JobOptions(
@@ -486,7 +500,7 @@ def warm_up(store: Store, plan: dict) -> None:
     start = time.perf_counter()
     cache = max(1, math.ceil(0.25 * len(store.domains)))
     for scheduler in ("image", "spec-ooc"):
-        run(store, settings(plan, "pt"), scheduler, cache, **CONFIGS["strongest"])
+        run(store, settings(plan, "pt"), scheduler, cache, **DEFAULTS)
     print(f"warm-up: one untimed render per schedule, {time.perf_counter() - start:.1f} s",
           flush=True)
 
@@ -540,8 +554,8 @@ def ray_sweep(store: Store, plan: dict) -> None:
     for scale, spp_scale in ((1, 1), (2, 1), (2, 4)):
         sized = {**plan, "image": (width * scale, height * scale), "spp": plan["spp"] * spp_scale}
         st = settings(sized, "pt")
-        base = run(store, st, "image", cache, **CONFIGS["strongest"])
-        spec_run = run(store, st, "spec-ooc", cache, **CONFIGS["strongest"])
+        base = run(store, st, "image", cache, **DEFAULTS)
+        spec_run = run(store, st, "spec-ooc", cache, **DEFAULTS)
         w, h = sized["image"]
         print(f"| {w}x{h} | {sized['spp']} | {w * h * sized['spp']:,} | {base['loads']} "
               f"| {spec_run['loads']} | {base['loads'] / max(spec_run['loads'], 1):.2f} "
@@ -557,7 +571,7 @@ def sweep(store: Store, plan: dict) -> None:
     print("| H | loads | load s | render s | total s | wasted speculative rays |")
     print("| --- | --- | --- | --- | --- | --- |", flush=True)
     for h in range(1, plan["bounces"] + 1):
-        r = run(store, st, "spec-ooc", cache, history_depth=h, **CONFIGS["strongest"])
+        r = run(store, st, "spec-ooc", cache, history_depth=h, **DEFAULTS)
         print(f"| {h} | {r['loads']} | {r['load_s']:.2f} | {r['render_s']:.2f} "
               f"| {r['total_s']:.2f} | {r['wasted']:,} of {r['speculative']:,} |", flush=True)
 

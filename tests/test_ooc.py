@@ -62,6 +62,28 @@ def test_schedules_match_reference_for_any_cache_and_tile(bumpy, config, integra
                                                     ).film.depth.tolist()
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_builds_ahead_leave_the_image_and_the_capacity_alone(bumpy, config, scheduler):
+    """Out of core spec-ooc keeps a slot of its cache for the next domain to load, built while
+    it serves the domain a load would evict (``JobOptions.builds_ahead``: on for spec-ooc by
+    default); the baseline gets the same switch. The image is the reference bit for bit and
+    no more domains are built at once than the cache holds."""
+    st = settings(width=40, height=30, spp=2, integrator="pt", bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+    for build_ahead in (None, True, False):
+        result = render_out_of_core(bumpy, config, st, options=JobOptions(
+            scheduler=scheduler, cache=4, build_ahead=build_ahead), progress=False)
+        c = result.counters
+        assert_same(result.film.image(), reference, f"{scheduler} build_ahead={build_ahead}")
+        assert c["peak_resident_domains"] <= 4
+        builds = build_ahead if build_ahead is not None else scheduler == "spec-ooc"
+        assert c["builds_ahead_used"] <= c["builds_ahead"] and c["builds_ahead_used"] <= c["loads"]
+        if not builds:
+            assert c["builds_ahead"] == 0
+        elif scheduler == "spec-ooc":  # it names no preload while it serves the victim
+            assert c["builds_ahead_used"] > 0  # (the baseline nearly always names one)
+
+
 @pytest.mark.parametrize("history_depth", [0, 1, 2, 3])
 def test_spec_ooc_any_history_depth_matches_reference(bumpy, config, history_depth):
     st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)

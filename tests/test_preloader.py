@@ -266,3 +266,66 @@ def test_a_cache_holding_every_domain_reads_nothing_ahead(store):
     cache.read_ahead(nonempty(store)[0])
     assert cache.stats.reads_ahead == 0
     cache.close()
+
+
+def test_a_domain_built_ahead_holds_the_kept_slot_and_evicts_only_when_taken(store):
+    ids = nonempty(store)[:5]
+    assert len(store.domains) > 3
+    cache = DomainCache(store, 3, build_ahead=True)
+    try:
+        assert cache.builds_ahead
+        for d in ids[:3]:
+            cache.get(d)
+        # one slot of the three is kept for the domain built ahead: two stay resident
+        assert len(cache.resident()) == 2 and cache.victim() == cache.resident()[0]
+        resident = set(cache.resident())
+        cache.build_ahead(ids[3])
+        cache._built[ids[3]].result()  # built, and nothing evicted for it
+        assert set(cache.resident()) == resident and cache.stats.loads == 3
+        assert cache.stats.builds_ahead == 1 and cache.stats.builds_ahead_used == 0
+        taken = cache.get(ids[3])  # taken: counted as a load now, evicting the victim
+        assert taken.domain_id == ids[3] and cache.stats.builds_ahead_used == 1
+        assert cache.stats.loads == 4 and len(cache.resident()) == 2
+        assert ids[3] in cache.resident()
+        assert cache.stats.peak_resident_domains <= 3  # never more built than the capacity
+    finally:
+        cache.close()
+
+
+def test_a_replaced_build_ahead_is_no_load_and_a_failed_one_fails_the_get(store, tmp_path):
+    import shutil
+
+    copy = shutil.copytree(store.path, tmp_path / "copy.store")
+    from vastray.scene.store import Store
+
+    damaged = Store(copy)
+    ids = nonempty(damaged)[:4]
+    info = damaged.domains[ids[3]]
+    (copy / info.files["indices"]).write_bytes(b"garbage")
+    cache = DomainCache(damaged, 3, build_ahead=True)
+    try:
+        cache.get(ids[0])
+        cache.build_ahead(ids[1])
+        cache.build_ahead(ids[2])  # replaces ids[1]'s, finished or not
+        cache.get(ids[1])
+        assert cache.stats.builds_ahead == 2 and cache.stats.builds_ahead_used == 0
+        assert cache.stats.loads == 2  # ids[0] and ids[1]'s own load; the replaced one none
+        cache.build_ahead(ids[3])
+        with pytest.raises(Exception, match="indices"):
+            cache.get(ids[3])  # the build's error, raised by the get that takes it
+        assert ids[3] not in cache.resident_set()
+    finally:
+        cache.close()
+
+
+def test_build_ahead_is_off_where_it_has_no_slot_to_keep(store):
+    assert not DomainCache(store, len(store.domains), build_ahead=True).builds_ahead  # in core
+    assert not DomainCache(store, 2, build_ahead=True).builds_ahead  # no room for a preload
+    assert not DomainCache(store, 3).builds_ahead  # not asked
+    preloader = DomainPreloader(store, 3, build_ahead=True, preload=False)
+    assert not preloader.builds_ahead  # preloading off: nothing is loaded ahead
+    preloader.close()
+    assert JobOptions(scheduler="spec-ooc").builds_ahead()
+    assert not JobOptions(scheduler="image").builds_ahead()
+    assert JobOptions(scheduler="image", build_ahead=True).builds_ahead()
+    assert not JobOptions(scheduler="spec-ooc", build_ahead=False).builds_ahead()

@@ -485,6 +485,28 @@ def test_a_read_ahead_charges_the_read_while_the_node_works_and_the_load_only_bu
     assert stats["reads_ahead"] == stats["reads_ahead_used"] == 1 and stats["loads"] == 2
 
 
+def test_a_build_ahead_charges_its_load_while_the_node_works_and_evicts_when_taken(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 3, LOADS, build_ahead=True)
+        assert preloader.builds_ahead
+        await preloader.get(0)
+        await preloader.get(1)
+        assert preloader.resident() == {0, 1}  # full: one slot kept for the build ahead
+        preloader.build_ahead(3)
+        await asyncio.sleep(5.0)  # the node idles long enough for the read and the build
+        assert preloader.resident() == {0, 1}  # nothing evicted for it yet
+        start = cluster.now()
+        await preloader.get(3)
+        return preloader, cluster.now() - start
+
+    preloader, wait_s = run_virtual(main())[0]
+    assert wait_s == pytest.approx(0.0, abs=1e-9)  # its whole load ran ahead
+    assert preloader.resident() == {1, 3}  # taken: the least recently used evicted then
+    stats = preloader.stats()
+    assert stats["builds_ahead"] == stats["builds_ahead_used"] == 1 and stats["loads"] == 3
+    assert stats["peak_resident_domains"] <= 3
+
+
 def test_a_full_cache_evicts_the_least_recently_used_domain(domains):
     async def main():
         cluster, preloader = _preloader(domains, 2, LOADS, preload=False)

@@ -122,8 +122,8 @@ class _VirtualCache(DomainCache):
     """``DomainCache`` whose ``load`` takes the built domain from ``Domains`` (the cost is
     charged by ``VirtualPreloader``)."""
 
-    def __init__(self, domains: Domains, capacity: int):
-        super().__init__(domains.store, capacity)
+    def __init__(self, domains: Domains, capacity: int, build_ahead: bool = False):
+        super().__init__(domains.store, capacity, build_ahead=build_ahead)
         self.domains = domains
 
     def load(self, domain_id: int) -> DomainBVH:
@@ -145,22 +145,25 @@ class VirtualPreloader(CacheFront):
     bandwidth : emulated storage, bytes per second (``--load-bandwidth``): a load's read
         lasts at least its size over this (as ``DomainCache.load``), the rest of it a wait
         that needs no core; None: no floor.
+    build_ahead : keep a slot of the cache for a domain built ahead (as ``DomainCache``).
     """
 
     def __init__(self, cluster, rank: int, domains: Domains, capacity: int,
-                 preload: bool = True, bandwidth: float | None = None):
+                 preload: bool = True, bandwidth: float | None = None,
+                 build_ahead: bool = False):
         self.cluster, self.rank, self.domains = cluster, rank, domains
-        self.cache = _VirtualCache(domains, capacity)
+        self.cache = _VirtualCache(domains, capacity, build_ahead and preload)
         self.enabled, self.bandwidth = preload, bandwidth
         self.load_wait_s = 0.0
         self._preloading = asyncio.Lock()
         self._reads: dict[int, asyncio.Future] = {}  # domain -> its read ahead
+        self._built: dict[int, asyncio.Future] = {}  # domain -> its build ahead (at most one)
 
     @property
     def capacity(self) -> int:
         return self.cache.capacity
 
-    async def _load(self, domain: int) -> None:
+    async def _load(self, domain: int, insert: bool = True) -> None:
         """Charge one load of ``domain`` (the read and the BVH build on the node's core,
         beside whatever else it computes: the CPU time they take here where
         ``CostModel.load_scale`` is set, else the constants; then what the emulated storage
@@ -191,10 +194,15 @@ class VirtualPreloader(CacheFront):
             throttle = await self._throttle(domain, read_s)
         cache.stats.load_seconds += read_s + build_s + throttle
         cache.stats.throttle_seconds += throttle
+        if insert:
+            self._insert(domain)
+
+    def _insert(self, domain: int) -> None:
+        """Count a load of ``domain`` and make it resident."""
         # the domain, built here once for every virtual node (its first ``Domains.get`` builds
         # it): the simulator's own work, not the node's code
         with self.cluster.meter.simulators_own():
-            cache._insert(domain, cache.load(domain))
+            self.cache._insert(domain, self.cache.load(domain))
 
     def _costs(self, domain: int) -> tuple[float, float, float]:
         """(read seconds, build seconds, cores the build keeps busy) of a load of ``domain``."""
@@ -225,7 +233,7 @@ class VirtualPreloader(CacheFront):
         then the bandwidth's wait) without a slot; its load then only builds."""
         cache = self.cache
         if (domain is None or not self.reads_ahead or domain in cache
-                or domain in cache._pending or domain in self._reads):
+                or domain in cache._pending or domain in self._reads or domain in self._built):
             return
         for other in [d for d in self._reads if d not in cache._pending]:
             del self._reads[other]  # replaced: wasted, as the real reader's (it runs on)
@@ -243,6 +251,18 @@ class VirtualPreloader(CacheFront):
         cache)."""
         cache = self.cache
         start = self.cluster.now()
+        built = self._built.pop(domain, None)
+        if built is not None and domain not in cache:  # built ahead: taken, evicting now
+            cache._pending[domain] = built
+            try:
+                await built
+            finally:
+                cache._pending.pop(domain, None)
+            cache._make_room(1)
+            self._insert(domain)
+            cache.stats.builds_ahead_used += 1
+            self.load_wait_s += self.cluster.now() - start
+            return cache._resident[domain]
         pending = cache._pending.get(domain)
         if pending is None and domain not in cache:
             cache._make_room(1)
@@ -263,8 +283,9 @@ class VirtualPreloader(CacheFront):
         """Start loading ``domain`` ahead (as ``DomainCache.prefetch``: not when resident,
         loading, disabled, or when only protected domains could make room)."""
         cache = self.cache
-        if (not self.enabled or domain is None or cache.capacity < 2 or domain in cache
-                or domain in cache._pending or not cache._make_room(1, for_preload=True)):
+        if (not self.enabled or domain is None or cache._limit < 2 or domain in cache
+                or domain in cache._pending or domain in self._built
+                or not cache._make_room(1, for_preload=True)):
             return
         cache._pending[domain] = asyncio.ensure_future(self._preload(int(domain)))
 
@@ -277,6 +298,28 @@ class VirtualPreloader(CacheFront):
         finally:
             cache._pending.pop(domain, None)
 
+    @property
+    def builds_ahead(self) -> bool:
+        """As ``DomainPreloader.builds_ahead``."""
+        return self.enabled and self.cache.builds_ahead
+
+    def build_ahead(self, domain: int | None) -> None:
+        """As ``DomainCache.build_ahead``: the load of ``domain`` on the preloading thread
+        (queued behind a preload), into the slot kept for it; ``get`` takes it."""
+        cache = self.cache
+        if (domain is None or not self.builds_ahead or domain in cache
+                or domain in cache._pending or domain in self._built):
+            return
+        for replaced in self._built.values():
+            replaced.cancel()  # not taken: wasted (as the real cache's)
+        self._built.clear()
+        self._built[domain] = asyncio.ensure_future(self._build_ahead(int(domain)))
+        cache.stats.builds_ahead += 1
+
+    async def _build_ahead(self, domain: int) -> None:
+        async with self._preloading:  # the one preloading thread
+            await self._load(domain, insert=False)
+
     def load_bandwidth_mb_s(self) -> float | None:
         return None if self.bandwidth is None else self.bandwidth / 1e6
 
@@ -285,6 +328,7 @@ class VirtualPreloader(CacheFront):
 
     def close(self) -> None:
         """Drop the reads ahead still running (no thread to stop)."""
-        for read in self._reads.values():
+        for read in [*self._reads.values(), *self._built.values()]:
             read.cancel()
         self._reads.clear()
+        self._built.clear()

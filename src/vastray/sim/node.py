@@ -147,7 +147,8 @@ class SimNodeState(NodeState):
         if self.preloader is None:
             self.preloader = VirtualPreloader(self.cluster, self.rank, self.domains, capacity,
                                               preload=options.preload,
-                                              bandwidth=options.load_bytes_per_second(rank))
+                                              bandwidth=options.load_bytes_per_second(rank),
+                                              build_ahead=options.builds_ahead())
         return self.preloader
 
     def domain_loop(self, preloader, stats: dict) -> DomainLoop:
