@@ -200,11 +200,16 @@ class DomainLoop:
             next_load = getattr(order, "next_load", None)
             ahead = (None if next_load is None or not self.preloader.reads_ahead
                      else next_load(domain, guess))
+            build = guess is None and ahead is not None and self.preloader.builds_ahead
+            # building ahead, the reader reads the load after that one meanwhile
+            then = next_load(domain, ahead) if build else None
             await self.decided(cpu_time() - cpu)
-            if guess is None and ahead is not None and self.preloader.builds_ahead:
+            if build:
                 # no preload the cache can make room for now: build the next load in the
-                # slot kept for it (its read too), evicting nothing until it is taken
+                # slot kept for it (its read too, unless read ahead), evicting nothing until
+                # it is taken
                 self.preloader.build_ahead(ahead)
+                self.preloader.read_ahead(then)
             else:
                 self.preloader.preload(guess)
                 self.preloader.read_ahead(ahead)

@@ -379,7 +379,8 @@ class DomainCache:
         evicting nothing: its load, when it comes, builds from the bytes read (the read,
         a disk's latency or ``load_bandwidth``'s wait, overlapped with the render and with the
         preloader's build of another domain). One domain is read ahead at a time (besides one
-        a started load will take); a new one replaces it (a replaced read is wasted; it was no
+        a started load or the domain built ahead will take: the slot kept for that one holds
+        its arrays); a new one replaces it (a replaced read is wasted; it was no
         load). Two reads' arrays are what the preflight reserves besides the builds
         (``preflight.domain_build_bytes``).
 
@@ -394,7 +395,8 @@ class DomainCache:
             if (domain_id in self._resident or domain_id in self._pending
                     or domain_id in self._reads or domain_id in self._built):
                 return
-            for other in [d for d in self._reads if d not in self._pending]:
+            for other in [d for d in self._reads
+                          if d not in self._pending and d not in self._built]:
                 del self._reads[other]  # replaced: its load is not coming (yet)
             if self._reader is None:
                 self._reader = ThreadPoolExecutor(1, thread_name_prefix="reader")

@@ -235,7 +235,7 @@ class VirtualPreloader(CacheFront):
         if (domain is None or not self.reads_ahead or domain in cache
                 or domain in cache._pending or domain in self._reads or domain in self._built):
             return
-        for other in [d for d in self._reads if d not in cache._pending]:
+        for other in [d for d in self._reads if d not in cache._pending and d not in self._built]:
             del self._reads[other]  # replaced: wasted, as the real reader's (it runs on)
         self._reads[domain] = asyncio.ensure_future(self._read(int(domain)))
         cache.stats.reads_ahead += 1
