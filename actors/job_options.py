@@ -106,9 +106,11 @@ class JobOptions:
         (``render_distributed`` fills in this machine's cores shared among its nodes).
     preload : load the next domain in the background (the domain cache's preloading).
     build_ahead : out of core, keep one slot of the cache for the next domain to load, built
-        on the preloader thread while the schedule names no preload (``DomainCache.build_ahead``);
-        None: on for spec-ooc, which names none while it serves the domain a load would evict
-        (``builds_ahead``).
+        on the preloader thread while the schedule names no preload (``DomainCache.build_ahead``;
+        spec-ooc names none while it serves the domain a load would evict). Off by default: in
+        ``bench/ooc.py --large`` it made spec-ooc 10 % faster at a quarter of the domains
+        cached with cold reads and 7 % slower at 200 MB/s and at half, the replaced builds
+        costing CPU (bench/README, session 64).
     trace_ahead : out of core with passes apart (a reference, a time limit, an error target),
         trace later passes on the current one's domain loads
         (``SortFirstTiles.render_ahead``); False: each pass sweeps the domains alone
@@ -152,7 +154,7 @@ class JobOptions:
     max_batch_rays: int = DEFAULT_MAX_BATCH_RAYS
     threads: int | None = None
     preload: bool = True
-    build_ahead: bool | None = None
+    build_ahead: bool = False
     trace_ahead: bool = True
     resident_first: bool = True
     load_bandwidth: tuple[float, ...] | None = None
@@ -272,14 +274,6 @@ class JobOptions:
         (``cache`` set and below them)."""
         return self.cache is not None and self.cache < domains
 
-    def builds_ahead(self) -> bool:
-        """Whether the out-of-core cache keeps a slot for a domain built ahead:
-        ``build_ahead``, or where None, for spec-ooc (its ``serve_before_evict`` names no
-        preload while the domain a load would evict has rays; measured at a quarter of
-        ``bench/ooc.py --large``'s domains cached it made spec-ooc 7-13 % faster and the
-        baseline, which nearly always names one, 7-9 % slower for the slot it gives up)."""
-        return self.scheduler == "spec-ooc" if self.build_ahead is None else self.build_ahead
-
     def load_bytes_per_second(self, rank: int = 0) -> float | None:
         """The emulated storage bandwidth of process ``rank`` in bytes/s (``load_bandwidth``
         cycled over the ranks), or None."""
@@ -343,7 +337,7 @@ _TYPES = {
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
     "portal_memory": _INT, "assignment": str, "priority": str,
 }
-_OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads", "build_ahead",
+_OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads",
                        "load_bandwidth", "simplified", "assignment", "priority"})
 _TYPE_NAMES = {name: ("true or false" if kinds is bool else "a string" if kinds is str
                       else "a number" if kinds is _FLOAT else "a list" if kinds is tuple

@@ -54,7 +54,7 @@ class NodeState:
                 store, capacity, keep, pool=self.pool,
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
                 drop_page_cache=options.cold_reads, fast_builds=fast_builds,
-                build_ahead=options.builds_ahead())
+                build_ahead=options.build_ahead)
         else:
             self.preloader.reserve(capacity)
         return self.preloader

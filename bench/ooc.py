@@ -20,8 +20,8 @@ same one (the switches are ``JobOptions`` fields, the same for both):
   the baseline serves a resident domain's rays as soon as they arrive (so never evicts one
   with rays waiting) and picks its fullest queue afresh each time; neither builds ahead;
 * ``strongest+ahead``: ``strongest`` with one slot of each cache kept for the next domain to
-  load, built while the schedule names no preload (``build_ahead=True``; the CLI's default
-  for spec-ooc, ``JobOptions.builds_ahead``; the baseline's default is ``strongest``);
+  load, built while the schedule names no preload (``JobOptions.build_ahead``, off by
+  default);
 * ``strongest+demand``: ``strongest`` with eviction by demand for both
   (``eviction="demand"``: the resident domain the schedule will need last by its own order
   goes first; the baseline's emptiest queue, spec-ooc's latest in its round).
@@ -136,15 +136,14 @@ def scene(name: str, resolution: int, grid: tuple[int, int, int]) -> Store:
 
 CONFIGS = {  # name -> JobOptions switches, the same for both schedules
     "paper-faithful": {"preload": False, "resident_first": False},
-    # neither builds ahead (what the baseline does by default; spec-ooc before session 64)
+    # the CLI's defaults: neither builds ahead
     "strongest": {"preload": True, "resident_first": True, "build_ahead": False},
-    # both keep a slot of the cache for a domain built ahead (what spec-ooc does by default)
+    # both keep a slot of the cache for a domain built ahead (JobOptions.build_ahead)
     "strongest+ahead": {"preload": True, "resident_first": True, "build_ahead": True},
     "strongest+demand": {"preload": True, "resident_first": True, "eviction": "demand",
                          "build_ahead": False},
 }
-#: The CLI's defaults (spec-ooc builds ahead, the baseline does not: ``JobOptions.builds_ahead``),
-#: for the renders outside the tables (passes, sweeps).
+#: The CLI's defaults, for the renders outside the tables (passes, sweeps).
 DEFAULTS = {"preload": True, "resident_first": True}
 #: Configurations whose all-cached cells are strongest's: with every domain cached nothing is
 #: evicted and nothing is built ahead (no slot to keep).

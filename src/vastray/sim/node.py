@@ -148,7 +148,7 @@ class SimNodeState(NodeState):
             self.preloader = VirtualPreloader(self.cluster, self.rank, self.domains, capacity,
                                               preload=options.preload,
                                               bandwidth=options.load_bytes_per_second(rank),
-                                              build_ahead=options.builds_ahead())
+                                              build_ahead=options.build_ahead)
         return self.preloader
 
     def domain_loop(self, preloader, stats: dict) -> DomainLoop:
