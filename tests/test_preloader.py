@@ -238,16 +238,22 @@ def test_a_read_ahead_takes_no_slot_and_its_load_only_builds(store):
         cache.close()
 
 
-def test_a_replaced_read_ahead_is_not_used_and_a_bad_file_fails_its_load(store, tmp_path):
+def damaged_copy(store, tmp_path, count: int):
+    """A copy of ``store`` and the first ``count`` non-empty domain ids of it, the last one's
+    indices file overwritten with garbage."""
     import shutil
 
-    copy = shutil.copytree(store.path, tmp_path / "copy.store")
     from vastray.scene.store import Store
 
+    copy = shutil.copytree(store.path, tmp_path / "copy.store")
     damaged = Store(copy)
-    ids = nonempty(damaged)[:3]
-    info = damaged.domains[ids[2]]
-    (copy / info.files["indices"]).write_bytes(b"garbage")
+    ids = nonempty(damaged)[:count]
+    (copy / damaged.domains[ids[-1]].files["indices"]).write_bytes(b"garbage")
+    return damaged, ids
+
+
+def test_a_replaced_read_ahead_is_not_used_and_a_bad_file_fails_its_load(store, tmp_path):
+    damaged, ids = damaged_copy(store, tmp_path, 3)
     cache = DomainCache(damaged, 1)
     try:
         cache.get(ids[0])
@@ -293,15 +299,7 @@ def test_a_domain_built_ahead_holds_the_kept_slot_and_evicts_only_when_taken(sto
 
 
 def test_a_replaced_build_ahead_is_no_load_and_a_failed_one_fails_the_get(store, tmp_path):
-    import shutil
-
-    copy = shutil.copytree(store.path, tmp_path / "copy.store")
-    from vastray.scene.store import Store
-
-    damaged = Store(copy)
-    ids = nonempty(damaged)[:4]
-    info = damaged.domains[ids[3]]
-    (copy / info.files["indices"]).write_bytes(b"garbage")
+    damaged, ids = damaged_copy(store, tmp_path, 4)
     cache = DomainCache(damaged, 3, build_ahead=True)
     try:
         cache.get(ids[0])
