@@ -1151,3 +1151,21 @@ def test_the_schedules_decisions_cost_the_cpu_time_they_take(store, domains, sch
     charged = sim(store, domains, scheduler, 2, dataclasses.replace(ZERO, decision_scale=1e3))
     assert free.compute_seconds.sum() == 0
     assert charged.compute_seconds[:-1].sum() > 0 and charged.seconds > 0
+
+
+def test_a_replaced_build_ahead_runs_on_charged_and_is_no_load(domains):
+    async def main():
+        cluster, preloader = _preloader(domains, 3, LOADS, build_ahead=True)
+        await preloader.get(0)
+        preloader.build_ahead(2)
+        preloader.build_ahead(3)  # replaces 2's, which runs to its end on the node's core
+        start = cluster.now()
+        await preloader.get(3)  # waits for both builds on the one preloading thread
+        return preloader, cluster.now() - start
+
+    preloader, wait_s = run_virtual(main())[0]
+    both = sum(LOADS.load_s(int(domains.nbytes[d]), int(domains.triangles[d])) for d in (2, 3))
+    assert wait_s == pytest.approx(both, rel=1e-9)
+    stats = preloader.stats()
+    assert stats["builds_ahead"] == 2 and stats["builds_ahead_used"] == 1
+    assert stats["loads"] == 2 and preloader.resident() == {0, 3}

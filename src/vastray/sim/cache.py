@@ -158,6 +158,7 @@ class VirtualPreloader(CacheFront):
         self._preloading = asyncio.Lock()
         self._reads: dict[int, asyncio.Future] = {}  # domain -> its read ahead
         self._built: dict[int, asyncio.Future] = {}  # domain -> its build ahead (at most one)
+        self._replaced: set[asyncio.Future] = set()  # builds ahead replaced, running to the end
 
     @property
     def capacity(self) -> int:
@@ -311,7 +312,10 @@ class VirtualPreloader(CacheFront):
                 or domain in cache._pending or domain in self._built):
             return
         for replaced in self._built.values():
-            replaced.cancel()  # not taken: wasted (as the real cache's)
+            # not taken: it runs on, wasted, as the real preloader thread's build does (not
+            # cancelled: its compute is charged to the node's core to the end)
+            self._replaced.add(replaced)
+            replaced.add_done_callback(self._replaced.discard)
         self._built.clear()
         self._built[domain] = asyncio.ensure_future(self._build_ahead(int(domain)))
         cache.stats.builds_ahead += 1
@@ -328,7 +332,8 @@ class VirtualPreloader(CacheFront):
 
     def close(self) -> None:
         """Drop the reads ahead still running (no thread to stop)."""
-        for read in [*self._reads.values(), *self._built.values()]:
+        for read in [*self._reads.values(), *self._built.values(), *self._replaced]:
             read.cancel()
         self._reads.clear()
         self._built.clear()
+        self._replaced.clear()
