@@ -288,8 +288,6 @@ class DomainCache:
         self._resident[domain_id] = bvh
         # A running total: summing over every resident domain at each load costs O(domains).
         self._resident_bytes += bvh.nbytes()
-        self.stats.peak_resident_bytes = max(self.stats.peak_resident_bytes,
-                                             self._resident_bytes)
         # A preloaded domain is still pending while it is inserted: count it once. A domain
         # built ahead is in memory too, in the slot kept for it.
         built = [f.result()[0] for f in self._built.values() if f.done() and not f.exception()]
