@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 
@@ -263,11 +265,15 @@ class DomainQueues:
         """Bytes held: every block some queue still has a run in, counted once."""
         return self._held
 
-    def peek_fields(self, domain: int, names: tuple[str, ...]) -> list[tuple[np.ndarray, ...]]:
-        """The chunks queued in ``domain``, each as the views of the fields ``names`` only
-        (left queued: do not modify them)."""
-        return [tuple(block.fields[k][start:stop] for k in names)
-                for block, start, stop in self._chunks.get(domain, ())]
+    def peek_fields(self, domain: int, names: tuple[str, ...]) -> Iterator[tuple[np.ndarray, ...]]:
+        """The chunks queued in ``domain``, oldest first, each as the views of the fields
+        ``names`` only (left queued: do not modify them), made one at a time as they are
+        asked for: a search for the first chunk with some property (``_would_trace``) makes
+        the views of the chunks it reads, not of a queue's hundreds. Do not push or pop while
+        iterating."""
+        for block, start, stop in self._chunks.get(domain, ()):
+            fields = block.fields
+            yield tuple([fields[k][start:stop] for k in names])
 
     def peek(self, domain: int) -> list[SoA]:
         """The chunks queued in ``domain``, left queued (views: do not modify them)."""
