@@ -13,8 +13,10 @@ import pytest
 
 from vastray.preflight import (
     BASE_BYTES,
+    CALIBRATED_PATHS,
     LIMIT_BASE_MARGIN,
     MEMORY_HEADROOM,
+    TAIL_PATH_SHARE,
     MemoryEstimate,
     cache_within,
     check_memory,
@@ -72,6 +74,45 @@ def test_the_estimate_counts_the_process_its_pixels_paths_and_domains():
     assert two.total == 2 * small.total == small.times(2).total
     with pytest.raises(ValueError, match="role"):
         estimate_memory(64, 64, 0, 0, role="worker")
+
+
+def test_paths_beyond_the_calibrated_tile_are_charged_a_share_of_their_bytes():
+    def paths(n: int) -> int:
+        return estimate_memory(256, 256, n, 17, copies=2.0).paths
+
+    per_path = paths(1000) / 1000
+    assert paths(CALIBRATED_PATHS) == pytest.approx(CALIBRATED_PATHS * per_path, abs=1)
+    beyond = paths(4 * CALIBRATED_PATHS) - paths(CALIBRATED_PATHS)
+    assert beyond == pytest.approx(3 * CALIBRATED_PATHS * TAIL_PATH_SHARE * per_path, abs=1)
+    assert 0 < TAIL_PATH_SHARE < 1
+
+
+def test_a_path_beyond_the_calibrated_tile_holds_less_than_the_share_charged_for_it(tmp_path):
+    """spec-ooc out of core at 256x256 x 16 spp, once in tiles of ``CALIBRATED_PATHS`` paths
+    and once in one tile of four times that: what the larger tile adds to the measured peak
+    stays under what the model charges for its paths beyond the calibrated ones, and the
+    larger render's peak under its estimate."""
+    def vastray(*args):
+        return subprocess.run([sys.executable, "-m", "vastray.cli", *args], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=300)
+
+    made = vastray("generate", "rm", "-o", "rm.store", "--resolution", "48", "--grid", "2x2x2")
+    assert made.returncode == 0, made.stderr
+    peaks = []
+    for tile in (CALIBRATED_PATHS, 4 * CALIBRATED_PATHS):
+        out = vastray("render", "rm.store", "-o", "x.exr", "--report", "x.json", "--width",
+                      "256", "--height", "256", "--spp", "16", "--bounces", "1", "--scheduler",
+                      "spec-ooc", "--cache", "2", "--max-samples-in-flight", str(tile),
+                      "--quiet")
+        assert out.returncode == 0, out.stderr
+        report = json.loads((tmp_path / "x.json").read_text())
+        peaks.append(report["counters"]["peak_rss_bytes"])
+    settings = report["settings"]
+    # rm's lights at the default 16 shadow samples: 17 shadow rays per hit; 8 domains of a
+    # 2x2x2 grid: no copies beyond the per-path model's
+    charged = [estimate_memory(256, 256, tile, 17, copies=0.0).paths
+               for tile in (CALIBRATED_PATHS, 4 * CALIBRATED_PATHS)]
+    assert 0 < peaks[1] - peaks[0] < charged[1] - charged[0], (peaks, charged, settings)
 
 
 def test_the_reference_renderer_holds_a_batch_per_worker():

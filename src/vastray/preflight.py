@@ -103,6 +103,23 @@ SPECULATIVE_COPY_BYTES = 16
 #: ``PATH_BYTES`` and ``SHADOW_RAY_BYTES`` already hold.
 SPECULATION_FREE_CROSSINGS = 2.2
 
+#: The most paths in flight the per-path constants above were fitted on: spec-ooc's single
+#: tile of 262,144 paths (``DEFAULT_SAMPLES_IN_FLIGHT``). A larger tile (``--max-samples-in-
+#: flight``) charges each path beyond these ``TAIL_PATH_SHARE`` of the per-path bytes.
+CALIBRATED_PATHS = 262_144
+
+#: Share of the per-path bytes that each path in flight beyond ``CALIBRATED_PATHS`` adds. The
+#: per-path constants carry the heap's high water over batch after batch, which does not grow
+#: with the tile: measured at 1024x1024 x 1 spp (PT, 3 bounces, 17 shadow rays per hit) as the
+#: peak RSS of a 1,048,576-path tile less that of a smaller one, the same render otherwise,
+#: a path beyond the first costs 230 B (``image``) and 690 B (``spec-ooc``) on
+#: `rm --resolution 1600 --grid 6x6x2` (from 65,536 paths), 161 B and 414 B on
+#: `rm --resolution 128 --grid 4x4x2` (from 262,144): 12-17 % and 20-29 % of the model's
+#: 1,360 and 2,000-2,360 B. Half keeps the estimate above them with a margin of 1.7 or more;
+#: the full per-path bytes kept 2.2 GiB for about 0.6 GiB of paths on the README's 100 M
+#: store, so its 6 GiB budget held 16 of 72 domains with 3.3 GiB used.
+TAIL_PATH_SHARE = 0.5
+
 #: Share of ``MemAvailable`` a render may plan to use: the rest is left to the rest of the
 #: machine (other processes, the page cache the domains are read through) and to the
 #: estimate's own error (bench/memory.py: estimate / measured within 0.8-1.5).
@@ -164,7 +181,8 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
     Parameters
     ----------
     width, height : image size.
-    paths_in_flight : paths this process traces at once (batch x render workers, or its tile).
+    paths_in_flight : paths this process traces at once (batch x render workers, or its tile;
+        those beyond ``CALIBRATED_PATHS`` are charged ``TAIL_PATH_SHARE`` each).
     shadow_rays_per_hit : shadow rays one hit spawns (lights x shadow samples, AO rays).
     role : ``"render"`` (a single-process render, which also writes the outputs),
         ``"node"`` (a node of ``--nodes``) or ``"coordinator"`` (traces nothing).
@@ -186,8 +204,15 @@ def estimate_memory(width: int, height: int, paths_in_flight: int, shadow_rays_p
     per_path = int(PATH_BYTES + shadow_rays_per_hit * (SHADOW_RAY_BYTES
                                                        + copies * SPECULATIVE_COPY_BYTES))
     return MemoryEstimate(film=pixels * FILM_BYTES_PER_PIXEL,
-                          paths=int(paths_in_flight) * per_path,
+                          paths=int(charged_paths(int(paths_in_flight)) * per_path),
                           outputs=pixels * per_pixel, base=BASE_BYTES, domains=int(domains))
+
+
+def charged_paths(paths_in_flight: int) -> float:
+    """Paths in flight as the per-path bytes charge them: every one up to
+    ``CALIBRATED_PATHS``, ``TAIL_PATH_SHARE`` of each beyond."""
+    head = min(paths_in_flight, CALIBRATED_PATHS)
+    return head + TAIL_PATH_SHARE * (paths_in_flight - head)
 
 
 def crossings_from_surface(lo: np.ndarray, hi: np.ndarray, weight: np.ndarray,
