@@ -90,29 +90,32 @@ def test_paths_beyond_the_calibrated_tile_are_charged_a_share_of_their_bytes():
 def test_a_path_beyond_the_calibrated_tile_holds_less_than_the_share_charged_for_it(tmp_path):
     """spec-ooc out of core at 256x256 x 16 spp, once in tiles of ``CALIBRATED_PATHS`` paths
     and once in one tile of four times that: what the larger tile adds to the measured peak
-    stays under what the model charges for its paths beyond the calibrated ones, and the
-    larger render's peak under its estimate."""
-    def vastray(*args):
-        return subprocess.run([sys.executable, "-m", "vastray.cli", *args], cwd=tmp_path,
-                              capture_output=True, text=True, timeout=300)
+    stays under what the CLI's own estimate (``plan_render``) charges for its paths beyond
+    the calibrated ones, and each render's peak under that estimate."""
+    from vastray.cli import build_parser
+    from vastray.planning import plan_render
+    from vastray.request import RenderRequest
 
-    made = vastray("generate", "rm", "-o", "rm.store", "--resolution", "48", "--grid", "2x2x2")
+    made = subprocess.run([sys.executable, "-m", "vastray.cli", "generate", "rm", "-o",
+                           "rm.store", "--resolution", "48", "--grid", "2x2x2"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
     assert made.returncode == 0, made.stderr
-    peaks = []
+    peaks, estimates = [], []
     for tile in (CALIBRATED_PATHS, 4 * CALIBRATED_PATHS):
-        out = vastray("render", "rm.store", "-o", "x.exr", "--report", "x.json", "--width",
-                      "256", "--height", "256", "--spp", "16", "--bounces", "1", "--scheduler",
-                      "spec-ooc", "--cache", "2", "--max-samples-in-flight", str(tile),
-                      "--quiet")
+        argv = [str(tmp_path / "rm.store"), "-o", str(tmp_path / "x.exr"), "--report",
+                str(tmp_path / "x.json"), "--width", "256", "--height", "256", "--spp", "16",
+                "--bounces", "1", "--scheduler", "spec-ooc", "--cache", "2",
+                "--max-samples-in-flight", str(tile)]
+        out = subprocess.run([sys.executable, "-m", "vastray.cli", "render", *argv, "--quiet"],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
         assert out.returncode == 0, out.stderr
         report = json.loads((tmp_path / "x.json").read_text())
         peaks.append(report["counters"]["peak_rss_bytes"])
-    settings = report["settings"]
-    # rm's lights at the default 16 shadow samples: 17 shadow rays per hit; 8 domains of a
-    # 2x2x2 grid: no copies beyond the per-path model's
-    charged = [estimate_memory(256, 256, tile, 17, copies=0.0).paths
-               for tile in (CALIBRATED_PATHS, 4 * CALIBRATED_PATHS)]
-    assert 0 < peaks[1] - peaks[0] < charged[1] - charged[0], (peaks, charged, settings)
+        request = RenderRequest.from_namespace(build_parser().parse_args(["render", *argv]))
+        estimates.append(plan_render(request).memory.process)
+    added, charged = peaks[1] - peaks[0], estimates[1].paths - estimates[0].paths
+    assert 0 < added < charged, (peaks, [e.paths for e in estimates])
+    assert all(peak < e.total for peak, e in zip(peaks, estimates, strict=True)), peaks
 
 
 def test_the_reference_renderer_holds_a_batch_per_worker():
