@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from vastray.actors.job_options import JobOptions
+from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.node_state import NodeState
 from vastray.actors.preloader import DomainPreloader
 from vastray.scene.cache import DomainCache
@@ -324,5 +324,5 @@ def test_build_ahead_is_off_where_it_has_no_slot_to_keep(store):
     assert not preloader.builds_ahead  # preloading off: nothing is loaded ahead
     preloader.close()
     assert not JobOptions(scheduler="spec-ooc").build_ahead  # a switch, off by default
-    with pytest.raises(Exception, match="build_ahead"):
+    with pytest.raises(JobOptionsError, match="'build_ahead' must be true or false"):
         JobOptions(scheduler="spec-ooc", build_ahead="yes")
