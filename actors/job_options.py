@@ -108,9 +108,9 @@ class JobOptions:
     build_ahead : out of core, keep one slot of the cache for the next domain to load, built
         on the preloader thread while the schedule names no preload (``DomainCache.build_ahead``;
         spec-ooc names none while it serves the domain a load would evict). Off by default: in
-        ``bench/ooc.py --large`` it made spec-ooc 10 % faster at a quarter of the domains
-        cached with cold reads and 7 % slower at 200 MB/s and at half, the replaced builds
-        costing CPU (bench/README, session 64).
+        ``bench/ooc.py --large`` it made spec-ooc 4-10 % faster at a quarter of the domains
+        cached with cold reads, 6-7 % slower at 200 MB/s, and at half either way (-2 to
+        +7 %), the replaced builds costing CPU (bench/README, sessions 64 and 65).
     trace_ahead : out of core with passes apart (a reference, a time limit, an error target),
         trace later passes on the current one's domain loads
         (``SortFirstTiles.render_ahead``); False: each pass sweeps the domains alone
