@@ -15,6 +15,7 @@ import numpy as np
 from embreex import mesh_construction, rtcore, rtcore_scene
 
 from vastray.scene.cpus import available_cpus
+from vastray.scene.embree.kernels import PIECE_TRIANGLES
 from vastray.scene.embree.library import binding
 from vastray.scene.embree.scenes import Scene
 from vastray.scene.footprint import resident_bytes
@@ -80,7 +81,8 @@ class DomainBVH:
         self.compiled = binding() is not None
         if self.compiled:
             self._scene = Scene(arrays.vertices, arrays.indices, build_quality=build_quality,
-                                mesh_quality=mesh_quality, compact=self._fast)
+                                mesh_quality=mesh_quality, compact=self._fast,
+                                piece_triangles=PIECE_TRIANGLES if self._fast else None)
         else:
             self._scene = rtcore_scene.EmbreeScene(embree_device())
             mesh_construction.TriangleMesh(

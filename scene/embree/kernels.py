@@ -81,6 +81,7 @@ ARG_N = 40
 #: k * N + i (rtcore_ray.h's RTCRayN_tfar, RTCHitN_primID, RTCHitN_instID at level 0).
 RAYN_TFAR = 8
 HITN_PRIM = 5
+HITN_GEOM = 6
 HITN_INST = 7
 #: Byte offset, in the ray query context, of our per-lane records (best t: float32, its
 #: instance: int32, its primitive: int32, padding): past ``RTCRayQueryContext``'s instID[1]
@@ -88,6 +89,14 @@ HITN_INST = 7
 CTX_RECORD = 16
 
 _INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
+#: Triangles of each geometry (piece) of a mesh built as several (``scenes.Scene``'s
+#: ``piece_triangles``): piece g holds the mesh's triangles ``g * PIECE_TRIANGLES ..`` in order,
+#: so a hit's (geomID, primID) is the mesh's triangle ``geomID * PIECE_TRIANGLES + primID``,
+#: and a mesh of one geometry (geomID 0) reads as its own primID. The kernels and the tie
+#: filter report and compare that id. Why pieces: Embree's two-level builder builds the pieces'
+#: BVHs in parallel, each on one thread, where one mesh's Morton build barely uses a second
+#: thread (``scene.bvh_choice``).
+PIECE_TRIANGLES = 1 << 17
 #: (include/embree4/rtcore_common.h)
 RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER = 1 << 1
 
@@ -164,11 +173,14 @@ def _tie_filter(args):
     filter accepts a candidate only if it is nearer than the best so far, or as near with a
     lower (instance, primitive) id, so the same ray always ends with the same hit: the lowest
     domain (instances are attached in ascending domain id; a direct query has no instance,
-    id -1) and, within it, the lowest primitive id among the nearest.
+    id -1) and, within it, the lowest primitive id among the nearest. A mesh built in pieces
+    (``PIECE_TRIANGLES``) is compared by its own triangle ids (geomID * PIECE_TRIANGLES +
+    primID), so the pieces change nothing of the rule.
 
     ``args`` is the address of ``RTCFilterFunctionNArguments``: valid (int*), geometryUserPtr,
     context, ray (RTCRayN*), hit (RTCHitN*), N (unsigned int). The candidate's distance is in
-    the ray's tfar, its primitive in the hit's primID, its instance in instID[0]. The best so
+    the ray's tfar, its primitive in the hit's primID and geomID, its instance in instID[0].
+    The best so
     far is kept per lane in our part of the ray query context (16 records, one per possible
     lane: no lane indexes past it).
     """
@@ -181,7 +193,8 @@ def _tie_filter(args):
         if load_i32(valid + 4 * lane) == 0:
             continue
         t = load_f32(ray + 4 * (RAYN_TFAR * n + lane))
-        prim = load_i32(hit + 4 * (HITN_PRIM * n + lane))
+        prim = (load_i32(hit + 4 * (HITN_GEOM * n + lane)) * PIECE_TRIANGLES
+                + load_i32(hit + 4 * (HITN_PRIM * n + lane)))
         inst = load_i32(hit + 4 * (HITN_INST * n + lane))
         record = ctx + CTX_RECORD + _RECORD_BYTES * lane
         best_t = load_f32(record)
@@ -215,7 +228,8 @@ def filter_address() -> int:
 @njit(inline="always")
 def _store_hit(f, i32, prim, tfar, u, v, ng, i):
     """Copy ray ``i``'s hit out of an RTCRayHit buffer: tfar at word 8, then the hit's Ng_x,
-    Ng_y, Ng_z, u, v, primID at words 12-17. A miss reads as primID -1, zero u, v and Ng."""
+    Ng_y, Ng_z, u, v, primID, geomID at words 12-18 (the mesh's triangle: geomID *
+    PIECE_TRIANGLES + primID). A miss reads as primID -1, zero u, v and Ng."""
     p = i32[RAYHIT_PRIM]
     tfar[i] = f[RAYHIT_TFAR]
     if p == _INVALID:
@@ -226,7 +240,7 @@ def _store_hit(f, i32, prim, tfar, u, v, ng, i):
         ng[i, 1] = 0.0
         ng[i, 2] = 0.0
     else:
-        prim[i] = p
+        prim[i] = i32[RAYHIT_GEOM] * PIECE_TRIANGLES + p
         ng[i, 0] = f[RAYHIT_NG]
         ng[i, 1] = f[RAYHIT_NG + 1]
         ng[i, 2] = f[RAYHIT_NG + 2]
@@ -416,7 +430,7 @@ def intersect_nearest8(scene, filt, org, dirs, tfar_in, prim, tfar, u, v, ng, in
             p = i32[RAYHIT_PRIM * PACKET + lane]
             hit = p != _INVALID
             tfar[i] = f[RAYHIT_TFAR * PACKET + lane]
-            prim[i] = p if hit else -1
+            prim[i] = i32[RAYHIT_GEOM * PACKET + lane] * PIECE_TRIANGLES + p if hit else -1
             inst[i] = i32[RAYHIT_INST * PACKET + lane] if hit else -1
             u[i] = f[RAYHIT_U * PACKET + lane] if hit else np.float32(0.0)
             v[i] = f[RAYHIT_V * PACKET + lane] if hit else np.float32(0.0)

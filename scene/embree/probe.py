@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from vastray.scene.embree import kernels
-from vastray.scene.embree.library import Api
+from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW, Api
 
 #: What Embree must leave alone: every word of our buffers it has no business writing.
 SENTINEL = 0xA5A5A5A5
@@ -82,7 +82,8 @@ def _context(lane: int = 0) -> np.ndarray:
 def _recording_filter(seen: list, lane: int, ctx: np.ndarray):
     """A filter (Python, through ctypes) that appends to ``seen`` what ``_tie_filter`` would
     read of its arguments: N, the valid words of the call's lanes, the context's address, and
-    lane ``lane``'s candidate distance, primitive and instance; and the context's words."""
+    lane ``lane``'s candidate distance, primitive, geometry and instance; and the context's
+    words."""
 
     def filt(args):
         try:
@@ -98,6 +99,7 @@ def _recording_filter(seen: list, lane: int, ctx: np.ndarray):
                 "context": u64(args + kernels.ARG_CONTEXT).value,
                 "t": ctypes.c_float.from_address(lane_ray + 4 * (kernels.RAYN_TFAR * n + lane)).value,
                 "prim": u32(lane_hit + 4 * (kernels.HITN_PRIM * n + lane)).value,
+                "geom": u32(lane_hit + 4 * (kernels.HITN_GEOM * n + lane)).value,
                 "inst": u32(lane_hit + 4 * (kernels.HITN_INST * n + lane)).value,
                 "ctx": ctx.copy(),
             })
@@ -121,7 +123,7 @@ def _near(a: float, b: float) -> bool:
     return abs(a - b) <= 1e-5 * max(1.0, abs(b))
 
 
-def _check_hit(ray: np.ndarray, before: np.ndarray, prim: int, inst: int) -> str:
+def _check_hit(ray: np.ndarray, before: np.ndarray, prim: int, geom: int, inst: int) -> str:
     """'' if the RTCRayHit buffer ``ray`` holds exactly the expected hit of the probe's ray
     (t 1, u = v = 0.25, Ng along z; the given ids) and nothing else changed since ``before``;
     else the first difference. The word after instID[0] may hold instPrimID[0] (where the
@@ -141,7 +143,7 @@ def _check_hit(ray: np.ndarray, before: np.ndarray, prim: int, inst: int) -> str
         want[k] = ray[k]
     want[kernels.RAYHIT_NG + 2] = ray[kernels.RAYHIT_NG + 2]
     want[kernels.RAYHIT_PRIM] = prim
-    want[kernels.RAYHIT_GEOM] = 0
+    want[kernels.RAYHIT_GEOM] = geom
     want[kernels.RAYHIT_INST] = inst
     allowed = {kernels.RAYHIT_INST + 1: (0 if inst != _INVALID else _INVALID, SENTINEL)}
     problem = _diff("RTCRayHit", ray, want, allowed)
@@ -169,11 +171,14 @@ def check_layouts(api: Api) -> None:
 
 
 def _probe(api: Api, Scene, TopScene) -> str:
-    # Scene ``near``: triangle 1 in z = 0 under the ray, triangle 0 off it; scene ``far``: one
-    # triangle off the ray. Top-level scene: instance 0 of ``far``, instance 1 of ``near``.
+    # Scene ``near``: triangle 1 in z = 0 under the ray, triangle 0 off it, each its own piece
+    # (geometry 1, primitive 0: where Embree writes and the filter reads geomID shows); scene
+    # ``far``: one triangle off the ray. Top-level scene: instance 0 of ``far``, instance 1 of
+    # ``near``.
     pad = np.zeros((7, 3), np.float32)
     pad[:6] = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0], [6, 5, 0], [5, 6, 0]]
-    near = Scene(pad[:6], np.array([[3, 4, 5], [0, 1, 2]], np.uint32), api=api)
+    near = Scene(pad[:6], np.array([[3, 4, 5], [0, 1, 2]], np.uint32), api=api,
+                 mesh_quality=RTC_BUILD_QUALITY_LOW, piece_triangles=1)
     far = Scene(pad[3:6], np.array([[0, 1, 2]], np.uint32), api=api)
     top = TopScene([far, near], [0, 1], api=api)
     try:
@@ -227,9 +232,10 @@ def _probe_intersect(api: Api, scene, inst: int) -> str:
     if got["N"] != 1 or got["valid"] != [-1] or got["context"] != ctx.ctypes.data:
         return (f"RTCFilterFunctionNArguments not as expected (N {got['N']}, valid "
                 f"{got['valid']}, context 0x{got['context']:x} for 0x{ctx.ctypes.data:x})")
-    if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
-        return (f"the filter read t {got['t']}, primID {got['prim']}, instID {got['inst']} "
-                f"{where}, expected 1.0, 1, {inst} (RTCRayN/RTCHitN lanes elsewhere)")
+    if not _near(got["t"], 1.0) or (got["prim"], got["geom"], got["inst"]) != (0, 1, inst):
+        return (f"the filter read t {got['t']}, primID {got['prim']}, geomID {got['geom']}, "
+                f"instID {got['inst']} {where}, expected 1.0, 0, 1, {inst} (RTCRayN/RTCHitN "
+                f"lanes elsewhere)")
     # During the query Embree's instance stack holds the instance: instID[0] (and instPrimID[0]
     # 0 where built with instance arrays) in the words before our record, which it never
     # touches.
@@ -243,7 +249,7 @@ def _probe_intersect(api: Api, scene, inst: int) -> str:
     problem = _diff("RTCRayQueryContext (after the query)", ctx, ctx_before)
     if problem:
         return problem
-    return _check_hit(ray, before, 1, inst)
+    return _check_hit(ray, before, 0, 1, inst)
 
 
 def _probe_occluded(api: Api, scene) -> str:
@@ -303,14 +309,15 @@ def _probe_packet(api: Api, scene, inst: int) -> str:
     if got["N"] != kernels.PACKET or got["valid"] != want_valid:
         return (f"an 8-ray packet's filter saw N {got['N']} and valid {got['valid']}, expected "
                 f"N {kernels.PACKET} and lane {_LANE} only")
-    if not _near(got["t"], 1.0) or (got["prim"], got["inst"]) != (1, inst):
+    if not _near(got["t"], 1.0) or (got["prim"], got["geom"], got["inst"]) != (0, 1, inst):
         return (f"the filter of an 8-ray packet read t {got['t']}, primID {got['prim']}, "
-                f"instID {got['inst']} in lane {_LANE} {where}, expected 1.0, 1, {inst}")
+                f"geomID {got['geom']}, instID {got['inst']} in lane {_LANE} {where}, "
+                f"expected 1.0, 0, 1, {inst}")
     # the lane's fields, read as a 1-ray buffer, must hold the hit the 1-ray probe checks
     pad = np.full(_WORDS - kernels.PACKET_FIELDS, SENTINEL, np.uint32)
     lane = np.concatenate([ray[_LANE:_packet_words():kernels.PACKET], pad])
     lane_before = np.concatenate([before[_LANE:_packet_words():kernels.PACKET], pad])
-    problem = _check_hit(lane, lane_before, 1, inst)
+    problem = _check_hit(lane, lane_before, 0, 1, inst)
     if problem:
         return f"8-ray packet lane {_LANE}: {problem}"
     others = np.ones(len(ray), bool)
