@@ -37,8 +37,9 @@ DEFAULT_MAX_BATCH_RAYS = 65536
 #: over the tree), so nodes of version 3 would wait for batches that never come; 5: the job's
 #: settings beside these options carry color_min and color_max (``--color-range``), which a
 #: node of version 4 cannot read; 6: trace_ahead (``--passes-alone``), and a time-limited
-#: job's passes traced ahead by the clock each grant brings.
-VERSION = 7
+#: job's passes traced ahead by the clock each grant brings; 8: memory_limit (a node's cache
+#: gives the heap's free memory back as its RSS nears it).
+VERSION = 8
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 EVICTIONS = ("lru", "demand")
@@ -139,6 +140,10 @@ class JobOptions:
         affinity); None: the scheduler's default (``decomposition._temporal_frame`` for
         temporal: ``affinity``).
     priority : temporal's domain priority; None: ``cost-rate`` (``decomposition._temporal_frame``).
+    memory_limit : bytes each process may use (``--memory-limit``, which sized ``cache``);
+        each process's domain cache gives the C heap's free memory back to the system before
+        a build while its RSS is above ``scene.heap.TRIM_ABOVE`` of it (``DomainCache``'s
+        ``rss_ceiling``); None: never.
 
     Raises
     ------
@@ -168,6 +173,7 @@ class JobOptions:
     portal_memory: int = 0
     assignment: str | None = None
     priority: str | None = None
+    memory_limit: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.load_bandwidth, (int, float)) and not isinstance(self.load_bandwidth,
@@ -203,7 +209,7 @@ class JobOptions:
             raise JobOptionsError(f"unknown scheduler {self.scheduler!r}; choose from "
                                   f"{', '.join(registry.JOB_SCHEDULERS)}")
         for name in ("cache", "max_samples_in_flight", "max_batch_rays", "threads",
-                     "portal_interval", "portal_resolution"):
+                     "portal_interval", "portal_resolution", "memory_limit"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise JobOptionsError(f"job option {name!r} must be at least 1, got {value}")
@@ -335,10 +341,11 @@ _TYPES = {
     "load_bandwidth": tuple, "cold_reads": bool, "eviction": str, "simplified": str,
     "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
-    "portal_memory": _INT, "assignment": str, "priority": str,
+    "portal_memory": _INT, "assignment": str, "priority": str, "memory_limit": _INT,
 }
 _OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads",
-                       "load_bandwidth", "simplified", "assignment", "priority"})
+                       "load_bandwidth", "simplified", "assignment", "priority",
+                       "memory_limit"})
 _TYPE_NAMES = {name: ("true or false" if kinds is bool else "a string" if kinds is str
                       else "a number" if kinds is _FLOAT else "a list" if kinds is tuple
                       else "an integer") + (" or None" if name in _OPTIONAL else "")

@@ -64,15 +64,16 @@ class DomainPreloader(CacheFront):
     drop_page_cache : make every load a real read from disk (out-of-core benchmarks).
     fast_builds : build Embree's fast BVH (the render's ``RenderSetup.fast_builds``).
     build_ahead : keep a slot of the cache for a domain built ahead (``build_ahead``).
+    rss_ceiling : the cache's (``DomainCache``): RSS above which a build first trims the heap.
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
                  preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False,
-                 build_ahead: bool = False):
+                 build_ahead: bool = False, rss_ceiling: int | None = None):
         self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth,
                                  drop_page_cache=drop_page_cache, fast_builds=fast_builds,
-                                 build_ahead=build_ahead and preload)
+                                 build_ahead=build_ahead and preload, rss_ceiling=rss_ceiling)
         self.enabled = preload
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
 

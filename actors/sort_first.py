@@ -373,7 +373,7 @@ class PassSpans:
 #: The cache counters that are totals over a cache's life (a call reports its own share).
 _CACHE_TOTALS = ("loads", "hits", "evictions", "load_seconds", "read_seconds", "build_seconds",
                  "preloads", "wait_seconds", "bytes_loaded", "throttle_seconds", "reads_ahead",
-                 "reads_ahead_used", "builds_ahead", "builds_ahead_used")
+                 "reads_ahead_used", "builds_ahead", "builds_ahead_used", "heap_trims")
 
 
 def _cache_counts(stats: CacheStats) -> dict:

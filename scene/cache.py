@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
+from vastray.scene.heap import process_rss, trim_heap
 from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
@@ -40,6 +41,7 @@ class CacheStats:
     reads_ahead_used: int = 0
     builds_ahead: int = 0
     builds_ahead_used: int = 0
+    heap_trims: int = 0
 
     def as_dict(self) -> dict:
         return {
@@ -60,6 +62,7 @@ class CacheStats:
             "reads_ahead_used": self.reads_ahead_used,
             "builds_ahead": self.builds_ahead,
             "builds_ahead_used": self.builds_ahead_used,
+            "heap_trims": self.heap_trims,
         }
 
 
@@ -83,17 +86,21 @@ class DomainCache:
         the same BVH); False: Embree's default build.
     build_ahead : keep one of the ``capacity`` slots for a domain built ahead
         (``build_ahead``), where the cache is smaller than the store and holds at least 3.
+    rss_ceiling : bytes of process RSS above which each build first gives the C heap's free
+        memory back to the system (``scene.heap``: what earlier builds freed, which the heap
+        keeps for the next ones); None: never (no memory limit).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None,
                  load_bandwidth: float | None = None, fast_builds: bool = False,
-                 build_ahead: bool = False):
+                 build_ahead: bool = False, rss_ceiling: int | None = None):
         if capacity < 1:
             raise ValueError("cache capacity must be at least 1 domain")
         if load_bandwidth is not None and not load_bandwidth > 0:
             raise ValueError(f"load bandwidth must be positive, got {load_bandwidth}")
         self.load_bandwidth = load_bandwidth
+        self.rss_ceiling = rss_ceiling
         #: (D,) eviction priorities from the scheduler (lowest evicted first) and domains never
         #: evicted for a preload; None: least recently used first.
         self._priority = None
@@ -457,6 +464,7 @@ class DomainCache:
         domain, bytes read, whether it was read ahead, read seconds, the bandwidth's wait in
         them, build seconds)."""
         start = time.perf_counter()
+        self._relieve_heap()
         size = self.store.domains[domain_id].read_bytes(self.keep)
         ahead = self._take_read(domain_id)  # waited for here if it is still running
         arrays, read_s, throttle = ahead if ahead is not None else self._read(domain_id)
@@ -467,6 +475,13 @@ class DomainCache:
         log.debug("loaded domain %d (%d triangles) in %.3f s", domain_id, bvh.n_triangles,
                   done - start)
         return bvh, size, ahead is not None, read_s, throttle, done - read_done
+
+    def _relieve_heap(self) -> None:
+        """Above ``rss_ceiling``, give the C heap's free memory back before a build takes
+        more (``scene.heap``), counted in ``heap_trims``."""
+        if self.rss_ceiling is not None and process_rss() > self.rss_ceiling and trim_heap():
+            with self._lock:
+                self.stats.heap_trims += 1
 
     def _count_built(self, domain_id: int, built: tuple) -> None:
         """Count a load ``_build`` made in the stats."""

@@ -411,4 +411,5 @@ def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> Jo
         portal_memory=request.portal_memory or 0,
         assignment=request.assignment or job.default_assignment,
         priority=request.priority or job.default_priority,
+        memory_limit=request.memory_limit,
     )
