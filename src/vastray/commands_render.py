@@ -124,7 +124,9 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "T: KiB, MiB, GiB, TiB): bounds its "
                         "domain cache after the rest of the process (interpreter and "
                         "libraries, film, paths in flight, and a 75 MB margin for the "
-                        "libraries' measured spread); the report's peak_rss_bytes is the "
+                        "libraries' measured spread); above 90%% of it a cache gives the "
+                        "heap's free memory back before each domain build (heap_trims in the "
+                        "report); the report's peak_rss_bytes is the "
                         "measured peak; a render that cannot fit is "
                         "refused before it starts (default: a render is refused only when it "
                         "needs more than 85%% of the available memory)")
