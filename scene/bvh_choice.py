@@ -28,9 +28,9 @@ reference renders with the same BVH.
 - ``auto`` (default): ``fast`` for stores of at least :data:`FAST_TRIANGLES` triangles (the
   data vastray exists for: larger than memory, loaded more than once), ``quality`` below.
 - ``fast``: Embree's Morton builder and compact layout for every domain, each domain attached
-  as pieces of ``kernels.PIECE_TRIANGLES`` triangles that Embree builds in parallel (one
-  mesh's Morton build barely uses a second thread; in pieces a domain builds in about half the
-  time for a third less CPU, ``scenes.Scene``).
+  as pieces of ``kernels.PIECE_TRIANGLES`` triangles (in pieces a domain builds in about half
+  the time for a third less CPU, mostly by reusing heap pages earlier builds freed,
+  ``scenes.Scene``, ``scene.heap``).
 - ``quality``: Embree's default build (a cache smaller than the store builds the two-level
   form of the same BVH, ``scene.cache``: the same hits, 10-25 % faster to build).
 """

@@ -93,9 +93,9 @@ _INVALID = -1  # RTC_INVALID_GEOMETRY_ID as int32
 #: ``piece_triangles``): piece g holds the mesh's triangles ``g * PIECE_TRIANGLES ..`` in order,
 #: so a hit's (geomID, primID) is the mesh's triangle ``geomID * PIECE_TRIANGLES + primID``,
 #: and a mesh of one geometry (geomID 0) reads as its own primID. The kernels and the tie
-#: filter report and compare that id. Why pieces: Embree's two-level builder builds the pieces'
-#: BVHs in parallel, each on one thread, where one mesh's Morton build barely uses a second
-#: thread (``scene.bvh_choice``).
+#: filter report and compare that id. Why pieces: a domain built in pieces takes about half the
+#: time of one mesh's Morton build, which barely uses a second thread, mostly because a piece's
+#: blocks come from the C heap and reuse the pages earlier builds freed (``scene.heap``).
 PIECE_TRIANGLES = 1 << 17
 #: (include/embree4/rtcore_common.h)
 RTC_RAY_QUERY_FLAG_INVOKE_ARGUMENT_FILTER = 1 << 1
@@ -180,9 +180,8 @@ def _tie_filter(args):
     ``args`` is the address of ``RTCFilterFunctionNArguments``: valid (int*), geometryUserPtr,
     context, ray (RTCRayN*), hit (RTCHitN*), N (unsigned int). The candidate's distance is in
     the ray's tfar, its primitive in the hit's primID and geomID, its instance in instID[0].
-    The best so
-    far is kept per lane in our part of the ray query context (16 records, one per possible
-    lane: no lane indexes past it).
+    The best so far is kept per lane in our part of the ray query context (16 records, one per
+    possible lane: no lane indexes past it).
     """
     valid = load_i64(args + ARG_VALID)
     ctx = load_i64(args + ARG_CONTEXT)

@@ -252,9 +252,10 @@ class Scene(_SceneHandle):
     so a ray within float rounding of an edge may take the neighbouring triangle (0-2 rays in
     50,000 aimed at vertices). ``piece_triangles``: the mesh is attached as several triangle
     geometries of that many consecutive triangles each (the last the rest), which Embree's
-    two-level builder builds in parallel, one thread a piece (a single mesh's Morton build
-    gains 5 % from a second thread for 50 % more CPU; in pieces the build takes half the time
-    and a third less CPU on 2 cores, and queries are as fast); None: one geometry. The query
+    two-level builder builds side by side (a single mesh's Morton build gained 5 % from a
+    second thread for 50 % more CPU; in pieces a domain built in about half the time for a third
+    less CPU on 2 cores, mostly because a piece's blocks come from the C heap and reuse the
+    pages earlier builds freed, ``scene.heap``; queries are as fast); None: one geometry. The query
     kernels read a hit's (geomID, primID) as triangle ``geomID * kernels.PIECE_TRIANGLES +
     primID``, so a scene they query has pieces of exactly that size (the layout probe alone
     uses others). It needs ``mesh_quality`` (the two-level BVH). The BVH, so a ray passing
