@@ -11,9 +11,10 @@ from collections.abc import Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
+from vastray.processes import rss_bytes
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
-from vastray.scene.heap import process_rss, trim_heap
+from vastray.scene.heap import trim_heap
 from vastray.scene.store import Store
 
 log = logging.getLogger(__name__)
@@ -479,7 +480,7 @@ class DomainCache:
     def _relieve_heap(self) -> None:
         """Above ``rss_ceiling``, give the C heap's free memory back before a build takes
         more (``scene.heap``), counted in ``heap_trims``."""
-        if self.rss_ceiling is not None and process_rss() > self.rss_ceiling and trim_heap():
+        if self.rss_ceiling is not None and rss_bytes() > self.rss_ceiling and trim_heap():
             with self._lock:
                 self.stats.heap_trims += 1
 

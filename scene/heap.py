@@ -1,4 +1,4 @@
-"""The process's resident memory, and giving the C heap's free memory back to the system.
+"""Giving the C heap's free memory back to the system when a render nears its memory limit.
 
 Embree's builds of the fast BVH's pieces (``scenes.Scene``) take their blocks from the C heap
 (each is smaller than glibc's mmap threshold), and a build reuses the pages an evicted
@@ -15,23 +15,11 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import os
 
 #: The share of ``--memory-limit`` above which a cache trims the heap before a build.
 TRIM_ABOVE = 0.9
 
-_PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 _trim = None  # glibc's malloc_trim, or False where the C library has none
-
-
-def process_rss() -> int:
-    """The process's resident bytes now (``/proc/self/statm``); 0 where there is no
-    ``/proc``."""
-    try:
-        with open("/proc/self/statm", "rb") as statm:
-            return int(statm.read().split()[1]) * _PAGE
-    except (OSError, IndexError, ValueError):
-        return 0
 
 
 def trim_heap() -> bool:

@@ -11,9 +11,10 @@ import pytest
 from vastray.actors.job_options import JobOptions, JobOptionsError
 from vastray.actors.local import render_out_of_core
 from vastray.planning import job_options
+from vastray.processes import rss_bytes
 from vastray.request import RenderRequest
 from vastray.scene.cache import DomainCache
-from vastray.scene.heap import TRIM_ABOVE, process_rss, rss_ceiling, trim_heap
+from vastray.scene.heap import TRIM_ABOVE, rss_ceiling, trim_heap
 
 from scenes import bumpy_scene, camera_config, settings, write_store
 
@@ -23,10 +24,10 @@ def bumpy(tmp_path_factory):
     return write_store(tmp_path_factory.mktemp("heap") / "kd8", bumpy_scene(), kd=8)
 
 
-def test_process_rss_sees_memory_this_process_touches():
-    before = process_rss()
+def test_rss_bytes_sees_memory_this_process_touches():
+    before = rss_bytes()
     block = np.ones(50_000_000, np.uint8)  # 50 MB, every page written
-    assert process_rss() - before > 40_000_000
+    assert rss_bytes() - before > 40_000_000
     del block
     assert trim_heap() in (True, False)  # False only without glibc's malloc_trim
 
@@ -48,23 +49,20 @@ def test_the_ceiling_is_a_share_of_the_limit():
     assert job_options(RenderRequest(), "spec-ooc", 3).memory_limit is None
 
 
-@pytest.mark.parametrize("limit", [1, None])
-def test_an_out_of_core_render_under_a_limit_trims_and_gives_the_same_image(bumpy, limit):
-    """A limit every RSS exceeds: each build trims first, and the image is the unlimited
-    render's bit for bit (the trim frees only memory nothing holds)."""
+def test_an_out_of_core_render_under_a_limit_trims_and_gives_the_same_image(bumpy):
+    """A limit every RSS exceeds (1 byte): each build trims first, and the image is the
+    unlimited render's bit for bit (the trim frees only memory nothing holds)."""
     config = camera_config([3.0, 2.2, 4.5], [0.0, -0.5, 0.0])
     st = settings(integrator="pt", bvh="fast")
-    runs = {}
-    for memory_limit in (limit, None):
-        runs[memory_limit] = render_out_of_core(
-            bumpy, config, st, options=JobOptions(scheduler="spec-ooc", cache=3,
-                                                  memory_limit=memory_limit), progress=False)
-    counters = runs[limit].counters
+    limited, unlimited = (render_out_of_core(
+        bumpy, config, st, options=JobOptions(scheduler="spec-ooc", cache=3,
+                                              memory_limit=memory_limit), progress=False)
+        for memory_limit in (1, None))
+    counters = limited.counters
     assert counters["loads"] > len(bumpy.domains)  # out of core: it reloaded
-    expected = counters["loads"] if limit is not None and trim_heap() else 0
-    assert counters["heap_trims"] == expected
-    assert runs[None].counters["heap_trims"] == 0
-    np.testing.assert_array_equal(runs[limit].film.image(), runs[None].film.image())
+    assert counters["heap_trims"] == (counters["loads"] if trim_heap() else 0)
+    assert unlimited.counters["heap_trims"] == 0
+    np.testing.assert_array_equal(limited.film.image(), unlimited.film.image())
 
 
 def test_the_limit_travels_to_the_nodes():

@@ -72,6 +72,7 @@ def test_a_render_under_a_quarter_of_its_domains_equals_the_all_in_memory_one(
     assert c["peak_rss_bytes"] <= limit, (c["peak_rss_bytes"], limit)  # measured, in the report
     assert report["options"]["memory_limit"] == limit and report["options"]["cold_reads"]
     assert c["belady_loads"] <= c["loads"] and c["bytes_loaded"] > 0
+    assert 0 <= c["heap_trims"] <= c["loads"]  # the cache's guard against the heap's keep
     # the summary line says what loading cost and the peak against the limit
     assert "GB read" in run.stderr and "s waited" in run.stderr and "peak RSS" in run.stderr
     all_loaded = json.loads((tmp_path / "all.json").read_text())["counters"]

@@ -1,6 +1,6 @@
 """Facts about processes: whether one still runs (what files and folders named after their
 owner's pid, such as stale temporary images, node logs and join secrets, are judged by), and
-this process's peak resident memory and bytes read from storage; and how a SIGTERM stops one
+this process's resident memory (now and at its peak) and bytes read from storage; and how a SIGTERM stops one
 (``Terminated``, raised by the handler the CLI installs)."""
 
 from __future__ import annotations
@@ -101,6 +101,11 @@ def peak_rss_bytes() -> int:
     import resource
 
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def rss_bytes() -> int:
+    """This process's resident memory now (``VmRSS``); 0 where there is no ``/proc``."""
+    return proc_bytes("/proc/self/status", "VmRSS") or 0
 
 
 def disk_read_bytes() -> int | None:
