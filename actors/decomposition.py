@@ -124,6 +124,7 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     stats.update(frame_load_stats(before, preloader.stats()))
     stats["load_bandwidth_mb_s"] = preloader.load_bandwidth_mb_s()
     stats["cache_capacity"] = preloader.capacity
+    stats["cache_bytes"] = preloader.cache.max_bytes
     stats["peak_resident_domains"] = preloader.stats()["peak_resident_domains"]
     return film, stats
 

@@ -38,8 +38,9 @@ DEFAULT_MAX_BATCH_RAYS = 65536
 #: settings beside these options carry color_min and color_max (``--color-range``), which a
 #: node of version 4 cannot read; 6: trace_ahead (``--passes-alone``), and a time-limited
 #: job's passes traced ahead by the clock each grant brings; 8: memory_limit (a node's cache
-#: gives the heap's free memory back as its RSS nears it).
-VERSION = 8
+#: gives the heap's free memory back as its RSS nears it); 9: cache_bytes (a node's cache
+#: bounded by bytes, which a node of version 8 would ignore, holding more than the limit allows).
+VERSION = 9
 
 SIMPLIFIED_POLICIES = ("portal", "depth>0", "depth>1", "depth>2", "none")
 EVICTIONS = ("lru", "demand")
@@ -144,6 +145,10 @@ class JobOptions:
         each process's domain cache gives the C heap's free memory back to the system before
         a build while its RSS is above ``scene.heap.TRIM_ABOVE`` of it (``DomainCache``'s
         ``rss_ceiling``); None: never.
+    cache_bytes : most bytes each process's domain cache may hold, each domain counted as
+        the preflight counts it (``DomainCache``'s ``max_bytes``; ``--memory-limit`` sets it
+        to what the process's film, paths, builds and margin leave, and ``cache`` to the most
+        domains that could fit in it); None: ``cache`` alone bounds the cache.
 
     Raises
     ------
@@ -174,6 +179,7 @@ class JobOptions:
     assignment: str | None = None
     priority: str | None = None
     memory_limit: int | None = None
+    cache_bytes: int | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.load_bandwidth, (int, float)) and not isinstance(self.load_bandwidth,
@@ -209,7 +215,7 @@ class JobOptions:
             raise JobOptionsError(f"unknown scheduler {self.scheduler!r}; choose from "
                                   f"{', '.join(registry.JOB_SCHEDULERS)}")
         for name in ("cache", "max_samples_in_flight", "max_batch_rays", "threads",
-                     "portal_interval", "portal_resolution", "memory_limit"):
+                     "portal_interval", "portal_resolution", "memory_limit", "cache_bytes"):
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise JobOptionsError(f"job option {name!r} must be at least 1, got {value}")
@@ -342,10 +348,11 @@ _TYPES = {
     "portal_interval": _INT,
     "portal_threshold": _FLOAT, "portal_resolution": _INT, "portal_accuracy": bool,
     "portal_memory": _INT, "assignment": str, "priority": str, "memory_limit": _INT,
+    "cache_bytes": _INT,
 }
 _OPTIONAL = frozenset({"cache", "max_samples_in_flight", "history_depth", "threads",
                        "load_bandwidth", "simplified", "assignment", "priority",
-                       "memory_limit"})
+                       "memory_limit", "cache_bytes"})
 _TYPE_NAMES = {name: ("true or false" if kinds is bool else "a string" if kinds is str
                       else "a number" if kinds is _FLOAT else "a list" if kinds is tuple
                       else "an integer") + (" or None" if name in _OPTIONAL else "")

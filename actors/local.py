@@ -121,6 +121,7 @@ def render_out_of_core(store: Store, config: SceneConfig, settings: RenderSettin
         "distinct_domains_loaded": len(stats.loaded_domains),
         "domains_traced": len(loop.traced_domains),
         "cache_capacity": capacity,
+        "cache_bytes": preloader.cache.max_bytes,
         "max_samples_in_flight": tiles.tile,
         "threads": state.threads(),
         "load_bandwidth_mb_s": None if bandwidth is None else bandwidth / 1e6,

@@ -632,7 +632,7 @@ def _report_counters(counters: dict, management: ManagementActor) -> dict:
 
 
 #: Counters that are settings, not counts: a job's total keeps the latest frame's (pass's).
-SETTING_COUNTERS = frozenset({"threads", "cache_capacity", "portal_resolution",
+SETTING_COUNTERS = frozenset({"threads", "cache_capacity", "cache_bytes", "portal_resolution",
                        "load_bandwidth_mb_s", "max_samples_in_flight", "domains"})
 
 

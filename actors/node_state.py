@@ -46,8 +46,9 @@ class NodeState:
     def preloader_for(self, store, capacity: int, keep, options: JobOptions, rank: int,
                       fast_builds: bool = False) -> DomainPreloader:
         """The node's preloader, made on the first frame (its threads, preloading switch and
-        emulated storage bandwidth from ``options``, the bandwidth of ``rank``, and the RSS
-        above which its builds trim the heap from ``options.memory_limit``; its BVH builds
+        emulated storage bandwidth from ``options``, the bandwidth of ``rank``, the bytes its
+        cache may hold (``options.cache_bytes``) and the RSS above which its builds trim the
+        heap from ``options.memory_limit``; its BVH builds
         the render's, ``RenderSetup.fast_builds``); a later frame asking for a larger
         ``capacity`` gets it (``DomainPreloader.reserve``)."""
         if self.preloader is None:
@@ -56,7 +57,8 @@ class NodeState:
                 store, capacity, keep, pool=self.pool,
                 load_bandwidth=options.load_bytes_per_second(rank), preload=options.preload,
                 drop_page_cache=options.cold_reads, fast_builds=fast_builds,
-                build_ahead=options.build_ahead, rss_ceiling=rss_ceiling(options.memory_limit))
+                build_ahead=options.build_ahead, rss_ceiling=rss_ceiling(options.memory_limit),
+                max_bytes=options.cache_bytes)
         else:
             self.preloader.reserve(capacity)
         return self.preloader

@@ -65,15 +65,19 @@ class DomainPreloader(CacheFront):
     fast_builds : build Embree's fast BVH (the render's ``RenderSetup.fast_builds``).
     build_ahead : keep a slot of the cache for a domain built ahead (``build_ahead``).
     rss_ceiling : the cache's (``DomainCache``): RSS above which a build first trims the heap.
+    max_bytes : the cache's (``DomainCache``): most bytes of domains it holds (None: no bound
+        but ``capacity``).
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  pool: ThreadPoolExecutor | None = None, load_bandwidth: float | None = None,
                  preload: bool = True, drop_page_cache: bool = False, fast_builds: bool = False,
-                 build_ahead: bool = False, rss_ceiling: int | None = None):
+                 build_ahead: bool = False, rss_ceiling: int | None = None,
+                 max_bytes: int | None = None):
         self.cache = DomainCache(store, capacity, keep, pool=pool, load_bandwidth=load_bandwidth,
                                  drop_page_cache=drop_page_cache, fast_builds=fast_builds,
-                                 build_ahead=build_ahead and preload, rss_ceiling=rss_ceiling)
+                                 build_ahead=build_ahead and preload, rss_ceiling=rss_ceiling,
+                                 max_bytes=max_bytes)
         self.enabled = preload
         self._loader = ThreadPoolExecutor(1, thread_name_prefix="loader")
 

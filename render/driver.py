@@ -149,11 +149,13 @@ class FrameCache:
     Parameters
     ----------
     store, capacity, load_bandwidth : as ``render``'s (capacity None: every domain).
+    max_bytes : most bytes of domains the cache holds (``DomainCache``'s; None: no bound but
+        ``capacity``).
     """
 
     def __init__(self, store: Store, capacity: int | None = None,
-                 load_bandwidth: float | None = None):
-        self.store, self.load_bandwidth = store, load_bandwidth
+                 load_bandwidth: float | None = None, max_bytes: int | None = None):
+        self.store, self.load_bandwidth, self.max_bytes = store, load_bandwidth, max_bytes
         self.capacity = capacity or max(len(store.domains), 1)
         self.cache: DomainCache | None = None
 
@@ -165,7 +167,8 @@ class FrameCache:
         if (self.cache is None or not keep <= self.cache.keep
                 or self.cache.fast_builds != fast):
             self.cache = DomainCache(self.store, self.capacity, keep,
-                                     load_bandwidth=self.load_bandwidth, fast_builds=fast)
+                                     load_bandwidth=self.load_bandwidth, fast_builds=fast,
+                                     max_bytes=self.max_bytes)
         self.cache.count_afresh()
         return self.cache
 
@@ -268,6 +271,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
         "camera_rays_escaped": tracer.stats.camera_escaped,
         "ray_domain_tests": tracer.stats.ray_domain_tests,
         "cache_capacity": capacity,
+        "cache_bytes": cache.max_bytes,
         "threads": threads,
         "render_workers": workers,
         "load_bandwidth_mb_s": None if cache.load_bandwidth is None else cache.load_bandwidth / 1e6,

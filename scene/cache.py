@@ -1,5 +1,6 @@
-"""The domain cache: at most ``capacity`` domains resident; the least recently used is evicted,
-or, when a scheduler gives priorities, the resident domain of lowest priority."""
+"""The domain cache: at most ``capacity`` domains resident (and, under ``--memory-limit``, at
+most ``max_bytes`` of them as the preflight counts a domain's bytes); the least recently used
+is evicted, or, when a scheduler gives priorities, the resident domain of lowest priority."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from collections import OrderedDict
 from collections.abc import Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from vastray.processes import rss_bytes
 from vastray.scene.bvh import DomainBVH
@@ -90,14 +93,23 @@ class DomainCache:
     rss_ceiling : bytes of process RSS above which each build first gives the C heap's free
         memory back to the system (``scene.heap``: what earlier builds freed, which the heap
         keeps for the next ones); None: never (no memory limit).
+    max_bytes : most bytes the domains resident or being loaded may take, each counted as
+        the preflight counts it (``preflight.domain_footprints``, for this cache's BVH);
+        None: no bound but ``capacity``. Why: a count of domains must be sized by the
+        largest ones so that any choice of that many fits a memory limit, and where domains
+        differ in size (the 100 M-triangle store's hold 17-216 MB) that left a third of the
+        limit unused. Bounded by bytes, the cache holds as many as fit of those it is given.
     """
 
     def __init__(self, store: Store, capacity: int, keep: frozenset[str] = frozenset(),
                  drop_page_cache: bool = False, pool: ThreadPoolExecutor | None = None,
                  load_bandwidth: float | None = None, fast_builds: bool = False,
-                 build_ahead: bool = False, rss_ceiling: int | None = None):
+                 build_ahead: bool = False, rss_ceiling: int | None = None,
+                 max_bytes: int | None = None):
         if capacity < 1:
             raise ValueError("cache capacity must be at least 1 domain")
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError(f"a cache's byte bound must be positive, got {max_bytes}")
         if load_bandwidth is not None and not load_bandwidth > 0:
             raise ValueError(f"load bandwidth must be positive, got {load_bandwidth}")
         self.load_bandwidth = load_bandwidth
@@ -122,6 +134,14 @@ class DomainCache:
         self.fast_builds = fast_builds
         self.build_quality = (RTC_BUILD_QUALITY_LOW if capacity < len(store.domains)
                               or fast_builds else None)
+        self.max_bytes = max_bytes
+        #: (D,) int64 bytes each domain is charged against ``max_bytes`` (None: no bound)
+        self._footprint: np.ndarray | None = None
+        if max_bytes is not None:
+            from vastray.preflight import domain_footprints
+
+            self._footprint = np.asarray(domain_footprints(store.domains, fast_builds),
+                                         np.int64)
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
         self._resident_bytes = 0  # sum of the resident domains' nbytes()
@@ -141,14 +161,47 @@ class DomainCache:
     @property
     def builds_ahead(self) -> bool:
         """Whether ``build_ahead`` builds anything: asked for, a cache smaller than the store
-        and holding at least 3 (two resident, as a preload needs, and the one built ahead)."""
-        return self._build_ahead and 3 <= self.capacity < len(self.store.domains)
+        and holding at least 3 (two resident, as a preload needs, and the one built ahead;
+        under a byte bound, room for three of the largest)."""
+        roomy = (self.max_bytes is None
+                 or self.max_bytes >= 3 * int(self._footprint.max(initial=0)))
+        return self._build_ahead and roomy and 3 <= self.capacity < len(self.store.domains)
 
     @property
     def _limit(self) -> int:
         """Most domains resident or being loaded into a slot: ``capacity``, less the slot of
         the one built ahead where the cache builds ahead."""
         return self.capacity - 1 if self.builds_ahead else self.capacity
+
+    @property
+    def _byte_limit(self) -> int | None:
+        """Most bytes charged to domains resident or being loaded (``max_bytes``, less the
+        largest domain's where one is built ahead outside them); None: no bound."""
+        if self.max_bytes is None:
+            return None
+        return self.max_bytes - (int(self._footprint.max(initial=0)) if self.builds_ahead else 0)
+
+    def charged_bytes(self, more: Iterable[int] = ()) -> int:
+        """Bytes charged to the domains resident or being loaded, and ``more`` (0 without a
+        byte bound)."""
+        if self._footprint is None:
+            return 0
+        with self._lock:
+            held = self._resident.keys() | self._pending.keys() | set(more)
+            return int(self._footprint[list(held)].sum()) if held else 0
+
+    def _full(self, slots: int, incoming: int | None) -> bool:
+        """Whether ``slots`` more domains (``incoming`` among them, where known) would
+        exceed the count or the byte bound."""
+        if len(self._resident) + len(self._pending) + slots > self._limit:
+            return True
+        limit = self._byte_limit
+        if limit is None:
+            return False
+        # an unknown domain is charged as the largest: whatever comes next fits
+        extra = () if incoming is None else (incoming,)
+        largest = 0 if incoming is not None else int(self._footprint.max(initial=0))
+        return self.charged_bytes(extra) + largest > limit
 
     @property
     def mesh_quality(self) -> int | None:
@@ -205,7 +258,7 @@ class DomainCache:
                 if built is not None:  # in flight now: another caller waits for it
                     self._pending[domain_id] = built
                 elif pending is None:
-                    self._make_room(1)
+                    self._make_room(1, incoming=domain_id)
                     mine: Future = Future()
                     self._pending[domain_id] = mine
             if built is not None:
@@ -234,7 +287,7 @@ class DomainCache:
             self._resident.move_to_end(domain_id)
             self.stats.hits += 1
             return self._resident[domain_id]
-        self._make_room(1)
+        self._make_room(1, incoming=domain_id)
         bvh = self.load(domain_id)
         self._insert(domain_id, bvh)
         return bvh
@@ -244,8 +297,11 @@ class DomainCache:
         later frame that holds more domains than its first (in situ, a camera that gives it
         more holdings; after a node's loss, the survivors' larger shares). Without it the
         cache would evict what the frame still uses from its accounting only. The bytes stay
-        bounded by the render's memory check, which covers the most any node holds."""
+        bounded by the render's memory check, which covers the most any node holds. Raising
+        the count lifts the byte bound too: the holdings must stay resident."""
         with self._lock:
+            if int(capacity) > self.capacity:
+                self.max_bytes = None
             self.capacity = max(self.capacity, int(capacity))
 
     def prioritise(self, priority, protect: Iterable[int] = ()) -> None:
@@ -261,7 +317,7 @@ class DomainCache:
         """The domain a load now would evict (None while there is room): what a schedule
         serves before it goes (see ``SpeculativeSchedule``'s ``serve_before_evict``)."""
         with self._lock:
-            if len(self._resident) + len(self._pending) < self._limit or not self._resident:
+            if not self._resident or not self._full(1, None):
                 return None
             return self._victim(False)
 
@@ -276,10 +332,12 @@ class DomainCache:
             return free[0]
         return min(free, key=lambda d: self._priority[d])  # min keeps the first (LRU) on ties
 
-    def _make_room(self, slots: int, for_preload: bool = False) -> bool:
-        """Evict domains until ``slots`` more fit (loads in flight count); False when a
-        preload would have to evict a protected domain (nothing is evicted then)."""
-        while len(self._resident) + len(self._pending) + slots > self._limit:
+    def _make_room(self, slots: int, for_preload: bool = False,
+                   incoming: int | None = None) -> bool:
+        """Evict domains until ``slots`` more fit (loads in flight count), ``incoming`` (the
+        domain to load) within the byte bound too; False when a preload would have to evict a
+        protected domain (nothing is evicted then)."""
+        while self._full(slots, incoming):
             evicted = self._victim(for_preload) if self._resident else None
             if evicted is None:
                 return False
@@ -314,7 +372,7 @@ class DomainCache:
         with self._lock:
             if domain_id in self._resident or domain_id in self._pending or domain_id in self._built:
                 return
-            if not self._make_room(1, for_preload=True):
+            if not self._make_room(1, for_preload=True, incoming=domain_id):
                 return
             if self._preloader is None:
                 self._preloader = ThreadPoolExecutor(1, thread_name_prefix="preloader")
@@ -362,7 +420,7 @@ class DomainCache:
         self._count_built(domain_id, result)
         with self._lock:
             self._pending.pop(domain_id, None)
-            self._make_room(1)
+            self._make_room(1, incoming=domain_id)
             self._insert(domain_id, result[0])
             self.stats.builds_ahead_used += 1
         return result[0]

@@ -19,6 +19,7 @@ from vastray.actors.local import render_out_of_core
 from vastray.preflight import (
     MemoryEstimate,
     RenderMemory,
+    cache_room,
     cache_within,
     check_limit_fits_machine,
     check_memory,
@@ -27,6 +28,8 @@ from vastray.preflight import (
     domain_build_bytes,
     domain_footprints,
     estimate_memory,
+    fitting_count,
+    gigabytes,
     reference_paths_in_flight,
     speculative_copies,
 )
@@ -160,8 +163,8 @@ def plan_render(request: RenderRequest, *, animating: bool = False,
     cache = resolve_cache(request.cache, len(store.domains))
     scheduler = request.scheduler
     # auto is checked as the in-core reference, then resolved by the cache it leaves
-    cache, memory = _check_render_memory(request, config, resolve(scheduler, fits=True),
-                                         store, cache)
+    cache, cache_bytes, memory = _check_render_memory(
+        request, config, resolve(scheduler, fits=True), store, cache)
     scheduler = resolve(scheduler, fits=cache is None or cache >= len(store.domains))
     request.refuse_for_nodes(scheduler)
     if request.keys:
@@ -174,7 +177,7 @@ def plan_render(request: RenderRequest, *, animating: bool = False,
                         "nodes render no faster here", request.nodes, cores, cores)
     request.refuse_for_scheduler(scheduler)
     request.refuse_for_passes(animating)
-    options = job_options(request, scheduler, cache)
+    options = job_options(request, scheduler, cache, cache_bytes)
     rules = StopRules(request.spp, request.time_limit, request.target_error,
                       request.max_pass_spp or DEFAULT_MAX_PASS_SPP,
                       one_pass=renders_in_one_pass(request, options, len(store.domains), reference))
@@ -280,7 +283,8 @@ def _renderer(request: RenderRequest, store: Store, store_path: Path, options: J
                 heartbeat_timeout=request.heartbeat_timeout, log_dir=node_log_dir(request),
                 **frames)
     elif spec(options.scheduler).runtime is Runtime.IN_CORE:
-        kept = FrameCache(store, options.cache, options.load_bytes_per_second())
+        kept = FrameCache(store, options.cache, options.load_bytes_per_second(),
+                          options.cache_bytes)
 
         def render_one(config, settings, progression=None):
             return _with_progress(render(
@@ -312,11 +316,18 @@ def _with_progress(result: RenderResult, progression: Progression | None) -> Ren
 
 
 def _check_render_memory(request: RenderRequest, config, scheduler: str, store: Store,
-                         cache: int | None) -> tuple[int | None, RenderMemory]:
+                         cache: int | None) -> tuple[int | None, int | None, RenderMemory]:
     """Refuse up front a render that cannot fit in memory (``preflight.check_memory``: every
     process it starts here, less a margin for the rest of the machine); with
     ``--memory-limit``, first bound each process's domain cache by what its base, film and
-    paths in flight leave. Returns the cache and the estimates."""
+    paths in flight leave. Returns the cache in domains, the bytes it may hold (None: no byte
+    bound) and the estimates.
+
+    Under a limit the cache is bounded by bytes where the store does not fit: it holds
+    whichever domains fit in the room (``DomainCache``'s ``max_bytes``), and its count is only
+    the most that could (the smallest first; below the store's, so the render stays out of
+    core). A count alone must assume the largest domains: on the 100 M-triangle store (domains
+    of 17-216 MB built) 6 GiB held 23 of them, where about 33 of mean size fit the same room."""
     # shadow rays per hit: AO's samples, or per light its samples (area and sky) or one
     rays_per_hit = request.shadow_samples if request.integrator == "ao" else max(sum(
         shadow_rays(light, request.shadow_samples) for light in config.resolve_lights()), 1)
@@ -357,6 +368,7 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
         return estimate_memory(request.width, request.height, in_flight, rays_per_hit,
                                reference=reference)
 
+    cache_bytes = None
     if request.memory_limit is not None:
         if not request.listen:  # the processes it bounds run here
             check_limit_fits_machine(request.memory_limit)
@@ -373,9 +385,18 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             if fitting < len(footprints) and resolved_later:  # auto becomes spec-ooc
                 fitting = cache_within(request.memory_limit, process(fitting), footprints,
                                        request.width, request.height, building)
-            log.info("--memory-limit leaves room for %d domains per process", fitting)
+            room = cache_room(request.memory_limit, process(fitting), footprints,
+                              request.width, request.height, building)
+            if sum(footprints) > room:  # bounded by bytes: as many as fit of those it holds
+                cache_bytes = room
+                fitting = min(fitting_count(room, footprints, largest_first=False),
+                              len(footprints) - 1)
+            log.info("--memory-limit leaves %s per process for domains: %s", gigabytes(room),
+                     f"up to {fitting} of {len(footprints)}" if cache_bytes else "all of them")
             cache = fitting if cache is None else min(cache, fitting)
     held = sum(sorted(footprints, reverse=True)[:cache or len(footprints)])
+    if cache_bytes is not None:
+        held = min(held, cache_bytes)
     one = process(cache) + MemoryEstimate(0, 0, 0, domains=held + building)
     coordinator, machine = None, one
     if request.nodes:  # the coordinator, and every node unless they run elsewhere
@@ -383,12 +404,14 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
                                       reference=reference)
         machine = coordinator if request.listen else coordinator + one.times(request.nodes)
     check_memory(machine, request.width, request.height)
-    return cache, RenderMemory(one, coordinator, machine)
+    return cache, cache_bytes, RenderMemory(one, coordinator, machine)
 
 
-def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> JobOptions:
+def job_options(request: RenderRequest, scheduler: str, cache: int | None,
+                cache_bytes: int | None = None) -> JobOptions:
     """The job's options from the command line (defaults filled in where the scheduler uses
-    them), for ``scheduler`` as resolved from ``auto``, with ``cache`` in domains."""
+    them), for ``scheduler`` as resolved from ``auto``, with ``cache`` in domains and
+    ``cache_bytes`` the bytes it may hold (None: no byte bound)."""
     job = spec(scheduler)
     tiles = job.runtime is not Runtime.IN_CORE
     in_flight = request.max_samples_in_flight
@@ -397,6 +420,7 @@ def job_options(request: RenderRequest, scheduler: str, cache: int | None) -> Jo
                      else DEFAULT_SAMPLES_IN_FLIGHT)
     return JobOptions(
         scheduler=scheduler, cache=cache if job.accepts(Option.CACHE) else None,
+        cache_bytes=cache_bytes if job.accepts(Option.CACHE) else None,
         max_samples_in_flight=in_flight,
         history_depth=request.history_depth, threads=request.threads,
         preload=not request.no_preload, trace_ahead=not request.passes_alone,

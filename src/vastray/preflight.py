@@ -378,11 +378,11 @@ def domain_build_bytes(domains, reads_ahead: bool = False) -> int:
     return building
 
 
-def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
-                 height: int, building: int = 0) -> int:
-    """The most domains a process can hold under ``limit`` besides its film, paths and
+def cache_room(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
+               height: int, building: int = 0) -> int:
+    """Bytes a process can give its domains under ``limit`` besides its film, paths and
     outputs (``fixed``), the builds in progress (``building``, ``domain_build_bytes``) and
-    ``LIMIT_BASE_MARGIN``: counted with the largest domains, so any choice of that many fits.
+    ``LIMIT_BASE_MARGIN``.
 
     Raises
     ------
@@ -400,17 +400,37 @@ def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width
                                f"{gigabytes(LIMIT_BASE_MARGIN)}); the smallest that fits is "
                                f"{smallest}; or lower --width/--height, --threads or "
                                "--max-samples-in-flight")
-    held, count = 0, 0
-    for size in sorted(footprints, reverse=True):
-        if held + size > room:
-            break
-        held, count = held + size, count + 1
-    if count == 0:
+    if max(footprints, default=0) > room:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} leaves {gigabytes(room)} "
                                f"for domains, but the largest needs "
                                f"{gigabytes(max(footprints))}; the smallest that fits is "
                                f"{smallest}, or partition finer")
+    return room
+
+
+def fitting_count(room: int, footprints: list[int], largest_first: bool = True) -> int:
+    """How many domains fit in ``room`` bytes: counted with the largest first (any choice of
+    that many fits), or with the smallest first (the most a cache bounded by bytes can hold)."""
+    held, count = 0, 0
+    for size in sorted(footprints, reverse=largest_first):
+        if held + size > room:
+            break
+        held, count = held + size, count + 1
     return count
+
+
+def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
+                 height: int, building: int = 0) -> int:
+    """The most domains a process can hold under ``limit`` (``cache_room``), counted with the
+    largest domains, so any choice of that many fits.
+
+    Raises
+    ------
+    InputError
+        As ``cache_room``.
+    """
+    return fitting_count(cache_room(limit, fixed, footprints, width, height, building),
+                         footprints)
 
 
 def limit_option(nbytes: int) -> str:
