@@ -125,7 +125,9 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
     stats["load_bandwidth_mb_s"] = preloader.load_bandwidth_mb_s()
     stats["cache_capacity"] = preloader.capacity
     stats["cache_bytes"] = preloader.cache.max_bytes
-    stats["peak_resident_domains"] = preloader.stats()["peak_resident_domains"]
+    held = preloader.stats()
+    stats["peak_resident_domains"] = held["peak_resident_domains"]
+    stats["peak_resident_bytes"] = held["peak_resident_bytes"]
     return film, stats
 
 

@@ -163,3 +163,23 @@ def test_a_render_bounded_by_bytes_gives_the_all_in_memory_image(store):
     assert bounded.counters["cache_bytes"] == bound
     assert bounded.counters["loads"] > whole.counters["loads"]  # it evicted and reloaded
     np.testing.assert_array_equal(bounded.film.image(), whole.film.image())
+
+
+@pytest.mark.parametrize("scheduler", ["spec-ooc", "async"])
+def test_node_processes_bound_their_caches_by_the_bytes_the_job_gives(store, tmp_path, scheduler):
+    """The byte bound travels with the job to real node processes (sort-first tiles and
+    domain decomposition), each cache keeps to it, and the image is the whole-memory one."""
+    from vastray.actors.coordinator import render_distributed
+
+    bound = int(2 * sizes(store).max())
+    st = settings(integrator="pt", width=24, height=18, spp=1)
+    toml = tmp_path / "scene.toml"
+    toml.write_text('[camera]\nposition = [3.0, 2.2, 4.5]\nlook_at = [0.0, -0.5, 0.0]\n')
+    bounded = render_distributed(store.path, toml, st, 2, options=JobOptions(
+        scheduler=scheduler, cache=len(store.domains) - 1, cache_bytes=bound), timeout=120)
+    whole = render_distributed(store.path, toml, st, 2,
+                               options=JobOptions(scheduler=scheduler), timeout=120)
+    for node in bounded.counters["per_node"]:
+        assert node["counters"]["cache_bytes"] == bound
+        assert node["counters"]["peak_resident_bytes"] <= bound
+    np.testing.assert_allclose(bounded.film.image(), whole.film.image(), rtol=1e-6, atol=1e-6)

@@ -121,10 +121,11 @@ def add_render_arguments(p: argparse.ArgumentParser) -> None:
                         "reference when every domain fits in the cache, else spec-ooc")
     p.add_argument("--memory-limit", **argument("memory_limit"), metavar="SIZE",
                    help="most memory each process (each node) may use, e.g. 8G or 700M (K, M, G, "
-                        "T: KiB, MiB, GiB, TiB): bounds its "
-                        "domain cache after the rest of the process (interpreter and "
+                        "T: KiB, MiB, GiB, TiB): bounds the bytes of its "
+                        "domain cache by what the rest of the process leaves (interpreter and "
                         "libraries, film, paths in flight, and a 75 MB margin for the "
-                        "libraries' measured spread); above 90%% of it a cache gives the "
+                        "libraries' measured spread), so it holds as many domains as fit, "
+                        "small ones more (cache_bytes in the report); above 90%% of it a cache gives the "
                         "heap's free memory back before each domain build (heap_trims in the "
                         "report); the report's peak_rss_bytes is the "
                         "measured peak; a render that cannot fit is "
