@@ -1,7 +1,8 @@
 """A render larger than its memory budget, as a user runs it: `vastray generate`, then
 `vastray render --memory-limit ... --cold-reads` in a fresh process (without --quiet), whose
-domain cache holds at most the bytes of the largest quarter of the domains; the image equals, bit for bit, the one
-rendered with every domain in memory, and the process's measured peak stays under the limit."""
+domain cache holds at most the bytes of the largest quarter of the domains; the image equals,
+bit for bit, the one rendered with every domain in memory, and the process's measured peak
+stays under the limit."""
 
 from __future__ import annotations
 
