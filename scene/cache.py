@@ -17,6 +17,7 @@ import numpy as np
 from vastray.processes import rss_bytes
 from vastray.scene.bvh import DomainBVH
 from vastray.scene.embree.library import RTC_BUILD_QUALITY_LOW
+from vastray.scene.footprint import domain_footprints
 from vastray.scene.heap import trim_heap
 from vastray.scene.store import Store
 
@@ -94,7 +95,7 @@ class DomainCache:
         memory back to the system (``scene.heap``: what earlier builds freed, which the heap
         keeps for the next ones); None: never (no memory limit).
     max_bytes : most bytes the domains resident or being loaded may take, each counted as
-        the preflight counts it (``preflight.domain_footprints``, for this cache's BVH);
+        the preflight counts it (``scene.footprint.domain_footprints``, for this cache's BVH);
         None: no bound but ``capacity``. Why: a count of domains must be sized by the
         largest ones so that any choice of that many fits a memory limit, and where domains
         differ in size (the 100 M-triangle store's hold 17-216 MB) that left a third of the
@@ -138,8 +139,6 @@ class DomainCache:
         #: (D,) int64 bytes each domain is charged against ``max_bytes`` (None: no bound)
         self._footprint: np.ndarray | None = None
         if max_bytes is not None:
-            from vastray.preflight import domain_footprints
-
             self._footprint = np.asarray(domain_footprints(store.domains, fast_builds),
                                          np.int64)
         self.stats = CacheStats()

@@ -65,3 +65,13 @@ def build_bytes(largest_triangles: int) -> int:
     """Bytes the builds in progress add at their peak: ``CONCURRENT_BUILDS`` builds of the
     largest domain (``largest_triangles`` triangles)."""
     return CONCURRENT_BUILDS * BUILD_BYTES_PER_TRIANGLE * int(largest_triangles)
+
+
+def domain_footprints(domains, fast: bool = False) -> list[int]:
+    """Bytes each domain holds once loaded: its arrays plus Embree's scene
+    (``resident_bytes``; ``fast``: the fast BVH's, ``--bvh``), as the preflight plans them
+    and a cache bounded by bytes charges them."""
+    from vastray.scene.embree.library import binding
+
+    compiled = binding() is not None
+    return [resident_bytes(d.n_triangles, d.nbytes, compiled, fast) for d in domains]

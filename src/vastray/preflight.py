@@ -15,9 +15,11 @@ import numpy as np
 from vastray.processes import proc_bytes
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.imageio import check_image_path
-from vastray.scene.embree.library import binding
 from vastray.scene.errors import InputError
-from vastray.scene.footprint import build_bytes, resident_bytes
+from vastray.scene.footprint import (
+    build_bytes,
+    domain_footprints,  # noqa: F401  (the plan's, and its importers')
+)
 
 # The memory model: one process's peak resident memory is
 #   base + pixels x bytes per pixel + paths in flight x (PATH_BYTES + shadow rays per hit x
@@ -358,13 +360,6 @@ def parse_size(text: str) -> int:
     if not (value > 0 and math.isfinite(value)):
         raise ValueError(f"a size must be positive and finite, got {text!r}")
     return int(value)
-
-
-def domain_footprints(domains, fast: bool = False) -> list[int]:
-    """Bytes each domain holds once loaded: its arrays plus Embree's scene
-    (``scene.footprint.resident_bytes``; ``fast``: the fast BVH's, ``--bvh``)."""
-    compiled = binding() is not None
-    return [resident_bytes(d.n_triangles, d.nbytes, compiled, fast) for d in domains]
 
 
 def domain_build_bytes(domains, reads_ahead: bool = False) -> int:
