@@ -81,6 +81,7 @@ def test_a_render_under_a_quarter_of_its_domains_equals_the_all_in_memory_one(
     assert 0 <= c["heap_trims"] <= c["loads"]  # the cache's guard against the heap's keep
     # the summary line says what loading cost and the peak against the limit
     assert "GB read" in run.stderr and "s waited" in run.stderr and "peak RSS" in run.stderr
+    assert f"({c['peak_resident_domains']} of {n} domains held at most)" in run.stderr
     all_loaded = json.loads((tmp_path / "all.json").read_text())["counters"]
     assert all_loaded["cache_capacity"] == n and all_loaded["loads"] == n
     np.testing.assert_array_equal(read_image(tmp_path / "ooc.exr"),

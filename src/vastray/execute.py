@@ -174,6 +174,9 @@ def summary_line(request: RenderRequest, result, error: dict | None,
     peak = result.counters.get("peak_rss_bytes") or result.counters.get("peak_rss_bytes_max")
     if request.memory_limit is not None and peak:  # the busiest process against its limit
         line += f", peak RSS {gigabytes(peak)} of --memory-limit {gigabytes(request.memory_limit)}"
+        held = result.counters.get("peak_resident_domains")
+        if held and not request.nodes:  # what the limit bought: the cache is bounded by bytes
+            line += f" ({held} of {result.counters.get('domains', '?')} domains held at most)"
     if error is not None:
         psnr = "inf" if error["psnr_db"] is None else f"{error['psnr_db']:.2f}"
         line += f", MSE {error['mse']:.4g}, PSNR {psnr} dB"
