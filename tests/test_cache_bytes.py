@@ -130,25 +130,47 @@ def test_a_memory_limit_bounds_the_cache_by_bytes(store):
                             spp=2, quiet=True)
     everything = plan_render(request)
     fp = sorted(domain_footprints(store.domains, False))
-
-    def plan(limit):
-        try:
-            return plan_render(RenderRequest(**{**vars(request), "memory_limit": limit}))
-        except InputError:  # too small for the film, the paths and the largest domain
-            return None
-
-    low, high = 1 << 20, 8 << 30  # the smallest limit the plan accepts, to the byte
-    assert plan(low) is None and plan(high) is not None
-    while high - low > 1:
-        middle = (low + high) // 2
-        low, high = (low, middle) if plan(middle) is not None else (middle, high)
-    tight = plan(high)
+    tight = smallest_plan(request)
     room = tight.options.cache_bytes
     assert max(fp) <= room < sum(fp)
     smallest_first = int(np.searchsorted(np.cumsum(fp), room, side="right"))
     assert tight.options.cache == min(smallest_first, len(fp) - 1)
     roomy = plan_render(RenderRequest(**{**vars(request), "memory_limit": 20 << 30}))
     assert roomy.options.cache_bytes is None and everything.options.cache_bytes is None
+
+
+def smallest_plan(request: RenderRequest):
+    """The plan of ``request`` under the smallest ``--memory-limit`` the planner accepts (to
+    the byte): its cache bounded by the bytes of little more than the largest domain."""
+    def plan(limit):
+        try:
+            return plan_render(RenderRequest(**{**vars(request), "memory_limit": limit}))
+        except InputError:  # too small for the film, the paths and the largest domain
+            return None
+
+    low, high = 1 << 20, 8 << 30
+    assert plan(low) is None and plan(high) is not None
+    while high - low > 1:
+        middle = (low + high) // 2
+        low, high = (low, middle) if plan(middle) is not None else (middle, high)
+    return plan(high)
+
+
+def test_the_in_core_reference_under_a_limit_is_bounded_by_bytes_too(store):
+    """``--scheduler reference --memory-limit``: the in-core renderer's cache (``FrameCache``)
+    gets the bound, evicts and reloads, and the image is the unlimited render's."""
+    request = RenderRequest(store=str(store.path), scheduler="reference", width=32, height=24,
+                            spp=1, integrator="pt", quiet=True)
+    tight = smallest_plan(request)
+    assert tight.options.cache_bytes is not None
+    bounded = tight.render_one(tight.config, tight.settings)
+    whole = plan_render(request)
+    unbounded = whole.render_one(whole.config, whole.settings)
+    assert bounded.counters["cache_bytes"] == tight.options.cache_bytes
+    assert unbounded.counters["cache_bytes"] is None
+    assert bounded.counters["peak_resident_bytes"] <= tight.options.cache_bytes
+    assert bounded.counters["loads"] > unbounded.counters["loads"]
+    np.testing.assert_array_equal(bounded.film.image(), unbounded.film.image())
 
 
 def test_a_render_bounded_by_bytes_gives_the_all_in_memory_image(store):
