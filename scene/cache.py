@@ -313,8 +313,9 @@ class DomainCache:
             self._protect = frozenset(int(d) for d in protect)
 
     def victim(self) -> int | None:
-        """The domain a load now would evict (None while there is room): what a schedule
-        serves before it goes (see ``SpeculativeSchedule``'s ``serve_before_evict``)."""
+        """The domain a load now would evict (None while there is room; under a byte bound,
+        room for the largest domain, whichever comes next): what a schedule serves before it
+        goes (see ``SpeculativeSchedule``'s ``serve_before_evict``)."""
         with self._lock:
             if not self._resident or not self._full(1, None):
                 return None
