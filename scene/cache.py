@@ -136,11 +136,14 @@ class DomainCache:
         self.build_quality = (RTC_BUILD_QUALITY_LOW if capacity < len(store.domains)
                               or fast_builds else None)
         self.max_bytes = max_bytes
-        #: (D,) int64 bytes each domain is charged against ``max_bytes`` (None: no bound)
+        #: (D,) int64 bytes each domain is charged against ``max_bytes`` (None: no bound),
+        #: and the largest of them
         self._footprint: np.ndarray | None = None
+        self._largest = 0
         if max_bytes is not None:
             self._footprint = np.asarray(domain_footprints(store.domains, fast_builds),
                                          np.int64)
+            self._largest = int(self._footprint.max(initial=0))
         self.stats = CacheStats()
         self._resident: OrderedDict[int, DomainBVH] = OrderedDict()
         self._resident_bytes = 0  # sum of the resident domains' nbytes()
@@ -162,8 +165,7 @@ class DomainCache:
         """Whether ``build_ahead`` builds anything: asked for, a cache smaller than the store
         and holding at least 3 (two resident, as a preload needs, and the one built ahead;
         under a byte bound, room for three of the largest)."""
-        roomy = (self.max_bytes is None
-                 or self.max_bytes >= 3 * int(self._footprint.max(initial=0)))
+        roomy = self.max_bytes is None or self.max_bytes >= 3 * self._largest
         return self._build_ahead and roomy and 3 <= self.capacity < len(self.store.domains)
 
     @property
@@ -178,7 +180,7 @@ class DomainCache:
         largest domain's where one is built ahead outside them); None: no bound."""
         if self.max_bytes is None:
             return None
-        return self.max_bytes - (int(self._footprint.max(initial=0)) if self.builds_ahead else 0)
+        return self.max_bytes - (self._largest if self.builds_ahead else 0)
 
     def charged_bytes(self, more: Iterable[int] = ()) -> int:
         """Bytes charged to the domains resident or being loaded, and ``more`` (0 without a
@@ -199,7 +201,7 @@ class DomainCache:
             return False
         # an unknown domain is charged as the largest: whatever comes next fits
         extra = () if incoming is None else (incoming,)
-        largest = 0 if incoming is not None else int(self._footprint.max(initial=0))
+        largest = 0 if incoming is not None else self._largest
         return self.charged_bytes(extra) + largest > limit
 
     @property

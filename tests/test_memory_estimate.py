@@ -18,10 +18,11 @@ from vastray.preflight import (
     MEMORY_HEADROOM,
     TAIL_PATH_SHARE,
     MemoryEstimate,
-    cache_within,
+    cache_room,
     check_memory,
     crossings_from_surface,
     estimate_memory,
+    fitting_count,
     parse_size,
     reference_paths_in_flight,
     speculative_copies,
@@ -176,11 +177,11 @@ def test_a_refused_limit_names_the_smallest_that_fits_and_that_one_is_accepted()
     footprints = [30_000_000, 20_000_000]
     for too_small in (fixed.total, fixed.total + LIMIT_BASE_MARGIN + 29_000_000):
         with pytest.raises(InputError) as refused:
-            cache_within(too_small, fixed, footprints, 64, 64)
+            cache_room(too_small, fixed, footprints, 64, 64)
         named = str(refused.value).split("smallest that fits is --memory-limit ")[1].split()[0]
         assert "\n" not in str(refused.value)
         smallest = parse_size(named.rstrip(";,"))
-        assert cache_within(smallest, fixed, footprints, 64, 64) == 1
+        assert fitting_count(cache_room(smallest, fixed, footprints, 64, 64), footprints) == 1
         assert smallest - 2**20 < fixed.total + LIMIT_BASE_MARGIN + 30_000_000 <= smallest
 
 

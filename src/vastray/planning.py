@@ -20,7 +20,6 @@ from vastray.preflight import (
     MemoryEstimate,
     RenderMemory,
     cache_room,
-    cache_within,
     check_limit_fits_machine,
     check_memory,
     check_owned_fit,
@@ -380,17 +379,13 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
             check_owned_fit(request.memory_limit, process(cache), footprints, owners, nodes,
                             building)
         else:
-            fitting = cache_within(request.memory_limit, process(cache), footprints,
-                                   request.width, request.height, building)
-            if fitting < len(footprints) and resolved_later:  # auto becomes spec-ooc
-                fitting = cache_within(request.memory_limit, process(fitting), footprints,
-                                       request.width, request.height, building)
-            room = cache_room(request.memory_limit, process(fitting), footprints,
-                              request.width, request.height, building)
-            if sum(footprints) > room:  # bounded by bytes: as many as fit of those it holds
-                cache_bytes = room
-                fitting = min(fitting_count(room, footprints, largest_first=False),
-                              len(footprints) - 1)
+            limit, size = request.memory_limit, (request.width, request.height)
+            room = cache_room(limit, process(cache), footprints, *size, building)
+            fitting = len(footprints)
+            if sum(footprints) > room:  # out of core (auto becomes spec-ooc): bound by bytes
+                room = cache_room(limit, process(fitting - 1), footprints, *size, building)
+                cache_bytes = room  # whichever domains fit; the count: the most that could
+                fitting = min(fitting_count(room, footprints, largest_first=False), fitting - 1)
             log.info("--memory-limit leaves %s per process for domains: %s", gigabytes(room),
                      f"up to {fitting} of {len(footprints)}" if cache_bytes else "all of them")
             cache = fitting if cache is None else min(cache, fitting)

@@ -39,7 +39,7 @@ from vastray.scene.footprint import (
 #: so that both stay within 0.8-1.5.
 BASE_BYTES = 205_000_000
 
-#: What a ``--memory-limit`` plan keeps back beyond the estimate's base (``cache_within``,
+#: What a ``--memory-limit`` plan keeps back beyond the estimate's base (``cache_room``,
 #: ``check_owned_fit``), so that the limit bounds the measured peak and is not only its central
 #: estimate: the base measured 255 MB at the end of a CI run against ``BASE_BYTES`` (a render
 #: under a limit that left it out peaked at 253 MB against 212 MB there), plus a margin. A few
@@ -412,20 +412,6 @@ def fitting_count(room: int, footprints: list[int], largest_first: bool = True) 
             break
         held, count = held + size, count + 1
     return count
-
-
-def cache_within(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
-                 height: int, building: int = 0) -> int:
-    """The most domains a process can hold under ``limit`` (``cache_room``), counted with the
-    largest domains, so any choice of that many fits.
-
-    Raises
-    ------
-    InputError
-        As ``cache_room``.
-    """
-    return fitting_count(cache_room(limit, fixed, footprints, width, height, building),
-                         footprints)
 
 
 def limit_option(nbytes: int) -> str:
