@@ -251,6 +251,14 @@ def check_memory_limit(r: Renders):
     run = r(*args, str(fixed + largest[0] + largest[1] + 1))
     assert run.code == 0, run.err
     assert run.counters["cache_capacity"] == 2 and run.report["options"]["cache"] == 2
+    summary = run.err.strip().splitlines()[-1]
+    assert f"({run.counters['peak_resident_domains']} of {len(largest)} domains held at most)" \
+        in summary, summary
+    # on nodes the limit bounds each node (its busiest peak is on the line, not a node's cache)
+    nodes = r("--nodes", "2", *args, str(fixed + largest[0] + largest[1] + 1))
+    assert nodes.code == 0, nodes.err
+    summary = nodes.err.strip().splitlines()[-1]
+    assert "peak RSS" in summary and "domains held" not in summary, summary
     r.refused(*args, str(fixed + largest[0] - 1), naming="--memory-limit")  # not one domain
     # in situ a node keeps every domain it owns: a limit that fits two domains, not a node's
     # share of them, is refused before any node starts
