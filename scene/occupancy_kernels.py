@@ -53,98 +53,122 @@ def crosses(origins, directions, ray, domain, limit, radius, lo, hi, cell, dims,
             base, bits, out):
     """``out[p]`` = False where ray ``ray[p]`` crosses no occupied cell of domain
     ``domain[p]`` (``Occupancy.crosses``); pairs of domains not ``useful`` are left as they
-    are (True)."""
-    scratch = np.empty((3, 3), np.float64)  # origin, direction, next boundary
-    cells = np.empty((3, 3), np.int64)  # cell, step, and (scratch) the piece's index range
-    span = np.empty(6, np.int64)
+    are (True).
+
+    Every quantity of a pair is a scalar local, not a row of a scratch array: LLVM keeps them
+    in registers (1.45x faster than the same arithmetic through (3,) scratch rows, the same
+    answers bit for bit; issue 40, the 100 M-triangle store's renders spent 8-11 s here)."""
     for p in range(ray.shape[0]):
         d = domain[p]
         if useful[d]:
             i = ray[p]
-            out[p] = _segment_crosses(origins[i], directions[i], limit[i], radius, lo[d], hi[d],
-                                      cell[d], dims[d], bits, base[d], scratch, cells, span)
+            out[p] = _segment_crosses(
+                np.float64(origins[i, 0]), np.float64(origins[i, 1]), np.float64(origins[i, 2]),
+                np.float64(directions[i, 0]), np.float64(directions[i, 1]),
+                np.float64(directions[i, 2]), limit[i], radius,
+                lo[d, 0], lo[d, 1], lo[d, 2], hi[d, 0], hi[d, 1], hi[d, 2],
+                cell[d, 0], cell[d, 1], cell[d, 2], dims[d, 0], dims[d, 1], dims[d, 2],
+                bits, base[d])
 
 
 @njit(inline="always")
-def _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, rng):
-    """Whether a cell meeting the box of the segment's piece ``[ta, tb]`` grown by
-    ``radius`` is occupied (``rng``: (6,) int64 scratch)."""
-    for k in range(3):
-        a = o[k] + ta * dv[k]
-        b = o[k] + tb * dv[k]
-        if a > b:
-            a, b = b, a
-        lo_k = _index(a - radius, lo[k], cell[k], dims[k])
-        hi_k = _index(b + radius, lo[k], cell[k], dims[k])
-        if lo_k < 0 or hi_k < 0:
-            return True
-        rng[k] = lo_k
-        rng[3 + k] = hi_k
-    ny, nz = dims[1], dims[2]
-    for i in range(rng[0], rng[3] + 1):
-        for j in range(rng[1], rng[4] + 1):
-            for k in range(rng[2], rng[5] + 1):
-                if bits[base + (i * ny + j) * nz + k]:
-                    return True
-    return False
+def _clip(o, dv, blo, bhi, t0, t1):
+    """``(t0, t1, outside)``: the segment ``[t0, t1]`` clipped to the slab ``[blo, bhi]`` of
+    one axis; ``outside`` where the ray runs parallel to the slab outside it."""
+    if dv == 0:
+        return t0, t1, (o < blo or o > bhi)
+    ta = (blo - o) / dv
+    tb = (bhi - o) / dv
+    if ta > tb:
+        ta, tb = tb, ta
+    return max(t0, ta), min(t1, tb), False
 
 
 @njit(inline="always")
-def _segment_crosses(origin, direction, limit, radius, lo, hi, cell, dims, bits, base,
-                     scratch, cells, span):
-    """The DDA of one (ray, domain) pair (see ``Occupancy.crosses``)."""
-    o, dv, nxt = scratch[0], scratch[1], scratch[2]
-    idx, step = cells[0], cells[1]
-    t0 = 0.0
+def _span(o, dv, ta, tb, radius, lo, cell, n):
+    """The cells along one axis that the piece ``[ta, tb]``, grown by ``radius``, meets
+    (first, last; -1 where a coordinate is NaN)."""
+    a = o + ta * dv
+    b = o + tb * dv
+    if a > b:
+        a, b = b, a
+    return _index(a - radius, lo, cell, n), _index(b + radius, lo, cell, n)
+
+
+@njit(inline="always")
+def _segment_crosses(ox, oy, oz, dx, dy, dz, limit, radius, lx, ly, lz, hx, hy, hz,
+                     cx, cy, cz, nx, ny, nz, bits, base):
+    """The DDA of one (ray, domain) pair (see ``Occupancy.crosses``): the origin ``o``, the
+    direction ``d``, the grid's corner ``l``, its box's far corner ``h``, its cell size ``c``
+    and cells ``n`` along x, y, z."""
     t1 = np.float64(limit)
     if t1 != t1:  # NaN: keep the pair
         return True
     t1 = t1 + abs(t1) * 2.0 ** -20
-    for k in range(3):
-        o[k] = np.float64(origin[k])
-        dv[k] = np.float64(direction[k])
-        if not (abs(o[k]) < np.inf and abs(dv[k]) < np.inf):
-            return True
-        # the segment within the grid's box grown by radius
-        blo = lo[k] - radius
-        bhi = max(hi[k], lo[k] + cell[k] * dims[k]) + radius
-        if dv[k] == 0:
-            if o[k] < blo or o[k] > bhi:
-                return False
-            continue
-        ta = (blo - o[k]) / dv[k]
-        tb = (bhi - o[k]) / dv[k]
-        if ta > tb:
-            ta, tb = tb, ta
-        t0 = max(t0, ta)
-        t1 = min(t1, tb)
+    if not (abs(ox) < np.inf and abs(dx) < np.inf and abs(oy) < np.inf
+            and abs(dy) < np.inf and abs(oz) < np.inf and abs(dz) < np.inf):
+        return True
+    # the segment within the grid's box grown by radius
+    t0, t1, outside = _clip(ox, dx, lx - radius, max(hx, lx + cx * nx) + radius, 0.0, t1)
+    if outside:
+        return False
+    t0, t1, outside = _clip(oy, dy, ly - radius, max(hy, ly + cy * ny) + radius, t0, t1)
+    if outside:
+        return False
+    t0, t1, outside = _clip(oz, dz, lz - radius, max(hz, lz + cz * nz) + radius, t0, t1)
+    if outside:
+        return False
     if not t0 <= t1:
         return False
     # DDA: the cell at t0 and the next boundary crossed along each axis
-    for k in range(3):
-        idx[k] = _index(o[k] + t0 * dv[k], lo[k], cell[k], dims[k])
-        if idx[k] < 0:
-            return True
-        step[k] = 0
-        nxt[k] = np.inf
-        if dims[k] > 1 and dv[k] != 0:
-            step[k] = 1 if dv[k] > 0 else -1
-            nxt[k] = _boundary(o[k], dv[k], lo[k], cell[k], dims[k], idx[k], step[k])
+    ix = _index(ox + t0 * dx, lx, cx, nx)
+    iy = _index(oy + t0 * dy, ly, cy, ny)
+    iz = _index(oz + t0 * dz, lz, cz, nz)
+    if ix < 0 or iy < 0 or iz < 0:
+        return True
+    sx, sy, sz = 0, 0, 0
+    bx, by, bz = np.inf, np.inf, np.inf
+    if nx > 1 and dx != 0:
+        sx = 1 if dx > 0 else -1
+        bx = _boundary(ox, dx, lx, cx, nx, ix, sx)
+    if ny > 1 and dy != 0:
+        sy = 1 if dy > 0 else -1
+        by = _boundary(oy, dy, ly, cy, ny, iy, sy)
+    if nz > 1 and dz != 0:
+        sz = 1 if dz > 0 else -1
+        bz = _boundary(oz, dz, lz, cz, nz, iz, sz)
     ta = t0
-    for _ in range(dims[0] + dims[1] + dims[2] + 4):
-        k = 0
-        if nxt[1] < nxt[k]:
-            k = 1
-        if nxt[2] < nxt[k]:
-            k = 2
-        tb = min(max(nxt[k], ta), t1)
-        if _piece_hits(o, dv, ta, tb, radius, lo, cell, dims, bits, base, span):
+    for _ in range(nx + ny + nz + 4):
+        axis, tb = 0, bx
+        if by < tb:
+            axis, tb = 1, by
+        if bz < tb:
+            axis, tb = 2, bz
+        tb = min(max(tb, ta), t1)
+        # a cell meeting the box of the piece [ta, tb] grown by radius is occupied?
+        x0, x1 = _span(ox, dx, ta, tb, radius, lx, cx, nx)
+        y0, y1 = _span(oy, dy, ta, tb, radius, ly, cy, ny)
+        z0, z1 = _span(oz, dz, ta, tb, radius, lz, cz, nz)
+        if x0 < 0 or x1 < 0 or y0 < 0 or y1 < 0 or z0 < 0 or z1 < 0:
             return True
+        for i in range(x0, x1 + 1):
+            for j in range(y0, y1 + 1):
+                row = base + (i * ny + j) * nz
+                for k in range(z0, z1 + 1):
+                    if bits[row + k]:
+                        return True
         if tb >= t1:
             return False
         ta = tb
-        idx[k] += step[k]
-        nxt[k] = _boundary(o[k], dv[k], lo[k], cell[k], dims[k], idx[k], step[k])
+        if axis == 0:
+            ix += sx
+            bx = _boundary(ox, dx, lx, cx, nx, ix, sx)
+        elif axis == 1:
+            iy += sy
+            by = _boundary(oy, dy, ly, cy, ny, iy, sy)
+        else:
+            iz += sz
+            bz = _boundary(oz, dz, lz, cz, nz, iz, sz)
     return True  # (never: each step leaves a cell) kept, to be safe
 
 
