@@ -50,7 +50,7 @@ def mark(vertices, indices, lo, cell, dims, out):
 
 @njit(nogil=True, cache=True)
 def crosses(origins, directions, ray, domain, limit, radius, lo, hi, cell, dims, useful,
-            base, bits, out):
+            base, bits, near, min_cell, out):
     """``out[p]`` = False where ray ``ray[p]`` crosses no occupied cell of domain
     ``domain[p]`` (``Occupancy.crosses``); pairs of domains not ``useful`` are left as they
     are (True).
@@ -68,7 +68,7 @@ def crosses(origins, directions, ray, domain, limit, radius, lo, hi, cell, dims,
                 np.float64(directions[i, 2]), limit[i], radius,
                 lo[d, 0], lo[d, 1], lo[d, 2], hi[d, 0], hi[d, 1], hi[d, 2],
                 cell[d, 0], cell[d, 1], cell[d, 2], dims[d, 0], dims[d, 1], dims[d, 2],
-                bits, base[d])
+                bits, base[d], near, 4.0 * radius < min_cell[d])
 
 
 @njit(inline="always")
@@ -97,10 +97,11 @@ def _span(o, dv, ta, tb, radius, lo, cell, n):
 
 @njit(inline="always")
 def _segment_crosses(ox, oy, oz, dx, dy, dz, limit, radius, lx, ly, lz, hx, hy, hz,
-                     cx, cy, cz, nx, ny, nz, bits, base):
+                     cx, cy, cz, nx, ny, nz, bits, base, near, skip):
     """The DDA of one (ray, domain) pair (see ``Occupancy.crosses``): the origin ``o``, the
     direction ``d``, the grid's corner ``l``, its box's far corner ``h``, its cell size ``c``
-    and cells ``n`` along x, y, z."""
+    and cells ``n`` along x, y, z; ``near``: ``Occupancy.near``, asked where ``skip`` (``radius``
+    is below a quarter of the smallest cell edge)."""
     t1 = np.float64(limit)
     if t1 != t1:  # NaN: keep the pair
         return True
@@ -145,18 +146,22 @@ def _segment_crosses(ox, oy, oz, dx, dy, dz, limit, radius, lx, ly, lz, hx, hy, 
         if bz < tb:
             axis, tb = 2, bz
         tb = min(max(tb, ta), t1)
-        # a cell meeting the box of the piece [ta, tb] grown by radius is occupied?
-        x0, x1 = _span(ox, dx, ta, tb, radius, lx, cx, nx)
-        y0, y1 = _span(oy, dy, ta, tb, radius, ly, cy, ny)
-        z0, z1 = _span(oz, dz, ta, tb, radius, lz, cz, nz)
-        if x0 < 0 or x1 < 0 or y0 < 0 or y1 < 0 or z0 < 0 or z1 < 0:
-            return True
-        for i in range(x0, x1 + 1):
-            for j in range(y0, y1 + 1):
-                row = base + (i * ny + j) * nz
-                for k in range(z0, z1 + 1):
-                    if bits[row + k]:
-                        return True
+        # The piece lies in the DDA's cell up to rounding, so its box grown by radius (under a
+        # quarter cell) meets only that cell and its 26 neighbours: where none of them is
+        # occupied, the exact test below would find nothing.
+        if not skip or near[base + (ix * ny + iy) * nz + iz]:
+            # a cell meeting the box of the piece [ta, tb] grown by radius is occupied?
+            x0, x1 = _span(ox, dx, ta, tb, radius, lx, cx, nx)
+            y0, y1 = _span(oy, dy, ta, tb, radius, ly, cy, ny)
+            z0, z1 = _span(oz, dz, ta, tb, radius, lz, cz, nz)
+            if x0 < 0 or x1 < 0 or y0 < 0 or y1 < 0 or z0 < 0 or z1 < 0:
+                return True
+            for i in range(x0, x1 + 1):
+                for j in range(y0, y1 + 1):
+                    row = base + (i * ny + j) * nz
+                    for k in range(z0, z1 + 1):
+                        if bits[row + k]:
+                            return True
         if tb >= t1:
             return False
         ta = tb

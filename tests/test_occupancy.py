@@ -409,3 +409,40 @@ def test_a_query_split_over_threads_answers_as_one_thread(monkeypatch):
     whole = crosses(occ, origins, directions, 3.0)
     assert 0.05 < whole.mean() < 0.95  # both answers occur: the comparison can fail
     assert np.array_equal(split, whole)
+
+
+def test_dilated_marks_the_cells_next_to_an_occupied_one():
+    rng = np.random.default_rng(6)
+    mask = rng.random((5, 4, 3)) < 0.08
+    expected = np.zeros_like(mask)
+    for i, j, k in np.argwhere(mask):
+        expected[max(i - 1, 0):i + 2, max(j - 1, 0):j + 2, max(k - 1, 0):k + 2] = True
+    assert mask.any() and not expected.all()
+    assert np.array_equal(occupancy.dilated(mask), expected)
+
+
+@pytest.mark.parametrize("seed", [7, 8])
+def test_skipping_cells_with_no_occupied_neighbour_changes_no_answer(seed):
+    """The query passes over a cell none of whose 27 (itself and around) is occupied without
+    testing its piece: every answer is the full test's, grazing rays and rays aimed at
+    triangles on cell boundaries included."""
+    rng = np.random.default_rng(seed)
+    dom = sparse_domain(seed)
+    _, occ = occupancy_of(dom, (16, 16, 16))
+    assert 0.05 < occ.near.mean() < 0.95  # cells are skipped, and some are not
+    points = surface_points(dom, rng)
+    aimed = [rays_at(points, rng, axis_aligned) for axis_aligned in (False, True)]
+    n = 100_000
+    origins = rng.uniform(-1.0, 2.0, (n, 3)).astype(np.float32)
+    directions = rng.normal(size=(n, 3)).astype(np.float32)
+    k = n // 4  # grazing: along an axis, in a cell boundary plane
+    directions[:k] = 0
+    directions[np.arange(k), rng.integers(0, 3, k)] = rng.choice([-1.0, 1.0], k)
+    origins[:k, 2] = rng.integers(1, 8, k) / 8
+    for o, d in [*aimed, (origins, directions)]:
+        for limit in (np.inf, 1.0):
+            skipping = crosses(occ, o, d, limit)
+            _, occ_full = occupancy_of(dom, (16, 16, 16))
+            occ_full.min_cell[:] = 0.0  # every piece tested
+            assert np.array_equal(skipping, crosses(occ_full, o, d, limit))
+    assert 0.05 < crosses(occ, origins, directions, 1.0).mean() < 0.95
