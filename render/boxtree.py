@@ -25,9 +25,6 @@ import numpy as np
 
 from vastray.render import boxwalk
 
-#: Fewest rays per thread when a compiled walk is split (``BoxTree.walk_all``).
-SPLIT_MIN_RAYS = 8192
-
 if TYPE_CHECKING:  # the tracer builds a BoxTree: import its RaySlabs for annotations only
     from vastray.render.tracer import RaySlabs
 
@@ -324,31 +321,6 @@ class BoxTree:
             return tuple(np.zeros(0, t) for t in dtypes)
         limit = np.ascontiguousarray(np.broadcast_to(limit, (n,)), np.float32)
         nodes, rays = self.padded_nodes(slabs.pad), self._rays(slabs)
-        if n < 2 * SPLIT_MIN_RAYS:
-            return self._walk_compiled(kernel, rays, nodes, limit, dtypes, per_ray)
-        # Rays split over the threads this process may use (the walk is serial and releases
-        # the GIL): each piece walks its own rays into its own arrays, joined in ray order,
-        # so the answer is one thread's. spec-ooc asks this for every ray it spawns (issue
-        # 40: about 3.5 s of the 100 M-triangle store's render on one thread).
-        from vastray.scene.cpus import available_cpus
-        from vastray.scene.embree.launch import run_in_parts
-
-        pieces: dict[int, tuple[np.ndarray, ...]] = {}
-
-        def piece(lo: int, hi: int) -> None:
-            out = self._walk_compiled(kernel, np.ascontiguousarray(rays[:, lo:hi]), nodes,
-                                      limit[lo:hi], dtypes, per_ray)
-            out[0][:] += lo  # the rays' rows in the whole batch
-            pieces[lo] = out
-
-        run_in_parts(piece, n, min(available_cpus(), n // SPLIT_MIN_RAYS))
-        parts = [pieces[lo] for lo in sorted(pieces)]
-        return tuple(np.concatenate(p) for p in zip(*parts, strict=True))
-
-    def _walk_compiled(self, kernel, rays: np.ndarray, nodes: np.ndarray, limit: np.ndarray,
-              dtypes: tuple, per_ray: int) -> tuple[np.ndarray, ...]:
-        """``walk_all`` of the rays ``rays`` ((6, n)) on the calling thread."""
-        n = rays.shape[1]
         cap = per_ray * n + 64
         parts, first = [], 0
         while first < n:

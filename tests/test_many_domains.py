@@ -367,23 +367,3 @@ def test_compiled_crossings_grow_their_output():
     assert len(got[0]) > 4 * len(origins) + 64
     assert np.bincount(got[0]).min() >= 16  # each ray crosses at least a row of cells
     assert_crossings_equal(got, crossings_by_loop(geometry, origins, directions, limit))
-
-
-def test_a_walk_split_over_threads_answers_as_one_thread(monkeypatch):
-    """``BoxTree.walk_all`` splits many rays over threads, each piece walking its own rays
-    (some pieces growing their output): the pairs are one thread's, in the same order."""
-    from vastray.render import boxtree
-    from vastray.scene import cpus
-
-    rng = np.random.default_rng(12)
-    lo, hi, nonempty = hard_boxes(rng)
-    geometry = DomainGeometry(lo, hi, nonempty, origin_bound=1.5)
-    origins, directions, limit = hard_rays(rng, lo, hi, n=20_000)
-    monkeypatch.setattr(boxtree, "SPLIT_MIN_RAYS", 1000)
-    monkeypatch.setattr(cpus, "available_cpus", lambda: 1)
-    whole = geometry.crossings(origins, directions, limit)
-    monkeypatch.setattr(cpus, "available_cpus", lambda: 3)
-    split = geometry.crossings(origins, directions, limit)
-    assert len(whole[0]) > 2 * len(origins)  # many pairs, unevenly spread over the rays
-    assert_crossings_equal(split, whole)
-    assert_crossings_equal(split, crossings_by_loop(geometry, origins, directions, limit))
