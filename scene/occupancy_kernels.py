@@ -106,16 +106,20 @@ def _segment_crosses(ox, oy, oz, dx, dy, dz, limit, radius, lx, ly, lz, hx, hy, 
     if t1 != t1:  # NaN: keep the pair
         return True
     t1 = t1 + abs(t1) * 2.0 ** -20
-    if not (abs(ox) < np.inf and abs(dx) < np.inf and abs(oy) < np.inf
-            and abs(dy) < np.inf and abs(oz) < np.inf and abs(dz) < np.inf):
+    # the segment within the grid's box grown by radius, axis by axis (a ray with a
+    # coordinate not finite is kept, unless an earlier axis's slab already excludes it)
+    if not (abs(ox) < np.inf and abs(dx) < np.inf):
         return True
-    # the segment within the grid's box grown by radius
     t0, t1, outside = _clip(ox, dx, lx - radius, max(hx, lx + cx * nx) + radius, 0.0, t1)
     if outside:
         return False
+    if not (abs(oy) < np.inf and abs(dy) < np.inf):
+        return True
     t0, t1, outside = _clip(oy, dy, ly - radius, max(hy, ly + cy * ny) + radius, t0, t1)
     if outside:
         return False
+    if not (abs(oz) < np.inf and abs(dz) < np.inf):
+        return True
     t0, t1, outside = _clip(oz, dz, lz - radius, max(hz, lz + cz * nz) + radius, t0, t1)
     if outside:
         return False
@@ -148,8 +152,9 @@ def _segment_crosses(ox, oy, oz, dx, dy, dz, limit, radius, lx, ly, lz, hx, hy, 
         tb = min(max(tb, ta), t1)
         # The piece lies in the DDA's cell up to rounding, so its box grown by radius (under a
         # quarter cell) meets only that cell and its 26 neighbours: where none of them is
-        # occupied, the exact test below would find nothing.
-        if not skip or near[base + (ix * ny + iy) * nz + iz]:
+        # occupied, the exact test below would find nothing. (A piece without end, a ray
+        # whose direction is zero, is tested: inf * 0 makes its span NaN, and it is kept.)
+        if not skip or not tb < np.inf or near[base + (ix * ny + iy) * nz + iz]:
             # a cell meeting the box of the piece [ta, tb] grown by radius is occupied?
             x0, x1 = _span(ox, dx, ta, tb, radius, lx, cx, nx)
             y0, y1 = _span(oy, dy, ta, tb, radius, ly, cy, ny)

@@ -439,8 +439,13 @@ def test_skipping_cells_with_no_occupied_neighbour_changes_no_answer(seed):
     directions[:k] = 0
     directions[np.arange(k), rng.integers(0, 3, k)] = rng.choice([-1.0, 1.0], k)
     origins[:k, 2] = rng.integers(1, 8, k) / 8
-    for o, d in [*aimed, (origins, directions)]:
-        for limit in (np.inf, 1.0):
+    odd_o, odd_d = origins.copy(), directions.copy()  # degenerate rays, kept or dropped alike
+    pick = rng.random((n, 3))
+    odd_o[pick < 0.02] = np.nan
+    odd_d[(pick > 0.02) & (pick < 0.04)] = np.inf
+    odd_d[(pick > 0.04) & (pick < 0.3)] = 0.0  # some directions entirely zero
+    for o, d in [*aimed, (origins, directions), (odd_o, odd_d)]:
+        for limit in (np.inf, 1.0, np.nan):
             skipping = crosses(occ, o, d, limit)
             _, occ_full = occupancy_of(dom, (16, 16, 16))
             occ_full.min_cell[:] = 0.0  # every piece tested
