@@ -37,7 +37,8 @@ occupied (``Occupancy.near``, the mask dilated by one cell, made when a store is
 query steps on without testing the piece; the answers are the full test's bit for bit
 (``tests/test_occupancy.py``; the 1.06 M pairs sampled from the 100 M-triangle store's render
 and 307 k from ``bench/ooc.py --large``'s), at about half the cost a pair (380 -> 195 ns on
-``--large``'s). A grid whose cells are not four radii wide tests every piece.
+``--large``'s). A grid whose cells are not four radii wide tests every piece, and so does a
+ray whose direction is zero (its one piece has no end).
 """
 
 from __future__ import annotations
