@@ -74,8 +74,32 @@ def checksum_mismatch(data, check: tuple[str, str] | None) -> str | None:
     manifest 1234abcd"``; None when it has, or when there is nothing to check."""
     if check is None:
         return None
+    return digest_mismatch(digest(check[0], data), check)
+
+
+def digest_mismatch(got: str, check: tuple[str, str]) -> str | None:
+    """``checksum_mismatch`` of a digest already computed (``got``, of ``check``'s kind)."""
     algorithm, expected = check
-    got = digest(algorithm, data)
     if got == expected:
         return None
     return f"{NAMES[algorithm]} {got}, manifest {expected}"
+
+
+class RunningDigest:
+    """The ``kind`` checksum of bytes fed piece by piece (``update``), as :func:`digest`
+    writes it of them all: a load checks each piece of a file just read, while it is still
+    in the CPU's cache, instead of reading the whole buffer from memory again."""
+
+    def __init__(self, kind: str):
+        self.kind = kind
+        self._crc = 0
+        self._sha = hashlib.sha256() if kind == SHA256 else None
+
+    def update(self, data) -> None:
+        if self._sha is not None:
+            self._sha.update(data)
+        else:
+            self._crc = zlib.crc32(data, self._crc)
+
+    def hexdigest(self) -> str:
+        return self._sha.hexdigest() if self._sha is not None else f"{self._crc:08x}"

@@ -666,8 +666,8 @@ def parse_npy_header(fh) -> NpyHeader:
 
 
 def array_from_bytes(data) -> np.ndarray:
-    """The array a ``.npy`` file's bytes hold (``data``: bytes, or a bytearray for a writable
-    array), without copying them.
+    """The array a ``.npy`` file's bytes hold (``data``: bytes, or a writable buffer such as a
+    bytearray or a uint8 array, for a writable array), without copying them.
 
     Raises
     ------

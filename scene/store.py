@@ -50,7 +50,15 @@ from pathlib import Path
 import numpy as np
 
 from vastray.scene import occupancy
-from vastray.scene.checksums import CRC32, SHA256, HashingWriter, checksum_mismatch, load_check
+from vastray.scene.checksums import (
+    CRC32,
+    SHA256,
+    HashingWriter,
+    RunningDigest,
+    checksum_mismatch,
+    digest_mismatch,
+    load_check,
+)
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
 from vastray.scene.manifest import (  # noqa: F401  (FORMAT, MANIFEST, DomainInfo: re-exported)
@@ -347,14 +355,24 @@ def _read_array(path: Path, mmap: bool, drop_cache: bool,
             with NPY_HEADERS:  # (a mapped load reads only the header)
                 arr = np.load(path, mmap_mode="r", allow_pickle=False)
             return arr, None if check is None else checksum_mismatch(_mapped(path), check)
-        data = _read_whole(path, drop_cache)
-        return array_from_bytes(data), checksum_mismatch(data, check)
+        digest = None if check is None else RunningDigest(check[0])
+        data = _read_whole(path, drop_cache, digest)
+        return array_from_bytes(data), None if check is None else digest_mismatch(
+            digest.hexdigest(), check)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(path, f"unreadable or truncated domain file ({one_line(exc)})") from None
 
 
-def _read_whole(path: Path, drop_cache: bool) -> bytearray:
-    """The bytes of ``path``, read into one writable buffer (the arrays are views of it).
+#: Bytes ``_read_whole`` reads a call: each piece is checksummed while it is in the CPU's cache.
+#: Against one read of the whole file and a checksum over the buffer after it, 128 KiB pieces
+#: took half the CPU and 0.43x the time (60 of ``bench/ooc.py --large``'s domain files, 187 MB,
+#: the page cache dropped before each: 0.16 against 0.37 s).
+READ_PIECE = 1 << 17
+
+
+def _read_whole(path: Path, drop_cache: bool, digest: RunningDigest | None = None) -> np.ndarray:
+    """The bytes of ``path``, read into one writable (n,) uint8 buffer (the arrays are views of
+    it; not zeroed first), fed to ``digest`` piece by piece as they are read.
 
     Raises
     ------
@@ -363,12 +381,14 @@ def _read_whole(path: Path, drop_cache: bool) -> bytearray:
     """
     with open(path, "rb", buffering=0) as fh:
         size = os.fstat(fh.fileno()).st_size
-        data = bytearray(size)
+        data = np.empty(size, np.uint8)
         view, done = memoryview(data), 0
         while done < size:
-            n = fh.readinto(view[done:])
+            n = fh.readinto(view[done:min(size, done + READ_PIECE)])
             if not n:
                 raise ValueError(f"the file shrank to {done:,} bytes while it was read")
+            if digest is not None:
+                digest.update(view[done:done + n])
             done += n
         if fh.read(1):
             raise ValueError("the file grew while it was read")

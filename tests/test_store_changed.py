@@ -244,3 +244,21 @@ def test_truncating_the_store_during_an_in_core_render(store, tmp_path):
         assert re.fullmatch(rf"vastray render: error: {re.escape(str(store))}/domains/\d+/"
                             r"\w+\.npy: .*", last), last
         assert not out.exists()
+
+
+@pytest.mark.parametrize("version", [4, 3], ids=["crc32", "sha256"])
+def test_a_file_read_in_pieces_is_checked_whole(store, monkeypatch, version):
+    """Loads read a file in pieces of ``READ_PIECE`` bytes and checksum each as it is read:
+    in small pieces the arrays are the file's, and one byte changed in the file's last piece
+    is caught by either checksum."""
+    monkeypatch.setattr("vastray.scene.store.READ_PIECE", 100)
+    if version == 3:
+        downgrade_to_version_3(store)
+    target = vertices_file(store)
+    loaded = Store(store).load_domain(1)
+    assert np.array_equal(loaded.vertices, np.load(target))
+    assert target.stat().st_size > 50 * 100  # many pieces
+    edit_in_place(target, lambda v: np.concatenate([v[:-1], v[-1:] * 1.5]))
+    name = "CRC-32" if version == 4 else "SHA-256"
+    with pytest.raises(InputError, match=f"domain 1 {CHANGED} \\({name} "):
+        Store(store).load_domain(1)
