@@ -168,8 +168,18 @@ class DomainGeometry:
 
 
 def _ranks(ray: np.ndarray) -> np.ndarray:
-    """(m,) int32: each pair's position among its ray's pairs (``ray``: (m,) sorted)."""
-    return (np.arange(len(ray)) - np.searchsorted(ray, ray, side="left")).astype(np.int32)
+    """(m,) int32: each pair's position among its ray's pairs (``ray``: (m,) sorted).
+
+    In one pass over the runs of equal rays, each pair's index less its run's first index
+    (a running maximum of the runs' starts), not a binary search of every pair."""
+    m = len(ray)
+    if m < 2:
+        return np.zeros(m, np.int32)
+    position = np.arange(m)
+    run_start = np.zeros(m, position.dtype)
+    np.multiply(ray[1:] != ray[:-1], position[1:], out=run_start[1:])
+    np.maximum.accumulate(run_start, out=run_start)
+    return (position - run_start).astype(np.int32)
 
 
 def order_crossings(ray, domain, entry, first: int = 0, stop: int | None = None):

@@ -73,3 +73,16 @@ def test_spec_ooc_orders_domains_as_before(n, seed, subset):
     domains = [int(d) for d in rng.permutation(n)[:rng.integers(1, n + 1)]] if subset else None
     assert traversal_order(traversal_score(counter), resident, domains) == \
         old_traversal_order(counter, resident, domains)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(0, 6), max_size=40))
+def test_ranks_count_each_pairs_place_among_its_rays_pairs(rays):
+    """``_ranks`` (one pass over runs) gives each pair of a ray-sorted list its position
+    among the pairs of the same ray: a binary search of every pair, as it was computed."""
+    from vastray.schedule.geometry import _ranks
+
+    ray = np.sort(np.asarray(rays, np.int64))
+    expected = np.arange(len(ray)) - np.searchsorted(ray, ray, side="left")
+    got = _ranks(ray)
+    assert got.dtype == np.int32 and np.array_equal(got, expected)
