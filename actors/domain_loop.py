@@ -320,6 +320,8 @@ class ScheduleOrder:
         resident = self.preloader.resident() if self.resident_aware else frozenset()
         if self.evicting:
             domain = self.policy.next_domain(resident, victim=self.preloader.victim)
+            if domain is not None and domain == getattr(self.policy, "parting", None):
+                self.preloader.parting(domain)  # served before it goes: still the victim
         else:
             domain = self.policy.next_domain(resident)
         if self.by_demand and domain is not None:

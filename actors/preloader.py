@@ -41,6 +41,11 @@ class CacheFront:
         """The domain a load now would evict (None while there is room)."""
         return self.cache.victim()
 
+    def parting(self, domain: int) -> None:
+        """``domain``, the victim, is served before it goes: its next use keeps it the victim
+        (``DomainCache.parting``)."""
+        self.cache.parting(domain)
+
     def load_count(self, domain: int) -> int:
         """Times ``domain`` has been loaded so far (preloads included)."""
         return self.cache.load_count(domain)

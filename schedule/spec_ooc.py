@@ -85,6 +85,9 @@ class SpeculativeSchedule:
         self.resident_first = resident_first
         self.serve_before_evict = serve_before_evict
         self._victim_of: Callable[[], int | None] | None = None
+        #: The domain ``next_domain`` chose because the cache evicts it next (served before
+        #: it goes), None for any other choice: its use must leave it the cache's victim.
+        self.parting: int | None = None
         self.ctx = ctx
         self.geometry = geometry
         self.color_source = color_source
@@ -161,6 +164,7 @@ class SpeculativeSchedule:
         """
         if self._staged is not None:
             return self._staged[0]  # chosen and filtered already, not processed yet
+        self.parting = None
         self._resident = resident
         self._victim_of = victim
         lazy = self.resident_first and self.serve_before_evict and victim is not None
@@ -183,6 +187,7 @@ class SpeculativeSchedule:
                 if lazy and domain not in resident:
                     going = victim()
                     if going is not None and going != domain and self._filter(going):
+                        self.parting = going
                         return going  # its rays now, or a load for them later
                 self._schedule.pop(0)
                 if self._filter(domain):

@@ -89,6 +89,25 @@ def test_victim_is_named_only_when_the_largest_domain_would_not_fit(store):
         assert cache.victim() == ids[0]  # the least recently used
 
 
+def test_a_parting_domain_stays_the_victim_for_one_use(store):
+    ids = nonempty(store)[:3]
+    cache = DomainCache(store, 3)
+    for d in ids:
+        cache.get(d)
+    assert cache.victim() == ids[0]  # full: the least recently used goes next
+    cache.parting(ids[0])
+    cache.get(ids[0])  # served before it goes: still the victim
+    assert cache.victim() == ids[0]
+    cache.get(ids[0])  # the mark held for one use only
+    assert cache.victim() == ids[1]
+    cache.parting(ids[1])
+    cache.get(ids[2])  # another domain's use clears the mark: ids[0] goes next
+    cache.get(ids[1])  # used as any other: the most recently used
+    assert cache.victim() == ids[0]
+    cache.get(ids[0])
+    assert cache.victim() == ids[2]
+
+
 def test_a_preload_respects_the_bytes_and_never_evicts_a_protected_domain(store):
     fp = sizes(store)
     ids = sorted(nonempty(store), key=lambda d: fp[d])

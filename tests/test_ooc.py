@@ -199,10 +199,11 @@ def _started(store, config, st, **options) -> tuple[RenderSetup, SpeculativeSche
     return setup, policy
 
 
-def _drive(store, config, st, cache_capacity, **options):
-    """Run spec-ooc over one tile by hand (sequential loads). Returns (evicted with rays
-    that would still be traced, process calls, film radiance, most loads of one domain in
-    one round)."""
+def _drive(store, config, st, cache_capacity, parting=True, **options):
+    """Run spec-ooc over one tile by hand (sequential loads), the domain it serves before
+    the cache evicts it marked parting as the runtime marks it (``parting=False``: not).
+    Returns (evicted with rays that would still be traced, process calls, film radiance,
+    most loads of one domain in one round)."""
     setup, policy = _started(store, config, st, **options)
     cache = DomainCache(store, cache_capacity, setup.keep)
     unserved = calls = 0
@@ -214,6 +215,9 @@ def _drive(store, config, st, cache_capacity, **options):
             loads[key] = loads.get(key, 0) + 1
             if going is not None and policy._would_trace(going):
                 unserved += 1
+        if parting and domain == policy.parting:
+            assert domain == going  # only the cache's victim is served as parting
+            cache.parting(domain)
         policy.process(domain, cache.get(domain))
         calls += 1
     return unserved, calls, policy.result.radiance, max(loads.values())
@@ -258,6 +262,19 @@ def test_spec_ooc_serves_a_resident_domain_before_it_is_evicted(bumpy, config):
     assert paper > 0  # the paper's order evicts domains with rays left (the check can fail)
     assert lazy_calls < eager_calls
     np.testing.assert_allclose(lazy_radiance, eager_radiance, rtol=1e-6, atol=1e-6)
+
+
+def test_a_domain_served_before_its_eviction_stays_the_victim(bumpy, config):
+    # Served before it goes, the victim keeps its place in the eviction order; counted as
+    # used, the next resident domain became the victim and was served in turn, through every
+    # resident domain with rays before each load: more activations, the same picture, and
+    # still no domain evicted with rays to trace.
+    st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
+    kept, kept_calls, kept_radiance, _ = _drive(bumpy, config, st, 3)
+    used, used_calls, used_radiance, _ = _drive(bumpy, config, st, 3, parting=False)
+    assert kept == 0 and used == 0
+    assert kept_calls < used_calls, (kept_calls, used_calls)
+    np.testing.assert_allclose(kept_radiance, used_radiance, rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("options", [SpeculationRules(serve_before_evict=False),
