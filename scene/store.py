@@ -365,8 +365,8 @@ def _read_array(path: Path, mmap: bool, drop_cache: bool,
 
 #: Bytes ``_read_whole`` reads a call: each piece is checksummed while it is in the CPU's cache.
 #: Against one read of the whole file and a checksum over the buffer after it, 128 KiB pieces
-#: took half the CPU and 0.43x the time (60 of ``bench/ooc.py --large``'s domain files, 187 MB,
-#: the page cache dropped before each: 0.16 against 0.37 s).
+#: took half to three quarters of the CPU and 0.15-0.23 against 0.25-0.37 s (60 of
+#: ``bench/ooc.py --large``'s domain files, 187 MB, the page cache dropped before each).
 READ_PIECE = 1 << 17
 
 
