@@ -29,9 +29,9 @@ NAMES = {CRC32: "CRC-32", SHA256: "SHA-256"}
 def digest(kind: str, data) -> str:
     """The ``kind`` checksum (:data:`CRC32` or :data:`SHA256`) of ``data`` (any buffer: bytes,
     a bytearray, an ``mmap``), as the manifest writes it."""
-    if kind == CRC32:
-        return f"{zlib.crc32(data):08x}"
-    return hashlib.sha256(data).hexdigest()
+    running = RunningDigest(kind)
+    running.update(data)
+    return running.hexdigest()
 
 
 class HashingWriter:
@@ -93,7 +93,7 @@ class RunningDigest:
     def __init__(self, kind: str):
         self.kind = kind
         self._crc = 0
-        self._sha = hashlib.sha256() if kind == SHA256 else None
+        self._sha = None if kind == CRC32 else hashlib.sha256()
 
     def update(self, data) -> None:
         if self._sha is not None:
