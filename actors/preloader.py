@@ -109,8 +109,8 @@ class DomainPreloader(CacheFront):
 
     @property
     def reads_ahead(self) -> bool:
-        """Whether ``read_ahead`` reads anything: preloading on (``DomainCache.reads_ahead``)."""
-        return self.enabled and self.cache.reads_ahead
+        """Whether ``read_ahead`` reads anything: preloading on."""
+        return self.enabled
 
     def read_ahead(self, domain: int | None) -> None:
         """Start reading ``domain``'s files ahead, taking no slot (``DomainCache.read_ahead``;

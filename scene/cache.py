@@ -462,15 +462,20 @@ class DomainCache:
         preloader's build of another domain). One domain is read ahead at a time (besides one
         a started load or the domain built ahead will take: the slot kept for that one holds
         its arrays); a new one replaces it (a replaced read is wasted; it was no
-        load). Two reads' arrays are what the preflight reserves besides the builds
-        (``preflight.domain_build_bytes``).
+        load). Out of core, two reads' arrays are what the preflight reserves besides the
+        builds (``preflight.domain_build_bytes``); a cache holding every domain needs no
+        more: what it reads ahead is the arrays of a domain it will hold.
 
         Why: out of core the cache is full, and a preload must evict, so the schedules guess
         one domain ahead and only where a domain can go (``likely_next``); the loads then ran
         one after another, each started one short activation before it was needed (at a
         quarter of ``rm`` 1600³'s 72 domains cached, 183 of 195 loads were waited for, for 34
-        of their 37 ms). A read needs no slot."""
-        if domain_id is None or not self.reads_ahead:
+        of their 37 ms). A read needs no slot. In core too: there the preloader read each
+        domain and then built it, one step ahead of the render, so the render waited for every
+        read (session 70, ``bench/ooc.py --large`` with all 72 domains cached: 2.4-3.2 s of
+        waits for loads, 1.1 s of them for reads with no build running; reading ahead,
+        4.12-4.14 s -> 3.42-3.57 s a render, the same image)."""
+        if domain_id is None:
             return
         with self._lock:
             if (domain_id in self._resident or domain_id in self._pending
@@ -483,12 +488,6 @@ class DomainCache:
                 self._reader = ThreadPoolExecutor(1, thread_name_prefix="reader")
             self._reads[domain_id] = self._reader.submit(self._read, domain_id)
             self.stats.reads_ahead += 1
-
-    @property
-    def reads_ahead(self) -> bool:
-        """Whether ``read_ahead`` reads anything: a cache smaller than the store (one holding
-        every domain evicts nothing, and its preloads are the reads)."""
-        return self.capacity < len(self.store.domains)
 
     def _read(self, domain_id: int):
         """The domain's arrays, as a load reads them (``load_bandwidth`` waited out), with

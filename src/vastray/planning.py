@@ -333,7 +333,8 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
     threads = request.threads or available_cpus()
     total = request.width * request.height * request.spp
     footprints = domain_footprints(store.domains, fast_builds(request.bvh, store.n_triangles))
-    # out of core (a limit or a cache below the store) the cache also reads domains ahead
+    # out of core (a limit or a cache below the store) two domains read ahead come on top of
+    # the cache's; in core a domain read ahead is one the cache will hold anyway
     building = domain_build_bytes(store.domains, reads_ahead=request.memory_limit is not None
                                   or (cache is not None and cache < len(store.domains)))
     reference = request.reference is not None  # a file name, or an array (the Python API)

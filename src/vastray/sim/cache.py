@@ -227,7 +227,7 @@ class VirtualPreloader(CacheFront):
     @property
     def reads_ahead(self) -> bool:
         """As ``DomainPreloader.reads_ahead``."""
-        return self.enabled and self.cache.reads_ahead
+        return self.enabled
 
     def read_ahead(self, domain: int | None) -> None:
         """As ``DomainCache.read_ahead``: start ``domain``'s read (its CPU on the node's core,
