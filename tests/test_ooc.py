@@ -82,6 +82,23 @@ def test_builds_ahead_leave_the_image_and_the_capacity_alone(bumpy, config, sche
             assert c["builds_ahead_used"] > 0  # (the baseline nearly always names one)
 
 
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
+def test_a_cache_holding_every_domain_reads_the_next_load_ahead(bumpy, config, scheduler):
+    """In core the preloader is one domain ahead, as out of core: the files of the load after
+    it are read ahead on the reader thread (session 70: before, the preloader read and then
+    built each domain and the render waited for every read). Each domain is still loaded
+    once, nothing is evicted, and the image is the reference bit for bit."""
+    st = settings(width=40, height=30, spp=2, integrator="pt", bounces=3)
+    reference = render(bumpy, config, st, progress=False).film.image()
+    n = len(bumpy.domains)
+    result = render_out_of_core(bumpy, config, st, options=JobOptions(
+        scheduler=scheduler, cache=n), progress=False)
+    c = result.counters
+    assert_same(result.film.image(), reference, f"{scheduler} in core")
+    assert c["evictions"] == 0 and c["loads"] == c["distinct_domains_loaded"]
+    assert 0 < c["reads_ahead_used"] <= c["reads_ahead"]
+
+
 @pytest.mark.parametrize("history_depth", [0, 1, 2, 3])
 def test_spec_ooc_any_history_depth_matches_reference(bumpy, config, history_depth):
     st = settings(width=32, height=24, spp=2, integrator="pt", bounces=3)
