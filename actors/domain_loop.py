@@ -198,8 +198,7 @@ class DomainLoop:
             cpu = cpu_time()
             guess = order.likely_next(domain)
             next_load = getattr(order, "next_load", None)
-            ahead = (None if next_load is None or not self.preloader.reads_ahead
-                     else next_load(domain, guess))
+            ahead = None if next_load is None else next_load(domain, guess)
             build = guess is None and ahead is not None and self.preloader.builds_ahead
             # building ahead, the reader reads the load after that one meanwhile
             then = next_load(domain, ahead) if build else None

@@ -107,11 +107,6 @@ class DomainPreloader(CacheFront):
         if self.enabled and domain is not None:
             self.cache.prefetch(int(domain))
 
-    @property
-    def reads_ahead(self) -> bool:
-        """Whether ``read_ahead`` reads anything: preloading on."""
-        return self.enabled
-
     def read_ahead(self, domain: int | None) -> None:
         """Start reading ``domain``'s files ahead, taking no slot (``DomainCache.read_ahead``;
         no-op when preloading is off)."""

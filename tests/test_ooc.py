@@ -83,11 +83,13 @@ def test_builds_ahead_leave_the_image_and_the_capacity_alone(bumpy, config, sche
 
 
 @pytest.mark.parametrize("scheduler", ["image", "spec-ooc"])
-def test_a_cache_holding_every_domain_reads_the_next_load_ahead(bumpy, config, scheduler):
+def test_a_cache_holding_every_domain_reads_the_next_load_ahead(bumpy, config, scheduler,
+                                                                 tmp_path, capsys):
     """In core the preloader is one domain ahead, as out of core: the files of the load after
     it are read ahead on the reader thread (session 70: before, the preloader read and then
     built each domain and the render waited for every read). Each domain is still loaded
-    once, nothing is evicted, and the image is the reference bit for bit."""
+    once, nothing is evicted, and the image is the reference bit for bit; the CLI's render,
+    without --quiet, says so in its summary and report."""
     st = settings(width=40, height=30, spp=2, integrator="pt", bounces=3)
     reference = render(bumpy, config, st, progress=False).film.image()
     n = len(bumpy.domains)
@@ -97,6 +99,13 @@ def test_a_cache_holding_every_domain_reads_the_next_load_ahead(bumpy, config, s
     assert_same(result.film.image(), reference, f"{scheduler} in core")
     assert c["evictions"] == 0 and c["loads"] == c["distinct_domains_loaded"]
     assert 0 < c["reads_ahead_used"] <= c["reads_ahead"]
+    out, report = tmp_path / "in-core.exr", tmp_path / "in-core.json"
+    assert main(["render", str(bumpy.path), "-o", str(out), "--width", "24", "--height", "18",
+                 "--spp", "1", "--scheduler", scheduler, "--report", str(report)]) == 0
+    err = capsys.readouterr().err
+    assert f"wrote {out}" in err and "domain loads" in err, err
+    counters = json.loads(report.read_text())["counters"]
+    assert counters["evictions"] == 0 and counters["reads_ahead_used"] > 0
 
 
 @pytest.mark.parametrize("history_depth", [0, 1, 2, 3])

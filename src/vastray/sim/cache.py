@@ -224,16 +224,11 @@ class VirtualPreloader(CacheFront):
         await asyncio.sleep(throttle)
         return throttle
 
-    @property
-    def reads_ahead(self) -> bool:
-        """As ``DomainPreloader.reads_ahead``."""
-        return self.enabled
-
     def read_ahead(self, domain: int | None) -> None:
         """As ``DomainCache.read_ahead``: start ``domain``'s read (its CPU on the node's core,
         then the bandwidth's wait) without a slot; its load then only builds."""
         cache = self.cache
-        if (domain is None or not self.reads_ahead or domain in cache
+        if (domain is None or not self.enabled or domain in cache
                 or domain in cache._pending or domain in self._reads or domain in self._built):
             return
         for other in [d for d in self._reads if d not in cache._pending and d not in self._built]:
