@@ -318,7 +318,8 @@ class ScheduleOrder:
             self.preloader.prioritise(self.policy.demand())
         resident = self.preloader.resident() if self.resident_aware else frozenset()
         if self.evicting:
-            domain = self.policy.next_domain(resident, victim=self.preloader.victim)
+            domain = self.policy.next_domain(resident, victim=self.preloader.victim,
+                                             preloaded=self.preloader.preloaded())
             if domain is not None and domain == getattr(self.policy, "parting", None):
                 self.preloader.parting(domain)  # served before it goes: still the victim
         else:

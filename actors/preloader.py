@@ -37,6 +37,11 @@ class CacheFront:
         """Domains resident or being loaded."""
         return self.cache.resident_set()
 
+    def preloaded(self) -> frozenset[int]:
+        """Domains of ``resident()`` preloaded (or preloading) and not taken since
+        (``DomainCache.preloaded_set``)."""
+        return self.cache.preloaded_set()
+
     def victim(self) -> int | None:
         """The domain a load now would evict (None while there is room)."""
         return self.cache.victim()

@@ -120,6 +120,7 @@ class DomainCache:
         self._priority = None
         self._protect: frozenset[int] = frozenset()
         self._parting: int | None = None  # served before its eviction: keeps its place
+        self._preloaded: set[int] = set()  # preloading or preloaded, not taken by a get yet
         self.store = store
         self.capacity = capacity
         self.keep = keep
@@ -235,6 +236,13 @@ class DomainCache:
         with self._lock:
             return frozenset(self._resident) | frozenset(self._pending)
 
+    def preloaded_set(self) -> frozenset[int]:
+        """Domains a preload (``prefetch``) has made or is making resident that no ``get`` has
+        taken since: whether the load has ended or not, so that what a schedule decides from
+        it does not depend on how fast loads run."""
+        with self._lock:
+            return frozenset(self._preloaded)
+
     def load_count(self, domain_id: int) -> int:
         """How many times ``domain_id`` has been loaded (preloads included) so far."""
         with self._lock:
@@ -250,6 +258,8 @@ class DomainCache:
         held up every other thread's hits for the whole load).
         """
         start = time.perf_counter()
+        with self._lock:
+            self._preloaded.discard(domain_id)
         while True:
             with self._lock:
                 if domain_id in self._resident:
@@ -359,6 +369,7 @@ class DomainCache:
             if evicted is None:
                 return False
             gone = self._resident.pop(evicted)
+            self._preloaded.discard(evicted)
             self._resident_bytes -= gone.nbytes()
             self.stats.evictions += 1
             log.debug("evicted domain %d", evicted)
@@ -394,6 +405,7 @@ class DomainCache:
             if self._preloader is None:
                 self._preloader = ThreadPoolExecutor(1, thread_name_prefix="preloader")
             self._pending[domain_id] = self._preloader.submit(self._preload, domain_id)
+            self._preloaded.add(domain_id)
 
     def build_ahead(self, domain_id: int | None) -> None:
         """Start loading ``domain_id`` on the preloader thread into the slot kept for it,

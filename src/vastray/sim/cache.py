@@ -247,6 +247,7 @@ class VirtualPreloader(CacheFront):
         cache)."""
         cache = self.cache
         start = self.cluster.now()
+        cache._preloaded.discard(domain)
         built = self._built.pop(domain, None)
         if built is not None and domain not in cache:  # built ahead: taken, evicting now
             cache._pending[domain] = built
@@ -284,6 +285,7 @@ class VirtualPreloader(CacheFront):
                 or not cache._make_room(1, for_preload=True)):
             return
         cache._pending[domain] = asyncio.ensure_future(self._preload(int(domain)))
+        cache._preloaded.add(domain)
 
     async def _preload(self, domain: int) -> None:
         cache = self.cache
