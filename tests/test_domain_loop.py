@@ -222,8 +222,8 @@ class FakeSchedule:
         self.asked: list = []
         self.counters = {"radiance_tests": 0, "shadow_tests": 0}
 
-    def next_domain(self, resident, victim=None):
-        self.asked.append((resident, victim))
+    def next_domain(self, resident, victim=None, preloaded=frozenset()):
+        self.asked.append((resident, victim, preloaded))
         return None
 
     def likely_next(self, current):
@@ -241,9 +241,18 @@ def test_schedule_order_hands_the_schedule_what_its_runtime_allows(store, preloa
     ScheduleOrder(policy, preloader).next_domain()
     ScheduleOrder(policy, preloader, resident_aware=False).next_domain()
     ScheduleOrder(policy, preloader, evicting=True).next_domain()
-    assert policy.asked[0] == (frozenset({a}), None)
-    assert policy.asked[1] == (frozenset(), None)  # the domain rounds: no resident rule
+    assert policy.asked[0] == (frozenset({a}), None, frozenset())
+    assert policy.asked[1] == (frozenset(), None, frozenset())  # the domain rounds: no resident rule
     assert policy.asked[2][1] == preloader.victim  # spec-ooc's serve-before-evict
+    assert policy.asked[2][2] == frozenset()
+    # a preloaded domain stays "preloaded" until a get takes it, whether its load ended or not
+    b = nonempty(store)[1]
+    preloader.preload(b)
+    ScheduleOrder(policy, preloader, evicting=True).next_domain()
+    assert policy.asked[3][2] == frozenset({b}) and b in policy.asked[3][0]
+    asyncio.run(preloader.get(b))
+    ScheduleOrder(policy, preloader, evicting=True).next_domain()
+    assert policy.asked[4][2] == frozenset()
     queries = ScheduleOrder(policy, preloader).trace(a, None)
     assert (queries.radiance, queries.shadow, int(queries)) == (2, 1, 3)
 
