@@ -418,7 +418,9 @@ class DomainCache:
         domain still has rays it names no preload (``likely_next`` is None) and the
         preloader idled while the render served the resident domains in turn: at a quarter
         of ``rm`` 1600³'s 72 domains, the builds kept the preloader busy 5.0 of 8.0 s and
-        184 of 195 loads were waited for while in flight. The slot kept for a domain built
+        184 of 195 loads were waited for while in flight. (Since session 71 spec-ooc serves
+        that domain before it traces a preloaded one, while the preload runs, so it names a
+        preload at nearly every step and rarely builds ahead.) The slot kept for a domain built
         ahead holds what a preload would have evicted for, so the cache never holds more
         than ``capacity`` built domains (a replaced build still running holds its memory
         until it ends; the next starts after it, on the same thread). Replacing whatever the
