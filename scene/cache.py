@@ -258,10 +258,9 @@ class DomainCache:
         held up every other thread's hits for the whole load).
         """
         start = time.perf_counter()
-        with self._lock:
-            self._preloaded.discard(domain_id)
         while True:
             with self._lock:
+                self._preloaded.discard(domain_id)  # taken now (a no-op on a second pass)
                 if domain_id in self._resident:
                     bvh = self._get(domain_id)
                     break
