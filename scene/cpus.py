@@ -12,13 +12,16 @@ A quota also holds a process back: once its threads together have used ``quota x
 CPU seconds in a period (100 ms by default), none of them runs until the period ends.
 ``cgroup_cpu_throttled_s`` reads how long the kernel held it so (``cpu.stat``), and
 ``CpuClock`` gives a render's CPU seconds and those held seconds over a span, which every
-node reports (``busy_cpu_s``, ``cpu_throttled_s``).
+node reports (``busy_cpu_s``, ``cpu_throttled_s``), and the span's minor page faults
+(``page_faults``: pages of memory touched for the first time, which a fresh node pays for in
+every job; ``vastray.sim.first_touch``).
 """
 
 from __future__ import annotations
 
 import math
 import os
+import resource
 import time
 from pathlib import Path
 
@@ -106,16 +109,16 @@ class CpuClock:
         #: the tightest quota in CPUs (None: no quota, and nothing to read for held seconds)
         self.quota = cgroup_cpu_quota(*self._where)
 
-    def mark(self) -> tuple[float, float | None]:
-        """Now: (CPU seconds, held seconds or None)."""
+    def mark(self) -> tuple[float, float | None, int]:
+        """Now: (CPU seconds, held seconds or None, minor page faults)."""
         held = cgroup_cpu_throttled_s(*self._where) if self.quota is not None else None
-        return time.process_time(), held
+        return time.process_time(), held, resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
-    def since(self, mark: tuple[float, float | None]) -> dict[str, float]:
-        """What was spent since ``mark``: ``busy_cpu_s``, and ``cpu_throttled_s`` where a
-        quota holds the process and its counter is readable."""
-        cpu, held = self.mark()
-        spent = {"busy_cpu_s": cpu - mark[0]}
+    def since(self, mark: tuple[float, float | None, int]) -> dict[str, float]:
+        """What was spent since ``mark``: ``busy_cpu_s``, ``page_faults``, and
+        ``cpu_throttled_s`` where a quota holds the process and its counter is readable."""
+        cpu, held, faults = self.mark()
+        spent = {"busy_cpu_s": cpu - mark[0], "page_faults": faults - mark[2]}
         if held is not None and mark[1] is not None:
             spent["cpu_throttled_s"] = round(max(held - mark[1], 0.0), 4)
         return spent

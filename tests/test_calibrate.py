@@ -78,6 +78,8 @@ def test_quick_calibration_measures_every_constant_plausibly(quick):
     # way, but not a whole activation's worth
     assert 1e-6 < model.receive_s < 5e-3
     assert model.trace_scale == 1.0 and model.decision_scale == 1.0 and model.load_scale == 1.0
+    # a page's first touch costs 0.1-10 us; a path touches a fraction of a page up to a few
+    assert 1e-8 < model.page_fault_s < 1e-4 and 0.0 < model.fresh_pages_per_path < 8.0
     # the throughput with 1 .. 4 x cores busy processes (a validation runs 8 nodes on 2 cores):
     # one process is the unit, and k processes give at most what k processes and the cores can
     assert len(model.throughput) == 4 * model.cores and model.throughput[0] == 1.0

@@ -99,7 +99,25 @@ def test_the_cpu_clock_reports_held_seconds_only_under_a_quota(tmp_path):
     assert spent["cpu_throttled_s"] == pytest.approx(0.75) and spent["busy_cpu_s"] >= 0.0
     root, proc = fake_cgroup(tmp_path / "free", {"cpu.max": "max 100000\n",
                                                  "cpu.stat": "throttled_usec 1000000\n"})
-    assert set(CpuClock(root, proc).since(CpuClock(root, proc).mark())) == {"busy_cpu_s"}
+    assert set(CpuClock(root, proc).since(CpuClock(root, proc).mark())) == {"busy_cpu_s",
+                                                                          "page_faults"}
+
+
+def test_the_cpu_clock_counts_the_pages_a_span_touches_first():
+    import mmap
+
+    import numpy as np
+
+    clock = CpuClock()
+    mark = clock.mark()
+    mapping = mmap.mmap(-1, 8 << 20)  # 2,048 pages never touched
+    pages = np.frombuffer(mapping, np.uint8)
+    pages[::mmap.PAGESIZE] = 1
+    faults = clock.since(mark)["page_faults"]
+    del pages
+    mapping.close()
+    assert faults >= (8 << 20) // mmap.PAGESIZE
+    assert clock.since(clock.mark())["page_faults"] < 1000  # nothing touched in between
 
 
 def test_a_node_says_when_its_quota_is_below_a_core(caplog):

@@ -35,7 +35,7 @@ from vastray.sim.clock import Deadlock, run_virtual
 from vastray.sim.cluster import Cluster
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
-from vastray.sim.simulate import SIM_SCHEDULERS, simulate
+from vastray.sim.simulate import SIM_SCHEDULERS, node_options, simulate
 from vastray.transport.codec import Message
 
 from scenes import rm_store
@@ -225,6 +225,10 @@ def test_with_cores_and_warm_change_only_their_fields():
     assert (warm.warmup_s, warm.node_setup_s, warm.tile_setup_s) == (0.0, 0.0, 0.0)
     assert dataclasses.replace(warm, warmup_s=1.0, node_setup_s=2.0, tile_setup_s=3.0) == c
     assert c.warmup_s == 1.0  # frozen: the original is untouched
+    # a warm node's memory was touched by its earlier jobs; a fault still costs what it costs
+    touching = CostModel(page_fault_s=3e-6, fresh_pages_per_path=0.25)
+    assert touching.first_touch_s(4000) == pytest.approx(3e-3)
+    assert touching.warm().first_touch_s(4000) == 0.0 and touching.warm().page_fault_s == 3e-6
 
 
 def test_a_hand_made_model_round_trips_and_unknown_or_bad_fields_are_refused(tmp_path):
@@ -436,6 +440,40 @@ def test_only_the_first_trace_of_a_node_pays_its_warm_up_and_set_up():
 
     compute_s, _ = run_virtual(main())
     assert list(compute_s) == [11.0 + 1.0, 110.5, 0.0]
+
+
+def test_a_fresh_node_pays_the_first_touch_of_its_paths_once_at_its_first_trace():
+    costs = CostModel(warmup_s=1.0)
+
+    async def main():
+        cluster = Cluster(2, costs)
+        cluster.first_touch_s = 0.25
+        await cluster.trace(0, 0.5, runtime="node")
+        await cluster.trace(0, 0.5, runtime="node")
+        return cluster.compute_s
+
+    compute_s, _ = run_virtual(main())
+    assert list(compute_s) == [1.25 + 0.5 + 0.5, 0.0, 0.0]  # node 1 never traced: nothing
+
+
+@pytest.mark.parametrize("scheduler", ["image", "spec-ooc", "domain", "async", "spec-insitu"])
+def test_a_simulation_charges_each_node_the_first_touch_of_its_share_of_paths(
+        store, domains, scheduler):
+    # constants only (no CPU measured), so the two simulations differ by the charge alone
+    touching = dataclasses.replace(COSTS, page_fault_s=1e-3, fresh_pages_per_path=0.5)
+    tile = 100  # paths in flight a node, below its share of SETTINGS' 1,536 paths
+    options = {"max_samples_in_flight": tile}
+    fresh = sim(store, domains, scheduler, 2, touching, **options)
+    untouched = sim(store, domains, scheduler, 2, COSTS, **options)
+    assert touching.first_touch_s(tile) == pytest.approx(0.05)
+    assert fresh.compute_seconds[:2] == pytest.approx(untouched.compute_seconds[:2] + 0.05)
+    # without a tile (the default one holds more), a node holds its share of the pass's paths
+    assert node_options(JobOptions(scheduler=scheduler), 2).max_samples_in_flight > SETTINGS.paths
+    for passes, share in ((None, SETTINGS.paths // 2), (1, SETTINGS.paths // 4)):  # 1 spp a pass
+        whole = sim(store, domains, scheduler, 2, touching, max_pass_spp=passes)
+        bare = sim(store, domains, scheduler, 2, COSTS, max_pass_spp=passes)
+        assert whole.compute_seconds[:2] == pytest.approx(
+            bare.compute_seconds[:2] + touching.first_touch_s(share))
 
 
 # -- the virtual domain cache ---------------------------------------------------------------

@@ -13,6 +13,9 @@ machine it runs on, with the project's own components, never mocks.
   whose CPU beyond the raw wire is what a node pays to receive one (``receive_s``);
 - warm processes (``vastray.sim.warmup``): the machine's throughput with 1 to 4 x cores
   processes rendering side by side, in interleaved rounds, from their CPU seconds;
+- what a fresh node pays in proportion to its paths: two sizes of renders in fresh processes
+  and their page faults (``vastray.sim.first_touch``: ``page_fault_s``,
+  ``fresh_pages_per_path``);
 - what a node pays once: real ``async``, ``image`` and ``spec-insitu`` renders of a few
   pixels on ``node_cost.SETUP_NODES`` node processes against the simulator's predictions of
   them (``vastray.sim.node_cost``): the least of the three is every fresh process's first
@@ -53,6 +56,7 @@ from vastray.scene.cache import DomainCache
 from vastray.scene.store import DomainArrays, Store
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.paths import radiance_soa, start_cursor
+from vastray.sim import first_touch
 from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import SETUP_NODES, setup_cost
 from vastray.sim.warmup import (
@@ -108,8 +112,8 @@ QUICK = Effort(load_s=1.0, min_loads=4, trace_s=2.0, min_tiles=2, spp=2, wire_s=
                min_pings=4)
 
 #: Share of the run each stage takes (for ``progress``), in the order they run.
-STAGES = {"setup": 0.02, "loads": 0.07, "tracing": 0.18, "wire": 0.17, "warmup": 0.21,
-          "node": 0.35}
+STAGES = {"setup": 0.02, "loads": 0.07, "tracing": 0.18, "wire": 0.17, "warmup": 0.19,
+          "first touch": 0.04, "node": 0.33}
 
 
 def node_settings(settings: RenderSettings) -> RenderSettings:
@@ -202,6 +206,11 @@ def calibrate(store_path: str | os.PathLike, *, quick: bool = False,
         trace_scale=1.0, node_cpu_scale=1.0, load_scale=1.0,
         offload_s=float(np.median(offload)) if offload else 0.0,
         cores=cores, throughput=throughput)
+    report("first touch", 0.0, "fresh processes touching their memory")
+    # before the set-up renders: what a fresh node pays in proportion to its paths is not
+    # its fixed cost
+    page_fault_s, fresh_pages_per_path = first_touch.measure(str(store_path), quick)
+    model = replace(model, page_fault_s=page_fault_s, fresh_pages_per_path=fresh_pages_per_path)
     report("node", 0.0, f"renders on {SETUP_NODES} real nodes")
     # each pair starts SETUP_NODES fresh node processes (about 8 s on 2 cores)
     config, repeats = config or SceneConfig(text=""), 2 if quick else 3

@@ -58,6 +58,9 @@ class Cluster:
         #: each node's own code measured beyond the named work (``sim.meter``); charged
         #: only where ``costs.node_cpu_scale`` is set
         self.meter = NodeMeter(costs.node_cpu_scale)
+        #: what each fresh node pays once, at its first trace, to first touch the memory of
+        #: its paths in flight (``CostModel.first_touch_s``; set by the render simulated)
+        self.first_touch_s = 0.0
 
     @staticmethod
     def now() -> float:
@@ -85,11 +88,11 @@ class Cluster:
         Its first trace also pays a fresh process's first use (``warmup_s``) and the set-up
         of its ``runtime`` (one of ``RUNTIMES``: ``node_setup_s`` for the domain-decomposition
         runtimes, ``tile_setup_s`` for sort-first nodes, ``insitu_setup_s`` for in-situ ones):
-        a node that never traces never loads the kernels."""
+        a node that never traces never loads the kernels. It pays ``first_touch_s`` then too."""
         if not self._warm[rank]:
             self._warm[rank] = True
             costs = self.costs
-            seconds += costs.warmup_s + getattr(costs, RUNTIMES[runtime])
+            seconds += costs.warmup_s + getattr(costs, RUNTIMES[runtime]) + self.first_touch_s
         await self.compute(rank, seconds)
 
     async def decided(self, rank: int, cpu_seconds: float) -> None:

@@ -76,6 +76,16 @@ class CostModel:
         one-process runtime on a thread of its own.
     insitu_setup_s : the same for an in-situ node (``spec-insitu``), which loads its domains
         first and traces on its event loop's thread (no hand-off, no termination waves).
+    page_fault_s : CPU seconds of one minor page fault: the first touch of a fresh 4 KiB page
+        of memory, the kernel mapping and zeroing it (``sim.first_touch``; 2.6-3.6 us on this
+        virtual machine, a tenth of that on bare metal).
+    fresh_pages_per_path : pages a fresh node's render thread first touches per path in
+        flight (its paths, ray batches, queues and film), measured on the calibration store
+        (``sim.first_touch``): a fresh node pays ``first_touch_s`` of its paths once, at its
+        first trace, which the simulator's own long-lived process, its heap touched long
+        before, does not (real nodes: 10,000-30,000 faults a node in a 0.2-0.5 s busy span,
+        30-80 ms). 0 (the default, and what calibration files written before it mean)
+        charges nothing.
     decision_scale : virtual seconds charged per CPU second a schedule spends deciding
         (``next_domain`` with spec-ooc's filtering, ``likely_next``, the dynamic schedule's
         rounds), measured as the simulator runs the real schedule code (``launch.cpu_time``:
@@ -139,6 +149,8 @@ class CostModel:
     node_setup_s: float = 0.0
     tile_setup_s: float = 0.0
     insitu_setup_s: float = 0.0
+    page_fault_s: float = 0.0
+    fresh_pages_per_path: float = 0.0
     decision_scale: float = 0.0
     trace_scale: float = 0.0
     node_cpu_scale: float = 0.0
@@ -179,6 +191,11 @@ class CostModel:
         if self.trace_scale:
             return cpu_seconds * self.trace_scale
         return self.trace_s(radiance, shadow)
+
+    def first_touch_s(self, paths: int) -> float:
+        """Seconds a fresh node pays once to first touch the memory of ``paths`` paths in
+        flight (``page_fault_s`` times ``fresh_pages_per_path`` a path)."""
+        return self.page_fault_s * self.fresh_pages_per_path * max(paths, 0)
 
     def read_s(self, nbytes: int) -> float:
         """Seconds to read a domain of ``nbytes`` bytes from the store."""
@@ -236,10 +253,11 @@ class CostModel:
                       if f.name not in ("cores", "machine", "throughput")})
 
     def warm(self) -> CostModel:
-        """The same costs for nodes already started and warm (``warmup_s`` and
-        the set-ups 0: a long job's later frames, a running service)."""
+        """The same costs for nodes already started and warm (``warmup_s``, the set-ups and
+        the first touch of memory 0: a long job's later frames, a running service)."""
         return CostModel(**{**asdict(self), "warmup_s": 0.0, "node_setup_s": 0.0,
-                            "tile_setup_s": 0.0, "insitu_setup_s": 0.0})
+                            "tile_setup_s": 0.0, "insitu_setup_s": 0.0,
+                            "fresh_pages_per_path": 0.0})
 
     def as_dict(self) -> dict:
         return {"version": VERSION, **asdict(self)}

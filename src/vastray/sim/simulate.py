@@ -226,6 +226,7 @@ def _check_path_memory(options: JobOptions, nodes: int, paths: int) -> None:
 
 async def _render(store, options, size, costs, settings, config, units, domains):
     cluster = Cluster(size, costs)
+    cluster.first_touch_s = costs.first_touch_s(paths_in_flight(options, size, settings, units))
     unit_ends: list[list[float]] = [[] for _ in units]
     loop = asyncio.get_running_loop()
     if costs.node_cpu_scale:  # each node's own code measured as it runs (``sim.meter``)
@@ -240,6 +241,16 @@ async def _render(store, options, size, costs, settings, config, units, domains)
     marks = [0.0] + [max(ends) for ends in unit_ends]
     film = per_node[0][3]
     return ([p[:3] for p in per_node], list(np.diff(marks)), cluster, film)
+
+
+def paths_in_flight(options: JobOptions, size: int, settings: RenderSettings,
+                    units: list) -> int:
+    """Paths a node of ``size`` holds at once (what its first touch of memory is charged
+    for, ``CostModel.first_touch_s``): its share of the largest unit's paths, at most a
+    tile (``max_samples_in_flight``)."""
+    largest = max(settings.window(*unit[1:]).paths for unit in units)
+    share = -(-largest // size)
+    return min(options.max_samples_in_flight or share, share)
 
 
 async def _node(cluster: Cluster, rank: int, store, options, settings, config, units, domains,
