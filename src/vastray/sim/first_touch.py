@@ -88,7 +88,8 @@ def fresh_pages(store_path: str, quick: bool, tile: bool) -> tuple[int, int]:
     lines = done.stdout.strip().splitlines()
     if done.returncode != 0 or not lines:
         why = (done.stderr.strip().splitlines() or [f"exit status {done.returncode}"])[-1]
-        why = why.split("Error: ", 1)[-1]  # the exception's text, not its class
+        why = why.split("Error: ", 1)[-1]  # an exception's text, not its class
+        why = why.removeprefix("vastray.sim.first_touch: ").removeprefix(f"{store_path}: ")
         raise InputError(store_path, f"the first-touch measurement failed: {why}")
     answer = json.loads(lines[-1])
     return int(answer["paths"]), int(answer["pages"])
@@ -115,25 +116,16 @@ def measure(store_path: str, quick: bool) -> tuple[float, float]:
 
 
 def main(argv: list[str]) -> int:
-    import argparse
-
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
     from vastray.actors.node_warm_up import warm_node
     from vastray.render.scene_config import SceneConfig
-    from vastray.scene.store import Store
-    from vastray.sim.calibrate import calibration_settings, node_settings
+    from vastray.sim.warmup import measuring_render
 
-    parser = argparse.ArgumentParser(prog="python -m vastray.sim.first_touch")
-    parser.add_argument("store")
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--tile", action="store_true",
-                        help="render the calibration tile (else twice its width and height)")
-    args = parser.parse_args(argv)
+    store, settings = measuring_render("python -m vastray.sim.first_touch", argv,
+                                       "render the calibration tile (else twice its width "
+                                       "and height)")
     warm_node()  # as a node does before its first hello
-    store = Store(args.store)
-    settings = calibration_settings(args.quick)
-    settings = settings if args.tile else node_settings(settings)
     before = thread_faults()
     # one thread, as a node's: its traces run on this thread, its loads on the preloader's
     render_out_of_core(store, SceneConfig(text=""), settings,
@@ -143,4 +135,7 @@ def main(argv: list[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    try:
+        sys.exit(main(sys.argv[1:]))
+    except InputError as exc:
+        sys.exit(f"vastray.sim.first_touch: {exc}")

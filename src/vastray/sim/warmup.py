@@ -170,26 +170,34 @@ def process_costs(store_path: str, quick: bool, cores: int) -> tuple[float, ...]
     return interpolated(throughput_of(rounds, cores))
 
 
-def main(argv: list[str]) -> int:
+def measuring_render(prog: str, argv: list[str], tile_help: str):
+    """(store, settings) of a measuring process's render from its command line (``STORE
+    [--quick] [--tile]``): the calibration tile with ``--tile``, else twice its width and
+    height (``calibrate.node_settings``)."""
     import argparse
 
-    from vastray.actors.job_options import JobOptions
-    from vastray.actors.local import render_out_of_core
-    from vastray.render.scene_config import SceneConfig
     from vastray.scene.store import Store
     from vastray.sim.calibrate import calibration_settings, node_settings
 
-    parser = argparse.ArgumentParser(prog="python -m vastray.sim.warmup")
+    parser = argparse.ArgumentParser(prog=prog)
     parser.add_argument("store")
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--tile", action="store_true",
-                        help="render the calibration tile itself (a probe's shorter renders)")
+    parser.add_argument("--tile", action="store_true", help=tile_help)
     args = parser.parse_args(argv)
-    store = Store(args.store)
+    settings = calibration_settings(args.quick)
+    return Store(args.store), settings if args.tile else node_settings(settings)
+
+
+def main(argv: list[str]) -> int:
+    from vastray.actors.job_options import JobOptions
+    from vastray.actors.local import render_out_of_core
+    from vastray.render.scene_config import SceneConfig
+
     # twice the calibration tile (about 1.4 s here): long enough for the processes' renders
     # to run side by side
-    settings = calibration_settings(args.quick)
-    settings = settings if args.tile else node_settings(settings)
+    store, settings = measuring_render("python -m vastray.sim.warmup", argv,
+                                       "render the calibration tile itself (a probe's "
+                                       "shorter renders)")
     # one thread, as the simulated node and the validation's real ones (with all cores a
     # query of 8,192 rays or more would be split over both, and a render alone would not be
     # one core's work; this tile's queries are smaller, and its CPU and wall seconds alone
