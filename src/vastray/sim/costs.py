@@ -78,7 +78,7 @@ class CostModel:
         first and traces on its event loop's thread (no hand-off, no termination waves).
     page_fault_s : CPU seconds of one minor page fault: the first touch of a fresh 4 KiB page
         of memory, the kernel mapping and zeroing it (``sim.first_touch``; 2.6-3.6 us on this
-        virtual machine, a tenth of that on bare metal).
+        virtual machine).
     fresh_pages_per_path : pages a fresh node's render thread first touches per path in
         flight (its paths, ray batches, queues and film), measured on the calibration store
         (``sim.first_touch``): a fresh node pays ``first_touch_s`` of its paths once, at its

@@ -246,11 +246,14 @@ async def _render(store, options, size, costs, settings, config, units, domains)
 def paths_in_flight(options: JobOptions, size: int, settings: RenderSettings,
                     units: list) -> int:
     """Paths a node of ``size`` holds at once (what its first touch of memory is charged
-    for, ``CostModel.first_touch_s``): its share of the largest unit's paths, at most a
-    tile (``max_samples_in_flight``)."""
+    for, ``CostModel.first_touch_s``): its share of the largest unit's paths, at most a tile
+    (``max_samples_in_flight``: a sort-first node's own, a domain-decomposition job's as a
+    whole, of which each node starts its share)."""
     largest = max(settings.window(*unit[1:]).paths for unit in units)
-    share = -(-largest // size)
-    return min(options.max_samples_in_flight or share, share)
+    tile = min(options.max_samples_in_flight or largest, largest)
+    if registry.spec(options.scheduler).runtime.nodes_only:
+        return -(-tile // size)
+    return min(tile, -(-largest // size))
 
 
 async def _node(cluster: Cluster, rank: int, store, options, settings, config, units, domains,
