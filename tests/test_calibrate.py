@@ -110,6 +110,15 @@ def test_calibration_file_round_trips(quick, tmp_path):
 
 
 # -- the command ----------------------------------------------------------------------------
+def test_the_table_names_every_constant_the_model_charges_by(tmp_path):
+    from vastray.commands_sim import costs_table
+
+    table = costs_table(CostModel(cores=2), tmp_path / "costs.json", 1.0)
+    printed = {line.split()[0] for line in table.splitlines() if line.startswith("  ")}
+    assert {f.name for f in fields(CostModel)} - {"cores", "throughput", "machine",
+                                                  "others"} <= printed
+
+
 @pytest.mark.slow  # a second whole calibration (75 s alone); .ci/run runs it
 def test_cli_writes_the_file_and_prints_the_table(store, tmp_path):
     out = tmp_path / "costs.json"

@@ -62,6 +62,8 @@ COST_LABELS = {
     "node_setup_s": "once per node of a node runtime",
     "tile_setup_s": "once per sort-first node",
     "insitu_setup_s": "once per in-situ node",
+    "page_fault_s": "per page of memory a fresh process touches first",
+    "fresh_pages_per_path": "pages a fresh node touches first per path in flight",
     "decision_scale": "per CPU second a schedule decides (measured as it simulates)",
     "trace_scale": "per CPU second an activation traces (measured as it simulates)",
     "node_cpu_scale": "per CPU second a node's own code runs beyond those (measured so)",
@@ -168,8 +170,9 @@ def costs_table(model: CostModel, path: Path, seconds: float) -> str:
                                        f"{model.cores} cores") if x)
     lines = [f"calibrated in {seconds:.1f} s on {where}:"]
     for name, label in COST_LABELS.items():
-        unit = "x" if name.endswith("_scale") else "s"  # a factor, not seconds
-        lines.append(f"  {name:<17} {getattr(model, name):10.3e} {unit}  {label}")
+        # a factor or a count of pages, not seconds
+        unit = "x" if name.endswith("_scale") else "p" if name.startswith("fresh_pages") else "s"
+        lines.append(f"  {name:<20} {getattr(model, name):10.3e} {unit}  {label}")
     lines.append(f"written to {path}")
     return "\n".join(lines)
 
