@@ -446,8 +446,7 @@ def test_a_fresh_node_pays_the_first_touch_of_its_paths_once_at_its_first_trace(
     costs = CostModel(warmup_s=1.0)
 
     async def main():
-        cluster = Cluster(2, costs)
-        cluster.first_touch_s = 0.25
+        cluster = Cluster(2, costs, first_touch_s=0.25)
         await cluster.trace(0, 0.5, runtime="node")
         await cluster.trace(0, 0.5, runtime="node")
         return cluster.compute_s

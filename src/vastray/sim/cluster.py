@@ -37,10 +37,14 @@ class Cluster:
     ----------
     size : P, the number of nodes.
     costs : what work costs.
+    first_touch_s : what each fresh node pays once, at its first trace, to first touch the
+        memory of its paths in flight (``CostModel.first_touch_s`` of the render's
+        ``simulate.paths_in_flight``).
     """
 
-    def __init__(self, size: int, costs: CostModel):
+    def __init__(self, size: int, costs: CostModel, first_touch_s: float = 0.0):
         self.size, self.costs = size, costs
+        self.first_touch_s = first_touch_s
         self.coordinator = size  # the coordinator's endpoint
         self._cores = (SharedCores(costs.cores, costs.throughput, costs.others)
                        if costs.cores else None)
@@ -58,9 +62,6 @@ class Cluster:
         #: each node's own code measured beyond the named work (``sim.meter``); charged
         #: only where ``costs.node_cpu_scale`` is set
         self.meter = NodeMeter(costs.node_cpu_scale)
-        #: what each fresh node pays once, at its first trace, to first touch the memory of
-        #: its paths in flight (``CostModel.first_touch_s``; set by the render simulated)
-        self.first_touch_s = 0.0
 
     @staticmethod
     def now() -> float:

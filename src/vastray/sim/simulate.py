@@ -225,8 +225,8 @@ def _check_path_memory(options: JobOptions, nodes: int, paths: int) -> None:
 
 
 async def _render(store, options, size, costs, settings, config, units, domains):
-    cluster = Cluster(size, costs)
-    cluster.first_touch_s = costs.first_touch_s(paths_in_flight(options, size, settings, units))
+    cluster = Cluster(size, costs,
+                      costs.first_touch_s(paths_in_flight(options, size, settings, units)))
     unit_ends: list[list[float]] = [[] for _ in units]
     loop = asyncio.get_running_loop()
     if costs.node_cpu_scale:  # each node's own code measured as it runs (``sim.meter``)
