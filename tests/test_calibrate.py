@@ -142,7 +142,7 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
     # constant kept; a second probe measures again (its own numbers, not a copy of the first)
     # and adds a round of side-by-side renders to the throughput's
     base = CostModel(latency_s=1e-4, trace_ray_s=3e-6, cores=2, throughput=(1.0, 1.5))
-    probe = cal.MachineProbe(store, cores=2)
+    probe = cal.MachineProbe(store, cores=2, beyond_cores=False)
     try:
         assert len(probe.rounds) == len(probe.messages) == probe.SEED_ROUNDS
         first, second = probe.now(base), probe.now(base)
@@ -170,6 +170,21 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
                                               "offload_s": now.offload_s,
                                               "throughput": now.throughput}
     assert (first.receive_s, first.offload_s) != (second.receive_s, second.offload_s)
+
+
+def test_the_probe_measures_busy_processes_beyond_the_cores_by_default(store):
+    # 8 processes on 2 cores measured round after round, not the calibration's ratio kept:
+    # one quick calibration's 3 rounds put it anywhere between 0.65 and 1.00 of 2 processes
+    calibrated = CostModel(cores=2, throughput=(1.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 2.0))
+    probe = cal.MachineProbe(store, cores=2)
+    try:
+        assert probe.counts == [1, 2, 4, 8] and len(probe.processes.processes) == 8
+        now = probe.now(calibrated)
+        assert all(set(r) == {1, 2, 4, 8} and len(r[8]) == 8 for r in probe.rounds)
+        assert now.throughput == pytest.approx(interpolated(throughput_of(probe.rounds, 2)))
+        assert len(now.throughput) == 8 and all(0 < t <= 2.0 for t in now.throughput[1:])
+    finally:
+        probe.close()
 
 
 def test_beyond_the_cores_the_probe_keeps_the_calibration_s_slow_down():

@@ -64,6 +64,7 @@ from vastray.sim.warmup import (
     interpolated,
     measure_rounds,
     process_costs,
+    throughput_counts,
     throughput_of,
 )
 from vastray.transport.codec import Message, decode, encode, frames_nbytes
@@ -824,17 +825,22 @@ class MachineProbe:
     """What moves most with this machine's moment, measured again in a couple of seconds:
     ``receive_s`` and ``offload_s`` as ``calibrate`` measures them (two management actors
     exchanging batches; tiles traced through a worker thread), and the throughput with 1 to
-    2 x ``cores`` busy processes (``warmup``'s warm processes rendering the calibration tile,
-    alone and ``cores`` side by side: more run ``cores`` at a time). On the 2-core machine
+    4 x ``cores`` busy processes (``warmup``'s warm processes rendering the calibration tile,
+    alone and 1, 2 and 4 x ``cores`` side by side, as the quick calibration counts them:
+    more than ``cores`` run ``cores`` at a time, each slower by switching). On the 2-core machine
     the same message measurement gave 0.55 ms a batch and, a minute later, 1.10 ms; two
     calibrations back to back an ``offload_s`` of 1.50 and 0.26 ms; and the throughput of 2
     processes 1.61 at one calibration and 2.0 at another, the validation's 2-node rows
     over-predicted by up to 38 % after the first. A validation that compares real runs with
     simulations minutes apart takes them beside each real run (``bench/simulate.py``).
 
-    Beyond ``cores`` processes the throughput keeps the calibration's ratio to its own at
-    ``cores`` (``oversubscribed``): the probe measured ``cores`` processes only and charged
-    8 real nodes on 2 cores as fast as 2, where the calibration measured 4 at 0.91 of 2.
+    Beyond ``cores`` processes the probe measures too (``beyond_cores``, the default): until
+    session 73 it kept the calibration's ratio to its own at ``cores`` (``oversubscribed``,
+    still what ``beyond_cores=False`` does), and a quick calibration's three rounds gave 8
+    processes on 2 cores 1.00 of 2 in one calibration and 0.65 in the next, 40 minutes apart
+    (twelve rounds in between: 0.71-0.89): every 8-node validation row moved with it, rm
+    128³'s by +30 to +56 % after the second (session 73). The probe's ``WINDOW`` latest rounds
+    around the rows they charge follow the machine instead, for about 2 s more a probe.
 
     Each ``now`` measures each of them once more and charges the medians of the latest
     ``WINDOW`` measurements (``SEED_ROUNDS`` of each taken as the probe starts). One message
@@ -853,9 +859,12 @@ class MachineProbe:
     ----------
     store_path : the calibration store (its tile and ray batches are the ones measured).
     cores : the cores the throughput is measured for (default: ``usable_cores``).
+    beyond_cores : also measure 2 and 4 x ``cores`` processes (default); False: the
+        calibration's ratio beyond ``cores`` (``oversubscribed``).
     """
 
-    #: Rounds of side-by-side renders a probe measures as it starts (about 1.5 s each).
+    #: Rounds of side-by-side renders a probe measures as it starts (about 2.7 s each: 1, 2,
+    #: 4 and 8 processes on 2 cores).
     SEED_ROUNDS = 2
     #: The latest rounds ``now`` charges the medians of: enough that one round's noise moves
     #: them little (twelve rounds in a row gave 1.68-2.00 for 2 processes), few enough to
@@ -864,18 +873,20 @@ class MachineProbe:
     #: row: the scan's sort-first rows then over-predicted by 30-61 %).
     WINDOW = 6
 
-    def __init__(self, store_path: str | os.PathLike, cores: int | None = None):
+    def __init__(self, store_path: str | os.PathLike, cores: int | None = None,
+                 beyond_cores: bool = True):
         store = Store(store_path)
         # a quarter of the calibration tile: as many activations, a hand-off each
         self.settings = calibration_settings(True, spp=1, width=32, height=24)
         self.setup = RenderSetup.of(store, SceneConfig(text=""), self.settings)
         self.cache = resident_cache(store, self.setup.keep)
         self.cores = cores or usable_cores()
-        # contention depends on how many run at once, min(k, cores): 1 and ``cores`` processes
-        # tell it (``calibrate`` also measures 2 x and 4 x cores)
-        self.counts = sorted({1, self.cores})
+        # contention depends on how many run at once, min(k, cores), and on switching among
+        # more processes than cores: the quick calibration's counts
+        self.counts = (throughput_counts(True, self.cores) if beyond_cores
+                       else sorted({1, self.cores}))
         try:
-            self.processes = WarmProcesses(str(store_path), True, self.cores, tile=True)
+            self.processes = WarmProcesses(str(store_path), True, self.counts[-1], tile=True)
             #: every round of side-by-side renders measured so far (``now`` adds one)
             self.rounds = measure_rounds(self.processes, self.counts, self.SEED_ROUNDS)
             #: the latest measurements of a batch's messaging (s) and of a hand-off (s)
@@ -895,8 +906,9 @@ class MachineProbe:
         self._measure_messaging()
         self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
                        )[-self.WINDOW:]
-        throughput = oversubscribed(interpolated(throughput_of(self.rounds, self.cores)),
-                                    costs.throughput, 4 * self.cores)
+        measured = interpolated(throughput_of(self.rounds, self.cores))
+        throughput = (measured if len(measured) >= 4 * self.cores
+                      else oversubscribed(measured, costs.throughput, 4 * self.cores))
         node_messages = float(np.median(self.messages))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
                        offload_s=(float(np.median(self.offloads)) if self.offloads

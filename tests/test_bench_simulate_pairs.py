@@ -1,0 +1,49 @@
+"""``bench/simulate.py``'s rule for how many (real run, simulation) pairs a validation point
+takes (``enough_pairs``): never one pair in ``--quick``, a third where two disagree, and the
+rule never looks at how large an error is, only at the pairs' spread."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from bench_modules import load_bench
+
+bench = load_bench("simulate")
+QUICK = bench.QUICK_BUDGET_S
+
+
+def enough(reals, sims, rounds=3, budget=QUICK, others=None):
+    return bench.enough_pairs(reals, sims, others or [0.0] * len(reals), rounds, budget)
+
+
+def test_quick_never_stops_on_one_pair_even_past_its_seconds():
+    assert not enough([4.0], [4.0])
+    assert enough([4.0, 4.1], [4.0, 4.0])
+
+
+def test_a_third_pair_where_two_disagree():
+    assert not enough([2.0, 2.0], [2.0, 2.6])  # errors 0 and +30 %
+    assert enough([2.0, 2.0, 2.0], [2.0, 2.6, 2.1])  # rounds reached
+
+
+@pytest.mark.parametrize("error", [-0.5, -0.2, 0.0, 0.3, 0.9])
+def test_two_pairs_that_agree_stop_whatever_their_error(error):
+    sims = [2.0 * (1 + error), 2.0 * (1 + error + 0.05)]
+    assert enough([2.0, 2.0], sims)
+
+
+def test_short_runs_take_pairs_until_their_seconds_add_up():
+    assert not enough([0.3, 0.3], [0.3, 0.3])
+    assert enough([0.3, 0.3, 0.3], [0.3, 0.3, 0.3])  # the rounds asked for
+
+
+def test_others_wanting_a_core_take_every_pair():
+    assert not enough([2.0, 2.0], [2.0, 2.0], others=[0.0, 0.6])
+
+
+def test_the_full_bench_takes_every_pair_asked_for():
+    assert not enough([2.0, 2.0], [2.0, 2.0], budget=math.inf)
+    assert enough([2.0, 2.0, 2.0], [2.0, 2.0, 2.0], budget=math.inf)
+    assert enough([2.0], [9.0], rounds=1, budget=math.inf)  # the heavy rows' one pair
+    assert enough([2.0], [9.0], rounds=1)
