@@ -12,8 +12,7 @@ its size, the recording repeated above it (the same rays again, as more samples 
 
 Before any figure the replay is checked against the simulator that runs the nodes' own code
 (``sim.simulate``, itself checked against real runs) on a frame small enough for it,
-``CHECK`` on the same store, at P = 1, 16 and 64 (``--quick``: 64, on ``CHECK_QUICK``):
-``replay_error_max=``.
+``CHECK`` on the same store, at P = 1, 16 and 64 (``--quick``: 64): ``replay_error_max=``.
 """
 
 from __future__ import annotations
@@ -47,11 +46,8 @@ from vastray.sim.simulate import simulate
 #: The strong-scaling frames: 2^18 paths (--quick) and 2^20 (full), one bounce of pt.
 STRONG_QUICK = RenderSettings(width=512, height=512, spp=1, integrator="pt", bounces=1)
 STRONG = RenderSettings(width=1024, height=1024, spp=1, integrator="pt", bounces=1)
-#: The frame on which the replay is checked against the real-code simulator, and the nodes'
-#: own code fitted (``--quick``: 4,096 paths rather than 9,216; its fits and checks were
-#: 130 s of ``--quick``'s 10 minutes).
+#: The frame on which the replay is checked against the real-code simulator.
 CHECK = RenderSettings(width=96, height=96, spp=1, integrator="pt", bounces=1)
-CHECK_QUICK = RenderSettings(width=64, height=64, spp=1, integrator="pt", bounces=1)
 CHECK_NODES = (1, 16, 64)
 CHECK_NODES_QUICK = (64,)
 #: Virtual nodes the nodes' own code is fitted at (``fit_node_own_costs``; the checks' 64
@@ -138,33 +134,31 @@ _loads: dict = {}
 _own_costs: dict = {}
 
 
-def own_costs_of(store, scaling_options, check: RenderSettings = CHECK) -> dict:
-    """Each scheduler's nodes' own code on ``store`` (``fit_node_own_costs`` on ``check`` at
+def own_costs_of(store, scaling_options) -> dict:
+    """Each scheduler's nodes' own code on ``store`` (``fit_node_own_costs`` on ``CHECK`` at
     each of ``OWN_FIT_NODES`` nodes), fitted once, printed, and used by every replay of the
     store: one scheduler a job, the jobs on as many fresh processes as this machine has
     cores, each building the store's domains itself."""
     key = str(store.path)
     if key not in _own_costs:
         start = time.perf_counter()
-        fits = list(in_parallel(_check_job, own_fit_jobs(store, scaling_options, check),
-                                "spawn"))
-        took_own_fits(store, fits, time.perf_counter() - start, check)
+        fits = list(in_parallel(_check_job, own_fit_jobs(store, scaling_options), "spawn"))
+        took_own_fits(store, fits, time.perf_counter() - start)
     return _own_costs[key]
 
 
-def own_fit_jobs(store, scaling_options, check: RenderSettings = CHECK) -> list[tuple]:
-    """The check workers' jobs (``_check_job``) that fit each replayed scheduler's own code
-    on ``check``."""
+def own_fit_jobs(store, scaling_options) -> list[tuple]:
+    """The check workers' jobs (``_check_job``) that fit each replayed scheduler's own code."""
     return [("fit", str(store.path), scheduler,
-             {n: scaling_options(scheduler, n, check.paths) for n in OWN_FIT_NODES}, check)
+             {n: scaling_options(scheduler, n, CHECK.paths) for n in OWN_FIT_NODES})
             for scheduler in REPLAY_SCHEDULERS]
 
 
-def took_own_fits(store, fits: list, seconds: float, check: RenderSettings = CHECK) -> None:
+def took_own_fits(store, fits: list, seconds: float) -> None:
     """Keep the fits of ``own_fit_jobs`` (in its order) for ``store``'s replays; print them."""
     _own_costs[str(store.path)] = dict(zip(REPLAY_SCHEDULERS, fits, strict=True))
     print(f"  the nodes' own code (fitted on {' and '.join(map(str, OWN_FIT_NODES))} "
-          f"virtual nodes running the product's code, {check.paths:,} paths), per frame / "
+          f"virtual nodes running the product's code, {CHECK.paths:,} paths), per frame / "
           "batch sent + a ray in it / batch received + a ray / activation: " + "; ".join(
               f"{name} {c.per_node_s * 1e3:.1f} ms / {c.sent_s * 1e6:.0f} + "
               f"{c.ray_sent_s * 1e6:.1f} / {c.received_s * 1e6:.0f} + "
@@ -265,65 +259,62 @@ def _check_domains(path: str) -> Domains:
 
 
 def _check_job(job):
-    """One job of a check worker: ``("sim", path, scheduler, nodes, options, costs, check)``
-    -> (simulated seconds, wall seconds) of one check point of frame ``check``; ``("fit",
-    path, scheduler, {nodes: options}, check)`` -> the scheduler's ``NodeOwnCosts``
-    (``fit_node_own_costs``)."""
+    """One job of a check worker: ``("sim", path, scheduler, nodes, options, costs)`` ->
+    (simulated seconds, wall seconds) of one check point; ``("fit", path, scheduler,
+    {nodes: options})`` -> the scheduler's ``NodeOwnCosts`` (``fit_node_own_costs``)."""
     if job[0] == "fit":
-        _, path, scheduler, options, check = job
+        _, path, scheduler, options = job
         domains = _check_domains(path)
-        return fit_node_own_costs(domains.store, check, domains, OWN_FIT_NODES,
+        return fit_node_own_costs(domains.store, CHECK, domains, OWN_FIT_NODES,
                                   lambda _s, nodes, _p: options[nodes],
                                   schedulers=[scheduler])[scheduler]
-    _, path, scheduler, nodes, options, costs, check = job
+    _, path, scheduler, nodes, options, costs = job
     domains = _check_domains(path)
     start = time.perf_counter()
-    sim = simulate(domains.store, options, nodes, costs, check, max_pass_spp=None,
+    sim = simulate(domains.store, options, nodes, costs, CHECK, max_pass_spp=None,
                    domains=domains)
     return sim.seconds, time.perf_counter() - start
 
 
 def check_against_code(store, costs: CostModel, scaling_options, quick: bool) -> list[dict]:
-    """The replay against the simulator running the nodes' own code, on ``CHECK``
-    (``CHECK_QUICK`` with ``quick``): both with the calibrated loopback network and storage
-    and the product's caches."""
+    """The replay against the simulator running the nodes' own code, on ``CHECK``: both with
+    the calibrated loopback network and storage and the product's caches."""
     own = costs.warm().with_cores(None)
-    check = CHECK_QUICK if quick else CHECK
     # recorded now, not kept: the replay charges the recording's trace CPU and the
     # simulator the CPU its traces take as it runs, so both must see the machine at one
     # speed (a kept recording's CPU was 1.40x this machine's a day later, and replay_error
     # moved with it from 0.13 to 0.89 between runs)
     start = time.perf_counter()
-    crossings, _ = record_crossings(store, check)
+    crossings, _ = record_crossings(store, CHECK)
     print(f"\n  the check's frame recorded now ({time.perf_counter() - start:.0f} s)")
     nodes_checked = CHECK_NODES_QUICK if quick else CHECK_NODES
     domains = Domains(store, shading_inputs(store, SceneConfig(), CHECK.integrator)[1])
     rows = []
     try:
         # the product's caches (every domain) and each checked node count's tile
-        decisions = decisions_of(store, check, None,
-                                 sorted({max(1, check.paths // n) for n in nodes_checked}),
+        decisions = decisions_of(store, CHECK, None,
+                                 sorted({max(1, CHECK.paths // n) for n in nodes_checked}),
                                  domains)
         # the own-code fits (which the replay needs) and the real-code simulations (which
         # do not) side by side on fresh processes, a core each: a simulation and a fit
         # charge CPU time, not wall time, so two side by side charge what one alone would
         start = time.perf_counter()
-        fits = (own_fit_jobs(store, scaling_options, check)
+        fits = (own_fit_jobs(store, scaling_options)
                 if own.node_cpu_scale and str(store.path) not in _own_costs else [])
         sims = [("sim", str(store.path), scheduler, nodes,
-                 scaling_options(scheduler, nodes, check.paths), own, check)
+                 scaling_options(scheduler, nodes, CHECK.paths), own)
                 for scheduler in REPLAY_SCHEDULERS for nodes in nodes_checked]
         done = list(in_parallel(_check_job, fits + sims, "spawn"))
         if fits:
-            took_own_fits(store, done[:len(fits)], time.perf_counter() - start, check)
+            took_own_fits(store, done[:len(fits)], time.perf_counter() - start)
         replay = replay_of(store, crossings, own, Network(), None, decisions=decisions,
                            domains=domains, whole_caches=True)
         print(f"\nreplay vs the real-code simulator ({len(store.domains)} domains, "
-              f"{check.paths:,} paths, a core per node):")
+              f"{CHECK.paths:,} paths, a core per node):")
         print("| scheduler | P | real-code sim s | replay s | error | sim wall s "
               "| replay wall s |")
         print("| --- | --- | --- | --- | --- | --- | --- |")
-        for (_, _, scheduler, nodes, _, _, _), (sim_s, sim_wall) in zip(
+        for (_, _, scheduler, nodes, _, _), (sim_s, sim_wall) in zip(
                 sims, done[len(fits):], strict=True):
             replayed = replay.run(scheduler, nodes)
             error = replayed.seconds / sim_s - 1
@@ -335,7 +326,7 @@ def check_against_code(store, costs: CostModel, scaling_options, quick: bool) ->
         domains.close()
     worst = max(abs(r["error"]) for r in rows)
     print(f"replay_error_max={worst:.3f}  (replay vs the real-code simulator, "
-          f"{check.paths:,} paths)")
+          f"{CHECK.paths:,} paths)")
     return rows
 
 

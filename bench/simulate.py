@@ -6,8 +6,8 @@
                                        # figures (docs/sim_*.png) with their tables
     python bench/simulate.py --quick --validation-only --hog 1   # on a machine not idle
 
-Validation: every scheduler renders the same small scene on P = 1, 2, 4 (``--quick``: 2) real
-node processes (this machine; ``--threads 1``, as the cost model is per core) and in the
+Validation: every scheduler renders the same small scene on P = 1, 2, 4 (``--quick``: 2, one
+pair a row) real node processes (this machine; ``--threads 1``, as the cost model is per core) and in the
 simulator with the constants ``vastray calibrate`` measures here first, the virtual nodes
 sharing this machine's cores as the real processes do. Measured is the real run's ``busy_max``
 (the busiest node's rendering, start-up and film gathering left out); simulated the same span
@@ -31,13 +31,14 @@ about 1 beside ``--hog 1``) run as that many busy processes beside the virtual n
 ``--no-probe`` charges the calibration's throughout, and nothing taken by others.
 
 Out of sample: the same against real runs on stores and settings the constants were not
-calibrated on (``sim_error_oos_max=``). Each row also prints the real nodes' trace CPU over
-the simulation's (``trace_cpu_s``, the same traces; ``trace_cpu_real_over_sim=`` its range):
-this machine's speed moves by up to a fifth within seconds (a fixed kernel's CPU time,
-2-second windows: 0.039-0.059 s), which no probe before a run sees, so a row's error far from
-0 with this ratio far from 1 is mostly that. (Until session 32 a fresh node also loaded each
-compiled kernel in its first activations: 1.15-2.2x on the scan; nodes now call them as
-they start, ``actors.node_warm_up``.)
+calibrated on (``sim_error_oos_max=``), on 1, 2, 4 and 8 nodes (``--quick``: every scheduler on
+2 nodes on one store and on 8 on the other, ``quick_node_counts``). Each row also prints the
+real nodes' trace CPU over the simulation's (``trace_cpu_s``, the same traces;
+``trace_cpu_real_over_sim=`` its range): this machine's speed moves by up to a fifth within
+seconds (a fixed kernel's CPU time, 2-second windows: 0.039-0.059 s), which no probe before a
+run sees, so a row's error far from 0 with this ratio far from 1 is mostly that. (Until session
+32 a fresh node also loaded each compiled kernel in its first activations: 1.15-2.2x on the
+scan; nodes now call them as they start, ``actors.node_warm_up``.)
 
 Scaling, by replay (``bench/replay_scaling.py``, ``vastray.sim.replay``): one frame of a store
 of 1,439 domains traced once for real, every scheduler's policy replayed over its crossings on
@@ -110,8 +111,9 @@ def costs_here(quick: bool, store) -> CostModel:
 #: ``--quick``: a validation point repeats its (real run, simulation) pair, up to the rounds
 #: asked for, until its real runs add up to this many seconds: one real run of a fraction of
 #: a second moves by up to 2x from the next here (the scan's 2-node ``domain``: 0.34-0.76 s
-#: over ten validations), a run of several seconds by 20-30 %
-QUICK_BUDGET_S = 1.0
+#: over ten validations), a run of several seconds by 20-30 % (1 s until session 73, when
+#: every point took at least two pairs)
+QUICK_BUDGET_S = 0.5
 #: ...and never on fewer than this many pairs: a single pair lets one slow run decide its
 #: row (session 73: rm 128³'s ``domain`` on 2 nodes, identical real runs of 4.19 and 2.63 s
 #: back to back), and the seconds budget gave the slowest moments the fewest pairs
@@ -246,7 +248,17 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
 
 #: Out-of-sample node counts (8 processes share the 2 cores; the model shares them too).
 OOS_NODES = (1, 2, 4, 8)
+#: ``--quick``: each scheduler at one of these on each case, the other on the next case
+#: (``quick_node_counts``): every scheduler on 2 and on 8 nodes, on one case each, so that
+#: every point takes at least two pairs within the 10 minutes
 OOS_NODES_QUICK = (2, 8)
+
+
+def quick_node_counts(case: int, scheduler: int) -> tuple[int]:
+    """The ``--quick`` validation's node count for the ``scheduler``-th of ``SIM_SCHEDULERS``
+    on the ``case``-th out-of-sample case: 2 and 8 alternating along the schedulers, the
+    other way round on the next case."""
+    return (OOS_NODES_QUICK[(case + scheduler) % len(OOS_NODES_QUICK)],)
 
 
 def oos_cases(quick: bool = False) -> list[tuple[str, object, RenderSettings, int | None]]:
@@ -271,12 +283,13 @@ def oos_cases(quick: bool = False) -> list[tuple[str, object, RenderSettings, in
 def validate_oos(costs: CostModel, node_counts, rounds: int,
                  probe: MachineProbe | None = None,
                  budget_s: float = float("inf"), quick: bool = False) -> list[dict]:
-    """Every scheduler on the out-of-sample cases (``oos_cases(quick)``), real and simulated
-    (cores shared as here), each point ``paired`` (``rounds``, ``budget_s``); each row says
-    how many nodes traced (``busy``). With ``probe``, as ``validate``."""
+    """Every scheduler on the out-of-sample cases (``oos_cases(quick)``) at ``node_counts``
+    (``quick``: one of them a case, ``quick_node_counts``), real and simulated (cores shared
+    as here), each point ``paired`` (``rounds``, ``budget_s``); each row says how many nodes
+    traced (``busy``). With ``probe``, as ``validate``."""
     config = SceneConfig()
     rows = []
-    for name, store, settings, cache in oos_cases(quick):
+    for case, (name, store, settings, cache) in enumerate(oos_cases(quick)):
         reference = render(store, config, settings, progress=False).film.image()
         domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
         print(f"\nout of sample: {name}, {len(store.domains)} domains, {settings.width}x"
@@ -288,10 +301,10 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
               "| real image = reference | sim image = reference |")
         print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
               "| --- | --- |")
-        for scheduler in SIM_SCHEDULERS:
+        for index, scheduler in enumerate(SIM_SCHEDULERS):
             now = costs if probe is None else probe.now(costs)
             shared = now.with_cores(now.cores)
-            for nodes in node_counts:
+            for nodes in quick_node_counts(case, index) if quick else node_counts:
                 options = scaling_options(scheduler, nodes, settings.paths)
                 options = replace(options, threads=1, cache=cache)
                 point = paired(store, settings, nodes, options, shared, probe is not None,
@@ -387,8 +400,10 @@ def run(args: argparse.Namespace) -> None:
               "busy processes charged in the validation are measured again before each "
               "scheduler's real runs (MachineProbe); every other constant is the calibration's")
     budget_s = QUICK_BUDGET_S if args.quick else float("inf")
+    # --quick: one pair a row in sample (the goal is out of sample's, and its rows need the
+    # minutes)
     rows = [] if args.skip_validation else validate(
-        small, costs, args.repeats,
+        small, costs, 1 if args.quick else args.repeats,
         node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe,
         budget_s=budget_s)
     if rows and not args.quick:  # work rather than start-up: 4 times the paths
@@ -396,7 +411,7 @@ def run(args: argparse.Namespace) -> None:
     if rows:
         worst = max(abs(r["error"]) for r in rows)
         print(f"\nsim_error_max={worst:.3f}  (in sample: the store and settings the "
-              "constants were calibrated on)")
+              "constants were calibrated on" + ("; one pair a row" if args.quick else "") + ")")
         print(f"sim_images_equal_reference={all(r['same_image'] for r in rows)}")
     oos = [] if args.skip_validation else validate_oos(
         costs, OOS_NODES_QUICK if args.quick else OOS_NODES, args.repeats, probe, budget_s,

@@ -34,8 +34,9 @@ def test_two_pairs_that_agree_stop_whatever_their_error(error):
 
 
 def test_short_runs_take_pairs_until_their_seconds_add_up():
-    assert not enough([0.3, 0.3], [0.3, 0.3])
-    assert enough([0.3, 0.3, 0.3], [0.3, 0.3, 0.3])  # the rounds asked for
+    short = QUICK / 3
+    assert not enough([short, short], [short, short])
+    assert enough([short] * 3, [short] * 3)  # the rounds asked for
 
 
 def test_others_wanting_a_core_take_every_pair():
@@ -47,3 +48,12 @@ def test_the_full_bench_takes_every_pair_asked_for():
     assert enough([2.0, 2.0, 2.0], [2.0, 2.0, 2.0], budget=math.inf)
     assert enough([2.0], [9.0], rounds=1, budget=math.inf)  # the heavy rows' one pair
     assert enough([2.0], [9.0], rounds=1)
+
+
+def test_quick_puts_every_scheduler_on_2_and_on_8_nodes_once():
+    schedulers = range(len(bench.SIM_SCHEDULERS))
+    first = [bench.quick_node_counts(0, s) for s in schedulers]
+    second = [bench.quick_node_counts(1, s) for s in schedulers]
+    assert all(len(n) == 1 for n in first + second)
+    assert {a + b for a, b in zip(first, second, strict=True)} == {(2, 8), (8, 2)}
+    assert {n for (n,) in first} == {2, 8}  # both counts on each case
