@@ -20,10 +20,10 @@ machine's speed moves between pairs, and a simulation shares its moment with its
 the error of the two sides' medians is printed beside it). ``sim_error_max=`` is the worst
 |error|. The constants that move most with this machine's moment, what a message and a hand-off
 to a worker thread cost (``receive_s``, ``offload_s``), are measured again before each
-scheduler's real runs (``MachineProbe``, about 2 s; printed per row), and so is a round of the
-throughput of busy processes (one alone and two side by side; more run two at a time at that
-contention), charged from the medians of the latest six rounds (one round moves by a sixth with
-the host's speed). The host's "steal" to other virtual machines while a real run ran
+scheduler's real runs (``MachineProbe``, about 3 s; printed per row; ``--quick``'s in-sample
+rows: once), and so is a round of the throughput of busy processes (one alone, and 2, 4 and 8
+side by side), charged from the medians of the latest six rounds (one round moves by a sixth
+with the host's speed). The host's "steal" to other virtual machines while a real run ran
 (``sim.steal.StealMeter``) is charged as cores the run did not have (``CostModel.stolen``), and
 the other processes on this machine that wanted a core around it (``sim.steal.others_running``:
 about 1 beside ``--hog 1``) run as that many busy processes beside the virtual nodes
@@ -203,11 +203,12 @@ def _ratio(point: dict) -> str:
 
 def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VALIDATION,
              node_counts=VALIDATION_NODES, probe: MachineProbe | None = None,
-             budget_s: float = float("inf")) -> list[dict]:
+             budget_s: float = float("inf"), probe_each: bool = True) -> list[dict]:
     """Every scheduler at ``node_counts``, real and simulated (cores shared as here), each
     point ``paired`` (``rounds``, ``budget_s``); with ``probe``, each scheduler's rows charge
-    the message and hand-off costs measured just before its real runs (``MachineProbe``) and
-    the CPU time others took during each real run."""
+    the message and hand-off costs measured just before its real runs (``MachineProbe``; not
+    ``probe_each``: once, before the first scheduler's) and the CPU time others took during
+    each real run."""
     config = SceneConfig()
     reference = render(store, config, settings, progress=False).film.image()
     domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
@@ -221,8 +222,10 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
           "/ steal | rounds | trace CPU real / sim | measured s | simulated s | error (pairs) "
           "| error of medians | images = reference |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for scheduler in SIM_SCHEDULERS:
-        now = costs if probe is None else probe.now(costs)
+    now = costs
+    for index, scheduler in enumerate(SIM_SCHEDULERS):
+        if probe is not None and (probe_each or index == 0):
+            now = probe.now(costs)
         shared = now.with_cores(now.cores)
         for nodes in node_counts:
             point = paired(store, settings, nodes, JobOptions(scheduler=scheduler, threads=1),
@@ -400,12 +403,12 @@ def run(args: argparse.Namespace) -> None:
               "busy processes charged in the validation are measured again before each "
               "scheduler's real runs (MachineProbe); every other constant is the calibration's")
     budget_s = QUICK_BUDGET_S if args.quick else float("inf")
-    # --quick: one pair a row in sample (the goal is out of sample's, and its rows need the
-    # minutes)
+    # --quick: one pair a row in sample, probed once (the goal is out of sample's, and its
+    # rows need the minutes: a probe of 8 busy processes takes about 3 s)
     rows = [] if args.skip_validation else validate(
         small, costs, 1 if args.quick else args.repeats,
         node_counts=VALIDATION_NODES_QUICK if args.quick else VALIDATION_NODES, probe=probe,
-        budget_s=budget_s)
+        budget_s=budget_s, probe_each=not args.quick)
     if rows and not args.quick:  # work rather than start-up: 4 times the paths
         rows += validate(small, costs, 1, HEAVY, (1, 4), probe=probe)
     if rows:
