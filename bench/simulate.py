@@ -13,7 +13,7 @@ sharing this machine's cores as the real processes do. Measured is the real run'
 (the busiest node's rendering, start-up and film gathering left out); simulated the same span
 in virtual time. A point is up to ``--repeats`` (3) pairs of a real run and a simulation right
 after it (``--quick``: at least two, and a third unless their errors agree within 10 points
-and their real runs add up to 1 s, ``enough_pairs``; the row prints how many); its error is
+and their real runs add up to 0.5 s, ``enough_pairs``; the row prints how many); its error is
 the median over its pairs of each simulation's (simulated - measured) / measured against the
 real run of its own pair, as ``tests/test_simulate.py`` judges it (the
 machine's speed moves between pairs, and a simulation shares its moment with its own run only;

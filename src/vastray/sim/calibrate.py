@@ -826,7 +826,7 @@ class MachineProbe:
     ``receive_s`` and ``offload_s`` as ``calibrate`` measures them (two management actors
     exchanging batches; tiles traced through a worker thread), and the throughput with 1 to
     4 x ``cores`` busy processes (``warmup``'s warm processes rendering the calibration tile,
-    alone and 1, 2 and 4 x ``cores`` side by side, as the quick calibration counts them:
+    alone and ``cores``, 2 x and 4 x ``cores`` side by side, as the quick calibration does:
     more than ``cores`` run ``cores`` at a time, each slower by switching). On the 2-core machine
     the same message measurement gave 0.55 ms a batch and, a minute later, 1.10 ms; two
     calibrations back to back an ``offload_s`` of 1.50 and 0.26 ms; and the throughput of 2
