@@ -173,12 +173,16 @@ def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, cos
         if real_trace > 0 and sim.counters.get("trace_cpu_s", 0.0) > 0:
             ratios.append(real_trace / sim.counters["trace_cpu_s"])
     real_s, sim_s = float(np.median(reals)), float(np.median(sims))
-    return {"real_s": real_s, "sim_s": sim_s,
-            "error": float(np.median([s / r - 1.0 for r, s in zip(reals, sims, strict=True)])),
+    return {"real_s": real_s, "sim_s": sim_s, "error": float(np.median(pair_errors(reals, sims))),
             "error_of_medians": sim_s / real_s - 1.0,
             "rounds": len(reals), "lost": max(lost), "others": float(np.median(others)),
             "trace_ratio": float(np.median(ratios)) if ratios else None,
             "result": result, "sim": sim}
+
+
+def pair_errors(reals: list[float], sims: list[float]) -> list[float]:
+    """Each pair's error: its simulation's seconds over its real run's, less 1."""
+    return [s / r - 1.0 for r, s in zip(reals, sims, strict=True)]
 
 
 def enough_pairs(reals: list[float], sims: list[float], others: list[float], rounds: int,
@@ -192,7 +196,7 @@ def enough_pairs(reals: list[float], sims: list[float], others: list[float], rou
         return True
     if len(reals) < min(QUICK_MIN_PAIRS, rounds) or budget_s == float("inf"):
         return False
-    errors = [s / r - 1.0 for r, s in zip(reals, sims, strict=True)]
+    errors = pair_errors(reals, sims)
     return (max(errors) - min(errors) <= PAIRS_AGREE and sum(reals) >= budget_s
             and max(others) < BUSY_HOST_OTHERS)
 

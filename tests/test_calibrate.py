@@ -194,6 +194,9 @@ def test_beyond_the_cores_the_probe_keeps_the_calibration_s_slow_down():
     # no calibrated count beyond the cores, or a ratio above 1 (noise): as fast as at them
     assert cal.oversubscribed((1.0, 1.6), (1.0, 2.0), 4) == (1.0, 1.6, 1.6, 1.6)
     assert cal.oversubscribed((1.0, 1.6), (1.0, 1.5, 1.7, 1.8), 4) == (1.0, 1.6, 1.6, 1.6)
+    # measured beyond the cores already (the probe's default): as measured
+    assert cal.oversubscribed((1.0, 2.0, 1.9, 1.5), (1.0, 2.0, 2.0, 2.0), 4) == (
+        1.0, 2.0, 1.9, 1.5)
 
 
 def test_a_set_up_per_node_is_its_share_of_the_span_of_nodes_sharing_the_cores():

@@ -906,9 +906,9 @@ class MachineProbe:
         self._measure_messaging()
         self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
                        )[-self.WINDOW:]
-        measured = interpolated(throughput_of(self.rounds, self.cores))
-        throughput = (measured if len(measured) >= 4 * self.cores
-                      else oversubscribed(measured, costs.throughput, 4 * self.cores))
+        # measured to 4 x cores (``beyond_cores``) it stays as measured; else extended
+        throughput = oversubscribed(interpolated(throughput_of(self.rounds, self.cores)),
+                                    costs.throughput, 4 * self.cores)
         node_messages = float(np.median(self.messages))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
                        offload_s=(float(np.median(self.offloads)) if self.offloads
@@ -936,7 +936,8 @@ def oversubscribed(measured: tuple[float, ...], calibrated: tuple[float, ...],
     the calibration measured there (``calibrated``: its throughput beyond the cores over
     its own at the cores: switching among more processes than cores costs each of them
     CPU, 1.91 and 1.82 for 3 and 4 processes on 2 cores against 2.00); where the
-    calibration has no such count, as fast as at the cores.
+    calibration has no such count, as fast as at the cores. A ``measured`` already
+    ``count`` long (``MachineProbe(beyond_cores=True)``) is returned as it is.
 
     Parameters
     ----------
