@@ -130,54 +130,90 @@ PAIRS_AGREE = 0.10
 BUSY_HOST_OTHERS = 0.5
 
 
+class PointPairs:
+    """One validation point's (real run, simulation) pairs so far: ``take`` adds one, a
+    real run on ``nodes`` processes (``options``) and, right after it, a simulation charged
+    the costs given and, with ``charge_others``, the host's steal during that run and the
+    other processes that wanted a core around it (``sim.steal.Contention``: run beside the
+    virtual nodes), so both see the machine's moment; ``summary`` judges them."""
+
+    def __init__(self, store, settings: RenderSettings, nodes: int, options: JobOptions,
+                 config: SceneConfig, domains: Domains):
+        self.store, self.settings, self.nodes, self.options = store, settings, nodes, options
+        self.config, self.domains = config, domains
+        self.reals: list[float] = []
+        self.sims: list[float] = []
+        self.lost: list[float] = []
+        self.others: list[float] = []
+        self.ratios: list[float] = []
+        #: the costs each pair's simulation was charged (before the steal and the others)
+        self.charged: list[CostModel] = []
+        self.result = self.sim = None
+
+    def enough(self, rounds: int, budget_s: float) -> bool:
+        """Whether the point has its pairs (``enough_pairs``)."""
+        return enough_pairs(self.reals, self.sims, self.others, rounds, budget_s)
+
+    def take(self, costs: CostModel, charge_others: bool) -> None:
+        """One more pair, its simulation charged ``costs``."""
+        # without charge_others, nothing is measured (Contention samples 0.5 s a run)
+        with Contention() if charge_others else contextlib.nullcontext() as seen:
+            self.result = render_distributed(self.store.path, None, self.settings, self.nodes,
+                                             options=self.options, timeout=300)
+        self.charged.append(costs)
+        self.lost.append(seen.share if seen else 0.0)
+        self.others.append(seen.others if seen else 0.0)
+        self.reals.append(self.result.seconds["busy_max"])
+        self.sim = simulate(self.store, replace(self.options, threads=None), self.nodes,
+                            seen.charged(costs) if seen else costs, self.settings,
+                            self.config, max_pass_spp=None, domains=self.domains)
+        self.sims.append(self.sim.seconds)
+        real_trace = sum(n["counters"].get("trace_cpu_s", 0.0)
+                         for n in self.result.counters["per_node"])
+        if real_trace > 0 and self.sim.counters.get("trace_cpu_s", 0.0) > 0:
+            self.ratios.append(real_trace / self.sim.counters["trace_cpu_s"])
+
+    def summary(self) -> dict:
+        """The point judged over its pairs.
+
+        Returns
+        -------
+        dict with ``real_s``, ``sim_s`` (the medians), ``error`` (the median over the pairs
+        of each simulation's error against the real run of its own pair: the machine's speed
+        moves between pairs, and a simulation shares its moment with its own run only),
+        ``error_of_medians`` (``sim_s / real_s - 1``, the rule before session 48),
+        ``rounds``, ``lost`` (the largest share of the host's steal charged), ``others``
+        (the median of the others' busy processes charged, ``sim.steal.Contention``),
+        ``trace_ratio`` (the median over the pairs of the real nodes' trace CPU over the
+        simulation's, ``trace_cpu_s``: the same traces, so its distance from 1 is the
+        machine's speed moving between the two, or what a real node's traces pay that the
+        simulator's do not; None where the runtime does not count it), ``receive_s``,
+        ``offload_s`` and ``throughput`` (the medians of the pairs' charged costs),
+        ``result`` (the last real run's) and ``sim`` (the last simulation's).
+        """
+        real_s, sim_s = float(np.median(self.reals)), float(np.median(self.sims))
+        throughput = np.median([c.throughput for c in self.charged], axis=0)
+        return {"real_s": real_s, "sim_s": sim_s,
+                "error": float(np.median(pair_errors(self.reals, self.sims))),
+                "error_of_medians": sim_s / real_s - 1.0, "rounds": len(self.reals),
+                "lost": max(self.lost), "others": float(np.median(self.others)),
+                "trace_ratio": float(np.median(self.ratios)) if self.ratios else None,
+                "receive_s": float(np.median([c.receive_s for c in self.charged])),
+                "offload_s": float(np.median([c.offload_s for c in self.charged])),
+                "throughput": tuple(float(t) for t in throughput),
+                "result": self.result, "sim": self.sim}
+
+
 def paired(store, settings: RenderSettings, nodes: int, options: JobOptions, costs: CostModel,
            charge_others: bool, rounds: int, budget_s: float, config: SceneConfig,
            domains: Domains) -> dict:
-    """One validation point: ``rounds`` pairs (with a finite ``budget_s`` fewer, as
-    ``enough_pairs`` says) of a real run on
-    ``nodes`` processes (``options``) and a simulation charged the host's steal during that
-    run and the other processes that wanted a core around it (``sim.steal.Contention``: run
-    beside the virtual nodes), with ``charge_others``, one right after the other, so both
-    see the machine's moment: the medians of each side, and the median of the pairs'
-    errors.
-
-    Returns
-    -------
-    dict with ``real_s``, ``sim_s`` (the medians), ``error`` (the median over the pairs of
-    each simulation's error against the real run of its own pair: the machine's speed moves
-    between pairs, and a simulation shares its moment with its own run only),
-    ``error_of_medians`` (``sim_s / real_s - 1``, the rule before session 48), ``rounds``,
-    ``lost`` (the largest share of the host's steal charged), ``others`` (the median of
-    the others' busy processes charged, ``sim.steal.Contention``), ``trace_ratio`` (the
-    median over the pairs of the real nodes' trace CPU over the simulation's,
-    ``trace_cpu_s``: the same traces, so its distance from 1 is the machine's speed moving
-    between the two, or what a real node's traces pay that the simulator's do not; None
-    where the runtime does not count it),
-    ``result`` (the last real run's) and ``sim`` (the last simulation's).
-    """
-    reals, sims, lost, others, ratios, result, sim = [], [], [], [], [], None, None
-    while not enough_pairs(reals, sims, others, rounds, budget_s):
-        # without charge_others, nothing is measured (Contention samples 0.5 s a run)
-        with Contention() if charge_others else contextlib.nullcontext() as seen:
-            result = render_distributed(store.path, None, settings, nodes, options=options,
-                                        timeout=300)
-        charged = seen.charged(costs) if seen else costs
-        lost.append(seen.share if seen else 0.0)
-        others.append(seen.others if seen else 0.0)
-        reals.append(result.seconds["busy_max"])
-        sim = simulate(store, replace(options, threads=None), nodes, charged, settings, config,
-                       max_pass_spp=None, domains=domains)
-        sims.append(sim.seconds)
-        real_trace = sum(n["counters"].get("trace_cpu_s", 0.0)
-                         for n in result.counters["per_node"])
-        if real_trace > 0 and sim.counters.get("trace_cpu_s", 0.0) > 0:
-            ratios.append(real_trace / sim.counters["trace_cpu_s"])
-    real_s, sim_s = float(np.median(reals)), float(np.median(sims))
-    return {"real_s": real_s, "sim_s": sim_s, "error": float(np.median(pair_errors(reals, sims))),
-            "error_of_medians": sim_s / real_s - 1.0,
-            "rounds": len(reals), "lost": max(lost), "others": float(np.median(others)),
-            "trace_ratio": float(np.median(ratios)) if ratios else None,
-            "result": result, "sim": sim}
+    """One validation point's pairs taken one after the other (``PointPairs``): ``rounds``
+    of them (with a finite ``budget_s`` fewer, as ``enough_pairs`` says), each simulation
+    charged ``costs``; ``PointPairs.summary``."""
+    point = PointPairs(store, settings, nodes, options, config, domains)
+    while not point.enough(rounds, budget_s):
+        point.take(costs, charge_others)
+    return point.summary()
 
 
 def pair_errors(reals: list[float], sims: list[float]) -> list[float]:
@@ -245,7 +281,7 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
                          "receive_s": now.receive_s, "offload_s": now.offload_s,
                          "throughput": now.throughput, "stolen": stolen,
                          "others": point["others"], "trace_ratio": point["trace_ratio"]})
-            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now)} | "
+            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now.throughput)} | "
                   f"{_others(point)} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
                   f"{sim_s:.3f} | {error:+.1%} | {point['error_of_medians']:+.1%} | "
                   f"{'yes' if same else 'NO'} |", flush=True)
@@ -287,60 +323,107 @@ def oos_cases(quick: bool = False) -> list[tuple[str, object, RenderSettings, in
     return cases
 
 
+#: ``--quick``'s out-of-sample validation measures the machine again (``MachineProbe.now``,
+#: about 3 s) before a pair once this many seconds have passed since the last measurement:
+#: about as often as once a scheduler a case, the rule before the pairs were interleaved
+PROBE_EVERY_S = 20.0
+
+
 def validate_oos(costs: CostModel, node_counts, rounds: int,
                  probe: MachineProbe | None = None,
                  budget_s: float = float("inf"), quick: bool = False) -> list[dict]:
     """Every scheduler on the out-of-sample cases (``oos_cases(quick)``) at ``node_counts``
     (``quick``: one of them a case, ``quick_node_counts``), real and simulated (cores shared
-    as here), each point ``paired`` (``rounds``, ``budget_s``); each row says how many nodes
-    traced (``busy``). With ``probe``, as ``validate``."""
+    as here), each point ``rounds`` pairs (``budget_s``: as ``enough_pairs`` says); each row
+    says how many nodes traced (``busy``). With ``probe``, each pair charges the message
+    and hand-off costs and the throughput measured last (at most ``PROBE_EVERY_S`` before it)
+    and the CPU time others took during its real run.
+
+    The pairs are taken in sweeps: every point's first, then every point's second, then a
+    third for the points that need one. A slow spell of this machine (a minute in which the
+    same real runs take 1.4 times as long; the simulation, measured a second later, does not
+    follow it) then falls on one pair of many points rather than on every pair of one, and
+    the median of a point's three pairs sets it aside (session 74: the scan's 8-node
+    ``spec-ooc``, both its back-to-back pairs -37 %, against -1 to -24 % in 24 pairs an
+    hour later)."""
     config = SceneConfig()
-    rows = []
+    cases, points = [], []
     for case, (name, store, settings, cache) in enumerate(oos_cases(quick)):
         reference = render(store, config, settings, progress=False).film.image()
         domains = Domains(store, shading_inputs(store, config, settings.integrator)[1])
-        print(f"\nout of sample: {name}, {len(store.domains)} domains, {settings.width}x"
-              f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
-              f"({settings.paths:,} paths)")
-        print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
-              "| throughput 2 / 4 | others running / steal | rounds | trace CPU real / sim "
-              "| measured s | simulated s | error (pairs) | error of medians "
-              "| real image = reference | sim image = reference |")
-        print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
-              "| --- | --- |")
+        cases.append((name, store, settings, reference, domains))
         for index, scheduler in enumerate(SIM_SCHEDULERS):
-            now = costs if probe is None else probe.now(costs)
-            shared = now.with_cores(now.cores)
             for nodes in quick_node_counts(case, index) if quick else node_counts:
-                options = scaling_options(scheduler, nodes, settings.paths)
-                options = replace(options, threads=1, cache=cache)
-                point = paired(store, settings, nodes, options, shared, probe is not None,
-                               rounds, budget_s, config, domains)
-                real_s, sim_s, stolen = point["real_s"], point["sim_s"], point["lost"]
-                per_node = point["result"].counters["per_node"]
-                busy = sum(1 for n in per_node if n["counters"].get("shade_s", 0.0) > 0)
-                # the real nodes' CPU over their busy spans (all their threads): the model
-                # charges CPU on shared cores; a share well under 1 is time spent waiting
-                cpu_share = (sum(n["counters"].get("busy_cpu_s", 0.0) for n in per_node)
-                             / max(sum(n.get("busy_s", 0.0) for n in per_node), 1e-9))
-                real_same = bool((point["result"].film.image() == reference).all())
-                sim_same = bool((point["sim"].film.image() == reference).all())
-                error = point["error"]
-                rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
-                             "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
-                             "simulated_s": sim_s, "rounds": point["rounds"], "error": error,
-                             "error_of_medians": point["error_of_medians"],
-                             "same_image": real_same and sim_same,
-                             "receive_s": now.receive_s, "offload_s": now.offload_s,
-                             "throughput": now.throughput, "stolen": stolen,
-                             "others": point["others"], "trace_ratio": point["trace_ratio"]})
-                print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
-                      f"{_messaging(now)} | {_throughput(now)} | {_others(point)} | "
-                      f"{point['rounds']} | {_ratio(point)} | {real_s:.3f} | {sim_s:.3f} | "
-                      f"{error:+.1%} | {point['error_of_medians']:+.1%} | "
-                      f"{'yes' if real_same else 'NO'} | "
-                      f"{'yes' if sim_same else 'NO'} |", flush=True)
-        domains.close()
+                options = replace(scaling_options(scheduler, nodes, settings.paths),
+                                  threads=1, cache=cache)
+                points.append((case, scheduler, PointPairs(store, settings, nodes, options,
+                                                           config, domains)))
+    try:
+        _take_in_sweeps(points, costs, rounds, probe, budget_s)
+        return [row for case in range(len(cases))
+                for row in _case_rows(cases[case], [(s, p) for c, s, p in points
+                                                     if c == case])]
+    finally:
+        for *_, domains in cases:
+            domains.close()
+
+
+def _take_in_sweeps(points: list, costs: CostModel, rounds: int, probe: MachineProbe | None,
+                    budget_s: float) -> None:
+    """Take every point's pairs (``validate_oos``'s sweeps), printing each as it comes."""
+    now, probed = costs, -float("inf")
+    for sweep in range(max(rounds, 1)):
+        todo = [p for p in points if not p[2].enough(rounds, budget_s)]
+        if not todo:
+            break
+        print(f"\nout of sample, pairs {sweep + 1}: {len(todo)} point(s)", flush=True)
+        for _, scheduler, point in todo:
+            if probe is not None and time.perf_counter() - probed >= PROBE_EVERY_S:
+                now, probed = probe.now(costs), time.perf_counter()
+            point.take(now.with_cores(now.cores), probe is not None)
+            print(f"  {point.store.path.name} {scheduler} on {point.nodes}: real "
+                  f"{point.reals[-1]:.3f} s, simulated {point.sims[-1]:.3f} s "
+                  f"({pair_errors(point.reals, point.sims)[-1]:+.1%})", flush=True)
+
+
+def _case_rows(case: tuple, points: list) -> list[dict]:
+    """The rows of one out-of-sample case's points, printed as its table."""
+    name, store, settings, reference, _ = case
+    print(f"\nout of sample: {name}, {len(store.domains)} domains, {settings.width}x"
+          f"{settings.height} x {settings.spp} spp, {settings.bounces} bounces "
+          f"({settings.paths:,} paths)")
+    print("| scheduler | nodes | busy nodes | real CPU / busy | receive / hand-off ms "
+          "| throughput 2 / 4 | others running / steal | pairs | trace CPU real / sim "
+          "| measured s | simulated s | error (pairs) | error of medians "
+          "| real image = reference | sim image = reference |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- "
+          "| --- | --- |")
+    rows = []
+    for scheduler, pairs in points:
+        point = pairs.summary()
+        real_s, sim_s, nodes = point["real_s"], point["sim_s"], pairs.nodes
+        per_node = point["result"].counters["per_node"]
+        busy = sum(1 for n in per_node if n["counters"].get("shade_s", 0.0) > 0)
+        # the real nodes' CPU over their busy spans (all their threads): the model charges
+        # CPU on shared cores; a share well under 1 is time spent waiting
+        cpu_share = (sum(n["counters"].get("busy_cpu_s", 0.0) for n in per_node)
+                     / max(sum(n.get("busy_s", 0.0) for n in per_node), 1e-9))
+        real_same = bool((point["result"].film.image() == reference).all())
+        sim_same = bool((point["sim"].film.image() == reference).all())
+        error = point["error"]
+        rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
+                     "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
+                     "simulated_s": sim_s, "rounds": point["rounds"], "error": error,
+                     "error_of_medians": point["error_of_medians"],
+                     "same_image": real_same and sim_same,
+                     "receive_s": point["receive_s"], "offload_s": point["offload_s"],
+                     "throughput": point["throughput"], "stolen": point["lost"],
+                     "others": point["others"], "trace_ratio": point["trace_ratio"]})
+        print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
+              f"{_messaging(point)} | {_throughput(point['throughput'])} | {_others(point)} | "
+              f"{point['rounds']} | {_ratio(point)} | {real_s:.3f} | {sim_s:.3f} | "
+              f"{error:+.1%} | {point['error_of_medians']:+.1%} | "
+              f"{'yes' if real_same else 'NO'} | {'yes' if sim_same else 'NO'} |", flush=True)
     return rows
 
 
@@ -349,13 +432,15 @@ def _others(point: dict) -> str:
     return f"{point['others']:.2f} / {point['lost']:.0%}"
 
 
-def _messaging(costs: CostModel) -> str:
-    return f"{costs.receive_s * 1e3:.2f} / {costs.offload_s * 1e3:.2f}"
+def _messaging(charged) -> str:
+    """``receive_s`` / ``offload_s`` in ms of a ``CostModel`` or a point's summary."""
+    if isinstance(charged, CostModel):
+        charged = {"receive_s": charged.receive_s, "offload_s": charged.offload_s}
+    return f"{charged['receive_s'] * 1e3:.2f} / {charged['offload_s'] * 1e3:.2f}"
 
 
-def _throughput(costs: CostModel) -> str:
+def _throughput(t: tuple[float, ...]) -> str:
     """The throughput charged with 2 and with 4 busy processes, in single-process speeds."""
-    t = costs.throughput
     return " / ".join(f"{t[k - 1]:.2f}" if len(t) >= k else "-" for k in (2, 4))
 
 
