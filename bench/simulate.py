@@ -32,7 +32,11 @@ about 1 beside ``--hog 1``) run as that many busy processes beside the virtual n
 
 Out of sample: the same against real runs on stores and settings the constants were not
 calibrated on (``sim_error_oos_max=``), on 1, 2, 4 and 8 nodes (``--quick``: every scheduler on
-2 nodes on one store and on 8 on the other, ``quick_node_counts``). Each row also prints the
+2 nodes on one store and on 8 on the other, ``quick_node_counts``). Their pairs come in sweeps,
+every point's first pair, then every point's second, then the third pairs (``validate_oos``),
+so that a slow minute of the host falls on one pair of several points, not on all of one; each
+pair is charged the probe's latest measurement, taken again once 30 s have passed
+(``PROBE_EVERY_S``). Each row also prints the
 real nodes' trace CPU over the simulation's (``trace_cpu_s``, the same traces;
 ``trace_cpu_real_over_sim=`` its range): this machine's speed moves by up to a fifth within
 seconds (a fixed kernel's CPU time, 2-second windows: 0.039-0.059 s), which no probe before a
@@ -323,10 +327,11 @@ def oos_cases(quick: bool = False) -> list[tuple[str, object, RenderSettings, in
     return cases
 
 
-#: ``--quick``'s out-of-sample validation measures the machine again (``MachineProbe.now``,
-#: about 3 s) before a pair once this many seconds have passed since the last measurement:
-#: about as often as once a scheduler a case, the rule before the pairs were interleaved
-PROBE_EVERY_S = 20.0
+#: The out-of-sample validation measures the machine again (``MachineProbe.now``, about 3 s)
+#: before a pair once this many seconds have passed since the last measurement: the charged
+#: medians of the probe's latest six rounds then span about three minutes (at 20 s, 15 probes
+#: took 45 s of ``--quick``'s 612 s, session 74)
+PROBE_EVERY_S = 30.0
 
 
 def validate_oos(costs: CostModel, node_counts, rounds: int,
@@ -490,7 +495,9 @@ def run(args: argparse.Namespace) -> None:
     if probe is not None:
         print("the message and hand-off costs (receive_s, offload_s) and the throughput of "
               "busy processes charged in the validation are measured again before each "
-              "scheduler's real runs (MachineProbe); every other constant is the calibration's")
+              "scheduler's real runs in sample and every "
+              f"{PROBE_EVERY_S:.0f} s out of sample (MachineProbe); every other constant is the "
+              "calibration's")
     budget_s = QUICK_BUDGET_S if args.quick else float("inf")
     # --quick: one pair a row in sample, probed once (the goal is out of sample's, and its
     # rows need the minutes: a probe of 8 busy processes takes about 3 s)

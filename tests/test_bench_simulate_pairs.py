@@ -57,3 +57,41 @@ def test_quick_puts_every_scheduler_on_2_and_on_8_nodes_once():
     assert all(len(n) == 1 for n in first + second)
     assert {a + b for a, b in zip(first, second, strict=True)} == {(2, 8), (8, 2)}
     assert {n for (n,) in first} == {2, 8}  # both counts on each case
+
+
+class FakeStore:
+    class path:
+        name = "store"
+
+
+class RecordedPoint(bench.PointPairs):
+    """A point whose pairs are given (real seconds, simulated seconds) rather than run: the
+    sweeps' order is what is tested, not the renders."""
+
+    def __init__(self, name, pairs, taken):
+        self.name, self.pairs, self.taken = name, list(pairs), taken
+        self.store, self.nodes = FakeStore, 2
+        self.reals, self.sims, self.others, self.charged = [], [], [], []
+
+    def take(self, costs, charge_others):
+        real, sim = self.pairs.pop(0)
+        self.reals.append(real)
+        self.sims.append(sim)
+        self.others.append(0.0)
+        self.charged.append(costs)
+        self.taken.append(self.name)
+
+
+def test_out_of_sample_pairs_come_in_sweeps_a_third_only_where_needed():
+    taken = []
+    agree = [(2.0, 2.0), (2.0, 2.1), (2.0, 2.0)]
+    disagree = [(2.0, 2.0), (2.0, 2.8), (2.0, 2.1)]
+    points = [("case", "image", RecordedPoint("a", agree, taken)),
+              ("case", "domain", RecordedPoint("b", disagree, taken)),
+              ("case", "async", RecordedPoint("c", agree, taken))]
+    bench._take_in_sweeps(points, bench.CostModel(), 3, None, QUICK)
+    # every point's first pair, then every point's second: a slow minute falls on one pair
+    # of several points, not on both of one; the median of b's three sets its outlier aside
+    assert taken == ["a", "b", "c", "a", "b", "c", "b"]
+    errors = bench.pair_errors(points[1][2].reals, points[1][2].sims)
+    assert sorted(errors)[1] == pytest.approx(0.05)  # the row's error: +40 % set aside
