@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 import replay_scaling
 from bench_scenes import CACHE, cached_cosmo, cached_rm, cached_scan
+from bytecode import compile_vastray
 from hogs import busy_processes
 
 from vastray.actors.coordinator import render_distributed
@@ -486,6 +487,7 @@ def main() -> None:
 def run(args: argparse.Namespace) -> None:
     """The bench ``main`` parsed the options of (see the module docstring)."""
     start = time.perf_counter()
+    compile_vastray()  # its ~60 jobs' node processes start as an installed vastray's do
     print("simulator vs real runs (busy_max, same scene/settings/threads), then virtual "
           "scaling with this machine's calibrated costs"
           + (f", all of it beside {args.hog} busy processes (--hog)" if args.hog else ""))
