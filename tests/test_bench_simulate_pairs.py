@@ -95,3 +95,22 @@ def test_out_of_sample_pairs_come_in_sweeps_a_third_only_where_needed():
     assert taken == ["a", "b", "c", "a", "b", "c", "b"]
     errors = bench.pair_errors(points[1][2].reals, points[1][2].sims)
     assert sorted(errors)[1] == pytest.approx(0.05)  # the row's error: +40 % set aside
+
+
+def test_third_pairs_go_to_the_widest_spread_first_and_stop_when_the_time_is_spent():
+    def points(taken):
+        narrow = [(2.0, 2.0), (2.0, 2.3), (2.0, 2.1)]   # +0 and +15 %
+        wide = [(2.0, 2.0), (2.0, 3.0), (2.0, 2.1)]     # +0 and +50 %
+        agree = [(2.0, 2.0), (2.0, 2.1), (2.0, 2.0)]
+        return [("case", "image", RecordedPoint("narrow", narrow, taken)),
+                ("case", "domain", RecordedPoint("agree", agree, taken)),
+                ("case", "async", RecordedPoint("wide", wide, taken))]
+
+    taken = []
+    bench._take_in_sweeps(points(taken), bench.CostModel(), 3, None, QUICK)
+    assert taken[6:] == ["wide", "narrow"]
+    taken = []
+    spent = points(taken)
+    bench._take_in_sweeps(spent, bench.CostModel(), 3, None, QUICK, seconds=0.0)
+    assert taken == ["narrow", "agree", "wide"] * 2  # never fewer than two pairs a point
+    assert all(len(p.reals) == bench.QUICK_MIN_PAIRS for _, _, p in spent)
