@@ -1108,13 +1108,9 @@ def fit_node_own_costs(store, settings, domains, node_counts, options_of,
         rows, own = [], []
         for i, nodes in enumerate(node_counts):
             options = options_of(scheduler, nodes, settings.paths)
-            if i == 0:  # once uncharged, on a quarter of the paths: this process's first
-                # use of the code (a full-size warm-up took a third of the fit's minutes;
-                # what a first use costs does not grow with the paths)
-                warm = replace(settings, width=max(1, settings.width // 2),
-                               height=max(1, settings.height // 2))
-                simulate(store, options_of(scheduler, nodes, warm.paths), nodes, own_only,
-                         warm, max_pass_spp=None, domains=domains)
+            if i == 0:  # once uncharged: this process's first use of the code
+                simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
+                         domains=domains)
             result = simulate(store, options, nodes, own_only, settings, max_pass_spp=None,
                               domains=domains)
             rows += [[1.0, *(c.get(k, 0) for k in _OWN_COUNTERS)]
