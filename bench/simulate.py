@@ -354,9 +354,9 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
     third for the points that need one. A slow spell of this machine (a minute in which the
     same real runs take 1.4 times as long; the simulation, measured a second later, does not
     follow it) then falls on one pair of many points rather than on every pair of one, and
-    the median of a point's three pairs sets it aside (session 74: the scan's 8-node
-    ``spec-ooc``, both its back-to-back pairs -37 %, against -1 to -24 % in 24 pairs an
-    hour later)."""
+    the median of a point's three pairs sets it aside (the scan's 8-node ``spec-ooc`` at
+    4 spp: both its back-to-back pairs -37 % in session 73's last run, real 0.54 s where
+    24 pairs in session 74 took 0.33-0.45 s and read -24 to +9 %)."""
     config = SceneConfig()
     cases, points = [], []
     for case, (name, store, settings, cache) in enumerate(oos_cases(quick)):
