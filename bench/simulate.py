@@ -283,10 +283,11 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
                          "spp": settings.spp, "measured_s": real_s, "simulated_s": sim_s,
                          "rounds": point["rounds"], "error": error,
                          "error_of_medians": point["error_of_medians"], "same_image": same,
-                         "receive_s": now.receive_s, "offload_s": now.offload_s,
-                         "throughput": now.throughput, "stolen": stolen,
+                         "receive_s": point["receive_s"], "offload_s": point["offload_s"],
+                         "throughput": point["throughput"], "stolen": stolen,
                          "others": point["others"], "trace_ratio": point["trace_ratio"]})
-            print(f"| {scheduler} | {nodes} | {_messaging(now)} | {_throughput(now.throughput)} | "
+            print(f"| {scheduler} | {nodes} | {_messaging(point)} | "
+                  f"{_throughput(point['throughput'])} | "
                   f"{_others(point)} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
                   f"{sim_s:.3f} | {error:+.1%} | {point['error_of_medians']:+.1%} | "
                   f"{'yes' if same else 'NO'} |", flush=True)
@@ -372,9 +373,8 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
     try:
         _take_in_sweeps(points, costs, rounds, probe, budget_s,
                         QUICK_OOS_SECONDS if quick else float("inf"))
-        return [row for case in range(len(cases))
-                for row in _case_rows(cases[case], [(s, p) for c, s, p in points
-                                                     if c == case])]
+        return [row for index, case in enumerate(cases)
+                for row in _case_rows(case, [(s, p) for c, s, p in points if c == index])]
     finally:
         for *_, domains in cases:
             domains.close()
@@ -466,11 +466,9 @@ def _others(point: dict) -> str:
     return f"{point['others']:.2f} / {point['lost']:.0%}"
 
 
-def _messaging(charged) -> str:
-    """``receive_s`` / ``offload_s`` in ms of a ``CostModel`` or a point's summary."""
-    if isinstance(charged, CostModel):
-        charged = {"receive_s": charged.receive_s, "offload_s": charged.offload_s}
-    return f"{charged['receive_s'] * 1e3:.2f} / {charged['offload_s'] * 1e3:.2f}"
+def _messaging(point: dict) -> str:
+    """A point's charged ``receive_s`` / ``offload_s``, in ms (``PointPairs.summary``)."""
+    return f"{point['receive_s'] * 1e3:.2f} / {point['offload_s'] * 1e3:.2f}"
 
 
 def _throughput(t: tuple[float, ...]) -> str:
