@@ -226,6 +226,12 @@ def pair_errors(reals: list[float], sims: list[float]) -> list[float]:
     return [s / r - 1.0 for r, s in zip(reals, sims, strict=True)]
 
 
+def pair_spread(reals: list[float], sims: list[float]) -> float:
+    """How far apart the pairs' errors are (``pair_errors``; 0 for fewer than two)."""
+    errors = pair_errors(reals, sims)
+    return max(errors) - min(errors) if len(errors) > 1 else 0.0
+
+
 def enough_pairs(reals: list[float], sims: list[float], others: list[float], rounds: int,
                  budget_s: float) -> bool:
     """Whether a validation point (``paired``) has its pairs: ``rounds`` of them; with a
@@ -237,8 +243,7 @@ def enough_pairs(reals: list[float], sims: list[float], others: list[float], rou
         return True
     if len(reals) < min(QUICK_MIN_PAIRS, rounds) or budget_s == float("inf"):
         return False
-    errors = pair_errors(reals, sims)
-    return (max(errors) - min(errors) <= PAIRS_AGREE and sum(reals) >= budget_s
+    return (pair_spread(reals, sims) <= PAIRS_AGREE and sum(reals) >= budget_s
             and max(others) < BUSY_HOST_OTHERS)
 
 
@@ -388,12 +393,6 @@ def validate_oos(costs: CostModel, node_counts, rounds: int,
 QUICK_OOS_SECONDS = 270.0
 
 
-def _spread(point: PointPairs) -> float:
-    """How far apart a point's pairs' errors are (0 for fewer than two)."""
-    errors = pair_errors(point.reals, point.sims)
-    return max(errors) - min(errors) if len(errors) > 1 else 0.0
-
-
 def _take_in_sweeps(points: list, costs: CostModel, rounds: int, probe: MachineProbe | None,
                     budget_s: float, seconds: float = float("inf")) -> None:
     """Take every point's pairs (``validate_oos``'s sweeps), printing each as it comes;
@@ -403,7 +402,7 @@ def _take_in_sweeps(points: list, costs: CostModel, rounds: int, probe: MachineP
     for sweep in range(max(rounds, 1)):
         todo = [p for p in points if not p[2].enough(rounds, budget_s)]
         if sweep >= QUICK_MIN_PAIRS:  # the widest spread first
-            todo.sort(key=lambda p: -_spread(p[2]))
+            todo.sort(key=lambda p: -pair_spread(p[2].reals, p[2].sims))
         if not todo:
             break
         print(f"\nout of sample, pairs {sweep + 1}: {len(todo)} point(s)", flush=True)
