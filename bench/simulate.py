@@ -280,17 +280,12 @@ def validate(store, costs: CostModel, rounds: int, settings: RenderSettings = VA
         for nodes in node_counts:
             point = paired(store, settings, nodes, JobOptions(scheduler=scheduler, threads=1),
                            shared, probe is not None, rounds, budget_s, config, domains)
-            real_s, sim_s, stolen = point["real_s"], point["sim_s"], point["lost"]
+            real_s, sim_s = point["real_s"], point["sim_s"]
             same = bool((point["sim"].film.image() == reference).all()
                         and (point["result"].film.image() == reference).all())
             error = point["error"]
             rows.append({"scheduler": scheduler, "nodes": nodes, "width": settings.width,
-                         "spp": settings.spp, "measured_s": real_s, "simulated_s": sim_s,
-                         "rounds": point["rounds"], "error": error,
-                         "error_of_medians": point["error_of_medians"], "same_image": same,
-                         "receive_s": point["receive_s"], "offload_s": point["offload_s"],
-                         "throughput": point["throughput"], "stolen": stolen,
-                         "others": point["others"], "trace_ratio": point["trace_ratio"]})
+                         "spp": settings.spp, **_row(point), "same_image": same})
             print(f"| {scheduler} | {nodes} | {_messaging(point)} | "
                   f"{_throughput(point['throughput'])} | "
                   f"{_others(point)} | {point['rounds']} | {_ratio(point)} | {real_s:.3f} | "
@@ -445,19 +440,24 @@ def _case_rows(case: tuple, points: list) -> list[dict]:
         sim_same = bool((point["sim"].film.image() == reference).all())
         error = point["error"]
         rows.append({"case": name, "scheduler": scheduler, "nodes": nodes,
-                     "busy": busy, "cpu_share": cpu_share, "measured_s": real_s,
-                     "simulated_s": sim_s, "rounds": point["rounds"], "error": error,
-                     "error_of_medians": point["error_of_medians"],
-                     "same_image": real_same and sim_same,
-                     "receive_s": point["receive_s"], "offload_s": point["offload_s"],
-                     "throughput": point["throughput"], "stolen": point["lost"],
-                     "others": point["others"], "trace_ratio": point["trace_ratio"]})
+                     "busy": busy, "cpu_share": cpu_share, **_row(point),
+                     "same_image": real_same and sim_same})
         print(f"| {scheduler} | {nodes} | {busy} | {cpu_share:.2f} | "
               f"{_messaging(point)} | {_throughput(point['throughput'])} | {_others(point)} | "
               f"{point['rounds']} | {_ratio(point)} | {real_s:.3f} | {sim_s:.3f} | "
               f"{error:+.1%} | {point['error_of_medians']:+.1%} | "
               f"{'yes' if real_same else 'NO'} | {'yes' if sim_same else 'NO'} |", flush=True)
     return rows
+
+
+def _row(point: dict) -> dict:
+    """What a validation row keeps of its point (``PointPairs.summary``)."""
+    return {"measured_s": point["real_s"], "simulated_s": point["sim_s"],
+            "rounds": point["rounds"], "error": point["error"],
+            "error_of_medians": point["error_of_medians"], "receive_s": point["receive_s"],
+            "offload_s": point["offload_s"], "throughput": point["throughput"],
+            "stolen": point["lost"], "others": point["others"],
+            "trace_ratio": point["trace_ratio"]}
 
 
 def _others(point: dict) -> str:
