@@ -8,7 +8,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_README = (ROOT / "bench" / "README.md").read_text()
 HELPERS = {"bench_scenes.py", "bytecode.py", "fault_attacker.py", "fault_node.py",
-           "fault_proxy.py", "hogs.py", "numba_env.py", "replay_scaling.py"}
+           "fault_proxy.py", "hogs.py", "numba_env.py", "pair_noise.py", "replay_scaling.py"}
 
 
 def _slug(heading: str) -> str:
