@@ -24,6 +24,7 @@ from vastray.actors.node_logs import NodeLogs
 from vastray.actors.rendezvous import write_address
 from vastray.actors.watch import Watch
 from vastray.render.integrators import RenderSettings
+from vastray.scene.cpu_binding import node_cpu_blocks
 from vastray.transport.codec import encode
 from vastray.transport.join_secret import write_join_secret
 from vastray.transport.keys import AllowList, CoordinatorKeys
@@ -76,9 +77,11 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
     token = secrets.token_bytes(16)  # this attempt's: every control message carries it
     try:
         if listen is None:
+            blocks = node_cpu_blocks(size)  # each node its own CPUs, where they suffice
             for rank in range(size):
                 procs.append(_start_local_node(rank, port, timeout, secret,
-                                               logs.path(rank, attempt)))
+                                               logs.path(rank, attempt),
+                                               blocks[rank] if blocks else None))
         else:
             if not credentials.curve:
                 secret_file = write_join_secret(int(port), secret)
@@ -154,9 +157,10 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
 
 
 def _start_local_node(rank: int, port: int, timeout: float, secret: bytes,
-                      log_path: Path) -> subprocess.Popen:
+                      log_path: Path, cpus: list[int] | None = None) -> subprocess.Popen:
     """Start node ``rank`` here, handing it the join secret through a pipe (never argv or
-    the environment, which other processes may read)."""
+    the environment, which other processes may read); ``cpus``: the CPUs it binds itself to
+    (``scene.cpu_binding``; None: unbound)."""
     read_end, write_end = os.pipe()
     os.write(write_end, secret)  # 32 bytes: far below the pipe's buffer
     os.close(write_end)
@@ -165,7 +169,8 @@ def _start_local_node(rank: int, port: int, timeout: float, secret: bytes,
             return subprocess.Popen(
                 [sys.executable, "-m", "vastray.actors.node", "--coordinator",
                  f"tcp://127.0.0.1:{port}", "--rank", str(rank), "--timeout", str(timeout),
-                 "--secret-fd", str(read_end)],
+                 "--secret-fd", str(read_end)]
+                + (["--cpus", ",".join(map(str, cpus))] if cpus else []),
                 stdout=subprocess.DEVNULL, stderr=log_file, stdin=subprocess.DEVNULL,
                 pass_fds=(read_end,),
                 env=dict(os.environ, **{protocol.PARENT_PID_ENV: str(os.getpid())}))

@@ -42,6 +42,7 @@ from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
+from vastray.scene.cpu_binding import bind_process, parse_cpus
 from vastray.scene.cpus import CpuClock, cgroup_cpu_quota
 from vastray.scene.errors import InputError
 from vastray.schedule import registry
@@ -706,6 +707,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "short name)")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="debug log output (the node logs at info level without it)")
+    parser.add_argument("--cpus", metavar="LIST",
+                        help="bind this node (every thread it runs) to these CPUs, e.g. 0-3 or "
+                             "0,2; `vastray render --nodes N` gives each local node its share "
+                             "of the CPUs where there are at least N (VASTRAY_BIND_NODES=0: "
+                             "none); default: unbound")
     parser.add_argument("--secret-fd", type=int, metavar="FD", help=argparse.SUPPRESS)
     return parser
 
@@ -735,6 +741,16 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
     logging.basicConfig(level=logging.DEBUG if verbose + args.verbose else logging.INFO)
     for handler in logging.getLogger().handlers:
         handler.setFormatter(RankFormatter("%(message)s"))
+    if args.cpus:  # before any thread starts (ZeroMQ's, Embree's): they inherit it
+        try:
+            bound = bind_process(parse_cpus(args.cpus))
+        except (ValueError, OSError) as exc:
+            why = str(exc) if isinstance(exc, ValueError) else "none of them may be used here"
+            print(f"node {RankFormatter.rank}: error: --cpus {args.cpus}: {why} (the CPUs "
+                  f"this process may use: {','.join(map(str, sorted(os.sched_getaffinity(0))))})",
+                  file=sys.stderr)
+            return 2
+        log.info("bound to CPU%s %s", "s" if len(bound) > 1 else "", ",".join(map(str, bound)))
     try:
         import uvloop
         uvloop.install()

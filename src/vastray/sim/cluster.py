@@ -3,14 +3,15 @@
 Costs come from a ``CostModel``. With ``cores`` set, every node and the coordinator share
 that many cores, as the operating system shares them among node processes on one machine
 (``SharedCores``; a node's own work, whichever of its threads does it, runs at one process's
-speed: its GIL); otherwise each has one core of its own, which everything the node
-computes shares (its traces, its preloader's BVH builds, its sends and decisions: one
-core's processor sharing, as a one-core node's threads share it). A message costs its sender's
-core the one-way time measured between two processes (encoding, copies, decoding;
-``CostModel.message_s``), then its receiver's core what the nodes' management actors add
-(``CostModel.receive_s``), and is delivered, in order between any two endpoints (as
-ZeroMQ's). A tree reduction costs what its messages cost: the actors' own tree-reduce sends
-them.
+speed: its GIL; where the nodes are no more than the cores, each is bound to its share of
+them, as ``vastray render --nodes`` binds local nodes, and no job of it is wider);
+otherwise each has one core of its own, which everything the node computes shares (its
+traces, its preloader's BVH builds, its sends and decisions: one core's processor sharing,
+as a one-core node's threads share it). A message costs its sender's core the one-way time
+measured between two processes (encoding, copies, decoding; ``CostModel.message_s``), then
+its receiver's core what the nodes' management actors add (``CostModel.receive_s``), and is
+delivered, in order between any two endpoints (as ZeroMQ's). A tree reduction costs what
+its messages cost: the actors' own tree-reduce sends them.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from vastray.scene.cpu_binding import node_cpu_blocks
 from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 from vastray.sim.meter import NodeMeter, start_simulator_task
@@ -48,6 +50,12 @@ class Cluster:
         self.coordinator = size  # the coordinator's endpoint
         self._cores = (SharedCores(costs.cores, costs.throughput, costs.others)
                        if costs.cores else None)
+        #: with the machine's cores shared, the cores each node is bound to (as
+        #: ``vastray render --nodes`` binds local nodes, ``scene.cpu_binding``): none of its
+        #: jobs is wider; None: unbound
+        blocks = (node_cpu_blocks(size, list(range(costs.cores)), costs.cores)
+                  if costs.cores else None)
+        self.bound_width = float(len(blocks[0])) if blocks else None
         #: without a shared machine, each endpoint's one core
         self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))
         #: each endpoint's mailboxes by message kind (as a management actor's)
@@ -81,6 +89,8 @@ class Cluster:
             if self._cores is None:
                 done = self._own[rank].start(seconds)
             else:
+                if self.bound_width is not None and rank < self.size:
+                    width = min(width, self.bound_width)
                 done = self._cores.start(seconds, owner=rank, width=width)
         await done
 
