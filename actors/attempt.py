@@ -77,7 +77,8 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
     token = secrets.token_bytes(16)  # this attempt's: every control message carries it
     try:
         if listen is None:
-            blocks = node_cpu_blocks(size)  # each node its own CPUs, where they suffice
+            # each node its own CPUs, where they suffice for its threads
+            blocks = node_cpu_blocks(size, threads=job["options"].get("threads"))
             for rank in range(size):
                 procs.append(_start_local_node(rank, port, timeout, secret,
                                                logs.path(rank, attempt),

@@ -27,8 +27,8 @@ from vastray.scene.cpus import available_cpus
 BIND_ENV = "VASTRAY_BIND_NODES"
 
 
-def node_cpu_blocks(nodes: int, mask: list[int] | None = None,
-                    cpus: int | None = None) -> list[list[int]] | None:
+def node_cpu_blocks(nodes: int, mask: list[int] | None = None, cpus: int | None = None,
+                    threads: int | None = None) -> list[list[int]] | None:
     """The CPUs each of ``nodes`` local nodes is bound to, or None where they run unbound.
 
     Parameters
@@ -37,12 +37,16 @@ def node_cpu_blocks(nodes: int, mask: list[int] | None = None,
     mask : the CPUs this process may use, ascending (default: its affinity mask).
     cpus : the CPUs worth a thread (default: ``available_cpus()``, the mask lowered to the
         cgroup quota).
+    threads : the threads each node runs where the render sets them (``--threads``; None:
+        ``cpus // nodes``, the default).
 
     Returns
     -------
     ``nodes`` disjoint blocks of ``cpus // nodes`` CPUs of ``mask`` each, in order (node i
     the i-th), as each node runs ``cpus // nodes`` threads; None for one node, for more
-    nodes than ``cpus``, off Linux, or with ``VASTRAY_BIND_NODES=0``.
+    nodes than ``cpus``, for more threads a node than its block (the render asked for more
+    threads than the CPUs: the operating system shares them out), off Linux, or with
+    ``VASTRAY_BIND_NODES=0``.
     """
     if os.environ.get(BIND_ENV, "1").strip() == "0" or nodes < 2:
         return None
@@ -52,7 +56,7 @@ def node_cpu_blocks(nodes: int, mask: list[int] | None = None,
         except (AttributeError, OSError):  # not on Linux: no affinity to set
             return None
     cpus = min(available_cpus() if cpus is None else cpus, len(mask))
-    if nodes > cpus:
+    if nodes > cpus or (threads or 0) > cpus // nodes:
         return None
     share = cpus // nodes
     return [list(mask[i * share:(i + 1) * share]) for i in range(nodes)]

@@ -38,6 +38,14 @@ def test_a_lone_node_more_nodes_than_cpus_or_the_switch_leave_them_unbound(monke
     assert node_cpu_blocks(2, [0, 1], 2) is None
 
 
+def test_nodes_asked_for_more_threads_than_their_share_run_unbound(monkeypatch):
+    """``--threads 4`` on 2 nodes of 4 CPUs: 2 CPUs a node would hold 4 threads to 2."""
+    monkeypatch.delenv(BIND_ENV, raising=False)
+    assert node_cpu_blocks(2, [0, 1, 2, 3], 4, threads=4) is None
+    assert node_cpu_blocks(2, [0, 1, 2, 3], 4, threads=2) == [[0, 1], [2, 3]]
+    assert node_cpu_blocks(2, [0, 1, 2, 3], 4, threads=1) == [[0, 1], [2, 3]]
+
+
 def test_cpus_lists_and_ranges():
     assert parse_cpus("0-3,8") == [0, 1, 2, 3, 8]
     assert parse_cpus("2, 0") == [0, 2]
