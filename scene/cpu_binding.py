@@ -8,8 +8,8 @@ at half speed while the other core idles (session 54 found both nodes of a 2-nod
 render on one core in 70-83 % of the samples where both were runnable). Bound, each node
 keeps a share of the CPUs of its own: on this 2-core machine, 2 nodes of rm 128³ in 128
 domains rendered `dynamic` in 1.10 s against 1.24 s unbound (means of 8 interleaved runs),
-`spec-ooc` 0.70 against 0.75 s and `image` 0.74 against 0.82 s, each run's time spread
-halved; the turbine-blade scan's `dynamic`, whose rounds are few and short, 0.296 against
+`spec-ooc` 0.70 against 0.75 s and `image` 0.74 against 0.82 s, the spread between runs
+about halved; the turbine-blade scan's `dynamic`, whose rounds are few and short, 0.296 against
 0.281 s (session 75, ``bench/README.md``).
 
 Where the nodes outnumber the CPUs they must share cores, and binding would only keep the
