@@ -199,9 +199,9 @@ class PointPairs:
         """
         real_s, sim_s = float(np.median(self.reals)), float(np.median(self.sims))
         throughput = np.median([c.throughput for c in self.charged], axis=0)
-        return {"real_s": real_s, "sim_s": sim_s,
-                "error": float(np.median(pair_errors(self.reals, self.sims))),
-                "pair_errors": pair_errors(self.reals, self.sims),
+        errors = pair_errors(self.reals, self.sims)
+        return {"real_s": real_s, "sim_s": sim_s, "error": float(np.median(errors)),
+                "pair_errors": errors,
                 "error_of_medians": sim_s / real_s - 1.0, "rounds": len(self.reals),
                 "lost": max(self.lost), "others": float(np.median(self.others)),
                 "trace_ratio": float(np.median(self.ratios)) if self.ratios else None,
@@ -261,11 +261,11 @@ def _noise(rows: list[dict]) -> None:
     sd = pooled_sd([r["pair_errors"] for r in rows])
     if sd is None:
         return
-    pairs = sum(len(r["pair_errors"]) for r in rows)
+    counts = [len(r["pair_errors"]) for r in rows]
     print(f"sim_error_oos_pair_sd={sd:.3f}  (a pair's error about its point's mean, pooled "
-          f"over {len(rows)} points' {pairs} pairs: the machine's moment)")
+          f"over {len(rows)} points' {sum(counts)} pairs: the machine's moment)")
     print(f"sim_error_oos_chance_unbiased="
-          f"{chance_within(OOS_GOAL, sd, [len(r['pair_errors']) for r in rows]):.2f}  (the "
+          f"{chance_within(OOS_GOAL, sd, counts):.2f}  (the "
           f"chance that a simulator with no bias prints sim_error_oos_max <= {OOS_GOAL:.2f} "
           f"at this noise with these pairs; 4 pairs a point: "
           f"{chance_within(OOS_GOAL, sd, [4] * len(rows)):.2f})")
@@ -479,8 +479,8 @@ def _row(point: dict) -> dict:
     return {"measured_s": point["real_s"], "simulated_s": point["sim_s"],
             "rounds": point["rounds"], "error": point["error"],
             "pair_errors": point["pair_errors"], "error_of_medians": point["error_of_medians"],
-            "receive_s": point["receive_s"],
-            "offload_s": point["offload_s"], "throughput": point["throughput"],
+            "receive_s": point["receive_s"], "offload_s": point["offload_s"],
+            "throughput": point["throughput"],
             "stolen": point["lost"], "others": point["others"],
             "trace_ratio": point["trace_ratio"]}
 

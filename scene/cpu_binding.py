@@ -55,10 +55,9 @@ def node_cpu_blocks(nodes: int, mask: list[int] | None = None, cpus: int | None 
             mask = sorted(os.sched_getaffinity(0))
         except (AttributeError, OSError):  # not on Linux: no affinity to set
             return None
-    cpus = min(available_cpus() if cpus is None else cpus, len(mask))
-    if nodes > cpus or (threads or 0) > cpus // nodes:
+    share = min(available_cpus() if cpus is None else cpus, len(mask)) // nodes
+    if share < 1 or (threads or 0) > share:
         return None
-    share = cpus // nodes
     return [list(mask[i * share:(i + 1) * share]) for i in range(nodes)]
 
 

@@ -70,7 +70,7 @@ def test_a_node_refuses_cpus_it_may_not_use_naming_the_ones_it_may():
 def test_binding_reaches_threads_already_running():
     """``bind_process`` binds every thread, not only the caller (a thread started before it
     would keep the whole machine)."""
-    code = ("import os, threading, time\n"
+    code = ("import os, threading\n"
             "from vastray.scene.cpu_binding import bind_process\n"
             "seen = {}\n"
             "go = threading.Event()\n"
