@@ -4,6 +4,7 @@ virtual nodes as the launcher binds real ones."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import subprocess
 import sys
@@ -129,3 +130,20 @@ def test_the_simulator_binds_its_virtual_nodes_as_the_launcher_binds_real_ones(m
     assert run_virtual(build(1)) == (None, pytest.approx(1.0))
     monkeypatch.setenv(BIND_ENV, "0")
     assert run_virtual(build(2)) == (None, pytest.approx(1.0))
+
+
+def test_the_simulator_charges_others_beside_bound_virtual_nodes_as_the_cores_share_them(
+        monkeypatch):
+    """Beside one busy process of others, two bound virtual nodes working at once keep 3/4
+    of a core each (the process halves one node's core); unbound (``VASTRAY_BIND_NODES=0``)
+    they keep the fair 2/3."""
+    costs = CostModel().with_cores(2).beside(1.0)
+
+    async def both_nodes_work():
+        cluster = Cluster(2, costs)
+        await asyncio.gather(cluster.compute(0, 1.0), cluster.compute(1, 1.0))
+
+    monkeypatch.delenv(BIND_ENV, raising=False)
+    assert run_virtual(both_nodes_work())[1] == pytest.approx(4 / 3)
+    monkeypatch.setenv(BIND_ENV, "0")
+    assert run_virtual(both_nodes_work())[1] == pytest.approx(1.5)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from vastray.sim.clock import run_virtual
-from vastray.sim.cores import SharedCores
+from vastray.sim.cores import SharedCores, paired_share
 from vastray.sim.costs import CostModel, aggregate_throughput
 from vastray.sim.node_cost import span_per_setup
 from vastray.sim.steal import (
@@ -139,6 +139,37 @@ def test_others_beside_the_nodes_take_their_share_of_the_cores():
     assert span_per_setup(CostModel(cores=2, throughput=throughput), 2) == 1.0
     assert span_per_setup(CostModel(cores=2, throughput=throughput).beside(1.0), 2) == \
         pytest.approx(1.5)
+
+
+def test_others_beside_bound_nodes_take_the_idle_cores_then_half_a_node_core():
+    """Nodes bound to their own cores: the operating system moves only the others, so a
+    busy process of others runs on a core no node uses, else shares one node's core."""
+    throughput = (1.0, 2.0, 2.0, 2.0)
+    bound = SharedCores(2, throughput, others=1.0, bound=True)
+    assert bound.speed(1) == pytest.approx(1.0)  # the idle core is the other's
+    # two nodes: the process halves one node's core, the other node keeps its own
+    assert bound.speed(2) == pytest.approx(0.75)
+    assert SharedCores(2, throughput, others=1.0).speed(2) == pytest.approx(2 / 3)  # unbound
+    assert SharedCores(2, throughput, others=2.0, bound=True).speed(2) == pytest.approx(0.5)
+    # with nothing of others it is the unbound machine's speed, throughput and all
+    slow = (1.0, 1.6, 1.6)
+    assert SharedCores(2, slow, bound=True).speed(2) == SharedCores(2, slow).speed(2) == 0.8
+    # three busy processes on 2 cores run slower by the machine's throughput at 3
+    assert SharedCores(2, (1.0, 2.0, 1.8), others=1.0, bound=True).speed(2) == \
+        pytest.approx(0.9 * 0.75)
+    # more of ours busy than cores (the unbound coordinator too): everyone shares fairly
+    assert bound.speed(3) == SharedCores(2, throughput, others=1.0).speed(3)
+
+
+def test_paired_share_spreads_whole_processes_over_the_cores():
+    assert paired_share(0, 2) == 1.0
+    assert paired_share(1, 2) == pytest.approx(0.75)
+    assert paired_share(2, 2) == pytest.approx(0.5)
+    assert paired_share(3, 2) == pytest.approx((1 / 3 + 1 / 2) / 2)
+    assert paired_share(0.5, 2) == pytest.approx(0.875)  # in proportion between 0 and 1
+    assert paired_share(1, 1) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="at least one core"):
+        paired_share(1, 0)
 
 
 def test_a_wide_job_gets_no_spare_core_the_others_hold():

@@ -48,14 +48,16 @@ class Cluster:
         self.size, self.costs = size, costs
         self.first_touch_s = first_touch_s
         self.coordinator = size  # the coordinator's endpoint
-        self._cores = (SharedCores(costs.cores, costs.throughput, costs.others)
-                       if costs.cores else None)
         #: with the machine's cores shared, the cores each node is bound to (as
         #: ``vastray render --nodes`` binds local nodes, ``scene.cpu_binding``): none of its
-        #: jobs is wider; None: unbound
+        #: jobs is wider, and others' processes share the cores as beside bound processes;
+        #: None: unbound
         blocks = (node_cpu_blocks(size, list(range(costs.cores)), costs.cores)
                   if costs.cores else None)
         self.bound_width = float(len(blocks[0])) if blocks else None
+        self._cores = (SharedCores(costs.cores, costs.throughput, costs.others,
+                                   bound=blocks is not None)
+                       if costs.cores else None)
         #: without a shared machine, each endpoint's one core
         self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))
         #: each endpoint's mailboxes by message kind (as a management actor's)

@@ -18,12 +18,25 @@ Lone real nodes used 1.09-1.38 cores over their busy spans (``bench/simulate.py`
 validation, 2026-12-01), and the simulator had charged them one: its 1-node rows were
 over-predicted by up to 29 %. A process's other jobs beside such a job still take turns on
 one core: letting them share its width made the scan's lone ``domain``, ``async`` and
-``temporal`` rows 12-15 % too fast."""
+``temporal`` rows 12-15 % too fast.
+
+Processes of others beside nodes bound to their own cores (``scene.cpu_binding``, as
+``vastray render --nodes`` binds local nodes) are not a fair sharer of every core: the
+operating system can move only them, so each runs on a core no node is using while there is
+one, and otherwise pairs up with a node on that node's core, taking half of it. Beside one
+busy process, two bound nodes on 2 cores each got 0.77-0.82 of a core's work over 3-100 ms
+bursts (unbound: 0.66-0.71, the fair two thirds; 2026-12-07), and a validation that charged
+bound nodes the fair share over-predicted their 2-node runs by 9-41 %. ``bound`` charges
+them so: with k busy processes of ours on C >= k cores and h others, the others first fill
+the C - k idle cores, the rest pair up with ours as evenly as whole processes can (a
+fractional h in proportion), and every running process is as fast as the machine's
+aggregate throughput of k + h busy processes spread over the cores in use allows."""
 
 from __future__ import annotations
 
 import asyncio
 import itertools
+import math
 
 from vastray.sim.costs import aggregate_throughput
 
@@ -39,10 +52,15 @@ class SharedCores:
     others : busy processes that are not the simulated nodes' (``CostModel.others``): always
         running beside them, taking their share of the cores as the operating system gives
         it (k jobs of the nodes run as k of k + ``others`` busy processes).
+    bound : whether the nodes are bound to cores of their own, so that the others take the
+        idle cores first and then half of a node's core each (``paired_share``; the module
+        docstring), not a fair share of all of them.
     """
 
-    def __init__(self, cores: int, throughput: tuple[float, ...] = (), others: float = 0.0):
+    def __init__(self, cores: int, throughput: tuple[float, ...] = (), others: float = 0.0,
+                 bound: bool = False):
         self.cores, self.throughput, self.others = cores, throughput, others
+        self.bound = bound
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
@@ -58,6 +76,10 @@ class SharedCores:
         """Each job's speed (1: a process alone on a core) with ``k`` jobs running (beside
         ``others``)."""
         busy = k + self.others
+        if self.bound and self.others > 0.0 and 0 < k <= self.cores:
+            per_core = aggregate_throughput(self.throughput, self.cores, busy) / min(busy, self.cores)
+            excess = max(self.others - (self.cores - k), 0.0)
+            return min(1.0, per_core * paired_share(excess, k))
         return min(1.0, aggregate_throughput(self.throughput, self.cores, busy) / busy)
 
     async def run(self, seconds: float, owner=None, width: float = 1.0) -> None:
@@ -146,3 +168,24 @@ class SharedCores:
             self._widen(owner)
             done.set_result(None)
         self._schedule(loop)
+
+
+def paired_share(others: float, cores: int) -> float:
+    """The mean share of its core a process bound to each of ``cores`` cores keeps beside
+    ``others`` (>= 0, may be fractional) busy processes that the operating system spreads
+    over those cores as evenly as whole processes go: a core with n of them gives ours
+    1 / (n + 1); a fractional count in proportion between the two whole counts around it.
+
+    >>> paired_share(1, 2)  # one on one of two cores: 1/2 there, 1 on the other
+    0.75
+    """
+    if cores < 1:
+        raise ValueError(f"a share needs at least one core, got {cores!r}")
+
+    def whole(count: int) -> float:
+        each, extra = divmod(count, cores)
+        return (extra / (each + 2) + (cores - extra) / (each + 1)) / cores
+
+    low = math.floor(others)
+    part = others - low
+    return (1.0 - part) * whole(low) + (part * whole(low + 1) if part else 0.0)
