@@ -18,6 +18,7 @@ from vastray.scene.cpu_binding import BIND_ENV, node_cpu_blocks, parse_cpus
 from vastray.scene.cpus import available_cpus
 from vastray.sim.clock import run_virtual
 from vastray.sim.cluster import Cluster
+from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel
 
 from scenes import bumpy_scene, settings, write_store
@@ -132,18 +133,20 @@ def test_the_simulator_binds_its_virtual_nodes_as_the_launcher_binds_real_ones(m
     assert run_virtual(build(2)) == (None, pytest.approx(1.0))
 
 
-def test_the_simulator_charges_others_beside_bound_virtual_nodes_as_the_cores_share_them(
+def test_the_simulator_charges_others_beside_bound_virtual_nodes_where_they_sit(
         monkeypatch):
-    """Beside one busy process of others, two bound virtual nodes working at once keep 3/4
-    of a core each (the process halves one node's core); unbound (``VASTRAY_BIND_NODES=0``)
-    they keep the fair 2/3."""
+    """Beside one busy process of others, two bound virtual nodes passing work back and
+    forth faster than an idle core pulls a process share one core with it; unbound
+    (``VASTRAY_BIND_NODES=0``) each takes the idle core."""
     costs = CostModel().with_cores(2).beside(1.0)
+    turn = SharedCores.IDLE_PULL_S / 4
 
-    async def both_nodes_work():
+    async def by_turns():
         cluster = Cluster(2, costs)
-        await asyncio.gather(cluster.compute(0, 1.0), cluster.compute(1, 1.0))
+        for rank in (0, 1, 0, 1):
+            await cluster.compute(rank, turn)
 
     monkeypatch.delenv(BIND_ENV, raising=False)
-    assert run_virtual(both_nodes_work())[1] == pytest.approx(4 / 3)
+    assert run_virtual(by_turns())[1] == pytest.approx(6 * turn)
     monkeypatch.setenv(BIND_ENV, "0")
-    assert run_virtual(both_nodes_work())[1] == pytest.approx(1.5)
+    assert run_virtual(by_turns())[1] == pytest.approx(4 * turn)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from vastray.sim.clock import run_virtual
-from vastray.sim.cores import SharedCores, paired_share
+from vastray.sim.cores import SharedCores
 from vastray.sim.costs import CostModel, aggregate_throughput
 from vastray.sim.node_cost import span_per_setup
 from vastray.sim.steal import (
@@ -141,35 +141,65 @@ def test_others_beside_the_nodes_take_their_share_of_the_cores():
         pytest.approx(1.5)
 
 
-def test_others_beside_bound_nodes_take_the_idle_cores_then_half_a_node_core():
-    """Nodes bound to their own cores: the operating system moves only the others, so a
-    busy process of others runs on a core no node uses, else shares one node's core."""
-    throughput = (1.0, 2.0, 2.0, 2.0)
-    bound = SharedCores(2, throughput, others=1.0, bound=True)
-    assert bound.speed(1) == pytest.approx(1.0)  # the idle core is the other's
-    # two nodes: the process halves one node's core, the other node keeps its own
-    assert bound.speed(2) == pytest.approx(0.75)
-    assert SharedCores(2, throughput, others=1.0).speed(2) == pytest.approx(2 / 3)  # unbound
-    assert SharedCores(2, throughput, others=2.0, bound=True).speed(2) == pytest.approx(0.5)
-    # with nothing of others it is the unbound machine's speed, throughput and all
+def test_others_beside_bound_nodes_stay_on_a_node_core_until_another_waits_long():
+    """Nodes bound to their own cores: the operating system can move only the others, and
+    only to a core idle for ``IDLE_PULL_S``; unbound, a woken node takes the idle core."""
+    pull = SharedCores.IDLE_PULL_S
+
+    async def by_turns(cores, burst):
+        """Two nodes working by turns, ``burst`` s each, twice (a message back and forth)."""
+        for _ in range(2):
+            for rank in (0, 1):
+                await cores.run(burst, owner=rank)
+
+    def bound():
+        return SharedCores(2, (), others=1.0, bound_nodes=(2, 1))
+
+    # turns shorter than the pull: the busy process stays on node 1's core, halving it
+    short = pull / 4
+    assert run_virtual(by_turns(bound(), short))[1] == pytest.approx(6 * short)
+    assert run_virtual(by_turns(SharedCores(2, (), others=1.0), short))[1] == \
+        pytest.approx(4 * short)
+    # long turns: each waiting core pulls it after IDLE_PULL_S, so each turn but the first
+    # pays half of that
+    assert run_virtual(by_turns(bound(), 1.0))[1] == pytest.approx(4.0 + 3 * pull / 2)
+
+    async def together(cores):
+        """Both nodes at once, 1 s each."""
+        loop = asyncio.get_running_loop()
+        ends = {}
+
+        async def node(rank):
+            await cores.run(1.0, owner=rank)
+            ends[rank] = loop.time()
+
+        await asyncio.gather(node(0), node(1))
+        return ends
+
+    # the node beside the busy process runs at half speed until the other's core has
+    # waited IDLE_PULL_S, then at full
+    ends, _ = run_virtual(together(bound()))
+    assert ends == {0: pytest.approx(1.0), 1: pytest.approx(1.5 + pull / 2)}
+    # a core no node is bound to takes the busy process first: both nodes at full speed
+    ends, _ = run_virtual(together(SharedCores(3, (), others=1.0, bound_nodes=(2, 1))))
+    assert ends == {0: pytest.approx(1.0), 1: pytest.approx(1.0)}
+    # a node with two cores keeps one beside the process
+    ends, _ = run_virtual(together(SharedCores(4, (), others=2.0, bound_nodes=(2, 2))))
+    assert ends == {0: pytest.approx(1.0), 1: pytest.approx(1.0)}
+    with pytest.raises(ValueError, match="do not fit"):
+        SharedCores(2, (), bound_nodes=(2, 2))
+
+
+def test_beside_bound_nodes_the_others_slow_the_machine_and_a_remainder_shares_fairly():
+    # three busy processes on 2 cores: the machine's throughput at 3 spread over both
+    assert SharedCores(2, (1.0, 2.0, 1.8), others=1.0, bound_nodes=(2, 1)).speed(2) == \
+        pytest.approx(0.9)
+    # nothing of others: the unbound machine's speed, throughput and all
     slow = (1.0, 1.6, 1.6)
-    assert SharedCores(2, slow, bound=True).speed(2) == SharedCores(2, slow).speed(2) == 0.8
-    # three busy processes on 2 cores run slower by the machine's throughput at 3
-    assert SharedCores(2, (1.0, 2.0, 1.8), others=1.0, bound=True).speed(2) == \
-        pytest.approx(0.9 * 0.75)
-    # more of ours busy than cores (the unbound coordinator too): everyone shares fairly
-    assert bound.speed(3) == SharedCores(2, throughput, others=1.0).speed(3)
-
-
-def test_paired_share_spreads_whole_processes_over_the_cores():
-    assert paired_share(0, 2) == 1.0
-    assert paired_share(1, 2) == pytest.approx(0.75)
-    assert paired_share(2, 2) == pytest.approx(0.5)
-    assert paired_share(3, 2) == pytest.approx((1 / 3 + 1 / 2) / 2)
-    assert paired_share(0.5, 2) == pytest.approx(0.875)  # in proportion between 0 and 1
-    assert paired_share(1, 1) == pytest.approx(0.5)
-    with pytest.raises(ValueError, match="at least one core"):
-        paired_share(1, 0)
+    assert SharedCores(2, slow, bound_nodes=(2, 1)).speed(2) == SharedCores(2, slow).speed(2)
+    # a tenth of a process of others shares the cores fairly, as unbound
+    assert SharedCores(2, slow, others=0.1, bound_nodes=(2, 1)).speed(2) == \
+        pytest.approx(SharedCores(2, slow, others=0.1).speed(2))
 
 
 def test_a_wide_job_gets_no_spare_core_the_others_hold():

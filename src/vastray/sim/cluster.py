@@ -56,7 +56,7 @@ class Cluster:
                   if costs.cores else None)
         self.bound_width = float(len(blocks[0])) if blocks else None
         self._cores = (SharedCores(costs.cores, costs.throughput, costs.others,
-                                   bound=blocks is not None)
+                                   bound_nodes=(size, len(blocks[0])) if blocks else None)
                        if costs.cores else None)
         #: without a shared machine, each endpoint's one core
         self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))

@@ -20,23 +20,28 @@ over-predicted by up to 29 %. A process's other jobs beside such a job still tak
 one core: letting them share its width made the scan's lone ``domain``, ``async`` and
 ``temporal`` rows 12-15 % too fast.
 
-Processes of others beside nodes bound to their own cores (``scene.cpu_binding``, as
-``vastray render --nodes`` binds local nodes) are not a fair sharer of every core: the
-operating system can move only them, so each runs on a core no node is using while there is
-one, and otherwise pairs up with a node on that node's core, taking half of it. Beside one
-busy process, two bound nodes on 2 cores each got 0.77-0.82 of a core's work over 3-100 ms
-bursts (unbound: 0.66-0.71, the fair two thirds; 2026-12-07), and a validation that charged
-bound nodes the fair share over-predicted their 2-node runs by 9-41 %. ``bound`` charges
-them so: with k busy processes of ours on C >= k cores and h others, the others first fill
-the C - k idle cores, the rest pair up with ours as evenly as whole processes can (a
-fractional h in proportion), and every running process is as fast as the machine's
-aggregate throughput of k + h busy processes spread over the cores in use allows."""
+Processes of others beside nodes bound to cores of their own (``scene.cpu_binding``, as
+``vastray render --nodes`` binds local nodes) are no fair sharer of every core: the operating
+system can move only them, and it moves one only to a core that has stayed idle a while (a
+core idle for moments does not pull a task, which would cost more than the moment). So a
+busy process of others sits on one node's core, halving it, and moves only when another
+node waits long enough. Beside one busy process the one on two bound nodes' cores moved
+3 times a second while ``image``'s nodes traced side by side (a stay of 280-380 ms), and
+25-35 times a second under ``dynamic``'s rounds (14-20 ms; a round 9 ms), whose node
+beside it is the round's last: ``dynamic`` ran 2.2x slower beside it, ``image`` 1.45x (rm
+128³ and the turbine-blade scan, 2026-12-07). A validation that charged bound nodes the
+fair share under-predicted the first by 32-37 % and over-predicted the second by 10-25 %.
+``bound_nodes`` charges them so: the others' whole busy processes (``others`` rounded) fill
+the cores no node is bound to, then each sits on one node's core, whose jobs run at
+1 / (1 + those on it) of a core there (times its block's width); a node's core idle for
+``IDLE_PULL_S`` with none on it takes one from a busy node's core. Every process is also as
+fast as the machine's aggregate throughput of its busy processes and all the others over
+the cores allows, and a fractional remainder of ``others`` shares the cores fairly."""
 
 from __future__ import annotations
 
 import asyncio
 import itertools
-import math
 
 from vastray.sim.costs import aggregate_throughput
 
@@ -52,15 +57,31 @@ class SharedCores:
     others : busy processes that are not the simulated nodes' (``CostModel.others``): always
         running beside them, taking their share of the cores as the operating system gives
         it (k jobs of the nodes run as k of k + ``others`` busy processes).
-    bound : whether the nodes are bound to cores of their own, so that the others take the
-        idle cores first and then half of a node's core each (``paired_share``; the module
-        docstring), not a fair share of all of them.
+    bound_nodes : the nodes bound to cores of their own, as (count, cores each): owners 0 ..
+        count - 1 are those nodes; None: none is bound (the module docstring).
     """
 
+    #: How long a bound node's core stays idle before it takes a busy process of others
+    #: from another node's core (the module docstring).
+    IDLE_PULL_S = 0.004
+
     def __init__(self, cores: int, throughput: tuple[float, ...] = (), others: float = 0.0,
-                 bound: bool = False):
+                 bound_nodes: tuple[int, int] | None = None):
         self.cores, self.throughput, self.others = cores, throughput, others
-        self.bound = bound
+        self.bound_nodes = bound_nodes
+        #: where each whole busy process of others sits beside bound nodes: a node's rank,
+        #: on its core(s); those on cores no node is bound to are not listed
+        self._sitting: list[int] = []
+        if bound_nodes is not None:
+            count, width = bound_nodes
+            if count < 1 or width < 1 or count * width > cores:
+                raise ValueError(f"{count} nodes of {width} cores each do not fit {cores} cores")
+            placed = max(int(round(others)) - (cores - count * width), 0)
+            # at first on the last nodes' cores: deterministic, and moved as cores fall idle
+            self._sitting = [count - 1 - i % count for i in range(placed)]
+        #: each bound node whose core is idle -> since when (the loop's time)
+        self._idle_since: dict[int, float] = {}
+        self._pull: asyncio.TimerHandle | None = None
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
@@ -76,10 +97,12 @@ class SharedCores:
         """Each job's speed (1: a process alone on a core) with ``k`` jobs running (beside
         ``others``)."""
         busy = k + self.others
-        if self.bound and self.others > 0.0 and 0 < k <= self.cores:
-            per_core = aggregate_throughput(self.throughput, self.cores, busy) / min(busy, self.cores)
-            excess = max(self.others - (self.cores - k), 0.0)
-            return min(1.0, per_core * paired_share(excess, k))
+        if self.bound_nodes is not None:
+            # the others' whole processes take what ``_beside`` says; a remainder shares
+            # fairly, and all of them slow the machine's aggregate throughput
+            remainder = max(self.others - round(self.others), 0.0)
+            return min(1.0, aggregate_throughput(self.throughput, self.cores, busy)
+                       / (k + remainder))
         return min(1.0, aggregate_throughput(self.throughput, self.cores, busy) / busy)
 
     async def run(self, seconds: float, owner=None, width: float = 1.0) -> None:
@@ -107,6 +130,7 @@ class SharedCores:
     def _widen(self, owner) -> None:
         """Note ``owner``'s width (its one running job's, where wider than a core) and share
         the spare cores afresh."""
+        self._move_others()
         self._wide.pop(owner, None)
         if self._owned.get(owner, 0) == 1:
             width = next(job[3] for job in self._jobs.values() if job[2] == owner)
@@ -138,7 +162,57 @@ class SharedCores:
         """A running job's speed now: its process's share of the machine, split among the
         process's running jobs."""
         owner = job[2]
-        return (self.speed(len(self._owned)) + self._bonus.get(owner, 0.0)) / self._owned[owner]
+        return ((self.speed(len(self._owned)) * self._beside(owner) + self._bonus.get(owner, 0.0))
+                / self._owned[owner])
+
+    def _beside(self, owner) -> float:
+        """The share of its cores a bound node keeps beside the others sitting there (1 for
+        anything else)."""
+        if not self._sitting or not isinstance(owner, int):
+            return 1.0
+        width = self.bound_nodes[1]
+        return min(1.0, width / (1 + self._sitting.count(owner)))
+
+    def _move_others(self) -> None:
+        """The operating system's idle balance beside bound nodes: a node's core idle for
+        ``IDLE_PULL_S`` with none of the others on it takes one from a busy node's core
+        (the busiest; idle cores in the order they fell idle); the pull timer is set for the
+        next core that will have waited long enough."""
+        if not self._sitting:
+            return
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        count = self.bound_nodes[0]
+        for rank in range(count):  # note when each node's core fell idle or woke
+            if rank in self._owned:
+                self._idle_since.pop(rank, None)
+            else:
+                self._idle_since.setdefault(rank, now)
+        waiting = sorted((since, rank) for rank, since in self._idle_since.items()
+                         if rank not in self._sitting)
+        later = []
+        for since, rank in waiting:
+            crowded = [r for r in set(self._sitting) if r in self._owned]
+            if not crowded:
+                break
+            if since + self.IDLE_PULL_S > now + 1e-12:
+                later.append(since + self.IDLE_PULL_S)
+                continue
+            source = max(crowded, key=lambda r: (self._sitting.count(r), -r))
+            self._sitting[self._sitting.index(source)] = rank
+        if self._pull is not None:
+            self._pull.cancel()
+            self._pull = None
+        if later:
+            self._pull = loop.call_at(min(later), self._pull_now, loop)
+
+    def _pull_now(self, loop) -> None:
+        """The pull timer: charge the time so far at the old rates, move, re-rate."""
+        self._pull = None
+        self._advance(loop.time())
+        self._move_others()
+        self._bonus = self._share()
+        self._schedule(loop)
 
     def _advance(self, now: float) -> None:
         """Charge the time since the last event to every running job."""
@@ -169,23 +243,3 @@ class SharedCores:
             done.set_result(None)
         self._schedule(loop)
 
-
-def paired_share(others: float, cores: int) -> float:
-    """The mean share of its core a process bound to each of ``cores`` cores keeps beside
-    ``others`` (>= 0, may be fractional) busy processes that the operating system spreads
-    over those cores as evenly as whole processes go: a core with n of them gives ours
-    1 / (n + 1); a fractional count in proportion between the two whole counts around it.
-
-    >>> paired_share(1, 2)  # one on one of two cores: 1/2 there, 1 on the other
-    0.75
-    """
-    if cores < 1:
-        raise ValueError(f"a share needs at least one core, got {cores!r}")
-
-    def whole(count: int) -> float:
-        each, extra = divmod(count, cores)
-        return (extra / (each + 2) + (cores - extra) / (each + 1)) / cores
-
-    low = math.floor(others)
-    part = others - low
-    return (1.0 - part) * whole(low) + (part * whole(low + 1) if part else 0.0)
