@@ -4,7 +4,6 @@ virtual nodes as the launcher binds real ones."""
 
 from __future__ import annotations
 
-import asyncio
 import os
 import subprocess
 import sys
