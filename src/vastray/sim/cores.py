@@ -22,21 +22,23 @@ one core: letting them share its width made the scan's lone ``domain``, ``async`
 
 Processes of others beside nodes bound to cores of their own (``scene.cpu_binding``, as
 ``vastray render --nodes`` binds local nodes) are no fair sharer of every core: the operating
-system can move only them, and it moves one only to a core that has stayed idle a while (a
-core idle for moments does not pull a task, which would cost more than the moment). So a
-busy process of others sits on one node's core, halving it, and moves only when another
-node waits long enough. Beside one busy process the one on two bound nodes' cores moved
-3 times a second while ``image``'s nodes traced side by side (a stay of 280-380 ms), and
-25-35 times a second under ``dynamic``'s rounds (14-20 ms; a round 9 ms), whose node
-beside it is the round's last: ``dynamic`` ran 2.2x slower beside it, ``image`` 1.45x (rm
-128³ and the turbine-blade scan, 2026-12-07). A validation that charged bound nodes the
-fair share under-predicted the first by 32-37 % and over-predicted the second by 10-25 %.
-``bound_nodes`` charges them so: the others' whole busy processes (``others`` rounded) fill
-the cores no node is bound to, then each sits on one node's core, whose jobs run at
-1 / (1 + those on it) of a core there (times its block's width); a node's core idle for
-``IDLE_PULL_S`` with none on it takes one from a busy node's core. Every process is also as
-fast as the machine's aggregate throughput of its busy processes and all the others over
-the cores allows, and a fractional remainder of ``others`` shares the cores fairly."""
+system can move only them, and it seldom does. A core idle for moments does not pull a task
+(that would cost more than the moment); an idle one is handed work at a busy core's next
+tick (4 ms at this kernel's 250 Hz), and busy cores swap work every few hundred ms. So a
+busy process of others sits on one node's core, halving it, and moves when another node
+has waited a tick or after a long stay. Beside one busy process, the one on two bound
+nodes' cores stayed 230-520 ms while ``image``'s nodes traced side by side, and 14-20 ms
+under ``dynamic``'s rounds (9 ms each), whose node beside it is each round's last:
+``dynamic`` ran 2.2x slower beside it, ``image`` 1.45x (rm 128³ and the turbine-blade scan,
+2026-12-07). Charged the fair share, a validation under-predicted the first by 32-37 % and
+over-predicted the second by 10-25 %. ``bound_nodes`` charges them so: the others' whole
+busy processes (``others`` rounded) fill the cores no node is bound to, then each sits on
+one node's core, whose jobs run at 1 / (1 + those on it) of a core there (times its
+block's width); a node's core idle for ``IDLE_PULL_S`` with none on it takes one from a
+busy node's core, and one that sat ``BUSY_MOVE_S`` on a busy node's core moves to a busy
+node's core with fewer. Every process is also as fast as the machine's aggregate
+throughput of its busy processes and all the others over the cores allows, and a
+fractional remainder of ``others`` shares the cores fairly."""
 
 from __future__ import annotations
 
@@ -64,6 +66,9 @@ class SharedCores:
     #: How long a bound node's core stays idle before it takes a busy process of others
     #: from another node's core (the module docstring).
     IDLE_PULL_S = 0.004
+    #: How long a busy process of others stays on a busy node's core before the operating
+    #: system moves it to a busy node's core with fewer (the module docstring).
+    BUSY_MOVE_S = 0.3
 
     def __init__(self, cores: int, throughput: tuple[float, ...] = (), others: float = 0.0,
                  bound_nodes: tuple[int, int] | None = None):
@@ -79,9 +84,13 @@ class SharedCores:
             placed = max(int(round(others)) - (cores - count * width), 0)
             # at first on the last nodes' cores: deterministic, and moved as cores fall idle
             self._sitting = [count - 1 - i % count for i in range(placed)]
+        #: when each of ``_sitting`` came to sit where it is (the loop's time)
+        self._sat_since: list[float] = []
         #: each bound node whose core is idle -> since when (the loop's time)
         self._idle_since: dict[int, float] = {}
         self._pull: asyncio.TimerHandle | None = None
+        #: how many times a process of others moved to another node's core
+        self.moves = 0
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
@@ -174,10 +183,11 @@ class SharedCores:
         return min(1.0, width / (1 + self._sitting.count(owner)))
 
     def _move_others(self) -> None:
-        """The operating system's idle balance beside bound nodes: a node's core idle for
-        ``IDLE_PULL_S`` with none of the others on it takes one from a busy node's core
-        (the busiest; idle cores in the order they fell idle); the pull timer is set for the
-        next core that will have waited long enough."""
+        """The operating system's balancing beside bound nodes, at each change and on its
+        timer: a node's core idle for ``IDLE_PULL_S`` with none of the others on it takes
+        one from a busy node's core (the most crowded; idle cores in the order they fell
+        idle), and one that has sat ``BUSY_MOVE_S`` on a busy node's core moves to a busy
+        node's core with fewer of them. The timer is set for the next such moment."""
         if not self._sitting:
             return
         loop = asyncio.get_running_loop()
@@ -188,10 +198,10 @@ class SharedCores:
                 self._idle_since.pop(rank, None)
             else:
                 self._idle_since.setdefault(rank, now)
-        waiting = sorted((since, rank) for rank, since in self._idle_since.items()
-                         if rank not in self._sitting)
+        self._sat_since += [now] * (len(self._sitting) - len(self._sat_since))
         later = []
-        for since, rank in waiting:
+        for since, rank in sorted((since, rank) for rank, since in self._idle_since.items()
+                                  if rank not in self._sitting):
             crowded = [r for r in set(self._sitting) if r in self._owned]
             if not crowded:
                 break
@@ -199,12 +209,34 @@ class SharedCores:
                 later.append(since + self.IDLE_PULL_S)
                 continue
             source = max(crowded, key=lambda r: (self._sitting.count(r), -r))
-            self._sitting[self._sitting.index(source)] = rank
+            self._move(self._sitting.index(source), rank, now)
+        for other in range(len(self._sitting)):
+            fewer = self._fewer(other)
+            if fewer is not None and self._sat_since[other] + self.BUSY_MOVE_S <= now + 1e-12:
+                self._move(other, fewer, now)
+        later += [self._sat_since[other] + self.BUSY_MOVE_S
+                  for other in range(len(self._sitting)) if self._fewer(other) is not None]
         if self._pull is not None:
             self._pull.cancel()
             self._pull = None
         if later:
             self._pull = loop.call_at(min(later), self._pull_now, loop)
+
+    def _fewer(self, other: int) -> int | None:
+        """The busy node's core with the fewest of the others, where process ``other`` sits
+        on a busy node's core with more; else None."""
+        rank = self._sitting[other]
+        busy = [r for r in range(self.bound_nodes[0]) if r in self._owned]
+        if rank not in self._owned or not busy:
+            return None
+        fewest = min(busy, key=lambda r: (self._sitting.count(r), r))
+        return fewest if self._sitting.count(fewest) < self._sitting.count(rank) else None
+
+    def _move(self, other: int, rank: int, now: float) -> None:
+        """Process of others number ``other`` moves to node ``rank``'s core now."""
+        self._sitting[other] = rank
+        self._sat_since[other] = now
+        self.moves += 1
 
     def _pull_now(self, loop) -> None:
         """The pull timer: charge the time so far at the old rates, move, re-rate."""
