@@ -22,7 +22,7 @@ from vastray.scene.store import Store
 from vastray.sim import calibrate as cal
 from vastray.sim.costs import VERSION, CostModel
 from vastray.sim.node_cost import SETUP_NODES, span_per_setup
-from vastray.sim.warmup import WarmProcesses, interpolated, throughput_of
+from vastray.sim.warmup import WarmProcesses, beside_others, interpolated, throughput_of
 
 CONSTANTS = ("trace_ray_s", "shade_ray_s", "shadow_ray_s", "activation_s",
              "shadow_activation_s", "camera_ray_s", "load_byte_s", "build_triangle_s",
@@ -153,8 +153,10 @@ def test_the_machine_probe_measures_again_only_what_moves(store):
             max(0.0, float(np.median(probe.messages)) - base.latency_s))
         assert second.offload_s == pytest.approx(float(np.median(probe.offloads)))
         assert all(set(r) == {1, 2} and len(r[2]) == 2 for r in probe.rounds)
-        assert second.throughput[1] == pytest.approx(
-            interpolated(throughput_of(probe.rounds, 2))[1])
+        # as measured, read beside the busy processes of others seen as the rounds began
+        assert len(probe.others) == probe.SEED_ROUNDS + 1
+        assert second.throughput[1] == pytest.approx(beside_others(
+            interpolated(throughput_of(probe.rounds, 2)), float(np.median(probe.others)), 2)[1])
     finally:
         probe.close()
     # its warm processes are gone with it
@@ -181,10 +183,23 @@ def test_the_probe_measures_busy_processes_beyond_the_cores_by_default(store):
         assert probe.counts == [1, 2, 4, 8] and len(probe.processes.processes) == 8
         now = probe.now(calibrated)
         assert all(set(r) == {1, 2, 4, 8} and len(r[8]) == 8 for r in probe.rounds)
-        assert now.throughput == pytest.approx(interpolated(throughput_of(probe.rounds, 2)))
+        assert now.throughput == pytest.approx(beside_others(
+            interpolated(throughput_of(probe.rounds, 2)), float(np.median(probe.others)), 2))
         assert len(now.throughput) == 8 and all(0 < t <= 2.0 for t in now.throughput[1:])
     finally:
         probe.close()
+
+
+def test_a_throughput_measured_beside_others_is_read_at_the_count_in_all():
+    """Measured beside one busy process, k processes ran among k + 1: the simulator, which
+    runs that process beside its nodes again, reads the efficiency of k at k + 1."""
+    measured = (1.0, 1.8, 1.65, 1.5)
+    assert beside_others(measured, 1.0, 2) == pytest.approx((1.0, 2.0, 1.8, 1.65))
+    # half a process: between the counts
+    assert beside_others(measured, 0.5, 2)[2] == pytest.approx(2 * (0.9 + 0.825) / 2)
+    assert beside_others(measured, 0.0, 2) == measured  # quiet: as measured
+    # two beside: 3 in all is one measured process (a core each): efficiency 1
+    assert beside_others(measured, 2.0, 2)[:3] == pytest.approx((1.0, 2.0, 2.0))
 
 
 def test_beyond_the_cores_the_probe_keeps_the_calibration_s_slow_down():

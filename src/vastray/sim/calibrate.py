@@ -59,8 +59,10 @@ from vastray.schedule.paths import radiance_soa, start_cursor
 from vastray.sim import first_touch
 from vastray.sim.costs import CostModel
 from vastray.sim.node_cost import SETUP_NODES, setup_cost
+from vastray.sim.steal import others_running
 from vastray.sim.warmup import (
     WarmProcesses,
+    beside_others,
     interpolated,
     measure_rounds,
     process_costs,
@@ -853,7 +855,10 @@ class MachineProbe:
     from one round to the next as the host's speed drifts, and the 8-node validation rows
     charged at the 1.48-1.62 of a single round over-predicted by 27-62 % (session 32). How
     much busy processes slow each other is the machine's; what others take of it at the
-    moment is ``sim.steal.Contention``'s, around each real run.
+    moment is ``sim.steal.Contention``'s, around each real run. Processes of others running
+    during the probe's rounds (``others``, seen as each round starts) slowed its processes
+    too, so the throughput is read at the count in all (``warmup.beside_others``), where the
+    simulator runs them beside its nodes again.
 
     Parameters
     ----------
@@ -887,6 +892,9 @@ class MachineProbe:
                        else sorted({1, self.cores}))
         try:
             self.processes = WarmProcesses(str(store_path), True, self.counts[-1], tile=True)
+            #: busy processes of others seen as each round of renders started (``now``
+            #: charges the throughput as measured beside them: ``beside_others``)
+            self.others = [others_running()]
             #: every round of side-by-side renders measured so far (``now`` adds one)
             self.rounds = measure_rounds(self.processes, self.counts, self.SEED_ROUNDS)
             #: the latest measurements of a batch's messaging (s) and of a hand-off (s)
@@ -904,11 +912,13 @@ class MachineProbe:
         """``costs`` with ``receive_s``, ``offload_s`` and ``throughput`` as this machine pays
         them now (``receive_s`` beyond ``costs.latency_s``, as ``calibrate`` splits them)."""
         self._measure_messaging()
+        self.others = (self.others + [others_running()])[-self.WINDOW:]
         self.rounds = (self.rounds + measure_rounds(self.processes, self.counts, 1)
                        )[-self.WINDOW:]
         # measured to 4 x cores (``beyond_cores``) it stays as measured; else extended
         throughput = oversubscribed(interpolated(throughput_of(self.rounds, self.cores)),
                                     costs.throughput, 4 * self.cores)
+        throughput = beside_others(throughput, float(np.median(self.others)), self.cores)
         node_messages = float(np.median(self.messages))
         return replace(costs, receive_s=max(0.0, node_messages - costs.latency_s),
                        offload_s=(float(np.median(self.offloads)) if self.offloads

@@ -150,6 +150,37 @@ def interpolated(measured: dict[int, float]) -> tuple[float, ...]:
     return tuple(float(t) for t in throughput)
 
 
+def beside_others(measured: tuple[float, ...], others: float, cores: int) -> tuple[float, ...]:
+    """``measured`` (the aggregate throughput of 1 .. K side-by-side processes, in
+    single-process speeds) taken while ``others`` busy processes of others ran too, as the
+    throughput of 1 .. K busy processes in all: what the simulator charges, where those
+    others run beside its nodes again (``SharedCores(others=)``: k nodes as k + others busy
+    processes). k measured processes ran among k + ``others``, each at the CPU efficiency
+    of that many (relative to one measured process beside the others, which has a core to
+    itself where ``others`` < ``cores``: efficiency 1), so n processes in all run at the
+    efficiency measured at n - ``others``; at or under one, at one's. Reading the
+    measurement at n instead counted the others twice: beside one busy process the probe
+    read 1.78-1.91 for 2 processes (2.00 quiet) and the validation's 2-node rows then charged
+    3 processes in all at its 4-process reading (2026-12-07).
+
+    Parameters
+    ----------
+    measured : (K,) aggregate throughput, K >= 1 (``measured[0]`` is 1: a process alone).
+    others : busy processes of others (>= 0, may be fractional) during the measurement.
+    cores : the cores.
+
+    Returns
+    -------
+    (K,) aggregate throughput with 1 .. K busy processes in all.
+    """
+    if others <= 0.0:
+        return tuple(measured)
+    counts = np.arange(1, len(measured) + 1, dtype=float)
+    efficiency = np.asarray(measured) / np.minimum(counts, cores)
+    ours = np.maximum(counts - others, 1.0)
+    return tuple(float(v) for v in np.minimum(counts, cores) * np.interp(ours, counts, efficiency))
+
+
 def throughput_counts(quick: bool, cores: int) -> list[int]:
     """The process counts measured: 1 .. 2 x ``cores`` and 4 x ``cores`` (quick: 1, cores,
     2 x cores, 4 x cores); the counts between are interpolated."""
