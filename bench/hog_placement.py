@@ -4,7 +4,10 @@ behind ``sim.cores.SharedCores(bound_nodes=)`` (``IDLE_PULL_S``, ``BUSY_MOVE_S``
 1. A ping-pong: two processes pass a message back and forth with ``--work`` ms of CPU at each
    end, bound to one core each or unbound, quiet and beside one busy process: the round trip
    beyond the work (bound beside a busy process, each woken end shares its core with it).
-2. Real 2-node renders of the validation's out-of-sample stores (``bench/simulate.py``) beside
+2. Two processes working without a pause (fixed work, 3 s), bound or unbound, alone and
+   beside one busy process: how much slower each is beside it (a fair third of the two
+   cores would make them 1.5x slower).
+3. Real 2-node renders of the validation's out-of-sample stores (``bench/simulate.py``) beside
    one busy process, its core sampled every 0.5 ms: how often it moves and how long it stays
    (over each render's whole span, the processes' start-up included), and the render's
    ``busy_max`` against the same render with no busy process (interleaved).
@@ -74,6 +77,34 @@ def ping_pong(bound: bool, hogs: int, work: float, rounds: int = 300) -> float:
     return float(np.median(trips[20:])) - work
 
 
+def _worker(cpu: int | None, seconds: float, out) -> None:
+    """Fixed chunks of work for ``seconds``: sends the mean wall time of a chunk."""
+    if cpu is not None:
+        os.sched_setaffinity(0, {cpu})
+    walls, end = [], time.perf_counter() + seconds
+    while time.perf_counter() < end:
+        start = time.perf_counter()
+        total = 0
+        for i in range(200_000):
+            total += i
+        walls.append(time.perf_counter() - start)
+    out.send(float(np.mean(walls)))
+
+
+def side_by_side(bound: bool, hogs: int, seconds: float = 3.0) -> list[float]:
+    """Two processes working without a pause: each one's mean wall time a chunk (s)."""
+    with busy_processes(hogs):
+        pipes = [Pipe() for _ in range(2)]
+        workers = [Process(target=_worker, args=(i if bound else None, seconds, pipes[i][1]))
+                   for i in range(2)]
+        for worker in workers:
+            worker.start()
+        walls = [pipe[0].recv() for pipe in pipes]
+        for worker in workers:
+            worker.join()
+    return walls
+
+
 def core_of(pid: int) -> int:
     """The CPU ``pid`` last ran on (``/proc/PID/stat`` field 39)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -137,6 +168,15 @@ def main() -> None:
         quiet, beside = ping_pong(bound, 0, work), ping_pong(bound, 1, work)
         print(f"| {'bound' if bound else 'unbound'} | {quiet * 1e3:.2f} | {beside * 1e3:.2f} |",
               flush=True)
+    print()
+    print("two processes working without a pause: how much slower beside one busy process")
+    print("| placement | slower (each) | mean |")
+    print("| --- | --- | ---: |")
+    for bound in (True, False):
+        alone, beside = side_by_side(bound, 0), side_by_side(bound, 1)
+        slower = [b / a for a, b in zip(alone, beside, strict=True)]
+        print(f"| {'bound' if bound else 'unbound'} | "
+              f"{', '.join(f'{x:.2f}x' for x in slower)} | {np.mean(slower):.2f}x |", flush=True)
     print()
     print("2-node renders (nodes bound), a busy process beside them: its moves and stays "
           "over the render's whole span; busy_max against the same render alone")
