@@ -30,8 +30,8 @@ has waited a tick or after a long stay. Beside one busy process, the one on two 
 nodes' cores stayed 230-520 ms while ``image``'s nodes traced side by side, and 14-20 ms
 under ``dynamic``'s rounds (9 ms each), whose node beside it is each round's last:
 ``dynamic`` ran 1.8-2.2x slower beside it, ``image`` 1.4-1.45x (rm 128³ and the
-turbine-blade scan, 2026-12-07; ``bench/hog_placement.py``). Charged the fair share, a validation under-predicted the first by 32-37 % and
-over-predicted the second by 10-25 %. ``bound_nodes`` charges them so: the others' whole
+turbine-blade scan, 2026-12-07; ``bench/hog_placement.py``). Charged the fair share, a
+validation under-predicted the first by 32-37 % and over-predicted the second by 10-25 %. ``bound_nodes`` charges them so: the others' whole
 busy processes (``others`` rounded) fill the cores no node is bound to, then each sits on
 one node's core, whose jobs run at 1 / (1 + those on it) of a core there (times its
 block's width); a node's core idle for ``IDLE_PULL_S`` with none on it takes one from a
