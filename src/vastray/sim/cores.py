@@ -21,24 +21,25 @@ one core: letting them share its width made the scan's lone ``domain``, ``async`
 ``temporal`` rows 12-15 % too fast.
 
 Processes of others beside nodes bound to cores of their own (``scene.cpu_binding``, as
-``vastray render --nodes`` binds local nodes) are no fair sharer of every core: the operating
-system can move only them, and it seldom does. A core idle for moments does not pull a task
-(that would cost more than the moment); an idle one is handed work at a busy core's next
-tick (4 ms at this kernel's 250 Hz), and busy cores swap work every few hundred ms. So a
-busy process of others sits on one node's core, halving it, and moves when another node
-has waited a tick or after a long stay. Beside one busy process, the one on two bound
+``vastray render --nodes`` binds local nodes) are no fair sharer of every core: the
+operating system can move only them, and it seldom does. A core idle for moments does not
+pull a task (that would cost more than the moment); an idle one is handed work at a busy
+core's next tick (4 ms at this kernel's 250 Hz), and busy cores swap work every few hundred
+ms. So a busy process of others sits on one node's core, halving it, and moves when another
+node has waited a tick or after a long stay. Beside one busy process, the one on two bound
 nodes' cores stayed 230-520 ms while ``image``'s nodes traced side by side, and 14-20 ms
 under ``dynamic``'s rounds (9 ms each), whose node beside it is each round's last:
 ``dynamic`` ran 1.8-2.2x slower beside it, ``image`` 1.4-1.45x (rm 128³ and the
 turbine-blade scan, 2026-12-07; ``bench/hog_placement.py``). Charged the fair share, a
-validation under-predicted the first by 32-37 % and over-predicted the second by 10-25 %. ``bound_nodes`` charges them so: the others' whole
-busy processes (``others`` rounded) fill the cores no node is bound to, then each sits on
-one node's core, whose jobs run at 1 / (1 + those on it) of a core there (times its
-block's width); a node's core idle for ``IDLE_PULL_S`` with none on it takes one from a
-busy node's core, and one that sat ``BUSY_MOVE_S`` on a busy node's core moves to a busy
-node's core with fewer. Every process is also as fast as the machine's aggregate
-throughput of its busy processes and all the others over the cores allows, and a
-fractional remainder of ``others`` shares the cores fairly."""
+validation under-predicted the first by 32-37 % and over-predicted the second by 10-25 %.
+``bound_nodes`` charges them so: the others' whole busy processes (``others`` rounded) fill
+the cores no node is bound to, then each sits on one node's core, whose jobs run at 1 / (1 +
+those on it) of a core there (times its block's width); a node's core idle for
+``IDLE_PULL_S`` with none on it takes one from a busy node's core, and one that sat
+``BUSY_MOVE_S`` on a busy node's core moves to a busy node's core with fewer. Every process
+is also as fast as the machine's aggregate throughput of its busy processes and all the
+others over the cores allows, and a fractional remainder of ``others`` shares the cores
+fairly."""
 
 from __future__ import annotations
 
