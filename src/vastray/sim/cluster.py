@@ -54,9 +54,9 @@ class Cluster:
         #: None: unbound
         blocks = (node_cpu_blocks(size, list(range(costs.cores)), costs.cores)
                   if costs.cores else None)
-        self.bound_width = float(len(blocks[0])) if blocks else None
-        self._cores = (SharedCores(costs.cores, costs.throughput, costs.others,
-                                   bound_nodes=(size, len(blocks[0])) if blocks else None)
+        bound_nodes = (size, len(blocks[0])) if blocks else None
+        self.bound_width = float(bound_nodes[1]) if bound_nodes else None
+        self._cores = (SharedCores(costs.cores, costs.throughput, costs.others, bound_nodes)
                        if costs.cores else None)
         #: without a shared machine, each endpoint's one core
         self._own: defaultdict[int, SharedCores] = defaultdict(lambda: SharedCores(1))

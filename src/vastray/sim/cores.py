@@ -90,8 +90,6 @@ class SharedCores:
         #: each bound node whose core is idle -> since when (the loop's time)
         self._idle_since: dict[int, float] = {}
         self._pull: asyncio.TimerHandle | None = None
-        #: how many times a process of others moved to another node's core
-        self.moves = 0
         #: id -> [work left (s at full speed), future, owner, width]
         self._jobs: dict[int, list] = {}
         self._owned: dict = {}  # owner -> its jobs running now
@@ -134,13 +132,13 @@ class SharedCores:
         self._jobs[key] = [seconds, done, owner, float(width)]
         self._owned[owner] = self._owned.get(owner, 0) + 1
         self._widen(owner)
+        self._move_others()
         self._schedule(loop)
         return done
 
     def _widen(self, owner) -> None:
         """Note ``owner``'s width (its one running job's, where wider than a core) and share
         the spare cores afresh."""
-        self._move_others()
         self._wide.pop(owner, None)
         if self._owned.get(owner, 0) == 1:
             width = next(job[3] for job in self._jobs.values() if job[2] == owner)
@@ -178,7 +176,7 @@ class SharedCores:
     def _beside(self, owner) -> float:
         """The share of its cores a bound node keeps beside the others sitting there (1 for
         anything else)."""
-        if not self._sitting or not isinstance(owner, int):
+        if not self._sitting:
             return 1.0
         width = self.bound_nodes[1]
         return min(1.0, width / (1 + self._sitting.count(owner)))
@@ -237,14 +235,13 @@ class SharedCores:
         """Process of others number ``other`` moves to node ``rank``'s core now."""
         self._sitting[other] = rank
         self._sat_since[other] = now
-        self.moves += 1
 
     def _pull_now(self, loop) -> None:
-        """The pull timer: charge the time so far at the old rates, move, re-rate."""
+        """The pull timer: charge the time so far at the old rates, move, re-rate (a move
+        changes no process's width, so the spare cores' shares stand)."""
         self._pull = None
         self._advance(loop.time())
         self._move_others()
-        self._bonus = self._share()
         self._schedule(loop)
 
     def _advance(self, now: float) -> None:
@@ -274,4 +271,5 @@ class SharedCores:
                 del self._owned[owner]
             self._widen(owner)
             done.set_result(None)
+        self._move_others()
         self._schedule(loop)
