@@ -1154,10 +1154,10 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
         # of each, -25.7 %, set a quiet moment's simulation against a busier one's run), and a
         # host busy in some rounds only (CI once saw async runs at 0.51-0.58 s and 0.75-0.78 s
         # in one test, 10-14 % stolen) moves the medians of unpaired runs (-26 % there)
-        reals, simulations, lost, shares = [], [], [], []
+        reals, simulations, lost, throughputs_of_2 = [], [], [], []
         for _ in range(7):
             costs = probe.now(calibrated)
-            shares.append(round(costs.throughput[1], 2))
+            throughputs_of_2.append(round(costs.throughput[1], 2))
             with Contention() as seen:
                 reals.append(render_distributed(
                     path, None, settings, 2, options=JobOptions(scheduler=scheduler, threads=1),
@@ -1179,7 +1179,7 @@ def test_validation_simulated_seconds_are_within_a_quarter_of_real_runs(tmp_path
                              f"median error {paired:+.1%} (the fastest of each: "
                              f"{min(simulations) / min(reals) - 1:+.1%}); set-up charged "
                              f"{(calibrated.warmup_s + calibrated.node_setup_s) * 1e3:.1f} ms "
-                             f"a node, throughput of 2 {shares}, probe's others "
+                             f"a node, throughput of 2 {throughputs_of_2}, probe's others "
                              f"{[round(o, 2) for o in probe.others]}", paired)
         print(scheduler, errors[scheduler][0])
     probe.close()
