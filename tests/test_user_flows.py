@@ -43,7 +43,8 @@ def store(tmp_path_factory):
     return write_store(tmp_path_factory.mktemp("flows") / "s.store", bumpy_scene(), grid=(2, 2, 1))
 
 
-# (spec-ooc alone and image on nodes: every domain cached, the loop without occupancy masks)
+# (spec-ooc alone and image on nodes: every domain cached, the loop without occupancy masks;
+# every scheduler the CLI offers, each through its own summary line)
 @pytest.mark.parametrize("how", [[], ["--cache", "25%", "--scheduler", "spec-ooc"],
                                  ["--scheduler", "spec-ooc"],
                                  ["--scheduler", "image", "--cache", "1"],
@@ -51,7 +52,9 @@ def store(tmp_path_factory):
                                  ["--nodes", "2", "--scheduler", "async"],
                                  ["--nodes", "2", "--scheduler", "domain"],
                                  ["--nodes", "2", "--scheduler", "dynamic"],
-                                 ["--nodes", "2", "--scheduler", "spec-insitu"]])
+                                 ["--nodes", "2", "--scheduler", "spec-insitu"],
+                                 ["--scheduler", "reference"],
+                                 ["--nodes", "2", "--scheduler", "temporal"]])
 def test_every_render_exits_zero_without_quiet_and_names_its_files(store, tmp_path, how):
     ref = tmp_path / "ref.exr"
     assert vastray("render", store.path, "-o", ref, *SMALL, "--quiet", cwd=tmp_path).returncode == 0
