@@ -10,6 +10,9 @@ import numpy as np
 from vastray.render import kernels
 from vastray.render.rng import Purpose, uniform2
 
+#: ``camera_rays_in_box``'s ``seen`` for every pixel.
+_NO_PIXELS = np.zeros(0, np.bool_)
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -103,11 +106,13 @@ class Camera:
         return origin, direction
 
     def generate32_in_box(self, pixel: np.ndarray, sample: np.ndarray, seed: int,
-                          advance: float, lo: np.ndarray, hi: np.ndarray
+                          advance: float, lo: np.ndarray, hi: np.ndarray,
+                          seen: np.ndarray | None = None
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``generate32``'s rays, bit for bit, of the samples whose ray enters the box
-        ``[lo, hi]`` ((3,) float64 each; the caller grows it against rounding), in one fused
-        kernel (``kernels.camera_rays_in_box``).
+        ``[lo, hi]`` ((3,) float64 each; the caller grows it against rounding) through a pixel
+        ``seen`` keeps ((width * height,) bool, ``render.seen_pixels``; None: every pixel), in
+        one fused kernel (``kernels.camera_rays_in_box``).
 
         Returns
         -------
@@ -119,7 +124,9 @@ class Camera:
         origin, direction = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
         kept = kernels.camera_rays_in_box(
             *self._kernel_inputs(pixel, sample, seed, advance), np.asarray(lo, np.float64),
-            np.asarray(hi, np.float64), rows, origin, direction)
+            np.asarray(hi, np.float64),
+            _NO_PIXELS if seen is None else np.ascontiguousarray(seen, np.bool_), rows, origin,
+            direction)
         return rows[:kept], origin[:kept], direction[:kept]
 
     def _kernel_inputs(self, pixel: np.ndarray, sample: np.ndarray, seed: int,

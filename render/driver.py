@@ -13,14 +13,21 @@ import numpy as np
 
 from vastray.processes import peak_rss_bytes
 from vastray.render import kernels
-from vastray.render.camera import Camera
+from vastray.render.camera import Camera, start_distance
 from vastray.render.colormaps import scalar_map
 from vastray.render.film import Film
-from vastray.render.integrators import PathContext, RenderSettings, Shading, trace_paths
+from vastray.render.integrators import (
+    PathContext,
+    RenderSettings,
+    Shading,
+    camera_pad,
+    trace_paths,
+)
 from vastray.render.lights import QuadLight, check_power, in_frame
 from vastray.render.progress import RenderBar
 from vastray.render.progressive import Progression
 from vastray.render.scene_config import SceneConfig
+from vastray.render.seen_pixels import occupied_boxes, pixel_cover
 from vastray.render.tracer import DomainTracer
 from vastray.scene.bvh_choice import fast_builds
 from vastray.scene.cache import DomainCache
@@ -74,6 +81,25 @@ def with_camera_clip(shading: Shading, store: Store, camera: Camera) -> Shading:
     points = np.concatenate(corners)
     clip = np.stack([points.min(axis=0), points.max(axis=0)])
     return dataclasses.replace(shading, clip=clip, eye=np.asarray(camera.position, np.float64))
+
+
+def with_seen_pixels(shading: Shading, store: Store, camera: Camera) -> Shading:
+    """``shading`` (with its ``clip``) with the pixels whose camera rays can meet something
+    (``Shading.seen_pixels``): the image of the store's occupied cells and of its quad
+    lights (``render.seen_pixels``). Only the one-process tracer reads them
+    (``integrators.seen_camera_rays``). Without a ``clip``, every pixel."""
+    if shading.clip is None:
+        return shading
+    lo, hi = occupied_boxes(store)
+    quads = [light for light in shading.lights if isinstance(light, QuadLight)]
+    if quads:
+        corners = np.stack([light.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
+            [light.edge1, light.edge2]) for light in quads])  # (q, 4, 3)
+        lo = np.concatenate([lo, corners.min(axis=1)])
+        hi = np.concatenate([hi, corners.max(axis=1)])
+    advance = start_distance(shading.eye, shading.clip)
+    seen = pixel_cover(camera, lo, hi, camera_pad(shading, advance))
+    return dataclasses.replace(shading, seen_pixels=seen)
 
 
 def store_camera(config: SceneConfig, store: Store, width: int, height: int) -> Camera:
@@ -235,7 +261,7 @@ def render(store: Store, config: SceneConfig, settings: RenderSettings,
                                              settings.color_range))
     tracer.record = record_rays
     camera = store_camera(config, store, settings.width, settings.height)
-    shading = with_camera_clip(shading, store, camera)
+    shading = with_seen_pixels(with_camera_clip(shading, store, camera), store, camera)
     tracer.origin_bound = max(tracer.origin_bound, float(np.abs(camera.position).max()))
     ao_distance = settings.ao_distance or default_ao_distance(store)
 

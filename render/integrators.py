@@ -95,6 +95,8 @@ class Shading:
     ``clip`` ((2, 3) float64, the box of the scene and its area lights) and ``eye`` ((3,)
     float64, the camera's position), both in the store's frame, let camera rays from far away
     start near the scene (``camera.start_distance``); None: they start at the camera.
+    ``seen_pixels`` ((width * height,) bool, ``render.seen_pixels``) names the pixels whose
+    camera rays can meet something (with ``clip``); None: every pixel's can.
     """
 
     lights: list[Light]
@@ -102,6 +104,7 @@ class Shading:
     has_color: bool
     clip: np.ndarray | None = None
     eye: np.ndarray | None = None
+    seen_pixels: np.ndarray | None = None
 
 
 class _RaySet:
@@ -197,15 +200,16 @@ def camera_rays(camera, ctx: PathContext) -> RadianceRays:
 
 def seen_camera_rays(camera, ctx: PathContext) -> RadianceRays:
     """The batch's camera rays that can see something: those entering ``Shading.clip``, the
-    box of everything a ray can hit or see (the store and its quad lights), in path order,
+    box of everything a ray can hit or see (the store and its quad lights), through a pixel of
+    ``Shading.seen_pixels`` (the image of the occupied cells and quad lights), in path order,
     each bit for bit ``camera_rays``' ray. The others escape at once and are not made (an
     object that fills a quarter of the frame leaves three quarters of them: their query and
     their hit records are spared); ``escaped_paths`` names their paths where a scene's sky
     needs them.
 
-    The box is grown by ``2^-18`` of the largest coordinate involved, far beyond float64's
-    rounding in the test and float32's in the rays: a ray that Embree could find a hit for,
-    or that meets a quad light, is always kept. Without ``Shading.clip``, every ray is kept.
+    The box is grown by ``camera_pad``, far beyond float64's rounding in the test and
+    float32's in the rays: a ray that Embree could find a hit for, or that meets a quad
+    light, is always kept. Without ``Shading.clip``, every ray is kept.
 
     Returns
     -------
@@ -216,12 +220,21 @@ def seen_camera_rays(camera, ctx: PathContext) -> RadianceRays:
         return camera_rays(camera, ctx)
     advance = _camera_start(ctx)
     lo, hi = np.asarray(clip, np.float64)
-    reach = max(np.abs(lo).max(), np.abs(hi).max()) + np.abs(ctx.shading.eye).max() + advance
-    pad = 2.0 ** -18 * reach
+    pad = camera_pad(ctx.shading, advance)
     rows, origin, direction = camera.generate32_in_box(ctx.pixel, ctx.sample, ctx.settings.seed,
-                                                       advance, lo - pad, hi + pad)
+                                                       advance, lo - pad, hi + pad,
+                                                       ctx.shading.seen_pixels)
     k = len(rows)
     return RadianceRays(rows, np.zeros(k, np.uint8), origin, direction, np.ones((k, 3)))
+
+
+def camera_pad(shading: Shading, advance: float) -> float:
+    """How far the boxes camera rays are tested against are grown (``seen_camera_rays``,
+    ``render.seen_pixels``): ``2^-18`` of the largest coordinate involved (``Shading.clip``'s,
+    the camera's and how far its rays start, ``advance``)."""
+    lo, hi = np.asarray(shading.clip, np.float64)
+    reach = max(np.abs(lo).max(), np.abs(hi).max()) + np.abs(shading.eye).max() + advance
+    return 2.0 ** -18 * reach
 
 
 def escaped_paths(n: int, seen: RadianceRays) -> np.ndarray:

@@ -652,16 +652,22 @@ def film_add(total, batch, count, pixel, radiance, counted, sample):
         return
     lo = np.int64(pixel[0])
     hi = lo
+    ascending = True
     for r in range(n):
         p = np.int64(pixel[r])
+        ascending = ascending and p >= hi
         lo = min(lo, p)
         hi = max(hi, p)
     if hi >= total.shape[0]:  # (the keys are unsigned: lo >= 0)
         raise IndexError("film_add: a pixel outside the film")
-    m = hi - lo + 1
     nb = batch.shape[1]
     every_row = counted.shape[0] == 0
     batch_zero = sample.shape[0] == 0
+    if ascending:  # a render's batches: each pixel's rows in one run
+        _film_add_runs(total, batch, count, pixel, radiance, counted, sample, every_row,
+                       batch_zero)
+        return
+    m = hi - lo + 1
     acc = np.zeros((m, 3))
     acc_batch = np.zeros((m, nb, 3))
     hits = np.zeros(m, np.int64)
@@ -680,6 +686,44 @@ def film_add(total, batch, count, pixel, radiance, counted, sample):
             for c in range(3):
                 batch[lo + p, b, c] += acc_batch[p, b, c]
         count[lo + p] += hits[p]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
+def _film_add_runs(total, batch, count, pixel, radiance, counted, sample, every_row,
+                   batch_zero):
+    """``film_add``'s sums where the rows' pixels never decrease (each pixel's rows are one
+    run): the same sums, each pixel's and batch's rows added in row order from zero and then
+    to the film's, bit for bit, without a temporary over the pixel run. A row of zero
+    radiance (either sign) adds nothing to a sum started at +0.0 (such a sum is never -0.0),
+    so only its count is taken."""
+    n = pixel.shape[0]
+    nb = batch.shape[1]
+    acc = np.zeros(3)
+    acc_batch = np.zeros((nb, 3))
+    hits = 0
+    for r in range(n):
+        p = np.int64(pixel[r])
+        if every_row or counted[r]:
+            hits += 1
+        r0, r1, r2 = radiance[r, 0], radiance[r, 1], radiance[r, 2]
+        if r0 != 0.0 or r1 != 0.0 or r2 != 0.0:
+            b = 0 if batch_zero else np.int64(sample[r] % nb)
+            acc[0] += r0
+            acc[1] += r1
+            acc[2] += r2
+            acc_batch[b, 0] += r0
+            acc_batch[b, 1] += r1
+            acc_batch[b, 2] += r2
+        if r + 1 == n or np.int64(pixel[r + 1]) != p:  # the run's last row: into the film
+            for c in range(3):
+                total[p, c] += acc[c]
+                acc[c] = 0.0
+            for b in range(nb):
+                for c in range(3):
+                    batch[p, b, c] += acc_batch[b, c]
+                    acc_batch[b, c] = 0.0
+            count[p] += hits
+            hits = 0
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
@@ -765,16 +809,20 @@ def camera_rays(pixel, sample, seed, purpose, width, height, tan_half, aspect, p
 
 @njit(nogil=True, cache=True, error_model="numpy")
 def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, aspect,
-                       position, forward, right, up, advance, lo, hi, rows, origin, direction):
+                       position, forward, right, up, advance, lo, hi, seen, rows, origin,
+                       direction):
     """``camera_rays``' rays, bit for bit, of the paths whose float32 ray enters the box
-    ``[lo, hi]`` only (the others cannot hit anything in it): their rows of the batch into
-    ``rows`` and the rays into the first rows of ``origin`` and ``direction``, in order.
+    ``[lo, hi]`` through a pixel ``seen`` keeps, only (the others cannot hit anything in it):
+    their rows of the batch into ``rows`` and the rays into the first rows of ``origin`` and
+    ``direction``, in order.
 
     Parameters
     ----------
     pixel ... advance : as ``camera_rays``.
     lo, hi : (3,) float64 the box, grown by the caller so that rounding cannot drop a ray
         that enters it (``integrators.seen_camera_rays``).
+    seen : (width * height,) bool, the pixels whose rays can meet something
+        (``render.seen_pixels``), or (0,): every pixel.
     rows : (n,) int64 out; origin, direction : (n, 3) float32 out.
 
     Returns
@@ -785,14 +833,36 @@ def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, as
     n = pixel.shape[0]
     dx, dy, dz = np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK), np.empty(_CAMERA_CHUNK)
     inside = np.empty(_CAMERA_CHUNK, np.bool_)
+    at = np.empty(_CAMERA_CHUNK, np.int64)  # the chunk's rows whose pixel is seen
+    every_pixel = seen.shape[0] == 0
+    if not every_pixel and seen.shape[0] != width * height:
+        raise IndexError("camera_rays_in_box: seen is not one flag per pixel")
+    w, h = np.float64(width), np.float64(height)
+    # the origins as _store_camera_ray makes them: moved by ``advance`` only where positive
+    reach = advance if advance > 0 else 0.0
     kept = 0
     for base in range(0, n, _CAMERA_CHUNK):
         m = min(_CAMERA_CHUNK, n - base)
-        _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
-                           forward, right, up, dx, dy, dz)
-        # no stores but one column, no branch: a loop LLVM vectorises (the origins as
-        # _store_camera_ray makes them: moved by ``advance`` only where it is positive)
-        reach = advance if advance > 0 else 0.0
+        if every_pixel:
+            _camera_directions(pixel, sample, start, base, m, width, height, tan_half, aspect,
+                               forward, right, up, dx, dy, dz)
+            for k in range(m):
+                at[k] = base + k
+        else:  # only the rays of pixels seen are made at all
+            count = 0
+            for k in range(m):
+                p = pixel[base + k]
+                if p >= seen.shape[0]:
+                    raise IndexError("camera_rays_in_box: a pixel outside the image")
+                if seen[p]:
+                    at[count] = base + k
+                    count += 1
+            m = count
+            for k in range(m):
+                i = at[k]
+                dx[k], dy[k], dz[k] = _camera_direction(pixel[i], sample[i], start, w, h,
+                                                        tan_half, aspect, forward, right, up)
+        # no stores but one column, no branch: a loop LLVM vectorises
         for k in range(m):
             n0, f0 = _slab(position[0] + dx[k] * reach, dx[k], lo[0], hi[0])
             n1, f1 = _slab(position[1] + dy[k] * reach, dy[k], lo[1], hi[1])
@@ -802,7 +872,7 @@ def camera_rays_in_box(pixel, sample, seed, purpose, width, height, tan_half, as
             if inside[k]:
                 _store_camera_ray(kept, dx[k], dy[k], dz[k], position, advance, origin,
                                   direction)
-                rows[kept] = base + k
+                rows[kept] = at[k]
                 kept += 1
     return kept
 
@@ -815,20 +885,28 @@ def _camera_directions(pixel, sample, start, base, m, width, height, tan_half, a
     w, h = np.float64(width), np.float64(height)
     for k in range(m):
         i = base + k
-        jx, jy = _uniform_pair(hash_key(start, pixel[i], sample[i], 0, 0))
-        fp = np.float64(pixel[i])
-        # pixel // width and pixel % width, exactly: (pixel + 0.5) / width lies at least
-        # 0.5 / width from an integer, far beyond float64 rounding for pixel < 2^32
-        q = np.floor((fp + 0.5) / w)
-        column = (fp - q * w) + np.float64(jx)
-        row = q + np.float64(jy)
-        sx = (2.0 * column / w - 1.0) * tan_half * aspect
-        sy = (1.0 - 2.0 * row / h) * tan_half
-        d0 = forward[0] + sx * right[0] + sy * up[0]
-        d1 = forward[1] + sx * right[1] + sy * up[1]
-        d2 = forward[2] + sx * right[2] + sy * up[2]
-        length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
-        dx[k], dy[k], dz[k] = d0 / length, d1 / length, d2 / length
+        dx[k], dy[k], dz[k] = _camera_direction(pixel[i], sample[i], start, w, h, tan_half,
+                                                aspect, forward, right, up)
+
+
+@njit(inline="always", nogil=True, error_model="numpy")
+def _camera_direction(pixel, sample, start, w, h, tan_half, aspect, forward, right, up):
+    """The float64 unit direction of the camera ray of ``pixel`` and ``sample`` (uint32) on
+    an image ``w`` x ``h`` (float64), as ``Camera.generate`` makes it."""
+    jx, jy = _uniform_pair(hash_key(start, pixel, sample, 0, 0))
+    fp = np.float64(pixel)
+    # pixel // width and pixel % width, exactly: (pixel + 0.5) / width lies at least
+    # 0.5 / width from an integer, far beyond float64 rounding for pixel < 2^32
+    q = np.floor((fp + 0.5) / w)
+    column = (fp - q * w) + np.float64(jx)
+    row = q + np.float64(jy)
+    sx = (2.0 * column / w - 1.0) * tan_half * aspect
+    sy = (1.0 - 2.0 * row / h) * tan_half
+    d0 = forward[0] + sx * right[0] + sy * up[0]
+    d1 = forward[1] + sx * right[1] + sy * up[1]
+    d2 = forward[2] + sx * right[2] + sy * up[2]
+    length = np.sqrt((d0 * d0 + d1 * d1) + d2 * d2)
+    return d0 / length, d1 / length, d2 / length
 
 
 @njit(inline="always", nogil=True, error_model="numpy")
