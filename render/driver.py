@@ -70,15 +70,17 @@ def shading_inputs(store: Store, config: SceneConfig, integrator: str):
     return Shading(lights, materials, color_source is not None), frozenset(keep), color_source
 
 
+def quad_corners(lights: list) -> np.ndarray:
+    """(q, 4, 3) float64 the corners of the quad lights among ``lights``."""
+    quads = [light for light in lights if isinstance(light, QuadLight)]
+    return np.array([light.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
+        [light.edge1, light.edge2]) for light in quads], np.float64).reshape(len(quads), 4, 3)
+
+
 def with_camera_clip(shading: Shading, store: Store, camera: Camera) -> Shading:
     """``shading`` with the box camera rays from far away start near (``Shading.clip``): the
     store's bounds and its quad lights, in the store's frame."""
-    corners = [store.bounds]
-    for light in shading.lights:
-        if isinstance(light, QuadLight):
-            corners.append(light.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
-                [light.edge1, light.edge2]))
-    points = np.concatenate(corners)
+    points = np.concatenate([store.bounds, *quad_corners(shading.lights)])
     clip = np.stack([points.min(axis=0), points.max(axis=0)])
     return dataclasses.replace(shading, clip=clip, eye=np.asarray(camera.position, np.float64))
 
@@ -91,12 +93,9 @@ def with_seen_pixels(shading: Shading, store: Store, camera: Camera) -> Shading:
     if shading.clip is None:
         return shading
     lo, hi = occupied_boxes(store)
-    quads = [light for light in shading.lights if isinstance(light, QuadLight)]
-    if quads:
-        corners = np.stack([light.corner + np.array([[0, 0], [1, 0], [0, 1], [1, 1]]) @ np.stack(
-            [light.edge1, light.edge2]) for light in quads])  # (q, 4, 3)
-        lo = np.concatenate([lo, corners.min(axis=1)])
-        hi = np.concatenate([hi, corners.max(axis=1)])
+    corners = quad_corners(shading.lights)
+    lo = np.concatenate([lo, corners.min(axis=1)])
+    hi = np.concatenate([hi, corners.max(axis=1)])
     advance = start_distance(shading.eye, shading.clip)
     seen = pixel_cover(camera, lo, hi, camera_pad(shading, advance))
     return dataclasses.replace(shading, seen_pixels=seen)
