@@ -61,7 +61,8 @@ def occupied_boxes(store: Store) -> tuple[np.ndarray, np.ndarray]:
     for d in nonempty:
         mask = masks.get(d)
         if mask is None:
-            los.append(lo[d][None]), his.append(hi[d][None])
+            los.append(lo[d][None])
+            his.append(hi[d][None])
             continue
         cell = occupancy.cell_size(lo[d], hi[d], mask.shape)
         index = np.argwhere(mask).astype(np.float64)
