@@ -20,7 +20,7 @@ from vastray.actors.domain_loop import Queries, traced_tiles
 from vastray.actors.node_work import NodeWork
 from vastray.actors.tree_termination import TreeTermination
 from vastray.render.film import Film
-from vastray.render.integrators import camera_rays
+from vastray.render.integrators import launched_camera_rays
 from vastray.schedule.galaxy import GalaxyPolicy
 from vastray.schedule.image import ImageSchedule
 from vastray.schedule.ownership import interleaved_paths
@@ -99,7 +99,8 @@ class AsyncFrame:
         policy = self.policy(tile)
         mine = self.my_paths(policy)
         self.film.count_samples(policy.ctx.pixel[mine])
-        self.node.loop.start_tile(policy, camera_rays(self.setup.camera, policy.ctx).take(mine))
+        self.node.loop.start_tile(policy, launched_camera_rays(self.setup.camera, policy.ctx,
+                                                                policy.result, mine))
         if self.on_tile is not None:
             self.on_tile(len(mine))
 

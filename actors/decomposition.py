@@ -46,7 +46,7 @@ from vastray.actors.ray_post import traffic_counters
 from vastray.actors.render_setup import RenderSetup
 from vastray.actors.simplified_frames import finish_simplified, simplified_routing
 from vastray.render.film import Film
-from vastray.render.integrators import camera_rays
+from vastray.render.integrators import launched_camera_rays
 from vastray.schedule import registry
 from vastray.schedule.ownership import interleaved_paths, round_robin_owners
 from vastray.schedule.registry import Decomposition
@@ -107,8 +107,8 @@ async def render_owned_domains(management, options: JobOptions, rank: int, size:
             ctx = policy.ctx
             mine = interleaved_paths(len(ctx.pixel), rank, size)
             node.begin_tile(base + index, policy)
-            node.loop.start_tile(policy,
-                                 camera_rays(setup.camera, ctx).take(np.nonzero(mine)[0]))
+            node.loop.start_tile(policy, launched_camera_rays(setup.camera, ctx, policy.result,
+                                                              np.nonzero(mine)[0]))
             await node.rounds(policy, tree)
             if policy.outbox:  # rays never sent: their paths would silently lose light
                 raise RuntimeError(f"tile {index} ended with rays still to send")

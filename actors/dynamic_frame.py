@@ -38,7 +38,7 @@ import numpy as np
 from vastray.actors import protocol
 from vastray.actors.domain_loop import ListOrder, Queries, traced_tiles, waiting_rays
 from vastray.render.film import Film
-from vastray.render.integrators import camera_rays
+from vastray.render.integrators import launched_camera_rays
 from vastray.scene.embree.launch import cpu_time
 from vastray.schedule.dynamic import RayWeightedRounds, image_plane_start
 from vastray.schedule.image import ImageSchedule
@@ -119,8 +119,8 @@ class DynamicFrame:
         stats["most_tiles_in_flight"] = max(stats.get("most_tiles_in_flight", 0), len(self.live))
         for message in self.node.early.pop(self.base + index, []):
             self._delivered_early += self._deliver(index, message)
-        self.node.loop.start_tile(policy, camera_rays(self.setup.camera, policy.ctx)
-                                  .take(np.nonzero(mine)[0]))
+        self.node.loop.start_tile(policy, launched_camera_rays(
+            self.setup.camera, policy.ctx, policy.result, np.nonzero(mine)[0]))
 
     def _deliver(self, index: int, message) -> int:
         """Hand a batch to tile ``index``'s policy; the rays it brought (0 if dropped)."""

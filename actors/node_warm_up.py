@@ -132,7 +132,9 @@ def _render_tiny(store) -> None:
 def _render_each(store) -> None:
     from vastray.actors.job_options import JobOptions
     from vastray.actors.local import render_out_of_core
-    from vastray.render.integrators import RenderSettings
+    from vastray.actors.render_setup import RenderSetup
+    from vastray.render.driver import path_context
+    from vastray.render.integrators import RenderSettings, camera_rays
     from vastray.render.scene_config import SceneConfig
 
     for scheduler, integrator in WARM_RENDERS:
@@ -141,3 +143,7 @@ def _render_each(store) -> None:
         render_out_of_core(store, SceneConfig(), settings,
                            JobOptions(scheduler=scheduler, threads=1, cache=1),
                            progress=False)
+    # The renders above make only the camera rays of covered pixels
+    # (``integrators.launched_camera_rays``); ``spec-insitu`` makes every path's.
+    setup = RenderSetup.of(store, SceneConfig(), settings)
+    camera_rays(setup.camera, path_context(setup.shading, settings, 0, 1, setup.ao_distance))

@@ -15,6 +15,7 @@ from vastray.render.driver import (
     shading_inputs,
     store_camera,
     with_camera_clip,
+    with_seen_pixels,
 )
 from vastray.render.integrators import RenderSettings, Shading
 from vastray.render.materials import ScalarMap
@@ -43,7 +44,7 @@ class RenderSetup:
     def of(store: Store, config: SceneConfig, settings: RenderSettings) -> RenderSetup:
         shading, keep, color_source = shading_inputs(store, config, settings.integrator)
         camera = store_camera(config, store, settings.width, settings.height)
-        shading = with_camera_clip(shading, store, camera)
+        shading = with_seen_pixels(with_camera_clip(shading, store, camera), store, camera)
         lo, hi = store.domain_boxes()
         nonempty = np.array([d.n_triangles > 0 for d in store.domains], dtype=bool)
         return RenderSetup(

@@ -16,7 +16,12 @@ from vastray.actors.job_options import JobOptions
 from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import paths_context
 from vastray.render.film import FILM_BYTES_PER_PIXEL, Film
-from vastray.render.integrators import PathContext, PathResult, RenderSettings, camera_rays
+from vastray.render.integrators import (
+    PathContext,
+    PathResult,
+    RenderSettings,
+    launched_camera_rays,
+)
 from vastray.render.progressive import Progression
 from vastray.scene.cache import CacheStats
 from vastray.scene.store import Store
@@ -102,7 +107,7 @@ class SortFirstTiles:
     def _started(self, ctx: PathContext):
         """A tile's schedule, its camera rays queued."""
         policy = tile_schedule(self.options, self.setup, ctx, self.ablation)
-        self.loop.start_tile(policy, camera_rays(self.setup.camera, ctx))
+        self.loop.start_tile(policy, launched_camera_rays(self.setup.camera, ctx, policy.result))
         return policy
 
     def _order(self, policy) -> ScheduleOrder:

@@ -88,8 +88,9 @@ def with_camera_clip(shading: Shading, store: Store, camera: Camera) -> Shading:
 def with_seen_pixels(shading: Shading, store: Store, camera: Camera) -> Shading:
     """``shading`` (with its ``clip``) with the pixels whose camera rays can meet something
     (``Shading.seen_pixels``): the image of the store's occupied cells and of its quad
-    lights (``render.seen_pixels``). Only the one-process tracer reads them
-    (``integrators.seen_camera_rays``). Without a ``clip``, every pixel."""
+    lights (``render.seen_pixels``). The one-process tracer and the schedules that queue
+    camera rays through ``integrators.launched_camera_rays`` read them (``spec-insitu`` makes
+    every path's: its buffers cover them all). Without a ``clip``, every pixel."""
     if shading.clip is None:
         return shading
     lo, hi = occupied_boxes(store)

@@ -31,6 +31,8 @@ cells projects its domain boxes instead (a looser cover, no more work than a dom
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 from numba import njit
 
@@ -42,18 +44,36 @@ from vastray.scene.store import Store
 MAX_BOXES = 1 << 20
 
 
+#: ``occupied_boxes`` of each open store (and whether masks were on): every node's render
+#: set-up asks, and a simulation's virtual nodes share one store (28 ms a time for 1,439
+#: domains).
+_BOXES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
 def occupied_boxes(store: Store) -> tuple[np.ndarray, np.ndarray]:
     """The boxes where triangles of ``store`` can be, in the store's frame: every occupied
     cell of each non-empty domain's occupancy mask, or the domain's box where it has none
     (an old store's, a tiny domain's one cell, or masks off: ``VASTRAY_OCCUPANCY=0``).
+    Computed once per store (read-only arrays).
 
     Returns
     -------
     lo, hi : (n, 3) float64 each
     """
+    enabled = occupancy.enabled()
+    known = _BOXES.get(store)
+    if known is None or known[0] != enabled:
+        lo, hi = _occupied_boxes(store, enabled)
+        lo.setflags(write=False)
+        hi.setflags(write=False)
+        known = _BOXES[store] = (enabled, lo, hi)
+    return known[1], known[2]
+
+
+def _occupied_boxes(store: Store, enabled: bool) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = store.domain_boxes()
     nonempty = [d for d, info in enumerate(store.domains) if info.n_triangles > 0]
-    masks = {d: store.domains[d].occupancy for d in nonempty} if occupancy.enabled() else {}
+    masks = {d: store.domains[d].occupancy for d in nonempty} if enabled else {}
     cells = sum(int(m.sum()) if (m := masks.get(d)) is not None else 1 for d in nonempty)
     if cells > MAX_BOXES:
         masks = {}

@@ -359,7 +359,9 @@ class SpeculativeSchedule:
         if self.window_start == 0 and self._camera is not None:
             hits = ClosestHits(self.hbuf_t[:, 0], self.hbuf_d[:, 0], self.first_normal,
                                np.zeros(len(self.hbuf_t), np.int64), None).hits()
-            self.result.record_camera_hits(self.ctx, self._camera, hits)
+            # the paths whose camera rays were made (``launched_camera_rays``); the others
+            # saw the sky when the tile started
+            self.result.record_camera_hits(self.ctx, self._camera, hits.take(self._camera.path))
         self.counters["windows"] += 1
         spilled = SoA.concat(self.spill) if self.spill else None
         self.spill = []

@@ -441,7 +441,7 @@ def test_trace_costs_fit_calls_take_medians_and_split_shading():
         calls = tuple((d, r, s, (3e-4 + r * 1e-6 if r else 5e-5) + s * 4e-7 + noise * (d == 1))
                       for d, r, s in ((0, 100, 0), (1, 1000, 500), (2, 0, 5000), (0, 2000, 100),
                                       (3, 0, 300), (4, 400, 4000)))
-        return cal.TileTiming(camera_s=1e-4, rays=1000, calls=calls, shade_s=3500 * 2e-7)
+        return cal.TileTiming(camera_s=1e-4, paths=1000, calls=calls, shade_s=3500 * 2e-7)
 
     costs = cal.trace_costs([tile(0.0), tile(0.5), tile(0.0)])  # one stall, out-voted
     assert costs["activation_s"] == pytest.approx(3e-4, rel=1e-6)

@@ -164,3 +164,43 @@ def test_the_kernel_refuses_a_cover_of_another_size_or_a_pixel_off_it():
                               direction) == camera_rays_in_box(*inputs, lo, hi,
                                                                np.zeros(0, np.bool_), rows,
                                                                origin, direction)
+
+
+@pytest.mark.parametrize("share", [None, (1, 2)])
+def test_a_schedule_queues_only_the_seen_camera_rays_of_its_share(bumpy_domains, share):
+    """``launched_camera_rays``, as every node's schedule queues a tile's camera rays: of its
+    share of the paths (every other one on rank 1 of 2), the rays through covered pixels,
+    bit for bit ``camera_rays``' rays, every one that enters an occupied cell among them; the
+    share's other paths see the sky at once, and paths outside the share are not touched."""
+    from vastray.actors.render_setup import RenderSetup
+    from vastray.render.integrators import PathResult, launched_camera_rays
+
+    config = camera_config([3.0, 2.2, 4.5], [0.0, -0.5, 0.0], 45.0,
+                           lights=[PointLight(np.array([2.0, 3.0, 1.0]), np.full(3, 12.0)),
+                                   AmbientLight(np.full(3, 0.25))])
+    run = settings(width=64, height=48, spp=2, integrator="pt")
+    setup = RenderSetup.of(bumpy_domains, config, run)
+    assert setup.shading.seen_pixels is not None and not setup.shading.seen_pixels.all()
+    ctx = driver.path_context(setup.shading, run, 0, run.paths, setup.ao_distance)
+    n = len(ctx.pixel)
+    rows = None if share is None else np.nonzero(np.arange(n) % share[1] == share[0])[0]
+    mine = np.ones(n, bool) if rows is None else np.isin(np.arange(n), rows)
+    result = PathResult.empty(n)
+    rays = launched_camera_rays(setup.camera, ctx, result, rows)
+
+    every = camera_rays(setup.camera, ctx)
+    assert mine[rays.path].all() and np.all(np.diff(rays.path) > 0)
+    assert 0 < len(rays) < 0.8 * mine.sum()
+    assert rays.origin.tobytes() == every.origin[rays.path].tobytes()
+    assert rays.direction.tobytes() == every.direction[rays.path].tobytes()
+    ray, _, _, _ = setup.geometry.crossings(every.origin, every.direction,
+                                            np.full(n, np.inf, np.float32))
+    enters = np.zeros(n, bool)
+    enters[ray] = True
+    assert enters[mine].any() and np.isin(np.nonzero(enters & mine)[0], rays.path).all()
+    launched = np.zeros(n, bool)
+    launched[rays.path] = True
+    sky = integrators.escaped_emission(ctx)
+    assert (result.radiance[mine & ~launched] == sky).all()
+    assert not result.radiance[launched].any() and not result.radiance[~mine].any()
+    assert np.isinf(result.first_t).all()  # a miss's layers, for every path so far

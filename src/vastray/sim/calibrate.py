@@ -48,7 +48,7 @@ from vastray.actors import protocol
 from vastray.actors.domain_loop import traced_queries
 from vastray.actors.render_setup import RenderSetup
 from vastray.render.driver import path_context
-from vastray.render.integrators import RenderSettings, camera_rays
+from vastray.render.integrators import RenderSettings, camera_rays, launched_camera_rays
 from vastray.render.scene_config import SceneConfig
 from vastray.report import package_version
 from vastray.scene.bvh import DomainBVH
@@ -431,15 +431,16 @@ class TileTiming:
 
     Attributes
     ----------
-    camera_s : seconds to make its camera rays (``path_context`` and ``camera_rays``).
-    rays : its camera rays (paths).
+    camera_s : seconds to make its camera rays (``path_context`` and
+        ``launched_camera_rays``, as the nodes make them: none where nothing can be seen).
+    paths : its paths (the cost model's ``camera_ray_s`` is per path).
     calls : ((domain, radiance queries, shadow queries, seconds), ...) of each ``process``
         call, in order.
     shade_s : the schedule's ``shade_s`` counter at the end.
     """
 
     camera_s: float
-    rays: int
+    paths: int
     calls: tuple[tuple[int, int, int, float], ...]
     shade_s: float
 
@@ -460,9 +461,11 @@ def time_tile(setup: RenderSetup, settings: RenderSettings, cache: DomainCache) 
     order), timing each ``process`` call."""
     start = time.perf_counter()
     ctx = path_context(setup.shading, settings, 0, settings.paths, setup.ao_distance)
-    rays = camera_rays(setup.camera, ctx)
     camera_s = time.perf_counter() - start
     policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
+    start = time.perf_counter()
+    rays = launched_camera_rays(setup.camera, ctx, policy.result)
+    camera_s += time.perf_counter() - start
     policy.start(rays)
     resident = cache.resident_set()
     calls = []
@@ -472,7 +475,7 @@ def time_tile(setup: RenderSetup, settings: RenderSettings, cache: DomainCache) 
         queries = traced_queries(policy, domain, bvh)
         seconds = time.perf_counter() - t0
         calls.append((domain, queries.radiance, queries.shadow, seconds))
-    return TileTiming(camera_s, len(rays), tuple(calls), policy.counters["shade_s"])
+    return TileTiming(camera_s, len(ctx.pixel), tuple(calls), policy.counters["shade_s"])
 
 
 def time_tiles(store: Store, setup: RenderSetup, settings: RenderSettings, effort: Effort,
@@ -523,7 +526,7 @@ def time_offload(setup: RenderSetup, settings: RenderSettings, cache: DomainCach
         for _ in range(tiles):
             ctx = path_context(setup.shading, settings, 0, settings.paths, setup.ao_distance)
             policy = ImageSchedule(ctx, setup.geometry, setup.color_source, setup.scalar_range)
-            policy.start(camera_rays(setup.camera, ctx))
+            policy.start(launched_camera_rays(setup.camera, ctx, policy.result))
             while (domain := policy.next_domain(resident)) is not None:
                 bvh = cache.get(domain)
                 start = time.perf_counter()
@@ -596,7 +599,7 @@ def trace_costs(tiles: list[TileTiming]) -> dict[str, float]:
     if trace_ray_s <= 0.0:
         share = all_shade / max(sum(t for tile in tiles for *_, t in tile.calls), 1e-12)
         shade_ray_s, trace_ray_s = per_radiance * share, per_radiance * (1.0 - share)
-    camera_ray_s = float(np.median([t.camera_s / max(t.rays, 1) for t in tiles]))
+    camera_ray_s = float(np.median([t.camera_s / max(t.paths, 1) for t in tiles]))
     return {"trace_ray_s": float(trace_ray_s), "shade_ray_s": float(shade_ray_s),
             "shadow_ray_s": float(shadow_ray_s), "activation_s": float(activation_s),
             "shadow_activation_s": float(shadow_activation_s), "camera_ray_s": camera_ray_s}
