@@ -251,7 +251,7 @@ def launched_camera_rays(camera, ctx: PathContext, result: PathResult,
     if sky is not None:
         left_out = np.ones(n, bool) if wanted is None else wanted
         left_out[rays.path] = False
-        result.radiance[left_out] += sky
+        kernels.add_to_rows(result.radiance, left_out, sky)
     return rays
 
 

@@ -632,6 +632,22 @@ def add_unoccluded(radiance, path, contribution, lit):
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
+def add_to_rows(radiance, rows, value):
+    """``radiance[rows] += value`` in one pass, bit for bit numpy's (each element's one
+    float64 addition), without numpy's gather and scatter of the rows (45 ns a row there).
+
+    Parameters
+    ----------
+    radiance : (n, 3) float64, added to in place; rows : (n,) bool; value : (3,) float64.
+    """
+    for i in range(radiance.shape[0]):
+        if rows[i]:
+            radiance[i, 0] += value[0]
+            radiance[i, 1] += value[1]
+            radiance[i, 2] += value[2]
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def film_add(total, batch, count, pixel, radiance, counted, sample):
     """``Film.add``'s sums over the batch's pixel run: per pixel, the rows' radiance, and per
     batch the rows' radiance again (per channel), summed in row order from zero (as

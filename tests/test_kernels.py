@@ -533,3 +533,19 @@ def test_scalar_colors_equal_the_numpy_colormap_and_nan_is_grey(lut):
     nan = prim == 0
     assert nan.any() and (got[nan] == NAN_COLOR).all()
     assert np.isfinite(got).all() and ((got >= 0) & (got <= 1)).all()
+
+
+def test_add_to_rows_is_numpys_masked_add_bit_for_bit():
+    rng = np.random.default_rng(3)
+    radiance = rng.normal(size=(5000, 3)) * 10.0 ** rng.integers(-30, 30, size=(5000, 1))
+    radiance[:7] = [[np.nan, -0.0, np.inf], [-np.inf, 0.0, 1e308], [-0.0, -0.0, -0.0],
+                    [1.0, 2.0, 3.0], [np.nan, np.nan, np.nan], [5e-324, -5e-324, 0.0],
+                    [1e308, 1e308, 1e308]]
+    rows = rng.random(5000) < 0.6
+    rows[:7] = True
+    value = np.array([0.25, 1e308, -0.0])
+    expected = radiance.copy()
+    with np.errstate(over="ignore", invalid="ignore"):  # inf + -inf, 1e308 + 1e308
+        expected[rows] += value
+    kernels.add_to_rows(radiance, rows, value)
+    assert radiance.tobytes() == expected.tobytes()  # the rows left out untouched too
