@@ -204,8 +204,7 @@ def seen_camera_rays(camera, ctx: PathContext) -> RadianceRays:
     ``Shading.seen_pixels`` (the image of the occupied cells and quad lights), in path order,
     each bit for bit ``camera_rays``' ray. The others escape at once and are not made (an
     object that fills a quarter of the frame leaves three quarters of them: their query and
-    their hit records are spared); ``escaped_paths`` names their paths where a scene's sky
-    needs them.
+    their hit records are spared); ``launched_camera_rays`` gives their paths the sky.
 
     The box is grown by ``camera_pad``, far beyond float64's rounding in the test and
     float32's in the rays: a ray that Embree could find a hit for, or that meets a quad
@@ -237,8 +236,8 @@ def launched_camera_rays(camera, ctx: PathContext, result: PathResult,
     bit: both sum the ambient lights, in order, onto zeros); their first-hit layers stay
     ``PathResult.empty``'s, a miss's. Paths outside ``rows`` are another node's: untouched.
 
-    What it saves a schedule is the ray-domain enumeration of the rays left out (``start``:
-    about half a microsecond a path), not only making them.
+    What it saves a schedule is the ray-domain enumeration of the rays left out
+    (``ImageSchedule.start``: about half a microsecond a path), not only making them.
     """
     rays = seen_camera_rays(camera, ctx)
     n = len(ctx.pixel)
@@ -262,14 +261,6 @@ def camera_pad(shading: Shading, advance: float) -> float:
     lo, hi = np.asarray(shading.clip, np.float64)
     reach = max(np.abs(lo).max(), np.abs(hi).max()) + np.abs(shading.eye).max() + advance
     return 2.0 ** -18 * reach
-
-
-def escaped_paths(n: int, seen: RadianceRays) -> np.ndarray:
-    """(m,) int64 the rows of a batch of ``n`` paths whose camera rays ``seen_camera_rays``
-    left out, ascending."""
-    left_out = np.ones(n, bool)
-    left_out[seen.path] = False
-    return np.nonzero(left_out)[0]
 
 
 def escaped_emission(ctx: PathContext) -> np.ndarray | None:
