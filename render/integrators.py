@@ -239,16 +239,18 @@ def launched_camera_rays(camera, ctx: PathContext, result: PathResult,
     What it saves a schedule is the ray-domain enumeration of the rays left out
     (``ImageSchedule.start``: about half a microsecond a path), not only making them.
     """
-    rays = seen_camera_rays(camera, ctx)
     n = len(ctx.pixel)
-    wanted = None
-    if rows is not None:
-        wanted = np.zeros(n, bool)
-        wanted[rows] = True
-        rays = rays.take(np.nonzero(wanted[rays.path])[0])
+    if rows is None:
+        rays = seen_camera_rays(camera, ctx)
+    else:  # the share's rays alone: a ray depends on its path's pixel and sample only
+        rows = np.asarray(rows, np.int64)
+        share = replace(ctx, pixel=ctx.pixel[rows], sample=ctx.sample[rows])
+        rays = seen_camera_rays(camera, share)
+        rays = replace(rays, path=rows[rays.path])
     sky = escaped_emission(ctx)
     if sky is not None:
-        left_out = np.ones(n, bool) if wanted is None else wanted
+        left_out = np.zeros(n, bool)
+        left_out[slice(None) if rows is None else rows] = True
         left_out[rays.path] = False
         kernels.add_to_rows(result.radiance, left_out, sky)
     return rays
