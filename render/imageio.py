@@ -206,10 +206,15 @@ def read_image(path) -> np.ndarray:
     if path.suffix.lower() == ".npy":
         if not path.is_file():
             raise InputError(path, "image not found")
-        with NPY_HEADERS:
-            arr = np.load(path, allow_pickle=False)
+        try:
+            with NPY_HEADERS:
+                arr = np.load(path, allow_pickle=False)
+        except (ValueError, EOFError, OSError) as exc:  # truncated, object arrays, not .npy
+            raise InputError(path, f"not a readable .npy image ({exc})") from None
         if arr.ndim != 3 or arr.shape[2] != 3:
             raise InputError(path, f"expected an (H, W, 3) array, found {arr.shape}")
+        if arr.dtype.kind not in "fiu":
+            raise InputError(path, f"expected a real-valued image, found {arr.dtype} values")
         return arr.astype(np.float32)
     if path.suffix.lower() != ".exr":
         what = ("a PNG is an 8-bit preview, not radiance" if path.suffix.lower() == ".png"

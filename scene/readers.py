@@ -149,6 +149,8 @@ def _read_trimesh(path: Path) -> DomainArrays:
                                f"({type(exc).__name__}: {exc})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError(path, "empty mesh: no triangles")
+    if path.suffix.lower() == ".ply":
+        _check_ply_counts(path, len(mesh.vertices), len(mesh.faces))
     vertices64 = np.asarray(mesh.vertices, dtype=np.float64)
     indices = np.asarray(mesh.faces)
     if not np.all(np.isfinite(vertices64)):
@@ -171,6 +173,26 @@ def _read_trimesh(path: Path) -> DomainArrays:
     if path.suffix.lower() == ".stl":  # STL stores three private vertices per triangle
         result = meshops.weld(result)
     return _drop_degenerate(result, path, logging.WARNING)
+
+
+def _check_ply_counts(path: Path, vertices: int, triangles: int) -> None:
+    """Refuse a PLY with fewer vertices or faces than its header declares (trimesh reads a
+    truncated ASCII PLY without a word: a file cut short lost its last triangles).
+    Polygons of more than three corners are split into triangles, so there may be more
+    triangles than faces, never fewer."""
+    declared = {}
+    with open(path, "rb") as fh:
+        for _ in range(1000):  # a header's lines; the body is not read
+            line = fh.readline(4096)
+            if not line or line.strip() == b"end_header":
+                break
+            words = line.split()
+            if len(words) == 3 and words[0] == b"element" and words[2].isdigit():
+                declared[words[1].decode("ascii", "replace")] = int(words[2])
+    if declared.get("vertex", vertices) > vertices or declared.get("face", triangles) > triangles:
+        raise InputError(path, f"holds {vertices:,} vertices and {triangles:,} triangles where "
+                               f"its header declares {declared.get('vertex', 0):,} vertices and "
+                               f"{declared.get('face', 0):,} faces: truncated or damaged")
 
 
 def _drop_degenerate(mesh: DomainArrays, path: Path, level: int) -> DomainArrays:

@@ -476,8 +476,18 @@ class StoreWriter:
 
     def __enter__(self) -> StoreWriter:
         check_replaceable(self.path, self.overwrite)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        above = self.path.parent.absolute()
+        while not above.exists() and above != above.parent:
+            above = above.parent
+        if not above.is_dir():
+            raise InputError(self.path, f"cannot be written: {above} is not a folder")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._tmp = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
+        except OSError as exc:  # a file in the way, a read-only or virtual file system
+            raise InputError(self.path, f"cannot be written here ({exc.strerror or exc}"
+                                        f"{': ' + str(exc.filename) if exc.filename else ''})"
+                             ) from None
         publish_mode(self._tmp, directory=True)
         return self
 
@@ -808,6 +818,20 @@ def check_replaceable(path: str | os.PathLike, force: bool) -> None:
     if is_store(path) or not any(path.iterdir()):
         if not force:
             raise InputError(path, "already exists (pass --force to replace it)")
+        foreign = sorted(p.name for p in path.iterdir() if p.name not in _STORE_ENTRIES)
+        if foreign:
+            raise InputError(path, f"holds {foreign[0]!r}, which is not part of the store "
+                                   f"({len(foreign)} such entr{'y' if len(foreign) == 1 else 'ies'}"
+                                   "): replacing the store would delete it; move it out first")
+        here = Path.cwd().resolve()
+        if here == path.resolve() or path.resolve() in here.parents:
+            raise InputError(path, "is the current folder or holds it: a store cannot be "
+                                   "replaced from inside; cd out of it first")
         return
     raise InputError(path, "exists and is not a vastray store (no manifest.json of one); "
                            "refusing to replace it, even with --force")
+
+
+#: What a store folder holds (its manifest, its domains, its simplified model): ``--force``
+#: replaces a store only when nothing else is in it.
+_STORE_ENTRIES = frozenset({MANIFEST, "domains", "simplified"})

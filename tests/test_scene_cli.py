@@ -165,3 +165,57 @@ def test_domains_holding_a_few_triangles_each_are_warned_of(main, meshes, tmp_pa
     assert main(["partition", str(meshes[0]), "-o", str(tmp_path / "s.store"), "--domains",
                  str(domains), "--quiet"]) == 0
     assert f"--domains {domains:,} leaves about 8 triangles per domain" in caplog.text
+
+
+@pytest.mark.parametrize("case", ["huge-grid", "truncated-ply", "file-in-the-way"])
+def test_partition_refuses_before_any_work(main, tmp_path, capsys, meshes, case):
+    """A grid of a billion cells (it once took 24 GB before the kernel killed it), an ASCII
+    PLY cut short (trimesh read its first faces without a word) and an output under a file
+    (a traceback) are each refused on one line, and no store is left."""
+    ball = str(meshes[0])
+    (tmp_path / "cut.ply").write_bytes(trimesh.exchange.ply.export_ply(
+        trimesh.load(ball, process=False), encoding="ascii")[:-40])
+    (tmp_path / "afile").write_text("x")
+    args, out = {
+        "huge-grid": ([ball, "--grid", "1000x1000x1000"], tmp_path / "out.store"),
+        "truncated-ply": ([str(tmp_path / "cut.ply")], tmp_path / "out.store"),
+        "file-in-the-way": ([ball], tmp_path / "afile" / "out.store"),
+    }[case]
+    assert main(["partition", *args, "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vastray partition: error: ") and "\n" not in err, err
+    says = {"huge-grid": "1,000,000,000 cells; a partition grid may have at most",
+            "truncated-ply": "truncated or damaged",
+            "file-in-the-way": "afile is not a folder"}[case]
+    assert says in err
+    assert no_store_left(tmp_path, "out.store")
+    assert (tmp_path / "afile").read_text() == "x"
+
+
+def test_generate_under_a_file_fails_cleanly(main, tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    assert main(["generate", "rm", "-o", str(tmp_path / "afile" / "x.store"),
+                 "--resolution", "16", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vastray generate: error: ") and "is not a folder" in err, err
+
+
+def test_force_keeps_a_store_holding_other_files(main, meshes, tmp_path, capsys, monkeypatch):
+    """``--force`` replaces a store, never a user's file put inside it (here the very mesh
+    being partitioned), nor the folder the command runs in."""
+    ball = str(meshes[0])
+    out = tmp_path / "s.store"
+    assert main(["partition", ball, "-o", str(out), "--quiet"]) == 0
+    mine = out / "mesh.ply"
+    mine.write_bytes((tmp_path / "ball.ply").read_bytes())
+    assert main(["partition", str(mine), "-o", str(out), "--force", "--quiet"]) == 2
+    assert "'mesh.ply', which is not part of the store" in capsys.readouterr().err
+    assert mine.is_file() and Store(out).n_triangles
+    mine.unlink()
+    monkeypatch.chdir(out / "domains")
+    assert main(["partition", ball, "-o", str(out), "--force", "--quiet"]) == 2
+    assert "is the current folder or holds it" in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)
+    assert main(["partition", ball, "-o", str(out), "--force", "--grid", "1x1x1",
+                 "--quiet"]) == 0
+    assert len(Store(out).domains) == 1

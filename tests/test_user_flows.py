@@ -468,3 +468,56 @@ def test_one_overwrite_rule_files_named_are_replaced_and_said_so_folders_need_fo
         refused = vastray(*command, cwd=tmp_path)
         assert refused.returncode == 2 and "--force" in refused.stderr, refused.stderr
         assert vastray(*command, "--force", cwd=tmp_path).returncode == 0
+
+
+@pytest.mark.parametrize("case", ["checkpoint_on_output", "checkpoint_on_a_user_file",
+                                  "checkpoint_in_store", "report_in_store", "image_in_store",
+                                  "output_on_reference", "report_not_json"])
+def test_a_render_never_writes_over_what_it_reads_or_keeps(tmp_path, case):
+    """Each of these once succeeded and destroyed a file: a checkpoint written over the image,
+    a user's notes or the store's manifest and then removed at the end; a report over the
+    store's manifest (the store unreadable after); the output over its own --reference.
+    Now each is refused before any work, in one line, and every file is as it was."""
+    store = write_store(tmp_path / "s.store", bumpy_scene(), grid=(2, 1, 1))
+    manifest = (store.path / "manifest.json").read_bytes()
+    (tmp_path / "notes.txt").write_text("mine")
+    write_exr(tmp_path / "ref.exr", np.ones((24, 32, 3), np.float32))
+    reference = (tmp_path / "ref.exr").read_bytes()
+    extra = {
+        "checkpoint_on_output": ["-o", "out.exr", "--checkpoint", "out.exr"],
+        "checkpoint_on_a_user_file": ["-o", "out.exr", "--checkpoint", "notes.txt",
+                                      "--checkpoint-every", "0.001"],
+        "checkpoint_in_store": ["-o", "out.exr", "--checkpoint", "s.store/manifest.json"],
+        "report_in_store": ["-o", "out.exr", "--report", "s.store/manifest.json"],
+        "image_in_store": ["-o", "s.store/out.exr"],
+        "output_on_reference": ["-o", "ref.exr", "--reference", "ref.exr"],
+        "report_not_json": ["-o", "out.exr", "--report", "out.npy"],
+    }[case]
+    out = vastray("render", "s.store", *extra, *SMALL, cwd=tmp_path)
+    assert out.returncode == 2, out.stderr
+    err = out.stderr.strip()
+    assert err.startswith("vastray render: error:") and len(err.splitlines()) == 1, err
+    says = {"checkpoint_on_output": "--checkpoint names one of the render's outputs",
+            "checkpoint_on_a_user_file": "exists and is not a vastray checkpoint",
+            "output_on_reference": "is the --reference image",
+            "report_not_json": "ending in .json"}.get(case, "is inside the store being rendered")
+    assert says in err
+    assert (store.path / "manifest.json").read_bytes() == manifest
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+    assert (tmp_path / "ref.exr").read_bytes() == reference
+    assert not (tmp_path / "out.exr").exists() and not (store.path / "out.exr").exists()
+
+
+def test_a_damaged_npy_or_missing_checkpoint_is_one_line_not_a_traceback(tmp_path):
+    good = np.zeros((24, 32, 3), np.float32)
+    np.save(tmp_path / "good.npy", good)
+    (tmp_path / "cut.npy").write_bytes((tmp_path / "good.npy").read_bytes()[:500])
+    np.save(tmp_path / "objects.npy", np.array([{}], dtype=object), allow_pickle=True)
+    for name in ("cut.npy", "objects.npy"):
+        out = vastray("compare", "good.npy", name, cwd=tmp_path)
+        err = out.stderr.strip()
+        assert out.returncode == 2 and len(err.splitlines()) == 1, err
+        assert err.startswith(f"vastray compare: error: {name}: not a readable .npy image"), err
+    out = vastray("render", "--resume", "missing.npz", cwd=tmp_path)
+    assert out.returncode == 2
+    assert out.stderr.strip() == "vastray render: error: missing.npz: checkpoint not found"

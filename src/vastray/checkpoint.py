@@ -149,6 +149,14 @@ def _check_seal(path: Path) -> bool:
     return True
 
 
+def is_checkpoint(path: str | Path) -> bool:
+    """Whether the file at ``path`` is an intact vastray checkpoint (its seal checks out)."""
+    try:
+        return _check_seal(Path(path))
+    except InputError:
+        return False
+
+
 def read_checkpoint(path: str | Path, identity: dict) -> Snapshot:
     """The snapshot a checkpoint holds, checked against this render's ``identity``.
 
@@ -233,6 +241,19 @@ def checkpoint_command(path: str | Path) -> list[str] | None:
     if isinstance(command, list) and all(isinstance(a, str) for a in command):
         return command
     return None
+
+
+def why_no_command(path: str | Path) -> str:
+    """Why ``vastray render --resume CHECKPOINT`` alone cannot go on from ``path``
+    (``checkpoint_command`` found no command in it)."""
+    try:
+        sealed = _check_seal(Path(path))
+    except InputError as exc:
+        return exc.problem
+    if not sealed:
+        return _NO_SEAL
+    return ("holds no command to go on with (written by an older vastray, or not readable): "
+            "give the STORE and -o as in the first run, with --resume")
 
 
 def _check_identity(path: Path, saved: dict, current: dict) -> None:

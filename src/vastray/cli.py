@@ -181,7 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     resumed = None
     if rest[:1] == ["render"]:
-        resumed = _resumed_command(parser.subcommands.choices["render"], rest[1:])
+        try:
+            resumed = _resumed_command(parser.subcommands.choices["render"], rest[1:])
+        except InputError as exc:
+            _say(f"vastray render: error: {exc}")
+            return 2
         if resumed is not None:  # the interrupted run's command, then what was typed now
             rest = ["render", *resumed[1], *rest[1:]]
             argv = [*argv[:len(argv) - len(rest) + len(resumed[1])], *rest]
@@ -225,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
         kept = getattr(exc, "kept", None) or (  # an animation's frames done, or the passes
             "the passes done kept" if getattr(exc, "checkpointed", False)
             else "no output written")
-        _say(f"vastray {args.command}: terminated; nodes stopped, {kept}")
+        stopped = "nodes stopped, " if args.command in ("render", "launch") else ""
+        _say(f"vastray {args.command}: terminated; {stopped}{kept}")
         return 143
     except KeyboardInterrupt as exc:
         kept = getattr(exc, "kept", None)
@@ -263,9 +268,12 @@ def _resumed_command(render: argparse.ArgumentParser, typed: list[str]
         i += 1  # an unknown option: argparse names it
     if checkpoint is None:
         return None
-    from vastray.checkpoint import checkpoint_command
+    from vastray.checkpoint import checkpoint_command, why_no_command
 
     command = checkpoint_command(checkpoint)
+    if command is None and not any(t in ("-o", "--output") or t.startswith("--output=")
+                                   for t in typed):
+        raise InputError(checkpoint, why_no_command(checkpoint))  # else argparse's "-o required"
     return None if command is None else (checkpoint, command)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from vastray.scene.extent import check_extent
 from vastray.scene.fields import SCENES
 from vastray.scene.generate import generate
 from vastray.scene.isosurface import DEFAULT_BRICK
+from vastray.scene.manifest import MAX_DOMAINS
 from vastray.scene.partition import partition_grid, partition_kd, partition_pieces
 from vastray.scene.readers import SUPPORTED, read_input
 from vastray.scene.simplify import DEFAULT_MIN_FACES, build_simplified, check_ratio
@@ -236,6 +238,11 @@ def cmd_partition(args) -> int:
         raise InputError(None, "--split kd needs --domains N")
     if split == "grid" and args.domains:
         raise InputError(None, "--domains N needs --split kd (a grid takes --grid AxBxC)")
+    if split == "grid" and args.grid is not None and math.prod(args.grid) > MAX_GRID_CELLS:
+        raise InputError(None, f"--grid {'x'.join(map(str, args.grid))} is "
+                               f"{math.prod(args.grid):,} cells; a partition grid may have at "
+                               f"most {MAX_GRID_CELLS:,} (a store holds at most "
+                               f"{MAX_DOMAINS:,} domains): use a coarser grid, or --domains N")
     if len(args.inputs) > np.iinfo(np.uint16).max:
         raise InputError(None, f"at most {np.iinfo(np.uint16).max} inputs")
     for name in args.inputs:
@@ -292,6 +299,11 @@ def _world_box(pieces) -> np.ndarray:
     if not boxes:
         return np.zeros((2, 3))
     return np.stack([np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)])
+
+
+#: Most cells of a ``--grid`` (each cell's box is built before the empty ones are dropped): ten
+#: for each domain a store may hold, so a sparse surface may leave most cells empty.
+MAX_GRID_CELLS = 10 * MAX_DOMAINS
 
 
 #: Fewer triangles than this per domain on average and each domain's own costs (its file,

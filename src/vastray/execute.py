@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from vastray.actors.results import closing_lines
-from vastray.animation import check_frame_outputs, run_animation
+from vastray.animation import check_frame_outputs, reference_path, run_animation
 from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, saved_command
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.outputs import StagedOutputs
 from vastray.planning import RenderPlan, finish_render, plan_render, traces_passes_ahead
-from vastray.preflight import check_output_paths, gigabytes
+from vastray.preflight import check_inputs_spared, check_output_paths, gigabytes
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.imageio import image_error, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -37,10 +37,18 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
     animating = request.frames is not None or request.first_frame is not None
     if animating:
         first = request.first_frame or 0
-        frame_outputs = check_frame_outputs(request.output, request.png, request.report,
-                                            list(range(first, first + (request.frames or 1))))
+        frames = list(range(first, first + (request.frames or 1)))
+        frame_outputs = check_frame_outputs(request.output, request.png, request.report, frames)
+        check_inputs_spared(
+            [*(p for f in frames for p in frame_outputs.of(f)),
+             *([Path(request.report)] if request.report else [])], request.store,
+            [reference_path(request.reference, f) for f in frames]
+            if isinstance(request.reference, str) else [])
     else:
         outputs = check_output_paths(request.output, request.png, request.report)
+        check_inputs_spared(outputs, request.store,
+                            [Path(request.reference)] if isinstance(request.reference, str) else [],
+                            checkpoint_path(request), request.resume)
     plan = plan_render(request, animating=animating, launched=launched)
     if animating:
         return run_animation(request, store_path=str(plan.store_path), config=plan.config,
@@ -140,11 +148,17 @@ def start_progression(request: RenderRequest, plan: RenderPlan, outputs: list[Pa
 
     if request.argv is not None:  # the CLI's: so that `--resume CHECKPOINT` alone goes on with them
         identity = {**identity, "command": saved_command(list(request.argv), request.store)}
-    checkpoints = Checkpointer(request.checkpoint or default_checkpoint(outputs[0]), identity,
-                               request.checkpoint_every, write_partial)
+    checkpoints = Checkpointer(checkpoint_path(request), identity, request.checkpoint_every,
+                               write_partial)
     checkpoints.progression = progression
     progression.on_pass = checkpoints.after_pass
     return progression, checkpoints
+
+
+def checkpoint_path(request: RenderRequest) -> Path:
+    """Where the render's checkpoints go: ``--checkpoint``, else ``-o``'s name +
+    ``.checkpoint.npz``."""
+    return Path(request.checkpoint) if request.checkpoint else default_checkpoint(request.output)
 
 
 def _render_many(request: RenderRequest, config, settings: RenderSettings,

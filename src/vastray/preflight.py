@@ -477,6 +477,8 @@ def check_output_paths(image: str, png: str | None, report: str | None) -> list[
         if Path(report).is_dir():
             raise InputError(report, "--report is a folder; give a file name such as "
                                      f"{Path(report) / 'report.json'}")
+        if Path(report).suffix.lower() != ".json":
+            raise InputError(report, "--report writes JSON: give a file name ending in .json")
         paths.append(Path(report))
     resolved = [p.resolve() for p in paths]
     if len(set(resolved)) != len(resolved):
@@ -492,3 +494,56 @@ def check_output_paths(image: str, png: str | None, report: str | None) -> list[
         if not os.access(parent, os.W_OK | os.X_OK):
             raise InputError(path, f"cannot be written: no permission to write in {parent}")
     return paths
+
+
+def check_inputs_spared(outputs: list[Path], store: str | Path | None,
+                        references: list[Path] = (), checkpoint: Path | None = None,
+                        resume: str | Path | None = None) -> None:
+    """Refuse, before any work, a render whose files would land on what it reads or keeps:
+    an output or the checkpoint inside the store being rendered (a report written over its
+    manifest left the store unreadable), an output on the image it is compared with
+    (``--reference``), the checkpoint on an output or the reference (a checkpoint file is
+    removed when the render ends), or the checkpoint over a file that is not a vastray
+    checkpoint.
+
+    Parameters
+    ----------
+    outputs : every file the render writes (image, PNG, report; an animation's every frame).
+    store : the store rendered (None: the built-in scene).
+    references : the reference images read (one a frame).
+    checkpoint : where checkpoints would be written (None: none can be); ``resume``, the
+        checkpoint resumed, may be that same file.
+
+    Raises
+    ------
+    InputError
+        Naming the file, what it would overwrite, and what to do.
+    """
+    from vastray.checkpoint import is_checkpoint
+
+    store_dir = None if store is None else Path(store).resolve()
+    compared = {Path(r).resolve(): Path(r) for r in references}
+    written = [("output", p) for p in outputs]
+    if checkpoint is not None:
+        written.append(("checkpoint", Path(checkpoint)))
+    for kind, path in written:
+        where = path.resolve()
+        if store_dir is not None and (where == store_dir or store_dir in where.parents):
+            raise InputError(path, f"is inside the store being rendered ({store}): writing "
+                                   f"the {kind} there would damage the store; write it "
+                                   "elsewhere")
+        if where in compared:
+            raise InputError(path, f"is the --reference image the render is compared with: "
+                                   f"the {kind} would replace it; write it elsewhere")
+    if checkpoint is None:
+        return
+    where = Path(checkpoint).resolve()
+    if where in {p.resolve() for p in outputs}:
+        raise InputError(checkpoint, "--checkpoint names one of the render's outputs (-o, "
+                                     "--png, --report): the checkpoint would be written over "
+                                     "it and removed when the render ends; give another file")
+    resumed = resume is not None and Path(resume).resolve() == where
+    if where.exists() and not resumed and not is_checkpoint(where):
+        raise InputError(checkpoint, "exists and is not a vastray checkpoint: a checkpoint "
+                                     "written there would replace it, and be removed when the "
+                                     "render ends; move it or give another --checkpoint")

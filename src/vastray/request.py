@@ -86,7 +86,11 @@ def _portal_resolution(text: str) -> int:
 def _cache_size(text: str) -> int | str:
     """``N`` domains or ``P%`` of the domains (resolved once the store is open)."""
     if text.endswith("%"):
-        value = float(text[:-1])
+        try:
+            value = float(text[:-1])
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected N domains or P% of them, got {text!r}"
+                                             ) from None
         if not 0 < value <= 100:
             raise argparse.ArgumentTypeError(f"percentage must be in (0, 100], got {text}")
         return text
