@@ -384,6 +384,9 @@ def _orbit(path, spec) -> Orbit:
     where = "[camera.orbit]"
     _check_keys(path, where, spec, _ORBIT_KEYS)
     degrees = _number(path, f"{where}.degrees_per_frame", spec.get("degrees_per_frame", 1.0))
+    if abs(degrees) > 360:  # a turn or more a frame; and frame * 1e308 overflows to NaN cameras
+        raise InputError(path, f"{where}.degrees_per_frame must be within -360..360 (a whole "
+                               f"turn a frame at most), got {degrees:g}")
     axis = _vec(path, f"{where}.axis", spec.get("axis", [0.0, 1.0, 0.0]))
     if not np.any(axis):
         raise InputError(path, f"{where}.axis must not be zero")

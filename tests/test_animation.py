@@ -112,6 +112,15 @@ center = [1, 1, 0]
     np.testing.assert_allclose(tilted.camera["up"], [0, 0, 1], atol=1e-12)
 
 
+def test_an_orbit_of_more_than_a_turn_a_frame_is_refused():
+    """1e308 degrees a frame once overflowed to NaN cameras and a flat sky, exit 0."""
+    for degrees in ("1e308", "-361"):
+        with pytest.raises(InputError, match=r"^orbit.toml: \[camera.orbit\].degrees_per_frame "
+                                             r"must be within -360..360"):
+            parse_scene_config(f"[camera.orbit]\ndegrees_per_frame = {degrees}\n", "orbit.toml")
+    parse_scene_config("[camera.orbit]\ndegrees_per_frame = -360\n", "orbit.toml")
+
+
 def test_orbit_of_the_default_camera_circles_the_scene():
     cfg = parse_scene_config("[camera.orbit]\ndegrees_per_frame = 30\n", "orbit.toml")
     still = parse_scene_config("", "orbit.toml")

@@ -270,3 +270,26 @@ def test_reports_that_cannot_be_drawn_say_what_to_run_again(tmp_path, capsys):
     assert main(["plot", old, "-o", str(out)]) == 0
     assert "(frames: 1 run, 1 point)" in capsys.readouterr().err
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("case", ["options_a_string", "frames_not_reports", "negative_error",
+                                  "missing_folder"])
+def test_a_hand_edited_report_or_a_missing_folder_is_one_line_not_a_traceback(tmp_path, capsys,
+                                                                               case):
+    """Reports edited by hand once ended ``vastray plot`` in tracebacks (an AttributeError in
+    the run's label, a TypeError in an animation summary's frames) or were drawn with a
+    negative error; ``-o`` in a missing folder created it."""
+    good = render_report([one_pass(0, 0.5, 1, 0.4), one_pass(1, 1.0, 2, 0.2)])
+    doc = {"options_a_string": {**good, "options": "x"},
+           "frames_not_reports": {"scheduler": "image", "frames": [1, 2]},
+           "negative_error": render_report([one_pass(0, 0.5, 1, -1.0)]),
+           "missing_folder": good}[case]
+    path = write(tmp_path, "r.json", doc)
+    out = tmp_path / ("missing" if case == "missing_folder" else ".") / "p.png"
+    assert main(["plot", path, "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("vastray plot: error: ") and len(err.splitlines()) == 1, err
+    says = {"missing_folder": "-o's folder", "negative_error": "negative rel_mse"}.get(
+        case, "is not a report as vastray writes it")
+    assert says in err
+    assert not out.exists() and not (tmp_path / "missing").exists()

@@ -434,6 +434,10 @@ def check_target_error(r: Renders):
     assert run.report["stopped_by"] == "target-error"
     assert run.report["passes"][-1]["spp"] == 2  # the first pass with an estimate meets it
     assert run.report["target_error"] == 1e9 and run.report["target_error_against"] == "estimate"
+    assert "stopped by --target-error at 2 spp" in run.err
+    missed = r("--target-error", "1e-12", "--spp", "2")
+    assert missed.report["stopped_by"] == "spp"
+    assert "--target-error 1e-12 not reached by --spp 2" in missed.err.strip().splitlines()[-1]
 
 
 def check_max_pass_spp(r: Renders):

@@ -438,6 +438,13 @@ def test_info_piped_into_head_ends_without_a_traceback(store, tmp_path):
     (["render", "-o", "a.exr", "--wdth", "3"], "did you mean --width?"),
     (["render", "-o", "a.exr", "--width", "abc"], "--width: expected a whole number, got 'abc'"),
     (["render", "--spp", "4"], "required: -o/--output"),
+    (["render", "-o", "a.exr", "--nodes", "1", "--listen", "127.0.0.1:abc"],
+     "--listen: expected HOST:PORT with a port in 0..65535"),  # a traceback once
+    (["render", "-o", "a.exr", "--nodes", "1", "--listen", "127.0.0.1:99999"],
+     "--listen: expected HOST:PORT"),  # bound port 34463 and waited for nodes that never came
+    (["render", "-o", "a.exr", "--integrator", "ao", "--shadow-samples", "0"],
+     "--shadow-samples: must be at least 1"),  # a black image once
+    (["render", "-o", "a.exr", "--cache", "%"], "--cache: expected N domains or P% of them"),
     (["data", "fetch", "--bogus"], "unrecognized arguments: --bogus"),
 ])
 def test_argument_errors_are_two_lines_naming_the_command_and_the_fix(tmp_path, args, says):

@@ -41,7 +41,7 @@ typical use (every line runs on a fresh install):
   vastray data fetch -o samples                            # real scans, checksummed
   vastray partition samples/stanford_bunny.ply -o bunny.store --grid 2x2x2
   vastray render bunny.store -o bunny.exr --png bunny.png
-  vastray render rm.store -o rm-ooc.exr --cache 25% --scheduler spec-ooc
+  vastray render rm.store -o rm-ooc.exr --spp 16 --cache 25% --scheduler spec-ooc
   vastray compare rm-ooc.exr rm.exr                        # MSE, PSNR: the same image
   vastray render rm.store -o orbit.exr --scene orbit.toml --frames 36   # an animation
   vastray plot a.json b.json -o error_vs_time.png          # error vs time of several runs

@@ -115,10 +115,14 @@ def convergence_series(report: dict, path: str | Path | None = None) -> Curve:
     estimated = not any(_number(p.get("rel_mse")) for p in passes)
     key = "estimated_rel_mse" if estimated else "rel_mse"
     points = [(float(p["seconds"]), float(p[key])) for p in passes if _number(p.get(key))]
+    if any(error < 0 for _, error in points):
+        raise InputError(path, f"holds a negative {key}, which vastray never writes; was it "
+                               "edited?")
     if not points:
-        raise InputError(path, f"none of its {len(passes)} passes has an error: render with "
-                               "--reference, or with --spp 2 or more for the film's own "
-                               "estimate (it has only one pass at 1 spp)")
+        raise InputError(path, f"none of its {len(passes)} passes has an error: render "
+                               "with --reference, or with --spp 2 or more for the film's own "
+                               "estimate" + (" (it has only one pass at 1 spp)"
+                                             if len(passes) == 1 else ""))
     return Curve(run_label(report), [t for t, _ in points], [e for _, e in points], estimated)
 
 

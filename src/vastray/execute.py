@@ -200,6 +200,8 @@ def summary_line(request: RenderRequest, result, error: dict | None,
     if progress.get("stopped_by") not in (None, "spp"):
         line += (f"; stopped by --{progress['stopped_by']} at "
                  f"{progress['passes'][-1]['spp']} spp")
+    elif request.target_error is not None and progress.get("stopped_by") == "spp":
+        line += f"; --target-error {request.target_error:g} not reached by --spp {request.spp}"
     if replaced:  # the files a user names are replaced, as renderers do, but never silently
         line += f"; replaced the existing {', '.join(replaced)}"
     return line

@@ -355,6 +355,23 @@ def _draw_table(fig, cells: list[list[str]], wrapped: list[str], colours: list) 
             cell.PAD = 0.02
 
 
+def _series(mode: str, report: dict, path: str) -> Series | Curve:
+    """The series ``mode`` plots from ``report`` (read from ``path``).
+
+    Raises
+    ------
+    InputError
+        Naming ``path`` where a field is not what vastray writes (a report edited by hand).
+    """
+    try:
+        return frame_series(report, path) if mode == "frames" else convergence_series(report, path)
+    except (AttributeError, TypeError, KeyError, ValueError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(path, f"is not a report as vastray writes it ({type(exc).__name__}: "
+                               f"{exc}); was it edited?") from None
+
+
 def run_plot(args: argparse.Namespace) -> int:
     output = Path(args.output)
     if output.suffix.lower() != ".png":
@@ -362,13 +379,12 @@ def run_plot(args: argparse.Namespace) -> int:
     if output.is_dir():
         raise InputError(output, "-o is a folder; give a file name such as "
                                  f"{output / 'error_vs_time.png'}")
+    if not output.absolute().parent.is_dir():  # never created: a typo would be
+        raise InputError(output, f"-o's folder {output.parent} does not exist (create it "
+                                 f"first, e.g. mkdir -p {output.parent})")
     reports = [load_report(path) for path in args.reports]
     mode = args.mode or default_mode(reports)
-    if mode == "frames":
-        series = [frame_series(r, path) for r, path in zip(reports, args.reports, strict=True)]
-    else:
-        series = [convergence_series(r, path)
-                  for r, path in zip(reports, args.reports, strict=True)]
+    series = [_series(mode, r, path) for r, path in zip(reports, args.reports, strict=True)]
     labels = [s.label for s in series]
     for s, path in zip(series, args.reports, strict=True):
         if labels.count(s.label) > 1:  # same scheduler and options: tell the runs apart

@@ -485,15 +485,27 @@ def check_output_paths(image: str, png: str | None, report: str | None) -> list[
         raise InputError(None, "-o, --png and --report must name different files")
     options = ["-o", *["--png"] * (png is not None), *["--report"] * (report is not None)]
     for path, option in zip(paths, options, strict=True):
-        parent = _nearest_existing(path.parent)
-        if not parent.is_dir():
-            raise InputError(path, f"cannot be written: {parent} is not a folder")
-        if parent != path.parent.absolute():  # never created silently: a typo would be
-            raise InputError(path, f"{option}'s folder {path.parent} does not exist (create "
-                                   f"it first, e.g. mkdir -p {path.parent})")
-        if not os.access(parent, os.W_OK | os.X_OK):
-            raise InputError(path, f"cannot be written: no permission to write in {parent}")
+        check_writable_place(path, option)
     return paths
+
+
+def check_writable_place(path: Path, option: str) -> None:
+    """Refuse ``path`` (given as ``option``) where its folder is missing (never created: a typo
+    would be), is a file, or cannot be written in.
+
+    Raises
+    ------
+    InputError
+        Naming the path and the problem.
+    """
+    parent = _nearest_existing(path.parent)
+    if not parent.is_dir():
+        raise InputError(path, f"cannot be written: {parent} is not a folder")
+    if parent != path.parent.absolute():
+        raise InputError(path, f"{option}'s folder {path.parent} does not exist (create "
+                               f"it first, e.g. mkdir -p {path.parent})")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(path, f"cannot be written: no permission to write in {parent}")
 
 
 def check_inputs_spared(outputs: list[Path], store: str | Path | None,
@@ -537,6 +549,7 @@ def check_inputs_spared(outputs: list[Path], store: str | Path | None,
                                    f"the {kind} would replace it; write it elsewhere")
     if checkpoint is None:
         return
+    check_writable_place(Path(checkpoint), "--checkpoint")
     where = Path(checkpoint).resolve()
     if where in {p.resolve() for p in outputs}:
         raise InputError(checkpoint, "--checkpoint names one of the render's outputs (-o, "

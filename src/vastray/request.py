@@ -83,6 +83,15 @@ def _portal_resolution(text: str) -> int:
     return value
 
 
+def _host_port(text: str) -> str:
+    """``HOST:PORT`` with a host and a port in 0..65535 (0: a free port), as given."""
+    host, colon, port = text.rpartition(":")
+    if not colon or not host or not port.isdigit() or int(port) > 65535:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT with a port in 0..65535 (0: any "
+                                         f"free port), got {text!r}")
+    return text
+
+
 def _cache_size(text: str) -> int | str:
     """``N`` domains or ``P%`` of the domains (resolved once the store is open)."""
     if text.endswith("%"):
@@ -179,7 +188,7 @@ class RenderRequest:
     integrator: str = _option("pt", choices=("ao", "pt"))
     spp: int | None = _option(type=positive_int)
     bounces: int | None = _option(type=_non_negative)
-    shadow_samples: int | None = _option(type=_non_negative)
+    shadow_samples: int | None = _option(type=positive_int)
     ao_distance: float | None = _option(type=_positive_float)
     width: int | None = _option(type=positive_int)
     height: int | None = _option(type=positive_int)
@@ -195,7 +204,7 @@ class RenderRequest:
     node_timeout: float | None = _option(type=_positive_float)
     log_dir: str | None = _option()
     heartbeat_timeout: float | None = _option(type=_positive_float)
-    listen: str | None = _option()
+    listen: str | None = _option(type=_host_port)
     rendezvous: str | None = _option()
     keys: str | None = _option()
     no_preload: bool = _option(False, switch=True)
