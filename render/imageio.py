@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import logging
 import os
 import re
+import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -18,6 +21,8 @@ from vastray.processes import running
 from vastray.scene.errors import InputError
 from vastray.scene.filemode import publish_mode
 from vastray.scene.manifest import NPY_HEADERS
+
+log = logging.getLogger(__name__)
 
 #: Output formats by extension: what ``write_image`` writes for ``-o``.
 IMAGE_FORMATS = {
@@ -179,13 +184,45 @@ def read_pfm(path) -> np.ndarray:
     return rgb.reshape(height, width, 3)[::-1].astype(np.float32)
 
 
+_native_output_lock = threading.Lock()
+
+
+@contextmanager
+def _library_output_kept(path: Path):
+    """Hold what OpenEXR's C++ code prints to the standard output and error while it reads
+    ``path`` (a damaged file made it print 4-5 lines of its own before our one-line error),
+    then log it: the error raised says what is wrong. The file descriptors themselves are
+    redirected, so only a short read is wrapped, under a lock."""
+    with _native_output_lock, tempfile.TemporaryFile() as held:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(AttributeError, ValueError, OSError):
+                stream.flush()
+        saved = []
+        try:
+            for fd in (1, 2):
+                saved.append((fd, os.dup(fd)))
+                os.dup2(held.fileno(), fd)
+        except OSError:  # no such descriptor (a daemon): nothing to hold
+            pass
+        try:
+            yield
+        finally:
+            for fd, copy in saved:
+                os.dup2(copy, fd)
+                os.close(copy)
+            held.seek(0)
+            text = held.read().decode(errors="replace").strip()
+            if text:
+                log.debug("OpenEXR reading %s said: %s", path, text)
+
+
 def read_exr(path) -> np.ndarray:
     """Read the RGB layer of an EXR file as (H, W, 3) float32."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "image not found")
     try:
-        with OpenEXR.File(str(path)) as f:
+        with _library_output_kept(path), OpenEXR.File(str(path)) as f:
             channels = f.channels()
             if "RGB" in channels:
                 return np.asarray(channels["RGB"].pixels, dtype=np.float32)

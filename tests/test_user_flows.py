@@ -520,11 +520,16 @@ def test_a_damaged_npy_or_missing_checkpoint_is_one_line_not_a_traceback(tmp_pat
     np.save(tmp_path / "good.npy", good)
     (tmp_path / "cut.npy").write_bytes((tmp_path / "good.npy").read_bytes()[:500])
     np.save(tmp_path / "objects.npy", np.array([{}], dtype=object), allow_pickle=True)
-    for name in ("cut.npy", "objects.npy"):
+    write_exr(tmp_path / "good.exr", np.random.default_rng(1).random((24, 32, 3), np.float32))
+    whole = (tmp_path / "good.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(whole[:len(whole) // 2])
+    for name, says in (("cut.npy", "not a readable .npy image"),
+                       ("objects.npy", "not a readable .npy image"),
+                       ("cut.exr", "not a readable OpenEXR image")):  # and OpenEXR's own lines
         out = vastray("compare", "good.npy", name, cwd=tmp_path)
         err = out.stderr.strip()
-        assert out.returncode == 2 and len(err.splitlines()) == 1, err
-        assert err.startswith(f"vastray compare: error: {name}: not a readable .npy image"), err
+        assert out.returncode == 2 and len(err.splitlines()) == 1 and not out.stdout, err
+        assert err.startswith(f"vastray compare: error: {name}: {says}"), err
     out = vastray("render", "--resume", "missing.npz", cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.strip() == "vastray render: error: missing.npz: checkpoint not found"
