@@ -397,6 +397,25 @@ def test_memory_limit_bounds_the_cache_or_refuses_up_front(store, tmp_path):
     assert report["counters"]["peak_rss_bytes"] > 0
 
 
+def test_the_smallest_memory_limit_named_is_the_smallest_accepted(store, tmp_path):
+    """A limit too small names the smallest that fits; that one is accepted and one MiB less
+    is refused naming the same. (It once named a limit worked out for the in-core render,
+    which the out-of-core plan then refused, naming a larger one.)"""
+    import re
+
+    def smallest(limit: str) -> int | None:
+        out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--memory-limit", limit,
+                      cwd=tmp_path)
+        found = re.search(r"the smallest that fits is --memory-limit (\d+)M", out.stderr)
+        assert (out.returncode == 0) == (found is None), out.stderr
+        return None if found is None else int(found.group(1))
+
+    named = smallest("1K")
+    assert named is not None
+    assert smallest(f"{named}M") is None and (tmp_path / "x.exr").is_file()
+    assert smallest(f"{named - 1}M") == named
+
+
 def test_generate_and_info_as_a_user_runs_them(tmp_path):
     out = vastray("generate", "rm", "-o", "g.store", "--resolution", "24", "--grid", "2x1x1",
                   cwd=tmp_path)

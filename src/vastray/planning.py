@@ -30,6 +30,7 @@ from vastray.preflight import (
     fitting_count,
     gigabytes,
     reference_paths_in_flight,
+    smallest_limit,
     speculative_copies,
 )
 from vastray.render.colormaps import Legend, colormap_lut, coloured_by_scalars, legend_for
@@ -381,10 +382,13 @@ def _check_render_memory(request: RenderRequest, config, scheduler: str, store: 
                             building)
         else:
             limit, size = request.memory_limit, (request.width, request.height)
-            room = cache_room(limit, process(cache), footprints, *size, building)
+            smallest = smallest_limit(process(cache), process(len(footprints) - 1),
+                                      footprints, building)
+            room = cache_room(limit, process(cache), footprints, *size, building, smallest)
             fitting = len(footprints)
             if sum(footprints) > room:  # out of core (auto becomes spec-ooc): bound by bytes
-                room = cache_room(limit, process(fitting - 1), footprints, *size, building)
+                room = cache_room(limit, process(fitting - 1), footprints, *size, building,
+                                  smallest)
                 cache_bytes = room  # whichever domains fit; the count: the most that could
                 fitting = min(fitting_count(room, footprints, largest_first=False), fitting - 1)
             log.info("--memory-limit leaves %s per process for domains: %s", gigabytes(room),

@@ -374,10 +374,13 @@ def domain_build_bytes(domains, reads_ahead: bool = False) -> int:
 
 
 def cache_room(limit: int, fixed: MemoryEstimate, footprints: list[int], width: int,
-               height: int, building: int = 0) -> int:
+               height: int, building: int = 0, smallest: int | None = None) -> int:
     """Bytes a process can give its domains under ``limit`` besides its film, paths and
     outputs (``fixed``), the builds in progress (``building``, ``domain_build_bytes``) and
     ``LIMIT_BASE_MARGIN``.
+
+    ``smallest``: the smallest limit the render would accept (``smallest_limit``), named in
+    the error; default: ``fixed`` and the largest domain.
 
     Raises
     ------
@@ -386,7 +389,8 @@ def cache_room(limit: int, fixed: MemoryEstimate, footprints: list[int], width: 
     """
     planned = fixed.total + LIMIT_BASE_MARGIN + building
     room = limit - planned
-    smallest = limit_option(planned + max(footprints, default=0))
+    smallest = limit_option(planned + max(footprints, default=0) if smallest is None
+                            else smallest)
     if room <= 0:
         raise InputError(None, f"--memory-limit {gigabytes(limit)} is too small: a "
                                f"{width}x{height} render needs {gigabytes(planned)} per process "
@@ -401,6 +405,19 @@ def cache_room(limit: int, fixed: MemoryEstimate, footprints: list[int], width: 
                                f"{gigabytes(max(footprints))}; the smallest that fits is "
                                f"{smallest}, or partition finer")
     return room
+
+
+def smallest_limit(in_core: MemoryEstimate, out_of_core: MemoryEstimate,
+                   footprints: list[int], building: int = 0) -> int:
+    """The smallest ``--memory-limit`` (bytes) ``cache_room`` accepts: every domain held with
+    the process's in-core estimate, or the largest domain held with its out-of-core one (its
+    paths in flight can differ), whichever is less. (The error once named a limit computed
+    for one case, which the other then refused, naming a larger one.)"""
+    base = LIMIT_BASE_MARGIN + building
+    largest = max(footprints, default=0)
+    all_held = in_core.total + base + sum(footprints)
+    one_held = max(in_core.total, out_of_core.total) + base + largest
+    return min(all_held, one_held)
 
 
 def fitting_count(room: int, footprints: list[int], largest_first: bool = True) -> int:
