@@ -197,7 +197,8 @@ async def gather(router, watch: Watch, settings: RenderSettings, bar: tqdm,
         elif message.kind == protocol.DONE:
             reports[int(message.meta["rank"])] = message.meta
         elif message.kind == protocol.FAILED:
-            raise watch.failed(int(message.meta["rank"]), message.meta["error"])
+            raise watch.failed(int(message.meta["rank"]), message.meta["error"],
+                               message.meta.get("input") is True)
     return film, reports
 
 

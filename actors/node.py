@@ -242,7 +242,8 @@ async def _report_failure(management: ManagementActor, rank: int, exc: BaseExcep
     node and the error at once (a node started elsewhere has no log the coordinator reads),
     and counts it lost like any node that exits mid-frame. Best effort: a second at most."""
     message = encode(protocol.FAILED, {}, {"rank": rank,
-                                          "error": f"{type(exc).__name__}: {exc}"[:300]})
+                                          "error": f"{type(exc).__name__}: {exc}"[:300],
+                                          "input": isinstance(exc, InputError)})
     management.coordinator.setsockopt(zmq.LINGER, 1000)  # let it leave before the close
     try:
         await asyncio.wait_for(management.coordinator.send_multipart(

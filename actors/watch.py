@@ -13,6 +13,7 @@ from pathlib import Path
 from vastray.actors import protocol
 from vastray.actors.liveness import BUSY_GRACE, HUNG_CPU_SHARE, CpuWitness
 from vastray.actors.node_failure import NodeFailure, NodeLost, exit_cause
+from vastray.scene.errors import InputError
 from vastray.transport.codec import CodecError, decode
 
 log = logging.getLogger(__name__)
@@ -150,8 +151,15 @@ class Watch:
             failure.cause = cause
         return failure
 
-    def failed(self, rank: int, error: str) -> NodeLost:
-        """A node's report that its job failed: lost, like a node that exits mid-frame."""
+    def failed(self, rank: int, error: str, bad_input: bool = False) -> Exception:
+        """A node's report that its job failed: lost, like a node that exits mid-frame; but
+        where a node started here failed on the input (``bad_input``: the store or a file
+        this machine's other nodes read too, such as a damaged domain), the render fails at
+        once with that error (``InputError``) rather than rendering the frame again on nodes
+        that would meet it in turn."""
+        if bad_input and rank < len(self.procs):
+            return InputError(None, f"node {rank} (pid {self.procs[rank].pid}): "
+                                    f"{error.removeprefix('InputError: ')}")
         return self._failure(rank, f"failed: {error}", NodeLost, cause="failed", log_tail=False)
 
     def check(self, judge_silence: bool = True) -> None:
