@@ -20,6 +20,7 @@ The simplified whole-scene model, when the manifest has one, gets the same check
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ from vastray.scene.manifest import (
     StoreRoot,
     array_from_bytes,
     domain_file,
+    parse_npy_header,
     read_manifest,
     scene_fields,
     simplified_entry,
@@ -192,6 +194,10 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     for kind, rel in info.files.items():
         try:
             path = domain_file(root, rel, kind, info.label)
+            mismatch = _size_mismatch(path)
+            if mismatch:  # found without reading a file of any size into memory
+                raise InputError(path, f"unreadable or truncated domain file ({mismatch}); "
+                                       f"{REWRITE}")
             data = path.read_bytes()
         except InputError as exc:
             problems.append(exc)
@@ -218,6 +224,21 @@ def check_domain_data(root: StoreRoot, info: DomainInfo, n_objects: int) -> list
     if problems or values:  # (a changed file's mask differs as a consequence: not reported)
         return problems + values
     return occupancy_problems(dom, info, root.path)
+
+
+def _size_mismatch(path: Path) -> str | None:
+    """How the size of the ``.npy`` file at ``path`` differs from what its header promises,
+    or None (also where the header cannot be read: the whole read then says why)."""
+    try:
+        with open(path, "rb") as fh:
+            header = parse_npy_header(fh)
+            size = os.fstat(fh.fileno()).st_size
+    except (OSError, ValueError):
+        return None
+    expected = header.offset + int(np.prod(header.shape)) * header.dtype.itemsize
+    if size == expected:
+        return None
+    return f"{size:,} bytes where its header promises {expected:,}"
 
 
 def occupancy_problems(dom: DomainArrays, info: DomainInfo, root: Path) -> list[InputError]:

@@ -434,3 +434,21 @@ def test_verify_help_has_a_runnable_example(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for words in lines:
         assert main(words[1:]) == 0
+
+
+def test_verify_reports_a_grown_file_without_reading_it(tmp_path, monkeypatch):
+    """A domain file grown far past what its header promises (here sparse, 1 GiB) is reported
+    from its size alone: verify once read it whole into memory (10 GB took over 30 s)."""
+    store = write_store(tmp_path / "s.store", bumpy_scene(), grid=(2, 1, 1))
+    grown = store.path / store.domains[1].files["vertices"]
+    os.truncate(grown, 1 << 30)
+    real_read = Path.read_bytes
+
+    def read_bytes(path):
+        assert Path(path) != grown, "verify read the grown file"
+        return real_read(path)
+
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    problems = verify_store(store.path).problems
+    assert [p.path for p in problems] == [str(grown)]
+    assert "1,073,741,824 bytes where its header promises" in str(problems[0])
