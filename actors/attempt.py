@@ -89,9 +89,9 @@ async def coordinate(job: dict, size: int, settings: RenderSettings, timeout: fl
             if rendezvous is not None:
                 reachable = socket.getfqdn() if host in ("0.0.0.0", "*", "") else host
                 write_address(rendezvous, f"tcp://{reachable}:{port}")
-            if verbose:
-                print(f"waiting for {size} node(s) on tcp://{host}:{port}"
-                      + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
+            # said even under --quiet: with port 0 this line is the only place the address is
+            print(f"waiting for {size} node(s) on tcp://{host}:{port}"
+                  + (f" (address in {rendezvous})" if rendezvous else ""), file=sys.stderr)
         address = f"tcp://{host}:{port}"
         watch = Watch(size, procs, [logs.path(r, attempt) for r in range(len(procs))], timeout,
                        launched, address, token=token,

@@ -63,7 +63,7 @@ def read_hostfile(path: str | Path) -> list[Host]:
 
 
 def start_nodes(hosts: list[Host], coordinator: str, bundles: dict[str, str], logs: Path,
-                ssh: str = "ssh -o BatchMode=yes -tt", timeout: float = 120.0
+                ssh: str = "ssh -o BatchMode=yes -o ConnectTimeout=15 -tt", timeout: float = 120.0
                 ) -> dict[str, tuple[subprocess.Popen, Path]]:
     """Start one node per host entry over ssh, with ``bundles[HOST]``, the path of that host's
     key bundle on it; returns name -> (process, log file)."""

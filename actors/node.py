@@ -672,6 +672,16 @@ in a Slurm batch script, the coordinator in the background, then one node per ta
 """
 
 
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="vastray node", description=__doc__, epilog=NODE_EPILOG,
@@ -687,7 +697,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="this node's rank (default: the launcher's, from SLURM_PROCID, "
                              "PMI_RANK, PMIX_RANK or OMPI_COMM_WORLD_RANK; else assigned by "
                              "the coordinator)")
-    parser.add_argument("--timeout", type=float, default=120.0,
+    parser.add_argument("--timeout", type=_positive_seconds, default=120.0,
                         help="seconds a wait may last without a word from the coordinator "
                              "before the node gives up; a node done with its share waits as "
                              "long as the coordinator speaks (default: %(default)s)")
@@ -765,6 +775,11 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
             credentials = Credentials(keys=load_node_keys(args.keys, args.key_name))
         elif args.secret_fd is not None:  # started by the coordinator: a pipe from it
             credentials = Credentials(secret=read_secret_fd(args.secret_fd))
+        for flag, given in (("--coordinator", args.coordinator),
+                            ("--rendezvous", args.rendezvous)):
+            if given is not None and not given.strip():
+                raise InputError(None, f"{flag} is empty; give the coordinator's "
+                                       + ("address" if flag == "--coordinator" else "file"))
         coordinator = coordinator_address(args.coordinator
                                           or read_address(args.rendezvous, args.timeout),
                                           wait=min(args.timeout, RESOLVE_WAIT_S))
@@ -784,6 +799,9 @@ def main(argv: list[str] | None = None, verbose: int = 0) -> int:
                         else ("interrupted", 130))
         print(f"node {RankFormatter.rank}: {said}", file=sys.stderr)
         return status
+    except TimeoutError as exc:  # the coordinator silent for --timeout: said as it is
+        print(f"node {RankFormatter.rank}: gave up: {exc}", file=sys.stderr)
+        return 1
     except Exception as exc:  # report, then fail: the coordinator names this node
         print(f"node {RankFormatter.rank}: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

@@ -41,8 +41,7 @@ def launcher_size() -> int | None:
 def write_address(path: str | os.PathLike, address: str) -> None:
     """Publish the coordinator's address: written beside, then renamed, so a node never reads
     half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = Path(path)  # its folder was checked before the render (never created here)
     tmp = path.with_name(f".{path.name}.{os.getpid()}")
     tmp.write_text(address + "\n")
     os.replace(tmp, path)
@@ -63,7 +62,10 @@ def read_address(path: str | os.PathLike, timeout: float) -> str:
             raise InputError(path, f"no coordinator address appeared within {timeout:.0f} s "
                                    "(start the coordinator with --rendezvous on the same path)")
         time.sleep(0.1)
-    address = path.read_text().strip()
+    try:
+        address = path.read_text().strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot be read as a coordinator's address ({exc})") from None
     if not address.startswith("tcp://") or ":" not in address[6:]:
         raise InputError(path, f"holds {address[:80]!r}, not a tcp://HOST:PORT address")
     return address

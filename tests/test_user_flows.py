@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -401,8 +402,6 @@ def test_the_smallest_memory_limit_named_is_the_smallest_accepted(store, tmp_pat
     """A limit too small names the smallest that fits; that one is accepted and one MiB less
     is refused naming the same. (It once named a limit worked out for the in-core render,
     which the out-of-core plan then refused, naming a larger one.)"""
-    import re
-
     def smallest(limit: str) -> int | None:
         out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--memory-limit", limit,
                       cwd=tmp_path)
@@ -552,3 +551,35 @@ def test_a_damaged_npy_or_missing_checkpoint_is_one_line_not_a_traceback(tmp_pat
     out = vastray("render", "--resume", "missing.npz", cwd=tmp_path)
     assert out.returncode == 2
     assert out.stderr.strip() == "vastray render: error: missing.npz: checkpoint not found"
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--coordinator", ""], "node ?: error: --coordinator is empty"),  # a TypeError once
+    (["--rendezvous", "binary.addr"],
+     "node ?: error: binary.addr: cannot be read as a coordinator's address"),
+])
+def test_a_node_given_a_bad_address_says_so_in_one_line(tmp_path, args, says):
+    (tmp_path / "binary.addr").write_bytes(b"\x00\xff\xfe")  # a UnicodeDecodeError once
+    out = vastray("node", *args, "--timeout", "5", cwd=tmp_path)
+    assert out.returncode == 2 and out.stderr.strip() == out.stderr.strip().splitlines()[0]
+    assert out.stderr.startswith(says), out.stderr
+
+
+def test_a_node_timeout_must_be_positive(tmp_path):
+    out = vastray("node", "--coordinator", "tcp://127.0.0.1:1", "--timeout", "-3", cwd=tmp_path)
+    assert out.returncode == 2 and "--timeout: must be a positive finite number" in out.stderr
+
+
+def test_a_listening_coordinator_names_its_address_even_quiet(store, tmp_path):
+    """With ``--listen HOST:0`` the waiting line is the one place the port is said: ``--quiet``
+    once hid it, and the nodes could not be told where to join. A rendezvous file's folder
+    is never created (it was, silently, by the write)."""
+    out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--nodes", "1", "--listen",
+                  "127.0.0.1:0", "--rendezvous", "missing/job.addr", cwd=tmp_path)
+    assert out.returncode == 2 and "--rendezvous's folder missing does not exist" in out.stderr
+    assert not (tmp_path / "missing").exists()
+    out = vastray("render", store.path, "-o", "x.exr", *SMALL, "--nodes", "1", "--listen",
+                  "127.0.0.1:0", "--node-timeout", "2", "--quiet", cwd=tmp_path)
+    assert out.returncode == 3  # no node came
+    assert re.search(r"^waiting for 1 node\(s\) on tcp://127\.0\.0\.1:\d+$", out.stderr,
+                     re.MULTILINE), out.stderr

@@ -18,7 +18,12 @@ from vastray.checkpoint import Checkpointer, read_checkpoint, render_identity, s
 from vastray.checkpoint import default_path as default_checkpoint
 from vastray.outputs import StagedOutputs
 from vastray.planning import RenderPlan, finish_render, plan_render, traces_passes_ahead
-from vastray.preflight import check_inputs_spared, check_output_paths, gigabytes
+from vastray.preflight import (
+    check_inputs_spared,
+    check_output_paths,
+    check_writable_place,
+    gigabytes,
+)
 from vastray.render.driver import RenderResult, store_camera
 from vastray.render.imageio import image_error, write_image, write_png
 from vastray.render.integrators import RenderSettings
@@ -49,6 +54,8 @@ def run(request: RenderRequest, launched: dict | None = None) -> int:
         check_inputs_spared(outputs, request.store,
                             [Path(request.reference)] if isinstance(request.reference, str) else [],
                             checkpoint_path(request), request.resume)
+    if request.rendezvous:
+        check_writable_place(Path(request.rendezvous), "--rendezvous")
     plan = plan_render(request, animating=animating, launched=launched)
     if animating:
         return run_animation(request, store_path=str(plan.store_path), config=plan.config,
