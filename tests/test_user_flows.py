@@ -463,6 +463,8 @@ def test_info_piped_into_head_ends_without_a_traceback(store, tmp_path):
     (["render", "-o", "a.exr", "--integrator", "ao", "--shadow-samples", "0"],
      "--shadow-samples: must be at least 1"),  # a black image once
     (["render", "-o", "a.exr", "--cache", "%"], "--cache: expected N domains or P% of them"),
+    (["render", "-o", "a.exr", "--spp", "1000000000", "--time-limit", "2"],
+     "--spp: at most 1,048,576"),  # planned 6e7 passes up front: 6.5 GB, 39 s (1e12: never)
     (["data", "fetch", "--bogus"], "unrecognized arguments: --bogus"),
 ])
 def test_argument_errors_are_two_lines_naming_the_command_and_the_fix(tmp_path, args, says):
@@ -583,3 +585,15 @@ def test_a_listening_coordinator_names_its_address_even_quiet(store, tmp_path):
     assert out.returncode == 3  # no node came
     assert re.search(r"^waiting for 1 node\(s\) on tcp://127\.0\.0\.1:\d+$", out.stderr,
                      re.MULTILINE), out.stderr
+
+
+def test_data_fetch_into_a_file_or_from_a_missing_mirror_is_one_line(tmp_path):
+    (tmp_path / "file.txt").write_text("junk")
+    (tmp_path / "empty").mkdir()
+    for args, says in ((["-o", "file.txt", "--from", "empty"], "file.txt: -o is a file"),
+                       (["-o", "s", "--from", "nope"], "nope: --from: no such folder")):
+        out = vastray("data", "fetch", *args, cwd=tmp_path)
+        err = out.stderr.strip()
+        assert out.returncode == 2 and err.startswith("vastray data: error: "), err
+        assert says in err and len(err.splitlines()) == 1, err
+    assert (tmp_path / "file.txt").read_text() == "junk" and not (tmp_path / "s").exists()

@@ -150,6 +150,11 @@ def fetch_sample(sample: Sample, folder: Path, mirror: Path | None = None,
 def cmd_fetch(args: argparse.Namespace) -> int:
     folder = Path(args.output)
     mirror = Path(args.mirror) if args.mirror else None
+    if folder.exists() and not folder.is_dir():
+        raise InputError(folder, "-o is a file; give the folder the samples go into")
+    if mirror is not None and not mirror.is_dir():
+        raise InputError(mirror, "--from: no such folder" if not mirror.exists()
+                         else "--from is a file; give the folder holding the samples")
     chosen = [s for s in SAMPLES if not args.only or s.name in args.only]
     made_folder = not folder.exists()
     try:

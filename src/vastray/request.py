@@ -75,6 +75,21 @@ def positive_int(text: str) -> int:
     return value
 
 
+#: Most samples per pixel a render may ask for: the passes are planned up front (about one
+#: per 16 samples past the first few, ``render.progressive.pass_bounds``), and 10**12 once
+#: planned passes until memory ran out before any check. At 2**20 a 64x48 image is already
+#: 3 G paths; for "until the time is up", give this with --time-limit.
+MAX_SPP = 1 << 20
+
+
+def _spp(text: str) -> int:
+    value = positive_int(text)
+    if value > MAX_SPP:
+        raise argparse.ArgumentTypeError(f"at most {MAX_SPP:,} (to render until a time is up, "
+                                         f"give --spp {MAX_SPP} with --time-limit), got {value:,}")
+    return value
+
+
 def _portal_resolution(text: str) -> int:
     value = positive_int(text)
     if value > portals.MAX_RESOLUTION:
@@ -186,7 +201,7 @@ class RenderRequest:
     scene: str | None = _option()
     # the image
     integrator: str = _option("pt", choices=("ao", "pt"))
-    spp: int | None = _option(type=positive_int)
+    spp: int | None = _option(type=_spp)
     bounces: int | None = _option(type=_non_negative)
     shadow_samples: int | None = _option(type=positive_int)
     ao_distance: float | None = _option(type=_positive_float)
