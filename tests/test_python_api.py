@@ -163,6 +163,10 @@ def test_save_writes_every_format_and_png_needs_its_extension(store, tmp_path):
     with pytest.raises(vastray.VastrayError, match="unknown image format"):
         out.save(tmp_path / "o.tiff")
     assert not (tmp_path / "o.tiff").exists()
+    # a typo in a folder never scatters new folders about (save() once made them)
+    with pytest.raises(vastray.VastrayError, match="folder .*missing does not exist"):
+        out.save(tmp_path / "missing" / "o.exr")
+    assert not (tmp_path / "missing").exists()
     assert "32x24, 2 spp pt" in repr(out)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from vastray.actors.results import closing_lines
 from vastray.planning import finish_render, plan_render
+from vastray.preflight import check_writable_place
 from vastray.render.camera import Camera
 from vastray.render.imageio import atomic_path, check_image_path, to_srgb8, write_image
 from vastray.request import OPTIONS, RenderRequest, converted
@@ -97,6 +98,7 @@ class RenderOutput:
             For an unknown extension or a folder in the way.
         """
         path = check_image_path(path, "path")
+        check_writable_place(path, "save()")  # a missing folder is never created
         with atomic_path(path) as tmp:
             write_image(tmp, self.image, self.depth, self.normal, exposure)
         return path
