@@ -11,6 +11,7 @@ import itertools
 import json
 import math
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -1215,3 +1216,21 @@ def test_a_replaced_build_ahead_runs_on_charged_and_is_no_load(domains):
     stats = preloader.stats()
     assert stats["builds_ahead"] == 2 and stats["builds_ahead_used"] == 1
     assert stats["loads"] == 2 and preloader.resident() == {0, 3}
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_simulation_says_one_line(store, tmp_path, sig):
+    """Ctrl-C or a kill during a large simulation: the command's one line, not asyncio's
+    dozens of lines about the virtual nodes' abandoned tasks."""
+    COSTS.save(tmp_path / "costs.json")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vastray.cli", "simulate", store.path, "--nodes", "2000",
+         "--width", "64", "--height", "48", "--spp", "2", "--costs", "costs.json"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    time.sleep(6)  # into the virtual nodes' run (started after about 2 s)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    lines = [line for line in err.strip().splitlines() if not line.startswith("simulating ")]
+    assert proc.returncode in (130, 143), err
+    assert len(lines) == 1 and lines[0].startswith("vastray simulate: "), err

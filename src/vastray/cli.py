@@ -226,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
              "--batch-size or --max-samples-in-flight")
         return 2
     except Terminated as exc:
+        _quiet_abandoned_tasks()
         kept = getattr(exc, "kept", None) or (  # an animation's frames done, or the passes
             "the passes done kept" if getattr(exc, "checkpointed", False)
             else "no output written")
@@ -233,6 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         _say(f"vastray {args.command}: terminated; {stopped}{kept}")
         return 143
     except KeyboardInterrupt as exc:
+        _quiet_abandoned_tasks()
         kept = getattr(exc, "kept", None)
         _say(f"vastray {args.command}: interrupted" + (f"; {kept}" if kept else ""))
         return 130
@@ -289,6 +291,13 @@ def _leading_verbosity(argv: list[str]) -> tuple[int, list[str]]:
         else:
             return verbose, argv[index:]
     return verbose, []
+
+
+def _quiet_abandoned_tasks() -> None:
+    """After Ctrl-C or SIGTERM, asyncio's own log of the tasks the stop abandoned ("Task
+    exception was never retrieved", "Task was destroyed but it is pending!", dozens of lines
+    from ``vastray simulate``'s virtual nodes) is not shown: the one line said is the news."""
+    logging.getLogger("asyncio").setLevel(logging.CRITICAL + 1)
 
 
 def _say(line: str) -> None:
