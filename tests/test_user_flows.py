@@ -597,3 +597,14 @@ def test_data_fetch_into_a_file_or_from_a_missing_mirror_is_one_line(tmp_path):
         assert out.returncode == 2 and err.startswith("vastray data: error: "), err
         assert says in err and len(err.splitlines()) == 1, err
     assert (tmp_path / "file.txt").read_text() == "junk" and not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("nodes, says", [(["../evil"], "node key name '../evil'"),
+                                          (["a", "a"], "--node a is given twice")])
+def test_keys_checks_every_name_before_writing_anything(tmp_path, nodes, says):
+    """A bad name once left a key folder with a coordinator key; a repeated one a node on the
+    allow-list without its bundle."""
+    out = vastray("keys", "-o", "k", *[arg for n in nodes for arg in ("--node", n)],
+                  cwd=tmp_path)
+    assert out.returncode == 2 and says in out.stderr, out.stderr
+    assert not (tmp_path / "k").exists()

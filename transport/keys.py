@@ -77,6 +77,18 @@ def generate_keys(folder: str | os.PathLike, force: bool = False) -> Path:
     return key_file
 
 
+def check_node_name(name: str) -> None:
+    """Refuse a node key name that is not a plain word (it names files and folders).
+
+    Raises
+    ------
+    InputError
+        Saying which characters a name may hold.
+    """
+    if not re.fullmatch(NAME_PATTERN, name) or name == "coordinator":
+        raise InputError(None, f"node key name {name!r}: use letters, digits, '_', '.', '-'")
+
+
 def add_node_key(folder: str | os.PathLike, name: str, force: bool = False) -> Path:
     """Give node ``name`` its own key pair (``nodes/NAME.key``) and put its public key on the
     allow-list (``public/NAME.key``).
@@ -86,9 +98,8 @@ def add_node_key(folder: str | os.PathLike, name: str, force: bool = False) -> P
     InputError
         For a name that is not a plain word, or an existing node key without ``force``.
     """
+    check_node_name(name)
     folder = _key_folder(folder)
-    if not re.fullmatch(NAME_PATTERN, name) or name == "coordinator":
-        raise InputError(None, f"node key name {name!r}: use letters, digits, '_', '.', '-'")
     key_file = folder / NODES_DIR / f"{name}.key"
     if key_file.exists() and not force:
         raise InputError(key_file, "this node has a key already (pass --force to replace it)")

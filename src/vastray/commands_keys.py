@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from vastray.scene.errors import InputError
 from vastray.transport.keys import (
     COORDINATOR_KEY,
     NODES_DIR,
     add_node_key,
+    check_node_name,
     generate_keys,
     load_coordinator_keys,
     load_node_keys,
@@ -49,6 +51,13 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_keys(args: argparse.Namespace) -> int:
+    # every name checked before anything is written (a bad one once left a folder with a
+    # coordinator key, a repeated one a node on the allow-list without its bundle)
+    for name in args.node:
+        check_node_name(name)
+    repeated = sorted({name for name in args.node if args.node.count(name) > 1})
+    if repeated:
+        raise InputError(None, f"--node {repeated[0]} is given twice; name each node once")
     key_file = Path(args.output) / COORDINATOR_KEY
     if key_file.exists() and (args.keep_existing or (args.node and not args.force)):
         load_coordinator_keys(args.output)  # refuses a malformed one
