@@ -295,9 +295,14 @@ def _leading_verbosity(argv: list[str]) -> tuple[int, list[str]]:
 
 def _quiet_abandoned_tasks() -> None:
     """After Ctrl-C or SIGTERM, asyncio's own log of the tasks the stop abandoned ("Task
-    exception was never retrieved", "Task was destroyed but it is pending!", dozens of lines
-    from ``vastray simulate``'s virtual nodes) is not shown: the one line said is the news."""
+    exception was never retrieved", "Task was destroyed but it is pending!", "coroutine ...
+    was never awaited": dozens of lines from ``vastray simulate``'s virtual nodes) is not
+    shown: the one line said is the news."""
     logging.getLogger("asyncio").setLevel(logging.CRITICAL + 1)
+    import warnings
+
+    warnings.filterwarnings("ignore", message="coroutine .* was never awaited",
+                            category=RuntimeWarning)
 
 
 def _say(line: str) -> None:
