@@ -818,7 +818,8 @@ def check_replaceable(path: str | os.PathLike, force: bool) -> None:
     if is_store(path) or not any(path.iterdir()):
         if not force:
             raise InputError(path, "already exists (pass --force to replace it)")
-        foreign = sorted(p.name for p in path.iterdir() if p.name not in _STORE_ENTRIES)
+        foreign = sorted(p.name for p in path.iterdir() if p.name not in _STORE_ENTRIES
+                         and not p.name.startswith(_STORE_TEMPORARIES))
         if foreign:
             raise InputError(path, f"holds {foreign[0]!r}, which is not part of the store "
                                    f"({len(foreign)} such entr{'y' if len(foreign) == 1 else 'ies'}"
@@ -834,4 +835,6 @@ def check_replaceable(path: str | os.PathLike, force: bool) -> None:
 
 #: What a store folder holds (its manifest, its domains, its simplified model): ``--force``
 #: replaces a store only when nothing else is in it.
-_STORE_ENTRIES = frozenset({MANIFEST, "domains", "simplified"})
+_STORE_ENTRIES = frozenset({MANIFEST, "domains", SIMPLIFIED})
+#: The temporaries a killed write leaves in a store (``write_simplified``, the manifest's).
+_STORE_TEMPORARIES = (f".{SIMPLIFIED}.", f".{MANIFEST}.")
