@@ -62,8 +62,13 @@ def read_hostfile(path: str | Path) -> list[Host]:
     return hosts
 
 
+#: How ``vastray launch`` runs a command on a host: no password prompt, and a host that does not
+#: answer is given up after 15 s (an unreachable one once held the launch for 122 s).
+DEFAULT_SSH = "ssh -o BatchMode=yes -o ConnectTimeout=15 -tt"
+
+
 def start_nodes(hosts: list[Host], coordinator: str, bundles: dict[str, str], logs: Path,
-                ssh: str = "ssh -o BatchMode=yes -o ConnectTimeout=15 -tt", timeout: float = 120.0
+                ssh: str = DEFAULT_SSH, timeout: float = 120.0
                 ) -> dict[str, tuple[subprocess.Popen, Path]]:
     """Start one node per host entry over ssh, with ``bundles[HOST]``, the path of that host's
     key bundle on it; returns name -> (process, log file)."""

@@ -42,6 +42,7 @@ from vastray.processes import Terminated, peak_rss_bytes, stoppable
 from vastray.render.film import FILM_BYTES_PER_PIXEL
 from vastray.render.progressive import StopRules
 from vastray.render.scene_config import SceneConfig, parse_scene_config
+from vastray.request import positive_float
 from vastray.scene.cpu_binding import bind_process, parse_cpus
 from vastray.scene.cpus import CpuClock, cgroup_cpu_quota
 from vastray.scene.errors import InputError
@@ -672,16 +673,6 @@ in a Slurm batch script, the coordinator in the background, then one node per ta
 """
 
 
-def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {text}")
-    return value
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="vastray node", description=__doc__, epilog=NODE_EPILOG,
@@ -697,7 +688,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="this node's rank (default: the launcher's, from SLURM_PROCID, "
                              "PMI_RANK, PMIX_RANK or OMPI_COMM_WORLD_RANK; else assigned by "
                              "the coordinator)")
-    parser.add_argument("--timeout", type=_positive_seconds, default=120.0,
+    parser.add_argument("--timeout", type=positive_float, default=120.0,
                         help="seconds a wait may last without a word from the coordinator "
                              "before the node gives up; a node done with its share waits as "
                              "long as the coordinator speaks (default: %(default)s)")

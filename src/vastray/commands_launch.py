@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from vastray.actors.launch import DEFAULT_SSH
 from vastray.commands_render import add_render_arguments
 from vastray.execute import run
 from vastray.request import DEFAULT_NODE_TIMEOUT_S, RenderRequest, positive_int
@@ -41,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     launch.add_argument("--advertise", help="address the hosts reach this machine at "
                                             "(default: its fully qualified host name)")
     launch.add_argument("--port", type=positive_int, help="coordinator port (default: a free one)")
-    launch.add_argument("--ssh", default="ssh -o BatchMode=yes -o ConnectTimeout=15 -tt",
+    launch.add_argument("--ssh", default=DEFAULT_SSH,
                         help="command that runs a command on a host (default: %(default)s)")
     launch.add_argument("--node-keys", metavar="PATH",
                         help="where each host holds its own bundle, a copy of "

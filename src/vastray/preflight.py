@@ -551,7 +551,7 @@ def check_inputs_spared(outputs: list[Path], store: str | Path | None,
     from vastray.checkpoint import is_checkpoint
 
     store_dir = None if store is None else Path(store).resolve()
-    compared = {Path(r).resolve(): Path(r) for r in references}
+    compared = {Path(r).resolve() for r in references}
     written = [("output", p) for p in outputs]
     if checkpoint is not None:
         written.append(("checkpoint", Path(checkpoint)))

@@ -164,7 +164,8 @@ def _finite_float(text: str) -> float:
     return value
 
 
-def _positive_float(text: str) -> float:
+def positive_float(text: str) -> float:
+    """An option's positive finite number (argparse type)."""
     try:
         value = float(text)
     except ValueError:
@@ -204,7 +205,7 @@ class RenderRequest:
     spp: int | None = _option(type=_spp)
     bounces: int | None = _option(type=_non_negative)
     shadow_samples: int | None = _option(type=positive_int)
-    ao_distance: float | None = _option(type=_positive_float)
+    ao_distance: float | None = _option(type=positive_float)
     width: int | None = _option(type=positive_int)
     height: int | None = _option(type=positive_int)
     seed: int = _option(0, type=_non_negative)
@@ -216,9 +217,9 @@ class RenderRequest:
     max_samples_in_flight: int | None = _option(type=positive_int)
     history_depth: int | None = _option(type=_non_negative)
     nodes: int | None = _option(type=positive_int)
-    node_timeout: float | None = _option(type=_positive_float)
+    node_timeout: float | None = _option(type=positive_float)
     log_dir: str | None = _option()
-    heartbeat_timeout: float | None = _option(type=_positive_float)
+    heartbeat_timeout: float | None = _option(type=positive_float)
     listen: str | None = _option(type=_host_port)
     rendezvous: str | None = _option()
     keys: str | None = _option()
@@ -244,16 +245,16 @@ class RenderRequest:
     reference: str | np.ndarray | None = _option()
     frames: int | None = _option(type=positive_int)
     first_frame: int | None = _option(type=_non_negative)
-    exposure: float | None = _option(type=_positive_float)
+    exposure: float | None = _option(type=positive_float)
     colormap: str | None = _option()
     color_range: list[float] | None = _option(type=_finite_float, nargs=2)
     legend: bool | None = _option(switch=True)
     quiet: bool = _option(False, switch=True)
     # progressive passes, stopping rules and checkpoints
-    time_limit: float | None = _option(type=_positive_float)
-    target_error: float | None = _option(type=_positive_float)
+    time_limit: float | None = _option(type=positive_float)
+    target_error: float | None = _option(type=positive_float)
     max_pass_spp: int | None = _option(type=positive_int)
-    checkpoint_every: float | None = _option(type=_positive_float)
+    checkpoint_every: float | None = _option(type=positive_float)
     checkpoint: str | None = _option()
     resume: str | None = _option()
     #: the view, replacing the scene's ``[camera]`` (``scene_camera.with_camera``): the
